@@ -1,0 +1,43 @@
+# loopmodel — the README's two commands: `make demo` and `make test`.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+SHARED ?= ../shared
+
+.PHONY: demo test setup syslibs lint bench clean
+
+setup: syslibs $(STAMP)
+
+# open3d 0.20 fails to import without Debian's libusb-1.0-0.
+syslibs:
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	    echo "installing libusb-1.0-0 (needed by open3d)"; \
+	    (apt-get install -y -q libusb-1.0-0 >/dev/null 2>&1 || \
+	     (apt-get update -q >/dev/null && apt-get install -y -q libusb-1.0-0 >/dev/null)) || \
+	     { echo "error: could not install Debian package libusb-1.0-0 (needed by open3d)"; exit 1; }; \
+	  else \
+	    echo "error: open3d needs the Debian package libusb-1.0-0; install it: sudo apt-get install libusb-1.0-0"; exit 1; \
+	  fi; \
+	fi
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev]'
+	@touch $(STAMP)
+
+demo: setup
+	@bash tools/demo.sh
+
+test: setup
+	$(PY) -m pytest -q -x --durations=15
+
+lint: setup
+	$(VENV)/bin/ruff check loopmodel tests tools
+	$(VENV)/bin/mypy loopmodel
+
+clean:
+	rm -rf $(VENV) results build *.egg-info

@@ -1,0 +1,98 @@
+"""Typed configuration: one nested pydantic model with defaults in code.
+
+A YAML file overrides any part of it; an unknown key is an error that names the key.
+Every run writes the effective configuration into its results folder.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from loopmodel.errors import ConfigError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class TopicsConfig(_Section):
+    """MCAP topic names (DESIGN.md)."""
+
+    left_image: str = "/cam0/image_raw"
+    right_image: str = "/cam1/image_raw"
+    left_info: str = "/cam0/camera_info"
+    right_info: str = "/cam1/camera_info"
+    stripe: str = "/laser/stripe"
+    laser_image: str = "/laser/image"
+    ground_truth: str = "/ground_truth/pose"
+
+
+class SequenceConfig(_Section):
+    """How sequences are read."""
+
+    topics: TopicsConfig = Field(default_factory=TopicsConfig)
+    stereo_pair_tolerance_ns: int = Field(1_000_000, ge=0, description="max left/right stamp gap")
+    kitti_rate_hz: float = Field(10.0, gt=0, description="frame rate when times.txt is absent")
+
+
+class OutputConfig(_Section):
+    """Where and what a run writes."""
+
+    out_dir: str = "results"
+    write_kitti: bool = False
+    image_format: str = Field("png", pattern="^(raw|png|jpeg)$", description="MCAP image encoding")
+
+
+class Config(_Section):
+    """The whole configuration of loopmodel."""
+
+    sequence: SequenceConfig = Field(default_factory=SequenceConfig)
+    output: OutputConfig = Field(default_factory=OutputConfig)
+
+
+def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def config_from_dict(data: dict[str, Any], source: str | Path | None = None) -> Config:
+    """Validate a (partial) nested dict over the defaults; errors name the key."""
+    merged = _deep_merge(Config().model_dump(), data)
+    try:
+        return Config.model_validate(merged)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        key = ".".join(str(p) for p in err["loc"])
+        if err["type"] == "extra_forbidden":
+            raise ConfigError(source, f"unknown key '{key}'") from None
+        raise ConfigError(source, f"key '{key}': {err['msg']}") from None
+
+
+def load_config(path: str | Path | None = None) -> Config:
+    """Defaults overridden by the YAML file at ``path`` (when given)."""
+    if path is None:
+        return Config()
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(p, "configuration file does not exist")
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(p, f"not valid YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(p, "expected a mapping of sections at the top level")
+    return config_from_dict(data, p)
+
+
+def dump_config(config: Config) -> str:
+    """The configuration as YAML text (every key, defaults included)."""
+    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)

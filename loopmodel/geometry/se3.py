@@ -1,0 +1,161 @@
+"""SO(3)/SE(3) helpers on 4x4 homogeneous matrices.
+
+Conventions: a pose ``a_from_b`` maps points in frame b to frame a; twists are ordered
+translation first, ``xi = (v_x, v_y, v_z, w_x, w_y, w_z)`` (as in visual servoing), and
+``se3_exp`` is the exact exponential of SE(3). Quaternions are ``(w, x, y, z)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+F64 = NDArray[np.float64]
+
+
+def hat(w: ArrayLike) -> F64:
+    """Skew-symmetric matrix [w]x with [w]x v = w x v."""
+    x, y, z = np.asarray(w, dtype=float).reshape(3)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def so3_exp(w: ArrayLike) -> F64:
+    """Rotation matrix of the rotation vector w (axis times angle, radians)."""
+    w = np.asarray(w, dtype=float).reshape(3)
+    theta2 = float(w @ w)
+    K = hat(w)
+    if theta2 < 1e-16:
+        return np.eye(3) + K + 0.5 * (K @ K)
+    theta = np.sqrt(theta2)
+    return np.eye(3) + (np.sin(theta) / theta) * K + ((1.0 - np.cos(theta)) / theta2) * (K @ K)
+
+
+def so3_log(R: ArrayLike) -> F64:
+    """Rotation vector (radians) of a rotation matrix; exact near 0 and near pi."""
+    R = np.asarray(R, dtype=float)
+    cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = float(np.arccos(cos_theta))
+    vee = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-7:
+        return 0.5 * vee
+    if np.pi - theta < 1e-4:
+        # Near pi: axis from the symmetric part, sign from the antisymmetric part.
+        B = (R + R.T) / 2.0 - cos_theta * np.eye(3)
+        k = int(np.argmax(np.diag(B)))
+        axis = B[:, k] / np.sqrt(max(B[k, k], 1e-300))
+        if axis @ vee < 0:
+            axis = -axis
+        return theta * axis / np.linalg.norm(axis)
+    return theta / (2.0 * np.sin(theta)) * vee
+
+
+def _left_jacobian_so3(w: F64) -> F64:
+    theta2 = float(w @ w)
+    K = hat(w)
+    if theta2 < 1e-12:
+        return np.eye(3) + 0.5 * K + (K @ K) / 6.0
+    theta = np.sqrt(theta2)
+    return (
+        np.eye(3)
+        + ((1.0 - np.cos(theta)) / theta2) * K
+        + ((theta - np.sin(theta)) / (theta2 * theta)) * (K @ K)
+    )
+
+
+def se3_exp(xi: ArrayLike) -> F64:
+    """4x4 pose of the twist ``xi = (v, w)`` (metres, radians)."""
+    xi = np.asarray(xi, dtype=float).reshape(6)
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(xi[3:])
+    T[:3, 3] = _left_jacobian_so3(xi[3:]) @ xi[:3]
+    return T
+
+
+def se3_log(T: ArrayLike) -> F64:
+    """Twist ``(v, w)`` of a 4x4 pose, inverse of :func:`se3_exp`."""
+    T = np.asarray(T, dtype=float)
+    w = so3_log(T[:3, :3])
+    v = np.linalg.solve(_left_jacobian_so3(w), T[:3, 3])
+    return np.concatenate([v, w])
+
+
+def make_pose(R: ArrayLike, t: ArrayLike) -> F64:
+    """4x4 pose from a 3x3 rotation and a translation (metres)."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=float)
+    T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
+    return T
+
+
+def invert_pose(T: ArrayLike) -> F64:
+    """Inverse of a 4x4 rigid transform (``b_from_a`` from ``a_from_b``); batches allowed."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def rotation_from_quat_wxyz(q: ArrayLike) -> F64:
+    """Rotation matrix (or a batch) of unit quaternions ordered (w, x, y, z)."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    R[..., 0, 1] = 2 * (x * y - z * w)
+    R[..., 0, 2] = 2 * (x * z + y * w)
+    R[..., 1, 0] = 2 * (x * y + z * w)
+    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    R[..., 1, 2] = 2 * (y * z - x * w)
+    R[..., 2, 0] = 2 * (x * z - y * w)
+    R[..., 2, 1] = 2 * (y * z + x * w)
+    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
+def quat_wxyz_from_rotation(R: ArrayLike) -> F64:
+    """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix or a batch of them."""
+    R = np.asarray(R, dtype=float)
+    batch = R.reshape(-1, 3, 3)
+    out = np.empty((batch.shape[0], 4))
+    for k, m in enumerate(batch):
+        tr = m[0, 0] + m[1, 1] + m[2, 2]
+        if tr > 0:
+            s = np.sqrt(tr + 1.0) * 2
+            q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+        elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+            s = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+            q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+        elif m[1, 1] > m[2, 2]:
+            s = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+            q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+        else:
+            s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+            q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+        qa = np.asarray(q)
+        qa /= np.linalg.norm(qa)
+        out[k] = -qa if qa[0] < 0 else qa
+    return out.reshape(R.shape[:-2] + (4,))
+
+
+def interpolate_pose(a_from_b0: ArrayLike, a_from_b1: ArrayLike, alpha: float) -> F64:
+    """Pose at fraction ``alpha`` in [0, 1] between two poses: rotation along the geodesic
+    of SO(3), translation linear. Returns an exact SE(3) element."""
+    T0 = np.asarray(a_from_b0, dtype=float)
+    T1 = np.asarray(a_from_b1, dtype=float)
+    R0 = T0[:3, :3]
+    dR = so3_exp(alpha * so3_log(R0.T @ T1[:3, :3]))
+    return make_pose(R0 @ dR, (1.0 - alpha) * T0[:3, 3] + alpha * T1[:3, 3])
+
+
+def is_rotation(R: ArrayLike, tol: float = 1e-6) -> bool:
+    """True when R is a proper rotation (orthonormal, det +1) within ``tol``."""
+    R = np.asarray(R, dtype=float)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        return False
+    return bool(np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1) < tol)

@@ -1,0 +1,66 @@
+"""The sequence interface every reader implements."""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Iterator
+from pathlib import Path
+
+from loopmodel.types import StereoCalibration, StereoFrame, StripeProfile, Trajectory
+
+
+class Sequence(abc.ABC):
+    """A recorded stereo sequence. Frames and stripes stream in time order; nothing but the
+    calibration and the ground truth is held in memory."""
+
+    format_name: str = "?"
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    @property
+    @abc.abstractmethod
+    def calibration(self) -> StereoCalibration:
+        """Stereo calibration of the sequence."""
+
+    @property
+    def ground_truth(self) -> Trajectory | None:
+        """Ground-truth ``world_from_cam0`` poses, or None."""
+        return None
+
+    @abc.abstractmethod
+    def frames(self) -> Iterator[StereoFrame]:
+        """Stereo pairs in time order (images loaded one pair at a time)."""
+
+    def stripes(self) -> Iterator[StripeProfile]:
+        """Laser-stripe profiles in time order (none for formats without stripes)."""
+        return iter(())
+
+    def stripe_count(self) -> int | None:
+        """Number of stripe profiles when known without reading them."""
+        return 0
+
+    @abc.abstractmethod
+    def __len__(self) -> int:
+        """Number of stereo frames."""
+
+    def frame_times_ns(self) -> list[int] | None:
+        """Frame timestamps when the format lists them without decoding images."""
+        return None
+
+    def describe(self) -> dict[str, object]:
+        """Summary for ``loopmodel info``."""
+        times = self.frame_times_ns()
+        duration = (times[-1] - times[0]) * 1e-9 if times and len(times) > 1 else None
+        cal = self.calibration
+        return {
+            "path": str(self.path),
+            "format": self.format_name,
+            "frames": len(self),
+            "duration_s": duration,
+            "image_size": list(cal.image_size),
+            "calibration": cal.summary(),
+            "ground_truth": self.ground_truth is not None,
+            "ground_truth_poses": len(self.ground_truth) if self.ground_truth is not None else 0,
+            "stripes": self.stripe_count(),
+        }

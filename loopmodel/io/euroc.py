@@ -1,0 +1,144 @@
+"""EuRoC ASL folders: ``mav0/cam0``, ``mav0/cam1`` (``data.csv``, ``data/``, ``sensor.yaml``)
+and optional ``mav0/state_groundtruth_estimate0/data.csv``. Images are not rectified; the
+calibration says so and the front end rectifies."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from loopmodel.errors import CalibrationError, FormatError, InputError
+from loopmodel.geometry.se3 import invert_pose
+from loopmodel.io.base import Sequence
+from loopmodel.io.images import read_image
+from loopmodel.io.trajectory_io import read_trajectory
+from loopmodel.types import StereoCalibration, StereoFrame, Trajectory
+
+
+def euroc_root(path: Path) -> Path | None:
+    """The folder holding ``cam0``/``cam1`` (the path itself or its ``mav0``), or None."""
+    for root in (path / "mav0", path):
+        if (root / "cam0" / "data.csv").is_file() and (root / "cam1" / "data.csv").is_file():
+            return root
+    return None
+
+
+def _read_sensor_yaml(path: Path) -> dict:
+    if not path.is_file():
+        raise CalibrationError(path, "camera sensor.yaml is missing")
+    text = "\n".join(s for s in path.read_text().splitlines() if not s.startswith("%"))
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError:
+        raise CalibrationError(path, "sensor.yaml is not valid YAML") from None
+    for key in ("T_BS", "intrinsics", "resolution"):
+        if key not in data:
+            raise CalibrationError(path, f"sensor.yaml lacks key '{key}'")
+    return data
+
+
+def _camera_from_yaml(data: dict, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
+    try:
+        body_from_cam = np.array(data["T_BS"]["data"], dtype=float).reshape(4, 4)
+        fu, fv, cu, cv = (float(v) for v in data["intrinsics"])
+        dist = np.array(data.get("distortion_coefficients", [0, 0, 0, 0]), dtype=float)
+        w, h = (int(v) for v in data["resolution"])
+    except (KeyError, TypeError, ValueError):
+        raise CalibrationError(path, "sensor.yaml: T_BS, intrinsics or resolution malformed") from None
+    K = np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1.0]])
+    if dist.size == 4:
+        dist = np.append(dist, 0.0)
+    return K, dist, body_from_cam, (w, h)
+
+
+def _read_index(csv: Path) -> tuple[list[int], list[str]]:
+    times: list[int] = []
+    names: list[str] = []
+    for lineno, line in enumerate(csv.read_text().splitlines(), 1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = [p.strip() for p in s.split(",")]
+        if len(parts) != 2:
+            raise FormatError(csv, f"line {lineno}: expected 2 columns (timestamp, filename)")
+        try:
+            t = int(parts[0])
+        except ValueError:
+            raise FormatError(csv, f"line {lineno}: timestamp is not an integer") from None
+        if times and t <= times[-1]:
+            raise FormatError(csv, f"line {lineno}: timestamps go backwards ({t} after {times[-1]})")
+        times.append(t)
+        names.append(parts[1])
+    return times, names
+
+
+class EurocSequence(Sequence):
+    """A EuRoC MAV sequence (stereo pairs matched by timestamp)."""
+
+    format_name = "euroc"
+
+    def __init__(self, path: Path, tolerance_ns: int = 1_000_000) -> None:
+        super().__init__(path)
+        root = euroc_root(path)
+        if root is None:
+            raise FormatError(path, "not a EuRoC folder (mav0/cam0/data.csv and mav0/cam1/data.csv)")
+        self._root = root
+        tl, nl = _read_index(root / "cam0" / "data.csv")
+        tr, nr = _read_index(root / "cam1" / "data.csv")
+        self._pairs: list[tuple[int, Path, Path]] = []
+        j = 0
+        for t, name in zip(tl, nl, strict=True):
+            while j < len(tr) and tr[j] < t - tolerance_ns:
+                j += 1
+            if j < len(tr) and abs(tr[j] - t) <= tolerance_ns:
+                self._pairs.append((t, root / "cam0" / "data" / name, root / "cam1" / "data" / nr[j]))
+                j += 1
+        if not self._pairs:
+            raise InputError(path, "no left/right image pairs with matching timestamps")
+        K0, d0, body_from_cam0, size0 = _camera_from_yaml(
+            _read_sensor_yaml(root / "cam0" / "sensor.yaml"), root / "cam0" / "sensor.yaml"
+        )
+        K1, d1, body_from_cam1, size1 = _camera_from_yaml(
+            _read_sensor_yaml(root / "cam1" / "sensor.yaml"), root / "cam1" / "sensor.yaml"
+        )
+        if size0 != size1:
+            raise InputError(path, f"left and right image sizes differ: {size0} vs {size1}")
+        right_from_left = invert_pose(body_from_cam1) @ body_from_cam0
+        self._body_from_cam0 = body_from_cam0
+        self._calibration = StereoCalibration(
+            K0, K1, right_from_left, size0, d0, d1, rectified=False
+        ).check(str(root / "cam0" / "sensor.yaml"))
+        self._gt = self._read_ground_truth(root)
+
+    def _read_ground_truth(self, root: Path) -> Trajectory | None:
+        gt = root / "state_groundtruth_estimate0" / "data.csv"
+        if not gt.is_file():
+            return None
+        world_from_body = read_trajectory(gt, "euroc")
+        return Trajectory(world_from_body.timestamps_ns, world_from_body.world_from_cam @ self._body_from_cam0)
+
+    @property
+    def calibration(self) -> StereoCalibration:
+        return self._calibration
+
+    @property
+    def ground_truth(self) -> Trajectory | None:
+        return self._gt
+
+    def __len__(self) -> int:
+        return len(self._pairs)
+
+    def frame_times_ns(self) -> list[int]:
+        return [t for t, _, _ in self._pairs]
+
+    def frames(self) -> Iterator[StereoFrame]:
+        size = self._calibration.image_size
+        for i, (t, lp, rp) in enumerate(self._pairs):
+            left, right = read_image(lp), read_image(rp)
+            for p, img in ((lp, left), (rp, right)):
+                if (img.shape[1], img.shape[0]) != size:
+                    raise InputError(p, f"image size {img.shape[1]}x{img.shape[0]}, expected {size[0]}x{size[1]}")
+            yield StereoFrame(t, left, right, i)

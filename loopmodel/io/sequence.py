@@ -1,0 +1,61 @@
+"""``open_sequence``: pick the reader for a path (MCAP file, EuRoC folder, KITTI folder)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from loopmodel.config import SequenceConfig
+from loopmodel.errors import FormatError, InputError
+from loopmodel.io.base import Sequence
+from loopmodel.io.euroc import EurocSequence, euroc_root
+from loopmodel.io.kitti import KittiSequence, is_kitti_folder
+from loopmodel.io.mcap_io import McapSequence, McapSequenceWriter, is_mcap
+
+__all__ = ["Sequence", "open_sequence", "convert_to_mcap"]
+
+
+def open_sequence(path: str | Path, config: SequenceConfig | None = None) -> Sequence:
+    """Open a recorded sequence; raises :class:`InputError` naming the path when it is
+    missing or of an unknown layout."""
+    cfg = config or SequenceConfig()
+    p = Path(path)
+    if not p.exists():
+        raise InputError(p, "path does not exist")
+    if p.is_file():
+        if p.suffix.lower() == ".mcap" or is_mcap(p):
+            return McapSequence(p, cfg.topics, cfg.stereo_pair_tolerance_ns)
+        raise FormatError(p, "unknown file type (expected an .mcap file or a EuRoC/KITTI folder)")
+    if euroc_root(p) is not None:
+        return EurocSequence(p, cfg.stereo_pair_tolerance_ns)
+    if is_kitti_folder(p):
+        return KittiSequence(p, cfg.kitti_rate_hz)
+    found = ", ".join(sorted(x.name for x in p.iterdir())[:8]) or "empty folder"
+    raise FormatError(
+        p,
+        "unknown folder layout (expected EuRoC mav0/cam0+cam1 or KITTI image_0+image_1 with calib.txt); "
+        f"found: {found}",
+    )
+
+
+def convert_to_mcap(
+    seq: Sequence,
+    dst: str | Path,
+    config: SequenceConfig | None = None,
+    image_format: str = "png",
+    progress: Callable[[int], None] | None = None,
+) -> Path:
+    """Write a sequence (frames, stripes, ground truth) to an MCAP file, atomically.
+    ``progress`` is called with the number of frames written so far."""
+    cfg = config or SequenceConfig()
+    with McapSequenceWriter(dst, seq.calibration, cfg.topics, image_format) as writer:
+        if seq.ground_truth is not None:
+            writer.write_trajectory(seq.ground_truth)
+        for stripe in seq.stripes():
+            writer.write_stripe(stripe)
+        for i, frame in enumerate(seq.frames(), 1):
+            writer.write_frame(frame)
+            if progress is not None:
+                progress(i)
+        writer.add_metadata("source", {"path": str(seq.path), "format": seq.format_name})
+    return Path(dst)

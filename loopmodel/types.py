@@ -1,0 +1,168 @@
+"""The data every stage shares: calibration, frames, stripe profiles, trajectories.
+
+Times are ``int`` nanoseconds; poses are 4x4 ``world_from_cam`` matrices (metres); the
+camera frame is x right, y down, z forward.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from loopmodel.errors import CalibrationError, InputError
+from loopmodel.geometry.camera import CentralCamera
+from loopmodel.geometry.se3 import is_rotation
+
+
+@dataclass
+class StereoCalibration:
+    """Intrinsics of the left and right cameras and their relative pose.
+
+    ``K_left``/``K_right`` are 3x3 (pixels), ``dist_*`` OpenCV distortion coefficients,
+    ``right_from_left`` a 4x4 rigid transform (metres), ``image_size`` is (width, height)
+    in pixels. ``rectified`` means row-aligned images with no distortion, where the
+    baseline lies along x.
+    """
+
+    K_left: NDArray[np.float64]
+    K_right: NDArray[np.float64]
+    right_from_left: NDArray[np.float64]
+    image_size: tuple[int, int]
+    dist_left: NDArray[np.float64] = field(default_factory=lambda: np.zeros(5))
+    dist_right: NDArray[np.float64] = field(default_factory=lambda: np.zeros(5))
+    rectified: bool = True
+
+    def __post_init__(self) -> None:
+        self.K_left = np.asarray(self.K_left, dtype=float).reshape(3, 3)
+        self.K_right = np.asarray(self.K_right, dtype=float).reshape(3, 3)
+        self.right_from_left = np.asarray(self.right_from_left, dtype=float).reshape(4, 4)
+        self.dist_left = np.asarray(self.dist_left, dtype=float).ravel()
+        self.dist_right = np.asarray(self.dist_right, dtype=float).ravel()
+        self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
+
+    def check(self, source: str | None = None) -> StereoCalibration:
+        """Raise :class:`CalibrationError` unless finite, positive focal lengths, baseline > 0."""
+        for name, K in (("left", self.K_left), ("right", self.K_right)):
+            if not np.all(np.isfinite(K)):
+                raise CalibrationError(source, f"{name} camera matrix has non-finite values")
+            if K[0, 0] <= 0 or K[1, 1] <= 0:
+                raise CalibrationError(
+                    source, f"{name} focal length must be positive, got fx={K[0, 0]}, fy={K[1, 1]}"
+                )
+        for name, d in (("left", self.dist_left), ("right", self.dist_right)):
+            if not np.all(np.isfinite(d)):
+                raise CalibrationError(source, f"{name} distortion has non-finite values")
+        if not np.all(np.isfinite(self.right_from_left)) or not is_rotation(
+            self.right_from_left[:3, :3], 1e-5
+        ):
+            raise CalibrationError(source, "right_from_left is not a finite rigid transform")
+        if self.baseline_m <= 0:
+            raise CalibrationError(source, f"stereo baseline must be > 0 m, got {self.baseline_m}")
+        if self.image_size[0] <= 0 or self.image_size[1] <= 0:
+            raise CalibrationError(source, f"image size must be positive, got {self.image_size}")
+        return self
+
+    @property
+    def baseline_m(self) -> float:
+        """Distance between the two projection centres (metres)."""
+        return float(np.linalg.norm(self.right_from_left[:3, 3]))
+
+    @property
+    def fx_px(self) -> float:
+        """Left focal length along x (pixels)."""
+        return float(self.K_left[0, 0])
+
+    def left_camera(self) -> CentralCamera:
+        """Pinhole model of the left camera (distortion not included)."""
+        return CentralCamera.from_K(self.K_left)
+
+    def right_camera(self) -> CentralCamera:
+        """Pinhole model of the right camera (distortion not included)."""
+        return CentralCamera.from_K(self.K_right)
+
+    def summary(self) -> dict[str, object]:
+        """Plain numbers for display and JSON."""
+        K = self.K_left
+        return {
+            "fx_px": float(K[0, 0]),
+            "fy_px": float(K[1, 1]),
+            "cx_px": float(K[0, 2]),
+            "cy_px": float(K[1, 2]),
+            "baseline_m": self.baseline_m,
+            "image_size": list(self.image_size),
+            "rectified": self.rectified,
+        }
+
+
+@dataclass
+class StereoFrame:
+    """One stereo pair; images as numpy arrays (uint8 grey HxW or BGR HxWx3)."""
+
+    timestamp_ns: int
+    left: NDArray[np.uint8]
+    right: NDArray[np.uint8]
+    index: int = 0
+
+
+@dataclass
+class StripeProfile:
+    """One laser-stripe profile: N x 3 points (metres) in the left-camera frame."""
+
+    timestamp_ns: int
+    points_in_cam: NDArray[np.float64]
+
+
+@dataclass
+class Trajectory:
+    """Timed poses: ``timestamps_ns`` (N, int64) and ``world_from_cam`` (N x 4 x 4, metres)."""
+
+    timestamps_ns: NDArray[np.int64]
+    world_from_cam: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        self.timestamps_ns = np.asarray(self.timestamps_ns, dtype=np.int64).ravel()
+        self.world_from_cam = np.asarray(self.world_from_cam, dtype=float).reshape(-1, 4, 4)
+
+    def __len__(self) -> int:
+        return int(self.timestamps_ns.shape[0])
+
+    @property
+    def positions_m(self) -> NDArray[np.float64]:
+        """N x 3 camera positions in the world frame (metres)."""
+        return self.world_from_cam[:, :3, 3]
+
+    @property
+    def timestamps_s(self) -> NDArray[np.float64]:
+        """Times in seconds (float; lossy beyond microseconds for epoch times)."""
+        return self.timestamps_ns.astype(np.float64) * 1e-9
+
+    def check(self, source: str | None = None) -> Trajectory:
+        """Raise :class:`InputError` unless shapes agree, rotations are proper and times
+        strictly increase."""
+        n = len(self)
+        if self.world_from_cam.shape != (n, 4, 4):
+            raise InputError(source, f"{n} timestamps but {self.world_from_cam.shape[0]} poses")
+        if not np.all(np.isfinite(self.world_from_cam)):
+            raise InputError(source, "trajectory has non-finite pose values")
+        R = self.world_from_cam[:, :3, :3]
+        ortho = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+        det = np.linalg.det(R)
+        bad = np.flatnonzero((ortho > 1e-4) | (np.abs(det - 1) > 1e-4))
+        if bad.size:
+            raise InputError(source, f"pose {int(bad[0])} is not a proper rotation")
+        steps = np.diff(self.timestamps_ns)
+        back = np.flatnonzero(steps <= 0)
+        if back.size:
+            i = int(back[0])
+            raise InputError(
+                source,
+                f"timestamps must strictly increase: entry {i + 1} ({self.timestamps_ns[i + 1]} ns) "
+                f"follows {self.timestamps_ns[i]} ns",
+            )
+        return self
+
+    def slice(self, mask: NDArray[np.bool_] | slice) -> Trajectory:
+        """Subset of the poses (a boolean mask or a slice)."""
+        return Trajectory(self.timestamps_ns[mask], self.world_from_cam[mask])
