@@ -47,11 +47,36 @@ class OutputConfig(_Section):
     image_format: str = Field("png", pattern="^(raw|png|jpeg)$", description="MCAP image encoding")
 
 
+class MappingConfig(_Section):
+    """Laser-stripe integration and open3d meshing (lengths in metres, world frame)."""
+
+    method: str = Field("poisson", pattern="^(poisson|ball_pivoting)$", description="surface method")
+    voxel_m: float = Field(0.0015, gt=0, description="voxel down-sampling size before meshing")
+    normal_radius_m: float = Field(0.006, gt=0, description="neighbourhood radius for normals")
+    normal_max_nn: int = Field(20, ge=3, description="max neighbours for normals")
+    poisson_depth: int = Field(0, ge=0, le=12, description="octree depth; 0 = from voxel_m")
+    poisson_max_depth: int = Field(10, ge=4, le=12, description="cap on the derived depth")
+    poisson_scale: float = Field(1.1, gt=1.0, description="bounding cube / samples' bounding box")
+    poisson_linear_fit: bool = True
+    density_quantile: float = Field(0.02, ge=0, lt=1, description="trim vertices below this density quantile")
+    trim_distance_m: float = Field(0.0, ge=0, description="drop vertices farther from samples; 0 = 2.5 x voxel_m")
+    bpa_radii_m: list[float] = Field(default_factory=list, description="ball radii; empty = 1, 2, 4 x voxel_m")
+    max_stripe_gap_ns: int = Field(200_000_000, ge=0, description="max frame-time gap a stripe may be placed in")
+    chunk_m: float = Field(0.05, gt=0, description="block edge of the chunked live mesh")
+    chunk_margin_m: float = Field(0.006, ge=0, description="overlap meshed around each live block")
+    min_points: int = Field(100, ge=4, description="fewest points a surface is made from")
+    peak_min_contrast: float = Field(20.0, ge=0, description="laser line: min peak above background (grey levels)")
+    peak_window_px: int = Field(3, ge=1, description="laser line: half-width of the sub-pixel window")
+    peak_method: str = Field("cog", pattern="^(cog|gauss)$", description="laser line sub-pixel method")
+    peak_axis: str = Field("columns", pattern="^(columns|rows)$", description="one peak per image column or row")
+
+
 class Config(_Section):
     """The whole configuration of loopmodel."""
 
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    mapping: MappingConfig = Field(default_factory=MappingConfig)
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
