@@ -1,13 +1,16 @@
 """Mesh files: binary PLY (default), OBJ, STL and GLB written by open3d, atomically.
 
 Meshes are in metres in the world frame of the run. PLY and OBJ files say so in a header
-comment, STL in its 80-byte header; glTF (GLB) is metres by definition.
+comment, STL in its 80-byte header, GLB in ``asset.extras`` (glTF is metres by definition).
 """
 
 from __future__ import annotations
 
+import base64
 import contextlib
+import json
 import os
+import struct
 from pathlib import Path
 
 import open3d as o3d
@@ -16,6 +19,37 @@ from loopmodel.errors import InputError
 
 MESH_FORMATS = ("ply", "obj", "stl", "glb")
 UNITS_NOTE = "loopmodel mesh: units metres, world frame of the run"
+
+
+def _glb_embed_buffer(data: bytes, note: str) -> bytes:
+    """open3d 0.20 writes GLB files whose buffer is a base64 data URI inside the JSON chunk,
+    which readers (assimp, hence open3d itself) reject. Move that buffer into the binary
+    chunk, as the GLB layout intends, and record the units note in ``asset.extras``."""
+    magic, version, _ = struct.unpack_from("<4sII", data, 0)
+    if magic != b"glTF" or version != 2:
+        return data
+    json_len, json_type = struct.unpack_from("<I4s", data, 12)
+    if json_type != b"JSON":
+        return data
+    doc = json.loads(data[20 : 20 + json_len])
+    rest = data[20 + json_len :]
+    buffers = doc.get("buffers", [])
+    uri = buffers[0].get("uri", "") if buffers else ""
+    if rest or not uri.startswith("data:") or ";base64," not in uri:
+        return data
+    binary = base64.b64decode(uri.split(";base64,", 1)[1])
+    del buffers[0]["uri"]
+    buffers[0]["byteLength"] = len(binary)
+    doc.setdefault("asset", {}).setdefault("extras", {})["loopmodel"] = note
+    js = json.dumps(doc, separators=(",", ":")).encode("utf-8")
+    js += b" " * (-len(js) % 4)
+    binary += b"\0" * (-len(binary) % 4)
+    total = 12 + 8 + len(js) + 8 + len(binary)
+    return (
+        struct.pack("<4sII", b"glTF", 2, total)
+        + struct.pack("<I4s", len(js), b"JSON") + js
+        + struct.pack("<I4s", len(binary), b"BIN\0") + binary
+    )
 
 
 def _add_header_note(path: Path, fmt: str, note: str) -> None:
@@ -33,6 +67,8 @@ def _add_header_note(path: Path, fmt: str, note: str) -> None:
         data = f"# {note}\n".encode("ascii") + data
     elif fmt == "stl" and not data.lstrip().startswith(b"solid"):
         data = note.encode("ascii")[:80].ljust(80, b" ") + data[80:]
+    elif fmt == "glb":
+        data = _glb_embed_buffer(data, note)
     else:
         return
     path.write_bytes(data)

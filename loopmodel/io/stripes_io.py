@@ -53,5 +53,9 @@ def load_stripes(path: str | Path) -> list[StripeProfile]:
         raise FormatError(p, f"points_in_cam must be P x 3, got {pts.shape}")
     if t.shape != counts.shape or np.any(counts < 0) or int(counts.sum()) != pts.shape[0]:
         raise FormatError(p, "timestamps_ns, counts and points_in_cam do not agree")
+    bad = np.flatnonzero(~np.all(np.isfinite(pts), axis=1))
+    if bad.size:
+        s = int(np.searchsorted(np.cumsum(counts), bad[0], side="right"))
+        raise FormatError(p, f"stripe {s} (t={int(t[s])} ns) has non-finite points")
     bounds = np.concatenate([[0], np.cumsum(counts)])
     return [StripeProfile(int(t[i]), pts[bounds[i] : bounds[i + 1]]) for i in range(t.shape[0])]

@@ -50,11 +50,11 @@ def oriented_cloud(points_w: F64, sensors_w: F64, config: MappingConfig) -> o3d.
 
 
 def poisson_depth(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> int:
-    """Octree depth whose finest cell is about ``voxel_m`` (or the configured depth)."""
+    """Octree depth whose finest cell is closest to ``voxel_m`` (or the configured depth)."""
     if config.poisson_depth > 0:
         return config.poisson_depth
     ext = float(np.max(cloud.get_max_bound() - cloud.get_min_bound()))
-    depth = math.ceil(math.log2(max(ext * config.poisson_scale / config.voxel_m, 2.0)))
+    depth = round(math.log2(max(ext * config.poisson_scale / config.voxel_m, 2.0)))
     return int(min(max(depth, 5), config.poisson_max_depth))
 
 

@@ -223,11 +223,12 @@ class StripeMap:
         try:
             for st in stripes:
                 pts = np.asarray(st.points_in_cam, dtype=float)
-                if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] == 0:
+                if pts.ndim != 2 or pts.shape[1] != 3:
                     raise InputError(
-                        None, f"stripe at {st.timestamp_ns} ns: points must be N x 3 with N > 0, "
-                        f"got {pts.shape}"
+                        None, f"stripe at {st.timestamp_ns} ns: points must be N x 3, got {pts.shape}"
                     )
+                if pts.shape[0] == 0:
+                    raise InputError(None, f"stripe at {st.timestamp_ns} ns has no points")
                 if not np.all(np.isfinite(pts)):
                     raise InputError(None, f"stripe at {st.timestamp_ns} ns has non-finite points")
                 s = self._s_t.n
@@ -356,7 +357,8 @@ class StripeMap:
         stripes: Iterable[StripeProfile],
         config: MappingConfig | None = None,
     ) -> StripeMap:
-        """Offline map: every trajectory pose anchors its own frame."""
+        """Offline map: every trajectory pose anchors its own frame; profiles without points
+        (the laser hit nothing) are skipped."""
         trajectory.check("trajectory")
         m = cls(config)
         for t, T in zip(trajectory.timestamps_ns, trajectory.world_from_cam, strict=True):
@@ -365,7 +367,7 @@ class StripeMap:
             m._frame_kf_from_cam.append(np.eye(4)[None])
             m._world_from_kf[m._next_anchor] = T
             m._next_anchor -= 1
-        m.add_many(stripes)
+        m.add_many(s for s in stripes if np.asarray(s.points_in_cam).size)
         return m
 
     # ------------------------------------------------------------------ meshes
