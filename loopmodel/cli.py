@@ -120,14 +120,14 @@ def config_dump(config: ConfigOption = None) -> None:
 
 @app.command("eval")
 def eval_command(
-    runs: Annotated[list[Path] | None, typer.Argument(help="Results folders to evaluate")] = None,
-    gt: Annotated[Path | None, typer.Option("--gt", help="Ground truth: trajectory file or sequence")] = None,
-    ref: Annotated[Path | None, typer.Option("--ref", help="Reference trajectory file")] = None,
-    est: Annotated[Path | None, typer.Option("--est", help="Estimated trajectory file")] = None,
-    align: Annotated[str | None, typer.Option("--align", help="se3, sim3, origin or none")] = None,
-    first_n: Annotated[int | None, typer.Option("--first-n", help="Align on the first N poses")] = None,
-    max_dt_ms: Annotated[float | None, typer.Option("--max-dt-ms", help="Max association gap")] = None,
-    rpe_delta_m: Annotated[float | None, typer.Option("--rpe-delta-m", help="RPE distance")] = None,
+    runs: Annotated[list[Path] | None, typer.Argument(help="Results folders")] = None,
+    gt: Annotated[Path | None, typer.Option("--gt", help="Ground truth file or sequence")] = None,
+    ref: Annotated[Path | None, typer.Option("--ref", help="Reference trajectory")] = None,
+    est: Annotated[Path | None, typer.Option("--est", help="Estimated trajectory")] = None,
+    align: Annotated[str | None, typer.Option("--align", help="se3, sim3, origin, none")] = None,
+    first_n: Annotated[int | None, typer.Option("--first-n", help="Align on N poses")] = None,
+    max_dt_ms: Annotated[float | None, typer.Option("--max-dt-ms", help="Max time gap")] = None,
+    rpe_delta_m: Annotated[float | None, typer.Option("--rpe-delta-m", help="RPE metres")] = None,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder")] = None,
     no_plots: Annotated[bool, typer.Option("--no-plots", help="Skip the pictures")] = False,
     config: ConfigOption = None,
@@ -137,7 +137,9 @@ def eval_command(
 
     cfg = load_config(config)
     ecfg = cfg.eval.model_copy()
-    overrides = {"align": align, "first_n": first_n, "max_dt_ms": max_dt_ms, "rpe_delta_m": rpe_delta_m}
+    overrides = {
+        "align": align, "first_n": first_n, "max_dt_ms": max_dt_ms, "rpe_delta_m": rpe_delta_m
+    }
     for key, value in overrides.items():
         if value is not None:
             try:
@@ -151,7 +153,7 @@ def eval_command(
     if (ref is None) != (est is None):
         raise InputError("--ref/--est", "give both --ref and --est")
     if ref is not None and (runs or gt is not None):
-        raise InputError("--ref/--est", "use either --ref/--est or results folders with --gt, not both")
+        raise InputError("--ref/--est", "use --ref/--est or results folders with --gt, not both")
     if ref is None and not runs:
         raise InputError(None, "nothing to evaluate: give results folders or --ref FILE --est FILE")
     evals = []
@@ -177,7 +179,8 @@ def eval_command(
             rep.write_outputs(ev, target)
             evals.append((ev, target))
     table = Table(title="loopmodel eval")
-    for col in ("run", "matched", "ATE final [m]", "ATE online [m]", "RPE/frame [m]", "loop closures", "report"):
+    cols = ("run", "matched", "ATE final [m]", "ATE online [m]", "RPE/frame [m]", "closures")
+    for col in (*cols, "report"):
         table.add_column(col)
     for ev, target in evals:
         m = ev.metrics

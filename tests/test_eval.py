@@ -22,7 +22,12 @@ def _wiggly_path(n: int, rng: np.random.Generator) -> np.ndarray:
     s = np.linspace(0, 2 * np.pi, n, endpoint=False)
     pos = np.stack([2 * np.cos(s), 2 * np.sin(s), 0.3 * np.sin(3 * s)], axis=1)
     pos += 0.01 * rng.standard_normal(pos.shape)
-    return np.stack([make_pose(so3_exp([0.1 * np.sin(a), 0.2 * np.cos(a), a]), p) for a, p in zip(s, pos)])
+    return np.stack(
+        [
+            make_pose(so3_exp([0.1 * np.sin(a), 0.2 * np.cos(a), a]), p)
+            for a, p in zip(s, pos, strict=True)
+        ]
+    )
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -105,7 +110,9 @@ EVO_CASES = [
 
 
 @pytest.mark.parametrize("gt_name, est_name, kind, delta_m", EVO_CASES)
-def test_agreement_with_evo(shared_data: Path, gt_name: str, est_name: str, kind: str, delta_m: float) -> None:
+def test_agreement_with_evo(
+    shared_data: Path, gt_name: str, est_name: str, kind: str, delta_m: float
+) -> None:
     import copy
 
     evo_fi = pytest.importorskip("evo.tools.file_interface")
@@ -114,16 +121,24 @@ def test_agreement_with_evo(shared_data: Path, gt_name: str, est_name: str, kind
 
     folder = shared_data / "trajectories"
     gt_path, est_path = folder / gt_name, folder / est_name
-    readers = {"kitti": (evo_fi.read_kitti_poses_file, evo_fi.read_kitti_poses_file),
-               "euroc": (evo_fi.read_euroc_csv_trajectory, evo_fi.read_tum_trajectory_file),
-               "tum": (evo_fi.read_tum_trajectory_file, evo_fi.read_tum_trajectory_file)}[kind]
+    readers = {
+        "kitti": (evo_fi.read_kitti_poses_file, evo_fi.read_kitti_poses_file),
+        "euroc": (evo_fi.read_euroc_csv_trajectory, evo_fi.read_tum_trajectory_file),
+        "tum": (evo_fi.read_tum_trajectory_file, evo_fi.read_tum_trajectory_file),
+    }[kind]
     ref0, est0 = readers[0](str(gt_path)), readers[1](str(est_path))
     if kind != "kitti":
         ref0, est0 = sync.associate_trajectories(ref0, est0, max_diff=0.01)
     gt = rep.load_trajectory_file(gt_path)
     est = rep.load_trajectory_file(est_path)
     stats = em.StatisticsType
-    for mode, first_n in (("se3", None), ("sim3", None), ("se3", 100), ("origin", None), ("none", None)):
+    for mode, first_n in (
+        ("se3", None),
+        ("sim3", None),
+        ("se3", 100),
+        ("origin", None),
+        ("none", None),
+    ):
         e = copy.deepcopy(est0)
         if mode in ("se3", "sim3"):
             e.align(ref0, correct_scale=(mode == "sim3"), n=first_n or -1)
@@ -135,33 +150,45 @@ def test_agreement_with_evo(shared_data: Path, gt_name: str, est_name: str, kind
         rpe1.process_data((ref0, e))
         rped = em.RPE(em.PoseRelation.translation_part, delta_m, em.Unit.meters)
         rped.process_data((ref0, e))
-        ours = evaluate_pair(gt.traj.timestamps_ns, gt.traj.world_from_cam, est.traj.timestamps_ns,
-                             est.traj.world_from_cam, max_dt_ns=10_000_000, align_mode=mode,
-                             first_n=first_n, rpe_delta_m=delta_m).metrics
+        ours = evaluate_pair(
+            gt.traj.timestamps_ns,
+            gt.traj.world_from_cam,
+            est.traj.timestamps_ns,
+            est.traj.world_from_cam,
+            max_dt_ns=10_000_000,
+            align_mode=mode,
+            first_n=first_n,
+            rpe_delta_m=delta_m,
+        ).metrics
         assert ours["matched"] == ref0.num_poses
         for key in ("rmse", "mean", "median", "max"):
             want = ape.get_statistic(getattr(stats, key))
             assert ours["ate_m"][key] == pytest.approx(want, rel=1e-6), (mode, "ATE", key)
         for key in ("rmse", "mean", "max"):
             assert ours["rpe_frames"]["trans_m"][key] == pytest.approx(
-                rpe1.get_statistic(getattr(stats, key)), rel=1e-6), (mode, "RPE frames", key)
+                rpe1.get_statistic(getattr(stats, key)), rel=1e-6
+            ), (mode, "RPE frames", key)
             assert ours["rpe_distance"]["trans_m"][key] == pytest.approx(
-                rped.get_statistic(getattr(stats, key)), rel=1e-6), (mode, "RPE distance", key)
+                rped.get_statistic(getattr(stats, key)), rel=1e-6
+            ), (mode, "RPE distance", key)
         assert ours["rpe_distance"]["trans_m"]["count"] == len(rped.error)
 
 
 # ----------------------------------------------------------------- results folders
 
 
-def _make_run(folder: Path, rng: np.random.Generator, closures: list[dict] | None, drift: float = 0.02
-              ) -> tuple[Trajectory, Trajectory, Trajectory]:
+def _make_run(
+    folder: Path, rng: np.random.Generator, closures: list[dict] | None, drift: float = 0.02
+) -> tuple[Trajectory, Trajectory, Trajectory]:
     """A results folder: ground truth (returned), an online trajectory that drifts, a final one
     close to the ground truth, keyframes every 5th final pose, metrics.json."""
     n = 300
     t = 1_000_000_000_000 + np.arange(n, dtype=np.int64) * 50_000_000  # 20 Hz
     gt_T = _wiggly_path(n, rng)
     online_T = gt_T.copy()
-    online_T[:, :3, 3] += np.cumsum(drift * rng.standard_normal((n, 3)), axis=0) * 0.2 + np.linspace(0, 1, n)[:, None] * [0.3, 0.0, 0.0]
+    online_T[:, :3, 3] += np.cumsum(
+        drift * rng.standard_normal((n, 3)), axis=0
+    ) * 0.2 + np.linspace(0, 1, n)[:, None] * [0.3, 0.0, 0.0]
     final_T = gt_T.copy()
     final_T[:, :3, 3] += 0.005 * rng.standard_normal((n, 3))
     gt, online, final = Trajectory(t, gt_T), Trajectory(t, online_T), Trajectory(t, final_T)
@@ -180,7 +207,10 @@ def test_report_without_loop_closure(tmp_path: Path, rng: np.random.Generator) -
     gt, _, final = _make_run(tmp_path / "run", rng, closures=[])
     write_trajectory(tmp_path / "gt.tum", gt)
     out = tmp_path / "out"
-    assert main(["eval", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.tum"), "--out", str(out)]) == 0
+    assert (
+        main(["eval", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.tum"), "--out", str(out)])
+        == 0
+    )
     md = (out / "report.md").read_text()
     assert "No loop closure was recorded in this run" in md
     html = (out / "report.html").read_text()
@@ -204,16 +234,37 @@ def test_report_without_loop_closure(tmp_path: Path, rng: np.random.Generator) -
 
 
 def test_report_with_loop_closures_and_comparison(tmp_path: Path, rng: np.random.Generator) -> None:
-    gt, online, final = _make_run(tmp_path / "a", rng, closures=[
-        {"timestamp_ns": int(1_000_000_000_000 + 250 * 50_000_000), "match_keyframe": 2, "inliers": 87,
-         "correction_m": 0.31},
-        {"query_frame": 290, "match_frame": 5, "inliers": 40},
-    ])
+    gt, online, final = _make_run(
+        tmp_path / "a",
+        rng,
+        closures=[
+            {
+                "timestamp_ns": int(1_000_000_000_000 + 250 * 50_000_000),
+                "match_keyframe": 2,
+                "inliers": 87,
+                "correction_m": 0.31,
+            },
+            {"query_frame": 290, "match_frame": 5, "inliers": 40},
+        ],
+    )
     _make_run(tmp_path / "b", rng, closures=None, drift=0.05)
     write_trajectory(tmp_path / "gt.csv", gt)  # EuRoC format ground truth
     out = tmp_path / "cmp"
-    assert main(["eval", str(tmp_path / "a"), str(tmp_path / "b"), "--gt", str(tmp_path / "gt.csv"),
-                 "--out", str(out), "--no-plots"]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                str(tmp_path / "a"),
+                str(tmp_path / "b"),
+                "--gt",
+                str(tmp_path / "gt.csv"),
+                "--out",
+                str(out),
+                "--no-plots",
+            ]
+        )
+        == 0
+    )
     m = json.loads((out / "a" / "metrics.json").read_text())
     assert m["loop_closure_count"] == 2
     c0, c1 = m["loop_closures"]
@@ -246,8 +297,25 @@ def test_ref_est_mode_and_sim3(tmp_path: Path, rng: np.random.Generator) -> None
     write_trajectory(tmp_path / "ref.tum", Trajectory(t, ref_T))
     write_trajectory(tmp_path / "est.tum", Trajectory(t + 3_000_000, est_T))  # 3 ms late
     out = tmp_path / "o"
-    assert main(["eval", "--ref", str(tmp_path / "ref.tum"), "--est", str(tmp_path / "est.tum"),
-                 "--align", "sim3", "--max-dt-ms", "5", "--out", str(out), "--no-plots"]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--ref",
+                str(tmp_path / "ref.tum"),
+                "--est",
+                str(tmp_path / "est.tum"),
+                "--align",
+                "sim3",
+                "--max-dt-ms",
+                "5",
+                "--out",
+                str(out),
+                "--no-plots",
+            ]
+        )
+        == 0
+    )
     m = json.loads((out / "metrics.json").read_text())
     fin = m["trajectories"]["final"]
     assert fin["matched"] == n and fin["alignment"]["scale"] == pytest.approx(s, rel=1e-9)
@@ -267,7 +335,9 @@ def _one_line_error(capsys: pytest.CaptureFixture[str], *words: str) -> str:
     return err
 
 
-def test_bad_input_exit_2(tmp_path: Path, rng: np.random.Generator, capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_input_exit_2(
+    tmp_path: Path, rng: np.random.Generator, capsys: pytest.CaptureFixture[str]
+) -> None:
     T = _wiggly_path(50, rng)
     t = np.arange(50, dtype=np.int64) * 100_000_000
     write_trajectory(tmp_path / "ref.tum", Trajectory(t, T))
@@ -277,13 +347,44 @@ def test_bad_input_exit_2(tmp_path: Path, rng: np.random.Generator, capsys: pyte
     capsys.readouterr()
     ref = str(tmp_path / "ref.tum")
     # no overlap in time
-    assert main(["eval", "--ref", ref, "--est", str(tmp_path / "late.tum"), "--out", str(tmp_path / "x")]) == 2
+    assert (
+        main(
+            [
+                "eval",
+                "--ref",
+                ref,
+                "--est",
+                str(tmp_path / "late.tum"),
+                "--out",
+                str(tmp_path / "x"),
+            ]
+        )
+        == 2
+    )
     _one_line_error(capsys, "no poses overlap in time", "late.tum")
     # a trajectory with one pose
-    assert main(["eval", "--ref", ref, "--est", str(tmp_path / "one.tum"), "--out", str(tmp_path / "x")]) == 2
+    assert (
+        main(
+            ["eval", "--ref", ref, "--est", str(tmp_path / "one.tum"), "--out", str(tmp_path / "x")]
+        )
+        == 2
+    )
     _one_line_error(capsys, "one.tum", "1 pose")
     # unequal formats: KITTI (no times) against TUM
-    assert main(["eval", "--ref", str(tmp_path / "ref.kitti"), "--est", ref, "--out", str(tmp_path / "x")]) == 2
+    assert (
+        main(
+            [
+                "eval",
+                "--ref",
+                str(tmp_path / "ref.kitti"),
+                "--est",
+                ref,
+                "--out",
+                str(tmp_path / "x"),
+            ]
+        )
+        == 2
+    )
     _one_line_error(capsys, "unequal formats", "ref.kitti")
     # results folder without trajectories, missing --est, bad --align
     (tmp_path / "empty").mkdir()

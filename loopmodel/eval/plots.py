@@ -66,14 +66,32 @@ def plot_top_view(
     ax = fig.add_subplot(111)
     ax.plot(reference_m[:, a], reference_m[:, b], "-", color="k", lw=1.2, label="ground truth")
     for tr in tracks:
-        ax.plot(tr.positions_m[:, a], tr.positions_m[:, b], tr.style, color=tr.color, lw=1.0,
-                label=tr.label)
+        ax.plot(
+            tr.positions_m[:, a],
+            tr.positions_m[:, b],
+            tr.style,
+            color=tr.color,
+            lw=1.0,
+            label=tr.label,
+        )
     for k, c in enumerate(closures):
         if c.match_m is not None:
-            ax.plot([c.query_m[a], c.match_m[a]], [c.query_m[b], c.match_m[b]], "-", color="red",
-                    lw=0.8, alpha=0.7)
-        ax.plot([c.query_m[a]], [c.query_m[b]], "*", color="red", ms=10,
-                label="loop closure" if k == 0 else None)
+            ax.plot(
+                [c.query_m[a], c.match_m[a]],
+                [c.query_m[b], c.match_m[b]],
+                "-",
+                color="red",
+                lw=0.8,
+                alpha=0.7,
+            )
+        ax.plot(
+            [c.query_m[a]],
+            [c.query_m[b]],
+            "*",
+            color="red",
+            ms=10,
+            label="loop closure" if k == 0 else None,
+        )
     ax.plot([reference_m[0, a]], [reference_m[0, b]], "o", color="g", ms=6, label="start")
     ax.set_xlabel(f"{AXIS_NAMES[a]} [m]")
     ax.set_ylabel(f"{AXIS_NAMES[b]} [m]")
@@ -93,7 +111,9 @@ def plot_error_over_time(tracks: list[PlotTrack], closures: list[PlotClosure], t
         if tr.errors_m is not None:
             ax.plot(tr.times_s, tr.errors_m, tr.style, color=tr.color, lw=1.0, label=tr.label)
     for k, c in enumerate(closures):
-        ax.axvline(c.time_s, color="red", lw=0.8, alpha=0.6, label="loop closure" if k == 0 else None)
+        ax.axvline(
+            c.time_s, color="red", lw=0.8, alpha=0.6, label="loop closure" if k == 0 else None
+        )
     ax.set_xlabel("time [s]")
     ax.set_ylabel("ATE [m]")
     ax.grid(True, alpha=0.3)
@@ -115,7 +135,7 @@ def plot_error_colored(reference_m: F64, track: PlotTrack, title: str) -> bytes:
     err = track.errors_m if track.errors_m is not None else np.zeros(len(xy))
     if len(xy) >= 2:
         segs = np.stack([xy[:-1], xy[1:]], axis=1)
-        lc = LineCollection(segs, cmap="jet", linewidths=2.0)
+        lc = LineCollection(list(segs), cmap="jet", linewidths=2.0)
         lc.set_array(0.5 * (err[:-1] + err[1:]))
         ax.add_collection(lc)
         cb = fig.colorbar(lc, ax=ax)

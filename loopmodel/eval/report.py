@@ -55,8 +55,11 @@ PLOT_TOP = "trajectories_top.png"
 PLOT_ERROR_TIME = "error_over_time.png"
 PLOT_ERROR_COLORED = "error_colored.png"
 
-TRACK_LABELS = {"online": "online (before closing)", "final": "final (after closing)",
-                "keyframes": "keyframes (final)"}
+TRACK_LABELS = {
+    "online": "online (before closing)",
+    "final": "final (after closing)",
+    "keyframes": "keyframes (final)",
+}
 
 
 # --------------------------------------------------------------------------- inputs
@@ -91,7 +94,9 @@ def load_trajectory_file(path: str | Path, rate_hz: float = 10.0) -> TimedTrajec
     return TimedTrajectory(traj, str(p), fmt != "kitti")
 
 
-def load_ground_truth(spec: str | Path, sequence_config: SequenceConfig | None = None) -> TimedTrajectory:
+def load_ground_truth(
+    spec: str | Path, sequence_config: SequenceConfig | None = None
+) -> TimedTrajectory:
     """Ground truth from a trajectory file (TUM, KITTI, EuRoC) or from a sequence (MCAP file,
     EuRoC or KITTI folder) read with :func:`loopmodel.io.open_sequence`."""
     p = Path(spec)
@@ -189,7 +194,9 @@ def parse_loop_closures(events: Any, run: RunData, source: str) -> list[LoopClos
     out: list[LoopClosureEvent] = []
     for k, ev in enumerate(events):
         if not isinstance(ev, dict):
-            raise FormatError(source, f"loop_closures[{k}] must be an object, got {type(ev).__name__}")
+            raise FormatError(
+                source, f"loop_closures[{k}] must be an object, got {type(ev).__name__}"
+            )
         out.append(
             LoopClosureEvent(
                 k,
@@ -208,7 +215,11 @@ def load_run(path: str | Path, rate_hz: float = 10.0) -> RunData:
     if not p.is_dir():
         raise InputError(p, "results folder does not exist (or is not a folder)")
     tt: dict[str, TimedTrajectory | None] = {}
-    for key, name in (("online", ONLINE_FILE), ("final", FINAL_FILE), ("keyframes", KEYFRAMES_FILE)):
+    for key, name in (
+        ("online", ONLINE_FILE),
+        ("final", FINAL_FILE),
+        ("keyframes", KEYFRAMES_FILE),
+    ):
         f = p / name
         tt[key] = load_trajectory_file(f, rate_hz) if f.is_file() else None
     if tt["final"] is None and tt["online"] is None:
@@ -279,27 +290,38 @@ def _nearest_index(times_ns: NDArray[np.int64], t_ns: int, max_dt_ns: int) -> in
     k = int(np.searchsorted(times_ns, t_ns))
     best = None
     for c in (k - 1, k):
-        if 0 <= c < len(times_ns) and (best is None or abs(times_ns[c] - t_ns) < abs(times_ns[best] - t_ns)):
+        if 0 <= c < len(times_ns) and (
+            best is None or abs(times_ns[c] - t_ns) < abs(times_ns[best] - t_ns)
+        ):
             best = c
     if best is None or abs(int(times_ns[best]) - t_ns) > max_dt_ns:
         return None
     return best
 
 
-def _closure_numbers(run: RunData, pairs: dict[str, PairEvaluation], cfg: EvalConfig) -> list[dict[str, Any]]:
+def _closure_numbers(
+    run: RunData, pairs: dict[str, PairEvaluation], cfg: EvalConfig
+) -> list[dict[str, Any]]:
     """Per closure: the correction it made (final minus online pose at the closure time,
     in the run's own world frame) and the ground-truth error there before and after."""
     out: list[dict[str, Any]] = []
     max_dt_ns = int(round(cfg.max_dt_ms * 1e6))
     for ev in run.loop_closures:
-        rec: dict[str, Any] = {"index": ev.index, "time_ns": ev.time_ns, "match_time_ns": ev.match_time_ns}
-        rec["recorded"] = {k: v for k, v in ev.fields.items() if isinstance(v, int | float | str | bool)}
+        rec: dict[str, Any] = {
+            "index": ev.index,
+            "time_ns": ev.time_ns,
+            "match_time_ns": ev.match_time_ns,
+        }
+        rec["recorded"] = {
+            k: v for k, v in ev.fields.items() if isinstance(v, int | float | str | bool)
+        }
         if ev.time_ns is not None and run.online is not None and run.final is not None:
             io_ = _nearest_index(run.online.traj.timestamps_ns, ev.time_ns, max_dt_ns)
             if_ = _nearest_index(run.final.traj.timestamps_ns, ev.time_ns, max_dt_ns)
             if io_ is not None and if_ is not None:
                 dt, dr = pose_difference(
-                    run.online.traj.world_from_cam[io_ : io_ + 1], run.final.traj.world_from_cam[if_ : if_ + 1]
+                    run.online.traj.world_from_cam[io_ : io_ + 1],
+                    run.final.traj.world_from_cam[if_ : if_ + 1],
                 )
                 rec["correction_m"] = float(dt[0])
                 rec["correction_deg"] = float(dr[0])
@@ -355,11 +377,20 @@ def _before_after(pairs: dict[str, PairEvaluation]) -> list[dict[str, Any]]:
     for label, path in BEFORE_AFTER_ROWS:
         before = _get(pairs["online"].metrics, *path) if "online" in pairs else None
         after = _get(pairs["final"].metrics, *path) if "final" in pairs else None
+        if before is None and after is None:
+            continue
         change = None
         if isinstance(before, float) and isinstance(after, float) and before != 0:
             change = (after - before) / abs(before) * 100.0
-        rows.append({"metric": label, "key": ".".join(path), "before": before, "after": after,
-                     "change_pct": change})
+        rows.append(
+            {
+                "metric": label,
+                "key": ".".join(path),
+                "before": before,
+                "after": after,
+                "change_pct": change,
+            }
+        )
     return rows
 
 
@@ -378,8 +409,11 @@ def evaluate_run(run: RunData, gt: TimedTrajectory, cfg: EvalConfig | None = Non
     assert run.final is not None
     max_dt_ns = int(round(cfg.max_dt_ms * 1e6))
     ate_rmse = se3_ate_rmse_m(
-        gt.traj.timestamps_ns, gt.traj.world_from_cam,
-        run.final.traj.timestamps_ns, run.final.traj.world_from_cam, max_dt_ns,
+        gt.traj.timestamps_ns,
+        gt.traj.world_from_cam,
+        run.final.traj.timestamps_ns,
+        run.final.traj.world_from_cam,
+        max_dt_ns,
     )
     metrics: dict[str, Any] = {
         "ate_rmse_m": ate_rmse,
@@ -429,7 +463,16 @@ def make_plots(ev: RunEvaluation) -> dict[str, bytes]:
             continue
         st, col = styles[key]
         label = TRACK_LABELS[key] if "online" in ev.pairs else "estimate"
-        tracks.append(PlotTrack(label, pe.est_aligned[:, :3, 3], (pe.times_ns - t0) * 1e-9, pe.ate_m, st, col))
+        tracks.append(
+            PlotTrack(
+                label,
+                pe.est_aligned[:, :3, 3],
+                (pe.times_ns - t0).astype(np.float64) * 1e-9,
+                pe.ate_m,
+                st,
+                col,
+            )
+        )
     closures: list[PlotClosure] = []
     final = ev.pairs["final"]
     max_dt_ns = int(round(ev.config.max_dt_ms * 1e6))
@@ -448,7 +491,9 @@ def make_plots(ev: RunEvaluation) -> dict[str, bytes]:
     title = f"{ev.run.name}: top view ({align} aligned)"
     out = {
         PLOT_TOP: plot_top_view(ref_span, tracks, closures, title),
-        PLOT_ERROR_TIME: plot_error_over_time(tracks, closures, f"{ev.run.name}: ATE over time ({align})"),
+        PLOT_ERROR_TIME: plot_error_over_time(
+            tracks, closures, f"{ev.run.name}: ATE over time ({align})"
+        ),
         PLOT_ERROR_COLORED: plot_error_colored(
             ref_span, tracks[-1], f"{ev.run.name}: {tracks[-1].label}, coloured by ATE ({align})"
         ),
@@ -492,66 +537,163 @@ def _tables(ev: RunEvaluation) -> list[tuple[str, list[str], list[list[str]], st
     m = ev.metrics
     tables: list[tuple[str, list[str], list[list[str]], str]] = []
     if m["before_after"] is not None:
-        rows = [[r["metric"], _num(r["before"]), _num(r["after"]),
-                 _num(r["change_pct"], 1) if r["change_pct"] is not None else "–"] for r in m["before_after"]]
+        rows = [
+            [
+                r["metric"],
+                _num(r["before"]),
+                _num(r["after"]),
+                _num(r["change_pct"], 1) if r["change_pct"] is not None else "–",
+            ]
+            for r in m["before_after"]
+        ]
         if m["loop_closure_count"] == 0:
-            note = ("No loop closure was recorded in this run"
-                    + ("" if m["loop_closures_recorded"] else " (metrics.json has no 'loop_closures')")
-                    + ": the final trajectory differs from the online one only by the optimiser's "
-                    "smoothing, so before and after show no loop-closure effect.")
+            note = (
+                "No loop closure was recorded in this run"
+                + ("" if m["loop_closures_recorded"] else " (metrics.json has no 'loop_closures')")
+                + ": the final trajectory differs from the online one only by the optimiser's "
+                "smoothing, so before and after show no loop-closure effect."
+            )
         else:
             note = f"{m['loop_closure_count']} loop closure(s) recorded in this run."
-        tables.append(("Before / after loop closing", ["metric", "online (before)", "final (after)", "change %"],
-                       rows, note))
+        tables.append(
+            (
+                "Before / after loop closing",
+                ["metric", "online (before)", "final (after)", "change %"],
+                rows,
+                note,
+            )
+        )
     else:
-        tables.append(("Before / after loop closing", [], [],
-                       "No loop closure to compare: only one trajectory was evaluated "
-                       "(no online trajectory), so there is no before/after."))
+        tables.append(
+            (
+                "Before / after loop closing",
+                [],
+                [],
+                "No loop closure to compare: only one trajectory was evaluated "
+                "(no online trajectory), so there is no before/after.",
+            )
+        )
     # per trajectory summary
-    head = ["trajectory", "poses", "matched", "align", "scale", "ATE RMSE [m]", "ATE mean", "ATE median",
-            "ATE max", "RPE frames RMSE [m]", "RPE dist RMSE [m]", "KITTI t [%]", "KITTI r [deg/100m]",
-            "end-point (origin) [m]"]
+    head = [
+        "trajectory",
+        "poses",
+        "matched",
+        "align",
+        "scale",
+        "ATE RMSE [m]",
+        "ATE mean",
+        "ATE median",
+        "ATE max",
+        "RPE frames RMSE [m]",
+        "RPE dist RMSE [m]",
+        "KITTI t [%]",
+        "KITTI r [deg/100m]",
+        "end-point (origin) [m]",
+    ]
     rows = []
     for key, tm in m["trajectories"].items():
-        rows.append([
-            key, str(tm["poses_estimate"]), str(tm["matched"]), tm["alignment"]["mode"],
-            _num(tm["alignment"]["scale"], 6), _num(_get(tm, "ate_m", "rmse")), _num(_get(tm, "ate_m", "mean")),
-            _num(_get(tm, "ate_m", "median")), _num(_get(tm, "ate_m", "max")),
-            _num(_get(tm, "rpe_frames", "trans_m", "rmse")),
-            _num(_get(tm, "rpe_distance", "trans_m", "rmse")) + f" (Δ={_num(_get(tm, 'rpe_distance', 'delta_m'), 2)} m)",
-            _num(_get(tm, "kitti_segments", "t_err_pct")), _num(_get(tm, "kitti_segments", "r_err_deg_per_100m")),
-            _num(_get(tm, "end_point", "error_origin_aligned_m")),
-        ])
-    tables.append(("Trajectories", head, rows,
-                   f"SE(3)-aligned ATE RMSE of the final trajectory (`ate_rmse_m`): {_num(m['ate_rmse_m'], 6)} m. "
-                   "KITTI errors need a path longer than the shortest segment (100 m)."))
+        rows.append(
+            [
+                key,
+                str(tm["poses_estimate"]),
+                str(tm["matched"]),
+                tm["alignment"]["mode"],
+                _num(tm["alignment"]["scale"], 6),
+                _num(_get(tm, "ate_m", "rmse")),
+                _num(_get(tm, "ate_m", "mean")),
+                _num(_get(tm, "ate_m", "median")),
+                _num(_get(tm, "ate_m", "max")),
+                _num(_get(tm, "rpe_frames", "trans_m", "rmse")),
+                _num(_get(tm, "rpe_distance", "trans_m", "rmse"))
+                + f" (Δ={_num(_get(tm, 'rpe_distance', 'delta_m'), 2)} m)",
+                _num(_get(tm, "kitti_segments", "t_err_pct")),
+                _num(_get(tm, "kitti_segments", "r_err_deg_per_100m")),
+                _num(_get(tm, "end_point", "error_origin_aligned_m")),
+            ]
+        )
+    tables.append(
+        (
+            "Trajectories",
+            head,
+            rows,
+            "SE(3)-aligned ATE RMSE of the final trajectory (`ate_rmse_m`): "
+            f"{_num(m['ate_rmse_m'], 6)} m. "
+            "KITTI errors need a path longer than the shortest segment (100 m).",
+        )
+    )
     ks = _get(m["trajectories"].get("final", {}), "kitti_segments", "per_length_m")
     if ks:
-        tables.append(("KITTI segment errors (final)", ["length [m]", "t_err [%]", "r_err [deg/100 m]", "segments"],
-                       [[k, _num(v["t_err_pct"]), _num(v["r_err_deg_per_100m"]), str(v["segments"])]
-                        for k, v in ks.items()], ""))
+        tables.append(
+            (
+                "KITTI segment errors (final)",
+                ["length [m]", "t_err [%]", "r_err [deg/100 m]", "segments"],
+                [
+                    [k, _num(v["t_err_pct"]), _num(v["r_err_deg_per_100m"]), str(v["segments"])]
+                    for k, v in ks.items()
+                ],
+                "",
+            )
+        )
     if m["loop_closures"]:
-        extra = sorted({k for c in m["loop_closures"] for k, v in c["recorded"].items()
-                        if isinstance(v, int | float) and not isinstance(v, bool)} - set(_ALL_TIME_KEYS))[:6]
-        head = ["#", "time [s]", "correction [m]", "correction [deg]", "ATE before [m]", "ATE after [m]", *extra]
+        extra = sorted(
+            {
+                k
+                for c in m["loop_closures"]
+                for k, v in c["recorded"].items()
+                if isinstance(v, int | float) and not isinstance(v, bool)
+            }
+            - set(_ALL_TIME_KEYS)
+        )[:6]
+        head = [
+            "#",
+            "time [s]",
+            "correction [m]",
+            "correction [deg]",
+            "ATE before [m]",
+            "ATE after [m]",
+            *extra,
+        ]
         t0 = int(ev.pairs["final"].times_ns[0])
         rows = []
         for c in m["loop_closures"]:
             ts = _num((c["time_ns"] - t0) * 1e-9, 3) if c["time_ns"] is not None else "–"
-            rows.append([str(c["index"]), ts, _num(c.get("correction_m")), _num(c.get("correction_deg")),
-                         _num(c.get("ate_before_m")), _num(c.get("ate_after_m")),
-                         *[_num(c["recorded"].get(k)) for k in extra]])
-        tables.append(("Loop closures", head, rows,
-                       "Correction: distance between the online and the final pose at the closure time "
-                       "(same run, same world frame); ATE before/after: aligned error there."))
+            rows.append(
+                [
+                    str(c["index"]),
+                    ts,
+                    _num(c.get("correction_m")),
+                    _num(c.get("correction_deg")),
+                    _num(c.get("ate_before_m")),
+                    _num(c.get("ate_after_m")),
+                    *[_num(c["recorded"].get(k)) for k in extra],
+                ]
+            )
+        tables.append(
+            (
+                "Loop closures",
+                head,
+                rows,
+                "Correction: distance between the online and the final pose at the closure time "
+                "(same run, same world frame); ATE before/after: aligned error there.",
+            )
+        )
     if m["mesh"]:
-        tables.append(("Mesh error (recorded by the pipeline)", ["key", "value"],
-                       [[k, _num(v)] for k, v in m["mesh"].items()], ""))
+        tables.append(
+            (
+                "Mesh error (recorded by the pipeline)",
+                ["key", "value"],
+                [[k, _num(v)] for k, v in m["mesh"].items()],
+                "",
+            )
+        )
     return tables
 
 
-_ALL_TIME_KEYS = tuple(p + k for p in (*_QUERY_PREFIXES, *_MATCH_PREFIXES)
-                       for k in (*_NS_KEYS, *_S_KEYS, *_FRAME_KEYS, *_KF_KEYS)) + ("index",)
+_ALL_TIME_KEYS = tuple(
+    p + k
+    for p in (*_QUERY_PREFIXES, *_MATCH_PREFIXES)
+    for k in (*_NS_KEYS, *_S_KEYS, *_FRAME_KEYS, *_KF_KEYS)
+) + ("index",)
 
 
 def _md_table(head: list[str], rows: list[list[str]]) -> str:
@@ -567,7 +709,8 @@ def _intro(ev: RunEvaluation) -> list[str]:
     return [
         f"- run: `{m['run_path'] or m['estimate']}`",
         f"- ground truth: `{m['ground_truth']}` ({len(ev.gt.traj)} poses)",
-        f"- alignment: {ev.config.align}" + (f" on the first {ev.config.first_n} poses" if ev.config.first_n else "")
+        f"- alignment: {ev.config.align}"
+        + (f" on the first {ev.config.first_n} poses" if ev.config.first_n else "")
         + f"; association max Δt {ev.config.max_dt_ms:g} ms",
         f"- **ATE RMSE (final, SE(3) aligned): {_num(m['ate_rmse_m'], 6)} m**",
     ]
@@ -596,7 +739,8 @@ def render_html(ev: RunEvaluation) -> str:
         "<!DOCTYPE html><html><head><meta charset='utf-8'>",
         f"<title>Evaluation: {esc(ev.run.name)}</title><style>"
         "body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
-        "table{border-collapse:collapse;margin:0.5em 0 1.5em}td,th{border:1px solid #bbb;padding:3px 8px;"
+        "table{border-collapse:collapse;margin:0.5em 0 1.5em}"
+        "td,th{border:1px solid #bbb;padding:3px 8px;"
         "text-align:right}th{background:#eee}td:first-child{text-align:left}img{max-width:100%}"
         "</style></head><body>",
         f"<h1>Evaluation: {esc(ev.run.name)}</h1><ul>",
@@ -630,7 +774,9 @@ def write_outputs(ev: RunEvaluation, out_dir: str | Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     for name, png in ev.plots.items():
         write_bytes_atomic(out / name, png)
-    write_text_atomic(out / "metrics.json", json.dumps(_json_clean(ev.metrics), indent=2, allow_nan=False) + "\n")
+    write_text_atomic(
+        out / "metrics.json", json.dumps(_json_clean(ev.metrics), indent=2, allow_nan=False) + "\n"
+    )
     write_text_atomic(out / "report.md", render_markdown(ev))
     write_text_atomic(out / "report.html", render_html(ev))
     return out
@@ -664,8 +810,15 @@ def comparison_rows(evals: list[RunEvaluation]) -> tuple[list[str], list[list[An
         before = _get(m, "trajectories", "online", "ate_m", "rmse")
         after = _get(m, "trajectories", "final", "ate_m", "rmse")
         change = (after - before) / before * 100.0 if before and after is not None else None
-        rows.append([m["run"], _get(m, "trajectories", "final", "matched"), *vals, change,
-                     *(m["mesh"].get(k) for k in mesh_keys)])
+        rows.append(
+            [
+                m["run"],
+                _get(m, "trajectories", "final", "matched"),
+                *vals,
+                change,
+                *(m["mesh"].get(k) for k in mesh_keys),
+            ]
+        )
     return head, rows
 
 
@@ -679,10 +832,14 @@ def write_comparison(evals: list[RunEvaluation], out_dir: str | Path) -> tuple[P
     for r in rows:
         w.writerow(["" if v is None else (repr(v) if isinstance(v, float) else v) for v in r])
     csv_path = write_text_atomic(out / "comparison.csv", buf.getvalue())
-    md = ["# Comparison of runs", "",
-          f"Alignment {evals[0].config.align}; `ate_rmse_m` is the SE(3)-aligned ATE RMSE of the final "
-          "trajectory; ate_change_pct compares final with online ATE RMSE.", "",
-          _md_table(head, [[_num(v) if not isinstance(v, str) else v for v in r] for r in rows])]
+    md = [
+        "# Comparison of runs",
+        "",
+        f"Alignment {evals[0].config.align}; `ate_rmse_m` is the SE(3)-aligned ATE RMSE of the "
+        "final trajectory; ate_change_pct compares final with online ATE RMSE.",
+        "",
+        _md_table(head, [[_num(v) if not isinstance(v, str) else v for v in r] for r in rows]),
+    ]
     md_path = write_text_atomic(out / "comparison.md", "\n".join(md))
     return csv_path, md_path
 
