@@ -400,3 +400,33 @@ def test_bad_input_exit_2(
 def test_eval_config_defaults() -> None:
     cfg = EvalConfig()
     assert cfg.align == "se3" and cfg.max_dt_ms == 10.0 and cfg.kitti_segment_lengths_m[0] == 100.0
+
+
+def test_ground_truth_from_sequence_folder(
+    shared_data: Path, tmp_path: Path, rng: np.random.Generator
+) -> None:
+    """``--gt SEQ``: the ground truth of a KITTI folder (poses.txt, 10 Hz) read by
+    open_sequence; a noisy copy in a results folder is evaluated against it."""
+    from loopmodel.io.trajectory_io import read_trajectory
+
+    clip = shared_data / "kitti_clip"
+    gt = read_trajectory(clip / "poses.txt", "kitti")
+    noisy = gt.world_from_cam.copy()
+    noisy[:, :3, 3] += 0.1 * rng.standard_normal((len(gt), 3))
+    run = tmp_path / "clip_run"
+    write_trajectory(run / "trajectory_final.tum", Trajectory(gt.timestamps_ns, noisy))
+    out = tmp_path / "o"
+    assert main(["eval", str(run), "--gt", str(clip), "--out", str(out), "--no-plots"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["trajectories"]["final"]["matched"] == len(gt) == 51
+    # independent: evo on the same poses
+    evo_traj = pytest.importorskip("evo.core.trajectory")
+    from evo.core import metrics as em
+
+    ref = evo_traj.PosePath3D(poses_se3=list(gt.world_from_cam))
+    est = evo_traj.PosePath3D(poses_se3=list(noisy))
+    est.align(ref)
+    ape = em.APE(em.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    assert m["ate_rmse_m"] == pytest.approx(ape.get_statistic(em.StatisticsType.rmse), rel=1e-9)
+    assert m["before_after"] is None  # no online trajectory in this folder
