@@ -275,6 +275,7 @@ def test_report_with_loop_closures_and_comparison(tmp_path: Path, rng: np.random
     assert c0["recorded"]["inliers"] == 87
     ba = {r["key"]: r for r in m["before_after"]}
     assert ba["ate_m.rmse"]["after"] < ba["ate_m.rmse"]["before"]
+    assert ba["mesh.mesh_err_before_mm"]["after"] == 1.2
     md = (out / "a" / "report.md").read_text()
     assert "2 loop closure(s)" in md and "| 87" in md.replace("87.0000", "87")
     mb = json.loads((out / "b" / "metrics.json").read_text())

@@ -347,6 +347,29 @@ def _mesh_numbers(run_metrics: dict[str, Any]) -> dict[str, float]:
     return out
 
 
+def _mesh_before_after(mesh: dict[str, float]) -> list[dict[str, Any]]:
+    """Before/after rows from recorded mesh errors named ``..before..``/``..after..``."""
+    rows = []
+    for k, before in mesh.items():
+        if "before" not in k:
+            continue
+        after = mesh.get(k.replace("before", "after"))
+        if after is None:
+            continue
+        change = (after - before) / abs(before) * 100.0 if before else None
+        label = k.replace("_before", "").replace("before_", "")
+        rows.append(
+            {
+                "metric": f"{label} (recorded)",
+                "key": f"mesh.{k}",
+                "before": before,
+                "after": after,
+                "change_pct": change,
+            }
+        )
+    return rows
+
+
 def _get(d: Any, *keys: str) -> Any:
     for k in keys:
         if not isinstance(d, dict) or k not in d:
@@ -429,6 +452,8 @@ def evaluate_run(run: RunData, gt: TimedTrajectory, cfg: EvalConfig | None = Non
         "before_after": _before_after(pairs) if "online" in pairs else None,
         "mesh": _mesh_numbers(run.run_metrics),
     }
+    if metrics["before_after"] is not None:
+        metrics["before_after"] += _mesh_before_after(metrics["mesh"])
     ev = RunEvaluation(run, gt, cfg, pairs, metrics)
     if cfg.plots:
         ev.plots = make_plots(ev)
