@@ -56,19 +56,49 @@ class MappingConfig(_Section):
     normal_max_nn: int = Field(20, ge=3, description="max neighbours for normals")
     poisson_depth: int = Field(0, ge=0, le=12, description="octree depth; 0 = from voxel_m")
     poisson_max_depth: int = Field(10, ge=4, le=12, description="cap on the derived depth")
-    poisson_scale: float = Field(1.1, gt=1.0, description="bounding cube / samples' bounding box")
+    poisson_scale: float = Field(1.1, gt=1.0, description="bounding cube / samples' box")
     poisson_linear_fit: bool = True
-    density_quantile: float = Field(0.02, ge=0, lt=1, description="trim vertices below this density quantile")
-    trim_distance_m: float = Field(0.0, ge=0, description="drop vertices farther from samples; 0 = 2.5 x voxel_m")
-    bpa_radii_m: list[float] = Field(default_factory=list, description="ball radii; empty = 1, 2, 4 x voxel_m")
-    max_stripe_gap_ns: int = Field(200_000_000, ge=0, description="max frame-time gap a stripe may be placed in")
+    density_quantile: float = Field(
+        0.02, ge=0, lt=1, description="trim vertices below this density quantile"
+    )
+    trim_distance_m: float = Field(
+        0.0, ge=0, description="drop vertices farther from the samples; 0 = 2.5 x voxel_m"
+    )
+    bpa_radii_m: list[float] = Field(
+        default_factory=list, description="ball-pivoting radii; empty = 1.5, 3, 6 x voxel_m"
+    )
+    max_stripe_gap_ns: int = Field(
+        200_000_000, ge=0, description="widest frame interval a stripe is interpolated in"
+    )
     chunk_m: float = Field(0.05, gt=0, description="block edge of the chunked live mesh")
-    chunk_margin_m: float = Field(0.006, ge=0, description="overlap meshed around each live block")
+    chunk_margin_m: float = Field(0.006, ge=0, description="overlap meshed around a live block")
     min_points: int = Field(100, ge=4, description="fewest points a surface is made from")
-    peak_min_contrast: float = Field(20.0, ge=0, description="laser line: min peak above background (grey levels)")
-    peak_window_px: int = Field(3, ge=1, description="laser line: half-width of the sub-pixel window")
-    peak_method: str = Field("cog", pattern="^(cog|gauss)$", description="laser line sub-pixel method")
-    peak_axis: str = Field("columns", pattern="^(columns|rows)$", description="one peak per image column or row")
+    peak_min_contrast: float = Field(
+        20.0, ge=0, description="laser line: min peak above the background (grey levels)"
+    )
+    peak_window_px: int = Field(3, ge=1, description="laser line: half-width of the window")
+    peak_method: str = Field("cog", pattern="^(cog|gauss)$", description="sub-pixel method")
+    peak_axis: str = Field(
+        "columns", pattern="^(columns|rows)$", description="one peak per image column or row"
+    )
+
+
+class EvalConfig(_Section):
+    """Trajectory evaluation (``loopmodel eval``)."""
+
+    align: str = Field(
+        default="se3", pattern="^(se3|sim3|origin|none)$", description="alignment to ground truth"
+    )
+    first_n: int | None = Field(default=None, ge=3, description="align on the first N poses only")
+    max_dt_ms: float = Field(default=10.0, gt=0, description="max time gap of associated poses")
+    rpe_delta_frames: int = Field(default=1, ge=1, description="RPE pose-pair spacing in frames")
+    rpe_delta_m: float | None = Field(
+        default=None, gt=0, description="RPE path distance; None: about a tenth of the path"
+    )
+    kitti_segment_lengths_m: list[float] = Field(
+        default_factory=lambda: [100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0]
+    )
+    plots: bool = True
 
 
 class Config(_Section):
@@ -77,6 +107,7 @@ class Config(_Section):
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
     mapping: MappingConfig = Field(default_factory=MappingConfig)
+    eval: EvalConfig = Field(default_factory=EvalConfig)
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
