@@ -180,7 +180,9 @@ def test_mesh_with_ground_truth_poses_lies_within_half_a_millimetre(
     assert np.mean(np.einsum("ij,ij->i", n, v) > 0) > 0.99
 
 
-def test_ball_pivoting_option(sphere: o3d.geometry.TriangleMesh, sphere_scan: tuple[Trajectory, list[StripeProfile]]) -> None:
+def test_ball_pivoting_option(
+    sphere: o3d.geometry.TriangleMesh, sphere_scan: tuple[Trajectory, list[StripeProfile]]
+) -> None:
     traj, stripes = sphere_scan
     m = StripeMap.from_trajectory(traj, stripes[::2], MappingConfig(voxel_m=0.0015, method="ball_pivoting"))
     acc = mesh_accuracy(m.mesh(), sphere)
@@ -221,8 +223,13 @@ def test_live_mesh_updates_only_affected_blocks(
 
 
 # --------------------------------------------------------------------- extraction
-def _render_laser_image(u_of_row: np.ndarray, rows: np.ndarray, rng: np.random.Generator,
-                        size: tuple[int, int] = (640, 480), sigma_px: float = 1.3) -> np.ndarray:
+def _render_laser_image(
+    u_of_row: np.ndarray,
+    rows: np.ndarray,
+    rng: np.random.Generator,
+    size: tuple[int, int] = (640, 480),
+    sigma_px: float = 1.3,
+) -> np.ndarray:
     w, h = size
     img = np.full((h, w), 15.0)
     uu = np.arange(w)[None, :]
@@ -284,8 +291,9 @@ def test_every_export_format_reads_back_with_the_same_vertex_count(tmp_path: Pat
             back.remove_duplicated_vertices()
         assert len(back.vertices) == len(mesh.vertices), fmt
         assert len(back.triangles) == len(mesh.triangles), fmt
-        np.testing.assert_allclose(np.sort(np.asarray(back.vertices), axis=0),
-                                   np.sort(np.asarray(mesh.vertices), axis=0), atol=1e-6)
+        np.testing.assert_allclose(
+            np.sort(np.asarray(back.vertices), axis=0), np.sort(np.asarray(mesh.vertices), axis=0), atol=1e-6
+        )
     head = (tmp_path / "m.ply").read_bytes()[:400]
     assert b"binary_little_endian" in head and f"comment {UNITS_NOTE}".encode() in head
     assert not list(tmp_path.glob(".*tmp*"))

@@ -47,8 +47,10 @@ def _glb_embed_buffer(data: bytes, note: str) -> bytes:
     total = 12 + 8 + len(js) + 8 + len(binary)
     return (
         struct.pack("<4sII", b"glTF", 2, total)
-        + struct.pack("<I4s", len(js), b"JSON") + js
-        + struct.pack("<I4s", len(binary), b"BIN\0") + binary
+        + struct.pack("<I4s", len(js), b"JSON")
+        + js
+        + struct.pack("<I4s", len(binary), b"BIN\0")
+        + binary
     )
 
 
@@ -89,9 +91,7 @@ def write_mesh(path: str | Path, mesh: o3d.geometry.TriangleMesh, fmt: str | Non
         if fmt == "stl" and not mesh.has_triangle_normals():
             mesh = o3d.geometry.TriangleMesh(mesh)
             mesh.compute_triangle_normals()
-        ok = o3d.io.write_triangle_mesh(
-            str(tmp), mesh, write_ascii=False, compressed=False, print_progress=False
-        )
+        ok = o3d.io.write_triangle_mesh(tmp, mesh, write_ascii=False, compressed=False, print_progress=False)
         if not ok or not tmp.is_file() or tmp.stat().st_size == 0:
             raise InputError(p, f"open3d could not write a {fmt} mesh")
         _add_header_note(tmp, fmt, UNITS_NOTE)
@@ -108,7 +108,7 @@ def read_mesh(path: str | Path) -> o3d.geometry.TriangleMesh:
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "mesh file does not exist")
-    mesh = o3d.io.read_triangle_mesh(str(p))
+    mesh = o3d.io.read_triangle_mesh(p)
     if len(mesh.triangles) == 0:
         raise InputError(p, "no triangles could be read from this mesh file")
     return mesh

@@ -72,9 +72,7 @@ def mesh_accuracy(
     tri = rng.choice(t.shape[0], size=gt_samples, p=area / area.sum())
     r1, r2 = rng.random(gt_samples), rng.random(gt_samples)
     s1 = np.sqrt(r1)
-    samples = (
-        (1 - s1)[:, None] * a[tri] + (s1 * (1 - r2))[:, None] * b[tri] + (s1 * r2)[:, None] * c[tri]
-    )
+    samples = (1 - s1)[:, None] * a[tri] + (s1 * (1 - r2))[:, None] * b[tri] + (s1 * r2)[:, None] * c[tri]
     if region_min is not None and region_max is not None:
         inside = np.all((samples >= region_min) & (samples <= region_max), axis=1)
         samples = samples[inside]

@@ -132,8 +132,10 @@ def triangulate_with_plane(
         xy = xy.reshape(-1, 2)
     else:
         xy = np.column_stack(
-            [(uv[:, 0] - Km[0, 2] - Km[0, 1] * (uv[:, 1] - Km[1, 2]) / Km[1, 1]) / Km[0, 0],
-             (uv[:, 1] - Km[1, 2]) / Km[1, 1]]
+            [
+                (uv[:, 0] - Km[0, 2] - Km[0, 1] * (uv[:, 1] - Km[1, 2]) / Km[1, 1]) / Km[0, 0],
+                (uv[:, 1] - Km[1, 2]) / Km[1, 1],
+            ]
         )
     rays = np.column_stack([xy, np.ones(xy.shape[0])])
     denom = rays @ plane.normal_in_cam
@@ -153,7 +155,5 @@ def stripe_from_image(
 ) -> StripeProfile:
     """Laser-stripe profile (left-camera frame, metres) of one laser-line image."""
     cfg = config or MappingConfig()
-    uv = extract_laser_peaks(
-        image, cfg.peak_axis, cfg.peak_min_contrast, cfg.peak_window_px, cfg.peak_method
-    )
+    uv = extract_laser_peaks(image, cfg.peak_axis, cfg.peak_min_contrast, cfg.peak_window_px, cfg.peak_method)
     return StripeProfile(int(timestamp_ns), triangulate_with_plane(uv, K, plane, dist))

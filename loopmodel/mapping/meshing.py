@@ -59,7 +59,7 @@ def poisson_depth(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> int:
 
 
 def _poisson(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.TriangleMesh:
-    mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+    mesh, dens_vec = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
         cloud,
         depth=poisson_depth(cloud, config),
         scale=config.poisson_scale,
@@ -67,7 +67,7 @@ def _poisson(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geome
     )
     if len(mesh.vertices) == 0:
         return mesh
-    dens = np.asarray(dens)
+    dens = np.asarray(dens_vec, dtype=np.float64)
     remove = np.zeros(dens.shape[0], dtype=bool)
     if config.density_quantile > 0:
         remove |= dens < np.quantile(dens, config.density_quantile)
@@ -90,8 +90,8 @@ def mesh_cloud(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geo
     """Surface of an oriented cloud with the configured method; cleaned, with vertex normals."""
     if len(cloud.points) < config.min_points:
         raise InputError(
-            None, f"{len(cloud.points)} points after down-sampling; at least {config.min_points} "
-            "are needed for a surface"
+            None,
+            f"{len(cloud.points)} points after down-sampling; at least {config.min_points} are needed for a surface",
         )
     mesh = _poisson(cloud, config) if config.method == "poisson" else _ball_pivoting(cloud, config)
     mesh.remove_degenerate_triangles()

@@ -131,9 +131,7 @@ class StripeMap:
         Places every waiting stripe the new frame brackets; returns the frame index."""
         t = int(timestamp_ns)
         if self._frame_t.n and t <= int(self._frame_t.a[-1]):
-            raise EstimationError(
-                f"frames must arrive in time order: {t} ns after {int(self._frame_t.a[-1])} ns"
-            )
+            raise EstimationError(f"frames must arrive in time order: {t} ns after {int(self._frame_t.a[-1])} ns")
         if kf_id is None:
             if world_from_cam is None:
                 raise InputError(None, "add_frame needs world_from_cam or kf_id and kf_from_cam")
@@ -224,9 +222,7 @@ class StripeMap:
             for st in stripes:
                 pts = np.asarray(st.points_in_cam, dtype=float)
                 if pts.ndim != 2 or pts.shape[1] != 3:
-                    raise InputError(
-                        None, f"stripe at {st.timestamp_ns} ns: points must be N x 3, got {pts.shape}"
-                    )
+                    raise InputError(None, f"stripe at {st.timestamp_ns} ns: points must be N x 3, got {pts.shape}")
                 if pts.shape[0] == 0:
                     raise InputError(None, f"stripe at {st.timestamp_ns} ns has no points")
                 if not np.all(np.isfinite(pts)):
