@@ -427,3 +427,32 @@ def test_stripe_extraction_on_the_simulators_laser_images(rng: np.random.Generat
     # depth sensitivity here is about 4.7 mm/px (6 cm laser offset at 0.37 m)
     pts = triangulate_with_plane(peaks[inner], K, plane)
     assert distances_to_mesh(pts, sphere).mean() < 1e-3
+
+
+def test_mesh_error_metrics_and_ground_truth_from_an_mcap_attachment(
+    tmp_path: Path, sphere: o3d.geometry.TriangleMesh, sphere_scan: tuple[Trajectory, list[StripeProfile]]
+) -> None:
+    from loopmodel.io.mcap_io import McapSequenceWriter
+    from loopmodel.mapping.accuracy import mesh_error_metrics
+    from loopmodel.types import StereoCalibration
+
+    traj, stripes = sphere_scan
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    cal = StereoCalibration(K, K, make_pose(np.eye(3), [-0.06, 0, 0]), (640, 480))
+    ply = tmp_path / "scene.ply"
+    o3d.io.write_triangle_mesh(str(ply), sphere)
+    with McapSequenceWriter(tmp_path / "s.mcap", cal) as w:
+        w.add_attachment("scene.ply", ply.read_bytes(), "application/x-ply")
+    gt_mesh = read_mesh(tmp_path / "s.mcap")
+    assert len(gt_mesh.vertices) == len(sphere.vertices)
+    with pytest.raises(InputError, match="object.ply"):
+        read_mesh(tmp_path / "s.mcap", attachment="object.ply")
+    # "before": every pose shifted by 1.5 mm along +x
+    shifted = traj.world_from_cam.copy()
+    shifted[:, 0, 3] += 0.0015
+    cfg = MappingConfig(voxel_m=0.003, normal_radius_m=0.01)
+    m = mesh_error_metrics(stripes[::4], {"gt": traj, "before": Trajectory(traj.timestamps_ns, shifted)}, gt_mesh, cfg)
+    assert m["mesh_err_gt_mm"] < 0.2 < m["mesh_err_before_mm"]
+    assert 0.3 < m["mesh_err_before_mm"] < 1.5 and m["mesh_err_before_mm_p95"] < 1.6
+    keys = {f"mesh_err_{n}_mm" for n in ("gt", "before")} | {f"mesh_err_{n}_mm_p95" for n in ("gt", "before")}
+    assert set(m) == keys | {"mesh_completeness_gt", "mesh_completeness_before"}

@@ -103,11 +103,41 @@ def write_mesh(path: str | Path, mesh: o3d.geometry.TriangleMesh, fmt: str | Non
     return p
 
 
-def read_mesh(path: str | Path) -> o3d.geometry.TriangleMesh:
-    """Read a triangle mesh with open3d; raises :class:`InputError` if missing or empty."""
+def mesh_from_bytes(data: bytes, fmt: str = "ply", source: str | Path | None = None) -> o3d.geometry.TriangleMesh:
+    """Triangle mesh from the bytes of a mesh file (e.g. an MCAP attachment)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d) / f"mesh.{fmt}"
+        tmp.write_bytes(data)
+        mesh = o3d.io.read_triangle_mesh(tmp)
+    if len(mesh.triangles) == 0:
+        raise InputError(source, "no triangles could be read from this mesh")
+    return mesh
+
+
+def _mcap_attachment(path: Path, name: str) -> bytes:
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            for att in make_reader(f).iter_attachments():
+                if att.name == name:
+                    return bytes(att.data)
+    except Exception as exc:  # the mcap library raises several types for corrupt files
+        raise InputError(path, f"cannot read MCAP attachments ({exc})") from None
+    raise InputError(path, f"no attachment named '{name}' (the ground-truth scene mesh)")
+
+
+def read_mesh(path: str | Path, attachment: str = "scene.ply") -> o3d.geometry.TriangleMesh:
+    """Read a triangle mesh with open3d; from an ``.mcap`` file, its attachment of that name
+    (the simulator's ground-truth scene). Raises :class:`InputError` if missing or empty."""
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "mesh file does not exist")
+    if p.suffix.lower() == ".mcap":
+        data = _mcap_attachment(p, attachment)
+        return mesh_from_bytes(data, Path(attachment).suffix.lstrip(".") or "ply", f"{p}:{attachment}")
     mesh = o3d.io.read_triangle_mesh(p)
     if len(mesh.triangles) == 0:
         raise InputError(p, "no triangles could be read from this mesh file")

@@ -14,7 +14,9 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
+from loopmodel.config import MappingConfig
 from loopmodel.errors import InputError
+from loopmodel.types import StripeProfile, Trajectory
 
 
 @dataclass
@@ -88,3 +90,26 @@ def mesh_accuracy(
         completeness_tol_mm=completeness_tol_m * 1e3,
         vertices=int(len(mesh.vertices)),
     )
+
+
+def mesh_error_metrics(
+    stripes: list[StripeProfile],
+    trajectories: dict[str, Trajectory],
+    gt_mesh: o3d.geometry.TriangleMesh,
+    config: MappingConfig | None = None,
+    completeness_tol_m: float = 0.002,
+) -> dict[str, float]:
+    """Mesh the stripes once per named trajectory (e.g. ``gt``, ``before`` = online,
+    ``after`` = final) and measure each against the ground truth. Keys per name:
+    ``mesh_err_<name>_mm`` (mean), ``mesh_err_<name>_mm_p95``, ``mesh_completeness_<name>``."""
+    from loopmodel.mapping.stripe_map import StripeMap
+
+    out: dict[str, float] = {}
+    for name, traj in trajectories.items():
+        smap = StripeMap.from_trajectory(traj, stripes, config)
+        smap.check_nonempty()
+        acc = mesh_accuracy(smap.mesh(), gt_mesh, completeness_tol_m)
+        out[f"mesh_err_{name}_mm"] = acc.mean_mm
+        out[f"mesh_err_{name}_mm_p95"] = acc.p95_mm
+        out[f"mesh_completeness_{name}"] = acc.completeness
+    return out
