@@ -50,36 +50,36 @@ class OutputConfig(_Section):
 class MappingConfig(_Section):
     """Laser-stripe integration and open3d meshing (lengths in metres, world frame)."""
 
-    method: str = Field("poisson", pattern="^(poisson|ball_pivoting)$", description="surface method")
-    voxel_m: float = Field(0.0015, gt=0, description="voxel down-sampling size before meshing")
-    normal_radius_m: float = Field(0.006, gt=0, description="neighbourhood radius for normals")
-    normal_max_nn: int = Field(20, ge=3, description="max neighbours for normals")
-    poisson_depth: int = Field(0, ge=0, le=12, description="octree depth; 0 = from voxel_m")
-    poisson_max_depth: int = Field(10, ge=4, le=12, description="cap on the derived depth")
-    poisson_scale: float = Field(1.1, gt=1.0, description="bounding cube / samples' box")
+    method: str = Field(default="poisson", pattern="^(poisson|ball_pivoting)$", description="surface method")
+    voxel_m: float = Field(default=0.0015, gt=0, description="voxel down-sampling size before meshing")
+    normal_radius_m: float = Field(default=0.006, gt=0, description="neighbourhood radius for normals")
+    normal_max_nn: int = Field(default=20, ge=3, description="max neighbours for normals")
+    poisson_depth: int = Field(default=0, ge=0, le=12, description="octree depth; 0 = from voxel_m")
+    poisson_max_depth: int = Field(default=10, ge=4, le=12, description="cap on the derived depth")
+    poisson_scale: float = Field(default=1.1, gt=1.0, description="bounding cube / samples' box")
     poisson_linear_fit: bool = True
     density_quantile: float = Field(
-        0.02, ge=0, lt=1, description="trim vertices below this density quantile"
+        default=0.02, ge=0, lt=1, description="trim vertices below this density quantile"
     )
     trim_distance_m: float = Field(
-        0.0, ge=0, description="drop vertices farther from the samples; 0 = 2.5 x voxel_m"
+        default=0.0, ge=0, description="drop vertices farther from the samples; 0 = 2.5 x voxel_m"
     )
     bpa_radii_m: list[float] = Field(
         default_factory=list, description="ball-pivoting radii; empty = 1.5, 3, 6 x voxel_m"
     )
     max_stripe_gap_ns: int = Field(
-        200_000_000, ge=0, description="widest frame interval a stripe is interpolated in"
+        default=200_000_000, ge=0, description="widest frame interval a stripe is interpolated in"
     )
-    chunk_m: float = Field(0.05, gt=0, description="block edge of the chunked live mesh")
-    chunk_margin_m: float = Field(0.006, ge=0, description="overlap meshed around a live block")
-    min_points: int = Field(100, ge=4, description="fewest points a surface is made from")
+    chunk_m: float = Field(default=0.05, gt=0, description="block edge of the chunked live mesh")
+    chunk_margin_m: float = Field(default=0.006, ge=0, description="overlap meshed around a live block")
+    min_points: int = Field(default=100, ge=4, description="fewest points a surface is made from")
     peak_min_contrast: float = Field(
-        20.0, ge=0, description="laser line: min peak above the background (grey levels)"
+        default=20.0, ge=0, description="laser line: min peak above the background (grey levels)"
     )
-    peak_window_px: int = Field(3, ge=1, description="laser line: half-width of the window")
-    peak_method: str = Field("cog", pattern="^(cog|gauss)$", description="sub-pixel method")
+    peak_window_px: int = Field(default=3, ge=1, description="laser line: half-width of the window")
+    peak_method: str = Field(default="cog", pattern="^(cog|gauss)$", description="sub-pixel method")
     peak_axis: str = Field(
-        "columns", pattern="^(columns|rows)$", description="one peak per image column or row"
+        default="columns", pattern="^(columns|rows)$", description="one peak per image column or row"
     )
 
 

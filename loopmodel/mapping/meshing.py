@@ -8,7 +8,9 @@ All lengths in metres, world frame.
 
 from __future__ import annotations
 
+import logging
 import math
+import time
 
 import numpy as np
 import open3d as o3d
@@ -18,6 +20,7 @@ from loopmodel.config import MappingConfig
 from loopmodel.errors import InputError
 
 F64 = NDArray[np.float64]
+logger = logging.getLogger(__name__)
 
 
 def oriented_cloud(points_w: F64, sensors_w: F64, config: MappingConfig) -> o3d.geometry.PointCloud:
@@ -105,7 +108,19 @@ def mesh_from_points(points_w: F64, sensors_w: F64, config: MappingConfig) -> o3
     Raises :class:`InputError` when there is too little data or no surface comes out."""
     if np.asarray(points_w).size == 0:
         raise InputError(None, "no stripe points to mesh")
-    mesh = mesh_cloud(oriented_cloud(points_w, sensors_w, config), config)
+    t0 = time.perf_counter()
+    cloud = oriented_cloud(points_w, sensors_w, config)
+    t1 = time.perf_counter()
+    mesh = mesh_cloud(cloud, config)
+    logger.debug(
+        "meshed %d points (%d after down-sampling): cloud+normals %.3f s, %s %.3f s, %d vertices",
+        len(points_w),
+        len(cloud.points),
+        t1 - t0,
+        config.method,
+        time.perf_counter() - t1,
+        len(mesh.vertices),
+    )
     if len(mesh.triangles) == 0:
         raise InputError(None, "surface reconstruction produced no triangles")
     return mesh
@@ -135,7 +150,7 @@ def mesh_block(
     near = np.all(np.abs(keys - k) <= 1, axis=1)
     if not np.any(near):
         return None
-    lo = k * config.chunk_m
+    lo = (k * config.chunk_m).astype(np.float64)
     hi = lo + config.chunk_m
     p = points_w[near]
     m = config.chunk_margin_m
