@@ -95,6 +95,11 @@ def write_mesh(path: str | Path, mesh: o3d.geometry.TriangleMesh, fmt: str | Non
         if not ok or not tmp.is_file() or tmp.stat().st_size == 0:
             raise InputError(p, f"open3d could not write a {fmt} mesh")
         _add_header_note(tmp, fmt, UNITS_NOTE)
+        if fmt == "obj":  # open3d names the object after the (temporary) file
+            data = tmp.read_bytes()
+            tmp.write_bytes(
+                data.replace(f"# object name: {tmp.stem}\n".encode(), f"# object name: {p.stem}\n".encode(), 1)
+            )
         os.replace(tmp, p)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

@@ -324,13 +324,14 @@ class StripeMap:
             return stripes
         f0, f1 = self._s_f0.a[stripes], self._s_f1.a[stripes]
         frames = np.unique(np.concatenate([f0, f1]))
-        poses = np.empty((self._frame_t.n, 4, 4))
+        poses = np.empty((frames.shape[0], 4, 4))  # world_from_cam of these frames
         kf = self._frame_kf.a[frames]
         rel = self._frame_kf_from_cam.a[frames]
         for k in np.unique(kf):
             sel = kf == k
-            poses[frames[sel]] = np.einsum("ij,njk->nik", self._world_from_kf[int(k)], rel[sel])
-        T = interpolate_poses(poses[f0], poses[f1], self._s_alpha.a[stripes])
+            poses[sel] = np.einsum("ij,njk->nik", self._world_from_kf[int(k)], rel[sel])
+        i0, i1 = np.searchsorted(frames, f0), np.searchsorted(frames, f1)
+        T = interpolate_poses(poses[i0], poses[i1], self._s_alpha.a[stripes])
         live = self._live
         pw = self._p_world.a
         pc = self._p_cam.a
