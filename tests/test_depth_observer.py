@@ -7,7 +7,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 
 from loopmodel.geometry.se3 import invert_pose, se3_exp, so3_exp, so3_log
 from loopmodel.observers import DepthObserver, ObserverConfig, feature_jacobian, l_omega
@@ -43,7 +42,9 @@ def test_feature_jacobian_matches_kinematics(rng: np.random.Generator) -> None:
 
     h = 1e-6
     # scene points move by d m/dt = v_s + w_s x m  <=>  cur_from_ref evolves by the left twist (v_s, w_s)
-    fd = (signals(se3_exp(np.r_[v_s, w_s] * h) @ cur_from_ref) - signals(se3_exp(-np.r_[v_s, w_s] * h) @ cur_from_ref)) / (2 * h)
+    fd = (
+        signals(se3_exp(np.r_[v_s, w_s] * h) @ cur_from_ref) - signals(se3_exp(-np.r_[v_s, w_s] * h) @ cur_from_ref)
+    ) / (2 * h)
     P = cur_from_ref[:3, :3] @ p_ref_m + cur_from_ref[:3, 3]
     p = A_PX @ (P / P[2])
     J = feature_jacobian(A_PX, p[:2], p_ref_m[2] / P[2], so3_log(cur_from_ref[:3, :3]))

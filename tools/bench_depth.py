@@ -33,14 +33,16 @@ def run(quick: bool) -> dict:
         t0 = time.perf_counter()
         results, skipped = observe_sequence(seq.frames(), seq.calibration, window=6, stride=10)
         errs = np.concatenate([r.rel_err for r in results])
-        out.update({
-            "kitti_depth_rel_err_median": float(np.median(errs)),
-            "kitti_depth_rel_err_p90": float(np.percentile(errs, 90)),
-            "kitti_features": int(errs.size),
-            "kitti_windows": len(results),
-            "kitti_windows_skipped": len(skipped),
-            "kitti_wall_s": round(time.perf_counter() - t0, 2),
-        })
+        out.update(
+            {
+                "kitti_depth_rel_err_median": float(np.median(errs)),
+                "kitti_depth_rel_err_p90": float(np.percentile(errs, 90)),
+                "kitti_features": int(errs.size),
+                "kitti_windows": len(results),
+                "kitti_windows_skipped": len(skipped),
+                "kitti_wall_s": round(time.perf_counter() - t0, 2),
+            }
+        )
     else:
         out["kitti_depth_rel_err_median"] = None
     return out

@@ -149,10 +149,15 @@ class DepthObserver:
         energy = 0.0
         for k in range(1, steps + 1):
             s = k / steps
-            energy += self._step(
-                (1 - s) * self._last_e + s * e, (1 - s) * self._last_p + s * p,
-                (1 - s) * self._last_alpha + s * alpha, dt,
-            ) * dt
+            energy += (
+                self._step(
+                    (1 - s) * self._last_e + s * e,
+                    (1 - s) * self._last_p + s * p,
+                    (1 - s) * self._last_alpha + s * alpha,
+                    dt,
+                )
+                * dt
+            )
         self._h_energy.append((m.t_s, energy))
         self.t_s, self._last_e, self._last_p, self._last_alpha = m.t_s, e, p, alpha
         self._record(energy)

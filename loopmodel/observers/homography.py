@@ -39,7 +39,10 @@ def _rays(A: F64, p: F64) -> F64:
 
 
 def decompose_homography(
-    H: ArrayLike, A: ArrayLike, p_ref_px: ArrayLike, p_cur_px: ArrayLike,
+    H: ArrayLike,
+    A: ArrayLike,
+    p_ref_px: ArrayLike,
+    p_cur_px: ArrayLike,
     normal_prior: ArrayLike = (0.0, 0.0, 1.0),
 ) -> TwoViewSignals:
     """Decompose the pixel homography ``G ~ A H A^-1`` of coplanar points (``p_cur ~ G p_ref``)
@@ -60,8 +63,15 @@ def decompose_homography(
         Hk = Rs[k] + ts[k].reshape(3, 1) @ n.reshape(1, 3)
         if np.any(mr @ n <= 0) or np.any((mr @ Hk.T)[:, 2] <= 0):
             continue
-        residual = float(np.linalg.norm(np.cross(mc / np.linalg.norm(mc, axis=1, keepdims=True),
-                                                   mr @ Hk.T / np.linalg.norm(mr @ Hk.T, axis=1, keepdims=True)), axis=1).mean())
+        residual = float(
+            np.linalg.norm(
+                np.cross(
+                    mc / np.linalg.norm(mc, axis=1, keepdims=True),
+                    mr @ Hk.T / np.linalg.norm(mr @ Hk.T, axis=1, keepdims=True),
+                ),
+                axis=1,
+            ).mean()
+        )
         score = round(residual, 6) - float(n @ np.asarray(normal_prior, dtype=float))
         if best is None or score < best[0]:
             best = (score, k)
@@ -75,7 +85,10 @@ def decompose_homography(
 
 
 def signals_from_essential(
-    A: ArrayLike, p_ref_px: ArrayLike, p_cur_px: ArrayLike, plane_features: tuple[int, int, int] = (0, 1, 2),
+    A: ArrayLike,
+    p_ref_px: ArrayLike,
+    p_cur_px: ArrayLike,
+    plane_features: tuple[int, int, int] = (0, 1, 2),
     threshold_px: float = 1.0,
 ) -> TwoViewSignals:
     """Two-view signals of non-coplanar features: ``R_bar`` and the translation direction from
