@@ -117,7 +117,10 @@ def mesh(
     fmt: Annotated[str, typer.Option("--format", "-f", help="ply (binary), obj, stl or glb")] = "ply",
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output file (default RESULTS_DIR/mesh.FMT)")] = None,
     trajectory: Annotated[str, typer.Option("--trajectory", help="final or online poses")] = "final",
-    gt_mesh: Annotated[Path | None, typer.Option("--gt-mesh", help="Ground-truth mesh (.ply, or .mcap with a scene.ply attachment): print accuracy")] = None,
+    gt_mesh: Annotated[
+        Path | None,
+        typer.Option("--gt-mesh", help="Ground-truth mesh (.ply, or .mcap with scene.ply): print accuracy"),
+    ] = None,
     config: ConfigOption = None,
 ) -> None:
     """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run)."""

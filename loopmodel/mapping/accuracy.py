@@ -45,7 +45,7 @@ def distances_to_mesh(points: NDArray[np.float64], mesh: o3d.geometry.TriangleMe
     """Unsigned distance (metres) from each of the P x 3 points to the mesh surface."""
     if len(mesh.triangles) == 0:
         raise InputError(None, "distance to a mesh without triangles")
-    q = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3))
+    q = o3d.core.Tensor.from_numpy(np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3))
     return _scene(mesh).compute_distance(q).numpy().astype(np.float64)
 
 

@@ -78,7 +78,7 @@ def _poisson(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geome
     verts = o3d.geometry.PointCloud(mesh.vertices)
     dist = np.asarray(verts.compute_point_cloud_distance(cloud))
     remove |= dist > trim
-    mesh.remove_vertices_by_mask(remove)
+    mesh.remove_vertices_by_mask(remove)  # type: ignore[arg-type]
     return mesh
 
 

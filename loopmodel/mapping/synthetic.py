@@ -77,14 +77,14 @@ def cast_stripe(
     o_w = R @ o_cam + t
     d_w = d_cam @ R.T
     r = np.hstack([np.repeat(o_w[None], rays, 0), d_w]).astype(np.float32)
-    hit = scene.cast_rays(o3d.core.Tensor(r))["t_hit"].numpy().astype(np.float64)
+    hit = scene.cast_rays(o3d.core.Tensor.from_numpy(r))["t_hit"].numpy().astype(np.float64)
     ok = np.isfinite(hit)
     p_w = o_w + d_w[ok] * hit[ok, None]
     # visibility from the camera centre
     v = p_w - t
     dist = np.linalg.norm(v, axis=1)
     vr = np.hstack([np.repeat(t[None], v.shape[0], 0), v / dist[:, None]]).astype(np.float32)
-    seen = scene.cast_rays(o3d.core.Tensor(vr))["t_hit"].numpy() >= dist - 1e-5 * np.maximum(dist, 1)
+    seen = scene.cast_rays(o3d.core.Tensor.from_numpy(vr))["t_hit"].numpy() >= dist - 1e-5 * np.maximum(dist, 1)
     p_w = p_w[seen]
     cam_from_world = invert_pose(world_from_cam)
     p_c = p_w @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
