@@ -456,3 +456,21 @@ def test_mesh_error_metrics_and_ground_truth_from_an_mcap_attachment(
     assert 0.3 < m["mesh_err_before_mm"] < 1.5 and m["mesh_err_before_mm_p95"] < 1.6
     keys = {f"mesh_err_{n}_mm" for n in ("gt", "before")} | {f"mesh_err_{n}_mm_p95" for n in ("gt", "before")}
     assert set(m) == keys | {"mesh_completeness_gt", "mesh_completeness_before"}
+
+
+def test_batch_interpolation_matches_the_scalar_one(rng: np.random.Generator) -> None:
+    from loopmodel.geometry.se3 import interpolate_poses
+
+    n = 200
+    T0 = np.stack([se3_exp(rng.normal(size=6)) for _ in range(n)])
+    # relative rotations up to nearly pi (the geodesic is unique below pi)
+    angles = np.concatenate([rng.uniform(0, 3.1, n - 3), [0.0, 1e-9, 3.14]])
+    axes = rng.normal(size=(n, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    T1 = np.stack([T0[i] @ make_pose(so3_exp(axes[i] * angles[i]), rng.normal(size=3)) for i in range(n)])
+    alpha = rng.uniform(0, 1, n)
+    batch = interpolate_poses(T0, T1, alpha)
+    for i in range(n):
+        np.testing.assert_allclose(batch[i], interpolate_pose(T0[i], T1[i], alpha[i]), atol=1e-9)
+    np.testing.assert_allclose(interpolate_poses(T0, T1, np.zeros(n)), T0, atol=1e-12)
+    np.testing.assert_allclose(interpolate_poses(T0, T1, np.ones(n)), T1, atol=1e-9)
