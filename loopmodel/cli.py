@@ -113,10 +113,12 @@ def convert(
 
 @app.command()
 def mesh(
-    results_dir: Annotated[Path, typer.Argument(help="Results folder of a run (stripes.npz + trajectory)")],
+    source: Annotated[
+        Path, typer.Argument(help="Results folder (stripes.npz + trajectory) or a sequence with ground truth")
+    ],
     fmt: Annotated[str, typer.Option("--format", "-f", help="ply (binary), obj, stl or glb")] = "ply",
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output file (default RESULTS_DIR/mesh.FMT)")] = None,
-    trajectory: Annotated[str, typer.Option("--trajectory", help="final or online poses")] = "final",
+    trajectory: Annotated[str, typer.Option("--trajectory", help="final or online poses of a run")] = "final",
     gt_mesh: Annotated[
         Path | None,
         typer.Option("--gt-mesh", help="Ground-truth mesh (.ply, or .mcap with scene.ply): print accuracy"),
@@ -125,35 +127,22 @@ def mesh(
 ) -> None:
     """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run)."""
     from loopmodel.io.mesh_io import MESH_FORMATS, read_mesh, write_mesh
-    from loopmodel.io.stripes_io import load_stripes
-    from loopmodel.io.trajectory_io import read_trajectory
+    from loopmodel.io.stripes_io import load_stripes_and_poses
     from loopmodel.mapping.stripe_map import StripeMap
 
     fmt = fmt.lower()
     if fmt not in MESH_FORMATS:
         raise InputError(None, f"--format must be one of {', '.join(MESH_FORMATS)}, got '{fmt}'")
-    if trajectory not in ("final", "online"):
-        raise InputError(None, f"--trajectory must be final or online, got '{trajectory}'")
-    if not results_dir.is_dir():
-        raise InputError(results_dir, "results folder does not exist")
     cfg = load_config(config)
-    traj_path = results_dir / f"trajectory_{trajectory}.tum"
-    if trajectory == "final" and not traj_path.is_file():
-        traj_path = results_dir / "trajectory_online.tum"
-    if not traj_path.is_file():
-        raise InputError(results_dir, f"no trajectory_{trajectory}.tum in the results folder")
-    stripes = load_stripes(results_dir)
-    if not stripes:
-        raise InputError(results_dir / "stripes.npz", "no laser stripes in the stripe file")
-    traj = read_trajectory(traj_path)
+    stripes, traj, poses = load_stripes_and_poses(source, trajectory, cfg.sequence)
     smap = StripeMap.from_trajectory(traj, stripes, cfg.mapping)
     smap.check_nonempty()
     surface = smap.mesh()
-    target = out or results_dir / f"mesh.{fmt}"
+    target = out or (source / f"mesh.{fmt}" if source.is_dir() else source.with_name(f"{source.stem}_mesh.{fmt}"))
     write_mesh(target, surface, fmt)
     console.print(
         f"wrote {target} ({len(surface.vertices)} vertices, {len(surface.triangles)} triangles, "
-        f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes, poses {traj_path.name})"
+        f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes, poses: {poses})"
     )
     if gt_mesh is not None:
         from loopmodel.mapping.accuracy import mesh_accuracy

@@ -474,3 +474,29 @@ def test_batch_interpolation_matches_the_scalar_one(rng: np.random.Generator) ->
         np.testing.assert_allclose(batch[i], interpolate_pose(T0[i], T1[i], alpha[i]), atol=1e-9)
     np.testing.assert_allclose(interpolate_poses(T0, T1, np.zeros(n)), T0, atol=1e-12)
     np.testing.assert_allclose(interpolate_poses(T0, T1, np.ones(n)), T1, atol=1e-9)
+
+
+def test_cli_mesh_of_a_sequence_with_ground_truth(
+    tmp_path: Path, sphere: o3d.geometry.TriangleMesh, sphere_scan: tuple[Trajectory, list[StripeProfile]]
+) -> None:
+    from loopmodel.cli import main
+    from loopmodel.io.mcap_io import McapSequenceWriter
+    from loopmodel.types import StereoCalibration, StereoFrame
+
+    traj, stripes = sphere_scan
+    K = np.array([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]])
+    cal = StereoCalibration(K, K, make_pose(np.eye(3), [-0.06, 0, 0]), (16, 16))
+    seq = tmp_path / "scan.mcap"
+    ply = tmp_path / "scene.ply"
+    o3d.io.write_triangle_mesh(str(ply), sphere)
+    img = np.zeros((16, 16), np.uint8)
+    with McapSequenceWriter(seq, cal, image_format="raw") as w:
+        for i, t in enumerate(traj.timestamps_ns[::2]):
+            w.write_frame(StereoFrame(int(t), img, img, i))
+        w.write_trajectory(traj)
+        for s in stripes[::3]:
+            w.write_stripe(s)
+        w.add_attachment("scene.ply", ply.read_bytes(), "application/x-ply")
+    assert main(["mesh", str(seq), "--gt-mesh", str(seq)]) == 0
+    mesh = read_mesh(tmp_path / "scan_mesh.ply")
+    assert mesh_accuracy(mesh, sphere).p95_mm < 0.5
