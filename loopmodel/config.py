@@ -54,6 +54,9 @@ class MappingConfig(_Section):
     voxel_m: float = Field(default=0.0015, gt=0, description="voxel down-sampling size before meshing")
     normal_radius_m: float = Field(default=0.006, gt=0, description="neighbourhood radius for normals")
     normal_max_nn: int = Field(default=20, ge=3, description="max neighbours for normals")
+    line_ratio: float = Field(
+        default=0.003, ge=0, lt=1, description="eigenvalue ratio below which a neighbourhood is a line"
+    )
     poisson_depth: int = Field(default=0, ge=0, le=12, description="octree depth; 0 = from voxel_m")
     poisson_max_depth: int = Field(default=10, ge=4, le=12, description="cap on the derived depth")
     poisson_scale: float = Field(default=1.1, gt=1.0, description="bounding cube / samples' box")

@@ -39,16 +39,23 @@ def oriented_cloud(points_w: F64, sensors_w: F64, config: MappingConfig) -> o3d.
     pcd.normals = o3d.utility.Vector3dVector(view)
     down = pcd.voxel_down_sample(config.voxel_m) if config.voxel_m > 0 else pcd
     view_d = np.asarray(down.normals).copy()
-    # existing normals make open3d orient the estimated ones alike; flip explicitly as well
-    down.estimate_normals(
+    view_d /= np.maximum(np.linalg.norm(view_d, axis=1, keepdims=True), 1e-12)
+    down.estimate_covariances(
         o3d.geometry.KDTreeSearchParamHybrid(radius=config.normal_radius_m, max_nn=config.normal_max_nn)
     )
-    n = np.asarray(down.normals)
-    flip = np.einsum("ij,ij->i", n, view_d) < 0
-    if np.any(flip):
-        n = n.copy()
-        n[flip] *= -1.0
-        down.normals = o3d.utility.Vector3dVector(n)
+    evals, evecs = np.linalg.eigh(np.asarray(down.covariances))  # ascending eigenvalues
+    n = evecs[:, :, 0].copy()
+    # Where the neighbourhood is (nearly) a line - one stripe with no neighbour stripe within
+    # reach - its normal is undetermined; take the view direction made perpendicular to the
+    # line instead, the best guess the sensor geometry gives.
+    line = evals[:, 1] < config.line_ratio * np.maximum(evals[:, 2], 1e-30)
+    if np.any(line):
+        tangent = evecs[line, :, 2]
+        v = view_d[line]
+        nv = v - np.einsum("ij,ij->i", v, tangent)[:, None] * tangent
+        n[line] = nv / np.maximum(np.linalg.norm(nv, axis=1, keepdims=True), 1e-12)
+    n[np.einsum("ij,ij->i", n, view_d) < 0] *= -1.0
+    down.normals = o3d.utility.Vector3dVector(n)
     return down
 
 
