@@ -76,6 +76,18 @@ class MappingConfig(_Section):
     chunk_m: float = Field(default=0.05, gt=0, description="block edge of the chunked live mesh")
     chunk_margin_m: float = Field(default=0.006, ge=0, description="overlap meshed around a live block")
     min_points: int = Field(default=100, ge=4, description="fewest points a surface is made from")
+    laser_plane_point_in_cam_m: list[float] = Field(
+        default_factory=lambda: [0.03, 0.06, 0.0],
+        min_length=3,
+        max_length=3,
+        description="a point of the calibrated light plane (left-camera frame)",
+    )
+    laser_plane_normal_in_cam: list[float] = Field(
+        default_factory=lambda: [0.0, -0.987, -0.158],
+        min_length=3,
+        max_length=3,
+        description="normal of the calibrated light plane (left-camera frame)",
+    )
     peak_min_contrast: float = Field(
         default=20.0, ge=0, description="laser line: min peak above the background (grey levels)"
     )

@@ -18,7 +18,7 @@ from loopmodel.geometry.se3 import interpolate_pose, invert_pose, make_pose, se3
 from loopmodel.io.mesh_io import MESH_FORMATS, UNITS_NOTE, read_mesh, write_mesh
 from loopmodel.io.stripes_io import load_stripes, save_stripes
 from loopmodel.io.trajectory_io import write_trajectory
-from loopmodel.mapping import LightPlane, StripeMap, extract_laser_peaks, triangulate_with_plane
+from loopmodel.mapping import LightPlane, StripeMap, extract_laser_peaks, stripe_from_image, triangulate_with_plane
 from loopmodel.mapping.accuracy import distances_to_mesh, mesh_accuracy
 from loopmodel.mapping.synthetic import cast_stripe, default_light_plane, orbit_pose, orbit_scan
 from loopmodel.types import StripeProfile, Trajectory
@@ -193,7 +193,7 @@ def test_live_mesh_updates_only_affected_blocks(
     sphere: o3d.geometry.TriangleMesh, sphere_scan: tuple[Trajectory, list[StripeProfile]]
 ) -> None:
     traj, stripes = sphere_scan
-    cfg = MappingConfig(voxel_m=0.003, chunk_m=0.06, normal_radius_m=0.01)
+    cfg = MappingConfig(voxel_m=0.003, chunk_m=0.08, normal_radius_m=0.01)
     stripes = stripes[::2]
     m = StripeMap(cfg)
     kf_of = np.arange(len(traj)) // 10
@@ -265,6 +265,17 @@ def test_stripe_extraction_recovers_profiles_to_a_tenth_of_a_pixel(
     assert np.abs(plane.signed_distance_m(pts)).max() < 1e-9
     world = pts @ T[:3, :3].T + T[:3, 3]
     assert distances_to_mesh(world, sphere).mean() < 1e-4  # 0.1 mm
+    n, p0 = plane.normal_in_cam, -plane.d_m * plane.normal_in_cam
+    cfg = MappingConfig(
+        peak_axis="rows",
+        peak_min_contrast=30,
+        peak_method=method,
+        laser_plane_point_in_cam_m=p0.tolist(),
+        laser_plane_normal_in_cam=n.tolist(),
+    )
+    profile = stripe_from_image(img, 7, K, config=cfg)
+    assert profile.timestamp_ns == 7
+    np.testing.assert_allclose(profile.points_in_cam, pts, atol=1e-12)
     # a dark image gives no peaks; a 3-channel image works like grey
     assert extract_laser_peaks(np.full((50, 60), 40, np.uint8), min_contrast=10).shape == (0, 2)
     bgr = np.dstack([img // 4, img // 4, img])
@@ -388,6 +399,10 @@ def test_stripe_extraction_on_the_simulators_laser_images(rng: np.random.Generat
     lc = SimLaserConfig()
     plane_sim = laser.LaserPlane.create(lc.origin_in_cam_m, lc.normal_in_cam, lc.fan_deg, 5000)
     plane = LightPlane.from_point_normal(lc.origin_in_cam_m, lc.normal_in_cam)
+    # the mapping configuration's default light plane is the simulator's
+    cfg_plane = LightPlane.from_config(MappingConfig())
+    np.testing.assert_allclose(cfg_plane.normal_in_cam, plane.normal_in_cam, atol=1e-12)
+    assert cfg_plane.d_m == pytest.approx(plane.d_m, abs=1e-12)
     K = np.array([[500.0, 0, 320.0], [0, 500.0, 240.0], [0, 0, 1]])
     cam = CentralCamera.from_K(K)
     # a sphere where the light plane crosses the optical axis, camera at the origin

@@ -46,6 +46,11 @@ class LightPlane:
         n = n / np.linalg.norm(n)
         return cls(n, -float(n @ np.asarray(point_in_cam, dtype=float).reshape(3)))
 
+    @classmethod
+    def from_config(cls, config: MappingConfig) -> LightPlane:
+        """The calibrated plane of the configuration (``laser_plane_*`` keys)."""
+        return cls.from_point_normal(config.laser_plane_point_in_cam_m, config.laser_plane_normal_in_cam)
+
     def signed_distance_m(self, points_in_cam: ArrayLike) -> F64:
         """Signed distance (metres) of N x 3 camera-frame points to the plane."""
         return np.asarray(points_in_cam, dtype=float).reshape(-1, 3) @ self.normal_in_cam + self.d_m
@@ -149,11 +154,13 @@ def stripe_from_image(
     image: NDArray,  # type: ignore[type-arg]
     timestamp_ns: int,
     K: ArrayLike,
-    plane: LightPlane,
+    plane: LightPlane | None = None,
     config: MappingConfig | None = None,
     dist: ArrayLike | None = None,
 ) -> StripeProfile:
-    """Laser-stripe profile (left-camera frame, metres) of one laser-line image."""
+    """Laser-stripe profile (left-camera frame, metres) of one laser-line image taken by the
+    left camera (intrinsics ``K``); the plane defaults to the configured one."""
     cfg = config or MappingConfig()
+    plane = plane or LightPlane.from_config(cfg)
     uv = extract_laser_peaks(image, cfg.peak_axis, cfg.peak_min_contrast, cfg.peak_window_px, cfg.peak_method)
     return StripeProfile(int(timestamp_ns), triangulate_with_plane(uv, K, plane, dist))
