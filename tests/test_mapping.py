@@ -515,3 +515,16 @@ def test_cli_mesh_of_a_sequence_with_ground_truth(
     assert main(["mesh", str(seq), "--gt-mesh", str(seq)]) == 0
     mesh = read_mesh(tmp_path / "scan_mesh.ply")
     assert mesh_accuracy(mesh, sphere).p95_mm < 0.5
+
+
+def test_isolated_stripes_get_normals_from_the_view_direction(
+    sphere: o3d.geometry.TriangleMesh, sphere_scan: tuple[Trajectory, list[StripeProfile]]
+) -> None:
+    """Every 10th stripe: about 13 mm apart, beyond the 6 mm normal radius, so each
+    neighbourhood is a line whose plain PCA normal is arbitrary about the stripe."""
+    traj, stripes = sphere_scan
+    sparse = stripes[::10]
+    good = mesh_accuracy(StripeMap.from_trajectory(traj, sparse).mesh(), sphere)
+    assert good.mean_mm < 0.2 and good.p95_mm < 0.5, good
+    plain = mesh_accuracy(StripeMap.from_trajectory(traj, sparse, MappingConfig(line_ratio=0.0)).mesh(), sphere)
+    assert plain.p95_mm > 2 * good.p95_mm, (plain, good)
