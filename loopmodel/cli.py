@@ -123,6 +123,9 @@ def mesh(
         Path | None,
         typer.Option("--gt-mesh", help="Ground-truth mesh (.ply, or .mcap with scene.ply): print accuracy"),
     ] = None,
+    gt_attachment: Annotated[
+        str, typer.Option("--gt-attachment", help="Attachment of an .mcap --gt-mesh (e.g. object.ply)")
+    ] = "scene.ply",
     config: ConfigOption = None,
 ) -> None:
     """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run)."""
@@ -147,7 +150,7 @@ def mesh(
     if gt_mesh is not None:
         from loopmodel.mapping.accuracy import mesh_accuracy
 
-        acc = mesh_accuracy(surface, read_mesh(gt_mesh))
+        acc = mesh_accuracy(surface, read_mesh(gt_mesh, gt_attachment))
         console.print(
             f"accuracy: mean {acc.mean_mm:.3f} mm, p95 {acc.p95_mm:.3f} mm, "
             f"completeness {100 * acc.completeness:.1f} % within {acc.completeness_tol_mm:g} mm"
