@@ -96,7 +96,7 @@ def run_trials(
     for t in range(trials):
         data = clean + sigma_noise * rng.standard_normal(len(clean))
         start = truth + rng.multivariate_normal(np.zeros(4), bound.cov)
-        est, iters[t] = gauss_newton(renderer, data, start, 1e-2 * sd)
+        est, iters[t] = gauss_newton(renderer, data, start, 0.03 * sd)
         errors[t] = est - truth
     sig = np.sqrt(np.mean(errors**2, axis=0))
     cov_mc = errors.T @ errors / trials
