@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import click
+import numpy as np
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -110,6 +111,70 @@ def convert(
         task = bar.add_task("convert", total=len(seq))
         convert_to_mcap(seq, dst, cfg.sequence, image_format, progress=lambda i: bar.update(task, completed=i))
     console.print(f"wrote {dst} ({dst.stat().st_size / 2**20:.1f} MiB, {len(seq)} frames)")
+
+
+@app.command()
+def bound(
+    out: Annotated[Path, typer.Option("--out", help="Output folder")],
+    marker: Annotated[list[str] | None, typer.Option("--marker", help="triangle, t or a marker JSON file; repeat to compare (default: triangle and t)")] = None,
+    distance_m: Annotated[float | None, typer.Option("--distance-m", help="Camera distance R [m]")] = None,
+    focal_mm: Annotated[float | None, typer.Option("--focal-mm", help="Focal length [mm]")] = None,
+    noise: Annotated[float | None, typer.Option("--noise", help="N0/2 [contrast^2 px^2]: noise variance of a 1 px x 1 px cell")] = None,
+    pixel_um: Annotated[float | None, typer.Option("--pixel-um", help="Pixel pitch [um], the image length unit")] = None,
+    pixel_study: Annotated[bool, typer.Option("--pixel-study/--no-pixel-study", help="Also compute the finite-pixel-size bound")] = True,
+    config: ConfigOption = None,
+) -> None:
+    """Cramér–Rao bound of camera position from a marker contour over the (θ, φ) grid (seed 001)."""
+    import time
+
+    from loopmodel.accuracy.fisher import bound_grid
+    from loopmodel.accuracy.marker import load_marker
+    from loopmodel.accuracy.report import (
+        pixel_study as run_pixel_study,
+    )
+    from loopmodel.accuracy.report import (
+        plot_pixel_study,
+        summary_markdown,
+        write_grid_outputs,
+        write_summary,
+    )
+    from loopmodel.io.atomic import write_text_atomic
+
+    cfg = load_config(config)
+    acc = cfg.accuracy.model_copy(update={k: v for k, v in (
+        ("distance_m", distance_m), ("focal_mm", focal_mm), ("noise", noise), ("pixel_um", pixel_um)) if v is not None})
+    for key in ("distance_m", "focal_mm", "noise", "pixel_um"):
+        if not getattr(acc, key) > 0:
+            raise InputError(None, f"--{key.replace('_', '-')} must be > 0, got {getattr(acc, key)}")
+    cfg = cfg.model_copy(update={"accuracy": acc})
+    markers = [load_marker(m) for m in (marker or ["triangle", "t"])]
+    if len({m.name for m in markers}) != len(markers):
+        raise InputError(None, "two markers share a name; give each JSON file a distinct 'name'")
+    kw = dict(distance_m=acc.distance_m, focal_mm=acc.focal_mm, noise=acc.noise, pixel_um=acc.pixel_um,
+              theta_deg=acc.theta_deg, phi_deg=acc.phi_deg, n_edge=acc.edge_subdivisions, n_circle=acc.circle_points)
+    t0 = time.perf_counter()
+    grids = [bound_grid(m, **kw) for m in markers]  # type: ignore[arg-type]
+    grid_ms = (time.perf_counter() - t0) * 1e3
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / "config.yaml", dump_config(cfg))
+    for g in grids:
+        write_grid_outputs(g, out)
+    studies = {}
+    if pixel_study:
+        with progress_bar() as bar:
+            task = bar.add_task("pixel-size study", total=len(markers))
+            for m, g in zip(markers, grids, strict=True):
+                studies[m.name] = run_pixel_study(m, g, acc.pixel_study_px)
+                bar.advance(task)
+        plot_pixel_study(studies, acc.pixel_um, out / "pixel_size.png")
+    write_summary(summary_markdown(grids, studies, grid_ms), out)
+    table = Table(title=f"CRLB over {len(acc.theta_deg)}x{len(acc.phi_deg)} grid (median)")
+    for col in ("marker", "σ_r [m]", "σ_v [m]", "σ_u [m]", "σ_γ [deg]"):
+        table.add_column(col)
+    for g in grids:
+        table.add_row(g.marker, *(f"{float(np.median(g.bound.sigma[..., k])):.4g}" for k in range(4)))
+    console.print(table)
+    console.print(f"wrote {out} (grid in {grid_ms:.1f} ms)")
 
 
 @config_app.command("dump")

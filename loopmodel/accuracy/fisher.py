@@ -20,6 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from loopmodel.accuracy.marker import Marker
 from loopmodel.accuracy.view import Views, flows, focal_px, image_tangents, stabilised_views
+from loopmodel.errors import InputError
 
 F64 = NDArray[np.float64]
 
@@ -82,6 +83,8 @@ class GridBound:
     focal_mm: float
     pixel_um: float
     noise: float
+    area_m2: float
+    perimeter_m: float
     J: F64
     bound: Bound
 
@@ -98,8 +101,16 @@ def bound_grid(
     n_circle: int = 256,
 ) -> GridBound:
     """The bound for every (theta, phi) of the grid, vectorised over all cameras."""
+    for key, val in (("distance_m", distance_m), ("focal_mm", focal_mm), ("noise", noise), ("pixel_um", pixel_um)):
+        if not (np.isfinite(val) and val > 0):
+            raise InputError(None, f"{key} must be a positive number, got {val}")
+    reach = max(float(np.max(np.linalg.norm(v, axis=1))) for v, _ in marker.outlines(64))
+    if distance_m <= 2.0 * reach:
+        raise InputError(None, f"distance_m = {distance_m:g} m is too small for marker '{marker.name}' "
+                         f"(it reaches {reach:.3g} m from its origin; the bound assumes a distant marker)")
     th = np.asarray(theta_deg, dtype=float).ravel()
     ph = np.asarray(phi_deg, dtype=float).ravel()
     views = stabilised_views(distance_m, th[:, None], ph[None, :], focal_px(focal_mm, pixel_um))
     J = fisher_contour(marker, views, noise, n_edge, n_circle).reshape(len(th), len(ph), 4, 4)
-    return GridBound(marker.name, th, ph, distance_m, focal_mm, pixel_um, noise, J, crlb(J))
+    return GridBound(marker.name, th, ph, distance_m, focal_mm, pixel_um, noise, marker.area,
+                     marker.perimeter, J, crlb(J))
