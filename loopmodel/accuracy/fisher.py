@@ -33,18 +33,20 @@ THETA_GRID_DEG = np.arange(5.0, 66.0, 10.0)
 PHI_GRID_DEG = np.arange(0.0, 360.0, 10.0)
 
 
-def fisher_contour(marker: Marker, views: Views, noise: float, n_edge: int = 64, n_circle: int = 256) -> F64:
+def fisher_contour(
+    marker: Marker, views: Views, noise: float, n_edge: int = 64, n_circle: int = 256
+) -> F64:
     """(n, 4, 4) Fisher information of ``A = (r, v, u, gamma)`` for every camera of ``views``.
 
     ``noise`` is ``N0/2`` (contrast^2 px^2); ``n_edge`` trapezoid sub-intervals per polygon
     edge, ``n_circle`` points per circle.
     """
     cs = marker.contour(n_edge, n_circle)
-    Q = flows(views, cs.points)                                  # (n, M, 4, 2)
-    adot = image_tangents(views, cs.points, cs.tangents)         # (n, M, 2)
+    Q = flows(views, cs.points)  # (n, M, 4, 2)
+    adot = image_tangents(views, cs.points, cs.tangents)  # (n, M, 2)
     # |adot| (n.Q) = adot x Q (sign irrelevant); dl = |adot| dt
-    c = adot[..., None, 0] * Q[..., 1] - adot[..., None, 1] * Q[..., 0]   # (n, M, 4)
-    w = cs.weights[None, :] / np.linalg.norm(adot, axis=-1)      # (n, M)
+    c = adot[..., None, 0] * Q[..., 1] - adot[..., None, 1] * Q[..., 0]  # (n, M, 4)
+    w = cs.weights[None, :] / np.linalg.norm(adot, axis=-1)  # (n, M)
     return np.einsum("nm,nmi,nmj->nij", w, c, c) / noise
 
 
@@ -101,16 +103,35 @@ def bound_grid(
     n_circle: int = 256,
 ) -> GridBound:
     """The bound for every (theta, phi) of the grid, vectorised over all cameras."""
-    for key, val in (("distance_m", distance_m), ("focal_mm", focal_mm), ("noise", noise), ("pixel_um", pixel_um)):
+    for key, val in (
+        ("distance_m", distance_m),
+        ("focal_mm", focal_mm),
+        ("noise", noise),
+        ("pixel_um", pixel_um),
+    ):
         if not (np.isfinite(val) and val > 0):
             raise InputError(None, f"{key} must be a positive number, got {val}")
     reach = max(float(np.max(np.linalg.norm(v, axis=1))) for v, _ in marker.outlines(64))
     if distance_m <= 2.0 * reach:
-        raise InputError(None, f"distance_m = {distance_m:g} m is too small for marker '{marker.name}' "
-                         f"(it reaches {reach:.3g} m from its origin; the bound assumes a distant marker)")
+        raise InputError(
+            None,
+            f"distance_m = {distance_m:g} m is too small for marker '{marker.name}' "
+            f"(it reaches {reach:.3g} m from its origin; the bound assumes a distant marker)",
+        )
     th = np.asarray(theta_deg, dtype=float).ravel()
     ph = np.asarray(phi_deg, dtype=float).ravel()
     views = stabilised_views(distance_m, th[:, None], ph[None, :], focal_px(focal_mm, pixel_um))
     J = fisher_contour(marker, views, noise, n_edge, n_circle).reshape(len(th), len(ph), 4, 4)
-    return GridBound(marker.name, th, ph, distance_m, focal_mm, pixel_um, noise, marker.area,
-                     marker.perimeter, J, crlb(J))
+    return GridBound(
+        marker.name,
+        th,
+        ph,
+        distance_m,
+        focal_mm,
+        pixel_um,
+        noise,
+        marker.area,
+        marker.perimeter,
+        J,
+        crlb(J),
+    )

@@ -58,7 +58,9 @@ class Polygon:
     @property
     def perimeter(self) -> float:
         """Perimeter (m)."""
-        return float(np.sum(np.linalg.norm(np.roll(self.vertices, -1, axis=0) - self.vertices, axis=1)))
+        return float(
+            np.sum(np.linalg.norm(np.roll(self.vertices, -1, axis=0) - self.vertices, axis=1))
+        )
 
     def outline(self, n_circle: int = 0) -> F64:
         """Vertices of the boundary (N x 2, metres)."""
@@ -188,10 +190,18 @@ def t_marker(area_m2: float | None = None) -> Marker:
     area = triangle_marker().area if area_m2 is None else float(area_m2)
     w = (5.0 - math.sqrt(25.0 - 4.0 * area)) / 2.0
     h = w / 2.0
-    pts = np.array([
-        [-1.0, 3.0], [-1.0, 3.0 - w], [-h, 3.0 - w], [-h, 0.0],
-        [h, 0.0], [h, 3.0 - w], [1.0, 3.0 - w], [1.0, 3.0],
-    ])
+    pts = np.array(
+        [
+            [-1.0, 3.0],
+            [-1.0, 3.0 - w],
+            [-h, 3.0 - w],
+            [-h, 0.0],
+            [h, 0.0],
+            [h, 3.0 - w],
+            [1.0, 3.0 - w],
+            [1.0, 3.0],
+        ]
+    )
     m = Marker("t", (Polygon(pts),))
     return Marker("t", (Polygon(pts - m.centroid),))
 
@@ -233,9 +243,9 @@ def _segments_intersect(p: F64, q: F64, r: F64, s: F64, eps: float) -> NDArray[n
     d1, d2 = orient(r, s, p), orient(r, s, q)
     d3, d4 = orient(p, q, r), orient(p, q, s)
     scale = eps * (np.linalg.norm(q - p, axis=1) + np.linalg.norm(s - r, axis=1) + 1.0)
-    proper = (
-        ((d1 > scale) & (d2 < -scale)) | ((d1 < -scale) & (d2 > scale))
-    ) & (((d3 > scale) & (d4 < -scale)) | ((d3 < -scale) & (d4 > scale)))
+    proper = (((d1 > scale) & (d2 < -scale)) | ((d1 < -scale) & (d2 > scale))) & (
+        ((d3 > scale) & (d4 < -scale)) | ((d3 < -scale) & (d4 > scale))
+    )
     touch = (
         ((np.abs(d1) <= scale) & on_seg(r, s, p))
         | ((np.abs(d2) <= scale) & on_seg(r, s, q))
@@ -257,7 +267,12 @@ def _polygon_self_intersects(v: F64, eps: float) -> bool:
     u, w = a - b, c - b
     cross = u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
     dot = np.sum(u * w, axis=1)
-    return bool(np.any((np.abs(cross) <= eps * (np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1) + eps)) & (dot > 0)))
+    return bool(
+        np.any(
+            (np.abs(cross) <= eps * (np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1) + eps))
+            & (dot > 0)
+        )
+    )
 
 
 def _point_in_shape(p: F64, s: Shape) -> bool:
@@ -289,8 +304,9 @@ def _boundaries_meet(s1: Shape, s2: Shape, eps: float) -> bool:
     v1, v2 = s1.vertices, s2.vertices
     i, j = np.meshgrid(np.arange(len(v1)), np.arange(len(v2)), indexing="ij")
     i, j = i.ravel(), j.ravel()
-    return bool(np.any(_segments_intersect(
-        v1[i], v1[(i + 1) % len(v1)], v2[j], v2[(j + 1) % len(v2)], eps)))
+    return bool(
+        np.any(_segments_intersect(v1[i], v1[(i + 1) % len(v1)], v2[j], v2[(j + 1) % len(v2)], eps))
+    )
 
 
 def validate_marker(marker: Marker, source: str | Path | None = None) -> Marker:
@@ -304,7 +320,9 @@ def validate_marker(marker: Marker, source: str | Path | None = None) -> Marker:
         where = f"shapes[{k}]"
         if isinstance(s, Circle):
             if not (s.radius > eps):
-                raise _fail(source, f"key '{where}.radius': circle has zero area (radius must be > 0)")
+                raise _fail(
+                    source, f"key '{where}.radius': circle has zero area (radius must be > 0)"
+                )
             continue
         if len(s.vertices) < 3:
             raise _fail(source, f"key '{where}.points': a polygon needs at least 3 points")
@@ -315,7 +333,9 @@ def validate_marker(marker: Marker, source: str | Path | None = None) -> Marker:
     for a in range(len(marker.shapes)):
         for b in range(a + 1, len(marker.shapes)):
             if _boundaries_meet(marker.shapes[a], marker.shapes[b], eps):
-                raise _fail(source, f"keys 'shapes[{a}]' and 'shapes[{b}]': boundaries touch or cross")
+                raise _fail(
+                    source, f"keys 'shapes[{a}]' and 'shapes[{b}]': boundaries touch or cross"
+                )
     for k, s in enumerate(marker.shapes):
         # boundaries do not meet, so any one boundary point decides containment
         probe = s.outline(8)[0]
@@ -323,14 +343,20 @@ def validate_marker(marker: Marker, source: str | Path | None = None) -> Marker:
         if s.hole and depth % 2 == 0:
             raise _fail(source, f"key 'shapes[{k}].hole': a hole must lie inside a bright shape")
         if not s.hole and depth % 2 == 1:
-            raise _fail(source, f"key 'shapes[{k}]': a bright shape overlaps another bright shape "
-                        "(put it inside a hole or mark it as a hole)")
+            raise _fail(
+                source,
+                f"key 'shapes[{k}]': a bright shape overlaps another bright shape "
+                "(put it inside a hole or mark it as a hole)",
+            )
     if marker.area <= eps * extent:
         raise _fail(source, "marker has zero bright area")
     return marker
 
 
-_SHAPE_KEYS = {"polygon": {"type", "points", "hole"}, "circle": {"type", "center", "radius", "hole"}}
+_SHAPE_KEYS = {
+    "polygon": {"type", "points", "hole"},
+    "circle": {"type", "center", "radius", "hole"},
+}
 
 
 def marker_from_dict(data: Any, source: str | Path | None = None) -> Marker:
@@ -357,7 +383,9 @@ def marker_from_dict(data: Any, source: str | Path | None = None) -> Marker:
         extra = sorted(set(sh) - _SHAPE_KEYS[kind])
         if extra:
             allowed = ", ".join(sorted(_SHAPE_KEYS[kind]))
-            raise _fail(source, f"unknown key '{where}.{extra[0]}' (allowed for a {kind}: {allowed})")
+            raise _fail(
+                source, f"unknown key '{where}.{extra[0]}' (allowed for a {kind}: {allowed})"
+            )
         hole = sh.get("hole", False)
         if not isinstance(hole, bool):
             raise _fail(source, f"key '{where}.hole': expected true or false")
@@ -385,7 +413,9 @@ def load_marker(spec: str | Path) -> Marker:
         return BUILTIN_MARKERS[key]()
     path = Path(spec)
     if not path.is_file():
-        raise InputError(path, f"no such marker file (built-in markers: {', '.join(BUILTIN_MARKERS)})")
+        raise InputError(
+            path, f"no such marker file (built-in markers: {', '.join(BUILTIN_MARKERS)})"
+        )
     try:
         data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -398,7 +428,9 @@ def marker_to_dict(marker: Marker) -> dict[str, Any]:
     shapes: list[dict[str, Any]] = []
     for s in marker.shapes:
         if isinstance(s, Circle):
-            shapes.append({"type": "circle", "center": s.center.tolist(), "radius": s.radius, "hole": s.hole})
+            shapes.append(
+                {"type": "circle", "center": s.center.tolist(), "radius": s.radius, "hole": s.hole}
+            )
         else:
             shapes.append({"type": "polygon", "points": s.vertices.tolist(), "hole": s.hole})
     return {"name": marker.name, "shapes": shapes}

@@ -65,7 +65,9 @@ def gauss_newton(
         A += step
         if np.all(np.abs(step) < tol):
             return A, it
-    raise EstimationError(f"Gauss-Newton did not converge in {max_iter} iterations (last step {step})")
+    raise EstimationError(
+        f"Gauss-Newton did not converge in {max_iter} iterations (last step {step})"
+    )
 
 
 def run_trials(
@@ -100,10 +102,24 @@ def run_trials(
         errors[t] = est - truth
     sig = np.sqrt(np.mean(errors**2, axis=0))
     cov_mc = errors.T @ errors / trials
-    rho = np.array([cov_mc[i, j] / (sig[i] * sig[j]) for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))])
+    rho = np.array(
+        [
+            cov_mc[i, j] / (sig[i] * sig[j])
+            for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+        ]
+    )
     sig_out = sig.copy()
     sig_out[3] = np.degrees(sig_out[3])
     return MonteCarloResult(
-        marker.name, float(theta_deg), float(phi_deg), errors, sig_out, bound.sigma,
-        sampled.sigma, rho, bound.rho, iters, renderer.n_samples,
+        marker.name,
+        float(theta_deg),
+        float(phi_deg),
+        errors,
+        sig_out,
+        bound.sigma,
+        sampled.sigma,
+        rho,
+        bound.rho,
+        iters,
+        renderer.n_samples,
     )

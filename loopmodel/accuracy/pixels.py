@@ -33,7 +33,9 @@ def _contour_terms(marker: Marker, view: Views, step_px: float) -> tuple[F64, F6
     img_size = float(np.ptp(project(view, marker.outlines(64)[0][0])[0], axis=0).max())
     size_m = max(float(np.ptp(v, axis=0).max()) for v, _ in marker.outlines(64))
     px_per_m = img_size / max(size_m, 1e-12)
-    longest = max(float(np.max(np.linalg.norm(np.roll(v, -1, 0) - v, axis=1))) for v, _ in marker.outlines(64))
+    longest = max(
+        float(np.max(np.linalg.norm(np.roll(v, -1, 0) - v, axis=1))) for v, _ in marker.outlines(64)
+    )
     n_edge = max(8, math.ceil(2.0 * longest * px_per_m / step_px))
     circ = max([s.perimeter for s in marker.shapes if not hasattr(s, "vertices")] + [0.0])
     n_circle = max(64, math.ceil(2.0 * circ * px_per_m / step_px))
@@ -44,6 +46,12 @@ def _contour_terms(marker: Marker, view: Views, step_px: float) -> tuple[F64, F6
     speed = np.linalg.norm(adot, axis=1)
     n = np.column_stack([adot[:, 1], -adot[:, 0]]) / speed[:, None]
     return a, cs.weights * speed, np.einsum("mik,mk->mi", Q, n)
+
+
+def _box_gauss(i: NDArray[np.int64], x: F64, s: float) -> F64:
+    """Share of a unit Gaussian blob of sigma s (pixels) centred at x falling into pixel i."""
+    d = i + 0.5 - x[:, None]
+    return ndtr((d + 0.5) / s) - ndtr((d - 0.5) / s)
 
 
 def fisher_pixels(
@@ -61,11 +69,11 @@ def fisher_pixels(
     p, sg = float(pixel_px), float(psf_sigma_px)
     step = min(p, sg if sg > 0 else p) / (4.0 if sg > 0 else 16.0)
     pts, dl, nq = _contour_terms(marker, view, step)
-    wq = dl[:, None] * nq                                  # (M, 4)
+    wq = dl[:, None] * nq  # (M, 4)
     J = np.zeros((4, 4))
     for _ in range(n_phase):
         off = rng.uniform(0.0, p, size=2)
-        rel = (pts - off) / p                              # pixel coordinates
+        rel = (pts - off) / p  # pixel coordinates
         if sg == 0.0:
             ij = np.floor(rel).astype(np.int64)
             ij -= ij.min(axis=0)
@@ -75,24 +83,23 @@ def fisher_pixels(
         else:
             reach = 0.5 + 6.0 * sg / p
             w = int(math.ceil(2 * reach)) + 1
-            base = np.floor(rel - reach).astype(np.int64)              # (M, 2)
+            base = np.floor(rel - reach).astype(np.int64)  # (M, 2)
             k = np.arange(w)
-            ix = base[:, 0:1] + k[None, :]                             # (M, w)
+            ix = base[:, 0:1] + k[None, :]  # (M, w)
             iy = base[:, 1:2] + k[None, :]
             s = sg / p
 
-            def kern(i: NDArray[np.int64], x: F64) -> F64:
-                d = i + 0.5 - x[:, None]
-                return ndtr((d + 0.5) / s) - ndtr((d - 0.5) / s)
-
-            kx, ky = kern(ix, rel[:, 0]), kern(iy, rel[:, 1])          # (M, w)
+            kx, ky = _box_gauss(ix, rel[:, 0], s), _box_gauss(iy, rel[:, 1], s)  # (M, w)
             weight = (kx[:, :, None] * ky[:, None, :]).reshape(len(pts), -1) / p**2
             gx = np.repeat(ix, w, axis=1) - ix.min()
             gy = np.tile(iy, (1, w)) - iy.min()
             key = (gx * (gy.max() + 1) + gy).ravel()
             uniq, inv = np.unique(key, return_inverse=True)
-            grad = np.column_stack([
-                np.bincount(inv, (weight * wq[:, i:i + 1]).ravel(), minlength=len(uniq)) for i in range(4)
-            ])
+            grad = np.column_stack(
+                [
+                    np.bincount(inv, (weight * wq[:, i : i + 1]).ravel(), minlength=len(uniq))
+                    for i in range(4)
+                ]
+            )
         J += (p**2 / noise) * grad.T @ grad
     return J / n_phase

@@ -66,7 +66,7 @@ class BlurredRenderer:
             img = project(nominal, verts)[0]
             x, y = img[:, 0], img[:, 1]
             area = 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
-            if (area > 0) == hole:             # bright region must lie left of each edge
+            if (area > 0) == hole:  # bright region must lie left of each edge
                 verts = verts[::-1]
             pa.append(verts)
             pb.append(np.roll(verts, -1, axis=0))
@@ -81,7 +81,9 @@ class BlurredRenderer:
         a0 = project(nominal, self.pa)[0]
         b0 = project(nominal, self.pb)[0]
         # split long edges into pieces only to enumerate nearby grid cells cheaply
-        pieces = np.maximum(1, np.ceil(np.linalg.norm(b0 - a0, axis=1) / max_edge_px)).astype(np.int64)
+        pieces = np.maximum(1, np.ceil(np.linalg.norm(b0 - a0, axis=1) / max_edge_px)).astype(
+            np.int64
+        )
         parent = np.repeat(np.arange(len(a0)), pieces)
         kth = np.arange(pieces.sum()) - np.repeat(np.cumsum(pieces) - pieces, pieces)
         ta, tb = (kth / pieces[parent])[:, None], ((kth + 1) / pieces[parent])[:, None]
@@ -104,7 +106,9 @@ class BlurredRenderer:
         jmin = cj.min()
         key = ci * (1 << 31) + (cj - jmin)
         cells, inverse = np.unique(key, return_inverse=True)
-        self.samples = np.column_stack([(cells >> 31) * h + 0.5 * h, ((cells & ((1 << 31) - 1)) + jmin + 0.5) * h])
+        self.samples = np.column_stack(
+            [(cells >> 31) * h + 0.5 * h, ((cells & ((1 << 31) - 1)) + jmin + 0.5) * h]
+        )
         pair = np.unique(inverse.astype(np.int64) * len(a0) + edge)
         self.pair_sample: I64 = pair // len(a0)
         self.pair_edge: I64 = pair % len(a0)
@@ -145,14 +149,14 @@ class BlurredRenderer:
         pts = np.concatenate([self.pa, self.pm, self.pb])
         img = project(v, pts)[0]
         Q = flows(v, pts)[0]
-        a, m, b = img[:E], img[E:2 * E], img[2 * E:]
+        a, m, b = img[:E], img[E : 2 * E], img[2 * E :]
         d = b - a
         L = np.linalg.norm(d, axis=1)
         u = d / L[:, None]
-        n = np.column_stack([u[:, 1], -u[:, 0]])              # outward normal
+        n = np.column_stack([u[:, 1], -u[:, 0]])  # outward normal
         qa = np.einsum("eik,ek->ei", Q[:E], n)
-        qm = np.einsum("eik,ek->ei", Q[E:2 * E], n)
-        qb = np.einsum("eik,ek->ei", Q[2 * E:], n)
+        qm = np.einsum("eik,ek->ei", Q[E : 2 * E], n)
+        qb = np.einsum("eik,ek->ei", Q[2 * E :], n)
         sm = np.sum((m - a) * u, axis=1)[:, None]
         f01 = (qm - qa) / sm
         f12 = (qb - qm) / (L[:, None] - sm)
@@ -173,16 +177,18 @@ class BlurredRenderer:
         # feet well inside the edge: T(h, inf) - T(h, -inf) = erfc(h / sqrt 2) / 2
         tt = 0.5 * erfc(hh / math.sqrt(2.0))
         ends = (alpha > -self.cutoff_px) | (beta < self.cutoff_px)
-        tt[ends] = owens_t(hh[ends], beta[ends] / dist[ends]) - owens_t(hh[ends], alpha[ends] / dist[ends])
+        tt[ends] = owens_t(hh[ends], beta[ends] / dist[ends]) - owens_t(
+            hh[ends], alpha[ends] / dist[ends]
+        )
         K = self.n_samples
         values = self._parity(a, b) - np.bincount(k, sgn * tt, minlength=K)
         # Jacobian: Gaussian moments along each edge
         r2 = math.sqrt(2.0) * sg
-        ea, eb = np.exp(-(alpha / r2) ** 2), np.exp(-(beta / r2) ** 2)
+        ea, eb = np.exp(-((alpha / r2) ** 2)), np.exp(-((beta / r2) ** 2))
         I0 = sg * math.sqrt(math.pi / 2.0) * (erf(beta / r2) - erf(alpha / r2))
         I1 = sg**2 * (ea - eb)
         I2 = sg**2 * I0 + sg**2 * (alpha * ea - beta * eb)
-        g = np.exp(-(dn / r2) ** 2) / (2.0 * math.pi * sg**2)
+        g = np.exp(-((dn / r2) ** 2)) / (2.0 * math.pi * sg**2)
         C0, C1, C2 = c0[e], c1[e], c2[e]
         s0c = s0[:, None]
         b0 = C0 + C1 * s0c + C2 * s0c**2

@@ -31,7 +31,9 @@ def grid_csv(grid: GridBound) -> str:
     return buf.getvalue()
 
 
-def _surfaces(grid: GridBound, values: np.ndarray, labels: Sequence[str], ncols: int, path: Path) -> None:
+def _surfaces(
+    grid: GridBound, values: np.ndarray, labels: Sequence[str], ncols: int, path: Path
+) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -47,8 +49,10 @@ def _surfaces(grid: GridBound, values: np.ndarray, labels: Sequence[str], ncols:
         ax.set_ylabel("θ [deg]")
         ax.set_title(label)
         ax.tick_params(labelsize=7)
-    fig.suptitle(f"marker '{grid.marker}': R = {grid.distance_m:g} m, f = {grid.focal_mm:g} mm, "
-                 f"N0/2 = {grid.noise:g} px², pixel {grid.pixel_um:g} µm")
+    fig.suptitle(
+        f"marker '{grid.marker}': R = {grid.distance_m:g} m, f = {grid.focal_mm:g} mm, "
+        f"N0/2 = {grid.noise:g} px², pixel {grid.pixel_um:g} µm"
+    )
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, format="png")
@@ -74,7 +78,9 @@ def pixel_study(
     phi_deg: float = 40.0,
 ) -> list[tuple[float, np.ndarray]]:
     """sigma(pixel size) / sigma(contour bound) per parameter at one grid point."""
-    view = stabilised_views(grid.distance_m, theta_deg, phi_deg, focal_px(grid.focal_mm, grid.pixel_um))
+    view = stabilised_views(
+        grid.distance_m, theta_deg, phi_deg, focal_px(grid.focal_mm, grid.pixel_um)
+    )
     ref = crlb(fisher_contour(marker, view, grid.noise)[0]).sigma
     rows = []
     for p in pixel_sizes_px:
@@ -83,7 +89,9 @@ def pixel_study(
     return rows
 
 
-def plot_pixel_study(studies: dict[str, list[tuple[float, np.ndarray]]], pixel_um: float, path: Path) -> None:
+def plot_pixel_study(
+    studies: dict[str, list[tuple[float, np.ndarray]]], pixel_um: float, path: Path
+) -> None:
     """σ(pixel size)/σ(contour) curves for every marker and parameter."""
     import matplotlib
 
@@ -95,7 +103,9 @@ def plot_pixel_study(studies: dict[str, list[tuple[float, np.ndarray]]], pixel_u
     for (name, rows), ls in zip(studies.items(), styles * 4, strict=False):
         p = [r[0] for r in rows]
         for k, label in enumerate(SIGMA_LABELS):
-            ax.plot(p, [r[1][k] for r in rows], ls, marker="o", ms=3, label=f"{name} {label.split()[0]}")
+            ax.plot(
+                p, [r[1][k] for r in rows], ls, marker="o", ms=3, label=f"{name} {label.split()[0]}"
+            )
     ax.set_xscale("log", base=2)
     ax.set_xlabel(f"pixel size [reference px of {pixel_um:g} µm]")
     ax.set_ylabel("σ(pixel) / σ(contour bound)")
@@ -118,10 +128,12 @@ def summary_markdown(
     lines = [
         "# Marker-pose accuracy bound (Cramér–Rao, seed 001)",
         "",
-        f"Distance R = {g0.distance_m:g} m, focal length f = {g0.focal_mm:g} mm, pixel pitch "
-        f"{g0.pixel_um:g} µm (F = {focal_px(g0.focal_mm, g0.pixel_um):g} px), noise N0/2 = {g0.noise:g} "
-        "contrast²·px² (variance of the noise averaged over one 1 px × 1 px cell; marker contrast 1). "
-        f"Grid: θ = {', '.join(f'{t:g}' for t in g0.theta_deg)}°, φ = {g0.phi_deg[0]:g}…{g0.phi_deg[-1]:g}° "
+        f"Distance R = {g0.distance_m:g} m, focal length f = {g0.focal_mm:g} mm, "
+        f"pixel pitch {g0.pixel_um:g} µm (F = {focal_px(g0.focal_mm, g0.pixel_um):g} px), "
+        f"noise N0/2 = {g0.noise:g} contrast²·px² (variance of the noise averaged over one "
+        "1 px × 1 px cell; marker contrast 1). "
+        f"Grid: θ = {', '.join(f'{t:g}' for t in g0.theta_deg)}°, "
+        f"φ = {g0.phi_deg[0]:g}…{g0.phi_deg[-1]:g}° "
         f"({len(g0.phi_deg)} values).",
         "",
         "Parameters: r = range along the optical axis e1, v and u = displacements along e2 and e3 "
@@ -129,22 +141,37 @@ def summary_markdown(
         "information of the image blurred by a Gaussian PSF of σ = 0.282 px and sampled "
         "infinitely finely (see `loopmodel.accuracy`).",
         "",
-        "| marker | area m² | perimeter m | " + " | ".join(f"{lab} median (min–max)" for lab in SIGMA_LABELS) + " |",
+        "| marker | area m² | perimeter m | "
+        + " | ".join(f"{lab} median (min–max)" for lab in SIGMA_LABELS)
+        + " |",
         "|---|---|---|" + "---|" * 4,
     ]
     for g in grids:
         s = g.bound.sigma
-        cells = [f"{np.median(s[..., k]):.3g} ({s[..., k].min():.3g}–{s[..., k].max():.3g})" for k in range(4)]
-        lines.append(f"| {g.marker} | {g.area_m2:.3f} | {g.perimeter_m:.3f} | " + " | ".join(cells) + " |")
+        cells = [
+            f"{np.median(s[..., k]):.3g} ({s[..., k].min():.3g}–{s[..., k].max():.3g})"
+            for k in range(4)
+        ]
+        lines.append(
+            f"| {g.marker} | {g.area_m2:.3f} | {g.perimeter_m:.3f} | " + " | ".join(cells) + " |"
+        )
     lines.append("")
     lines.append("| marker | " + " | ".join(f"max abs {lab}" for lab in RHO_LABELS) + " |")
     lines.append("|---|" + "---|" * 6)
     for g in grids:
-        lines.append(f"| {g.marker} | " + " | ".join(f"{np.abs(g.bound.rho[..., k]).max():.2f}" for k in range(6)) + " |")
+        lines.append(
+            f"| {g.marker} | "
+            + " | ".join(f"{np.abs(g.bound.rho[..., k]).max():.2f}" for k in range(6))
+            + " |"
+        )
     if len(grids) > 1:
-        lines += ["", "Pairwise comparison: share of the grid where the first marker has the smaller σ, "
-                  "and the median ratio σ_first/σ_second. \"position\" is √(σ_r²+σ_v²+σ_u²), "
-                  "\"det\" the generalised variance det(J⁻¹).", ""]
+        lines += [
+            "",
+            "Pairwise comparison: share of the grid where the first marker has the smaller σ, "
+            'and the median ratio σ_first/σ_second. "position" is √(σ_r²+σ_v²+σ_u²), '
+            '"det" the generalised variance det(J⁻¹).',
+            "",
+        ]
         lines.append("| first vs second | " + " | ".join(SIGMA_LABELS) + " | position | det |")
         lines.append("|---|" + "---|" * 6)
         for a in grids:
@@ -152,7 +179,9 @@ def summary_markdown(
                 if a is b:
                     continue
                 sa, sb = a.bound.sigma, b.bound.sigma
-                cells = [f"{np.mean(sa[..., k] < sb[..., k]):.0%} (×{np.median(sa[..., k] / sb[..., k]):.3f})" for k in range(4)]
+                share = [np.mean(sa[..., k] < sb[..., k]) for k in range(4)]
+                ratio = [np.median(sa[..., k] / sb[..., k]) for k in range(4)]
+                cells = [f"{x:.0%} (×{q:.3f})" for x, q in zip(share, ratio, strict=True)]
                 pa = np.sqrt(np.sum(sa[..., :3] ** 2, axis=-1))
                 pb = np.sqrt(np.sum(sb[..., :3] ** 2, axis=-1))
                 da, db = np.linalg.det(a.bound.cov), np.linalg.det(b.bound.cov)
@@ -160,10 +189,15 @@ def summary_markdown(
                 cells.append(f"{np.mean(da < db):.0%}")
                 lines.append(f"| {a.marker} vs {b.marker} | " + " | ".join(cells) + " |")
     if studies:
-        lines += ["", "## Finite pixel size (beyond the paper)", "",
-                  "σ for square pixels of the given size (image with the PSF above, integrated over "
-                  "each pixel, noise variance (N0/2)/p² per pixel) divided by the contour bound, at "
-                  "θ = 35°, φ = 40°:", ""]
+        lines += [
+            "",
+            "## Finite pixel size (beyond the paper)",
+            "",
+            "σ for square pixels of the given size (image with the PSF above, integrated over "
+            "each pixel, noise variance (N0/2)/p² per pixel) divided by the contour bound, at "
+            "θ = 35°, φ = 40°:",
+            "",
+        ]
         lines.append("| marker | pixel [px] | " + " | ".join(SIGMA_LABELS) + " |")
         lines.append("|---|---|" + "---|" * 4)
         for name, rows in studies.items():
@@ -174,8 +208,10 @@ def summary_markdown(
             worst = [max(r[1]) for r in rows]
             over = [p for (p, _), w in zip(rows, worst, strict=True) if w > 1.1]
             if over:
-                lines.append(f"- {name}: the bound degrades by more than 10 % from a pixel size of {over[0]:g} px "
-                             f"({over[0] * g0.pixel_um:g} µm) on.")
+                lines.append(
+                    f"- {name}: the bound degrades by more than 10 % from a pixel size of "
+                    f"{over[0]:g} px ({over[0] * g0.pixel_um:g} µm) on."
+                )
     if grid_ms is not None:
         lines += ["", f"Whole grid for all markers computed in {grid_ms:.1f} ms."]
     return "\n".join(lines) + "\n"

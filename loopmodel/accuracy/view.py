@@ -53,7 +53,7 @@ class Views:
     def centre(self) -> F64:
         """(n, 3) projection centres in the marker frame (m)."""
         A = self.params
-        return (-(self.distance_m + A[:, :1]) * self.e1 + A[:, 1:2] * self.n2 + A[:, 2:3] * self.n3)
+        return -(self.distance_m + A[:, :1]) * self.e1 + A[:, 1:2] * self.n2 + A[:, 2:3] * self.n3
 
     @property
     def e2(self) -> F64:
@@ -75,7 +75,9 @@ class Views:
     def take(self, index: ArrayLike) -> Views:
         """A subset of the cameras."""
         i = np.atleast_1d(np.asarray(index))
-        return Views(self.distance_m, self.focal_px, self.e1[i], self.n2[i], self.n3[i], self.params[i])
+        return Views(
+            self.distance_m, self.focal_px, self.e1[i], self.n2[i], self.n3[i], self.params[i]
+        )
 
 
 def focal_px(focal_mm: float, pixel_um: float) -> float:
@@ -83,10 +85,14 @@ def focal_px(focal_mm: float, pixel_um: float) -> float:
     return focal_mm * 1000.0 / pixel_um
 
 
-def stabilised_views(distance_m: float, theta_deg: ArrayLike, phi_deg: ArrayLike, focal_length_px: float) -> Views:
+def stabilised_views(
+    distance_m: float, theta_deg: ArrayLike, phi_deg: ArrayLike, focal_length_px: float
+) -> Views:
     """Cameras at distance ``distance_m`` for every pair of the broadcast ``theta_deg`` and
     ``phi_deg`` arrays (flattened in C order), aimed at the marker origin."""
-    th, ph = np.broadcast_arrays(np.radians(np.asarray(theta_deg, float)), np.radians(np.asarray(phi_deg, float)))
+    th, ph = np.broadcast_arrays(
+        np.radians(np.asarray(theta_deg, float)), np.radians(np.asarray(phi_deg, float))
+    )
     th, ph = th.ravel(), ph.ravel()
     ct, st, cp, sp = np.cos(th), np.sin(th), np.cos(ph), np.sin(ph)
     d = np.column_stack([st * cp, st * sp, ct])
@@ -104,8 +110,11 @@ def camera_coords(views: Views, points: ArrayLike) -> tuple[F64, F64, F64]:
     """Coordinates ``(x1, x2, x3)`` of marker points (M x 2 or M x 3, metres) along the camera
     axes, each (n, M)."""
     X = _lift(points)[None, :, :] - views.centre[:, None, :]
-    return (np.einsum("nmk,nk->nm", X, views.e1), np.einsum("nmk,nk->nm", X, views.e2),
-            np.einsum("nmk,nk->nm", X, views.e3))
+    return (
+        np.einsum("nmk,nk->nm", X, views.e1),
+        np.einsum("nmk,nk->nm", X, views.e2),
+        np.einsum("nmk,nk->nm", X, views.e3),
+    )
 
 
 def project(views: Views, points: ArrayLike) -> F64:
