@@ -326,10 +326,14 @@ def validate_marker(marker: Marker, source: str | Path | None = None) -> Marker:
             continue
         if len(s.vertices) < 3:
             raise _fail(source, f"key '{where}.points': a polygon needs at least 3 points")
-        if s.area <= eps * extent:
-            raise _fail(source, f"key '{where}.points': polygon has zero area")
+        rel = s.vertices - s.vertices[0]
+        spread = np.abs(rel[:, None, 0] * rel[None, :, 1] - rel[:, None, 1] * rel[None, :, 0])
+        if spread.max() <= eps * extent:
+            raise _fail(source, f"key '{where}.points': polygon has zero area (collinear points)")
         if _polygon_self_intersects(s.vertices, eps):
             raise _fail(source, f"key '{where}.points': polygon is self-intersecting")
+        if s.area <= eps * extent:
+            raise _fail(source, f"key '{where}.points': polygon has zero area")
     for a in range(len(marker.shapes)):
         for b in range(a + 1, len(marker.shapes)):
             if _boundaries_meet(marker.shapes[a], marker.shapes[b], eps):
