@@ -47,7 +47,7 @@ def fisher_contour(
     # |adot| (n.Q) = adot x Q (sign irrelevant); dl = |adot| dt
     c = adot[..., None, 0] * Q[..., 1] - adot[..., None, 1] * Q[..., 0]  # (n, M, 4)
     w = cs.weights[None, :] / np.linalg.norm(adot, axis=-1)  # (n, M)
-    return np.einsum("nm,nmi,nmj->nij", w, c, c) / noise
+    return np.matmul(np.swapaxes(c * w[..., None], 1, 2), c) / noise
 
 
 @dataclass(frozen=True)

@@ -109,12 +109,12 @@ def _lift(points: ArrayLike) -> F64:
 def camera_coords(views: Views, points: ArrayLike) -> tuple[F64, F64, F64]:
     """Coordinates ``(x1, x2, x3)`` of marker points (M x 2 or M x 3, metres) along the camera
     axes, each (n, M)."""
-    X = _lift(points)[None, :, :] - views.centre[:, None, :]
-    return (
-        np.einsum("nmk,nk->nm", X, views.e1),
-        np.einsum("nmk,nk->nm", X, views.e2),
-        np.einsum("nmk,nk->nm", X, views.e3),
-    )
+    P = _lift(points).reshape(-1, 3)
+    C = views.centre
+    out = []
+    for e in (views.e1, views.e2, views.e3):
+        out.append(e @ P.T - np.sum(C * e, axis=1)[:, None])
+    return out[0], out[1], out[2]
 
 
 def project(views: Views, points: ArrayLike) -> F64:
@@ -144,7 +144,7 @@ def flows(views: Views, points: ArrayLike) -> F64:
 def image_tangents(views: Views, points: ArrayLike, tangents: ArrayLike) -> F64:
     """(n, M, 2) image velocity (pixels per unit t) of marker-plane tangents dP/dt (M x 2)."""
     x1, x2, x3 = camera_coords(views, points)
-    T = _lift(tangents)
-    t1, t2, t3 = (np.einsum("mk,nk->nm", T, e) for e in (views.e1, views.e2, views.e3))
+    T = _lift(tangents).reshape(-1, 3)
+    t1, t2, t3 = (e @ T.T for e in (views.e1, views.e2, views.e3))
     F = views.focal_px
     return (F / x1)[..., None] * np.stack([t2 - x2 / x1 * t1, t3 - x3 / x1 * t1], axis=-1)
