@@ -62,7 +62,10 @@ def test_flows_match_finite_differences(params: np.ndarray, rng: np.random.Gener
     for i, eps in enumerate((1e-4, 1e-6, 1e-6, 1e-7)):
         d = np.zeros(4)
         d[i] = eps
-        fd = (project(views.with_params(params + d), pts) - project(views.with_params(params - d), pts)) / (2 * eps)
+        fd = (
+            project(views.with_params(params + d), pts)
+            - project(views.with_params(params - d), pts)
+        ) / (2 * eps)
         np.testing.assert_allclose(Q[:, :, i, :], fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
 
 
@@ -74,7 +77,10 @@ def test_square_seen_frontally_has_the_closed_form() -> None:
     b, R, noise = 1.0, 50.0, 0.2
     v = stabilised_views(R, 0.0, 0.0, F)
     bp = F * b / R  # image half-side (px)
-    expected = np.diag([8 * bp**3 / R**2, 4 * bp * (F / R) ** 2, 4 * bp * (F / R) ** 2, 8 * bp**3 / 3]) / noise
+    expected = (
+        np.diag([8 * bp**3 / R**2, 4 * bp * (F / R) ** 2, 4 * bp * (F / R) ** 2, 8 * bp**3 / 3])
+        / noise
+    )
     J = fisher_contour(square(b), v, noise, n_edge=64)[0]
     np.testing.assert_allclose(J, expected, rtol=1e-3, atol=1e-9 * expected.max())
     J_fine = fisher_contour(square(b), v, noise, n_edge=1024)[0]
@@ -89,7 +95,9 @@ def test_circle_seen_frontally_has_the_closed_form_and_no_roll_information() -> 
     v = stabilised_views(R, 0.0, 0.0, F)
     rp = F * rho / R
     J = fisher_contour(Marker("disc", (Circle(np.zeros(2), rho),)), v, noise, n_circle=64)[0]
-    expected = np.diag([2 * math.pi * rp**3 / R**2, math.pi * rp * (F / R) ** 2, math.pi * rp * (F / R) ** 2, 0.0])
+    expected = np.diag(
+        [2 * math.pi * rp**3 / R**2, math.pi * rp * (F / R) ** 2, math.pi * rp * (F / R) ** 2, 0.0]
+    )
     np.testing.assert_allclose(J, expected / noise, rtol=1e-10, atol=1e-9 * expected.max())
 
 
@@ -117,7 +125,9 @@ def test_trapezoid_converges_to_gauss_legendre() -> None:
         length = np.linalg.norm(img[1] - img[0])
         # image arc length is not affine in t under perspective: dl = |d img/dt| dt
         eps = 1e-6
-        speed = np.linalg.norm(project(v, pts + eps * (b - a))[0] - project(v, pts - eps * (b - a))[0], axis=1) / (2 * eps)
+        speed = np.linalg.norm(
+            project(v, pts + eps * (b - a))[0] - project(v, pts - eps * (b - a))[0], axis=1
+        ) / (2 * eps)
         nq = flows(v, pts)[0] @ n
         J += np.einsum("m,mi,mj->ij", w * speed, nq, nq) / noise
         assert abs(np.sum(w * speed) - length) < 1e-6 * length
@@ -135,7 +145,15 @@ def test_sigma_scales_with_sqrt_noise() -> None:
 def test_distance_scaling_follows_the_geometry() -> None:
     # exact similarity: marker and distance scaled by k -> same image, sigma_(r,v,u) x k
     k = 3.0
-    big = Marker("tri3", tuple(Polygon(s.vertices * k) if isinstance(s, Polygon) else Circle(s.center * k, s.radius * k, s.hole) for s in triangle_marker().shapes))
+    big = Marker(
+        "tri3",
+        tuple(
+            Polygon(s.vertices * k)
+            if isinstance(s, Polygon)
+            else Circle(s.center * k, s.radius * k, s.hole)
+            for s in triangle_marker().shapes
+        ),
+    )
     g1 = bound_grid(triangle_marker(), distance_m=50.0)
     gk = bound_grid(big, distance_m=50.0 * k)
     np.testing.assert_allclose(gk.bound.sigma[..., :3], k * g1.bound.sigma[..., :3], rtol=1e-9)
@@ -147,7 +165,9 @@ def test_distance_scaling_follows_the_geometry() -> None:
     # oblique views obey the same law once the marker is small against the distance
     a = bound_grid(triangle_marker(), distance_m=500.0).bound.sigma
     b = bound_grid(triangle_marker(), distance_m=1000.0).bound.sigma
-    np.testing.assert_allclose(b / a, np.broadcast_to(2.0 ** np.array([2.5, 1.5, 1.5, 1.5]), a.shape), rtol=0.01)
+    np.testing.assert_allclose(
+        b / a, np.broadcast_to(2.0 ** np.array([2.5, 1.5, 1.5, 1.5]), a.shape), rtol=0.01
+    )
 
 
 def test_t_marker_beats_triangle_on_most_of_the_grid() -> None:
@@ -156,9 +176,9 @@ def test_t_marker_beats_triangle_on_most_of_the_grid() -> None:
     bt, bT = bound_grid(tri).bound, bound_grid(T).bound
     pos_t = np.sqrt(np.sum(bt.sigma[..., :3] ** 2, axis=-1))
     pos_T = np.sqrt(np.sum(bT.sigma[..., :3] ** 2, axis=-1))
-    assert np.mean(pos_T < pos_t) > 0.5          # position error sqrt(s_r^2 + s_v^2 + s_u^2)
-    assert np.mean(np.linalg.det(bT.cov) < np.linalg.det(bt.cov)) > 0.5   # generalised variance
-    assert np.mean(bT.sigma[..., 0] < bt.sigma[..., 0]) > 0.5             # range
+    assert np.mean(pos_T < pos_t) > 0.5  # position error sqrt(s_r^2 + s_v^2 + s_u^2)
+    assert np.mean(np.linalg.det(bT.cov) < np.linalg.det(bt.cov)) > 0.5  # generalised variance
+    assert np.mean(bT.sigma[..., 0] < bt.sigma[..., 0]) > 0.5  # range
 
 
 def test_grid_shapes_and_correlations_are_valid() -> None:
@@ -167,7 +187,7 @@ def test_grid_shapes_and_correlations_are_valid() -> None:
     assert np.all(np.abs(g.bound.rho) < 1.0)
     # azimuth symmetry of the isosceles triangle (mirror x -> -x): phi and 180 - phi agree
     s = g.bound.sigma
-    np.testing.assert_allclose(s[:, 1], s[:, 17], rtol=1e-9)   # 10 deg and 170 deg
+    np.testing.assert_allclose(s[:, 1], s[:, 17], rtol=1e-9)  # 10 deg and 170 deg
 
 
 # ------------------------------------------------------------------------------------------
@@ -186,14 +206,39 @@ def test_builtin_markers_and_json_round_trip(tmp_path: Path) -> None:
 
 
 BAD = {
-    "self_intersecting": ({"shapes": [{"type": "polygon", "points": [[0, 0], [1, 1], [1, 0], [0, 1]]}]}, "self-intersecting"),
-    "zero_area": ({"shapes": [{"type": "polygon", "points": [[0, 0], [1, 1], [2, 2]]}]}, "zero area"),
+    "self_intersecting": (
+        {"shapes": [{"type": "polygon", "points": [[0, 0], [1, 1], [1, 0], [0, 1]]}]},
+        "self-intersecting",
+    ),
+    "zero_area": (
+        {"shapes": [{"type": "polygon", "points": [[0, 0], [1, 1], [2, 2]]}]},
+        "zero area",
+    ),
     "zero_radius": ({"shapes": [{"type": "circle", "center": [0, 0], "radius": 0}]}, "zero area"),
     "unknown_top_key": ({"shapes": [], "colour": "red"}, "unknown key 'colour'"),
-    "unknown_shape_key": ({"shapes": [{"type": "circle", "center": [0, 0], "radius": 1, "radus": 2}]}, "unknown key 'shapes[0].radus'"),
+    "unknown_shape_key": (
+        {"shapes": [{"type": "circle", "center": [0, 0], "radius": 1, "radus": 2}]},
+        "unknown key 'shapes[0].radus'",
+    ),
     "bad_type": ({"shapes": [{"type": "ellipse"}]}, "shapes[0].type"),
-    "hole_outside": ({"shapes": [{"type": "circle", "center": [0, 0], "radius": 1}, {"type": "circle", "center": [5, 0], "radius": 1, "hole": True}]}, "hole must lie inside"),
-    "crossing": ({"shapes": [{"type": "circle", "center": [0, 0], "radius": 1}, {"type": "circle", "center": [1, 0], "radius": 1}]}, "touch or cross"),
+    "hole_outside": (
+        {
+            "shapes": [
+                {"type": "circle", "center": [0, 0], "radius": 1},
+                {"type": "circle", "center": [5, 0], "radius": 1, "hole": True},
+            ]
+        },
+        "hole must lie inside",
+    ),
+    "crossing": (
+        {
+            "shapes": [
+                {"type": "circle", "center": [0, 0], "radius": 1},
+                {"type": "circle", "center": [1, 0], "radius": 1},
+            ]
+        },
+        "touch or cross",
+    ),
     "bad_point": ({"shapes": [{"type": "polygon", "points": [[0, 0], [1], [0, 1]]}]}, "points[1]"),
 }
 
@@ -209,7 +254,9 @@ def test_bad_marker_descriptions_raise_input_error(case: str, tmp_path: Path) ->
     assert needle in msg and str(p) in msg and "\n" not in msg
 
 
-def test_bad_marker_file_gives_one_line_cli_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_marker_file_gives_one_line_cli_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     from loopmodel.cli import main
 
     p = tmp_path / "bow.json"
@@ -226,11 +273,15 @@ def test_bad_marker_file_gives_one_line_cli_error(tmp_path: Path, capsys: pytest
 
 
 def test_nested_hole_and_island_are_valid() -> None:
-    m = marker_from_dict({"shapes": [
-        {"type": "polygon", "points": [[-2, -2], [2, -2], [2, 2], [-2, 2]]},
-        {"type": "circle", "center": [0, 0], "radius": 1.5, "hole": True},
-        {"type": "circle", "center": [0, 0], "radius": 0.5},
-    ]})
+    m = marker_from_dict(
+        {
+            "shapes": [
+                {"type": "polygon", "points": [[-2, -2], [2, -2], [2, 2], [-2, 2]]},
+                {"type": "circle", "center": [0, 0], "radius": 1.5, "hole": True},
+                {"type": "circle", "center": [0, 0], "radius": 0.5},
+            ]
+        }
+    )
     assert m.area == pytest.approx(16 - math.pi * 2.25 + math.pi * 0.25)
 
 
@@ -296,8 +347,27 @@ def test_cli_bound_writes_csv_plots_and_summary(tmp_path: Path) -> None:
     from loopmodel.cli import main
 
     out = tmp_path / "b"
-    assert main(["bound", "--marker", "triangle", "--marker", "t", "--distance-m", "50", "--focal-mm", "18",
-                 "--noise", "0.2", "--out", str(out), "--no-pixel-study"]) == 0
+    assert (
+        main(
+            [
+                "bound",
+                "--marker",
+                "triangle",
+                "--marker",
+                "t",
+                "--distance-m",
+                "50",
+                "--focal-mm",
+                "18",
+                "--noise",
+                "0.2",
+                "--out",
+                str(out),
+                "--no-pixel-study",
+            ]
+        )
+        == 0
+    )
     for name in ("triangle", "t"):
         rows = (out / f"bound_{name}.csv").read_text().strip().splitlines()
         assert len(rows) == 1 + 7 * 36 and rows[0].startswith("marker,theta_deg,phi_deg,sigma_r_m")

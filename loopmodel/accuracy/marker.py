@@ -290,20 +290,21 @@ def _boundaries_meet(s1: Shape, s2: Shape, eps: float) -> bool:
     if isinstance(s1, Circle) and isinstance(s2, Circle):
         d = float(np.hypot(*(s1.center - s2.center)))
         return abs(s1.radius - s2.radius) - eps <= d <= s1.radius + s2.radius + eps
-    if isinstance(s1, Circle):
-        s1, s2 = s2, s1
-    if isinstance(s2, Circle):
-        v = s1.vertices
+    if isinstance(s1, Circle) or isinstance(s2, Circle):
+        poly, circ = (s2, s1) if isinstance(s1, Circle) else (s1, s2)
+        assert isinstance(poly, Polygon) and isinstance(circ, Circle)
+        v = poly.vertices
         w = np.roll(v, -1, axis=0)
-        c = s2.center
-        d = w - v
-        t = np.clip(np.sum((c - v) * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-300), 0, 1)
-        dmin = np.linalg.norm(v + t[:, None] * d - c, axis=1)
+        c = circ.center
+        dv = w - v
+        t = np.sum((c - v) * dv, axis=1) / np.maximum(np.sum(dv * dv, axis=1), 1e-300)
+        t = np.clip(t, 0.0, 1.0)
+        dmin = np.linalg.norm(v + t[:, None] * dv - c, axis=1)
         dmax = np.maximum(np.linalg.norm(v - c, axis=1), np.linalg.norm(w - c, axis=1))
-        return bool(np.any((dmin <= s2.radius + eps) & (dmax >= s2.radius - eps)))
+        return bool(np.any((dmin <= circ.radius + eps) & (dmax >= circ.radius - eps)))
     v1, v2 = s1.vertices, s2.vertices
-    i, j = np.meshgrid(np.arange(len(v1)), np.arange(len(v2)), indexing="ij")
-    i, j = i.ravel(), j.ravel()
+    ii, jj = np.meshgrid(np.arange(len(v1)), np.arange(len(v2)), indexing="ij")
+    i, j = ii.ravel(), jj.ravel()
     return bool(
         np.any(_segments_intersect(v1[i], v1[(i + 1) % len(v1)], v2[j], v2[(j + 1) % len(v2)], eps))
     )

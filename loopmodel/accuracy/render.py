@@ -181,7 +181,7 @@ class BlurredRenderer:
             hh[ends], alpha[ends] / dist[ends]
         )
         K = self.n_samples
-        values = self._parity(a, b) - np.bincount(k, sgn * tt, minlength=K)
+        values: F64 = self._parity(a, b) - np.bincount(k, sgn * tt, minlength=K)
         # Jacobian: Gaussian moments along each edge
         r2 = math.sqrt(2.0) * sg
         ea, eb = np.exp(-((alpha / r2) ** 2)), np.exp(-((beta / r2) ** 2))
@@ -195,7 +195,7 @@ class BlurredRenderer:
         b1 = C1 + 2.0 * C2 * s0c
         contrib = g[:, None] * (b0 * I0[:, None] + b1 * I1[:, None] + C2 * I2[:, None])
         jac = np.column_stack([np.bincount(k, contrib[:, i], minlength=K) for i in range(4)])
-        return values, jac
+        return values, jac.astype(float)
 
 
 def _segment_distance(p: F64, a: F64, b: F64) -> F64:

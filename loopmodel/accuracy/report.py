@@ -201,8 +201,8 @@ def summary_markdown(
         lines.append("| marker | pixel [px] | " + " | ".join(SIGMA_LABELS) + " |")
         lines.append("|---|---|" + "---|" * 4)
         for name, rows in studies.items():
-            for p, ratio in rows:
-                lines.append(f"| {name} | {p:g} | " + " | ".join(f"{x:.3f}" for x in ratio) + " |")
+            for p, rel in rows:
+                lines.append(f"| {name} | {p:g} | " + " | ".join(f"{x:.3f}" for x in rel) + " |")
         lines.append("")
         for name, rows in studies.items():
             worst = [max(r[1]) for r in rows]
