@@ -203,6 +203,12 @@ def test_builtin_markers_and_json_round_trip(tmp_path: Path) -> None:
     back = load_marker(p)
     np.testing.assert_allclose(bound_grid(back).J, bound_grid(tri).J, rtol=1e-12)
     assert load_marker("T").name == "t"
+    examples = sorted((Path(__file__).resolve().parents[1] / "datasets" / "markers").glob("*.json"))
+    assert len(examples) >= 3
+    for f in examples:
+        m = load_marker(f)
+        assert m.area > 0 and np.all(np.isfinite(bound_grid(m, theta_deg=[25.0], phi_deg=[0.0]).J))
+    np.testing.assert_allclose(load_marker(examples[-1]).area, tri.area, rtol=1e-12)  # triangle_spot
 
 
 BAD = {
