@@ -349,6 +349,7 @@ def test_finite_pixels_tend_to_the_bound_and_degrade() -> None:
     assert np.all(ratios[1] > ratios[0]) and np.all(ratios[2] > ratios[1])
 
 
+@pytest.mark.slow
 def test_cli_bound_writes_csv_plots_and_summary(tmp_path: Path) -> None:
     from loopmodel.cli import main
 

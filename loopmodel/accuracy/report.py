@@ -44,7 +44,7 @@ def _surfaces(
     PH, TH = np.meshgrid(grid.phi_deg, grid.theta_deg)
     for k, label in enumerate(labels):
         ax = fig.add_subplot(nrows, ncols, k + 1, projection="3d")
-        ax.plot_surface(PH, TH, values[..., k], cmap="viridis", linewidth=0.2, edgecolor="k")
+        ax.plot_surface(PH, TH, values[..., k], cmap="viridis", linewidth=0, antialiased=False)
         ax.set_xlabel("φ [deg]")
         ax.set_ylabel("θ [deg]")
         ax.set_title(label)
@@ -53,7 +53,7 @@ def _surfaces(
         f"marker '{grid.marker}': R = {grid.distance_m:g} m, f = {grid.focal_mm:g} mm, "
         f"N0/2 = {grid.noise:g} px², pixel {grid.pixel_um:g} µm"
     )
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.02, right=0.95, bottom=0.05, top=0.9, wspace=0.12, hspace=0.2)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, format="png")
     plt.close(fig)
