@@ -26,6 +26,7 @@ from loopmodel.accuracy import (
     triangle_marker,
 )
 from loopmodel.accuracy.marker import marker_to_dict
+from loopmodel.accuracy.view import normal_flows
 from loopmodel.errors import InputError
 from loopmodel.geometry import so3_exp
 
@@ -67,6 +68,14 @@ def test_flows_match_finite_differences(params: np.ndarray, rng: np.random.Gener
             - project(views.with_params(params - d), pts)
         ) / (2 * eps)
         np.testing.assert_allclose(Q[:, :, i, :], fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
+    # the contour integrand |adot| n.Q = adot x Q, with adot from finite differences along a tangent
+    tang = rng.normal(size=(20, 2))
+    h = 1e-6
+    adot = (project(views, pts + h * tang) - project(views, pts - h * tang)) / (2 * h)
+    c, speed = normal_flows(views, pts, tang)
+    cross = adot[..., None, 0] * Q[..., 1] - adot[..., None, 1] * Q[..., 0]
+    np.testing.assert_allclose(c, cross, rtol=1e-6, atol=1e-6 * np.abs(cross).max())
+    np.testing.assert_allclose(speed, np.linalg.norm(adot, axis=-1), rtol=1e-6)
 
 
 # ------------------------------------------------------------------------------------------

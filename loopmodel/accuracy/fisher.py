@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from loopmodel.accuracy.marker import Marker
-from loopmodel.accuracy.view import Views, flows, focal_px, image_tangents, stabilised_views
+from loopmodel.accuracy.view import Views, focal_px, normal_flows, stabilised_views
 from loopmodel.errors import InputError
 
 F64 = NDArray[np.float64]
@@ -42,11 +42,8 @@ def fisher_contour(
     edge, ``n_circle`` points per circle.
     """
     cs = marker.contour(n_edge, n_circle)
-    Q = flows(views, cs.points)  # (n, M, 4, 2)
-    adot = image_tangents(views, cs.points, cs.tangents)  # (n, M, 2)
-    # |adot| (n.Q) = adot x Q (sign irrelevant); dl = |adot| dt
-    c = adot[..., None, 0] * Q[..., 1] - adot[..., None, 1] * Q[..., 0]  # (n, M, 4)
-    w = cs.weights[None, :] / np.linalg.norm(adot, axis=-1)  # (n, M)
+    c, speed = normal_flows(views, cs.points, cs.tangents)  # |adot| n.Q_i (n, M, 4); dl = |adot| dt
+    w = cs.weights[None, :] / speed
     return np.matmul(np.swapaxes(c * w[..., None], 1, 2), c) / noise
 
 
