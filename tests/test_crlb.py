@@ -217,7 +217,9 @@ def test_builtin_markers_and_json_round_trip(tmp_path: Path) -> None:
     for f in examples:
         m = load_marker(f)
         assert m.area > 0 and np.all(np.isfinite(bound_grid(m, theta_deg=[25.0], phi_deg=[0.0]).J))
-    np.testing.assert_allclose(load_marker(examples[-1]).area, tri.area, rtol=1e-12)  # triangle_spot
+    np.testing.assert_allclose(
+        load_marker(examples[-1]).area, tri.area, rtol=1e-12
+    )  # triangle_spot
 
 
 BAD = {
@@ -253,6 +255,10 @@ BAD = {
             ]
         },
         "touch or cross",
+    ),
+    "repeated_point": (
+        {"shapes": [{"type": "polygon", "points": [[0, 0], [1, 0], [1, 0], [0, 1]]}]},
+        "repeated point",
     ),
     "bad_point": ({"shapes": [{"type": "polygon", "points": [[0, 0], [1], [0, 1]]}]}, "points[1]"),
 }

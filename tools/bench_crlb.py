@@ -50,6 +50,7 @@ def run(quick: bool) -> dict:
             "ratio": {p: round(float(x), 3) for p, x in zip(PARAMS, res.ratio, strict=True)},
             "sigma_crlb": [float(f"{x:.4g}") for x in res.sigma_crlb],
             "sigma_mc": [float(f"{x:.4g}") for x in res.sigma_mc],
+            "rho_abs_diff_max": round(float(np.max(np.abs(res.rho_mc - res.rho_crlb))), 3),
             "gn_iterations_median": float(np.median(res.iterations)),
             "samples": res.n_samples,
         })

@@ -16,8 +16,8 @@ Conventions (units of the noise intensity, shared by the bound and the Monte-Car
   function of sigma ``PSF_SIGMA_PX = 1/(2 sqrt(pi)) = 0.282 px`` and sampled infinitely finely
   (``integral g(x)^2 dx = 1 px^-1`` for its line-spread function g), up to corner terms of
   relative size ~ sigma/edge length. It also equals, for edges along the pixel rows/columns,
-  the information of a sharp image integrated over 1 px pixels (0.94-1.0 of it for other
-  edge directions). The Monte-Carlo (``montecarlo``) renders exactly the first model, and
+  the information of a sharp image integrated over 1 px pixels (about 0.9-1.0 of it for
+  other edge directions). The Monte-Carlo (``montecarlo``) renders exactly the first model, and
   ``pixels`` integrates it over pixels of finite size.
 """
 

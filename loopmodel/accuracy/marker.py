@@ -327,6 +327,10 @@ def validate_marker(marker: Marker, source: str | Path | None = None) -> Marker:
             continue
         if len(s.vertices) < 3:
             raise _fail(source, f"key '{where}.points': a polygon needs at least 3 points")
+        seg = np.linalg.norm(np.roll(s.vertices, -1, axis=0) - s.vertices, axis=1)
+        if np.any(seg <= eps):
+            k_rep = int(np.argmax(seg <= eps))
+            raise _fail(source, f"key '{where}.points[{k_rep}]': repeated point (zero-length edge)")
         rel = s.vertices - s.vertices[0]
         spread = np.abs(rel[:, None, 0] * rel[None, :, 1] - rel[:, None, 1] * rel[None, :, 0])
         if spread.max() <= eps * extent:
