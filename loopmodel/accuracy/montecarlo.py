@@ -5,7 +5,11 @@ Each trial renders the marker image exactly as the bound assumes (Gaussian PSF o
 default: fine sampling standing in for pixel size -> 0), adds white Gaussian noise of variance
 ``(N0/2) / h^2`` per sample (``noise`` = N0/2 in contrast^2 px^2, the convention of the bound),
 and estimates ``A = (r, v, u, gamma)`` by maximum likelihood, i.e. least squares on the sample
-intensities, solved by Gauss-Newton from a start drawn around the truth.
+intensities, solved by Gauss-Newton from a start drawn from N(truth, CRLB). The noise is large
+per sample, so Gauss-Newton converges linearly (rate about 0.2); it stops when every step is
+below 3 % of the bound, which leaves an error of about 1 % of sigma, negligible in quadrature.
+Samples farther than 6 PSF sigmas (+0.3 px) from the contour are left out of both data and
+model: their expected value is 0 or 1 whatever A is, so the fit is the whole-image fit.
 """
 
 from __future__ import annotations
