@@ -113,9 +113,13 @@ class StripeMap:
         return self._frame_kf.a.copy()
 
     def set_keyframe(self, kf_id: int, world_from_kf: ArrayLike) -> None:
-        """Declare keyframe ``kf_id`` (>= 0) with its pose; use ``update_keyframes`` to correct."""
+        """Declare keyframe ``kf_id`` (>= 0) with its pose; setting a known keyframe again
+        corrects it like :meth:`update_keyframes` (its stripes are re-transformed)."""
         if kf_id < 0:
             raise InputError(None, f"keyframe id must be >= 0, got {kf_id}")
+        if int(kf_id) in self._world_from_kf:
+            self.update_keyframes({int(kf_id): world_from_kf})
+            return
         self._world_from_kf[int(kf_id)] = _check_pose(world_from_kf, f"world_from_kf[{kf_id}]")
 
     def add_frame(
