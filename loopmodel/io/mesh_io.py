@@ -7,15 +7,15 @@ comment, STL in its 80-byte header, GLB in ``asset.extras`` (glTF is metres by d
 from __future__ import annotations
 
 import base64
-import contextlib
 import json
-import os
 import struct
+import tempfile
 from pathlib import Path
 
 import open3d as o3d
 
 from loopmodel.errors import InputError
+from loopmodel.io.atomic import write_bytes_atomic
 
 MESH_FORMATS = ("ply", "obj", "stl", "glb")
 UNITS_NOTE = "loopmodel mesh: units metres, world frame of the run"
@@ -54,13 +54,13 @@ def _glb_embed_buffer(data: bytes, note: str) -> bytes:
     )
 
 
-def _add_header_note(path: Path, fmt: str, note: str) -> None:
-    data = path.read_bytes()
+def _add_header_note(data: bytes, fmt: str, note: str) -> bytes:
+    """The file bytes with the units note in the header of the format."""
     if fmt == "ply":
         head_end = data.find(b"end_header")
         first_nl = data.find(b"\n")
         if head_end < 0 or first_nl < 0:
-            return
+            return data
         # after the "format ..." line (line 2)
         second_nl = data.find(b"\n", first_nl + 1)
         line = f"comment {note}\n".encode("ascii")
@@ -71,9 +71,7 @@ def _add_header_note(path: Path, fmt: str, note: str) -> None:
         data = note.encode("ascii")[:80].ljust(80, b" ") + data[80:]
     elif fmt == "glb":
         data = _glb_embed_buffer(data, note)
-    else:
-        return
-    path.write_bytes(data)
+    return data
 
 
 def write_mesh(path: str | Path, mesh: o3d.geometry.TriangleMesh, fmt: str | None = None) -> Path:
@@ -85,33 +83,23 @@ def write_mesh(path: str | Path, mesh: o3d.geometry.TriangleMesh, fmt: str | Non
         raise InputError(p, f"unknown mesh format '{fmt}'; use one of {', '.join(MESH_FORMATS)}")
     if len(mesh.triangles) == 0 or len(mesh.vertices) == 0:
         raise InputError(p, "refusing to write an empty mesh (no triangles)")
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f".{p.stem}.tmp-{os.getpid()}.{fmt}")
-    try:
-        if fmt == "stl" and not mesh.has_triangle_normals():
-            mesh = o3d.geometry.TriangleMesh(mesh)
-            mesh.compute_triangle_normals()
+    if fmt == "stl" and not mesh.has_triangle_normals():
+        mesh = o3d.geometry.TriangleMesh(mesh)
+        mesh.compute_triangle_normals()
+    # open3d picks the format from the extension: let it write into a scratch folder, then
+    # post-process the bytes and move them into place atomically
+    with tempfile.TemporaryDirectory(prefix="loopmodel-mesh-") as d:
+        tmp = Path(d) / f"{p.stem}.{fmt}"
         ok = o3d.io.write_triangle_mesh(tmp, mesh, write_ascii=False, compressed=False, print_progress=False)
         if not ok or not tmp.is_file() or tmp.stat().st_size == 0:
             raise InputError(p, f"open3d could not write a {fmt} mesh")
-        _add_header_note(tmp, fmt, UNITS_NOTE)
-        if fmt == "obj":  # open3d names the object after the (temporary) file
-            data = tmp.read_bytes()
-            tmp.write_bytes(
-                data.replace(f"# object name: {tmp.stem}\n".encode(), f"# object name: {p.stem}\n".encode(), 1)
-            )
-        os.replace(tmp, p)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-        raise
+        data = _add_header_note(tmp.read_bytes(), fmt, UNITS_NOTE)
+    write_bytes_atomic(p, data)
     return p
 
 
 def mesh_from_bytes(data: bytes, fmt: str = "ply", source: str | Path | None = None) -> o3d.geometry.TriangleMesh:
     """Triangle mesh from the bytes of a mesh file (e.g. an MCAP attachment)."""
-    import tempfile
-
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d) / f"mesh.{fmt}"
         tmp.write_bytes(data)
