@@ -7,7 +7,7 @@ Every run writes the effective configuration into its results folder.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -47,11 +47,105 @@ class OutputConfig(_Section):
     image_format: str = Field("png", pattern="^(raw|png|jpeg)$", description="MCAP image encoding")
 
 
+# ----------------------------------------------------------------------------- simulation (issue 3)
+
+
+class SimCameraConfig(_Section):
+    """Rectified stereo pair of the simulator (pixels, metres); ``xi > 0`` renders the unified
+    central model (omnidirectional). Principal point defaults to the image centre."""
+
+    width_px: int = Field(640, gt=0)
+    height_px: int = Field(480, gt=0)
+    fx_px: float = Field(500.0, gt=0)
+    fy_px: float | None = Field(None, gt=0, description="defaults to fx_px")
+    cx_px: float | None = Field(None, description="defaults to (width_px - 1) / 2")
+    cy_px: float | None = Field(None, description="defaults to (height_px - 1) / 2")
+    xi: float = Field(0.0, ge=0, description="unified-model mirror parameter; 0 is a pinhole")
+    baseline_m: float = Field(0.06, gt=0, description="left-to-right camera distance along x")
+
+
+class SimSceneConfig(_Section):
+    """The scanned object on a table in a room."""
+
+    kind: Literal["bust", "box", "mix"] = "bust"
+    object_height_m: float = Field(0.5, gt=0.05, le=2.0)
+    room: bool = Field(True, description="table legs, floor, walls, shelves around the table")
+    texture_size_px: int = Field(2048, ge=64, le=8192, description="side of each procedural texture")
+
+
+class SimRenderConfig(_Section):
+    """Image formation: Lambertian shading, light, exposure, noise, blur."""
+
+    noise_sigma: float = Field(2.0, ge=0, description="Gaussian image noise (grey levels of 255)")
+    ambient: float = Field(0.3, ge=0, le=1, description="ambient share of the lighting")
+    brightness: float = Field(1.0, gt=0, description="global gain")
+    light: Literal["fixed", "moving", "headlamp"] = "moving"
+    light_position_m: list[float] = Field(default_factory=lambda: [0.4, -0.6, 1.4], min_length=3, max_length=3)
+    light_motion_radius_m: float = Field(0.3, ge=0, description="'moving': circle radius")
+    light_period_s: float = Field(40.0, gt=0, description="'moving': time of one light circle")
+    exposure_s: float = Field(0.004, ge=0, description="exposure time for motion blur")
+    motion_blur: bool = True
+    exposure_variation: float = Field(0.0, ge=0, lt=1, description="relative gain wander")
+
+
+class SimTrajectoryConfig(_Section):
+    """Hand-held path around the object (world z up, object on the table at the origin)."""
+
+    kind: Literal["orbit", "sweeps", "browse"] = "orbit"
+    frames: int = Field(600, gt=0)
+    rate_hz: float = Field(25.0, gt=0)
+    radius_m: float = Field(0.65, gt=0, description="camera distance from the object axis")
+    height_m: float = Field(0.35, description="camera height above the table")
+    sweeps: int = Field(3, ge=1, description="'sweeps': number of back-and-forth sweeps")
+    shake_translation_m: float = Field(0.002, ge=0)
+    shake_rotation_deg: float = Field(0.3, ge=0)
+    start_time_ns: int = Field(1_000_000_000, ge=0)
+
+
+class SimLaserConfig(_Section):
+    """Laser-stripe profiler: a light plane fixed in the left-camera frame."""
+
+    enabled: bool = True
+    origin_in_cam_m: list[float] = Field(default_factory=lambda: [0.03, 0.06, 0.0], min_length=3, max_length=3)
+    normal_in_cam: list[float] = Field(default_factory=lambda: [0.0, -0.987, -0.158], min_length=3, max_length=3)
+    fan_deg: float = Field(70.0, gt=0, lt=180)
+    rays: int = Field(640, ge=2)
+    range_noise_m: float = Field(0.0002, ge=0)
+    image: bool = Field(False, description="also write /laser/image")
+
+
+class SimFaultsConfig(_Section):
+    """Faults on demand; frame indices count generated frames from 0, ranges are inclusive."""
+
+    dropped: list[int] = Field(default_factory=list)
+    blackout: list[tuple[int, int]] = Field(default_factory=list)
+    blur: list[tuple[int, int]] = Field(default_factory=list)
+    occluder: list[tuple[int, int]] = Field(default_factory=list)
+    duplicate_timestamp: list[int] = Field(default_factory=list)
+    blur_length_px: float = Field(15.0, gt=0)
+
+
+class SimulationConfig(_Section):
+    """Synthetic scan generator (``loopmodel simulate scan``)."""
+
+    seed: int = Field(0, ge=0)
+    camera: SimCameraConfig = Field(default_factory=SimCameraConfig)
+    scene: SimSceneConfig = Field(default_factory=SimSceneConfig)
+    render: SimRenderConfig = Field(default_factory=SimRenderConfig)
+    trajectory: SimTrajectoryConfig = Field(default_factory=SimTrajectoryConfig)
+    laser: SimLaserConfig = Field(default_factory=SimLaserConfig)
+    faults: SimFaultsConfig = Field(default_factory=SimFaultsConfig)
+    workers: int = Field(2, ge=0, description="render processes; 0 = one per core, 1 = in-process")
+    image_format: str = Field("png", pattern="^(raw|png|jpeg)$")
+    write_scene_ply: bool = Field(True, description="also write <out>.scene.ply beside the MCAP")
+
+
 class Config(_Section):
     """The whole configuration of loopmodel."""
 
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    simulation: SimulationConfig = Field(default_factory=SimulationConfig)
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
