@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from loopmodel.errors import ConfigError
 
@@ -138,6 +138,17 @@ class SimulationConfig(_Section):
     workers: int = Field(2, ge=0, description="render processes; 0 = one per core, 1 = in-process")
     image_format: str = Field("png", pattern="^(raw|png|jpeg)$")
     write_scene_ply: bool = Field(True, description="also write <out>.scene.ply beside the MCAP")
+
+    @model_validator(mode="after")
+    def _faults_within_frames(self) -> SimulationConfig:
+        n = self.trajectory.frames
+        f = self.faults
+        ranges = [("dropped", i, i) for i in f.dropped] + [("duplicate_timestamp", i, i) for i in f.duplicate_timestamp]
+        ranges += [(k, a, b) for k in ("blackout", "blur", "occluder") for a, b in getattr(f, k)]
+        for kind, a, b in ranges:
+            if a > b or a < 0 or b >= n:
+                raise ValueError(f"faults.{kind}: frames {a}-{b} outside 0-{n - 1} (or first > last)")
+        return self
 
 
 class Config(_Section):

@@ -94,9 +94,9 @@ class FaultPlan:
 
 def cam_from_occluder(fraction: float) -> F64:
     """Pose of the occluder (a hand-sized ellipsoid) in the left-camera frame: it crosses the
-    view from left to right about 0.2 m in front of the camera as ``fraction`` goes 0 -> 1."""
+    view from left to right 0.2 m in front of the camera (always in view) as ``fraction`` goes 0 -> 1."""
     T = np.eye(4)
-    T[:3, 3] = [-0.2 + 0.4 * fraction, 0.05 - 0.07 * fraction, 0.2]
+    T[:3, 3] = [-0.1 + 0.2 * fraction, 0.04 - 0.06 * fraction, 0.2]
     a = 0.6 * fraction - 0.3
     c, s = np.cos(a), np.sin(a)
     T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

@@ -31,7 +31,7 @@ from loopmodel.io.atomic import write_bytes_atomic
 from loopmodel.io.mcap_io import McapSequenceWriter
 from loopmodel.sim.faults import FaultPlan, cam_from_occluder
 from loopmodel.sim.laser import LaserPlane, draw_laser_image, stripe_profile
-from loopmodel.sim.render import Raycaster, View, pixel_rays
+from loopmodel.sim.render import RayBundle, Raycaster, View, pixel_rays
 from loopmodel.sim.scene import Scene, build_scene
 from loopmodel.sim.trajectory import HandheldPath
 from loopmodel.types import StereoCalibration, StereoFrame, StripeProfile
@@ -78,11 +78,11 @@ def scene_of(cfg: SimulationConfig) -> Scene:
 
 
 def path_of(cfg: SimulationConfig) -> HandheldPath:
-    """The hand-held path of the configuration (lasting frames / rate_hz seconds)."""
+    """The hand-held path of the configuration: the last frame is the end of the path."""
     tr = cfg.trajectory
     return HandheldPath(
         tr.kind,
-        tr.frames / tr.rate_hz,
+        max(tr.frames - 1, 1) / tr.rate_hz,
         cfg.seed,
         tr.radius_m,
         tr.height_m,
@@ -202,8 +202,7 @@ class _WorkerState:
     cfg: SimulationConfig
     caster: Raycaster
     camera: CentralCamera
-    rays: NDArray[np.float32]
-    valid: NDArray[np.bool_]
+    rays: RayBundle
     cam0_from_cam1: F64
     shape: tuple[int, int]
 
@@ -215,15 +214,16 @@ def _init_worker(cfg: SimulationConfig, scene: Scene) -> None:
     global _STATE
     cv2.setNumThreads(1)
     _STATE = _make_state(cfg, scene)
+    _STATE.caster.threads = 1  # one process per core already
 
 
 def _make_state(cfg: SimulationConfig, scene: Scene) -> _WorkerState:
     cam = camera_of(cfg)
-    rays, valid = pixel_rays(cam, cfg.camera.width_px, cfg.camera.height_px)
+    rays = pixel_rays(cam, cfg.camera.width_px, cfg.camera.height_px)
     c01 = np.eye(4)
     c01[0, 3] = cfg.camera.baseline_m
     return _WorkerState(
-        cfg, Raycaster(scene), cam, rays, valid, c01, (cfg.camera.height_px, cfg.camera.width_px)
+        cfg, Raycaster(scene), cam, rays, c01, (cfg.camera.height_px, cfg.camera.width_px)
     )
 
 
@@ -282,8 +282,6 @@ def render_frame(st: _WorkerState, task: FrameTask) -> FrameImages:
         task.light_world_m,
         amb,
         task.world_from_occluder,
-        st.valid,
-        st.shape,
     )
     right = st.caster.render(
         st.rays,
@@ -291,8 +289,6 @@ def render_frame(st: _WorkerState, task: FrameTask) -> FrameImages:
         task.light_world_m,
         amb,
         task.world_from_occluder,
-        st.valid,
-        st.shape,
     )
     dx, dy = (
         _image_motion(st, left, task)
@@ -308,18 +304,19 @@ def render_frame(st: _WorkerState, task: FrameTask) -> FrameImages:
         elif length < task.blur_min_px:
             dx, dy = dx * task.blur_min_px / length, dy * task.blur_min_px / length
     kernel = _blur_kernel(dx, dy)
-    rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, _NOISE_STREAM, task.index]))
+    seeds = np.random.SeedSequence([cfg.seed, _NOISE_STREAM, task.index]).generate_state(2)
     scale = 255.0 * cfg.render.brightness * task.gain * (0.0 if task.blackout else 1.0)
     out = []
-    for view in (left, right):
+    noise = np.empty(st.shape, np.float32)
+    for view, seed in zip((left, right), seeds, strict=True):
         img = view.radiance * np.float32(scale)
         if kernel is not None:
             img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REFLECT)
         if cfg.render.noise_sigma > 0:
-            img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(
-                cfg.render.noise_sigma
-            )
-        out.append(np.clip(np.rint(img), 0, 255).astype(np.uint8))
+            cv2.setRNGSeed(int(seed) & 0x7FFFFFFF)  # OpenCV's per-thread RNG: deterministic
+            cv2.randn(noise, 0.0, float(cfg.render.noise_sigma))
+            img += noise
+        out.append(np.clip(img + 0.5, 0, 255).astype(np.uint8))
     laser = None
     if cfg.laser.image and task.stripe_in_cam is not None:
         laser = draw_laser_image(out[0], task.stripe_in_cam, st.camera)

@@ -63,9 +63,7 @@ def stripe_profile(
     R, t = world_from_cam[:3, :3], world_from_cam[:3, 3]
     dirs_c = plane.directions_in_cam()
     origin_w = R @ plane.origin_in_cam_m + t
-    rng_t, _pid, _uv, _n = caster.cast(
-        origin_w.astype(np.float32), (dirs_c @ R.T).astype(np.float32), world_from_occluder
-    )
+    rng_t = caster.cast_points(origin_w, dirs_c @ R.T, world_from_occluder).range_m
     hit = np.isfinite(rng_t)
     # float64 intersection on the ray (open3d works in float32)
     p_cam = plane.origin_in_cam_m + dirs_c * rng_t.astype(float)[:, None]
@@ -79,9 +77,7 @@ def stripe_profile(
     ok &= (uv[:, 0] >= -0.5) & (uv[:, 0] <= w - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= h - 0.5)
     dist = np.linalg.norm(p_cam, axis=1)
     sight = p_cam / np.maximum(dist, 1e-12)[:, None]
-    cam_t, _p, _u, _nn = caster.cast(
-        t.astype(np.float32), (sight @ R.T).astype(np.float32), world_from_occluder
-    )
+    cam_t = caster.cast_points(t, sight @ R.T, world_from_occluder).range_m
     ok &= cam_t.astype(float) > dist - np.maximum(1e-4, 1e-3 * dist)
     return p_cam[ok], dirs_c[ok]
 

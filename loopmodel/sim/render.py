@@ -27,9 +27,9 @@ OCCLUDER_ALBEDO = 0.32
 OCCLUDER_RADII_M = (0.035, 0.05, 0.025)
 
 
-def pixel_rays(camera: CentralCamera, width: int, height: int) -> tuple[F32, NDArray[np.bool_]]:
-    """Unit rays (H*W x 3, camera frame) through the pixel centres (pixel (u, v) has its centre
-    at u, v) and which pixels have a valid ray (the unified model's image disc)."""
+def pixel_rays(camera: CentralCamera, width: int, height: int) -> RayBundle:
+    """Unit rays (camera frame) through the pixel centres (pixel (u, v) has its centre at
+    u, v, row-major) and which pixels have a valid ray (the unified model's image disc)."""
     u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
     uv = np.column_stack([u.ravel(), v.ravel()])
     x = (uv[:, 0] - camera.u0) / camera.px
@@ -38,14 +38,36 @@ def pixel_rays(camera: CentralCamera, width: int, height: int) -> tuple[F32, NDA
     rays = camera.lift(uv)
     valid &= np.all(np.isfinite(rays), axis=1)
     rays[~valid] = (0.0, 0.0, 1.0)
-    return rays.astype(np.float32), valid
+    return RayBundle(
+        np.ascontiguousarray(rays.T, dtype=np.float32), valid, (int(height), int(width))
+    )
+
+
+@dataclass
+class RayBundle:
+    """Unit ray directions of a camera's pixels: ``dirs`` 3 x N (camera frame, float32),
+    ``valid`` (N,) and the image ``shape`` (H, W) with N = H * W."""
+
+    dirs: F32
+    valid: NDArray[np.bool_]
+    shape: tuple[int, int]
+
+
+@dataclass
+class Hits:
+    """Nearest hits of N rays: ``range_m`` (inf for a miss), ``primitive`` (triangle id, -1
+    miss, -2 occluder) and unit ``normal`` (3 x N, world, facing the ray origin)."""
+
+    range_m: F32
+    primitive: NDArray[np.int64]
+    normal: F32
 
 
 @dataclass
 class View:
-    """One rendered view: ``radiance`` (H x W, albedo x shading, about 0..1), ``range_m``
-    (distance along the ray, inf where nothing is hit), ``depth_m`` (camera z), ``primitive``
-    (triangle id, -1 for a miss, ``-2`` for the occluder) and ``points_world`` (H x W x 3)."""
+    """One rendered view (H x W arrays): ``radiance`` (albedo x shading, about 0..1),
+    ``range_m`` (distance along the ray, inf where nothing is hit), ``depth_m`` (camera z),
+    ``primitive`` (triangle id, -1 miss, -2 occluder), ``points_world`` (H x W x 3)."""
 
     radiance: F32
     range_m: F32
@@ -55,7 +77,10 @@ class View:
 
 
 class Raycaster:
-    """Ray casting and shading of a scene; build once, render many views."""
+    """Ray casting and shading of a scene; build once, render many views.
+
+    ``markers`` is a list of (world point, sigma_m, amplitude): each adds a 3-D Gaussian
+    spot to the albedo (for checking where the renderer shows a known point)."""
 
     def __init__(self, scene: Scene) -> None:
         self.scene = scene
@@ -64,12 +89,14 @@ class Raycaster:
             o3d.core.Tensor(scene.vertices.astype(np.float32)),
             o3d.core.Tensor(scene.triangles.astype(np.uint32)),
         )
+        self._ntri = scene.triangles.shape[0]
+        self.markers: list[tuple[F64, float, float]] = []
+        self.threads = 0  # open3d ray-casting threads (0: all cores)
         cn = scene.corner_normals
-        # per triangle: n0, n1 - n0, n2 - n0 (barycentric interpolation n0 + u dn1 + v dn2)
-        self._tri_normals = np.concatenate(
-            [cn[:, 0], cn[:, 1] - cn[:, 0], cn[:, 2] - cn[:, 0]], axis=1
-        )
-        self._tri_mat = scene.triangle_material.astype(np.int32)
+        # rows: n0 (xyz), n1 - n0, n2 - n0: barycentric interpolation n0 + u dn1 + v dn2
+        tn = np.concatenate([cn[:, 0], cn[:, 1] - cn[:, 0], cn[:, 2] - cn[:, 0]], axis=1)
+        self._tn = np.ascontiguousarray(tn.T, dtype=np.float32)  # 9 x T
+        self._tri_mat = scene.triangle_material.astype(np.int64)
         size = scene.textures[0].shape[0]
         self._tex_size = float(size)
         pad = [np.pad(t, ((0, 1), (0, 1)), mode="wrap") for t in scene.textures]
@@ -78,7 +105,10 @@ class Raycaster:
         self._mat_scale = np.array([1.0 / m.texel_m for m in mats], np.float32)
         self._mat_gain = np.array([m.gain for m in mats], np.float32)
         self._mat_row = np.array([m.texture * (size + 1) for m in mats], np.float32)
-        self._mat_off = scene.texture_offsets.astype(np.float32)
+        # per axis k and texture coordinate j: M offsets (texels)
+        self._mat_off = np.ascontiguousarray(
+            np.transpose(scene.texture_offsets, (1, 2, 0)), np.float32
+        )
         # the occluder: an ellipsoid in its own frame, cast separately (it moves)
         occ = o3d.geometry.TriangleMesh.create_sphere(1.0, 24)
         ov = np.asarray(occ.vertices) * np.asarray(OCCLUDER_RADII_M)
@@ -90,119 +120,143 @@ class Raycaster:
 
     # -- ray casting
     def cast(
-        self, origins_world: F64 | F32, dirs_world: F32, world_from_occluder: F64 | None = None
-    ) -> tuple[F32, NDArray[np.int64], F32, F32]:
-        """Nearest hits of rays (N x 3 origins or one origin, N x 3 unit directions, world):
-        range (inf for a miss), triangle id (-1 miss, -2 occluder), barycentric (u, v) and
-        the unit normal in the world frame facing the ray's origin."""
-        n = dirs_world.shape[0]
+        self, origins_world: F32 | F64, dirs_world: F32, world_from_occluder: F64 | None = None
+    ) -> Hits:
+        """Nearest hits of rays with origins ``origins_world`` (3 or 3 x N) and unit
+        directions ``dirs_world`` (3 x N), world frame, metres."""
+        n = dirs_world.shape[1]
+        org = np.asarray(origins_world, np.float32)
         rays = np.empty((n, 6), np.float32)
-        rays[:, :3] = origins_world
-        rays[:, 3:] = dirs_world
-        ans = self._rs.cast_rays(o3d.core.Tensor.from_numpy(rays))
+        for k in range(3):
+            rays[:, k] = org[k]
+            rays[:, 3 + k] = dirs_world[k]
+        ans = self._rs.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=self.threads)
         t = ans["t_hit"].numpy()
-        pid_u = ans["primitive_ids"].numpy()
+        pid = ans["primitive_ids"].numpy().astype(np.int64)
         uv = ans["primitive_uvs"].numpy()
+        u = np.ascontiguousarray(uv[:, 0])
+        v = np.ascontiguousarray(uv[:, 1])
+        tn = self._tn
+        nrm = np.empty((3, n), np.float32)
+        for k in range(3):
+            nrm[k] = np.take(tn[k], pid, mode="clip")
+            nrm[k] += u * np.take(tn[3 + k], pid, mode="clip")
+            nrm[k] += v * np.take(tn[6 + k], pid, mode="clip")
         hit = np.isfinite(t)
-        pid = np.where(hit, pid_u, 0).astype(np.int64)
-        w = self._tri_normals[pid]
-        nrm = w[:, 0:3] + uv[:, :1] * w[:, 3:6] + uv[:, 1:2] * w[:, 6:9]
         pid[~hit] = -1
         if world_from_occluder is not None:
-            occ_from_world = invert_pose(world_from_occluder).astype(np.float32)
-            R, tr = occ_from_world[:3, :3], occ_from_world[:3, 3]
+            occ_from_world = invert_pose(world_from_occluder)
+            R = occ_from_world[:3, :3].astype(np.float32)
+            tr = occ_from_world[:3, 3].astype(np.float32)
             orays = np.empty_like(rays)
             orays[:, :3] = rays[:, :3] @ R.T + tr
             orays[:, 3:] = rays[:, 3:] @ R.T
-            oans = self._occ.cast_rays(o3d.core.Tensor.from_numpy(orays))
+            oans = self._occ.cast_rays(o3d.core.Tensor.from_numpy(orays), nthreads=self.threads)
             to = oans["t_hit"].numpy()
             closer = to < t
             if np.any(closer):
                 t = np.where(closer, to, t)
                 pid[closer] = -2
-                on = oans["primitive_normals"].numpy()[closer] @ world_from_occluder[
-                    :3, :3
-                ].T.astype(np.float32)
-                nrm[closer] = on
-        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-        flip = np.einsum("ij,ij->i", nrm, dirs_world) > 0
-        nrm[flip] *= -1
-        return t.astype(np.float32), pid, uv.astype(np.float32), nrm.astype(np.float32)
+                Rw = world_from_occluder[:3, :3].astype(np.float32)
+                nrm[:, closer] = Rw @ oans["primitive_normals"].numpy()[closer].T
+        inv = 1.0 / np.maximum(np.sqrt(nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]), 1e-12)
+        facing = nrm[0] * dirs_world[0] + nrm[1] * dirs_world[1] + nrm[2] * dirs_world[2]
+        inv[facing > 0] *= -1.0  # two-sided: normals face the ray origin
+        nrm *= inv
+        return Hits(t.astype(np.float32, copy=False), pid, nrm)
+
+    def cast_points(
+        self, origins_world: F64, dirs_world: F64, world_from_occluder: F64 | None = None
+    ) -> Hits:
+        """:meth:`cast` for N x 3 arrays (or one 3-vector origin)."""
+        o = np.asarray(origins_world, np.float32)
+        o = o.T if o.ndim == 2 else o
+        d = np.ascontiguousarray(np.asarray(dirs_world, np.float32).T)
+        return self.cast(o, d, world_from_occluder)
 
     # -- appearance
     def albedo(self, points_world: F32, normals_world: F32, primitive: NDArray[np.int64]) -> F32:
-        """Surface albedo (about 0..1) at N surface points from the tri-planar texture of
-        their triangles' materials (occluder: uniform)."""
-        n = points_world.shape[0]
-        tri = np.maximum(primitive, 0)
-        mat = self._tri_mat[tri]
-        scale = self._mat_scale[mat]
-        row = self._mat_row[mat]
-        w = normals_world.astype(np.float32) ** 2
+        """Albedo (about 0..1) at N surface points (3 x N world, unit normals 3 x N) from the
+        tri-planar texture of their triangles' materials (occluder: uniform)."""
+        n = points_world.shape[1]
+        mat = np.take(self._tri_mat, primitive, mode="clip")
+        scale = np.take(self._mat_scale, mat)
+        row = np.take(self._mat_row, mat)
+        w = normals_world * normals_world
         w *= w
-        w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
+        w /= np.maximum(w[0] + w[1] + w[2], 1e-12)
         # remap wants 2-D maps with sides below 32767: lay the N samples out in rows
-        cols = 1024
+        cols = 1024 if n > 1024 else n
         rows_n = -(-n // cols)
+        m = rows_n * cols
         out = np.zeros(n, np.float32)
-        size = self._tex_size
+        size = np.float32(self._tex_size)
+        inv_size = np.float32(1.0 / self._tex_size)
+        mu = np.zeros(m, np.float32)
+        mv = np.zeros(m, np.float32)
         for k, (a, b) in enumerate(_AXES):
-            sel = w[:, k] > 1e-3
-            if not np.any(sel):
+            if not np.any(w[k] > 1e-3):
                 continue
-            cu = np.mod(points_world[:, a] * scale + self._mat_off[mat, k, 0], size)
-            cv = np.mod(points_world[:, b] * scale + self._mat_off[mat, k, 1], size) + row
-            mu = np.zeros(rows_n * cols, np.float32)
-            mv = np.zeros(rows_n * cols, np.float32)
-            mu[:n] = cu
-            mv[:n] = cv
-            s = cv2.remap(
+            cu = points_world[a] * scale + np.take(self._mat_off[k, 0], mat)
+            cv = points_world[b] * scale + np.take(self._mat_off[k, 1], mat)
+            mu[:n] = cu - np.floor(cu * inv_size) * size
+            mv[:n] = cv - np.floor(cv * inv_size) * size + row
+            sample = cv2.remap(
                 self._atlas,
                 mu.reshape(rows_n, cols),
                 mv.reshape(rows_n, cols),
                 cv2.INTER_LINEAR,
                 borderMode=cv2.BORDER_REPLICATE,
-            ).ravel()[:n]
-            out += w[:, k] * s
-        out *= self._mat_gain[mat]
+            )
+            out += w[k] * sample.reshape(-1)[:n]
+        out *= np.take(self._mat_gain, mat)
+        for centre, sigma, amplitude in self.markers:
+            c = np.asarray(centre, np.float32)
+            r2 = (points_world[0] - c[0]) ** 2 + (points_world[1] - c[1]) ** 2
+            r2 += (points_world[2] - c[2]) ** 2
+            out += np.float32(amplitude) * np.exp(r2 * np.float32(-0.5 / sigma**2))
         out[primitive == -2] = OCCLUDER_ALBEDO
         out[primitive == -1] = 0.0
         return out
 
     def render(
         self,
-        camera_rays: F32,
+        rays: RayBundle,
         world_from_cam: F64,
         light_world_m: F64,
         ambient: float,
         world_from_occluder: F64 | None = None,
-        valid: NDArray[np.bool_] | None = None,
-        shape: tuple[int, int] | None = None,
     ) -> View:
-        """Render the view of a camera at ``world_from_cam`` whose pixel rays (camera frame)
-        are ``camera_rays``; ``shape`` = (H, W) of the image."""
+        """Render the view of a camera at ``world_from_cam`` with pixel rays ``rays``."""
         R = world_from_cam[:3, :3].astype(np.float32)
         o = world_from_cam[:3, 3].astype(np.float32)
-        d = camera_rays @ R.T
-        t, pid, _uv, nrm = self.cast(o, d, world_from_occluder)
-        if valid is not None:
-            t = np.where(valid, t, np.float32(np.inf))
-            pid = np.where(valid, pid, -1)
+        c = rays.dirs
+        d = np.empty_like(c)
+        for k in range(3):
+            d[k] = R[k, 0] * c[0] + R[k, 1] * c[1] + R[k, 2] * c[2]
+        hits = self.cast(o, d, world_from_occluder)
+        t, pid, nrm = hits.range_m, hits.primitive, hits.normal
+        t[~rays.valid] = np.inf
+        pid[~rays.valid] = -1
         hit = np.isfinite(t)
-        tt = np.where(hit, t, 0.0).astype(np.float32)
-        p = o + d * tt[:, None]
+        tt = np.where(hit, t, np.float32(0.0))
+        p = np.empty_like(d)
+        for k in range(3):
+            p[k] = o[k] + d[k] * tt
         albedo = self.albedo(p, nrm, pid)
-        L = np.asarray(light_world_m, np.float32) - p
-        L /= np.maximum(np.linalg.norm(L, axis=1, keepdims=True), 1e-12)
-        diffuse = np.maximum(np.einsum("ij,ij->i", nrm, L), 0.0)
-        rad = albedo * (ambient + (1.0 - ambient) * diffuse)
+        light = np.asarray(light_world_m, np.float32)
+        L = light[:, None] - p
+        inv = 1.0 / np.maximum(np.sqrt(L[0] * L[0] + L[1] * L[1] + L[2] * L[2]), 1e-12)
+        diffuse = (nrm[0] * L[0] + nrm[1] * L[1] + nrm[2] * L[2]) * inv
+        np.maximum(diffuse, 0.0, out=diffuse)
+        rad = albedo * (np.float32(ambient) + np.float32(1.0 - ambient) * diffuse)
         rad[~hit] = 0.0
-        depth = np.where(hit, t * camera_rays[:, 2], np.inf).astype(np.float32)
-        h, w = shape if shape is not None else (1, t.shape[0])
+        depth = np.where(hit, t * c[2], np.float32(np.inf))
+        h, w = rays.shape
         return View(
-            radiance=rad.reshape(h, w).astype(np.float32),
+            radiance=rad.reshape(h, w),
             range_m=t.reshape(h, w),
             depth_m=depth.reshape(h, w),
             primitive=pid.reshape(h, w),
-            points_world=p.reshape(h, w, 3).astype(np.float32),
+            points_world=np.ascontiguousarray(p.T).reshape(h, w, 3),
         )
