@@ -46,7 +46,9 @@ def wide() -> tuple[SimulationConfig, Raycaster]:
     return cfg, Raycaster(gen.scene_of(cfg))
 
 
-def _sub_lk_disparity(L: np.ndarray, R: tuple[np.ndarray, np.ndarray], u: float, v: float, d0: float, half: int = 4) -> float:
+def _sub_lk_disparity(
+    L: np.ndarray, R: tuple[np.ndarray, np.ndarray], u: float, v: float, d0: float, half: int = 4
+) -> float:
     """Disparity of left pixel (u, v) in the right image by 1-D Lucas-Kanade on float images
     (cubic interpolation; ``R``, ``gxR`` are spline-prefiltered right image and x-gradient),
     with a disparity affine over the window, started from d0."""
@@ -310,3 +312,12 @@ def test_shake_is_small_and_smooth() -> None:
     p = HandheldPath("orbit", 20.0, 1, shake_translation_m=0.002, shake_rotation_deg=0.3)
     d = [np.linalg.norm(p.pose(t)[:3, 3] - p.nominal_pose(t)[:3, 3]) for t in np.linspace(0, 20, 200)]
     assert 0.0005 < np.sqrt(np.mean(np.square(d))) < 0.01
+
+
+def test_preset_files_match_the_presets() -> None:
+    root = Path(__file__).resolve().parents[1]
+    for name in gen.PRESETS:
+        from loopmodel.config import load_config
+
+        from_file = load_config(root / "datasets" / "presets" / f"{name}.yaml").simulation
+        assert from_file == gen.resolve_config(SimulationConfig(), preset=name)

@@ -254,11 +254,8 @@ def _image_motion(st: _WorkerState, view: View, task: FrameTask) -> tuple[float,
     h, w = st.shape
     if task.exposure_poses is None:
         return 0.0, 0.0
-    pts = (
-        view.points_world[h // 4 : 3 * h // 4 : 8, w // 4 : 3 * w // 4 : 8]
-        .reshape(-1, 3)
-        .astype(float)
-    )
+    pts = view.points_soa.reshape(3, h, w)[:, h // 4 : 3 * h // 4 : 8, w // 4 : 3 * w // 4 : 8]
+    pts = pts.reshape(3, -1).T.astype(float)
     ok = np.isfinite(view.range_m[h // 4 : 3 * h // 4 : 8, w // 4 : 3 * w // 4 : 8].ravel())
     if not np.any(ok):
         return 0.0, 0.0

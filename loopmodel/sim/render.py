@@ -52,6 +52,11 @@ class RayBundle:
     valid: NDArray[np.bool_]
     shape: tuple[int, int]
 
+    @property
+    def all_valid(self) -> bool:
+        """Every pixel has a ray (always so for a pinhole camera)."""
+        return bool(self.valid.all())
+
 
 @dataclass
 class Hits:
@@ -73,7 +78,13 @@ class View:
     range_m: F32
     depth_m: F32
     primitive: NDArray[np.int64]
-    points_world: F32
+    points_soa: F32  # 3 x H*W
+
+    @property
+    def points_world(self) -> F32:
+        """Surface points (H x W x 3, world, metres; meaningless where nothing is hit)."""
+        h, w = self.radiance.shape
+        return np.ascontiguousarray(self.points_soa.T).reshape(h, w, 3)
 
 
 class Raycaster:
@@ -236,8 +247,9 @@ class Raycaster:
             d[k] = R[k, 0] * c[0] + R[k, 1] * c[1] + R[k, 2] * c[2]
         hits = self.cast(o, d, world_from_occluder)
         t, pid, nrm = hits.range_m, hits.primitive, hits.normal
-        t[~rays.valid] = np.inf
-        pid[~rays.valid] = -1
+        if not rays.all_valid:
+            t[~rays.valid] = np.inf
+            pid[~rays.valid] = -1
         hit = np.isfinite(t)
         tt = np.where(hit, t, np.float32(0.0))
         p = np.empty_like(d)
@@ -258,5 +270,5 @@ class Raycaster:
             range_m=t.reshape(h, w),
             depth_m=depth.reshape(h, w),
             primitive=pid.reshape(h, w),
-            points_world=np.ascontiguousarray(p.T).reshape(h, w, 3),
+            points_soa=p,
         )
