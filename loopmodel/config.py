@@ -106,11 +106,18 @@ class SimLaserConfig(_Section):
     """Laser-stripe profiler: a light plane fixed in the left-camera frame."""
 
     enabled: bool = True
-    origin_in_cam_m: list[float] = Field(default_factory=lambda: [0.03, 0.06, 0.0], min_length=3, max_length=3)
-    normal_in_cam: list[float] = Field(default_factory=lambda: [0.0, -0.987, -0.158], min_length=3, max_length=3)
+    origin_in_cam_m: list[float] = Field(
+        default_factory=lambda: [0.12, 0.0, 0.0], min_length=3, max_length=3,
+        description="laser 12 cm right of the left camera",
+    )
+    normal_in_cam: list[float] = Field(
+        default_factory=lambda: [0.977, 0.0, 0.213], min_length=3, max_length=3,
+        description="vertical plane crossing the optical axis about 0.55 m ahead",
+    )
     fan_deg: float = Field(70.0, gt=0, lt=180)
     rays: int = Field(640, ge=2)
     range_noise_m: float = Field(0.0002, ge=0)
+    max_range_m: float = Field(1.2, gt=0, description="measuring range: farther points are not reported")
     image: bool = Field(False, description="also write /laser/image")
 
 

@@ -47,6 +47,7 @@ PRESETS: dict[str, dict[str, dict[str, object]]] = {
 }
 
 _NOISE_STREAM, _STRIPE_STREAM = 11, 13
+MAX_BLUR_PX = 60.0
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -232,6 +233,8 @@ def _blur_kernel(dx: float, dy: float) -> NDArray[np.float32] | None:
     length = float(np.hypot(dx, dy))
     if length < 0.5:
         return None
+    if length > MAX_BLUR_PX:  # beyond this the image is a smear anyway; keep filtering cheap
+        dx, dy, length = dx * MAX_BLUR_PX / length, dy * MAX_BLUR_PX / length, MAX_BLUR_PX
     half = int(np.ceil(length / 2)) + 1
     k = np.zeros((2 * half + 1, 2 * half + 1), np.float32)
     n = max(int(np.ceil(length * 4)), 2)
@@ -358,10 +361,8 @@ def plan_frames(
     if cfg.laser.enabled:
         try:
             laser = LaserPlane.create(
-                cfg.laser.origin_in_cam_m,
-                cfg.laser.normal_in_cam,
-                cfg.laser.fan_deg,
-                cfg.laser.rays,
+                cfg.laser.origin_in_cam_m, cfg.laser.normal_in_cam, cfg.laser.fan_deg, cfg.laser.rays,
+                cfg.laser.max_range_m,
             )
         except ValueError as exc:
             raise ConfigError("simulation.laser.normal_in_cam", str(exc)) from None

@@ -25,18 +25,20 @@ class LaserPlane:
     normal_in_cam: F64
     fan_deg: float = 70.0
     rays: int = 640
+    max_range_m: float = np.inf
 
     @classmethod
     def create(
-        cls, origin: list[float] | F64, normal: list[float] | F64, fan_deg: float, rays: int
+        cls, origin: list[float] | F64, normal: list[float] | F64, fan_deg: float, rays: int,
+        max_range_m: float = np.inf,
     ) -> LaserPlane:
-        """Validated plane; raises ValueError for a zero normal or a plane containing the
-        optical axis direction only edge-on."""
+        """Validated plane; raises ValueError for a zero normal. Points farther than
+        ``max_range_m`` from the camera are outside the profiler's measuring range."""
         n = np.asarray(normal, float).reshape(3)
         norm = np.linalg.norm(n)
         if not np.isfinite(norm) or norm < 1e-9:
             raise ValueError("laser plane normal must be a non-zero vector")
-        return cls(np.asarray(origin, float).reshape(3), n / norm, float(fan_deg), int(rays))
+        return cls(np.asarray(origin, float).reshape(3), n / norm, float(fan_deg), int(rays), float(max_range_m))
 
     def directions_in_cam(self) -> F64:
         """N x 3 unit ray directions of the fan (left-camera frame)."""
@@ -76,6 +78,7 @@ def stripe_profile(
     w, h = image_size
     ok &= (uv[:, 0] >= -0.5) & (uv[:, 0] <= w - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= h - 0.5)
     dist = np.linalg.norm(p_cam, axis=1)
+    ok &= dist <= plane.max_range_m
     sight = p_cam / np.maximum(dist, 1e-12)[:, None]
     cam_t = caster.cast_points(t, sight @ R.T, world_from_occluder).range_m
     ok &= cam_t.astype(float) > dist - np.maximum(1e-4, 1e-3 * dist)
