@@ -37,9 +37,7 @@ class FaultPlan:
     frames: int = 0
 
     @classmethod
-    def from_config(
-        cls, cfg: SimFaultsConfig, frames: int, source: str = "simulation.faults"
-    ) -> FaultPlan:
+    def from_config(cls, cfg: SimFaultsConfig, frames: int, source: str = "simulation.faults") -> FaultPlan:
         """Validated plan; a range outside ``0..frames-1`` raises :class:`ConfigError`."""
         out: list[Fault] = []
 
@@ -60,9 +58,7 @@ class FaultPlan:
             check("occluder", a, b)
         for i in cfg.duplicate_timestamp:
             if i < 1:
-                raise ConfigError(
-                    source, f"duplicate_timestamp: frame {i} has no predecessor (use >= 1)"
-                )
+                raise ConfigError(source, f"duplicate_timestamp: frame {i} has no predecessor (use >= 1)")
             check("duplicate_timestamp", i, i)
         out.sort(key=lambda f: (f.first, f.kind))
         return cls(out, frames)

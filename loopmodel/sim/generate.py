@@ -31,7 +31,7 @@ from loopmodel.io.atomic import write_bytes_atomic
 from loopmodel.io.mcap_io import McapSequenceWriter
 from loopmodel.sim.faults import FaultPlan, cam_from_occluder
 from loopmodel.sim.laser import LaserPlane, draw_laser_image, stripe_profile
-from loopmodel.sim.render import RayBundle, Raycaster, View, pixel_rays
+from loopmodel.sim.render import RayBundle, Raycaster, View, pixel_rays, to_tensor
 from loopmodel.sim.scene import Scene, build_scene
 from loopmodel.sim.trajectory import HandheldPath
 from loopmodel.types import StereoCalibration, StereoFrame, StripeProfile
@@ -67,9 +67,9 @@ def calibration_of(cfg: SimulationConfig) -> StereoCalibration:
     K = camera_of(cfg).K
     right_from_left = np.eye(4)
     right_from_left[0, 3] = -cfg.camera.baseline_m
-    return StereoCalibration(
-        K, K, right_from_left, (cfg.camera.width_px, cfg.camera.height_px)
-    ).check("simulation.camera")
+    return StereoCalibration(K, K, right_from_left, (cfg.camera.width_px, cfg.camera.height_px)).check(
+        "simulation.camera"
+    )
 
 
 def scene_of(cfg: SimulationConfig) -> Scene:
@@ -128,9 +128,7 @@ def parse_fault(spec: str) -> tuple[str, int, int]:
     kind, sep, rng = spec.partition(":")
     kind = kind.strip().replace("-", "_")
     if not sep or kind not in kinds:
-        raise ConfigError(
-            "--fault", f"'{spec}': expected KIND:FIRST[-LAST] with KIND one of {', '.join(kinds)}"
-        )
+        raise ConfigError("--fault", f"'{spec}': expected KIND:FIRST[-LAST] with KIND one of {', '.join(kinds)}")
     a, _, b = rng.partition("-")
     try:
         first = int(a)
@@ -153,9 +151,7 @@ def resolve_config(
     data = base.model_dump()
     if preset is not None:
         if preset not in PRESETS:
-            raise ConfigError(
-                "--preset", f"unknown preset '{preset}'; expected one of {', '.join(PRESETS)}"
-            )
+            raise ConfigError("--preset", f"unknown preset '{preset}'; expected one of {', '.join(PRESETS)}")
         for sec, vals in PRESETS[preset].items():
             data[sec].update(vals)
     for sec, vals in (overrides or {}).items():
@@ -223,9 +219,7 @@ def _make_state(cfg: SimulationConfig, scene: Scene) -> _WorkerState:
     rays = pixel_rays(cam, cfg.camera.width_px, cfg.camera.height_px)
     c01 = np.eye(4)
     c01[0, 3] = cfg.camera.baseline_m
-    return _WorkerState(
-        cfg, Raycaster(scene), cam, rays, c01, (cfg.camera.height_px, cfg.camera.width_px)
-    )
+    return _WorkerState(cfg, Raycaster(scene), cam, rays, c01, (cfg.camera.height_px, cfg.camera.width_px))
 
 
 def _blur_kernel(dx: float, dy: float) -> NDArray[np.float32] | None:
@@ -290,11 +284,7 @@ def render_frame(st: _WorkerState, task: FrameTask) -> FrameImages:
         amb,
         task.world_from_occluder,
     )
-    dx, dy = (
-        _image_motion(st, left, task)
-        if cfg.render.motion_blur or task.blur_min_px > 0
-        else (0.0, 0.0)
-    )
+    dx, dy = _image_motion(st, left, task) if cfg.render.motion_blur or task.blur_min_px > 0 else (0.0, 0.0)
     if not cfg.render.motion_blur:
         dx = dy = 0.0
     if task.blur_min_px > 0:
@@ -361,7 +351,10 @@ def plan_frames(
     if cfg.laser.enabled:
         try:
             laser = LaserPlane.create(
-                cfg.laser.origin_in_cam_m, cfg.laser.normal_in_cam, cfg.laser.fan_deg, cfg.laser.rays,
+                cfg.laser.origin_in_cam_m,
+                cfg.laser.normal_in_cam,
+                cfg.laser.fan_deg,
+                cfg.laser.rays,
                 cfg.laser.max_range_m,
             )
         except ValueError as exc:
@@ -400,13 +393,11 @@ def plan_frames(
 
     rs = o3d.t.geometry.RaycastingScene()
     rs.add_triangles(
-        o3d.core.Tensor(caster.scene.vertices.astype(np.float32)),
-        o3d.core.Tensor(caster.scene.triangles.astype(np.uint32)),
+        to_tensor(caster.scene.vertices.astype(np.float32)),
+        to_tensor(caster.scene.triangles.astype(np.uint32)),
     )
-    centres = np.vstack(
-        [poses[:, :3, 3], (poses @ np.array([cfg.camera.baseline_m, 0, 0, 1.0]))[:, :3]]
-    )
-    dist = rs.compute_distance(o3d.core.Tensor(centres.astype(np.float32))).numpy()
+    centres = np.vstack([poses[:, :3, 3], (poses @ np.array([cfg.camera.baseline_m, 0, 0, 1.0]))[:, :3]])
+    dist = rs.compute_distance(to_tensor(centres.astype(np.float32))).numpy()
     if float(dist.min()) < 0.05:
         i = int(np.argmin(dist)) % n
         raise ConfigError(
@@ -482,16 +473,12 @@ def simulate_scan(
                 frames_written += 1
                 s = stripes[i]
                 if s is not None and i not in dup and i not in black:
-                    noise_rng = np.random.default_rng(
-                        np.random.SeedSequence([cfg.seed, _STRIPE_STREAM, i])
-                    )
+                    noise_rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, _STRIPE_STREAM, i]))
                     pts = _noisy_stripe(s, cfg, noise_rng)
                     writer.write_stripe(StripeProfile(t_ns, pts))
                     stripes_written += 1
                 if img.laser is not None:
-                    writer.write_image(
-                        (topics or TopicsConfig()).laser_image, t_ns, img.laser, "cam0"
-                    )
+                    writer.write_image((topics or TopicsConfig()).laser_image, t_ns, img.laser, "cam0")
             if progress is not None:
                 progress(k + 1, n)
         scene_ply = scene.ply_bytes()

@@ -29,7 +29,11 @@ class LaserPlane:
 
     @classmethod
     def create(
-        cls, origin: list[float] | F64, normal: list[float] | F64, fan_deg: float, rays: int,
+        cls,
+        origin: list[float] | F64,
+        normal: list[float] | F64,
+        fan_deg: float,
+        rays: int,
         max_range_m: float = np.inf,
     ) -> LaserPlane:
         """Validated plane; raises ValueError for a zero normal. Points farther than

@@ -27,6 +27,12 @@ OCCLUDER_ALBEDO = 0.32
 OCCLUDER_RADII_M = (0.035, 0.05, 0.025)
 
 
+def to_tensor(a: NDArray) -> o3d.core.Tensor:
+    """Copy of a float32 or uint32 numpy array as an open3d CPU tensor."""
+    dtype = o3d.core.float32 if a.dtype == np.float32 else o3d.core.uint32
+    return o3d.core.Tensor(np.ascontiguousarray(a), dtype, o3d.core.Device("CPU:0"))
+
+
 def pixel_rays(camera: CentralCamera, width: int, height: int) -> RayBundle:
     """Unit rays (camera frame) through the pixel centres (pixel (u, v) has its centre at
     u, v, row-major) and which pixels have a valid ray (the unified model's image disc)."""
@@ -38,9 +44,7 @@ def pixel_rays(camera: CentralCamera, width: int, height: int) -> RayBundle:
     rays = camera.lift(uv)
     valid &= np.all(np.isfinite(rays), axis=1)
     rays[~valid] = (0.0, 0.0, 1.0)
-    return RayBundle(
-        np.ascontiguousarray(rays.T, dtype=np.float32), valid, (int(height), int(width))
-    )
+    return RayBundle(np.ascontiguousarray(rays.T, dtype=np.float32), valid, (int(height), int(width)))
 
 
 @dataclass
@@ -97,8 +101,8 @@ class Raycaster:
         self.scene = scene
         self._rs = o3d.t.geometry.RaycastingScene()
         self._rs.add_triangles(
-            o3d.core.Tensor(scene.vertices.astype(np.float32)),
-            o3d.core.Tensor(scene.triangles.astype(np.uint32)),
+            to_tensor(scene.vertices.astype(np.float32)),
+            to_tensor(scene.triangles.astype(np.uint32)),
         )
         self._ntri = scene.triangles.shape[0]
         self.markers: list[tuple[F64, float, float]] = []
@@ -117,22 +121,18 @@ class Raycaster:
         self._mat_gain = np.array([m.gain for m in mats], np.float32)
         self._mat_row = np.array([m.texture * (size + 1) for m in mats], np.float32)
         # per axis k and texture coordinate j: M offsets (texels)
-        self._mat_off = np.ascontiguousarray(
-            np.transpose(scene.texture_offsets, (1, 2, 0)), np.float32
-        )
+        self._mat_off = np.ascontiguousarray(np.transpose(scene.texture_offsets, (1, 2, 0)), np.float32)
         # the occluder: an ellipsoid in its own frame, cast separately (it moves)
         occ = o3d.geometry.TriangleMesh.create_sphere(1.0, 24)
         ov = np.asarray(occ.vertices) * np.asarray(OCCLUDER_RADII_M)
         self._occ = o3d.t.geometry.RaycastingScene()
         self._occ.add_triangles(
-            o3d.core.Tensor(ov.astype(np.float32)),
-            o3d.core.Tensor(np.asarray(occ.triangles).astype(np.uint32)),
+            to_tensor(ov.astype(np.float32)),
+            to_tensor(np.asarray(occ.triangles).astype(np.uint32)),
         )
 
     # -- ray casting
-    def cast(
-        self, origins_world: F32 | F64, dirs_world: F32, world_from_occluder: F64 | None = None
-    ) -> Hits:
+    def cast(self, origins_world: F32 | F64, dirs_world: F32, world_from_occluder: F64 | None = None) -> Hits:
         """Nearest hits of rays with origins ``origins_world`` (3 or 3 x N) and unit
         directions ``dirs_world`` (3 x N), world frame, metres."""
         n = dirs_world.shape[1]
@@ -176,9 +176,7 @@ class Raycaster:
         nrm *= inv
         return Hits(t.astype(np.float32, copy=False), pid, nrm)
 
-    def cast_points(
-        self, origins_world: F64, dirs_world: F64, world_from_occluder: F64 | None = None
-    ) -> Hits:
+    def cast_points(self, origins_world: F64, dirs_world: F64, world_from_occluder: F64 | None = None) -> Hits:
         """:meth:`cast` for N x 3 arrays (or one 3-vector origin)."""
         o = np.asarray(origins_world, np.float32)
         o = o.T if o.ndim == 2 else o

@@ -72,9 +72,7 @@ class Scene:
     def legacy_mesh(self, object_only: bool = False) -> o3d.geometry.TriangleMesh:
         """open3d legacy mesh of the scene (or only of the object)."""
         tris = self.triangles[self.object_mask] if object_only else self.triangles
-        mesh = o3d.geometry.TriangleMesh(
-            o3d.utility.Vector3dVector(self.vertices), o3d.utility.Vector3iVector(tris)
-        )
+        mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices), o3d.utility.Vector3iVector(tris))
         if object_only:
             mesh.remove_unreferenced_vertices()
         return mesh
@@ -106,14 +104,10 @@ class Scene:
 
 
 def _o3d_arrays(mesh: o3d.geometry.TriangleMesh) -> tuple[F64, NDArray[np.int32]]:
-    return np.asarray(mesh.vertices, dtype=float).copy(), np.asarray(
-        mesh.triangles, dtype=np.int32
-    ).copy()
+    return np.asarray(mesh.vertices, dtype=float).copy(), np.asarray(mesh.triangles, dtype=np.int32).copy()
 
 
-def _box(
-    size: tuple[float, float, float], centre: tuple[float, float, float]
-) -> tuple[F64, NDArray[np.int32]]:
+def _box(size: tuple[float, float, float], centre: tuple[float, float, float]) -> tuple[F64, NDArray[np.int32]]:
     """Closed box (outward faces) of the given size centred at ``centre`` (metres)."""
     v, t = _o3d_arrays(o3d.geometry.TriangleMesh.create_box(*size))
     v += np.asarray(centre) - np.asarray(size) / 2
@@ -172,13 +166,9 @@ def _bust(height: float, rng: np.random.Generator) -> tuple[F64, NDArray[np.int3
     gain = np.ones_like(Z)
     gain += 0.28 * bump(0.775, front, 0.035, 0.17)  # nose
     gain += 0.10 * bump(0.715, front, 0.02, 0.35)  # chin
-    gain += 0.10 * bump(0.83, front + 0.45, 0.015, 0.08) + 0.10 * bump(
-        0.83, front - 0.45, 0.015, 0.08
-    )  # brows
+    gain += 0.10 * bump(0.83, front + 0.45, 0.015, 0.08) + 0.10 * bump(0.83, front - 0.45, 0.015, 0.08)  # brows
     gain += 0.16 * bump(0.79, 0.0, 0.04, 0.12) + 0.16 * bump(0.79, np.pi, 0.04, 0.12)  # ears
-    gain += 0.08 * bump(0.36, front + 0.5, 0.06, 0.3) + 0.08 * bump(
-        0.36, front - 0.5, 0.06, 0.3
-    )  # chest
+    gain += 0.08 * bump(0.36, front + 0.5, 0.06, 0.3) + 0.08 * bump(0.36, front - 0.5, 0.06, 0.3)  # chest
     # seeded asymmetry on the sculpture (not on the pedestal)
     body = np.clip((Z - 0.14) / 0.05, 0, 1)
     for _ in range(6):
@@ -201,8 +191,8 @@ def _bust(height: float, rng: np.random.Generator) -> tuple[F64, NDArray[np.int3
     apex = verts.shape[0] - 1
     top = idx[-1, :]
     cap = np.column_stack([top, np.roll(top, -1), np.full(nphi, apex)])
-    tris = np.vstack([tris, cap]).astype(np.int32)
-    return verts, _orient_outward(verts, tris, np.array([0, 0, 0.5 * height]))
+    tris32: NDArray[np.int32] = np.vstack([tris, cap]).astype(np.int32)
+    return verts, _orient_outward(verts, tris32, np.array([0, 0, 0.5 * height]))
 
 
 def _orient_outward(v: F64, t: NDArray[np.int32], centre: F64) -> NDArray[np.int32]:
@@ -212,18 +202,14 @@ def _orient_outward(v: F64, t: NDArray[np.int32], centre: F64) -> NDArray[np.int
     return t[:, ::-1].copy() if np.sum(np.einsum("ij,ij->i", n, c)) < 0 else t
 
 
-def _prim(
-    mesh: o3d.geometry.TriangleMesh, at: tuple[float, float, float]
-) -> tuple[F64, NDArray[np.int32]]:
+def _prim(mesh: o3d.geometry.TriangleMesh, at: tuple[float, float, float]) -> tuple[F64, NDArray[np.int32]]:
     v, t = _o3d_arrays(mesh)
     v[:, 2] -= v[:, 2].min()
     v += np.asarray(at)
     return v, t
 
 
-def _object_parts(
-    kind: str, height: float, rng: np.random.Generator
-) -> list[tuple[str, F64, NDArray[np.int32]]]:
+def _object_parts(kind: str, height: float, rng: np.random.Generator) -> list[tuple[str, F64, NDArray[np.int32]]]:
     s = height / 0.5
     if kind == "bust":
         v, t = _bust(height, rng)
@@ -313,15 +299,11 @@ def build_scene(
     ]
     styles = ("stone", "wood", "poster")
     tex_seeds = tex_seed.spawn(len(styles))
-    textures = [
-        make_texture(s, texture_size_px, st) for s, st in zip(tex_seeds, styles, strict=True)
-    ]
+    textures = [make_texture(s, texture_size_px, st) for s, st in zip(tex_seeds, styles, strict=True)]
     prng = np.random.default_rng(place_seed)
     offsets = prng.uniform(0, texture_size_px, size=(len(materials), 3, 2)).astype(np.float32)
 
-    parts: list[Part] = [
-        Part(n, v, t, 0, True) for n, v, t in _object_parts(kind, object_height_m, rng)
-    ]
+    parts: list[Part] = [Part(n, v, t, 0, True) for n, v, t in _object_parts(kind, object_height_m, rng)]
     tx, ty, tz = TABLE_SIZE_M
     parts.append(Part("table", *_box((tx, ty, tz), (0.0, 0.0, -tz / 2)), 1))
     if room:
@@ -332,9 +314,7 @@ def build_scene(
     for p in parts:
         t = p.triangles
         if p.is_object:  # drop faces lying on the table top: never visible, not surface
-            fz = np.cross(
-                p.vertices[t[:, 1]] - p.vertices[t[:, 0]], p.vertices[t[:, 2]] - p.vertices[t[:, 0]]
-            )
+            fz = np.cross(p.vertices[t[:, 1]] - p.vertices[t[:, 0]], p.vertices[t[:, 2]] - p.vertices[t[:, 0]])
             fz /= np.maximum(np.linalg.norm(fz, axis=1, keepdims=True), 1e-300)
             on_table = (fz[:, 2] < -0.99) & np.all(p.vertices[t][:, :, 2] < 1e-6, axis=1)
             t = t[~on_table]
