@@ -321,3 +321,5 @@ def test_preset_files_match_the_presets() -> None:
 
         from_file = load_config(root / "datasets" / "presets" / f"{name}.yaml").simulation
         assert from_file == gen.resolve_config(SimulationConfig(), preset=name)
+    sample = load_config(root / "configs" / "sim.yaml").simulation
+    assert sample == gen.resolve_config(SimulationConfig(), preset="orbit")
