@@ -176,12 +176,27 @@ class EvalConfig(_Section):
     plots: bool = True
 
 
+class AccuracyConfig(_Section):
+    """Marker-pose Cramér–Rao bound (``loopmodel bound``, seed 001)."""
+
+    distance_m: float = Field(50.0, gt=0, description="camera-to-marker distance R")
+    focal_mm: float = Field(18.0, gt=0, description="focal length")
+    pixel_um: float = Field(10.0, gt=0, description="pixel pitch: the image length unit")
+    noise: float = Field(0.2, gt=0, description="N0/2, contrast^2 px^2 (variance on a 1 px cell)")
+    theta_deg: list[float] = Field(default_factory=lambda: [5.0 + 10.0 * k for k in range(7)])
+    phi_deg: list[float] = Field(default_factory=lambda: [10.0 * k for k in range(36)])
+    edge_subdivisions: int = Field(64, ge=1, description="trapezoid sub-intervals per polygon edge")
+    circle_points: int = Field(256, ge=8, description="trapezoid points per circle")
+    pixel_study_px: list[float] = Field(default_factory=lambda: [0.25, 0.5, 1.0, 2.0, 4.0])
+
+
 class Config(_Section):
     """The whole configuration of loopmodel."""
 
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
     eval: EvalConfig = Field(default_factory=EvalConfig)
+    accuracy: AccuracyConfig = Field(default_factory=AccuracyConfig)
     simulation: SimulationConfig = Field(default_factory=SimulationConfig)
 
 
