@@ -204,8 +204,6 @@ class Raycaster:
         mu = np.zeros(m, np.float32)
         mv = np.zeros(m, np.float32)
         for k, (a, b) in enumerate(_AXES):
-            if not np.any(w[k] > 1e-3):
-                continue
             cu = points_world[a] * scale + np.take(self._mat_off[k, 0], mat)
             cv = points_world[b] * scale + np.take(self._mat_off[k, 1], mat)
             mu[:n] = cu - np.floor(cu * inv_size) * size
@@ -259,8 +257,7 @@ class Raycaster:
         inv = 1.0 / np.maximum(np.sqrt(L[0] * L[0] + L[1] * L[1] + L[2] * L[2]), 1e-12)
         diffuse = (nrm[0] * L[0] + nrm[1] * L[1] + nrm[2] * L[2]) * inv
         np.maximum(diffuse, 0.0, out=diffuse)
-        rad = albedo * (np.float32(ambient) + np.float32(1.0 - ambient) * diffuse)
-        rad[~hit] = 0.0
+        rad = albedo * (np.float32(ambient) + np.float32(1.0 - ambient) * diffuse)  # albedo 0 on a miss
         depth = np.where(hit, t * c[2], np.float32(np.inf))
         h, w = rays.shape
         return View(
