@@ -61,11 +61,14 @@ def test_robust_pose_with_30pct_outliers(rng: np.random.Generator, loss: str) ->
 
 def test_rig_of_two_cameras_with_outliers(rng: np.random.Generator) -> None:
     cam1 = CentralCamera(400.0, 400.0, 320.0, 240.0, xi=0.8)
-    rig = CameraRig((CAM, cam1), (np.eye(4), make_pose(np.array([[0, 0, -1], [0, 1, 0], [1, 0, 0]]), [0, 0, -0.1])))
+    R1 = np.array([[0, 0, -1], [0, 1, 0], [1, 0, 0]])
+    rig = CameraRig((CAM, cam1), (np.eye(4), make_pose(R1, [0, 0, -0.1])))
     T_true = se3_exp([0.2, 0.1, -0.3, 0.02, 0.1, -0.05])  # rig_from_ref
     P0 = _scene(rng, 120)
     # points for camera 1: in front of it (its z axis is rig -x)
-    P1_cam = np.column_stack([rng.uniform(-3, 3, 120), rng.uniform(-2, 2, 120), rng.uniform(3, 10, 120)])
+    P1_cam = np.column_stack(
+        [rng.uniform(-3, 3, 120), rng.uniform(-2, 2, 120), rng.uniform(3, 10, 120)]
+    )
     P1_rig = (P1_cam - rig.cam_from_rig[1][:3, 3]) @ rig.cam_from_rig[1][:3, :3]
     P1 = (P1_rig - T_true[:3, 3]) @ T_true[:3, :3]
     P = np.vstack([P0, P1])

@@ -32,9 +32,8 @@ class CameraRig:
     def __post_init__(self) -> None:
         if len(self.cameras) != len(self.cam_from_rig) or not self.cameras:
             raise ValueError("a rig needs one cam_from_rig transform per camera (at least one)")
-        object.__setattr__(
-            self, "cam_from_rig", tuple(np.asarray(T, dtype=float).reshape(4, 4) for T in self.cam_from_rig)
-        )
+        poses = tuple(np.asarray(T, dtype=float).reshape(4, 4) for T in self.cam_from_rig)
+        object.__setattr__(self, "cam_from_rig", poses)
 
     @classmethod
     def single(cls, camera: CentralCamera) -> CameraRig:
@@ -42,7 +41,9 @@ class CameraRig:
         return cls((camera,), (np.eye(4),))
 
     @classmethod
-    def stereo(cls, left: CentralCamera, right: CentralCamera, right_from_left: ArrayLike) -> CameraRig:
+    def stereo(
+        cls, left: CentralCamera, right: CentralCamera, right_from_left: ArrayLike
+    ) -> CameraRig:
         """Stereo pair; the rig frame is the left camera frame."""
         return cls((left, right), (np.eye(4), np.asarray(right_from_left, dtype=float)))
 
@@ -111,7 +112,9 @@ class PointTerm:
         """The term restricted to some of its correspondences."""
         return PointTerm(self.rig, self.p_in_ref[mask], self.uv_px[mask], self.cam_index[mask])
 
-    def _cam_points(self, rig_from_ref: F64, j: int, idx: NDArray[np.int64] | None) -> tuple[F64, F64]:
+    def _cam_points(
+        self, rig_from_ref: F64, j: int, idx: NDArray[np.int64] | None
+    ) -> tuple[F64, F64]:
         P = self.p_in_ref if idx is None else self.p_in_ref[idx]
         p_rig = P @ rig_from_ref[:3, :3].T + rig_from_ref[:3, 3]
         T = self.rig.cam_from_rig[j]

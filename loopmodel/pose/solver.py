@@ -32,6 +32,7 @@ class PoseOptions:
     lm_lambda0: float = 1e-4
     step_tolerance: float = 1e-7  # stop when |delta| (m, rad) is below
     huber_warmup: int = 2  # first IRLS iterations use Huber (Tukey needs a start near the basin)
+    inlier_cutoff: float = 4.6851  # inlier: residual norm below this many sigma
 
 
 @dataclass
@@ -83,9 +84,10 @@ def refine_pose(
     scales = [opt.min_scale] * len(tlist)
 
     def robust_cost(rs: list[F64], sc: list[float], loss: Loss, cc: float) -> float:
-        return float(
-            sum(np.sum(rho(np.linalg.norm(r, axis=1) / s, loss, cc)) * s * s for r, s in zip(rs, sc, strict=True))
-        )
+        total = 0.0
+        for r, s in zip(rs, sc, strict=True):
+            total += float(np.sum(rho(np.linalg.norm(r, axis=1) / s, loss, cc))) * s * s
+        return total
 
     for it in range(1, opt.max_iterations + 1):
         loss: Loss = "huber" if (opt.loss == "tukey" and it <= opt.huber_warmup) else opt.loss
@@ -96,7 +98,7 @@ def refine_pose(
         for k, term in enumerate(tlist):
             r, J = term.residuals_and_jacobian(T)
             n = np.linalg.norm(r, axis=1)
-            s = opt.fixed_scale if opt.fixed_scale is not None else robust_scale(n, term.dim, opt.min_scale)
+            s = opt.fixed_scale or robust_scale(n, term.dim, opt.min_scale)
             scales[k] = s
             w = weights(n / s, loss, cc)
             Jf = J.reshape(-1, 6)
@@ -140,7 +142,7 @@ def refine_pose(
         Jf = J.reshape(-1, 6)
         H += (Jf * np.repeat(w, term.dim)[:, None]).T @ Jf / (s * s)
         cost += float(np.sum(rho(n / s, opt.loss, c)) * s * s)
-        inl.append(n < c * s if np.isfinite(c) else np.ones(len(n), bool))
+        inl.append(n < opt.inlier_cutoff * s)
         wts.append(w)
         norms.append(n)
     try:
