@@ -23,8 +23,11 @@ CAM = CentralCamera(700.0, 700.0, 600.0, 180.0)
 
 
 def test_jacobian_matches_finite_differences(rng: np.random.Generator) -> None:
-    rig = CameraRig.stereo(CAM, CentralCamera(650.0, 660.0, 590.0, 190.0, xi=0.3),
-                           make_pose(np.eye(3), [-0.5, 0.01, 0.02]))
+    rig = CameraRig.stereo(
+        CAM,
+        CentralCamera(650.0, 660.0, 590.0, 190.0, xi=0.3),
+        make_pose(np.eye(3), [-0.5, 0.01, 0.02]),
+    )
     P = _scene(rng, 20)
     term = PointTerm(rig, P, rng.normal(300, 50, (20, 2)), rng.integers(0, 2, 20))
     T = se3_exp([0.1, -0.2, 0.3, 0.05, -0.02, 0.03])

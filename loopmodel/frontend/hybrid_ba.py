@@ -63,8 +63,9 @@ def hybrid_keyframe_ba(
     def residuals(Xc: F64, Tc: F64) -> tuple[F64, F64, F64, F64, F64]:
         pr = Xc @ R_rl.T + t_rl
         pf = Xc @ Tc[:3, :3].T + Tc[:3, 3]
-        r = np.stack([left.project(Xc) - meas[0], right.project(pr) - meas[1],
-                      left.project(pf) - meas[2]])  # (3, M, 2)
+        r = np.stack(
+            [left.project(Xc) - meas[0], right.project(pr) - meas[1], left.project(pf) - meas[2]]
+        )  # (3, M, 2)
         return r, pr, pf, np.linalg.norm(r, axis=2), Xc
 
     def cost_of(nrm: F64) -> float:
@@ -82,12 +83,16 @@ def hybrid_keyframe_ba(
         Jf = left.project_jacobian(pf)
         JfX = Jf @ T[:3, :3]
         Jfp = np.concatenate([Jf, np.cross(pf[:, None, :], Jf)], axis=2)  # (M, 2, 6)
-        Hxx = (w[0, :, None, None] * np.einsum("mki,mkj->mij", JlX, JlX)
-               + w[1, :, None, None] * np.einsum("mki,mkj->mij", JrX, JrX)
-               + w[2, :, None, None] * np.einsum("mki,mkj->mij", JfX, JfX))
-        gx = (w[0, :, None] * np.einsum("mki,mk->mi", JlX, r[0])
-              + w[1, :, None] * np.einsum("mki,mk->mi", JrX, r[1])
-              + w[2, :, None] * np.einsum("mki,mk->mi", JfX, r[2]))
+        Hxx = (
+            w[0, :, None, None] * np.einsum("mki,mkj->mij", JlX, JlX)
+            + w[1, :, None, None] * np.einsum("mki,mkj->mij", JrX, JrX)
+            + w[2, :, None, None] * np.einsum("mki,mkj->mij", JfX, JfX)
+        )
+        gx = (
+            w[0, :, None] * np.einsum("mki,mk->mi", JlX, r[0])
+            + w[1, :, None] * np.einsum("mki,mk->mi", JrX, r[1])
+            + w[2, :, None] * np.einsum("mki,mk->mi", JfX, r[2])
+        )
         Hpx = w[2, :, None, None] * np.einsum("mki,mkj->mij", Jfp, JfX)  # (M, 6, 3)
         Hpp = np.einsum("m,mki,mkj->ij", w[2], Jfp, Jfp)
         gp = np.einsum("m,mki,mk->i", w[2], Jfp, r[2])

@@ -48,13 +48,22 @@ def track_klt(
     flags = cv2.OPTFLOW_USE_INITIAL_FLOW
     p1_guess = p1.copy()
     win = (window_px, window_px)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, p1, winSize=win, maxLevel=levels,
-                                          criteria=criteria, flags=flags)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(
+        prev, cur, p0, p1, winSize=win, maxLevel=levels, criteria=criteria, flags=flags
+    )
     # backward search starts at the forward result minus the predicted flow (not at the
     # original point, which would bias the check towards success)
     p0b = (p1 - (p1_guess - p0)).astype(np.float32)
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, p0b, winSize=win, maxLevel=levels,
-                                           criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
+        cur,
+        prev,
+        p1,
+        p0b,
+        winSize=win,
+        maxLevel=levels,
+        criteria=criteria,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
     fwd = p1.reshape(-1, 2).astype(float)
     fb = np.linalg.norm(p0b.reshape(-1, 2) - pts_prev, axis=1)
     ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < fb_threshold_px) & np.isfinite(fb)

@@ -32,7 +32,9 @@ class Rectifier:
     def __init__(self, calibration: StereoCalibration) -> None:
         self.input_calibration = calibration
         self.rect_from_cam: F64 = np.eye(4)
-        self._maps: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+        self._maps: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = (
+            None
+        )
         if calibration.rectified:
             self.calibration = calibration
             return
@@ -40,8 +42,15 @@ class Rectifier:
         R = calibration.right_from_left[:3, :3]
         t = calibration.right_from_left[:3, 3]
         R1, R2, P1, P2, _Q, _roi1, _roi2 = cv2.stereoRectify(
-            calibration.K_left, calibration.dist_left, calibration.K_right, calibration.dist_right,
-            size, R, t, flags=cv2.CALIB_ZERO_DISPARITY, alpha=0.0,
+            calibration.K_left,
+            calibration.dist_left,
+            calibration.K_right,
+            calibration.dist_right,
+            size,
+            R,
+            t,
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            alpha=0.0,
         )
         m1 = cv2.initUndistortRectifyMap(
             calibration.K_left, calibration.dist_left, R1, P1, size, cv2.CV_16SC2
@@ -54,7 +63,9 @@ class Rectifier:
         K = P1[:3, :3].copy()
         right_from_left = np.eye(4)
         right_from_left[0, 3] = P2[0, 3] / P2[0, 0]
-        self.calibration = StereoCalibration(K, P2[:3, :3].copy(), right_from_left, size, rectified=True)
+        self.calibration = StereoCalibration(
+            K, P2[:3, :3].copy(), right_from_left, size, rectified=True
+        )
 
     @property
     def is_identity(self) -> bool:

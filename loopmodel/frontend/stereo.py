@@ -99,7 +99,11 @@ def match_stereo(
             continue
         # sub-pixel along the row and across rows
         line = res[row]
-        du = _parabola_peak(line[col - 1], line[col], line[col + 1]) if 0 < col < line.size - 1 else 0.0
+        du = (
+            _parabola_peak(line[col - 1], line[col], line[col + 1])
+            if 0 < col < line.size - 1
+            else 0.0
+        )
         dv = _parabola_peak(res[0, col], res[1, col], res[2, col]) if row == 1 else float(row - 1)
         if abs(dv) > cfg.max_row_error_px:
             continue

@@ -51,7 +51,9 @@ class FrontEnd:
     is the first keyframe's left camera.
     """
 
-    def __init__(self, calibration: StereoCalibration, config: FrontendConfig | None = None) -> None:
+    def __init__(
+        self, calibration: StereoCalibration, config: FrontendConfig | None = None
+    ) -> None:
         self.config = config or FrontendConfig()
         if self.config.patch_px % 2 == 0:
             raise InputError("frontend.patch_px", f"must be odd, got {self.config.patch_px}")
@@ -63,7 +65,9 @@ class FrontEnd:
         self.left_camera = self.calibration.left_camera()
         self.right_camera = self.calibration.right_camera()
         self.rig = CameraRig.single(self.left_camera)
-        self.pose_options = PoseOptions(loss=self.config.pose_loss, min_scale=self.config.pose_min_scale_px)  # type: ignore[arg-type]
+        self.pose_options = PoseOptions(
+            loss=self.config.pose_loss, min_scale=self.config.pose_min_scale_px
+        )  # type: ignore[arg-type]
         self._world_from_kf: dict[int, F64] = {}
         self._active: _ActiveSet | None = None
         self._next_kf_id = 0
@@ -101,7 +105,8 @@ class FrontEnd:
         t0 = time.perf_counter()
         if self._last_stamp is not None and frame.timestamp_ns <= self._last_stamp:
             raise InputError(
-                f"frame {frame.index}", f"timestamps must increase ({frame.timestamp_ns} ns after {self._last_stamp} ns)"
+                f"frame {frame.index}",
+                f"timestamps must increase ({frame.timestamp_ns} ns after {self._last_stamp} ns)",
             )
         self._last_stamp = frame.timestamp_ns
         cfg = self.config
@@ -110,8 +115,14 @@ class FrontEnd:
         if self._active is None:
             if not quality_ok:
                 return self._lost(frame, np.eye(4), why, t0)
-            res = self._start_keyframe(frame, left, None, np.eye(4) @ self.cam_from_rect, t0, connected=False)
-            return res if res is not None else self._lost(frame, np.eye(4), "too few stereo points", t0)
+            res = self._start_keyframe(
+                frame, left, None, np.eye(4) @ self.cam_from_rect, t0, connected=False
+            )
+            return (
+                res
+                if res is not None
+                else self._lost(frame, np.eye(4), "too few stereo points", t0)
+            )
 
         active = self._active
         gap = self._frames_since_ok
@@ -124,22 +135,34 @@ class FrontEnd:
             return self._lost(frame, active.world_from_kfrect @ kf_from_pred, why, t0)
 
         cur_pyr = build_pyramid(left, cfg.klt_window_px, cfg.klt_levels)
-        status, reason, tracked, inliers, kf_from_cur, used_ransac = self._track(cur_pyr, kf_from_pred)
+        status, reason, tracked, inliers, kf_from_cur, used_ransac = self._track(
+            cur_pyr, kf_from_pred
+        )
         t_track = time.perf_counter()
         if status != "OK":
             self._frames_since_ok += 1
-            if self._frames_since_ok > cfg.max_retrack_frames or len(self._track_idx) < cfg.min_inliers:
+            if (
+                self._frames_since_ok > cfg.max_retrack_frames
+                or len(self._track_idx) < cfg.min_inliers
+            ):
                 # recovery: a new, unconnected keyframe at the motion-model pose
                 self._segment += 1
                 res = self._start_keyframe(
-                    frame, left, cur_pyr, active.world_from_kfrect @ kf_from_pred, t0, connected=False
+                    frame,
+                    left,
+                    cur_pyr,
+                    active.world_from_kfrect @ kf_from_pred,
+                    t0,
+                    connected=False,
                 )
                 if res is not None:
                     res.status = "LOST"
                     res.reason = f"{reason}; new keyframe (segment {self._segment})"
                     return res
                 self._segment -= 1
-            return self._lost(frame, active.world_from_kfrect @ kf_from_pred, reason, t0, tracked, inliers)
+            return self._lost(
+                frame, active.world_from_kfrect @ kf_from_pred, reason, t0, tracked, inliers
+            )
 
         # measured: update the motion model and the tracking state
         step = invert_pose(self._kf_from_prev) @ kf_from_cur
@@ -153,8 +176,13 @@ class FrontEnd:
 
         if self._need_keyframe(kf_from_cur, inliers):
             res = self._start_keyframe(
-                frame, left, cur_pyr, active.world_from_kfrect @ kf_from_cur, t0,
-                connected=True, kf_from_cur=kf_from_cur,
+                frame,
+                left,
+                cur_pyr,
+                active.world_from_kfrect @ kf_from_cur,
+                t0,
+                connected=True,
+                kf_from_cur=kf_from_cur,
             )
             if res is not None:
                 res.tracked, res.inliers, res.used_ransac = tracked, inliers, used_ransac
@@ -163,9 +191,17 @@ class FrontEnd:
         kf = active.keyframe
         world_from_cam = active.world_from_kfrect @ kf_from_cur @ self.rect_from_cam
         return FrameResult(
-            frame.timestamp_ns, world_from_cam, "OK", False, kf.id,
-            self.cam_from_rect @ kf_from_cur @ self.rect_from_cam, tracked, inliers,
-            frame_index=frame.index, segment=self._segment, track_ms=(time.perf_counter() - t0) * 1e3,
+            frame.timestamp_ns,
+            world_from_cam,
+            "OK",
+            False,
+            kf.id,
+            self.cam_from_rect @ kf_from_cur @ self.rect_from_cam,
+            tracked,
+            inliers,
+            frame_index=frame.index,
+            segment=self._segment,
+            track_ms=(time.perf_counter() - t0) * 1e3,
             used_ransac=used_ransac,
         )
 
@@ -196,8 +232,15 @@ class FrontEnd:
         guess = self._track_uv.copy()
         guess[front] = self.left_camera.project(p_pred[front])
         uv, ok, _fb = track_klt(
-            self._prev_pyr, cur_pyr, self._track_uv, guess, cfg.klt_window_px, cfg.klt_levels,
-            cfg.fb_threshold_px, cfg.klt_iterations, self.calibration.image_size,
+            self._prev_pyr,
+            cur_pyr,
+            self._track_uv,
+            guess,
+            cfg.klt_window_px,
+            cfg.klt_levels,
+            cfg.fb_threshold_px,
+            cfg.klt_iterations,
+            self.calibration.image_size,
         )
         ok &= front
         tracked = int(ok.sum())
@@ -206,7 +249,10 @@ class FrontEnd:
         term = PointTerm(self.rig, pts[ok], uv[ok])
         try:
             res = estimate_pose(
-                term, pred_from_kf, self.pose_options, cfg.ransac_threshold_px,
+                term,
+                pred_from_kf,
+                self.pose_options,
+                cfg.ransac_threshold_px,
                 cfg.prediction_gate_px,
             )
         except EstimationError as exc:
@@ -215,13 +261,26 @@ class FrontEnd:
         n_inl = int(inl.sum())
         kf_from_cur = invert_pose(res.rig_from_ref)
         if n_inl < cfg.min_inliers:
-            return "LOST", f"only {n_inl} pose inliers", tracked, n_inl, kf_from_pred, res.used_ransac
+            return (
+                "LOST",
+                f"only {n_inl} pose inliers",
+                tracked,
+                n_inl,
+                kf_from_pred,
+                res.used_ransac,
+            )
         jump = invert_pose(kf_from_pred) @ kf_from_cur
         jump_m = float(np.linalg.norm(jump[:3, 3]))
         jump_deg = _rotation_deg(jump)
         if self._velocity_known and (jump_m > cfg.max_jump_m or jump_deg > cfg.max_jump_deg):
-            return ("LOST", f"pose jump {jump_m:.3f} m / {jump_deg:.2f} deg from the motion model",
-                    tracked, n_inl, kf_from_pred, res.used_ransac)
+            return (
+                "LOST",
+                f"pose jump {jump_m:.3f} m / {jump_deg:.2f} deg from the motion model",
+                tracked,
+                n_inl,
+                kf_from_pred,
+                res.used_ransac,
+            )
         keep = np.flatnonzero(ok)[inl]
         self._track_idx = idx[keep]
         self._track_uv = uv[keep]
@@ -233,7 +292,10 @@ class FrontEnd:
         m = self._active.points.shape[0]
         if inliers < max(cfg.min_tracked, cfg.min_tracked_fraction * m):
             return True
-        if np.linalg.norm(kf_from_cur[:3, 3]) > cfg.max_parallax_ratio * self._active.median_depth_m:
+        if (
+            np.linalg.norm(kf_from_cur[:3, 3])
+            > cfg.max_parallax_ratio * self._active.median_depth_m
+        ):
             return True
         return _rotation_deg(kf_from_cur) > cfg.max_rotation_deg
 
@@ -254,11 +316,17 @@ class FrontEnd:
         t_kf = time.perf_counter()
         right = self.rectifier.right(frame.right)
         corners = detect_corners(
-            left, cfg.max_features, (cfg.grid_cols, cfg.grid_rows), cfg.gftt_quality,
-            cfg.min_distance_px, cfg.border_px,
+            left,
+            cfg.max_features,
+            (cfg.grid_cols, cfg.grid_rows),
+            cfg.gftt_quality,
+            cfg.min_distance_px,
+            cfg.border_px,
         )
         m = match_stereo(left, right, corners, cfg)
-        pts = triangulate_rectified(m.uv_left, m.disparity, self.calibration.K_left, self.calibration.baseline_m)
+        pts = triangulate_rectified(
+            m.uv_left, m.disparity, self.calibration.K_left, self.calibration.baseline_m
+        )
         keep = pts[:, 2] < cfg.max_depth_m
         if int(keep.sum()) < cfg.min_stereo_points:
             logger.debug("frame %d: %d stereo points, no keyframe", frame.index, int(keep.sum()))
@@ -278,17 +346,29 @@ class FrontEnd:
                 tb = time.perf_counter()
                 sp = prev.stereo_px[self._track_idx]
                 ba = hybrid_keyframe_ba(
-                    prev.points[self._track_idx], sp[:, [0, 2]], sp[:, [1, 2]], self._track_uv,
-                    invert_pose(kf_from_cur), self.left_camera, self.right_camera,
-                    self.calibration.right_from_left, cfg.ba_iterations, cfg.ba_huber_px,
+                    prev.points[self._track_idx],
+                    sp[:, [0, 2]],
+                    sp[:, [1, 2]],
+                    self._track_uv,
+                    invert_pose(kf_from_cur),
+                    self.left_camera,
+                    self.right_camera,
+                    self.calibration.right_from_left,
+                    cfg.ba_iterations,
+                    cfg.ba_huber_px,
                 )
                 step = invert_pose(kf_from_cur) @ invert_pose(ba.f_from_kf)
                 # accept the BA only when it stays near the robust pose (guards against a bad set)
-                if np.linalg.norm(step[:3, 3]) < cfg.max_jump_m and _rotation_deg(step) < cfg.max_jump_deg:
+                if (
+                    np.linalg.norm(step[:3, 3]) < cfg.max_jump_m
+                    and _rotation_deg(step) < cfg.max_jump_deg
+                ):
                     kf_from_new = invert_pose(ba.f_from_kf)
                 ba_info = {
-                    "ba_ms": (time.perf_counter() - tb) * 1e3, "ba_iterations": float(ba.iterations),
-                    "ba_rms_before_px": ba.initial_rms_px, "ba_rms_after_px": ba.final_rms_px,
+                    "ba_ms": (time.perf_counter() - tb) * 1e3,
+                    "ba_iterations": float(ba.iterations),
+                    "ba_rms_before_px": ba.initial_rms_px,
+                    "ba_rms_after_px": ba.final_rms_px,
                     "ba_points": float(self._track_idx.size),
                 }
             world_from_rect = prev.world_from_kfrect @ kf_from_new
@@ -296,42 +376,86 @@ class FrontEnd:
 
         kf_id = self._next_kf_id
         self._next_kf_id += 1
-        ids = np.arange(self._next_landmark_id, self._next_landmark_id + pts.shape[0], dtype=np.int64)
+        ids = np.arange(
+            self._next_landmark_id, self._next_landmark_id + pts.shape[0], dtype=np.int64
+        )
         self._next_landmark_id += pts.shape[0]
         world_from_kf = world_from_rect @ self.rect_from_cam
         kf = Keyframe(
-            id=kf_id, timestamp_ns=frame.timestamp_ns, world_from_kf=world_from_kf,
-            landmark_ids=ids, points_in_kf=pts @ self.cam_from_rect[:3, :3].T,
-            stereo_px=stereo_px, mono_obs=mono_obs, image=left, frame_index=frame.index,
+            id=kf_id,
+            timestamp_ns=frame.timestamp_ns,
+            world_from_kf=world_from_kf,
+            landmark_ids=ids,
+            points_in_kf=pts @ self.cam_from_rect[:3, :3].T,
+            stereo_px=stereo_px,
+            mono_obs=mono_obs,
+            image=left,
+            frame_index=frame.index,
             prev_keyframe_id=prev.keyframe.id if prev is not None else None,
-            connected=connected and prev is not None, kf_prev_from_kf=kf_prev_from_kf,
-            rect_from_cam=self.rect_from_cam.copy(), segment=self._segment, ba_info=ba_info,
+            connected=connected and prev is not None,
+            kf_prev_from_kf=kf_prev_from_kf,
+            rect_from_cam=self.rect_from_cam.copy(),
+            segment=self._segment,
+            ba_info=ba_info,
         )
         self._world_from_kf[kf_id] = world_from_kf
         depth = float(np.median(pts[:, 2]))
         self._active = _ActiveSet(kf, world_from_rect, pts, stereo_px, depth)
         self._track_idx = np.arange(pts.shape[0], dtype=np.int64)
         self._track_uv = stereo_px[:, [0, 2]].copy()
-        self._prev_pyr = cur_pyr if cur_pyr is not None else build_pyramid(left, cfg.klt_window_px, cfg.klt_levels)
+        self._prev_pyr = (
+            cur_pyr
+            if cur_pyr is not None
+            else build_pyramid(left, cfg.klt_window_px, cfg.klt_levels)
+        )
         self._kf_from_prev = np.eye(4)
         self._frames_since_ok = 0
         t1 = time.perf_counter()
         return FrameResult(
-            frame.timestamp_ns, world_from_kf, "OK", True, kf_id, np.eye(4), 0, 0, keyframe=kf,
-            frame_index=frame.index, segment=self._segment, track_ms=(t_kf - t0) * 1e3,
+            frame.timestamp_ns,
+            world_from_kf,
+            "OK",
+            True,
+            kf_id,
+            np.eye(4),
+            0,
+            0,
+            keyframe=kf,
+            frame_index=frame.index,
+            segment=self._segment,
+            track_ms=(t_kf - t0) * 1e3,
             keyframe_ms=(t1 - t_kf) * 1e3,
         )
 
     def _lost(
-        self, frame: StereoFrame, world_from_rect: F64, reason: str, t0: float,
-        tracked: int = 0, inliers: int = 0,
+        self,
+        frame: StereoFrame,
+        world_from_rect: F64,
+        reason: str,
+        t0: float,
+        tracked: int = 0,
+        inliers: int = 0,
     ) -> FrameResult:
         kf_id = self._active.keyframe.id if self._active is not None else -1
         kf_from_cam = np.eye(4)
         if self._active is not None:
-            kf_from_cam = self.cam_from_rect @ invert_pose(self._active.world_from_kfrect) @ world_from_rect @ self.rect_from_cam
+            kf_from_cam = (
+                self.cam_from_rect
+                @ invert_pose(self._active.world_from_kfrect)
+                @ world_from_rect
+                @ self.rect_from_cam
+            )
         return FrameResult(
-            frame.timestamp_ns, world_from_rect @ self.rect_from_cam, "LOST", False, kf_id, kf_from_cam,
-            tracked, inliers, frame_index=frame.index, segment=self._segment, reason=reason,
+            frame.timestamp_ns,
+            world_from_rect @ self.rect_from_cam,
+            "LOST",
+            False,
+            kf_id,
+            kf_from_cam,
+            tracked,
+            inliers,
+            frame_index=frame.index,
+            segment=self._segment,
+            reason=reason,
             track_ms=(time.perf_counter() - t0) * 1e3,
         )
