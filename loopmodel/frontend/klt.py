@@ -46,14 +46,13 @@ def track_klt(
     else:
         p1 = p0.copy()
     flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-    p1_guess = p1.copy()
     win = (window_px, window_px)
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(
         prev, cur, p0, p1, winSize=win, maxLevel=levels, criteria=criteria, flags=flags
     )
-    # backward search starts at the forward result minus the predicted flow (not at the
-    # original point, which would bias the check towards success)
-    p0b = (p1 - (p1_guess - p0)).astype(np.float32)
+    # the backward search starts at the forward result itself (an independent search;
+    # starting it from the prediction would bias the check towards success)
+    p0b = p1.copy()
     p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
         cur,
         prev,

@@ -40,7 +40,7 @@ class Rectifier:
             return
         size = calibration.image_size
         R = calibration.right_from_left[:3, :3]
-        t = calibration.right_from_left[:3, 3]
+        t = calibration.right_from_left[:3, 3].reshape(3, 1).copy()
         R1, R2, P1, P2, _Q, _roi1, _roi2 = cv2.stereoRectify(
             calibration.K_left,
             calibration.dist_left,
