@@ -348,6 +348,15 @@ class FrontEnd:
             if cfg.local_ba and self._track_idx.size >= 6:
                 tb = time.perf_counter()
                 sp = prev.stereo_px[self._track_idx]
+                final_right = None
+                if cfg.ba_final_stereo:
+                    # the set's tracked points in this keyframe's right image (both ends
+                    # of the set then carry a stereo observation)
+                    fm = match_stereo(left, right, self._track_uv, cfg)
+                    final_right = np.full((self._track_idx.size, 2), np.nan)
+                    frac = self._track_uv[fm.index] - fm.uv_left  # sub-pixel part of the corner
+                    final_right[fm.index, 0] = fm.u_right + frac[:, 0]
+                    final_right[fm.index, 1] = fm.v_right + frac[:, 1]
                 ba = hybrid_keyframe_ba(
                     prev.points[self._track_idx],
                     sp[:, [0, 2]],
@@ -359,6 +368,7 @@ class FrontEnd:
                     self.calibration.right_from_left,
                     cfg.ba_iterations,
                     cfg.ba_huber_px,
+                    uv_final_right=final_right,
                 )
                 step = invert_pose(kf_from_cur) @ invert_pose(ba.f_from_kf)
                 # accept the BA only when it stays near the robust pose (guards against a bad set)
