@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import se3_exp
+from loopmodel.pose.rig import point_cross_rows
 
 F64 = NDArray[np.float64]
 
@@ -96,7 +97,7 @@ def hybrid_keyframe_ba(
                 continue
             Jc = b.camera.project_jacobian(p) @ b.fixed[:3, :3]  # d uv / d base point
             JX = Jc @ Tc[:3, :3] if b.moving else Jc
-            Jp = np.concatenate([Jc, np.cross(pf[:, None, :], Jc)], axis=2) if b.moving else None
+            Jp = np.concatenate([Jc, point_cross_rows(pf, Jc)], axis=2) if b.moving else None
             out.append((r, p, JX, Jp))
         return out
 

@@ -64,6 +64,14 @@ class CameraRig:
         return invert_pose(self.cam_from_rig[j])
 
 
+def point_cross_rows(p: F64, A: F64) -> F64:
+    """Rows ``p_i x a_ik`` for points p (N, 3) and row stacks A (N, K, 3); equals
+    ``-A_i [p_i]x``, the rotation block of a left-perturbation Jacobian."""
+    px, py, pz = p[:, 0, None], p[:, 1, None], p[:, 2, None]
+    ax, ay, az = A[:, :, 0], A[:, :, 1], A[:, :, 2]
+    return np.stack([py * az - pz * ay, pz * ax - px * az, px * ay - py * ax], axis=2)
+
+
 class PoseTerm(Protocol):
     """A group of features that constrains the rig pose (points, lines, ...)."""
 
@@ -148,7 +156,7 @@ class PointTerm:
             Jp = cam.project_jacobian(p_cam)  # (k, 2, 3)
             A = Jp @ self.rig.cam_from_rig[j][:3, :3]  # d uv / d p_rig
             # d p_rig / d(v, w) = [I, -[p_rig]x];  -A [p]x rows = p x a_row
-            Jj = np.concatenate([A, np.cross(p_rig[:, None, :], A)], axis=2)
+            Jj = np.concatenate([A, point_cross_rows(p_rig, A)], axis=2)
             uv = cam.project(p_cam)
             if self._single:
                 r = uv - self.uv_px
