@@ -67,7 +67,7 @@ class FrontendConfig(_Section):
     max_depth_m: float = Field(200.0, gt=0, description="reject triangulated points beyond")
     min_stereo_points: int = Field(30, ge=6, description="fewest points for a keyframe")
     # KLT
-    klt_window_px: int = Field(15, ge=5, description="Lucas-Kanade window")
+    klt_window_px: int = Field(13, ge=5, description="Lucas-Kanade window")
     klt_levels: int = Field(3, ge=0, description="pyramid levels above the base")
     klt_iterations: int = Field(10, ge=1)
     fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward tolerance")
@@ -96,7 +96,7 @@ class FrontendConfig(_Section):
     local_ba: bool = True
     ba_iterations: int = Field(5, ge=1)
     ba_huber_px: float = Field(1.0, gt=0)
-    ba_final_stereo: bool = Field(True, description="add the final right projections to eq. 1")
+    ba_final_stereo: bool = Field(False, description="add the final right projections to eq. 1")
 
 
 class Config(_Section):
