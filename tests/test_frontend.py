@@ -164,3 +164,22 @@ def test_bad_patch_size_is_a_config_error() -> None:
 
     with pytest.raises(InputError, match="patch_px"):
         FrontEnd(stereo_rig(), FrontendConfig(patch_px=10))
+
+
+def test_apply_correction_moves_later_poses(rng: np.random.Generator) -> None:
+    planes = default_scene(rng)
+    cal = stereo_rig()
+    poses = trajectory(12)
+    frames = _stereo_frames(planes, cal, invert_pose(poses[0]) @ poses)
+    fe1, fe2 = FrontEnd(cal, CFG), FrontEnd(cal, CFG)
+    for f in frames[:6]:
+        fe1.process(f)
+        last = fe2.process(f)
+    kid = last.keyframe_id
+    delta = make_pose(so3_exp([0.01, -0.02, 0.03]), [0.1, -0.05, 0.2])
+    fe2.apply_correction({kid: delta @ fe2.world_from_kf[kid], 999: np.eye(4)})
+    for f in frames[6:]:
+        r1, r2 = fe1.process(f), fe2.process(f)
+        assert r1.status == r2.status == "OK"
+        np.testing.assert_allclose(r2.world_from_cam, delta @ r1.world_from_cam, atol=1e-9)
+    assert 999 not in fe2.world_from_kf

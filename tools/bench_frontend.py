@@ -21,13 +21,13 @@ KITTI = (ROOT / ".." / "shared" / "data" / "kitti_clip").resolve()
 
 
 def run(quick: bool = False) -> dict[str, Any]:
-    from loopmodel.config import Config
+    from loopmodel.config import load_config
     from loopmodel.frontend import FrontEnd
     from loopmodel.io.sequence import open_sequence
     from loopmodel.pipeline import _ground_truth_errors, _online_trajectory, frontend_metrics
 
     seq = open_sequence(KITTI)
-    cfg = Config().frontend
+    cfg = load_config(ROOT / "configs" / "kitti.yaml").frontend
     frames = list(seq.frames())
     if quick:
         frames = frames[:30]

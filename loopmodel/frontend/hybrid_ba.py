@@ -85,9 +85,11 @@ def hybrid_keyframe_ba(
         valid = np.all(np.isfinite(fr), axis=1).astype(float)
         blocks.append(_Block(right, rfl, True, np.where(np.isfinite(fr), fr, 0.0), valid))
 
-    def evaluate(Xc: F64, Tc: F64, jac: bool):
+    Eval = list[tuple[F64, F64, F64 | None, F64 | None]]
+
+    def evaluate(Xc: F64, Tc: F64, jac: bool) -> Eval:
         pf = Xc @ Tc[:3, :3].T + Tc[:3, 3]
-        out = []
+        out: Eval = []
         for b in blocks:
             base = pf if b.moving else Xc
             p = base @ b.fixed[:3, :3].T + b.fixed[:3, 3]
@@ -101,7 +103,7 @@ def hybrid_keyframe_ba(
             out.append((r, p, JX, Jp))
         return out
 
-    def norms(ev) -> F64:
+    def norms(ev: Eval) -> F64:
         return np.stack([np.linalg.norm(e[0], axis=1) for e in ev])
 
     def cost_of(nrm: F64) -> float:
@@ -114,7 +116,7 @@ def hybrid_keyframe_ba(
     cost = cost_of(nrm)
     lam = 1e-3
     it = 0
-    for it in range(1, iterations + 1):
+    for it in range(1, iterations + 1):  # noqa: B007 (it is reported)
         w = _huber_w(nrm, huber_px) * np.stack([b.valid for b in blocks])
         Hxx = np.zeros((M, 3, 3))
         gx = np.zeros((M, 3))
@@ -122,6 +124,7 @@ def hybrid_keyframe_ba(
         Hpp = np.zeros((6, 6))
         gp = np.zeros(6)
         for k, (r, _p, JX, Jp) in enumerate(ev):
+            assert JX is not None
             wk = w[k]
             JXw = JX * wk[:, None, None]
             Hxx += np.matmul(JXw.transpose(0, 2, 1), JX)

@@ -133,10 +133,10 @@ def _zncc_scan(
 
 
 def _search_row(
-    src_c: NDArray[np.float32],
-    dst_c: NDArray[np.float32],
-    src_f: NDArray[np.float32],
-    dst_f: NDArray[np.float32],
+    src_c: NDArray[np.uint8],
+    dst_c: NDArray[np.uint8],
+    src_f: NDArray[np.uint8],
+    dst_f: NDArray[np.uint8],
     pad_c: int,
     pad_f: int,
     u: NDArray[np.int64],

@@ -119,7 +119,7 @@ def refine_pose(
         for _ in range(8):
             Hd = H + lam * np.diag(np.maximum(np.diag(H), 1e-9))
             try:
-                delta = -np.linalg.solve(Hd, g)
+                delta = np.asarray(-np.linalg.solve(Hd, g), dtype=np.float64)
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 continue
@@ -152,7 +152,7 @@ def refine_pose(
         wts.append(w)
         norms.append(n)
     try:
-        cov = np.linalg.inv(H)
+        cov = np.asarray(np.linalg.inv(H), dtype=np.float64)
     except np.linalg.LinAlgError:
         cov = np.full((6, 6), np.inf)
     return PoseResult(T, inl, wts, norms, list(scales), cov, cost, it, converged)
