@@ -34,9 +34,8 @@ def _write_kitti(folder: Path, n: int, rng: np.random.Generator) -> np.ndarray:
     P0 = np.hstack([cal.K_left, np.zeros((3, 1))])
     P1 = P0.copy()
     P1[0, 3] = -cal.K_left[0, 0] * cal.baseline_m
-    (folder / "calib.txt").write_text(
-        "P0: " + " ".join(repr(float(x)) for x in P0.ravel()) + "\nP1: " + " ".join(repr(float(x)) for x in P1.ravel()) + "\n"
-    )
+    row = [" ".join(repr(float(x)) for x in P.ravel()) for P in (P0, P1)]
+    (folder / "calib.txt").write_text(f"P0: {row[0]}\nP1: {row[1]}\n")
     (folder / "poses.txt").write_text(
         "".join(" ".join(repr(float(x)) for x in T[:3, :].ravel()) + "\n" for T in poses)
     )
