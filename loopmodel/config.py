@@ -80,6 +80,8 @@ class FrontendConfig(_Section):
     )
     pose_step_tolerance: float = Field(5e-5, gt=0, description="LM stops below this step (m, rad)")
     pose_max_iterations: int = Field(10, ge=1)
+    depth_weighting: bool = Field(True, description="down-weight points of uncertain stereo depth")
+    disparity_sigma_px: float = Field(0.3, gt=0, description="stereo disparity noise (weighting)")
     # keyframe policy
     min_tracked_fraction: float = Field(0.5, gt=0, le=1, description="new keyframe below this")
     min_tracked: int = Field(100, ge=6, description="new keyframe below this many inliers")

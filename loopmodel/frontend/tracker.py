@@ -249,7 +249,10 @@ class FrontEnd:
         tracked = int(ok.sum())
         if tracked < cfg.min_inliers:
             return "LOST", f"only {tracked} KLT tracks", tracked, 0, kf_from_pred, False
-        term = PointTerm(self.rig, pts[ok], uv[ok])
+        prior = None
+        if cfg.depth_weighting:
+            prior = self._depth_weights(pts[ok], pred_from_kf)
+        term = PointTerm(self.rig, pts[ok], uv[ok], prior_weight=prior)
         try:
             res = estimate_pose(
                 term,
@@ -288,6 +291,20 @@ class FrontEnd:
         self._track_idx = idx[keep]
         self._track_uv = uv[keep]
         return "OK", "", tracked, n_inl, kf_from_cur, res.used_ransac
+
+    def _depth_weights(self, pts: F64, cur_from_kf: F64) -> F64:
+        """Pixel variance over pixel-plus-stereo-depth variance of each point's projection
+        at the predicted pose (first order): far points, whose stereo depth is uncertain,
+        count less for the pose."""
+        cfg = self.config
+        fb = self.calibration.fx_px * self.calibration.baseline_m
+        sigma_z = pts[:, 2] ** 2 / fb * cfg.disparity_sigma_px
+        p = pts @ cur_from_kf[:3, :3].T + cur_from_kf[:3, 3]
+        ray = pts / pts[:, 2:3]  # d point / d depth (keyframe frame)
+        J = self.left_camera.project_jacobian(p)  # (N, 2, 3)
+        g = np.einsum("nij,nj->ni", J, ray @ cur_from_kf[:3, :3].T)
+        var_px = cfg.pose_min_scale_px**2
+        return var_px / (var_px + np.einsum("ni,ni->n", g, g) * sigma_z**2)
 
     def _need_keyframe(self, kf_from_cur: F64, inliers: int) -> bool:
         cfg = self.config

@@ -92,12 +92,14 @@ class PoseTerm(Protocol):
 class PointTerm:
     """2-D/3-D point correspondences: ``p_in_ref`` (N, 3, metres, reference frame) seen at
     ``uv_px`` (N, 2, pixels) by camera ``cam_index`` (N,) of the rig. Residual =
-    projection - measurement (pixels)."""
+    projection - measurement (pixels). ``prior_weight`` (optional, N) multiplies the robust
+    weights (e.g. the ratio of pixel variance to pixel-plus-depth variance)."""
 
     rig: CameraRig
     p_in_ref: F64
     uv_px: F64
     cam_index: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    prior_weight: F64 | None = None  # (N,) in (0, 1]: e.g. down-weights points of uncertain depth
     dim: int = 2
 
     def __post_init__(self) -> None:
@@ -118,7 +120,8 @@ class PointTerm:
 
     def subset(self, mask: NDArray[np.bool_] | NDArray[np.int64]) -> PointTerm:
         """The term restricted to some of its correspondences."""
-        return PointTerm(self.rig, self.p_in_ref[mask], self.uv_px[mask], self.cam_index[mask])
+        pw = None if self.prior_weight is None else self.prior_weight[mask]
+        return PointTerm(self.rig, self.p_in_ref[mask], self.uv_px[mask], self.cam_index[mask], pw)
 
     def _cam_points(
         self, rig_from_ref: F64, j: int, idx: NDArray[np.int64] | None

@@ -104,6 +104,9 @@ def refine_pose(
                     # first Tukey iteration
                     scales[k] = opt.fixed_scale or robust_scale(n, term.dim, opt.min_scale)
                 wlist[k] = weights(n / scales[k], loss, cc)
+                pw = getattr(term, "prior_weight", None)
+                if pw is not None:
+                    wlist[k] = wlist[k] * pw
             w = wlist[k]
             Jf = J.reshape(-1, 6)
             Jw = Jf * np.repeat(w, term.dim)[:, None]
@@ -145,6 +148,9 @@ def refine_pose(
         n = np.linalg.norm(r, axis=1)
         s = scales[k]
         w = weights(n / s, opt.loss, c)
+        pw = getattr(term, "prior_weight", None)
+        if pw is not None:
+            w = w * pw
         Jf = J.reshape(-1, 6)
         H += (Jf * np.repeat(w, term.dim)[:, None]).T @ Jf / (s * s)
         cost += float(np.sum(rho(n / s, opt.loss, c)) * s * s)
