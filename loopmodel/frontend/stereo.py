@@ -160,8 +160,8 @@ def _search_row(
     wc = width // 2
     sc[(col_c < half_c) | (col_c > wc - 1 - half_c)] = -2.0
     best_c = start_c + np.argmax(sc, axis=1)
-    start_f = 2 * best_c - 2
-    L = 5
+    start_f = 2 * best_c - 3
+    L = 7
     sf = _zncc_scan(src_f, dst_f, pad_f, u, v, start_f, L, half_f, rows)
     col_f = start_f[:, None] + np.arange(L)
     bad_col = (col_f < half_f) | (col_f > width - 1 - half_f)

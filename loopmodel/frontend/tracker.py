@@ -70,6 +70,8 @@ class FrontEnd:
             min_scale=self.config.pose_min_scale_px,
             step_tolerance=self.config.pose_step_tolerance,
             max_iterations=self.config.pose_max_iterations,
+            huber_warmup=self.config.pose_huber_warmup,
+            reweight_iterations=self.config.pose_reweight_iterations,
         )
         self._world_from_kf: dict[int, F64] = {}
         self._active: _ActiveSet | None = None
