@@ -21,6 +21,7 @@ from loopmodel.frontend.rectify import Rectifier
 from loopmodel.frontend.stereo import detect_corners, match_stereo, triangulate_rectified
 from loopmodel.geometry.se3 import invert_pose, se3_exp, se3_log, so3_log
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, estimate_pose
+from loopmodel.pose.solver import nearest_rigid
 from loopmodel.types import StereoCalibration, StereoFrame
 
 logger = logging.getLogger(__name__)
@@ -173,9 +174,11 @@ class FrontEnd:
         step = invert_pose(self._kf_from_prev) @ kf_from_cur
         if gap > 0:
             step = se3_exp(se3_log(step) / (gap + 1))
-        self._velocity = step
+        # re-projected onto SE(3): these products feed back every frame, so rounding in
+        # the rotation blocks would otherwise grow geometrically
+        self._velocity = nearest_rigid(step)
         self._velocity_known = True
-        self._kf_from_prev = kf_from_cur
+        self._kf_from_prev = nearest_rigid(kf_from_cur)
         self._prev_pyr = cur_pyr
         self._frames_since_ok = 0
 
@@ -403,7 +406,7 @@ class FrontEnd:
                     "ba_rms_after_px": ba.final_rms_px,
                     "ba_points": float(self._track_idx.size),
                 }
-            world_from_rect = prev.world_from_kfrect @ kf_from_new
+            world_from_rect = nearest_rigid(prev.world_from_kfrect @ kf_from_new)
             kf_prev_from_kf = self.cam_from_rect @ kf_from_new @ self.rect_from_cam
 
         kf_id = self._next_kf_id

@@ -60,6 +60,19 @@ class PoseResult:
         return int(sum(int(m.sum()) for m in self.inliers))
 
 
+def nearest_rigid(T: F64) -> F64:
+    """The rigid transform nearest to a 4x4 matrix whose rotation block drifted from SO(3)
+    (rounding in long products): rotation projected by SVD, translation kept."""
+    U, _s, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    out = np.eye(4)
+    out[:3, :3] = R
+    out[:3, 3] = T[:3, 3]
+    return out
+
+
 def _as_terms(terms: PoseTerm | Sequence[PoseTerm]) -> list[PoseTerm]:
     if isinstance(terms, Sequence):
         return list(terms)
@@ -78,7 +91,7 @@ def refine_pose(
     if total < 3:
         raise EstimationError(f"pose needs at least 3 features, got {total}")
     c = opt.cutoff if opt.cutoff is not None else default_cutoff(opt.loss)
-    T = np.asarray(rig_from_ref_init, dtype=float).copy()
+    T = nearest_rigid(np.asarray(rig_from_ref_init, dtype=float))
     lam = opt.lm_lambda0
     converged = False
     it = 0
