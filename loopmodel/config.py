@@ -94,7 +94,7 @@ class FrontendConfig(_Section):
     max_jump_m: float = Field(0.6, gt=0, description="LOST when the pose departs from the motion model by more")
     max_jump_deg: float = Field(15.0, gt=0)
     min_image_std: float = Field(4.0, ge=0, description="black/flat image threshold (grey levels)")
-    min_sharpness: float = Field(2.0, ge=0, description="variance of the Laplacian (blur) threshold")
+    min_sharpness: float = Field(20.0, ge=0, description="variance of the Laplacian (blur) threshold")
     max_retrack_frames: int = Field(5, ge=0, description="frames to try resuming on the old keyframe")
     # local hybrid keyframe BA (seed 004 eq. 1)
     local_ba: bool = True

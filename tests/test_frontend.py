@@ -199,3 +199,24 @@ def test_long_track_on_one_keyframe_stays_rigid(rng: np.random.Generator) -> Non
         R = r.world_from_cam[:3, :3]
         assert np.abs(R.T @ R - np.eye(3)).max() < 1e-9
     _check_ok_poses(results, poses, 0.01, 0.1)
+
+
+def test_blurred_frame_and_pose_jump_are_lost_not_wrong(rng: np.random.Generator) -> None:
+    planes = default_scene(rng)
+    cal = stereo_rig()
+    poses = trajectory(16, step_m=0.04)
+    poses = invert_pose(poses[0]) @ poses
+    frames = _stereo_frames(planes, cal, poses)
+    # frame 6: heavy defocus blur; frame 10: the view of a camera 1 m to the side and turned
+    frames[6] = StereoFrame(frames[6].timestamp_ns, cv2.GaussianBlur(frames[6].left, (0, 0), 12),
+                            cv2.GaussianBlur(frames[6].right, (0, 0), 12), 6)
+    jumped = poses[10] @ make_pose(so3_exp([0.0, 0.25, 0.0]), [1.0, 0.0, 0.0])
+    (far,) = _stereo_frames(planes, cal, jumped[None])
+    frames[10] = StereoFrame(frames[10].timestamp_ns, far.left, far.right, 10)
+    fe = FrontEnd(cal, CFG)
+    results = [fe.process(f) for f in frames]
+    assert results[6].status == "LOST" and results[10].status == "LOST"
+    assert all(r.status == "OK" for i, r in enumerate(results) if i not in (6, 10)), [
+        (r.frame_index, r.status, r.reason) for r in results
+    ]
+    _check_ok_poses(results, poses, 0.02, 0.2)
