@@ -220,3 +220,17 @@ def test_blurred_frame_and_pose_jump_are_lost_not_wrong(rng: np.random.Generator
         (r.frame_index, r.status, r.reason) for r in results
     ]
     _check_ok_poses(results, poses, 0.02, 0.2)
+
+
+def test_pose_jump_beyond_motion_model_is_lost(rng: np.random.Generator) -> None:
+    planes = default_scene(rng)
+    cal = stereo_rig()
+    poses = trajectory(14, step_m=0.04)
+    poses = invert_pose(poses[0]) @ poses
+    poses[8] = poses[8] @ make_pose(np.eye(3), [0.25, 0.0, 0.0])  # one frame 25 cm off
+    cfg = CFG.model_copy(update={"max_jump_m": 0.1})
+    fe = FrontEnd(cal, cfg)
+    results = [fe.process(f) for f in _stereo_frames(planes, cal, poses)]
+    assert results[8].status == "LOST" and "jump" in results[8].reason
+    assert all(r.status == "OK" for i, r in enumerate(results) if i != 8)
+    _check_ok_poses(results, poses, 0.02, 0.2)
