@@ -57,6 +57,7 @@ class FrontendConfig(_Section):
     gftt_quality: float = Field(0.005, gt=0, lt=1, description="Shi-Tomasi quality, per cell")
     min_distance_px: float = Field(10.0, gt=0, description="minimum corner spacing")
     border_px: int = Field(12, ge=0, description="no corners this close to the image border")
+    detect_half_resolution: bool = Field(False, description="find corners in the half-size image")
     # stereo row search (rectified pair)
     patch_px: int = Field(11, ge=3, description="matching window (odd)")
     min_disparity_px: float = Field(1.0, ge=0, description="reject matches below (far points)")

@@ -347,6 +347,7 @@ class FrontEnd:
             cfg.gftt_quality,
             cfg.min_distance_px,
             cfg.border_px,
+            cfg.detect_half_resolution,
         )
         m = match_stereo(left, right, corners, cfg)
         pts = triangulate_rectified(
