@@ -19,9 +19,8 @@ from loopmodel.frontend.keyframe import FrameResult, Keyframe
 from loopmodel.frontend.klt import Pyramid, build_pyramid, track_klt
 from loopmodel.frontend.rectify import Rectifier
 from loopmodel.frontend.stereo import detect_corners, match_stereo, triangulate_rectified
-from loopmodel.geometry.se3 import invert_pose, se3_exp, se3_log, so3_log
+from loopmodel.geometry.se3 import invert_pose, nearest_rigid, se3_exp, se3_log, so3_log
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, estimate_pose
-from loopmodel.pose.solver import nearest_rigid
 from loopmodel.types import StereoCalibration, StereoFrame
 
 logger = logging.getLogger(__name__)
