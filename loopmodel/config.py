@@ -67,6 +67,7 @@ class FrontendConfig(_Section):
     max_row_error_px: float = Field(1.0, ge=0, description="max vertical offset of the match")
     max_depth_m: float = Field(200.0, gt=0, description="reject triangulated points beyond")
     min_stereo_points: int = Field(30, ge=6, description="fewest points for a keyframe")
+    max_keyframe_points: int = Field(300, ge=0, description="keep at most this many (spread); 0: all")
     # KLT
     klt_window_px: int = Field(15, ge=5, description="Lucas-Kanade window")
     klt_levels: int = Field(3, ge=0, description="pyramid levels above the base")

@@ -234,3 +234,20 @@ def test_pose_jump_beyond_motion_model_is_lost(rng: np.random.Generator) -> None
     assert results[8].status == "LOST" and "jump" in results[8].reason
     assert all(r.status == "OK" for i, r in enumerate(results) if i != 8)
     _check_ok_poses(results, poses, 0.02, 0.2)
+
+
+def test_spread_subset_takes_the_best_of_every_cell(rng: np.random.Generator) -> None:
+    from loopmodel.frontend.stereo import spread_subset
+
+    uv = np.column_stack([rng.uniform(0, 400, 500), rng.uniform(0, 200, 500)])
+    uv[:400, 0] *= 0.25  # crowd most points into the left quarter
+    score = rng.uniform(0, 1, 500)
+    cand = np.ones(500, bool)
+    cand[::7] = False
+    pick = spread_subset(uv, score, cand, 40, (4, 2), (400, 200))
+    assert pick.sum() == 40 and not np.any(pick & ~cand)
+    cells = np.clip((uv[:, 0] // 100).astype(int), 0, 3) + 4 * np.clip((uv[:, 1] // 100).astype(int), 0, 1)
+    for c in range(8):
+        members = np.flatnonzero(cand & (cells == c))
+        if members.size:  # every occupied cell gives at least its best point
+            assert pick[members[np.argmax(score[members])]]

@@ -245,6 +245,34 @@ def match_stereo(
     )
 
 
+def spread_subset(
+    uv: F64,
+    score: F64,
+    candidates: NDArray[np.bool_],
+    count: int,
+    grid: tuple[int, int],
+    image_size: tuple[int, int],
+) -> NDArray[np.bool_]:
+    """Mask of at most ``count`` of the ``candidates``, spread over a (cols, rows) grid:
+    cells take turns, each giving its best-scoring remaining point."""
+    cols, rows = grid
+    w, h = image_size
+    cx = np.clip((uv[:, 0] * cols / w).astype(int), 0, cols - 1)
+    cy = np.clip((uv[:, 1] * rows / h).astype(int), 0, rows - 1)
+    cell = cy * cols + cx
+    idx = np.flatnonzero(candidates)
+    # rank of each candidate inside its cell by score (0 = best)
+    order = idx[np.lexsort((-score[idx], cell[idx]))]
+    c_sorted = cell[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(c_sorted)) + 1]
+    rank = np.arange(order.size) - np.repeat(starts, np.diff(np.r_[starts, order.size]))
+    # take rank 0 of every cell, then rank 1, ...; ties in a round by score
+    pick = order[np.lexsort((-score[order], rank))][:count]
+    out = np.zeros(uv.shape[0], dtype=bool)
+    out[pick] = True
+    return out
+
+
 def triangulate_rectified(uv_left: F64, disparity: F64, K: F64, baseline_m: float) -> F64:
     """(N, 3) points (metres) in the rectified left camera frame from left pixels and
     disparities (pixels)."""

@@ -18,7 +18,12 @@ from loopmodel.frontend.hybrid_ba import hybrid_keyframe_ba
 from loopmodel.frontend.keyframe import FrameResult, Keyframe
 from loopmodel.frontend.klt import Pyramid, build_pyramid, track_klt
 from loopmodel.frontend.rectify import Rectifier
-from loopmodel.frontend.stereo import detect_corners, match_stereo, triangulate_rectified
+from loopmodel.frontend.stereo import (
+    detect_corners,
+    match_stereo,
+    spread_subset,
+    triangulate_rectified,
+)
 from loopmodel.geometry.se3 import invert_pose, nearest_rigid, se3_exp, se3_log, so3_log
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, estimate_pose
 from loopmodel.types import StereoCalibration, StereoFrame
@@ -353,6 +358,11 @@ class FrontEnd:
             m.uv_left, m.disparity, self.calibration.K_left, self.calibration.baseline_m
         )
         keep = pts[:, 2] < cfg.max_depth_m
+        if cfg.max_keyframe_points and int(keep.sum()) > cfg.max_keyframe_points:
+            keep &= spread_subset(
+                m.uv_left, m.score, keep, cfg.max_keyframe_points, (cfg.grid_cols, cfg.grid_rows),
+                self.calibration.image_size,
+            )
         if int(keep.sum()) < cfg.min_stereo_points:
             logger.debug("frame %d: %d stereo points, no keyframe", frame.index, int(keep.sum()))
             return None
