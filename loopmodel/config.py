@@ -69,9 +69,9 @@ class FrontendConfig(_Section):
     min_stereo_points: int = Field(30, ge=6, description="fewest points for a keyframe")
     max_keyframe_points: int = Field(300, ge=0, description="keep at most this many (spread); 0: all")
     # KLT
-    klt_window_px: int = Field(15, ge=5, description="Lucas-Kanade window")
+    klt_window_px: int = Field(13, ge=5, description="Lucas-Kanade window")
     klt_levels: int = Field(3, ge=0, description="pyramid levels above the base")
-    klt_iterations: int = Field(10, ge=1)
+    klt_iterations: int = Field(7, ge=1)
     fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward tolerance")
     # robust pose
     pose_loss: str = Field("tukey", pattern="^(tukey|huber)$")
