@@ -1,0 +1,170 @@
+"""Wiring of the stages: a sequence goes through the front end (and, later, the back end,
+loop closing and meshing); outputs go to the results folder. Owns nothing else."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from loopmodel.config import Config
+from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
+from loopmodel.geometry.align import umeyama_alignment
+from loopmodel.io.base import Sequence
+from loopmodel.io.results import LogCapture, ResultsFolder
+from loopmodel.types import Trajectory
+
+logger = logging.getLogger(__name__)
+
+# progress(frames_done, frames_total, frames_per_second)
+ProgressFn = Callable[[int, int, float], None]
+KeyframeHook = Callable[[Keyframe, FrameResult], None]
+
+
+@dataclass
+class RunOutput:
+    """What a run produced: the results folder, per-frame results and the metrics."""
+
+    folder: Path
+    frames: list[FrameResult]
+    keyframes: list[Keyframe]
+    metrics: dict[str, Any]
+    interrupted: bool = False
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def _online_trajectory(frames: list[FrameResult]) -> Trajectory:
+    ok = [f for f in frames if f.ok]
+    if not ok:
+        return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
+    return Trajectory(
+        np.array([f.timestamp_ns for f in ok]), np.stack([f.world_from_cam for f in ok])
+    )
+
+
+def _keyframe_trajectory(
+    keyframes: list[Keyframe], world_from_kf: dict[int, np.ndarray]
+) -> Trajectory:
+    if not keyframes:
+        return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
+    return Trajectory(
+        np.array([k.timestamp_ns for k in keyframes]),
+        np.stack([world_from_kf.get(k.id, k.world_from_kf) for k in keyframes]),
+    )
+
+
+def _ground_truth_errors(est: Trajectory, gt: Trajectory | None) -> dict[str, float]:
+    """ATE RMSE after SE(3) alignment and final drift (percent of the ground-truth path)
+    over the frames whose timestamps match exactly (full evaluation lives in eval/)."""
+    if gt is None or len(est) < 3:
+        return {}
+    common, i_est, i_gt = np.intersect1d(est.timestamps_ns, gt.timestamps_ns, return_indices=True)
+    if common.size < 3:
+        return {}
+    p_est = est.positions_m[i_est]
+    p_gt = gt.positions_m[i_gt]
+    R, t, _ = umeyama_alignment(p_est, p_gt)
+    ate = float(np.sqrt(np.mean(np.sum((p_est @ R.T + t - p_gt) ** 2, axis=1))))
+    # drift: both trajectories start at the first common frame's pose
+    T0_est = est.world_from_cam[i_est[0]]
+    T0_gt = gt.world_from_cam[i_gt[0]]
+    rel_est = np.linalg.inv(T0_est) @ est.world_from_cam[i_est[-1]]
+    rel_gt = np.linalg.inv(T0_gt) @ gt.world_from_cam[i_gt[-1]]
+    length = float(np.sum(np.linalg.norm(np.diff(p_gt, axis=0), axis=1)))
+    final = float(np.linalg.norm(rel_est[:3, 3] - rel_gt[:3, 3]))
+    return {
+        "ate_rmse_m": ate,
+        "final_error_m": final,
+        "path_length_m": length,
+        "drift_pct": 100.0 * final / length if length > 0 else float("nan"),
+        "gt_frames": int(common.size),
+    }
+
+
+def frontend_metrics(frames: list[FrameResult], wall_s: float) -> dict[str, Any]:
+    """Counts and timings of a front-end run (milliseconds, medians and 95th percentiles)."""
+    track = np.array([f.track_ms for f in frames]) if frames else np.zeros(0)
+    kf_ms = np.array([f.keyframe_ms for f in frames if f.is_keyframe])
+    total = np.array([f.track_ms + f.keyframe_ms for f in frames]) if frames else np.zeros(0)
+
+    def q(a: np.ndarray, p: float) -> float | None:
+        return float(np.percentile(a, p)) if a.size else None
+
+    return {
+        "frames": len(frames),
+        "ok_frames": sum(f.ok for f in frames),
+        "lost_frames": sum(not f.ok for f in frames),
+        "keyframes": sum(f.is_keyframe for f in frames),
+        "segments": (max(f.segment for f in frames) + 1) if frames else 0,
+        "track_ms_median": q(track, 50),
+        "track_ms_p95": q(track, 95),
+        "keyframe_ms_median": q(kf_ms, 50),
+        "frame_ms_median": q(total, 50),
+        "fps": len(frames) / float(total.sum() / 1e3) if total.size and total.sum() > 0 else None,
+        "fps_with_io": len(frames) / wall_s if wall_s > 0 else None,
+    }
+
+
+def run_frontend(
+    sequence: Sequence,
+    config: Config,
+    out_dir: str | Path | None = None,
+    name: str = "run",
+    progress: ProgressFn | None = None,
+    max_frames: int | None = None,
+    keyframe_hooks: list[KeyframeHook] | None = None,
+) -> RunOutput:
+    """Run the front end over ``sequence`` and write ``trajectory_online.tum``,
+    ``keyframes.tum``, ``metrics.json``, ``config.yaml`` and ``run.log`` into
+    ``<out_dir>/<name>/`` (``out_dir`` defaults to ``config.output.out_dir``). An interrupted
+    run (Ctrl-C included) still writes what it has, then re-raises."""
+    folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
+    folder.write_config(config)
+    frontend = FrontEnd(sequence.calibration, config.frontend)
+    total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
+    frames: list[FrameResult] = []
+    keyframes: list[Keyframe] = []
+    hooks = keyframe_hooks or []
+    interrupted = False
+    t_start = time.perf_counter()
+    with LogCapture() as log:
+        logger.info("front end on %s (%d frames)", sequence.path, total)
+        try:
+            for i, frame in enumerate(sequence.frames()):
+                if i >= total:
+                    break
+                res = frontend.process(frame)
+                frames.append(res)
+                if res.status != "OK":
+                    logger.info("frame %d LOST: %s", frame.index, res.reason)
+                if res.keyframe is not None:
+                    keyframes.append(res.keyframe)
+                    for hook in hooks:
+                        hook(res.keyframe, res)
+                if progress is not None:
+                    el = time.perf_counter() - t_start
+                    progress(i + 1, total, (i + 1) / el if el > 0 else 0.0)
+        except KeyboardInterrupt:
+            interrupted = True
+            logger.warning("interrupted after %d frames", len(frames))
+        finally:
+            wall = time.perf_counter() - t_start
+            online = _online_trajectory(frames)
+            folder.write_trajectory("trajectory_online.tum", online)
+            folder.write_trajectory(
+                "keyframes.tum", _keyframe_trajectory(keyframes, frontend.world_from_kf)
+            )
+            metrics: dict[str, Any] = {"sequence": str(sequence.path), "interrupted": interrupted}
+            metrics.update(frontend_metrics(frames, wall))
+            metrics.update(_ground_truth_errors(online, sequence.ground_truth))
+            folder.write_json("metrics.json", metrics)
+            logger.info("done: %s", {k: metrics[k] for k in ("frames", "ok_frames", "keyframes")})
+            folder.write_text("run.log", log.text())
+    if interrupted:
+        raise KeyboardInterrupt
+    return RunOutput(folder.path, frames, keyframes, metrics, interrupted)
