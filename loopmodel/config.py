@@ -93,7 +93,11 @@ class FrontendConfig(_Section):
     pose_loss: str = Field("tukey", pattern="^(tukey|huber)$")
     pose_min_scale_px: float = Field(0.5, gt=0, description="floor of the MAD scale")
     ransac_threshold_px: float = Field(2.0, gt=0)
-    prediction_gate_px: float = Field(4.0, gt=0, description="prediction good enough to skip RANSAC")
+    prediction_gate_px: float = Field(
+        4.0, gt=0, description="prediction good enough to skip RANSAC"
+    )
+    pose_step_tolerance: float = Field(5e-5, gt=0, description="LM stops below this step (m, rad)")
+    pose_max_iterations: int = Field(10, ge=1)
     # keyframe policy
     min_tracked_fraction: float = Field(0.5, gt=0, le=1, description="new keyframe below this")
     min_tracked: int = Field(100, ge=6, description="new keyframe below this many inliers")

@@ -37,10 +37,15 @@ def run(quick: bool = False) -> dict[str, Any]:
         warm.process(f)
     fe = FrontEnd(seq.calibration, cfg)
     results = []
+    cpu_ms = []
     t0 = time.perf_counter()
     for f in frames:
+        c0 = time.process_time()
         results.append(fe.process(f))
+        cpu_ms.append((time.process_time() - c0) * 1e3)
     wall = time.perf_counter() - t0
+    cpu = np.array(cpu_ms)
+    is_kf = np.array([r.is_keyframe for r in results])
     m = frontend_metrics(results, wall)
     err = _ground_truth_errors(_online_trajectory(results), seq.ground_truth)
     ba = [
@@ -63,6 +68,11 @@ def run(quick: bool = False) -> dict[str, Any]:
         "lost_frames": m["lost_frames"],
         "keyframes": m["keyframes"],
         "local_ba_ms_median": round(float(np.median(ba)), 2) if ba else None,
+        # CPU time of this process (all its threads) per frame: less sensitive to the load
+        # other programs put on the machine than the wall-clock keys above
+        "track_cpu_ms_median": round(float(np.median(cpu[~is_kf])), 2),
+        "keyframe_frame_cpu_ms_median": round(float(np.median(cpu[is_kf])), 2),
+        "fps_cpu": round(len(cpu) / (cpu.sum() / 1e3), 2),
         "load_avg_1min": round(os.getloadavg()[0], 2),
         "cpu_count": os.cpu_count(),
     }

@@ -60,80 +60,156 @@ class StereoMatches:
     score: F64
 
 
-def _parabola_peak(a: float, b: float, c: float) -> float:
+def _parabola_offsets(a: F64, b: F64, c: F64) -> F64:
+    """Sub-sample offsets of the maxima of parabolas through (-1, a), (0, b), (1, c)."""
     den = a - 2.0 * b + c
-    if den >= 0:  # not a maximum
-        return 0.0
-    return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
+    off = np.where(den < 0, 0.5 * (a - c) / np.where(den < 0, den, -1.0), 0.0)
+    return np.clip(off, -0.5, 0.5)
+
+
+def _zncc_scan(
+    src: NDArray[np.uint8],
+    dst: NDArray[np.uint8],
+    pad: int,
+    u: NDArray[np.int64],
+    v: NDArray[np.int64],
+    start: NDArray[np.int64],
+    length: int,
+    half: int,
+    row_offsets: tuple[int, ...] = (0,),
+) -> NDArray[np.float32]:
+    """ZNCC of the (2*half+1)^2 template of ``src`` at integer (u, v) with the windows of
+    ``dst`` centred at columns ``start + k`` (k < length) and rows ``v + r``. Images are
+    padded by ``pad`` pixels. Returns (N, len(row_offsets), length)."""
+    p = 2 * half + 1
+    n = u.shape[0]
+    stride = dst.shape[1]
+    ar = np.arange(-half, half + 1)
+    patch_off = (ar[:, None] * stride + ar[None, :]).ravel()  # (p*p,)
+    base_t = (v + pad) * stride + (u + pad)
+    tpl = np.take(src, base_t[:, None] + patch_off).astype(np.float32)  # (N, p*p)
+    tz = tpl - tpl.mean(axis=1, keepdims=True)
+    tn = np.sqrt(np.einsum("nk,nk->n", tz, tz)) + 1e-6
+    tz = tz.reshape(n, p, p)
+    strip_off = (ar[:, None] * stride + np.arange(-half, length + half)[None, :])  # (p, L+p-1)
+    out = np.empty((n, len(row_offsets), length), np.float32)
+    for ri, r in enumerate(row_offsets):
+        base = (v + r + pad) * stride + (start + pad)
+        strip = np.take(dst, base[:, None, None] + strip_off).astype(np.float32)  # (N, p, L+p-1)
+        cross = np.zeros((n, length), np.float32)
+        for j in range(p):  # accumulate over template columns: tz[:, :, j] against shifted strips
+            cross += np.einsum("ni,nik->nk", tz[:, :, j], strip[:, :, j : j + length])
+        c1 = np.cumsum(strip.sum(axis=1), axis=1)
+        c2 = np.cumsum((strip * strip).sum(axis=1), axis=1)
+        z = np.zeros((n, 1), np.float32)
+        c1 = np.concatenate([z, c1], axis=1)
+        c2 = np.concatenate([z, c2], axis=1)
+        s1 = c1[:, p:] - c1[:, :-p]
+        s2 = c2[:, p:] - c2[:, :-p]
+        var = np.maximum(s2 - s1 * s1 / (p * p), 1e-3)
+        out[:, ri] = cross / (tn[:, None] * np.sqrt(var))
+    return out
+
+
+def _search_row(
+    src_c: NDArray[np.float32],
+    dst_c: NDArray[np.float32],
+    src_f: NDArray[np.float32],
+    dst_f: NDArray[np.float32],
+    pad_c: int,
+    pad_f: int,
+    u: NDArray[np.int64],
+    v: NDArray[np.int64],
+    sign: int,
+    dmax: int,
+    half_f: int,
+    width: int,
+    rows: tuple[int, ...],
+) -> tuple[NDArray[np.int64], NDArray[np.int64], F64, F64, F64]:
+    """Coarse (half resolution, 7x7) search over disparities 0..dmax along the row, in the
+    direction ``sign`` (-1: right image, +1: left image), then a fine (full resolution)
+    search of +-2 pixels and ``rows``. Returns integer column, row offset index, sub-pixel
+    column and row offsets, and the best score."""
+    half_c = 3
+    uh, vh = (u + 1) // 2, (v + 1) // 2
+    Dh = dmax // 2 + 2
+    start_c = uh - Dh if sign < 0 else uh
+    sc = _zncc_scan(src_c, dst_c, pad_c, uh, vh, start_c, Dh + 1, half_c)[:, 0]
+    col_c = start_c[:, None] + np.arange(Dh + 1)
+    wc = width // 2
+    sc[(col_c < half_c) | (col_c > wc - 1 - half_c)] = -2.0
+    best_c = start_c + np.argmax(sc, axis=1)
+    start_f = 2 * best_c - 2
+    L = 5
+    sf = _zncc_scan(src_f, dst_f, pad_f, u, v, start_f, L, half_f, rows)
+    col_f = start_f[:, None] + np.arange(L)
+    bad_col = (col_f < half_f) | (col_f > width - 1 - half_f)
+    bad_col |= (col_f - u[:, None]) * sign < 0  # wrong side of the source column
+    sf[np.broadcast_to(bad_col[:, None, :], sf.shape)] = -2.0
+    flat = np.argmax(sf.reshape(len(u), -1), axis=1)
+    ri, k = np.divmod(flat, L)
+    idx = np.arange(len(u))
+    best = sf[idx, ri, k]
+    kk = np.clip(k, 1, L - 2)
+    du = _parabola_offsets(sf[idx, ri, kk - 1], sf[idx, ri, kk], sf[idx, ri, kk + 1])
+    du = np.where((k == kk), du, 0.0)
+    interior = (k > 0) & (k < L - 1)
+    best = np.where(interior, best, -2.0)  # peak not bracketed: coarse search was off
+    if len(rows) == 3:
+        dv = _parabola_offsets(sf[idx, 0, k], sf[idx, 1, k], sf[idx, 2, k])
+        dv = np.where(ri == 1, dv, np.asarray(rows)[ri].astype(float))
+    else:
+        dv = np.zeros(len(u))
+    return start_f + k, ri, du, dv, best.astype(float)
 
 
 def match_stereo(
     left: NDArray[np.uint8], right: NDArray[np.uint8], uv_left: F64, cfg: FrontendConfig
 ) -> StereoMatches:
-    """Find the left corners in the rectified right image along their row (±1 row).
+    """Find the left corners in the rectified right image along their row (+-1 row).
 
-    Keeps a match when its ZNCC exceeds ``min_zncc``, the best row is within
-    ``max_row_error_px``, the disparity is within range and searching the right patch back
-    along the left row returns to the corner within ``lr_tolerance_px``.
+    Normalised cross-correlation, coarse to fine (half resolution over the whole disparity
+    range, then full resolution), sub-pixel parabola fits in u and v. A match is kept when
+    its ZNCC exceeds ``min_zncc``, its vertical offset is within ``max_row_error_px`` (the
+    reprojection check of a rectified pair), its disparity is within range, and searching
+    the right patch back along the left row returns to the corner within
+    ``lr_tolerance_px``.
     """
     h, w = left.shape[:2]
     half = cfg.patch_px // 2
     dmax = int(np.ceil(cfg.max_disparity_px))
-    keep_uv, keep_ur, keep_vr, keep_d, keep_s = [], [], [], [], []
-    lf = left
-    rf = right
-    method = cv2.TM_CCOEFF_NORMED
-    for u_f, v_f in uv_left:
-        u, v = int(round(u_f)), int(round(v_f))
-        if v - half - 1 < 0 or v + half + 2 > h or u - half < 0 or u + half + 1 > w:
-            continue
-        tpl = lf[v - half : v + half + 1, u - half : u + half + 1]
-        x_lo = max(half, u - dmax)
-        if u - x_lo < 1:
-            continue
-        strip = rf[v - half - 1 : v + half + 2, x_lo - half : u + half + 1]
-        res = cv2.matchTemplate(strip, tpl, method)  # (3, u - x_lo + 1); column k <-> x_lo + k
-        row, col = np.unravel_index(int(np.argmax(res)), res.shape)
-        best = float(res[row, col])
-        if best < cfg.min_zncc or not np.isfinite(best):
-            continue
-        # sub-pixel along the row and across rows
-        line = res[row]
-        du = (
-            _parabola_peak(line[col - 1], line[col], line[col + 1])
-            if 0 < col < line.size - 1
-            else 0.0
+    uv = np.rint(np.asarray(uv_left, dtype=float).reshape(-1, 2)).astype(np.int64)
+    inside = (uv[:, 0] >= half) & (uv[:, 0] < w - half) & (uv[:, 1] >= half + 1)
+    inside &= uv[:, 1] < h - half - 1
+    uv = uv[inside]
+    u, v = uv[:, 0], uv[:, 1]
+    empty = StereoMatches(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+    if u.size == 0:
+        return empty
+    pad_f = dmax + 2 * half + 8
+    pad_c = dmax // 2 + 16
+    lf = cv2.copyMakeBorder(left, pad_f, pad_f, pad_f, pad_f, cv2.BORDER_REPLICATE)
+    rf = cv2.copyMakeBorder(right, pad_f, pad_f, pad_f, pad_f, cv2.BORDER_REPLICATE)
+    lc = cv2.copyMakeBorder(cv2.pyrDown(left), pad_c, pad_c, pad_c, pad_c, cv2.BORDER_REPLICATE)
+    rc = cv2.copyMakeBorder(cv2.pyrDown(right), pad_c, pad_c, pad_c, pad_c, cv2.BORDER_REPLICATE)
+    col, ri, du, dv, score = _search_row(lc, rc, lf, rf, pad_c, pad_f, u, v, -1, dmax, half, w,
+                                         (-1, 0, 1))
+    ur = col + du
+    disp = u - ur
+    ok = (score >= cfg.min_zncc) & (np.abs(dv) <= cfg.max_row_error_px)
+    ok &= (disp >= cfg.min_disparity_px) & (disp <= cfg.max_disparity_px)
+    # left-right consistency: the right patch (at its integer match) searched in the left row
+    vr_int = v + np.asarray((-1, 0, 1))[ri]
+    ok &= (vr_int >= half + 1) & (vr_int < h - half - 1)
+    sel = np.flatnonzero(ok)
+    if sel.size:
+        bcol, _bri, bdu, _bdv, bscore = _search_row(
+            rc, lc, rf, lf, pad_c, pad_f, col[sel], vr_int[sel], +1, dmax, half, w, (0,)
         )
-        dv = _parabola_peak(res[0, col], res[1, col], res[2, col]) if row == 1 else float(row - 1)
-        if abs(dv) > cfg.max_row_error_px:
-            continue
-        ur = x_lo + col + du
-        d = u - ur
-        if d < cfg.min_disparity_px or d > cfg.max_disparity_px:
-            continue
-        # left-right consistency: the right patch searched along the left row
-        xr = x_lo + col
-        rtpl = rf[v + row - 1 - half : v + row - 1 + half + 2 - 1, xr - half : xr + half + 1]
-        x_hi = min(w - half - 1, xr + dmax)
-        lstrip = lf[v + row - 1 - half : v + row - 1 + half + 1, xr - half : x_hi + half + 1]
-        if lstrip.shape[1] < rtpl.shape[1] or rtpl.shape != tpl.shape:
-            continue
-        back = cv2.matchTemplate(lstrip, rtpl, method).ravel()
-        bcol = int(np.argmax(back))
-        if abs((xr + bcol) - u) > cfg.lr_tolerance_px:
-            continue
-        keep_uv.append((u, v))
-        keep_ur.append(ur)
-        keep_vr.append(v + dv)
-        keep_d.append(d)
-        keep_s.append(best)
-    n = len(keep_uv)
+        back_ok = (np.abs(bcol + bdu - u[sel]) <= cfg.lr_tolerance_px) & (bscore >= cfg.min_zncc)
+        ok[sel] = back_ok
     return StereoMatches(
-        np.asarray(keep_uv, dtype=float).reshape(n, 2),
-        np.asarray(keep_ur, dtype=float),
-        np.asarray(keep_vr, dtype=float),
-        np.asarray(keep_d, dtype=float),
-        np.asarray(keep_s, dtype=float),
+        uv[ok].astype(float), ur[ok], (v + dv)[ok], disp[ok], score[ok]
     )
 
 

@@ -66,8 +66,11 @@ class FrontEnd:
         self.right_camera = self.calibration.right_camera()
         self.rig = CameraRig.single(self.left_camera)
         self.pose_options = PoseOptions(
-            loss=self.config.pose_loss, min_scale=self.config.pose_min_scale_px
-        )  # type: ignore[arg-type]
+            loss=self.config.pose_loss,  # type: ignore[arg-type]
+            min_scale=self.config.pose_min_scale_px,
+            step_tolerance=self.config.pose_step_tolerance,
+            max_iterations=self.config.pose_max_iterations,
+        )
         self._world_from_kf: dict[int, F64] = {}
         self._active: _ActiveSet | None = None
         self._next_kf_id = 0

@@ -30,7 +30,7 @@ class PoseOptions:
     fixed_scale: float | None = None  # use this sigma instead of the MAD estimate
     max_iterations: int = 15
     lm_lambda0: float = 1e-4
-    step_tolerance: float = 1e-7  # stop when |delta| (m, rad) is below
+    step_tolerance: float = 1e-6  # stop when |delta| (m, rad) is below
     huber_warmup: int = 2  # first IRLS iterations use Huber (Tukey needs a start near the basin)
     inlier_cutoff: float = 4.6851  # inlier: residual norm below this many sigma
 
@@ -98,8 +98,11 @@ def refine_pose(
         for k, term in enumerate(tlist):
             r, J = term.residuals_and_jacobian(T)
             n = np.linalg.norm(r, axis=1)
-            s = opt.fixed_scale or robust_scale(n, term.dim, opt.min_scale)
-            scales[k] = s
+            if it <= opt.huber_warmup + 1 or opt.loss != "tukey":
+                # the MAD scale is re-estimated during the Huber warm-up and frozen after
+                # the first Tukey iteration, so IRLS converges (quadratically near the end)
+                scales[k] = opt.fixed_scale or robust_scale(n, term.dim, opt.min_scale)
+            s = scales[k]
             w = weights(n / s, loss, cc)
             Jf = J.reshape(-1, 6)
             wf = np.repeat(w, term.dim)
