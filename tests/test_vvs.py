@@ -272,3 +272,51 @@ def test_n_cameras_consistent_noiseless(rng: np.random.Generator) -> None:
     P, uv, ci = _simulate_points(rig, T_true, 80, rng)
     res = vvs_pose(PointTerm(rig, P, uv, ci), T0, VvsOptions(loss="l2", gain=0.5, max_iterations=80, step_tolerance=1e-11))
     assert np.linalg.norm(res.rig_from_ref - T_true) < 1e-7
+
+
+@pytest.mark.parametrize("noise_px", [0.0, 0.2])
+def test_rig_calibration_recovers_jm1_and_gamma(noise_px: float, rng: np.random.Generator) -> None:
+    from loopmodel.pose.calibration import CalibrationView, calibrate_rig
+
+    truth = _rig(4, 0.9)
+    # a 3-D calibration object: points on three orthogonal faces (40 cm)
+    g = np.linspace(-0.2, 0.2, 6)
+    A, B = np.meshgrid(g, g)
+    faces = [
+        np.column_stack([A.ravel(), B.ravel(), np.full(36, 0.2)]),
+        np.column_stack([A.ravel(), np.full(36, 0.2), B.ravel()]),
+        np.column_stack([np.full(36, 0.2), A.ravel(), B.ravel()]),
+    ]
+    obj = np.vstack(faces)
+    views, poses_true = [], []
+    for v in range(6):
+        T = make_pose(so3_exp(rng.normal(0, 0.35, 3)), np.array([0, 0, 0.7]) + rng.normal(0, 0.1, 3))
+        poses_true.append(T)
+        P, uv, ci = [], [], []
+        for j in range(4):
+            p_cam = (truth.cam_from_rig[j] @ T @ np.c_[obj, np.ones(len(obj))].T).T[:, :3]
+            ok = truth.cameras[j].in_front(p_cam)
+            P.append(obj[ok])
+            uv.append(truth.cameras[j].project(p_cam[ok]) + rng.normal(0, noise_px, (ok.sum(), 2)))
+            ci.append(np.full(ok.sum(), j))
+        views.append(CalibrationView(np.vstack(P), np.vstack(uv), np.concatenate(ci)))
+    cams0 = tuple(
+        CentralCamera(c.px * 1.05, c.py * 0.96, c.u0 + 6, c.v0 - 5, c.xi - 0.1) for c in truth.cameras
+    )
+    ext0 = tuple(
+        [truth.cam_from_rig[0]]
+        + [se3_exp(rng.normal(0, [0.01] * 3 + [0.02] * 3)) @ T for T in truth.cam_from_rig[1:]]
+    )
+    poses0 = [se3_exp(rng.normal(0, [0.02] * 3 + [0.03] * 3)) @ T for T in poses_true]
+    cal = calibrate_rig(views, CameraRig(cams0, ext0), poses0)
+    tol_g = 1e-6 if noise_px == 0 else 0.02  # relative (intrinsics)
+    tol_t = 1e-8 if noise_px == 0 else 2e-3  # metres
+    tol_r = 1e-6 if noise_px == 0 else 0.5  # degrees (tilt vs principal point)
+    for c_est, c_true in zip(cal.rig.cameras, truth.cameras, strict=True):
+        g_est = np.array([c_est.px, c_est.py, c_est.u0, c_est.v0, c_est.xi])
+        g_true = np.array([c_true.px, c_true.py, c_true.u0, c_true.v0, c_true.xi])
+        np.testing.assert_allclose(g_est, g_true, rtol=tol_g, atol=tol_g)
+    for E_est, E_true in zip(cal.rig.cam_from_rig, truth.cam_from_rig, strict=True):
+        assert np.linalg.norm(E_est[:3, 3] - E_true[:3, 3]) < tol_t
+        assert _rot_err_deg(E_est, E_true) < tol_r
+    assert cal.rms_px < 1e-6 + 2 * noise_px
