@@ -25,6 +25,7 @@ Sign conventions (tested in ``tests/test_vvs.py``):
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
@@ -356,6 +357,7 @@ def vvs_pose(
     scales = [0.0] * len(tlist)
     converged = False
     it = 0
+    t_start = time.perf_counter()
     for it in range(1, opt.max_iterations + 1):
         loss: Loss = "huber" if it <= opt.huber_warmup else opt.loss
         cc = default_cutoff("huber") if it <= opt.huber_warmup else c
@@ -384,6 +386,7 @@ def vvs_pose(
         if float(np.linalg.norm(v)) < opt.step_tolerance:
             converged = True
             break
+    iter_ms = 1e3 * (time.perf_counter() - t_start) / max(it, 1)
     # weights, inliers, covariance at the solution
     H = np.zeros((6, 6))
     inl, wts, norms = [], [], []
@@ -403,4 +406,6 @@ def vvs_pose(
         cov = np.linalg.inv(H)
     except np.linalg.LinAlgError:
         cov = np.full((6, 6), np.inf)
-    return PoseResult(T, inl, wts, norms, list(scales), cov, cost, it, converged)
+    return PoseResult(
+        T, inl, wts, norms, list(scales), cov, cost, it, converged, info={"iter_ms": iter_ms}
+    )
