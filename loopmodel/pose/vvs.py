@@ -106,9 +106,11 @@ class LineConics:
     valid: NDArray[np.bool_]  # (M,) C1 not ~0 and the line does not pass through the centre
 
 
-def line_conics(p0_in_cam: ArrayLike, p1_in_cam: ArrayLike, xi: float) -> LineConics:
+def line_conics(
+    p0_in_cam: ArrayLike, p1_in_cam: ArrayLike, xi: float | ArrayLike
+) -> LineConics:
     """Conics (normalised image coordinates) of 3-D lines through ``p0`` and ``p1`` (M x 3,
-    metres, camera frame) on the unified model with parameter ``xi``.
+    metres, camera frame) on the unified model with parameter ``xi`` (scalar or per line).
 
     ``Q(x, y) = a0 x^2 + a1 y^2 + 2 a2 xy + 2 a3 x + 2 a4 y + 1`` with ``a3 = A1/C1``,
     ``a4 = B1/C1``, ``a0 = (1-xi^2) a3^2 - xi^2``, ``a1 = (1-xi^2) a4^2 - xi^2``,
@@ -123,32 +125,50 @@ def line_conics(p0_in_cam: ArrayLike, p1_in_cam: ArrayLike, xi: float) -> LineCo
     """
     P0 = np.asarray(p0_in_cam, dtype=float).reshape(-1, 3)
     P1 = np.asarray(p1_in_cam, dtype=float).reshape(-1, 3)
-    n1 = np.cross(P0, P1)
-    nn = np.linalg.norm(n1, axis=1)
+    n1 = _cross(P0, P1)
+    nn = np.sqrt(np.einsum("ij,ij->i", n1, n1))
     dirn = P1 - P0
-    dirn /= np.linalg.norm(dirn, axis=1, keepdims=True)
-    n1 = n1 / np.where(nn > 0, nn, 1.0)[:, None]
-    n2 = np.cross(n1, dirn)
-    n2 /= np.maximum(np.linalg.norm(n2, axis=1, keepdims=True), 1e-300)
+    dirn /= np.sqrt(np.einsum("ij,ij->i", dirn, dirn))[:, None]
+    n1 /= np.where(nn > 0, nn, 1.0)[:, None]
+    n2 = _cross(n1, dirn)
+    n2 /= np.maximum(np.sqrt(np.einsum("ij,ij->i", n2, n2)), 1e-300)[:, None]
     d2 = -np.einsum("ij,ij->i", n2, P0)
     A1, B1, C1 = n1[:, 0], n1[:, 1], n1[:, 2]
     valid = (np.abs(C1) > 1e-6) & (nn > 1e-12) & (np.abs(d2) > 1e-9)
     C1s = np.where(valid, C1, 1.0)
     d2s = np.where(valid, d2, 1.0)
     a3, a4 = A1 / C1s, B1 / C1s
-    k = 1.0 - xi * xi
-    a = np.column_stack([k * a3 * a3 - xi * xi, k * a4 * a4 - xi * xi, k * a3 * a4, a3, a4])
+    xi2 = np.asarray(xi, dtype=float) ** 2
+    k = 1.0 - xi2
+    M = P0.shape[0]
+    a = np.empty((M, 5))
+    a[:, 0] = k * a3 * a3 - xi2
+    a[:, 1] = k * a4 * a4 - xi2
+    a[:, 2] = k * a3 * a4
+    a[:, 3] = a3
+    a[:, 4] = a4
     alpha = (n2[:, 0] - a3 * n2[:, 2]) / d2s
     beta = (n2[:, 1] - a4 * n2[:, 2]) / d2s
-    M = P0.shape[0]
     L = np.empty((M, 5, 6))
-    L3 = np.column_stack([-alpha * a3, -alpha * a4, -alpha, a3 * a4, -(1.0 + a3 * a3), a4])
-    L4 = np.column_stack([-beta * a3, -beta * a4, -beta, 1.0 + a4 * a4, -a3 * a4, -a3])
-    L[:, 3], L[:, 4] = L3, L4
-    L[:, 0] = (2.0 * k * a3)[:, None] * L3
-    L[:, 1] = (2.0 * k * a4)[:, None] * L4
-    L[:, 2] = k * (a3[:, None] * L4 + a4[:, None] * L3)
+    L3, L4 = L[:, 3], L[:, 4]
+    L3[:, 0], L3[:, 1], L3[:, 2] = -alpha * a3, -alpha * a4, -alpha
+    L3[:, 3], L3[:, 4], L3[:, 5] = a3 * a4, -(1.0 + a3 * a3), a4
+    L4[:, 0], L4[:, 1], L4[:, 2] = -beta * a3, -beta * a4, -beta
+    L4[:, 3], L4[:, 4], L4[:, 5] = 1.0 + a4 * a4, -a3 * a4, -a3
+    k2 = np.broadcast_to(k, (M,))[:, None]
+    L[:, 0] = (2.0 * a3)[:, None] * k2 * L3
+    L[:, 1] = (2.0 * a4)[:, None] * k2 * L4
+    L[:, 2] = k2 * (a3[:, None] * L4 + a4[:, None] * L3)
     return LineConics(a, L, n1, n2, d2, valid)
+
+
+def _cross(a: F64, b: F64) -> F64:
+    """Row-wise cross product of (n, 3) arrays (faster than np.cross for small n)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
 
 
 def conic_value(a: F64, xy: F64) -> F64:
@@ -249,68 +269,64 @@ class LineTerm:
             self.min_scale = 1e-4 if self.distance == "algebraic" else 0.3
         if self.line_index.shape[0] != k or self.cam_index.shape[0] != k:
             raise ValueError("line_index and cam_index need one entry per edge point")
-        self.xy = np.empty((k, 2))
-        self._groups = [np.flatnonzero(self.cam_index == j) for j in range(len(self.rig))]
-        self._V = [twist_transform(T) for T in self.rig.cam_from_rig]
-        for j, idx in enumerate(self._groups):
-            cam = self.rig.cameras[j]
-            self.xy[idx, 0] = (self.uv_px[idx, 0] - cam.u0) / cam.px
-            self.xy[idx, 1] = (self.uv_px[idx, 1] - cam.v0) / cam.py
+        cams = self.rig.cameras
+        ci = self.cam_index
+        f = np.array([[c.px, c.py] for c in cams]).reshape(-1, 2)
+        c0 = np.array([[c.u0, c.v0] for c in cams]).reshape(-1, 2)
+        self.xy = (self.uv_px - c0[ci]) / f[ci]
+        self._px = f[ci, 0]
+        # the (camera, line) pairs that are observed, and each point's pair
+        n_lines = self.lines_in_ref.shape[0]
+        pairs, self._pair = np.unique(ci * n_lines + self.line_index, return_inverse=True)
+        self._pair_cam = pairs // n_lines
+        self._pair_line = pairs % n_lines
+        self._pair_xi = np.array([c.xi for c in cams])[self._pair_cam]
+        E = np.stack(self.rig.cam_from_rig)
+        self._R = E[self._pair_cam, :3, :3]
+        self._t = E[self._pair_cam, :3, 3]
+        self._Vp = np.stack([twist_transform(T) for T in self.rig.cam_from_rig])[self._pair_cam]
 
     def __len__(self) -> int:
         return int(self.uv_px.shape[0])
 
-    def _conics(self, rig_from_ref: F64, j: int) -> LineConics:
-        T = self.rig.cam_from_rig[j] @ rig_from_ref
-        E = self.lines_in_ref @ T[:3, :3].T + T[:3, 3]
-        return line_conics(E[:, 0], E[:, 1], self.rig.cameras[j].xi)
+    def _pair_conics(self, rig_from_ref: F64) -> LineConics:
+        ends = self.lines_in_ref[self._pair_line] @ rig_from_ref[:3, :3].T + rig_from_ref[:3, 3]
+        ends = np.einsum("pij,pej->pei", self._R, ends) + self._t[:, None, :]
+        return line_conics(ends[:, 0], ends[:, 1], self._pair_xi)
 
     def residuals(self, rig_from_ref: F64) -> F64:
-        r = np.zeros((len(self), 1))
-        for j, idx in enumerate(self._groups):
-            if idx.size == 0:
-                continue
-            lc = self._conics(rig_from_ref, j)
-            li = self.line_index[idx]
-            q = conic_value(lc.a[li], self.xy[idx]) * self._norm(lc.a[li], idx, j)
-            r[idx, 0] = np.where(lc.valid[li], q, 0.0)
-        return r
-
-    def _norm(self, a: F64, idx: NDArray[np.int64], j: int) -> F64 | float:
-        if self.distance == "algebraic":
-            return 1.0
-        g = np.linalg.norm(conic_gradient(a, self.xy[idx]), axis=1)
-        return self.rig.cameras[j].px / np.maximum(g, 1e-12)
+        lc = self._pair_conics(rig_from_ref)
+        a = lc.a[self._pair]
+        q = conic_value(a, self.xy)
+        if self.distance == "normalized":
+            g = conic_gradient(a, self.xy)
+            q = self._px * q / np.maximum(np.sqrt(np.einsum("ij,ij->i", g, g)), 1e-12)
+        return np.where(lc.valid[self._pair], q, 0.0)[:, None]
 
     def residuals_and_jacobian(self, rig_from_ref: F64) -> tuple[F64, F64]:
-        r = np.zeros((len(self), 1))
-        J = np.zeros((len(self), 1, 6))
-        for j, idx in enumerate(self._groups):
-            if idx.size == 0:
-                continue
-            lc = self._conics(rig_from_ref, j)
-            li = self.line_index[idx]
-            ok = lc.valid[li]
-            a = lc.a[li]
-            xy = self.xy[idx]
-            La = lc.L_a[li]
-            q = conic_value(a, xy)
-            Ld = distance_interaction_matrix(a, La, xy)
-            if self.distance == "normalized":
-                # d = px Q / |grad Q|:  d' = px (Q' - (Q/|g|) (g/|g|) . g') / |g|
-                g = conic_gradient(a, xy)
-                gn = np.maximum(np.linalg.norm(g, axis=1), 1e-12)
-                x, y = xy[:, 0:1], xy[:, 1:2]
-                dgx = 2 * (x * La[:, 0] + y * La[:, 2] + La[:, 3])
-                dgy = 2 * (y * La[:, 1] + x * La[:, 2] + La[:, 4])
-                dgn = (g[:, 0:1] * dgx + g[:, 1:2] * dgy) / gn[:, None]
-                px = self.rig.cameras[j].px
-                Ld = px * (Ld - (q / gn)[:, None] * dgn) / gn[:, None]
-                q = px * q / gn
-            Ld = Ld @ self._V[j]
-            r[idx, 0] = np.where(ok, q, 0.0)
-            J[idx, 0] = np.where(ok[:, None], -Ld, 0.0)
-        return r, J
+        lc = self._pair_conics(rig_from_ref)
+        # interaction matrices of the conic coefficients for the rig velocity: L_a jV1
+        LaV = np.einsum("pcd,pde->pce", lc.L_a, self._Vp)[self._pair]
+        a = lc.a[self._pair]
+        xy = self.xy
+        x, y = xy[:, 0:1], xy[:, 1:2]
+        q = conic_value(a, xy)
+        # L_da = x^2 L_a0 + y^2 L_a1 + 2xy L_a2 + 2x L_a3 + 2y L_a4   (eq. 25)
+        Ld = x * x * LaV[:, 0] + y * y * LaV[:, 1] + 2 * x * y * LaV[:, 2]
+        Ld += 2 * x * LaV[:, 3] + 2 * y * LaV[:, 4]
+        if self.distance == "normalized":
+            # d = px Q / |grad Q|:  d' = px (Q' - (Q/|g|) (g/|g|) . g') / |g|
+            g = conic_gradient(a, xy)
+            gn = np.maximum(np.sqrt(np.einsum("ij,ij->i", g, g)), 1e-12)
+            gx, gy = g[:, 0:1] / gn[:, None], g[:, 1:2] / gn[:, None]
+            dgn = 2 * (gx * (x * LaV[:, 0] + y * LaV[:, 2] + LaV[:, 3]))
+            dgn += 2 * (gy * (y * LaV[:, 1] + x * LaV[:, 2] + LaV[:, 4]))
+            Ld = (self._px / gn)[:, None] * (Ld - (q / gn)[:, None] * dgn)
+            q = self._px * q / gn
+        ok = lc.valid[self._pair]
+        if ok.all():
+            return q[:, None], -Ld[:, None, :]
+        return np.where(ok, q, 0.0)[:, None], np.where(ok[:, None], -Ld, 0.0)[:, None, :]
 
 
 # --------------------------------------------------------------------------- control law
@@ -327,7 +343,7 @@ class VvsOptions:
     scale: Literal["mad", "median_norm"] = "mad"  # centred MAD (dim 1) or median norm
     weighting: Literal["irls", "paper"] = "irls"  # D = diag(sqrt(w)) or the paper's diag(w)
     max_iterations: int = 30
-    step_tolerance: float = 1e-7  # stop when |v| (m, rad) is below
+    step_tolerance: float = 1e-6  # stop when |v| (m, rad) is below
     huber_warmup: int = 0  # first iterations with Huber (for starts far from the solution)
     freeze_scale_after: int = 3  # re-estimate the scale during the first iterations only
     inlier_cutoff: float = 4.6851
@@ -358,24 +374,27 @@ def vvs_pose(
     converged = False
     it = 0
     t_start = time.perf_counter()
+    last: list[tuple[F64, F64, F64]] = []  # (residuals, Jacobian, weights) of the last iteration
+    H = np.zeros((6, 6))
     for it in range(1, opt.max_iterations + 1):
         loss: Loss = "huber" if it <= opt.huber_warmup else opt.loss
         cc = default_cutoff("huber") if it <= opt.huber_warmup else c
         H = np.zeros((6, 6))
         g = np.zeros(6)
+        last = []
         for k, term in enumerate(tlist):
             r, J = term.residuals_and_jacobian(T)
             n = np.linalg.norm(r, axis=1) if term.dim > 1 else np.abs(r[:, 0])
             if it <= max(opt.freeze_scale_after, opt.huber_warmup + 1) or scales[k] == 0.0:
                 scales[k] = _term_scale(term, r, n, opt)
             w = weights(n / scales[k], loss, cc)
+            last.append((r, J, w))
             if opt.weighting == "paper":
                 w = w * w  # (D L)^+ D e with D = diag(w) weights the normal equations by w^2
             # L = -J (camera velocity); v = -lambda (D L)^+ D e = -lambda (L^T W L)^-1 L^T W e
             Lf = -J.reshape(-1, 6) / scales[k]
             ef = r.ravel() / scales[k]
-            wf = np.repeat(w, term.dim)
-            Lw = Lf * wf[:, None]
+            Lw = Lf * np.repeat(w, term.dim)[:, None]
             H += Lw.T @ Lf
             g += Lw.T @ ef
         try:
@@ -387,17 +406,23 @@ def vvs_pose(
             converged = True
             break
     iter_ms = 1e3 * (time.perf_counter() - t_start) / max(it, 1)
-    # weights, inliers, covariance at the solution
-    H = np.zeros((6, 6))
+    # weights, inliers, covariance: from the last iteration when it converged (the final
+    # step is below the tolerance), else re-evaluated at the returned pose
+    if not (converged and opt.loss == loss and opt.weighting == "irls"):
+        last = []
+        H = np.zeros((6, 6))
+        for k, term in enumerate(tlist):
+            r, J = term.residuals_and_jacobian(T)
+            n = np.linalg.norm(r, axis=1)
+            w = weights(n / scales[k], opt.loss, c)
+            Jf = J.reshape(-1, 6) / scales[k]
+            H += (Jf * np.repeat(w, term.dim)[:, None]).T @ Jf
+            last.append((r, J, w))
     inl, wts, norms = [], [], []
     cost = 0.0
-    for k, term in enumerate(tlist):
-        r, J = term.residuals_and_jacobian(T)
+    for k, (r, _J, w) in enumerate(last):
         n = np.linalg.norm(r, axis=1)
         s = scales[k]
-        w = weights(n / s, opt.loss, c)
-        Jf = J.reshape(-1, 6)
-        H += (Jf * np.repeat(w, term.dim)[:, None]).T @ Jf / (s * s)
         cost += float(np.sum(rho(n / s, opt.loss, c)) * s * s)
         inl.append(n < opt.inlier_cutoff * s)
         wts.append(w)
