@@ -270,7 +270,8 @@ def test_n_cameras_consistent_noiseless(rng: np.random.Generator) -> None:
     # the control law with a gain < 1 reaches the same pose (exponential decrease of e)
     rig = _rig(2, 0.5)
     P, uv, ci = _simulate_points(rig, T_true, 80, rng)
-    res = vvs_pose(PointTerm(rig, P, uv, ci), T0, VvsOptions(loss="l2", gain=0.5, max_iterations=80, step_tolerance=1e-11))
+    opt = VvsOptions(loss="l2", gain=0.5, max_iterations=80, step_tolerance=1e-11)
+    res = vvs_pose(PointTerm(rig, P, uv, ci), T0, opt)
     assert np.linalg.norm(res.rig_from_ref - T_true) < 1e-7
 
 
@@ -289,7 +290,7 @@ def test_rig_calibration_recovers_jm1_and_gamma(noise_px: float, rng: np.random.
     ]
     obj = np.vstack(faces)
     views, poses_true = [], []
-    for v in range(6):
+    for _ in range(6):
         T = make_pose(so3_exp(rng.normal(0, 0.35, 3)), np.array([0, 0, 0.7]) + rng.normal(0, 0.1, 3))
         poses_true.append(T)
         P, uv, ci = [], [], []

@@ -143,7 +143,8 @@ def calibrate_rig(
     converged = False
     it = 0
     scale = min_scale_px
-    for it in range(1, max_iterations + 1):
+    while it < max_iterations:
+        it += 1
         r, J = evaluate(gammas, extr, poses, True)
         assert J is not None
         n = np.hypot(r[0::2], r[1::2])

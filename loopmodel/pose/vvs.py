@@ -244,7 +244,8 @@ class LineTerm:
     ``s* = 0``); Jacobian w.r.t. a left twist of ``rig_from_ref`` (``J = -L_da jV1``).
 
     ``distance = "normalized"`` divides ``Q`` by ``|grad Q| / px`` at the edge point (first-
-    order geometric distance in pixels, exact Jacobian): the same zero set, but every line gets the same metric, whereas the
+    order geometric distance in pixels, exact Jacobian): the same zero set, but every line
+    gets the same metric, whereas the
     algebraic distance grows with the conic's coefficients (lines whose interpretation plane
     nearly contains the optical axis dominate and Gauss-Newton converges poorly).
     """

@@ -21,6 +21,7 @@ edge; the strongest (contrast x orientation) wins, and its position gets Gaussia
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,6 +35,7 @@ from loopmodel.pose.tracking import PolyhedronModel, TrackerOptions
 from loopmodel.pose.vvs import conic_gradient, line_conics
 
 BOX_SIZE_M = (0.30, 0.25, 0.20)
+_SIDE_M = 0.08  # distance between neighbouring mirror foci
 
 
 @dataclass
@@ -95,7 +97,7 @@ def _cast(scene: o3d.t.geometry.RaycastingScene, origin: F64, dirs: F64) -> F64:
 
 
 def omni_sensor(
-    side_m: float = 0.09,
+    side_m: float = _SIDE_M,
     mirror_radius_m: float = 0.035,
     semi_latus_m: float = 0.02,
     image_size: tuple[int, int] = (1024, 1024),
@@ -180,37 +182,70 @@ def clutter_scene(sensor: OmniSensor, seed: int = 7, n_boxes: int = 16, n_poster
         R = 2.2
         c, t = np.array([np.cos(az), np.sin(az), 0.0]), np.array([-np.sin(az), np.cos(az), 0.0])
         base = R * c + [0, 0, zc]
-        corners = [base + a * w / 2 * t + b * hgt / 2 * np.array([0, 0, 1.0]) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+        up = np.array([0, 0, 1.0])
+        corners = [base + a * w / 2 * t + b * hgt / 2 * up for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
         L = np.array([[corners[i], corners[(i + 1) % 4]] for i in range(4)])
         lines.append(L)
         contrast.append(rng.uniform(0.2, 1.3, 4))
+    # a bookshelf behind the inter-reflection zone of mirrors 1 and 4: shelf boards and
+    # the front rectangles of many books (dense edges parallel to the box edges)
+    centre = np.array([0.5, 0.5, 0.0]) * _SIDE_M
+    for az_deg in np.arange(20.0, 72.0, 1.6):
+        az = np.deg2rad(az_deg + rng.uniform(-0.4, 0.4))
+        c, t = np.array([np.cos(az), np.sin(az), 0.0]), np.array([-np.sin(az), np.cos(az), 0.0])
+        for shelf_z in (-0.45, -0.12, 0.21):  # z down: shelf bottoms
+            if rng.random() < 0.15:
+                continue  # a gap
+            height = rng.uniform(0.15, 0.3)
+            width = rng.uniform(0.015, 0.035)
+            base = centre + 1.25 * c + [0, 0, shelf_z]
+            top = base - [0, 0, height]
+            corners = [base - width / 2 * t, base + width / 2 * t, top + width / 2 * t, top - width / 2 * t]
+            lines.append(np.array([[corners[i], corners[(i + 1) % 4]] for i in range(4)]))
+            contrast.append(rng.uniform(0.3, 1.0, 4))
+    for shelf_z in (-0.45, -0.12, 0.21, 0.5):
+        a0, a1 = np.deg2rad(18.0), np.deg2rad(74.0)
+        pts = [centre + 1.25 * np.array([np.cos(a), np.sin(a), 0.0]) + [0, 0, shelf_z] for a in np.linspace(a0, a1, 7)]
+        lines.append(np.array([[pts[i], pts[i + 1]] for i in range(6)]))
+        contrast.append(rng.uniform(0.4, 1.0, 6))
     con = np.concatenate(contrast)
     pol = rng.choice([-1.0, 1.0], len(con))
     return ClutterScene(np.vstack(lines), con, pol, boxes, sensor)
 
 
 def box_trajectory(n_frames: int = 312, seed: int = 3) -> list[F64]:
-    """``sensor_from_box`` of a hand-held box: centre 35-75 cm from the sensor, sweeping
-    about 250 degrees of azimuth and passing behind mirror 4 as seen from mirror 1 (the
-    inter-reflection zone of the diagonal pair) in the last third, with hand-held
-    rotations and a little tremor."""
+    """``sensor_from_box`` of a hand-held box (10 frames/s): centre 40-70 cm from the
+    sensor, sweeping about 200 degrees of azimuth around it, turned and tilted by the hand;
+    in the last fifth it moves, shaken faster, into the inter-reflection zone of the
+    diagonal mirrors 1 and 4 (behind mirror 4 as seen from mirror 1, at mirror height)."""
+    from scipy.interpolate import PchipInterpolator
+
     rng = np.random.default_rng(seed)
-    t = np.linspace(0.0, 1.0, n_frames)
-    az = np.deg2rad(-150 + 200 * t + 8 * np.sin(2 * np.pi * 2.3 * t))
-    dist = 0.55 + 0.18 * np.sin(2 * np.pi * 1.4 * t + 0.4)
-    z = 0.03 + 0.06 * np.sin(2 * np.pi * 1.1 * t)
+    u = np.linspace(0.0, 1.0, n_frames)
+    keys = np.array([0.0, 0.2, 0.4, 0.6, 0.77, 0.87, 1.0])
+
+    def curve(values: list[float]) -> F64:
+        return np.asarray(PchipInterpolator(keys, values)(u))
+
+    az = np.deg2rad(curve([-150, -100, -45, -5, 30, 45, 47]) + 6 * np.sin(2 * np.pi * 2.3 * u))
+    dist = curve([0.55, 0.42, 0.65, 0.45, 0.60, 0.70, 0.70])
+    z = curve([0.05, 0.08, 0.0, 0.06, 0.01, -0.025, -0.025])
+    shake = np.clip((u - 0.77) / 0.1, 0.0, 1.0)  # faster hand motion at the end
+    t_s = np.arange(n_frames) / 10.0
     # radial frame (x out, y tangential, z down); the box shows a corner (two side faces)
     # and, tilted towards the sensor, its top face; the hand turns and tilts it
-    spin = np.deg2rad(45 + 35 * np.sin(2 * np.pi * 1.7 * t))
-    tilt = np.deg2rad(22 + 10 * np.sin(2 * np.pi * 1.3 * t + 2.0))
-    roll = np.deg2rad(8 * np.sin(2 * np.pi * 0.9 * t + 1.0))
-    tremor = rng.normal(0, 0.0015, (n_frames, 3))
+    spin = np.deg2rad(45 + 35 * np.sin(2 * np.pi * 1.7 * u) + 15 * shake * np.sin(2 * np.pi * 0.8 * t_s))
+    tilt = np.deg2rad(22 + 10 * np.sin(2 * np.pi * 1.3 * u + 2.0) + 8 * shake * np.sin(2 * np.pi * 0.6 * t_s))
+    roll = np.deg2rad(8 * np.sin(2 * np.pi * 0.9 * u + 1.0))
+    z = z + 0.015 * shake * np.sin(2 * np.pi * 0.7 * t_s + 1.0)
+    tremor = rng.normal(0, 0.0015, (n_frames, 3)) * (1.0 + shake)[:, None]
+    centre = np.array([0.5, 0.5, 0.0])  # the sensor centre between the mirrors, metres/side
     out = []
     for k in range(n_frames):
         R = so3_exp([0, 0, az[k]]) @ so3_exp([0, tilt[k], 0]) @ so3_exp([roll[k], 0, 0])
         R = R @ so3_exp([0, 0, spin[k]])
         p = np.array([dist[k] * np.cos(az[k]), dist[k] * np.sin(az[k]), z[k]]) + tremor[k]
-        out.append(make_pose(R, p))
+        out.append(make_pose(R, p + centre * _SIDE_M))
     return out
 
 
@@ -252,6 +287,7 @@ class MovingEdgeSimulator:
     max_angle_deg: float = 30.0
     contrast_low: float = 0.5
     contrast_high: float = 1.5
+    min_contrast: float = 0.3  # the gradient threshold: weaker edges are not detected
     spurious_rate: float = 0.15  # texture edges per search (Poisson mean)
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
 
@@ -315,6 +351,7 @@ class MovingEdgeSimulator:
             keep &= polarity[ki] == site_pol[si]
             ratio = contrast[ki] * cosang / expected[si]
             keep &= (ratio >= self.contrast_low) & (ratio <= self.contrast_high)
+            keep &= contrast[ki] * cosang >= self.min_contrast
             if keep.any():
                 idx = np.flatnonzero(keep)
                 vis = self._visible(m, rays[idx], lam[idx], ki[idx])
@@ -331,9 +368,11 @@ class MovingEdgeSimulator:
             for _ in range(n_sp[i]):
                 if self.rng.random() < 0.5:
                     continue  # wrong polarity
-                ratio_i = self.rng.uniform(0.1, 1.3) / expected[i]
+                c_i = self.rng.uniform(0.1, 1.3)
+                ratio_i = c_i / expected[i]
                 dis_i = abs(np.log(ratio_i))
-                if self.contrast_low <= ratio_i <= self.contrast_high and dis_i < best[i]:
+                ok_i = self.contrast_low <= ratio_i <= self.contrast_high and c_i >= self.min_contrast
+                if ok_i and dis_i < best[i]:
                     best[i] = dis_i
                     found[i] = True
                     pos[i] = self.rng.uniform(-self.search_px, self.search_px)
@@ -380,9 +419,14 @@ def simulate_tracking(
     lost_rot_deg: float = 5.0,
     lost_pos_mm: float = 50.0,
     options: TrackerOptions | None = None,
+    search_px: int = 10,
+    edge_noise_px: float = 0.15,
+    progress: Callable[[int], None] | None = None,
+    start_frame: int = 0,
 ) -> TrackingRun:
     """Track the box through the simulated sequence with the listed mirrors, starting from
-    the true first pose. A frame is lost when the tracker fails or the pose error exceeds
+    the true pose of ``start_frame`` (frames before it are skipped). A frame is lost when
+    the tracker fails or the pose error exceeds
     ``lost_rot_deg`` / ``lost_pos_mm``; tracking continues from the estimate (no reset)."""
     import time
 
@@ -394,12 +438,12 @@ def simulate_tracking(
     clutter = clutter_scene(sensor)
     model = PolyhedronModel.box(BOX_SIZE_M)
     rig = sensor.rig(mirrors)
-    truth = box_trajectory(n_frames)
+    truth = box_trajectory(n_frames)[start_frame:]
     rng = np.random.default_rng(seed)
     phase = rng.uniform(0, 2 * np.pi, len(model.edges))
     polarity = rng.choice([-1.0, 1.0], len(model.edges))
     T = truth[0].copy()
-    n = n_frames
+    n = len(truth)
     rot, pos = np.zeros(n), np.zeros(n)
     matched, inl = np.zeros(n, np.int64), np.zeros(n, np.int64)
     ok, it_ms, fr_ms = np.zeros(n, bool), np.zeros(n), np.zeros(n)
@@ -409,10 +453,12 @@ def simulate_tracking(
 
     for k in range(n):
         # illumination changes: each edge's contrast drifts between 0.25 and 0.95
-        contrast = 0.6 + 0.35 * np.sin(2 * np.pi * k / 90.0 + phase)
-        previous = 0.6 + 0.35 * np.sin(2 * np.pi * (k - 1) / 90.0 + phase)
+        kk = k + start_frame
+        contrast = 0.6 + 0.35 * np.sin(2 * np.pi * kk / 90.0 + phase)
+        previous = 0.6 + 0.35 * np.sin(2 * np.pi * (kk - 1) / 90.0 + phase)
         me = MovingEdgeSimulator(
-            sensor, clutter, model, truth[k], contrast, previous, polarity, mirrors, rng=rng
+            sensor, clutter, model, truth[k], contrast, previous, polarity, mirrors,
+            search_px=search_px, noise_px=edge_noise_px, rng=rng,
         )
         t0 = time.perf_counter()
         res = track_frame(rig, model, T, me.measure, opt, valid)
@@ -422,5 +468,91 @@ def simulate_tracking(
         pos[k] = 1e3 * float(np.linalg.norm(T[:3, 3] - truth[k][:3, 3]))
         matched[k], inl[k], ok[k] = res.num_matched, res.num_inliers, res.ok
         it_ms[k] = res.vvs.info.get("iter_ms", np.nan) if res.vvs is not None else np.nan
+        if progress is not None:
+            progress(k)
     lost = (~ok) | (rot > lost_rot_deg) | (pos > lost_pos_mm)
     return TrackingRun(mirrors, rot, pos, matched, inl, ok, it_ms, fr_ms, lost)
+
+
+def tracking_csv(runs: list[TrackingRun]) -> str:
+    """Per-frame errors of one or more runs as CSV text (one block of columns per run)."""
+    cols = ["frame"]
+    for r in runs:
+        tag = f"m{len(r.mirrors)}"
+        names = ("rot_err_deg", "pos_err_mm", "matched", "inliers", "ok", "lost", "iter_ms", "frame_ms")
+        cols += [f"{tag}_{c}" for c in names]
+    lines = [",".join(cols)]
+    n = len(runs[0].rot_err_deg)
+    for k in range(n):
+        row = [str(k)]
+        for r in runs:
+            row += [
+                repr(float(r.rot_err_deg[k])), repr(float(r.pos_err_mm[k])), str(int(r.num_matched[k])),
+                str(int(r.num_inliers[k])), str(int(r.tracker_ok[k])), str(int(r.lost[k])),
+                repr(float(r.iter_ms[k])), repr(float(r.frame_ms[k])),
+            ]
+        lines.append(",".join(row))
+    return "\n".join(lines) + "\n"
+
+
+def tracking_figure(runs: list[TrackingRun]) -> object:
+    """Rotation and position errors per frame (log scale), lost frames shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
+    for r in runs:
+        label = f"{len(r.mirrors)} mirrors ({int(r.lost.sum())} lost)"
+        frames = np.arange(len(r.rot_err_deg))
+        axes[0].semilogy(frames, np.maximum(r.rot_err_deg, 1e-4), label=label)
+        axes[1].semilogy(frames, np.maximum(r.pos_err_mm, 1e-3), label=label)
+        axes[2].plot(frames, r.num_inliers, label=label)
+    axes[0].set_ylabel("rotation error (deg)")
+    axes[1].set_ylabel("position error (mm)")
+    axes[2].set_ylabel("inlier edge points")
+    axes[2].set_xlabel("frame")
+    for ax in axes:
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(loc="upper left", fontsize=8)
+    fig.suptitle("VVS tracking of the box, simulated omnidirectional stereo sensor")
+    fig.tight_layout()
+    return fig
+
+
+def calibration_views(
+    sensor: OmniSensor, n_views: int = 8, noise_px: float = 0.3, seed: int = 0
+) -> tuple[list[tuple[F64, F64, NDArray[np.int64]]], list[F64]]:
+    """Views of a 3-D calibration object (points on three faces of a 40 cm corner) around
+    the sensor: per view ``(p_in_ref, uv_px, cam_index)`` and the true ``sensor_from_ref``.
+    Points hidden by the other mirrors or outside a rim are not observed."""
+    rng = np.random.default_rng(seed)
+    g = np.linspace(-0.15, 0.15, 6)
+    A, B = np.meshgrid(g, g)
+    obj = np.vstack(
+        [
+            np.column_stack([A.ravel(), B.ravel(), np.full(A.size, -0.15)]),
+            np.column_stack([A.ravel(), np.full(A.size, -0.15), B.ravel()]),
+            np.column_stack([np.full(A.size, -0.15), A.ravel(), B.ravel()]),
+        ]
+    )
+    rig = sensor.rig()
+    views, poses = [], []
+    for v in range(n_views):
+        az = 2 * np.pi * v / n_views + rng.uniform(-0.3, 0.3)
+        d = rng.uniform(0.45, 0.7)
+        R = so3_exp([0, 0, az + np.pi + np.pi / 4]) @ so3_exp(rng.normal(0, 0.2, 3))
+        T = make_pose(R, [d * np.cos(az), d * np.sin(az), rng.uniform(-0.05, 0.1)])
+        P, uv, ci = [], [], []
+        for j, cam in enumerate(rig.cameras):
+            p_cam = obj @ (rig.cam_from_rig[j] @ T)[:3, :3].T + (rig.cam_from_rig[j] @ T)[:3, 3]
+            ok = cam.in_front(p_cam)
+            pix = cam.project(p_cam[ok])
+            keep = sensor.valid(j, pix)
+            P.append(obj[ok][keep])
+            uv.append(pix[keep] + rng.normal(0, noise_px, (int(keep.sum()), 2)))
+            ci.append(np.full(int(keep.sum()), j))
+        views.append((np.vstack(P), np.vstack(uv), np.concatenate(ci)))
+        poses.append(T)
+    return views, poses
