@@ -269,8 +269,9 @@ class MovingEdgeSimulator:
 
     Like ViSP's moving edges, a site accepts a candidate only with the polarity of its edge
     and a contrast within ``[contrast_low, contrast_high]`` times the contrast it measured
-    in the previous frame (``expected_contrast``); among those, the most similar contrast
-    wins. Positions are found on the integer pixel grid along the normal (quantisation)
+    in the previous frame (``expected_contrast``, per rig camera and model edge: the sites'
+    memory, which follows whatever they matched, clutter included); among those, the most
+    similar contrast wins. ``matched`` records, per camera, what the sites matched. Positions are found on the integer pixel grid along the normal (quantisation)
     after Gaussian image noise ``noise_px``.
     """
 
@@ -279,8 +280,9 @@ class MovingEdgeSimulator:
     model: PolyhedronModel
     sensor_from_box: F64
     box_contrast: F64  # (E,) this frame
-    expected_contrast: F64  # (E,) what each edge's sites measured in the previous frame
-    box_polarity: F64  # (E,) +-1
+    expected_contrast: F64  # (N, E) what each camera's edge sites matched in the last frame
+    box_polarity: F64  # (E,) +-1 (true edges)
+    site_polarity: F64  # (N, E) +-1 the polarity each camera's edge sites look for
     mirrors: tuple[int, ...]
     search_px: int = 10
     noise_px: float = 0.15
@@ -290,6 +292,7 @@ class MovingEdgeSimulator:
     min_contrast: float = 0.3  # the gradient threshold: weaker edges are not detected
     spurious_rate: float = 0.15  # texture edges per search (Poisson mean)
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
+    matched: dict[int, tuple[NDArray[np.int64], F64, F64]] = field(default_factory=dict)
 
     def measure(
         self, j: int, uv: F64, normals: F64, line_index: NDArray[np.int64]
@@ -327,8 +330,10 @@ class MovingEdgeSimulator:
         found = np.zeros(len(uv), dtype=bool)
         pos = np.zeros(len(uv))
         best = np.full(len(uv), np.inf)  # contrast dissimilarity of the chosen candidate
-        expected = self.expected_contrast[line_index]
-        site_pol = self.box_polarity[line_index]
+        expected = self.expected_contrast[j, line_index]
+        site_pol = self.site_polarity[j, line_index]
+        got_c = np.zeros(len(uv))
+        got_p = np.zeros(len(uv))
         if si.size:
             q = p[si] + s[:, None] * nn[si]
             rays = cam.lift(q * [cam.px, cam.py] + [cam.u0, cam.v0])
@@ -362,12 +367,14 @@ class MovingEdgeSimulator:
                 best[si[sel]] = dis[order]
                 found[si[sel]] = True
                 pos[si[sel]] = s[sel]
+                got_c[si[sel]] = contrast[ki[sel]] * cosang[sel]
+                got_p[si[sel]] = polarity[ki[sel]]
         # background texture: spurious edges of random polarity and contrast
         n_sp = self.rng.poisson(self.spurious_rate, len(uv))
         for i in np.flatnonzero(n_sp):
             for _ in range(n_sp[i]):
                 if self.rng.random() < 0.5:
-                    continue  # wrong polarity
+                    continue  # the other polarity
                 c_i = self.rng.uniform(0.1, 1.3)
                 ratio_i = c_i / expected[i]
                 dis_i = abs(np.log(ratio_i))
@@ -376,7 +383,9 @@ class MovingEdgeSimulator:
                     best[i] = dis_i
                     found[i] = True
                     pos[i] = self.rng.uniform(-self.search_px, self.search_px)
+                    got_c[i], got_p[i] = c_i, site_pol[i]
         pos = np.clip(np.round(pos + self.rng.normal(0, self.noise_px, len(uv))), -self.search_px, self.search_px)
+        self.matched[j] = (line_index[found], got_c[found], got_p[found])
         return found, uv + pos[:, None] * normals
 
     def _visible(self, m: int, rays: F64, lam: F64, line_k: NDArray[np.int64]) -> NDArray[np.bool_]:
@@ -451,18 +460,25 @@ def simulate_tracking(
     def valid(j: int, uv: F64) -> NDArray[np.bool_]:
         return sensor.valid(mirrors[j], uv)
 
+    # the edge sites' memory (per camera and model edge), initialised on the first image
+    site_c = np.tile(0.6 + 0.35 * np.sin(2 * np.pi * start_frame / 90.0 + phase), (len(mirrors), 1))
+    site_p = np.tile(polarity, (len(mirrors), 1))
     for k in range(n):
         # illumination changes: each edge's contrast drifts between 0.25 and 0.95
         kk = k + start_frame
         contrast = 0.6 + 0.35 * np.sin(2 * np.pi * kk / 90.0 + phase)
-        previous = 0.6 + 0.35 * np.sin(2 * np.pi * (kk - 1) / 90.0 + phase)
         me = MovingEdgeSimulator(
-            sensor, clutter, model, truth[k], contrast, previous, polarity, mirrors,
+            sensor, clutter, model, truth[k], contrast, site_c, polarity, site_p, mirrors,
             search_px=search_px, noise_px=edge_noise_px, rng=rng,
         )
         t0 = time.perf_counter()
         res = track_frame(rig, model, T, me.measure, opt, valid)
         fr_ms[k] = 1e3 * (time.perf_counter() - t0)
+        for j, (li, cj, pj) in me.matched.items():
+            for m in np.unique(li):
+                sel = li == m
+                site_c[j, m] = float(np.median(cj[sel]))
+                site_p[j, m] = 1.0 if pj[sel].sum() >= 0 else -1.0
         T = res.rig_from_ref
         rot[k] = float(np.degrees(np.linalg.norm(so3_log(T[:3, :3].T @ truth[k][:3, :3]))))
         pos[k] = 1e3 * float(np.linalg.norm(T[:3, 3] - truth[k][:3, 3]))
