@@ -321,3 +321,54 @@ def test_rig_calibration_recovers_jm1_and_gamma(noise_px: float, rng: np.random.
         assert np.linalg.norm(E_est[:3, 3] - E_true[:3, 3]) < tol_t
         assert _rot_err_deg(E_est, E_true) < tol_r
     assert cal.rms_px < 1e-6 + 2 * noise_px
+
+
+def test_omni_sensor_masks_the_other_mirrors() -> None:
+    from loopmodel.sim.omni import omni_sensor
+
+    sensor = omni_sensor()
+    cam = sensor.cameras[0]
+    # from mirror 1, the direction of mirror 4 at mirror height is hidden; the opposite is not
+    d = sensor.foci_m[3] - sensor.foci_m[0]
+    uv = cam.project(np.array([d / np.linalg.norm(d), -d / np.linalg.norm(d)]))
+    assert list(sensor.valid(0, uv)) == [False, True]
+    # the rim: straight up (towards the camera) is outside every mirror's image
+    up = cam.project(np.array([[0.2, 0.0, -1.0]]))
+    assert not sensor.valid(0, up)[0]
+
+
+def test_box_model_edges_and_conic_sampling() -> None:
+    from loopmodel.pose.tracking import PolyhedronModel, sample_model_edges
+    from loopmodel.sim.omni import omni_sensor
+
+    model = PolyhedronModel.box((0.3, 0.25, 0.2))
+    assert model.edges.shape == (12, 2) and model.edge_faces.shape == (12, 2)
+    # seen from far along +x, +y, +z: 3 faces visible, 9 edges
+    assert model.visible_edges(np.array([5.0, 4.0, 3.0])).sum() == 9
+    rig = omni_sensor().rig()
+    T = make_pose(so3_exp(np.array([0.0, 0.0, 0.7])) @ so3_exp(np.array([0.0, 0.4, 0.0])), [0.5, 0.2, 0.03])
+    s = sample_model_edges(rig, model, T, 3.0)
+    term = LineTerm(rig, model.lines, s.uv_px, s.line_index, s.cam_index)
+    assert len(term) > 200
+    np.testing.assert_allclose(term.residuals(T), 0.0, atol=1e-9)  # samples lie on the conics
+
+
+def test_tracking_first_frames_of_the_box_sequence() -> None:
+    from loopmodel.sim.omni import simulate_tracking
+
+    # the full sequence is the benchmark's; here its first 8 frames with 4 and 2 mirrors
+    for mirrors in ((0, 1, 2, 3), (0, 3)):
+        short = simulate_tracking(mirrors, 312, stop_frame=8)
+        assert len(short.rot_err_deg) == 8 and not short.lost.any()
+        assert np.median(short.rot_err_deg) < 0.8 and np.median(short.pos_err_mm) < 4.0
+
+
+def test_cli_vvs(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    from loopmodel.cli import main
+
+    assert main(["vvs", "simulate", "--frames", "312", "--out", str(tmp_path), "--mirrors", "3"]) == 2
+    assert "--mirrors" in capsys.readouterr().err
+    bad = tmp_path / "points.npz"
+    np.savez(bad, p_in_ref=np.zeros((5, 3)))
+    assert main(["vvs", "calibrate", "--points", str(bad), "--out", str(tmp_path)]) == 2
+    assert "points.npz" in capsys.readouterr().err

@@ -432,10 +432,11 @@ def simulate_tracking(
     edge_noise_px: float = 0.15,
     progress: Callable[[int], None] | None = None,
     start_frame: int = 0,
+    stop_frame: int | None = None,
 ) -> TrackingRun:
     """Track the box through the simulated sequence with the listed mirrors, starting from
-    the true pose of ``start_frame`` (frames before it are skipped). A frame is lost when
-    the tracker fails or the pose error exceeds
+    the true pose of ``start_frame`` (frames before it, and from ``stop_frame`` on, are
+    skipped). A frame is lost when the tracker fails or the pose error exceeds
     ``lost_rot_deg`` / ``lost_pos_mm``; tracking continues from the estimate (no reset)."""
     import time
 
@@ -447,7 +448,7 @@ def simulate_tracking(
     clutter = clutter_scene(sensor)
     model = PolyhedronModel.box(BOX_SIZE_M)
     rig = sensor.rig(mirrors)
-    truth = box_trajectory(n_frames)[start_frame:]
+    truth = box_trajectory(n_frames)[start_frame:stop_frame]
     rng = np.random.default_rng(seed)
     phase = rng.uniform(0, 2 * np.pi, len(model.edges))
     polarity = rng.choice([-1.0, 1.0], len(model.edges))
