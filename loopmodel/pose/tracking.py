@@ -112,8 +112,8 @@ def sample_model_edges(
             n = max(int(np.ceil(1.25 * length_px / step_px)) + 1, 3)
             pts = sample_conic_arc(lc.a[k], xy[0], xy[1], xy[2], n)
             if pts is None:  # not an ellipse: sample the 3-D segment instead
-                s = np.linspace(margin, 1 - margin, n)
-                pts = cam.normalized(P0 + s[:, None] * (P1 - P0))
+                frac = np.linspace(margin, 1 - margin, n)
+                pts = cam.normalized(P0 + frac[:, None] * (P1 - P0))
             g = conic_gradient(np.repeat(lc.a[k : k + 1], len(pts), axis=0), pts)
             g = g / np.array([cam.px, cam.py])
             g /= np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-300)

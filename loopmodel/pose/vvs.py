@@ -429,7 +429,7 @@ def vvs_pose(
         wts.append(w)
         norms.append(n)
     try:
-        cov = np.linalg.inv(H)
+        cov: F64 = np.asarray(np.linalg.inv(H), dtype=float)
     except np.linalg.LinAlgError:
         cov = np.full((6, 6), np.inf)
     return PoseResult(

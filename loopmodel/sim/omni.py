@@ -93,7 +93,7 @@ def _cast(scene: o3d.t.geometry.RaycastingScene, origin: F64, dirs: F64) -> F64:
     r = np.empty((len(dirs), 6), dtype=np.float32)
     r[:, :3] = origin
     r[:, 3:] = dirs
-    return scene.cast_rays(o3d.core.Tensor(r))["t_hit"].numpy().astype(float)
+    return scene.cast_rays(o3d.core.Tensor(r))["t_hit"].numpy().astype(float)  # type: ignore[call-overload]
 
 
 def omni_sensor(
@@ -234,8 +234,8 @@ def box_trajectory(n_frames: int = 312, seed: int = 3) -> list[F64]:
     t_s = np.arange(n_frames) / 10.0
     # radial frame (x out, y tangential, z down); the box shows a corner (two side faces)
     # and, tilted towards the sensor, its top face; the hand turns and tilts it
-    spin = np.deg2rad(45 + 35 * np.sin(2 * np.pi * 1.7 * u) + 15 * shake * np.sin(2 * np.pi * 0.8 * t_s))
-    tilt = np.deg2rad(22 + 10 * np.sin(2 * np.pi * 1.3 * u + 2.0) + 8 * shake * np.sin(2 * np.pi * 0.6 * t_s))
+    spin = np.deg2rad(45 + 20 * np.sin(2 * np.pi * 1.7 * u) + 15 * shake * np.sin(2 * np.pi * 0.8 * t_s))
+    tilt = np.deg2rad(24 + 8 * np.sin(2 * np.pi * 1.3 * u + 2.0) + 8 * shake * np.sin(2 * np.pi * 0.6 * t_s))
     roll = np.deg2rad(8 * np.sin(2 * np.pi * 0.9 * u + 1.0))
     z = z + 0.015 * shake * np.sin(2 * np.pi * 0.7 * t_s + 1.0)
     tremor = rng.normal(0, 0.0015, (n_frames, 3)) * (1.0 + shake)[:, None]
@@ -271,7 +271,8 @@ class MovingEdgeSimulator:
     and a contrast within ``[contrast_low, contrast_high]`` times the contrast it measured
     in the previous frame (``expected_contrast``, per rig camera and model edge: the sites'
     memory, which follows whatever they matched, clutter included); among those, the most
-    similar contrast wins. ``matched`` records, per camera, what the sites matched. Positions are found on the integer pixel grid along the normal (quantisation)
+    similar contrast wins. ``matched`` records, per camera, what the sites matched.
+    Positions are found on the integer pixel grid along the normal (quantisation)
     after Gaussian image noise ``noise_px``.
     """
 
