@@ -14,7 +14,6 @@ import numpy as np
 
 from loopmodel.config import Config
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
-from loopmodel.geometry.align import umeyama_alignment
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder
 from loopmodel.types import Trajectory
@@ -59,30 +58,30 @@ def _keyframe_trajectory(
 
 
 def _ground_truth_errors(est: Trajectory, gt: Trajectory | None) -> dict[str, float]:
-    """ATE RMSE after SE(3) alignment and final drift (percent of the ground-truth path)
-    over the frames whose timestamps match exactly (full evaluation lives in eval/)."""
+    """ATE RMSE after SE(3) alignment and drift (end-point error with the first poses
+    aligned, percent of the ground-truth path), computed by :mod:`loopmodel.eval`."""
     if gt is None or len(est) < 3:
         return {}
-    common, i_est, i_gt = np.intersect1d(est.timestamps_ns, gt.timestamps_ns, return_indices=True)
-    if common.size < 3:
+    from loopmodel.eval.trajectory_metrics import EvalInputError, evaluate_pair
+
+    try:
+        ev = evaluate_pair(
+            gt.timestamps_ns, gt.world_from_cam, est.timestamps_ns, est.world_from_cam,
+            max_dt_ns=1_000_000,
+        )
+    except EvalInputError as exc:
+        logger.warning("no ground-truth evaluation: %s", exc)
         return {}
-    p_est = est.positions_m[i_est]
-    p_gt = gt.positions_m[i_gt]
-    R, t, _ = umeyama_alignment(p_est, p_gt)
-    ate = float(np.sqrt(np.mean(np.sum((p_est @ R.T + t - p_gt) ** 2, axis=1))))
-    # drift: both trajectories start at the first common frame's pose
-    T0_est = est.world_from_cam[i_est[0]]
-    T0_gt = gt.world_from_cam[i_gt[0]]
-    rel_est = np.linalg.inv(T0_est) @ est.world_from_cam[i_est[-1]]
-    rel_gt = np.linalg.inv(T0_gt) @ gt.world_from_cam[i_gt[-1]]
-    length = float(np.sum(np.linalg.norm(np.diff(p_gt, axis=0), axis=1)))
-    final = float(np.linalg.norm(rel_est[:3, 3] - rel_gt[:3, 3]))
+    m = ev.metrics
+    end = m["end_point"]
+    ate = m["ate_m"]
+    assert isinstance(end, dict) and isinstance(ate, dict)
     return {
-        "ate_rmse_m": ate,
-        "final_error_m": final,
-        "path_length_m": length,
-        "drift_pct": 100.0 * final / length if length > 0 else float("nan"),
-        "gt_frames": int(common.size),
+        "ate_rmse_m": float(ate["rmse"]),
+        "final_error_m": float(end["error_origin_aligned_m"]),
+        "path_length_m": float(m["path_length_m"]),  # type: ignore[arg-type]
+        "drift_pct": float(end["error_origin_aligned_pct"]),
+        "gt_frames": int(m["matched"]),  # type: ignore[call-overload]
     }
 
 

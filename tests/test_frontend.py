@@ -164,3 +164,38 @@ def test_bad_patch_size_is_a_config_error() -> None:
 
     with pytest.raises(InputError, match="patch_px"):
         FrontEnd(stereo_rig(), FrontendConfig(patch_px=10))
+
+
+def test_apply_correction_moves_later_poses(rng: np.random.Generator) -> None:
+    planes = default_scene(rng)
+    cal = stereo_rig()
+    poses = trajectory(12)
+    frames = _stereo_frames(planes, cal, invert_pose(poses[0]) @ poses)
+    fe1, fe2 = FrontEnd(cal, CFG), FrontEnd(cal, CFG)
+    for f in frames[:6]:
+        fe1.process(f)
+        last = fe2.process(f)
+    kid = last.keyframe_id
+    delta = make_pose(so3_exp([0.01, -0.02, 0.03]), [0.1, -0.05, 0.2])
+    fe2.apply_correction({kid: delta @ fe2.world_from_kf[kid], 999: np.eye(4)})
+    for f in frames[6:]:
+        r1, r2 = fe1.process(f), fe2.process(f)
+        assert r1.status == r2.status == "OK"
+        np.testing.assert_allclose(r2.world_from_cam, delta @ r1.world_from_cam, atol=1e-9)
+    assert 999 not in fe2.world_from_kf
+
+
+def test_long_track_on_one_keyframe_stays_rigid(rng: np.random.Generator) -> None:
+    """Many frames against one keyframe: the motion-model products must stay in SE(3)
+    (rounding in the rotation blocks once grew geometrically here)."""
+    planes = default_scene(rng)
+    cal = stereo_rig()
+    poses = trajectory(40, step_m=0.004)
+    poses = invert_pose(poses[0]) @ poses
+    fe = FrontEnd(cal, CFG)
+    results = [fe.process(f) for f in _stereo_frames(planes, cal, poses)]
+    assert sum(r.is_keyframe for r in results) <= 3
+    for r in results:
+        R = r.world_from_cam[:3, :3]
+        assert np.abs(R.T @ R - np.eye(3)).max() < 1e-9
+    _check_ok_poses(results, poses, 0.01, 0.1)

@@ -3,8 +3,10 @@
 For one feature set i: its M 3-D points (keyframe i's rectified left camera frame) and the
 transform ``f_from_kf`` to the final monocular frame (the left image of keyframe i+1)
 are refined together from the left and right projections at keyframe i and the final
-left projections. Minimal rotation parameters (a left twist on ``f_from_kf``), Huber loss,
-analytic Jacobians, the points eliminated by the Schur complement (a 6x6 reduced system).
+left projections. Optionally (an extension of eq. 1) the final right projections too, when
+the final frame is a stereo keyframe: this anchors the scale at both ends of the set.
+Minimal rotation parameters (a left twist on ``f_from_kf``), Huber loss, analytic
+Jacobians, the points eliminated by the Schur complement (a 6x6 reduced system).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from numpy.typing import NDArray
 
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import se3_exp
+from loopmodel.pose.rig import point_cross_rows
 
 F64 = NDArray[np.float64]
 
@@ -41,6 +44,15 @@ def _huber_rho(n: F64, k: float) -> F64:
     return np.where(n <= k, 0.5 * n * n, k * (n - 0.5 * k))
 
 
+@dataclass
+class _Block:
+    camera: CentralCamera
+    fixed: F64  # camera_from_(kf or final left) transform, 4x4
+    moving: bool  # True: the block's camera sees the points through f_from_kf
+    uv: F64  # (M, 2) measurements
+    valid: F64  # (M,) 1.0 where measured
+
+
 def hybrid_keyframe_ba(
     points_in_kf: F64,
     uv_left: F64,
@@ -52,56 +64,83 @@ def hybrid_keyframe_ba(
     right_from_left: F64,
     iterations: int = 10,
     huber_px: float = 1.0,
+    uv_final_right: F64 | None = None,
 ) -> HybridBAResult:
     """Minimise eq. (1) of seed 004 over the points and ``f_from_kf``; all pixels are
-    undistorted (rectified) coordinates."""
+    undistorted (rectified) coordinates. ``uv_final_right`` (M, 2; NaN rows where
+    unmatched) adds the final right projections."""
     X = np.asarray(points_in_kf, dtype=float).copy()
     T = np.asarray(f_from_kf, dtype=float).copy()
-    R_rl, t_rl = right_from_left[:3, :3], right_from_left[:3, 3]
-    meas = (uv_left, uv_right, uv_final)
+    M = X.shape[0]
+    one = np.ones(M)
+    eye = np.eye(4)
+    rfl = np.asarray(right_from_left, dtype=float)
+    blocks = [
+        _Block(left, eye, False, np.asarray(uv_left, float), one),
+        _Block(right, rfl, False, np.asarray(uv_right, float), one),
+        _Block(left, eye, True, np.asarray(uv_final, float), one),
+    ]
+    if uv_final_right is not None:
+        fr = np.asarray(uv_final_right, dtype=float)
+        valid = np.all(np.isfinite(fr), axis=1).astype(float)
+        blocks.append(_Block(right, rfl, True, np.where(np.isfinite(fr), fr, 0.0), valid))
 
-    def residuals(Xc: F64, Tc: F64) -> tuple[F64, F64, F64, F64, F64]:
-        pr = Xc @ R_rl.T + t_rl
+    Eval = list[tuple[F64, F64, F64 | None, F64 | None]]
+
+    def evaluate(Xc: F64, Tc: F64, jac: bool) -> Eval:
         pf = Xc @ Tc[:3, :3].T + Tc[:3, 3]
-        r = np.stack(
-            [left.project(Xc) - meas[0], right.project(pr) - meas[1], left.project(pf) - meas[2]]
-        )  # (3, M, 2)
-        return r, pr, pf, np.linalg.norm(r, axis=2), Xc
+        out: Eval = []
+        for b in blocks:
+            base = pf if b.moving else Xc
+            p = base @ b.fixed[:3, :3].T + b.fixed[:3, 3]
+            r = (b.camera.project(p) - b.uv) * b.valid[:, None]
+            if not jac:
+                out.append((r, p, None, None))
+                continue
+            Jc = b.camera.project_jacobian(p) @ b.fixed[:3, :3]  # d uv / d base point
+            JX = Jc @ Tc[:3, :3] if b.moving else Jc
+            Jp = np.concatenate([Jc, point_cross_rows(pf, Jc)], axis=2) if b.moving else None
+            out.append((r, p, JX, Jp))
+        return out
+
+    def norms(ev: Eval) -> F64:
+        return np.stack([np.linalg.norm(e[0], axis=1) for e in ev])
 
     def cost_of(nrm: F64) -> float:
         return float(np.sum(_huber_rho(nrm, huber_px)))
 
-    r, pr, pf, nrm, _ = residuals(X, T)
-    init_rms = float(np.sqrt(np.mean(nrm**2)))
+    ev = evaluate(X, T, True)
+    nrm = norms(ev)
+    valid_all = np.stack([b.valid for b in blocks]) > 0
+    init_rms = float(np.sqrt(np.mean(nrm[valid_all] ** 2)))
     cost = cost_of(nrm)
     lam = 1e-3
     it = 0
-    for it in range(1, iterations + 1):
-        w = _huber_w(nrm, huber_px)  # (3, M)
-        JlX = left.project_jacobian(X)
-        JrX = right.project_jacobian(pr) @ R_rl
-        Jf = left.project_jacobian(pf)
-        JfX = Jf @ T[:3, :3]
-        Jfp = np.concatenate([Jf, np.cross(pf[:, None, :], Jf)], axis=2)  # (M, 2, 6)
-        Hxx = (
-            w[0, :, None, None] * np.einsum("mki,mkj->mij", JlX, JlX)
-            + w[1, :, None, None] * np.einsum("mki,mkj->mij", JrX, JrX)
-            + w[2, :, None, None] * np.einsum("mki,mkj->mij", JfX, JfX)
-        )
-        gx = (
-            w[0, :, None] * np.einsum("mki,mk->mi", JlX, r[0])
-            + w[1, :, None] * np.einsum("mki,mk->mi", JrX, r[1])
-            + w[2, :, None] * np.einsum("mki,mk->mi", JfX, r[2])
-        )
-        Hpx = w[2, :, None, None] * np.einsum("mki,mkj->mij", Jfp, JfX)  # (M, 6, 3)
-        Hpp = np.einsum("m,mki,mkj->ij", w[2], Jfp, Jfp)
-        gp = np.einsum("m,mki,mk->i", w[2], Jfp, r[2])
+    for it in range(1, iterations + 1):  # noqa: B007 (it is reported)
+        w = _huber_w(nrm, huber_px) * np.stack([b.valid for b in blocks])
+        Hxx = np.zeros((M, 3, 3))
+        gx = np.zeros((M, 3))
+        Hpx = np.zeros((M, 6, 3))
+        Hpp = np.zeros((6, 6))
+        gp = np.zeros(6)
+        for k, (r, _p, JX, Jp) in enumerate(ev):
+            assert JX is not None
+            wk = w[k]
+            JXw = JX * wk[:, None, None]
+            Hxx += np.matmul(JXw.transpose(0, 2, 1), JX)
+            gx += np.einsum("mki,mk->mi", JXw, r)
+            if Jp is not None:
+                Jpw = Jp * wk[:, None, None]
+                Hpx += np.matmul(Jpw.transpose(0, 2, 1), JX)
+                Hpp += np.einsum("mki,mkj->ij", Jpw, Jp)
+                gp += np.einsum("mki,mk->i", Jpw, r)
         improved = False
+        converged = False
         for _ in range(6):
-            Hxx_d = Hxx + lam * (Hxx * np.eye(3)) + 1e-12 * np.eye(3)
+            Hxx_d = Hxx + lam * (Hxx * np.eye(3)) + 1e-9 * np.eye(3)
             Hpp_d = Hpp + lam * np.diag(np.diag(Hpp)) + 1e-12 * np.eye(6)
             Hxx_inv = np.linalg.inv(Hxx_d)
-            HpxHi = Hpx @ Hxx_inv  # (M, 6, 3)
+            HpxHi = np.matmul(Hpx, Hxx_inv)  # (M, 6, 3)
             S = Hpp_d - np.einsum("mij,mkj->ik", HpxHi, Hpx)
             b = -gp + np.einsum("mij,mj->i", HpxHi, gx)
             try:
@@ -112,12 +151,13 @@ def hybrid_keyframe_ba(
             dx = -np.einsum("mij,mj->mi", Hxx_inv, gx + np.einsum("mji,j->mi", Hpx, dp))
             T_new = se3_exp(dp) @ T
             X_new = X + dx
-            r_n, pr_n, pf_n, nrm_n, _ = residuals(X_new, T_new)
-            valid = np.all(X_new[:, 2] > 0) and np.all(pf_n[:, 2] > 0)
-            c_new = cost_of(nrm_n)
-            if valid and c_new < cost:
-                X, T, r, pr, pf, nrm = X_new, T_new, r_n, pr_n, pf_n, nrm_n
-                converged = cost - c_new < 1e-6 * cost
+            ev_new = evaluate(X_new, T_new, False)
+            nrm_new = norms(ev_new)
+            in_front = all(np.all(e[1][:, 2] > 0) for e in ev_new)
+            c_new = cost_of(nrm_new)
+            if in_front and c_new < cost:
+                X, T, nrm = X_new, T_new, nrm_new
+                converged = cost - c_new < 1e-4 * cost
                 cost = c_new
                 lam = max(lam * 0.3, 1e-9)
                 improved = True
@@ -125,5 +165,7 @@ def hybrid_keyframe_ba(
             lam *= 10.0
         if not improved or converged:
             break
-    inliers = np.all(nrm < 3.0 * huber_px, axis=0)
-    return HybridBAResult(T, X, it, init_rms, float(np.sqrt(np.mean(nrm**2))), inliers)
+        ev = evaluate(X, T, True)
+    inliers = np.all((nrm < 3.0 * huber_px) | ~valid_all, axis=0)
+    final_rms = float(np.sqrt(np.mean(nrm[valid_all] ** 2)))
+    return HybridBAResult(T, X, it, init_rms, final_rms, inliers)

@@ -51,13 +51,15 @@ def detect_corners(
 
 @dataclass
 class StereoMatches:
-    """Matched features: left pixel (u, v), right u, disparity (pixels) and ZNCC score."""
+    """Matched features: left pixel (u, v, rounded to integers), right u and v (sub-pixel),
+    disparity (pixels), ZNCC score, and the index of each match in the input corners."""
 
     uv_left: F64
     u_right: F64
     v_right: F64
     disparity: F64
     score: F64
+    index: NDArray[np.int64]
 
 
 def _parabola_offsets(a: F64, b: F64, c: F64) -> F64:
@@ -91,7 +93,26 @@ def _zncc_scan(
     tz = tpl - tpl.mean(axis=1, keepdims=True)
     tn = np.sqrt(np.einsum("nk,nk->n", tz, tz)) + 1e-6
     tz = tz.reshape(n, p, p)
-    strip_off = (ar[:, None] * stride + np.arange(-half, length + half)[None, :])  # (p, L+p-1)
+    if length <= 16:
+        # short scans (fine stage): explicit windows, one batched product per row offset
+        r0, r1 = min(row_offsets), max(row_offsets)
+        rows = np.arange(r0 - half, r1 + half + 1)
+        strip_off = rows[:, None] * stride + np.arange(-half, length + half)[None, :]
+        base = (v + pad) * stride + (start + pad)
+        strip = np.take(dst, base[:, None, None] + strip_off).astype(np.float32)
+        tzf = tz.reshape(n, p * p, 1)
+        out = np.empty((n, len(row_offsets), length), np.float32)
+        for ri, r in enumerate(row_offsets):
+            sub = strip[:, r - r0 : r - r0 + p, :]
+            win = np.lib.stride_tricks.sliding_window_view(sub, p, axis=2)  # (N, p, L, p)
+            W = np.ascontiguousarray(win.transpose(0, 2, 1, 3)).reshape(n, length, p * p)
+            cross = np.matmul(W, tzf)[:, :, 0]
+            s1 = W.sum(axis=2)
+            s2 = np.einsum("nlk,nlk->nl", W, W)
+            var = np.maximum(s2 - s1 * s1 / (p * p), 1e-3)
+            out[:, ri] = cross / (tn[:, None] * np.sqrt(var))
+        return out
+    strip_off = ar[:, None] * stride + np.arange(-half, length + half)[None, :]  # (p, L+p-1)
     out = np.empty((n, len(row_offsets), length), np.float32)
     for ri, r in enumerate(row_offsets):
         base = (v + r + pad) * stride + (start + pad)
@@ -112,10 +133,10 @@ def _zncc_scan(
 
 
 def _search_row(
-    src_c: NDArray[np.float32],
-    dst_c: NDArray[np.float32],
-    src_f: NDArray[np.float32],
-    dst_f: NDArray[np.float32],
+    src_c: NDArray[np.uint8],
+    dst_c: NDArray[np.uint8],
+    src_f: NDArray[np.uint8],
+    dst_f: NDArray[np.uint8],
     pad_c: int,
     pad_f: int,
     u: NDArray[np.int64],
@@ -139,8 +160,8 @@ def _search_row(
     wc = width // 2
     sc[(col_c < half_c) | (col_c > wc - 1 - half_c)] = -2.0
     best_c = start_c + np.argmax(sc, axis=1)
-    start_f = 2 * best_c - 2
-    L = 5
+    start_f = 2 * best_c - 3
+    L = 7
     sf = _zncc_scan(src_f, dst_f, pad_f, u, v, start_f, L, half_f, rows)
     col_f = start_f[:, None] + np.arange(L)
     bad_col = (col_f < half_f) | (col_f > width - 1 - half_f)
@@ -182,8 +203,11 @@ def match_stereo(
     inside = (uv[:, 0] >= half) & (uv[:, 0] < w - half) & (uv[:, 1] >= half + 1)
     inside &= uv[:, 1] < h - half - 1
     uv = uv[inside]
+    index = np.flatnonzero(inside)
     u, v = uv[:, 0], uv[:, 1]
-    empty = StereoMatches(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+    empty = StereoMatches(
+        np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, np.int64)
+    )
     if u.size == 0:
         return empty
     pad_f = dmax + 2 * half + 8
@@ -209,7 +233,7 @@ def match_stereo(
         back_ok = (np.abs(bcol + bdu - u[sel]) <= cfg.lr_tolerance_px) & (bscore >= cfg.min_zncc)
         ok[sel] = back_ok
     return StereoMatches(
-        uv[ok].astype(float), ur[ok], (v + dv)[ok], disp[ok], score[ok]
+        uv[ok].astype(float), ur[ok], (v + dv)[ok], disp[ok], score[ok], index[ok]
     )
 
 

@@ -21,6 +21,7 @@ from loopmodel.frontend.rectify import Rectifier
 from loopmodel.frontend.stereo import detect_corners, match_stereo, triangulate_rectified
 from loopmodel.geometry.se3 import invert_pose, se3_exp, se3_log, so3_log
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, estimate_pose
+from loopmodel.pose.solver import nearest_rigid
 from loopmodel.types import StereoCalibration, StereoFrame
 
 logger = logging.getLogger(__name__)
@@ -70,6 +71,8 @@ class FrontEnd:
             min_scale=self.config.pose_min_scale_px,
             step_tolerance=self.config.pose_step_tolerance,
             max_iterations=self.config.pose_max_iterations,
+            huber_warmup=self.config.pose_huber_warmup,
+            reweight_iterations=self.config.pose_reweight_iterations,
         )
         self._world_from_kf: dict[int, F64] = {}
         self._active: _ActiveSet | None = None
@@ -171,9 +174,11 @@ class FrontEnd:
         step = invert_pose(self._kf_from_prev) @ kf_from_cur
         if gap > 0:
             step = se3_exp(se3_log(step) / (gap + 1))
-        self._velocity = step
+        # re-projected onto SE(3): these products feed back every frame, so rounding in
+        # the rotation blocks would otherwise grow geometrically
+        self._velocity = nearest_rigid(step)
         self._velocity_known = True
-        self._kf_from_prev = kf_from_cur
+        self._kf_from_prev = nearest_rigid(kf_from_cur)
         self._prev_pyr = cur_pyr
         self._frames_since_ok = 0
 
@@ -249,7 +254,10 @@ class FrontEnd:
         tracked = int(ok.sum())
         if tracked < cfg.min_inliers:
             return "LOST", f"only {tracked} KLT tracks", tracked, 0, kf_from_pred, False
-        term = PointTerm(self.rig, pts[ok], uv[ok])
+        prior = None
+        if cfg.depth_weighting:
+            prior = self._depth_weights(pts[ok], pred_from_kf)
+        term = PointTerm(self.rig, pts[ok], uv[ok], prior_weight=prior)
         try:
             res = estimate_pose(
                 term,
@@ -288,6 +296,20 @@ class FrontEnd:
         self._track_idx = idx[keep]
         self._track_uv = uv[keep]
         return "OK", "", tracked, n_inl, kf_from_cur, res.used_ransac
+
+    def _depth_weights(self, pts: F64, cur_from_kf: F64) -> F64:
+        """Pixel variance over pixel-plus-stereo-depth variance of each point's projection
+        at the predicted pose (first order): far points, whose stereo depth is uncertain,
+        count less for the pose."""
+        cfg = self.config
+        fb = self.calibration.fx_px * self.calibration.baseline_m
+        sigma_z = pts[:, 2] ** 2 / fb * cfg.disparity_sigma_px
+        p = pts @ cur_from_kf[:3, :3].T + cur_from_kf[:3, 3]
+        ray = pts / pts[:, 2:3]  # d point / d depth (keyframe frame)
+        J = self.left_camera.project_jacobian(p)  # (N, 2, 3)
+        g = np.einsum("nij,nj->ni", J, ray @ cur_from_kf[:3, :3].T)
+        var_px = cfg.pose_min_scale_px**2
+        return var_px / (var_px + np.einsum("ni,ni->n", g, g) * sigma_z**2)
 
     def _need_keyframe(self, kf_from_cur: F64, inliers: int) -> bool:
         cfg = self.config
@@ -348,6 +370,15 @@ class FrontEnd:
             if cfg.local_ba and self._track_idx.size >= 6:
                 tb = time.perf_counter()
                 sp = prev.stereo_px[self._track_idx]
+                final_right = None
+                if cfg.ba_final_stereo:
+                    # the set's tracked points in this keyframe's right image (both ends
+                    # of the set then carry a stereo observation)
+                    fm = match_stereo(left, right, self._track_uv, cfg)
+                    final_right = np.full((self._track_idx.size, 2), np.nan)
+                    frac = self._track_uv[fm.index] - fm.uv_left  # sub-pixel part of the corner
+                    final_right[fm.index, 0] = fm.u_right + frac[:, 0]
+                    final_right[fm.index, 1] = fm.v_right + frac[:, 1]
                 ba = hybrid_keyframe_ba(
                     prev.points[self._track_idx],
                     sp[:, [0, 2]],
@@ -359,6 +390,7 @@ class FrontEnd:
                     self.calibration.right_from_left,
                     cfg.ba_iterations,
                     cfg.ba_huber_px,
+                    uv_final_right=final_right,
                 )
                 step = invert_pose(kf_from_cur) @ invert_pose(ba.f_from_kf)
                 # accept the BA only when it stays near the robust pose (guards against a bad set)
@@ -374,7 +406,7 @@ class FrontEnd:
                     "ba_rms_after_px": ba.final_rms_px,
                     "ba_points": float(self._track_idx.size),
                 }
-            world_from_rect = prev.world_from_kfrect @ kf_from_new
+            world_from_rect = nearest_rigid(prev.world_from_kfrect @ kf_from_new)
             kf_prev_from_kf = self.cam_from_rect @ kf_from_new @ self.rect_from_cam
 
         kf_id = self._next_kf_id

@@ -64,6 +64,14 @@ class CameraRig:
         return invert_pose(self.cam_from_rig[j])
 
 
+def point_cross_rows(p: F64, A: F64) -> F64:
+    """Rows ``p_i x a_ik`` for points p (N, 3) and row stacks A (N, K, 3); equals
+    ``-A_i [p_i]x``, the rotation block of a left-perturbation Jacobian."""
+    px, py, pz = p[:, 0, None], p[:, 1, None], p[:, 2, None]
+    ax, ay, az = A[:, :, 0], A[:, :, 1], A[:, :, 2]
+    return np.stack([py * az - pz * ay, pz * ax - px * az, px * ay - py * ax], axis=2)
+
+
 class PoseTerm(Protocol):
     """A group of features that constrains the rig pose (points, lines, ...)."""
 
@@ -84,12 +92,14 @@ class PoseTerm(Protocol):
 class PointTerm:
     """2-D/3-D point correspondences: ``p_in_ref`` (N, 3, metres, reference frame) seen at
     ``uv_px`` (N, 2, pixels) by camera ``cam_index`` (N,) of the rig. Residual =
-    projection - measurement (pixels)."""
+    projection - measurement (pixels). ``prior_weight`` (optional, N) multiplies the robust
+    weights (e.g. the ratio of pixel variance to pixel-plus-depth variance)."""
 
     rig: CameraRig
     p_in_ref: F64
     uv_px: F64
     cam_index: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    prior_weight: F64 | None = None  # (N,) in (0, 1]: e.g. down-weights points of uncertain depth
     dim: int = 2
 
     def __post_init__(self) -> None:
@@ -110,7 +120,8 @@ class PointTerm:
 
     def subset(self, mask: NDArray[np.bool_] | NDArray[np.int64]) -> PointTerm:
         """The term restricted to some of its correspondences."""
-        return PointTerm(self.rig, self.p_in_ref[mask], self.uv_px[mask], self.cam_index[mask])
+        pw = None if self.prior_weight is None else self.prior_weight[mask]
+        return PointTerm(self.rig, self.p_in_ref[mask], self.uv_px[mask], self.cam_index[mask], pw)
 
     def _cam_points(
         self, rig_from_ref: F64, j: int, idx: NDArray[np.int64] | None
@@ -148,7 +159,7 @@ class PointTerm:
             Jp = cam.project_jacobian(p_cam)  # (k, 2, 3)
             A = Jp @ self.rig.cam_from_rig[j][:3, :3]  # d uv / d p_rig
             # d p_rig / d(v, w) = [I, -[p_rig]x];  -A [p]x rows = p x a_row
-            Jj = np.concatenate([A, np.cross(p_rig[:, None, :], A)], axis=2)
+            Jj = np.concatenate([A, point_cross_rows(p_rig, A)], axis=2)
             uv = cam.project(p_cam)
             if self._single:
                 r = uv - self.uv_px

@@ -33,6 +33,7 @@ class PoseOptions:
     step_tolerance: float = 1e-6  # stop when |delta| (m, rad) is below
     huber_warmup: int = 2  # first IRLS iterations use Huber (Tukey needs a start near the basin)
     inlier_cutoff: float = 4.6851  # inlier: residual norm below this many sigma
+    reweight_iterations: int = 4  # IRLS weight updates; then the weights are frozen
 
 
 @dataclass
@@ -59,6 +60,19 @@ class PoseResult:
         return int(sum(int(m.sum()) for m in self.inliers))
 
 
+def nearest_rigid(T: F64) -> F64:
+    """The rigid transform nearest to a 4x4 matrix whose rotation block drifted from SO(3)
+    (rounding in long products): rotation projected by SVD, translation kept."""
+    U, _s, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    out = np.eye(4)
+    out[:3, :3] = R
+    out[:3, 3] = T[:3, 3]
+    return out
+
+
 def _as_terms(terms: PoseTerm | Sequence[PoseTerm]) -> list[PoseTerm]:
     if isinstance(terms, Sequence):
         return list(terms)
@@ -77,61 +91,66 @@ def refine_pose(
     if total < 3:
         raise EstimationError(f"pose needs at least 3 features, got {total}")
     c = opt.cutoff if opt.cutoff is not None else default_cutoff(opt.loss)
-    T = np.asarray(rig_from_ref_init, dtype=float).copy()
+    T = nearest_rigid(np.asarray(rig_from_ref_init, dtype=float))
     lam = opt.lm_lambda0
     converged = False
     it = 0
     scales = [opt.min_scale] * len(tlist)
 
-    def robust_cost(rs: list[F64], sc: list[float], loss: Loss, cc: float) -> float:
-        total = 0.0
-        for r, s in zip(rs, sc, strict=True):
-            total += float(np.sum(rho(np.linalg.norm(r, axis=1) / s, loss, cc))) * s * s
-        return total
+    def weighted_cost(rs: list[F64], ws: list[F64]) -> float:
+        return float(sum(np.sum(w * np.einsum("ij,ij->i", r, r)) for r, w in zip(rs, ws, strict=True)))
 
+    wlist: list[F64] = [np.ones(len(t)) for t in tlist]
     for it in range(1, opt.max_iterations + 1):
-        loss: Loss = "huber" if (opt.loss == "tukey" and it <= opt.huber_warmup) else opt.loss
-        cc = default_cutoff("huber") if loss != opt.loss else c
+        reweight = it <= opt.reweight_iterations
         H = np.zeros((6, 6))
         g = np.zeros(6)
         rs: list[F64] = []
         for k, term in enumerate(tlist):
             r, J = term.residuals_and_jacobian(T)
-            n = np.linalg.norm(r, axis=1)
-            if it <= opt.huber_warmup + 1 or opt.loss != "tukey":
-                # the MAD scale is re-estimated during the Huber warm-up and frozen after
-                # the first Tukey iteration, so IRLS converges (quadratically near the end)
-                scales[k] = opt.fixed_scale or robust_scale(n, term.dim, opt.min_scale)
-            s = scales[k]
-            w = weights(n / s, loss, cc)
+            if reweight:
+                loss: Loss = "huber" if (opt.loss == "tukey" and it <= opt.huber_warmup) else opt.loss
+                cc = default_cutoff("huber") if loss != opt.loss else c
+                n = np.linalg.norm(r, axis=1)
+                if it <= opt.huber_warmup + 1 or opt.loss != "tukey":
+                    # MAD scale re-estimated during the Huber warm-up, frozen after the
+                    # first Tukey iteration
+                    scales[k] = opt.fixed_scale or robust_scale(n, term.dim, opt.min_scale)
+                wlist[k] = weights(n / scales[k], loss, cc)
+                pw = getattr(term, "prior_weight", None)
+                if pw is not None:
+                    wlist[k] = wlist[k] * pw
+            w = wlist[k]
             Jf = J.reshape(-1, 6)
-            wf = np.repeat(w, term.dim)
-            Jw = Jf * wf[:, None]
+            Jw = Jf * np.repeat(w, term.dim)[:, None]
             H += Jw.T @ Jf
             g += Jw.T @ r.ravel()
             rs.append(r)
-        cost = robust_cost(rs, scales, loss, cc)
+        # IRLS: each step solves the weighted least-squares problem of the current weights;
+        # after ``reweight_iterations`` the weights are frozen and Gauss-Newton converges
+        # quadratically on that problem
+        cost = weighted_cost(rs, wlist)
         accepted = False
         delta = np.zeros(6)
         for _ in range(8):
             Hd = H + lam * np.diag(np.maximum(np.diag(H), 1e-9))
             try:
-                delta = -np.linalg.solve(Hd, g)
+                delta = np.asarray(-np.linalg.solve(Hd, g), dtype=np.float64)
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 continue
             T_new = se3_exp(delta) @ T
-            new_cost = robust_cost([t.residuals(T_new) for t in tlist], scales, loss, cc)
+            new_cost = weighted_cost([t.residuals(T_new) for t in tlist], wlist)
             if new_cost <= cost:
                 T = T_new
                 lam = max(lam * 0.3, 1e-9)
                 accepted = True
                 break
             lam *= 10.0
-        if not accepted or float(np.linalg.norm(delta)) < opt.step_tolerance:
-            if it > opt.huber_warmup or loss == opt.loss:
-                converged = True
-                break
+        small = float(np.linalg.norm(delta)) < opt.step_tolerance
+        if (not accepted or small) and it >= min(opt.reweight_iterations, opt.max_iterations):
+            converged = True
+            break
 
     # final weights, inliers and covariance at the solution
     H = np.zeros((6, 6))
@@ -142,6 +161,9 @@ def refine_pose(
         n = np.linalg.norm(r, axis=1)
         s = scales[k]
         w = weights(n / s, opt.loss, c)
+        pw = getattr(term, "prior_weight", None)
+        if pw is not None:
+            w = w * pw
         Jf = J.reshape(-1, 6)
         H += (Jf * np.repeat(w, term.dim)[:, None]).T @ Jf / (s * s)
         cost += float(np.sum(rho(n / s, opt.loss, c)) * s * s)
@@ -149,7 +171,7 @@ def refine_pose(
         wts.append(w)
         norms.append(n)
     try:
-        cov = np.linalg.inv(H)
+        cov = np.asarray(np.linalg.inv(H), dtype=np.float64)
     except np.linalg.LinAlgError:
         cov = np.full((6, 6), np.inf)
     return PoseResult(T, inl, wts, norms, list(scales), cov, cost, it, converged)
