@@ -476,9 +476,17 @@ def simulate_tracking(
         t0 = time.perf_counter()
         res = track_frame(rig, model, T, me.measure, opt, valid)
         fr_ms[k] = 1e3 * (time.perf_counter() - t0)
-        for j, (li, cj, pj) in me.matched.items():
-            for m in np.unique(li):
-                sel = li == m
+        # the sites remember what they matched, except those the M-estimator rejected
+        # (ViSP suppresses such sites); the term lists the matches camera by camera
+        w_all = res.vvs.weights[0] if res.vvs is not None else None
+        start_w = 0
+        for j in sorted(me.matched):
+            li, cj, pj = me.matched[j]
+            w = w_all[start_w : start_w + len(li)] if w_all is not None else np.ones(len(li))
+            start_w += len(li)
+            good = w > 0.5
+            for m in np.unique(li[good]):
+                sel = good & (li == m)
                 site_c[j, m] = float(np.median(cj[sel]))
                 site_p[j, m] = 1.0 if pj[sel].sum() >= 0 else -1.0
         T = res.rig_from_ref
