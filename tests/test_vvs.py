@@ -372,3 +372,33 @@ def test_cli_vvs(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
     np.savez(bad, p_in_ref=np.zeros((5, 3)))
     assert main(["vvs", "calibrate", "--points", str(bad), "--out", str(tmp_path)]) == 2
     assert "points.npz" in capsys.readouterr().err
+
+
+def test_line_term_plugs_into_the_shared_lm_solver(rng: np.random.Generator) -> None:
+    """One core: the front end's LM solver and the VVS control law reach the same pose
+    with the same point + point-to-conic terms."""
+    from loopmodel.pose import PoseOptions, refine_pose
+
+    rig = _rig(2, 1.0)
+    lines = _box_lines()
+    T_true = make_pose(so3_exp(np.array([0.3, 0.2, -0.1])), np.array([0.02, 0.03, 0.5]))
+    P, uv, ci = _simulate_points(rig, T_true, 60, rng)
+    uvs, li, cj = [], [], []
+    for j in range(2):
+        Tj = rig.cam_from_rig[j] @ T_true
+        for m, (a, b) in enumerate(lines):
+            s = np.linspace(0.1, 0.9, 6)
+            uvs.append(rig.cameras[j].project((a + s[:, None] * (b - a)) @ Tj[:3, :3].T + Tj[:3, 3]))
+            li += [m] * 6
+            cj += [j] * 6
+    uvl = np.vstack(uvs) + rng.normal(0, 0.3, (len(li), 2))
+    terms = [
+        PointTerm(rig, P, uv + rng.normal(0, 0.3, uv.shape), ci),
+        LineTerm(rig, lines, uvl, np.array(li), np.array(cj)),
+    ]
+    T0 = se3_exp(np.array([0.01, -0.01, 0.02, 0.02, 0.01, -0.02])) @ T_true
+    for term in terms:  # (with several terms, VVS weights each by its own robust scale)
+        a = vvs_pose(term, T0, VvsOptions(loss="l2", step_tolerance=1e-10))
+        b = refine_pose(term, T0, PoseOptions(loss="l2", max_iterations=50, step_tolerance=1e-10))
+        assert _rot_err_deg(a.rig_from_ref, b.rig_from_ref) < 1e-5
+        assert np.linalg.norm(a.rig_from_ref[:3, 3] - b.rig_from_ref[:3, 3]) < 1e-7
