@@ -309,21 +309,28 @@ class LineTerm:
         # interaction matrices of the conic coefficients for the rig velocity: L_a jV1
         LaV = np.einsum("pcd,pde->pce", lc.L_a, self._Vp)[self._pair]
         a = lc.a[self._pair]
-        xy = self.xy
-        x, y = xy[:, 0:1], xy[:, 1:2]
-        q = conic_value(a, xy)
-        # L_da = x^2 L_a0 + y^2 L_a1 + 2xy L_a2 + 2x L_a3 + 2y L_a4   (eq. 25)
-        Ld = x * x * LaV[:, 0] + y * y * LaV[:, 1] + 2 * x * y * LaV[:, 2]
-        Ld += 2 * x * LaV[:, 3] + 2 * y * LaV[:, 4]
+        x, y = self.xy[:, 0], self.xy[:, 1]
+        # L_da = [x^2, y^2, 2xy, 2x, 2y] . L_a   (eq. 25)
+        c = np.empty((len(x), 5))
+        c[:, 0], c[:, 1], c[:, 2], c[:, 3], c[:, 4] = x * x, y * y, 2 * x * y, 2 * x, 2 * y
+        q = np.einsum("kc,kc->k", c, a) + 1.0
         if self.distance == "normalized":
-            # d = px Q / |grad Q|:  d' = px (Q' - (Q/|g|) (g/|g|) . g') / |g|
-            g = conic_gradient(a, xy)
-            gn = np.maximum(np.sqrt(np.einsum("ij,ij->i", g, g)), 1e-12)
-            gx, gy = g[:, 0:1] / gn[:, None], g[:, 1:2] / gn[:, None]
-            dgn = 2 * (gx * (x * LaV[:, 0] + y * LaV[:, 2] + LaV[:, 3]))
-            dgn += 2 * (gy * (y * LaV[:, 1] + x * LaV[:, 2] + LaV[:, 4]))
-            Ld = (self._px / gn)[:, None] * (Ld - (q / gn)[:, None] * dgn)
-            q = self._px * q / gn
+            # d = px Q / |grad Q|:  d' = px (Q' - (Q/|g|) (g/|g|) . g') / |g|, where
+            # g' = ([2x, 0, 2y, 2, 0] . L_a, [0, 2y, 2x, 0, 2] . L_a)
+            gx = 2 * (a[:, 0] * x + a[:, 2] * y + a[:, 3])
+            gy = 2 * (a[:, 1] * y + a[:, 2] * x + a[:, 4])
+            gn = np.maximum(np.hypot(gx, gy), 1e-12)
+            f = q / (gn * gn)
+            ux, uy = f * gx, f * gy
+            c[:, 0] -= 2 * ux * x
+            c[:, 1] -= 2 * uy * y
+            c[:, 2] -= 2 * (ux * y + uy * x)
+            c[:, 3] -= 2 * ux
+            c[:, 4] -= 2 * uy
+            scale = self._px / gn
+            c *= scale[:, None]
+            q = q * scale
+        Ld = np.einsum("kc,kcd->kd", c, LaV)
         ok = lc.valid[self._pair]
         if ok.all():
             return q[:, None], -Ld[:, None, :]
@@ -344,7 +351,7 @@ class VvsOptions:
     scale: Literal["mad", "median_norm"] = "mad"  # centred MAD (dim 1) or median norm
     weighting: Literal["irls", "paper"] = "irls"  # D = diag(sqrt(w)) or the paper's diag(w)
     max_iterations: int = 30
-    step_tolerance: float = 1e-6  # stop when |v| (m, rad) is below
+    step_tolerance: float = 1e-5  # stop when |v| (m, rad) is below
     huber_warmup: int = 0  # first iterations with Huber (for starts far from the solution)
     freeze_scale_after: int = 3  # re-estimate the scale during the first iterations only
     inlier_cutoff: float = 4.6851
