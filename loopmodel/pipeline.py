@@ -3,6 +3,7 @@ loop closing and meshing); outputs go to the results folder. Owns nothing else."
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -27,11 +28,13 @@ KeyframeHook = Callable[[Keyframe, FrameResult], None]
 
 @dataclass
 class RunOutput:
-    """What a run produced: the results folder, per-frame results and the metrics."""
+    """What a run produced: the results folder, per-frame results (without their keyframe
+    payload, so a long run does not hold every keyframe image), the keyframe ids and times,
+    and the metrics. Keyframes themselves go to the keyframe hooks as they are made."""
 
     folder: Path
     frames: list[FrameResult]
-    keyframes: list[Keyframe]
+    keyframes: list[tuple[int, int]]  # (keyframe id, timestamp_ns)
     metrics: dict[str, Any]
     interrupted: bool = False
     extra: dict[str, Any] = field(default_factory=dict)
@@ -47,13 +50,13 @@ def _online_trajectory(frames: list[FrameResult]) -> Trajectory:
 
 
 def _keyframe_trajectory(
-    keyframes: list[Keyframe], world_from_kf: dict[int, np.ndarray]
+    keyframes: list[tuple[int, int]], world_from_kf: dict[int, np.ndarray]
 ) -> Trajectory:
     if not keyframes:
         return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
     return Trajectory(
-        np.array([k.timestamp_ns for k in keyframes]),
-        np.stack([world_from_kf.get(k.id, k.world_from_kf) for k in keyframes]),
+        np.array([t for _, t in keyframes]),
+        np.stack([world_from_kf[k] for k, _ in keyframes]),
     )
 
 
@@ -127,7 +130,7 @@ def run_frontend(
     frontend = FrontEnd(sequence.calibration, config.frontend)
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     frames: list[FrameResult] = []
-    keyframes: list[Keyframe] = []
+    keyframes: list[tuple[int, int]] = []
     hooks = keyframe_hooks or []
     interrupted = False
     t_start = time.perf_counter()
@@ -138,13 +141,14 @@ def run_frontend(
                 if i >= total:
                     break
                 res = frontend.process(frame)
-                frames.append(res)
                 if res.status != "OK":
                     logger.info("frame %d LOST: %s", frame.index, res.reason)
                 if res.keyframe is not None:
-                    keyframes.append(res.keyframe)
+                    keyframes.append((res.keyframe.id, res.keyframe.timestamp_ns))
                     for hook in hooks:
                         hook(res.keyframe, res)
+                    res = dataclasses.replace(res, keyframe=None)
+                frames.append(res)
                 if progress is not None:
                     el = time.perf_counter() - t_start
                     progress(i + 1, total, (i + 1) / el if el > 0 else 0.0)

@@ -199,3 +199,55 @@ def test_long_track_on_one_keyframe_stays_rigid(rng: np.random.Generator) -> Non
         R = r.world_from_cam[:3, :3]
         assert np.abs(R.T @ R - np.eye(3)).max() < 1e-9
     _check_ok_poses(results, poses, 0.01, 0.1)
+
+
+def test_blurred_frame_and_pose_jump_are_lost_not_wrong(rng: np.random.Generator) -> None:
+    planes = default_scene(rng)
+    cal = stereo_rig()
+    poses = trajectory(16, step_m=0.04)
+    poses = invert_pose(poses[0]) @ poses
+    frames = _stereo_frames(planes, cal, poses)
+    # frame 6: heavy defocus blur; frame 10: the view of a camera 1 m to the side and turned
+    frames[6] = StereoFrame(frames[6].timestamp_ns, cv2.GaussianBlur(frames[6].left, (0, 0), 12),
+                            cv2.GaussianBlur(frames[6].right, (0, 0), 12), 6)
+    jumped = poses[10] @ make_pose(so3_exp([0.0, 0.25, 0.0]), [1.0, 0.0, 0.0])
+    (far,) = _stereo_frames(planes, cal, jumped[None])
+    frames[10] = StereoFrame(frames[10].timestamp_ns, far.left, far.right, 10)
+    fe = FrontEnd(cal, CFG)
+    results = [fe.process(f) for f in frames]
+    assert results[6].status == "LOST" and results[10].status == "LOST"
+    assert all(r.status == "OK" for i, r in enumerate(results) if i not in (6, 10)), [
+        (r.frame_index, r.status, r.reason) for r in results
+    ]
+    _check_ok_poses(results, poses, 0.02, 0.2)
+
+
+def test_pose_jump_beyond_motion_model_is_lost(rng: np.random.Generator) -> None:
+    planes = default_scene(rng)
+    cal = stereo_rig()
+    poses = trajectory(14, step_m=0.04)
+    poses = invert_pose(poses[0]) @ poses
+    poses[8] = poses[8] @ make_pose(np.eye(3), [0.25, 0.0, 0.0])  # one frame 25 cm off
+    cfg = CFG.model_copy(update={"max_jump_m": 0.1})
+    fe = FrontEnd(cal, cfg)
+    results = [fe.process(f) for f in _stereo_frames(planes, cal, poses)]
+    assert results[8].status == "LOST" and "jump" in results[8].reason
+    assert all(r.status == "OK" for i, r in enumerate(results) if i != 8)
+    _check_ok_poses(results, poses, 0.02, 0.2)
+
+
+def test_spread_subset_takes_the_best_of_every_cell(rng: np.random.Generator) -> None:
+    from loopmodel.frontend.stereo import spread_subset
+
+    uv = np.column_stack([rng.uniform(0, 400, 500), rng.uniform(0, 200, 500)])
+    uv[:400, 0] *= 0.25  # crowd most points into the left quarter
+    score = rng.uniform(0, 1, 500)
+    cand = np.ones(500, bool)
+    cand[::7] = False
+    pick = spread_subset(uv, score, cand, 40, (4, 2), (400, 200))
+    assert pick.sum() == 40 and not np.any(pick & ~cand)
+    cells = np.clip((uv[:, 0] // 100).astype(int), 0, 3) + 4 * np.clip((uv[:, 1] // 100).astype(int), 0, 1)
+    for c in range(8):
+        members = np.flatnonzero(cand & (cells == c))
+        if members.size:  # every occupied cell gives at least its best point
+            assert pick[members[np.argmax(score[members])]]

@@ -93,3 +93,16 @@ def test_refine_rejects_too_few_points() -> None:
     term = PointTerm(CameraRig.single(CAM), np.ones((2, 3)), np.zeros((2, 2)))
     with pytest.raises(EstimationError):
         refine_pose(term, np.eye(4))
+
+
+def test_nearest_rigid_repairs_a_drifted_rotation(rng: np.random.Generator) -> None:
+    from loopmodel.geometry.se3 import is_rotation, nearest_rigid
+
+    T = se3_exp([0.3, -0.2, 1.0, 0.4, -0.1, 0.2])
+    bad = T.copy()
+    bad[:3, :3] += rng.normal(0, 1e-3, (3, 3))
+    fixed = nearest_rigid(bad)
+    assert is_rotation(fixed[:3, :3], 1e-12)
+    np.testing.assert_allclose(fixed[:3, 3], T[:3, 3])
+    assert np.degrees(np.linalg.norm(so3_log(fixed[:3, :3].T @ T[:3, :3]))) < 0.2
+    np.testing.assert_allclose(nearest_rigid(T), T, atol=1e-12)

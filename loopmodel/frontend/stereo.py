@@ -22,9 +22,17 @@ def detect_corners(
     quality: float,
     min_distance_px: float,
     border_px: int,
+    half_resolution: bool = False,
 ) -> F64:
     """(N, 2) corner pixels (u, v), spread over a ``grid`` = (cols, rows) of cells with an
-    equal quota each; the Shi-Tomasi quality level is relative to each cell."""
+    equal quota each; the Shi-Tomasi quality level is relative to each cell. With
+    ``half_resolution`` the corners are found in the half-size image (4x less work) and
+    scaled to full-resolution pixels."""
+    if half_resolution:
+        small = cv2.pyrDown(img)
+        pts = detect_corners(small, max_features, grid, quality, max(1.0, min_distance_px / 2),
+                             (border_px + 1) // 2)
+        return 2.0 * pts
     h, w = img.shape[:2]
     cols, rows = grid
     quota = max(1, int(np.ceil(max_features / (cols * rows))))
@@ -235,6 +243,34 @@ def match_stereo(
     return StereoMatches(
         uv[ok].astype(float), ur[ok], (v + dv)[ok], disp[ok], score[ok], index[ok]
     )
+
+
+def spread_subset(
+    uv: F64,
+    score: F64,
+    candidates: NDArray[np.bool_],
+    count: int,
+    grid: tuple[int, int],
+    image_size: tuple[int, int],
+) -> NDArray[np.bool_]:
+    """Mask of at most ``count`` of the ``candidates``, spread over a (cols, rows) grid:
+    cells take turns, each giving its best-scoring remaining point."""
+    cols, rows = grid
+    w, h = image_size
+    cx = np.clip((uv[:, 0] * cols / w).astype(int), 0, cols - 1)
+    cy = np.clip((uv[:, 1] * rows / h).astype(int), 0, rows - 1)
+    cell = cy * cols + cx
+    idx = np.flatnonzero(candidates)
+    # rank of each candidate inside its cell by score (0 = best)
+    order = idx[np.lexsort((-score[idx], cell[idx]))]
+    c_sorted = cell[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(c_sorted)) + 1]
+    rank = np.arange(order.size) - np.repeat(starts, np.diff(np.r_[starts, order.size]))
+    # take rank 0 of every cell, then rank 1, ...; ties in a round by score
+    pick = order[np.lexsort((-score[order], rank))][:count]
+    out = np.zeros(uv.shape[0], dtype=bool)
+    out[pick] = True
+    return out
 
 
 def triangulate_rectified(uv_left: F64, disparity: F64, K: F64, baseline_m: float) -> F64:

@@ -18,10 +18,14 @@ from loopmodel.frontend.hybrid_ba import hybrid_keyframe_ba
 from loopmodel.frontend.keyframe import FrameResult, Keyframe
 from loopmodel.frontend.klt import Pyramid, build_pyramid, track_klt
 from loopmodel.frontend.rectify import Rectifier
-from loopmodel.frontend.stereo import detect_corners, match_stereo, triangulate_rectified
-from loopmodel.geometry.se3 import invert_pose, se3_exp, se3_log, so3_log
+from loopmodel.frontend.stereo import (
+    detect_corners,
+    match_stereo,
+    spread_subset,
+    triangulate_rectified,
+)
+from loopmodel.geometry.se3 import invert_pose, nearest_rigid, se3_exp, se3_log, so3_log
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, estimate_pose
-from loopmodel.pose.solver import nearest_rigid
 from loopmodel.types import StereoCalibration, StereoFrame
 
 logger = logging.getLogger(__name__)
@@ -347,12 +351,18 @@ class FrontEnd:
             cfg.gftt_quality,
             cfg.min_distance_px,
             cfg.border_px,
+            cfg.detect_half_resolution,
         )
         m = match_stereo(left, right, corners, cfg)
         pts = triangulate_rectified(
             m.uv_left, m.disparity, self.calibration.K_left, self.calibration.baseline_m
         )
         keep = pts[:, 2] < cfg.max_depth_m
+        if cfg.max_keyframe_points and int(keep.sum()) > cfg.max_keyframe_points:
+            keep &= spread_subset(
+                m.uv_left, m.score, keep, cfg.max_keyframe_points, (cfg.grid_cols, cfg.grid_rows),
+                self.calibration.image_size,
+            )
         if int(keep.sum()) < cfg.min_stereo_points:
             logger.debug("frame %d: %d stereo points, no keyframe", frame.index, int(keep.sum()))
             return None

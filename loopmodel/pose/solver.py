@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import EstimationError
-from loopmodel.geometry.se3 import se3_exp
+from loopmodel.geometry.se3 import nearest_rigid, se3_exp
 from loopmodel.pose.rig import F64, PointTerm, PoseTerm
 from loopmodel.pose.robust import Loss, default_cutoff, rho, robust_scale, weights
 
@@ -58,19 +58,6 @@ class PoseResult:
     def num_inliers(self) -> int:
         """Inlier count over all terms."""
         return int(sum(int(m.sum()) for m in self.inliers))
-
-
-def nearest_rigid(T: F64) -> F64:
-    """The rigid transform nearest to a 4x4 matrix whose rotation block drifted from SO(3)
-    (rounding in long products): rotation projected by SVD, translation kept."""
-    U, _s, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
-    out = np.eye(4)
-    out[:3, :3] = R
-    out[:3, 3] = T[:3, 3]
-    return out
 
 
 def _as_terms(terms: PoseTerm | Sequence[PoseTerm]) -> list[PoseTerm]:
