@@ -1,0 +1,1 @@
+"""Back end: incremental estimation (iSAM2) and the sequential Givens estimator with data snooping."""

@@ -1,0 +1,227 @@
+"""Inner loops of the sequential Givens estimator (seed 000: Gruen & Kersten).
+
+Three kernels on an upper-triangular factor ``R`` (first ``n`` rows/columns used) with its
+right-hand side ``d`` and an optional coupling block ``C`` (the columns that follow ``R``'s own
+columns, first ``nc`` used; the point rows of the bundle carry the frame columns there):
+
+- :func:`rows_update` annihilates ``m`` new rows ``[Z | ZC | zl]`` with Givens rotations
+  (Lawson & Hanson); what is left in ``zl`` is the rows' contribution to ``vᵀPv``.
+- :func:`rows_downdate` removes ``m`` rows with mixed hyperbolic rotations (Bojanczyk, Brent,
+  van Dooren, de Hoog 1987), refusing (returning ``False``) when a pivot's hyperbolic cosine²
+  ``1 - (z_k / r_kk)²`` falls below ``min_cos2``: the caller then re-factorises.
+- :func:`retriangularize` restores triangularity after columns were cut out of ``R``.
+
+With numba (optional dependency) the loops are compiled; without it a row-vectorised numpy
+version of the same rotations is used (same arithmetic, slower).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+try:  # pragma: no cover - depends on the environment
+    import numba
+
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover
+    numba = None
+    HAVE_NUMBA = False
+
+
+def _rows_update_py(R, d, C, Z, ZC, zl, n, nc):  # type: ignore[no-untyped-def]
+    m = Z.shape[0]
+    cs = np.empty(m)
+    sn = np.empty(m)
+    for k in range(n):
+        any_active = False
+        for r in range(m):
+            a = Z[r, k]
+            if a == 0.0:
+                cs[r] = 1.0
+                sn[r] = 0.0
+                continue
+            any_active = True
+            rkk = R[k, k]
+            h = math.hypot(rkk, a)
+            cs[r] = rkk / h
+            sn[r] = a / h
+            R[k, k] = h
+            Z[r, k] = 0.0
+        if not any_active:
+            continue
+        for j in range(k + 1, n):
+            t = R[k, j]
+            for r in range(m):
+                u = Z[r, j]
+                Z[r, j] = cs[r] * u - sn[r] * t
+                t = cs[r] * t + sn[r] * u
+            R[k, j] = t
+        for j in range(nc):
+            t = C[k, j]
+            for r in range(m):
+                u = ZC[r, j]
+                ZC[r, j] = cs[r] * u - sn[r] * t
+                t = cs[r] * t + sn[r] * u
+            C[k, j] = t
+        t = d[k]
+        for r in range(m):
+            u = zl[r]
+            zl[r] = cs[r] * u - sn[r] * t
+            t = cs[r] * t + sn[r] * u
+        d[k] = t
+
+
+def _rows_downdate_py(R, d, C, Z, ZC, zl, n, nc, min_cos2):  # type: ignore[no-untyped-def]
+    m = Z.shape[0]
+    for k in range(n):
+        for r in range(m):
+            a = Z[r, k]
+            if a == 0.0:
+                continue
+            rkk = R[k, k]
+            if rkk == 0.0:
+                return False
+            t = a / rkk
+            c2 = 1.0 - t * t
+            if c2 < min_cos2:
+                return False
+            ch = math.sqrt(c2)
+            R[k, k] = rkk * ch
+            Z[r, k] = 0.0
+            for j in range(k + 1, n):
+                rk = (R[k, j] - t * Z[r, j]) / ch
+                Z[r, j] = ch * Z[r, j] - t * rk
+                R[k, j] = rk
+            for j in range(nc):
+                rk = (C[k, j] - t * ZC[r, j]) / ch
+                ZC[r, j] = ch * ZC[r, j] - t * rk
+                C[k, j] = rk
+            rk = (d[k] - t * zl[r]) / ch
+            zl[r] = ch * zl[r] - t * rk
+            d[k] = rk
+    return True
+
+
+def _retriangularize_py(T, dT, band):  # type: ignore[no-untyped-def]
+    rows, cols = T.shape
+    for k in range(cols):
+        for i in range(1, band + 1):
+            rr = k + i
+            if rr >= rows:
+                break
+            a = T[rr, k]
+            if a == 0.0:
+                continue
+            rkk = T[k, k]
+            h = math.hypot(rkk, a)
+            c = rkk / h
+            s = a / h
+            T[k, k] = h
+            T[rr, k] = 0.0
+            for j in range(k + 1, cols):
+                t = T[k, j]
+                u = T[rr, j]
+                T[k, j] = c * t + s * u
+                T[rr, j] = c * u - s * t
+            t = dT[k]
+            u = dT[rr]
+            dT[k] = c * t + s * u
+            dT[rr] = c * u - s * t
+
+
+# ---- numpy fallbacks (vectorised along the row; used when numba is absent) ----
+
+
+def _rows_update_np(R, d, C, Z, ZC, zl, n, nc):  # type: ignore[no-untyped-def]
+    m = Z.shape[0]
+    for k in range(n):
+        for r in range(m):
+            a = Z[r, k]
+            if a == 0.0:
+                continue
+            rkk = R[k, k]
+            h = math.hypot(rkk, a)
+            c, s = rkk / h, a / h
+            R[k, k] = h
+            Z[r, k] = 0.0
+            t = R[k, k + 1 : n].copy()
+            u = Z[r, k + 1 : n]
+            R[k, k + 1 : n] = c * t + s * u
+            Z[r, k + 1 : n] = c * u - s * t
+            if nc:
+                t = C[k, :nc].copy()
+                u = ZC[r, :nc]
+                C[k, :nc] = c * t + s * u
+                ZC[r, :nc] = c * u - s * t
+            t0, u0 = d[k], zl[r]
+            d[k] = c * t0 + s * u0
+            zl[r] = c * u0 - s * t0
+
+
+def _rows_downdate_np(R, d, C, Z, ZC, zl, n, nc, min_cos2):  # type: ignore[no-untyped-def]
+    m = Z.shape[0]
+    for k in range(n):
+        for r in range(m):
+            a = Z[r, k]
+            if a == 0.0:
+                continue
+            rkk = R[k, k]
+            if rkk == 0.0:
+                return False
+            t = a / rkk
+            c2 = 1.0 - t * t
+            if c2 < min_cos2:
+                return False
+            ch = math.sqrt(c2)
+            R[k, k] = rkk * ch
+            Z[r, k] = 0.0
+            rk = (R[k, k + 1 : n] - t * Z[r, k + 1 : n]) / ch
+            Z[r, k + 1 : n] = ch * Z[r, k + 1 : n] - t * rk
+            R[k, k + 1 : n] = rk
+            if nc:
+                rk = (C[k, :nc] - t * ZC[r, :nc]) / ch
+                ZC[r, :nc] = ch * ZC[r, :nc] - t * rk
+                C[k, :nc] = rk
+            rk0 = (d[k] - t * zl[r]) / ch
+            zl[r] = ch * zl[r] - t * rk0
+            d[k] = rk0
+    return True
+
+
+def _retriangularize_np(T, dT, band):  # type: ignore[no-untyped-def]
+    rows, cols = T.shape
+    for k in range(cols):
+        for i in range(1, band + 1):
+            rr = k + i
+            if rr >= rows:
+                break
+            a = T[rr, k]
+            if a == 0.0:
+                continue
+            rkk = T[k, k]
+            h = math.hypot(rkk, a)
+            c, s = rkk / h, a / h
+            T[k, k] = h
+            T[rr, k] = 0.0
+            t = T[k, k + 1 :].copy()
+            u = T[rr, k + 1 :]
+            T[k, k + 1 :] = c * t + s * u
+            T[rr, k + 1 :] = c * u - s * t
+            t0, u0 = dT[k], dT[rr]
+            dT[k] = c * t0 + s * u0
+            dT[rr] = c * u0 - s * t0
+
+
+if HAVE_NUMBA:  # pragma: no cover - depends on the environment
+    _jit = numba.njit(cache=True, nogil=True)
+    rows_update = _jit(_rows_update_py)
+    rows_downdate = _jit(_rows_downdate_py)
+    retriangularize = _jit(_retriangularize_py)
+    KERNELS = "numba"
+else:  # pragma: no cover
+    rows_update = _rows_update_np
+    rows_downdate = _rows_downdate_np
+    retriangularize = _retriangularize_np
+    KERNELS = "numpy"
