@@ -1,0 +1,345 @@
+"""Sequential bundle adjustment on the Givens estimator, and the blunder screen built on it.
+
+Unknowns: object points (3 coordinates, world frame, metres; *local* blocks reduced point by
+point) and the exterior orientation of every frame (6 parameters; *global* blocks). A frame's
+parameters are corrections ``(θ, c)`` to its reference pose: ``world_from_cam =
+(R0 exp([θ]x), C0 + c)``; a point's are corrections ``Δ`` to its reference ``X0``.
+
+Observations: image coordinates (pixels), linearised when they are inserted at the *current*
+estimate (``A Δ = uv - π(x̂) + A Δ̂``); point priors (control points with a small σ, every
+other point with a weak prior from its approximate value, as the seed's object-coordinate
+observations) and weak priors on each frame's exterior orientation (its approximate values
+from resection). The datum comes from the control points (or, without them, the priors).
+
+Re-linearisation is a batch re-factorisation: :meth:`SequentialBundle.relinearize` moves every
+reference to the current estimate, rebuilds all rows there and re-factorises; the caller (or
+:meth:`SequentialBundle.maybe_relinearize`, called once per frame) triggers it when a
+correction exceeds ``relin_point_m`` / ``relin_pos_m`` / ``relin_rot_rad``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Hashable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from loopmodel.backend.givens import GivensEstimator
+from loopmodel.backend.snooping import SnoopResult, normalized_residuals, snoop
+from loopmodel.errors import EstimationError
+from loopmodel.geometry.camera import CentralCamera
+from loopmodel.geometry.se3 import hat, so3_exp, so3_log
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class _FrameRef:
+    R0: F64  # world_from_cam rotation (reference)
+    C0: F64  # camera centre in world (reference), metres
+    prior: tuple[F64, F64, float, float] | None = None  # (R, C, sigma_rad, sigma_m)
+    prior_obs: int | None = None
+
+
+@dataclass
+class _PointRef:
+    X0: F64
+    prior: tuple[F64, float] | None = None  # (X, sigma_m)
+    prior_obs: int | None = None
+    image_obs: set[int] = field(default_factory=set)
+
+
+@dataclass
+class _ImageObs:
+    frame: Hashable
+    point: Hashable
+    uv_px: F64
+    sigma_px: float
+
+
+def _fkey(fid: Hashable) -> tuple[str, Hashable]:
+    return ("frame", fid)
+
+
+def _pkey(pid: Hashable) -> tuple[str, Hashable]:
+    return ("point", pid)
+
+
+class SequentialBundle:
+    """Bundle adjustment updated image point by image point (seed 000)."""
+
+    def __init__(
+        self,
+        camera: CentralCamera,
+        sigma_px: float = 0.5,
+        relin_point_m: float = 0.05,
+        relin_pos_m: float = 0.05,
+        relin_rot_rad: float = 0.01,
+        min_downdate_cos2: float = 1e-6,
+    ) -> None:
+        self.camera = camera
+        self.sigma_px = float(sigma_px)
+        self.relin_point_m = float(relin_point_m)
+        self.relin_pos_m = float(relin_pos_m)
+        self.relin_rot_rad = float(relin_rot_rad)
+        self.est = GivensEstimator(local_block_max=3, min_downdate_cos2=min_downdate_cos2)
+        self.frames: dict[Hashable, _FrameRef] = {}
+        self.points: dict[Hashable, _PointRef] = {}
+        self.image_obs: dict[int, _ImageObs] = {}
+        self.n_relinearizations = 0
+
+    # ---------------------------------------------------------------- unknowns
+    def add_frame(
+        self,
+        fid: Hashable,
+        world_from_cam: ArrayLike,
+        prior_sigma_rad: float | None = 0.05,
+        prior_sigma_m: float | None = 0.1,
+    ) -> None:
+        """New exterior orientation (approximate ``world_from_cam``, 4x4) with an optional prior."""
+        if fid in self.frames:
+            raise EstimationError(f"frame {fid!r} already exists")
+        T = np.asarray(world_from_cam, dtype=float)
+        ref = _FrameRef(R0=T[:3, :3].copy(), C0=T[:3, 3].copy())
+        self.est.add_parameters(_fkey(fid), 6)
+        self.frames[fid] = ref
+        if prior_sigma_rad is not None and prior_sigma_m is not None:
+            ref.prior = (ref.R0.copy(), ref.C0.copy(), float(prior_sigma_rad), float(prior_sigma_m))
+            A, l, sig = self._frame_prior_row(ref)
+            ref.prior_obs = self.est.add_observation({_fkey(fid): A}, l, sigma=sig)
+
+    def add_point(self, pid: Hashable, p_in_world: ArrayLike, prior_sigma_m: float | None = 1.0) -> None:
+        """New object point (approximate coordinates, metres); small σ makes it a control point."""
+        if pid in self.points:
+            raise EstimationError(f"point {pid!r} already exists")
+        X = np.asarray(p_in_world, dtype=float).reshape(3).copy()
+        ref = _PointRef(X0=X)
+        self.est.add_parameters(_pkey(pid), 3, local=True)
+        self.points[pid] = ref
+        if prior_sigma_m is not None:
+            ref.prior = (X.copy(), float(prior_sigma_m))
+            ref.prior_obs = self.est.add_observation(
+                {_pkey(pid): np.eye(3)}, np.zeros(3), sigma=float(prior_sigma_m)
+            )
+
+    def _frame_prior_row(self, ref: _FrameRef) -> tuple[F64, F64, F64]:
+        assert ref.prior is not None
+        Rp, Cp, sr, sm = ref.prior
+        l = np.concatenate([so3_log(ref.R0.T @ Rp), Cp - ref.C0])
+        return np.eye(6), l, np.array([sr] * 3 + [sm] * 3)
+
+    # ---------------------------------------------------------------- estimates
+    def world_from_cam(self, fid: Hashable) -> F64:
+        """Current estimate of a frame's pose (4x4)."""
+        ref = self.frames[fid]
+        x = self.est.block_solution(_fkey(fid))
+        T = np.eye(4)
+        T[:3, :3] = ref.R0 @ so3_exp(x[:3])
+        T[:3, 3] = ref.C0 + x[3:]
+        return T
+
+    def point(self, pid: Hashable) -> F64:
+        """Current estimate of an object point (world, metres)."""
+        return self.points[pid].X0 + self.est.block_solution(_pkey(pid))
+
+    def _linearize(self, o: _ImageObs, with_current: bool = True) -> tuple[dict, F64]:
+        fref = self.frames[o.frame]
+        pref = self.points[o.point]
+        if with_current:
+            xf = self.est.block_solution(_fkey(o.frame))
+            xp = self.est.block_solution(_pkey(o.point))
+        else:
+            xf = np.zeros(6)
+            xp = np.zeros(3)
+        R = fref.R0 @ so3_exp(xf[:3]) if np.any(xf[:3]) else fref.R0
+        C = fref.C0 + xf[3:]
+        X = pref.X0 + xp
+        p_cam = R.T @ (X - C)
+        if p_cam[2] <= 1e-9:
+            raise EstimationError(f"point {o.point!r} is behind frame {o.frame!r}")
+        J = self.camera.project_jacobian(p_cam)[0]
+        uv = self.camera.project(p_cam)[0]
+        JRt = J @ R.T
+        A_f = np.hstack([J @ hat(p_cam), -JRt])
+        A_p = JRt
+        l = o.uv_px - uv + A_f @ xf + A_p @ xp
+        return {_fkey(o.frame): A_f, _pkey(o.point): A_p}, l
+
+    # ------------------------------------------------------------- observations
+    def add_image_point(
+        self, fid: Hashable, pid: Hashable, uv_px: ArrayLike, sigma_px: float | None = None
+    ) -> int:
+        """Insert one image point (u, v pixels) of ``pid`` in ``fid``; returns the observation id."""
+        if fid not in self.frames:
+            raise EstimationError(f"unknown frame {fid!r}")
+        if pid not in self.points:
+            raise EstimationError(f"unknown point {pid!r}")
+        o = _ImageObs(fid, pid, np.asarray(uv_px, dtype=float).reshape(2).copy(),
+                      self.sigma_px if sigma_px is None else float(sigma_px))
+        coeffs, l = self._linearize(o)
+        oid = self.est.add_observation(coeffs, l, sigma=o.sigma_px)
+        self.image_obs[oid] = o
+        self.points[pid].image_obs.add(oid)
+        return oid
+
+    def delete_image_point(self, oid: int) -> None:
+        """Remove an image point observation (downdating)."""
+        o = self.image_obs.get(oid)
+        if o is None:
+            raise EstimationError(f"image observation {oid!r} was never added or is already deleted")
+        self.est.delete_observation(oid)
+        del self.image_obs[oid]
+        self.points[o.point].image_obs.discard(oid)
+
+    # ---------------------------------------------------------- linearisation
+    def max_corrections(self) -> tuple[float, float, float]:
+        """Largest current correction of (point m, frame position m, frame rotation rad)."""
+        xp, xg = self.est._solve()
+        pm = float(np.max(np.linalg.norm(xp, axis=1), initial=0.0))
+        G = xg.reshape(-1, 6) if xg.size else np.zeros((0, 6))
+        rot = float(np.max(np.linalg.norm(G[:, :3], axis=1), initial=0.0))
+        pos = float(np.max(np.linalg.norm(G[:, 3:], axis=1), initial=0.0))
+        return pm, pos, rot
+
+    def maybe_relinearize(self) -> bool:
+        """Re-linearise (batch re-factorisation) when a correction exceeds its threshold."""
+        pm, pos, rot = self.max_corrections()
+        if pm > self.relin_point_m or pos > self.relin_pos_m or rot > self.relin_rot_rad:
+            self.relinearize()
+            return True
+        return False
+
+    def relinearize(self) -> None:
+        """Move all references to the current estimate, rebuild every row there, re-factorise."""
+        sol = self.est.solution()
+        for fid, ref in self.frames.items():
+            x = sol[_fkey(fid)]
+            ref.R0 = ref.R0 @ so3_exp(x[:3])
+            ref.C0 = ref.C0 + x[3:]
+        for pid, pref in self.points.items():
+            pref.X0 = pref.X0 + sol[_pkey(pid)]
+        for fid, ref in self.frames.items():
+            if ref.prior_obs is not None:
+                A, l, sig = self._frame_prior_row(ref)
+                self.est.replace_observation(ref.prior_obs, {_fkey(fid): A}, l, sigma=sig,
+                                             refactor=False)
+        for pid, pref in self.points.items():
+            if pref.prior_obs is not None and pref.prior is not None:
+                Xp, sm = pref.prior
+                self.est.replace_observation(pref.prior_obs, {_pkey(pid): np.eye(3)},
+                                             Xp - pref.X0, sigma=sm, refactor=False)
+        for oid, o in self.image_obs.items():
+            coeffs, l = self._linearize(o, with_current=False)
+            self.est.replace_observation(oid, coeffs, l, sigma=o.sigma_px, refactor=False)
+        self.est.refactorize()
+        self.n_relinearizations += 1
+
+    # ---------------------------------------------------------------- snooping
+    def snoop(self, oids: Sequence[int] | None = None, **kwargs: object) -> SnoopResult:
+        """Data snooping on image observations (default: all); rejected ones are deleted."""
+        ids = list(self.image_obs) if oids is None else list(oids)
+        res = snoop(self.est, ids, **kwargs)  # type: ignore[arg-type]
+        for oid in res.rejected:
+            o = self.image_obs.pop(oid, None)
+            if o is not None:
+                self.points[o.point].image_obs.discard(oid)
+        return res
+
+
+@dataclass
+class ScreenStats:
+    """Counts of a :class:`GivensScreen` (for metrics.json)."""
+
+    tested: int = 0
+    rejected: int = 0
+    untested: int = 0
+
+
+class GivensScreen:
+    """Blunder screen for a tracking back end: per-keyframe batches in, accepted masks out.
+
+    Every image observation goes into a :class:`SequentialBundle`; once its redundancy number
+    reaches ``min_redundancy`` it is tested once by iterative data snooping (α0, default 0.1 %)
+    together with the other newly testable ones. ``screen`` returns which of the batch's
+    observations are accepted (not rejected so far); observations of earlier batches that
+    are rejected later are returned by :meth:`late_rejections` so the caller can remove them.
+    """
+
+    def __init__(
+        self,
+        camera: CentralCamera,
+        sigma_px: float = 1.0,
+        alpha: float = 0.001,
+        min_redundancy: float = 0.3,
+        point_prior_sigma_m: float = 1.0,
+        frame_prior_sigma_rad: float = 0.05,
+        frame_prior_sigma_m: float = 0.1,
+    ) -> None:
+        self.bundle = SequentialBundle(camera, sigma_px=sigma_px)
+        self.alpha = float(alpha)
+        self.min_redundancy = float(min_redundancy)
+        self.point_prior_sigma_m = float(point_prior_sigma_m)
+        self.frame_prior = (float(frame_prior_sigma_rad), float(frame_prior_sigma_m))
+        self.stats = ScreenStats()
+        self._pending: list[int] = []
+        self._key: dict[int, tuple[Hashable, Hashable]] = {}
+        self._late: list[tuple[Hashable, Hashable]] = []
+
+    def add_point(self, pid: Hashable, p_in_world: ArrayLike, prior_sigma_m: float | None = None) -> None:
+        """Register an object point (approximate world coordinates, metres)."""
+        self.bundle.add_point(
+            pid, p_in_world, self.point_prior_sigma_m if prior_sigma_m is None else prior_sigma_m
+        )
+
+    def screen(
+        self,
+        frame_id: Hashable,
+        world_from_cam: ArrayLike,
+        point_ids: Sequence[Hashable],
+        uv_px: ArrayLike,
+        first_frame: bool = False,
+    ) -> NDArray[np.bool_]:
+        """Insert one keyframe's observations (N point ids, N x 2 pixels); return accepted mask."""
+        b = self.bundle
+        sr, sm = self.frame_prior
+        if first_frame:
+            sr, sm = sr * 1e-3, sm * 1e-3
+        b.add_frame(frame_id, world_from_cam, sr, sm)
+        uv = np.asarray(uv_px, dtype=float).reshape(-1, 2)
+        if len(point_ids) != uv.shape[0]:
+            raise EstimationError("screen: point_ids and uv_px differ in length")
+        oids = [b.add_image_point(frame_id, pid, uv[i]) for i, pid in enumerate(point_ids)]
+        for oid, pid in zip(oids, point_ids, strict=True):
+            self._key[oid] = (frame_id, pid)
+        self._pending.extend(oids)
+        rejected = set(self._test_pending())
+        b.maybe_relinearize()
+        for oid in rejected:
+            if oid not in oids:
+                self._late.append(self._key[oid])
+        self.stats.untested = len(self._pending)
+        return np.array([oid not in rejected for oid in oids], dtype=bool)
+
+    def _test_pending(self) -> list[int]:
+        b = self.bundle
+        if not self._pending:
+            return []
+        try:
+            _, q = normalized_residuals(b.est, self._pending)
+        except EstimationError:
+            return []  # not yet regular: keep everything pending
+        ready = [i for i in self._pending if float(np.min(q[i])) >= self.min_redundancy]
+        if not ready:
+            return []
+        res = b.snoop(ready, alpha=self.alpha, min_redundancy=self.min_redundancy)
+        done = set(ready)
+        self._pending = [i for i in self._pending if i not in done]
+        self.stats.tested += len(ready)
+        self.stats.rejected += len(res.rejected)
+        return res.rejected
+
+    def late_rejections(self) -> list[tuple[Hashable, Hashable]]:
+        """(frame id, point id) of observations of earlier batches rejected since the last call."""
+        out, self._late = self._late, []
+        return out
