@@ -131,6 +131,73 @@ def _retriangularize_py(T, dT, band):  # type: ignore[no-untyped-def]
             dT[rr] = c * u - s * t
 
 
+def _solve_py(Rg, dg, n, Rpp, Rpf, dp, P, psize, xg, xp, rel_tol):  # type: ignore[no-untyped-def]
+    """Back substitution of the structured R x = d; returns -1 or the first singular column.
+
+    Singular columns are numbered ``k`` (global) or ``n + slot * smax + i`` (local).
+    """
+    smax = Rpp.shape[1]
+    scale = 0.0
+    for k in range(n):
+        a = abs(Rg[k, k])
+        if a > scale:
+            scale = a
+    for k in range(n - 1, -1, -1):
+        rkk = Rg[k, k]
+        if abs(rkk) <= rel_tol * scale or rkk == 0.0:
+            return k
+        acc = dg[k]
+        for j in range(k + 1, n):
+            acc -= Rg[k, j] * xg[j]
+        xg[k] = acc / rkk
+    for p in range(P):
+        s = psize[p]
+        pscale = 0.0
+        for i in range(s):
+            a = abs(Rpp[p, i, i])
+            if a > pscale:
+                pscale = a
+        for i in range(s - 1, -1, -1):
+            rii = Rpp[p, i, i]
+            if abs(rii) <= rel_tol * pscale or rii == 0.0:
+                return n + p * smax + i
+            acc = dp[p, i]
+            for j in range(n):
+                acc -= Rpf[p, i, j] * xg[j]
+            for j in range(i + 1, s):
+                acc -= Rpp[p, i, j] * xp[p, j]
+            xp[p, i] = acc / rii
+        for i in range(s, smax):
+            xp[p, i] = 0.0
+    return -1
+
+
+def _solve_np(Rg, dg, n, Rpp, Rpf, dp, P, psize, xg, xp, rel_tol):  # type: ignore[no-untyped-def]
+    from scipy.linalg import solve_triangular
+
+    diag = np.abs(np.diag(Rg)[:n])
+    scale = float(diag.max(initial=0.0))
+    bad = np.flatnonzero((diag <= rel_tol * scale) | (diag == 0.0))
+    if bad.size:
+        return int(bad[-1])
+    if n:
+        xg[:n] = solve_triangular(Rg[:n, :n], dg[:n], check_finite=False)
+    smax = Rpp.shape[1]
+    for p in range(P):
+        s = int(psize[p])
+        if s == 0:
+            xp[p] = 0.0
+            continue
+        dd = np.abs(np.diag(Rpp[p])[:s])
+        badp = np.flatnonzero((dd <= rel_tol * dd.max()) | (dd == 0.0))
+        if badp.size:
+            return n + p * smax + int(badp[-1])
+        y = dp[p, :s] - Rpf[p, :s, :n] @ xg[:n]
+        xp[p, :s] = solve_triangular(Rpp[p, :s, :s], y, check_finite=False)
+        xp[p, s:] = 0.0
+    return -1
+
+
 # ---- numpy fallbacks (vectorised along the row; used when numba is absent) ----
 
 
@@ -219,9 +286,11 @@ if HAVE_NUMBA:  # pragma: no cover - depends on the environment
     rows_update = _jit(_rows_update_py)
     rows_downdate = _jit(_rows_downdate_py)
     retriangularize = _jit(_retriangularize_py)
+    solve_structured = numba.njit(cache=True, nogil=True, fastmath=True)(_solve_py)
     KERNELS = "numba"
 else:  # pragma: no cover
     rows_update = _rows_update_np
     rows_downdate = _rows_downdate_np
     retriangularize = _retriangularize_np
+    solve_structured = _solve_np
     KERNELS = "numpy"

@@ -432,6 +432,24 @@ class GivensEstimator:
         if refactor:
             self.refactorize()
 
+    def update_observation(
+        self,
+        obs_id: int,
+        coeffs: Mapping[Hashable, ArrayLike],
+        l: ArrayLike,
+        sigma: ArrayLike | None = None,
+        weight: ArrayLike | None = None,
+    ) -> None:
+        """Replace an observation's rows in the factor (local re-linearisation), keeping its id.
+
+        The new rows are added first (Givens), then the old ones removed (hyperbolic), which
+        keeps the downdate well conditioned.
+        """
+        self._get_obs(obs_id)
+        new_id = self.add_observation(coeffs, l, sigma=sigma, weight=weight)
+        self.delete_observation(obs_id)
+        self._obs[obs_id] = self._obs.pop(new_id)
+
     # ------------------------------------------------------------ factorisation
     def refactorize(self) -> None:
         """Rebuild ``R``, ``d`` and ``vᵀPv`` from the stored observations (batch QR).
@@ -493,41 +511,32 @@ class GivensEstimator:
         self._x_cache = None
 
     # ----------------------------------------------------------------- solution
-    def _check_regular(self) -> None:
+    def _singular(self, col: int) -> EstimationError:
         n = self._n
-        dg = np.abs(np.diag(self._Rg)[:n])
-        scale = max(float(dg.max(initial=0.0)), 1e-300)
-        bad = np.flatnonzero(dg <= 1e-13 * scale)
-        if bad.size:
-            col = int(bad[0])
+        if col < n:
             name = next(
-                b.name for b in self._blocks.values() if not b.local and b.start <= col < b.start + b.size
+                b.name
+                for b in self._blocks.values()
+                if not b.local and b.start <= col < b.start + b.size
             )
-            raise EstimationError(f"system is singular: parameter block {name!r} is not determined")
-        P = self._slot_used
-        if P:
-            diag = np.abs(np.diagonal(self._Rpp[:P], axis1=1, axis2=2))
-            sc = max(float(diag.max(initial=0.0)), 1e-300)
-            badp = np.argwhere(diag <= 1e-13 * sc)
-            if badp.size:
-                raise EstimationError(
-                    f"system is singular: parameter block {self._slot_name[int(badp[0, 0])]!r}"
-                    " is not determined"
-                )
+        else:
+            name = self._slot_name[(col - n) // self.smax]
+        return EstimationError(f"system is singular: parameter block {name!r} is not determined")
+
+    def _check_regular(self) -> None:
+        self._solve()
 
     def _solve(self) -> tuple[F64, F64]:
         if self._x_cache is not None:
             return self._x_cache
-        self._check_regular()
-        n = self._n
-        xg = solve_triangular(self._Rg[:n, :n], self._dg[:n], check_finite=False) if n else np.zeros(0)
-        P = self._slot_used
-        y = self._dp[:P] - self._Rpf[:P, :, :n] @ xg if n else self._dp[:P].copy()
-        R = self._Rpp[:P]
-        xp = np.zeros_like(y)
-        for i in range(self.smax - 1, -1, -1):
-            acc = y[:, i] - np.einsum("pj,pj->p", R[:, i, i + 1 :], xp[:, i + 1 :])
-            xp[:, i] = acc / R[:, i, i]
+        n, P = self._n, self._slot_used
+        xg = np.zeros(n)
+        xp = np.zeros((P, self.smax))
+        bad = _k.solve_structured(
+            self._Rg, self._dg, n, self._Rpp, self._Rpf, self._dp, P, self._psize, xg, xp, 1e-13
+        )
+        if bad >= 0:
+            raise self._singular(int(bad))
         self._x_cache = (xp, xg)
         return self._x_cache
 

@@ -56,6 +56,9 @@ class _ImageObs:
     point: Hashable
     uv_px: F64
     sigma_px: float
+    a_lin: F64 = field(default_factory=lambda: np.zeros((2, 9)))  # [A_f | A_p] at linearisation
+    x_lin: F64 = field(default_factory=lambda: np.zeros(9))  # corrections (frame, point) there
+    uv_lin: F64 = field(default_factory=lambda: np.zeros(2))  # predicted pixels there
 
 
 def _fkey(fid: Hashable) -> tuple[str, Hashable]:
@@ -73,21 +76,18 @@ class SequentialBundle:
         self,
         camera: CentralCamera,
         sigma_px: float = 0.5,
-        relin_point_m: float = 0.05,
-        relin_pos_m: float = 0.05,
-        relin_rot_rad: float = 0.01,
+        relin_px: float | None = None,
         min_downdate_cos2: float = 1e-6,
     ) -> None:
         self.camera = camera
         self.sigma_px = float(sigma_px)
-        self.relin_point_m = float(relin_point_m)
-        self.relin_pos_m = float(relin_pos_m)
-        self.relin_rot_rad = float(relin_rot_rad)
+        self.relin_px = 0.1 * self.sigma_px if relin_px is None else float(relin_px)
         self.est = GivensEstimator(local_block_max=3, min_downdate_cos2=min_downdate_cos2)
         self.frames: dict[Hashable, _FrameRef] = {}
         self.points: dict[Hashable, _PointRef] = {}
         self.image_obs: dict[int, _ImageObs] = {}
         self.n_relinearizations = 0
+        self.n_local_relinearizations = 0
 
     # ---------------------------------------------------------------- unknowns
     def add_frame(
@@ -164,6 +164,9 @@ class SequentialBundle:
         A_f = np.hstack([J @ hat(p_cam), -JRt])
         A_p = JRt
         l = o.uv_px - uv + A_f @ xf + A_p @ xp
+        o.a_lin = np.hstack([A_f, A_p])
+        o.x_lin = np.concatenate([xf, xp])
+        o.uv_lin = uv
         return {_fkey(o.frame): A_f, _pkey(o.point): A_p}, l
 
     # ------------------------------------------------------------- observations
@@ -193,22 +196,67 @@ class SequentialBundle:
         self.points[o.point].image_obs.discard(oid)
 
     # ---------------------------------------------------------- linearisation
-    def max_corrections(self) -> tuple[float, float, float]:
-        """Largest current correction of (point m, frame position m, frame rotation rad)."""
-        xp, xg = self.est._solve()
-        pm = float(np.max(np.linalg.norm(xp, axis=1), initial=0.0))
-        G = xg.reshape(-1, 6) if xg.size else np.zeros((0, 6))
-        rot = float(np.max(np.linalg.norm(G[:, :3], axis=1), initial=0.0))
-        pos = float(np.max(np.linalg.norm(G[:, 3:], axis=1), initial=0.0))
-        return pm, pos, rot
+    def linearization_errors(self) -> dict[int, float]:
+        """Per image observation: max |π(x̂) - (π(x_lin) + A (x̂ - x_lin))| (pixels).
 
-    def maybe_relinearize(self) -> bool:
-        """Re-linearise (batch re-factorisation) when a correction exceeds its threshold."""
-        pm, pos, rot = self.max_corrections()
-        if pm > self.relin_point_m or pos > self.relin_pos_m or rot > self.relin_rot_rad:
-            self.relinearize()
-            return True
-        return False
+        The error of the linearised image rows at the current estimate: the quantity that
+        decides when re-linearisation is due.
+        """
+        if not self.image_obs:
+            return {}
+        sol = self.est.solution()
+        obs = list(self.image_obs.values())
+        fidx = {fid: i for i, fid in enumerate(self.frames)}
+        pidx = {pid: i for i, pid in enumerate(self.points)}
+        Rs = np.empty((len(fidx), 3, 3))
+        Cs = np.empty((len(fidx), 3))
+        xf = np.empty((len(fidx), 6))
+        for fid, i in fidx.items():
+            ref = self.frames[fid]
+            xf[i] = sol[_fkey(fid)]
+            Rs[i] = ref.R0 @ so3_exp(xf[i, :3])
+            Cs[i] = ref.C0 + xf[i, 3:]
+        Xs = np.empty((len(pidx), 3))
+        xp = np.empty((len(pidx), 3))
+        for pid, i in pidx.items():
+            xp[i] = sol[_pkey(pid)]
+            Xs[i] = self.points[pid].X0 + xp[i]
+        fi = np.array([fidx[o.frame] for o in obs])
+        pi = np.array([pidx[o.point] for o in obs])
+        p_cam = np.einsum("nji,nj->ni", Rs[fi], Xs[pi] - Cs[fi])
+        uv_now = self.camera.project(p_cam)
+        A = np.stack([o.a_lin for o in obs])
+        dx = np.hstack([xf[fi], xp[pi]]) - np.stack([o.x_lin for o in obs])
+        uv_lin = np.stack([o.uv_lin for o in obs])
+        err = uv_now - uv_lin - np.einsum("nij,nj->ni", A, dx)
+        return dict(zip(self.image_obs, np.max(np.abs(err), axis=1), strict=True))
+
+    def linearization_error_px(self) -> float:
+        """Largest linearisation error of the image rows at the current estimate (pixels)."""
+        e = self.linearization_errors()
+        return max(e.values(), default=0.0)
+
+    def maybe_relinearize(self, max_local_fraction: float = 0.05) -> str:
+        """Re-linearise the rows whose linearisation error exceeds ``relin_px``.
+
+        Few such rows (at most ``max_local_fraction`` of all): each is replaced in the factor
+        by its linearisation at the current estimate (update + downdate, *local*). More: a
+        batch re-factorisation at the current estimate (:meth:`relinearize`). Returns
+        ``"none"``, ``"local"`` or ``"batch"``.
+        """
+        errs = self.linearization_errors()
+        bad = [oid for oid, e in errs.items() if e > self.relin_px]
+        if not bad:
+            return "none"
+        if len(bad) <= max_local_fraction * len(errs):
+            for oid in bad:
+                o = self.image_obs[oid]
+                coeffs, l = self._linearize(o)
+                self.est.update_observation(oid, coeffs, l, sigma=o.sigma_px)
+            self.n_local_relinearizations += len(bad)
+            return "local"
+        self.relinearize()
+        return "batch"
 
     def relinearize(self) -> None:
         """Move all references to the current estimate, rebuild every row there, re-factorise."""
