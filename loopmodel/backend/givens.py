@@ -479,18 +479,29 @@ class GivensEstimator:
             recs = by_slot.get(j)
             if not recs:
                 continue
-            M = np.vstack(
-                [np.column_stack([r.a_local, self._rows_of(r)[3], r.l]) for r in recs]
+            used = sorted({nm for r in recs for nm in r.a_global}, key=lambda nm: self._blocks[nm].start)
+            cols = (
+                np.concatenate(
+                    [np.arange(self._blocks[nm].start, self._blocks[nm].start + self._blocks[nm].size)
+                     for nm in used]
+                )
+                if used
+                else np.zeros(0, dtype=int)
             )
+            nu = cols.size
+            M = np.vstack([np.column_stack([r.a_local, self._rows_of(r)[3][:, cols], r.l]) for r in recs])
             Rj = _qr(M, mode="r", check_finite=False)[0]
             k = min(s, Rj.shape[0])
             sign = np.where(np.diag(Rj[:k, :k]) < 0, -1.0, 1.0)
             Rj[:k] *= sign[:, None]
             self._Rpp[j, :k, :s] = Rj[:k, :s]
-            self._Rpf[j, :k, :n] = Rj[:k, s : s + n]
-            self._dp[j, :k] = Rj[:k, s + n]
+            self._Rpf[j][:k, cols] = Rj[:k, s : s + nu]
+            self._dp[j, :k] = Rj[:k, s + nu]
             if Rj.shape[0] > s:
-                global_rows.append(Rj[s:, s:])
+                G = np.zeros((Rj.shape[0] - s, n + 1))
+                G[:, cols] = Rj[s:, s : s + nu]
+                G[:, n] = Rj[s:, s + nu]
+                global_rows.append(G)
         acc = np.zeros((0, n + 1))
         chunk: list[F64] = []
         count = 0
@@ -610,8 +621,13 @@ class GivensEstimator:
         return Q
 
     # ------------------------------------------------- residuals and redundancy
-    def _forward_rows(self, ids: Sequence[int]) -> tuple[F64, F64, list[int]]:
-        """For the rows of ``ids``: whitened residuals v = a x̂ - l and ||R⁻ᵀ aᵀ||² per row."""
+    def _forward_rows(
+        self, ids: Sequence[int], need_q: bool = True
+    ) -> tuple[F64, F64, list[int]]:
+        """For the rows of ``ids``: whitened residuals v = a x̂ - l and ||R⁻ᵀ aᵀ||² per row.
+
+        ``need_q=False`` skips the forward substitutions (the second array is then zeros).
+        """
         xp, xg = self._solve()
         n = self._n
         recs = [self._get_obs(i) for i in ids]
@@ -619,7 +635,7 @@ class GivensEstimator:
         total = sum(counts)
         v = np.zeros(total)
         pn = np.zeros(total)
-        chunk_rows = max(1, 4_000_000 // max(n, 1))
+        chunk_rows = max(1, 4_000_000 // max(n, 1)) if need_q else total + 1
         row = 0
         start = 0
         while start < len(recs):
@@ -627,19 +643,24 @@ class GivensEstimator:
             while stop < len(recs) and (rows == 0 or rows + counts[stop] <= chunk_rows):
                 rows += counts[stop]
                 stop += 1
-            B = np.zeros((n, rows))
+            B = np.zeros((n, rows if need_q else 0))
             r0 = 0
             for rec in recs[start:stop]:
                 m = rec.rows
                 vv = -rec.l.copy()
                 for name, A in rec.a_global.items():
                     b = self._blocks[name]
-                    B[b.start : b.start + b.size, r0 : r0 + m] = A.T
+                    if need_q:
+                        B[b.start : b.start + b.size, r0 : r0 + m] = A.T
                     vv += A @ xg[b.start : b.start + b.size]
                 if rec.local is not None and rec.a_local is not None:
                     b = self._blocks[rec.local]
                     s = b.size
                     vv += rec.a_local @ xp[b.slot, :s]
+                    if not need_q:
+                        v[row + r0 : row + r0 + m] = vv
+                        r0 += m
+                        continue
                     yl = solve_triangular(
                         self._Rpp[b.slot, :s, :s], rec.a_local.T, trans="T", check_finite=False
                     )
@@ -647,8 +668,9 @@ class GivensEstimator:
                     B[:, r0 : r0 + m] -= self._Rpf[b.slot, :s, :n].T @ yl
                 v[row + r0 : row + r0 + m] = vv
                 r0 += m
-            Yg = self._forward_global(B)
-            pn[row : row + rows] += np.einsum("ij,ij->j", Yg, Yg)
+            if need_q:
+                Yg = self._forward_global(B)
+                pn[row : row + rows] += np.einsum("ij,ij->j", Yg, Yg)
             row += rows
             start = stop
         return v, pn, counts
@@ -656,7 +678,7 @@ class GivensEstimator:
     def residuals(self, ids: Sequence[int] | None = None) -> dict[int, F64]:
         """Whitened residuals √P v = √P (A x̂ - l) per observation."""
         ids = self.observation_ids() if ids is None else list(ids)
-        v, _, counts = self._forward_rows(ids)
+        v, _, counts = self._forward_rows(ids, need_q=False)
         return dict(zip(ids, np.split(v, np.cumsum(counts)[:-1]), strict=True))
 
     def redundancy_numbers(self, ids: Sequence[int] | None = None) -> dict[int, F64]:

@@ -73,12 +73,19 @@ def snoop(
     min_redundancy: float = 0.05,
     max_rejections: int | None = None,
     delete: bool = True,
+    verify_top: int = 5,
 ) -> SnoopResult:
     """Iterative data snooping: test, delete the largest |w| above the critical value, repeat.
 
     ``ids``: the observations under test (default: all). Rows whose redundancy number is below
     ``min_redundancy`` cannot reveal a blunder and are reported as untestable. With
     ``delete=False`` only the first (largest) outlier is reported, nothing is changed.
+
+    After a deletion the residuals of all observations under test are recomputed from the
+    updated solution (cheap), while their redundancy numbers are kept from the previous
+    evaluation for ranking only: the ``verify_top`` largest candidates are re-evaluated
+    exactly before the largest is deleted, and a final exact pass over all of them confirms
+    that no |w| exceeds the critical value (else the iteration continues).
     """
     crit = critical_value(alpha)
     pending = list(est.observation_ids() if ids is None else ids)
@@ -87,28 +94,50 @@ def snoop(
             raise EstimationError(f"observation {i!r} is not in the estimator")
     result = SnoopResult(critical=crit)
     limit = len(pending) if max_rejections is None else int(max_rejections)
-    while pending:
-        w, q = normalized_residuals(est, pending, sigma0)
-        best_id, best_w = -1, 0.0
-        testable: list[int] = []
-        for i in pending:
-            ok = q[i] >= min_redundancy
-            if not np.any(ok):
-                continue
-            testable.append(i)
-            m = float(np.max(np.abs(w[i][ok])))
-            if m > best_w:
-                best_id, best_w = i, m
-        if not result.tested:
-            result.tested = testable
-            result.untestable = [i for i in pending if i not in set(testable)]
-        if best_w <= crit or len(result.rejected) >= limit:
-            result.max_abs_w = best_w
-            break
-        result.rejected.append(best_id)
+    s0 = 1.0 if sigma0 is None else float(sigma0)
+
+    def exact(obs: list[int]) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        return normalized_residuals(est, obs, sigma0)
+
+    w, q = exact(pending)
+    result.tested = [i for i in pending if np.any(q[i] >= min_redundancy)]
+    tested = set(result.tested)
+    result.untestable = [i for i in pending if i not in tested]
+    cand_ids = list(result.tested)
+    fresh = True  # q is exact for every candidate
+    while cand_ids:
+
+        def score(i: int, ww: dict[int, np.ndarray], qq: dict[int, np.ndarray]) -> float:
+            ok = qq[i] >= min_redundancy
+            return float(np.max(np.abs(ww[i][ok]))) if np.any(ok) else 0.0
+
+        ranked = sorted(cand_ids, key=lambda i: -score(i, w, q))
+        if not ranked or score(ranked[0], w, q) <= crit or len(result.rejected) >= limit:
+            if fresh:
+                result.max_abs_w = score(ranked[0], w, q) if ranked else 0.0
+                break
+            w, q = exact(cand_ids)  # confirm with exact redundancy numbers
+            fresh = True
+            continue
+        top = [i for i in ranked[:verify_top] if score(i, w, q) > crit]
+        if not fresh:
+            we, qe = exact(top)
+            w.update(we)
+            q.update(qe)
+        best = max(top, key=lambda i: score(i, w, q))
+        best_w = score(best, w, q)
+        if best_w <= crit:
+            continue  # the exact values of the top candidates are below: re-rank
+        result.rejected.append(best)
         result.rejected_w.append(best_w)
         if not delete:
             break
-        est.delete_observation(best_id)
-        pending = [i for i in pending if i != best_id]
+        est.delete_observation(best)
+        cand_ids = [i for i in cand_ids if i != best]
+        if not cand_ids:
+            break
+        v, _, counts = est._forward_rows(cand_ids, need_q=False)
+        for i, vi in zip(cand_ids, np.split(v, np.cumsum(counts)[:-1]), strict=True):
+            w[i] = vi / (s0 * np.sqrt(np.maximum(q[i], 1e-300)))
+        fresh = False
     return result
