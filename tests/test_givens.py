@@ -60,11 +60,15 @@ def _compare(est: GivensEstimator, mir: Mirror, selected: list) -> None:
     assert est.vtpv() == pytest.approx(vtpv, rel=TOL, abs=TOL)
     idx = np.concatenate([np.arange(off[n], off[n] + mir.sizes[n]) for n in selected])
     Qs = est.cofactor(selected)
-    np.testing.assert_allclose(Qs, Q[np.ix_(idx, idx)], rtol=0, atol=TOL * max(1.0, np.abs(Q).max()))
+    np.testing.assert_allclose(
+        Qs, Q[np.ix_(idx, idx)], rtol=0, atol=TOL * max(1.0, np.abs(Q).max())
+    )
     assert est.redundancy == sum(len(l) for _, l in mir.rows.values()) - sum(mir.sizes.values())
 
 
-def _random_obs(rng: np.random.Generator, est: GivensEstimator, mir: Mirror, locs: list, globs: list) -> int:
+def _random_obs(
+    rng: np.random.Generator, est: GivensEstimator, mir: Mirror, locs: list, globs: list
+) -> int:
     m = int(rng.integers(1, 4))
     coeffs: dict = {}
     if locs and rng.random() < 0.8:
@@ -135,7 +139,7 @@ def test_full_weight_matrix_and_refactorize() -> None:
     est = GivensEstimator()
     est.add_parameters("a", 3, local=True)
     est.add_parameters("g", 4)
-    rows_A, rows_l, Ws = [], [], []
+    rows_A, rows_l = [], []
     for _ in range(12):
         A1 = rng.normal(size=(2, 3))
         A2 = rng.normal(size=(2, 4))
@@ -208,8 +212,12 @@ def test_normalized_residuals_match_dense_formula() -> None:
         for _ in range(40)
     ]
     names = list(mir.sizes)
-    A = np.vstack([np.hstack([c.get(n, np.zeros((len(l), mir.sizes[n]))) for n in names])
-                   for c, l in mir.rows.values()])
+    A = np.vstack(
+        [
+            np.hstack([c.get(n, np.zeros((len(l), mir.sizes[n]))) for n in names])
+            for c, l in mir.rows.values()
+        ]
+    )
     l = np.concatenate([l for _, l in mir.rows.values()])
     x = np.linalg.lstsq(A, l, rcond=None)[0]
     v = A @ x - l
@@ -222,8 +230,9 @@ def test_normalized_residuals_match_dense_formula() -> None:
 
 
 def _build_bundle(n_frames: int, n_points: int, seed: int = 0, blunder_fraction: float = 0.0):
-    tf = make_testfield(n_frames=n_frames, n_points=n_points, seed=seed,
-                        blunder_fraction=blunder_fraction)
+    tf = make_testfield(
+        n_frames=n_frames, n_points=n_points, seed=seed, blunder_fraction=blunder_fraction
+    )
     rng = np.random.default_rng(seed + 100)
     b = SequentialBundle(tf.camera, sigma_px=tf.sigma_px)
     ctrl = set(tf.control.tolist())
@@ -333,8 +342,9 @@ def test_snooping_finds_one_and_two_blunders() -> None:
 
 
 def test_screen_rejects_injected_blunders() -> None:
-    tf = make_testfield(n_frames=14, n_points=40, seed=6, blunder_fraction=0.03,
-                        blunder_sigmas=(10.0, 15.0))
+    tf = make_testfield(
+        n_frames=14, n_points=40, seed=6, blunder_fraction=0.03, blunder_sigmas=(10.0, 15.0)
+    )
     rng = np.random.default_rng(0)
     scr = GivensScreen(tf.camera, sigma_px=tf.sigma_px)
     ctrl = set(tf.control.tolist())
@@ -342,8 +352,11 @@ def test_screen_rejects_injected_blunders() -> None:
     for f, (ids, uv) in enumerate(tf.observations):
         for i in ids.tolist():
             if i not in scr.bundle.points:
-                scr.add_point(i, tf.points_world[i] + (0 if i in ctrl else rng.normal(0, 0.01, 3)),
-                              1e-4 if i in ctrl else None)
+                scr.add_point(
+                    i,
+                    tf.points_world[i] + (0 if i in ctrl else rng.normal(0, 0.01, 3)),
+                    1e-4 if i in ctrl else None,
+                )
         T = tf.world_from_cam[f].copy()
         T[:3, 3] += rng.normal(0, 0.002, 3)
         mask = scr.screen(f, T, ids.tolist(), uv, first_frame=(f == 0))

@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from loopmodel.backend._givens_kernels import KERNELS
-from loopmodel.backend.givens_bundle import SequentialBundle, _fkey, _pkey
+from loopmodel.backend.givens_bundle import SequentialBundle, _pkey
 from loopmodel.backend.testfield import TestField, make_testfield
 from loopmodel.geometry.se3 import so3_exp
 
@@ -103,21 +103,29 @@ class _Isam2Mirror:
         graph = g.NonlinearFactorGraph()
         vals = g.Values()
         pose = g.Pose3(g.Rot3(T[:3, :3]), T[:3, 3])
-        graph.add(g.PriorFactorPose3(g.symbol("x", f), pose,
-                                     g.noiseModel.Diagonal.Sigmas(np.r_[[sr] * 3, [sm] * 3])))
+        graph.add(
+            g.PriorFactorPose3(
+                g.symbol("x", f), pose, g.noiseModel.Diagonal.Sigmas(np.r_[[sr] * 3, [sm] * 3])
+            )
+        )
         vals.insert(g.symbol("x", f), pose)
         return graph, vals
 
-    def point_factors(self, graph: Any, vals: Any, f: int, i: int, uv: np.ndarray,
-                      X0: np.ndarray, sigma_m: float) -> None:
+    def point_factors(
+        self, graph: Any, vals: Any, f: int, i: int, uv: np.ndarray, X0: np.ndarray, sigma_m: float
+    ) -> None:
         g = self.g
         if i not in self.known:
             self.known.add(i)
             vals.insert(g.symbol("l", i), X0)
-            graph.add(g.PriorFactorPoint3(g.symbol("l", i), X0,
-                                          g.noiseModel.Isotropic.Sigma(3, sigma_m)))
-        graph.add(g.GenericProjectionFactorCal3_S2(uv, self.noise, g.symbol("x", f),
-                                                   g.symbol("l", i), self.K))
+            graph.add(
+                g.PriorFactorPoint3(g.symbol("l", i), X0, g.noiseModel.Isotropic.Sigma(3, sigma_m))
+            )
+        graph.add(
+            g.GenericProjectionFactorCal3_S2(
+                uv, self.noise, g.symbol("x", f), g.symbol("l", i), self.K
+            )
+        )
 
     def update(self, graph: Any, vals: Any) -> None:
         self.isam.update(graph, vals)
@@ -131,8 +139,10 @@ def run(quick: bool = False) -> dict[str, Any]:
     _warm_up()
     b = SequentialBundle(tf.camera, sigma_px=tf.sigma_px)
     ctrl = set(tf.control.tolist())
-    approx = {i: (tf.points_world[i] if i in ctrl else tf.points_world[i] + rng.normal(0, 0.01, 3))
-              for i in range(n_points)}
+    approx = {
+        i: (tf.points_world[i] if i in ctrl else tf.points_world[i] + rng.normal(0, 0.01, 3))
+        for i in range(n_points)
+    }
     blunder_keys: set[tuple[int, int]] = set()
     key_of: dict[int, tuple[int, int]] = {}
     insert_ms: dict[int, list[float]] = {}
@@ -144,7 +154,9 @@ def run(quick: bool = False) -> dict[str, Any]:
     unknowns = 0
     rows_inserted = 0
     relin = {"none": 0, "local": 0, "batch": 0}
-    out: dict[str, Any] = {"dataset": f"synthetic OLTRIS-size test field (88 frames, {n_points} points)"}
+    out: dict[str, Any] = {
+        "dataset": f"synthetic OLTRIS-size test field (88 frames, {n_points} points)"
+    }
     mirror = None
     try:
         mirror = _Isam2Mirror(tf)
@@ -216,7 +228,9 @@ def run(quick: bool = False) -> dict[str, Any]:
             out["batch_ms_at_40"] = float(np.median(times))
             out["batch_cpu_ms_at_40"] = float(np.median(ctimes))
             xs = b.est.solution_vector()
-            out["diff_vs_batch_at_40"] = float(np.max(np.abs(xs - xb)) / max(np.max(np.abs(xb)), 1e-12))
+            out["diff_vs_batch_at_40"] = float(
+                np.max(np.abs(xs - xb)) / max(np.max(np.abs(xb)), 1e-12)
+            )
         # screening of the newly testable observations
         qv = b.est.redundancy_numbers(pending) if pending else {}
         ready = [o for o in pending if float(np.min(qv[o])) >= 0.3]
@@ -304,8 +318,13 @@ def run(quick: bool = False) -> dict[str, Any]:
     )
     if "isam2_ms_at_40" in out:
         out["isam2_over_givens_at_40"] = round(out["isam2_ms_at_40"] / m40, 1)
-    for k in ("batch_ms_at_40", "isam2_ms_at_40", "isam2_ms_at_40_p95", "batch_cpu_ms_at_40",
-              "isam2_cpu_ms_at_40"):
+    for k in (
+        "batch_ms_at_40",
+        "isam2_ms_at_40",
+        "isam2_ms_at_40_p95",
+        "batch_cpu_ms_at_40",
+        "isam2_cpu_ms_at_40",
+    ):
         if k in out:
             out[k] = round(out[k], 3)
     return out

@@ -1,1 +1,1 @@
-"""Back end: incremental estimation (iSAM2) and the sequential Givens estimator with data snooping."""
+"""Back end: incremental estimation (iSAM2), sequential Givens estimator, data snooping."""

@@ -318,7 +318,8 @@ class GivensEstimator:
             if blk.local:
                 if rec.local is not None:
                     raise EstimationError(
-                        f"an observation may involve one local block; got {rec.local!r} and {name!r}"
+                        "an observation may involve one local block; "
+                        f"got {rec.local!r} and {name!r}"
                     )
                 rec.local, rec.a_local = name, Aw
             else:
@@ -383,7 +384,15 @@ class GivensEstimator:
             )
         if ok:
             ok = _k.rows_downdate(
-                self._Rg, self._dg, self._empty_c, Zg, self._empty_z, zl, n, 0, self.min_downdate_cos2
+                self._Rg,
+                self._dg,
+                self._empty_c,
+                Zg,
+                self._empty_z,
+                zl,
+                n,
+                0,
+                self.min_downdate_cos2,
             )
         if ok:
             rss = self._rss - float(zl @ zl)
@@ -423,7 +432,7 @@ class GivensEstimator:
         weight: ArrayLike | None = None,
         refactor: bool = True,
     ) -> None:
-        """Replace the rows of an observation (re-linearisation); re-factorises unless told not to."""
+        """Replace an observation's rows (re-linearisation); re-factorises unless told not to."""
         old = self._get_obs(obs_id)
         rec = self._prepare(coeffs, l, sigma, weight)
         if rec.rows != old.rows:
@@ -479,17 +488,25 @@ class GivensEstimator:
             recs = by_slot.get(j)
             if not recs:
                 continue
-            used = sorted({nm for r in recs for nm in r.a_global}, key=lambda nm: self._blocks[nm].start)
+            used = sorted(
+                {nm for r in recs for nm in r.a_global}, key=lambda nm: self._blocks[nm].start
+            )
             cols = (
                 np.concatenate(
-                    [np.arange(self._blocks[nm].start, self._blocks[nm].start + self._blocks[nm].size)
-                     for nm in used]
+                    [
+                        np.arange(
+                            self._blocks[nm].start, self._blocks[nm].start + self._blocks[nm].size
+                        )
+                        for nm in used
+                    ]
                 )
                 if used
                 else np.zeros(0, dtype=int)
             )
             nu = cols.size
-            M = np.vstack([np.column_stack([r.a_local, self._rows_of(r)[3][:, cols], r.l]) for r in recs])
+            M = np.vstack(
+                [np.column_stack([r.a_local, self._rows_of(r)[3][:, cols], r.l]) for r in recs]
+            )
             Rj = _qr(M, mode="r", check_finite=False)[0]
             k = min(s, Rj.shape[0])
             sign = np.where(np.diag(Rj[:k, :k]) < 0, -1.0, 1.0)
@@ -621,9 +638,7 @@ class GivensEstimator:
         return Q
 
     # ------------------------------------------------- residuals and redundancy
-    def _forward_rows(
-        self, ids: Sequence[int], need_q: bool = True
-    ) -> tuple[F64, F64, list[int]]:
+    def _forward_rows(self, ids: Sequence[int], need_q: bool = True) -> tuple[F64, F64, list[int]]:
         """For the rows of ``ids``: whitened residuals v = a x̂ - l and ||R⁻ᵀ aᵀ||² per row.
 
         ``need_q=False`` skips the forward substitutions (the second array is then zeros).

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -109,7 +110,9 @@ class SequentialBundle:
             A, l, sig = self._frame_prior_row(ref)
             ref.prior_obs = self.est.add_observation({_fkey(fid): A}, l, sigma=sig)
 
-    def add_point(self, pid: Hashable, p_in_world: ArrayLike, prior_sigma_m: float | None = 1.0) -> None:
+    def add_point(
+        self, pid: Hashable, p_in_world: ArrayLike, prior_sigma_m: float | None = 1.0
+    ) -> None:
         """New object point (approximate coordinates, metres); small σ makes it a control point."""
         if pid in self.points:
             raise EstimationError(f"point {pid!r} already exists")
@@ -173,13 +176,17 @@ class SequentialBundle:
     def add_image_point(
         self, fid: Hashable, pid: Hashable, uv_px: ArrayLike, sigma_px: float | None = None
     ) -> int:
-        """Insert one image point (u, v pixels) of ``pid`` in ``fid``; returns the observation id."""
+        """Insert one image point (u, v pixels) of ``pid`` in ``fid``; returns its id."""
         if fid not in self.frames:
             raise EstimationError(f"unknown frame {fid!r}")
         if pid not in self.points:
             raise EstimationError(f"unknown point {pid!r}")
-        o = _ImageObs(fid, pid, np.asarray(uv_px, dtype=float).reshape(2).copy(),
-                      self.sigma_px if sigma_px is None else float(sigma_px))
+        o = _ImageObs(
+            fid,
+            pid,
+            np.asarray(uv_px, dtype=float).reshape(2).copy(),
+            self.sigma_px if sigma_px is None else float(sigma_px),
+        )
         coeffs, l = self._linearize(o)
         oid = self.est.add_observation(coeffs, l, sigma=o.sigma_px)
         self.image_obs[oid] = o
@@ -190,7 +197,9 @@ class SequentialBundle:
         """Remove an image point observation (downdating)."""
         o = self.image_obs.get(oid)
         if o is None:
-            raise EstimationError(f"image observation {oid!r} was never added or is already deleted")
+            raise EstimationError(
+                f"image observation {oid!r} was never added or is already deleted"
+            )
         self.est.delete_observation(oid)
         del self.image_obs[oid]
         self.points[o.point].image_obs.discard(oid)
@@ -270,13 +279,15 @@ class SequentialBundle:
         for fid, ref in self.frames.items():
             if ref.prior_obs is not None:
                 A, l, sig = self._frame_prior_row(ref)
-                self.est.replace_observation(ref.prior_obs, {_fkey(fid): A}, l, sigma=sig,
-                                             refactor=False)
+                self.est.replace_observation(
+                    ref.prior_obs, {_fkey(fid): A}, l, sigma=sig, refactor=False
+                )
         for pid, pref in self.points.items():
             if pref.prior_obs is not None and pref.prior is not None:
                 Xp, sm = pref.prior
-                self.est.replace_observation(pref.prior_obs, {_pkey(pid): np.eye(3)},
-                                             Xp - pref.X0, sigma=sm, refactor=False)
+                self.est.replace_observation(
+                    pref.prior_obs, {_pkey(pid): np.eye(3)}, Xp - pref.X0, sigma=sm, refactor=False
+                )
         for oid, o in self.image_obs.items():
             coeffs, l = self._linearize(o, with_current=False)
             self.est.replace_observation(oid, coeffs, l, sigma=o.sigma_px, refactor=False)
@@ -334,7 +345,55 @@ class GivensScreen:
         self._key: dict[int, tuple[Hashable, Hashable]] = {}
         self._late: list[tuple[Hashable, Hashable]] = []
 
-    def add_point(self, pid: Hashable, p_in_world: ArrayLike, prior_sigma_m: float | None = None) -> None:
+    @classmethod
+    def from_config(cls, camera: CentralCamera, cfg: Any) -> GivensScreen:
+        """Screen from a :class:`loopmodel.config.GivensConfig` section."""
+        scr = cls(
+            camera,
+            sigma_px=cfg.sigma_px,
+            alpha=cfg.alpha,
+            min_redundancy=cfg.min_redundancy,
+            point_prior_sigma_m=cfg.point_prior_sigma_m,
+            frame_prior_sigma_rad=cfg.frame_prior_sigma_rad,
+            frame_prior_sigma_m=cfg.frame_prior_sigma_m,
+        )
+        scr.bundle.relin_px = cfg.relin_px
+        scr.bundle.est.min_downdate_cos2 = cfg.min_downdate_cos2
+        return scr
+
+    def screen_keyframe(self, keyframe: Any) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+        """Screen one front-end keyframe (the back end's ``KeyframeLike``, duck-typed).
+
+        Reads ``id``, ``world_from_kf`` (4x4), ``landmark_ids`` (M,), ``points_in_kf`` (M x 3,
+        metres, keyframe frame), ``stereo_px`` (M x 3: u_left, u_right, v) and ``mono_obs``
+        (K x 3: landmark id, u, v). New landmarks enter with their stereo point as approximate
+        value (weak prior); the left-image coordinates are screened. Returns the accepted masks
+        of the stereo and the monocular observations; earlier observations rejected now are in
+        :meth:`late_rejections` as ``(keyframe_id, landmark_id)``.
+        """
+        T = np.asarray(keyframe.world_from_kf, dtype=float)
+        lids = np.asarray(keyframe.landmark_ids, dtype=np.int64).reshape(-1)
+        pts = np.asarray(keyframe.points_in_kf, dtype=float).reshape(-1, 3)
+        st = np.asarray(keyframe.stereo_px, dtype=float).reshape(-1, 3)
+        mono = np.asarray(keyframe.mono_obs, dtype=float).reshape(-1, 3)
+        p_world = pts @ T[:3, :3].T + T[:3, 3]
+        for lid, pw in zip(lids.tolist(), p_world, strict=True):
+            if lid not in self.bundle.points:
+                self.add_point(lid, pw)
+        mono_ids = mono[:, 0].astype(np.int64)
+        keep_mono = np.array([m in self.bundle.points for m in mono_ids.tolist()], dtype=bool)
+        ids = [*lids.tolist(), *mono_ids[keep_mono].tolist()]
+        uv = np.vstack([st[:, [0, 2]], mono[keep_mono, 1:3]])
+        first = not self.bundle.frames
+        mask = self.screen(int(keyframe.id), T, ids, uv, first_frame=first)
+        m_st = mask[: lids.size]
+        m_mono = np.ones(mono_ids.size, dtype=bool)
+        m_mono[np.flatnonzero(keep_mono)] = mask[lids.size :]
+        return m_st, m_mono
+
+    def add_point(
+        self, pid: Hashable, p_in_world: ArrayLike, prior_sigma_m: float | None = None
+    ) -> None:
         """Register an object point (approximate world coordinates, metres)."""
         self.bundle.add_point(
             pid, p_in_world, self.point_prior_sigma_m if prior_sigma_m is None else prior_sigma_m

@@ -92,7 +92,13 @@ def make_testfield(
     for T in poses:
         p_cam = (pts - T[:3, 3]) @ T[:3, :3]
         uv = cam.project(p_cam)
-        vis = (p_cam[:, 2] > 0.1) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        vis = (
+            (p_cam[:, 2] > 0.1)
+            & (uv[:, 0] >= 0)
+            & (uv[:, 0] < W)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] < H)
+        )
         ids = np.flatnonzero(vis)
         meas = uv[ids] + rng.normal(0.0, sigma_px, (ids.size, 2))
         bl = rng.random(ids.size) < blunder_fraction
