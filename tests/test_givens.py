@@ -367,3 +367,43 @@ def test_screen_rejects_injected_blunders() -> None:
     assert len(flagged & blunders) >= 0.8 * len(blunders)
     assert len(flagged - blunders) <= 0.02 * sum(len(o[0]) for o in tf.observations)
     assert scr.stats.tested > 0 and scr.stats.rejected == len(flagged)
+
+
+def test_screen_keyframe_adapter() -> None:
+    """Duck-typed front-end keyframes (stereo + mono observations) through the screen."""
+    from types import SimpleNamespace
+
+    tf = make_testfield(n_frames=10, n_points=40, seed=8, blunder_fraction=0.0)
+    rng = np.random.default_rng(4)
+    scr = GivensScreen(tf.camera, sigma_px=tf.sigma_px)
+    seen: set[int] = set()
+    bad_key = None
+    for f, (ids, uv) in enumerate(tf.observations):
+        T = tf.world_from_cam[f]
+        uv = uv.copy()
+        if f == 6:  # one blunder on a monocular observation of an old landmark
+            k = next(k for k, i in enumerate(ids.tolist()) if i in seen)
+            uv[k, 0] += 20 * tf.sigma_px
+            bad_key = (f, int(ids[k]))
+        new = [k for k, i in enumerate(ids.tolist()) if i not in seen]
+        old = [k for k, i in enumerate(ids.tolist()) if i in seen]
+        p_kf = (tf.points_world[ids[new]] - T[:3, 3]) @ T[:3, :3] + rng.normal(
+            0, 0.005, (len(new), 3)
+        )
+        kf = SimpleNamespace(
+            id=f,
+            world_from_kf=T,
+            landmark_ids=ids[new],
+            points_in_kf=p_kf,
+            stereo_px=np.column_stack([uv[new, 0], uv[new, 0] - 30.0, uv[new, 1]]),
+            mono_obs=np.column_stack([ids[old], uv[old]]),
+        )
+        m_st, m_mono = scr.screen_keyframe(kf)
+        assert m_st.shape == (len(new),) and m_mono.shape == (len(old),)
+        if f == 6:
+            k_old = old.index(next(k for k in old if (f, int(ids[k])) == bad_key))
+            rejected_now = not m_mono[k_old]
+        seen |= set(ids.tolist())
+    late = scr.late_rejections()
+    assert rejected_now or bad_key in late
+    assert scr.stats.rejected <= 3

@@ -183,18 +183,21 @@ def _solve_np(Rg, dg, n, Rpp, Rpf, dp, P, psize, xg, xp, rel_tol):  # type: igno
     if n:
         xg[:n] = solve_triangular(Rg[:n, :n], dg[:n], check_finite=False)
     smax = Rpp.shape[1]
-    for p in range(P):
-        s = int(psize[p])
-        if s == 0:
-            xp[p] = 0.0
-            continue
-        dd = np.abs(np.diag(Rpp[p])[:s])
-        badp = np.flatnonzero((dd <= rel_tol * dd.max()) | (dd == 0.0))
-        if badp.size:
-            return n + p * smax + int(badp[-1])
-        y = dp[p, :s] - Rpf[p, :s, :n] @ xg[:n]
-        xp[p, :s] = solve_triangular(Rpp[p, :s, :s], y, check_finite=False)
-        xp[p, s:] = 0.0
+    if P == 0:
+        return -1
+    R = Rpp[:P]
+    dd = np.abs(np.diagonal(R, axis1=1, axis2=2))
+    sizes = psize[:P]
+    active = np.arange(smax)[None, :] < sizes[:, None]
+    pscale = np.max(np.where(active, dd, 0.0), axis=1)
+    badm = active & ((dd <= rel_tol * pscale[:, None]) | (dd == 0.0))
+    if badm.any():
+        p, i = np.argwhere(badm)[0]
+        return n + int(p) * smax + int(i)
+    y = dp[:P] - (Rpf[:P, :, :n] @ xg[:n] if n else 0.0)
+    for i in range(smax - 1, -1, -1):
+        acc = y[:, i] - np.einsum("pj,pj->p", R[:, i, i + 1 :], xp[:P, i + 1 :])
+        xp[:P, i] = np.where(active[:, i], acc / np.where(active[:, i], R[:, i, i], 1.0), 0.0)
     return -1
 
 
