@@ -51,20 +51,39 @@ def _rows_update_py(R, d, C, Z, ZC, zl, n, nc):  # type: ignore[no-untyped-def]
             Z[r, k] = 0.0
         if not any_active:
             continue
-        for j in range(k + 1, n):
-            t = R[k, j]
-            for r in range(m):
-                u = Z[r, j]
-                Z[r, j] = cs[r] * u - sn[r] * t
-                t = cs[r] * t + sn[r] * u
-            R[k, j] = t
-        for j in range(nc):
-            t = C[k, j]
-            for r in range(m):
-                u = ZC[r, j]
-                ZC[r, j] = cs[r] * u - sn[r] * t
-                t = cs[r] * t + sn[r] * u
-            C[k, j] = t
+        if m == 2:  # an image point: both coordinates in one sweep over the row
+            c0, s0, c1, s1 = cs[0], sn[0], cs[1], sn[1]
+            for j in range(k + 1, n):
+                t = R[k, j]
+                u0 = Z[0, j]
+                u1 = Z[1, j]
+                t1 = c0 * t + s0 * u0
+                Z[0, j] = c0 * u0 - s0 * t
+                R[k, j] = c1 * t1 + s1 * u1
+                Z[1, j] = c1 * u1 - s1 * t1
+            for j in range(nc):
+                t = C[k, j]
+                u0 = ZC[0, j]
+                u1 = ZC[1, j]
+                t1 = c0 * t + s0 * u0
+                ZC[0, j] = c0 * u0 - s0 * t
+                C[k, j] = c1 * t1 + s1 * u1
+                ZC[1, j] = c1 * u1 - s1 * t1
+        else:
+            for j in range(k + 1, n):
+                t = R[k, j]
+                for r in range(m):
+                    u = Z[r, j]
+                    Z[r, j] = cs[r] * u - sn[r] * t
+                    t = cs[r] * t + sn[r] * u
+                R[k, j] = t
+            for j in range(nc):
+                t = C[k, j]
+                for r in range(m):
+                    u = ZC[r, j]
+                    ZC[r, j] = cs[r] * u - sn[r] * t
+                    t = cs[r] * t + sn[r] * u
+                C[k, j] = t
         t = d[k]
         for r in range(m):
             u = zl[r]
@@ -131,7 +150,7 @@ def _retriangularize_py(T, dT, band):  # type: ignore[no-untyped-def]
             dT[rr] = c * u - s * t
 
 
-def _solve_py(Rg, dg, n, Rpp, Rpf, dp, P, psize, xg, xp, rel_tol):  # type: ignore[no-untyped-def]
+def _solve_py(Rg, dg, n, Rpp, Rpf, dp, P, psize, pfirst, xg, xp, rel_tol):  # type: ignore[no-untyped-def]
     """Back substitution of the structured R x = d; returns -1 or the first singular column.
 
     Singular columns are numbered ``k`` (global) or ``n + slot * smax + i`` (local).
@@ -162,7 +181,7 @@ def _solve_py(Rg, dg, n, Rpp, Rpf, dp, P, psize, xg, xp, rel_tol):  # type: igno
             if abs(rii) <= rel_tol * pscale or rii == 0.0:
                 return n + p * smax + i
             acc = dp[p, i]
-            for j in range(n):
+            for j in range(min(pfirst[p], n), n):
                 acc -= Rpf[p, i, j] * xg[j]
             for j in range(i + 1, s):
                 acc -= Rpp[p, i, j] * xp[p, j]
@@ -172,7 +191,7 @@ def _solve_py(Rg, dg, n, Rpp, Rpf, dp, P, psize, xg, xp, rel_tol):  # type: igno
     return -1
 
 
-def _solve_np(Rg, dg, n, Rpp, Rpf, dp, P, psize, xg, xp, rel_tol):  # type: ignore[no-untyped-def]
+def _solve_np(Rg, dg, n, Rpp, Rpf, dp, P, psize, pfirst, xg, xp, rel_tol):  # type: ignore[no-untyped-def]
     from scipy.linalg import solve_triangular
 
     diag = np.abs(np.diag(Rg)[:n])

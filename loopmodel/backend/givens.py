@@ -27,6 +27,7 @@ re-linearised and re-factorised.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Hashable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -43,6 +44,7 @@ logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 KERNELS = _k.KERNELS
+_NO_COLUMN = np.int64(2**62)
 
 
 @dataclass
@@ -75,6 +77,10 @@ def _whitener(m: int, sigma: ArrayLike | None, weight: ArrayLike | None) -> F64:
     if weight is None:
         if sigma is None:
             return np.ones(m)
+        if isinstance(sigma, float | int):
+            if not (sigma > 0 and math.isfinite(sigma)):
+                raise EstimationError(f"observation sigma must be positive and finite, got {sigma}")
+            return np.full(m, 1.0 / sigma)
         s = np.broadcast_to(np.asarray(sigma, dtype=float), (m,)).copy()
         if not np.all(np.isfinite(s)) or np.any(s <= 0):
             raise EstimationError(f"observation sigma must be positive and finite, got {s}")
@@ -128,6 +134,7 @@ class GivensEstimator:
         self._Rpf = np.zeros((0, self.smax, 0))
         self._dp = np.zeros((0, self.smax))
         self._psize = np.zeros(0, dtype=np.int64)
+        self._pfirst = np.zeros(0, dtype=np.int64)  # first non-zero column of R_pf(j)
         self._rss = 0.0
         self._obs: dict[int, _Obs] = {}
         self._next_id = 0
@@ -166,10 +173,14 @@ class GivensEstimator:
         dp[: self._pcap] = self._dp
         psize = np.zeros(cap, dtype=np.int64)
         psize[: self._pcap] = self._psize
+        pfirst = np.full(cap, _NO_COLUMN, dtype=np.int64)
+        pfirst[: self._pcap] = self._pfirst
+        self._pfirst = pfirst
         self._slot_name.extend([None] * (cap - self._pcap))
         self._Rpp, self._Rpf, self._dp, self._psize, self._pcap = Rpp, Rpf, dp, psize, cap
 
     def _reset_slot(self, j: int) -> None:
+        self._pfirst[j] = _NO_COLUMN
         self._Rpp[j] = np.eye(self.smax)
         self._Rpf[j] = 0.0
         self._dp[j] = 0.0
@@ -281,6 +292,9 @@ class GivensEstimator:
             dg_new[c:m_new] = dT[: m_new - c]
             self._rss += float(dT[m_new - c :] @ dT[m_new - c :])
             self._Rg, self._dg = Rg_new, dg_new
+            pf = self._pfirst
+            pf[:] = np.where(pf >= c + s, pf - s, np.where(pf >= c, c, pf))
+            pf[pf > m_new] = _NO_COLUMN
             self._Rpf[:, :, c:m_new] = self._Rpf[:, :, c + s : n]
             self._Rpf[:, :, m_new:n] = 0.0
             self._global_order.remove(name)
@@ -305,16 +319,18 @@ class GivensEstimator:
         rec = _Obs(local=None, a_local=None, l=_apply_w(W, lv))
         if not coeffs:
             raise EstimationError("an observation needs coefficients of at least one block")
+        total = 0.0
         for name, a in coeffs.items():
             blk = self._block(name)
-            A = np.asarray(a, dtype=float).reshape(m, -1) if np.size(a) else np.zeros((m, 0))
+            A = np.asarray(a, dtype=float)
+            if A.shape != (m, blk.size):
+                A = A.reshape(m, -1) if A.size else np.zeros((m, 0))
             if A.shape != (m, blk.size):
                 raise EstimationError(
                     f"coefficients of block {name!r} must be {m}x{blk.size}, got {A.shape}"
                 )
-            if not np.all(np.isfinite(A)):
-                raise EstimationError(f"coefficients of block {name!r} are not finite")
             Aw = _apply_w(W, A)
+            total += float(Aw.sum())
             if blk.local:
                 if rec.local is not None:
                     raise EstimationError(
@@ -324,6 +340,8 @@ class GivensEstimator:
                 rec.local, rec.a_local = name, Aw
             else:
                 rec.a_global[name] = Aw
+        if not math.isfinite(total):
+            raise EstimationError(f"coefficients of {list(coeffs)!r} are not finite")
         return rec
 
     def _rows_of(self, rec: _Obs) -> tuple[int, F64, int, F64, F64]:
@@ -353,6 +371,7 @@ class GivensEstimator:
         j, Zl, s, Zg, zl = self._rows_of(rec)
         n = self._n
         if j >= 0:
+            self._touch(j, rec)
             _k.rows_update(self._Rpp[j], self._dp[j], self._Rpf[j], Zl, Zg, zl, s, n)
         _k.rows_update(self._Rg, self._dg, self._empty_c, Zg, self._empty_z, zl, n, 0)
         self._rss += float(zl @ zl)
@@ -379,6 +398,7 @@ class GivensEstimator:
         n = self._n
         ok = True
         if j >= 0:
+            self._touch(j, rec)
             ok = _k.rows_downdate(
                 self._Rpp[j], self._dp[j], self._Rpf[j], Zl, Zg, zl, s, n, self.min_downdate_cos2
             )
@@ -404,6 +424,12 @@ class GivensEstimator:
             logger.debug("downdate of observation %s unsafe; re-factorising", obs_id)
             self.n_downdate_fallbacks += 1
             self.refactorize()
+
+    def _touch(self, j: int, rec: _Obs) -> None:
+        for name in rec.a_global:
+            st = self._blocks[name].start
+            if st < self._pfirst[j]:
+                self._pfirst[j] = st
 
     def observation_ids(self) -> list[int]:
         """Ids of the observations currently in the estimator."""
@@ -513,6 +539,7 @@ class GivensEstimator:
             Rj[:k] *= sign[:, None]
             self._Rpp[j, :k, :s] = Rj[:k, :s]
             self._Rpf[j][:k, cols] = Rj[:k, s : s + nu]
+            self._pfirst[j] = int(cols.min()) if nu else _NO_COLUMN
             self._dp[j, :k] = Rj[:k, s + nu]
             if Rj.shape[0] > s:
                 G = np.zeros((Rj.shape[0] - s, n + 1))
@@ -561,7 +588,18 @@ class GivensEstimator:
         xg = np.zeros(n)
         xp = np.zeros((P, self.smax))
         bad = _k.solve_structured(
-            self._Rg, self._dg, n, self._Rpp, self._Rpf, self._dp, P, self._psize, xg, xp, 1e-13
+            self._Rg,
+            self._dg,
+            n,
+            self._Rpp,
+            self._Rpf,
+            self._dp,
+            P,
+            self._psize,
+            self._pfirst,
+            xg,
+            xp,
+            1e-13,
         )
         if bad >= 0:
             raise self._singular(int(bad))

@@ -155,7 +155,7 @@ class SequentialBundle:
         else:
             xf = np.zeros(6)
             xp = np.zeros(3)
-        R = fref.R0 @ so3_exp(xf[:3]) if np.any(xf[:3]) else fref.R0
+        R = fref.R0 @ so3_exp(xf[:3]) if with_current else fref.R0
         C = fref.C0 + xf[3:]
         X = pref.X0 + xp
         p_cam = R.T @ (X - C)
@@ -163,14 +163,14 @@ class SequentialBundle:
             raise EstimationError(f"point {o.point!r} is behind frame {o.frame!r}")
         J = self.camera.project_jacobian(p_cam)[0]
         uv = self.camera.project(p_cam)[0]
-        JRt = J @ R.T
-        A_f = np.hstack([J @ hat(p_cam), -JRt])
-        A_p = JRt
-        l = o.uv_px - uv + A_f @ xf + A_p @ xp
-        o.a_lin = np.hstack([A_f, A_p])
-        o.x_lin = np.concatenate([xf, xp])
-        o.uv_lin = uv
-        return {_fkey(o.frame): A_f, _pkey(o.point): A_p}, l
+        A = np.empty((2, 9))
+        A[:, 6:] = J @ R.T  # d uv / d X
+        A[:, 3:6] = -A[:, 6:]  # d uv / d C
+        A[:, :3] = J @ hat(p_cam)  # d uv / d theta (right perturbation)
+        x_lin = np.concatenate([xf, xp])
+        l = o.uv_px - uv + A @ x_lin
+        o.a_lin, o.x_lin, o.uv_lin = A, x_lin, uv
+        return {_fkey(o.frame): A[:, :6], _pkey(o.point): A[:, 6:]}, l
 
     # ------------------------------------------------------------- observations
     def add_image_point(
