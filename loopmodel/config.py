@@ -47,6 +47,38 @@ class OutputConfig(_Section):
     image_format: str = Field("png", pattern="^(raw|png|jpeg)$", description="MCAP image encoding")
 
 
+class EvalConfig(_Section):
+    """Trajectory evaluation (``loopmodel eval``)."""
+
+    align: str = Field(
+        default="se3", pattern="^(se3|sim3|origin|none)$", description="alignment to ground truth"
+    )
+    first_n: int | None = Field(default=None, ge=3, description="align on the first N poses only")
+    max_dt_ms: float = Field(default=10.0, gt=0, description="max time gap of associated poses")
+    rpe_delta_frames: int = Field(default=1, ge=1, description="RPE pose-pair spacing in frames")
+    rpe_delta_m: float | None = Field(
+        default=None, gt=0, description="RPE path distance; None: about a tenth of the path"
+    )
+    kitti_segment_lengths_m: list[float] = Field(
+        default_factory=lambda: [100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0]
+    )
+    plots: bool = True
+
+
+class AccuracyConfig(_Section):
+    """Marker-pose Cramér–Rao bound (``loopmodel bound``, seed 001)."""
+
+    distance_m: float = Field(50.0, gt=0, description="camera-to-marker distance R")
+    focal_mm: float = Field(18.0, gt=0, description="focal length")
+    pixel_um: float = Field(10.0, gt=0, description="pixel pitch: the image length unit")
+    noise: float = Field(0.2, gt=0, description="N0/2, contrast^2 px^2 (variance on a 1 px cell)")
+    theta_deg: list[float] = Field(default_factory=lambda: [5.0 + 10.0 * k for k in range(7)])
+    phi_deg: list[float] = Field(default_factory=lambda: [10.0 * k for k in range(36)])
+    edge_subdivisions: int = Field(64, ge=1, description="trapezoid sub-intervals per polygon edge")
+    circle_points: int = Field(256, ge=8, description="trapezoid points per circle")
+    pixel_study_px: list[float] = Field(default_factory=lambda: [0.25, 0.5, 1.0, 2.0, 4.0])
+
+
 class GivensConfig(_Section):
     """Sequential Givens estimator and Baarda data snooping (``backend/givens*.py``, seed 000)."""
 
@@ -69,6 +101,8 @@ class Config(_Section):
 
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    eval: EvalConfig = Field(default_factory=EvalConfig)
+    accuracy: AccuracyConfig = Field(default_factory=AccuracyConfig)
     givens: GivensConfig = Field(default_factory=GivensConfig)
 
 
