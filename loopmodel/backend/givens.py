@@ -195,9 +195,7 @@ class GivensEstimator:
             raise EstimationError(f"parameter block {name!r}: size must be positive")
         if local:
             if size > self.smax:
-                raise EstimationError(
-                    f"local parameter block {name!r} has {size} columns, at most {self.smax}"
-                )
+                raise EstimationError(f"local parameter block {name!r} has {size} columns, at most {self.smax}")
             if self._free_slots:
                 j = self._free_slots.pop()
             else:
@@ -306,9 +304,7 @@ class GivensEstimator:
         self._x_cache = None
 
     # ------------------------------------------------------------- observations
-    def _prepare(
-        self, coeffs: Mapping[Hashable, ArrayLike], l: ArrayLike, sigma: Any, weight: Any
-    ) -> _Obs:
+    def _prepare(self, coeffs: Mapping[Hashable, ArrayLike], l: ArrayLike, sigma: Any, weight: Any) -> _Obs:
         lv = np.atleast_1d(np.asarray(l, dtype=float)).reshape(-1)
         m = lv.shape[0]
         if m == 0:
@@ -326,17 +322,12 @@ class GivensEstimator:
             if A.shape != (m, blk.size):
                 A = A.reshape(m, -1) if A.size else np.zeros((m, 0))
             if A.shape != (m, blk.size):
-                raise EstimationError(
-                    f"coefficients of block {name!r} must be {m}x{blk.size}, got {A.shape}"
-                )
+                raise EstimationError(f"coefficients of block {name!r} must be {m}x{blk.size}, got {A.shape}")
             Aw = _apply_w(W, A)
             total += float(Aw.sum())
             if blk.local:
                 if rec.local is not None:
-                    raise EstimationError(
-                        "an observation may involve one local block; "
-                        f"got {rec.local!r} and {name!r}"
-                    )
+                    raise EstimationError(f"an observation may involve one local block; got {rec.local!r} and {name!r}")
                 rec.local, rec.a_local = name, Aw
             else:
                 rec.a_global[name] = Aw
@@ -399,9 +390,7 @@ class GivensEstimator:
         ok = True
         if j >= 0:
             self._touch(j, rec)
-            ok = _k.rows_downdate(
-                self._Rpp[j], self._dp[j], self._Rpf[j], Zl, Zg, zl, s, n, self.min_downdate_cos2
-            )
+            ok = _k.rows_downdate(self._Rpp[j], self._dp[j], self._Rpf[j], Zl, Zg, zl, s, n, self.min_downdate_cos2)
         if ok:
             ok = _k.rows_downdate(
                 self._Rg,
@@ -514,25 +503,16 @@ class GivensEstimator:
             recs = by_slot.get(j)
             if not recs:
                 continue
-            used = sorted(
-                {nm for r in recs for nm in r.a_global}, key=lambda nm: self._blocks[nm].start
-            )
+            used = sorted({nm for r in recs for nm in r.a_global}, key=lambda nm: self._blocks[nm].start)
             cols = (
                 np.concatenate(
-                    [
-                        np.arange(
-                            self._blocks[nm].start, self._blocks[nm].start + self._blocks[nm].size
-                        )
-                        for nm in used
-                    ]
+                    [np.arange(self._blocks[nm].start, self._blocks[nm].start + self._blocks[nm].size) for nm in used]
                 )
                 if used
                 else np.zeros(0, dtype=int)
             )
             nu = cols.size
-            M = np.vstack(
-                [np.column_stack([r.a_local, self._rows_of(r)[3][:, cols], r.l]) for r in recs]
-            )
+            M = np.vstack([np.column_stack([r.a_local, self._rows_of(r)[3][:, cols], r.l]) for r in recs])
             Rj = _qr(M, mode="r", check_finite=False)[0]
             k = min(s, Rj.shape[0])
             sign = np.where(np.diag(Rj[:k, :k]) < 0, -1.0, 1.0)
@@ -569,11 +549,7 @@ class GivensEstimator:
     def _singular(self, col: int) -> EstimationError:
         n = self._n
         if col < n:
-            name = next(
-                b.name
-                for b in self._blocks.values()
-                if not b.local and b.start <= col < b.start + b.size
-            )
+            name = next(b.name for b in self._blocks.values() if not b.local and b.start <= col < b.start + b.size)
         else:
             name = self._slot_name[(col - n) // self.smax]
         return EstimationError(f"system is singular: parameter block {name!r} is not determined")
@@ -612,9 +588,7 @@ class GivensEstimator:
         out: dict[Hashable, F64] = {}
         for name in self.parameter_names() if names is None else names:
             b = self._block(name)
-            out[name] = (
-                xp[b.slot, : b.size].copy() if b.local else xg[b.start : b.start + b.size].copy()
-            )
+            out[name] = xp[b.slot, : b.size].copy() if b.local else xg[b.start : b.start + b.size].copy()
         return out
 
     def solution_vector(self) -> F64:
@@ -688,7 +662,7 @@ class GivensEstimator:
         total = sum(counts)
         v = np.zeros(total)
         pn = np.zeros(total)
-        chunk_rows = max(1, 4_000_000 // max(n, 1)) if need_q else total + 1
+        chunk_rows = max(1, 1_000_000 // max(n, 1)) if need_q else total + 1
         row = 0
         start = 0
         while start < len(recs):
@@ -698,6 +672,9 @@ class GivensEstimator:
                 stop += 1
             B = np.zeros((n, rows if need_q else 0))
             r0 = 0
+            loc_rows: list[int] = []
+            loc_slot: list[int] = []
+            loc_a: list[F64] = []
             for rec in recs[start:stop]:
                 m = rec.rows
                 vv = -rec.l.copy()
@@ -710,17 +687,26 @@ class GivensEstimator:
                     b = self._blocks[rec.local]
                     s = b.size
                     vv += rec.a_local @ xp[b.slot, :s]
-                    if not need_q:
-                        v[row + r0 : row + r0 + m] = vv
-                        r0 += m
-                        continue
-                    yl = solve_triangular(
-                        self._Rpp[b.slot, :s, :s], rec.a_local.T, trans="T", check_finite=False
-                    )
-                    pn[row + r0 : row + r0 + m] += np.einsum("ij,ij->j", yl, yl)
-                    B[:, r0 : r0 + m] -= self._Rpf[b.slot, :s, :n].T @ yl
+                    if need_q:
+                        pad = np.zeros((m, self.smax))
+                        pad[:, :s] = rec.a_local
+                        loc_a.append(pad)
+                        loc_rows.extend(range(r0, r0 + m))
+                        loc_slot.extend([b.slot] * m)
                 v[row + r0 : row + r0 + m] = vv
                 r0 += m
+            if need_q and loc_rows:
+                # batched forward substitution R_pp(j)ᵀ y = a_local (padded rows have R = I)
+                sl = np.asarray(loc_slot)
+                Rl = self._Rpp[sl]
+                a_l = np.vstack(loc_a)
+                y = np.zeros_like(a_l)
+                for i in range(self.smax):
+                    acc = a_l[:, i] - np.einsum("rk,rk->r", Rl[:, :i, i], y[:, :i])
+                    y[:, i] = acc / Rl[:, i, i]
+                lr = np.asarray(loc_rows)
+                pn[row + lr] += np.einsum("rk,rk->r", y, y)
+                B[:, lr] -= np.einsum("rk,rkn->nr", y, self._Rpf[sl, :, :n])
             if need_q:
                 Yg = self._forward_global(B)
                 pn[row : row + rows] += np.einsum("ij,ij->j", Yg, Yg)

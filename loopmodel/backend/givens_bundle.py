@@ -11,10 +11,14 @@ other point with a weak prior from its approximate value, as the seed's object-c
 observations) and weak priors on each frame's exterior orientation (its approximate values
 from resection). The datum comes from the control points (or, without them, the priors).
 
-Re-linearisation is a batch re-factorisation: :meth:`SequentialBundle.relinearize` moves every
-reference to the current estimate, rebuilds all rows there and re-factorises; the caller (or
-:meth:`SequentialBundle.maybe_relinearize`, called once per frame) triggers it when a
-correction exceeds ``relin_point_m`` / ``relin_pos_m`` / ``relin_rot_rad``.
+When re-linearisation happens: :meth:`SequentialBundle.maybe_relinearize` is called once per
+frame (before screening). It measures, for every image row, the error of its linearisation at
+the current estimate, ``|π(x̂) - π(x_lin) - A (x̂ - x_lin)|`` (pixels). Rows above ``relin_px``
+(default 0.1 σ) are re-linearised: if they are few (≤ 5 % of the rows, typically the rays of
+points seen from a short baseline so far) each is replaced in the factor by an update with the
+new row and a downdate of the old one; otherwise :meth:`SequentialBundle.relinearize` does a
+batch re-factorisation: every reference moves to the current estimate, every row is rebuilt
+there and ``R`` is re-factorised from the stored observations (a Gauss–Newton step).
 """
 
 from __future__ import annotations
@@ -110,9 +114,7 @@ class SequentialBundle:
             A, l, sig = self._frame_prior_row(ref)
             ref.prior_obs = self.est.add_observation({_fkey(fid): A}, l, sigma=sig)
 
-    def add_point(
-        self, pid: Hashable, p_in_world: ArrayLike, prior_sigma_m: float | None = 1.0
-    ) -> None:
+    def add_point(self, pid: Hashable, p_in_world: ArrayLike, prior_sigma_m: float | None = 1.0) -> None:
         """New object point (approximate coordinates, metres); small σ makes it a control point."""
         if pid in self.points:
             raise EstimationError(f"point {pid!r} already exists")
@@ -122,9 +124,7 @@ class SequentialBundle:
         self.points[pid] = ref
         if prior_sigma_m is not None:
             ref.prior = (X.copy(), float(prior_sigma_m))
-            ref.prior_obs = self.est.add_observation(
-                {_pkey(pid): np.eye(3)}, np.zeros(3), sigma=float(prior_sigma_m)
-            )
+            ref.prior_obs = self.est.add_observation({_pkey(pid): np.eye(3)}, np.zeros(3), sigma=float(prior_sigma_m))
 
     def _frame_prior_row(self, ref: _FrameRef) -> tuple[F64, F64, F64]:
         assert ref.prior is not None
@@ -173,9 +173,7 @@ class SequentialBundle:
         return {_fkey(o.frame): A[:, :6], _pkey(o.point): A[:, 6:]}, l
 
     # ------------------------------------------------------------- observations
-    def add_image_point(
-        self, fid: Hashable, pid: Hashable, uv_px: ArrayLike, sigma_px: float | None = None
-    ) -> int:
+    def add_image_point(self, fid: Hashable, pid: Hashable, uv_px: ArrayLike, sigma_px: float | None = None) -> int:
         """Insert one image point (u, v pixels) of ``pid`` in ``fid``; returns its id."""
         if fid not in self.frames:
             raise EstimationError(f"unknown frame {fid!r}")
@@ -197,9 +195,7 @@ class SequentialBundle:
         """Remove an image point observation (downdating)."""
         o = self.image_obs.get(oid)
         if o is None:
-            raise EstimationError(
-                f"image observation {oid!r} was never added or is already deleted"
-            )
+            raise EstimationError(f"image observation {oid!r} was never added or is already deleted")
         self.est.delete_observation(oid)
         del self.image_obs[oid]
         self.points[o.point].image_obs.discard(oid)
@@ -279,9 +275,7 @@ class SequentialBundle:
         for fid, ref in self.frames.items():
             if ref.prior_obs is not None:
                 A, l, sig = self._frame_prior_row(ref)
-                self.est.replace_observation(
-                    ref.prior_obs, {_fkey(fid): A}, l, sigma=sig, refactor=False
-                )
+                self.est.replace_observation(ref.prior_obs, {_fkey(fid): A}, l, sigma=sig, refactor=False)
         for pid, pref in self.points.items():
             if pref.prior_obs is not None and pref.prior is not None:
                 Xp, sm = pref.prior
@@ -391,13 +385,9 @@ class GivensScreen:
         m_mono[np.flatnonzero(keep_mono)] = mask[lids.size :]
         return m_st, m_mono
 
-    def add_point(
-        self, pid: Hashable, p_in_world: ArrayLike, prior_sigma_m: float | None = None
-    ) -> None:
+    def add_point(self, pid: Hashable, p_in_world: ArrayLike, prior_sigma_m: float | None = None) -> None:
         """Register an object point (approximate world coordinates, metres)."""
-        self.bundle.add_point(
-            pid, p_in_world, self.point_prior_sigma_m if prior_sigma_m is None else prior_sigma_m
-        )
+        self.bundle.add_point(pid, p_in_world, self.point_prior_sigma_m if prior_sigma_m is None else prior_sigma_m)
 
     def screen(
         self,
@@ -420,8 +410,8 @@ class GivensScreen:
         for oid, pid in zip(oids, point_ids, strict=True):
             self._key[oid] = (frame_id, pid)
         self._pending.extend(oids)
-        rejected = set(self._test_pending())
         b.maybe_relinearize()
+        rejected = set(self._test_pending())
         for oid in rejected:
             if oid not in oids:
                 self._late.append(self._key[oid])
