@@ -37,10 +37,7 @@ class Mirror:
             off[n] = o
             o += self.sizes[n]
         A = np.vstack(
-            [
-                np.hstack([c.get(n, np.zeros((len(l), self.sizes[n]))) for n in names])
-                for c, l in self.rows.values()
-            ]
+            [np.hstack([c.get(n, np.zeros((len(l), self.sizes[n]))) for n in names]) for c, l in self.rows.values()]
         )
         l = np.concatenate([l for _, l in self.rows.values()])
         x = np.linalg.lstsq(A, l, rcond=None)[0]
@@ -60,15 +57,11 @@ def _compare(est: GivensEstimator, mir: Mirror, selected: list) -> None:
     assert est.vtpv() == pytest.approx(vtpv, rel=TOL, abs=TOL)
     idx = np.concatenate([np.arange(off[n], off[n] + mir.sizes[n]) for n in selected])
     Qs = est.cofactor(selected)
-    np.testing.assert_allclose(
-        Qs, Q[np.ix_(idx, idx)], rtol=0, atol=TOL * max(1.0, np.abs(Q).max())
-    )
+    np.testing.assert_allclose(Qs, Q[np.ix_(idx, idx)], rtol=0, atol=TOL * max(1.0, np.abs(Q).max()))
     assert est.redundancy == sum(len(l) for _, l in mir.rows.values()) - sum(mir.sizes.values())
 
 
-def _random_obs(
-    rng: np.random.Generator, est: GivensEstimator, mir: Mirror, locs: list, globs: list
-) -> int:
+def _random_obs(rng: np.random.Generator, est: GivensEstimator, mir: Mirror, locs: list, globs: list) -> int:
     m = int(rng.integers(1, 4))
     coeffs: dict = {}
     if locs and rng.random() < 0.8:
@@ -207,16 +200,10 @@ def test_normalized_residuals_match_dense_formula() -> None:
     for i in range(3):
         est.add_parameters(("f", i), 6)
         mir.sizes[("f", i)] = 6
-    ids = [
-        _random_obs(rng, est, mir, [("p", i) for i in range(4)], [("f", i) for i in range(3)])
-        for _ in range(40)
-    ]
+    ids = [_random_obs(rng, est, mir, [("p", i) for i in range(4)], [("f", i) for i in range(3)]) for _ in range(40)]
     names = list(mir.sizes)
     A = np.vstack(
-        [
-            np.hstack([c.get(n, np.zeros((len(l), mir.sizes[n]))) for n in names])
-            for c, l in mir.rows.values()
-        ]
+        [np.hstack([c.get(n, np.zeros((len(l), mir.sizes[n]))) for n in names]) for c, l in mir.rows.values()]
     )
     l = np.concatenate([l for _, l in mir.rows.values()])
     x = np.linalg.lstsq(A, l, rcond=None)[0]
@@ -230,9 +217,7 @@ def test_normalized_residuals_match_dense_formula() -> None:
 
 
 def _build_bundle(n_frames: int, n_points: int, seed: int = 0, blunder_fraction: float = 0.0):
-    tf = make_testfield(
-        n_frames=n_frames, n_points=n_points, seed=seed, blunder_fraction=blunder_fraction
-    )
+    tf = make_testfield(n_frames=n_frames, n_points=n_points, seed=seed, blunder_fraction=blunder_fraction)
     rng = np.random.default_rng(seed + 100)
     b = SequentialBundle(tf.camera, sigma_px=tf.sigma_px)
     ctrl = set(tf.control.tolist())
@@ -342,9 +327,7 @@ def test_snooping_finds_one_and_two_blunders() -> None:
 
 
 def test_screen_rejects_injected_blunders() -> None:
-    tf = make_testfield(
-        n_frames=14, n_points=40, seed=6, blunder_fraction=0.03, blunder_sigmas=(10.0, 15.0)
-    )
+    tf = make_testfield(n_frames=14, n_points=40, seed=6, blunder_fraction=0.03, blunder_sigmas=(10.0, 15.0))
     rng = np.random.default_rng(0)
     scr = GivensScreen(tf.camera, sigma_px=tf.sigma_px)
     ctrl = set(tf.control.tolist())
@@ -387,9 +370,7 @@ def test_screen_keyframe_adapter() -> None:
             bad_key = (f, int(ids[k]))
         new = [k for k, i in enumerate(ids.tolist()) if i not in seen]
         old = [k for k, i in enumerate(ids.tolist()) if i in seen]
-        p_kf = (tf.points_world[ids[new]] - T[:3, 3]) @ T[:3, :3] + rng.normal(
-            0, 0.005, (len(new), 3)
-        )
+        p_kf = (tf.points_world[ids[new]] - T[:3, 3]) @ T[:3, :3] + rng.normal(0, 0.005, (len(new), 3))
         kf = SimpleNamespace(
             id=f,
             world_from_kf=T,

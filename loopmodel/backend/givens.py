@@ -512,7 +512,9 @@ class GivensEstimator:
                 else np.zeros(0, dtype=int)
             )
             nu = cols.size
-            M = np.vstack([np.column_stack([r.a_local, self._rows_of(r)[3][:, cols], r.l]) for r in recs])
+            M = np.vstack(
+                [np.column_stack([r.a_local, self._rows_of(r)[3][:, cols], r.l]) for r in recs]  # type: ignore[list-item]
+            )
             Rj = _qr(M, mode="r", check_finite=False)[0]
             k = min(s, Rj.shape[0])
             sign = np.where(np.diag(Rj[:k, :k]) < 0, -1.0, 1.0)
@@ -747,8 +749,8 @@ class GivensEstimator:
         for nm in names:
             offs[nm] = o
             o += self._blocks[nm].size
-        rows_i: list[F64] = []
-        cols_i: list[F64] = []
+        rows_i: list[NDArray[np.int64]] = []
+        cols_i: list[NDArray[np.int64]] = []
         vals: list[F64] = []
         ls: list[F64] = []
         ids = self.observation_ids()

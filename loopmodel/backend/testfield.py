@@ -59,14 +59,12 @@ def make_testfield(
     rng = np.random.default_rng(seed)
     cam = CentralCamera(px=950.0, py=950.0, u0=360.0, v0=288.0)
     W, H = 720, 576
-    pts = np.column_stack(
-        [rng.uniform(0.0, 4.0, n_points), rng.uniform(0.0, 2.4, n_points), np.zeros(n_points)]
-    )
+    pts = np.column_stack([rng.uniform(0.0, 4.0, n_points), rng.uniform(0.0, 2.4, n_points), np.zeros(n_points)])
     front = rng.random(n_points) < 0.3
     pts[front, 2] = -rng.uniform(0.1, 0.8, int(front.sum()))
     # control points: four near the corners and one near the centre, on the wall
     targets = np.array([[0.3, 0.3], [3.7, 0.3], [0.3, 2.1], [3.7, 2.1], [2.0, 1.2]])
-    control = []
+    control: list[int] = []
     for t in targets:
         d = np.linalg.norm(pts[:, :2] - t, axis=1) + 10.0 * front
         i = int(np.argmin(d + 1e3 * np.isin(np.arange(n_points), control)))
@@ -92,19 +90,13 @@ def make_testfield(
     for T in poses:
         p_cam = (pts - T[:3, 3]) @ T[:3, :3]
         uv = cam.project(p_cam)
-        vis = (
-            (p_cam[:, 2] > 0.1)
-            & (uv[:, 0] >= 0)
-            & (uv[:, 0] < W)
-            & (uv[:, 1] >= 0)
-            & (uv[:, 1] < H)
-        )
+        vis = (p_cam[:, 2] > 0.1) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
         ids = np.flatnonzero(vis)
         meas = uv[ids] + rng.normal(0.0, sigma_px, (ids.size, 2))
         bl = rng.random(ids.size) < blunder_fraction
-        for i in np.flatnonzero(bl):
-            coord = rng.integers(2)
-            meas[i, coord] += rng.choice([-1.0, 1.0]) * rng.uniform(lo, hi) * sigma_px
+        for kb in np.flatnonzero(bl).tolist():
+            coord = int(rng.integers(2))
+            meas[kb, coord] += rng.choice([-1.0, 1.0]) * rng.uniform(lo, hi) * sigma_px
         obs.append((ids, meas))
         blunders.append(bl)
     return TestField(cam, W, H, pts, np.array(control), poses, obs, blunders, sigma_px)
