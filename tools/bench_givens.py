@@ -200,6 +200,24 @@ def run(quick: bool = False) -> dict[str, Any]:
                         mirror.update(graph, vals)
             if f < 39:
                 mirror.update(graph, vals)
+        if f + 1 in (10, 40, 88):
+            # repeat the measurement (machine load comes in bursts): take this frame's image
+            # points of well-observed points out again (downdating, not timed) and re-insert
+            # them (timed), twice; the median is taken over all repetitions
+            for _ in range(2):
+                redo = [o for o in list(b.image_obs) if key_of[o][0] == f and len(b.points[key_of[o][1]].image_obs) > 3]
+                for o in redo:
+                    fo, io = key_of[o]
+                    uvo = b.image_obs[o].uv_px.copy()
+                    b.delete_image_point(o)
+                    c0 = time.process_time()
+                    t0 = time.perf_counter()
+                    o2 = b.add_image_point(fo, io, uvo)
+                    b.est._solve()
+                    ms.append((time.perf_counter() - t0) * 1e3)
+                    cpu.append((time.process_time() - c0) * 1e3)
+                    key_of[o2] = key_of.pop(o)
+                    pending[pending.index(o)] = o2
         insert_ms[f + 1] = ms
         insert_cpu[f + 1] = cpu
         unknowns = max(unknowns, b.est.n_parameters)
