@@ -388,3 +388,12 @@ def test_screen_keyframe_adapter() -> None:
     late = scr.late_rejections()
     assert rejected_now or bad_key in late
     assert scr.stats.rejected <= 3
+
+
+def test_cli_givens_sim(capsys: pytest.CaptureFixture[str]) -> None:
+    from loopmodel.cli import main
+
+    assert main(["givens-sim", "--frames", "6", "--points", "20", "--blunders", "0.05"]) == 0
+    out = capsys.readouterr().out
+    assert "blunders injected / caught" in out
+    assert main(["givens-sim", "--frames", "1"]) == 2
