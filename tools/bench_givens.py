@@ -210,6 +210,7 @@ def run(quick: bool = False) -> dict[str, Any]:
                     fo, io = key_of[o]
                     uvo = b.image_obs[o].uv_px.copy()
                     b.delete_image_point(o)
+                    b.est._solve()  # as before a normal insertion: the solution is current
                     c0 = time.process_time()
                     t0 = time.perf_counter()
                     o2 = b.add_image_point(fo, io, uvo)
