@@ -397,3 +397,23 @@ def test_cli_givens_sim(capsys: pytest.CaptureFixture[str]) -> None:
     out = capsys.readouterr().out
     assert "blunders injected / caught" in out
     assert main(["givens-sim", "--frames", "1"]) == 2
+
+
+def test_partial_solution_matches_full() -> None:
+    rng = np.random.default_rng(21)
+    est = GivensEstimator()
+    mir = Mirror()
+    locs = [("p", i) for i in range(5)]
+    globs = [("f", i) for i in range(3)]
+    for n in locs:
+        est.add_parameters(n, 3, local=True)
+        mir.sizes[n] = 3
+    for n in globs:
+        est.add_parameters(n, 6)
+        mir.sizes[n] = 6
+    for _ in range(50):
+        _random_obs(rng, est, mir, locs, globs)
+    sol, _, _, _ = mir.batch()
+    xg, xp = est.partial_solution(locs[3])
+    np.testing.assert_allclose(xp, sol[locs[3]], atol=1e-9)
+    np.testing.assert_allclose(xg, np.concatenate([sol[g] for g in globs]), atol=1e-9)

@@ -584,6 +584,45 @@ class GivensEstimator:
         self._x_cache = (xp, xg)
         return self._x_cache
 
+    def partial_solution(self, local_name: Hashable | None = None) -> tuple[F64, F64 | None]:
+        """x̂ of all global blocks and (optionally) of one local block, without the other points.
+
+        The cheap update an online system needs after an insertion (current poses and the
+        point just observed); the other points follow on demand (:meth:`solution`).
+        """
+        if self._x_cache is not None:
+            xp_all, xg = self._x_cache
+            if local_name is None:
+                return xg, None
+            b = self._block(local_name)
+            return xg, xp_all[b.slot, : b.size]
+        n = self._n
+        xg = np.zeros(n)
+        bad = _k.solve_structured(
+            self._Rg,
+            self._dg,
+            n,
+            self._Rpp,
+            self._Rpf,
+            self._dp,
+            0,
+            self._psize,
+            self._pfirst,
+            xg,
+            np.zeros((0, self.smax)),
+            1e-13,
+        )
+        if bad >= 0:
+            raise self._singular(int(bad))
+        if local_name is None:
+            return xg, None
+        b = self._block(local_name)
+        if not b.local:
+            raise EstimationError(f"parameter block {local_name!r} is not a local block")
+        s, j = b.size, b.slot
+        y = self._dp[j, :s] - self._Rpf[j, :s, :n] @ xg
+        return xg, solve_triangular(self._Rpp[j, :s, :s], y, check_finite=False)
+
     def solution(self, names: Iterable[Hashable] | None = None) -> dict[Hashable, F64]:
         """Estimated parameters x̂ per block (copies)."""
         xp, xg = self._solve()
