@@ -176,13 +176,29 @@ def _solve_py(Rg, dg, n, Rpp, Rpf, dp, P, psize, pfirst, xg, xp, rel_tol):  # ty
             a = abs(Rpp[p, i, i])
             if a > pscale:
                 pscale = a
+        j0 = min(pfirst[p], n)
+        if s == 3:  # a point: its three coupling rows in one pass over x_g
+            y0 = dp[p, 0]
+            y1 = dp[p, 1]
+            y2 = dp[p, 2]
+            for j in range(j0, n):
+                xj = xg[j]
+                y0 -= Rpf[p, 0, j] * xj
+                y1 -= Rpf[p, 1, j] * xj
+                y2 -= Rpf[p, 2, j] * xj
+            ys = (y0, y1, y2)
+        else:
+            ys = (0.0, 0.0, 0.0)
         for i in range(s - 1, -1, -1):
             rii = Rpp[p, i, i]
             if abs(rii) <= rel_tol * pscale or rii == 0.0:
                 return n + p * smax + i
-            acc = dp[p, i]
-            for j in range(min(pfirst[p], n), n):
-                acc -= Rpf[p, i, j] * xg[j]
+            if s == 3:
+                acc = ys[i]
+            else:
+                acc = dp[p, i]
+                for j in range(j0, n):
+                    acc -= Rpf[p, i, j] * xg[j]
             for j in range(i + 1, s):
                 acc -= Rpp[p, i, j] * xp[p, j]
             xp[p, i] = acc / rii
