@@ -47,11 +47,45 @@ class OutputConfig(_Section):
     image_format: str = Field("png", pattern="^(raw|png|jpeg)$", description="MCAP image encoding")
 
 
+class BackendConfig(_Section):
+    """Keyframe/landmark back end (``backend/``); the iSAM2 keys map onto ``gtsam.ISAM2Params``."""
+
+    kind: str = Field("isam2", pattern="^(isam2|givens)$", description="which back end runs")
+    pixel_sigma_px: float = Field(1.0, gt=0, description="std. dev. of an image coordinate")
+    huber_k: float = Field(1.345, ge=0, description="Huber threshold in sigmas (0: plain Gaussian)")
+    prior_sigma_rad: float = Field(1e-6, gt=0, description="gauge prior on the first keyframe, rotation")
+    prior_sigma_m: float = Field(1e-6, gt=0, description="gauge prior on the first keyframe, position")
+    segment_prior_sigma_rad: float = Field(1.0, gt=0, description="prior on a keyframe not linked to the previous one")
+    segment_prior_sigma_m: float = Field(10.0, gt=0, description="prior on a keyframe not linked to the previous one")
+    loop_sigma_rad: float = Field(0.01, gt=0, description="default loop-constraint rotation sigma")
+    loop_sigma_m: float = Field(0.01, gt=0, description="default loop-constraint position sigma")
+    min_disparity_px: float = Field(2.0, ge=0, description="stereo observations below are dropped")
+    min_observations: int = Field(2, ge=1, description="a landmark enters the graph once seen this often")
+    max_landmark_span_kf: int = Field(
+        0, ge=0, description="start a new landmark variable after this many keyframes (0: never)"
+    )
+    init_gate_px: float = Field(
+        20.0, ge=0, description="observations farther than this from the initial landmark are dropped (0: off)"
+    )
+    blunder_sigma: float = Field(
+        0.0, ge=0, description="remove new observations whose whitened residual exceeds this (0: off)"
+    )
+    relinearize_threshold_rad: float = Field(0.01, gt=0, description="pose rotation relinearisation threshold")
+    relinearize_threshold_m: float = Field(0.05, gt=0, description="pose position relinearisation threshold")
+    relinearize_threshold_landmark_m: float = Field(0.5, gt=0, description="landmark relinearisation threshold")
+    relinearize_skip: int = Field(10, ge=1, description="check relinearisation every N updates")
+    wildfire_threshold: float = Field(0.001, ge=0, description="back-substitution stopping threshold")
+    factorization: str = Field("CHOLESKY", pattern="^(CHOLESKY|QR)$")
+    constrain_newest_last: bool = Field(True, description="order the newest pose last (smaller re-elimination)")
+    change_tolerance_m: float = Field(1e-4, ge=0, description="estimate(): a keyframe counts as changed above this")
+
+
 class Config(_Section):
     """The whole configuration of loopmodel."""
 
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    backend: BackendConfig = Field(default_factory=BackendConfig)
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

@@ -1,0 +1,577 @@
+"""Incremental keyframe/landmark estimation with GTSAM iSAM2.
+
+Variables: ``X(kf_id)`` keyframe poses (``world_from_kf`` of the left camera, metres) and
+``L(j)`` landmarks (world frame, metres; ``j`` is an internal index, see
+``max_landmark_span_kf``). Stereo observations become ``GenericStereoFactor3D`` with
+``Cal3_S2Stereo``, monocular ones ``GenericProjectionFactorCal3_S2``; both with a Huber
+M-estimator. The first keyframe carries a tight prior that fixes the gauge.
+
+Each update hands iSAM2 only the new factors and values. What keeps updates cheap:
+
+* a landmark enters the graph only once it was observed ``min_observations`` times (a
+  landmark seen once adds no information on the poses); it is initialised from its
+  stereo triangulation with the largest disparity, and its observations are gated
+  against that initial point;
+* stereo observations with a disparity under ``min_disparity_px`` are dropped (these
+  near-infinite points make the linear system indeterminate, see below);
+* the newest pose is constrained to be eliminated last, so old poses and landmarks are
+  not dragged into the root clique;
+* optionally (``max_landmark_span_kf``) a long track continues in a fresh landmark
+  variable, bounding the band of the pose graph and thereby the root clique;
+* per-type relinearisation thresholds (poses vs landmarks).
+
+An ``IndeterminateSystemException`` (GTSAM raises it as ``RuntimeError`` naming the
+variable) leaves iSAM2's Bayes tree half-updated, so the back end rebuilds iSAM2 from its
+own record of live factors, without the offending landmark, and continues.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+
+from loopmodel.backend.base import BackendEstimate, BackendUpdate, F64, KeyframeLike, Observation
+from loopmodel.config import BackendConfig
+from loopmodel.errors import EstimationError, InputError
+from loopmodel.geometry.se3 import invert_pose, so3_log
+from loopmodel.types import StereoCalibration
+
+logger = logging.getLogger(__name__)
+
+_SYMBOL_RE = re.compile(r"Symbol:\s*([A-Za-z])(\d+)")
+_INDEX_MASK = np.uint64((1 << 56) - 1)
+
+
+@dataclass
+class _Obs:
+    """One buffered or live observation of a landmark."""
+
+    kf_id: int
+    stereo: bool
+    px: F64  # (u_l, u_r, v) or (u, v), rectified pixels
+    point_in_kf: F64 | None  # stereo triangulation in the keyframe's left camera (m)
+
+
+@dataclass
+class _FactorRecord:
+    factor: gtsam.NonlinearFactor
+    kind: str  # "stereo" | "mono" | "prior" | "loop"
+    lkey: int = -1  # internal landmark index, or -1
+    obs: Observation | None = None
+
+
+@dataclass
+class _Landmark:
+    landmark_id: int
+    first_seq: int  # keyframe sequence number of the first observation in the graph
+    fids: set[int] = field(default_factory=set)
+
+
+def _is_identity(T: F64) -> bool:
+    return bool(np.allclose(T, np.eye(4), atol=1e-12))
+
+
+class Isam2Backend:
+    """The iSAM2 back end (implements :class:`loopmodel.backend.Backend`).
+
+    ``calibration`` is the rectified stereo calibration in which the keyframes' pixel
+    observations are expressed (``FrontEnd.calibration``); ``K_left`` and ``baseline_m``
+    are used.
+    """
+
+    def __init__(self, calibration: StereoCalibration, config: BackendConfig | None = None) -> None:
+        self.config = config or BackendConfig()
+        cfg = self.config
+        K = calibration.K_left
+        fx, fy, skew, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 1]), float(K[0, 2]), float(K[1, 2])
+        self._K = np.array([[fx, skew, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        self._baseline_m = calibration.baseline_m
+        self._cal_stereo = gtsam.Cal3_S2Stereo(fx, fy, skew, cx, cy, self._baseline_m)
+        self._cal_mono = gtsam.Cal3_S2(fx, fy, skew, cx, cy)
+        self._stereo_noise = self._robust(gtsam.noiseModel.Isotropic.Sigma(3, cfg.pixel_sigma_px))
+        self._mono_noise = self._robust(gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma_px))
+        self._isam = gtsam.ISAM2(self.isam2_params(cfg))
+        self._factors: dict[int, _FactorRecord] = {}
+        self._slot: dict[int, int] = {}  # factor id -> iSAM2 factor index
+        self._next_fid = 0
+        self._batch: list[int] = []  # factor ids recorded since the last iSAM2 update
+        self._obs_fid: dict[Observation, int] = {}
+        self._landmarks: dict[int, _Landmark] = {}  # internal index -> landmark
+        self._lm_current: dict[int, int] = {}  # landmark id -> internal index in the graph
+        self._next_lkey = 0
+        self._pending: dict[int, list[_Obs]] = {}
+        self._kf_seq: dict[int, int] = {}
+        # elimination groups: landmarks first (group 0), then poses in insertion order
+        self._groups = gtsam.KeyGroupMap()
+        self._pose_guess: dict[int, F64] = {}
+        self._body: dict[int, F64] = {}  # kf id -> rect_from_cam
+        self._last_poses: dict[int, F64] = {}
+        self._theta0 = gtsam.Values()  # every variable's initial value
+        self.rebuilds = 0
+        self.last_result: gtsam.ISAM2Result | None = None
+        self.dropped_landmarks = 0
+
+    # ------------------------------------------------------------------ set-up
+    @staticmethod
+    def isam2_params(cfg: BackendConfig) -> gtsam.ISAM2Params:
+        """``gtsam.ISAM2Params`` from the configuration."""
+        params = gtsam.ISAM2Params()
+        thresholds = gtsam.ISAM2ThresholdMap()
+        thresholds.insert(("x", np.array([cfg.relinearize_threshold_rad] * 3 + [cfg.relinearize_threshold_m] * 3)))
+        thresholds.insert(("l", np.full(3, cfg.relinearize_threshold_landmark_m)))
+        params.setRelinearizeThreshold(thresholds)
+        params.relinearizeSkip = cfg.relinearize_skip
+        params.setFactorization(cfg.factorization)
+        gn = gtsam.ISAM2GaussNewtonParams()
+        gn.setWildfireThreshold(cfg.wildfire_threshold)
+        params.setOptimizationParams(gn)
+        return params
+
+    def _robust(self, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
+        if self.config.huber_k <= 0:
+            return base
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.config.huber_k), base)
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def keyframe_ids(self) -> list[int]:
+        """Ids of the keyframes in the graph, in insertion order."""
+        return list(self._kf_seq)
+
+    @property
+    def num_factors(self) -> int:
+        """Live factors in the graph."""
+        return len(self._factors)
+
+    def factor_graph(self) -> gtsam.NonlinearFactorGraph:
+        """A copy of every live factor (for batch comparison)."""
+        graph = gtsam.NonlinearFactorGraph()
+        for fid in sorted(self._factors):
+            graph.add(self._factors[fid].factor)
+        return graph
+
+    @property
+    def num_observations(self) -> int:
+        """Observation factors in the graph."""
+        return len(self._obs_fid)
+
+    @property
+    def num_landmarks(self) -> int:
+        """Landmark variables in the graph."""
+        return len(self._landmarks)
+
+    def initial_values(self) -> gtsam.Values:
+        """Initial values of the variables still in the graph (for a batch solution)."""
+        keys: set[int] = set()
+        for rec in self._factors.values():
+            keys.update(rec.factor.keys())
+        out = gtsam.Values()
+        for key in keys:
+            if gtsam.Symbol(key).chr() == ord("x"):
+                out.insert(key, self._theta0.atPose3(key))
+            else:
+                out.insert(key, self._theta0.atPoint3(key))
+        return out
+
+    def values(self) -> gtsam.Values:
+        """The current iSAM2 estimate of every variable (``gtsam.Values``)."""
+        return self._isam.calculateEstimate()
+
+    def observation_factor_index(self, observation: Observation) -> int | None:
+        """iSAM2 factor index of an observation ``(keyframe_id, landmark_id)`` in the graph."""
+        fid = self._obs_fid.get(observation)
+        return None if fid is None else self._slot.get(fid)
+
+    # ------------------------------------------------------------------ factors
+    def _new_fid(self, rec: _FactorRecord) -> int:
+        fid = self._next_fid
+        self._next_fid += 1
+        self._factors[fid] = rec
+        self._batch.append(fid)
+        return fid
+
+    def _obs_factor(self, obs: _Obs, lkey: int) -> gtsam.NonlinearFactor:
+        body = self._body.get(obs.kf_id)
+        extra = () if body is None else (gtsam.Pose3(invert_pose(body)),)
+        if obs.stereo:
+            sp = gtsam.StereoPoint2(float(obs.px[0]), float(obs.px[1]), float(obs.px[2]))
+            return gtsam.GenericStereoFactor3D(sp, self._stereo_noise, X(obs.kf_id), L(lkey), self._cal_stereo, *extra)
+        return gtsam.GenericProjectionFactorCal3_S2(
+            np.asarray(obs.px[:2], float), self._mono_noise, X(obs.kf_id), L(lkey), self._cal_mono, *extra
+        )
+
+    def _add_obs(self, obs: _Obs, lkey: int, lm_id: int, graph: gtsam.NonlinearFactorGraph) -> None:
+        key = (obs.kf_id, lm_id)
+        if key in self._obs_fid:  # the same observation twice: keep the first
+            return
+        factor = self._obs_factor(obs, lkey)
+        fid = self._new_fid(_FactorRecord(factor, "stereo" if obs.stereo else "mono", lkey, key))
+        self._obs_fid[key] = fid
+        self._landmarks[lkey].fids.add(fid)
+        graph.add(factor)
+
+    def _predict_px(self, kf_id: int, p_world: F64, stereo: bool) -> F64 | None:
+        """Predicted rectified pixels of a world point in keyframe ``kf_id`` (None if behind)."""
+        T = self._pose_guess[kf_id]
+        p = T[:3, :3].T @ (p_world - T[:3, 3])
+        body = self._body.get(kf_id)
+        if body is not None:
+            p = body[:3, :3] @ p + body[:3, 3]
+        if p[2] <= 1e-9:
+            return None
+        uvw = self._K @ p
+        u, v = uvw[0] / p[2], uvw[1] / p[2]
+        if not stereo:
+            return np.array([u, v])
+        return np.array([u, u - self._K[0, 0] * self._baseline_m / p[2], v])
+
+    def _try_create_landmark(
+        self, lm_id: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
+    ) -> bool:
+        """Move a pending landmark into the graph when it has enough consistent observations."""
+        obs = self._pending[lm_id]
+        if len(obs) < self.config.min_observations:
+            return False
+        stereo = [o for o in obs if o.stereo]
+        if not stereo:
+            return False
+        best = stereo[0]  # max(stereo, key=lambda o: float(o.px[0] - o.px[1]))
+        T = self._pose_guess[best.kf_id]
+        assert best.point_in_kf is not None
+        p_world = T[:3, :3] @ best.point_in_kf + T[:3, 3]
+        gate = self.config.init_gate_px
+        if gate > 0:
+            kept = []
+            for o in obs:
+                pred = self._predict_px(o.kf_id, p_world, o.stereo)
+                if pred is not None and float(np.max(np.abs(pred - o.px[: pred.shape[0]]))) <= gate:
+                    kept.append(o)
+            if len(kept) < len(obs):
+                self._pending[lm_id] = kept
+                obs = kept
+                if len(obs) < self.config.min_observations or not any(o.stereo for o in obs):
+                    return False
+        lkey = self._next_lkey
+        self._next_lkey += 1
+        self._landmarks[lkey] = _Landmark(lm_id, min(self._kf_seq[o.kf_id] for o in obs))
+        self._lm_current[lm_id] = lkey
+        values.insert(L(lkey), gtsam.Point3(*p_world))
+        for o in obs:
+            self._add_obs(o, lkey, lm_id, graph)
+        del self._pending[lm_id]
+        return True
+
+    def _observe(self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> int:
+        """Route one observation: to its landmark in the graph, or to the pending buffer.
+        Returns 1 when a landmark was created."""
+        lkey = self._lm_current.get(lm_id)
+        if lkey is not None:
+            span = self.config.max_landmark_span_kf
+            if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
+                del self._lm_current[lm_id]  # the track continues as a new landmark variable
+            else:
+                self._add_obs(o, lkey, lm_id, graph)
+                return 0
+        self._pending.setdefault(lm_id, []).append(o)
+        return int(self._try_create_landmark(lm_id, graph, values))
+
+    # ------------------------------------------------------------------ updates
+    def add_keyframe(self, keyframe: KeyframeLike) -> BackendUpdate:
+        """Add keyframe ``keyframe.id`` with its stereo and monocular observations and update."""
+        t0 = time.perf_counter()
+        kf_id = int(keyframe.id)
+        if kf_id in self._kf_seq:
+            raise EstimationError(f"keyframe {kf_id} was already added to the back end")
+        T = np.asarray(keyframe.world_from_kf, dtype=float).reshape(4, 4)
+        if not np.all(np.isfinite(T)):
+            raise InputError(f"keyframe {kf_id}", "world_from_kf has non-finite values")
+        cfg = self.config
+        self._kf_seq[kf_id] = len(self._kf_seq)
+        self._pose_guess[kf_id] = T
+        rect_from_cam = getattr(keyframe, "rect_from_cam", None)
+        if rect_from_cam is not None and not _is_identity(np.asarray(rect_from_cam, float)):
+            self._body[kf_id] = np.asarray(rect_from_cam, float).reshape(4, 4)
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        values.insert(X(kf_id), gtsam.Pose3(T))
+        report = BackendUpdate(kf_id)
+        first = len(self._kf_seq) == 1
+        if first or not bool(getattr(keyframe, "connected", True)):
+            rad, m = (
+                (cfg.prior_sigma_rad, cfg.prior_sigma_m)
+                if first
+                else (cfg.segment_prior_sigma_rad, cfg.segment_prior_sigma_m)
+            )
+            noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([rad] * 3 + [m] * 3))
+            prior = gtsam.PriorFactorPose3(X(kf_id), gtsam.Pose3(T), noise)
+            self._new_fid(_FactorRecord(prior, "prior"))
+            graph.add(prior)
+
+        ids = np.asarray(keyframe.landmark_ids, dtype=np.int64).ravel()
+        px = np.asarray(keyframe.stereo_px, dtype=float).reshape(-1, 3)
+        pts = np.asarray(keyframe.points_in_kf, dtype=float).reshape(-1, 3)
+        if not (ids.shape[0] == px.shape[0] == pts.shape[0]):
+            raise InputError(
+                f"keyframe {kf_id}",
+                f"landmark_ids ({ids.shape[0]}), stereo_px ({px.shape[0]}) and points_in_kf "
+                f"({pts.shape[0]}) must have the same length",
+            )
+        disparity = px[:, 0] - px[:, 1]
+        ok = (
+            np.isfinite(px).all(axis=1)
+            & np.isfinite(pts).all(axis=1)
+            & (pts[:, 2] > 0)
+            & (disparity >= max(cfg.min_disparity_px, 1e-6))
+        )
+        report.rejected_observations += int((~ok).sum())
+        for i in np.flatnonzero(ok):
+            report.new_landmarks += self._observe(int(ids[i]), _Obs(kf_id, True, px[i], pts[i]), graph, values)
+        mono = np.asarray(keyframe.mono_obs, dtype=float).reshape(-1, 3)
+        for row in mono:
+            if not np.all(np.isfinite(row)):
+                report.rejected_observations += 1
+                continue
+            lm_id = int(row[0])
+            if lm_id not in self._lm_current and lm_id not in self._pending:
+                report.rejected_observations += 1  # its landmark was dropped or never seen
+                continue
+            report.new_landmarks += self._observe(lm_id, _Obs(kf_id, False, row[1:3].copy(), None), graph, values)
+        if graph.size() == 0:
+            # no factor touches this pose yet: tie it weakly to its guess so the system stays solvable
+            noise = gtsam.noiseModel.Diagonal.Sigmas(
+                np.array([cfg.segment_prior_sigma_rad] * 3 + [cfg.segment_prior_sigma_m] * 3)
+            )
+            prior = gtsam.PriorFactorPose3(X(kf_id), gtsam.Pose3(T), noise)
+            self._new_fid(_FactorRecord(prior, "prior"))
+            graph.add(prior)
+        report.new_factors = graph.size()
+        new_fids = list(self._batch)
+        self._theta0.insert(values)
+        self._run_update(graph, values, [], X(kf_id))
+        if cfg.blunder_sigma > 0:
+            report.removed_blunders = self._screen_new([f for f in new_fids if f in self._factors])
+        report.pending_landmarks = len(self._pending)
+        report.update_ms = (time.perf_counter() - t0) * 1e3
+        return report
+
+    def _run_update(
+        self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, remove_slots: list[int], newest: int | None
+    ) -> None:
+        """One iSAM2 update with the factors just recorded (the last ``graph.size()`` fids)."""
+        new_fids, self._batch = self._batch, []
+        if len(new_fids) != graph.size():
+            raise EstimationError(f"internal: {len(new_fids)} recorded factors but {graph.size()} in the update")
+        kwargs = {}
+        if self.config.constrain_newest_last:
+            if newest is not None:
+                self._groups.insert2(newest, len(self._kf_seq))
+            kwargs["constrainedKeys"] = self._groups
+        try:
+            result = self._isam.update(graph, values, remove_slots, **kwargs)
+        except RuntimeError as exc:
+            self._recover(exc)
+            return
+        self.last_result = result
+        for fid, slot in zip(new_fids, result.getNewFactorsIndices(), strict=True):
+            self._slot[fid] = slot
+
+    def _recover(self, exc: RuntimeError) -> None:
+        """Rebuild iSAM2 without the landmark(s) that made the system indeterminate."""
+        message = str(exc)
+        for _attempt in range(20):
+            match = _SYMBOL_RE.search(message)
+            if "ndeterminant" not in message and "ndeterminate" not in message or match is None:
+                raise EstimationError(f"iSAM2 update failed: {message.strip().splitlines()[0]}") from exc
+            if match.group(1) != "l":
+                raise EstimationError(
+                    f"iSAM2: pose {match.group(1)}{match.group(2)} is not determined by its observations"
+                ) from exc
+            self._drop_landmark(int(match.group(2)))
+            logger.warning("iSAM2 indeterminate near landmark %s; rebuilding without it", match.group(2))
+            theta = self._isam.getLinearizationPoint()
+            self.rebuilds += 1
+            self._isam = gtsam.ISAM2(self.isam2_params(self.config))
+            self._slot.clear()
+            graph = gtsam.NonlinearFactorGraph()
+            fids = sorted(self._factors)
+            keys: set[int] = set()
+            for fid in fids:
+                graph.add(self._factors[fid].factor)
+                keys.update(self._factors[fid].factor.keys())
+            values = gtsam.Values()
+            for key in keys:
+                values.insert(key, theta.atPose3(key) if gtsam.Symbol(key).chr() == ord("x") else theta.atPoint3(key))
+            try:
+                result = self._isam.update(graph, values)
+            except RuntimeError as again:
+                message = str(again)
+                continue
+            for fid, slot in zip(fids, result.getNewFactorsIndices(), strict=True):
+                self._slot[fid] = slot
+            return
+        raise EstimationError("iSAM2 stayed indeterminate after dropping 20 landmarks") from exc
+
+    def _drop_landmark(self, lkey: int) -> list[int]:
+        """Forget every factor of internal landmark ``lkey``; returns their iSAM2 slots."""
+        lm = self._landmarks.pop(lkey, None)
+        if lm is None:
+            return []
+        self.dropped_landmarks += 1
+        slots = []
+        for fid in lm.fids:
+            rec = self._factors.pop(fid)
+            if rec.obs is not None:
+                self._obs_fid.pop(rec.obs, None)
+            slot = self._slot.pop(fid, None)
+            if slot is not None:
+                slots.append(slot)
+        if self._lm_current.get(lm.landmark_id) == lkey:
+            del self._lm_current[lm.landmark_id]
+        return slots
+
+    def _remove_fids(self, fids: Iterable[int]) -> list[int]:
+        """Forget observation factors; a landmark left without support is dropped whole."""
+        slots: list[int] = []
+        touched: set[int] = set()
+        for fid in fids:
+            rec = self._factors.pop(fid, None)
+            if rec is None:
+                continue
+            if rec.obs is not None:
+                self._obs_fid.pop(rec.obs, None)
+            slot = self._slot.pop(fid, None)
+            if slot is not None:
+                slots.append(slot)
+            if rec.lkey >= 0 and rec.lkey in self._landmarks:
+                self._landmarks[rec.lkey].fids.discard(fid)
+                touched.add(rec.lkey)
+        for lkey in touched:
+            kinds = [self._factors[f].kind for f in self._landmarks[lkey].fids]
+            if "stereo" not in kinds and len(kinds) < 2 or not kinds:
+                slots.extend(self._drop_landmark(lkey))
+        return slots
+
+    def remove_observations(self, observations: Iterable[Observation]) -> int:
+        """Remove observations ``(keyframe_id, landmark_id)`` (blunders) with
+        ``removeFactorIndices``; pending ones are just forgotten. Returns the count removed."""
+        fids = []
+        n = 0
+        for kf_id, lm_id in observations:
+            key = (int(kf_id), int(lm_id))
+            fid = self._obs_fid.get(key)
+            if fid is not None:
+                fids.append(fid)
+                n += 1
+            elif lm_id in self._pending:
+                before = len(self._pending[lm_id])
+                self._pending[lm_id] = [o for o in self._pending[lm_id] if o.kf_id != key[0]]
+                n += before - len(self._pending[lm_id])
+        slots = self._remove_fids(fids)
+        if slots:
+            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), slots, None)
+        return n
+
+    def _screen_new(self, new_fids: list[int]) -> int:
+        """Remove new observations whose whitened residual exceeds ``blunder_sigma`` at the
+        updated estimate."""
+        fids = [f for f in new_fids if self._factors[f].obs is not None]
+        if not fids:
+            return 0
+        poses: dict[int, F64] = {}
+        bad = []
+        for fid in fids:
+            rec = self._factors[fid]
+            assert rec.obs is not None
+            okf = rec.obs[0]
+            if okf not in poses:
+                poses[okf] = self._isam.calculateEstimatePose3(X(okf)).matrix()
+            p = self._isam.calculateEstimatePoint3(L(rec.lkey))
+            saved = self._pose_guess[okf]
+            self._pose_guess[okf] = poses[okf]
+            pred = self._predict_px(okf, np.asarray(p), rec.kind == "stereo")
+            self._pose_guess[okf] = saved
+            meas = self._measured(rec)
+            if pred is None or np.linalg.norm(pred - meas) / self.config.pixel_sigma_px > self.config.blunder_sigma:
+                bad.append(fid)
+        if bad:
+            slots = self._remove_fids(bad)
+            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), slots, None)
+        return len(bad)
+
+    @staticmethod
+    def _measured(rec: _FactorRecord) -> F64:
+        f = rec.factor
+        if rec.kind == "stereo":
+            m = f.measured()
+            return np.array([m.uL(), m.uR(), m.v()])
+        return np.asarray(f.measured(), float).ravel()
+
+    def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
+        """Add ``kf_a_from_kf_b`` (4x4) as a robust between-factor; ``sigmas`` (rad x3, m x3)
+        default to the configured loop sigmas. Returns the constraint's factor id."""
+        for k in (kf_a, kf_b):
+            if k not in self._kf_seq:
+                raise EstimationError(f"loop constraint names keyframe {k}, which is not in the back end")
+        cfg = self.config
+        s = np.asarray(sigmas, float) if sigmas is not None else np.array([cfg.loop_sigma_rad] * 3 + [cfg.loop_sigma_m] * 3)
+        noise = self._robust(gtsam.noiseModel.Diagonal.Sigmas(s))
+        factor = gtsam.BetweenFactorPose3(X(int(kf_a)), X(int(kf_b)), gtsam.Pose3(np.asarray(a_from_b, float)), noise)
+        fid = self._new_fid(_FactorRecord(factor, "loop"))
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(factor)
+        self._run_update(graph, gtsam.Values(), [], None)
+        # a loop moves much of the trajectory: relinearise right away
+        self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
+        return fid
+
+    def remove_loop_constraint(self, constraint_id: int) -> None:
+        """Remove a loop constraint returned by :meth:`add_loop_constraint`."""
+        rec = self._factors.get(constraint_id)
+        if rec is None or rec.kind != "loop":
+            raise EstimationError(f"no loop constraint with id {constraint_id}")
+        del self._factors[constraint_id]
+        slot = self._slot.pop(constraint_id, None)
+        if slot is not None:
+            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [slot], None)
+
+    # ------------------------------------------------------------------ estimate
+    def estimate(self) -> BackendEstimate:
+        """Current keyframe poses and landmarks; keyframes whose pose moved more than
+        ``change_tolerance_m`` (position, or rotation x 1 m) since the previous call."""
+        vals = self._isam.calculateEstimate()
+        keys = np.asarray(vals.keys(), dtype=np.uint64)
+        chars = (keys >> np.uint64(56)).astype(np.int64)
+        idx = (keys & _INDEX_MASK).astype(np.int64)
+        pose_ids = np.sort(idx[chars == ord("x")])
+        rows = gtsam.utilities.extractPose3(vals).reshape(-1, 12)
+        world_from_kf: dict[int, F64] = {}
+        for i, kf in enumerate(pose_ids.tolist()):
+            T = np.eye(4)
+            T[:3, :3] = rows[i, :9].reshape(3, 3)
+            T[:3, 3] = rows[i, 9:]
+            world_from_kf[int(kf)] = T
+        lkeys = np.sort(idx[chars == ord("l")])
+        pts = gtsam.utilities.extractPoint3(vals).reshape(-1, 3)
+        live = np.array([int(k) in self._landmarks for k in lkeys.tolist()], dtype=bool)
+        lm_ids = np.array([self._landmarks[int(k)].landmark_id for k in lkeys[live].tolist()], dtype=np.int64)
+        tol = self.config.change_tolerance_m
+        changed = set()
+        for kf, T in world_from_kf.items():
+            prev = self._last_poses.get(kf)
+            if prev is None:
+                changed.add(kf)
+                continue
+            dt = float(np.linalg.norm(T[:3, 3] - prev[:3, 3]))
+            dr = float(np.linalg.norm(so3_log(prev[:3, :3].T @ T[:3, :3])))
+            if dt > tol or dr > tol:
+                changed.add(kf)
+        self._last_poses = world_from_kf
+        self._pose_guess.update(world_from_kf)
+        return BackendEstimate(world_from_kf, lm_ids, pts[live], changed)
