@@ -60,8 +60,17 @@ def load_vo00() -> tuple[StereoCalibration, list[_KF]]:
     for row, a, b in zip(poses, bounds, ends, strict=True):
         m = meas[a:b]
         fid = int(row[0])
-        kfs.append(_KF(fid, fid * 100_000_000, row[1:].reshape(4, 4), m[:, 1].astype(np.int64),
-                       m[:, 5:8].copy(), m[:, 2:5].copy(), np.zeros((0, 3))))
+        kfs.append(
+            _KF(
+                fid,
+                fid * 100_000_000,
+                row[1:].reshape(4, 4),
+                m[:, 1].astype(np.int64),
+                m[:, 5:8].copy(),
+                m[:, 2:5].copy(),
+                np.zeros((0, 3)),
+            )
+        )
     return calibration, kfs
 
 
@@ -84,11 +93,15 @@ def run_naive(calibration: StereoCalibration, kfs: list[_KF], min_disparity_px: 
         pose = gtsam.Pose3(kf.world_from_kf)
         values.insert(X(kf.id), pose)
         if k == 0:
-            graph.add(gtsam.PriorFactorPose3(X(kf.id), pose, gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+            graph.add(
+                gtsam.PriorFactorPose3(X(kf.id), pose, gtsam.noiseModel.Isotropic.Sigma(6, 1e-6))
+            )
         for lm, px, p in zip(kf.landmark_ids.tolist(), kf.stereo_px, kf.points_in_kf, strict=True):
             if px[0] - px[1] < min_disparity_px:
                 continue
-            graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(*px), noise, X(kf.id), L(lm), cal))
+            graph.add(
+                gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(*px), noise, X(kf.id), L(lm), cal)
+            )
             if lm not in seen:
                 seen.add(lm)
                 values.insert(L(lm), pose.transformFrom(gtsam.Point3(*p)))
@@ -101,7 +114,10 @@ def run_naive(calibration: StereoCalibration, kfs: list[_KF], min_disparity_px: 
 
 
 def _max_pose_diff(a: gtsam.Values, b: gtsam.Values, ids: list[int]) -> float:
-    return max(float(np.linalg.norm(a.atPose3(X(i)).translation() - b.atPose3(X(i)).translation())) for i in ids)
+    return max(
+        float(np.linalg.norm(a.atPose3(X(i)).translation() - b.atPose3(X(i)).translation()))
+        for i in ids
+    )
 
 
 def run(quick: bool) -> dict:
@@ -109,7 +125,10 @@ def run(quick: bool) -> dict:
     if quick:
         kfs = kfs[:40]
     cfg = BackendConfig(**BENCH_CONFIG)
-    print(f"isam2 bench: {len(kfs)} frames, {sum(len(k.landmark_ids) for k in kfs)} measurements", flush=True)
+    print(
+        f"isam2 bench: {len(kfs)} frames, {sum(len(k.landmark_ids) for k in kfs)} measurements",
+        flush=True,
+    )
 
     backend = Isam2Backend(calibration, cfg)
     times = []
@@ -133,12 +152,19 @@ def run(quick: bool) -> dict:
     batch_s = time.perf_counter() - t0
     ids = [kf.id for kf in kfs]
     diff = _max_pose_diff(est_values, batch, ids)
-    print(f"batch LM {batch_s:.2f} s; max pose diff {diff * 1e3:.2f} mm; "
-          f"error isam {graph.error(est_values):.1f} batch {graph.error(batch):.1f}", flush=True)
+    print(
+        f"batch LM {batch_s:.2f} s; max pose diff {diff * 1e3:.2f} mm; "
+        f"error isam {graph.error(est_values):.1f} batch {graph.error(batch):.1f}",
+        flush=True,
+    )
 
     naive = run_naive(calibration, kfs, cfg.min_disparity_px)
     nmed, np95 = _stats(naive["times"]) if len(naive["times"]) > 2 else (float("nan"), float("nan"))
-    print(f"naive: median {nmed:.1f} ms, p95 {np95:.1f} ms" + (f" (failed: {naive['error']})" if "error" in naive else ""), flush=True)
+    print(
+        f"naive: median {nmed:.1f} ms, p95 {np95:.1f} ms"
+        + (f" (failed: {naive['error']})" if "error" in naive else ""),
+        flush=True,
+    )
 
     return {
         "dataset": "gtsam VO_stereo_factors00 (KITTI 00)" + (" first 40 frames" if quick else ""),

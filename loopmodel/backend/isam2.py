@@ -37,7 +37,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
-from loopmodel.backend.base import BackendEstimate, BackendUpdate, F64, KeyframeLike, Observation
+from loopmodel.backend.base import F64, BackendEstimate, BackendUpdate, KeyframeLike, Observation
 from loopmodel.config import BackendConfig
 from loopmodel.errors import EstimationError, InputError
 from loopmodel.geometry.se3 import invert_pose, so3_log
@@ -49,13 +49,13 @@ _SYMBOL_RE = re.compile(r"Symbol:\s*([A-Za-z])(\d+)")
 _INDEX_MASK = np.uint64((1 << 56) - 1)
 
 
-@dataclass
+@dataclass(slots=True)
 class _Obs:
     """One buffered or live observation of a landmark."""
 
     kf_id: int
     stereo: bool
-    px: F64  # (u_l, u_r, v) or (u, v), rectified pixels
+    px: tuple[float, ...]  # (u_l, u_r, v) or (u, v), rectified pixels
     point_in_kf: F64 | None  # stereo triangulation in the keyframe's left camera (m)
 
 
@@ -90,7 +90,13 @@ class Isam2Backend:
         self.config = config or BackendConfig()
         cfg = self.config
         K = calibration.K_left
-        fx, fy, skew, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 1]), float(K[0, 2]), float(K[1, 2])
+        fx, fy, skew, cx, cy = (
+            float(K[0, 0]),
+            float(K[1, 1]),
+            float(K[0, 1]),
+            float(K[0, 2]),
+            float(K[1, 2]),
+        )
         self._K = np.array([[fx, skew, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         self._baseline_m = calibration.baseline_m
         self._cal_stereo = gtsam.Cal3_S2Stereo(fx, fy, skew, cx, cy, self._baseline_m)
@@ -124,7 +130,9 @@ class Isam2Backend:
         """``gtsam.ISAM2Params`` from the configuration."""
         params = gtsam.ISAM2Params()
         thresholds = gtsam.ISAM2ThresholdMap()
-        thresholds.insert(("x", np.array([cfg.relinearize_threshold_rad] * 3 + [cfg.relinearize_threshold_m] * 3)))
+        thresholds.insert(
+            ("x", np.array([cfg.relinearize_threshold_rad] * 3 + [cfg.relinearize_threshold_m] * 3))
+        )
         thresholds.insert(("l", np.full(3, cfg.relinearize_threshold_landmark_m)))
         params.setRelinearizeThreshold(thresholds)
         params.relinearizeSkip = cfg.relinearize_skip
@@ -137,7 +145,9 @@ class Isam2Backend:
     def _robust(self, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
         if self.config.huber_k <= 0:
             return base
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.config.huber_k), base)
+        return gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(self.config.huber_k), base
+        )
 
     # ------------------------------------------------------------------ queries
     @property
@@ -200,11 +210,14 @@ class Isam2Backend:
     def _obs_factor(self, obs: _Obs, lkey: int) -> gtsam.NonlinearFactor:
         body = self._body.get(obs.kf_id)
         extra = () if body is None else (gtsam.Pose3(invert_pose(body)),)
+        px = obs.px
         if obs.stereo:
-            sp = gtsam.StereoPoint2(float(obs.px[0]), float(obs.px[1]), float(obs.px[2]))
-            return gtsam.GenericStereoFactor3D(sp, self._stereo_noise, X(obs.kf_id), L(lkey), self._cal_stereo, *extra)
+            sp = gtsam.StereoPoint2(px[0], px[1], px[2])
+            return gtsam.GenericStereoFactor3D(
+                sp, self._stereo_noise, X(obs.kf_id), L(lkey), self._cal_stereo, *extra
+            )
         return gtsam.GenericProjectionFactorCal3_S2(
-            np.asarray(obs.px[:2], float), self._mono_noise, X(obs.kf_id), L(lkey), self._cal_mono, *extra
+            np.array(px[:2]), self._mono_noise, X(obs.kf_id), L(lkey), self._cal_mono, *extra
         )
 
     def _add_obs(self, obs: _Obs, lkey: int, lm_id: int, graph: gtsam.NonlinearFactorGraph) -> None:
@@ -217,70 +230,138 @@ class Isam2Backend:
         self._landmarks[lkey].fids.add(fid)
         graph.add(factor)
 
-    def _predict_px(self, kf_id: int, p_world: F64, stereo: bool) -> F64 | None:
-        """Predicted rectified pixels of a world point in keyframe ``kf_id`` (None if behind)."""
-        T = self._pose_guess[kf_id]
-        p = T[:3, :3].T @ (p_world - T[:3, 3])
-        body = self._body.get(kf_id)
-        if body is not None:
-            p = body[:3, :3] @ p + body[:3, 3]
-        if p[2] <= 1e-9:
-            return None
-        uvw = self._K @ p
-        u, v = uvw[0] / p[2], uvw[1] / p[2]
-        if not stereo:
-            return np.array([u, v])
-        return np.array([u, u - self._K[0, 0] * self._baseline_m / p[2], v])
+    def _project(self, kf_ids: list[int], p_world: F64, poses: dict[int, F64] | None = None) -> F64:
+        """Predicted (u_left, u_right, v) rectified pixels of world points ``p_world`` (N, 3)
+        in keyframes ``kf_ids`` (N) at ``poses`` (default: the current pose guesses); NaN
+        rows behind the camera."""
+        src = self._pose_guess if poses is None else poses
+        T = np.stack([src[k] for k in kf_ids]) if kf_ids else np.zeros((0, 4, 4))
+        p = np.einsum("nji,nj->ni", T[:, :3, :3], p_world - T[:, :3, 3])
+        if self._body:
+            for i, k in enumerate(kf_ids):
+                body = self._body.get(k)
+                if body is not None:
+                    p[i] = body[:3, :3] @ p[i] + body[:3, 3]
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            zi = np.where(z > 1e-9, 1.0 / z, np.nan)
+            K = self._K
+            u = (K[0, 0] * p[:, 0] + K[0, 1] * p[:, 1]) * zi + K[0, 2]
+            v = K[1, 1] * p[:, 1] * zi + K[1, 2]
+            ur = u - K[0, 0] * self._baseline_m * zi
+        return np.column_stack([u, ur, v])
 
-    def _try_create_landmark(
-        self, lm_id: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
-    ) -> bool:
-        """Move a pending landmark into the graph when it has enough consistent observations."""
-        obs = self._pending[lm_id]
-        if len(obs) < self.config.min_observations:
-            return False
-        stereo = [o for o in obs if o.stereo]
-        if not stereo:
-            return False
-        best = stereo[0]  # max(stereo, key=lambda o: float(o.px[0] - o.px[1]))
-        T = self._pose_guess[best.kf_id]
-        assert best.point_in_kf is not None
-        p_world = T[:3, :3] @ best.point_in_kf + T[:3, 3]
-        gate = self.config.init_gate_px
-        if gate > 0:
-            kept = []
+    def _create_landmarks(
+        self, candidates: list[int], graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
+    ) -> int:
+        """Move pending landmarks with enough observations into the graph. Each is initialised
+        from its stereo triangulation of largest disparity; observations farther than
+        ``init_gate_px`` from that point are dropped first. Returns how many were created."""
+        cfg = self.config
+        todo = []
+        for lm in candidates:
+            obs = self._pending.get(lm)
+            if obs is None or len(obs) < cfg.min_observations:
+                continue
+            best = None
             for o in obs:
-                pred = self._predict_px(o.kf_id, p_world, o.stereo)
-                if pred is not None and float(np.max(np.abs(pred - o.px[: pred.shape[0]]))) <= gate:
-                    kept.append(o)
-            if len(kept) < len(obs):
-                self._pending[lm_id] = kept
-                obs = kept
-                if len(obs) < self.config.min_observations or not any(o.stereo for o in obs):
-                    return False
-        lkey = self._next_lkey
-        self._next_lkey += 1
-        self._landmarks[lkey] = _Landmark(lm_id, min(self._kf_seq[o.kf_id] for o in obs))
-        self._lm_current[lm_id] = lkey
-        values.insert(L(lkey), gtsam.Point3(*p_world))
-        for o in obs:
-            self._add_obs(o, lkey, lm_id, graph)
-        del self._pending[lm_id]
-        return True
+                if o.stereo and (best is None or o.px[0] - o.px[1] > best.px[0] - best.px[1]):
+                    best = o
+            if best is not None:
+                todo.append((lm, obs, best))
+        if not todo:
+            return 0
+        T = np.stack([self._pose_guess[b.kf_id] for _, _, b in todo])
+        pts = np.array([b.point_in_kf for _, _, b in todo])
+        p_world = np.einsum("nij,nj->ni", T[:, :3, :3], pts) + T[:, :3, 3]
+        keep_all = [True] * len(todo)
+        if cfg.init_gate_px > 0:
+            owner = np.array([i for i, (_, obs, _) in enumerate(todo) for _ in obs])
+            flat = [o for _, obs, _ in todo for o in obs]
+            pred = self._project([o.kf_id for o in flat], p_world[owner])
+            meas = np.array(
+                [o.px if o.stereo else (o.px[0], np.nan, o.px[1]) for o in flat], dtype=float
+            )
+            err = np.abs(pred - meas)
+            err[~np.isfinite(meas)] = 0.0
+            bad = ~np.isfinite(pred[:, [0, 2]]).all(axis=1) | (err.max(axis=1) > cfg.init_gate_px)
+            if bad.any():
+                for j in np.flatnonzero(bad).tolist():
+                    keep_all[int(owner[j])] = False
+                start = 0
+                for i, (lm, obs, _) in enumerate(todo):
+                    n = len(obs)
+                    if not keep_all[i]:
+                        kept = [
+                            o
+                            for o, b in zip(obs, bad[start : start + n].tolist(), strict=True)
+                            if not b
+                        ]
+                        self._pending[lm] = kept
+                    start += n
+        created = 0
+        for i, (lm, obs, _) in enumerate(todo):
+            if not keep_all[i]:
+                # retry with what survived the gate (its best triangulation may have changed)
+                kept = self._pending[lm]
+                if len(kept) < cfg.min_observations or not any(o.stereo for o in kept):
+                    continue
+                b = max((o for o in kept if o.stereo), key=lambda o: o.px[0] - o.px[1])
+                Tb = self._pose_guess[b.kf_id]
+                assert b.point_in_kf is not None
+                pw = Tb[:3, :3] @ b.point_in_kf + Tb[:3, 3]
+                pr = self._project([o.kf_id for o in kept], np.tile(pw, (len(kept), 1)))
+                ok = all(
+                    np.isfinite(pr[j, 0])
+                    and max(
+                        abs(pr[j, 0] - o.px[0]),
+                        abs(pr[j, 2] - o.px[-1]),
+                        abs(pr[j, 1] - o.px[1]) if o.stereo else 0.0,
+                    )
+                    <= cfg.init_gate_px
+                    for j, o in enumerate(kept)
+                )
+                if not ok:
+                    continue
+                obs, point = kept, pw
+            else:
+                point = p_world[i]
+            lkey = self._next_lkey
+            self._next_lkey += 1
+            self._landmarks[lkey] = _Landmark(lm, min(self._kf_seq[o.kf_id] for o in obs))
+            self._lm_current[lm] = lkey
+            values.insert(L(lkey), gtsam.Point3(float(point[0]), float(point[1]), float(point[2])))
+            for o in obs:
+                self._add_obs(o, lkey, lm, graph)
+            del self._pending[lm]
+            created += 1
+        return created
 
-    def _observe(self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> int:
-        """Route one observation: to its landmark in the graph, or to the pending buffer.
-        Returns 1 when a landmark was created."""
+    def _observe(
+        self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int]
+    ) -> None:
+        """Route one observation to its landmark in the graph or to the pending buffer
+        (landmarks whose buffer is full enough are appended to ``candidates``)."""
         lkey = self._lm_current.get(lm_id)
         if lkey is not None:
             span = self.config.max_landmark_span_kf
-            if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
+            if (
+                span > 0
+                and o.stereo
+                and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span
+            ):
                 del self._lm_current[lm_id]  # the track continues as a new landmark variable
             else:
                 self._add_obs(o, lkey, lm_id, graph)
-                return 0
-        self._pending.setdefault(lm_id, []).append(o)
-        return int(self._try_create_landmark(lm_id, graph, values))
+                return
+        pend = self._pending.get(lm_id)
+        if pend is None:
+            self._pending[lm_id] = [o]
+            pend = self._pending[lm_id]
+        else:
+            pend.append(o)
+        if len(pend) >= self.config.min_observations:
+            candidates.append(lm_id)
 
     # ------------------------------------------------------------------ updates
     def add_keyframe(self, keyframe: KeyframeLike) -> BackendUpdate:
@@ -304,15 +385,7 @@ class Isam2Backend:
         report = BackendUpdate(kf_id)
         first = len(self._kf_seq) == 1
         if first or not bool(getattr(keyframe, "connected", True)):
-            rad, m = (
-                (cfg.prior_sigma_rad, cfg.prior_sigma_m)
-                if first
-                else (cfg.segment_prior_sigma_rad, cfg.segment_prior_sigma_m)
-            )
-            noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([rad] * 3 + [m] * 3))
-            prior = gtsam.PriorFactorPose3(X(kf_id), gtsam.Pose3(T), noise)
-            self._new_fid(_FactorRecord(prior, "prior"))
-            graph.add(prior)
+            self._add_prior(kf_id, T, first, graph)
 
         ids = np.asarray(keyframe.landmark_ids, dtype=np.int64).ravel()
         px = np.asarray(keyframe.stereo_px, dtype=float).reshape(-1, 3)
@@ -323,34 +396,30 @@ class Isam2Backend:
                 f"landmark_ids ({ids.shape[0]}), stereo_px ({px.shape[0]}) and points_in_kf "
                 f"({pts.shape[0]}) must have the same length",
             )
-        disparity = px[:, 0] - px[:, 1]
         ok = (
             np.isfinite(px).all(axis=1)
             & np.isfinite(pts).all(axis=1)
             & (pts[:, 2] > 0)
-            & (disparity >= max(cfg.min_disparity_px, 1e-6))
+            & (px[:, 0] - px[:, 1] >= max(cfg.min_disparity_px, 1e-6))
         )
         report.rejected_observations += int((~ok).sum())
-        for i in np.flatnonzero(ok):
-            report.new_landmarks += self._observe(int(ids[i]), _Obs(kf_id, True, px[i], pts[i]), graph, values)
+        candidates: list[int] = []
+        sel = np.flatnonzero(ok)
+        for lm, p, q in zip(ids[sel].tolist(), px[sel].tolist(), pts[sel], strict=True):
+            self._observe(lm, _Obs(kf_id, True, tuple(p), q), graph, candidates)
         mono = np.asarray(keyframe.mono_obs, dtype=float).reshape(-1, 3)
-        for row in mono:
-            if not np.all(np.isfinite(row)):
-                report.rejected_observations += 1
-                continue
+        for row in mono.tolist():
             lm_id = int(row[0])
-            if lm_id not in self._lm_current and lm_id not in self._pending:
+            if not all(np.isfinite(row)) or (
+                lm_id not in self._lm_current and lm_id not in self._pending
+            ):
                 report.rejected_observations += 1  # its landmark was dropped or never seen
                 continue
-            report.new_landmarks += self._observe(lm_id, _Obs(kf_id, False, row[1:3].copy(), None), graph, values)
+            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates)
+        report.new_landmarks = self._create_landmarks(candidates, graph, values)
         if graph.size() == 0:
-            # no factor touches this pose yet: tie it weakly to its guess so the system stays solvable
-            noise = gtsam.noiseModel.Diagonal.Sigmas(
-                np.array([cfg.segment_prior_sigma_rad] * 3 + [cfg.segment_prior_sigma_m] * 3)
-            )
-            prior = gtsam.PriorFactorPose3(X(kf_id), gtsam.Pose3(T), noise)
-            self._new_fid(_FactorRecord(prior, "prior"))
-            graph.add(prior)
+            # nothing touches this pose yet: tie it loosely to its guess so the system stays solvable
+            self._add_prior(kf_id, T, False, graph)
         report.new_factors = graph.size()
         new_fids = list(self._batch)
         self._theta0.insert(values)
@@ -361,13 +430,33 @@ class Isam2Backend:
         report.update_ms = (time.perf_counter() - t0) * 1e3
         return report
 
+    def _add_prior(
+        self, kf_id: int, T: F64, gauge: bool, graph: gtsam.NonlinearFactorGraph
+    ) -> None:
+        cfg = self.config
+        rad, m = (
+            (cfg.prior_sigma_rad, cfg.prior_sigma_m)
+            if gauge
+            else (cfg.segment_prior_sigma_rad, cfg.segment_prior_sigma_m)
+        )
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([rad] * 3 + [m] * 3))
+        prior = gtsam.PriorFactorPose3(X(kf_id), gtsam.Pose3(T), noise)
+        self._new_fid(_FactorRecord(prior, "prior"))
+        graph.add(prior)
+
     def _run_update(
-        self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, remove_slots: list[int], newest: int | None
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        remove_slots: list[int],
+        newest: int | None,
     ) -> None:
         """One iSAM2 update with the factors just recorded (the last ``graph.size()`` fids)."""
         new_fids, self._batch = self._batch, []
         if len(new_fids) != graph.size():
-            raise EstimationError(f"internal: {len(new_fids)} recorded factors but {graph.size()} in the update")
+            raise EstimationError(
+                f"internal: {len(new_fids)} recorded factors but {graph.size()} in the update"
+            )
         kwargs = {}
         if self.config.constrain_newest_last:
             if newest is not None:
@@ -388,13 +477,17 @@ class Isam2Backend:
         for _attempt in range(20):
             match = _SYMBOL_RE.search(message)
             if "ndeterminant" not in message and "ndeterminate" not in message or match is None:
-                raise EstimationError(f"iSAM2 update failed: {message.strip().splitlines()[0]}") from exc
+                raise EstimationError(
+                    f"iSAM2 update failed: {message.strip().splitlines()[0]}"
+                ) from exc
             if match.group(1) != "l":
                 raise EstimationError(
                     f"iSAM2: pose {match.group(1)}{match.group(2)} is not determined by its observations"
                 ) from exc
             self._drop_landmark(int(match.group(2)))
-            logger.warning("iSAM2 indeterminate near landmark %s; rebuilding without it", match.group(2))
+            logger.warning(
+                "iSAM2 indeterminate near landmark %s; rebuilding without it", match.group(2)
+            )
             theta = self._isam.getLinearizationPoint()
             self.rebuilds += 1
             self._isam = gtsam.ISAM2(self.isam2_params(self.config))
@@ -407,7 +500,12 @@ class Isam2Backend:
                 keys.update(self._factors[fid].factor.keys())
             values = gtsam.Values()
             for key in keys:
-                values.insert(key, theta.atPose3(key) if gtsam.Symbol(key).chr() == ord("x") else theta.atPoint3(key))
+                values.insert(
+                    key,
+                    theta.atPose3(key)
+                    if gtsam.Symbol(key).chr() == ord("x")
+                    else theta.atPoint3(key),
+                )
             try:
                 result = self._isam.update(graph, values)
             except RuntimeError as again:
@@ -480,26 +578,29 @@ class Isam2Backend:
 
     def _screen_new(self, new_fids: list[int]) -> int:
         """Remove new observations whose whitened residual exceeds ``blunder_sigma`` at the
-        updated estimate."""
-        fids = [f for f in new_fids if self._factors[f].obs is not None]
-        if not fids:
+        updated estimate (robust weights aside)."""
+        recs = [(f, self._factors[f]) for f in new_fids if self._factors[f].obs is not None]
+        if not recs:
             return 0
-        poses: dict[int, F64] = {}
-        bad = []
-        for fid in fids:
-            rec = self._factors[fid]
-            assert rec.obs is not None
-            okf = rec.obs[0]
-            if okf not in poses:
-                poses[okf] = self._isam.calculateEstimatePose3(X(okf)).matrix()
-            p = self._isam.calculateEstimatePoint3(L(rec.lkey))
-            saved = self._pose_guess[okf]
-            self._pose_guess[okf] = poses[okf]
-            pred = self._predict_px(okf, np.asarray(p), rec.kind == "stereo")
-            self._pose_guess[okf] = saved
-            meas = self._measured(rec)
-            if pred is None or np.linalg.norm(pred - meas) / self.config.pixel_sigma_px > self.config.blunder_sigma:
-                bad.append(fid)
+        poses = {}
+        for _, rec in recs:
+            k = rec.obs[0]  # type: ignore[index]
+            if k not in poses:
+                poses[k] = self._isam.calculateEstimatePose3(X(k)).matrix()
+        pts = np.array(
+            [self._isam.calculateEstimatePoint3(L(rec.lkey)) for _, rec in recs], dtype=float
+        )
+        pred = self._project([rec.obs[0] for _, rec in recs], pts, poses)  # type: ignore[index]
+        meas = np.array([self._measured(rec) for _, rec in recs])
+        stereo = np.array([rec.kind == "stereo" for _, rec in recs])
+        diff = pred - meas
+        diff[~stereo, 1] = 0.0
+        norm = np.sqrt(np.nansum(diff**2, axis=1)) / self.config.pixel_sigma_px
+        bad = [
+            f
+            for (f, _), n, fin in zip(recs, norm, np.isfinite(pred[:, 0]), strict=True)
+            if not fin or n > self.config.blunder_sigma
+        ]
         if bad:
             slots = self._remove_fids(bad)
             self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), slots, None)
@@ -511,18 +612,38 @@ class Isam2Backend:
         if rec.kind == "stereo":
             m = f.measured()
             return np.array([m.uL(), m.uR(), m.v()])
-        return np.asarray(f.measured(), float).ravel()
+        uv = np.asarray(f.measured(), float).ravel()
+        return np.array([uv[0], np.nan, uv[1]])
 
-    def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
+    def refine(self, max_iterations: int = 10) -> int:
+        """Extra iSAM2 iterations without new factors (e.g. at the end of a run) until no
+        variable needs relinearising; returns the iterations run."""
+        for it in range(max_iterations):
+            result = self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
+            if result.getVariablesRelinearized() == 0:
+                return it + 1
+        return max_iterations
+
+    def add_loop_constraint(
+        self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None
+    ) -> int:
         """Add ``kf_a_from_kf_b`` (4x4) as a robust between-factor; ``sigmas`` (rad x3, m x3)
         default to the configured loop sigmas. Returns the constraint's factor id."""
         for k in (kf_a, kf_b):
             if k not in self._kf_seq:
-                raise EstimationError(f"loop constraint names keyframe {k}, which is not in the back end")
+                raise EstimationError(
+                    f"loop constraint names keyframe {k}, which is not in the back end"
+                )
         cfg = self.config
-        s = np.asarray(sigmas, float) if sigmas is not None else np.array([cfg.loop_sigma_rad] * 3 + [cfg.loop_sigma_m] * 3)
+        s = (
+            np.asarray(sigmas, float)
+            if sigmas is not None
+            else np.array([cfg.loop_sigma_rad] * 3 + [cfg.loop_sigma_m] * 3)
+        )
         noise = self._robust(gtsam.noiseModel.Diagonal.Sigmas(s))
-        factor = gtsam.BetweenFactorPose3(X(int(kf_a)), X(int(kf_b)), gtsam.Pose3(np.asarray(a_from_b, float)), noise)
+        factor = gtsam.BetweenFactorPose3(
+            X(int(kf_a)), X(int(kf_b)), gtsam.Pose3(np.asarray(a_from_b, float)), noise
+        )
         fid = self._new_fid(_FactorRecord(factor, "loop"))
         graph = gtsam.NonlinearFactorGraph()
         graph.add(factor)
@@ -560,7 +681,9 @@ class Isam2Backend:
         lkeys = np.sort(idx[chars == ord("l")])
         pts = gtsam.utilities.extractPoint3(vals).reshape(-1, 3)
         live = np.array([int(k) in self._landmarks for k in lkeys.tolist()], dtype=bool)
-        lm_ids = np.array([self._landmarks[int(k)].landmark_id for k in lkeys[live].tolist()], dtype=np.int64)
+        lm_ids = np.array(
+            [self._landmarks[int(k)].landmark_id for k in lkeys[live].tolist()], dtype=np.int64
+        )
         tol = self.config.change_tolerance_m
         changed = set()
         for kf, T in world_from_kf.items():
