@@ -52,7 +52,9 @@ class BackendConfig(_Section):
 
     kind: str = Field("isam2", pattern="^(isam2|givens)$", description="which back end runs")
     pixel_sigma_px: float = Field(1.0, gt=0, description="std. dev. of an image coordinate")
-    huber_k: float = Field(1.345, ge=0, description="Huber threshold in sigmas (0: plain Gaussian)")
+    huber_k: float = Field(
+        3.0, ge=0, description="Huber threshold in sigmas (0: plain Gaussian); iSAM2 keeps robust weights between relinearisations"
+    )
     prior_sigma_rad: float = Field(1e-6, gt=0, description="gauge prior on the first keyframe, rotation")
     prior_sigma_m: float = Field(1e-6, gt=0, description="gauge prior on the first keyframe, position")
     segment_prior_sigma_rad: float = Field(1.0, gt=0, description="prior on a keyframe not linked to the previous one")
@@ -70,10 +72,10 @@ class BackendConfig(_Section):
     blunder_sigma: float = Field(
         0.0, ge=0, description="remove new observations whose whitened residual exceeds this (0: off)"
     )
-    relinearize_threshold_rad: float = Field(0.01, gt=0, description="pose rotation relinearisation threshold")
-    relinearize_threshold_m: float = Field(0.05, gt=0, description="pose position relinearisation threshold")
-    relinearize_threshold_landmark_m: float = Field(0.5, gt=0, description="landmark relinearisation threshold")
-    relinearize_skip: int = Field(10, ge=1, description="check relinearisation every N updates")
+    relinearize_threshold_rad: float = Field(0.002, gt=0, description="pose rotation relinearisation threshold")
+    relinearize_threshold_m: float = Field(0.01, gt=0, description="pose position relinearisation threshold")
+    relinearize_threshold_landmark_m: float = Field(0.05, gt=0, description="landmark relinearisation threshold")
+    relinearize_skip: int = Field(1, ge=1, description="check relinearisation every N updates")
     wildfire_threshold: float = Field(0.001, ge=0, description="back-substitution stopping threshold")
     factorization: str = Field("CHOLESKY", pattern="^(CHOLESKY|QR)$")
     constrain_newest_last: bool = Field(True, description="order the newest pose last (smaller re-elimination)")

@@ -59,7 +59,7 @@ class _Obs:
     point_in_kf: F64 | None  # stereo triangulation in the keyframe's left camera (m)
 
 
-@dataclass
+@dataclass(slots=True)
 class _FactorRecord:
     factor: gtsam.NonlinearFactor
     kind: str  # "stereo" | "mono" | "prior" | "loop"
@@ -405,8 +405,30 @@ class Isam2Backend:
         report.rejected_observations += int((~ok).sum())
         candidates: list[int] = []
         sel = np.flatnonzero(ok)
+        # fast path for the common case (a landmark already in the graph), then the general one
+        span, seq = cfg.max_landmark_span_kf, self._kf_seq[kf_id]
+        lm_current, landmarks, obs_fid, factors = self._lm_current, self._landmarks, self._obs_fid, self._factors
+        body = self._body.get(kf_id)
+        extra = () if body is None else (gtsam.Pose3(invert_pose(body)),)
+        xk, noise, cal = X(kf_id), self._stereo_noise, self._cal_stereo
         for lm, p, q in zip(ids[sel].tolist(), px[sel].tolist(), pts[sel], strict=True):
-            self._observe(lm, _Obs(kf_id, True, tuple(p), q), graph, candidates)
+            lkey = lm_current.get(lm)
+            if lkey is not None and not (span > 0 and seq - landmarks[lkey].first_seq >= span):
+                key = (kf_id, lm)
+                if key in obs_fid:
+                    continue
+                factor = gtsam.GenericStereoFactor3D(
+                    gtsam.StereoPoint2(p[0], p[1], p[2]), noise, xk, L(lkey), cal, *extra
+                )
+                fid = self._next_fid
+                self._next_fid += 1
+                factors[fid] = _FactorRecord(factor, "stereo", lkey, key)
+                self._batch.append(fid)
+                obs_fid[key] = fid
+                landmarks[lkey].fids.add(fid)
+                graph.add(factor)
+            else:
+                self._observe(lm, _Obs(kf_id, True, tuple(p), q), graph, candidates)
         mono = np.asarray(keyframe.mono_obs, dtype=float).reshape(-1, 3)
         for row in mono.tolist():
             lm_id = int(row[0])
