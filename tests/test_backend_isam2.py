@@ -38,8 +38,13 @@ def calibration() -> StereoCalibration:
 
 def scene(rng: np.random.Generator, n_kf: int = 6, n_pts: int = 80):
     """Ground-truth poses (a slow sideways walk with yaw) and points in front of them."""
-    poses = [make_pose(so3_exp([0, 0.03 * i, 0.01 * i]), [0.15 * i, 0.02 * i, 0.05 * i]) for i in range(n_kf)]
-    pts = np.column_stack([rng.uniform(-1.2, 2.0, n_pts), rng.uniform(-1.0, 1.0, n_pts), rng.uniform(2.5, 6, n_pts)])
+    poses = [
+        make_pose(so3_exp([0, 0.03 * i, 0.01 * i]), [0.15 * i, 0.02 * i, 0.05 * i])
+        for i in range(n_kf)
+    ]
+    pts = np.column_stack(
+        [rng.uniform(-1.2, 2.0, n_pts), rng.uniform(-1.0, 1.0, n_pts), rng.uniform(2.5, 6, n_pts)]
+    )
     return poses, pts
 
 
@@ -105,20 +110,28 @@ def batch_solution(kfs, skip: set[tuple[int, int]] = frozenset()) -> gtsam.Value
     ns = gtsam.noiseModel.Isotropic.Sigma(3, SIGMA_PX)
     nm = gtsam.noiseModel.Isotropic.Sigma(2, SIGMA_PX)
     graph, init = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(kfs[0].world_from_kf), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    graph.add(
+        gtsam.PriorFactorPose3(
+            X(0), gtsam.Pose3(kfs[0].world_from_kf), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+        )
+    )
     for kf in kfs:
         init.insert(X(kf.id), gtsam.Pose3(kf.world_from_kf))
         for lm, px, p in zip(kf.landmark_ids, kf.stereo_px, kf.points_in_kf, strict=True):
             if (kf.id, int(lm)) in skip:
                 continue
-            graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(*px), ns, X(kf.id), L(int(lm)), K))
+            graph.add(
+                gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(*px), ns, X(kf.id), L(int(lm)), K)
+            )
             if not init.exists(L(int(lm))):
                 T = kf.world_from_kf
                 init.insert(L(int(lm)), gtsam.Point3(*(T[:3, :3] @ p + T[:3, 3])))
         for lm, u, v in kf.mono_obs:
             if (kf.id, int(lm)) in skip:
                 continue
-            graph.add(gtsam.GenericProjectionFactorCal3_S2(np.array([u, v]), nm, X(kf.id), L(int(lm)), Km))
+            graph.add(
+                gtsam.GenericProjectionFactorCal3_S2(np.array([u, v]), nm, X(kf.id), L(int(lm)), Km)
+            )
     params = gtsam.LevenbergMarquardtParams()
     params.setRelativeErrorTol(1e-12)
     params.setAbsoluteErrorTol(1e-12)
@@ -135,7 +148,8 @@ def run_backend(kfs, cfg: BackendConfig) -> Isam2Backend:
 
 def max_pose_diff(est, batch: gtsam.Values) -> float:
     return max(
-        float(np.linalg.norm(T[:3, 3] - batch.atPose3(X(k)).translation())) for k, T in est.world_from_kf.items()
+        float(np.linalg.norm(T[:3, 3] - batch.atPose3(X(k)).translation()))
+        for k, T in est.world_from_kf.items()
     )
 
 
@@ -154,7 +168,9 @@ def test_incremental_equals_batch(rng):
     for lm, p in zip(est.landmark_ids, est.landmarks_in_world, strict=True):
         assert np.allclose(p, batch.atPoint3(L(int(lm))), atol=1e-3)
     # and the solution is near the truth (noise 0.5 px): an independent sanity check
-    assert max(np.linalg.norm(T[:3, 3] - poses[k][:3, 3]) for k, T in est.world_from_kf.items()) < 0.05
+    assert (
+        max(np.linalg.norm(T[:3, 3] - poses[k][:3, 3]) for k, T in est.world_from_kf.items()) < 0.05
+    )
     assert len(est.landmark_ids) == len(pts)
 
 
@@ -174,7 +190,11 @@ def test_remove_observation_equals_resolve_without_it(rng):
     after = backend.estimate()
     without = batch_solution(kfs, skip={bad})
     assert max_pose_diff(after, without) < 1e-4
-    assert np.allclose(after.landmarks_in_world[list(after.landmark_ids).index(7)], without.atPoint3(L(7)), atol=1e-3)
+    assert np.allclose(
+        after.landmarks_in_world[list(after.landmark_ids).index(7)],
+        without.atPoint3(L(7)),
+        atol=1e-3,
+    )
     # removing it mattered: keyframe 4 moved by much more than the tolerance
     moved = np.linalg.norm(after.world_from_kf[4][:3, 3] - before.world_from_kf[4][:3, 3])
     assert moved > 1e-3

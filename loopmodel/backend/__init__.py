@@ -1,4 +1,6 @@
-"""Back ends: the :class:`Backend` protocol and its iSAM2 implementation."""
+"""Back ends: the :class:`Backend` protocol, the iSAM2 implementation and a factory."""
+
+from __future__ import annotations
 
 from loopmodel.backend.base import (
     Backend,
@@ -7,5 +9,27 @@ from loopmodel.backend.base import (
     KeyframeLike,
     Observation,
 )
+from loopmodel.config import BackendConfig
+from loopmodel.errors import ConfigError
+from loopmodel.types import StereoCalibration
 
-__all__ = ["Backend", "BackendEstimate", "BackendUpdate", "KeyframeLike", "Observation"]
+__all__ = [
+    "Backend",
+    "BackendEstimate",
+    "BackendUpdate",
+    "KeyframeLike",
+    "Observation",
+    "create_backend",
+]
+
+
+def create_backend(config: BackendConfig, calibration: StereoCalibration) -> Backend:
+    """The back end named by ``config.kind`` for the rectified stereo ``calibration`` in which
+    keyframe pixels are expressed."""
+    if config.kind == "isam2":
+        from loopmodel.backend.isam2 import Isam2Backend
+
+        return Isam2Backend(calibration, config)
+    raise ConfigError(
+        None, f"key 'backend.kind': back end '{config.kind}' is not available in this build"
+    )

@@ -407,7 +407,12 @@ class Isam2Backend:
         sel = np.flatnonzero(ok)
         # fast path for the common case (a landmark already in the graph), then the general one
         span, seq = cfg.max_landmark_span_kf, self._kf_seq[kf_id]
-        lm_current, landmarks, obs_fid, factors = self._lm_current, self._landmarks, self._obs_fid, self._factors
+        lm_current, landmarks, obs_fid, factors = (
+            self._lm_current,
+            self._landmarks,
+            self._obs_fid,
+            self._factors,
+        )
         body = self._body.get(kf_id)
         extra = () if body is None else (gtsam.Pose3(invert_pose(body)),)
         xk, noise, cal = X(kf_id), self._stereo_noise, self._cal_stereo
@@ -440,7 +445,7 @@ class Isam2Backend:
             self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates)
         report.new_landmarks = self._create_landmarks(candidates, graph, values)
         if graph.size() == 0:
-            # nothing touches this pose yet: tie it loosely to its guess so the system stays solvable
+            # nothing touches this pose yet: a loose prior keeps the system solvable
             self._add_prior(kf_id, T, False, graph)
         report.new_factors = graph.size()
         new_fids = list(self._batch)
@@ -504,7 +509,7 @@ class Isam2Backend:
                 ) from exc
             if match.group(1) != "l":
                 raise EstimationError(
-                    f"iSAM2: pose {match.group(1)}{match.group(2)} is not determined by its observations"
+                    f"iSAM2: pose {match.group(1)}{match.group(2)} is not determined by its factors"
                 ) from exc
             self._drop_landmark(int(match.group(2)))
             logger.warning(
@@ -641,7 +646,9 @@ class Isam2Backend:
         """Extra iSAM2 iterations without new factors (e.g. at the end of a run) until no
         variable needs relinearising; returns the iterations run."""
         for it in range(max_iterations):
-            result = self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
+            result = self._isam.update(
+                gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True
+            )
             if result.getVariablesRelinearized() == 0:
                 return it + 1
         return max_iterations
