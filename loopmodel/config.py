@@ -78,7 +78,9 @@ class BackendConfig(_Section):
     relinearize_skip: int = Field(1, ge=1, description="check relinearisation every N updates")
     wildfire_threshold: float = Field(0.001, ge=0, description="back-substitution stopping threshold")
     factorization: str = Field("CHOLESKY", pattern="^(CHOLESKY|QR)$")
-    constrain_newest_last: bool = Field(True, description="order the newest pose last (smaller re-elimination)")
+    order_poses_chronologically: bool = Field(
+        True, description="eliminate landmarks first, then poses oldest to newest"
+    )
     change_tolerance_m: float = Field(1e-4, ge=0, description="estimate(): a keyframe counts as changed above this")
 
 

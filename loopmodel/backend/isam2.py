@@ -14,8 +14,9 @@ Each update hands iSAM2 only the new factors and values. What keeps updates chea
   against that initial point;
 * stereo observations with a disparity under ``min_disparity_px`` are dropped (these
   near-infinite points make the linear system indeterminate, see below);
-* the newest pose is constrained to be eliminated last, so old poses and landmarks are
-  not dragged into the root clique;
+* elimination groups put landmarks first and poses in chronological order (the newest
+  last), so COLAMD ties cannot drag old poses and landmarks into the root clique after a
+  relinearisation;
 * optionally (``max_landmark_span_kf``) a long track continues in a fresh landmark
   variable, bounding the band of the pose graph and thereby the root clique;
 * per-type relinearisation thresholds (poses vs landmarks).
@@ -32,6 +33,7 @@ import re
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -484,13 +486,13 @@ class Isam2Backend:
             raise EstimationError(
                 f"internal: {len(new_fids)} recorded factors but {graph.size()} in the update"
             )
-        kwargs = {}
-        if self.config.constrain_newest_last:
+        groups = None
+        if self.config.order_poses_chronologically:
             if newest is not None:
                 self._groups.insert2(newest, len(self._kf_seq))
-            kwargs["constrainedKeys"] = self._groups
+            groups = self._groups
         try:
-            result = self._isam.update(graph, values, remove_slots, **kwargs)
+            result = self._isam.update(graph, values, remove_slots, constrainedKeys=groups)
         except RuntimeError as exc:
             self._recover(exc)
             return
@@ -635,11 +637,11 @@ class Isam2Backend:
 
     @staticmethod
     def _measured(rec: _FactorRecord) -> F64:
-        f = rec.factor
+        f: Any = rec.factor
         if rec.kind == "stereo":
             m = f.measured()
             return np.array([m.uL(), m.uR(), m.v()])
-        uv = np.asarray(f.measured(), float).ravel()
+        uv = np.asarray(f.measured(), dtype=np.float64).ravel()
         return np.array([uv[0], np.nan, uv[1]])
 
     def refine(self, max_iterations: int = 10) -> int:
