@@ -529,14 +529,14 @@ class Isam2Backend:
                 keys.update(self._factors[fid].factor.keys())
             values = gtsam.Values()
             for key in keys:
-                values.insert(
-                    key,
-                    theta.atPose3(key)
-                    if gtsam.Symbol(key).chr() == ord("x")
-                    else theta.atPoint3(key),
-                )
+                src = theta if theta.exists(key) else self._theta0
+                if gtsam.Symbol(key).chr() == ord("x"):
+                    values.insert(key, src.atPose3(key))
+                else:
+                    values.insert(key, src.atPoint3(key))
+            groups = self._groups if self.config.order_poses_chronologically else None
             try:
-                result = self._isam.update(graph, values)
+                result = self._isam.update(graph, values, [], constrainedKeys=groups)
             except RuntimeError as again:
                 message = str(again)
                 continue
