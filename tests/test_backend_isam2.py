@@ -267,7 +267,7 @@ class _IndeterminateOnce:
     def update(self, *args, **kwargs):
         raise RuntimeError(
             "\nIndeterminate linear system detected while working near variable\n"
-            f"7782220156096217092 (Symbol: {self.symbol}).\n\nThrown when a linear system is ill-posed."
+            f"7782220156096217092 (Symbol: {self.symbol}).\n\nThrown when a system is ill-posed."
         )
 
     def getLinearizationPoint(self):  # noqa: N802 (gtsam's name)
