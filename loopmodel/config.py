@@ -76,6 +76,9 @@ class BackendConfig(_Section):
     relinearize_threshold_m: float = Field(0.01, gt=0, description="pose position relinearisation threshold")
     relinearize_threshold_landmark_m: float = Field(0.05, gt=0, description="landmark relinearisation threshold")
     relinearize_skip: int = Field(1, ge=1, description="check relinearisation every N updates")
+    partial_relinearization_check: bool = Field(
+        False, description="check relinearisation only in the cliques an update touches"
+    )
     wildfire_threshold: float = Field(0.001, ge=0, description="back-substitution stopping threshold")
     factorization: str = Field("CHOLESKY", pattern="^(CHOLESKY|QR)$")
     order_poses_chronologically: bool = Field(

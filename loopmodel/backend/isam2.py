@@ -138,6 +138,7 @@ class Isam2Backend:
         thresholds.insert(("l", np.full(3, cfg.relinearize_threshold_landmark_m)))
         params.setRelinearizeThreshold(thresholds)
         params.relinearizeSkip = cfg.relinearize_skip
+        params.enablePartialRelinearizationCheck = cfg.partial_relinearization_check
         params.setFactorization(cfg.factorization)
         gn = gtsam.ISAM2GaussNewtonParams()
         gn.setWildfireThreshold(cfg.wildfire_threshold)
