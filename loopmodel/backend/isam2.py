@@ -42,7 +42,7 @@ from gtsam.symbol_shorthand import L, X
 from loopmodel.backend.base import F64, BackendEstimate, BackendUpdate, KeyframeLike, Observation
 from loopmodel.config import BackendConfig
 from loopmodel.errors import EstimationError, InputError
-from loopmodel.geometry.se3 import invert_pose, so3_log
+from loopmodel.geometry.se3 import invert_pose
 from loopmodel.types import StereoCalibration
 
 logger = logging.getLogger(__name__)
@@ -704,29 +704,29 @@ class Isam2Backend:
         idx = (keys & _INDEX_MASK).astype(np.int64)
         pose_ids = np.sort(idx[chars == ord("x")])
         rows = gtsam.utilities.extractPose3(vals).reshape(-1, 12)
-        world_from_kf: dict[int, F64] = {}
-        for i, kf in enumerate(pose_ids.tolist()):
-            T = np.eye(4)
-            T[:3, :3] = rows[i, :9].reshape(3, 3)
-            T[:3, 3] = rows[i, 9:]
-            world_from_kf[int(kf)] = T
+        poses = np.zeros((rows.shape[0], 4, 4))
+        poses[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
+        poses[:, :3, 3] = rows[:, 9:]
+        poses[:, 3, 3] = 1.0
+        ids = pose_ids.tolist()
+        world_from_kf: dict[int, F64] = dict(zip(ids, poses, strict=True))
         lkeys = np.sort(idx[chars == ord("l")])
         pts = gtsam.utilities.extractPoint3(vals).reshape(-1, 3)
-        live = np.array([int(k) in self._landmarks for k in lkeys.tolist()], dtype=bool)
-        lm_ids = np.array(
-            [self._landmarks[int(k)].landmark_id for k in lkeys[live].tolist()], dtype=np.int64
-        )
+        landmarks = self._landmarks
+        live = np.array([k in landmarks for k in lkeys.tolist()], dtype=bool)
+        lm_ids = np.array([landmarks[k].landmark_id for k in lkeys[live].tolist()], dtype=np.int64)
+        # changed keyframes: position moved, or rotation moved (angle x 1 m), beyond tolerance
         tol = self.config.change_tolerance_m
-        changed = set()
-        for kf, T in world_from_kf.items():
-            prev = self._last_poses.get(kf)
-            if prev is None:
-                changed.add(kf)
-                continue
-            dt = float(np.linalg.norm(T[:3, 3] - prev[:3, 3]))
-            dr = float(np.linalg.norm(so3_log(prev[:3, :3].T @ T[:3, :3])))
-            if dt > tol or dr > tol:
-                changed.add(kf)
+        known = [k in self._last_poses for k in ids]
+        changed = {k for k, kn in zip(ids, known, strict=True) if not kn}
+        if any(known):
+            sel = np.flatnonzero(known)
+            prev = np.stack([self._last_poses[ids[j]] for j in sel])
+            cur = poses[sel]
+            dt = np.linalg.norm(cur[:, :3, 3] - prev[:, :3, 3], axis=1)
+            cos = (np.einsum("nij,nij->n", prev[:, :3, :3], cur[:, :3, :3]) - 1.0) / 2.0
+            dr = np.arccos(np.clip(cos, -1.0, 1.0))
+            changed.update(ids[j] for j in sel[(dt > tol) | (dr > tol)].tolist())
         self._last_poses = world_from_kf
         self._pose_guess.update(world_from_kf)
         return BackendEstimate(world_from_kf, lm_ids, pts[live], changed)
