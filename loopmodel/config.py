@@ -63,6 +63,9 @@ class BackendConfig(_Section):
     loop_sigma_m: float = Field(0.01, gt=0, description="default loop-constraint position sigma")
     min_disparity_px: float = Field(2.0, ge=0, description="stereo observations below are dropped")
     min_observations: int = Field(2, ge=1, description="a landmark enters the graph once seen this often")
+    pending_max_age_kf: int = Field(
+        3, ge=1, description="forget a not-yet-added landmark unseen for this many keyframes"
+    )
     max_landmark_span_kf: int = Field(
         0, ge=0, description="start a new landmark variable after this many keyframes (0: never)"
     )

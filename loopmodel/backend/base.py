@@ -58,7 +58,8 @@ class BackendEstimate:
     """The current solution.
 
     ``world_from_kf``: keyframe id -> 4x4 pose (metres); ``landmark_ids`` (N,) and
-    ``landmarks_in_world`` (N, 3, metres) of the landmarks in the graph;
+    ``landmarks_in_world`` (N, 3, metres) of the landmarks in the graph (empty when not
+    asked for);
     ``changed_keyframes``: ids whose pose moved by more than the back end's change
     tolerance since the previous ``estimate()`` call (new keyframes included).
     """
@@ -92,6 +93,7 @@ class Backend(Protocol):
         """Remove the named observations (blunders); returns how many were removed."""
         ...
 
-    def estimate(self) -> BackendEstimate:
-        """Current keyframe poses and landmarks, and which keyframes changed since the last call."""
+    def estimate(self, landmarks: bool = True) -> BackendEstimate:
+        """Current keyframe poses (and landmarks unless ``landmarks`` is False, which is
+        cheaper), and which keyframes changed since the last call."""
         ...

@@ -115,6 +115,7 @@ class Isam2Backend:
         self._lm_current: dict[int, int] = {}  # landmark id -> internal index in the graph
         self._next_lkey = 0
         self._pending: dict[int, list[_Obs]] = {}
+        self._pending_buckets: dict[int, list[int]] = {}  # keyframe seq -> pending landmark ids
         self._kf_seq: dict[int, int] = {}
         # elimination groups: landmarks first (group 0), then poses in insertion order
         self._groups = gtsam.KeyGroupMap()
@@ -361,6 +362,7 @@ class Isam2Backend:
         if pend is None:
             self._pending[lm_id] = [o]
             pend = self._pending[lm_id]
+            self._pending_buckets.setdefault(self._kf_seq[o.kf_id], []).append(lm_id)
         else:
             pend.append(o)
         if len(pend) >= self.config.min_observations:
@@ -447,6 +449,7 @@ class Isam2Backend:
                 continue
             self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates)
         report.new_landmarks = self._create_landmarks(candidates, graph, values)
+        self._prune_pending(seq)
         if graph.size() == 0:
             # nothing touches this pose yet: a loose prior keeps the system solvable
             self._add_prior(kf_id, T, False, graph)
@@ -459,6 +462,21 @@ class Isam2Backend:
         report.pending_landmarks = len(self._pending)
         report.update_ms = (time.perf_counter() - t0) * 1e3
         return report
+
+    def _prune_pending(self, seq: int) -> None:
+        """Forget pending landmarks not observed in the last ``pending_max_age_kf`` keyframes
+        (they would never reach the graph; keeps memory bounded)."""
+        cut = seq - self.config.pending_max_age_kf
+        for old in [k for k in self._pending_buckets if k <= cut]:
+            for lm in self._pending_buckets.pop(old):
+                obs = self._pending.get(lm)
+                if not obs:
+                    continue
+                last = self._kf_seq.get(obs[-1].kf_id, -1)
+                if last <= cut:
+                    del self._pending[lm]
+                else:
+                    self._pending_buckets.setdefault(last, []).append(lm)
 
     def _add_prior(
         self, kf_id: int, T: F64, gauge: bool, graph: gtsam.NonlinearFactorGraph
@@ -695,32 +713,45 @@ class Isam2Backend:
             self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [slot], None)
 
     # ------------------------------------------------------------------ estimate
-    def estimate(self) -> BackendEstimate:
-        """Current keyframe poses and landmarks; keyframes whose pose moved more than
+    def estimate(self, landmarks: bool = True) -> BackendEstimate:
+        """Current keyframe poses (and landmarks unless ``landmarks`` is False: cost then
+        grows with the keyframes only); keyframes whose pose moved more than
         ``change_tolerance_m`` (position, or rotation x 1 m) since the previous call."""
-        vals = self._isam.calculateEstimate()
-        keys = np.asarray(vals.keys(), dtype=np.uint64)
-        chars = (keys >> np.uint64(56)).astype(np.int64)
-        idx = (keys & _INDEX_MASK).astype(np.int64)
-        pose_ids = np.sort(idx[chars == ord("x")])
-        rows = gtsam.utilities.extractPose3(vals).reshape(-1, 12)
+        lm_ids = np.zeros(0, dtype=np.int64)
+        pts = np.zeros((0, 3))
+        if landmarks:
+            vals = self._isam.calculateEstimate()
+            keys = np.asarray(vals.keys(), dtype=np.uint64)
+            chars = (keys >> np.uint64(56)).astype(np.int64)
+            idx = (keys & _INDEX_MASK).astype(np.int64)
+            ids = np.sort(idx[chars == ord("x")]).tolist()
+            rows = gtsam.utilities.extractPose3(vals).reshape(-1, 12)
+            lkeys = np.sort(idx[chars == ord("l")])
+            all_pts = gtsam.utilities.extractPoint3(vals).reshape(-1, 3)
+            known = self._landmarks
+            live = np.array([k in known for k in lkeys.tolist()], dtype=bool)
+            lm_ids = np.array([known[k].landmark_id for k in lkeys[live].tolist()], dtype=np.int64)
+            pts = all_pts[live]
+        else:
+            ids = sorted(self._kf_seq)
+            isam = self._isam
+            rows = np.array(
+                [
+                    np.concatenate([m[:3, :3].ravel(), m[:3, 3]])
+                    for m in (isam.calculateEstimatePose3(X(k)).matrix() for k in ids)
+                ]
+            ).reshape(-1, 12)
         poses = np.zeros((rows.shape[0], 4, 4))
         poses[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
         poses[:, :3, 3] = rows[:, 9:]
         poses[:, 3, 3] = 1.0
-        ids = pose_ids.tolist()
         world_from_kf: dict[int, F64] = dict(zip(ids, poses, strict=True))
-        lkeys = np.sort(idx[chars == ord("l")])
-        pts = gtsam.utilities.extractPoint3(vals).reshape(-1, 3)
-        landmarks = self._landmarks
-        live = np.array([k in landmarks for k in lkeys.tolist()], dtype=bool)
-        lm_ids = np.array([landmarks[k].landmark_id for k in lkeys[live].tolist()], dtype=np.int64)
         # changed keyframes: position moved, or rotation moved (angle x 1 m), beyond tolerance
         tol = self.config.change_tolerance_m
-        known = [k in self._last_poses for k in ids]
-        changed = {k for k, kn in zip(ids, known, strict=True) if not kn}
-        if any(known):
-            sel = np.flatnonzero(known)
+        known_kf = [k in self._last_poses for k in ids]
+        changed = {k for k, kn in zip(ids, known_kf, strict=True) if not kn}
+        if any(known_kf):
+            sel = np.flatnonzero(known_kf)
             prev = np.stack([self._last_poses[ids[j]] for j in sel])
             cur = poses[sel]
             dt = np.linalg.norm(cur[:, :3, 3] - prev[:, :3, 3], axis=1)
@@ -729,4 +760,4 @@ class Isam2Backend:
             changed.update(ids[j] for j in sel[(dt > tol) | (dr > tol)].tolist())
         self._last_poses = world_from_kf
         self._pose_guess.update(world_from_kf)
-        return BackendEstimate(world_from_kf, lm_ids, pts[live], changed)
+        return BackendEstimate(world_from_kf, lm_ids, pts, changed)
