@@ -48,46 +48,52 @@ class OutputConfig(_Section):
 
 
 class BackendConfig(_Section):
-    """Keyframe/landmark back end (``backend/``); the iSAM2 keys map onto ``gtsam.ISAM2Params``."""
+    """Keyframe/landmark back end (``backend/``); iSAM2 keys map onto ``gtsam.ISAM2Params``."""
 
     kind: str = Field("isam2", pattern="^(isam2|givens)$", description="which back end runs")
     pixel_sigma_px: float = Field(1.0, gt=0, description="std. dev. of an image coordinate")
     huber_k: float = Field(
-        3.0, ge=0, description="Huber threshold in sigmas (0: plain Gaussian); iSAM2 keeps robust weights between relinearisations"
+        3.0, ge=0, description="Huber threshold in sigmas (0: Gaussian); weights kept until relin."
     )
-    prior_sigma_rad: float = Field(1e-6, gt=0, description="gauge prior on the first keyframe, rotation")
-    prior_sigma_m: float = Field(1e-6, gt=0, description="gauge prior on the first keyframe, position")
-    segment_prior_sigma_rad: float = Field(1.0, gt=0, description="prior on a keyframe not linked to the previous one")
-    segment_prior_sigma_m: float = Field(10.0, gt=0, description="prior on a keyframe not linked to the previous one")
-    loop_sigma_rad: float = Field(0.01, gt=0, description="default loop-constraint rotation sigma")
-    loop_sigma_m: float = Field(0.01, gt=0, description="default loop-constraint position sigma")
-    min_disparity_px: float = Field(2.0, ge=0, description="stereo observations below are dropped")
-    min_observations: int = Field(2, ge=1, description="a landmark enters the graph once seen this often")
+    prior_sigma_rad: float = Field(1e-6, gt=0, description="gauge prior, first keyframe")
+    prior_sigma_m: float = Field(1e-6, gt=0, description="gauge prior, first keyframe")
+    segment_prior_sigma_rad: float = Field(
+        1.0, gt=0, description="prior on a keyframe not linked to the previous one"
+    )
+    segment_prior_sigma_m: float = Field(
+        10.0, gt=0, description="prior on a keyframe not linked to the previous one"
+    )
+    loop_sigma_rad: float = Field(0.01, gt=0, description="default loop-constraint sigma")
+    loop_sigma_m: float = Field(0.01, gt=0, description="default loop-constraint sigma")
+    min_disparity_px: float = Field(2.0, ge=0, description="stereo observations below: dropped")
+    min_observations: int = Field(2, ge=1, description="a landmark enters once seen this often")
     pending_max_age_kf: int = Field(
         3, ge=1, description="forget a not-yet-added landmark unseen for this many keyframes"
     )
     max_landmark_span_kf: int = Field(
-        0, ge=0, description="start a new landmark variable after this many keyframes (0: never)"
+        0, ge=0, description="continue a track in a new landmark after this many keyframes (0: no)"
     )
     init_gate_px: float = Field(
-        20.0, ge=0, description="observations farther than this from the initial landmark are dropped (0: off)"
+        20.0, ge=0, description="drop observations this far from the initial landmark (0: off)"
     )
     blunder_sigma: float = Field(
-        0.0, ge=0, description="remove new observations whose whitened residual exceeds this (0: off)"
+        0.0, ge=0, description="remove new observations whose whitened residual exceeds (0: off)"
     )
-    relinearize_threshold_rad: float = Field(0.002, gt=0, description="pose rotation relinearisation threshold")
-    relinearize_threshold_m: float = Field(0.01, gt=0, description="pose position relinearisation threshold")
-    relinearize_threshold_landmark_m: float = Field(0.05, gt=0, description="landmark relinearisation threshold")
+    relinearize_threshold_rad: float = Field(0.002, gt=0, description="pose rotation")
+    relinearize_threshold_m: float = Field(0.01, gt=0, description="pose position")
+    relinearize_threshold_landmark_m: float = Field(0.05, gt=0, description="landmark position")
     relinearize_skip: int = Field(1, ge=1, description="check relinearisation every N updates")
     partial_relinearization_check: bool = Field(
         False, description="check relinearisation only in the cliques an update touches"
     )
-    wildfire_threshold: float = Field(0.001, ge=0, description="back-substitution stopping threshold")
+    wildfire_threshold: float = Field(0.001, ge=0, description="back-substitution stop")
     factorization: str = Field("CHOLESKY", pattern="^(CHOLESKY|QR)$")
     order_poses_chronologically: bool = Field(
         True, description="eliminate landmarks first, then poses oldest to newest"
     )
-    change_tolerance_m: float = Field(1e-4, ge=0, description="estimate(): a keyframe counts as changed above this")
+    change_tolerance_m: float = Field(
+        1e-4, ge=0, description="estimate(): a keyframe counts as changed above this"
+    )
 
 
 class Config(_Section):
