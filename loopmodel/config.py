@@ -76,6 +76,9 @@ class BackendConfig(_Section):
     init_gate_px: float = Field(
         20.0, ge=0, description="drop observations this far from the initial landmark (0: off)"
     )
+    init_iterations: int = Field(
+        3, ge=0, description="Gauss-Newton steps refining a new landmark on all its observations"
+    )
     blunder_sigma: float = Field(
         0.0, ge=0, description="remove new observations whose whitened residual exceeds (0: off)"
     )

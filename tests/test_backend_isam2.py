@@ -326,3 +326,22 @@ def test_real_indeterminate_system_is_survived():
         np.linalg.norm(est.world_from_kf[kf.id][:3, 3] - kf.world_from_kf[:3, 3]) for kf in kfs[:62]
     ]
     assert max(err) < 1.0
+
+
+def test_landmark_triangulation_converges_to_truth(rng):
+    """Gauss-Newton initialisation of new landmarks on stereo + monocular observations."""
+    poses, pts = scene(rng, n_kf=3, n_pts=30)
+    backend = Isam2Backend(calibration(), exact_config())
+    for i, T in enumerate(poses):
+        backend._kf_seq[i] = i
+        backend._pose_guess[i] = T
+    owner, kf_ids, meas = [], [], []
+    for i, T in enumerate(poses):
+        px, _ = project(T, pts)
+        for j in range(len(pts)):
+            owner.append(j)
+            kf_ids.append(i)
+            meas.append(px[j] if i < 2 else (px[j, 0], np.nan, px[j, 2]))  # keyframe 2: mono
+    start = pts + rng.normal(0, 0.2, pts.shape)
+    out = backend._triangulate(np.array(owner), kf_ids, np.array(meas), start, 5)
+    assert np.abs(out - pts).max() < 1e-6

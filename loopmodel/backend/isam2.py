@@ -38,6 +38,7 @@ from typing import Any
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
+from numpy.typing import NDArray
 
 from loopmodel.backend.base import F64, BackendEstimate, BackendUpdate, KeyframeLike, Observation
 from loopmodel.config import BackendConfig
@@ -255,6 +256,60 @@ class Isam2Backend:
             ur = u - K[0, 0] * self._baseline_m * zi
         return np.column_stack([u, ur, v])
 
+    def _triangulate(
+        self, owner: NDArray[np.int64], kf_ids: list[int], meas: F64, p0: F64, iterations: int
+    ) -> F64:
+        """Gauss-Newton refinement of world points ``p0`` (M, 3) on observations ``meas``
+        (N, 3: u_left, u_right or NaN for monocular, v) in keyframes ``kf_ids`` at their pose
+        guesses; observation ``j`` belongs to point ``owner[j]``. A point whose update fails
+        keeps its start value."""
+        T = np.stack([self._pose_guess[k] for k in kf_ids])
+        Rt = np.transpose(T[:, :3, :3], (0, 2, 1))  # cam_from_world rotation
+        t = T[:, :3, 3]
+        if self._body:
+            B = np.stack([self._body.get(k, np.eye(4)) for k in kf_ids])
+            Rt = B[:, :3, :3] @ Rt
+            t_b = B[:, :3, 3]
+        else:
+            t_b = np.zeros_like(t)
+        K = self._K
+        fx, skew, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+        fb = fx * self._baseline_m
+        mono = ~np.isfinite(meas[:, 1])
+        m = p0.shape[0]
+        p = p0.copy()
+        good = np.ones(m, dtype=bool)
+        for _ in range(iterations):
+            pc = np.einsum("nij,nj->ni", Rt, p[owner] - t) + t_b
+            x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
+            front = z > 1e-6
+            good &= np.bincount(owner, weights=~front, minlength=m) == 0
+            iz = np.where(front, 1.0 / np.where(front, z, 1.0), 0.0)
+            u = (fx * x + skew * y) * iz + cx
+            v = fy * y * iz + cy
+            r = np.column_stack([u - meas[:, 0], u - fb * iz - meas[:, 1], v - meas[:, 2]])
+            Jc = np.zeros((len(owner), 3, 3))
+            Jc[:, 0] = np.column_stack([fx * iz, skew * iz, -(fx * x + skew * y) * iz * iz])
+            Jc[:, 1] = Jc[:, 0]
+            Jc[:, 1, 2] += fb * iz * iz
+            Jc[:, 2] = np.column_stack([np.zeros_like(z), fy * iz, -fy * y * iz * iz])
+            r[mono, 1] = 0.0
+            Jc[mono, 1] = 0.0
+            J = Jc @ Rt
+            H = np.zeros((m, 3, 3))
+            g = np.zeros((m, 3))
+            np.add.at(H, owner, np.transpose(J, (0, 2, 1)) @ J)
+            np.add.at(g, owner, np.einsum("nji,nj->ni", J, r))
+            H += np.eye(3) * 1e-9
+            ok = good & (np.linalg.det(H) > 1e-12)
+            dp = np.zeros((m, 3))
+            if ok.any():
+                dp[ok] = -np.linalg.solve(H[ok], g[ok][:, :, None])[:, :, 0]
+            p = p + dp
+            good &= np.isfinite(p).all(axis=1)
+            p[~good] = p0[~good]
+        return p
+
     def _create_landmarks(
         self, candidates: list[int], graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
     ) -> int:
@@ -303,6 +358,17 @@ class Isam2Backend:
                         ]
                         self._pending[lm] = kept
                     start += n
+        ok_idx = [i for i, k in enumerate(keep_all) if k]
+        if ok_idx and cfg.init_iterations > 0:
+            # refine the points on all their observations (poses at their current guesses)
+            owner = np.array([j for j, i in enumerate(ok_idx) for _ in todo[i][1]])
+            flat = [o for i in ok_idx for o in todo[i][1]]
+            meas = np.array(
+                [o.px if o.stereo else (o.px[0], np.nan, o.px[1]) for o in flat], dtype=float
+            )
+            p_world[ok_idx] = self._triangulate(
+                owner, [o.kf_id for o in flat], meas, p_world[ok_idx], cfg.init_iterations
+            )
         created = 0
         for i, (lm, obs, _) in enumerate(todo):
             if not keep_all[i]:
