@@ -48,15 +48,11 @@ class StereoCalibration:
             if not np.all(np.isfinite(K)):
                 raise CalibrationError(source, f"{name} camera matrix has non-finite values")
             if K[0, 0] <= 0 or K[1, 1] <= 0:
-                raise CalibrationError(
-                    source, f"{name} focal length must be positive, got fx={K[0, 0]}, fy={K[1, 1]}"
-                )
+                raise CalibrationError(source, f"{name} focal length must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
         for name, d in (("left", self.dist_left), ("right", self.dist_right)):
             if not np.all(np.isfinite(d)):
                 raise CalibrationError(source, f"{name} distortion has non-finite values")
-        if not np.all(np.isfinite(self.right_from_left)) or not is_rotation(
-            self.right_from_left[:3, :3], 1e-5
-        ):
+        if not np.all(np.isfinite(self.right_from_left)) or not is_rotation(self.right_from_left[:3, :3], 1e-5):
             raise CalibrationError(source, "right_from_left is not a finite rigid transform")
         if self.baseline_m <= 0:
             raise CalibrationError(source, f"stereo baseline must be > 0 m, got {self.baseline_m}")
@@ -138,9 +134,9 @@ class Trajectory:
         """Times in seconds (float; lossy beyond microseconds for epoch times)."""
         return self.timestamps_ns.astype(np.float64) * 1e-9
 
-    def check(self, source: str | None = None) -> Trajectory:
+    def check(self, source: str | None = None, strict: bool = True) -> Trajectory:
         """Raise :class:`InputError` unless shapes agree, rotations are proper and times
-        strictly increase."""
+        increase (strictly, or allowing repeats when ``strict`` is False)."""
         n = len(self)
         if self.world_from_cam.shape != (n, 4, 4):
             raise InputError(source, f"{n} timestamps but {self.world_from_cam.shape[0]} poses")
@@ -153,13 +149,13 @@ class Trajectory:
         if bad.size:
             raise InputError(source, f"pose {int(bad[0])} is not a proper rotation")
         steps = np.diff(self.timestamps_ns)
-        back = np.flatnonzero(steps <= 0)
+        back = np.flatnonzero(steps <= 0 if strict else steps < 0)
         if back.size:
             i = int(back[0])
             raise InputError(
                 source,
-                f"timestamps must strictly increase: entry {i + 1} ({self.timestamps_ns[i + 1]} ns) "
-                f"follows {self.timestamps_ns[i]} ns",
+                f"timestamps must {'strictly ' if strict else ''}increase: entry {i + 1} "
+                f"({self.timestamps_ns[i + 1]} ns) follows {self.timestamps_ns[i]} ns",
             )
         return self
 
