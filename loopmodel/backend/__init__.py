@@ -30,6 +30,4 @@ def create_backend(config: BackendConfig, calibration: StereoCalibration) -> Bac
         from loopmodel.backend.isam2 import Isam2Backend
 
         return Isam2Backend(calibration, config)
-    raise ConfigError(
-        None, f"key 'backend.kind': back end '{config.kind}' is not available in this build"
-    )
+    raise ConfigError(None, f"key 'backend.kind': back end '{config.kind}' is not available in this build")

@@ -31,9 +31,7 @@ class AnchoredTrajectory:
 
     def set_keyframe(self, kf_id: int, world_from_kf: F64) -> None:
         """Set (or move) keyframe ``kf_id``."""
-        self._world_from_kf[int(kf_id)] = (
-            np.asarray(world_from_kf, dtype=float).reshape(4, 4).copy()
-        )
+        self._world_from_kf[int(kf_id)] = np.asarray(world_from_kf, dtype=float).reshape(4, 4).copy()
 
     def update_keyframes(self, world_from_kf: Mapping[int, F64]) -> None:
         """Move several keyframes at once (e.g. after a back-end update)."""
@@ -59,6 +57,4 @@ class AnchoredTrajectory:
         if n == 0:
             return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
         world_from_kf = np.stack([self._world_from_kf[k] for k in self._kf])
-        return Trajectory(
-            np.array(self._t_ns, dtype=np.int64), world_from_kf @ np.stack(self._kf_from_cam)
-        )
+        return Trajectory(np.array(self._t_ns, dtype=np.int64), world_from_kf @ np.stack(self._kf_from_cam))

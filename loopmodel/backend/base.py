@@ -82,9 +82,7 @@ class Backend(Protocol):
         """Add a keyframe pose and its stereo and monocular observations; update the solution."""
         ...
 
-    def add_loop_constraint(
-        self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None
-    ) -> int:
+    def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
         """Add a relative-pose measurement ``kf_a_from_kf_b`` (4x4) with standard deviations
         ``sigmas`` = (rx, ry, rz [rad], tx, ty, tz [m]); returns a constraint id."""
         ...

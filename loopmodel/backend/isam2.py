@@ -134,9 +134,7 @@ class Isam2Backend:
         """``gtsam.ISAM2Params`` from the configuration."""
         params = gtsam.ISAM2Params()
         thresholds = gtsam.ISAM2ThresholdMap()
-        thresholds.insert(
-            ("x", np.array([cfg.relinearize_threshold_rad] * 3 + [cfg.relinearize_threshold_m] * 3))
-        )
+        thresholds.insert(("x", np.array([cfg.relinearize_threshold_rad] * 3 + [cfg.relinearize_threshold_m] * 3)))
         thresholds.insert(("l", np.full(3, cfg.relinearize_threshold_landmark_m)))
         params.setRelinearizeThreshold(thresholds)
         params.relinearizeSkip = cfg.relinearize_skip
@@ -150,9 +148,7 @@ class Isam2Backend:
     def _robust(self, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
         if self.config.huber_k <= 0:
             return base
-        return gtsam.noiseModel.Robust.Create(
-            gtsam.noiseModel.mEstimator.Huber.Create(self.config.huber_k), base
-        )
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.config.huber_k), base)
 
     # ------------------------------------------------------------------ queries
     @property
@@ -218,9 +214,7 @@ class Isam2Backend:
         px = obs.px
         if obs.stereo:
             sp = gtsam.StereoPoint2(px[0], px[1], px[2])
-            return gtsam.GenericStereoFactor3D(
-                sp, self._stereo_noise, X(obs.kf_id), L(lkey), self._cal_stereo, *extra
-            )
+            return gtsam.GenericStereoFactor3D(sp, self._stereo_noise, X(obs.kf_id), L(lkey), self._cal_stereo, *extra)
         return gtsam.GenericProjectionFactorCal3_S2(
             np.array(px[:2]), self._mono_noise, X(obs.kf_id), L(lkey), self._cal_mono, *extra
         )
@@ -256,9 +250,7 @@ class Isam2Backend:
             ur = u - K[0, 0] * self._baseline_m * zi
         return np.column_stack([u, ur, v])
 
-    def _triangulate(
-        self, owner: NDArray[np.int64], kf_ids: list[int], meas: F64, p0: F64, iterations: int
-    ) -> F64:
+    def _triangulate(self, owner: NDArray[np.int64], kf_ids: list[int], meas: F64, p0: F64, iterations: int) -> F64:
         """Gauss-Newton refinement of world points ``p0`` (M, 3) on observations ``meas``
         (N, 3: u_left, u_right or NaN for monocular, v) in keyframes ``kf_ids`` at their pose
         guesses; observation ``j`` belongs to point ``owner[j]``. A point whose update fails
@@ -310,9 +302,7 @@ class Isam2Backend:
             p[~good] = p0[~good]
         return p
 
-    def _create_landmarks(
-        self, candidates: list[int], graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
-    ) -> int:
+    def _create_landmarks(self, candidates: list[int], graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> int:
         """Move pending landmarks with enough observations into the graph. Each is initialised
         from its stereo triangulation of largest disparity; observations farther than
         ``init_gate_px`` from that point are dropped first. Returns how many were created."""
@@ -338,9 +328,7 @@ class Isam2Backend:
             owner = np.array([i for i, (_, obs, _) in enumerate(todo) for _ in obs])
             flat = [o for _, obs, _ in todo for o in obs]
             pred = self._project([o.kf_id for o in flat], p_world[owner])
-            meas = np.array(
-                [o.px if o.stereo else (o.px[0], np.nan, o.px[1]) for o in flat], dtype=float
-            )
+            meas = np.array([o.px if o.stereo else (o.px[0], np.nan, o.px[1]) for o in flat], dtype=float)
             err = np.abs(pred - meas)
             err[~np.isfinite(meas)] = 0.0
             bad = ~np.isfinite(pred[:, [0, 2]]).all(axis=1) | (err.max(axis=1) > cfg.init_gate_px)
@@ -351,11 +339,7 @@ class Isam2Backend:
                 for i, (lm, obs, _) in enumerate(todo):
                     n = len(obs)
                     if not keep_all[i]:
-                        kept = [
-                            o
-                            for o, b in zip(obs, bad[start : start + n].tolist(), strict=True)
-                            if not b
-                        ]
+                        kept = [o for o, b in zip(obs, bad[start : start + n].tolist(), strict=True) if not b]
                         self._pending[lm] = kept
                     start += n
         ok_idx = [i for i, k in enumerate(keep_all) if k]
@@ -363,9 +347,7 @@ class Isam2Backend:
             # refine the points on all their observations (poses at their current guesses)
             owner = np.array([j for j, i in enumerate(ok_idx) for _ in todo[i][1]])
             flat = [o for i in ok_idx for o in todo[i][1]]
-            meas = np.array(
-                [o.px if o.stereo else (o.px[0], np.nan, o.px[1]) for o in flat], dtype=float
-            )
+            meas = np.array([o.px if o.stereo else (o.px[0], np.nan, o.px[1]) for o in flat], dtype=float)
             p_world[ok_idx] = self._triangulate(
                 owner, [o.kf_id for o in flat], meas, p_world[ok_idx], cfg.init_iterations
             )
@@ -407,19 +389,13 @@ class Isam2Backend:
             created += 1
         return created
 
-    def _observe(
-        self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int]
-    ) -> None:
+    def _observe(self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int]) -> None:
         """Route one observation to its landmark in the graph or to the pending buffer
         (landmarks whose buffer is full enough are appended to ``candidates``)."""
         lkey = self._lm_current.get(lm_id)
         if lkey is not None:
             span = self.config.max_landmark_span_kf
-            if (
-                span > 0
-                and o.stereo
-                and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span
-            ):
+            if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
                 del self._lm_current[lm_id]  # the track continues as a new landmark variable
             else:
                 self._add_obs(o, lkey, lm_id, graph)
@@ -508,16 +484,15 @@ class Isam2Backend:
         mono = np.asarray(keyframe.mono_obs, dtype=float).reshape(-1, 3)
         for row in mono.tolist():
             lm_id = int(row[0])
-            if not all(np.isfinite(row)) or (
-                lm_id not in self._lm_current and lm_id not in self._pending
-            ):
+            if not all(np.isfinite(row)) or (lm_id not in self._lm_current and lm_id not in self._pending):
                 report.rejected_observations += 1  # its landmark was dropped or never seen
                 continue
             self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates)
         report.new_landmarks = self._create_landmarks(candidates, graph, values)
         self._prune_pending(seq)
-        if graph.size() == 0:
-            # nothing touches this pose yet: a loose prior keeps the system solvable
+        linked = sum(1 for f in self._batch if (r := self._factors[f]).obs is not None and r.obs[0] == kf_id)
+        if linked < 3 and not (first or not bool(getattr(keyframe, "connected", True))):
+            # too few observations determine this pose: a loose prior keeps the system solvable
             self._add_prior(kf_id, T, False, graph)
         report.new_factors = graph.size()
         new_fids = list(self._batch)
@@ -544,9 +519,7 @@ class Isam2Backend:
                 else:
                     self._pending_buckets.setdefault(last, []).append(lm)
 
-    def _add_prior(
-        self, kf_id: int, T: F64, gauge: bool, graph: gtsam.NonlinearFactorGraph
-    ) -> None:
+    def _add_prior(self, kf_id: int, T: F64, gauge: bool, graph: gtsam.NonlinearFactorGraph) -> None:
         cfg = self.config
         rad, m = (
             (cfg.prior_sigma_rad, cfg.prior_sigma_m)
@@ -568,9 +541,7 @@ class Isam2Backend:
         """One iSAM2 update with the factors just recorded (the last ``graph.size()`` fids)."""
         new_fids, self._batch = self._batch, []
         if len(new_fids) != graph.size():
-            raise EstimationError(
-                f"internal: {len(new_fids)} recorded factors but {graph.size()} in the update"
-            )
+            raise EstimationError(f"internal: {len(new_fids)} recorded factors but {graph.size()} in the update")
         groups = None
         if self.config.order_poses_chronologically:
             if newest is not None:
@@ -591,17 +562,13 @@ class Isam2Backend:
         for _attempt in range(20):
             match = _SYMBOL_RE.search(message)
             if "ndeterminant" not in message and "ndeterminate" not in message or match is None:
-                raise EstimationError(
-                    f"iSAM2 update failed: {message.strip().splitlines()[0]}"
-                ) from exc
+                raise EstimationError(f"iSAM2 update failed: {message.strip().splitlines()[0]}") from exc
             if match.group(1) != "l":
                 raise EstimationError(
                     f"iSAM2: pose {match.group(1)}{match.group(2)} is not determined by its factors"
                 ) from exc
             self._drop_landmark(int(match.group(2)))
-            logger.warning(
-                "iSAM2 indeterminate near landmark %s; rebuilding without it", match.group(2)
-            )
+            logger.warning("iSAM2 indeterminate near landmark %s; rebuilding without it", match.group(2))
             theta = self._isam.getLinearizationPoint()
             self.rebuilds += 1
             self._isam = gtsam.ISAM2(self.isam2_params(self.config))
@@ -701,9 +668,7 @@ class Isam2Backend:
             k = rec.obs[0]  # type: ignore[index]
             if k not in poses:
                 poses[k] = self._isam.calculateEstimatePose3(X(k)).matrix()
-        pts = np.array(
-            [self._isam.calculateEstimatePoint3(L(rec.lkey)) for _, rec in recs], dtype=float
-        )
+        pts = np.array([self._isam.calculateEstimatePoint3(L(rec.lkey)) for _, rec in recs], dtype=float)
         pred = self._project([rec.obs[0] for _, rec in recs], pts, poses)  # type: ignore[index]
         meas = np.array([self._measured(rec) for _, rec in recs])
         stereo = np.array([rec.kind == "stereo" for _, rec in recs])
@@ -733,23 +698,17 @@ class Isam2Backend:
         """Extra iSAM2 iterations without new factors (e.g. at the end of a run) until no
         variable needs relinearising; returns the iterations run."""
         for it in range(max_iterations):
-            result = self._isam.update(
-                gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True
-            )
+            result = self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
             if result.getVariablesRelinearized() == 0:
                 return it + 1
         return max_iterations
 
-    def add_loop_constraint(
-        self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None
-    ) -> int:
+    def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
         """Add ``kf_a_from_kf_b`` (4x4) as a robust between-factor; ``sigmas`` (rad x3, m x3)
         default to the configured loop sigmas. Returns the constraint's factor id."""
         for k in (kf_a, kf_b):
             if k not in self._kf_seq:
-                raise EstimationError(
-                    f"loop constraint names keyframe {k}, which is not in the back end"
-                )
+                raise EstimationError(f"loop constraint names keyframe {k}, which is not in the back end")
         cfg = self.config
         s = (
             np.asarray(sigmas, float)
@@ -757,9 +716,7 @@ class Isam2Backend:
             else np.array([cfg.loop_sigma_rad] * 3 + [cfg.loop_sigma_m] * 3)
         )
         noise = self._robust(gtsam.noiseModel.Diagonal.Sigmas(s))
-        factor = gtsam.BetweenFactorPose3(
-            X(int(kf_a)), X(int(kf_b)), gtsam.Pose3(np.asarray(a_from_b, float)), noise
-        )
+        factor = gtsam.BetweenFactorPose3(X(int(kf_a)), X(int(kf_b)), gtsam.Pose3(np.asarray(a_from_b, float)), noise)
         fid = self._new_fid(_FactorRecord(factor, "loop"))
         graph = gtsam.NonlinearFactorGraph()
         graph.add(factor)
