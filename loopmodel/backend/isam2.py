@@ -519,7 +519,7 @@ class Isam2Backend:
                 else:
                     self._pending_buckets.setdefault(last, []).append(lm)
 
-    def _add_prior(self, kf_id: int, T: F64, gauge: bool, graph: gtsam.NonlinearFactorGraph) -> None:
+    def _add_prior(self, kf_id: int, T: F64, gauge: bool, graph: gtsam.NonlinearFactorGraph | None) -> None:
         cfg = self.config
         rad, m = (
             (cfg.prior_sigma_rad, cfg.prior_sigma_m)
@@ -529,7 +529,8 @@ class Isam2Backend:
         noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([rad] * 3 + [m] * 3))
         prior = gtsam.PriorFactorPose3(X(kf_id), gtsam.Pose3(T), noise)
         self._new_fid(_FactorRecord(prior, "prior"))
-        graph.add(prior)
+        if graph is not None:
+            graph.add(prior)
 
     def _run_update(
         self,
@@ -573,12 +574,19 @@ class Isam2Backend:
             self.rebuilds += 1
             self._isam = gtsam.ISAM2(self.isam2_params(self.config))
             self._slot.clear()
+            keys: set[int] = set()
+            for rec in self._factors.values():
+                keys.update(rec.factor.keys())
+            for kf in self._kf_seq:  # a keyframe left without factors keeps a loose prior
+                if X(kf) not in keys:
+                    src = theta if theta.exists(X(kf)) else self._theta0
+                    self._add_prior(kf, src.atPose3(X(kf)).matrix(), False, None)
+                    keys.add(X(kf))
+            self._batch.clear()
             graph = gtsam.NonlinearFactorGraph()
             fids = sorted(self._factors)
-            keys: set[int] = set()
             for fid in fids:
                 graph.add(self._factors[fid].factor)
-                keys.update(self._factors[fid].factor.keys())
             values = gtsam.Values()
             for key in keys:
                 src = theta if theta.exists(key) else self._theta0
