@@ -344,3 +344,15 @@ def test_keyframe_with_too_few_links_gets_a_loose_prior(rng):
     est = backend.estimate()
     assert np.all(np.isfinite(est.world_from_kf[2]))
     assert np.linalg.norm(est.world_from_kf[2][:3, 3] - kfs[2].world_from_kf[:3, 3]) < 0.3
+
+
+def test_blunder_screening_removes_the_gross_error(rng):
+    poses, pts = scene(rng)
+    bad = (4, 7)
+    kfs = keyframes(rng, poses, pts, blunder=bad)
+    backend = Isam2Backend(calibration(), exact_config(blunder_sigma=6.0))
+    removed = [backend.add_keyframe(kf).removed_blunders for kf in kfs]
+    assert removed == [0, 0, 0, 0, 1, 0]
+    assert backend.observation_factor_index(bad) is None
+    backend.refine()
+    assert max_pose_diff(backend.estimate(), batch_solution(kfs, skip={bad})) < 1e-4
