@@ -356,3 +356,17 @@ def test_blunder_screening_removes_the_gross_error(rng):
     assert backend.observation_factor_index(bad) is None
     backend.refine()
     assert max_pose_diff(backend.estimate(), batch_solution(kfs, skip={bad})) < 1e-4
+
+
+def test_indeterminate_pose_gets_a_loose_prior(rng):
+    poses, pts = scene(rng, n_kf=4, n_pts=40)
+    kfs = keyframes(rng, poses, pts, mono_from=99)
+    backend = Isam2Backend(calibration(), exact_config())
+    for kf in kfs[:3]:
+        backend.add_keyframe(kf)
+    backend._isam = _IndeterminateOnce(backend._isam, "x3")
+    backend.add_keyframe(kfs[3])
+    assert backend.rebuilds == 1 and backend.dropped_landmarks == 0
+    backend.refine()
+    # a 10 m / 1 rad prior barely changes a well-observed pose
+    assert max_pose_diff(backend.estimate(), batch_solution(kfs)) < 1e-3

@@ -558,19 +558,23 @@ class Isam2Backend:
             self._slot[fid] = slot
 
     def _recover(self, exc: RuntimeError) -> None:
-        """Rebuild iSAM2 without the landmark(s) that made the system indeterminate."""
+        """Rebuild iSAM2 after an indeterminate system: without the offending landmark, or with
+        a loose prior on an undetermined keyframe pose."""
         message = str(exc)
         for _attempt in range(20):
             match = _SYMBOL_RE.search(message)
             if "ndeterminant" not in message and "ndeterminate" not in message or match is None:
                 raise EstimationError(f"iSAM2 update failed: {message.strip().splitlines()[0]}") from exc
-            if match.group(1) != "l":
-                raise EstimationError(
-                    f"iSAM2: pose {match.group(1)}{match.group(2)} is not determined by its factors"
-                ) from exc
-            self._drop_landmark(int(match.group(2)))
-            logger.warning("iSAM2 indeterminate near landmark %s; rebuilding without it", match.group(2))
+            symbol, index = match.group(1), int(match.group(2))
             theta = self._isam.getLinearizationPoint()
+            if symbol == "l":
+                self._drop_landmark(index)
+            elif symbol == "x" and index in self._kf_seq:
+                src = theta if theta.exists(X(index)) else self._theta0
+                self._add_prior(index, src.atPose3(X(index)).matrix(), False, None)
+            else:
+                raise EstimationError(f"iSAM2: variable {symbol}{index} is not determined by its factors") from exc
+            logger.warning("iSAM2 indeterminate near %s%d; rebuilding", symbol, index)
             self.rebuilds += 1
             self._isam = gtsam.ISAM2(self.isam2_params(self.config))
             self._slot.clear()
