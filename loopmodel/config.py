@@ -82,17 +82,17 @@ class BackendConfig(_Section):
     blunder_sigma: float = Field(
         0.0, ge=0, description="remove new observations whose whitened residual exceeds (0: off)"
     )
-    relinearize_threshold_rad: float = Field(0.002, gt=0, description="pose rotation")
-    relinearize_threshold_m: float = Field(0.01, gt=0, description="pose position")
-    relinearize_threshold_landmark_m: float = Field(0.05, gt=0, description="landmark position")
+    relinearize_threshold_rad: float = Field(0.005, gt=0, description="pose rotation")
+    relinearize_threshold_m: float = Field(0.02, gt=0, description="pose position")
+    relinearize_threshold_landmark_m: float = Field(0.2, gt=0, description="landmark position")
     relinearize_skip: int = Field(1, ge=1, description="check relinearisation every N updates")
     partial_relinearization_check: bool = Field(
         False, description="check relinearisation only in the cliques an update touches"
     )
     wildfire_threshold: float = Field(0.001, ge=0, description="back-substitution stop")
     factorization: str = Field("CHOLESKY", pattern="^(CHOLESKY|QR)$")
-    order_poses_chronologically: bool = Field(
-        True, description="eliminate landmarks first, then poses oldest to newest"
+    ordering_window_kf: int = Field(
+        10, ge=0, description="eliminate the newest N poses last, oldest first (0: GTSAM default)"
     )
     change_tolerance_m: float = Field(
         1e-4, ge=0, description="estimate(): a keyframe counts as changed above this"

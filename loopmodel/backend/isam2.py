@@ -14,9 +14,9 @@ Each update hands iSAM2 only the new factors and values. What keeps updates chea
   against that initial point;
 * stereo observations with a disparity under ``min_disparity_px`` are dropped (these
   near-infinite points make the linear system indeterminate, see below);
-* elimination groups put landmarks first and poses in chronological order (the newest
-  last), so COLAMD ties cannot drag old poses and landmarks into the root clique after a
-  relinearisation;
+* elimination groups put the newest poses last in chronological order (landmarks and
+  older poses first), so COLAMD ties cannot drag old poses and landmarks into the root
+  clique after a relinearisation;
 * optionally (``max_landmark_span_kf``) a long track continues in a fresh landmark
   variable, bounding the band of the pose graph and thereby the root clique;
 * per-type relinearisation thresholds (poses vs landmarks).
@@ -118,8 +118,7 @@ class Isam2Backend:
         self._pending: dict[int, list[_Obs]] = {}
         self._pending_buckets: dict[int, list[int]] = {}  # keyframe seq -> pending landmark ids
         self._kf_seq: dict[int, int] = {}
-        # elimination groups: landmarks first (group 0), then poses in insertion order
-        self._groups = gtsam.KeyGroupMap()
+        self._kf_order: list[int] = []
         self._pose_guess: dict[int, F64] = {}
         self._body: dict[int, F64] = {}  # kf id -> rect_from_cam
         self._last_poses: dict[int, F64] = {}
@@ -422,6 +421,7 @@ class Isam2Backend:
             raise InputError(f"keyframe {kf_id}", "world_from_kf has non-finite values")
         cfg = self.config
         self._kf_seq[kf_id] = len(self._kf_seq)
+        self._kf_order.append(kf_id)
         self._pose_guess[kf_id] = T
         rect_from_cam = getattr(keyframe, "rect_from_cam", None)
         if rect_from_cam is not None and not _is_identity(np.asarray(rect_from_cam, float)):
@@ -543,11 +543,8 @@ class Isam2Backend:
         new_fids, self._batch = self._batch, []
         if len(new_fids) != graph.size():
             raise EstimationError(f"internal: {len(new_fids)} recorded factors but {graph.size()} in the update")
-        groups = None
-        if self.config.order_poses_chronologically:
-            if newest is not None:
-                self._groups.insert2(newest, len(self._kf_seq))
-            groups = self._groups
+        # removal-only updates keep GTSAM's default ordering: their affected set may be tiny
+        groups = None if newest is None else self._ordering_groups(len(graph.keyVector()))
         try:
             result = self._isam.update(graph, values, remove_slots, constrainedKeys=groups)
         except RuntimeError as exc:
@@ -556,6 +553,19 @@ class Isam2Backend:
         self.last_result = result
         for fid, slot in zip(new_fids, result.getNewFactorsIndices(), strict=True):
             self._slot[fid] = slot
+
+    def _ordering_groups(self, n_keys: int) -> gtsam.KeyGroupMap | None:
+        """Elimination groups for an update whose affected set has at least ``n_keys``
+        variables: the newest ``ordering_window_kf`` poses last, oldest to newest, the rest
+        (landmarks, older poses) first. CCOLAMD needs every group below the number of
+        variables it orders, hence the window and the bound."""
+        window = min(self.config.ordering_window_kf, n_keys - 1, len(self._kf_order))
+        if window <= 0:
+            return None
+        groups = gtsam.KeyGroupMap()
+        for g, kf in enumerate(self._kf_order[-window:], start=1):
+            groups.insert2(X(kf), g)
+        return groups
 
     def _recover(self, exc: RuntimeError) -> None:
         """Rebuild iSAM2 after an indeterminate system: without the offending landmark, or with
@@ -598,7 +608,7 @@ class Isam2Backend:
                     values.insert(key, src.atPose3(key))
                 else:
                     values.insert(key, src.atPoint3(key))
-            groups = self._groups if self.config.order_poses_chronologically else None
+            groups = self._ordering_groups(len(keys))
             try:
                 result = self._isam.update(graph, values, [], constrainedKeys=groups)
             except RuntimeError as again:
