@@ -390,3 +390,22 @@ def test_rectified_frame_differs_from_camera_frame(rng):
     est = backend.estimate()
     for i, T in enumerate(poses):
         assert np.allclose(est.world_from_kf[i], T, atol=1e-6)
+
+
+def test_small_updates_after_many_keyframes(rng):
+    """CCOLAMD rejects elimination groups not below the number of variables it orders:
+    small updates late in a run (a keyframe with few observations, a single removal) must
+    not hand it large group numbers ("ccolamd failed with return value 0")."""
+    _, pts = scene(rng, n_kf=1, n_pts=12)
+    poses = [make_pose(so3_exp([0, 0.004 * i, 0]), [0.03 * i, 0, 0.01 * i]) for i in range(16)]
+    kfs = keyframes(rng, poses, pts, mono_from=99)
+    kfs[-1].landmark_ids = kfs[-1].landmark_ids[:1]
+    kfs[-1].points_in_kf = kfs[-1].points_in_kf[:1]
+    kfs[-1].stereo_px = kfs[-1].stereo_px[:1]
+    backend = run_backend(kfs, exact_config())
+    assert backend.rebuilds == 0
+    assert backend.remove_observations([(15, 0)]) == 1
+    assert backend.remove_observations([(3, 5)]) == 1
+    backend.refine()
+    skip = {(15, 0), (3, 5)}
+    assert max_pose_diff(backend.estimate(), batch_solution(kfs, skip=skip)) < 1e-3
