@@ -111,6 +111,86 @@ def convert(
     console.print(f"wrote {dst} ({dst.stat().st_size / 2**20:.1f} MiB, {len(seq)} frames)")
 
 
+@app.command()
+def run(
+    path: Annotated[Path, typer.Argument(help="MCAP file, EuRoC or KITTI folder")],
+    config: ConfigOption = None,
+    frontend_only: Annotated[bool, typer.Option("--frontend-only", help="Run only the visual front end")] = False,
+    out: Annotated[Path | None, typer.Option("--out", help="Results root (default: output.out_dir)")] = None,
+    name: Annotated[str | None, typer.Option("--name", help="Run name (folder under --out)")] = None,
+    max_frames: Annotated[int | None, typer.Option("--max-frames", help="Stop after this many frames")] = None,
+) -> None:
+    """Process a sequence; writes trajectories, metrics, config and log into <out>/<name>/."""
+    from rich.progress import TextColumn as _Text
+
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.pipeline import run_frontend
+
+    if not frontend_only:
+        raise InputError(None, "only the front end is available so far; pass --frontend-only")
+    cfg = load_config(config)
+    seq = open_sequence(path, cfg.sequence)
+    run_name = name or f"{path.stem}_frontend"
+    with progress_bar(_Text("{task.fields[fps]:.1f} fps")) as bar:
+        task = bar.add_task("front end", total=len(seq) if max_frames is None else min(len(seq), max_frames), fps=0.0)
+        result = run_frontend(
+            seq, cfg, out, run_name, max_frames=max_frames,
+            progress=lambda i, n, fps: bar.update(task, completed=i, fps=fps),
+        )
+    m = result.metrics
+    console.print(
+        f"wrote {result.folder}: {m['frames']} frames ({m['lost_frames']} lost), "
+        f"{m['keyframes']} keyframes, {_fmt(m['fps'])} fps"
+        + (f", ATE {m['ate_rmse_m']:.3f} m, drift {m['drift_pct']:.2f} %" if "ate_rmse_m" in m else "")
+    )
+
+
+@app.command()
+def mesh(
+    source: Annotated[
+        Path, typer.Argument(help="Results folder (stripes.npz + trajectory) or a sequence with ground truth")
+    ],
+    fmt: Annotated[str, typer.Option("--format", "-f", help="ply (binary), obj, stl or glb")] = "ply",
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output file (default RESULTS_DIR/mesh.FMT)")] = None,
+    trajectory: Annotated[str, typer.Option("--trajectory", help="final or online poses of a run")] = "final",
+    gt_mesh: Annotated[
+        Path | None,
+        typer.Option("--gt-mesh", help="Ground-truth mesh (.ply, or .mcap with scene.ply): print accuracy"),
+    ] = None,
+    gt_attachment: Annotated[
+        str, typer.Option("--gt-attachment", help="Attachment of an .mcap --gt-mesh (e.g. object.ply)")
+    ] = "scene.ply",
+    config: ConfigOption = None,
+) -> None:
+    """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run)."""
+    from loopmodel.io.mesh_io import MESH_FORMATS, read_mesh, write_mesh
+    from loopmodel.io.stripes_io import load_stripes_and_poses
+    from loopmodel.mapping.stripe_map import StripeMap
+
+    fmt = fmt.lower()
+    if fmt not in MESH_FORMATS:
+        raise InputError(None, f"--format must be one of {', '.join(MESH_FORMATS)}, got '{fmt}'")
+    cfg = load_config(config)
+    stripes, traj, poses = load_stripes_and_poses(source, trajectory, cfg.sequence)
+    smap = StripeMap.from_trajectory(traj, stripes, cfg.mapping)
+    smap.check_nonempty()
+    surface = smap.mesh()
+    target = out or (source / f"mesh.{fmt}" if source.is_dir() else source.with_name(f"{source.stem}_mesh.{fmt}"))
+    write_mesh(target, surface, fmt)
+    console.print(
+        f"wrote {target} ({len(surface.vertices)} vertices, {len(surface.triangles)} triangles, "
+        f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes, poses: {poses})"
+    )
+    if gt_mesh is not None:
+        from loopmodel.mapping.accuracy import mesh_accuracy
+
+        acc = mesh_accuracy(surface, read_mesh(gt_mesh, gt_attachment))
+        console.print(
+            f"accuracy: mean {acc.mean_mm:.3f} mm, p95 {acc.p95_mm:.3f} mm, "
+            f"completeness {100 * acc.completeness:.1f} % within {acc.completeness_tol_mm:g} mm"
+        )
+
+
 simulate_app = typer.Typer(help="Synthetic data.", no_args_is_help=True)
 app.add_typer(simulate_app, name="simulate")
 

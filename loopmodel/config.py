@@ -99,6 +99,115 @@ class BackendConfig(_Section):
     )
 
 
+class FrontendConfig(_Section):
+    """Stereo keyframe front end: detection, stereo matching, KLT, robust pose, keyframes."""
+
+    # keyframe features (rectified left image)
+    max_features: int = Field(800, ge=10, description="corners per keyframe (before stereo)")
+    grid_cols: int = Field(8, ge=1, description="detection grid columns (bucketing)")
+    grid_rows: int = Field(4, ge=1, description="detection grid rows (bucketing)")
+    gftt_quality: float = Field(0.005, gt=0, lt=1, description="Shi-Tomasi quality, per cell")
+    min_distance_px: float = Field(10.0, gt=0, description="minimum corner spacing")
+    border_px: int = Field(12, ge=0, description="no corners this close to the image border")
+    detect_half_resolution: bool = Field(False, description="find corners in the half-size image")
+    # stereo row search (rectified pair)
+    patch_px: int = Field(11, ge=3, description="matching window (odd)")
+    min_disparity_px: float = Field(1.0, ge=0, description="reject matches below (far points)")
+    max_disparity_px: float = Field(160.0, gt=0, description="search range along the row")
+    min_zncc: float = Field(0.7, ge=-1, le=1, description="minimum normalised correlation")
+    lr_tolerance_px: float = Field(1.0, gt=0, description="left-right consistency tolerance")
+    max_row_error_px: float = Field(1.0, ge=0, description="max vertical offset of the match")
+    max_depth_m: float = Field(200.0, gt=0, description="reject triangulated points beyond")
+    min_stereo_points: int = Field(30, ge=6, description="fewest points for a keyframe")
+    max_keyframe_points: int = Field(300, ge=0, description="keep at most this many (spread); 0: all")
+    # KLT
+    klt_window_px: int = Field(13, ge=5, description="Lucas-Kanade window")
+    klt_levels: int = Field(3, ge=0, description="pyramid levels above the base")
+    klt_iterations: int = Field(7, ge=1)
+    fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward tolerance")
+    # robust pose
+    pose_loss: str = Field("tukey", pattern="^(tukey|huber)$")
+    pose_min_scale_px: float = Field(0.5, gt=0, description="floor of the MAD scale")
+    ransac_threshold_px: float = Field(2.0, gt=0)
+    prediction_gate_px: float = Field(
+        4.0, gt=0, description="prediction good enough to skip RANSAC"
+    )
+    pose_step_tolerance: float = Field(5e-5, gt=0, description="LM stops below this step (m, rad)")
+    pose_max_iterations: int = Field(10, ge=1)
+    pose_huber_warmup: int = Field(2, ge=0, description="Huber IRLS iterations before Tukey")
+    pose_reweight_iterations: int = Field(4, ge=1, description="IRLS weight updates, then frozen")
+    depth_weighting: bool = Field(True, description="down-weight points of uncertain stereo depth")
+    disparity_sigma_px: float = Field(0.3, gt=0, description="stereo disparity noise (weighting)")
+    # keyframe policy
+    min_tracked_fraction: float = Field(0.5, gt=0, le=1, description="new keyframe below this")
+    min_tracked: int = Field(100, ge=6, description="new keyframe below this many inliers")
+    max_parallax_ratio: float = Field(0.25, gt=0, description="translation / median depth")
+    max_rotation_deg: float = Field(20.0, gt=0, description="rotation since the keyframe")
+    # tracking loss
+    min_inliers: int = Field(20, ge=6, description="LOST below this many inliers")
+    max_jump_m: float = Field(0.6, gt=0, description="LOST when the pose departs from the motion model by more")
+    max_jump_deg: float = Field(15.0, gt=0)
+    min_image_std: float = Field(4.0, ge=0, description="black/flat image threshold (grey levels)")
+    min_sharpness: float = Field(20.0, ge=0, description="variance of the Laplacian (blur) threshold")
+    max_retrack_frames: int = Field(5, ge=0, description="frames to try resuming on the old keyframe")
+    # local hybrid keyframe BA (seed 004 eq. 1)
+    local_ba: bool = True
+    ba_iterations: int = Field(5, ge=1)
+    ba_huber_px: float = Field(1.0, gt=0)
+    ba_final_stereo: bool = Field(False, description="add the final right projections to eq. 1")
+
+
+class MappingConfig(_Section):
+    """Laser-stripe integration and open3d meshing (lengths in metres, world frame)."""
+
+    method: str = Field(default="poisson", pattern="^(poisson|ball_pivoting)$", description="surface method")
+    voxel_m: float = Field(default=0.0015, gt=0, description="voxel down-sampling size before meshing")
+    normal_radius_m: float = Field(default=0.006, gt=0, description="neighbourhood radius for normals")
+    normal_max_nn: int = Field(default=20, ge=3, description="max neighbours for normals")
+    line_ratio: float = Field(
+        default=0.003, ge=0, lt=1, description="eigenvalue ratio below which a neighbourhood is a line"
+    )
+    poisson_depth: int = Field(default=0, ge=0, le=12, description="octree depth; 0 = from voxel_m")
+    poisson_max_depth: int = Field(default=10, ge=4, le=12, description="cap on the derived depth")
+    poisson_scale: float = Field(default=1.1, gt=1.0, description="bounding cube / samples' box")
+    poisson_linear_fit: bool = True
+    density_quantile: float = Field(
+        default=0.02, ge=0, lt=1, description="trim vertices below this density quantile"
+    )
+    trim_distance_m: float = Field(
+        default=0.0, ge=0, description="drop vertices farther from the samples; 0 = 2.5 x voxel_m"
+    )
+    bpa_radii_m: list[float] = Field(
+        default_factory=list, description="ball-pivoting radii; empty = 1.5, 3, 6 x voxel_m"
+    )
+    max_stripe_gap_ns: int = Field(
+        default=200_000_000, ge=0, description="widest frame interval a stripe is interpolated in"
+    )
+    chunk_m: float = Field(default=0.05, gt=0, description="block edge of the chunked live mesh")
+    chunk_margin_m: float = Field(default=0.006, ge=0, description="overlap meshed around a live block")
+    min_points: int = Field(default=100, ge=4, description="fewest points a surface is made from")
+    laser_plane_point_in_cam_m: list[float] = Field(
+        default_factory=lambda: [0.12, 0.0, 0.0],
+        min_length=3,
+        max_length=3,
+        description="a point of the calibrated light plane (left-camera frame)",
+    )
+    laser_plane_normal_in_cam: list[float] = Field(
+        default_factory=lambda: [0.977, 0.0, 0.213],
+        min_length=3,
+        max_length=3,
+        description="normal of the calibrated light plane (left-camera frame)",
+    )
+    peak_min_contrast: float = Field(
+        default=20.0, ge=0, description="laser line: min peak above the background (grey levels)"
+    )
+    peak_window_px: int = Field(default=3, ge=1, description="laser line: half-width of the window")
+    peak_method: str = Field(default="cog", pattern="^(cog|gauss)$", description="sub-pixel method")
+    peak_axis: str = Field(
+        default="rows", pattern="^(columns|rows)$", description="one peak per image row (vertical line) or column"
+    )
+
+
 # ----------------------------------------------------------------------------- simulation (issue 3)
 
 
@@ -247,6 +356,8 @@ class Config(_Section):
 
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    frontend: FrontendConfig = Field(default_factory=FrontendConfig)
+    mapping: MappingConfig = Field(default_factory=MappingConfig)
     eval: EvalConfig = Field(default_factory=EvalConfig)
     accuracy: AccuracyConfig = Field(default_factory=AccuracyConfig)
     simulation: SimulationConfig = Field(default_factory=SimulationConfig)
