@@ -19,6 +19,7 @@ import numpy as np
 from loopmodel.backend import BackendEstimate, create_backend
 from loopmodel.backend.anchored import AnchoredTrajectory
 from loopmodel.config import Config
+from loopmodel.errors import LoopmodelError
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder
@@ -228,6 +229,23 @@ def _map_arrays(
     }
 
 
+def _write_stripes(folder: ResultsFolder, sequence: Sequence, frames: list[FrameResult]) -> None:
+    """``stripes.npz``: the sequence's laser profiles up to the last processed frame (sensor
+    frame; ``loopmodel mesh`` places them with the run's trajectory). Skipped without any."""
+    if not frames or sequence.stripe_count() == 0:
+        return
+    from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
+
+    last_ns = frames[-1].timestamp_ns
+    try:
+        stripes = [s for s in sequence.stripes() if s.timestamp_ns <= last_ns]
+    except LoopmodelError as exc:  # the trajectories matter more than the stripes
+        logger.error("laser stripes not written: %s", exc)
+        return
+    if stripes:
+        save_stripes(folder.file(STRIPES_FILE), stripes)
+
+
 def run_pipeline(
     sequence: Sequence,
     config: Config,
@@ -243,8 +261,9 @@ def run_pipeline(
     handed back to the front end and to the anchored trajectory, in which every frame is
     stored relative to its keyframe. Writes ``config.yaml``, ``trajectory_online.tum`` (poses
     as estimated live), ``trajectory_final.tum`` (frames recomposed with the final keyframe
-    poses), ``keyframes.tum``, ``map.npz``, ``metrics.json`` and ``run.log`` (KITTI variants
-    of the trajectories when ``output.write_kitti``). Ctrl-C or SIGTERM stops the run after
+    poses), ``keyframes.tum``, ``map.npz``, ``metrics.json``, ``run.log`` (KITTI variants
+    of the trajectories when ``output.write_kitti``) and ``stripes.npz`` when the sequence
+    has laser profiles. Ctrl-C or SIGTERM stops the run after
     the current frame; everything up to it is written, then ``KeyboardInterrupt`` is raised.
     """
     folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
@@ -325,6 +344,7 @@ def run_pipeline(
                 folder.write_trajectory("trajectory_online.kitti", online, "kitti")
                 folder.write_trajectory("trajectory_final.kitti", final, "kitti")
             folder.write_npz("map.npz", _map_arrays(keyframes, kf_poses, estimate))
+            _write_stripes(folder, sequence, frames)
             metrics: dict[str, Any] = {"sequence": str(sequence.path), "interrupted": interrupted}
             metrics.update(frontend_metrics(frames, wall))
             metrics["fps"] = len(frames) / (sum(frame_ms) / 1e3) if sum(frame_ms) > 0 else None
