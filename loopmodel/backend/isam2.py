@@ -252,9 +252,14 @@ class Isam2Backend:
     def _triangulate(self, owner: NDArray[np.int64], kf_ids: list[int], meas: F64, p0: F64, iterations: int) -> F64:
         """Gauss-Newton refinement of world points ``p0`` (M, 3) on observations ``meas``
         (N, 3: u_left, u_right or NaN for monocular, v) in keyframes ``kf_ids`` at their pose
-        guesses; observation ``j`` belongs to point ``owner[j]``. A point whose update fails
-        keeps its start value."""
-        T = np.stack([self._pose_guess[k] for k in kf_ids])
+        guesses; observation ``j`` belongs to point ``owner[j]`` (every point observed). A point whose update fails keeps its start value."""
+        if owner.size and np.any(np.diff(owner) < 0):  # group the observations by point
+            order = np.argsort(owner, kind="stable")
+            owner, meas = owner[order], meas[order]
+            kf_ids = [kf_ids[i] for i in order.tolist()]
+        starts = np.flatnonzero(np.r_[True, np.diff(owner) != 0])
+        uniq, inv = np.unique(np.asarray(kf_ids), return_inverse=True)
+        T = np.stack([self._pose_guess[int(k)] for k in uniq])[inv]
         Rt = np.transpose(T[:, :3, :3], (0, 2, 1))  # cam_from_world rotation
         t = T[:, :3, 3]
         if self._body:
@@ -287,10 +292,9 @@ class Isam2Backend:
             r[mono, 1] = 0.0
             Jc[mono, 1] = 0.0
             J = Jc @ Rt
-            H = np.zeros((m, 3, 3))
-            g = np.zeros((m, 3))
-            np.add.at(H, owner, np.transpose(J, (0, 2, 1)) @ J)
-            np.add.at(g, owner, np.einsum("nji,nj->ni", J, r))
+            # observations of a point are contiguous: sum them per point with reduceat
+            H = np.add.reduceat(np.einsum("nki,nkj->nij", J, J), starts, axis=0)
+            g = np.add.reduceat(np.einsum("nji,nj->ni", J, r), starts, axis=0)
             H += np.eye(3) * 1e-9
             ok = good & (np.linalg.det(H) > 1e-12)
             dp = np.zeros((m, 3))
