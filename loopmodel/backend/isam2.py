@@ -252,7 +252,8 @@ class Isam2Backend:
     def _triangulate(self, owner: NDArray[np.int64], kf_ids: list[int], meas: F64, p0: F64, iterations: int) -> F64:
         """Gauss-Newton refinement of world points ``p0`` (M, 3) on observations ``meas``
         (N, 3: u_left, u_right or NaN for monocular, v) in keyframes ``kf_ids`` at their pose
-        guesses; observation ``j`` belongs to point ``owner[j]`` (every point observed). A point whose update fails keeps its start value."""
+        guesses; observation ``j`` belongs to point ``owner[j]`` (every point observed). A
+        point whose update fails keeps its start value."""
         if owner.size and np.any(np.diff(owner) < 0):  # group the observations by point
             order = np.argsort(owner, kind="stable")
             owner, meas = owner[order], meas[order]
