@@ -72,9 +72,12 @@ def test_pipeline_ate_no_worse_than_front_end(sequence_dir: Path, tmp_path: Path
     full = run_pipeline(open_sequence(sequence_dir), _config(), tmp_path, "full")
     assert full.metrics["keyframes"] >= 3
     assert full.metrics["frames"] == fe.metrics["frames"] == N_FRAMES
-    # the same ground truth, evaluated by loopmodel.eval for both
-    assert full.metrics["ate_rmse_m"] <= fe.metrics["ate_rmse_m"] + 1e-3
-    assert full.metrics["ate_rmse_m"] < 0.02
+    # the same ground truth, evaluated by loopmodel.eval for both; without loops the back end
+    # re-solves the front end's keyframe pairs (its own noise model), so "no worse" means
+    # within a few percent of the front end's ATE (about 1 mm here)
+    assert full.metrics["ate_rmse_m"] <= 1.05 * fe.metrics["ate_rmse_m"]
+    assert full.metrics["ate_rmse_m_online"] <= 1.05 * fe.metrics["ate_rmse_m"]
+    assert full.metrics["ate_rmse_m"] < 0.005
 
 
 def test_results_folder_complete_and_readable(sequence_dir: Path, tmp_path: Path) -> None:
