@@ -50,7 +50,9 @@ class OutputConfig(_Section):
 class BackendConfig(_Section):
     """Keyframe/landmark back end (``backend/``); iSAM2 keys map onto ``gtsam.ISAM2Params``."""
 
-    kind: str = Field("isam2", pattern="^(isam2|givens)$", description="which back end runs")
+    kind: str = Field(
+        "isam2", pattern="^(isam2|givens|both)$", description="isam2, givens, or both (Givens screen before iSAM2)"
+    )
     pixel_sigma_px: float = Field(1.0, gt=0, description="std. dev. of an image coordinate")
     huber_k: float = Field(
         3.0, ge=0, description="Huber threshold in sigmas (0: Gaussian); weights kept until relin."

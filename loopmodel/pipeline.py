@@ -269,7 +269,7 @@ def run_pipeline(
     folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
     folder.write_config(config)
     frontend = FrontEnd(sequence.calibration, config.frontend)
-    backend = create_backend(config.backend, frontend.calibration)
+    backend = create_backend(config.backend, frontend.calibration, config.givens)
     anchored = AnchoredTrajectory()
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     frames: list[FrameResult] = []
@@ -349,6 +349,11 @@ def run_pipeline(
             metrics.update(frontend_metrics(frames, wall))
             metrics["fps"] = len(frames) / (sum(frame_ms) / 1e3) if sum(frame_ms) > 0 else None
             metrics["backend"] = config.backend.kind
+            screen_stats = getattr(backend, "screen_stats", None)
+            if callable(screen_stats):
+                stats = screen_stats()
+                metrics["givens_tested_observations"] = stats["tested"]
+                metrics["givens_rejected_observations"] = stats["rejected"]
             metrics["landmarks"] = 0 if estimate is None else int(estimate.landmark_ids.size)
             metrics.update(_quantiles(frame_ms, "frame_total_ms"))
             metrics.update(_quantiles(backend_ms, "backend_ms"))
