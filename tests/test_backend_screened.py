@@ -32,7 +32,9 @@ def test_both_rejects_blunders_and_beats_isam2_alone() -> None:
     for kind in ("isam2", "both"):
         rng = np.random.default_rng(7)
         poses, kfs, bad = _blunder_keyframes(rng)
-        backend = create_backend(BackendConfig(kind=kind, pixel_sigma_px=SIGMA_PX, blunder_sigma=0.0), calibration(), gcfg)
+        backend = create_backend(
+            BackendConfig(kind=kind, pixel_sigma_px=SIGMA_PX, blunder_sigma=0.0), calibration(), gcfg
+        )
         for kf in kfs:
             backend.add_keyframe(kf)
         errors[kind] = _pose_errors(backend, poses)
@@ -53,3 +55,28 @@ def test_givens_backend_estimates_keyframes() -> None:
         backend.add_keyframe(kf)
     assert isinstance(backend, Backend)
     assert _pose_errors(backend, poses) < 0.02
+
+
+def test_right_image_rows_match_finite_differences() -> None:
+    from loopmodel.backend.givens_bundle import SequentialBundle
+    from loopmodel.geometry.se3 import make_pose, so3_exp
+
+    cal = calibration()
+    bundle = SequentialBundle(cal.left_camera())
+    bundle.right_from_left = cal.right_from_left
+    T = make_pose(so3_exp([0.05, -0.1, 0.02]), [0.2, -0.1, 0.3])
+    X = np.array([0.4, -0.2, 4.0])
+    bundle.add_frame("f", T)
+    bundle.add_point("p", X)
+    oid = bundle.add_image_point("f", "p", [300.0, 200.0], right=True)
+    A = bundle.image_obs[oid].a_lin
+
+    def uv(x: np.ndarray) -> np.ndarray:
+        R = T[:3, :3] @ so3_exp(x[:3])
+        p = R.T @ (X + x[6:] - T[:3, 3] - x[3:6])
+        p = cal.right_from_left[:3, :3] @ p + cal.right_from_left[:3, 3]
+        return cal.right_camera().project(p)[0]
+
+    h = 1e-6
+    fd = np.column_stack([(uv(h * e) - uv(-h * e)) / (2 * h) for e in np.eye(9)])
+    assert np.allclose(A, fd, rtol=1e-5, atol=1e-4)

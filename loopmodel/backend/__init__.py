@@ -33,7 +33,9 @@ def create_backend(
         from loopmodel.backend.givens_bundle import GivensScreen
         from loopmodel.backend.screened import GivensBackend, ScreenedBackend
 
-        screen = GivensScreen.from_config(calibration.left_camera(), givens or GivensConfig())
+        screen = GivensScreen.from_config(
+            calibration.left_camera(), givens or GivensConfig(), calibration.right_from_left
+        )
         if config.kind == "givens":
             return GivensBackend(screen)
     if config.kind in ("isam2", "both"):

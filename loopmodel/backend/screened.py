@@ -75,7 +75,8 @@ class ScreenedBackend:
         late = self.screen.late_rejections()
         if late:
             update.removed_blunders += self.inner.remove_observations(
-                (int(f), int(p)) for f, p in late  # type: ignore[call-overload,operator]
+                (int(f), int(p))
+                for f, p in late  # type: ignore[call-overload,operator]
             )
         return update
 
