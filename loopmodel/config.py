@@ -163,6 +163,7 @@ class MappingConfig(_Section):
     """Laser-stripe integration and open3d meshing (lengths in metres, world frame)."""
 
     method: str = Field(default="poisson", pattern="^(poisson|ball_pivoting)$", description="surface method")
+    write_mesh: bool = Field(True, description="the pipeline writes mesh.ply (and mesh errors when truth exists)")
     voxel_m: float = Field(default=0.0015, gt=0, description="voxel down-sampling size before meshing")
     normal_radius_m: float = Field(default=0.006, gt=0, description="neighbourhood radius for normals")
     normal_max_nn: int = Field(default=20, ge=3, description="max neighbours for normals")
