@@ -26,7 +26,7 @@ try:  # pragma: no cover - depends on the environment
 
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover
-    numba = None
+    numba = None  # type: ignore[assignment]
     HAVE_NUMBA = False
 
 
@@ -327,8 +327,8 @@ if HAVE_NUMBA:  # pragma: no cover - depends on the environment
     solve_structured = numba.njit(cache=True, nogil=True, fastmath=True)(_solve_py)
     KERNELS = "numba"
 else:  # pragma: no cover
-    rows_update = _rows_update_np
-    rows_downdate = _rows_downdate_np
-    retriangularize = _retriangularize_np
-    solve_structured = _solve_np
+    rows_update = _rows_update_np  # type: ignore[assignment]
+    rows_downdate = _rows_downdate_np  # type: ignore[assignment]
+    retriangularize = _retriangularize_np  # type: ignore[assignment]
+    solve_structured = _solve_np  # type: ignore[assignment]
     KERNELS = "numpy"

@@ -74,10 +74,8 @@ class ScreenedBackend:
         update.rejected_observations += int((~keep_st).sum() + (~keep_mono).sum())
         late = self.screen.late_rejections()
         if late:
-            update.removed_blunders += self.inner.remove_observations(
-                (int(f), int(p))
-                for f, p in late  # type: ignore[call-overload,operator]
-            )
+            pairs = [(int(f), int(p)) for f, p in late]  # type: ignore[call-overload]
+            update.removed_blunders += self.inner.remove_observations(pairs)
         return update
 
     def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:

@@ -5,8 +5,8 @@ recovered depth with the stereo depth of the same feature."""
 from __future__ import annotations
 
 from collections.abc import Iterable
-from typing import Any
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
