@@ -6,34 +6,29 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import InputError
+from loopmodel.frontend.klt import track_klt
+from loopmodel.frontend.rectify import to_grey
 from loopmodel.observers.depth_observer import DepthObserver, ObserverConfig, ViewMeasurement
 from loopmodel.observers.homography import signals_from_essential
 from loopmodel.types import StereoCalibration, StereoFrame
 
 F64 = NDArray[np.float64]
-_LK: dict[str, Any] = {"winSize": (21, 21), "maxLevel": 4, "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
-
-
-def _grey(img: NDArray[np.uint8]) -> NDArray[np.uint8]:
-    return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+KLT_WINDOW_PX, KLT_LEVELS = 21, 4
 
 
 def klt_fb(
     prev: NDArray[np.uint8], cur: NDArray[np.uint8], pts: F64, fb_px: float = 0.5
 ) -> tuple[F64, NDArray[np.bool_]]:
-    """Track points from ``prev`` to ``cur`` with pyramidal LK and a forward-backward check."""
-    p0 = pts.astype(np.float32).reshape(-1, 1, 2)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **_LK)
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, **_LK)
-    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1) < fb_px)
-    return p1.reshape(-1, 2).astype(float), ok
+    """Track points from ``prev`` to ``cur`` with the front end's pyramidal LK and its
+    forward-backward check (no motion prediction: the search starts at the same pixel)."""
+    tracked, ok, _fb = track_klt(prev, cur, pts, None, KLT_WINDOW_PX, KLT_LEVELS, fb_px, iterations=30)
+    return tracked, ok
 
 
 def stereo_depths(left: NDArray[np.uint8], right: NDArray[np.uint8], pts: F64, cal: StereoCalibration) -> F64:
@@ -78,18 +73,18 @@ def observe_window(
     (the one whose stereo depth gives the scale) is the best-matched near feature."""
     if len(frames) < 3:
         raise InputError("depth observer", "needs at least 3 frames in a window")
-    ref_left = _grey(frames[0].left)
+    ref_left = to_grey(frames[0].left)
     corners = cv2.goodFeaturesToTrack(ref_left, max_features, 0.005, 10, blockSize=7)
     if corners is None or len(corners) < 12:
         raise InputError("depth observer", "too few corners in the reference frame")
     pts = corners.reshape(-1, 2).astype(float)
-    z_stereo = stereo_depths(ref_left, _grey(frames[0].right), pts, cal)
+    z_stereo = stereo_depths(ref_left, to_grey(frames[0].right), pts, cal)
     # track through the window, keep features seen in every frame
     tracks = [pts]
     alive = np.ones(len(pts), bool)
     prev = ref_left
     for f in frames[1:]:
-        cur = _grey(f.left)
+        cur = to_grey(f.left)
         nxt, ok = klt_fb(prev, cur, tracks[-1])
         alive &= ok
         tracks.append(nxt)
