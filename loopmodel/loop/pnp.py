@@ -140,7 +140,7 @@ def solve_pnp_bank(
                 best_t = tv[c0 + k]
                 best_n = int(np.sum(e2[k] < thr2))
         w = best_n / max(score_idx.size, 1)
-        if w > 0:
+        if w > 0 and confidence < 1.0:
             p_good = w**3
             needed = (
                 int(np.ceil(np.log(1 - confidence) / np.log(max(1e-12, 1 - p_good))))

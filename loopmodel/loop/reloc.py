@@ -34,6 +34,9 @@ class RelocParams:
     min_inlier_ratio: float = 0.25
     max_samples: int = 4096
     confidence: float = 0.999
+    #: The inliers' smaller principal standard deviation in the image must reach this
+    #: fraction of the image width (rejects poses supported by one small patch).
+    min_inlier_spread_frac: float = 0.03
     seed: int = 0
 
 
@@ -115,6 +118,22 @@ def localize(
             f"ratio {p.min_inlier_ratio})", matches=pairs, inliers=res.inliers, pnp=res,
             match_s=t_match, total_s=total,
         )
+    spread = inlier_spread_px(query.keypoints_px[pairs[res.inliers, 0]])
+    width = 2.0 * camera.u0 + 1.0
+    if spread < p.min_inlier_spread_frac * width:
+        return RelocResult(
+            False, f"inliers cover too small an image region (spread {spread:.1f} px)",
+            matches=pairs, inliers=res.inliers, pnp=res, match_s=t_match, total_s=total,
+        )
     return RelocResult(
         True, "ok", res.cam_from_world, pairs, res.inliers, res, t_match, total
     )
+
+
+def inlier_spread_px(uv_px: F64) -> float:
+    """Smaller principal standard deviation (pixels) of a set of image points (N, 2)."""
+    uv = np.asarray(uv_px, dtype=float).reshape(-1, 2)
+    if uv.shape[0] < 3:
+        return 0.0
+    ev = np.linalg.eigvalsh(np.cov(uv.T))
+    return float(np.sqrt(max(ev[0], 0.0)))
