@@ -28,8 +28,8 @@ from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.database import KeyframeDatabase, PlaceCandidate, PlaceParams
 from loopmodel.loop.features import FeatureSet, match_descriptors
-from loopmodel.loop.reloc import RelocParams, RelocResult, inlier_spread_px, localize
 from loopmodel.loop.refine import PoseRefiner
+from loopmodel.loop.reloc import RelocParams, RelocResult, inlier_spread_px, localize
 from loopmodel.loop.vocabulary import Vocabulary
 
 logger = logging.getLogger(__name__)
@@ -83,8 +83,12 @@ def verify_epipolar(
     if pairs.shape[0] < max(params.min_epipolar_inliers, 8):
         return False, f"{pairs.shape[0]} matches", pairs, none
     F, mask = cv2.findFundamentalMat(
-        query.keypoints_px[pairs[:, 0]], candidate.keypoints_px[pairs[:, 1]], cv2.FM_RANSAC,
-        params.epipolar_threshold_px, 0.999, 2000,
+        query.keypoints_px[pairs[:, 0]],
+        candidate.keypoints_px[pairs[:, 1]],
+        cv2.FM_RANSAC,
+        params.epipolar_threshold_px,
+        0.999,
+        2000,
     )
     if F is None or mask is None:
         return False, "no fundamental matrix", pairs, none
@@ -124,7 +128,12 @@ def verify_metric(
         rot = float(np.degrees(np.linalg.norm(so3_log(cycle[:3, :3]))))
         trans = float(np.linalg.norm(cycle[:3, 3]))
         if rot > params.max_cycle_rot_deg or trans > params.max_cycle_trans_m:
-            return False, f"forward/reverse poses disagree ({rot:.2f} deg, {trans:.3f} m)", fwd, None
+            return (
+                False,
+                f"forward/reverse poses disagree ({rot:.2f} deg, {trans:.3f} m)",
+                fwd,
+                None,
+            )
     return True, "ok", fwd, cand_from_query
 
 
@@ -170,7 +179,9 @@ class LoopDetector:
 
     def _verify(self, kf_id: int, features: FeatureSet, cand: PlaceCandidate) -> LoopEvent | None:
         p = self.params
-        members = sorted(cand.members, key=lambda m: -1 if m == cand.best_id else abs(m - cand.best_id))
+        members = sorted(
+            cand.members, key=lambda m: -1 if m == cand.best_id else abs(m - cand.best_id)
+        )
         for mid in members[: p.max_members_verified]:
             t0 = time.perf_counter()
             other = self.database.features(mid)
@@ -179,14 +190,34 @@ class LoopDetector:
                 assert self.camera is not None
                 ok, reason, res, cfq = verify_metric(features, other, self.camera, p, self.refiner)
                 ev = LoopEvent(
-                    kf_id, mid, ok, reason, cand.score, cand.consistent, res.n_matches,
-                    res.n_inliers, cfq, res.matches, res.inliers, time.perf_counter() - t0,
+                    kf_id,
+                    mid,
+                    ok,
+                    reason,
+                    cand.score,
+                    cand.consistent,
+                    res.n_matches,
+                    res.n_inliers,
+                    cfq,
+                    res.matches,
+                    res.inliers,
+                    time.perf_counter() - t0,
                 )
             else:
                 ok, reason, pairs, inl = verify_epipolar(features, other, p, self.image_width_px)
                 ev = LoopEvent(
-                    kf_id, mid, ok, reason, cand.score, cand.consistent, int(pairs.shape[0]),
-                    int(inl.sum()), None, pairs, inl, time.perf_counter() - t0,
+                    kf_id,
+                    mid,
+                    ok,
+                    reason,
+                    cand.score,
+                    cand.consistent,
+                    int(pairs.shape[0]),
+                    int(inl.sum()),
+                    None,
+                    pairs,
+                    inl,
+                    time.perf_counter() - t0,
                 )
             if ok:
                 self.accepted.append(ev)

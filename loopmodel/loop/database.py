@@ -82,7 +82,9 @@ class _Entry:
 class KeyframeDatabase:
     """Bag-of-words database of keyframes with temporal-consistency checks."""
 
-    def __init__(self, vocabulary: Vocabulary | None = None, params: PlaceParams | None = None) -> None:
+    def __init__(
+        self, vocabulary: Vocabulary | None = None, params: PlaceParams | None = None
+    ) -> None:
         self.params = params if params is not None else PlaceParams()
         self.vocabulary = vocabulary
         self._trained_on_the_fly = vocabulary is None
@@ -140,7 +142,9 @@ class KeyframeDatabase:
     def add(self, kf_id: int, features: FeatureSet) -> None:
         """Store a keyframe (ids must increase)."""
         if self._entries and kf_id <= self._entries[-1].kf_id:
-            raise EstimationError(f"keyframe ids must increase: {kf_id} after {self._entries[-1].kf_id}")
+            raise EstimationError(
+                f"keyframe ids must increase: {kf_id} after {self._entries[-1].kf_id}"
+            )
         e = _Entry(kf_id, features)
         self._index[kf_id] = len(self._entries)
         self._entries.append(e)

@@ -41,7 +41,9 @@ class FeatureSet:
         if self.points_in_kf.shape[0] != n:
             self.points_in_kf = np.full((n, 3), np.nan)
         if self.descriptors.shape[0] != n:
-            raise InputError("FeatureSet", f"{n} keypoints but {self.descriptors.shape[0]} descriptors")
+            raise InputError(
+                "FeatureSet", f"{n} keypoints but {self.descriptors.shape[0]} descriptors"
+            )
 
     def __len__(self) -> int:
         return int(self.keypoints_px.shape[0])
@@ -124,7 +126,9 @@ def describe_at(
     (keypoints too close to the border are dropped)."""
     ex = make_extractor(kind)
     uv = np.asarray(keypoints_px, dtype=float).reshape(-1, 2)
-    kps = [cv2.KeyPoint(float(u), float(v), size_px, -1, 0, 0, int(i)) for i, (u, v) in enumerate(uv)]
+    kps = [
+        cv2.KeyPoint(float(u), float(v), size_px, -1, 0, 0, int(i)) for i, (u, v) in enumerate(uv)
+    ]
     kps_out, desc = ex.compute(_grey(image), kps)
     if desc is None or len(kps_out) == 0:
         return _empty(kind.lower()), np.zeros(0, np.int64)
@@ -156,7 +160,9 @@ def match_descriptors(
             pairs.append((m[0].queryIdx, m[0].trainIdx))
     out = np.array(pairs, dtype=np.int64).reshape(-1, 2)
     if mutual and out.shape[0]:
-        back = matcher.match(train.descriptors, query.descriptors, mask=None if mask is None else mask.T.copy())
+        back = matcher.match(
+            train.descriptors, query.descriptors, mask=None if mask is None else mask.T.copy()
+        )
         best_q = np.full(len(train), -1, np.int64)
         for m in back:
             best_q[m.queryIdx] = m.trainIdx
@@ -164,9 +170,7 @@ def match_descriptors(
     return out
 
 
-def fundamental_from_poses(
-    K1: F64, cam1_from_world: F64, K2: F64, cam2_from_world: F64
-) -> F64:
+def fundamental_from_poses(K1: F64, cam1_from_world: F64, K2: F64, cam2_from_world: F64) -> F64:
     """F with ``x2ᵀ F x1 = 0`` for pixels x1 (camera 1) and x2 (camera 2)."""
     T21 = cam2_from_world @ np.linalg.inv(cam1_from_world)
     R, t = T21[:3, :3], T21[:3, 3]
@@ -176,13 +180,18 @@ def fundamental_from_poses(
 
 def epipolar_mask(uv1: F64, uv2: F64, F: F64, max_dist_px: float) -> NDArray[np.uint8]:
     """(N1, N2) uint8 mask of pairs within ``max_dist_px`` of each other's epipolar lines."""
-    h1 = np.column_stack([uv1, np.ones(len(uv1))])
-    h2 = np.column_stack([uv2, np.ones(len(uv2))])
-    l2 = h1 @ F.T  # lines in image 2 (N1, 3)
-    l1 = h2 @ F  # lines in image 1 (N2, 3)
-    d2 = np.abs(l2 @ h2.T) / np.maximum(np.linalg.norm(l2[:, :2], axis=1), 1e-12)[:, None]
-    d1 = np.abs(h1 @ l1.T) / np.maximum(np.linalg.norm(l1[:, :2], axis=1), 1e-12)[None, :]
-    return ((d1 < max_dist_px) & (d2 < max_dist_px)).astype(np.uint8)
+    h1 = np.column_stack([uv1, np.ones(len(uv1))]).astype(np.float32)
+    h2 = np.column_stack([uv2, np.ones(len(uv2))]).astype(np.float32)
+    l2 = h1 @ F.T.astype(np.float32)  # lines in image 2 (N1, 3)
+    l1 = h2 @ F.astype(np.float32)  # lines in image 1 (N2, 3)
+    n2 = np.maximum(np.linalg.norm(l2[:, :2], axis=1), 1e-12)[:, None]
+    n1 = np.maximum(np.linalg.norm(l1[:, :2], axis=1), 1e-12)[None, :]
+    out = np.zeros((len(uv1), len(uv2)), np.uint8)
+    for r in range(0, len(uv1), 1024):
+        d2 = np.abs(l2[r : r + 1024] @ h2.T) / n2[r : r + 1024]
+        d1 = np.abs(h1[r : r + 1024] @ l1.T) / n1
+        out[r : r + 1024] = (d1 < max_dist_px) & (d2 < max_dist_px)
+    return out
 
 
 def triangulate(
@@ -217,6 +226,61 @@ def triangulate(
     return X, valid
 
 
+def refine_rectified_match(
+    left: NDArray[np.uint8],
+    right: NDArray[np.uint8],
+    uv_left: F64,
+    u_right: F64,
+    half_px: int = 5,
+    search_px: int = 3,
+) -> tuple[F64, NDArray[np.bool_]]:
+    """Sub-pixel right-image column of rectified stereo matches: the left patch around each
+    match is compared (sum of absolute differences) with right patches shifted along the
+    row by up to ``search_px`` around ``u_right``, and a parabola through the best cost and
+    its neighbours gives the sub-pixel minimum. Returns the refined columns and a mask of
+    the matches whose minimum lies inside the search window."""
+    h, w = left.shape
+    L = left.astype(np.float32)
+    Rt = right.astype(np.float32)
+    out = np.asarray(u_right, dtype=float).copy()
+    good = np.zeros(out.shape[0], bool)
+    offs = np.arange(-search_px, search_px + 1)
+    for k in range(out.shape[0]):
+        ul, vl = int(round(uv_left[k, 0])), int(round(uv_left[k, 1]))
+        ur0 = int(round(out[k] + (ul - uv_left[k, 0])))
+        if (
+            vl - half_px < 0
+            or vl + half_px >= h
+            or ul - half_px < 0
+            or ul + half_px >= w
+            or ur0 - half_px - search_px < 0
+            or ur0 + half_px + search_px >= w
+        ):
+            continue
+        patch = L[vl - half_px : vl + half_px + 1, ul - half_px : ul + half_px + 1]
+        patch = patch - patch.mean()
+        strip = Rt[
+            vl - half_px : vl + half_px + 1,
+            ur0 - half_px - search_px : ur0 + half_px + search_px + 1,
+        ]
+        costs = np.empty(offs.size)
+        for j in range(offs.size):
+            cand = strip[:, j : j + 2 * half_px + 1]
+            costs[j] = np.abs(patch - (cand - cand.mean())).sum()
+        j = int(np.argmin(costs))
+        if j == 0 or j == offs.size - 1:
+            continue
+        c0, c1, c2 = costs[j - 1], costs[j], costs[j + 1]
+        den = c0 - 2 * c1 + c2
+        delta = 0.5 * (c0 - c2) / den if den > 0 else 0.0
+        if abs(delta) > 1.0:
+            continue
+        # the refined right column for the (unrounded) left keypoint
+        out[k] = ur0 + offs[j] + delta - (ul - uv_left[k, 0])
+        good[k] = True
+    return out, good
+
+
 def stereo_keyframe_features(
     left: NDArray[Any],
     right: NDArray[Any],
@@ -240,9 +304,13 @@ def stereo_keyframe_features(
         return fl
     uvl, uvr = fl.keypoints_px, fr.keypoints_px
     if np.any(calib.dist_left != 0):
-        uvl = cv2.undistortPoints(uvl.reshape(-1, 1, 2), calib.K_left, calib.dist_left, P=calib.K_left).reshape(-1, 2)
+        uvl = cv2.undistortPoints(
+            uvl.reshape(-1, 1, 2), calib.K_left, calib.dist_left, P=calib.K_left
+        ).reshape(-1, 2)
     if len(fr) and np.any(calib.dist_right != 0):
-        uvr = cv2.undistortPoints(uvr.reshape(-1, 1, 2), calib.K_right, calib.dist_right, P=calib.K_right).reshape(-1, 2)
+        uvr = cv2.undistortPoints(
+            uvr.reshape(-1, 1, 2), calib.K_right, calib.dist_right, P=calib.K_right
+        ).reshape(-1, 2)
     if len(fr) < 2:
         return FeatureSet(uvl, fl.descriptors, fl.kind)
     F = fundamental_from_poses(calib.K_left, np.eye(4), calib.K_right, calib.right_from_left)
@@ -250,9 +318,19 @@ def stereo_keyframe_features(
     pairs = match_descriptors(fl, fr, ratio=ratio, mask=mask)
     pts = np.full((len(fl), 3), np.nan)
     if pairs.shape[0]:
+        ul, ur = uvl[pairs[:, 0]], uvr[pairs[:, 1]].copy()
+        if calib.rectified and not np.any(calib.dist_left) and not np.any(calib.dist_right):
+            ur[:, 0], good = refine_rectified_match(_grey(left), _grey(right), ul, ur[:, 0])
+            ur[:, 1] = ul[:, 1]
+            pairs, ul, ur = pairs[good], ul[good], ur[good]
         X, ok = triangulate(
-            calib.K_left, np.eye(4), calib.K_right, calib.right_from_left,
-            uvl[pairs[:, 0]], uvr[pairs[:, 1]], max_reproj_px,
+            calib.K_left,
+            np.eye(4),
+            calib.K_right,
+            calib.right_from_left,
+            ul,
+            ur,
+            max_reproj_px,
         )
         ok &= (X[:, 2] > min_depth_m) & (X[:, 2] < max_depth_m)
         pts[pairs[ok, 0]] = X[ok]

@@ -123,7 +123,7 @@ def solve_pnp_bank(
     rays32 = np.ascontiguousarray(rays[score_idx], dtype=np.float32)
     P32 = np.ascontiguousarray(P[score_idx], dtype=np.float32)
     while samples < min(needed, max_samples):
-        n = min(batch, max_samples - samples)
+        n = min(max(batch, min(samples, 1024)), max_samples - samples)  # growing batches
         idx = _draw_samples(rng, m, n)
         sol = p3p_grunert(rays[idx], P[idx])
         samples += n

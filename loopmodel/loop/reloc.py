@@ -97,37 +97,60 @@ def localize(
     t_match = time.perf_counter() - t0
     if pairs.shape[0] < max(p.min_inliers, 3):
         return RelocResult(
-            False, f"{pairs.shape[0]} matches < {p.min_inliers}", matches=pairs,
-            match_s=t_match, total_s=time.perf_counter() - t0,
+            False,
+            f"{pairs.shape[0]} matches < {p.min_inliers}",
+            matches=pairs,
+            match_s=t_match,
+            total_s=time.perf_counter() - t0,
         )
     rays = camera.lift(query.keypoints_px[pairs[:, 0]])
     pts = landmarks.points_in_kf[pairs[:, 1]]
     thr = p.threshold_px / max(camera.px, camera.py)
+    # A pose with the minimum acceptable inlier ratio is found with the given confidence
+    # within this many samples; more would only serve poses that are rejected anyway.
+    w3 = min(max(p.min_inlier_ratio, 1e-3), 1.0) ** 3
+    bound = np.log(1 - p.confidence) / np.log(1 - w3) if w3 < 1 else 1.0
     res = solve_pnp_bank(
-        rays, pts, thr, rng=np.random.default_rng(p.seed), max_samples=p.max_samples,
-        confidence=p.confidence, min_inliers=3, refiner=refiner,
+        rays,
+        pts,
+        thr,
+        rng=np.random.default_rng(p.seed),
+        max_samples=int(min(p.max_samples, max(64, np.ceil(bound)))),
+        confidence=p.confidence,
+        min_inliers=3,
+        refiner=refiner,
     )
     total = time.perf_counter() - t0
     if res is None:
-        return RelocResult(False, "P3P bank found no pose", matches=pairs, match_s=t_match, total_s=total)
+        return RelocResult(
+            False, "P3P bank found no pose", matches=pairs, match_s=t_match, total_s=total
+        )
     n_in = res.n_inliers
     ratio = n_in / pairs.shape[0]
     if n_in < p.min_inliers or ratio < p.min_inlier_ratio:
         return RelocResult(
-            False, f"{n_in} inliers of {pairs.shape[0]} matches (need {p.min_inliers} and "
-            f"ratio {p.min_inlier_ratio})", matches=pairs, inliers=res.inliers, pnp=res,
-            match_s=t_match, total_s=total,
+            False,
+            f"{n_in} inliers of {pairs.shape[0]} matches (need {p.min_inliers} and "
+            f"ratio {p.min_inlier_ratio})",
+            matches=pairs,
+            inliers=res.inliers,
+            pnp=res,
+            match_s=t_match,
+            total_s=total,
         )
     spread = inlier_spread_px(query.keypoints_px[pairs[res.inliers, 0]])
     width = 2.0 * camera.u0 + 1.0
     if spread < p.min_inlier_spread_frac * width:
         return RelocResult(
-            False, f"inliers cover too small an image region (spread {spread:.1f} px)",
-            matches=pairs, inliers=res.inliers, pnp=res, match_s=t_match, total_s=total,
+            False,
+            f"inliers cover too small an image region (spread {spread:.1f} px)",
+            matches=pairs,
+            inliers=res.inliers,
+            pnp=res,
+            match_s=t_match,
+            total_s=total,
         )
-    return RelocResult(
-        True, "ok", res.cam_from_world, pairs, res.inliers, res, t_match, total
-    )
+    return RelocResult(True, "ok", res.cam_from_world, pairs, res.inliers, res, t_match, total)
 
 
 def inlier_spread_px(uv_px: F64) -> float:

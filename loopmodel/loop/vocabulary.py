@@ -37,7 +37,9 @@ def hamming_to(desc: NDArray[np.uint8], centers: NDArray[np.uint8]) -> NDArray[n
 
 
 def _sqdist(desc: NDArray[np.float32], centers: NDArray[np.float32]) -> NDArray[np.float32]:
-    d2 = (desc * desc).sum(1)[:, None] + (centers * centers).sum(1)[None, :] - 2.0 * desc @ centers.T
+    d2 = (
+        (desc * desc).sum(1)[:, None] + (centers * centers).sum(1)[None, :] - 2.0 * desc @ centers.T
+    )
     return np.maximum(d2, 0.0)
 
 
@@ -115,7 +117,9 @@ class Vocabulary:
         every word gets the same weight."""
         desc = np.asarray(descriptors)
         if desc.ndim != 2 or desc.shape[0] < branching:
-            raise InputError("vocabulary", f"need at least {branching} descriptors, got {desc.shape[0]}")
+            raise InputError(
+                "vocabulary", f"need at least {branching} descriptors, got {desc.shape[0]}"
+            )
         if branching < 2 or levels < 1:
             raise InputError("vocabulary", "branching must be >= 2 and levels >= 1")
         binary = desc.dtype == np.uint8
@@ -146,8 +150,11 @@ class Vocabulary:
                 children[node][c] = child
                 stack.append((child, member, depth + 1))
         voc = cls(
-            np.stack(centers), np.array(children, np.int32), np.array(words, np.int32),
-            np.ones(n_words), binary,
+            np.stack(centers),
+            np.array(children, np.int32),
+            np.array(words, np.int32),
+            np.ones(n_words),
+            binary,
         )
         if documents is not None:
             voc.set_idf(documents)
@@ -160,7 +167,8 @@ class Vocabulary:
             return np.zeros(0, np.int64)
         if desc.shape[1] != self.centers.shape[1]:
             raise InputError(
-                "vocabulary", f"descriptor length {desc.shape[1]} != vocabulary's {self.centers.shape[1]}"
+                "vocabulary",
+                f"descriptor length {desc.shape[1]} != vocabulary's {self.centers.shape[1]}",
             )
         if not self.binary:
             desc = desc.astype(np.float32)
@@ -180,11 +188,19 @@ class Vocabulary:
             if self.binary:
                 a = np.ascontiguousarray(desc[rows])
                 if a.shape[1] % 8 == 0:
-                    d = np.bitwise_count(
-                        a.view(np.uint64)[:, None, :] ^ np.ascontiguousarray(C).view(np.uint64)
-                    ).sum(axis=2, dtype=np.int64).astype(float)
+                    d = (
+                        np.bitwise_count(
+                            a.view(np.uint64)[:, None, :] ^ np.ascontiguousarray(C).view(np.uint64)
+                        )
+                        .sum(axis=2, dtype=np.int64)
+                        .astype(float)
+                    )
                 else:
-                    d = np.bitwise_count(a[:, None, :] ^ C).sum(axis=2, dtype=np.int64).astype(float)
+                    d = (
+                        np.bitwise_count(a[:, None, :] ^ C)
+                        .sum(axis=2, dtype=np.int64)
+                        .astype(float)
+                    )
             else:
                 diff = desc[rows][:, None, :] - C
                 d = np.einsum("nkd,nkd->nk", diff, diff)
@@ -201,7 +217,9 @@ class Vocabulary:
         n = max(len(documents), 1)
         self.idf = np.log(n / np.maximum(counts, 1.0))
 
-    def bow(self, descriptors: NDArray[Any] | None = None, words: I64 | None = None) -> tuple[I64, F64]:
+    def bow(
+        self, descriptors: NDArray[Any] | None = None, words: I64 | None = None
+    ) -> tuple[I64, F64]:
         """TF-IDF bag of words: sorted word ids and their L1-normalised weights."""
         w = self.transform(descriptors) if words is None else np.asarray(words, np.int64)
         if w.size == 0:
@@ -219,8 +237,12 @@ class Vocabulary:
 
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez_compressed(
-                fh, centers=self.centers, children=self.children, word=self.word,
-                idf=self.idf, binary=np.array(self.binary),
+                fh,
+                centers=self.centers,
+                children=self.children,
+                word=self.word,
+                idf=self.idf,
+                binary=np.array(self.binary),
             )
 
     @classmethod
