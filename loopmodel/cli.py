@@ -8,7 +8,6 @@ import sys
 from pathlib import Path
 from typing import Annotated, Any
 
-import click
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -118,6 +117,151 @@ def config_dump(config: ConfigOption = None) -> None:
     sys.stdout.write(dump_config(load_config(config)))
 
 
+depth_app = typer.Typer(help="Lyapunov-based adaptive depth estimation from one moving camera (seed 003).", no_args_is_help=True)
+app.add_typer(depth_app, name="depth")
+
+
+@depth_app.command("simulate")
+def depth_simulate(
+    out: Annotated[Path, typer.Option("--out", help="Output folder")] = Path("results/depth_sim"),
+    duration_s: Annotated[float, typer.Option("--duration-s", min=0.1)] = 10.0,
+    rate_hz: Annotated[float, typer.Option("--rate-hz", min=1.0, help="measurement rate")] = 1000.0,
+    seed: Annotated[int, typer.Option("--seed")] = 3,
+) -> None:
+    """The seed's simulation: 12 features, v_cam = (cos t, -sin t, 0.1 sin t) m/s; plots + CSV."""
+    import numpy as np
+
+    from loopmodel.io.atomic import save_figure_atomic, write_text_atomic
+    from loopmodel.observers.plots import convergence_figures
+    from loopmodel.observers.simulation import simulate
+
+    res = simulate(duration_s, rate_hz, seed=seed)
+    f1, f2 = convergence_figures(res)
+    save_figure_atomic(out / "lambda_convergence.png", f1)
+    save_figure_atomic(out / "depth_error.png", f2)
+    n = res.lambda_hat.shape[1]
+    header = "t_s," + ",".join(f"lambda_hat_{i}" for i in range(n)) + "," + ",".join(f"lambda_true_{i}" for i in range(n))
+    rows = [",".join(repr(float(x)) for x in [t, *lam, *res.lambda_true]) for t, lam in zip(res.t_s, res.lambda_hat, strict=True)]
+    write_text_atomic(out / "lambda.csv", header + "\n" + "\n".join(rows) + "\n")
+    conv = res.converge_time_s(0.05)
+    console.print(f"converged to 5 % after {conv:.2f} s; final relative error max {res.rel_err[-1].max():.4f}, "
+                  f"median {float(np.median(res.rel_err[-1])):.4f}; excitation {'ok' if res.observer.excited else 'MISSING'}")
+    console.print(f"results in {out}")
+
+
+@depth_app.command("track")
+def depth_track(
+    seq_path: Annotated[Path, typer.Argument(help="Rectified stereo sequence (KITTI, MCAP)")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder")] = Path("results/depth_track"),
+    window: Annotated[int, typer.Option("--window", min=3, help="frames per reference view")] = 6,
+    stride: Annotated[int, typer.Option("--stride", min=3, help="frames between reference views")] = 10,
+    config: ConfigOption = None,
+) -> None:
+    """Observer depths of KLT-tracked left-camera features vs stereo depths; scale from one stereo depth."""
+    import numpy as np
+
+    from loopmodel.io.atomic import save_figure_atomic, write_text_atomic
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.observers.plots import stereo_comparison_figure
+    from loopmodel.observers.real_tracks import observe_sequence
+
+    cfg = load_config(config)
+    seq = open_sequence(seq_path, cfg.sequence)
+    results, skipped = observe_sequence(seq.frames(), seq.calibration, window, stride)
+    for s in skipped:
+        err_console.print(f"skipped window at {s}")
+    if not results:
+        raise InputError(seq_path, "no window had enough tracked features")
+    rows = ["ref_frame,feature,depth_observer_m,depth_stereo_m"]
+    for r in results:
+        rows += [f"{r.start_index},{i},{a!r},{b!r}" for i, (a, b) in enumerate(zip(r.depth_observer_m, r.depth_stereo_m, strict=True))]
+    write_text_atomic(out / "depths.csv", "\n".join(rows) + "\n")
+    save_figure_atomic(out / "observer_vs_stereo.png", stereo_comparison_figure(results))
+    errs = np.concatenate([r.rel_err for r in results])
+    console.print(f"{len(results)} windows, {errs.size} features: median relative depth error {float(np.median(errs)):.3f}")
+    console.print(f"results in {out}")
+
+@app.command("eval")
+def eval_command(
+    runs: Annotated[list[Path] | None, typer.Argument(help="Results folders")] = None,
+    gt: Annotated[Path | None, typer.Option("--gt", help="Ground truth file or sequence")] = None,
+    ref: Annotated[Path | None, typer.Option("--ref", help="Reference trajectory")] = None,
+    est: Annotated[Path | None, typer.Option("--est", help="Estimated trajectory")] = None,
+    align: Annotated[str | None, typer.Option("--align", help="se3, sim3, origin, none")] = None,
+    first_n: Annotated[int | None, typer.Option("--first-n", help="Align on N poses")] = None,
+    max_dt_ms: Annotated[float | None, typer.Option("--max-dt-ms", help="Max time gap")] = None,
+    rpe_delta_m: Annotated[float | None, typer.Option("--rpe-delta-m", help="RPE metres")] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder")] = None,
+    no_plots: Annotated[bool, typer.Option("--no-plots", help="Skip the pictures")] = False,
+    config: ConfigOption = None,
+) -> None:
+    """Evaluate trajectories against ground truth: ATE, RPE, drift, loop-closure effect, report."""
+    from loopmodel.eval import report as rep
+
+    cfg = load_config(config)
+    ecfg = cfg.eval.model_copy()
+    overrides = {
+        "align": align, "first_n": first_n, "max_dt_ms": max_dt_ms, "rpe_delta_m": rpe_delta_m
+    }
+    for key, value in overrides.items():
+        if value is not None:
+            try:
+                setattr(ecfg, key, value)
+            except ValueError as exc:
+                msg = exc.errors()[0]["msg"] if hasattr(exc, "errors") else str(exc)
+                raise InputError("--" + key.replace("_", "-"), f"{msg}, got {value!r}") from None
+    if no_plots:
+        ecfg.plots = False
+    runs = list(runs or [])
+    if (ref is None) != (est is None):
+        raise InputError("--ref/--est", "give both --ref and --est")
+    if ref is not None and (runs or gt is not None):
+        raise InputError("--ref/--est", "use --ref/--est or results folders with --gt, not both")
+    if ref is None and not runs:
+        raise InputError(None, "nothing to evaluate: give results folders or --ref FILE --est FILE")
+    evals = []
+    if ref is not None and est is not None:
+        g = rep.load_ground_truth(ref, cfg.sequence)
+        e = rep.load_trajectory_file(est, cfg.sequence.kitti_rate_hz)
+        ev = rep.evaluate_run(rep.plain_run(e), g, ecfg)
+        target = out or Path("eval_" + est.stem)
+        rep.write_outputs(ev, target)
+        evals.append((ev, target))
+    else:
+        for run_path in runs:
+            run = rep.load_run(run_path, cfg.sequence.kitti_rate_hz)
+            gt_path = gt or rep.ground_truth_hint(run)
+            if gt_path is None:
+                raise InputError(run_path, "no ground truth: pass --gt FILE|SEQUENCE")
+            g = rep.load_ground_truth(gt_path, cfg.sequence)
+            ev = rep.evaluate_run(run, g, ecfg)
+            if out is None:
+                target = run_path / "eval"
+            else:
+                target = out / run.name if len(runs) > 1 else out
+            rep.write_outputs(ev, target)
+            evals.append((ev, target))
+    table = Table(title="loopmodel eval")
+    cols = ("run", "matched", "ATE final [m]", "ATE online [m]", "RPE/frame [m]", "closures")
+    for col in (*cols, "report"):
+        table.add_column(col)
+    for ev, target in evals:
+        m = ev.metrics
+        tr = m["trajectories"]
+        online = tr.get("online", {}).get("ate_m", {}).get("rmse")
+        table.add_row(
+            m["run"], str(tr["final"]["matched"]), f"{m['ate_rmse_m']:.6g}",
+            f"{online:.6g}" if online is not None else "-",
+            f"{tr['final'].get('rpe_frames', {}).get('trans_m', {}).get('rmse', float('nan')):.6g}",
+            str(m["loop_closure_count"]), str(target / "report.md"),
+        )
+    console.print(table)
+    if len(evals) > 1:
+        cmp_dir = out or Path("eval_comparison")
+        csv_path, md_path = rep.write_comparison([e for e, _ in evals], cmp_dir)
+        console.print(f"comparison: {csv_path} {md_path}")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: runs the app, turns loopmodel errors into one line and exit status 2."""
     args = list(sys.argv[1:] if argv is None else argv)
@@ -129,14 +273,18 @@ def main(argv: list[str] | None = None) -> int:
             raise
         err_console.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
         return 2
-    except click.exceptions.Exit as exc:
+    except typer.Exit as exc:
         return int(exc.exit_code)
-    except click.ClickException as exc:
-        exc.show()
-        return 2
-    except (click.exceptions.Abort, KeyboardInterrupt):
+    except (typer.Abort, KeyboardInterrupt):
         err_console.print("interrupted")
         return 130
+    except typer.exceptions.TyperException as exc:  # usage errors (click's, vendored by typer)
+        show = getattr(exc, "show", None)
+        if callable(show):
+            show()
+        else:
+            err_console.print(f"error: {exc}")
+        return int(getattr(exc, "exit_code", 2))
     except Exception as exc:  # a bug, not bad input: say so in one line unless --debug
         if debug:
             raise

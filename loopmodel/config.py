@@ -47,11 +47,30 @@ class OutputConfig(_Section):
     image_format: str = Field("png", pattern="^(raw|png|jpeg)$", description="MCAP image encoding")
 
 
+class EvalConfig(_Section):
+    """Trajectory evaluation (``loopmodel eval``)."""
+
+    align: str = Field(
+        default="se3", pattern="^(se3|sim3|origin|none)$", description="alignment to ground truth"
+    )
+    first_n: int | None = Field(default=None, ge=3, description="align on the first N poses only")
+    max_dt_ms: float = Field(default=10.0, gt=0, description="max time gap of associated poses")
+    rpe_delta_frames: int = Field(default=1, ge=1, description="RPE pose-pair spacing in frames")
+    rpe_delta_m: float | None = Field(
+        default=None, gt=0, description="RPE path distance; None: about a tenth of the path"
+    )
+    kitti_segment_lengths_m: list[float] = Field(
+        default_factory=lambda: [100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0]
+    )
+    plots: bool = True
+
+
 class Config(_Section):
     """The whole configuration of loopmodel."""
 
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    eval: EvalConfig = Field(default_factory=EvalConfig)
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

@@ -138,9 +138,9 @@ class Trajectory:
         """Times in seconds (float; lossy beyond microseconds for epoch times)."""
         return self.timestamps_ns.astype(np.float64) * 1e-9
 
-    def check(self, source: str | None = None) -> Trajectory:
+    def check(self, source: str | None = None, strict: bool = True) -> Trajectory:
         """Raise :class:`InputError` unless shapes agree, rotations are proper and times
-        strictly increase."""
+        increase (strictly, or allowing repeats when ``strict`` is False)."""
         n = len(self)
         if self.world_from_cam.shape != (n, 4, 4):
             raise InputError(source, f"{n} timestamps but {self.world_from_cam.shape[0]} poses")
@@ -153,13 +153,13 @@ class Trajectory:
         if bad.size:
             raise InputError(source, f"pose {int(bad[0])} is not a proper rotation")
         steps = np.diff(self.timestamps_ns)
-        back = np.flatnonzero(steps <= 0)
+        back = np.flatnonzero(steps <= 0 if strict else steps < 0)
         if back.size:
             i = int(back[0])
             raise InputError(
                 source,
-                f"timestamps must strictly increase: entry {i + 1} ({self.timestamps_ns[i + 1]} ns) "
-                f"follows {self.timestamps_ns[i]} ns",
+                f"timestamps must {'strictly ' if strict else ''}increase: entry {i + 1} "
+                f"({self.timestamps_ns[i + 1]} ns) follows {self.timestamps_ns[i]} ns",
             )
         return self
 

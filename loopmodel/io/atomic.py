@@ -37,3 +37,13 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
     return Path(path)
+
+
+def save_figure_atomic(path: str | Path, fig: object, dpi: int = 120) -> Path:
+    """Save a matplotlib figure (PNG by extension) atomically and close it."""
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format=Path(path).suffix.lstrip(".") or "png")  # type: ignore[attr-defined]
+    plt.close(fig)  # type: ignore[arg-type]
+    return Path(path)

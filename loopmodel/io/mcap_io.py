@@ -114,7 +114,7 @@ def camera_info_dicts(cal: StereoCalibration) -> tuple[dict, dict]:
     else:
         R0, R1, P0, P1, *_ = cv2.stereoRectify(
             cal.K_left, cal.dist_left, cal.K_right, cal.dist_right, (w, h),
-            cal.right_from_left[:3, :3], cal.right_from_left[:3, 3], alpha=0,
+            cal.right_from_left[:3, :3].copy(), cal.right_from_left[:3, 3].reshape(3, 1).copy(), alpha=0,
         )
     out = []
     for K, d, R, P, fid in ((cal.K_left, cal.dist_left, R0, P0, "cam0"), (cal.K_right, cal.dist_right, R1, P1, "cam1")):
@@ -384,8 +384,9 @@ class McapSequenceWriter:
         else:
             self.abort(exc_type, exc, tb)
 
-    def _write(self, topic: str, type_name: str, msg: dict, t_ns: int) -> None:
-        self._writer.write_message(topic, self._schemas[type_name], msg, log_time=int(t_ns), publish_time=int(t_ns))
+    def _write(self, topic: str, type_name: str, msg: dict, t_ns: int, log_time_ns: int | None = None) -> None:
+        log = int(t_ns if log_time_ns is None else log_time_ns)
+        self._writer.write_message(topic, self._schemas[type_name], msg, log_time=log, publish_time=log)
 
     def _write_info(self, t_ns: int) -> None:
         left, right = camera_info_dicts(self.calibration)
@@ -418,13 +419,14 @@ class McapSequenceWriter:
             "header": header(t_ns, frame_id), "format": self.image_format, "data": buf.tobytes()
         }
 
-    def write_frame(self, frame: StereoFrame) -> None:
-        """Write one stereo pair (and the camera info before the first)."""
+    def write_frame(self, frame: StereoFrame, log_time_ns: int | None = None) -> None:
+        """Write one stereo pair (and the camera info before the first). The header stamp is
+        the frame's time; ``log_time_ns`` (receive time) defaults to it."""
         if not self._info_written:
-            self._write_info(frame.timestamp_ns)
+            self._write_info(frame.timestamp_ns if log_time_ns is None else log_time_ns)
         for img, topic, fid in ((frame.left, self.topics.left_image, "cam0"), (frame.right, self.topics.right_image, "cam1")):
             type_name, msg = self._image_msg(img, frame.timestamp_ns, fid)
-            self._write(topic, type_name, msg, frame.timestamp_ns)
+            self._write(topic, type_name, msg, frame.timestamp_ns, log_time_ns)
 
     def write_image(self, topic: str, t_ns: int, img: np.ndarray, frame_id: str = "cam0") -> None:
         """Write a single image on any topic (e.g. ``/laser/image``)."""

@@ -87,7 +87,8 @@ def read_trajectory(
     rate_hz: float = 10.0,
     check: bool = True,
 ) -> Trajectory:
-    """Read a trajectory file. KITTI files take ``timestamps_ns`` or ``rate_hz`` for times."""
+    """Read a trajectory file. KITTI files take ``timestamps_ns`` or ``rate_hz`` for times.
+    Repeated timestamps (found in real files) are kept; times going backwards are an error."""
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "trajectory file does not exist")
@@ -126,7 +127,7 @@ def read_trajectory(
     else:
         raise FormatError(p, f"unknown trajectory format '{fmt}' (expected tum, kitti or euroc)")
     traj = Trajectory(t, T)
-    return traj.check(str(p)) if check else traj
+    return traj.check(str(p), strict=False) if check else traj
 
 
 def format_trajectory(traj: Trajectory, fmt: TrajectoryFormat) -> str:

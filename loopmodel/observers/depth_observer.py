@@ -1,0 +1,183 @@
+"""The adaptive depth observer of seed 003: one robust velocity estimator per feature
+(eq. 20) and an adaptive least-squares update of the depth ratios ``lambda_i = z*_1/z*_i``
+(eq. 30-36). Independent of where its measurements come from: it is fed views (pixels,
+depth ratios ``alpha_i = z*_i/z_i`` and the rotation ``cur_from_ref``) at camera rate and
+integrates internally at a fixed step with linear interpolation between views."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from loopmodel.errors import InputError
+from loopmodel.geometry.se3 import hat, so3_log
+from loopmodel.observers.kinematics import a_e, l_omega
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ObserverConfig:
+    """Gains of seed 003 eq. 49 and the integration set-up."""
+
+    k_gain: float = 10.0  # K_i = k_gain * I6
+    rho_gain: float = 1.0  # rho_i = rho_gain * I6
+    beta: float = 1.5  # adaptation gain beta_i
+    l_inv0: float = 1e-2  # L_i^{-1}(0) > 0: small = trust the data quickly
+    lambda0: float = 1.0  # initial depth-ratio guess
+    dt_s: float = 1e-3  # internal integration step (1 kHz)
+    excitation_window_s: float = 1.0  # window of the persistent-excitation monitor
+    excitation_min: float = 1e-4  # min mean |h1|^2 over the window for "excited"
+    warmup_s: float = 0.0  # adaptation starts after the velocity estimators' transient
+
+
+@dataclass
+class ViewMeasurement:
+    """One view: time (s), N x 2 pixels, N depth ratios ``z*/z``, rotation ``cur_from_ref``."""
+
+    t_s: float
+    p_px: F64
+    alpha: F64
+    cur_from_ref_rot: F64
+
+
+@dataclass
+class ObserverHistory:
+    """Estimates recorded at every fed view."""
+
+    t_s: list[float] = field(default_factory=list)
+    lambda_hat: list[F64] = field(default_factory=list)
+    excitation: list[float] = field(default_factory=list)
+
+
+class DepthObserver:
+    """Estimates ``lambda_i = z*_1 / z*_i`` of N static features (feature 0 is the reference)
+    seen in a reference view (pixels ``p_ref_px``) and a moving current view."""
+
+    def __init__(self, A: ArrayLike, p_ref_px: ArrayLike, config: ObserverConfig | None = None) -> None:
+        self.A = np.asarray(A, dtype=float).reshape(3, 3)
+        self.A_inv = np.linalg.inv(self.A)
+        self.p_ref = np.asarray(p_ref_px, dtype=float).reshape(-1, 2)
+        if self.p_ref.shape[0] < 2:
+            raise InputError("depth observer", "needs at least 2 features")
+        self.cfg = config or ObserverConfig()
+        n = self.p_ref.shape[0]
+        self.n = n
+        self.lambda_hat = np.full(n, self.cfg.lambda0)
+        self.lambda_hat[0] = 1.0
+        self.l_inv = np.full(n, self.cfg.l_inv0)
+        self.e_hat = np.zeros((n, 6))
+        self.integral = np.zeros((n, 6))
+        self.e_dot_hat = np.zeros((n, 6))
+        self.t_s: float | None = None
+        self._elapsed_s = 0.0
+        self._last_e: F64 | None = None
+        self._last_p: F64 | None = None
+        self._last_alpha: F64 | None = None
+        self._h_energy: list[tuple[float, float]] = []
+        self.history = ObserverHistory()
+
+    # ------------------------------------------------------------------ signals
+    def _signals(self, m: ViewMeasurement) -> F64:
+        p = np.asarray(m.p_px, dtype=float).reshape(-1, 2)
+        alpha = np.asarray(m.alpha, dtype=float).reshape(-1)
+        if p.shape[0] != self.n or alpha.shape[0] != self.n:
+            raise InputError("depth observer", f"expected {self.n} features, got {p.shape[0]}")
+        if np.any(alpha <= 0) or not np.all(np.isfinite(alpha)):
+            raise InputError("depth observer", "depth ratios alpha must be finite and positive")
+        ew = so3_log(m.cur_from_ref_rot)
+        return np.column_stack([p - self.p_ref, -np.log(alpha), np.repeat(ew[None], self.n, axis=0)])
+
+    # ------------------------------------------------------------------ dynamics
+    def _step(self, e: F64, p: F64, alpha: F64, dt: float) -> float:
+        cfg = self.cfg
+        gain = cfg.k_gain + 1.0
+        e_tilde = e - self.e_hat
+        self.e_dot_hat = self.integral + gain * e_tilde
+        self.integral += dt * (gain * e_tilde + cfg.rho_gain * np.sign(e_tilde))
+        self.e_hat += dt * self.e_dot_hat
+        # scaled velocity of feature 0: v_hat_1 = J_1^{-1} e_dot_hat_1
+        ew = e[0, 3:]
+        w_hat = np.linalg.solve(l_omega(ew), self.e_dot_hat[0, 3:])
+        Ae = a_e(self.A, p)
+        m = np.column_stack([p, np.ones(self.n)]) @ self.A_inv.T
+        Ae0 = Ae[0]
+        v_scaled = np.linalg.solve(alpha[0] * Ae0, self.e_dot_hat[0, :3] + Ae0 @ hat(m[0]) @ w_hat)
+        # per feature: y_i = lambda_i h1_i + h2_i (+ eta)
+        h1 = alpha[:, None] * np.einsum("nij,j->ni", Ae, v_scaled)
+        h2 = -np.einsum("nij,nj->ni", Ae, np.cross(m, w_hat))  # -A_e [m]x w = -A_e (m x w)
+        y = self.e_dot_hat[:, :3]
+        y_tilde = y - self.lambda_hat[:, None] * h1 - h2
+        hh = np.einsum("ni,ni->n", h1, h1)
+        L = 1.0 / self.l_inv
+        upd = cfg.beta * L * np.einsum("ni,ni->n", h1, y_tilde)
+        upd[0] = 0.0  # lambda_1 = 1 by definition
+        if self._elapsed_s >= cfg.warmup_s:
+            self.lambda_hat += dt * upd
+            self.l_inv += dt * hh
+        self._elapsed_s += dt
+        return float(np.mean(hh[1:])) if self.n > 1 else 0.0
+
+    def feed(self, m: ViewMeasurement) -> None:
+        """Integrate up to the time of view ``m`` (linear interpolation from the previous view)."""
+        e = self._signals(m)
+        p = np.asarray(m.p_px, dtype=float).reshape(-1, 2)
+        alpha = np.asarray(m.alpha, dtype=float).reshape(-1)
+        if self.t_s is None:
+            self.e_hat = e.copy()
+            self.t_s, self._last_e, self._last_p, self._last_alpha = m.t_s, e, p, alpha
+            self._record(0.0)
+            return
+        if m.t_s <= self.t_s:
+            raise InputError("depth observer", f"view times must increase: {m.t_s} s after {self.t_s} s")
+        assert self._last_e is not None and self._last_p is not None and self._last_alpha is not None
+        span = m.t_s - self.t_s
+        steps = max(1, int(round(span / self.cfg.dt_s)))
+        dt = span / steps
+        energy = 0.0
+        for k in range(1, steps + 1):
+            s = k / steps
+            energy += self._step(
+                (1 - s) * self._last_e + s * e, (1 - s) * self._last_p + s * p,
+                (1 - s) * self._last_alpha + s * alpha, dt,
+            ) * dt
+        self._h_energy.append((m.t_s, energy))
+        self.t_s, self._last_e, self._last_p, self._last_alpha = m.t_s, e, p, alpha
+        self._record(energy)
+
+    def _record(self, energy: float) -> None:
+        self.history.t_s.append(float(self.t_s or 0.0))
+        self.history.lambda_hat.append(self.lambda_hat.copy())
+        self.history.excitation.append(self.excitation())
+
+    # ------------------------------------------------------------------ outputs
+    def excitation(self) -> float:
+        """Mean ``|h1|^2`` per second over the recent window (persistent-excitation monitor)."""
+        if self.t_s is None:
+            return 0.0
+        t0 = self.t_s - self.cfg.excitation_window_s
+        recent = [(t, e) for t, e in self._h_energy if t > t0]
+        if not recent:
+            return 0.0
+        return sum(e for _, e in recent) / self.cfg.excitation_window_s
+
+    @property
+    def excited(self) -> bool:
+        """False while the camera does not translate enough for the depths to be observable."""
+        return self.excitation() >= self.cfg.excitation_min
+
+    def points_from_reference_depth(self, z1_ref_m: float) -> F64:
+        """N x 3 feature positions (metres, reference camera frame) given the reference depth
+        of feature 0 (eq. 46)."""
+        rays = np.column_stack([self.p_ref, np.ones(self.n)]) @ self.A_inv.T
+        return (z1_ref_m / self.lambda_hat)[:, None] * rays
+
+    def points_from_distance(self, i: int, j: int, distance_m: float) -> F64:
+        """N x 3 positions (metres, reference frame) given the distance between features i, j (eq. 47)."""
+        unit = self.points_from_reference_depth(1.0)
+        d = float(np.linalg.norm(unit[i] - unit[j]))
+        if d <= 0:
+            raise InputError("depth observer", f"features {i} and {j} coincide")
+        return unit * (distance_m / d)
