@@ -151,3 +151,10 @@ def test_no_loop_without_revisit_on_real_images(shared_data: Path) -> None:
     for i in range(40):
         img = cv2.imread(str(folder / f"{i + 1}.jpg"), cv2.IMREAD_GRAYSCALE)
         assert det.process(i, detect_and_describe(img, "orb", 1000)) is None
+
+
+def test_cli_loop_detect_errors(tmp_path: Path) -> None:
+    from loopmodel.cli import main
+
+    assert main(["loop", "detect", str(tmp_path / "missing")]) == 2
+    assert main(["loop", "detect", str(tmp_path)]) == 2  # no images

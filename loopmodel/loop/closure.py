@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.config import LoopConfig
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.database import KeyframeDatabase, PlaceCandidate, PlaceParams
@@ -226,3 +227,63 @@ class LoopDetector:
             self.rejected.append(ev)
             logger.info("loop candidate %d -> %d rejected: %s", kf_id, mid, reason)
         return None
+
+
+def relocalize_in_database(
+    query: FeatureSet,
+    database: KeyframeDatabase,
+    camera: CentralCamera,
+    params: RelocParams | None = None,
+    max_candidates: int = 3,
+    exclude_after: int | None = None,
+    refiner: PoseRefiner | None = None,
+) -> tuple[int | None, RelocResult]:
+    """Relocalize a lost camera: the ``max_candidates`` best-scoring stored keyframes (ids
+    up to ``exclude_after`` when given) are tried with the P3P bank against their 3-D
+    features; the first success wins. Returns (keyframe id, result) where
+    ``result.cam_from_map`` is ``cam_from_kf``; (None, last failure) when none succeeds."""
+    p = params if params is not None else RelocParams()
+    ids, scores = database.score_all(query, max_id=exclude_after)
+    last = RelocResult(False, "no keyframe in the database")
+    for k in np.argsort(-scores)[:max_candidates]:
+        kf_id = int(ids[k])
+        res = localize(query, database.features(kf_id), camera, p, refiner)
+        if res.success:
+            return kf_id, res
+        last = res
+    return None, last
+
+
+def params_from_config(cfg: LoopConfig) -> LoopParams:
+    """Loop parameters from the ``loop`` configuration section."""
+    reloc = RelocParams(
+        ratio=cfg.ratio,
+        threshold_px=cfg.threshold_px,
+        min_inliers=cfg.min_inliers,
+        min_inlier_ratio=cfg.min_inlier_ratio,
+        max_samples=cfg.max_samples,
+    )
+    place = PlaceParams(
+        min_gap=cfg.min_gap_keyframes,
+        min_score=cfg.min_score,
+        consistency=cfg.consistency,
+        branching=cfg.vocabulary_branching,
+        levels=cfg.vocabulary_levels,
+    )
+    return LoopParams(
+        place=place,
+        reloc=reloc,
+        ratio=cfg.ratio,
+        min_epipolar_inliers=cfg.min_epipolar_inliers,
+        max_cycle_rot_deg=cfg.max_cycle_rot_deg,
+        max_cycle_trans_m=cfg.max_cycle_trans_m,
+    )
+
+
+def detector_from_config(
+    cfg: LoopConfig, camera: CentralCamera | None, image_width_px: float | None = None
+) -> LoopDetector:
+    """A :class:`LoopDetector` set up from the ``loop`` configuration section (loads the
+    vocabulary file when one is configured)."""
+    voc = Vocabulary.load(cfg.vocabulary_path) if cfg.vocabulary_path else None
+    return LoopDetector(camera, params_from_config(cfg), voc, image_width_px=image_width_px)
