@@ -180,9 +180,7 @@ class LoopDetector:
 
     def _verify(self, kf_id: int, features: FeatureSet, cand: PlaceCandidate) -> LoopEvent | None:
         p = self.params
-        members = sorted(
-            cand.members, key=lambda m: -1 if m == cand.best_id else abs(m - cand.best_id)
-        )
+        members = sorted(cand.members, key=lambda m: -1 if m == cand.best_id else abs(m - cand.best_id))
         for mid in members[: p.max_members_verified]:
             t0 = time.perf_counter()
             other = self.database.features(mid)

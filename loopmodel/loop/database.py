@@ -82,9 +82,7 @@ class _Entry:
 class KeyframeDatabase:
     """Bag-of-words database of keyframes with temporal-consistency checks."""
 
-    def __init__(
-        self, vocabulary: Vocabulary | None = None, params: PlaceParams | None = None
-    ) -> None:
+    def __init__(self, vocabulary: Vocabulary | None = None, params: PlaceParams | None = None) -> None:
         self.params = params if params is not None else PlaceParams()
         self.vocabulary = vocabulary
         self._trained_on_the_fly = vocabulary is None
@@ -142,9 +140,7 @@ class KeyframeDatabase:
     def add(self, kf_id: int, features: FeatureSet) -> None:
         """Store a keyframe (ids must increase)."""
         if self._entries and kf_id <= self._entries[-1].kf_id:
-            raise EstimationError(
-                f"keyframe ids must increase: {kf_id} after {self._entries[-1].kf_id}"
-            )
+            raise EstimationError(f"keyframe ids must increase: {kf_id} after {self._entries[-1].kf_id}")
         e = _Entry(kf_id, features)
         self._index[kf_id] = len(self._entries)
         self._entries.append(e)
@@ -159,9 +155,7 @@ class KeyframeDatabase:
             rows = np.concatenate([np.full(e.bow_ids.size, i) for i, e in enumerate(self._entries)])
             cols = np.concatenate([e.bow_ids for e in self._entries])
             vals = np.concatenate([e.bow_w for e in self._entries])
-            self._matrix = sp.csr_matrix(
-                (vals, (rows, cols)), shape=(len(self._entries), self.vocabulary.n_words)
-            )
+            self._matrix = sp.csr_matrix((vals, (rows, cols)), shape=(len(self._entries), self.vocabulary.n_words))
         return self._matrix
 
     def words_of(self, kf_id: int) -> I64:
@@ -205,9 +199,7 @@ class KeyframeDatabase:
                 if k == cid.size or cid[k] - cid[k - 1] > p.island_gap:
                     mem, sc = cid[start:k], csc[start:k]
                     j = int(np.argmax(sc))
-                    islands.append(
-                        PlaceCandidate(int(mem[j]), mem.tolist(), float(sc.sum()), float(sc[j]))
-                    )
+                    islands.append(PlaceCandidate(int(mem[j]), mem.tolist(), float(sc.sum()), float(sc[j])))
                     start = k
             islands.sort(key=lambda c: -c.score)
             islands = islands[: p.max_islands]

@@ -41,9 +41,7 @@ class FeatureSet:
         if self.points_in_kf.shape[0] != n:
             self.points_in_kf = np.full((n, 3), np.nan)
         if self.descriptors.shape[0] != n:
-            raise InputError(
-                "FeatureSet", f"{n} keypoints but {self.descriptors.shape[0]} descriptors"
-            )
+            raise InputError("FeatureSet", f"{n} keypoints but {self.descriptors.shape[0]} descriptors")
 
     def __len__(self) -> int:
         return int(self.keypoints_px.shape[0])
@@ -60,9 +58,7 @@ class FeatureSet:
 
     def subset(self, mask: NDArray[Any]) -> FeatureSet:
         """The features selected by a boolean mask or index array."""
-        return FeatureSet(
-            self.keypoints_px[mask], self.descriptors[mask], self.kind, self.points_in_kf[mask]
-        )
+        return FeatureSet(self.keypoints_px[mask], self.descriptors[mask], self.kind, self.points_in_kf[mask])
 
 
 def make_extractor(kind: str = "orb", n_features: int = 2000) -> Any:
@@ -126,9 +122,7 @@ def describe_at(
     (keypoints too close to the border are dropped)."""
     ex = make_extractor(kind)
     uv = np.asarray(keypoints_px, dtype=float).reshape(-1, 2)
-    kps = [
-        cv2.KeyPoint(float(u), float(v), size_px, -1, 0, 0, int(i)) for i, (u, v) in enumerate(uv)
-    ]
+    kps = [cv2.KeyPoint(float(u), float(v), size_px, -1, 0, 0, int(i)) for i, (u, v) in enumerate(uv)]
     kps_out, desc = ex.compute(_grey(image), kps)
     if desc is None or len(kps_out) == 0:
         return _empty(kind.lower()), np.zeros(0, np.int64)
@@ -160,9 +154,7 @@ def match_descriptors(
             pairs.append((m[0].queryIdx, m[0].trainIdx))
     out = np.array(pairs, dtype=np.int64).reshape(-1, 2)
     if mutual and out.shape[0]:
-        back = matcher.match(
-            train.descriptors, query.descriptors, mask=None if mask is None else mask.T.copy()
-        )
+        back = matcher.match(train.descriptors, query.descriptors, mask=None if mask is None else mask.T.copy())
         best_q = np.full(len(train), -1, np.int64)
         for m in back:
             best_q[m.queryIdx] = m.trainIdx
@@ -304,13 +296,11 @@ def stereo_keyframe_features(
         return fl
     uvl, uvr = fl.keypoints_px, fr.keypoints_px
     if np.any(calib.dist_left != 0):
-        uvl = cv2.undistortPoints(
-            uvl.reshape(-1, 1, 2), calib.K_left, calib.dist_left, P=calib.K_left
-        ).reshape(-1, 2)
+        uvl = cv2.undistortPoints(uvl.reshape(-1, 1, 2), calib.K_left, calib.dist_left, P=calib.K_left).reshape(-1, 2)
     if len(fr) and np.any(calib.dist_right != 0):
-        uvr = cv2.undistortPoints(
-            uvr.reshape(-1, 1, 2), calib.K_right, calib.dist_right, P=calib.K_right
-        ).reshape(-1, 2)
+        uvr = cv2.undistortPoints(uvr.reshape(-1, 1, 2), calib.K_right, calib.dist_right, P=calib.K_right).reshape(
+            -1, 2
+        )
     if len(fr) < 2:
         return FeatureSet(uvl, fl.descriptors, fl.kind)
     F = fundamental_from_poses(calib.K_left, np.eye(4), calib.K_right, calib.right_from_left)

@@ -142,11 +142,7 @@ def solve_pnp_bank(
         w = best_n / max(score_idx.size, 1)
         if w > 0 and confidence < 1.0:
             p_good = w**3
-            needed = (
-                int(np.ceil(np.log(1 - confidence) / np.log(max(1e-12, 1 - p_good))))
-                if p_good < 1
-                else 0
-            )
+            needed = int(np.ceil(np.log(1 - confidence) / np.log(max(1e-12, 1 - p_good)))) if p_good < 1 else 0
     bank_s = time.perf_counter() - t0
     if best_n < 3:
         return None

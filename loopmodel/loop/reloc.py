@@ -122,16 +122,13 @@ def localize(
     )
     total = time.perf_counter() - t0
     if res is None:
-        return RelocResult(
-            False, "P3P bank found no pose", matches=pairs, match_s=t_match, total_s=total
-        )
+        return RelocResult(False, "P3P bank found no pose", matches=pairs, match_s=t_match, total_s=total)
     n_in = res.n_inliers
     ratio = n_in / pairs.shape[0]
     if n_in < p.min_inliers or ratio < p.min_inlier_ratio:
         return RelocResult(
             False,
-            f"{n_in} inliers of {pairs.shape[0]} matches (need {p.min_inliers} and "
-            f"ratio {p.min_inlier_ratio})",
+            f"{n_in} inliers of {pairs.shape[0]} matches (need {p.min_inliers} and ratio {p.min_inlier_ratio})",
             matches=pairs,
             inliers=res.inliers,
             pnp=res,

@@ -37,9 +37,7 @@ def hamming_to(desc: NDArray[np.uint8], centers: NDArray[np.uint8]) -> NDArray[n
 
 
 def _sqdist(desc: NDArray[np.float32], centers: NDArray[np.float32]) -> NDArray[np.float32]:
-    d2 = (
-        (desc * desc).sum(1)[:, None] + (centers * centers).sum(1)[None, :] - 2.0 * desc @ centers.T
-    )
+    d2 = (desc * desc).sum(1)[:, None] + (centers * centers).sum(1)[None, :] - 2.0 * desc @ centers.T
     return np.maximum(d2, 0.0)
 
 
@@ -117,9 +115,7 @@ class Vocabulary:
         every word gets the same weight."""
         desc = np.asarray(descriptors)
         if desc.ndim != 2 or desc.shape[0] < branching:
-            raise InputError(
-                "vocabulary", f"need at least {branching} descriptors, got {desc.shape[0]}"
-            )
+            raise InputError("vocabulary", f"need at least {branching} descriptors, got {desc.shape[0]}")
         if branching < 2 or levels < 1:
             raise InputError("vocabulary", "branching must be >= 2 and levels >= 1")
         binary = desc.dtype == np.uint8
@@ -173,9 +169,7 @@ class Vocabulary:
         if not self.binary:
             desc = desc.astype(np.float32)
         if desc.shape[0] > 4096:
-            return np.concatenate(
-                [self.transform(desc[i : i + 4096]) for i in range(0, desc.shape[0], 4096)]
-            )
+            return np.concatenate([self.transform(desc[i : i + 4096]) for i in range(0, desc.shape[0], 4096)])
         node = np.zeros(desc.shape[0], np.int64)
         while True:
             ch = self.children[node]  # (N, k)
@@ -189,18 +183,12 @@ class Vocabulary:
                 a = np.ascontiguousarray(desc[rows])
                 if a.shape[1] % 8 == 0:
                     d = (
-                        np.bitwise_count(
-                            a.view(np.uint64)[:, None, :] ^ np.ascontiguousarray(C).view(np.uint64)
-                        )
+                        np.bitwise_count(a.view(np.uint64)[:, None, :] ^ np.ascontiguousarray(C).view(np.uint64))
                         .sum(axis=2, dtype=np.int64)
                         .astype(float)
                     )
                 else:
-                    d = (
-                        np.bitwise_count(a[:, None, :] ^ C)
-                        .sum(axis=2, dtype=np.int64)
-                        .astype(float)
-                    )
+                    d = np.bitwise_count(a[:, None, :] ^ C).sum(axis=2, dtype=np.int64).astype(float)
             else:
                 diff = desc[rows][:, None, :] - C
                 d = np.einsum("nkd,nkd->nk", diff, diff)
@@ -217,9 +205,7 @@ class Vocabulary:
         n = max(len(documents), 1)
         self.idf = np.log(n / np.maximum(counts, 1.0))
 
-    def bow(
-        self, descriptors: NDArray[Any] | None = None, words: I64 | None = None
-    ) -> tuple[I64, F64]:
+    def bow(self, descriptors: NDArray[Any] | None = None, words: I64 | None = None) -> tuple[I64, F64]:
         """TF-IDF bag of words: sorted word ids and their L1-normalised weights."""
         w = self.transform(descriptors) if words is None else np.asarray(words, np.int64)
         if w.size == 0:
