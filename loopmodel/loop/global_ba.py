@@ -142,7 +142,7 @@ def global_hybrid_ba(
     build_s = time.perf_counter() - t0
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
-    params.setRelativeErrorTol(1e-6)
+    params.setRelativeErrorTol(1e-5)
     params.setAbsoluteErrorTol(1e-9)
     t1 = time.perf_counter()
     initial_error = float(graph.error(values))
