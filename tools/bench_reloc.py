@@ -181,7 +181,7 @@ def throughput(obj: np.ndarray, img: np.ndarray, K: np.ndarray, samples: int = 4
 
 def run(quick: bool = False) -> dict:
     queries = [i for i in range(11) if i not in MAP_VIEWS]
-    n_sift = 4000 if quick else 6000
+    n_sift = 6000
     main = evaluate("sift", n_sift, queries)
     orb = evaluate("orb", 6000, queries[::2] if quick else queries)
     out: dict = {"dataset": f"fountain-P11 (map views {MAP_VIEWS}, images downscaled x{SCALE})"}

@@ -24,6 +24,8 @@ F64 = NDArray[np.float64]
 
 #: Poses scored per array operation (keeps the temporaries in cache).
 _CHUNK = 24
+#: Correspondences of the preemptive test.
+_PRE = 48
 
 
 @dataclass
@@ -119,7 +121,8 @@ def solve_pnp_bank(
     needed = max_samples
     # Score against a fixed random subset of at most 2000 correspondences per round (the
     # final inlier set uses all of them).
-    score_idx = rng.permutation(m)[:2000] if m > 2000 else np.arange(m)
+    score_idx = rng.permutation(m)[:2000]
+    n_pre = min(_PRE, score_idx.size)
     rays32 = np.ascontiguousarray(rays[score_idx], dtype=np.float32)
     P32 = np.ascontiguousarray(P[score_idx], dtype=np.float32)
     while samples < min(needed, max_samples):
@@ -130,6 +133,19 @@ def solve_pnp_bank(
         Rv = sol.R[sol.valid]
         tv = sol.t[sol.valid]
         poses += int(Rv.shape[0])
+        # Preemptive test on the first n_pre correspondences (random order): only poses
+        # that could plausibly match the best inlier ratio so far are scored on all.
+        w_best = best_n / score_idx.size
+        if w_best > 0 and score_idx.size > 2 * n_pre and Rv.shape[0]:
+            pre_ok = np.zeros(Rv.shape[0], bool)
+            for c0 in range(0, Rv.shape[0], 4 * _CHUNK):
+                e2p = ray_errors(
+                    Rv[c0 : c0 + 4 * _CHUNK], tv[c0 : c0 + 4 * _CHUNK], rays32[:n_pre], P32[:n_pre]
+                )
+                pre_ok[c0 : c0 + 4 * _CHUNK] = (e2p < thr2).sum(axis=1) >= max(
+                    2.0, 0.5 * w_best * n_pre
+                )
+            Rv, tv = Rv[pre_ok], tv[pre_ok]
         for c0 in range(0, Rv.shape[0], _CHUNK):
             e2 = ray_errors(Rv[c0 : c0 + _CHUNK], tv[c0 : c0 + _CHUNK], rays32, P32)
             cost = np.minimum(e2, thr2).sum(axis=1)
