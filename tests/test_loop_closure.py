@@ -105,9 +105,9 @@ def test_orbit_loop_found_with_correct_relative_pose(rng: np.random.Generator) -
     assert loops, [e.reason for e in det.rejected]
     for ev in loops:
         assert ev.query_id - ev.match_id >= 6
-        assert abs(
-            ((yaws[ev.query_id] - yaws[ev.match_id]) + np.pi) % (2 * np.pi) - np.pi
-        ) < np.radians(70)  # views overlap
+        assert abs(((yaws[ev.query_id] - yaws[ev.match_id]) + np.pi) % (2 * np.pi) - np.pi) < np.radians(
+            70
+        )  # views overlap
         true_rel = invert_pose(poses[ev.match_id]) @ poses[ev.query_id]
         assert ev.match_from_query is not None
         err = invert_pose(true_rel) @ ev.match_from_query
@@ -145,9 +145,7 @@ def test_false_place_candidates_are_rejected_and_logged(rng: np.random.Generator
 def test_no_loop_without_revisit_on_real_images(shared_data: Path) -> None:
     """RTAB-Map corridor images 1-40 walk away without coming back: no loop."""
     folder = shared_data / "loop_images" / "samples"
-    det = LoopDetector(
-        None, LoopParams(place=PlaceParams(min_gap=6, train_after=8)), image_width_px=512
-    )
+    det = LoopDetector(None, LoopParams(place=PlaceParams(min_gap=6, train_after=8)), image_width_px=512)
     for i in range(40):
         img = cv2.imread(str(folder / f"{i + 1}.jpg"), cv2.IMREAD_GRAYSCALE)
         assert det.process(i, detect_and_describe(img, "orb", 1000)) is None

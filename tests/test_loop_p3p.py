@@ -15,9 +15,7 @@ from loopmodel.loop.pnp import solve_pnp_bank
 def _random_problems(rng: np.random.Generator, n: int):
     R = np.stack([so3_exp(rng.normal(size=3)) for _ in range(n)])
     t = rng.normal(size=(n, 3))
-    p_cam = np.stack(
-        [rng.uniform(-2, 2, (n, 3)), rng.uniform(-2, 2, (n, 3)), rng.uniform(2, 8, (n, 3))], axis=-1
-    )
+    p_cam = np.stack([rng.uniform(-2, 2, (n, 3)), rng.uniform(-2, 2, (n, 3)), rng.uniform(2, 8, (n, 3))], axis=-1)
     p_world = np.einsum("hji,hnj->hni", R, p_cam - t[:, None])  # R^T (X - t)
     rays = p_cam / np.linalg.norm(p_cam, axis=2, keepdims=True)
     return R, t, p_world, rays
@@ -27,8 +25,7 @@ def test_p3p_recovers_known_poses(rng: np.random.Generator) -> None:
     R, t, Pw, rays = _random_problems(rng, 500)
     sol = p3p_grunert(rays, Pw)
     err = np.nanmin(
-        np.linalg.norm(sol.R - R[:, None], axis=(2, 3))
-        + np.linalg.norm(sol.t - t[:, None], axis=2),
+        np.linalg.norm(sol.R - R[:, None], axis=(2, 3)) + np.linalg.norm(sol.t - t[:, None], axis=2),
         axis=1,
     )
     assert np.all(err < 1e-7)
@@ -50,9 +47,7 @@ def test_p3p_finds_every_real_solution(rng: np.random.Generator) -> None:
         assert n == sol.count[h]
         for rv, tv in zip(rvecs, tvecs, strict=True):
             Rcv = cv2.Rodrigues(rv)[0]
-            d = np.linalg.norm(sol.R[h] - Rcv, axis=(1, 2)) + np.linalg.norm(
-                sol.t[h] - tv.ravel(), axis=1
-            )
+            d = np.linalg.norm(sol.R[h] - Rcv, axis=(1, 2)) + np.linalg.norm(sol.t[h] - tv.ravel(), axis=1)
             assert np.nanmin(d) < 1e-6
 
 

@@ -68,9 +68,7 @@ def build_map(kind: str, n_features: int, ex: object) -> FeatureSet:
     F = fundamental_from_poses(K_a, T_a, K_b, T_b)
     mask = epipolar_mask(fa.keypoints_px, fb.keypoints_px, F, 2.0)
     pairs = match_descriptors(fa, fb, ratio=0.8, mask=mask)
-    X, ok = triangulate(
-        K_a, T_a, K_b, T_b, fa.keypoints_px[pairs[:, 0]], fb.keypoints_px[pairs[:, 1]], 2.0
-    )
+    X, ok = triangulate(K_a, T_a, K_b, T_b, fa.keypoints_px[pairs[:, 0]], fb.keypoints_px[pairs[:, 1]], 2.0)
     sel = pairs[ok, 0]
     return FeatureSet(fa.keypoints_px[sel], fa.descriptors[sel], kind, X[ok])
 
@@ -188,9 +186,7 @@ def run(quick: bool = False) -> dict:
     out["descriptor"] = "sift"
     out.update(main)
     if main["opencv_ransac_ms_median"]:
-        out["bank_over_opencv_ms_ratio"] = round(
-            (main["p3p_bank_ms_median"] or 0) / main["opencv_ransac_ms_median"], 2
-        )
+        out["bank_over_opencv_ms_ratio"] = round((main["p3p_bank_ms_median"] or 0) / main["opencv_ransac_ms_median"], 2)
     for k in ("queries", "successes", "rot_err_deg_median", "pos_err_m_median", "query_ms_median"):
         out["orb_" + k] = orb[k]
     return out

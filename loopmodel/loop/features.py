@@ -28,18 +28,21 @@ KINDS = ("orb", "sift", "surf")
 class FeatureSet:
     """Keypoints ``keypoints_px`` (N, 2), descriptors (N, D: uint8 for ORB, float32 for
     SIFT/SURF), ``points_in_kf`` (N, 3) metres in the keyframe's left-camera frame (NaN
-    rows where unknown), ``kind`` the descriptor name."""
+    rows where unknown), ``kind`` the descriptor name, ``ids`` (N,) landmark ids (-1: none)."""
 
     keypoints_px: F64
     descriptors: NDArray[Any]
     kind: str
     points_in_kf: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    ids: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
 
     def __post_init__(self) -> None:
         self.keypoints_px = np.asarray(self.keypoints_px, dtype=float).reshape(-1, 2)
         n = self.keypoints_px.shape[0]
         if self.points_in_kf.shape[0] != n:
             self.points_in_kf = np.full((n, 3), np.nan)
+        if self.ids.shape[0] != n:
+            self.ids = np.full(n, -1, np.int64)
         if self.descriptors.shape[0] != n:
             raise InputError("FeatureSet", f"{n} keypoints but {self.descriptors.shape[0]} descriptors")
 
@@ -58,7 +61,24 @@ class FeatureSet:
 
     def subset(self, mask: NDArray[Any]) -> FeatureSet:
         """The features selected by a boolean mask or index array."""
-        return FeatureSet(self.keypoints_px[mask], self.descriptors[mask], self.kind, self.points_in_kf[mask])
+        return FeatureSet(
+            self.keypoints_px[mask],
+            self.descriptors[mask],
+            self.kind,
+            self.points_in_kf[mask],
+            self.ids[mask],
+        )
+
+    @staticmethod
+    def concat(a: FeatureSet, b: FeatureSet) -> FeatureSet:
+        """Both sets' features in one (same descriptor kind)."""
+        return FeatureSet(
+            np.concatenate([a.keypoints_px, b.keypoints_px]),
+            np.concatenate([a.descriptors, b.descriptors]),
+            a.kind,
+            np.concatenate([a.points_in_kf, b.points_in_kf]),
+            np.concatenate([a.ids, b.ids]),
+        )
 
 
 def make_extractor(kind: str = "orb", n_features: int = 2000) -> Any:

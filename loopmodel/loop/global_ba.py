@@ -10,10 +10,12 @@ features in their keyframe and poses relatively; optimising absolute poses and w
 points has the same minimum and lets GTSAM's sparse solver do the work.
 
 Inputs are duck-typed keyframes (the front end's ``Keyframe``): ``id``, ``world_from_kf``
-(4x4), ``landmark_ids`` (M,), ``points_in_kf`` (M, 3), ``stereo_px`` (M, 3: u_left,
-u_right, v), ``mono_obs`` (K, 3: landmark id, u, v). Pixels and points are in the
-rectified camera frame; ``rect_from_cam`` (optional attribute, identity otherwise) maps the
-keyframe's camera frame to it.
+(4x4, the keyframe's left camera), ``landmark_ids`` (M,), ``points_in_kf`` (M, 3, metres in
+that camera frame), ``stereo_px`` (M, 3: u_left, u_right, v) and ``mono_obs`` (K, 3:
+landmark id, u, v) in rectified pixels; ``rect_from_cam`` (optional, identity otherwise)
+maps the camera frame to the rectified one. Keyframes with ``connected = False`` (a new
+segment after tracking loss) get a weak prior on their pose so that a segment without a
+loop link cannot make the problem singular.
 """
 
 from __future__ import annotations
@@ -99,8 +101,12 @@ def global_hybrid_ba(
         values.insert(X(int(kf.id)), _pose3(Tw))
     owner: dict[int, int] = {}
     n_res = 0
+    weak = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0, 1.0, 1.0, 10.0, 10.0, 10.0]))
     for kf in keyframes:
-        Tw = world_from_rect[int(kf.id)]
+        if not getattr(kf, "connected", True):
+            graph.add(gtsam.PriorFactorPose3(X(int(kf.id)), _pose3(world_from_rect[int(kf.id)]), weak))
+    for kf in keyframes:
+        Tw = np.asarray(kf.world_from_kf, dtype=float)
         ids = np.asarray(kf.landmark_ids, dtype=np.int64)
         pts = np.asarray(kf.points_in_kf, dtype=float).reshape(-1, 3)
         spx = np.asarray(kf.stereo_px, dtype=float).reshape(-1, 3)

@@ -139,12 +139,8 @@ def solve_pnp_bank(
         if w_best > 0 and score_idx.size > 2 * n_pre and Rv.shape[0]:
             pre_ok = np.zeros(Rv.shape[0], bool)
             for c0 in range(0, Rv.shape[0], 4 * _CHUNK):
-                e2p = ray_errors(
-                    Rv[c0 : c0 + 4 * _CHUNK], tv[c0 : c0 + 4 * _CHUNK], rays32[:n_pre], P32[:n_pre]
-                )
-                pre_ok[c0 : c0 + 4 * _CHUNK] = (e2p < thr2).sum(axis=1) >= max(
-                    2.0, 0.5 * w_best * n_pre
-                )
+                e2p = ray_errors(Rv[c0 : c0 + 4 * _CHUNK], tv[c0 : c0 + 4 * _CHUNK], rays32[:n_pre], P32[:n_pre])
+                pre_ok[c0 : c0 + 4 * _CHUNK] = (e2p < thr2).sum(axis=1) >= max(2.0, 0.5 * w_best * n_pre)
             Rv, tv = Rv[pre_ok], tv[pre_ok]
         for c0 in range(0, Rv.shape[0], _CHUNK):
             e2 = ray_errors(Rv[c0 : c0 + _CHUNK], tv[c0 : c0 + _CHUNK], rays32, P32)
