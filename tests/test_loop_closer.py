@@ -12,6 +12,7 @@ from loopmodel.config import LoopConfig
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose, make_pose, se3_exp, so3_exp, so3_log
 from loopmodel.loop.closer import LoopCloser
+from loopmodel.loop.stage import LoopClosingStage
 from loopmodel.types import StereoCalibration
 
 CAM = CentralCamera(400.0, 400.0, 319.5, 239.5)
@@ -95,41 +96,6 @@ def _add_mono(kfs: list[Kf], true: list[np.ndarray], rng) -> None:
         kfs[i].mono_obs = np.column_stack([prev.landmark_ids[ok].astype(float), uv[ok]])
 
 
-def test_loop_closer_finds_revisit_and_corrects_drift() -> None:
-    rng = np.random.default_rng(7)
-    tex = _texture(rng)
-    true, est = _sequence(rng)
-    calib = StereoCalibration(CAM.K, CAM.K, make_pose(np.eye(3), [-BASELINE, 0, 0]), (640, 480))
-    cfg = LoopConfig(min_gap_keyframes=8, n_features=800)
-    closer = LoopCloser(calib, cfg)
-    kfs: list[Kf] = []
-    lid = 0
-    closures = []
-    for i, (Tt, Te) in enumerate(zip(true, est, strict=True)):
-        kf = _keyframe(i, tex, Tt, Te, lid, rng)
-        lid += len(kf.landmark_ids)
-        kfs.append(kf)
-        c = closer.process_keyframe(kf)
-        if c is not None:
-            closures.append(c)
-    assert closures, [e.reason for e in closer.detector.rejected]
-    for c in closures:
-        true_rel = invert_pose(true[c.query_kf]) @ true[c.match_kf]
-        err = invert_pose(true_rel) @ c.query_from_match
-        assert np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) < 0.3
-        assert np.linalg.norm(err[:3, 3]) < 0.02
-        assert c.observations.landmark_ids.size >= cfg.min_inliers
-        assert np.all(np.isin(c.observations.landmark_ids, kfs[c.match_kf].landmark_ids))
-    _add_mono(kfs, true, rng)
-    last = closures[-1]
-    res = closer.correct(kfs, last)
-    q = last.query_kf
-    before = np.linalg.norm(est[q][:3, 3] - true[q][:3, 3])
-    after = np.linalg.norm(res.world_from_kf[q][:3, 3] - true[q][:3, 3])
-    assert before > 0.02
-    assert after < 0.3 * before
-
-
 def test_relocalize_lost_view() -> None:
     rng = np.random.default_rng(8)
     tex = _texture(rng)
@@ -147,3 +113,53 @@ def test_relocalize_lost_view() -> None:
     world_from_cam = true[kf_id] @ invert_pose(res.cam_from_map)
     assert np.linalg.norm(world_from_cam[:3, 3] - lost_T[:3, 3]) < 0.03
     assert np.degrees(np.linalg.norm(so3_log(world_from_cam[:3, :3].T @ lost_T[:3, :3]))) < 0.5
+
+
+class _FakeTracker:
+    """Stands in for the front end: keyframe poses and the corrections it receives."""
+
+    def __init__(self) -> None:
+        self.poses: dict[int, np.ndarray] = {}
+        self.corrections: list[dict[int, np.ndarray]] = []
+
+    @property
+    def world_from_kf(self) -> dict[int, np.ndarray]:
+        return dict(self.poses)
+
+    def apply_correction(self, world_from_kf: dict[int, np.ndarray]) -> None:
+        self.corrections.append(world_from_kf)
+        self.poses.update(world_from_kf)
+
+
+def test_stage_feeds_corrections_back_and_records_events() -> None:
+    rng = np.random.default_rng(7)
+    tex = _texture(rng)
+    true, est = _sequence(rng)
+    calib = StereoCalibration(CAM.K, CAM.K, make_pose(np.eye(3), [-BASELINE, 0, 0]), (640, 480))
+    kfs, lid = [], 0
+    for i, (Tt, Te) in enumerate(zip(true, est, strict=True)):
+        kfs.append(_keyframe(i, tex, Tt, Te, lid, rng))
+        lid += len(kfs[-1].landmark_ids)
+    _add_mono(kfs, true, rng)
+    tracker = _FakeTracker()
+    heard: list[dict[int, np.ndarray]] = []
+    stage = LoopClosingStage(tracker, calib, LoopConfig(min_gap_keyframes=8, n_features=800), [heard.append])
+    for kf in kfs:
+        tracker.poses[kf.id] = kf.world_from_kf.copy()
+        stage.on_keyframe(kf)
+    m = stage.metrics()
+    assert m["loop_closure_count"] >= 1
+    assert tracker.corrections and len(heard) == len(tracker.corrections)
+    last = max(e["keyframe"] for e in m["loop_events"])
+    err_before = np.linalg.norm(est[last][:3, 3] - true[last][:3, 3])
+    err_after = np.linalg.norm(tracker.poses[last][:3, 3] - true[last][:3, 3])
+    assert err_after < 0.3 * err_before
+    for c in stage.closer.closures:  # relative pose of every closure against the truth
+        true_rel = invert_pose(true[c.query_kf]) @ true[c.match_kf]
+        err = invert_pose(true_rel) @ c.query_from_match
+        assert np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) < 0.3
+        assert np.linalg.norm(err[:3, 3]) < 0.02
+        assert np.all(np.isin(c.observations.landmark_ids, kfs[c.match_kf].landmark_ids))
+    ev = m["loop_events"][-1]
+    assert ev["type"] == "loop" and ev["correction_m"] > 0 and ev["optimise_ms"] > 0
+    assert ev["inliers"] >= 25
