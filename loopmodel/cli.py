@@ -83,7 +83,7 @@ def info(
         return
     table = Table(title=str(path), show_header=False)
     for k, v in desc.items():
-        if k == "topics":
+        if k == "topics" and isinstance(v, dict):
             v = ", ".join(f"{t} [{d['type'].split('/')[-1]}: {d['messages']}]" for t, d in v.items())
         table.add_row(k, _fmt(v))
     console.print(table)

@@ -48,15 +48,11 @@ class StereoCalibration:
             if not np.all(np.isfinite(K)):
                 raise CalibrationError(source, f"{name} camera matrix has non-finite values")
             if K[0, 0] <= 0 or K[1, 1] <= 0:
-                raise CalibrationError(
-                    source, f"{name} focal length must be positive, got fx={K[0, 0]}, fy={K[1, 1]}"
-                )
+                raise CalibrationError(source, f"{name} focal length must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
         for name, d in (("left", self.dist_left), ("right", self.dist_right)):
             if not np.all(np.isfinite(d)):
                 raise CalibrationError(source, f"{name} distortion has non-finite values")
-        if not np.all(np.isfinite(self.right_from_left)) or not is_rotation(
-            self.right_from_left[:3, :3], 1e-5
-        ):
+        if not np.all(np.isfinite(self.right_from_left)) or not is_rotation(self.right_from_left[:3, :3], 1e-5):
             raise CalibrationError(source, "right_from_left is not a finite rigid transform")
         if self.baseline_m <= 0:
             raise CalibrationError(source, f"stereo baseline must be > 0 m, got {self.baseline_m}")

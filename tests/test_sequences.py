@@ -33,16 +33,23 @@ def _calibration(rectified: bool = True) -> StereoCalibration:
     return StereoCalibration(K, K, right_from_left, (64, 48))
 
 
-def _write_mcap(path: Path, rng: np.random.Generator, n: int = 5, fmt: str = "png",
-                cal: StereoCalibration | None = None) -> tuple[list[StereoFrame], list[StripeProfile], Trajectory]:
+def _write_mcap(
+    path: Path, rng: np.random.Generator, n: int = 5, fmt: str = "png", cal: StereoCalibration | None = None
+) -> tuple[list[StereoFrame], list[StripeProfile], Trajectory]:
     cal = cal or _calibration()
     frames = [
-        StereoFrame(1_000_000_000 + 40_000_000 * i + i, rng.integers(0, 256, (48, 64), dtype=np.uint8),
-                    rng.integers(0, 256, (48, 64), dtype=np.uint8), i)
+        StereoFrame(
+            1_000_000_000 + 40_000_000 * i + i,
+            rng.integers(0, 256, (48, 64), dtype=np.uint8),
+            rng.integers(0, 256, (48, 64), dtype=np.uint8),
+            i,
+        )
         for i in range(n)
     ]
-    stripes = [StripeProfile(1_000_000_000 + 20_000_000 * i, rng.normal(size=(17, 3)).astype(np.float32).astype(float))
-               for i in range(2 * n)]
+    stripes = [
+        StripeProfile(1_000_000_000 + 20_000_000 * i, rng.normal(size=(17, 3)).astype(np.float32).astype(float))
+        for i in range(2 * n)
+    ]
     gt = Trajectory([f.timestamp_ns for f in frames], [se3_exp(rng.normal(size=6)) for _ in frames])
     with McapSequenceWriter(path, cal, image_format=fmt) as w:
         w.write_trajectory(gt)
@@ -118,11 +125,15 @@ def test_convert_then_info(shared_data: Path, tmp_path: Path, capsys: pytest.Cap
     assert np.array_equal(fa.left, fb.left) and fa.timestamp_ns == fb.timestamp_ns
 
 
-def _write_euroc(root: Path, rng: np.random.Generator, n: int = 4, right_n: int | None = None,
-                 right_size: tuple[int, int] = (64, 48)) -> None:
+def _write_euroc(
+    root: Path, rng: np.random.Generator, n: int = 4, right_n: int | None = None, right_size: tuple[int, int] = (64, 48)
+) -> None:
     body_from_cam0 = se3_exp([0.01, 0.02, 0.0, 0.0, 0.0, 0.1])
     body_from_cam1 = body_from_cam0 @ se3_exp([0.11, 0, 0, 0.002, 0.003, 0.0])
-    for cam, T, size, count in (("cam0", body_from_cam0, (64, 48), n), ("cam1", body_from_cam1, right_size, right_n or n)):
+    for cam, T, size, count in (
+        ("cam0", body_from_cam0, (64, 48), n),
+        ("cam1", body_from_cam1, right_size, right_n or n),
+    ):
         d = root / "mav0" / cam
         (d / "data").mkdir(parents=True)
         rows = ["#timestamp [ns],filename"]
@@ -131,14 +142,20 @@ def _write_euroc(root: Path, rng: np.random.Generator, n: int = 4, right_n: int 
             cv2.imwrite(str(d / "data" / f"{t}.png"), rng.integers(0, 256, (size[1], size[0]), dtype=np.uint8))
             rows.append(f"{t},{t}.png")
         (d / "data.csv").write_text("\n".join(rows) + "\n")
-        (d / "sensor.yaml").write_text(yaml.safe_dump({
-            "sensor_type": "camera", "rate_hz": 20,
-            "T_BS": {"cols": 4, "rows": 4, "data": [float(x) for x in T.ravel()]},
-            "resolution": list(size), "camera_model": "pinhole",
-            "intrinsics": [458.654, 457.296, 367.215, 248.375],
-            "distortion_model": "radial-tangential",
-            "distortion_coefficients": [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05],
-        }))
+        (d / "sensor.yaml").write_text(
+            yaml.safe_dump(
+                {
+                    "sensor_type": "camera",
+                    "rate_hz": 20,
+                    "T_BS": {"cols": 4, "rows": 4, "data": [float(x) for x in T.ravel()]},
+                    "resolution": list(size),
+                    "camera_model": "pinhole",
+                    "intrinsics": [458.654, 457.296, 367.215, 248.375],
+                    "distortion_model": "radial-tangential",
+                    "distortion_coefficients": [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05],
+                }
+            )
+        )
     gt = root / "mav0" / "state_groundtruth_estimate0"
     gt.mkdir(parents=True)
     lines = ["#timestamp,p_x,p_y,p_z,q_w,q_x,q_y,q_z,v_x,v_y,v_z,bw_x,bw_y,bw_z,ba_x,ba_y,ba_z"]
@@ -158,7 +175,9 @@ def test_euroc_folder(tmp_path: Path, rng: np.random.Generator) -> None:
     assert len(list(seq.frames())) == 4
 
 
-def test_bad_inputs_give_one_line_errors(tmp_path: Path, rng: np.random.Generator, capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_inputs_give_one_line_errors(
+    tmp_path: Path, rng: np.random.Generator, capsys: pytest.CaptureFixture[str]
+) -> None:
     with pytest.raises(InputError, match="does not exist"):
         open_sequence(tmp_path / "missing")
     (tmp_path / "odd").mkdir()
@@ -236,9 +255,12 @@ def test_streaming_memory_1000_frames(tmp_path: Path) -> None:
     """Iterating a 1,000-frame raw 640x480 MCAP (about 600 MB) stays under 500 MiB peak RSS."""
     path = tmp_path / "big.mcap"
     img = np.random.default_rng(1).integers(0, 256, (480, 640), dtype=np.uint8)
-    cal = StereoCalibration(np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]),
-                            np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]),
-                            np.array([[1, 0, 0, -0.06], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]), (640, 480))
+    cal = StereoCalibration(
+        np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]),
+        np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]),
+        np.array([[1, 0, 0, -0.06], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]),
+        (640, 480),
+    )
     with McapSequenceWriter(path, cal, image_format="raw") as w:
         for i in range(1000):
             w.write_frame(StereoFrame(i * 40_000_000 + 1, img, img))

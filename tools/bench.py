@@ -21,7 +21,7 @@ sys.path.insert(0, str(HERE.parent))
 
 def available() -> list[str]:
     """Names of the benchmarks present."""
-    return sorted(p.stem[len("bench_"):].replace("_", "-") for p in HERE.glob("bench_*.py"))
+    return sorted(p.stem[len("bench_") :].replace("_", "-") for p in HERE.glob("bench_*.py"))
 
 
 def peak_rss_mib() -> float:

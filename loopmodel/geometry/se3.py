@@ -55,11 +55,7 @@ def _left_jacobian_so3(w: F64) -> F64:
     if theta2 < 1e-12:
         return np.eye(3) + 0.5 * K + (K @ K) / 6.0
     theta = np.sqrt(theta2)
-    return (
-        np.eye(3)
-        + ((1.0 - np.cos(theta)) / theta2) * K
-        + ((theta - np.sin(theta)) / (theta2 * theta)) * (K @ K)
-    )
+    return np.eye(3) + ((1.0 - np.cos(theta)) / theta2) * K + ((theta - np.sin(theta)) / (theta2 * theta)) * (K @ K)
 
 
 def se3_exp(xi: ArrayLike) -> F64:
@@ -102,10 +98,10 @@ def invert_pose(T: ArrayLike) -> F64:
 
 def rotation_from_quat_wxyz(q: ArrayLike) -> F64:
     """Rotation matrix (or a batch) of unit quaternions ordered (w, x, y, z)."""
-    q = np.asarray(q, dtype=float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    R = np.empty(q.shape[:-1] + (3, 3))
+    qa = np.asarray(q, dtype=float)
+    qa = qa / np.linalg.norm(qa, axis=-1, keepdims=True)
+    w, x, y, z = qa[..., 0], qa[..., 1], qa[..., 2], qa[..., 3]
+    R = np.empty(qa.shape[:-1] + (3, 3))
     R[..., 0, 0] = 1 - 2 * (y * y + z * z)
     R[..., 0, 1] = 2 * (x * y - z * w)
     R[..., 0, 2] = 2 * (x * z + y * w)

@@ -108,9 +108,9 @@ class EurocSequence(Sequence):
             raise InputError(path, f"left and right image sizes differ: {size0} vs {size1}")
         right_from_left = invert_pose(body_from_cam1) @ body_from_cam0
         self._body_from_cam0 = body_from_cam0
-        self._calibration = StereoCalibration(
-            K0, K1, right_from_left, size0, d0, d1, rectified=False
-        ).check(str(root / "cam0" / "sensor.yaml"))
+        self._calibration = StereoCalibration(K0, K1, right_from_left, size0, d0, d1, rectified=False).check(
+            str(root / "cam0" / "sensor.yaml")
+        )
         self._gt = self._read_ground_truth(root)
 
     def _read_ground_truth(self, root: Path) -> Trajectory | None:

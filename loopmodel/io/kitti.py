@@ -20,8 +20,10 @@ IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".pgm", ".bmp")
 
 def is_kitti_folder(path: Path) -> bool:
     """True when the folder has a KITTI image pair layout and a calib.txt."""
-    return path.is_dir() and (path / "calib.txt").is_file() and any(
-        (path / a).is_dir() and (path / b).is_dir() for a, b in IMAGE_DIRS
+    return (
+        path.is_dir()
+        and (path / "calib.txt").is_file()
+        and any((path / a).is_dir() and (path / b).is_dir() for a, b in IMAGE_DIRS)
     )
 
 
@@ -89,8 +91,9 @@ class KittiSequence(Sequence):
             raise FormatError(left_dir, "no images found")
         if len(self._left) != len(self._right):
             raise InputError(
-                path, f"left and right image counts differ: {len(self._left)} in {left_dir.name}, "
-                f"{len(self._right)} in {right_dir.name}"
+                path,
+                f"left and right image counts differ: {len(self._left)} in {left_dir.name}, "
+                f"{len(self._right)} in {right_dir.name}",
             )
         size_l, size_r = image_size(self._left[0]), image_size(self._right[0])
         if size_l != size_r:

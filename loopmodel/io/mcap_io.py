@@ -92,9 +92,7 @@ def calibration_from_camera_info(left: Any, right: Any, source: str) -> StereoCa
     if P1[0, 0] <= 0 or P0[0, 0] <= 0 or K0[0, 0] <= 0 or K1[0, 0] <= 0:
         raise CalibrationError(source, "CameraInfo focal length must be positive")
     t_rect = np.array([(P1[0, 3] - P0[0, 3]) / P1[0, 0], (P1[1, 3] - P0[1, 3]) / P1[1, 1], 0.0])
-    rectified = bool(
-        np.allclose(R0, np.eye(3)) and np.allclose(R1, np.eye(3)) and not d0.any() and not d1.any()
-    )
+    rectified = bool(np.allclose(R0, np.eye(3)) and np.allclose(R1, np.eye(3)) and not d0.any() and not d1.any())
     right_from_left = np.eye(4)
     right_from_left[:3, :3] = R1.T @ R0
     right_from_left[:3, 3] = R1.T @ t_rect
@@ -113,18 +111,32 @@ def camera_info_dicts(cal: StereoCalibration) -> tuple[dict, dict]:
         P1[:2, 3] = cal.K_right[[0, 1], [0, 1]] * cal.right_from_left[:2, 3]
     else:
         R0, R1, P0, P1, *_ = cv2.stereoRectify(
-            cal.K_left, cal.dist_left, cal.K_right, cal.dist_right, (w, h),
-            cal.right_from_left[:3, :3].copy(), cal.right_from_left[:3, 3].reshape(3, 1).copy(), alpha=0,
+            cal.K_left,
+            cal.dist_left,
+            cal.K_right,
+            cal.dist_right,
+            (w, h),
+            cal.right_from_left[:3, :3].copy(),
+            cal.right_from_left[:3, 3].reshape(3, 1).copy(),
+            alpha=0,
         )
     out = []
     for K, d, R, P, fid in ((cal.K_left, cal.dist_left, R0, P0, "cam0"), (cal.K_right, cal.dist_right, R1, P1, "cam1")):
-        out.append({
-            "header": header(0, fid), "height": h, "width": w, "distortion_model": "plumb_bob",
-            "d": [float(x) for x in d], "k": [float(x) for x in np.asarray(K).ravel()],
-            "r": [float(x) for x in np.asarray(R).ravel()], "p": [float(x) for x in np.asarray(P).ravel()],
-            "binning_x": 0, "binning_y": 0,
-            "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False},
-        })
+        out.append(
+            {
+                "header": header(0, fid),
+                "height": h,
+                "width": w,
+                "distortion_model": "plumb_bob",
+                "d": [float(x) for x in d],
+                "k": [float(x) for x in np.asarray(K).ravel()],
+                "r": [float(x) for x in np.asarray(R).ravel()],
+                "p": [float(x) for x in np.asarray(P).ravel()],
+                "binning_x": 0,
+                "binning_y": 0,
+                "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False},
+            }
+        )
     return out[0], out[1]
 
 
@@ -140,8 +152,14 @@ def decode_pointcloud_xyz(msg: Any, topic: str) -> np.ndarray:
     if buf.size < n * step:
         raise FormatError(topic, "PointCloud2 data shorter than width*height*point_step")
     endian = ">" if msg.is_bigendian else "<"
-    dt = np.dtype({"names": list("xyz"), "formats": [endian + "f4"] * 3,
-                   "offsets": [offsets[a][0] for a in "xyz"], "itemsize": step})
+    dt = np.dtype(
+        {
+            "names": list("xyz"),
+            "formats": [endian + "f4"] * 3,
+            "offsets": [offsets[a][0] for a in "xyz"],
+            "itemsize": step,
+        }
+    )
     rec = buf[: n * step].view(dt)
     return np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
 
@@ -204,13 +222,17 @@ class McapSequence(Sequence):
             )
         nl, nr = self._counts.get(t.left_image), self._counts.get(t.right_image)
         if nl is not None and nr is not None and nl != nr:
-            raise InputError(self.path, f"left and right image counts differ: {nl} on {t.left_image}, {nr} on {t.right_image}")
+            raise InputError(
+                self.path, f"left and right image counts differ: {nl} on {t.left_image}, {nr} on {t.right_image}"
+            )
 
     def _messages(self, topics: list[str]) -> Iterator[tuple[str, str, Any]]:
         try:
             with open(self.path, "rb") as f:
                 reader = make_reader(f, decoder_factories=[DecoderFactory()])
-                for schema, channel, _message, decoded in reader.iter_decoded_messages(topics=topics, log_time_order=True):
+                for schema, channel, _message, decoded in reader.iter_decoded_messages(
+                    topics=topics, log_time_order=True
+                ):
                     yield channel.topic, schema.name if schema else "", decoded
         except _READ_ERRORS as exc:
             raise FormatError(self.path, f"truncated or corrupt MCAP ({type(exc).__name__}: {exc})") from None
@@ -327,7 +349,10 @@ class McapSequence(Sequence):
                     left = decode_image(ml, sl, t.left_image)
                     right = decode_image(mr, sr, t.right_image)
                     if left.shape[:2] != right.shape[:2]:
-                        raise InputError(self.path, f"left and right image sizes differ at {tl} ns: {left.shape[:2]} vs {right.shape[:2]}")
+                        raise InputError(
+                            self.path,
+                            f"left and right image sizes differ at {tl} ns: {left.shape[:2]} vs {right.shape[:2]}",
+                        )
                     yield StereoFrame(tl, left, right, index)
                     index += 1
                 elif tl < tr:
@@ -407,8 +432,12 @@ class McapSequenceWriter:
             else:
                 raise ValueError(f"cannot write image of shape {img.shape} and dtype {img.dtype}")
             return "sensor_msgs/msg/Image", {
-                "header": header(t_ns, frame_id), "height": img.shape[0], "width": img.shape[1],
-                "encoding": enc, "is_bigendian": 0, "step": step,
+                "header": header(t_ns, frame_id),
+                "height": img.shape[0],
+                "width": img.shape[1],
+                "encoding": enc,
+                "is_bigendian": 0,
+                "step": step,
                 "data": np.ascontiguousarray(img).tobytes(),
             }
         ext = ".png" if self.image_format == "png" else ".jpg"
@@ -416,7 +445,9 @@ class McapSequenceWriter:
         if not ok:
             raise ValueError(f"cannot encode image of shape {img.shape} as {self.image_format}")
         return "sensor_msgs/msg/CompressedImage", {
-            "header": header(t_ns, frame_id), "format": self.image_format, "data": buf.tobytes()
+            "header": header(t_ns, frame_id),
+            "format": self.image_format,
+            "data": buf.tobytes(),
         }
 
     def write_frame(self, frame: StereoFrame, log_time_ns: int | None = None) -> None:
@@ -424,7 +455,10 @@ class McapSequenceWriter:
         the frame's time; ``log_time_ns`` (receive time) defaults to it."""
         if not self._info_written:
             self._write_info(frame.timestamp_ns if log_time_ns is None else log_time_ns)
-        for img, topic, fid in ((frame.left, self.topics.left_image, "cam0"), (frame.right, self.topics.right_image, "cam1")):
+        for img, topic, fid in (
+            (frame.left, self.topics.left_image, "cam0"),
+            (frame.right, self.topics.right_image, "cam1"),
+        ):
             type_name, msg = self._image_msg(img, frame.timestamp_ns, fid)
             self._write(topic, type_name, msg, frame.timestamp_ns, log_time_ns)
 
@@ -438,9 +472,15 @@ class McapSequenceWriter:
         pts = np.ascontiguousarray(np.asarray(stripe.points_in_cam, dtype=np.float32).reshape(-1, 3))
         fields = [{"name": a, "offset": 4 * i, "datatype": POINTFIELD_FLOAT32, "count": 1} for i, a in enumerate("xyz")]
         msg = {
-            "header": header(stripe.timestamp_ns, "cam0"), "height": 1, "width": pts.shape[0],
-            "fields": fields, "is_bigendian": False, "point_step": 12, "row_step": 12 * pts.shape[0],
-            "data": pts.tobytes(), "is_dense": bool(np.all(np.isfinite(pts))),
+            "header": header(stripe.timestamp_ns, "cam0"),
+            "height": 1,
+            "width": pts.shape[0],
+            "fields": fields,
+            "is_bigendian": False,
+            "point_step": 12,
+            "row_step": 12 * pts.shape[0],
+            "data": pts.tobytes(),
+            "is_dense": bool(np.all(np.isfinite(pts))),
         }
         self._write(self.topics.stripe, "sensor_msgs/msg/PointCloud2", msg, stripe.timestamp_ns)
 
@@ -450,8 +490,10 @@ class McapSequenceWriter:
         p = world_from_cam[:3, 3]
         msg = {
             "header": header(t_ns, "world"),
-            "pose": {"position": {"x": float(p[0]), "y": float(p[1]), "z": float(p[2])},
-                     "orientation": {"x": float(q[1]), "y": float(q[2]), "z": float(q[3]), "w": float(q[0])}},
+            "pose": {
+                "position": {"x": float(p[0]), "y": float(p[1]), "z": float(p[2])},
+                "orientation": {"x": float(q[1]), "y": float(q[2]), "z": float(q[3]), "w": float(q[0])},
+            },
         }
         self._write(self.topics.ground_truth, "geometry_msgs/msg/PoseStamped", msg, t_ns)
 

@@ -33,9 +33,7 @@ MSGDEFS: dict[str, str] = {
         "uint8 is_bigendian\nuint32 step\nuint8[] data\n",
         _HEADER_DEPS,
     ),
-    "sensor_msgs/msg/CompressedImage": _concat(
-        "std_msgs/Header header\nstring format\nuint8[] data\n", _HEADER_DEPS
-    ),
+    "sensor_msgs/msg/CompressedImage": _concat("std_msgs/Header header\nstring format\nuint8[] data\n", _HEADER_DEPS),
     "sensor_msgs/msg/CameraInfo": _concat(
         "std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\n"
         "float64[] d\nfloat64[9] k\nfloat64[9] r\nfloat64[12] p\nuint32 binning_x\n"

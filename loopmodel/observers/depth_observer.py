@@ -29,7 +29,7 @@ class ObserverConfig:
     lambda0: float = 1.0  # initial depth-ratio guess
     dt_s: float = 1e-3  # internal integration step (1 kHz)
     excitation_window_s: float = 1.0  # window of the persistent-excitation monitor
-    excitation_min: float = 1e-4  # min mean |h1|^2 over the window for "excited"
+    excitation_min: float = 1e-3  # min mean |h1|^2 (normalised units, 1/s^2) for "excited"
     warmup_s: float = 0.0  # adaptation starts after the velocity estimators' transient
 
 
@@ -92,33 +92,43 @@ class DepthObserver:
 
     # ------------------------------------------------------------------ dynamics
     def _step(self, e: F64, p: F64, alpha: F64, dt: float) -> float:
+        """One integration step: velocity estimators (eq. 20), then the adaptive update."""
         cfg = self.cfg
         gain = cfg.k_gain + 1.0
         e_tilde = e - self.e_hat
         self.e_dot_hat = self.integral + gain * e_tilde
         self.integral += dt * (gain * e_tilde + cfg.rho_gain * np.sign(e_tilde))
         self.e_hat += dt * self.e_dot_hat
-        # scaled velocity of feature 0: v_hat_1 = J_1^{-1} e_dot_hat_1
-        ew = e[0, 3:]
-        w_hat = np.linalg.solve(l_omega(ew), self.e_dot_hat[0, 3:])
+        return self.adapt(self.e_dot_hat, p, alpha, e[0, 3:], dt)
+
+    def adapt(self, e_dot: F64, p: F64, alpha: F64, e_w: F64, dt: float) -> float:
+        """Adaptive least-squares update of the depth ratios (eq. 30-36) from signal rates
+        ``e_dot`` (N x 6, estimated or true); returns the mean ``|h1|^2`` of this step."""
+        cfg = self.cfg
+        # scaled velocity of feature 0: v_hat_1 = J_1^{-1} e_dot_1
+        w_hat = np.linalg.solve(l_omega(e_w), e_dot[0, 3:])
         Ae = a_e(self.A, p)
         m = np.column_stack([p, np.ones(self.n)]) @ self.A_inv.T
         Ae0 = Ae[0]
-        v_scaled = np.linalg.solve(alpha[0] * Ae0, self.e_dot_hat[0, :3] + Ae0 @ hat(m[0]) @ w_hat)
+        v_scaled = np.linalg.solve(alpha[0] * Ae0, e_dot[0, :3] + Ae0 @ hat(m[0]) @ w_hat)
         # per feature: y_i = lambda_i h1_i + h2_i (+ eta)
         h1 = alpha[:, None] * np.einsum("nij,j->ni", Ae, v_scaled)
         h2 = -np.einsum("nij,nj->ni", Ae, np.cross(m, w_hat))  # -A_e [m]x w = -A_e (m x w)
-        y = self.e_dot_hat[:, :3]
-        y_tilde = y - self.lambda_hat[:, None] * h1 - h2
+        y_tilde = e_dot[:, :3] - self.lambda_hat[:, None] * h1 - h2
         hh = np.einsum("ni,ni->n", h1, h1)
-        L = 1.0 / self.l_inv
-        upd = cfg.beta * L * np.einsum("ni,ni->n", h1, y_tilde)
-        upd[0] = 0.0  # lambda_1 = 1 by definition
         if self._elapsed_s >= cfg.warmup_s:
-            self.lambda_hat += dt * upd
-            self.l_inv += dt * hh
+            # exact solution over the step (h1, h2, y held constant) of
+            #   d(lambda)/dt = beta L h1.(y - lambda h1 - h2),  d(L^-1)/dt = |h1|^2,
+            # which is unconditionally stable where explicit Euler is not (|h1| in pixels/s)
+            l_new = self.l_inv + dt * hh
+            gain = 1.0 - (self.l_inv / l_new) ** cfg.beta
+            step = np.where(hh > 0, gain * np.einsum("ni,ni->n", h1, y_tilde) / np.where(hh > 0, hh, 1.0), 0.0)
+            step[0] = 0.0  # lambda_1 = 1 by definition
+            self.lambda_hat += step
+            self.l_inv = l_new
         self._elapsed_s += dt
-        return float(np.mean(hh[1:])) if self.n > 1 else 0.0
+        # excitation in normalised image units (independent of the focal length)
+        return float(np.mean(hh[1:])) / (self.A[0, 0] * self.A[1, 1]) if self.n > 1 else 0.0
 
     def feed(self, m: ViewMeasurement) -> None:
         """Integrate up to the time of view ``m`` (linear interpolation from the previous view)."""
@@ -139,10 +149,15 @@ class DepthObserver:
         energy = 0.0
         for k in range(1, steps + 1):
             s = k / steps
-            energy += self._step(
-                (1 - s) * self._last_e + s * e, (1 - s) * self._last_p + s * p,
-                (1 - s) * self._last_alpha + s * alpha, dt,
-            ) * dt
+            energy += (
+                self._step(
+                    (1 - s) * self._last_e + s * e,
+                    (1 - s) * self._last_p + s * p,
+                    (1 - s) * self._last_alpha + s * alpha,
+                    dt,
+                )
+                * dt
+            )
         self._h_energy.append((m.t_s, energy))
         self.t_s, self._last_e, self._last_p, self._last_alpha = m.t_s, e, p, alpha
         self._record(energy)

@@ -38,10 +38,18 @@ def _rays(A: F64, p: F64) -> F64:
     return np.column_stack([p, np.ones(len(p))]) @ np.linalg.inv(A).T
 
 
-def decompose_homography(H: ArrayLike, A: ArrayLike, p_ref_px: ArrayLike, p_cur_px: ArrayLike) -> TwoViewSignals:
+def decompose_homography(
+    H: ArrayLike,
+    A: ArrayLike,
+    p_ref_px: ArrayLike,
+    p_cur_px: ArrayLike,
+    normal_prior: ArrayLike = (0.0, 0.0, 1.0),
+) -> TwoViewSignals:
     """Decompose the pixel homography ``G ~ A H A^-1`` of coplanar points (``p_cur ~ G p_ref``)
-    into ``R_bar``, ``x_h = x_f/d*`` and ``n*``; the physically valid solution is the one with
-    every point in front of both cameras and the plane facing the reference camera."""
+    into ``R_bar``, ``x_h = x_f/d*`` and ``n*``. Of the four solutions, those that put every
+    point in front of both cameras remain (usually two, which explain the images equally);
+    the one whose normal is closest to ``normal_prior`` (reference frame; default: a plane
+    facing the camera) is returned."""
     G = np.asarray(H, dtype=float)
     A = np.asarray(A, dtype=float)
     pr = np.asarray(p_ref_px, dtype=float).reshape(-1, 2)
@@ -55,7 +63,16 @@ def decompose_homography(H: ArrayLike, A: ArrayLike, p_ref_px: ArrayLike, p_cur_
         Hk = Rs[k] + ts[k].reshape(3, 1) @ n.reshape(1, 3)
         if np.any(mr @ n <= 0) or np.any((mr @ Hk.T)[:, 2] <= 0):
             continue
-        score = float(np.linalg.norm(np.cross(mc, mr @ Hk.T), axis=1).mean())
+        residual = float(
+            np.linalg.norm(
+                np.cross(
+                    mc / np.linalg.norm(mc, axis=1, keepdims=True),
+                    mr @ Hk.T / np.linalg.norm(mr @ Hk.T, axis=1, keepdims=True),
+                ),
+                axis=1,
+            ).mean()
+        )
+        score = round(residual, 6) - float(n @ np.asarray(normal_prior, dtype=float))
         if best is None or score < best[0]:
             best = (score, k)
     if best is None:
@@ -68,7 +85,10 @@ def decompose_homography(H: ArrayLike, A: ArrayLike, p_ref_px: ArrayLike, p_cur_
 
 
 def signals_from_essential(
-    A: ArrayLike, p_ref_px: ArrayLike, p_cur_px: ArrayLike, plane_features: tuple[int, int, int] = (0, 1, 2),
+    A: ArrayLike,
+    p_ref_px: ArrayLike,
+    p_cur_px: ArrayLike,
+    plane_features: tuple[int, int, int] = (0, 1, 2),
     threshold_px: float = 1.0,
 ) -> TwoViewSignals:
     """Two-view signals of non-coplanar features: ``R_bar`` and the translation direction from

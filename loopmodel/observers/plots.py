@@ -18,7 +18,7 @@ def convergence_figures(res: SimulationResult) -> tuple[Figure, Figure]:
     """(lambda_hat over time with the true values dashed, depth error over time)."""
     f1, ax = plt.subplots(figsize=(7, 4))
     for i in range(res.lambda_hat.shape[1]):
-        line, = ax.plot(res.t_s, res.lambda_hat[:, i], lw=1)
+        (line,) = ax.plot(res.t_s, res.lambda_hat[:, i], lw=1)
         ax.axhline(res.lambda_true[i], color=line.get_color(), ls="--", lw=0.6)
     ax.set_xlabel("time (s)")
     ax.set_ylabel("depth ratio estimate  z*_1 / z*_i")
@@ -43,8 +43,8 @@ def stereo_comparison_figure(results: list[WindowResult]) -> Figure:
         ax.scatter(r.depth_stereo_m[ok], r.depth_observer_m[ok], s=8, label=f"ref frame {r.start_index}")
     lim = [0, max(40.0, float(np.nanmax([np.nanmax(r.depth_stereo_m) for r in results])) if results else 40.0)]
     ax.plot(lim, lim, "k--", lw=0.8)
-    ax.set_xlim(lim)
-    ax.set_ylim(lim)
+    ax.set_xlim(lim[0], lim[1])
+    ax.set_ylim(lim[0], lim[1])
     ax.set_xlabel("stereo depth (m)")
     ax.set_ylabel("observer depth (m)")
     ax.legend(fontsize=7)

@@ -5,6 +5,7 @@ recovered depth with the stereo depth of the same feature."""
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import Any
 from dataclasses import dataclass, field
 
 import cv2
@@ -17,14 +18,16 @@ from loopmodel.observers.homography import signals_from_essential
 from loopmodel.types import StereoCalibration, StereoFrame
 
 F64 = NDArray[np.float64]
-_LK = {"winSize": (21, 21), "maxLevel": 4, "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
+_LK: dict[str, Any] = {"winSize": (21, 21), "maxLevel": 4, "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
 
 
 def _grey(img: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
 
 
-def klt_fb(prev: NDArray[np.uint8], cur: NDArray[np.uint8], pts: F64, fb_px: float = 0.5) -> tuple[F64, NDArray[np.bool_]]:
+def klt_fb(
+    prev: NDArray[np.uint8], cur: NDArray[np.uint8], pts: F64, fb_px: float = 0.5
+) -> tuple[F64, NDArray[np.bool_]]:
     """Track points from ``prev`` to ``cur`` with pyramidal LK and a forward-backward check."""
     p0 = pts.astype(np.float32).reshape(-1, 1, 2)
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **_LK)
@@ -65,8 +68,11 @@ class WindowResult:
 
 
 def observe_window(
-    frames: list[StereoFrame], cal: StereoCalibration, config: ObserverConfig | None = None,
-    max_features: int = 400, max_depth_m: float = 40.0,
+    frames: list[StereoFrame],
+    cal: StereoCalibration,
+    config: ObserverConfig | None = None,
+    max_features: int = 400,
+    max_depth_m: float = 40.0,
 ) -> WindowResult:
     """Run the observer over consecutive frames; the first is the reference view. Feature 0
     (the one whose stereo depth gives the scale) is the best-matched near feature."""
@@ -120,7 +126,10 @@ def observe_window(
 
 
 def observe_sequence(
-    frames: Iterable[StereoFrame], cal: StereoCalibration, window: int = 6, stride: int = 10,
+    frames: Iterable[StereoFrame],
+    cal: StereoCalibration,
+    window: int = 6,
+    stride: int = 10,
     config: ObserverConfig | None = None,
 ) -> tuple[list[WindowResult], list[str]]:
     """Windows of ``window`` frames starting every ``stride`` frames (stride >= window; frames

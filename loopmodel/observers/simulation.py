@@ -20,8 +20,7 @@ Motion = Callable[[float], tuple[F64, F64]]
 
 def paper_motion(t: float) -> tuple[F64, F64]:
     """Camera linear (m/s) and angular (rad/s) velocity in the camera frame at time t."""
-    return (np.array([np.cos(t), -np.sin(t), 0.1 * np.sin(t)]),
-            np.array([0.1 * np.sin(t), 0.1 * np.cos(t), 0.05]))
+    return (np.array([np.cos(t), -np.sin(t), 0.1 * np.sin(t)]), np.array([0.1 * np.sin(t), 0.1 * np.cos(t), 0.05]))
 
 
 def pure_rotation(t: float) -> tuple[F64, F64]:
@@ -65,8 +64,9 @@ def simulate(
 ) -> SimulationResult:
     """Run the observer on exact measurements of a simulated scene fed at ``rate_hz``."""
     rng = np.random.default_rng(seed)
-    points_ref = np.column_stack([rng.uniform(-1.5, 1.5, n_features), rng.uniform(-1.0, 1.0, n_features),
-                                  rng.uniform(3.0, 6.0, n_features)])
+    points_ref = np.column_stack(
+        [rng.uniform(-1.5, 1.5, n_features), rng.uniform(-1.0, 1.0, n_features), rng.uniform(3.0, 6.0, n_features)]
+    )
     A = np.eye(3)
     p_ref = points_ref[:, :2] / points_ref[:, 2:3]
     obs = DepthObserver(A, p_ref, config)
