@@ -85,9 +85,9 @@ def make_extractor(kind: str = "orb", n_features: int = 2000) -> Any:
     """The OpenCV detector/descriptor for ``kind`` (``orb``, ``sift`` or ``surf``)."""
     k = kind.lower()
     if k == "orb":
-        return cv2.ORB_create(nfeatures=n_features, scaleFactor=1.2, nlevels=8, fastThreshold=12)
+        return cv2.ORB_create(nfeatures=n_features, scaleFactor=1.2, nlevels=8, fastThreshold=12)  # type: ignore[attr-defined]
     if k == "sift":
-        return cv2.SIFT_create(nfeatures=n_features)
+        return cv2.SIFT_create(nfeatures=n_features)  # type: ignore[attr-defined]
     if k == "surf":
         xf = getattr(cv2, "xfeatures2d", None)
         creator = getattr(xf, "SURF_create", None) if xf is not None else None
@@ -176,8 +176,8 @@ def match_descriptors(
     if mutual and out.shape[0]:
         back = matcher.match(train.descriptors, query.descriptors, mask=None if mask is None else mask.T.copy())
         best_q = np.full(len(train), -1, np.int64)
-        for m in back:
-            best_q[m.queryIdx] = m.trainIdx
+        for bm in back:
+            best_q[bm.queryIdx] = bm.trainIdx
         out = out[best_q[out[:, 1]] == out[:, 0]]
     return out
 

@@ -50,7 +50,7 @@ class PnPResult:
         return int(self.inliers.sum())
 
 
-def ray_errors(R: F64, t: F64, rays: F64, p_in_world: F64) -> F64:
+def ray_errors(R: F64, t: F64, rays: NDArray[np.floating], p_in_world: NDArray[np.floating]) -> NDArray[np.floating]:
     """Squared sines of the angles between observed unit rays (M, 3) and the directions of
     world points (M, 3) under each of H poses (``R`` (H, 3, 3), ``t`` (H, 3)) -> (H, M).
     Points behind the camera (negative along the observed ray) get an error of 4. The

@@ -87,7 +87,7 @@ def orbit_problem(
         T = true_T[i]
         cam_from_world = invert_pose(T)
         # points on the visible half of the sphere
-        pts = []
+        pts: list[F64] = []
         while len(pts) < features_per_kf:
             d = rng.normal(size=3)
             d /= np.linalg.norm(d)

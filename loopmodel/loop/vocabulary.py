@@ -207,7 +207,12 @@ class Vocabulary:
 
     def bow(self, descriptors: NDArray[Any] | None = None, words: I64 | None = None) -> tuple[I64, F64]:
         """TF-IDF bag of words: sorted word ids and their L1-normalised weights."""
-        w = self.transform(descriptors) if words is None else np.asarray(words, np.int64)
+        if words is None:
+            if descriptors is None:
+                raise InputError("vocabulary", "bow() needs descriptors or words")
+            w = self.transform(descriptors)
+        else:
+            w = np.asarray(words, np.int64)
         if w.size == 0:
             return np.zeros(0, np.int64), np.zeros(0)
         ids, counts = np.unique(w, return_counts=True)
