@@ -85,6 +85,7 @@ class LoopConfig(_Section):
     min_epipolar_inliers: int = Field(40, ge=8, description="monocular verification")
     max_cycle_rot_deg: float = Field(2.0, gt=0, description="forward/reverse pose agreement")
     max_cycle_trans_m: float = Field(0.05, gt=0)
+    background_ba: bool = Field(True, description="global BA in a worker process")
 
 
 class Config(_Section):

@@ -147,6 +147,7 @@ def test_stage_feeds_corrections_back_and_records_events() -> None:
     for kf in kfs:
         tracker.poses[kf.id] = kf.world_from_kf.copy()
         stage.on_keyframe(kf)
+    stage.finish()  # the BA runs in a worker process; wait for it
     m = stage.metrics()
     assert m["loop_closure_count"] >= 1
     assert tracker.corrections and len(heard) == len(tracker.corrections)

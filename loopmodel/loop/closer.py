@@ -248,21 +248,53 @@ class LoopCloser:
         )
 
     # ---------------------------------------------------------------- correction
+    def correction_problem(self, keyframes: Sequence[Any], closure: LoopClosure) -> dict[str, Any]:
+        """Arguments of :func:`global_hybrid_ba` for the loop's window, as plain arrays (can
+        be sent to a worker process): keyframes from the loop's old keyframe to the current
+        one, every loop's observations among them, the old keyframe held fixed."""
+        lo, hi = closure.match_kf, closure.query_kf
+        window = [
+            BAKeyframe(
+                int(k.id),
+                np.asarray(k.world_from_kf, float).copy(),
+                np.asarray(k.landmark_ids, np.int64),
+                np.asarray(k.points_in_kf, float),
+                np.asarray(k.stereo_px, float),
+                np.asarray(k.mono_obs, float),
+                np.asarray(getattr(k, "rect_from_cam", np.eye(4)), float),
+                bool(getattr(k, "connected", True)),
+            )
+            for k in keyframes
+            if lo <= int(k.id) <= hi
+        ]
+        loops = [c.observations for c in self.closures if lo <= c.match_kf and c.query_kf <= hi]
+        K = self.calibration.K_left
+        return {
+            "keyframes": window,
+            "loops": loops,
+            "fx_px": float(K[0, 0]),
+            "fy_px": float(K[1, 1]),
+            "cx_px": float(K[0, 2]),
+            "cy_px": float(K[1, 2]),
+            "baseline_m": self.calibration.baseline_m,
+            "fixed_kf_id": lo,
+        }
+
     def correct(self, keyframes: Sequence[Any], closure: LoopClosure, max_iterations: int = 20) -> GlobalBAResult:
         """Global hybrid BA over the keyframes from the loop's old keyframe to the current
         one (the old keyframe held fixed) with every loop's observations among them."""
-        lo, hi = closure.match_kf, closure.query_kf
-        window = [k for k in keyframes if lo <= int(k.id) <= hi]
-        loops = [c.observations for c in self.closures if lo <= c.match_kf and c.query_kf <= hi]
-        K = self.calibration.K_left
-        return global_hybrid_ba(
-            window,
-            loops,
-            K[0, 0],
-            K[1, 1],
-            K[0, 2],
-            K[1, 2],
-            self.calibration.baseline_m,
-            max_iterations=max_iterations,
-            fixed_kf_id=lo,
-        )
+        return global_hybrid_ba(**self.correction_problem(keyframes, closure), max_iterations=max_iterations)
+
+
+@dataclass
+class BAKeyframe:
+    """The parts of a keyframe the global hybrid BA reads (picklable)."""
+
+    id: int
+    world_from_kf: F64
+    landmark_ids: NDArray[np.int64]
+    points_in_kf: F64
+    stereo_px: F64
+    mono_obs: F64
+    rect_from_cam: F64
+    connected: bool = True

@@ -6,9 +6,10 @@
   after tracking was lost) against the stored keyframes and, when that succeeds, moves
   the new segment into the old map;
 * checks every keyframe for a verified revisit (:class:`~loopmodel.loop.closer.LoopCloser`)
-  and, on one, runs the global hybrid BA over the loop and feeds the corrected keyframe
-  poses back to the tracker (``apply_correction``) and to an optional listener (mesher,
-  back end).
+  and, on one, runs the global hybrid BA over the loop — in a worker process by default,
+  so tracking does not wait — and feeds the corrected keyframe poses back to the tracker
+  (``apply_correction``) and to optional listeners (mesher, back end). Keyframes created
+  while the BA ran move rigidly with the loop's current keyframe.
 
 Each closure and relocalization is recorded as a plain dict (for ``metrics.json``):
 keyframes and frames involved, inliers, correction size, optimisation time.
@@ -17,8 +18,10 @@ keyframes and frames involved, inliers, correction size, optimisation time.
 from __future__ import annotations
 
 import logging
+import multiprocessing as mp
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any, Protocol
 
 import numpy as np
@@ -27,6 +30,7 @@ from numpy.typing import NDArray
 from loopmodel.config import LoopConfig
 from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.closer import LoopCloser, LoopClosure
+from loopmodel.loop.global_ba import GlobalBAResult, global_hybrid_ba
 from loopmodel.types import StereoCalibration
 
 logger = logging.getLogger(__name__)
@@ -61,6 +65,7 @@ class LoopClosingStage:
         calibration: StereoCalibration,
         config: LoopConfig | None = None,
         listeners: list[CorrectionListener] | None = None,
+        background: bool | None = None,
     ) -> None:
         self.tracker = tracker
         self.config = config if config is not None else LoopConfig()
@@ -69,13 +74,19 @@ class LoopClosingStage:
         self.keyframes: dict[int, Any] = {}
         self.events: list[dict[str, Any]] = []
         self.rejected: list[dict[str, Any]] = []
+        #: Run the global BA in a worker process (GTSAM holds the GIL while optimising,
+        #: so a thread would stall tracking) and apply it when done (:meth:`poll`).
+        self.background = self.config.background_ba if background is None else background
+        self._pool: ProcessPoolExecutor | None = None
+        self._pending: tuple[Future[GlobalBAResult], LoopClosure, dict[int, F64], float] | None = None
+        self._rerun: LoopClosure | None = None
 
     # ------------------------------------------------------------------ keyframes
     def on_keyframe(self, kf: Any) -> dict[str, Any] | None:
         """Process a new keyframe; returns the event record of a closure or
         relocalization it caused (None otherwise)."""
         self.keyframes[int(kf.id)] = kf
-        event = None
+        event = self.poll()
         if not getattr(kf, "connected", True) and len(self.keyframes) > 1:
             event = self._relocalize_segment(kf)
         n_rej = len(self.closer.detector.rejected)
@@ -83,7 +94,7 @@ class LoopClosingStage:
         for ev in self.closer.detector.rejected[n_rej:]:
             self.rejected.append({"query_kf": ev.query_id, "match_kf": ev.match_id, "reason": ev.reason})
         if closure is not None:
-            event = self._close(closure)
+            event = self._close(closure) or event
         return event
 
     def _relocalize_segment(self, kf: Any) -> dict[str, Any] | None:
@@ -117,15 +128,66 @@ class LoopClosingStage:
         logger.info("keyframe %d relocalized against keyframe %d", kf.id, kf_id)
         return record
 
-    def _close(self, closure: LoopClosure) -> dict[str, Any]:
-        kfs = [self.keyframes[k] for k in sorted(self.keyframes)]
+    def _close(self, closure: LoopClosure) -> dict[str, Any] | None:
+        """Start the correction of a verified loop (in the worker process when
+        ``background``); returns the record when it was applied right away."""
+        if self._pending is not None:
+            self._rerun = closure  # the running BA finishes first; then this loop's window
+            return None
+        return self._submit(closure)
+
+    def _submit(self, closure: LoopClosure) -> dict[str, Any] | None:
         before = dict(self.tracker.world_from_kf)
+        kfs = [self.keyframes[k] for k in sorted(self.keyframes)]
         for k in kfs:  # the BA starts from the tracker's current estimate
             k.world_from_kf = before.get(int(k.id), k.world_from_kf)
+        problem = self.closer.correction_problem(kfs, closure)
         t0 = time.perf_counter()
-        res = self.closer.correct(kfs, closure)
-        opt_ms = (time.perf_counter() - t0) * 1e3
-        self._apply(res.world_from_kf)
+        if not self.background:
+            return self._finish(closure, global_hybrid_ba(**problem), before, t0)
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
+        self._pending = (self._pool.submit(global_hybrid_ba, **problem), closure, before, t0)
+        return None
+
+    def poll(self, wait: bool = False) -> dict[str, Any] | None:
+        """Apply a finished background correction (``wait``: block until it is done);
+        returns its record. Call once per frame."""
+        if self._pending is None:
+            return None
+        fut, closure, before, t0 = self._pending
+        if not wait and not fut.done():
+            return None
+        self._pending = None
+        try:
+            res = fut.result()
+        except Exception as exc:  # a failed correction is logged, never applied
+            logger.warning("loop %d -> %d: correction failed (%s)", closure.query_kf, closure.match_kf, exc)
+            record = None
+        else:
+            record = self._finish(closure, res, before, t0)
+        if self._rerun is not None:
+            again, self._rerun = self._rerun, None
+            self._submit(again)
+        return record
+
+    def finish(self) -> None:
+        """Wait for and apply every pending correction; stop the worker process."""
+        while self._pending is not None:
+            self.poll(wait=True)
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+    def _finish(self, closure: LoopClosure, res: GlobalBAResult, before: dict[int, F64], t0: float) -> dict[str, Any]:
+        corrected = dict(res.world_from_kf)
+        # keyframes created while the BA ran move with the loop's current keyframe
+        now = self.tracker.world_from_kf
+        delta = corrected[closure.query_kf] @ invert_pose(before[closure.query_kf])
+        for k, T in now.items():
+            if k > closure.query_kf and k in self.keyframes:
+                corrected[k] = delta @ T
+        self._apply(corrected)
         trans, rot = _motion(before[closure.query_kf], res.world_from_kf[closure.query_kf])
         record = {
             "type": "loop",
@@ -138,19 +200,22 @@ class LoopClosingStage:
             "loop_observations": int(closure.observations.landmark_ids.size),
             "correction_m": trans,
             "correction_deg": rot,
-            "optimise_ms": opt_ms,
+            "optimise_ms": (res.solve_s + res.build_s) * 1e3,
+            "applied_after_ms": (time.perf_counter() - t0) * 1e3,
+            "applied_at_keyframe": max(self.keyframes),
             "parameters": res.n_parameters,
             "residuals": res.n_residuals,
             "keyframes_optimised": len(res.world_from_kf),
+            "keyframes_moved_along": len(corrected) - len(res.world_from_kf),
         }
         self.events.append(record)
         logger.info(
-            "loop %d -> %d closed: correction %.3f m / %.2f deg, BA %.0f ms",
+            "loop %d -> %d corrected: %.3f m / %.2f deg, BA %.0f ms",
             closure.query_kf,
             closure.match_kf,
             trans,
             rot,
-            opt_ms,
+            record["optimise_ms"],
         )
         return record
 
