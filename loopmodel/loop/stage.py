@@ -182,11 +182,19 @@ class LoopClosingStage:
     def _finish(self, closure: LoopClosure, res: GlobalBAResult, before: dict[int, F64], t0: float) -> dict[str, Any]:
         corrected = dict(res.world_from_kf)
         # keyframes created while the BA ran move with the loop's current keyframe
+        # (through their measured relative transforms when they have them)
         now = self.tracker.world_from_kf
         delta = corrected[closure.query_kf] @ invert_pose(before[closure.query_kf])
-        for k, T in now.items():
-            if k > closure.query_kf and k in self.keyframes:
-                corrected[k] = delta @ T
+        for k in sorted(now):
+            if k <= closure.query_kf or k not in self.keyframes:
+                continue
+            kf = self.keyframes[k]
+            prev = getattr(kf, "prev_keyframe_id", None)
+            rel = getattr(kf, "kf_prev_from_kf", None)
+            if getattr(kf, "connected", False) and rel is not None and prev in corrected:
+                corrected[k] = corrected[prev] @ np.asarray(rel)
+            else:
+                corrected[k] = delta @ now[k]
         self._apply(corrected)
         trans, rot = _motion(before[closure.query_kf], res.world_from_kf[closure.query_kf])
         record = {

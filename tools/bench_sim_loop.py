@@ -1,0 +1,157 @@
+"""Benchmark ``sim-loop``: loop closing on the simulator's orbit scan (and its browse scan).
+
+The front end tracks the sequence; every keyframe goes to the loop-closing stage
+(place recognition, verification, global hybrid BA in a worker process, correction fed
+back to the tracker). ``before`` is dead reckoning: the keyframes chained by their
+measured relative transforms (what the run gives without loop closing); ``after`` is the
+final trajectory (corrected keyframe poses, each frame through its keyframe). ATE is after
+SE(3) alignment to ground truth; the end-point error is the last frame's position error
+with both trajectories expressed relative to their first frame (drift over the loop). A
+loop is false when its relative keyframe pose disagrees with ground truth by more than
+5 cm or 2 degrees. The ``browse`` scan (no revisit) must close no loop.
+
+Sequences: ``datasets/sample/scan.mcap`` (``make demo``) and ``datasets/sample/browse.mcap``;
+each is generated with ``loopmodel simulate scan`` when missing (slow: minutes).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from loopmodel.config import Config
+from loopmodel.geometry.align import umeyama_alignment
+from loopmodel.geometry.se3 import invert_pose, so3_log
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "datasets" / "sample"
+
+
+def _ensure(path: Path, preset: str, frames: int | None = None) -> Path:
+    if path.is_file():
+        return path
+    from loopmodel.sim.generate import resolve_config, simulate_scan
+
+    cfg = Config()
+    over: dict[str, Any] = {"trajectory": {"frames": frames}} if frames else {}
+    sim = resolve_config(cfg.simulation, preset, over, None)
+    print(f"generating {path} ({preset}) ...")
+    simulate_scan(sim, path, cfg.sequence.topics, None, preset)
+    return path
+
+
+def run_sequence(path: Path, config: Config, max_frames: int | None = None) -> dict[str, Any]:
+    """Front end + loop closing over one sequence; trajectories and loop events."""
+    from loopmodel.frontend import FrontEnd
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.loop.stage import LoopClosingStage
+
+    seq = open_sequence(path, config.sequence)
+    fe = FrontEnd(seq.calibration, config.frontend)
+    stage = LoopClosingStage(fe, fe.calibration, config.loop)
+    link: list[tuple[int, np.ndarray]] = []
+    kf_chain: dict[int, tuple[int | None, np.ndarray | None, bool, np.ndarray]] = {}
+    status: list[str] = []
+    t0 = time.perf_counter()
+    n = 0
+    try:
+        for fr in seq.frames():
+            if max_frames is not None and n >= max_frames:
+                break
+            r = fe.process(fr)
+            n += 1
+            link.append((r.keyframe_id, r.kf_from_cam))
+            status.append(r.status)
+            if r.keyframe is not None:
+                kf = r.keyframe
+                kf_chain[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf, kf.connected, kf.world_from_kf.copy())
+                stage.on_keyframe(kf)
+            else:
+                stage.poll()
+    finally:
+        stage.finish()
+    wall = time.perf_counter() - t0
+    dr: dict[int, np.ndarray] = {}
+    for k in sorted(kf_chain):
+        prev, rel, connected, live = kf_chain[k]
+        dr[k] = dr[prev] @ rel if connected and prev in dr and rel is not None else live
+    final_kf = fe.world_from_kf
+    before = np.array([dr[k] @ T for k, T in link])
+    after = np.array([final_kf[k] @ T for k, T in link])
+    gt = seq.ground_truth
+    return {
+        "before": before,
+        "after": after,
+        "gt": gt.world_from_cam[: len(link)] if gt is not None else None,
+        "stage": stage,
+        "keyframes": {k: v[3] for k, v in kf_chain.items()},
+        "kf_frames": {k: int(getattr(stage.keyframes[k], "frame_index", -1)) for k in stage.keyframes},
+        "frames": n,
+        "wall_s": wall,
+        "lost": sum(s != "OK" for s in status),
+    }
+
+
+def _ate(est: np.ndarray, gt: np.ndarray) -> float:
+    R, t, _ = umeyama_alignment(est[:, :3, 3], gt[:, :3, 3], with_scale=False)
+    p = est[:, :3, 3] @ np.asarray(R).T + t
+    return float(np.sqrt(np.mean(np.sum((p - gt[:, :3, 3]) ** 2, axis=1))))
+
+
+def _endpoint(est: np.ndarray, gt: np.ndarray) -> float:
+    e = invert_pose(est[0]) @ est[-1]
+    g = invert_pose(gt[0]) @ gt[-1]
+    return float(np.linalg.norm(e[:3, 3] - g[:3, 3]))
+
+
+def _false_loops(out: dict[str, Any]) -> int:
+    gt = out["gt"]
+    bad = 0
+    final = out["after"]
+    for ev in out["stage"].events:
+        f_q, f_m = ev["frame"], ev["match_frame"]
+        if f_q < 0 or f_m < 0:
+            continue
+        est_rel = invert_pose(final[f_m]) @ final[f_q]
+        gt_rel = invert_pose(gt[f_m]) @ gt[f_q]
+        d = invert_pose(gt_rel) @ est_rel
+        if np.linalg.norm(d[:3, 3]) > 0.05 or np.degrees(np.linalg.norm(so3_log(d[:3, :3]))) > 2.0:
+            bad += 1
+    return bad
+
+
+def run(quick: bool = False) -> dict[str, Any]:
+    logging.basicConfig(level=logging.WARNING)
+    config = Config()
+    orbit = _ensure(SAMPLE / "scan.mcap", "orbit")
+    out = run_sequence(orbit, config)
+    gt = out["gt"]
+    loops = [e for e in out["stage"].events if e["type"] == "loop"]
+    result: dict[str, Any] = {
+        "dataset": f"simulator orbit sample ({orbit.name})",
+        "frames": out["frames"],
+        "fps": round(out["frames"] / out["wall_s"], 2),
+        "lost_frames": out["lost"],
+        "ate_rmse_before_m": round(_ate(out["before"], gt), 5),
+        "ate_rmse_after_m": round(_ate(out["after"], gt), 5),
+        "endpoint_err_before_m": round(_endpoint(out["before"], gt), 5),
+        "endpoint_err_after_m": round(_endpoint(out["after"], gt), 5),
+        "loops_closed": len(loops),
+        "false_loops": _false_loops(out),
+        "relocalizations": len(out["stage"].events) - len(loops),
+        "loop_candidates_rejected": len(out["stage"].rejected),
+        "loop_optimise_ms_median": round(float(np.median([e["optimise_ms"] for e in loops])), 1) if loops else None,
+        "mesh_err_before_mm": None,
+        "mesh_err_after_mm": None,
+    }
+    if not quick:
+        browse = _ensure(SAMPLE / "browse.mcap", "browse")
+        b = run_sequence(browse, config)
+        result["browse_frames"] = b["frames"]
+        result["browse_loops_closed"] = sum(e["type"] == "loop" for e in b["stage"].events)
+        result["browse_false_loops"] = _false_loops(b)
+    return result
