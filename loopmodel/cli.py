@@ -111,6 +111,197 @@ def convert(
     console.print(f"wrote {dst} ({dst.stat().st_size / 2**20:.1f} MiB, {len(seq)} frames)")
 
 
+@app.command()
+def mesh(
+    source: Annotated[
+        Path, typer.Argument(help="Results folder (stripes.npz + trajectory) or a sequence with ground truth")
+    ],
+    fmt: Annotated[str, typer.Option("--format", "-f", help="ply (binary), obj, stl or glb")] = "ply",
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output file (default RESULTS_DIR/mesh.FMT)")] = None,
+    trajectory: Annotated[str, typer.Option("--trajectory", help="final or online poses of a run")] = "final",
+    gt_mesh: Annotated[
+        Path | None,
+        typer.Option("--gt-mesh", help="Ground-truth mesh (.ply, or .mcap with scene.ply): print accuracy"),
+    ] = None,
+    gt_attachment: Annotated[
+        str, typer.Option("--gt-attachment", help="Attachment of an .mcap --gt-mesh (e.g. object.ply)")
+    ] = "scene.ply",
+    config: ConfigOption = None,
+) -> None:
+    """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run)."""
+    from loopmodel.io.mesh_io import MESH_FORMATS, read_mesh, write_mesh
+    from loopmodel.io.stripes_io import load_stripes_and_poses
+    from loopmodel.mapping.stripe_map import StripeMap
+
+    fmt = fmt.lower()
+    if fmt not in MESH_FORMATS:
+        raise InputError(None, f"--format must be one of {', '.join(MESH_FORMATS)}, got '{fmt}'")
+    cfg = load_config(config)
+    stripes, traj, poses = load_stripes_and_poses(source, trajectory, cfg.sequence)
+    smap = StripeMap.from_trajectory(traj, stripes, cfg.mapping)
+    smap.check_nonempty()
+    surface = smap.mesh()
+    target = out or (source / f"mesh.{fmt}" if source.is_dir() else source.with_name(f"{source.stem}_mesh.{fmt}"))
+    write_mesh(target, surface, fmt)
+    console.print(
+        f"wrote {target} ({len(surface.vertices)} vertices, {len(surface.triangles)} triangles, "
+        f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes, poses: {poses})"
+    )
+    if gt_mesh is not None:
+        from loopmodel.mapping.accuracy import mesh_accuracy
+
+        acc = mesh_accuracy(surface, read_mesh(gt_mesh, gt_attachment))
+        console.print(
+            f"accuracy: mean {acc.mean_mm:.3f} mm, p95 {acc.p95_mm:.3f} mm, "
+            f"completeness {100 * acc.completeness:.1f} % within {acc.completeness_tol_mm:g} mm"
+        )
+
+
+simulate_app = typer.Typer(help="Synthetic data.", no_args_is_help=True)
+app.add_typer(simulate_app, name="simulate")
+
+
+@simulate_app.command("scan")
+def simulate_scan_cmd(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output .mcap file")],
+    preset: Annotated[str | None, typer.Option("--preset", help="orbit, sweeps or browse")] = None,
+    frames: Annotated[int | None, typer.Option("--frames", help="Number of frames")] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="Random seed")] = None,
+    scene: Annotated[str | None, typer.Option("--scene", help="bust, box or mix")] = None,
+    width: Annotated[int | None, typer.Option("--width", help="Image width (px)")] = None,
+    height: Annotated[int | None, typer.Option("--height", help="Image height (px)")] = None,
+    baseline: Annotated[float | None, typer.Option("--baseline", help="Stereo baseline (m)")] = None,
+    rate: Annotated[float | None, typer.Option("--rate", help="Frame rate (Hz)")] = None,
+    noise: Annotated[float | None, typer.Option("--noise", help="Image noise sigma (grey levels)")] = None,
+    fault: Annotated[
+        list[str] | None,
+        typer.Option("--fault", help="KIND:FIRST[-LAST], repeatable; KIND: dropped, blackout, blur, occluder, "
+                     "duplicate_timestamp"),
+    ] = None,
+    laser_image: Annotated[
+        bool | None, typer.Option("--laser-image/--no-laser-image", help="Also write /laser/image")
+    ] = None,
+    workers: Annotated[int | None, typer.Option("--workers", help="Render processes (0: one per core)")] = None,
+    image_format: Annotated[str | None, typer.Option("--image-format", help="png, jpeg or raw")] = None,
+    config: ConfigOption = None,
+) -> None:
+    """Generate a synthetic hand-held scan (stereo, laser stripes, ground truth) as MCAP."""
+    from loopmodel.sim.generate import resolve_config, simulate_scan
+
+    cfg = load_config(config)
+    sim = resolve_config(
+        cfg.simulation, preset,
+        {"trajectory": {"frames": frames, "rate_hz": rate}, "scene": {"kind": scene},
+         "camera": {"width_px": width, "height_px": height, "baseline_m": baseline},
+         "render": {"noise_sigma": noise}, "laser": {"image": laser_image}},
+        fault,
+    )
+    updates: dict[str, Any] = {}
+    if seed is not None:
+        updates["seed"] = seed
+    if workers is not None:
+        updates["workers"] = workers
+    if image_format is not None:
+        updates["image_format"] = image_format
+    if updates:
+        sim = resolve_config(sim.model_copy(update=updates))
+    with progress_bar() as bar:
+        task = bar.add_task("simulate", total=sim.trajectory.frames)
+        res = simulate_scan(sim, out, cfg.sequence.topics, lambda k, n: bar.update(task, completed=k), preset)
+    console.print(
+        f"wrote {res.path} ({res.size_bytes / 2**20:.1f} MiB, {res.frames_written} frames, "
+        f"{res.stripes_written} stripes, {len(res.faults)} faults) in {res.seconds:.1f} s: "
+        f"{res.ms_per_frame:.1f} ms/frame (setup {res.setup_seconds:.1f} s, "
+        f"render {res.render_ms_median:.1f} ms/frame per worker)"
+    )
+
+
+_MARKER_HELP = "triangle, t or a marker JSON file; repeat to compare (default: triangle and t)"
+_NOISE_HELP = "N0/2 [contrast^2 px^2]: noise variance of a 1 px x 1 px cell (default 0.2)"
+
+
+@app.command()
+def bound(
+    out: Annotated[Path, typer.Option("--out", help="Output folder")],
+    marker: Annotated[list[str] | None, typer.Option("--marker", help=_MARKER_HELP)] = None,
+    distance_m: Annotated[float | None, typer.Option("--distance-m", help="Distance R [m]")] = None,
+    focal_mm: Annotated[float | None, typer.Option("--focal-mm", help="Focal length [mm]")] = None,
+    noise: Annotated[float | None, typer.Option("--noise", help=_NOISE_HELP)] = None,
+    pixel_um: Annotated[
+        float | None, typer.Option("--pixel-um", help="Pixel pitch [um]: the image length unit")
+    ] = None,
+    pixel_study: Annotated[
+        bool, typer.Option("--pixel-study/--no-pixel-study", help="Also the finite-pixel bound")
+    ] = True,
+    config: ConfigOption = None,
+) -> None:
+    """Cramér–Rao bound of camera position from a marker contour over the (θ, φ) grid (seed 001)."""
+    import time
+
+    import numpy as np
+
+    from loopmodel.accuracy.fisher import bound_grid
+    from loopmodel.accuracy.marker import load_marker
+    from loopmodel.accuracy.report import (
+        pixel_study as run_pixel_study,
+    )
+    from loopmodel.accuracy.report import (
+        plot_pixel_study,
+        summary_markdown,
+        write_grid_outputs,
+        write_summary,
+    )
+    from loopmodel.io.atomic import write_text_atomic
+
+    cfg = load_config(config)
+    given = {"distance_m": distance_m, "focal_mm": focal_mm, "noise": noise, "pixel_um": pixel_um}
+    for key, val in given.items():
+        if val is not None and not val > 0:
+            raise InputError(None, f"--{key.replace('_', '-')} must be > 0, got {val}")
+    acc = cfg.accuracy.model_copy(update={k: v for k, v in given.items() if v is not None})
+    cfg = cfg.model_copy(update={"accuracy": acc})
+    markers = [load_marker(m) for m in (marker or ["triangle", "t"])]
+    if len({m.name for m in markers}) != len(markers):
+        raise InputError(None, "two markers share a name; give each JSON file a distinct 'name'")
+    t0 = time.perf_counter()
+    grids = [
+        bound_grid(
+            m,
+            acc.distance_m,
+            acc.focal_mm,
+            acc.noise,
+            acc.pixel_um,
+            acc.theta_deg,
+            acc.phi_deg,
+            acc.edge_subdivisions,
+            acc.circle_points,
+        )
+        for m in markers
+    ]
+    grid_ms = (time.perf_counter() - t0) * 1e3
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / "config.yaml", dump_config(cfg))
+    for g in grids:
+        write_grid_outputs(g, out)
+    studies = {}
+    if pixel_study:
+        with progress_bar() as bar:
+            task = bar.add_task("pixel-size study", total=len(markers))
+            for m, g in zip(markers, grids, strict=True):
+                studies[m.name] = run_pixel_study(m, g, acc.pixel_study_px)
+                bar.advance(task)
+        plot_pixel_study(studies, acc.pixel_um, out / "pixel_size.png")
+    write_summary(summary_markdown(grids, studies, grid_ms), out)
+    table = Table(title=f"CRLB over {len(acc.theta_deg)}x{len(acc.phi_deg)} grid (median)")
+    for col in ("marker", "σ_r [m]", "σ_v [m]", "σ_u [m]", "σ_γ [deg]"):
+        table.add_column(col)
+    for g in grids:
+        med = np.median(g.bound.sigma, axis=(0, 1))
+        table.add_row(g.marker, *(f"{float(x):.4g}" for x in med))
+    console.print(table)
+    console.print(f"wrote {out} (grid in {grid_ms:.1f} ms)")
+
+
 @config_app.command("dump")
 def config_dump(config: ConfigOption = None) -> None:
     """Print the effective configuration (defaults overridden by --config) as YAML."""

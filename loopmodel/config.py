@@ -7,10 +7,10 @@ Every run writes the effective configuration into its results folder.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from loopmodel.errors import ConfigError
 
@@ -45,6 +45,168 @@ class OutputConfig(_Section):
     out_dir: str = "results"
     write_kitti: bool = False
     image_format: str = Field("png", pattern="^(raw|png|jpeg)$", description="MCAP image encoding")
+
+
+class MappingConfig(_Section):
+    """Laser-stripe integration and open3d meshing (lengths in metres, world frame)."""
+
+    method: str = Field(default="poisson", pattern="^(poisson|ball_pivoting)$", description="surface method")
+    voxel_m: float = Field(default=0.0015, gt=0, description="voxel down-sampling size before meshing")
+    normal_radius_m: float = Field(default=0.006, gt=0, description="neighbourhood radius for normals")
+    normal_max_nn: int = Field(default=20, ge=3, description="max neighbours for normals")
+    line_ratio: float = Field(
+        default=0.003, ge=0, lt=1, description="eigenvalue ratio below which a neighbourhood is a line"
+    )
+    poisson_depth: int = Field(default=0, ge=0, le=12, description="octree depth; 0 = from voxel_m")
+    poisson_max_depth: int = Field(default=10, ge=4, le=12, description="cap on the derived depth")
+    poisson_scale: float = Field(default=1.1, gt=1.0, description="bounding cube / samples' box")
+    poisson_linear_fit: bool = True
+    density_quantile: float = Field(
+        default=0.02, ge=0, lt=1, description="trim vertices below this density quantile"
+    )
+    trim_distance_m: float = Field(
+        default=0.0, ge=0, description="drop vertices farther from the samples; 0 = 2.5 x voxel_m"
+    )
+    bpa_radii_m: list[float] = Field(
+        default_factory=list, description="ball-pivoting radii; empty = 1.5, 3, 6 x voxel_m"
+    )
+    max_stripe_gap_ns: int = Field(
+        default=200_000_000, ge=0, description="widest frame interval a stripe is interpolated in"
+    )
+    chunk_m: float = Field(default=0.05, gt=0, description="block edge of the chunked live mesh")
+    chunk_margin_m: float = Field(default=0.006, ge=0, description="overlap meshed around a live block")
+    min_points: int = Field(default=100, ge=4, description="fewest points a surface is made from")
+    laser_plane_point_in_cam_m: list[float] = Field(
+        default_factory=lambda: [0.12, 0.0, 0.0],
+        min_length=3,
+        max_length=3,
+        description="a point of the calibrated light plane (left-camera frame)",
+    )
+    laser_plane_normal_in_cam: list[float] = Field(
+        default_factory=lambda: [0.977, 0.0, 0.213],
+        min_length=3,
+        max_length=3,
+        description="normal of the calibrated light plane (left-camera frame)",
+    )
+    peak_min_contrast: float = Field(
+        default=20.0, ge=0, description="laser line: min peak above the background (grey levels)"
+    )
+    peak_window_px: int = Field(default=3, ge=1, description="laser line: half-width of the window")
+    peak_method: str = Field(default="cog", pattern="^(cog|gauss)$", description="sub-pixel method")
+    peak_axis: str = Field(
+        default="rows", pattern="^(columns|rows)$", description="one peak per image row (vertical line) or column"
+    )
+
+
+# ----------------------------------------------------------------------------- simulation (issue 3)
+
+
+class SimCameraConfig(_Section):
+    """Rectified stereo pair of the simulator (pixels, metres); ``xi > 0`` renders the unified
+    central model (omnidirectional). Principal point defaults to the image centre."""
+
+    width_px: int = Field(640, gt=0)
+    height_px: int = Field(480, gt=0)
+    fx_px: float = Field(500.0, gt=0)
+    fy_px: float | None = Field(None, gt=0, description="defaults to fx_px")
+    cx_px: float | None = Field(None, description="defaults to (width_px - 1) / 2")
+    cy_px: float | None = Field(None, description="defaults to (height_px - 1) / 2")
+    xi: float = Field(0.0, ge=0, description="unified-model mirror parameter; 0 is a pinhole")
+    baseline_m: float = Field(0.06, gt=0, description="left-to-right camera distance along x")
+
+
+class SimSceneConfig(_Section):
+    """The scanned object on a table in a room."""
+
+    kind: Literal["bust", "box", "mix"] = "bust"
+    object_height_m: float = Field(0.5, gt=0.05, le=2.0)
+    room: bool = Field(True, description="table legs, floor, walls, shelves around the table")
+    texture_size_px: int = Field(2048, ge=64, le=8192, description="side of each procedural texture")
+
+
+class SimRenderConfig(_Section):
+    """Image formation: Lambertian shading, light, exposure, noise, blur."""
+
+    noise_sigma: float = Field(2.0, ge=0, description="Gaussian image noise (grey levels of 255)")
+    ambient: float = Field(0.3, ge=0, le=1, description="ambient share of the lighting")
+    brightness: float = Field(1.0, gt=0, description="global gain")
+    light: Literal["fixed", "moving", "headlamp"] = "moving"
+    light_position_m: list[float] = Field(default_factory=lambda: [0.4, -0.6, 1.4], min_length=3, max_length=3)
+    light_motion_radius_m: float = Field(0.3, ge=0, description="'moving': circle radius")
+    light_period_s: float = Field(40.0, gt=0, description="'moving': time of one light circle")
+    exposure_s: float = Field(0.004, ge=0, description="exposure time for motion blur")
+    motion_blur: bool = True
+    exposure_variation: float = Field(0.0, ge=0, lt=1, description="relative gain wander")
+
+
+class SimTrajectoryConfig(_Section):
+    """Hand-held path around the object (world z up, object on the table at the origin)."""
+
+    kind: Literal["orbit", "sweeps", "browse"] = "orbit"
+    frames: int = Field(600, gt=0)
+    rate_hz: float = Field(25.0, gt=0)
+    radius_m: float = Field(0.65, gt=0, description="camera distance from the object axis")
+    height_m: float = Field(0.35, description="camera height above the table")
+    sweeps: int = Field(3, ge=1, description="'sweeps': number of back-and-forth sweeps")
+    shake_translation_m: float = Field(0.002, ge=0)
+    shake_rotation_deg: float = Field(0.3, ge=0)
+    start_time_ns: int = Field(1_000_000_000, ge=0)
+
+
+class SimLaserConfig(_Section):
+    """Laser-stripe profiler: a light plane fixed in the left-camera frame."""
+
+    enabled: bool = True
+    origin_in_cam_m: list[float] = Field(
+        default_factory=lambda: [0.12, 0.0, 0.0], min_length=3, max_length=3,
+        description="laser 12 cm right of the left camera",
+    )
+    normal_in_cam: list[float] = Field(
+        default_factory=lambda: [0.977, 0.0, 0.213], min_length=3, max_length=3,
+        description="vertical plane crossing the optical axis about 0.55 m ahead",
+    )
+    fan_deg: float = Field(70.0, gt=0, lt=180)
+    rays: int = Field(640, ge=2)
+    range_noise_m: float = Field(0.0002, ge=0)
+    max_range_m: float = Field(1.2, gt=0, description="measuring range: farther points are not reported")
+    image: bool = Field(False, description="also write /laser/image")
+
+
+class SimFaultsConfig(_Section):
+    """Faults on demand; frame indices count generated frames from 0, ranges are inclusive."""
+
+    dropped: list[int] = Field(default_factory=list)
+    blackout: list[tuple[int, int]] = Field(default_factory=list)
+    blur: list[tuple[int, int]] = Field(default_factory=list)
+    occluder: list[tuple[int, int]] = Field(default_factory=list)
+    duplicate_timestamp: list[int] = Field(default_factory=list)
+    blur_length_px: float = Field(15.0, gt=0)
+
+
+class SimulationConfig(_Section):
+    """Synthetic scan generator (``loopmodel simulate scan``)."""
+
+    seed: int = Field(0, ge=0)
+    camera: SimCameraConfig = Field(default_factory=SimCameraConfig)
+    scene: SimSceneConfig = Field(default_factory=SimSceneConfig)
+    render: SimRenderConfig = Field(default_factory=SimRenderConfig)
+    trajectory: SimTrajectoryConfig = Field(default_factory=SimTrajectoryConfig)
+    laser: SimLaserConfig = Field(default_factory=SimLaserConfig)
+    faults: SimFaultsConfig = Field(default_factory=SimFaultsConfig)
+    workers: int = Field(2, ge=0, description="render processes; 0 = one per core, 1 = in-process")
+    image_format: str = Field("png", pattern="^(raw|png|jpeg)$")
+    write_scene_ply: bool = Field(True, description="also write <out>.scene.ply beside the MCAP")
+
+    @model_validator(mode="after")
+    def _faults_within_frames(self) -> SimulationConfig:
+        n = self.trajectory.frames
+        f = self.faults
+        ranges = [("dropped", i, i) for i in f.dropped] + [("duplicate_timestamp", i, i) for i in f.duplicate_timestamp]
+        ranges += [(k, a, b) for k in ("blackout", "blur", "occluder") for a, b in getattr(f, k)]
+        for kind, a, b in ranges:
+            if a > b or a < 0 or b >= n:
+                raise ValueError(f"faults.{kind}: frames {a}-{b} outside 0-{n - 1} (or first > last)")
+        return self
 
 
 class EvalConfig(_Section):
@@ -88,13 +250,30 @@ class LoopConfig(_Section):
     background_ba: bool = Field(True, description="global BA in a worker process")
 
 
+class AccuracyConfig(_Section):
+    """Marker-pose Cramér–Rao bound (``loopmodel bound``, seed 001)."""
+
+    distance_m: float = Field(50.0, gt=0, description="camera-to-marker distance R")
+    focal_mm: float = Field(18.0, gt=0, description="focal length")
+    pixel_um: float = Field(10.0, gt=0, description="pixel pitch: the image length unit")
+    noise: float = Field(0.2, gt=0, description="N0/2, contrast^2 px^2 (variance on a 1 px cell)")
+    theta_deg: list[float] = Field(default_factory=lambda: [5.0 + 10.0 * k for k in range(7)])
+    phi_deg: list[float] = Field(default_factory=lambda: [10.0 * k for k in range(36)])
+    edge_subdivisions: int = Field(64, ge=1, description="trapezoid sub-intervals per polygon edge")
+    circle_points: int = Field(256, ge=8, description="trapezoid points per circle")
+    pixel_study_px: list[float] = Field(default_factory=lambda: [0.25, 0.5, 1.0, 2.0, 4.0])
+
+
 class Config(_Section):
     """The whole configuration of loopmodel."""
 
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    mapping: MappingConfig = Field(default_factory=MappingConfig)
     eval: EvalConfig = Field(default_factory=EvalConfig)
     loop: LoopConfig = Field(default_factory=LoopConfig)
+    accuracy: AccuracyConfig = Field(default_factory=AccuracyConfig)
+    simulation: SimulationConfig = Field(default_factory=SimulationConfig)
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

@@ -4,6 +4,7 @@ from loopmodel.geometry.align import umeyama_alignment
 from loopmodel.geometry.se3 import (
     hat,
     interpolate_pose,
+    interpolate_poses,
     invert_pose,
     make_pose,
     quat_wxyz_from_rotation,
@@ -17,6 +18,7 @@ from loopmodel.geometry.se3 import (
 __all__ = [
     "hat",
     "interpolate_pose",
+    "interpolate_poses",
     "invert_pose",
     "make_pose",
     "quat_wxyz_from_rotation",

@@ -155,3 +155,22 @@ def is_rotation(R: ArrayLike, tol: float = 1e-6) -> bool:
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         return False
     return bool(np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1) < tol)
+
+
+def interpolate_poses(a_from_b0: ArrayLike, a_from_b1: ArrayLike, alpha: ArrayLike) -> F64:
+    """Vectorised :func:`interpolate_pose` for N pose pairs (N x 4 x 4 each) and N fractions:
+    rotation along the SO(3) geodesic, translation linear. Returns N x 4 x 4 poses."""
+    from scipy.spatial.transform import Rotation
+
+    T0 = np.asarray(a_from_b0, dtype=float).reshape(-1, 4, 4)
+    T1 = np.asarray(a_from_b1, dtype=float).reshape(-1, 4, 4)
+    a = np.asarray(alpha, dtype=float).reshape(-1)
+    R0 = T0[:, :3, :3]
+    R_rel = np.einsum("nji,njk->nik", R0, T1[:, :3, :3])
+    rotvec = Rotation.from_matrix(R_rel).as_rotvec()
+    dR = Rotation.from_rotvec(rotvec * a[:, None]).as_matrix()
+    out = np.zeros((T0.shape[0], 4, 4))
+    out[:, :3, :3] = np.einsum("nij,njk->nik", R0, dR)
+    out[:, :3, 3] = (1.0 - a)[:, None] * T0[:, :3, 3] + a[:, None] * T1[:, :3, 3]
+    out[:, 3, 3] = 1.0
+    return out

@@ -1,0 +1,104 @@
+"""Laser-stripe profiles of a run as one ``stripes.npz`` in the results folder.
+
+Arrays: ``timestamps_ns`` (S, int64), ``counts`` (S, int64: points per stripe, in order),
+``points_in_cam`` (sum(counts) x 3, float32, metres, left-camera frame) and ``meta`` (a
+short text saying so). Stripes stay in the sensor frame; the run's trajectories place them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+
+from loopmodel.config import SequenceConfig
+from loopmodel.errors import FormatError, InputError
+from loopmodel.io.atomic import atomic_path
+from loopmodel.types import StripeProfile, Trajectory
+
+STRIPES_FILE = "stripes.npz"
+META = "loopmodel stripes v1: points_in_cam float32 metres, left-camera frame (x right, y down, z forward)"
+
+
+def save_stripes(path: str | Path, stripes: Iterable[StripeProfile]) -> Path:
+    """Write the profiles atomically to ``path`` (a .npz file)."""
+    stripes = list(stripes)
+    t = np.array([s.timestamp_ns for s in stripes], dtype=np.int64)
+    pts = [np.asarray(s.points_in_cam, dtype=np.float64).reshape(-1, 3) for s in stripes]
+    counts = np.array([p.shape[0] for p in pts], dtype=np.int64)
+    allp = np.concatenate(pts).astype(np.float32) if pts else np.zeros((0, 3), np.float32)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, timestamps_ns=t, counts=counts, points_in_cam=allp, meta=np.array(META))
+    return Path(path)
+
+
+def load_stripes(path: str | Path) -> list[StripeProfile]:
+    """Read profiles written by :func:`save_stripes`; a folder means its ``stripes.npz``."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / STRIPES_FILE
+    if not p.is_file():
+        raise InputError(p, "no laser stripes here (expected a stripes.npz written by the pipeline)")
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            missing = {"timestamps_ns", "counts", "points_in_cam"} - set(z.files)
+            if missing:
+                raise FormatError(p, f"missing arrays {sorted(missing)}")
+            t = z["timestamps_ns"].astype(np.int64).ravel()
+            counts = z["counts"].astype(np.int64).ravel()
+            pts = z["points_in_cam"].astype(np.float64)
+    except (OSError, ValueError) as exc:
+        raise FormatError(p, f"not a readable .npz file ({exc})") from None
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise FormatError(p, f"points_in_cam must be P x 3, got {pts.shape}")
+    if t.shape != counts.shape or np.any(counts < 0) or int(counts.sum()) != pts.shape[0]:
+        raise FormatError(p, "timestamps_ns, counts and points_in_cam do not agree")
+    bad = np.flatnonzero(~np.all(np.isfinite(pts), axis=1))
+    if bad.size:
+        s = int(np.searchsorted(np.cumsum(counts), bad[0], side="right"))
+        raise FormatError(p, f"stripe {s} (t={int(t[s])} ns) has non-finite points")
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    return [StripeProfile(int(t[i]), pts[bounds[i] : bounds[i + 1]]) for i in range(t.shape[0])]
+
+
+def load_stripes_and_poses(
+    source: str | Path, trajectory: str = "final", sequence_config: SequenceConfig | None = None
+) -> tuple[list[StripeProfile], Trajectory, str]:
+    """Stripes and the poses to place them with, from a results folder (``stripes.npz`` and
+    ``trajectory_<final|online>.tum``; final falls back to online) or from a recorded
+    sequence with stripes and ground truth (e.g. a simulator MCAP). Returns the stripes, the
+    ``world_from_cam`` trajectory and a name for the poses used."""
+    from loopmodel.io.trajectory_io import read_trajectory
+
+    p = Path(source)
+    if not p.exists():
+        raise InputError(p, "results folder does not exist")
+    run_files = (STRIPES_FILE, "trajectory_final.tum", "trajectory_online.tum")
+    if p.is_dir() and any((p / f).exists() for f in run_files):
+        if trajectory not in ("final", "online"):
+            raise InputError(p, f"a results folder has final or online poses, not '{trajectory}'")
+        traj_path = p / f"trajectory_{trajectory}.tum"
+        if trajectory == "final" and not traj_path.is_file():
+            traj_path = p / "trajectory_online.tum"
+        if not traj_path.is_file():
+            raise InputError(p, f"no trajectory_{trajectory}.tum in the results folder")
+        stripes = load_stripes(p)
+        if not stripes:
+            raise InputError(p / STRIPES_FILE, "no laser stripes in the stripe file")
+        return stripes, read_trajectory(traj_path), traj_path.name
+    from loopmodel.io.sequence import open_sequence
+
+    try:
+        seq = open_sequence(p, sequence_config)
+    except InputError:
+        if p.is_dir():
+            raise InputError(p, f"no laser stripes here (expected a results folder with {STRIPES_FILE})") from None
+        raise
+    gt = seq.ground_truth
+    if gt is None:
+        raise InputError(p, "sequence has no ground-truth poses to place its stripes with")
+    stripes = list(seq.stripes())
+    if not stripes:
+        raise InputError(p, "no laser stripes in this sequence")
+    return stripes, gt, "ground truth"

@@ -1,0 +1,39 @@
+"""Mapping: laser-stripe extraction, stripe-to-world integration, open3d meshing, accuracy.
+
+Pipeline use (poses ``world_from_*`` 4x4 in metres, times in ns)::
+
+    smap = StripeMap(config.mapping)
+    smap.set_keyframe(kf_id, world_from_kf)             # each new keyframe
+    smap.add_frame(t_ns, kf_id=kf_id, kf_from_cam=T)    # each tracked frame, in time order
+    smap.add(stripe)                                    # each StripeProfile (left-camera frame)
+    live = smap.update_live_mesh()                      # chunked live mesh (dirty blocks only)
+    moved = smap.update_keyframes({kf: world_from_kf})  # after iSAM2 / loop closure
+    smap.update_poses(final_trajectory)                 # or: frame poses by timestamp
+    mesh = smap.mesh()                                  # whole surface (Poisson or BPA)
+    smap.save_stripes(results / "stripes.npz")          # io.stripes_io format
+    io.mesh_io.write_mesh(results / "mesh.ply", mesh)   # binary PLY, metres, world frame
+    metrics.update(mesh_error_metrics(stripes, {"gt": gt, "before": online, "after": final},
+                                      read_mesh(mcap_path)))   # scene.ply attachment
+
+Offline: ``StripeMap.from_trajectory(trajectory, stripes, config)``.
+"""
+
+from loopmodel.mapping.accuracy import MeshAccuracy, mesh_accuracy, mesh_error_metrics
+from loopmodel.mapping.extraction import (
+    LightPlane,
+    extract_laser_peaks,
+    stripe_from_image,
+    triangulate_with_plane,
+)
+from loopmodel.mapping.stripe_map import StripeMap
+
+__all__ = [
+    "LightPlane",
+    "MeshAccuracy",
+    "StripeMap",
+    "extract_laser_peaks",
+    "mesh_accuracy",
+    "mesh_error_metrics",
+    "stripe_from_image",
+    "triangulate_with_plane",
+]

@@ -1,0 +1,115 @@
+"""Mesh accuracy against a ground-truth surface (both in the same world frame, metres).
+
+Accuracy: unsigned point-to-surface distance from every reconstructed vertex to the
+ground-truth mesh (open3d ``RaycastingScene.compute_distance``). Completeness: the share
+of points sampled uniformly on the ground-truth surface that lie within a tolerance of the
+reconstruction (optionally only inside a box, e.g. the scanned object).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+
+from loopmodel.config import MappingConfig
+from loopmodel.errors import InputError
+from loopmodel.types import StripeProfile, Trajectory
+
+
+@dataclass
+class MeshAccuracy:
+    """Distances in millimetres; completeness as a fraction in [0, 1]."""
+
+    mean_mm: float
+    median_mm: float
+    p95_mm: float
+    max_mm: float
+    completeness: float
+    completeness_tol_mm: float
+    vertices: int
+
+    def as_dict(self) -> dict[str, float | int]:
+        return asdict(self)
+
+
+def _scene(mesh: o3d.geometry.TriangleMesh) -> o3d.t.geometry.RaycastingScene:
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    return scene
+
+
+def distances_to_mesh(points: NDArray[np.float64], mesh: o3d.geometry.TriangleMesh) -> NDArray[np.float64]:
+    """Unsigned distance (metres) from each of the P x 3 points to the mesh surface."""
+    if len(mesh.triangles) == 0:
+        raise InputError(None, "distance to a mesh without triangles")
+    q = o3d.core.Tensor.from_numpy(np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3))
+    return _scene(mesh).compute_distance(q).numpy().astype(np.float64)
+
+
+def mesh_accuracy(
+    mesh: o3d.geometry.TriangleMesh,
+    gt_mesh: o3d.geometry.TriangleMesh,
+    completeness_tol_m: float = 0.002,
+    gt_samples: int = 200_000,
+    region_min: NDArray[np.float64] | None = None,
+    region_max: NDArray[np.float64] | None = None,
+    seed: int = 0,
+) -> MeshAccuracy:
+    """Accuracy of ``mesh`` against ``gt_mesh``; completeness counts ground-truth samples
+    inside the optional box [region_min, region_max] (world, metres)."""
+    if len(mesh.triangles) == 0 or len(mesh.vertices) == 0:
+        raise InputError(None, "reconstructed mesh is empty")
+    if len(gt_mesh.triangles) == 0:
+        raise InputError(None, "ground-truth mesh is empty")
+    d = distances_to_mesh(np.asarray(mesh.vertices), gt_mesh) * 1e3
+    # uniform samples on the ground truth by triangle area (seeded, independent of open3d RNG)
+    v = np.asarray(gt_mesh.vertices)
+    t = np.asarray(gt_mesh.triangles)
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    rng = np.random.default_rng(seed)
+    tri = rng.choice(t.shape[0], size=gt_samples, p=area / area.sum())
+    r1, r2 = rng.random(gt_samples), rng.random(gt_samples)
+    s1 = np.sqrt(r1)
+    samples = (1 - s1)[:, None] * a[tri] + (s1 * (1 - r2))[:, None] * b[tri] + (s1 * r2)[:, None] * c[tri]
+    if region_min is not None and region_max is not None:
+        inside = np.all((samples >= region_min) & (samples <= region_max), axis=1)
+        samples = samples[inside]
+    if samples.shape[0] == 0:
+        raise InputError(None, "no ground-truth surface inside the completeness region")
+    dg = distances_to_mesh(samples, mesh)
+    return MeshAccuracy(
+        mean_mm=float(d.mean()),
+        median_mm=float(np.median(d)),
+        p95_mm=float(np.percentile(d, 95)),
+        max_mm=float(d.max()),
+        completeness=float(np.mean(dg <= completeness_tol_m)),
+        completeness_tol_mm=completeness_tol_m * 1e3,
+        vertices=int(len(mesh.vertices)),
+    )
+
+
+def mesh_error_metrics(
+    stripes: list[StripeProfile],
+    trajectories: dict[str, Trajectory],
+    gt_mesh: o3d.geometry.TriangleMesh,
+    config: MappingConfig | None = None,
+    completeness_tol_m: float = 0.002,
+) -> dict[str, float]:
+    """Mesh the stripes once per named trajectory (e.g. ``gt``, ``before`` = online,
+    ``after`` = final) and measure each against the ground truth. Keys per name:
+    ``mesh_err_<name>_mm`` (mean), ``mesh_err_<name>_mm_p95``, ``mesh_completeness_<name>``."""
+    from loopmodel.mapping.stripe_map import StripeMap
+
+    out: dict[str, float] = {}
+    for name, traj in trajectories.items():
+        smap = StripeMap.from_trajectory(traj, stripes, config)
+        smap.check_nonempty()
+        acc = mesh_accuracy(smap.mesh(), gt_mesh, completeness_tol_m)
+        out[f"mesh_err_{name}_mm"] = acc.mean_mm
+        out[f"mesh_err_{name}_mm_p95"] = acc.p95_mm
+        out[f"mesh_completeness_{name}"] = acc.completeness
+    return out

@@ -1,0 +1,166 @@
+"""Laser-line extraction from images and triangulation with a calibrated light plane.
+
+The laser line is found per image column (or row): the brightest pixel, accepted when it
+stands at least ``min_contrast`` grey levels above the column's background (median), refined
+to sub-pixel precision by the centre of gravity of the background-subtracted intensities in
+a window, or by a Gaussian fit (parabola through the logarithms of three samples).
+Pixel coordinates follow OpenCV: the centre of pixel (u, v) is at (u, v).
+
+The light plane is given in the left-camera frame: ``normal_in_cam · p + d_m = 0``
+(unit normal, metres). Each image point's viewing ray is intersected with it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from loopmodel.config import MappingConfig
+from loopmodel.errors import CalibrationError, InputError
+from loopmodel.types import StripeProfile
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class LightPlane:
+    """Laser light plane in the left-camera frame: ``normal_in_cam · p + d_m = 0``."""
+
+    normal_in_cam: F64
+    d_m: float
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal_in_cam, dtype=float).reshape(3)
+        norm = float(np.linalg.norm(n))
+        if not np.all(np.isfinite(n)) or norm < 1e-12 or not np.isfinite(self.d_m):
+            raise CalibrationError(None, "light plane needs a finite, non-zero normal and offset")
+        self.normal_in_cam = n / norm
+        self.d_m = float(self.d_m) / norm
+
+    @classmethod
+    def from_point_normal(cls, point_in_cam: ArrayLike, normal_in_cam: ArrayLike) -> LightPlane:
+        """Plane through a point (metres, camera frame) with the given normal."""
+        n = np.asarray(normal_in_cam, dtype=float).reshape(3)
+        n = n / np.linalg.norm(n)
+        return cls(n, -float(n @ np.asarray(point_in_cam, dtype=float).reshape(3)))
+
+    @classmethod
+    def from_config(cls, config: MappingConfig) -> LightPlane:
+        """The calibrated plane of the configuration (``laser_plane_*`` keys)."""
+        return cls.from_point_normal(config.laser_plane_point_in_cam_m, config.laser_plane_normal_in_cam)
+
+    def signed_distance_m(self, points_in_cam: ArrayLike) -> F64:
+        """Signed distance (metres) of N x 3 camera-frame points to the plane."""
+        return np.asarray(points_in_cam, dtype=float).reshape(-1, 3) @ self.normal_in_cam + self.d_m
+
+
+def _grey(image: NDArray) -> F64:  # type: ignore[type-arg]
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = img.max(axis=2)  # the laser's colour channel dominates wherever the line is
+    if img.ndim != 2 or img.size == 0:
+        raise InputError(None, f"laser image must be H x W or H x W x C, got shape {np.shape(image)}")
+    return img.astype(np.float64)
+
+
+def extract_laser_peaks(
+    image: NDArray,  # type: ignore[type-arg]
+    axis: str = "columns",
+    min_contrast: float = 20.0,
+    window_px: int = 3,
+    method: str = "cog",
+) -> F64:
+    """Sub-pixel laser-line positions: M x 2 pixel coordinates (u, v), one per image column
+    (``axis="columns"``, v refined) or row (``axis="rows"``, u refined) where the peak
+    stands ``min_contrast`` above the background."""
+    if axis not in ("columns", "rows"):
+        raise InputError(None, f"laser peak axis must be 'columns' or 'rows', got '{axis}'")
+    if method not in ("cog", "gauss"):
+        raise InputError(None, f"laser peak method must be 'cog' or 'gauss', got '{method}'")
+    g = _grey(image)
+    prof = g if axis == "columns" else g.T  # profiles along axis 0, one per column of prof
+    n, m = prof.shape
+    k = np.argmax(prof, axis=0)
+    cols = np.arange(m)
+    background = np.median(prof, axis=0)
+    peak = prof[k, cols]
+    ok = (peak - background) >= max(min_contrast, 1e-9)
+    if method == "cog":
+        offs = np.arange(-window_px, window_px + 1)
+        idx = k[None, :] + offs[:, None]
+        valid = (idx >= 0) & (idx < n)
+        w = np.where(valid, prof[np.clip(idx, 0, n - 1), cols[None, :]] - background[None, :], 0.0)
+        w = np.maximum(w, 0.0)
+        sw = w.sum(axis=0)
+        ok &= sw > 0
+        pos = k + (w * offs[:, None]).sum(axis=0) / np.where(sw > 0, sw, 1.0)
+    else:
+        inner = (k > 0) & (k < n - 1)
+        ok &= inner
+        km, kp = np.clip(k - 1, 0, n - 1), np.clip(k + 1, 0, n - 1)
+        eps = 1e-6
+        lm = np.log(np.maximum(prof[km, cols] - background, eps))
+        l0 = np.log(np.maximum(peak - background, eps))
+        lp = np.log(np.maximum(prof[kp, cols] - background, eps))
+        den = lm - 2.0 * l0 + lp
+        ok &= den < 0
+        delta = 0.5 * (lm - lp) / np.where(den < 0, den, -1.0)
+        ok &= np.abs(delta) <= 1.0
+        pos = k + delta
+    line = cols[ok].astype(np.float64)
+    sub = pos[ok]
+    if axis == "columns":
+        return np.column_stack([line, sub])
+    return np.column_stack([sub, line])
+
+
+def triangulate_with_plane(
+    uv_px: ArrayLike,
+    K: ArrayLike,
+    plane: LightPlane,
+    dist: ArrayLike | None = None,
+    min_depth_m: float = 1e-3,
+) -> F64:
+    """Camera-frame points (N' x 3, metres) where the viewing rays of the N x 2 pixels meet the
+    light plane; rays (nearly) parallel to the plane or meeting it behind the camera or
+    closer than ``min_depth_m`` are dropped. ``dist`` are OpenCV distortion coefficients."""
+    uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
+    Km = np.asarray(K, dtype=np.float64).reshape(3, 3)
+    if uv.shape[0] == 0:
+        return np.zeros((0, 3))
+    if dist is not None and np.any(np.asarray(dist) != 0):
+        import cv2
+
+        xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), Km, np.asarray(dist, dtype=np.float64))
+        xy = xy.reshape(-1, 2)
+    else:
+        xy = np.column_stack(
+            [
+                (uv[:, 0] - Km[0, 2] - Km[0, 1] * (uv[:, 1] - Km[1, 2]) / Km[1, 1]) / Km[0, 0],
+                (uv[:, 1] - Km[1, 2]) / Km[1, 1],
+            ]
+        )
+    rays = np.column_stack([xy, np.ones(xy.shape[0])])
+    denom = rays @ plane.normal_in_cam
+    ok = np.abs(denom) > 1e-9
+    s = np.where(ok, -plane.d_m / np.where(ok, denom, 1.0), -1.0)
+    ok &= s >= min_depth_m
+    return rays[ok] * s[ok, None]
+
+
+def stripe_from_image(
+    image: NDArray,  # type: ignore[type-arg]
+    timestamp_ns: int,
+    K: ArrayLike,
+    plane: LightPlane | None = None,
+    config: MappingConfig | None = None,
+    dist: ArrayLike | None = None,
+) -> StripeProfile:
+    """Laser-stripe profile (left-camera frame, metres) of one laser-line image taken by the
+    left camera (intrinsics ``K``); the plane defaults to the configured one."""
+    cfg = config or MappingConfig()
+    plane = plane or LightPlane.from_config(cfg)
+    uv = extract_laser_peaks(image, cfg.peak_axis, cfg.peak_min_contrast, cfg.peak_window_px, cfg.peak_method)
+    return StripeProfile(int(timestamp_ns), triangulate_with_plane(uv, K, plane, dist))

@@ -1,0 +1,172 @@
+"""Surfaces from world-frame stripe points with open3d.
+
+Points are voxel down-sampled, normals estimated from neighbours and oriented towards the
+sensor position at each point's capture time, then either screened Poisson reconstruction
+(trimmed by vertex density and by distance to the samples) or ball pivoting.
+All lengths in metres, world frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+
+from loopmodel.config import MappingConfig
+from loopmodel.errors import InputError
+
+F64 = NDArray[np.float64]
+logger = logging.getLogger(__name__)
+
+
+def oriented_cloud(points_w: F64, sensors_w: F64, config: MappingConfig) -> o3d.geometry.PointCloud:
+    """Voxel down-sampled cloud with normals oriented towards the capturing sensor.
+
+    ``points_w`` and ``sensors_w`` are P x 3 (world, metres): each point and the camera
+    centre at the time it was captured.
+    """
+    points_w = np.ascontiguousarray(points_w, dtype=np.float64).reshape(-1, 3)
+    sensors_w = np.ascontiguousarray(sensors_w, dtype=np.float64).reshape(-1, 3)
+    if not np.all(np.isfinite(points_w)):
+        raise InputError(None, "stripe points contain non-finite values")
+    view = sensors_w - points_w
+    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_w))
+    pcd.normals = o3d.utility.Vector3dVector(view)
+    down = pcd.voxel_down_sample(config.voxel_m) if config.voxel_m > 0 else pcd
+    view_d = np.asarray(down.normals).copy()
+    view_d /= np.maximum(np.linalg.norm(view_d, axis=1, keepdims=True), 1e-12)
+    down.estimate_covariances(
+        o3d.geometry.KDTreeSearchParamHybrid(radius=config.normal_radius_m, max_nn=config.normal_max_nn)
+    )
+    evals, evecs = np.linalg.eigh(np.asarray(down.covariances))  # ascending eigenvalues
+    n = evecs[:, :, 0].copy()
+    # Where the neighbourhood is (nearly) a line - one stripe with no neighbour stripe within
+    # reach - its normal is undetermined; take the view direction made perpendicular to the
+    # line instead, the best guess the sensor geometry gives.
+    line = evals[:, 1] < config.line_ratio * np.maximum(evals[:, 2], 1e-30)
+    if np.any(line):
+        tangent = evecs[line, :, 2]
+        v = view_d[line]
+        nv = v - np.einsum("ij,ij->i", v, tangent)[:, None] * tangent
+        n[line] = nv / np.maximum(np.linalg.norm(nv, axis=1, keepdims=True), 1e-12)
+    n[np.einsum("ij,ij->i", n, view_d) < 0] *= -1.0
+    down.normals = o3d.utility.Vector3dVector(n)
+    return down
+
+
+def poisson_depth(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> int:
+    """Octree depth whose finest cell is closest to ``voxel_m`` (or the configured depth)."""
+    if config.poisson_depth > 0:
+        return config.poisson_depth
+    ext = float(np.max(cloud.get_max_bound() - cloud.get_min_bound()))
+    depth = round(math.log2(max(ext * config.poisson_scale / config.voxel_m, 2.0)))
+    return int(min(max(depth, 5), config.poisson_max_depth))
+
+
+def _poisson(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.TriangleMesh:
+    mesh, dens_vec = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+        cloud,
+        depth=poisson_depth(cloud, config),
+        scale=config.poisson_scale,
+        linear_fit=config.poisson_linear_fit,
+    )
+    if len(mesh.vertices) == 0:
+        return mesh
+    dens = np.asarray(dens_vec, dtype=np.float64)
+    remove = np.zeros(dens.shape[0], dtype=bool)
+    if config.density_quantile > 0:
+        remove |= dens < np.quantile(dens, config.density_quantile)
+    trim = config.trim_distance_m or 2.5 * config.voxel_m
+    verts = o3d.geometry.PointCloud(mesh.vertices)
+    dist = np.asarray(verts.compute_point_cloud_distance(cloud))
+    remove |= dist > trim
+    mesh.remove_vertices_by_mask(remove)  # type: ignore[arg-type]
+    return mesh
+
+
+def _ball_pivoting(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.TriangleMesh:
+    radii = config.bpa_radii_m or [1.5 * config.voxel_m, 3.0 * config.voxel_m, 6.0 * config.voxel_m]
+    return o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(
+        cloud, o3d.utility.DoubleVector([float(r) for r in radii])
+    )
+
+
+def mesh_cloud(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.TriangleMesh:
+    """Surface of an oriented cloud with the configured method; cleaned, with vertex normals."""
+    if len(cloud.points) < config.min_points:
+        raise InputError(
+            None,
+            f"{len(cloud.points)} points after down-sampling; at least {config.min_points} are needed for a surface",
+        )
+    mesh = _poisson(cloud, config) if config.method == "poisson" else _ball_pivoting(cloud, config)
+    mesh.remove_degenerate_triangles()
+    mesh.remove_unreferenced_vertices()
+    mesh.compute_vertex_normals()
+    return mesh
+
+
+def mesh_from_points(points_w: F64, sensors_w: F64, config: MappingConfig) -> o3d.geometry.TriangleMesh:
+    """Triangle mesh (world, metres) of stripe points seen from the given sensor positions.
+    Raises :class:`InputError` when there is too little data or no surface comes out."""
+    if np.asarray(points_w).size == 0:
+        raise InputError(None, "no stripe points to mesh")
+    t0 = time.perf_counter()
+    cloud = oriented_cloud(points_w, sensors_w, config)
+    t1 = time.perf_counter()
+    mesh = mesh_cloud(cloud, config)
+    logger.debug(
+        "meshed %d points (%d after down-sampling): cloud+normals %.3f s, %s %.3f s, %d vertices",
+        len(points_w),
+        len(cloud.points),
+        t1 - t0,
+        config.method,
+        time.perf_counter() - t1,
+        len(mesh.vertices),
+    )
+    if len(mesh.triangles) == 0:
+        raise InputError(None, "surface reconstruction produced no triangles")
+    return mesh
+
+
+def crop_triangles(mesh: o3d.geometry.TriangleMesh, lo: F64, hi: F64) -> o3d.geometry.TriangleMesh:
+    """Keep the triangles whose centroid lies in the box [lo, hi) (world, metres)."""
+    v = np.asarray(mesh.vertices)
+    t = np.asarray(mesh.triangles)
+    c = v[t].mean(axis=1)
+    keep = np.all((c >= lo) & (c < hi), axis=1)
+    mesh.remove_triangles_by_mask(~keep)
+    mesh.remove_unreferenced_vertices()
+    return mesh
+
+
+def mesh_block(
+    points_w: F64,
+    sensors_w: F64,
+    keys: NDArray[np.int64],
+    key: tuple[int, int, int],
+    config: MappingConfig,
+) -> o3d.geometry.TriangleMesh | None:
+    """Mesh of one live block: the points of block ``key`` (edge ``chunk_m``) plus a margin
+    of ``chunk_margin_m``, cropped back to the block. None when the block holds too little."""
+    k = np.asarray(key, dtype=np.int64)
+    near = np.all(np.abs(keys - k) <= 1, axis=1)
+    if not np.any(near):
+        return None
+    lo = (k * config.chunk_m).astype(np.float64)
+    hi = lo + config.chunk_m
+    p = points_w[near]
+    m = config.chunk_margin_m
+    inside = np.all((p >= lo - m) & (p < hi + m), axis=1)
+    if np.count_nonzero(inside) < config.min_points:
+        return None
+    try:
+        mesh = mesh_from_points(p[inside], sensors_w[near][inside], config)
+    except InputError:
+        return None
+    mesh = crop_triangles(mesh, lo, hi)
+    return mesh if len(mesh.triangles) else None

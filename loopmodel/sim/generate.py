@@ -1,0 +1,535 @@
+"""Generate a synthetic hand-held scan and write it as MCAP (topics of DESIGN.md).
+
+Per frame: a rectified stereo pair rendered by ray casting, one laser-stripe profile (left
+camera frame), the ground-truth ``world_from_cam0``, optionally the laser-line image. The
+scene mesh rides along as attachments ``scene.ply`` (everything) and ``object.ply``; the
+generator's parameters and the injected faults (with frame and time ranges) are MCAP
+metadata records ``simulation`` and ``faults``. All randomness derives from the seed, per
+frame, so the content does not depend on the number of worker processes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing as mp
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from loopmodel import __version__
+from loopmodel.config import SimulationConfig, TopicsConfig
+from loopmodel.errors import ConfigError, InputError
+from loopmodel.geometry.camera import CentralCamera
+from loopmodel.geometry.se3 import invert_pose
+from loopmodel.io.atomic import write_bytes_atomic
+from loopmodel.io.mcap_io import McapSequenceWriter
+from loopmodel.sim.faults import FaultPlan, cam_from_occluder
+from loopmodel.sim.laser import LaserPlane, draw_laser_image, stripe_profile
+from loopmodel.sim.render import RayBundle, Raycaster, View, pixel_rays, to_tensor
+from loopmodel.sim.scene import Scene, build_scene
+from loopmodel.sim.trajectory import HandheldPath
+from loopmodel.types import StereoCalibration, StereoFrame, StripeProfile
+
+logger = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+PRESETS: dict[str, dict[str, dict[str, object]]] = {
+    "orbit": {"trajectory": {"kind": "orbit", "frames": 600}},
+    "sweeps": {"trajectory": {"kind": "sweeps", "frames": 750}},
+    "browse": {"trajectory": {"kind": "browse", "frames": 450}},
+}
+
+_NOISE_STREAM, _STRIPE_STREAM = 11, 13
+MAX_BLUR_PX = 60.0
+
+
+# ----------------------------------------------------------------------------- set-up
+
+
+def camera_of(cfg: SimulationConfig) -> CentralCamera:
+    """Left (and right) camera model of the configuration (pixels; unified model with xi)."""
+    c = cfg.camera
+    fy = c.fy_px if c.fy_px is not None else c.fx_px
+    cx = c.cx_px if c.cx_px is not None else (c.width_px - 1) / 2.0
+    cy = c.cy_px if c.cy_px is not None else (c.height_px - 1) / 2.0
+    return CentralCamera(c.fx_px, fy, cx, cy, c.xi)
+
+
+def calibration_of(cfg: SimulationConfig) -> StereoCalibration:
+    """Rectified stereo calibration: identical K, right camera ``baseline_m`` along +x."""
+    K = camera_of(cfg).K
+    right_from_left = np.eye(4)
+    right_from_left[0, 3] = -cfg.camera.baseline_m
+    return StereoCalibration(K, K, right_from_left, (cfg.camera.width_px, cfg.camera.height_px)).check(
+        "simulation.camera"
+    )
+
+
+def scene_of(cfg: SimulationConfig) -> Scene:
+    """The scene of the configuration (deterministic in the seed)."""
+    s = cfg.scene
+    return build_scene(s.kind, cfg.seed, s.object_height_m, s.room, s.texture_size_px)
+
+
+def path_of(cfg: SimulationConfig) -> HandheldPath:
+    """The hand-held path of the configuration: the last frame is the end of the path."""
+    tr = cfg.trajectory
+    return HandheldPath(
+        tr.kind,
+        max(tr.frames - 1, 1) / tr.rate_hz,
+        cfg.seed,
+        tr.radius_m,
+        tr.height_m,
+        cfg.scene.object_height_m,
+        tr.sweeps,
+        tr.shake_translation_m,
+        tr.shake_rotation_deg,
+    )
+
+
+def frame_time_ns(cfg: SimulationConfig, index: int) -> int:
+    """Timestamp of generated frame ``index`` (ns)."""
+    return cfg.trajectory.start_time_ns + round(index * 1e9 / cfg.trajectory.rate_hz)
+
+
+def light_position(cfg: SimulationConfig, t_s: float, world_from_cam: F64) -> F64:
+    """Light position (world, metres) at time ``t_s``."""
+    r = cfg.render
+    p = np.asarray(r.light_position_m, float)
+    if r.light == "moving":
+        a = 2 * np.pi * t_s / r.light_period_s
+        return p + r.light_motion_radius_m * np.array([np.cos(a), np.sin(a), 0.0])
+    if r.light == "headlamp":
+        return world_from_cam[:3, :3] @ np.array([0.0, -0.05, 0.0]) + world_from_cam[:3, 3]
+    return p
+
+
+def exposure_gain(cfg: SimulationConfig, t_s: float) -> float:
+    """Slow relative exposure wander (1 +- exposure_variation)."""
+    ev = cfg.render.exposure_variation
+    if ev == 0:
+        return 1.0
+    rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 17]))
+    f = rng.uniform(0.05, 0.5, 4)
+    ph = rng.uniform(0, 2 * np.pi, 4)
+    return float(1.0 + ev * np.mean(np.sin(2 * np.pi * f * t_s + ph)) * np.sqrt(2))
+
+
+def parse_fault(spec: str) -> tuple[str, int, int]:
+    """``KIND:FIRST[-LAST]`` (e.g. ``blackout:100-110``, ``dropped:57``) -> (kind, first, last)."""
+    kinds = ("dropped", "blackout", "blur", "occluder", "duplicate_timestamp")
+    kind, sep, rng = spec.partition(":")
+    kind = kind.strip().replace("-", "_")
+    if not sep or kind not in kinds:
+        raise ConfigError("--fault", f"'{spec}': expected KIND:FIRST[-LAST] with KIND one of {', '.join(kinds)}")
+    a, _, b = rng.partition("-")
+    try:
+        first = int(a)
+        last = int(b) if b else first
+    except ValueError:
+        raise ConfigError("--fault", f"'{spec}': frame numbers must be integers") from None
+    return kind, first, last
+
+
+def resolve_config(
+    base: SimulationConfig,
+    preset: str | None = None,
+    overrides: dict[str, dict[str, object]] | None = None,
+    faults: list[str] | None = None,
+) -> SimulationConfig:
+    """``base`` with a preset (trajectory kind and its frame count) and then section overrides
+    (``{"trajectory": {"frames": 50}}``) and fault specs applied; errors name the key."""
+    from loopmodel.config import config_from_dict
+
+    data = base.model_dump()
+    if preset is not None:
+        if preset not in PRESETS:
+            raise ConfigError("--preset", f"unknown preset '{preset}'; expected one of {', '.join(PRESETS)}")
+        for sec, vals in PRESETS[preset].items():
+            data[sec].update(vals)
+    for sec, vals in (overrides or {}).items():
+        data[sec].update({k: v for k, v in vals.items() if v is not None})
+    for spec in faults or []:
+        kind, first, last = parse_fault(spec)
+        if kind in ("dropped", "duplicate_timestamp"):
+            data["faults"][kind].extend(range(first, last + 1))
+        else:
+            data["faults"][kind].append((first, last))
+    return config_from_dict({"simulation": data}, "simulation").simulation
+
+
+# ----------------------------------------------------------------------------- per frame
+
+
+@dataclass
+class FrameTask:
+    """Everything a worker needs to render generated frame ``index``."""
+
+    index: int
+    world_from_cam: F64
+    exposure_poses: tuple[F64, F64] | None
+    light_world_m: F64
+    gain: float
+    blackout: bool
+    blur_min_px: float
+    world_from_occluder: F64 | None
+    stripe_in_cam: F64 | None
+
+
+@dataclass
+class FrameImages:
+    """A worker's result: 8-bit left, right and (optionally) laser images."""
+
+    index: int
+    left: NDArray[np.uint8]
+    right: NDArray[np.uint8]
+    laser: NDArray[np.uint8] | None = None
+    render_s: float = 0.0
+
+
+@dataclass
+class _WorkerState:
+    cfg: SimulationConfig
+    caster: Raycaster
+    camera: CentralCamera
+    rays: RayBundle
+    cam0_from_cam1: F64
+    shape: tuple[int, int]
+
+
+_STATE: _WorkerState | None = None
+
+
+def _init_worker(cfg: SimulationConfig, scene: Scene) -> None:
+    global _STATE
+    cv2.setNumThreads(1)
+    _STATE = _make_state(cfg, scene)
+    _STATE.caster.threads = 1  # one process per core already
+
+
+def _make_state(cfg: SimulationConfig, scene: Scene) -> _WorkerState:
+    cam = camera_of(cfg)
+    rays = pixel_rays(cam, cfg.camera.width_px, cfg.camera.height_px)
+    c01 = np.eye(4)
+    c01[0, 3] = cfg.camera.baseline_m
+    return _WorkerState(cfg, Raycaster(scene), cam, rays, c01, (cfg.camera.height_px, cfg.camera.width_px))
+
+
+def _blur_kernel(dx: float, dy: float) -> NDArray[np.float32] | None:
+    """Normalised linear motion-blur kernel for an image motion of (dx, dy) pixels."""
+    length = float(np.hypot(dx, dy))
+    if length < 0.5:
+        return None
+    if length > MAX_BLUR_PX:  # beyond this the image is a smear anyway; keep filtering cheap
+        dx, dy, length = dx * MAX_BLUR_PX / length, dy * MAX_BLUR_PX / length, MAX_BLUR_PX
+    half = int(np.ceil(length / 2)) + 1
+    k = np.zeros((2 * half + 1, 2 * half + 1), np.float32)
+    n = max(int(np.ceil(length * 4)), 2)
+    s = np.linspace(-0.5, 0.5, n)
+    xs, ys = half + s * dx, half + s * dy
+    x0, y0 = np.floor(xs).astype(int), np.floor(ys).astype(int)
+    fx, fy = xs - x0, ys - y0
+    for ox, oy, w in (
+        (0, 0, (1 - fx) * (1 - fy)),
+        (1, 0, fx * (1 - fy)),
+        (0, 1, (1 - fx) * fy),
+        (1, 1, fx * fy),
+    ):
+        np.add.at(k, (y0 + oy, x0 + ox), w)
+    return k / k.sum()
+
+
+def _image_motion(st: _WorkerState, view: View, task: FrameTask) -> tuple[float, float]:
+    """Image motion (pixels) of the scene at the image centre over the exposure."""
+    h, w = st.shape
+    if task.exposure_poses is None:
+        return 0.0, 0.0
+    pts = view.points_soa.reshape(3, h, w)[:, h // 4 : 3 * h // 4 : 8, w // 4 : 3 * w // 4 : 8]
+    pts = pts.reshape(3, -1).T.astype(float)
+    ok = np.isfinite(view.range_m[h // 4 : 3 * h // 4 : 8, w // 4 : 3 * w // 4 : 8].ravel())
+    if not np.any(ok):
+        return 0.0, 0.0
+    pts = pts[ok]
+    uv = []
+    for T in task.exposure_poses:
+        Tc = invert_pose(T)
+        uv.append(st.camera.project(pts @ Tc[:3, :3].T + Tc[:3, 3]))
+    d = np.median(uv[1] - uv[0], axis=0)
+    return float(d[0]), float(d[1])
+
+
+def render_frame(st: _WorkerState, task: FrameTask) -> FrameImages:
+    """Render, blur, expose, add noise and quantise the stereo pair of one frame."""
+    t0 = time.perf_counter()
+    cfg = st.cfg
+    amb = cfg.render.ambient
+    left = st.caster.render(
+        st.rays,
+        task.world_from_cam,
+        task.light_world_m,
+        amb,
+        task.world_from_occluder,
+    )
+    right = st.caster.render(
+        st.rays,
+        task.world_from_cam @ st.cam0_from_cam1,
+        task.light_world_m,
+        amb,
+        task.world_from_occluder,
+    )
+    dx, dy = _image_motion(st, left, task) if cfg.render.motion_blur or task.blur_min_px > 0 else (0.0, 0.0)
+    if not cfg.render.motion_blur:
+        dx = dy = 0.0
+    if task.blur_min_px > 0:
+        length = float(np.hypot(dx, dy))
+        if length < 1e-3:
+            dx, dy = task.blur_min_px, 0.0
+        elif length < task.blur_min_px:
+            dx, dy = dx * task.blur_min_px / length, dy * task.blur_min_px / length
+    kernel = _blur_kernel(dx, dy)
+    seeds = np.random.SeedSequence([cfg.seed, _NOISE_STREAM, task.index]).generate_state(2)
+    scale = 255.0 * cfg.render.brightness * task.gain * (0.0 if task.blackout else 1.0)
+    out = []
+    noise = np.empty(st.shape, np.float32)
+    for view, seed in zip((left, right), seeds, strict=True):
+        img = view.radiance * np.float32(scale)
+        if kernel is not None:
+            img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REFLECT)
+        if cfg.render.noise_sigma > 0:
+            cv2.setRNGSeed(int(seed) & 0x7FFFFFFF)  # OpenCV's per-thread RNG: deterministic
+            cv2.randn(noise, 0.0, float(cfg.render.noise_sigma))
+            img += noise
+        out.append(np.clip(img + 0.5, 0, 255).astype(np.uint8))
+    laser = None
+    if cfg.laser.image and task.stripe_in_cam is not None:
+        laser = draw_laser_image(out[0], task.stripe_in_cam, st.camera)
+    return FrameImages(task.index, out[0], out[1], laser, time.perf_counter() - t0)
+
+
+def _worker_render(task: FrameTask) -> FrameImages:
+    assert _STATE is not None, "worker not initialised"
+    return render_frame(_STATE, task)
+
+
+# ----------------------------------------------------------------------------- the run
+
+
+@dataclass
+class SimulationResult:
+    """What a run wrote and how long it took."""
+
+    path: Path
+    frames: int
+    frames_written: int
+    stripes_written: int
+    seconds: float
+    setup_seconds: float
+    ms_per_frame: float
+    render_ms_median: float
+    size_bytes: int
+    faults: list[dict[str, int | str]] = field(default_factory=list)
+    scene_ply: Path | None = None
+
+
+def plan_frames(
+    cfg: SimulationConfig, caster: Raycaster, plan: FaultPlan, path: HandheldPath
+) -> tuple[list[FrameTask], list[F64 | None], F64]:
+    """Poses, lights, faults and noiseless stripes of every frame; validates that the path
+    stays clear of the scene and that the light plane hits it."""
+    tr = cfg.trajectory
+    n = tr.frames
+    cam = camera_of(cfg)
+    size = (cfg.camera.width_px, cfg.camera.height_px)
+    laser = None
+    if cfg.laser.enabled:
+        try:
+            laser = LaserPlane.create(
+                cfg.laser.origin_in_cam_m,
+                cfg.laser.normal_in_cam,
+                cfg.laser.fan_deg,
+                cfg.laser.rays,
+                cfg.laser.max_range_m,
+            )
+        except ValueError as exc:
+            raise ConfigError("simulation.laser.normal_in_cam", str(exc)) from None
+    tasks: list[FrameTask] = []
+    stripes: list[F64 | None] = []
+    poses = np.zeros((n, 4, 4))
+    exp_s = cfg.render.exposure_s
+    for i in range(n):
+        t_s = i / tr.rate_hz
+        T = path.pose(t_s)
+        poses[i] = T
+        kinds = plan.kinds_at(i)
+        frac = plan.occluder_fraction(i)
+        w_occ = T @ cam_from_occluder(frac) if frac is not None else None
+        stripe = None
+        if laser is not None:
+            stripe, _dirs = stripe_profile(caster, laser, cam, size, T, w_occ)
+        stripes.append(stripe)
+        exposure = (path.pose(t_s - exp_s / 2), path.pose(t_s + exp_s / 2)) if exp_s > 0 else None
+        tasks.append(
+            FrameTask(
+                index=i,
+                world_from_cam=T,
+                exposure_poses=exposure,
+                light_world_m=light_position(cfg, t_s, T),
+                gain=exposure_gain(cfg, t_s),
+                blackout="blackout" in kinds,
+                blur_min_px=cfg.faults.blur_length_px if "blur" in kinds else 0.0,
+                world_from_occluder=w_occ,
+                stripe_in_cam=stripe if cfg.laser.image else None,
+            )
+        )
+    # the camera must stay in free space, clear of the scene surface
+    import open3d as o3d
+
+    rs = o3d.t.geometry.RaycastingScene()
+    rs.add_triangles(
+        to_tensor(caster.scene.vertices.astype(np.float32)),
+        to_tensor(caster.scene.triangles.astype(np.uint32)),
+    )
+    centres = np.vstack([poses[:, :3, 3], (poses @ np.array([cfg.camera.baseline_m, 0, 0, 1.0]))[:, :3]])
+    dist = rs.compute_distance(to_tensor(centres.astype(np.float32))).numpy()
+    if float(dist.min()) < 0.05:
+        i = int(np.argmin(dist)) % n
+        raise ConfigError(
+            "simulation.trajectory",
+            f"the camera passes {dist.min():.3f} m from the scene surface at frame {i} "
+            "(radius_m/height_m put it inside or against the object or table)",
+        )
+    if laser is not None and not any(s is not None and s.shape[0] > 0 for s in stripes):
+        raise ConfigError(
+            "simulation.laser",
+            "the light plane never hits the scene where the left camera sees it "
+            "(check origin_in_cam_m, normal_in_cam and fan_deg)",
+        )
+    return tasks, stripes, poses
+
+
+def _iter_rendered(
+    cfg: SimulationConfig, scene: Scene, tasks: list[FrameTask], state: _WorkerState | None
+) -> Iterator[FrameImages]:
+    workers = cfg.workers if cfg.workers > 0 else (mp.cpu_count() or 1)
+    workers = min(workers, max(len(tasks), 1))
+    if workers <= 1:
+        st = state if state is not None else _make_state(cfg, scene)
+        for task in tasks:
+            yield render_frame(st, task)
+        return
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg, scene)) as pool:
+        yield from pool.imap(_worker_render, tasks, chunksize=1)
+
+
+def simulate_scan(
+    cfg: SimulationConfig,
+    out: str | Path,
+    topics: TopicsConfig | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    preset: str | None = None,
+) -> SimulationResult:
+    """Generate the scan described by ``cfg`` into the MCAP file ``out`` (written atomically).
+    ``progress(done, total)`` is called after each frame. Raises :class:`ConfigError` for
+    impossible parameters (before any rendering)."""
+    out = Path(out)
+    if out.suffix.lower() != ".mcap":
+        raise InputError(out, "output must end in .mcap")
+    t_start = time.perf_counter()
+    tr = cfg.trajectory
+    n = tr.frames
+    plan = FaultPlan.from_config(cfg.faults, n)
+    calib = calibration_of(cfg)
+    scene = scene_of(cfg)
+    caster = Raycaster(scene)
+    path = path_of(cfg)
+    tasks, stripes, poses = plan_frames(cfg, caster, plan, path)
+    setup_s = time.perf_counter() - t_start
+    period_ns = 1e9 / tr.rate_hz
+    dup = {f.first for f in plan.faults if f.kind == "duplicate_timestamp"}
+    dropped = {f.first for f in plan.faults if f.kind == "dropped"}
+    black = {i for f in plan.faults if f.kind == "blackout" for i in f.frames()}
+    frames_written = stripes_written = 0
+    render_s: list[float] = []
+    state = _make_state(cfg, scene) if cfg.workers == 1 else None
+    with McapSequenceWriter(out, calib, topics, cfg.image_format) as writer:
+        for k, img in enumerate(_iter_rendered(cfg, scene, tasks, state)):
+            i = img.index
+            render_s.append(img.render_s)
+            t_ns = frame_time_ns(cfg, i)
+            if i in dup:
+                t_ns = frame_time_ns(cfg, i - 1)
+            else:
+                writer.write_pose(t_ns, poses[i])
+            if i not in dropped:
+                writer.write_frame(StereoFrame(t_ns, img.left, img.right, i))
+                frames_written += 1
+                s = stripes[i]
+                if s is not None and i not in dup and i not in black:
+                    noise_rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, _STRIPE_STREAM, i]))
+                    pts = _noisy_stripe(s, cfg, noise_rng)
+                    writer.write_stripe(StripeProfile(t_ns, pts))
+                    stripes_written += 1
+                if img.laser is not None:
+                    writer.write_image((topics or TopicsConfig()).laser_image, t_ns, img.laser, "cam0")
+            if progress is not None:
+                progress(k + 1, n)
+        scene_ply = scene.ply_bytes()
+        writer.add_attachment("scene.ply", scene_ply, "application/x-ply")
+        writer.add_attachment("object.ply", scene.ply_bytes(object_only=True), "application/x-ply")
+        records = plan.records(tr.start_time_ns, period_ns)
+        writer.add_metadata(
+            "simulation",
+            {
+                "generator": "loopmodel.sim",
+                "version": __version__,
+                "preset": preset or tr.kind,
+                "seed": str(cfg.seed),
+                "frames": str(n),
+                "rate_hz": repr(tr.rate_hz),
+                "start_time_ns": str(tr.start_time_ns),
+                "period_ns": repr(period_ns),
+                "world_frame": "z up, origin at the centre of the table top, metres",
+                "xi": repr(cfg.camera.xi),
+                "config_json": cfg.model_dump_json(),
+            },
+        )
+        meta = {"count": str(len(records)), "json": json.dumps(records)}
+        for j, r in enumerate(records):
+            meta[f"{j:03d}_{r['kind']}"] = f"frames {r['first_frame']}-{r['last_frame']}"
+        writer.add_metadata("faults", meta)
+    ply_path = None
+    if cfg.write_scene_ply:
+        ply_path = out.with_suffix(".scene.ply")
+        write_bytes_atomic(ply_path, scene_ply)
+    seconds = time.perf_counter() - t_start
+    return SimulationResult(
+        path=out,
+        frames=n,
+        frames_written=frames_written,
+        stripes_written=stripes_written,
+        seconds=seconds,
+        setup_seconds=setup_s,
+        ms_per_frame=1000.0 * seconds / n,
+        render_ms_median=1000.0 * float(np.median(render_s)) if render_s else 0.0,
+        size_bytes=out.stat().st_size,
+        faults=records,
+        scene_ply=ply_path,
+    )
+
+
+def _noisy_stripe(points_in_cam: F64, cfg: SimulationConfig, rng: np.random.Generator) -> F64:
+    """Stripe points with range noise along the laser rays (they stay in the light plane)."""
+    sigma = cfg.laser.range_noise_m
+    if sigma == 0 or points_in_cam.shape[0] == 0:
+        return points_in_cam
+    d = points_in_cam - np.asarray(cfg.laser.origin_in_cam_m, float)
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    return points_in_cam + d * rng.normal(0.0, sigma, size=(points_in_cam.shape[0], 1))

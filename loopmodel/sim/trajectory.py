@@ -1,0 +1,132 @@
+"""Hand-held camera paths around an object at close range, with hand shake.
+
+World frame: z up, object axis along z through the origin (table top at z = 0). A path is a
+smooth function of time; :meth:`HandheldPath.pose` returns ``world_from_cam0`` (camera x
+right, y down, z forward) at any time, so exposure intervals can be sampled for motion blur.
+
+Kinds: ``orbit`` (one full turn that returns to the start view), ``sweeps`` (back-and-forth
+sweeps over 90 degrees of yaw at rising then falling height, ending at the start view),
+``browse`` (a monotone 240-degree arc with a height change: no view is revisited).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from loopmodel.geometry.se3 import so3_exp
+
+F64 = NDArray[np.float64]
+
+KINDS = ("orbit", "sweeps", "browse")
+TARGET_HEIGHT_FRACTION = 0.45  # look-at point on the object axis, fraction of its height
+
+
+def look_at(position_world: F64, target_world: F64, up_world: F64 | None = None) -> F64:
+    """``world_from_cam`` of a camera at ``position_world`` looking at ``target_world``
+    (camera y points down, i.e. against ``up_world``, default +z)."""
+    up = np.array([0.0, 0.0, 1.0]) if up_world is None else np.asarray(up_world, float)
+    z = np.asarray(target_world, float) - np.asarray(position_world, float)
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    nx = np.linalg.norm(x)
+    if nx < 1e-9:
+        raise ValueError("look_at: viewing direction parallel to up")
+    x /= nx
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, y, z])
+    T[:3, 3] = position_world
+    return T
+
+
+class _Shake:
+    """Band-limited hand tremor: sums of sinusoids (0.4-8 Hz, amplitude ~ 1/f) per axis."""
+
+    def __init__(self, rng: np.random.Generator, dims: int, terms: int = 12) -> None:
+        self.f = np.exp(rng.uniform(np.log(0.4), np.log(8.0), size=(dims, terms)))
+        self.phase = rng.uniform(0, 2 * np.pi, size=(dims, terms))
+        amp = 1.0 / self.f
+        self.amp = amp / np.sqrt(0.5 * np.sum(amp**2, axis=1, keepdims=True))  # unit RMS per axis
+
+    def __call__(self, t_s: float) -> F64:
+        return np.sum(self.amp * np.sin(2 * np.pi * self.f * t_s + self.phase), axis=1)
+
+
+class HandheldPath:
+    """A hand-held scanning path of ``kind`` lasting ``duration_s`` seconds."""
+
+    def __init__(
+        self,
+        kind: str,
+        duration_s: float,
+        seed: int,
+        radius_m: float = 0.65,
+        height_m: float = 0.35,
+        object_height_m: float = 0.5,
+        sweeps: int = 3,
+        shake_translation_m: float = 0.002,
+        shake_rotation_deg: float = 0.3,
+    ) -> None:
+        if kind not in KINDS:
+            raise ValueError(f"unknown trajectory kind {kind!r}; expected one of {KINDS}")
+        if duration_s <= 0:
+            raise ValueError("duration must be positive")
+        self.kind = kind
+        self.duration_s = float(duration_s)
+        self.radius_m = float(radius_m)
+        self.height_m = float(height_m)
+        self.object_height_m = float(object_height_m)
+        self.sweeps = int(sweeps)
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 5]))
+        self.phi0 = float(rng.uniform(-np.pi, np.pi))
+        self._wobble = rng.uniform(0, 2 * np.pi, size=6)
+        self._shake = _Shake(rng, 6)
+        self.shake_translation_m = float(shake_translation_m)
+        self.shake_rotation_rad = float(np.radians(shake_rotation_deg))
+
+    def _nominal(self, s: float) -> tuple[float, float, float, F64]:
+        """Azimuth (rad), radius (m), height (m) and look-at target at path parameter s in [0, 1]."""
+        w = self._wobble
+        two_pi = 2 * np.pi
+        target = np.array([0.0, 0.0, TARGET_HEIGHT_FRACTION * self.object_height_m])
+        if self.kind == "orbit":
+            # ease in and out; all wobbles periodic in s, so the end view equals the start view
+            u = s - 0.12 * np.sin(two_pi * s) / two_pi
+            phi = self.phi0 + two_pi * u
+            r = self.radius_m * (1 + 0.12 * np.sin(two_pi * 2 * s + w[0]) - 0.12 * np.sin(w[0]))
+            h = self.height_m + 0.12 * (np.sin(two_pi * 3 * s + w[1]) - np.sin(w[1]))
+            target = target + 0.03 * np.array(
+                [
+                    np.sin(two_pi * 2 * s + w[2]) - np.sin(w[2]),
+                    np.sin(two_pi * 3 * s + w[3]) - np.sin(w[3]),
+                    0.0,
+                ]
+            )
+        elif self.kind == "sweeps":
+            # n back-and-forth sweeps over [-45, +45] deg around phi0, height up then down
+            phi = self.phi0 + np.radians(45.0) * np.sin(two_pi * self.sweeps * s)
+            r = self.radius_m * (1 + 0.08 * np.sin(two_pi * 2 * s + w[0]) - 0.08 * np.sin(w[0]))
+            h = self.height_m + 0.15 * np.sin(np.pi * s) ** 2 * np.sin(np.pi * s)
+            target = target + 0.02 * np.array([np.sin(two_pi * s + w[2]) - np.sin(w[2]), 0.0, 0.0])
+        else:  # browse: monotone arc, no revisit
+            u = s - 0.1 * np.sin(two_pi * s) / two_pi
+            phi = self.phi0 + np.radians(240.0) * u
+            r = self.radius_m * (1.1 - 0.25 * s)
+            h = self.height_m - 0.1 + 0.3 * s
+        return float(phi), float(r), float(h), target
+
+    def nominal_pose(self, t_s: float) -> F64:
+        """``world_from_cam0`` without hand shake at time ``t_s``."""
+        s = float(np.clip(t_s / self.duration_s, 0.0, 1.0))
+        phi, r, h, target = self._nominal(s)
+        pos = np.array([r * np.cos(phi), r * np.sin(phi), h])
+        return look_at(pos, target)
+
+    def pose(self, t_s: float) -> F64:
+        """``world_from_cam0`` (4x4, metres) at time ``t_s`` (seconds from the start)."""
+        T = self.nominal_pose(t_s)
+        sh = self._shake(t_s)
+        T[:3, 3] += self.shake_translation_m * sh[:3]
+        T[:3, :3] = T[:3, :3] @ so3_exp(self.shake_rotation_rad * sh[3:])
+        return T
