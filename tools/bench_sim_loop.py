@@ -47,6 +47,7 @@ def _ensure(path: Path, preset: str, frames: int | None = None) -> Path:
 def run_sequence(path: Path, config: Config, max_frames: int | None = None) -> dict[str, Any]:
     """Front end + loop closing over one sequence; trajectories and loop events."""
     from loopmodel.frontend import FrontEnd
+
     from loopmodel.io.sequence import open_sequence
     from loopmodel.loop.stage import LoopClosingStage
 
@@ -56,6 +57,7 @@ def run_sequence(path: Path, config: Config, max_frames: int | None = None) -> d
     link: list[tuple[int, np.ndarray]] = []
     kf_chain: dict[int, tuple[int | None, np.ndarray | None, bool, np.ndarray]] = {}
     status: list[str] = []
+    stamps: list[int] = []
     t0 = time.perf_counter()
     n = 0
     try:
@@ -65,6 +67,7 @@ def run_sequence(path: Path, config: Config, max_frames: int | None = None) -> d
             r = fe.process(fr)
             n += 1
             link.append((r.keyframe_id, r.kf_from_cam))
+            stamps.append(r.timestamp_ns)
             status.append(r.status)
             if r.keyframe is not None:
                 kf = r.keyframe
@@ -91,6 +94,8 @@ def run_sequence(path: Path, config: Config, max_frames: int | None = None) -> d
         "keyframes": {k: v[3] for k, v in kf_chain.items()},
         "kf_frames": {k: int(getattr(stage.keyframes[k], "frame_index", -1)) for k in stage.keyframes},
         "frames": n,
+        "stamps_ns": np.array(stamps, dtype=np.int64),
+        "sequence": seq,
         "wall_s": wall,
         "lost": sum(s != "OK" for s in status),
     }
@@ -124,6 +129,28 @@ def _false_loops(out: dict[str, Any]) -> int:
     return bad
 
 
+def _mesh_errors(out: dict[str, Any], scene_ply: Path, config: Config) -> dict[str, float | None]:
+    """Mesh the laser stripes with the before/after trajectories (anchored at the first
+    ground-truth pose) and measure both against the scene mesh (mm)."""
+    if not scene_ply.is_file():
+        return {"mesh_err_before_mm": None, "mesh_err_after_mm": None}
+    import open3d as o3d
+
+    from loopmodel.mapping.accuracy import mesh_error_metrics
+    from loopmodel.types import Trajectory
+
+    gt = out["gt"]
+    trajs = {}
+    for name in ("before", "after"):
+        est = out[name]
+        anchored = np.einsum("ij,njk->nik", gt[0] @ invert_pose(est[0]), est)
+        trajs[name] = Trajectory(out["stamps_ns"], anchored)
+    stripes = list(out["sequence"].stripes())
+    mesh = o3d.io.read_triangle_mesh(str(scene_ply))
+    m = mesh_error_metrics(stripes, trajs, mesh, config.mapping)
+    return {k: round(float(v), 3) for k, v in m.items()}
+
+
 def run(quick: bool = False) -> dict[str, Any]:
     logging.basicConfig(level=logging.WARNING)
     config = Config()
@@ -145,9 +172,8 @@ def run(quick: bool = False) -> dict[str, Any]:
         "relocalizations": len(out["stage"].events) - len(loops),
         "loop_candidates_rejected": len(out["stage"].rejected),
         "loop_optimise_ms_median": round(float(np.median([e["optimise_ms"] for e in loops])), 1) if loops else None,
-        "mesh_err_before_mm": None,
-        "mesh_err_after_mm": None,
     }
+    result.update(_mesh_errors(out, orbit.with_suffix(".scene.ply"), config))
     if not quick:
         browse = _ensure(SAMPLE / "browse.mcap", "browse")
         b = run_sequence(browse, config)
