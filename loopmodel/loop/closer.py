@@ -36,6 +36,7 @@ from loopmodel.loop.closure import LoopEvent, detector_from_config, relocalize_i
 from loopmodel.loop.features import FeatureSet, describe_at, detect_and_describe, make_extractor
 from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hybrid_ba
 from loopmodel.loop.pnp import solve_pnp_bank
+from loopmodel.loop.refine import project_refiner
 from loopmodel.loop.reloc import RelocParams, RelocResult
 from loopmodel.types import StereoCalibration
 
@@ -222,6 +223,7 @@ class LoopCloser:
             rng=np.random.default_rng(0),
             max_samples=self.config.max_samples,
             min_inliers=6,
+            refiner=project_refiner(self.camera),
         )
         if res is None:
             return None

@@ -1,9 +1,9 @@
 """Robust refinement of a camera pose from 2-D/3-D correspondences (after the P3P bank).
 
-``refine_pose`` is the hook the relocalizer calls. Until the project's robust pose solver
-(``loopmodel/pose/``, virtual visual servoing with M-estimators) is on main, it runs the
-small Huber-IRLS Gauss-Newton below on tangent-plane ray errors; swap it by passing another
-``PoseRefiner`` to :func:`loopmodel.loop.pnp.solve_pnp_bank`.
+The P3P bank calls a :data:`PoseRefiner`. :func:`project_refiner` wraps the project's
+robust pose solver (``loopmodel.pose``, used by the front end as well); ``refine_pose``
+(the default when no camera is at hand) is the small Huber-IRLS Gauss-Newton below on
+tangent-plane ray errors, which works for any central camera.
 """
 
 from __future__ import annotations
@@ -13,6 +13,8 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.errors import LoopmodelError
+from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import se3_exp
 
 F64 = NDArray[np.float64]
@@ -81,3 +83,30 @@ def refine_pose_irls(
 
 #: The refiner used by default (replace with the loopmodel.pose solver once it is merged).
 refine_pose: PoseRefiner = refine_pose_irls
+
+
+def project_refiner(camera: CentralCamera) -> PoseRefiner:
+    """A :data:`PoseRefiner` backed by the project's robust pose solver
+    (``loopmodel.pose.refine_pose``: LM with a Huber loss at the given noise scale) for
+    images of ``camera``; the rays are projected back to pixels for it. Falls back to
+    :func:`refine_pose_irls` when ``loopmodel.pose`` is not installed in this build."""
+    try:
+        from loopmodel.pose import CameraRig, PointTerm, PoseOptions
+        from loopmodel.pose import refine_pose as vvs_refine
+    except ImportError:
+        return refine_pose_irls
+    rig = CameraRig.single(camera)
+    f = max(camera.px, camera.py)
+
+    def refine(cam_from_world: F64, rays_in_cam: F64, p_in_world: F64, sigma_rad: float) -> F64:
+        if rays_in_cam.shape[0] < 3:
+            return cam_from_world
+        uv = camera.project(rays_in_cam)
+        opts = PoseOptions(loss="huber", fixed_scale=max(sigma_rad * f, 1e-3))
+        try:
+            res = vvs_refine(PointTerm(rig, p_in_world, uv), cam_from_world, opts)
+        except LoopmodelError:
+            return refine_pose_irls(cam_from_world, rays_in_cam, p_in_world, sigma_rad)
+        return np.asarray(res.rig_from_ref, dtype=float)
+
+    return refine

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.loop.features import FeatureSet, match_descriptors
 from loopmodel.loop.pnp import PnPResult, solve_pnp_bank
-from loopmodel.loop.refine import PoseRefiner
+from loopmodel.loop.refine import PoseRefiner, project_refiner
 
 logger = logging.getLogger(__name__)
 
@@ -118,7 +118,7 @@ def localize(
         max_samples=int(min(p.max_samples, max(64, np.ceil(bound)))),
         confidence=p.confidence,
         min_inliers=3,
-        refiner=refiner,
+        refiner=refiner if refiner is not None else project_refiner(camera),
     )
     total = time.perf_counter() - t0
     if res is None:
