@@ -237,6 +237,7 @@ class LoopConfig(_Section):
     vocabulary_path: str | None = Field(None, description="trained vocabulary .npz; None: on the fly")
     vocabulary_branching: int = Field(8, ge=2)
     vocabulary_levels: int = Field(4, ge=1)
+    vocabulary_train_after: int = Field(6, ge=2, description="keyframes before on-the-fly training")
     min_gap_keyframes: int = Field(10, ge=1, description="recent keyframes never loop candidates")
     consistency: int = Field(2, ge=1, description="consecutive agreeing queries before a loop")
     min_score: float = Field(0.01, ge=0)

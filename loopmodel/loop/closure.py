@@ -267,6 +267,7 @@ def params_from_config(cfg: LoopConfig) -> LoopParams:
         consistency=cfg.consistency,
         branching=cfg.vocabulary_branching,
         levels=cfg.vocabulary_levels,
+        train_after=cfg.vocabulary_train_after,
     )
     return LoopParams(
         place=place,
