@@ -112,6 +112,40 @@ def convert(
 
 
 @app.command()
+def run(
+    path: Annotated[Path, typer.Argument(help="MCAP file, EuRoC or KITTI folder")],
+    config: ConfigOption = None,
+    frontend_only: Annotated[bool, typer.Option("--frontend-only", help="Run only the visual front end")] = False,
+    out: Annotated[Path | None, typer.Option("--out", help="Results root (default: output.out_dir)")] = None,
+    name: Annotated[str | None, typer.Option("--name", help="Run name (folder under --out)")] = None,
+    max_frames: Annotated[int | None, typer.Option("--max-frames", help="Stop after this many frames")] = None,
+) -> None:
+    """Process a sequence; writes trajectories, metrics, config and log into <out>/<name>/."""
+    from rich.progress import TextColumn as _Text
+
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.pipeline import run_frontend
+
+    if not frontend_only:
+        raise InputError(None, "only the front end is available so far; pass --frontend-only")
+    cfg = load_config(config)
+    seq = open_sequence(path, cfg.sequence)
+    run_name = name or f"{path.stem}_frontend"
+    with progress_bar(_Text("{task.fields[fps]:.1f} fps")) as bar:
+        task = bar.add_task("front end", total=len(seq) if max_frames is None else min(len(seq), max_frames), fps=0.0)
+        result = run_frontend(
+            seq, cfg, out, run_name, max_frames=max_frames,
+            progress=lambda i, n, fps: bar.update(task, completed=i, fps=fps),
+        )
+    m = result.metrics
+    console.print(
+        f"wrote {result.folder}: {m['frames']} frames ({m['lost_frames']} lost), "
+        f"{m['keyframes']} keyframes, {_fmt(m['fps'])} fps"
+        + (f", ATE {m['ate_rmse_m']:.3f} m, drift {m['drift_pct']:.2f} %" if "ate_rmse_m" in m else "")
+    )
+
+
+@app.command()
 def mesh(
     source: Annotated[
         Path, typer.Argument(help="Results folder (stripes.npz + trajectory) or a sequence with ground truth")

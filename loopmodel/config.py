@@ -47,6 +47,64 @@ class OutputConfig(_Section):
     image_format: str = Field("png", pattern="^(raw|png|jpeg)$", description="MCAP image encoding")
 
 
+class FrontendConfig(_Section):
+    """Stereo keyframe front end: detection, stereo matching, KLT, robust pose, keyframes."""
+
+    # keyframe features (rectified left image)
+    max_features: int = Field(800, ge=10, description="corners per keyframe (before stereo)")
+    grid_cols: int = Field(8, ge=1, description="detection grid columns (bucketing)")
+    grid_rows: int = Field(4, ge=1, description="detection grid rows (bucketing)")
+    gftt_quality: float = Field(0.005, gt=0, lt=1, description="Shi-Tomasi quality, per cell")
+    min_distance_px: float = Field(10.0, gt=0, description="minimum corner spacing")
+    border_px: int = Field(12, ge=0, description="no corners this close to the image border")
+    detect_half_resolution: bool = Field(False, description="find corners in the half-size image")
+    # stereo row search (rectified pair)
+    patch_px: int = Field(11, ge=3, description="matching window (odd)")
+    min_disparity_px: float = Field(1.0, ge=0, description="reject matches below (far points)")
+    max_disparity_px: float = Field(160.0, gt=0, description="search range along the row")
+    min_zncc: float = Field(0.7, ge=-1, le=1, description="minimum normalised correlation")
+    lr_tolerance_px: float = Field(1.0, gt=0, description="left-right consistency tolerance")
+    max_row_error_px: float = Field(1.0, ge=0, description="max vertical offset of the match")
+    max_depth_m: float = Field(200.0, gt=0, description="reject triangulated points beyond")
+    min_stereo_points: int = Field(30, ge=6, description="fewest points for a keyframe")
+    max_keyframe_points: int = Field(300, ge=0, description="keep at most this many (spread); 0: all")
+    # KLT
+    klt_window_px: int = Field(13, ge=5, description="Lucas-Kanade window")
+    klt_levels: int = Field(3, ge=0, description="pyramid levels above the base")
+    klt_iterations: int = Field(7, ge=1)
+    fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward tolerance")
+    # robust pose
+    pose_loss: str = Field("tukey", pattern="^(tukey|huber)$")
+    pose_min_scale_px: float = Field(0.5, gt=0, description="floor of the MAD scale")
+    ransac_threshold_px: float = Field(2.0, gt=0)
+    prediction_gate_px: float = Field(
+        4.0, gt=0, description="prediction good enough to skip RANSAC"
+    )
+    pose_step_tolerance: float = Field(5e-5, gt=0, description="LM stops below this step (m, rad)")
+    pose_max_iterations: int = Field(10, ge=1)
+    pose_huber_warmup: int = Field(2, ge=0, description="Huber IRLS iterations before Tukey")
+    pose_reweight_iterations: int = Field(4, ge=1, description="IRLS weight updates, then frozen")
+    depth_weighting: bool = Field(True, description="down-weight points of uncertain stereo depth")
+    disparity_sigma_px: float = Field(0.3, gt=0, description="stereo disparity noise (weighting)")
+    # keyframe policy
+    min_tracked_fraction: float = Field(0.5, gt=0, le=1, description="new keyframe below this")
+    min_tracked: int = Field(100, ge=6, description="new keyframe below this many inliers")
+    max_parallax_ratio: float = Field(0.25, gt=0, description="translation / median depth")
+    max_rotation_deg: float = Field(20.0, gt=0, description="rotation since the keyframe")
+    # tracking loss
+    min_inliers: int = Field(20, ge=6, description="LOST below this many inliers")
+    max_jump_m: float = Field(0.6, gt=0, description="LOST when the pose departs from the motion model by more")
+    max_jump_deg: float = Field(15.0, gt=0)
+    min_image_std: float = Field(4.0, ge=0, description="black/flat image threshold (grey levels)")
+    min_sharpness: float = Field(20.0, ge=0, description="variance of the Laplacian (blur) threshold")
+    max_retrack_frames: int = Field(5, ge=0, description="frames to try resuming on the old keyframe")
+    # local hybrid keyframe BA (seed 004 eq. 1)
+    local_ba: bool = True
+    ba_iterations: int = Field(5, ge=1)
+    ba_huber_px: float = Field(1.0, gt=0)
+    ba_final_stereo: bool = Field(False, description="add the final right projections to eq. 1")
+
+
 class MappingConfig(_Section):
     """Laser-stripe integration and open3d meshing (lengths in metres, world frame)."""
 
@@ -270,6 +328,7 @@ class Config(_Section):
 
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    frontend: FrontendConfig = Field(default_factory=FrontendConfig)
     mapping: MappingConfig = Field(default_factory=MappingConfig)
     eval: EvalConfig = Field(default_factory=EvalConfig)
     loop: LoopConfig = Field(default_factory=LoopConfig)

@@ -38,6 +38,8 @@ class CentralCamera:
     def normalized(self, p_in_cam: ArrayLike) -> F64:
         """N x 2 normalised coordinates of N x 3 points in the camera frame (metres)."""
         P = np.asarray(p_in_cam, dtype=float).reshape(-1, 3)
+        if self.xi == 0.0:  # pinhole: no norm needed
+            return P[:, :2] / P[:, 2:3]
         denom = P[:, 2] + self.xi * np.linalg.norm(P, axis=1)
         return P[:, :2] / denom[:, None]
 
@@ -54,6 +56,14 @@ class CentralCamera:
     def project_jacobian(self, p_in_cam: ArrayLike) -> F64:
         """N x 2 x 3 Jacobian of the pixel coordinates w.r.t. the camera-frame point."""
         P = np.asarray(p_in_cam, dtype=float).reshape(-1, 3)
+        if self.xi == 0.0:  # pinhole fast path (same values as the general formula)
+            iz = 1.0 / P[:, 2]
+            J = np.zeros((P.shape[0], 2, 3))
+            J[:, 0, 0] = self.px * iz
+            J[:, 0, 2] = -self.px * P[:, 0] * iz * iz
+            J[:, 1, 1] = self.py * iz
+            J[:, 1, 2] = -self.py * P[:, 1] * iz * iz
+            return J
         rho = np.linalg.norm(P, axis=1)
         d = P[:, 2] + self.xi * rho
         safe_rho = np.where(rho > 0, rho, 1.0)

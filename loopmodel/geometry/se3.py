@@ -75,6 +75,17 @@ def se3_log(T: ArrayLike) -> F64:
     return np.concatenate([v, w])
 
 
+def nearest_rigid(T: ArrayLike) -> F64:
+    """The rigid transform nearest to a 4x4 matrix whose rotation block drifted from SO(3)
+    (rounding in long products of poses): rotation projected by SVD, translation kept."""
+    T = np.asarray(T, dtype=float)
+    U, _s, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    return make_pose(R, T[:3, 3])
+
+
 def make_pose(R: ArrayLike, t: ArrayLike) -> F64:
     """4x4 pose from a 3x3 rotation and a translation (metres)."""
     T = np.eye(4)

@@ -1,0 +1,171 @@
+"""Local hybrid keyframe bundle adjustment (seed 004, eq. 1).
+
+For one feature set i: its M 3-D points (keyframe i's rectified left camera frame) and the
+transform ``f_from_kf`` to the final monocular frame (the left image of keyframe i+1)
+are refined together from the left and right projections at keyframe i and the final
+left projections. Optionally (an extension of eq. 1) the final right projections too, when
+the final frame is a stereo keyframe: this anchors the scale at both ends of the set.
+Minimal rotation parameters (a left twist on ``f_from_kf``), Huber loss, analytic
+Jacobians, the points eliminated by the Schur complement (a 6x6 reduced system).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from loopmodel.geometry.camera import CentralCamera
+from loopmodel.geometry.se3 import se3_exp
+from loopmodel.pose.rig import point_cross_rows
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class HybridBAResult:
+    """Refined ``f_from_kf`` (4x4), points (M, 3, metres, keyframe frame), iterations,
+    RMS reprojection error (pixels) before and after, and per-point inlier flags."""
+
+    f_from_kf: F64
+    points_in_kf: F64
+    iterations: int
+    initial_rms_px: float
+    final_rms_px: float
+    inliers: NDArray[np.bool_]
+
+
+def _huber_w(n: F64, k: float) -> F64:
+    return np.where(n <= k, 1.0, k / np.maximum(n, 1e-300))
+
+
+def _huber_rho(n: F64, k: float) -> F64:
+    return np.where(n <= k, 0.5 * n * n, k * (n - 0.5 * k))
+
+
+@dataclass
+class _Block:
+    camera: CentralCamera
+    fixed: F64  # camera_from_(kf or final left) transform, 4x4
+    moving: bool  # True: the block's camera sees the points through f_from_kf
+    uv: F64  # (M, 2) measurements
+    valid: F64  # (M,) 1.0 where measured
+
+
+def hybrid_keyframe_ba(
+    points_in_kf: F64,
+    uv_left: F64,
+    uv_right: F64,
+    uv_final: F64,
+    f_from_kf: F64,
+    left: CentralCamera,
+    right: CentralCamera,
+    right_from_left: F64,
+    iterations: int = 10,
+    huber_px: float = 1.0,
+    uv_final_right: F64 | None = None,
+) -> HybridBAResult:
+    """Minimise eq. (1) of seed 004 over the points and ``f_from_kf``; all pixels are
+    undistorted (rectified) coordinates. ``uv_final_right`` (M, 2; NaN rows where
+    unmatched) adds the final right projections."""
+    X = np.asarray(points_in_kf, dtype=float).copy()
+    T = np.asarray(f_from_kf, dtype=float).copy()
+    M = X.shape[0]
+    one = np.ones(M)
+    eye = np.eye(4)
+    rfl = np.asarray(right_from_left, dtype=float)
+    blocks = [
+        _Block(left, eye, False, np.asarray(uv_left, float), one),
+        _Block(right, rfl, False, np.asarray(uv_right, float), one),
+        _Block(left, eye, True, np.asarray(uv_final, float), one),
+    ]
+    if uv_final_right is not None:
+        fr = np.asarray(uv_final_right, dtype=float)
+        valid = np.all(np.isfinite(fr), axis=1).astype(float)
+        blocks.append(_Block(right, rfl, True, np.where(np.isfinite(fr), fr, 0.0), valid))
+
+    Eval = list[tuple[F64, F64, F64 | None, F64 | None]]
+
+    def evaluate(Xc: F64, Tc: F64, jac: bool) -> Eval:
+        pf = Xc @ Tc[:3, :3].T + Tc[:3, 3]
+        out: Eval = []
+        for b in blocks:
+            base = pf if b.moving else Xc
+            p = base @ b.fixed[:3, :3].T + b.fixed[:3, 3]
+            r = (b.camera.project(p) - b.uv) * b.valid[:, None]
+            if not jac:
+                out.append((r, p, None, None))
+                continue
+            Jc = b.camera.project_jacobian(p) @ b.fixed[:3, :3]  # d uv / d base point
+            JX = Jc @ Tc[:3, :3] if b.moving else Jc
+            Jp = np.concatenate([Jc, point_cross_rows(pf, Jc)], axis=2) if b.moving else None
+            out.append((r, p, JX, Jp))
+        return out
+
+    def norms(ev: Eval) -> F64:
+        return np.stack([np.linalg.norm(e[0], axis=1) for e in ev])
+
+    def cost_of(nrm: F64) -> float:
+        return float(np.sum(_huber_rho(nrm, huber_px)))
+
+    ev = evaluate(X, T, True)
+    nrm = norms(ev)
+    valid_all = np.stack([b.valid for b in blocks]) > 0
+    init_rms = float(np.sqrt(np.mean(nrm[valid_all] ** 2)))
+    cost = cost_of(nrm)
+    lam = 1e-3
+    it = 0
+    for it in range(1, iterations + 1):  # noqa: B007 (it is reported)
+        w = _huber_w(nrm, huber_px) * np.stack([b.valid for b in blocks])
+        Hxx = np.zeros((M, 3, 3))
+        gx = np.zeros((M, 3))
+        Hpx = np.zeros((M, 6, 3))
+        Hpp = np.zeros((6, 6))
+        gp = np.zeros(6)
+        for k, (r, _p, JX, Jp) in enumerate(ev):
+            assert JX is not None
+            wk = w[k]
+            JXw = JX * wk[:, None, None]
+            Hxx += np.matmul(JXw.transpose(0, 2, 1), JX)
+            gx += np.einsum("mki,mk->mi", JXw, r)
+            if Jp is not None:
+                Jpw = Jp * wk[:, None, None]
+                Hpx += np.matmul(Jpw.transpose(0, 2, 1), JX)
+                Hpp += np.einsum("mki,mkj->ij", Jpw, Jp)
+                gp += np.einsum("mki,mk->i", Jpw, r)
+        improved = False
+        converged = False
+        for _ in range(6):
+            Hxx_d = Hxx + lam * (Hxx * np.eye(3)) + 1e-9 * np.eye(3)
+            Hpp_d = Hpp + lam * np.diag(np.diag(Hpp)) + 1e-12 * np.eye(6)
+            Hxx_inv = np.linalg.inv(Hxx_d)
+            HpxHi = np.matmul(Hpx, Hxx_inv)  # (M, 6, 3)
+            S = Hpp_d - np.einsum("mij,mkj->ik", HpxHi, Hpx)
+            b = -gp + np.einsum("mij,mj->i", HpxHi, gx)
+            try:
+                dp = np.linalg.solve(S, b)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            dx = -np.einsum("mij,mj->mi", Hxx_inv, gx + np.einsum("mji,j->mi", Hpx, dp))
+            T_new = se3_exp(dp) @ T
+            X_new = X + dx
+            ev_new = evaluate(X_new, T_new, False)
+            nrm_new = norms(ev_new)
+            in_front = all(np.all(e[1][:, 2] > 0) for e in ev_new)
+            c_new = cost_of(nrm_new)
+            if in_front and c_new < cost:
+                X, T, nrm = X_new, T_new, nrm_new
+                converged = cost - c_new < 1e-4 * cost
+                cost = c_new
+                lam = max(lam * 0.3, 1e-9)
+                improved = True
+                break
+            lam *= 10.0
+        if not improved or converged:
+            break
+        ev = evaluate(X, T, True)
+    inliers = np.all((nrm < 3.0 * huber_px) | ~valid_all, axis=0)
+    final_rms = float(np.sqrt(np.mean(nrm[valid_all] ** 2)))
+    return HybridBAResult(T, X, it, init_rms, final_rms, inliers)

@@ -1,0 +1,283 @@
+"""Keyframe features: grid-bucketed Shi-Tomasi corners in the rectified left image, row
+search in the rectified right image (normalised correlation, sub-pixel parabola, left-right
+consistency, vertical offset check) and triangulation in the left camera frame."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from loopmodel.config import FrontendConfig
+
+F64 = NDArray[np.float64]
+
+
+def detect_corners(
+    img: NDArray[np.uint8],
+    max_features: int,
+    grid: tuple[int, int],
+    quality: float,
+    min_distance_px: float,
+    border_px: int,
+    half_resolution: bool = False,
+) -> F64:
+    """(N, 2) corner pixels (u, v), spread over a ``grid`` = (cols, rows) of cells with an
+    equal quota each; the Shi-Tomasi quality level is relative to each cell. With
+    ``half_resolution`` the corners are found in the half-size image (4x less work) and
+    scaled to full-resolution pixels."""
+    if half_resolution:
+        small = cv2.pyrDown(img)
+        pts = detect_corners(small, max_features, grid, quality, max(1.0, min_distance_px / 2),
+                             (border_px + 1) // 2)
+        return 2.0 * pts
+    h, w = img.shape[:2]
+    cols, rows = grid
+    quota = max(1, int(np.ceil(max_features / (cols * rows))))
+    xs = np.linspace(border_px, w - border_px, cols + 1).astype(int)
+    ys = np.linspace(border_px, h - border_px, rows + 1).astype(int)
+    out: list[F64] = []
+    for r in range(rows):
+        for c in range(cols):
+            x0, x1, y0, y1 = xs[c], xs[c + 1], ys[r], ys[r + 1]
+            if x1 - x0 < 4 or y1 - y0 < 4:
+                continue
+            pts = cv2.goodFeaturesToTrack(
+                img[y0:y1, x0:x1], quota, quality, min_distance_px, blockSize=5
+            )
+            if pts is not None:
+                p = pts.reshape(-1, 2).astype(float)
+                p[:, 0] += x0
+                p[:, 1] += y0
+                out.append(p)
+    if not out:
+        return np.zeros((0, 2))
+    return np.vstack(out)
+
+
+@dataclass
+class StereoMatches:
+    """Matched features: left pixel (u, v, rounded to integers), right u and v (sub-pixel),
+    disparity (pixels), ZNCC score, and the index of each match in the input corners."""
+
+    uv_left: F64
+    u_right: F64
+    v_right: F64
+    disparity: F64
+    score: F64
+    index: NDArray[np.int64]
+
+
+def _parabola_offsets(a: F64, b: F64, c: F64) -> F64:
+    """Sub-sample offsets of the maxima of parabolas through (-1, a), (0, b), (1, c)."""
+    den = a - 2.0 * b + c
+    off = np.where(den < 0, 0.5 * (a - c) / np.where(den < 0, den, -1.0), 0.0)
+    return np.clip(off, -0.5, 0.5)
+
+
+def _zncc_scan(
+    src: NDArray[np.uint8],
+    dst: NDArray[np.uint8],
+    pad: int,
+    u: NDArray[np.int64],
+    v: NDArray[np.int64],
+    start: NDArray[np.int64],
+    length: int,
+    half: int,
+    row_offsets: tuple[int, ...] = (0,),
+) -> NDArray[np.float32]:
+    """ZNCC of the (2*half+1)^2 template of ``src`` at integer (u, v) with the windows of
+    ``dst`` centred at columns ``start + k`` (k < length) and rows ``v + r``. Images are
+    padded by ``pad`` pixels. Returns (N, len(row_offsets), length)."""
+    p = 2 * half + 1
+    n = u.shape[0]
+    stride = dst.shape[1]
+    ar = np.arange(-half, half + 1)
+    patch_off = (ar[:, None] * stride + ar[None, :]).ravel()  # (p*p,)
+    base_t = (v + pad) * stride + (u + pad)
+    tpl = np.take(src, base_t[:, None] + patch_off).astype(np.float32)  # (N, p*p)
+    tz = tpl - tpl.mean(axis=1, keepdims=True)
+    tn = np.sqrt(np.einsum("nk,nk->n", tz, tz)) + 1e-6
+    tz = tz.reshape(n, p, p)
+    if length <= 16:
+        # short scans (fine stage): explicit windows, one batched product per row offset
+        r0, r1 = min(row_offsets), max(row_offsets)
+        rows = np.arange(r0 - half, r1 + half + 1)
+        strip_off = rows[:, None] * stride + np.arange(-half, length + half)[None, :]
+        base = (v + pad) * stride + (start + pad)
+        strip = np.take(dst, base[:, None, None] + strip_off).astype(np.float32)
+        tzf = tz.reshape(n, p * p, 1)
+        out = np.empty((n, len(row_offsets), length), np.float32)
+        for ri, r in enumerate(row_offsets):
+            sub = strip[:, r - r0 : r - r0 + p, :]
+            win = np.lib.stride_tricks.sliding_window_view(sub, p, axis=2)  # (N, p, L, p)
+            W = np.ascontiguousarray(win.transpose(0, 2, 1, 3)).reshape(n, length, p * p)
+            cross = np.matmul(W, tzf)[:, :, 0]
+            s1 = W.sum(axis=2)
+            s2 = np.einsum("nlk,nlk->nl", W, W)
+            var = np.maximum(s2 - s1 * s1 / (p * p), 1e-3)
+            out[:, ri] = cross / (tn[:, None] * np.sqrt(var))
+        return out
+    strip_off = ar[:, None] * stride + np.arange(-half, length + half)[None, :]  # (p, L+p-1)
+    out = np.empty((n, len(row_offsets), length), np.float32)
+    for ri, r in enumerate(row_offsets):
+        base = (v + r + pad) * stride + (start + pad)
+        strip = np.take(dst, base[:, None, None] + strip_off).astype(np.float32)  # (N, p, L+p-1)
+        cross = np.zeros((n, length), np.float32)
+        for j in range(p):  # accumulate over template columns: tz[:, :, j] against shifted strips
+            cross += np.einsum("ni,nik->nk", tz[:, :, j], strip[:, :, j : j + length])
+        c1 = np.cumsum(strip.sum(axis=1), axis=1)
+        c2 = np.cumsum((strip * strip).sum(axis=1), axis=1)
+        z = np.zeros((n, 1), np.float32)
+        c1 = np.concatenate([z, c1], axis=1)
+        c2 = np.concatenate([z, c2], axis=1)
+        s1 = c1[:, p:] - c1[:, :-p]
+        s2 = c2[:, p:] - c2[:, :-p]
+        var = np.maximum(s2 - s1 * s1 / (p * p), 1e-3)
+        out[:, ri] = cross / (tn[:, None] * np.sqrt(var))
+    return out
+
+
+def _search_row(
+    src_c: NDArray[np.uint8],
+    dst_c: NDArray[np.uint8],
+    src_f: NDArray[np.uint8],
+    dst_f: NDArray[np.uint8],
+    pad_c: int,
+    pad_f: int,
+    u: NDArray[np.int64],
+    v: NDArray[np.int64],
+    sign: int,
+    dmax: int,
+    half_f: int,
+    width: int,
+    rows: tuple[int, ...],
+) -> tuple[NDArray[np.int64], NDArray[np.int64], F64, F64, F64]:
+    """Coarse (half resolution, 7x7) search over disparities 0..dmax along the row, in the
+    direction ``sign`` (-1: right image, +1: left image), then a fine (full resolution)
+    search of +-2 pixels and ``rows``. Returns integer column, row offset index, sub-pixel
+    column and row offsets, and the best score."""
+    half_c = 3
+    uh, vh = (u + 1) // 2, (v + 1) // 2
+    Dh = dmax // 2 + 2
+    start_c = uh - Dh if sign < 0 else uh
+    sc = _zncc_scan(src_c, dst_c, pad_c, uh, vh, start_c, Dh + 1, half_c)[:, 0]
+    col_c = start_c[:, None] + np.arange(Dh + 1)
+    wc = width // 2
+    sc[(col_c < half_c) | (col_c > wc - 1 - half_c)] = -2.0
+    best_c = start_c + np.argmax(sc, axis=1)
+    start_f = 2 * best_c - 3
+    L = 7
+    sf = _zncc_scan(src_f, dst_f, pad_f, u, v, start_f, L, half_f, rows)
+    col_f = start_f[:, None] + np.arange(L)
+    bad_col = (col_f < half_f) | (col_f > width - 1 - half_f)
+    bad_col |= (col_f - u[:, None]) * sign < 0  # wrong side of the source column
+    sf[np.broadcast_to(bad_col[:, None, :], sf.shape)] = -2.0
+    flat = np.argmax(sf.reshape(len(u), -1), axis=1)
+    ri, k = np.divmod(flat, L)
+    idx = np.arange(len(u))
+    best = sf[idx, ri, k]
+    kk = np.clip(k, 1, L - 2)
+    du = _parabola_offsets(sf[idx, ri, kk - 1], sf[idx, ri, kk], sf[idx, ri, kk + 1])
+    du = np.where((k == kk), du, 0.0)
+    interior = (k > 0) & (k < L - 1)
+    best = np.where(interior, best, -2.0)  # peak not bracketed: coarse search was off
+    if len(rows) == 3:
+        dv = _parabola_offsets(sf[idx, 0, k], sf[idx, 1, k], sf[idx, 2, k])
+        dv = np.where(ri == 1, dv, np.asarray(rows)[ri].astype(float))
+    else:
+        dv = np.zeros(len(u))
+    return start_f + k, ri, du, dv, best.astype(float)
+
+
+def match_stereo(
+    left: NDArray[np.uint8], right: NDArray[np.uint8], uv_left: F64, cfg: FrontendConfig
+) -> StereoMatches:
+    """Find the left corners in the rectified right image along their row (+-1 row).
+
+    Normalised cross-correlation, coarse to fine (half resolution over the whole disparity
+    range, then full resolution), sub-pixel parabola fits in u and v. A match is kept when
+    its ZNCC exceeds ``min_zncc``, its vertical offset is within ``max_row_error_px`` (the
+    reprojection check of a rectified pair), its disparity is within range, and searching
+    the right patch back along the left row returns to the corner within
+    ``lr_tolerance_px``.
+    """
+    h, w = left.shape[:2]
+    half = cfg.patch_px // 2
+    dmax = int(np.ceil(cfg.max_disparity_px))
+    uv = np.rint(np.asarray(uv_left, dtype=float).reshape(-1, 2)).astype(np.int64)
+    inside = (uv[:, 0] >= half) & (uv[:, 0] < w - half) & (uv[:, 1] >= half + 1)
+    inside &= uv[:, 1] < h - half - 1
+    uv = uv[inside]
+    index = np.flatnonzero(inside)
+    u, v = uv[:, 0], uv[:, 1]
+    empty = StereoMatches(
+        np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, np.int64)
+    )
+    if u.size == 0:
+        return empty
+    pad_f = dmax + 2 * half + 8
+    pad_c = dmax // 2 + 16
+    lf = cv2.copyMakeBorder(left, pad_f, pad_f, pad_f, pad_f, cv2.BORDER_REPLICATE)
+    rf = cv2.copyMakeBorder(right, pad_f, pad_f, pad_f, pad_f, cv2.BORDER_REPLICATE)
+    lc = cv2.copyMakeBorder(cv2.pyrDown(left), pad_c, pad_c, pad_c, pad_c, cv2.BORDER_REPLICATE)
+    rc = cv2.copyMakeBorder(cv2.pyrDown(right), pad_c, pad_c, pad_c, pad_c, cv2.BORDER_REPLICATE)
+    col, ri, du, dv, score = _search_row(lc, rc, lf, rf, pad_c, pad_f, u, v, -1, dmax, half, w,
+                                         (-1, 0, 1))
+    ur = col + du
+    disp = u - ur
+    ok = (score >= cfg.min_zncc) & (np.abs(dv) <= cfg.max_row_error_px)
+    ok &= (disp >= cfg.min_disparity_px) & (disp <= cfg.max_disparity_px)
+    # left-right consistency: the right patch (at its integer match) searched in the left row
+    vr_int = v + np.asarray((-1, 0, 1))[ri]
+    ok &= (vr_int >= half + 1) & (vr_int < h - half - 1)
+    sel = np.flatnonzero(ok)
+    if sel.size:
+        bcol, _bri, bdu, _bdv, bscore = _search_row(
+            rc, lc, rf, lf, pad_c, pad_f, col[sel], vr_int[sel], +1, dmax, half, w, (0,)
+        )
+        back_ok = (np.abs(bcol + bdu - u[sel]) <= cfg.lr_tolerance_px) & (bscore >= cfg.min_zncc)
+        ok[sel] = back_ok
+    return StereoMatches(
+        uv[ok].astype(float), ur[ok], (v + dv)[ok], disp[ok], score[ok], index[ok]
+    )
+
+
+def spread_subset(
+    uv: F64,
+    score: F64,
+    candidates: NDArray[np.bool_],
+    count: int,
+    grid: tuple[int, int],
+    image_size: tuple[int, int],
+) -> NDArray[np.bool_]:
+    """Mask of at most ``count`` of the ``candidates``, spread over a (cols, rows) grid:
+    cells take turns, each giving its best-scoring remaining point."""
+    cols, rows = grid
+    w, h = image_size
+    cx = np.clip((uv[:, 0] * cols / w).astype(int), 0, cols - 1)
+    cy = np.clip((uv[:, 1] * rows / h).astype(int), 0, rows - 1)
+    cell = cy * cols + cx
+    idx = np.flatnonzero(candidates)
+    # rank of each candidate inside its cell by score (0 = best)
+    order = idx[np.lexsort((-score[idx], cell[idx]))]
+    c_sorted = cell[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(c_sorted)) + 1]
+    rank = np.arange(order.size) - np.repeat(starts, np.diff(np.r_[starts, order.size]))
+    # take rank 0 of every cell, then rank 1, ...; ties in a round by score
+    pick = order[np.lexsort((-score[order], rank))][:count]
+    out = np.zeros(uv.shape[0], dtype=bool)
+    out[pick] = True
+    return out
+
+
+def triangulate_rectified(uv_left: F64, disparity: F64, K: F64, baseline_m: float) -> F64:
+    """(N, 3) points (metres) in the rectified left camera frame from left pixels and
+    disparities (pixels)."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    Z = fx * baseline_m / disparity
+    X = (uv_left[:, 0] - cx) * Z / fx
+    Y = (uv_left[:, 1] - cy) * Z / fy
+    return np.column_stack([X, Y, Z])

@@ -1,0 +1,506 @@
+"""The stereo keyframe front end (seed 004, section 4): stereo-triangulated feature sets
+tracked by KLT, robust pose per frame against the current keyframe, keyframe policy, local
+hybrid keyframe BA, and LOST/recovery handling."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from loopmodel.config import FrontendConfig
+from loopmodel.errors import EstimationError, InputError
+from loopmodel.frontend.hybrid_ba import hybrid_keyframe_ba
+from loopmodel.frontend.keyframe import FrameResult, Keyframe
+from loopmodel.frontend.klt import Pyramid, build_pyramid, track_klt
+from loopmodel.frontend.rectify import Rectifier
+from loopmodel.frontend.stereo import (
+    detect_corners,
+    match_stereo,
+    spread_subset,
+    triangulate_rectified,
+)
+from loopmodel.geometry.se3 import invert_pose, nearest_rigid, se3_exp, se3_log, so3_log
+from loopmodel.pose import CameraRig, PointTerm, PoseOptions, estimate_pose
+from loopmodel.types import StereoCalibration, StereoFrame
+
+logger = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class _ActiveSet:
+    """The current keyframe's feature set, in the rectified left frame of that keyframe."""
+
+    keyframe: Keyframe
+    world_from_kfrect: F64
+    points: F64  # (M, 3) rectified keyframe frame
+    stereo_px: F64  # (M, 3)
+    median_depth_m: float
+
+
+def _rotation_deg(T: F64) -> float:
+    return float(np.degrees(np.linalg.norm(so3_log(T[:3, :3]))))
+
+
+class FrontEnd:
+    """Stereo keyframe visual odometry. Feed frames in time order to :meth:`process`.
+
+    Internally everything runs on rectified images in the rectified left camera frame;
+    results are converted to the original left camera (``world_from_cam``). The world frame
+    is the first keyframe's left camera.
+    """
+
+    def __init__(
+        self, calibration: StereoCalibration, config: FrontendConfig | None = None
+    ) -> None:
+        self.config = config or FrontendConfig()
+        if self.config.patch_px % 2 == 0:
+            raise InputError("frontend.patch_px", f"must be odd, got {self.config.patch_px}")
+        self.input_calibration = calibration.check("calibration")
+        self.rectifier = Rectifier(calibration)
+        self.calibration = self.rectifier.calibration  # rectified
+        self.rect_from_cam = self.rectifier.rect_from_cam
+        self.cam_from_rect = invert_pose(self.rect_from_cam)
+        self.left_camera = self.calibration.left_camera()
+        self.right_camera = self.calibration.right_camera()
+        self.rig = CameraRig.single(self.left_camera)
+        self.pose_options = PoseOptions(
+            loss=self.config.pose_loss,  # type: ignore[arg-type]
+            min_scale=self.config.pose_min_scale_px,
+            step_tolerance=self.config.pose_step_tolerance,
+            max_iterations=self.config.pose_max_iterations,
+            huber_warmup=self.config.pose_huber_warmup,
+            reweight_iterations=self.config.pose_reweight_iterations,
+        )
+        self._world_from_kf: dict[int, F64] = {}
+        self._active: _ActiveSet | None = None
+        self._next_kf_id = 0
+        self._next_landmark_id = 0
+        self._segment = 0
+        # tracking state (rectified frames)
+        self._track_idx = np.zeros(0, dtype=np.int64)
+        self._track_uv = np.zeros((0, 2))
+        self._prev_pyr: Pyramid | None = None
+        self._kf_from_prev: F64 = np.eye(4)
+        self._velocity: F64 = np.eye(4)  # prev_from_cur of the last measured step
+        self._velocity_known = False  # a measured step exists (the jump test needs one)
+        self._frames_since_ok = 0
+        self._last_stamp: int | None = None
+
+    # ------------------------------------------------------------------ public
+    @property
+    def world_from_kf(self) -> dict[int, F64]:
+        """Current estimate of every keyframe pose (original left camera, metres)."""
+        return dict(self._world_from_kf)
+
+    def apply_correction(self, world_from_kf: dict[int, F64]) -> None:
+        """Replace keyframe poses by corrected ones (e.g. from the back end); tracking
+        continues from the corrected pose of the current keyframe."""
+        for kf_id, T in world_from_kf.items():
+            if kf_id in self._world_from_kf:
+                self._world_from_kf[kf_id] = np.asarray(T, dtype=float).reshape(4, 4).copy()
+        if self._active is not None:
+            kf = self._active.keyframe
+            kf.world_from_kf = self._world_from_kf[kf.id]
+            self._active.world_from_kfrect = kf.world_from_kf @ self.cam_from_rect
+
+    def process(self, frame: StereoFrame) -> FrameResult:
+        """Track one stereo frame; may create a keyframe."""
+        t0 = time.perf_counter()
+        if self._last_stamp is not None and frame.timestamp_ns <= self._last_stamp:
+            raise InputError(
+                f"frame {frame.index}",
+                f"timestamps must increase ({frame.timestamp_ns} ns after {self._last_stamp} ns)",
+            )
+        self._last_stamp = frame.timestamp_ns
+        cfg = self.config
+        left = self.rectifier.left(frame.left)
+        quality_ok, why = self._image_ok(left)
+        if self._active is None:
+            if not quality_ok:
+                return self._lost(frame, np.eye(4), why, t0)
+            res = self._start_keyframe(
+                frame, left, None, np.eye(4) @ self.cam_from_rect, t0, connected=False
+            )
+            return (
+                res
+                if res is not None
+                else self._lost(frame, np.eye(4), "too few stereo points", t0)
+            )
+
+        active = self._active
+        gap = self._frames_since_ok
+        vel = self._velocity
+        for _ in range(gap):
+            vel = vel @ self._velocity
+        kf_from_pred = self._kf_from_prev @ vel
+        if not quality_ok:
+            self._frames_since_ok += 1
+            return self._lost(frame, active.world_from_kfrect @ kf_from_pred, why, t0)
+
+        cur_pyr = build_pyramid(left, cfg.klt_window_px, cfg.klt_levels)
+        status, reason, tracked, inliers, kf_from_cur, used_ransac = self._track(
+            cur_pyr, kf_from_pred
+        )
+        t_track = time.perf_counter()
+        if status != "OK":
+            self._frames_since_ok += 1
+            if (
+                self._frames_since_ok > cfg.max_retrack_frames
+                or len(self._track_idx) < cfg.min_inliers
+            ):
+                # recovery: a new, unconnected keyframe at the motion-model pose
+                self._segment += 1
+                res = self._start_keyframe(
+                    frame,
+                    left,
+                    cur_pyr,
+                    active.world_from_kfrect @ kf_from_pred,
+                    t0,
+                    connected=False,
+                )
+                if res is not None:
+                    res.status = "LOST"
+                    res.reason = f"{reason}; new keyframe (segment {self._segment})"
+                    return res
+                self._segment -= 1
+            return self._lost(
+                frame, active.world_from_kfrect @ kf_from_pred, reason, t0, tracked, inliers
+            )
+
+        # measured: update the motion model and the tracking state
+        step = invert_pose(self._kf_from_prev) @ kf_from_cur
+        if gap > 0:
+            step = se3_exp(se3_log(step) / (gap + 1))
+        # re-projected onto SE(3): these products feed back every frame, so rounding in
+        # the rotation blocks would otherwise grow geometrically
+        self._velocity = nearest_rigid(step)
+        self._velocity_known = True
+        self._kf_from_prev = nearest_rigid(kf_from_cur)
+        self._prev_pyr = cur_pyr
+        self._frames_since_ok = 0
+
+        if self._need_keyframe(kf_from_cur, inliers):
+            res = self._start_keyframe(
+                frame,
+                left,
+                cur_pyr,
+                active.world_from_kfrect @ kf_from_cur,
+                t0,
+                connected=True,
+                kf_from_cur=kf_from_cur,
+            )
+            if res is not None:
+                res.tracked, res.inliers, res.used_ransac = tracked, inliers, used_ransac
+                res.track_ms = (t_track - t0) * 1e3
+                return res
+        kf = active.keyframe
+        world_from_cam = active.world_from_kfrect @ kf_from_cur @ self.rect_from_cam
+        return FrameResult(
+            frame.timestamp_ns,
+            world_from_cam,
+            "OK",
+            False,
+            kf.id,
+            self.cam_from_rect @ kf_from_cur @ self.rect_from_cam,
+            tracked,
+            inliers,
+            frame_index=frame.index,
+            segment=self._segment,
+            track_ms=(time.perf_counter() - t0) * 1e3,
+            used_ransac=used_ransac,
+        )
+
+    # ------------------------------------------------------------------ tracking
+    def _image_ok(self, left: NDArray[np.uint8]) -> tuple[bool, str]:
+        small = cv2.resize(left, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
+        std = float(small.std())
+        if std < self.config.min_image_std:
+            return False, f"image flat or black (std {std:.1f})"
+        if self.config.min_sharpness > 0:
+            sharp = float(cv2.Laplacian(small, cv2.CV_32F).var())
+            if sharp < self.config.min_sharpness:
+                return False, f"image blurred (Laplacian variance {sharp:.1f})"
+        return True, ""
+
+    def _track(self, cur_pyr: Pyramid, kf_from_pred: F64) -> tuple[str, str, int, int, F64, bool]:
+        """KLT from the last good frame, robust pose against the keyframe."""
+        cfg = self.config
+        assert self._active is not None and self._prev_pyr is not None
+        active = self._active
+        idx = self._track_idx
+        if idx.size < cfg.min_inliers:
+            return "LOST", f"only {idx.size} tracks left", int(idx.size), 0, kf_from_pred, False
+        pts = active.points[idx]
+        pred_from_kf = invert_pose(kf_from_pred)
+        p_pred = pts @ pred_from_kf[:3, :3].T + pred_from_kf[:3, 3]
+        front = p_pred[:, 2] > 1e-3
+        guess = self._track_uv.copy()
+        guess[front] = self.left_camera.project(p_pred[front])
+        uv, ok, _fb = track_klt(
+            self._prev_pyr,
+            cur_pyr,
+            self._track_uv,
+            guess,
+            cfg.klt_window_px,
+            cfg.klt_levels,
+            cfg.fb_threshold_px,
+            cfg.klt_iterations,
+            self.calibration.image_size,
+        )
+        ok &= front
+        tracked = int(ok.sum())
+        if tracked < cfg.min_inliers:
+            return "LOST", f"only {tracked} KLT tracks", tracked, 0, kf_from_pred, False
+        prior = None
+        if cfg.depth_weighting:
+            prior = self._depth_weights(pts[ok], pred_from_kf)
+        term = PointTerm(self.rig, pts[ok], uv[ok], prior_weight=prior)
+        try:
+            res = estimate_pose(
+                term,
+                pred_from_kf,
+                self.pose_options,
+                cfg.ransac_threshold_px,
+                cfg.prediction_gate_px,
+            )
+        except EstimationError as exc:
+            return "LOST", f"pose failed ({exc})", tracked, 0, kf_from_pred, False
+        inl = res.inliers[0]
+        n_inl = int(inl.sum())
+        kf_from_cur = invert_pose(res.rig_from_ref)
+        if n_inl < cfg.min_inliers:
+            return (
+                "LOST",
+                f"only {n_inl} pose inliers",
+                tracked,
+                n_inl,
+                kf_from_pred,
+                res.used_ransac,
+            )
+        jump = invert_pose(kf_from_pred) @ kf_from_cur
+        jump_m = float(np.linalg.norm(jump[:3, 3]))
+        jump_deg = _rotation_deg(jump)
+        if self._velocity_known and (jump_m > cfg.max_jump_m or jump_deg > cfg.max_jump_deg):
+            return (
+                "LOST",
+                f"pose jump {jump_m:.3f} m / {jump_deg:.2f} deg from the motion model",
+                tracked,
+                n_inl,
+                kf_from_pred,
+                res.used_ransac,
+            )
+        keep = np.flatnonzero(ok)[inl]
+        self._track_idx = idx[keep]
+        self._track_uv = uv[keep]
+        return "OK", "", tracked, n_inl, kf_from_cur, res.used_ransac
+
+    def _depth_weights(self, pts: F64, cur_from_kf: F64) -> F64:
+        """Pixel variance over pixel-plus-stereo-depth variance of each point's projection
+        at the predicted pose (first order): far points, whose stereo depth is uncertain,
+        count less for the pose."""
+        cfg = self.config
+        fb = self.calibration.fx_px * self.calibration.baseline_m
+        sigma_z = pts[:, 2] ** 2 / fb * cfg.disparity_sigma_px
+        p = pts @ cur_from_kf[:3, :3].T + cur_from_kf[:3, 3]
+        ray = pts / pts[:, 2:3]  # d point / d depth (keyframe frame)
+        J = self.left_camera.project_jacobian(p)  # (N, 2, 3)
+        g = np.einsum("nij,nj->ni", J, ray @ cur_from_kf[:3, :3].T)
+        var_px = cfg.pose_min_scale_px**2
+        return var_px / (var_px + np.einsum("ni,ni->n", g, g) * sigma_z**2)
+
+    def _need_keyframe(self, kf_from_cur: F64, inliers: int) -> bool:
+        cfg = self.config
+        assert self._active is not None
+        m = self._active.points.shape[0]
+        if inliers < max(cfg.min_tracked, cfg.min_tracked_fraction * m):
+            return True
+        if (
+            np.linalg.norm(kf_from_cur[:3, 3])
+            > cfg.max_parallax_ratio * self._active.median_depth_m
+        ):
+            return True
+        return _rotation_deg(kf_from_cur) > cfg.max_rotation_deg
+
+    # ------------------------------------------------------------------ keyframes
+    def _start_keyframe(
+        self,
+        frame: StereoFrame,
+        left: NDArray[np.uint8],
+        cur_pyr: Pyramid | None,
+        world_from_rect: F64,
+        t0: float,
+        connected: bool,
+        kf_from_cur: F64 | None = None,
+    ) -> FrameResult | None:
+        """Stereo-initialise a feature set at this frame; with ``kf_from_cur`` (tracked) the
+        previous set is closed by the local hybrid BA first. None when too few points."""
+        cfg = self.config
+        t_kf = time.perf_counter()
+        right = self.rectifier.right(frame.right)
+        corners = detect_corners(
+            left,
+            cfg.max_features,
+            (cfg.grid_cols, cfg.grid_rows),
+            cfg.gftt_quality,
+            cfg.min_distance_px,
+            cfg.border_px,
+            cfg.detect_half_resolution,
+        )
+        m = match_stereo(left, right, corners, cfg)
+        pts = triangulate_rectified(
+            m.uv_left, m.disparity, self.calibration.K_left, self.calibration.baseline_m
+        )
+        keep = pts[:, 2] < cfg.max_depth_m
+        if cfg.max_keyframe_points and int(keep.sum()) > cfg.max_keyframe_points:
+            keep &= spread_subset(
+                m.uv_left, m.score, keep, cfg.max_keyframe_points, (cfg.grid_cols, cfg.grid_rows),
+                self.calibration.image_size,
+            )
+        if int(keep.sum()) < cfg.min_stereo_points:
+            logger.debug("frame %d: %d stereo points, no keyframe", frame.index, int(keep.sum()))
+            return None
+        pts = pts[keep]
+        stereo_px = np.column_stack([m.uv_left[keep, 0], m.u_right[keep], m.uv_left[keep, 1]])
+
+        prev = self._active
+        mono_obs = np.zeros((0, 3))
+        kf_prev_from_kf = None
+        ba_info: dict[str, float] = {}
+        if prev is not None and kf_from_cur is not None and connected:
+            ids = prev.keyframe.landmark_ids[self._track_idx]
+            mono_obs = np.column_stack([ids.astype(float), self._track_uv])
+            kf_from_new = kf_from_cur
+            if cfg.local_ba and self._track_idx.size >= 6:
+                tb = time.perf_counter()
+                sp = prev.stereo_px[self._track_idx]
+                final_right = None
+                if cfg.ba_final_stereo:
+                    # the set's tracked points in this keyframe's right image (both ends
+                    # of the set then carry a stereo observation)
+                    fm = match_stereo(left, right, self._track_uv, cfg)
+                    final_right = np.full((self._track_idx.size, 2), np.nan)
+                    frac = self._track_uv[fm.index] - fm.uv_left  # sub-pixel part of the corner
+                    final_right[fm.index, 0] = fm.u_right + frac[:, 0]
+                    final_right[fm.index, 1] = fm.v_right + frac[:, 1]
+                ba = hybrid_keyframe_ba(
+                    prev.points[self._track_idx],
+                    sp[:, [0, 2]],
+                    sp[:, [1, 2]],
+                    self._track_uv,
+                    invert_pose(kf_from_cur),
+                    self.left_camera,
+                    self.right_camera,
+                    self.calibration.right_from_left,
+                    cfg.ba_iterations,
+                    cfg.ba_huber_px,
+                    uv_final_right=final_right,
+                )
+                step = invert_pose(kf_from_cur) @ invert_pose(ba.f_from_kf)
+                # accept the BA only when it stays near the robust pose (guards against a bad set)
+                if (
+                    np.linalg.norm(step[:3, 3]) < cfg.max_jump_m
+                    and _rotation_deg(step) < cfg.max_jump_deg
+                ):
+                    kf_from_new = invert_pose(ba.f_from_kf)
+                ba_info = {
+                    "ba_ms": (time.perf_counter() - tb) * 1e3,
+                    "ba_iterations": float(ba.iterations),
+                    "ba_rms_before_px": ba.initial_rms_px,
+                    "ba_rms_after_px": ba.final_rms_px,
+                    "ba_points": float(self._track_idx.size),
+                }
+            world_from_rect = nearest_rigid(prev.world_from_kfrect @ kf_from_new)
+            kf_prev_from_kf = self.cam_from_rect @ kf_from_new @ self.rect_from_cam
+
+        kf_id = self._next_kf_id
+        self._next_kf_id += 1
+        ids = np.arange(
+            self._next_landmark_id, self._next_landmark_id + pts.shape[0], dtype=np.int64
+        )
+        self._next_landmark_id += pts.shape[0]
+        world_from_kf = world_from_rect @ self.rect_from_cam
+        kf = Keyframe(
+            id=kf_id,
+            timestamp_ns=frame.timestamp_ns,
+            world_from_kf=world_from_kf,
+            landmark_ids=ids,
+            points_in_kf=pts @ self.cam_from_rect[:3, :3].T,
+            stereo_px=stereo_px,
+            mono_obs=mono_obs,
+            image=left,
+            frame_index=frame.index,
+            prev_keyframe_id=prev.keyframe.id if prev is not None else None,
+            connected=connected and prev is not None,
+            kf_prev_from_kf=kf_prev_from_kf,
+            rect_from_cam=self.rect_from_cam.copy(),
+            segment=self._segment,
+            ba_info=ba_info,
+        )
+        self._world_from_kf[kf_id] = world_from_kf
+        depth = float(np.median(pts[:, 2]))
+        self._active = _ActiveSet(kf, world_from_rect, pts, stereo_px, depth)
+        self._track_idx = np.arange(pts.shape[0], dtype=np.int64)
+        self._track_uv = stereo_px[:, [0, 2]].copy()
+        self._prev_pyr = (
+            cur_pyr
+            if cur_pyr is not None
+            else build_pyramid(left, cfg.klt_window_px, cfg.klt_levels)
+        )
+        self._kf_from_prev = np.eye(4)
+        self._frames_since_ok = 0
+        t1 = time.perf_counter()
+        return FrameResult(
+            frame.timestamp_ns,
+            world_from_kf,
+            "OK",
+            True,
+            kf_id,
+            np.eye(4),
+            0,
+            0,
+            keyframe=kf,
+            frame_index=frame.index,
+            segment=self._segment,
+            track_ms=(t_kf - t0) * 1e3,
+            keyframe_ms=(t1 - t_kf) * 1e3,
+        )
+
+    def _lost(
+        self,
+        frame: StereoFrame,
+        world_from_rect: F64,
+        reason: str,
+        t0: float,
+        tracked: int = 0,
+        inliers: int = 0,
+    ) -> FrameResult:
+        kf_id = self._active.keyframe.id if self._active is not None else -1
+        kf_from_cam = np.eye(4)
+        if self._active is not None:
+            kf_from_cam = (
+                self.cam_from_rect
+                @ invert_pose(self._active.world_from_kfrect)
+                @ world_from_rect
+                @ self.rect_from_cam
+            )
+        return FrameResult(
+            frame.timestamp_ns,
+            world_from_rect @ self.rect_from_cam,
+            "LOST",
+            False,
+            kf_id,
+            kf_from_cam,
+            tracked,
+            inliers,
+            frame_index=frame.index,
+            segment=self._segment,
+            reason=reason,
+            track_ms=(time.perf_counter() - t0) * 1e3,
+        )
