@@ -7,7 +7,7 @@ measured relative transforms (what the run gives without loop closing); ``after`
 final trajectory (corrected keyframe poses, each frame through its keyframe). ATE is after
 SE(3) alignment to ground truth; the end-point error is the last frame's position error
 with both trajectories expressed relative to their first frame (drift over the loop). A
-loop is false when its relative keyframe pose disagrees with ground truth by more than
+loop (or relocalization) is false when its relative keyframe pose disagrees with ground truth by more than
 5 cm or 2 degrees. The ``browse`` scan (no revisit) must close no loop.
 
 Sequences: ``datasets/sample/scan.mcap`` (``make demo``) and ``datasets/sample/browse.mcap``;
@@ -31,14 +31,16 @@ ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "datasets" / "sample"
 
 
-def _ensure(path: Path, preset: str, frames: int | None = None) -> Path:
+BLACKOUT = (290, 314)  # frames of the 1 s blackout (25 Hz) in the blackout variant
+
+
+def _ensure(path: Path, preset: str, faults: list[str] | None = None) -> Path:
     if path.is_file():
         return path
     from loopmodel.sim.generate import resolve_config, simulate_scan
 
     cfg = Config()
-    over: dict[str, Any] = {"trajectory": {"frames": frames}} if frames else {}
-    sim = resolve_config(cfg.simulation, preset, over, None)
+    sim = resolve_config(cfg.simulation, preset, {}, faults)
     print(f"generating {path} ({preset}) ...")
     simulate_scan(sim, path, cfg.sequence.topics, None, preset)
     return path
@@ -48,7 +50,6 @@ def run_sequence(path: Path, config: Config, max_frames: int | None = None, stri
     """Front end + loop closing over one sequence (every ``stride``-th frame);
     trajectories and loop events."""
     from loopmodel.frontend import FrontEnd
-
     from loopmodel.io.sequence import open_sequence
     from loopmodel.loop.stage import LoopClosingStage
 
@@ -104,6 +105,7 @@ def run_sequence(path: Path, config: Config, max_frames: int | None = None, stri
         "sequence": seq,
         "wall_s": wall,
         "lost": sum(s != "OK" for s in status),
+        "status": status,
     }
 
 
@@ -188,4 +190,16 @@ def run(quick: bool = False) -> dict[str, Any]:
         result["browse_frames"] = b["frames"]
         result["browse_loops_closed"] = sum(e["type"] == "loop" for e in b["stage"].events)
         result["browse_false_loops"] = _false_loops(b)
+        path = _ensure(SAMPLE / "blackout.mcap", "orbit", [f"blackout:{BLACKOUT[0]}-{BLACKOUT[1]}"])
+        k = run_sequence(path, config)
+        lost = [i for i, s in enumerate(k["status"]) if s != "OK"]
+        relocs = [e["frame"] for e in k["stage"].events if e["type"] == "relocalization"]
+        after = [f - BLACKOUT[1] for f in relocs if f > BLACKOUT[1]]
+        result["blackout_frames"] = f"{BLACKOUT[0]}-{BLACKOUT[1]}"
+        result["blackout_lost_frames"] = len(lost)
+        result["blackout_lost_during"] = sum(BLACKOUT[0] <= i <= BLACKOUT[1] for i in lost)
+        result["blackout_relocalized_frames_after"] = min(after) if after else None
+        result["blackout_loops_closed"] = sum(e["type"] == "loop" for e in k["stage"].events)
+        result["blackout_false_loops"] = _false_loops(k)
+        result["blackout_endpoint_err_after_m"] = round(_endpoint(k["after"], k["gt"]), 5)
     return result

@@ -60,7 +60,7 @@ class LoopClosure:
     observations: LoopObservations
     n_descriptor_inliers: int
     n_klt_inliers: int
-    event: LoopEvent
+    event: LoopEvent | None
     detect_ms: float
     refine_ms: float
     info: dict[str, Any] = field(default_factory=dict)
@@ -146,7 +146,7 @@ class LoopCloser:
             ok = lid >= 0
             obs_ids, obs_uv = lid[ok], fs.keypoints_px[m[ok, 0]]
         n_klt = 0
-        refined = self._klt_refine(ev.match_id, kf.image, query_from_match)
+        refined = self.track_old_features(ev.match_id, kf.image, query_from_match)
         if refined is not None and refined[1].size >= max(obs_ids.size, self.config.min_inliers):
             query_from_match, obs_ids, obs_uv = refined[0], refined[1], refined[2]
             n_klt = int(obs_ids.size)
@@ -171,7 +171,7 @@ class LoopCloser:
         )
         return closure
 
-    def _klt_refine(
+    def track_old_features(
         self, match_id: int, image: NDArray[np.uint8], query_from_match: F64
     ) -> tuple[F64, NDArray[np.int64], F64] | None:
         """Seed 004's accuracy stage: the old set's features tracked into the current

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from loopmodel.config import LoopConfig
 from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.closer import LoopCloser, LoopClosure
-from loopmodel.loop.global_ba import GlobalBAResult, global_hybrid_ba
+from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hybrid_ba
 from loopmodel.types import StereoCalibration
 
 logger = logging.getLogger(__name__)
@@ -98,34 +98,74 @@ class LoopClosingStage:
         return event
 
     def _relocalize_segment(self, kf: Any) -> dict[str, Any] | None:
-        """Place the first keyframe of a new segment in the old map."""
+        """Place the first keyframe of a new segment in the old map: descriptors and the
+        P3P bank against the stored keyframes, or — when that fails — the latest keyframes'
+        features searched by KLT from the rough (motion-model) pose; then the KLT accuracy
+        stage. The observations link the segments in later global BAs."""
         t0 = time.perf_counter()
-        kf_id, res = self.closer.relocalize(kf.image, exclude_after=int(kf.id) - 1)
-        if kf_id is None or res.cam_from_map is None:
-            logger.info("keyframe %d: relocalization failed (%s)", kf.id, res.reason)
+        new_id = int(kf.id)
+        world = self.tracker.world_from_kf
+
+        def world_from_rect(k: int) -> F64:
+            rect_from_cam = np.asarray(getattr(self.keyframes[k], "rect_from_cam", np.eye(4)))
+            return world[k] @ invert_pose(rect_from_cam)
+
+        method = "descriptors"
+        kf_id, res = self.closer.relocalize(kf.image, exclude_after=new_id - 1)
+        new_from_old: F64 | None = None
+        inliers = 0
+        if kf_id is not None and res.cam_from_map is not None:
+            new_from_old, inliers = res.cam_from_map, res.n_inliers
+        else:
+            method = "klt from predicted pose"
+            older = sorted(k for k in self.keyframes if k < new_id)[-3:][::-1]
+            for cand in older:
+                pred = invert_pose(world_from_rect(new_id)) @ world_from_rect(cand)
+                tr = self.closer.track_old_features(cand, kf.image, pred)
+                if tr is not None and tr[1].size >= self.config.min_inliers:
+                    kf_id, new_from_old, inliers = cand, tr[0], int(tr[1].size)
+                    break
+        if kf_id is None or new_from_old is None:
+            logger.info("keyframe %d: relocalization failed (%s)", new_id, res.reason)
             return None
-        old = self.keyframes[kf_id]
+        tr = self.closer.track_old_features(kf_id, kf.image, new_from_old)
+        obs_ids, obs_uv = np.zeros(0, np.int64), np.zeros((0, 2))
+        if tr is not None and tr[1].size >= self.config.min_inliers:
+            new_from_old, obs_ids, obs_uv = tr
+        self.closer.closures.append(
+            LoopClosure(
+                new_id,
+                kf_id,
+                new_from_old,
+                LoopObservations(new_id, obs_ids, obs_uv),
+                inliers,
+                int(obs_ids.size),
+                None,
+                0.0,
+                (time.perf_counter() - t0) * 1e3,
+                {"relocalization": method},
+            )
+        )
         rect_from_cam = np.asarray(getattr(kf, "rect_from_cam", np.eye(4)))
-        old_rect_from_cam = np.asarray(getattr(old, "rect_from_cam", np.eye(4)))
-        world_from_old_rect = self.tracker.world_from_kf[kf_id] @ invert_pose(old_rect_from_cam)
-        world_from_new = world_from_old_rect @ invert_pose(res.cam_from_map) @ rect_from_cam
-        before = self.tracker.world_from_kf[int(kf.id)]
-        corrected = {int(kf.id): world_from_new}
-        self._apply(corrected)
+        world_from_new = world_from_rect(kf_id) @ invert_pose(new_from_old) @ rect_from_cam
+        before = world[new_id]
+        self._apply({new_id: world_from_new})
         trans, rot = _motion(before, world_from_new)
         record = {
             "type": "relocalization",
-            "keyframe": int(kf.id),
+            "method": method,
+            "keyframe": new_id,
             "frame": int(getattr(kf, "frame_index", -1)),
             "match_keyframe": int(kf_id),
-            "match_frame": int(getattr(old, "frame_index", -1)),
-            "inliers": res.n_inliers,
+            "match_frame": int(getattr(self.keyframes[kf_id], "frame_index", -1)),
+            "inliers": inliers,
+            "klt_inliers": int(obs_ids.size),
             "correction_m": trans,
             "correction_deg": rot,
             "time_ms": (time.perf_counter() - t0) * 1e3,
         }
         self.events.append(record)
-        logger.info("keyframe %d relocalized against keyframe %d", kf.id, kf_id)
+        logger.info("keyframe %d relocalized against keyframe %d (%s)", new_id, kf_id, method)
         return record
 
     def _close(self, closure: LoopClosure) -> dict[str, Any] | None:
