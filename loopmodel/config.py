@@ -323,6 +323,20 @@ class AccuracyConfig(_Section):
     pixel_study_px: list[float] = Field(default_factory=lambda: [0.25, 0.5, 1.0, 2.0, 4.0])
 
 
+class VvsConfig(_Section):
+    """Model-based tracking by virtual visual servoing (``loopmodel vvs``, seed 002)."""
+
+    sample_step_px: float = Field(3.0, gt=0, description="spacing of edge samples on each conic")
+    search_px: int = Field(10, ge=1, description="moving-edge search range along the normal")
+    edge_noise_px: float = Field(0.15, ge=0, description="simulated edge noise before pixel rounding")
+    loss: str = Field("tukey", pattern="^(tukey|huber|l2)$", description="M-estimator")
+    huber_warmup: int = Field(1, ge=0, description="first VVS iterations with Huber")
+    max_iterations: int = Field(20, ge=1)
+    min_features: int = Field(20, ge=6, description="fewer matched edge points: tracking failure")
+    lost_rot_deg: float = Field(5.0, gt=0, description="frame counted lost above this rotation error")
+    lost_pos_mm: float = Field(50.0, gt=0, description="frame counted lost above this position error")
+
+
 class Config(_Section):
     """The whole configuration of loopmodel."""
 
@@ -334,6 +348,7 @@ class Config(_Section):
     loop: LoopConfig = Field(default_factory=LoopConfig)
     accuracy: AccuracyConfig = Field(default_factory=AccuracyConfig)
     simulation: SimulationConfig = Field(default_factory=SimulationConfig)
+    vvs: VvsConfig = Field(default_factory=VvsConfig)
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""The sequence interface every reader implements."""
+"""The sequence interface every reader implements, and the common part of the folder readers."""
 
 from __future__ import annotations
 
@@ -64,3 +64,33 @@ class Sequence(abc.ABC):
             "ground_truth_poses": len(self.ground_truth) if self.ground_truth is not None else 0,
             "stripes": self.stripe_count(),
         }
+
+
+class FolderSequence(Sequence):
+    """A sequence of left/right image files (EuRoC, KITTI): subclasses fill ``_pairs``
+    (time in ns, left path, right path), ``_calibration`` and ``_gt``."""
+
+    _pairs: list[tuple[int, Path, Path]]
+    _calibration: StereoCalibration
+    _gt: Trajectory | None = None
+
+    @property
+    def calibration(self) -> StereoCalibration:
+        return self._calibration
+
+    @property
+    def ground_truth(self) -> Trajectory | None:
+        return self._gt
+
+    def __len__(self) -> int:
+        return len(self._pairs)
+
+    def frame_times_ns(self) -> list[int]:
+        return [t for t, _, _ in self._pairs]
+
+    def frames(self) -> Iterator[StereoFrame]:
+        from loopmodel.io.images import read_image_of_size
+
+        size = self._calibration.image_size
+        for i, (t, lp, rp) in enumerate(self._pairs):
+            yield StereoFrame(t, read_image_of_size(lp, size), read_image_of_size(rp, size), i)

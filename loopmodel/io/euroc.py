@@ -4,7 +4,6 @@ calibration says so and the front end rectifies."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -12,10 +11,9 @@ import yaml
 
 from loopmodel.errors import CalibrationError, FormatError, InputError
 from loopmodel.geometry.se3 import invert_pose
-from loopmodel.io.base import Sequence
-from loopmodel.io.images import read_image
+from loopmodel.io.base import FolderSequence
 from loopmodel.io.trajectory_io import read_trajectory
-from loopmodel.types import StereoCalibration, StereoFrame, Trajectory
+from loopmodel.types import StereoCalibration, Trajectory
 
 
 def euroc_root(path: Path) -> Path | None:
@@ -75,7 +73,7 @@ def _read_index(csv: Path) -> tuple[list[int], list[str]]:
     return times, names
 
 
-class EurocSequence(Sequence):
+class EurocSequence(FolderSequence):
     """A EuRoC MAV sequence (stereo pairs matched by timestamp)."""
 
     format_name = "euroc"
@@ -119,26 +117,3 @@ class EurocSequence(Sequence):
             return None
         world_from_body = read_trajectory(gt, "euroc")
         return Trajectory(world_from_body.timestamps_ns, world_from_body.world_from_cam @ self._body_from_cam0)
-
-    @property
-    def calibration(self) -> StereoCalibration:
-        return self._calibration
-
-    @property
-    def ground_truth(self) -> Trajectory | None:
-        return self._gt
-
-    def __len__(self) -> int:
-        return len(self._pairs)
-
-    def frame_times_ns(self) -> list[int]:
-        return [t for t, _, _ in self._pairs]
-
-    def frames(self) -> Iterator[StereoFrame]:
-        size = self._calibration.image_size
-        for i, (t, lp, rp) in enumerate(self._pairs):
-            left, right = read_image(lp), read_image(rp)
-            for p, img in ((lp, left), (rp, right)):
-                if (img.shape[1], img.shape[0]) != size:
-                    raise InputError(p, f"image size {img.shape[1]}x{img.shape[0]}, expected {size[0]}x{size[1]}")
-            yield StereoFrame(t, left, right, i)

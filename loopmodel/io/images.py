@@ -23,3 +23,11 @@ def image_size(path: Path) -> tuple[int, int]:
     """(width, height) of an image file."""
     img = read_image(path)
     return int(img.shape[1]), int(img.shape[0])
+
+
+def read_image_of_size(path: Path, size: tuple[int, int]) -> NDArray[np.uint8]:
+    """Read an image and check it is ``size`` = (width, height) pixels."""
+    img = read_image(path)
+    if (img.shape[1], img.shape[0]) != size:
+        raise InputError(path, f"image size {img.shape[1]}x{img.shape[0]}, expected {size[0]}x{size[1]}")
+    return img

@@ -3,16 +3,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from loopmodel.errors import CalibrationError, FormatError, InputError
-from loopmodel.io.base import Sequence
-from loopmodel.io.images import image_size, read_image
+from loopmodel.io.base import FolderSequence
+from loopmodel.io.images import image_size
 from loopmodel.io.trajectory_io import read_trajectory, seconds_text_to_ns
-from loopmodel.types import StereoCalibration, StereoFrame, Trajectory
+from loopmodel.types import StereoCalibration, Trajectory
 
 IMAGE_DIRS = (("image_0", "image_1"), ("image_l", "image_r"))
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".pgm", ".bmp")
@@ -71,7 +70,7 @@ def calibration_from_projections(
     return cal.check(source)
 
 
-class KittiSequence(Sequence):
+class KittiSequence(FolderSequence):
     """A KITTI odometry sequence folder."""
 
     format_name = "kitti"
@@ -101,6 +100,7 @@ class KittiSequence(Sequence):
         P0, P1 = parse_kitti_calib(path / "calib.txt")
         self._calibration = calibration_from_projections(P0, P1, size_l, str(path / "calib.txt"))
         self._times = self._read_times(path, rate_hz)
+        self._pairs = list(zip(self._times, self._left, self._right, strict=True))
         self._gt = self._read_poses(path)
 
     def _read_times(self, path: Path, rate_hz: float) -> list[int]:
@@ -128,26 +128,3 @@ class KittiSequence(Sequence):
                 n = min(len(traj), len(self._times))
                 return Trajectory(np.asarray(self._times[:n]), traj.world_from_cam[:n]).check(str(p))
         return None
-
-    @property
-    def calibration(self) -> StereoCalibration:
-        return self._calibration
-
-    @property
-    def ground_truth(self) -> Trajectory | None:
-        return self._gt
-
-    def __len__(self) -> int:
-        return len(self._left)
-
-    def frame_times_ns(self) -> list[int]:
-        return list(self._times)
-
-    def frames(self) -> Iterator[StereoFrame]:
-        size = self._calibration.image_size
-        for i, (lp, rp) in enumerate(zip(self._left, self._right, strict=True)):
-            left, right = read_image(lp), read_image(rp)
-            for p, img in ((lp, left), (rp, right)):
-                if (img.shape[1], img.shape[0]) != size:
-                    raise InputError(p, f"image size {img.shape[1]}x{img.shape[0]}, expected {size[0]}x{size[1]}")
-            yield StereoFrame(self._times[i], left, right, i)

@@ -62,3 +62,12 @@ def rho(s: F64, loss: Loss, c: float | None = None) -> F64:
 def default_cutoff(loss: Loss) -> float:
     """Tuning constant of the loss (normalised units)."""
     return {"tukey": TUKEY_C, "huber": HUBER_C, "l2": np.inf}[loss]
+
+
+def mad_scale(residuals: F64, floor: float) -> float:
+    """Robust standard deviation of scalar residuals from the median absolute deviation
+    about their median (``1.4826 MAD``); never below ``floor``."""
+    if residuals.size == 0:
+        return floor
+    med = float(np.median(residuals))
+    return max(float(np.median(np.abs(residuals - med))) / GAUSS_MAD, floor)
