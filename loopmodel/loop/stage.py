@@ -66,6 +66,7 @@ class LoopClosingStage:
         config: LoopConfig | None = None,
         listeners: list[CorrectionListener] | None = None,
         background: bool | None = None,
+        backend: Any | None = None,
     ) -> None:
         self.tracker = tracker
         self.config = config if config is not None else LoopConfig()
@@ -80,6 +81,12 @@ class LoopClosingStage:
         self._pool: ProcessPoolExecutor | None = None
         self._pending: tuple[Future[GlobalBAResult], LoopClosure, dict[int, F64], float] | None = None
         self._rerun: LoopClosure | None = None
+        #: With a back end the loop's observations join the keyframe's monocular
+        #: observations (seed 004 eq. 6 inside the incremental graph) and a relative-pose
+        #: constraint is added; the pipeline's back-end update then does the correction.
+        self.backend = backend
+        self._queued: list[tuple[LoopClosure, dict[str, Any]]] = []
+        self._awaiting: list[dict[str, Any]] = []
 
     # ------------------------------------------------------------------ keyframes
     def on_keyframe(self, kf: Any) -> dict[str, Any] | None:
@@ -150,6 +157,7 @@ class LoopClosingStage:
         world_from_new = world_from_rect(kf_id) @ invert_pose(new_from_old) @ rect_from_cam
         before = world[new_id]
         self._apply({new_id: world_from_new})
+        kf.world_from_kf = world_from_new  # the back end's initial guess
         trans, rot = _motion(before, world_from_new)
         record = {
             "type": "relocalization",
@@ -165,16 +173,83 @@ class LoopClosingStage:
             "time_ms": (time.perf_counter() - t0) * 1e3,
         }
         self.events.append(record)
+        if self.backend is not None:
+            self._to_backend(kf, self.closer.closures[-1], record)
         logger.info("keyframe %d relocalized against keyframe %d (%s)", new_id, kf_id, method)
         return record
 
     def _close(self, closure: LoopClosure) -> dict[str, Any] | None:
         """Start the correction of a verified loop (in the worker process when
         ``background``); returns the record when it was applied right away."""
+        if self.backend is not None:
+            record = self._loop_record(closure)
+            self.events.append(record)
+            self._to_backend(self.keyframes[closure.query_kf], closure, record)
+            return record
         if self._pending is not None:
             self._rerun = closure  # the running BA finishes first; then this loop's window
             return None
         return self._submit(closure)
+
+    def _to_backend(self, kf: Any, closure: LoopClosure, record: dict[str, Any]) -> None:
+        """Append the closure's observations of old landmarks to the keyframe's monocular
+        observations (before the pipeline adds it to the back end) and queue its relative
+        pose as a loop constraint for :meth:`update_backend`."""
+        obs = closure.observations
+        if obs.landmark_ids.size:
+            have = set(np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3)[:, 0].astype(np.int64).tolist())
+            keep = np.array([int(i) not in have for i in obs.landmark_ids], dtype=bool)
+            extra = np.column_stack([obs.landmark_ids[keep].astype(float), obs.uv_px[keep]])
+            kf.mono_obs = np.vstack([np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3), extra])
+        record["pose_before"] = np.asarray(self.tracker.world_from_kf[closure.query_kf]).copy()
+        self._queued.append((closure, record))
+
+    def update_backend(self, backend: Any | None = None) -> int:
+        """After the pipeline added the keyframe to the back end: add the queued loop
+        constraints (``kf_query_from_kf_match``, camera frames). Returns how many."""
+        be = backend if backend is not None else self.backend
+        if be is None:
+            return 0
+        n = 0
+        for closure, record in self._queued:
+            q, m = self.keyframes[closure.query_kf], self.keyframes[closure.match_kf]
+            rq = np.asarray(getattr(q, "rect_from_cam", np.eye(4)))
+            rm = np.asarray(getattr(m, "rect_from_cam", np.eye(4)))
+            q_from_m = invert_pose(rq) @ closure.query_from_match @ rm
+            t0 = time.perf_counter()
+            record["constraint_id"] = int(be.add_loop_constraint(closure.query_kf, closure.match_kf, q_from_m))
+            record["optimise_ms"] = (time.perf_counter() - t0) * 1e3
+            n += 1
+        self._awaiting = [r for _, r in self._queued]
+        self._queued = []
+        return n
+
+    def note_estimate(self, world_from_kf: dict[int, F64], update_ms: float = 0.0) -> None:
+        """Record how far the back end moved the keyframes of the loops just added."""
+        for record in self._awaiting:
+            before = record.pop("pose_before", None)
+            k = record["keyframe"]
+            if before is not None and k in world_from_kf:
+                key = "correction" if record["type"] == "loop" else "backend_correction"
+                record[key + "_m"], record[key + "_deg"] = _motion(before, world_from_kf[k])
+            record["optimise_ms"] = record.get("optimise_ms", 0.0) + update_ms
+        self._awaiting = []
+
+    def _loop_record(self, closure: LoopClosure) -> dict[str, Any]:
+        return {
+            "type": "loop",
+            "keyframe": closure.query_kf,
+            "frame": int(getattr(self.keyframes[closure.query_kf], "frame_index", -1)),
+            "match_keyframe": closure.match_kf,
+            "match_frame": int(getattr(self.keyframes[closure.match_kf], "frame_index", -1)),
+            "inliers": closure.n_descriptor_inliers,
+            "klt_inliers": closure.n_klt_inliers,
+            "loop_observations": int(closure.observations.landmark_ids.size),
+            "correction_m": 0.0,
+            "correction_deg": 0.0,
+            "optimise_ms": 0.0,
+            "via": "backend",
+        }
 
     def _submit(self, closure: LoopClosure) -> dict[str, Any] | None:
         before = dict(self.tracker.world_from_kf)
