@@ -46,9 +46,76 @@ def _ensure(path: Path, preset: str, faults: list[str] | None = None) -> Path:
     return path
 
 
+class _Strided:
+    """A sequence seen through every ``stride``-th frame (for ``--quick``)."""
+
+    def __init__(self, seq: Any, stride: int) -> None:
+        self._seq, self._stride = seq, stride
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._seq, name)
+
+    def __len__(self) -> int:
+        return (len(self._seq) + self._stride - 1) // self._stride
+
+    def frames(self) -> Any:
+        return (f for i, f in enumerate(self._seq.frames()) if i % self._stride == 0)
+
+
 def run_sequence(path: Path, config: Config, max_frames: int | None = None, stride: int = 1) -> dict[str, Any]:
-    """Front end + loop closing over one sequence (every ``stride``-th frame);
-    trajectories and loop events."""
+    """The pipeline (front end, loop stage, back end) over one sequence (every
+    ``stride``-th frame); dead-reckoning and final trajectories, loop events. Without the
+    pipeline's back end (older builds) the front end and the loop stage run alone."""
+    try:
+        from loopmodel.pipeline import run_pipeline
+    except ImportError:
+        return run_sequence_frontend(path, config, max_frames, stride)
+    import tempfile
+
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.io.trajectory_io import read_trajectory
+
+    seq = open_sequence(path, config.sequence)
+    view = _Strided(seq, stride) if stride > 1 else seq
+    chain: dict[int, tuple[int | None, np.ndarray | None, bool, np.ndarray]] = {}
+
+    def hook(kf: Any, res: Any) -> None:
+        chain[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf, kf.connected, kf.world_from_kf.copy())
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        out = run_pipeline(view, config, tmp, "sim_loop", max_frames=max_frames, keyframe_hooks=[hook])
+        final = read_trajectory(out.folder / "trajectory_final.tum")
+    wall = time.perf_counter() - t0
+    dr: dict[int, np.ndarray] = {}
+    for k in sorted(chain):
+        prev, rel, connected, live = chain[k]
+        dr[k] = dr[prev] @ rel if connected and prev in dr and rel is not None else live
+    by_time = dict(zip(final.timestamps_ns.tolist(), final.world_from_cam, strict=True))
+    gt = seq.ground_truth
+    gt_index = {t: i for i, t in enumerate(gt.timestamps_ns.tolist())} if gt is not None else {}
+    ok = [f for f in out.frames if f.ok and f.timestamp_ns in by_time]
+    kept = [gt_index.get(f.timestamp_ns, -1) for f in ok]
+    return {
+        "before": np.array([dr[f.keyframe_id] @ f.kf_from_cam for f in ok]),
+        "after": np.array([by_time[f.timestamp_ns] for f in ok]),
+        "gt": gt.world_from_cam[np.array(kept)] if gt is not None else None,
+        "events": out.metrics.get("loop_events", []),
+        "rejected": out.metrics.get("loop_candidates_rejected", 0),
+        "frames": len(out.frames),
+        "stamps_ns": np.array([f.timestamp_ns for f in ok], dtype=np.int64),
+        "kept": kept,
+        "sequence": seq,
+        "wall_s": wall,
+        "fps": out.metrics.get("fps"),
+        "lost": sum(not f.ok for f in out.frames),
+        "status": [f.status for f in out.frames],
+        "frame_index": {f.frame_index: j for j, f in enumerate(out.frames)},
+    }
+
+
+def run_sequence_frontend(path: Path, config: Config, max_frames: int | None = None, stride: int = 1) -> dict[str, Any]:
+    """Front end + loop stage (global BA in a worker process) without a back end."""
     from loopmodel.frontend import FrontEnd
     from loopmodel.io.sequence import open_sequence
     from loopmodel.loop.stage import LoopClosingStage
@@ -96,14 +163,14 @@ def run_sequence(path: Path, config: Config, max_frames: int | None = None, stri
         "before": before,
         "after": after,
         "gt": gt.world_from_cam[np.array(kept)] if gt is not None else None,
-        "stage": stage,
-        "keyframes": {k: v[3] for k, v in kf_chain.items()},
-        "kf_frames": {k: int(getattr(stage.keyframes[k], "frame_index", -1)) for k in stage.keyframes},
+        "events": stage.events,
+        "rejected": len(stage.rejected),
         "frames": n,
         "stamps_ns": np.array(stamps, dtype=np.int64),
         "kept": kept,
         "sequence": seq,
         "wall_s": wall,
+        "fps": n / wall if wall > 0 else None,
         "lost": sum(s != "OK" for s in status),
         "status": status,
     }
@@ -126,7 +193,7 @@ def _false_loops(out: dict[str, Any]) -> int:
     bad = 0
     final = out["after"]
     pos = {f: j for j, f in enumerate(out["kept"])}
-    for ev in out["stage"].events:
+    for ev in out["events"]:
         if ev["frame"] not in pos or ev["match_frame"] not in pos:
             continue
         f_q, f_m = pos[ev["frame"]], pos[ev["match_frame"]]
@@ -167,11 +234,11 @@ def run(quick: bool = False) -> dict[str, Any]:
     stride = 2 if quick else 1
     out = run_sequence(orbit, config, stride=stride)
     gt = out["gt"]
-    loops = [e for e in out["stage"].events if e["type"] == "loop"]
+    loops = [e for e in out["events"] if e["type"] == "loop"]
     result: dict[str, Any] = {
         "dataset": f"simulator orbit sample ({orbit.name})" + (", every 2nd frame" if quick else ""),
         "frames": out["frames"],
-        "fps": round(out["frames"] / out["wall_s"], 2),
+        "fps": round(out["fps"], 2) if out["fps"] else None,
         "lost_frames": out["lost"],
         "ate_rmse_before_m": round(_ate(out["before"], gt), 5),
         "ate_rmse_after_m": round(_ate(out["after"], gt), 5),
@@ -179,8 +246,8 @@ def run(quick: bool = False) -> dict[str, Any]:
         "endpoint_err_after_m": round(_endpoint(out["after"], gt), 5),
         "loops_closed": len(loops),
         "false_loops": _false_loops(out),
-        "relocalizations": len(out["stage"].events) - len(loops),
-        "loop_candidates_rejected": len(out["stage"].rejected),
+        "relocalizations": len(out["events"]) - len(loops),
+        "loop_candidates_rejected": out["rejected"],
         "loop_optimise_ms_median": round(float(np.median([e["optimise_ms"] for e in loops])), 1) if loops else None,
     }
     result.update(_mesh_errors(out, orbit.with_suffix(".scene.ply"), config))
@@ -188,18 +255,18 @@ def run(quick: bool = False) -> dict[str, Any]:
         browse = _ensure(SAMPLE / "browse.mcap", "browse")
         b = run_sequence(browse, config)
         result["browse_frames"] = b["frames"]
-        result["browse_loops_closed"] = sum(e["type"] == "loop" for e in b["stage"].events)
+        result["browse_loops_closed"] = sum(e["type"] == "loop" for e in b["events"])
         result["browse_false_loops"] = _false_loops(b)
         path = _ensure(SAMPLE / "blackout.mcap", "orbit", [f"blackout:{BLACKOUT[0]}-{BLACKOUT[1]}"])
         k = run_sequence(path, config)
         lost = [i for i, s in enumerate(k["status"]) if s != "OK"]
-        relocs = [e["frame"] for e in k["stage"].events if e["type"] == "relocalization"]
+        relocs = [e["frame"] for e in k["events"] if e["type"] == "relocalization"]
         after = [f - BLACKOUT[1] for f in relocs if f > BLACKOUT[1]]
         result["blackout_frames"] = f"{BLACKOUT[0]}-{BLACKOUT[1]}"
         result["blackout_lost_frames"] = len(lost)
         result["blackout_lost_during"] = sum(BLACKOUT[0] <= i <= BLACKOUT[1] for i in lost)
         result["blackout_relocalized_frames_after"] = min(after) if after else None
-        result["blackout_loops_closed"] = sum(e["type"] == "loop" for e in k["stage"].events)
+        result["blackout_loops_closed"] = sum(e["type"] == "loop" for e in k["events"])
         result["blackout_false_loops"] = _false_loops(k)
         result["blackout_endpoint_err_after_m"] = round(_endpoint(k["after"], k["gt"]), 5)
     return result
