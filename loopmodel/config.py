@@ -337,6 +337,23 @@ class VvsConfig(_Section):
     lost_pos_mm: float = Field(50.0, gt=0, description="frame counted lost above this position error")
 
 
+class GivensConfig(_Section):
+    """Sequential Givens estimator and Baarda data snooping (``backend/givens*.py``, seed 000)."""
+
+    alpha: float = Field(0.001, gt=0, lt=1, description="significance level of the w-test")
+    min_redundancy: float = Field(
+        0.3, gt=0, le=1, description="an observation is tested once its r_i reaches this"
+    )
+    sigma_px: float = Field(1.0, gt=0, description="std. dev. of an image coordinate")
+    relin_px: float = Field(
+        0.1, gt=0, description="re-linearise rows whose linearisation error exceeds this"
+    )
+    min_downdate_cos2: float = Field(1e-6, gt=0, lt=1, description="hyperbolic pivot safety")
+    point_prior_sigma_m: float = Field(1.0, gt=0, description="weak prior on a new point")
+    frame_prior_sigma_rad: float = Field(0.05, gt=0, description="weak prior, frame rotation")
+    frame_prior_sigma_m: float = Field(0.1, gt=0, description="weak prior, frame position")
+
+
 class Config(_Section):
     """The whole configuration of loopmodel."""
 
@@ -349,6 +366,7 @@ class Config(_Section):
     accuracy: AccuracyConfig = Field(default_factory=AccuracyConfig)
     simulation: SimulationConfig = Field(default_factory=SimulationConfig)
     vvs: VvsConfig = Field(default_factory=VvsConfig)
+    givens: GivensConfig = Field(default_factory=GivensConfig)
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

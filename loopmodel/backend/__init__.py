@@ -1,0 +1,1 @@
+"""Back end: incremental estimation (iSAM2), sequential Givens estimator, data snooping."""
