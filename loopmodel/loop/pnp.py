@@ -87,7 +87,7 @@ def solve_pnp_bank(
     p_in_world: F64,
     threshold_rad: float,
     rng: np.random.Generator | None = None,
-    batch: int = 64,
+    batch: int = 16,
     max_samples: int = 4096,
     confidence: float = 0.999,
     min_inliers: int = 6,
@@ -163,11 +163,15 @@ def solve_pnp_bank(
     T[:3, 3] = best_t
     sigma = threshold_rad / 2.0
     inl = ray_errors(T[None, :3, :3], T[None, :3, 3], rays, P)[0] < thr2
-    for _ in range(2):
+    for _ in range(2):  # refine, re-select the inliers, refine again if they changed
         if inl.sum() < 3:
             break
         T = refiner(T, rays[inl], P[inl], sigma)
-        inl = ray_errors(T[None, :3, :3], T[None, :3, 3], rays, P)[0] < thr2
+        new = ray_errors(T[None, :3, :3], T[None, :3, 3], rays, P)[0] < thr2
+        changed = int(np.sum(new != inl))
+        inl = new
+        if changed <= 0.02 * max(int(inl.sum()), 1):
+            break
     total_s = time.perf_counter() - t0
     if inl.sum() < min_inliers:
         return None
