@@ -120,29 +120,59 @@ def run(
     name: Annotated[str | None, typer.Option("--name", help="Run name (folder under --out)")] = None,
     max_frames: Annotated[int | None, typer.Option("--max-frames", help="Stop after this many frames")] = None,
 ) -> None:
-    """Process a sequence; writes trajectories, metrics, config and log into <out>/<name>/."""
+    """Process a sequence (front end, back end); writes config, trajectories, keyframes, map,
+    metrics and log into <out>/<name>/. Ctrl-C or SIGTERM stops it after writing what it has."""
     from rich.progress import TextColumn as _Text
 
     from loopmodel.io.sequence import open_sequence
-    from loopmodel.pipeline import run_frontend
+    from loopmodel.pipeline import run_frontend, run_pipeline
 
-    if not frontend_only:
-        raise InputError(None, "only the front end is available so far; pass --frontend-only")
     cfg = load_config(config)
     seq = open_sequence(path, cfg.sequence)
-    run_name = name or f"{path.stem}_frontend"
-    with progress_bar(_Text("{task.fields[fps]:.1f} fps")) as bar:
-        task = bar.add_task("front end", total=len(seq) if max_frames is None else min(len(seq), max_frames), fps=0.0)
-        result = run_frontend(
-            seq, cfg, out, run_name, max_frames=max_frames,
-            progress=lambda i, n, fps: bar.update(task, completed=i, fps=fps),
+    total = len(seq) if max_frames is None else min(len(seq), max_frames)
+    if frontend_only:
+        run_name = name or f"{path.stem}_frontend"
+        with progress_bar(_Text("{task.fields[fps]:.1f} fps")) as bar:
+            task = bar.add_task("front end", total=total, fps=0.0)
+            result = run_frontend(
+                seq, cfg, out, run_name, max_frames=max_frames,
+                progress=lambda i, n, fps: bar.update(task, completed=i, fps=fps),
+            )
+        m = result.metrics
+        console.print(
+            f"wrote {result.folder}: {m['frames']} frames ({m['lost_frames']} lost), "
+            f"{m['keyframes']} keyframes, {_fmt(m['fps'])} fps"
+            + (f", ATE {m['ate_rmse_m']:.3f} m, drift {m['drift_pct']:.2f} %" if "ate_rmse_m" in m else "")
         )
+        return
+    run_name = name or path.stem
+    folder = Path(out if out is not None else cfg.output.out_dir) / run_name
+    with progress_bar(_Text("{task.fields[fps]:.1f} fps"), _Text("{task.fields[kf]} keyframes")) as bar:
+        task = bar.add_task("run", total=total, fps=0.0, kf=0)
+        try:
+            result = run_pipeline(
+                seq, cfg, out, run_name, max_frames=max_frames,
+                progress=lambda i, n, fps, kf: bar.update(task, completed=i, fps=fps, kf=kf),
+            )
+        except KeyboardInterrupt:
+            err_console.print(f"results up to the last processed frame are in {folder}")
+            raise
     m = result.metrics
-    console.print(
-        f"wrote {result.folder}: {m['frames']} frames ({m['lost_frames']} lost), "
-        f"{m['keyframes']} keyframes, {_fmt(m['fps'])} fps"
-        + (f", ATE {m['ate_rmse_m']:.3f} m, drift {m['drift_pct']:.2f} %" if "ate_rmse_m" in m else "")
-    )
+    table = Table(title=f"loopmodel run {path.name}", show_header=False)
+    rows: list[tuple[str, Any]] = [
+        ("frames", f"{m['frames']} ({m['lost_frames']} lost)"),
+        ("keyframes", m["keyframes"]),
+        ("landmarks", m["landmarks"]),
+        ("fps", m["fps"]),
+        ("back end", f"{m['backend']}, {_fmt(m['backend_ms_median'])} ms per keyframe (median)"),
+    ]
+    if "ate_rmse_m" in m:
+        rows.append(("ATE online / final [m]", f"{m['ate_rmse_m_online']:.4f} / {m['ate_rmse_m']:.4f}"))
+        rows.append(("drift final [%]", m["drift_pct"]))
+    for k, v in rows:
+        table.add_row(k, _fmt(v))
+    console.print(table)
+    console.print(f"results in {result.folder}")
 
 
 @app.command()

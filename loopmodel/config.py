@@ -47,6 +47,58 @@ class OutputConfig(_Section):
     image_format: str = Field("png", pattern="^(raw|png|jpeg)$", description="MCAP image encoding")
 
 
+class BackendConfig(_Section):
+    """Keyframe/landmark back end (``backend/``); iSAM2 keys map onto ``gtsam.ISAM2Params``."""
+
+    kind: str = Field("isam2", pattern="^(isam2|givens)$", description="which back end runs")
+    pixel_sigma_px: float = Field(1.0, gt=0, description="std. dev. of an image coordinate")
+    huber_k: float = Field(
+        3.0, ge=0, description="Huber threshold in sigmas (0: Gaussian); weights kept until relin."
+    )
+    prior_sigma_rad: float = Field(1e-6, gt=0, description="gauge prior, first keyframe")
+    prior_sigma_m: float = Field(1e-6, gt=0, description="gauge prior, first keyframe")
+    segment_prior_sigma_rad: float = Field(
+        1.0, gt=0, description="prior on a keyframe not linked to the previous one"
+    )
+    segment_prior_sigma_m: float = Field(
+        10.0, gt=0, description="prior on a keyframe not linked to the previous one"
+    )
+    loop_sigma_rad: float = Field(0.01, gt=0, description="default loop-constraint sigma")
+    loop_sigma_m: float = Field(0.01, gt=0, description="default loop-constraint sigma")
+    min_disparity_px: float = Field(2.0, ge=0, description="stereo observations below: dropped")
+    min_observations: int = Field(2, ge=1, description="a landmark enters once seen this often")
+    pending_max_age_kf: int = Field(
+        3, ge=1, description="forget a not-yet-added landmark unseen for this many keyframes"
+    )
+    max_landmark_span_kf: int = Field(
+        0, ge=0, description="continue a track in a new landmark after this many keyframes (0: no)"
+    )
+    init_gate_px: float = Field(
+        20.0, ge=0, description="drop observations this far from the initial landmark (0: off)"
+    )
+    init_iterations: int = Field(
+        3, ge=0, description="Gauss-Newton steps refining a new landmark on all its observations"
+    )
+    blunder_sigma: float = Field(
+        0.0, ge=0, description="remove new observations whose whitened residual exceeds (0: off)"
+    )
+    relinearize_threshold_rad: float = Field(0.005, gt=0, description="pose rotation")
+    relinearize_threshold_m: float = Field(0.02, gt=0, description="pose position")
+    relinearize_threshold_landmark_m: float = Field(0.2, gt=0, description="landmark position")
+    relinearize_skip: int = Field(1, ge=1, description="check relinearisation every N updates")
+    partial_relinearization_check: bool = Field(
+        False, description="check relinearisation only in the cliques an update touches"
+    )
+    wildfire_threshold: float = Field(0.001, ge=0, description="back-substitution stop")
+    factorization: str = Field("CHOLESKY", pattern="^(CHOLESKY|QR)$")
+    ordering_window_kf: int = Field(
+        10, ge=0, description="eliminate the newest N poses last, oldest first (0: GTSAM default)"
+    )
+    change_tolerance_m: float = Field(
+        1e-4, ge=0, description="estimate(): a keyframe counts as changed above this"
+    )
+
+
 class FrontendConfig(_Section):
     """Stereo keyframe front end: detection, stereo matching, KLT, robust pose, keyframes."""
 
@@ -367,6 +419,7 @@ class Config(_Section):
     simulation: SimulationConfig = Field(default_factory=SimulationConfig)
     vvs: VvsConfig = Field(default_factory=VvsConfig)
     givens: GivensConfig = Field(default_factory=GivensConfig)
+    backend: BackendConfig = Field(default_factory=BackendConfig)
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

@@ -1,19 +1,25 @@
-"""Wiring of the stages: a sequence goes through the front end (and, later, the back end,
+"""Wiring of the stages: a sequence goes through the front end and the back end (later also
 loop closing and meshing); outputs go to the results folder. Owns nothing else."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
+import signal
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from loopmodel.backend import BackendEstimate, create_backend
+from loopmodel.backend.anchored import AnchoredTrajectory
 from loopmodel.config import Config
+from loopmodel.errors import LoopmodelError
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder
@@ -167,6 +173,195 @@ def run_frontend(
             metrics.update(_ground_truth_errors(online, sequence.ground_truth))
             folder.write_json("metrics.json", metrics)
             logger.info("done: %s", {k: metrics[k] for k in ("frames", "ok_frames", "keyframes")})
+            folder.write_text("run.log", log.text())
+    if interrupted:
+        raise KeyboardInterrupt
+    return RunOutput(folder.path, frames, keyframes, metrics, interrupted)
+
+
+# --------------------------------------------------------------------------- full pipeline
+# progress(frames_done, frames_total, frames_per_second, keyframes)
+PipelineProgressFn = Callable[[int, int, float, int], None]
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """While a run is going, SIGTERM behaves like Ctrl-C (main thread only), so a killed run
+    still writes what it has."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def _raise(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, _raise)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _quantiles(values: list[float], prefix: str) -> dict[str, float | None]:
+    a = np.asarray(values, dtype=float)
+    return {
+        f"{prefix}_median": float(np.median(a)) if a.size else None,
+        f"{prefix}_p95": float(np.percentile(a, 95)) if a.size else None,
+    }
+
+
+def _map_arrays(
+    keyframes: list[tuple[int, int]],
+    world_from_kf: dict[int, np.ndarray],
+    estimate: BackendEstimate | None,
+) -> dict[str, np.ndarray]:
+    """``map.npz`` content: keyframe ids, times and poses; landmark ids and world points."""
+    return {
+        "keyframe_ids": np.array([k for k, _ in keyframes], dtype=np.int64),
+        "keyframe_timestamps_ns": np.array([t for _, t in keyframes], dtype=np.int64),
+        "world_from_kf": np.stack([world_from_kf[k] for k, _ in keyframes])
+        if keyframes
+        else np.zeros((0, 4, 4)),
+        "landmark_ids": estimate.landmark_ids if estimate is not None else np.zeros(0, np.int64),
+        "landmarks_in_world": estimate.landmarks_in_world
+        if estimate is not None
+        else np.zeros((0, 3)),
+    }
+
+
+def _write_stripes(folder: ResultsFolder, sequence: Sequence, frames: list[FrameResult]) -> None:
+    """``stripes.npz``: the sequence's laser profiles up to the last processed frame (sensor
+    frame; ``loopmodel mesh`` places them with the run's trajectory). Skipped without any."""
+    if not frames or sequence.stripe_count() == 0:
+        return
+    from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
+
+    last_ns = frames[-1].timestamp_ns
+    try:
+        stripes = [s for s in sequence.stripes() if s.timestamp_ns <= last_ns]
+    except LoopmodelError as exc:  # the trajectories matter more than the stripes
+        logger.error("laser stripes not written: %s", exc)
+        return
+    if stripes:
+        save_stripes(folder.file(STRIPES_FILE), stripes)
+
+
+def run_pipeline(
+    sequence: Sequence,
+    config: Config,
+    out_dir: str | Path | None = None,
+    name: str = "run",
+    progress: PipelineProgressFn | None = None,
+    max_frames: int | None = None,
+    keyframe_hooks: list[KeyframeHook] | None = None,
+) -> RunOutput:
+    """Reader -> front end -> back end -> results folder ``<out_dir>/<name>/``.
+
+    Every keyframe goes to the back end (``config.backend.kind``); keyframes it moves are
+    handed back to the front end and to the anchored trajectory, in which every frame is
+    stored relative to its keyframe. Writes ``config.yaml``, ``trajectory_online.tum`` (poses
+    as estimated live), ``trajectory_final.tum`` (frames recomposed with the final keyframe
+    poses), ``keyframes.tum``, ``map.npz``, ``metrics.json``, ``run.log`` (KITTI variants
+    of the trajectories when ``output.write_kitti``) and ``stripes.npz`` when the sequence
+    has laser profiles. Ctrl-C or SIGTERM stops the run after
+    the current frame; everything up to it is written, then ``KeyboardInterrupt`` is raised.
+    """
+    folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
+    folder.write_config(config)
+    frontend = FrontEnd(sequence.calibration, config.frontend)
+    backend = create_backend(config.backend, frontend.calibration)
+    anchored = AnchoredTrajectory()
+    total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
+    frames: list[FrameResult] = []
+    keyframes: list[tuple[int, int]] = []
+    backend_ms: list[float] = []
+    frame_ms: list[float] = []
+    hooks = keyframe_hooks or []
+    interrupted = False
+    estimate: BackendEstimate | None = None
+    t_start = time.perf_counter()
+    with LogCapture() as log, _sigterm_as_interrupt():
+        logger.info(
+            "pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind
+        )
+        try:
+            for i, frame in enumerate(sequence.frames()):
+                if i >= total:
+                    break
+                t0 = time.perf_counter()
+                res = frontend.process(frame)
+                if res.status != "OK":
+                    logger.info("frame %d LOST: %s", frame.index, res.reason)
+                kf = res.keyframe
+                if kf is not None:
+                    keyframes.append((kf.id, kf.timestamp_ns))
+                    anchored.set_keyframe(kf.id, kf.world_from_kf)
+                    tb = time.perf_counter()
+                    backend.add_keyframe(kf)
+                    estimate = backend.estimate(landmarks=False)
+                    backend_ms.append((time.perf_counter() - tb) * 1e3)
+                    moved = {
+                        k: estimate.world_from_kf[k]
+                        for k in estimate.changed_keyframes
+                        if k in estimate.world_from_kf
+                    }
+                    if moved:
+                        frontend.apply_correction(moved)
+                        anchored.update_keyframes(moved)
+                    for hook in hooks:
+                        hook(kf, res)
+                    # do not hold every keyframe (and its image) for the whole run
+                    res = dataclasses.replace(res, keyframe=None)
+                frames.append(res)
+                if res.ok:
+                    anchored.add(res.timestamp_ns, res.keyframe_id, res.kf_from_cam)
+                frame_ms.append((time.perf_counter() - t0) * 1e3)
+                if progress is not None:
+                    el = time.perf_counter() - t_start
+                    progress(i + 1, total, (i + 1) / el if el > 0 else 0.0, len(keyframes))
+        except KeyboardInterrupt:
+            interrupted = True
+            logger.warning("interrupted after %d frames", len(frames))
+        finally:
+            wall = time.perf_counter() - t_start
+            online = _online_trajectory(frames)
+            folder.write_trajectory("trajectory_online.tum", online)
+            try:
+                if keyframes and not interrupted:
+                    refine = getattr(backend, "refine", None)
+                    if callable(refine):
+                        refine()
+                if keyframes:
+                    estimate = backend.estimate()
+                    anchored.update_keyframes(estimate.world_from_kf)
+            except Exception as exc:  # keep the front end's keyframes; still write everything
+                logger.error("back end failed at the end of the run: %s", exc)
+            final = anchored.trajectory()
+            kf_poses = anchored.keyframe_poses
+            folder.write_trajectory("trajectory_final.tum", final)
+            folder.write_trajectory("keyframes.tum", _keyframe_trajectory(keyframes, kf_poses))
+            if config.output.write_kitti:
+                folder.write_trajectory("trajectory_online.kitti", online, "kitti")
+                folder.write_trajectory("trajectory_final.kitti", final, "kitti")
+            folder.write_npz("map.npz", _map_arrays(keyframes, kf_poses, estimate))
+            _write_stripes(folder, sequence, frames)
+            metrics: dict[str, Any] = {"sequence": str(sequence.path), "interrupted": interrupted}
+            metrics.update(frontend_metrics(frames, wall))
+            metrics["fps"] = len(frames) / (sum(frame_ms) / 1e3) if sum(frame_ms) > 0 else None
+            metrics["backend"] = config.backend.kind
+            metrics["landmarks"] = 0 if estimate is None else int(estimate.landmark_ids.size)
+            metrics.update(_quantiles(frame_ms, "frame_total_ms"))
+            metrics.update(_quantiles(backend_ms, "backend_ms"))
+            gt = sequence.ground_truth
+            for suffix, traj in (("_online", online), ("", final)):
+                metrics.update({k + suffix: v for k, v in _ground_truth_errors(traj, gt).items()})
+            folder.write_json("metrics.json", metrics)
+            logger.info(
+                "done: %d frames, %d keyframes, %s fps",
+                len(frames),
+                len(keyframes),
+                f"{metrics['fps']:.1f}" if metrics["fps"] else "-",
+            )
             folder.write_text("run.log", log.text())
     if interrupted:
         raise KeyboardInterrupt

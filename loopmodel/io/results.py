@@ -10,7 +10,7 @@ from typing import Any
 
 from loopmodel.config import Config, dump_config
 from loopmodel.errors import InputError
-from loopmodel.io.atomic import write_text_atomic
+from loopmodel.io.atomic import atomic_path, write_text_atomic
 from loopmodel.io.trajectory_io import TrajectoryFormat, write_trajectory
 from loopmodel.types import Trajectory
 
@@ -43,6 +43,14 @@ class ResultsFolder:
     def write_text(self, name: str, text: str) -> Path:
         """A text file."""
         return write_text_atomic(self.file(name), text)
+
+    def write_npz(self, name: str, arrays: dict[str, Any]) -> Path:
+        """A numpy ``.npz`` archive of named arrays (uncompressed)."""
+        import numpy as np
+
+        with atomic_path(self.file(name)) as tmp, open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+        return self.file(name)
 
     def write_config(self, config: Config) -> Path:
         """``config.yaml``: the effective configuration of the run."""

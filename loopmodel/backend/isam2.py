@@ -1,0 +1,813 @@
+"""Incremental keyframe/landmark estimation with GTSAM iSAM2.
+
+Variables: ``X(kf_id)`` keyframe poses (``world_from_kf`` of the left camera, metres) and
+``L(j)`` landmarks (world frame, metres; ``j`` is an internal index, see
+``max_landmark_span_kf``). Stereo observations become ``GenericStereoFactor3D`` with
+``Cal3_S2Stereo``, monocular ones ``GenericProjectionFactorCal3_S2``; both with a Huber
+M-estimator. The first keyframe carries a tight prior that fixes the gauge.
+
+Each update hands iSAM2 only the new factors and values. What keeps updates cheap:
+
+* a landmark enters the graph only once it was observed ``min_observations`` times (a
+  landmark seen once adds no information on the poses); it is initialised from its
+  stereo triangulation with the largest disparity, and its observations are gated
+  against that initial point;
+* stereo observations with a disparity under ``min_disparity_px`` are dropped (these
+  near-infinite points make the linear system indeterminate, see below);
+* elimination groups put the newest poses last in chronological order (landmarks and
+  older poses first), so COLAMD ties cannot drag old poses and landmarks into the root
+  clique after a relinearisation;
+* optionally (``max_landmark_span_kf``) a long track continues in a fresh landmark
+  variable, bounding the band of the pose graph and thereby the root clique;
+* per-type relinearisation thresholds (poses vs landmarks).
+
+An ``IndeterminateSystemException`` (GTSAM raises it as ``RuntimeError`` naming the
+variable) leaves iSAM2's Bayes tree half-updated, so the back end rebuilds iSAM2 from its
+own record of live factors, without the offending landmark, and continues.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+from numpy.typing import NDArray
+
+from loopmodel.backend.base import F64, BackendEstimate, BackendUpdate, KeyframeLike, Observation
+from loopmodel.config import BackendConfig
+from loopmodel.errors import EstimationError, InputError
+from loopmodel.geometry.se3 import invert_pose
+from loopmodel.types import StereoCalibration
+
+logger = logging.getLogger(__name__)
+
+_SYMBOL_RE = re.compile(r"Symbol:\s*([A-Za-z])(\d+)")
+_INDEX_MASK = np.uint64((1 << 56) - 1)
+
+
+@dataclass(slots=True)
+class _Obs:
+    """One buffered or live observation of a landmark."""
+
+    kf_id: int
+    stereo: bool
+    px: tuple[float, ...]  # (u_l, u_r, v) or (u, v), rectified pixels
+    point_in_kf: F64 | None  # stereo triangulation in the keyframe's left camera (m)
+
+
+@dataclass(slots=True)
+class _FactorRecord:
+    factor: gtsam.NonlinearFactor
+    kind: str  # "stereo" | "mono" | "prior" | "loop"
+    lkey: int = -1  # internal landmark index, or -1
+    obs: Observation | None = None
+
+
+@dataclass
+class _Landmark:
+    landmark_id: int
+    first_seq: int  # keyframe sequence number of the first observation in the graph
+    fids: set[int] = field(default_factory=set)
+
+
+def _is_identity(T: F64) -> bool:
+    return bool(np.allclose(T, np.eye(4), atol=1e-12))
+
+
+class Isam2Backend:
+    """The iSAM2 back end (implements :class:`loopmodel.backend.Backend`).
+
+    ``calibration`` is the rectified stereo calibration in which the keyframes' pixel
+    observations are expressed (``FrontEnd.calibration``); ``K_left`` and ``baseline_m``
+    are used.
+    """
+
+    def __init__(self, calibration: StereoCalibration, config: BackendConfig | None = None) -> None:
+        self.config = config or BackendConfig()
+        cfg = self.config
+        K = calibration.K_left
+        fx, fy, skew, cx, cy = (
+            float(K[0, 0]),
+            float(K[1, 1]),
+            float(K[0, 1]),
+            float(K[0, 2]),
+            float(K[1, 2]),
+        )
+        self._K = np.array([[fx, skew, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        self._baseline_m = calibration.baseline_m
+        self._cal_stereo = gtsam.Cal3_S2Stereo(fx, fy, skew, cx, cy, self._baseline_m)
+        self._cal_mono = gtsam.Cal3_S2(fx, fy, skew, cx, cy)
+        self._stereo_noise = self._robust(gtsam.noiseModel.Isotropic.Sigma(3, cfg.pixel_sigma_px))
+        self._mono_noise = self._robust(gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma_px))
+        self._isam = gtsam.ISAM2(self.isam2_params(cfg))
+        self._factors: dict[int, _FactorRecord] = {}
+        self._slot: dict[int, int] = {}  # factor id -> iSAM2 factor index
+        self._next_fid = 0
+        self._batch: list[int] = []  # factor ids recorded since the last iSAM2 update
+        self._obs_fid: dict[Observation, int] = {}
+        self._landmarks: dict[int, _Landmark] = {}  # internal index -> landmark
+        self._lm_current: dict[int, int] = {}  # landmark id -> internal index in the graph
+        self._next_lkey = 0
+        self._pending: dict[int, list[_Obs]] = {}
+        self._pending_buckets: dict[int, list[int]] = {}  # keyframe seq -> pending landmark ids
+        self._kf_seq: dict[int, int] = {}
+        self._kf_order: list[int] = []
+        self._pose_guess: dict[int, F64] = {}
+        self._body: dict[int, F64] = {}  # kf id -> rect_from_cam
+        self._last_poses: dict[int, F64] = {}
+        self._theta0 = gtsam.Values()  # every variable's initial value
+        self.rebuilds = 0
+        self.last_result: gtsam.ISAM2Result | None = None
+        self.dropped_landmarks = 0
+
+    # ------------------------------------------------------------------ set-up
+    @staticmethod
+    def isam2_params(cfg: BackendConfig) -> gtsam.ISAM2Params:
+        """``gtsam.ISAM2Params`` from the configuration."""
+        params = gtsam.ISAM2Params()
+        thresholds = gtsam.ISAM2ThresholdMap()
+        thresholds.insert(("x", np.array([cfg.relinearize_threshold_rad] * 3 + [cfg.relinearize_threshold_m] * 3)))
+        thresholds.insert(("l", np.full(3, cfg.relinearize_threshold_landmark_m)))
+        params.setRelinearizeThreshold(thresholds)
+        params.relinearizeSkip = cfg.relinearize_skip
+        params.enablePartialRelinearizationCheck = cfg.partial_relinearization_check
+        params.setFactorization(cfg.factorization)
+        gn = gtsam.ISAM2GaussNewtonParams()
+        gn.setWildfireThreshold(cfg.wildfire_threshold)
+        params.setOptimizationParams(gn)
+        return params
+
+    def _robust(self, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
+        if self.config.huber_k <= 0:
+            return base
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.config.huber_k), base)
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def keyframe_ids(self) -> list[int]:
+        """Ids of the keyframes in the graph, in insertion order."""
+        return list(self._kf_seq)
+
+    @property
+    def num_factors(self) -> int:
+        """Live factors in the graph."""
+        return len(self._factors)
+
+    def factor_graph(self) -> gtsam.NonlinearFactorGraph:
+        """A copy of every live factor (for batch comparison)."""
+        graph = gtsam.NonlinearFactorGraph()
+        for fid in sorted(self._factors):
+            graph.add(self._factors[fid].factor)
+        return graph
+
+    @property
+    def num_observations(self) -> int:
+        """Observation factors in the graph."""
+        return len(self._obs_fid)
+
+    @property
+    def num_landmarks(self) -> int:
+        """Landmark variables in the graph."""
+        return len(self._landmarks)
+
+    def initial_values(self) -> gtsam.Values:
+        """Initial values of the variables still in the graph (for a batch solution)."""
+        keys: set[int] = set()
+        for rec in self._factors.values():
+            keys.update(rec.factor.keys())
+        out = gtsam.Values()
+        for key in keys:
+            if gtsam.Symbol(key).chr() == ord("x"):
+                out.insert(key, self._theta0.atPose3(key))
+            else:
+                out.insert(key, self._theta0.atPoint3(key))
+        return out
+
+    def values(self) -> gtsam.Values:
+        """The current iSAM2 estimate of every variable (``gtsam.Values``)."""
+        return self._isam.calculateEstimate()
+
+    def observation_factor_index(self, observation: Observation) -> int | None:
+        """iSAM2 factor index of an observation ``(keyframe_id, landmark_id)`` in the graph."""
+        fid = self._obs_fid.get(observation)
+        return None if fid is None else self._slot.get(fid)
+
+    # ------------------------------------------------------------------ factors
+    def _new_fid(self, rec: _FactorRecord) -> int:
+        fid = self._next_fid
+        self._next_fid += 1
+        self._factors[fid] = rec
+        self._batch.append(fid)
+        return fid
+
+    def _obs_factor(self, obs: _Obs, lkey: int) -> gtsam.NonlinearFactor:
+        body = self._body.get(obs.kf_id)
+        extra = () if body is None else (gtsam.Pose3(invert_pose(body)),)
+        px = obs.px
+        if obs.stereo:
+            sp = gtsam.StereoPoint2(px[0], px[1], px[2])
+            return gtsam.GenericStereoFactor3D(sp, self._stereo_noise, X(obs.kf_id), L(lkey), self._cal_stereo, *extra)
+        return gtsam.GenericProjectionFactorCal3_S2(
+            np.array(px[:2]), self._mono_noise, X(obs.kf_id), L(lkey), self._cal_mono, *extra
+        )
+
+    def _add_obs(self, obs: _Obs, lkey: int, lm_id: int, graph: gtsam.NonlinearFactorGraph) -> None:
+        key = (obs.kf_id, lm_id)
+        if key in self._obs_fid:  # the same observation twice: keep the first
+            return
+        factor = self._obs_factor(obs, lkey)
+        fid = self._new_fid(_FactorRecord(factor, "stereo" if obs.stereo else "mono", lkey, key))
+        self._obs_fid[key] = fid
+        self._landmarks[lkey].fids.add(fid)
+        graph.add(factor)
+
+    def _project(self, kf_ids: list[int], p_world: F64, poses: dict[int, F64] | None = None) -> F64:
+        """Predicted (u_left, u_right, v) rectified pixels of world points ``p_world`` (N, 3)
+        in keyframes ``kf_ids`` (N) at ``poses`` (default: the current pose guesses); NaN
+        rows behind the camera."""
+        src = self._pose_guess if poses is None else poses
+        T = np.stack([src[k] for k in kf_ids]) if kf_ids else np.zeros((0, 4, 4))
+        p = np.einsum("nji,nj->ni", T[:, :3, :3], p_world - T[:, :3, 3])
+        if self._body:
+            for i, k in enumerate(kf_ids):
+                body = self._body.get(k)
+                if body is not None:
+                    p[i] = body[:3, :3] @ p[i] + body[:3, 3]
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            zi = np.where(z > 1e-9, 1.0 / z, np.nan)
+            K = self._K
+            u = (K[0, 0] * p[:, 0] + K[0, 1] * p[:, 1]) * zi + K[0, 2]
+            v = K[1, 1] * p[:, 1] * zi + K[1, 2]
+            ur = u - K[0, 0] * self._baseline_m * zi
+        return np.column_stack([u, ur, v])
+
+    def _triangulate(self, owner: NDArray[np.int64], kf_ids: list[int], meas: F64, p0: F64, iterations: int) -> F64:
+        """Gauss-Newton refinement of world points ``p0`` (M, 3) on observations ``meas``
+        (N, 3: u_left, u_right or NaN for monocular, v) in keyframes ``kf_ids`` at their pose
+        guesses; observation ``j`` belongs to point ``owner[j]`` (every point observed). A
+        point whose update fails keeps its start value."""
+        if owner.size and np.any(np.diff(owner) < 0):  # group the observations by point
+            order = np.argsort(owner, kind="stable")
+            owner, meas = owner[order], meas[order]
+            kf_ids = [kf_ids[i] for i in order.tolist()]
+        starts = np.flatnonzero(np.r_[True, np.diff(owner) != 0])
+        uniq, inv = np.unique(np.asarray(kf_ids), return_inverse=True)
+        T = np.stack([self._pose_guess[int(k)] for k in uniq])[inv]
+        Rt = np.transpose(T[:, :3, :3], (0, 2, 1))  # cam_from_world rotation
+        t = T[:, :3, 3]
+        if self._body:
+            B = np.stack([self._body.get(k, np.eye(4)) for k in kf_ids])
+            Rt = B[:, :3, :3] @ Rt
+            t_b = B[:, :3, 3]
+        else:
+            t_b = np.zeros_like(t)
+        K = self._K
+        fx, skew, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+        fb = fx * self._baseline_m
+        mono = ~np.isfinite(meas[:, 1])
+        m = p0.shape[0]
+        p = p0.copy()
+        good = np.ones(m, dtype=bool)
+        for _ in range(iterations):
+            pc = np.einsum("nij,nj->ni", Rt, p[owner] - t) + t_b
+            x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
+            front = z > 1e-6
+            good &= np.bincount(owner, weights=~front, minlength=m) == 0
+            iz = np.where(front, 1.0 / np.where(front, z, 1.0), 0.0)
+            u = (fx * x + skew * y) * iz + cx
+            v = fy * y * iz + cy
+            r = np.column_stack([u - meas[:, 0], u - fb * iz - meas[:, 1], v - meas[:, 2]])
+            Jc = np.zeros((len(owner), 3, 3))
+            Jc[:, 0] = np.column_stack([fx * iz, skew * iz, -(fx * x + skew * y) * iz * iz])
+            Jc[:, 1] = Jc[:, 0]
+            Jc[:, 1, 2] += fb * iz * iz
+            Jc[:, 2] = np.column_stack([np.zeros_like(z), fy * iz, -fy * y * iz * iz])
+            r[mono, 1] = 0.0
+            Jc[mono, 1] = 0.0
+            J = Jc @ Rt
+            # observations of a point are contiguous: sum them per point with reduceat
+            H = np.add.reduceat(np.einsum("nki,nkj->nij", J, J), starts, axis=0)
+            g = np.add.reduceat(np.einsum("nji,nj->ni", J, r), starts, axis=0)
+            H += np.eye(3) * 1e-9
+            ok = good & (np.linalg.det(H) > 1e-12)
+            dp = np.zeros((m, 3))
+            if ok.any():
+                dp[ok] = -np.linalg.solve(H[ok], g[ok][:, :, None])[:, :, 0]
+            p = p + dp
+            good &= np.isfinite(p).all(axis=1)
+            p[~good] = p0[~good]
+        return p
+
+    def _create_landmarks(self, candidates: list[int], graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> int:
+        """Move pending landmarks with enough observations into the graph. Each is initialised
+        from its stereo triangulation of largest disparity; observations farther than
+        ``init_gate_px`` from that point are dropped first. Returns how many were created."""
+        cfg = self.config
+        todo = []
+        for lm in candidates:
+            obs = self._pending.get(lm)
+            if obs is None or len(obs) < cfg.min_observations:
+                continue
+            best = None
+            for o in obs:
+                if o.stereo and (best is None or o.px[0] - o.px[1] > best.px[0] - best.px[1]):
+                    best = o
+            if best is not None:
+                todo.append((lm, obs, best))
+        if not todo:
+            return 0
+        T = np.stack([self._pose_guess[b.kf_id] for _, _, b in todo])
+        pts = np.array([b.point_in_kf for _, _, b in todo])
+        p_world = np.einsum("nij,nj->ni", T[:, :3, :3], pts) + T[:, :3, 3]
+        keep_all = [True] * len(todo)
+        if cfg.init_gate_px > 0:
+            owner = np.array([i for i, (_, obs, _) in enumerate(todo) for _ in obs])
+            flat = [o for _, obs, _ in todo for o in obs]
+            pred = self._project([o.kf_id for o in flat], p_world[owner])
+            meas = np.array([o.px if o.stereo else (o.px[0], np.nan, o.px[1]) for o in flat], dtype=float)
+            err = np.abs(pred - meas)
+            err[~np.isfinite(meas)] = 0.0
+            bad = ~np.isfinite(pred[:, [0, 2]]).all(axis=1) | (err.max(axis=1) > cfg.init_gate_px)
+            if bad.any():
+                for j in np.flatnonzero(bad).tolist():
+                    keep_all[int(owner[j])] = False
+                start = 0
+                for i, (lm, obs, _) in enumerate(todo):
+                    n = len(obs)
+                    if not keep_all[i]:
+                        kept = [o for o, b in zip(obs, bad[start : start + n].tolist(), strict=True) if not b]
+                        self._pending[lm] = kept
+                    start += n
+        ok_idx = [i for i, k in enumerate(keep_all) if k]
+        if ok_idx and cfg.init_iterations > 0:
+            # refine the points on all their observations (poses at their current guesses)
+            owner = np.array([j for j, i in enumerate(ok_idx) for _ in todo[i][1]])
+            flat = [o for i in ok_idx for o in todo[i][1]]
+            meas = np.array([o.px if o.stereo else (o.px[0], np.nan, o.px[1]) for o in flat], dtype=float)
+            p_world[ok_idx] = self._triangulate(
+                owner, [o.kf_id for o in flat], meas, p_world[ok_idx], cfg.init_iterations
+            )
+        created = 0
+        for i, (lm, obs, _) in enumerate(todo):
+            if not keep_all[i]:
+                # retry with what survived the gate (its best triangulation may have changed)
+                kept = self._pending[lm]
+                if len(kept) < cfg.min_observations or not any(o.stereo for o in kept):
+                    continue
+                b = max((o for o in kept if o.stereo), key=lambda o: o.px[0] - o.px[1])
+                Tb = self._pose_guess[b.kf_id]
+                assert b.point_in_kf is not None
+                pw = Tb[:3, :3] @ b.point_in_kf + Tb[:3, 3]
+                pr = self._project([o.kf_id for o in kept], np.tile(pw, (len(kept), 1)))
+                ok = all(
+                    np.isfinite(pr[j, 0])
+                    and max(
+                        abs(pr[j, 0] - o.px[0]),
+                        abs(pr[j, 2] - o.px[-1]),
+                        abs(pr[j, 1] - o.px[1]) if o.stereo else 0.0,
+                    )
+                    <= cfg.init_gate_px
+                    for j, o in enumerate(kept)
+                )
+                if not ok:
+                    continue
+                obs, point = kept, pw
+            else:
+                point = p_world[i]
+            lkey = self._next_lkey
+            self._next_lkey += 1
+            self._landmarks[lkey] = _Landmark(lm, min(self._kf_seq[o.kf_id] for o in obs))
+            self._lm_current[lm] = lkey
+            values.insert(L(lkey), gtsam.Point3(float(point[0]), float(point[1]), float(point[2])))
+            for o in obs:
+                self._add_obs(o, lkey, lm, graph)
+            del self._pending[lm]
+            created += 1
+        return created
+
+    def _observe(self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int]) -> None:
+        """Route one observation to its landmark in the graph or to the pending buffer
+        (landmarks whose buffer is full enough are appended to ``candidates``)."""
+        lkey = self._lm_current.get(lm_id)
+        if lkey is not None:
+            span = self.config.max_landmark_span_kf
+            if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
+                del self._lm_current[lm_id]  # the track continues as a new landmark variable
+            else:
+                self._add_obs(o, lkey, lm_id, graph)
+                return
+        pend = self._pending.get(lm_id)
+        if pend is None:
+            self._pending[lm_id] = [o]
+            pend = self._pending[lm_id]
+            self._pending_buckets.setdefault(self._kf_seq[o.kf_id], []).append(lm_id)
+        else:
+            pend.append(o)
+        if len(pend) >= self.config.min_observations:
+            candidates.append(lm_id)
+
+    # ------------------------------------------------------------------ updates
+    def add_keyframe(self, keyframe: KeyframeLike) -> BackendUpdate:
+        """Add keyframe ``keyframe.id`` with its stereo and monocular observations and update."""
+        t0 = time.perf_counter()
+        kf_id = int(keyframe.id)
+        if kf_id in self._kf_seq:
+            raise EstimationError(f"keyframe {kf_id} was already added to the back end")
+        T = np.asarray(keyframe.world_from_kf, dtype=float).reshape(4, 4)
+        if not np.all(np.isfinite(T)):
+            raise InputError(f"keyframe {kf_id}", "world_from_kf has non-finite values")
+        cfg = self.config
+        self._kf_seq[kf_id] = len(self._kf_seq)
+        self._kf_order.append(kf_id)
+        self._pose_guess[kf_id] = T
+        rect_from_cam = getattr(keyframe, "rect_from_cam", None)
+        if rect_from_cam is not None and not _is_identity(np.asarray(rect_from_cam, float)):
+            self._body[kf_id] = np.asarray(rect_from_cam, float).reshape(4, 4)
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        values.insert(X(kf_id), gtsam.Pose3(T))
+        report = BackendUpdate(kf_id)
+        first = len(self._kf_seq) == 1
+        if first or not bool(getattr(keyframe, "connected", True)):
+            self._add_prior(kf_id, T, first, graph)
+
+        ids = np.asarray(keyframe.landmark_ids, dtype=np.int64).ravel()
+        px = np.asarray(keyframe.stereo_px, dtype=float).reshape(-1, 3)
+        pts = np.asarray(keyframe.points_in_kf, dtype=float).reshape(-1, 3)
+        if not (ids.shape[0] == px.shape[0] == pts.shape[0]):
+            raise InputError(
+                f"keyframe {kf_id}",
+                f"landmark_ids ({ids.shape[0]}), stereo_px ({px.shape[0]}) and points_in_kf "
+                f"({pts.shape[0]}) must have the same length",
+            )
+        ok = (
+            np.isfinite(px).all(axis=1)
+            & np.isfinite(pts).all(axis=1)
+            & (pts[:, 2] > 0)
+            & (px[:, 0] - px[:, 1] >= max(cfg.min_disparity_px, 1e-6))
+        )
+        report.rejected_observations += int((~ok).sum())
+        candidates: list[int] = []
+        sel = np.flatnonzero(ok)
+        # fast path for the common case (a landmark already in the graph), then the general one
+        span, seq = cfg.max_landmark_span_kf, self._kf_seq[kf_id]
+        lm_current, landmarks, obs_fid, factors = (
+            self._lm_current,
+            self._landmarks,
+            self._obs_fid,
+            self._factors,
+        )
+        body = self._body.get(kf_id)
+        extra = () if body is None else (gtsam.Pose3(invert_pose(body)),)
+        xk, noise, cal = X(kf_id), self._stereo_noise, self._cal_stereo
+        for lm, p, q in zip(ids[sel].tolist(), px[sel].tolist(), pts[sel], strict=True):
+            lkey = lm_current.get(lm)
+            if lkey is not None and not (span > 0 and seq - landmarks[lkey].first_seq >= span):
+                key = (kf_id, lm)
+                if key in obs_fid:
+                    continue
+                factor = gtsam.GenericStereoFactor3D(
+                    gtsam.StereoPoint2(p[0], p[1], p[2]), noise, xk, L(lkey), cal, *extra
+                )
+                fid = self._next_fid
+                self._next_fid += 1
+                factors[fid] = _FactorRecord(factor, "stereo", lkey, key)
+                self._batch.append(fid)
+                obs_fid[key] = fid
+                landmarks[lkey].fids.add(fid)
+                graph.add(factor)
+            else:
+                self._observe(lm, _Obs(kf_id, True, tuple(p), q), graph, candidates)
+        mono = np.asarray(keyframe.mono_obs, dtype=float).reshape(-1, 3)
+        for row in mono.tolist():
+            lm_id = int(row[0])
+            if not all(np.isfinite(row)) or (lm_id not in self._lm_current and lm_id not in self._pending):
+                report.rejected_observations += 1  # its landmark was dropped or never seen
+                continue
+            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates)
+        report.new_landmarks = self._create_landmarks(candidates, graph, values)
+        self._prune_pending(seq)
+        linked = sum(1 for f in self._batch if (r := self._factors[f]).obs is not None and r.obs[0] == kf_id)
+        if linked < 3 and not (first or not bool(getattr(keyframe, "connected", True))):
+            # too few observations determine this pose: a loose prior keeps the system solvable
+            self._add_prior(kf_id, T, False, graph)
+        report.new_factors = graph.size()
+        new_fids = list(self._batch)
+        self._theta0.insert(values)
+        self._run_update(graph, values, [], X(kf_id))
+        if cfg.blunder_sigma > 0:
+            report.removed_blunders = self._screen_new([f for f in new_fids if f in self._factors])
+        report.pending_landmarks = len(self._pending)
+        report.update_ms = (time.perf_counter() - t0) * 1e3
+        return report
+
+    def _prune_pending(self, seq: int) -> None:
+        """Forget pending landmarks not observed in the last ``pending_max_age_kf`` keyframes
+        (they would never reach the graph; keeps memory bounded)."""
+        cut = seq - self.config.pending_max_age_kf
+        for old in [k for k in self._pending_buckets if k <= cut]:
+            for lm in self._pending_buckets.pop(old):
+                obs = self._pending.get(lm)
+                if not obs:
+                    continue
+                last = self._kf_seq.get(obs[-1].kf_id, -1)
+                if last <= cut:
+                    del self._pending[lm]
+                else:
+                    self._pending_buckets.setdefault(last, []).append(lm)
+
+    def _add_prior(self, kf_id: int, T: F64, gauge: bool, graph: gtsam.NonlinearFactorGraph | None) -> None:
+        cfg = self.config
+        rad, m = (
+            (cfg.prior_sigma_rad, cfg.prior_sigma_m)
+            if gauge
+            else (cfg.segment_prior_sigma_rad, cfg.segment_prior_sigma_m)
+        )
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([rad] * 3 + [m] * 3))
+        prior = gtsam.PriorFactorPose3(X(kf_id), gtsam.Pose3(T), noise)
+        self._new_fid(_FactorRecord(prior, "prior"))
+        if graph is not None:
+            graph.add(prior)
+
+    def _run_update(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        remove_slots: list[int],
+        newest: int | None,
+    ) -> None:
+        """One iSAM2 update with the factors just recorded (the last ``graph.size()`` fids)."""
+        new_fids, self._batch = self._batch, []
+        if len(new_fids) != graph.size():
+            raise EstimationError(f"internal: {len(new_fids)} recorded factors but {graph.size()} in the update")
+        # removal-only updates keep GTSAM's default ordering: their affected set may be tiny
+        groups = None if newest is None else self._ordering_groups(len(graph.keyVector()))
+        try:
+            result = self._isam.update(graph, values, remove_slots, constrainedKeys=groups)
+        except RuntimeError as exc:
+            self._recover(exc)
+            return
+        self.last_result = result
+        for fid, slot in zip(new_fids, result.getNewFactorsIndices(), strict=True):
+            self._slot[fid] = slot
+
+    def _ordering_groups(self, n_keys: int) -> gtsam.KeyGroupMap | None:
+        """Elimination groups for an update whose affected set has at least ``n_keys``
+        variables: the newest ``ordering_window_kf`` poses last, oldest to newest, the rest
+        (landmarks, older poses) first. CCOLAMD needs every group below the number of
+        variables it orders, hence the window and the bound."""
+        window = min(self.config.ordering_window_kf, n_keys - 1, len(self._kf_order))
+        if window <= 0:
+            return None
+        groups = gtsam.KeyGroupMap()
+        for g, kf in enumerate(self._kf_order[-window:], start=1):
+            groups.insert2(X(kf), g)
+        return groups
+
+    def _recover(self, exc: RuntimeError) -> None:
+        """Rebuild iSAM2 after an indeterminate system: without the offending landmark, or with
+        a loose prior on an undetermined keyframe pose."""
+        message = str(exc)
+        for _attempt in range(20):
+            match = _SYMBOL_RE.search(message)
+            if "ndeterminant" not in message and "ndeterminate" not in message or match is None:
+                raise EstimationError(f"iSAM2 update failed: {message.strip().splitlines()[0]}") from exc
+            symbol, index = match.group(1), int(match.group(2))
+            theta = self._isam.getLinearizationPoint()
+            if symbol == "l":
+                self._drop_landmark(index)
+            elif symbol == "x" and index in self._kf_seq:
+                src = theta if theta.exists(X(index)) else self._theta0
+                self._add_prior(index, src.atPose3(X(index)).matrix(), False, None)
+            else:
+                raise EstimationError(f"iSAM2: variable {symbol}{index} is not determined by its factors") from exc
+            logger.warning("iSAM2 indeterminate near %s%d; rebuilding", symbol, index)
+            self.rebuilds += 1
+            self._isam = gtsam.ISAM2(self.isam2_params(self.config))
+            self._slot.clear()
+            keys: set[int] = set()
+            for rec in self._factors.values():
+                keys.update(rec.factor.keys())
+            for kf in self._kf_seq:  # a keyframe left without factors keeps a loose prior
+                if X(kf) not in keys:
+                    src = theta if theta.exists(X(kf)) else self._theta0
+                    self._add_prior(kf, src.atPose3(X(kf)).matrix(), False, None)
+                    keys.add(X(kf))
+            self._batch.clear()
+            graph = gtsam.NonlinearFactorGraph()
+            fids = sorted(self._factors)
+            for fid in fids:
+                graph.add(self._factors[fid].factor)
+            values = gtsam.Values()
+            for key in keys:
+                src = theta if theta.exists(key) else self._theta0
+                if gtsam.Symbol(key).chr() == ord("x"):
+                    values.insert(key, src.atPose3(key))
+                else:
+                    values.insert(key, src.atPoint3(key))
+            groups = self._ordering_groups(len(keys))
+            try:
+                result = self._isam.update(graph, values, [], constrainedKeys=groups)
+            except RuntimeError as again:
+                message = str(again)
+                continue
+            for fid, slot in zip(fids, result.getNewFactorsIndices(), strict=True):
+                self._slot[fid] = slot
+            return
+        raise EstimationError("iSAM2 stayed indeterminate after dropping 20 landmarks") from exc
+
+    def _drop_landmark(self, lkey: int) -> list[int]:
+        """Forget every factor of internal landmark ``lkey``; returns their iSAM2 slots."""
+        lm = self._landmarks.pop(lkey, None)
+        if lm is None:
+            return []
+        self.dropped_landmarks += 1
+        slots = []
+        for fid in lm.fids:
+            rec = self._factors.pop(fid)
+            if rec.obs is not None:
+                self._obs_fid.pop(rec.obs, None)
+            slot = self._slot.pop(fid, None)
+            if slot is not None:
+                slots.append(slot)
+        if self._lm_current.get(lm.landmark_id) == lkey:
+            del self._lm_current[lm.landmark_id]
+        return slots
+
+    def _remove_fids(self, fids: Iterable[int]) -> list[int]:
+        """Forget observation factors; a landmark left without support is dropped whole."""
+        slots: list[int] = []
+        touched: set[int] = set()
+        for fid in fids:
+            rec = self._factors.pop(fid, None)
+            if rec is None:
+                continue
+            if rec.obs is not None:
+                self._obs_fid.pop(rec.obs, None)
+            slot = self._slot.pop(fid, None)
+            if slot is not None:
+                slots.append(slot)
+            if rec.lkey >= 0 and rec.lkey in self._landmarks:
+                self._landmarks[rec.lkey].fids.discard(fid)
+                touched.add(rec.lkey)
+        for lkey in touched:
+            kinds = [self._factors[f].kind for f in self._landmarks[lkey].fids]
+            if "stereo" not in kinds and len(kinds) < 2 or not kinds:
+                slots.extend(self._drop_landmark(lkey))
+        return slots
+
+    def remove_observations(self, observations: Iterable[Observation]) -> int:
+        """Remove observations ``(keyframe_id, landmark_id)`` (blunders) with
+        ``removeFactorIndices``; pending ones are just forgotten. Returns the count removed."""
+        fids = []
+        n = 0
+        for kf_id, lm_id in observations:
+            key = (int(kf_id), int(lm_id))
+            fid = self._obs_fid.get(key)
+            if fid is not None:
+                fids.append(fid)
+                n += 1
+            elif lm_id in self._pending:
+                before = len(self._pending[lm_id])
+                self._pending[lm_id] = [o for o in self._pending[lm_id] if o.kf_id != key[0]]
+                n += before - len(self._pending[lm_id])
+        slots = self._remove_fids(fids)
+        if slots:
+            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), slots, None)
+        return n
+
+    def _screen_new(self, new_fids: list[int]) -> int:
+        """Remove new observations whose whitened residual exceeds ``blunder_sigma`` at the
+        updated estimate (robust weights aside)."""
+        recs = [(f, self._factors[f]) for f in new_fids if self._factors[f].obs is not None]
+        if not recs:
+            return 0
+        poses = {}
+        for _, rec in recs:
+            k = rec.obs[0]  # type: ignore[index]
+            if k not in poses:
+                poses[k] = self._isam.calculateEstimatePose3(X(k)).matrix()
+        pts = np.array([self._isam.calculateEstimatePoint3(L(rec.lkey)) for _, rec in recs], dtype=float)
+        pred = self._project([rec.obs[0] for _, rec in recs], pts, poses)  # type: ignore[index]
+        meas = np.array([self._measured(rec) for _, rec in recs])
+        stereo = np.array([rec.kind == "stereo" for _, rec in recs])
+        diff = pred - meas
+        diff[~stereo, 1] = 0.0
+        norm = np.sqrt(np.nansum(diff**2, axis=1)) / self.config.pixel_sigma_px
+        bad = [
+            f
+            for (f, _), n, fin in zip(recs, norm, np.isfinite(pred[:, 0]), strict=True)
+            if not fin or n > self.config.blunder_sigma
+        ]
+        if bad:
+            slots = self._remove_fids(bad)
+            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), slots, None)
+        return len(bad)
+
+    @staticmethod
+    def _measured(rec: _FactorRecord) -> F64:
+        f: Any = rec.factor
+        if rec.kind == "stereo":
+            m = f.measured()
+            return np.array([m.uL(), m.uR(), m.v()])
+        uv = np.asarray(f.measured(), dtype=np.float64).ravel()
+        return np.array([uv[0], np.nan, uv[1]])
+
+    def refine(self, max_iterations: int = 10) -> int:
+        """Extra iSAM2 iterations without new factors (e.g. at the end of a run) until no
+        variable needs relinearising; returns the iterations run."""
+        for it in range(max_iterations):
+            result = self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
+            if result.getVariablesRelinearized() == 0:
+                return it + 1
+        return max_iterations
+
+    def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
+        """Add ``kf_a_from_kf_b`` (4x4) as a robust between-factor; ``sigmas`` (rad x3, m x3)
+        default to the configured loop sigmas. Returns the constraint's factor id."""
+        for k in (kf_a, kf_b):
+            if k not in self._kf_seq:
+                raise EstimationError(f"loop constraint names keyframe {k}, which is not in the back end")
+        cfg = self.config
+        s = (
+            np.asarray(sigmas, float)
+            if sigmas is not None
+            else np.array([cfg.loop_sigma_rad] * 3 + [cfg.loop_sigma_m] * 3)
+        )
+        noise = self._robust(gtsam.noiseModel.Diagonal.Sigmas(s))
+        factor = gtsam.BetweenFactorPose3(X(int(kf_a)), X(int(kf_b)), gtsam.Pose3(np.asarray(a_from_b, float)), noise)
+        fid = self._new_fid(_FactorRecord(factor, "loop"))
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(factor)
+        self._run_update(graph, gtsam.Values(), [], None)
+        # a loop moves much of the trajectory: relinearise right away
+        self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
+        return fid
+
+    def remove_loop_constraint(self, constraint_id: int) -> None:
+        """Remove a loop constraint returned by :meth:`add_loop_constraint`."""
+        rec = self._factors.get(constraint_id)
+        if rec is None or rec.kind != "loop":
+            raise EstimationError(f"no loop constraint with id {constraint_id}")
+        del self._factors[constraint_id]
+        slot = self._slot.pop(constraint_id, None)
+        if slot is not None:
+            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [slot], None)
+
+    # ------------------------------------------------------------------ estimate
+    def estimate(self, landmarks: bool = True) -> BackendEstimate:
+        """Current keyframe poses (and landmarks unless ``landmarks`` is False: cost then
+        grows with the keyframes only); keyframes whose pose moved more than
+        ``change_tolerance_m`` (position, or rotation x 1 m) since the previous call."""
+        lm_ids = np.zeros(0, dtype=np.int64)
+        pts = np.zeros((0, 3))
+        if landmarks:
+            vals = self._isam.calculateEstimate()
+            keys = np.asarray(vals.keys(), dtype=np.uint64)
+            chars = (keys >> np.uint64(56)).astype(np.int64)
+            idx = (keys & _INDEX_MASK).astype(np.int64)
+            ids = np.sort(idx[chars == ord("x")]).tolist()
+            rows = gtsam.utilities.extractPose3(vals).reshape(-1, 12)
+            lkeys = np.sort(idx[chars == ord("l")])
+            all_pts = gtsam.utilities.extractPoint3(vals).reshape(-1, 3)
+            known = self._landmarks
+            live = np.array([k in known for k in lkeys.tolist()], dtype=bool)
+            lm_ids = np.array([known[k].landmark_id for k in lkeys[live].tolist()], dtype=np.int64)
+            pts = all_pts[live]
+        else:
+            ids = sorted(self._kf_seq)
+            isam = self._isam
+            rows = np.array(
+                [
+                    np.concatenate([m[:3, :3].ravel(), m[:3, 3]])
+                    for m in (isam.calculateEstimatePose3(X(k)).matrix() for k in ids)
+                ]
+            ).reshape(-1, 12)
+        poses = np.zeros((rows.shape[0], 4, 4))
+        poses[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
+        poses[:, :3, 3] = rows[:, 9:]
+        poses[:, 3, 3] = 1.0
+        world_from_kf: dict[int, F64] = dict(zip(ids, poses, strict=True))
+        # changed keyframes: position moved, or rotation moved (angle x 1 m), beyond tolerance
+        tol = self.config.change_tolerance_m
+        known_kf = [k in self._last_poses for k in ids]
+        changed = {k for k, kn in zip(ids, known_kf, strict=True) if not kn}
+        if any(known_kf):
+            sel = np.flatnonzero(known_kf)
+            prev = np.stack([self._last_poses[ids[j]] for j in sel])
+            cur = poses[sel]
+            dt = np.linalg.norm(cur[:, :3, 3] - prev[:, :3, 3], axis=1)
+            cos = (np.einsum("nij,nij->n", prev[:, :3, :3], cur[:, :3, :3]) - 1.0) / 2.0
+            dr = np.arccos(np.clip(cos, -1.0, 1.0))
+            changed.update(ids[j] for j in sel[(dt > tol) | (dr > tol)].tolist())
+        self._last_poses = world_from_kf
+        self._pose_guess.update(world_from_kf)
+        return BackendEstimate(world_from_kf, lm_ids, pts, changed)

@@ -1,0 +1,37 @@
+"""Frame poses anchored to keyframes follow keyframe corrections."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from loopmodel.backend.anchored import AnchoredTrajectory
+from loopmodel.geometry.se3 import make_pose, so3_exp
+
+
+def test_recomposes_with_moved_keyframes(rng):
+    traj = AnchoredTrajectory()
+    kf0 = make_pose(so3_exp([0, 0.1, 0]), [1, 2, 3])
+    kf1 = make_pose(so3_exp([0.05, 0, 0]), [2, 2, 3])
+    traj.set_keyframe(0, kf0)
+    traj.set_keyframe(1, kf1)
+    rel = [make_pose(so3_exp(rng.normal(0, 0.1, 3)), rng.normal(0, 0.5, 3)) for _ in range(4)]
+    for i, (k, r) in enumerate(zip([0, 0, 1, 1], rel, strict=True)):
+        traj.add(i * 10, k, r)
+    t = traj.trajectory()
+    assert np.allclose(t.world_from_cam[1], kf0 @ rel[1])
+    assert np.allclose(t.world_from_cam[3], kf1 @ rel[3])
+    # move keyframe 1: its frames move rigidly with it, keyframe 0's frames stay
+    new1 = make_pose(so3_exp([0, 0, 0.2]), [2.5, 1.5, 3.2])
+    traj.update_keyframes({1: new1})
+    t2 = traj.trajectory()
+    assert np.allclose(t2.world_from_cam[:2], t.world_from_cam[:2])
+    assert np.allclose(t2.world_from_cam[2], new1 @ rel[2])
+    assert np.array_equal(t2.timestamps_ns, [0, 10, 20, 30])
+
+
+def test_unknown_keyframe_is_an_error():
+    traj = AnchoredTrajectory()
+    with pytest.raises(KeyError, match="unknown keyframe 3"):
+        traj.add(0, 3, np.eye(4))
+    assert len(traj.trajectory()) == 0
