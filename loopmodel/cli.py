@@ -166,6 +166,11 @@ def run(
         ("fps", m["fps"]),
         ("back end", f"{m['backend']}, {_fmt(m['backend_ms_median'])} ms per keyframe (median)"),
     ]
+    if "loop_closure_count" in m:
+        rows.append(
+            ("loops / relocalizations", f"{m['loop_closure_count']} / {m['relocalization_count']} "
+             f"({m['loop_candidates_rejected']} candidates rejected)")
+        )
     if "ate_rmse_m" in m:
         rows.append(("ATE online / final [m]", f"{m['ate_rmse_m_online']:.4f} / {m['ate_rmse_m']:.4f}"))
         rows.append(("drift final [%]", m["drift_pct"]))
