@@ -27,7 +27,10 @@ EXCLUDE = 5
 
 
 def run(quick: bool = False, kind: str = "orb") -> dict:
-    gt = cv2.imread(str(DATA / "samples_GT.bmp"), cv2.IMREAD_GRAYSCALE) > 128
+    gt_img = cv2.imread(str(DATA / "samples_GT.bmp"), cv2.IMREAD_GRAYSCALE)
+    if gt_img is None:
+        raise FileNotFoundError(DATA / "samples_GT.bmp")
+    gt = np.asarray(gt_img) > 128
     n = gt.shape[0]
     n_features = 1000
     ex = make_extractor(kind, n_features)

@@ -1,17 +1,22 @@
 """Benchmark ``sim-loop``: loop closing on the simulator's orbit scan (and its browse scan).
 
-The front end tracks the sequence; every keyframe goes to the loop-closing stage
-(place recognition, verification, global hybrid BA in a worker process, correction fed
-back to the tracker). ``before`` is dead reckoning: the keyframes chained by their
+``loopmodel.pipeline.run_pipeline`` runs the sequence: front end, loop-closing stage
+(relocalization, place recognition, verification; a verified loop's observations of old
+landmarks and its relative pose go into the iSAM2 back end), back end, corrections fed back
+to the tracker. ``before`` is dead reckoning: the keyframes chained by their
 measured relative transforms (what the run gives without loop closing); ``after`` is the
 final trajectory (corrected keyframe poses, each frame through its keyframe). ATE is after
 SE(3) alignment to ground truth; the end-point error is the last frame's position error
 with both trajectories expressed relative to their first frame (drift over the loop). A
-loop (or relocalization) is false when its relative keyframe pose disagrees with ground truth by more than
-5 cm or 2 degrees. The ``browse`` scan (no revisit) must close no loop.
+loop (or relocalization) is false when the final relative pose of its two frames disagrees
+with ground truth by more than 5 cm or 2 degrees. Mesh errors: the laser stripes meshed
+with each trajectory (anchored at the first ground-truth pose) against the scene mesh.
+Full runs add the ``browse`` scan (no revisit: must close no loop) and the orbit with a
+1 s blackout (frames 290-314: LOST during it, relocalized after it).
 
-Sequences: ``datasets/sample/scan.mcap`` (``make demo``) and ``datasets/sample/browse.mcap``;
-each is generated with ``loopmodel simulate scan`` when missing (slow: minutes).
+Sequences: ``datasets/sample/scan.mcap`` (``make demo``), ``browse.mcap`` and
+``blackout.mcap`` beside it; each is generated with ``loopmodel simulate scan`` when
+missing (slow: minutes). ``--quick``: the orbit only, every 2nd frame.
 """
 
 from __future__ import annotations
@@ -63,20 +68,16 @@ class _Strided:
 
 
 def run_sequence(path: Path, config: Config, max_frames: int | None = None, stride: int = 1) -> dict[str, Any]:
-    """The pipeline (front end, loop stage, back end) over one sequence (every
-    ``stride``-th frame); dead-reckoning and final trajectories, loop events. Without the
-    pipeline's back end (older builds) the front end and the loop stage run alone."""
-    try:
-        from loopmodel.pipeline import run_pipeline
-    except ImportError:
-        return run_sequence_frontend(path, config, max_frames, stride)
+    """The pipeline (front end, loop stage, iSAM2 back end) over one sequence (every
+    ``stride``-th frame); dead-reckoning and final trajectories, loop events."""
     import tempfile
 
     from loopmodel.io.sequence import open_sequence
     from loopmodel.io.trajectory_io import read_trajectory
+    from loopmodel.pipeline import run_pipeline
 
     seq = open_sequence(path, config.sequence)
-    view = _Strided(seq, stride) if stride > 1 else seq
+    view: Any = _Strided(seq, stride) if stride > 1 else seq
     chain: dict[int, tuple[int | None, np.ndarray | None, bool, np.ndarray]] = {}
 
     def hook(kf: Any, res: Any) -> None:
@@ -111,68 +112,6 @@ def run_sequence(path: Path, config: Config, max_frames: int | None = None, stri
         "lost": sum(not f.ok for f in out.frames),
         "status": [f.status for f in out.frames],
         "frame_index": {f.frame_index: j for j, f in enumerate(out.frames)},
-    }
-
-
-def run_sequence_frontend(path: Path, config: Config, max_frames: int | None = None, stride: int = 1) -> dict[str, Any]:
-    """Front end + loop stage (global BA in a worker process) without a back end."""
-    from loopmodel.frontend import FrontEnd
-    from loopmodel.io.sequence import open_sequence
-    from loopmodel.loop.stage import LoopClosingStage
-
-    seq = open_sequence(path, config.sequence)
-    fe = FrontEnd(seq.calibration, config.frontend)
-    stage = LoopClosingStage(fe, fe.calibration, config.loop)
-    link: list[tuple[int, np.ndarray]] = []
-    kf_chain: dict[int, tuple[int | None, np.ndarray | None, bool, np.ndarray]] = {}
-    status: list[str] = []
-    stamps: list[int] = []
-    kept: list[int] = []
-    t0 = time.perf_counter()
-    n = 0
-    try:
-        for i, fr in enumerate(seq.frames()):
-            if max_frames is not None and n >= max_frames:
-                break
-            if i % stride:
-                continue
-            kept.append(i)
-            r = fe.process(fr)
-            n += 1
-            link.append((r.keyframe_id, r.kf_from_cam))
-            stamps.append(r.timestamp_ns)
-            status.append(r.status)
-            if r.keyframe is not None:
-                kf = r.keyframe
-                kf_chain[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf, kf.connected, kf.world_from_kf.copy())
-                stage.on_keyframe(kf)
-            else:
-                stage.poll()
-    finally:
-        stage.finish()
-    wall = time.perf_counter() - t0
-    dr: dict[int, np.ndarray] = {}
-    for k in sorted(kf_chain):
-        prev, rel, connected, live = kf_chain[k]
-        dr[k] = dr[prev] @ rel if connected and prev in dr and rel is not None else live
-    final_kf = fe.world_from_kf
-    before = np.array([dr[k] @ T for k, T in link])
-    after = np.array([final_kf[k] @ T for k, T in link])
-    gt = seq.ground_truth
-    return {
-        "before": before,
-        "after": after,
-        "gt": gt.world_from_cam[np.array(kept)] if gt is not None else None,
-        "events": stage.events,
-        "rejected": len(stage.rejected),
-        "frames": n,
-        "stamps_ns": np.array(stamps, dtype=np.int64),
-        "kept": kept,
-        "sequence": seq,
-        "wall_s": wall,
-        "fps": n / wall if wall > 0 else None,
-        "lost": sum(s != "OK" for s in status),
-        "status": status,
     }
 
 
@@ -222,7 +161,7 @@ def _mesh_errors(out: dict[str, Any], scene_ply: Path, config: Config) -> dict[s
         anchored = np.einsum("ij,njk->nik", gt[0] @ invert_pose(est[0]), est)
         trajs[name] = Trajectory(out["stamps_ns"], anchored)
     stripes = list(out["sequence"].stripes())
-    mesh = o3d.io.read_triangle_mesh(str(scene_ply))
+    mesh = o3d.io.read_triangle_mesh(scene_ply)
     m = mesh_error_metrics(stripes, trajs, mesh, config.mapping)
     return {k: round(float(v), 3) for k, v in m.items()}
 
