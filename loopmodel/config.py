@@ -50,7 +50,9 @@ class OutputConfig(_Section):
 class BackendConfig(_Section):
     """Keyframe/landmark back end (``backend/``); iSAM2 keys map onto ``gtsam.ISAM2Params``."""
 
-    kind: str = Field("isam2", pattern="^(isam2|givens)$", description="which back end runs")
+    kind: str = Field(
+        "isam2", pattern="^(isam2|givens|both)$", description="isam2, givens, or both (Givens screen before iSAM2)"
+    )
     pixel_sigma_px: float = Field(1.0, gt=0, description="std. dev. of an image coordinate")
     huber_k: float = Field(
         3.0, ge=0, description="Huber threshold in sigmas (0: Gaussian); weights kept until relin."
@@ -161,6 +163,7 @@ class MappingConfig(_Section):
     """Laser-stripe integration and open3d meshing (lengths in metres, world frame)."""
 
     method: str = Field(default="poisson", pattern="^(poisson|ball_pivoting)$", description="surface method")
+    write_mesh: bool = Field(True, description="the pipeline writes mesh.ply (and mesh errors when truth exists)")
     voxel_m: float = Field(default=0.0015, gt=0, description="voxel down-sampling size before meshing")
     normal_radius_m: float = Field(default=0.006, gt=0, description="neighbourhood radius for normals")
     normal_max_nn: int = Field(default=20, ge=3, description="max neighbours for normals")

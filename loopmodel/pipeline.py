@@ -23,7 +23,7 @@ from loopmodel.errors import LoopmodelError
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder
-from loopmodel.types import Trajectory
+from loopmodel.types import StripeProfile, Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -229,11 +229,11 @@ def _map_arrays(
     }
 
 
-def _write_stripes(folder: ResultsFolder, sequence: Sequence, frames: list[FrameResult]) -> None:
+def _write_stripes(folder: ResultsFolder, sequence: Sequence, frames: list[FrameResult]) -> list[StripeProfile]:
     """``stripes.npz``: the sequence's laser profiles up to the last processed frame (sensor
     frame; ``loopmodel mesh`` places them with the run's trajectory). Skipped without any."""
     if not frames or sequence.stripe_count() == 0:
-        return
+        return []
     from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
 
     last_ns = frames[-1].timestamp_ns
@@ -241,9 +241,61 @@ def _write_stripes(folder: ResultsFolder, sequence: Sequence, frames: list[Frame
         stripes = [s for s in sequence.stripes() if s.timestamp_ns <= last_ns]
     except LoopmodelError as exc:  # the trajectories matter more than the stripes
         logger.error("laser stripes not written: %s", exc)
-        return
+        return []
     if stripes:
         save_stripes(folder.file(STRIPES_FILE), stripes)
+    return stripes
+
+
+def _aligned_to(traj: Trajectory, reference: Trajectory) -> Trajectory:
+    """``traj`` moved by the SE(3) transform that best aligns its positions to ``reference``
+    at common timestamps (exact match)."""
+    from loopmodel.geometry.align import umeyama_alignment
+    from loopmodel.geometry.se3 import make_pose
+
+    _, ia, ib = np.intersect1d(traj.timestamps_ns, reference.timestamps_ns, return_indices=True)
+    if ia.size < 3:
+        return traj
+    R, t, _s = umeyama_alignment(traj.positions_m[ia], reference.positions_m[ib])
+    return Trajectory(traj.timestamps_ns, make_pose(R, t)[None] @ traj.world_from_cam)
+
+
+def _write_mesh(
+    folder: ResultsFolder,
+    sequence: Sequence,
+    stripes: list[StripeProfile],
+    online: Trajectory,
+    final: Trajectory,
+    config: Config,
+) -> dict[str, Any]:
+    """``mesh.ply`` of the stripes placed with the final trajectory; with a ground-truth scene
+    (``scene.ply`` attachment) and poses, the mesh error with ground-truth, online (before loop
+    closure) and final (after) poses. Returns the metrics to record."""
+    if not stripes or not config.mapping.write_mesh or len(final) < 2:
+        return {}
+    from loopmodel.io.mesh_io import mesh_from_bytes, write_mesh
+    from loopmodel.mapping.accuracy import mesh_error_metrics
+    from loopmodel.mapping.stripe_map import StripeMap
+
+    out: dict[str, Any] = {}
+    try:
+        smap = StripeMap.from_trajectory(final, stripes, config.mapping)
+        smap.check_nonempty()
+        surface = smap.mesh()
+        write_mesh(folder.file("mesh.ply"), surface, "ply")
+        out["mesh_vertices"] = len(surface.vertices)
+        names = getattr(sequence, "attachment_names", [])
+        gt = sequence.ground_truth
+        if "scene.ply" in names and gt is not None:
+            scene = sequence.read_attachment("scene.ply")  # type: ignore[attr-defined]
+            gt_mesh = mesh_from_bytes(scene, "ply", sequence.path)
+            # the run's world is its first keyframe: express both trajectories in the truth's
+            # world by the SE(3) alignment of the frame positions before meshing
+            trajs = {"gt": gt, "before": _aligned_to(online, gt), "after": _aligned_to(final, gt)}
+            out.update(mesh_error_metrics(stripes, trajs, gt_mesh, config.mapping))
+    except LoopmodelError as exc:  # a run without a mesh still has its trajectories
+        logger.error("mesh not written: %s", exc)
+    return out
 
 
 def run_pipeline(
@@ -272,7 +324,7 @@ def run_pipeline(
     folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
     folder.write_config(config)
     frontend = FrontEnd(sequence.calibration, config.frontend)
-    backend = create_backend(config.backend, frontend.calibration)
+    backend = create_backend(config.backend, frontend.calibration, config.givens)
     anchored = AnchoredTrajectory()
     loop_stage = None
     if config.loop.enabled:
@@ -358,13 +410,19 @@ def run_pipeline(
                 folder.write_trajectory("trajectory_online.kitti", online, "kitti")
                 folder.write_trajectory("trajectory_final.kitti", final, "kitti")
             folder.write_npz("map.npz", _map_arrays(keyframes, kf_poses, estimate))
-            _write_stripes(folder, sequence, frames)
+            stripes = _write_stripes(folder, sequence, frames)
             metrics: dict[str, Any] = {"sequence": str(sequence.path), "interrupted": interrupted}
+            metrics.update(_write_mesh(folder, sequence, stripes, online, final, config))
             metrics.update(frontend_metrics(frames, wall))
             metrics["fps"] = len(frames) / (sum(frame_ms) / 1e3) if sum(frame_ms) > 0 else None
             metrics["backend"] = config.backend.kind
             if loop_stage is not None:
                 metrics.update(loop_stage.metrics())
+            screen_stats = getattr(backend, "screen_stats", None)
+            if callable(screen_stats):
+                stats = screen_stats()
+                metrics["givens_tested_observations"] = stats["tested"]
+                metrics["givens_rejected_observations"] = stats["rejected"]
             metrics["landmarks"] = 0 if estimate is None else int(estimate.landmark_ids.size)
             metrics.update(_quantiles(frame_ms, "frame_total_ms"))
             metrics.update(_quantiles(backend_ms, "backend_ms"))

@@ -9,7 +9,7 @@ from loopmodel.backend.base import (
     KeyframeLike,
     Observation,
 )
-from loopmodel.config import BackendConfig
+from loopmodel.config import BackendConfig, GivensConfig
 from loopmodel.errors import ConfigError
 from loopmodel.types import StereoCalibration
 
@@ -23,11 +23,24 @@ __all__ = [
 ]
 
 
-def create_backend(config: BackendConfig, calibration: StereoCalibration) -> Backend:
+def create_backend(
+    config: BackendConfig, calibration: StereoCalibration, givens: GivensConfig | None = None
+) -> Backend:
     """The back end named by ``config.kind`` for the rectified stereo ``calibration`` in which
-    keyframe pixels are expressed."""
-    if config.kind == "isam2":
+    keyframe pixels are expressed: ``isam2``, ``givens`` (the sequential Givens estimator) or
+    ``both`` (iSAM2 behind the Givens blunder screen); ``givens`` configures the screen."""
+    if config.kind in ("givens", "both"):
+        from loopmodel.backend.givens_bundle import GivensScreen
+        from loopmodel.backend.screened import GivensBackend, ScreenedBackend
+
+        screen = GivensScreen.from_config(
+            calibration.left_camera(), givens or GivensConfig(), calibration.right_from_left
+        )
+        if config.kind == "givens":
+            return GivensBackend(screen)
+    if config.kind in ("isam2", "both"):
         from loopmodel.backend.isam2 import Isam2Backend
 
-        return Isam2Backend(calibration, config)
+        inner = Isam2Backend(calibration, config)
+        return inner if config.kind == "isam2" else ScreenedBackend(inner, screen)
     raise ConfigError(None, f"key 'backend.kind': back end '{config.kind}' is not available in this build")

@@ -64,6 +64,7 @@ class _ImageObs:
     a_lin: F64 = field(default_factory=lambda: np.zeros((2, 9)))  # [A_f | A_p] at linearisation
     x_lin: F64 = field(default_factory=lambda: np.zeros(9))  # corrections (frame, point) there
     uv_lin: F64 = field(default_factory=lambda: np.zeros(2))  # predicted pixels there
+    right: bool = False  # observed by the right camera of the stereo rig (``right_from_left``)
 
 
 def _fkey(fid: Hashable) -> tuple[str, Hashable]:
@@ -93,6 +94,7 @@ class SequentialBundle:
         self.image_obs: dict[int, _ImageObs] = {}
         self.n_relinearizations = 0
         self.n_local_relinearizations = 0
+        self.right_from_left: F64 | None = None  # 4x4; set to take right-image observations
 
     # ---------------------------------------------------------------- unknowns
     def add_frame(
@@ -159,10 +161,16 @@ class SequentialBundle:
         C = fref.C0 + xf[3:]
         X = pref.X0 + xp
         p_cam = R.T @ (X - C)
-        if p_cam[2] <= 1e-9:
+        p_obs, R_obs = p_cam, np.eye(3)
+        if o.right:
+            if self.right_from_left is None:
+                raise EstimationError("right-image observation without a stereo rig (right_from_left)")
+            R_obs = self.right_from_left[:3, :3]
+            p_obs = R_obs @ p_cam + self.right_from_left[:3, 3]
+        if p_obs[2] <= 1e-9:
             raise EstimationError(f"point {o.point!r} is behind frame {o.frame!r}")
-        J = self.camera.project_jacobian(p_cam)[0]
-        uv = self.camera.project(p_cam)[0]
+        J = self.camera.project_jacobian(p_obs)[0] @ R_obs
+        uv = self.camera.project(p_obs)[0]
         A = np.empty((2, 9))
         A[:, 6:] = J @ R.T  # d uv / d X
         A[:, 3:6] = -A[:, 6:]  # d uv / d C
@@ -173,8 +181,11 @@ class SequentialBundle:
         return {_fkey(o.frame): A[:, :6], _pkey(o.point): A[:, 6:]}, l
 
     # ------------------------------------------------------------- observations
-    def add_image_point(self, fid: Hashable, pid: Hashable, uv_px: ArrayLike, sigma_px: float | None = None) -> int:
-        """Insert one image point (u, v pixels) of ``pid`` in ``fid``; returns its id."""
+    def add_image_point(
+        self, fid: Hashable, pid: Hashable, uv_px: ArrayLike, sigma_px: float | None = None, right: bool = False
+    ) -> int:
+        """Insert one image point (u, v pixels) of ``pid`` in ``fid`` (its right camera when
+        ``right``); returns its id."""
         if fid not in self.frames:
             raise EstimationError(f"unknown frame {fid!r}")
         if pid not in self.points:
@@ -184,6 +195,7 @@ class SequentialBundle:
             pid,
             np.asarray(uv_px, dtype=float).reshape(2).copy(),
             self.sigma_px if sigma_px is None else float(sigma_px),
+            right=right,
         )
         coeffs, l = self._linearize(o)
         oid = self.est.add_observation(coeffs, l, sigma=o.sigma_px)
@@ -229,6 +241,9 @@ class SequentialBundle:
         fi = np.array([fidx[o.frame] for o in obs])
         pi = np.array([pidx[o.point] for o in obs])
         p_cam = np.einsum("nji,nj->ni", Rs[fi], Xs[pi] - Cs[fi])
+        right = np.array([o.right for o in obs])
+        if right.any() and self.right_from_left is not None:
+            p_cam[right] = p_cam[right] @ self.right_from_left[:3, :3].T + self.right_from_left[:3, 3]
         uv_now = self.camera.project(p_cam)
         A = np.stack([o.a_lin for o in obs])
         dx = np.hstack([xf[fi], xp[pi]]) - np.stack([o.x_lin for o in obs])
@@ -340,8 +355,9 @@ class GivensScreen:
         self._late: list[tuple[Hashable, Hashable]] = []
 
     @classmethod
-    def from_config(cls, camera: CentralCamera, cfg: Any) -> GivensScreen:
-        """Screen from a :class:`loopmodel.config.GivensConfig` section."""
+    def from_config(cls, camera: CentralCamera, cfg: Any, right_from_left: ArrayLike | None = None) -> GivensScreen:
+        """Screen from a :class:`loopmodel.config.GivensConfig` section; with ``right_from_left``
+        (4x4, rectified rig) the right-image coordinates of stereo observations are screened too."""
         scr = cls(
             camera,
             sigma_px=cfg.sigma_px,
@@ -352,6 +368,8 @@ class GivensScreen:
             frame_prior_sigma_m=cfg.frame_prior_sigma_m,
         )
         scr.bundle.relin_px = cfg.relin_px
+        if right_from_left is not None:
+            scr.bundle.right_from_left = np.asarray(right_from_left, dtype=float).reshape(4, 4)
         scr.bundle.est.min_downdate_cos2 = cfg.min_downdate_cos2
         return scr
 
@@ -376,13 +394,16 @@ class GivensScreen:
                 self.add_point(lid, pw)
         mono_ids = mono[:, 0].astype(np.int64)
         keep_mono = np.array([m in self.bundle.points for m in mono_ids.tolist()], dtype=bool)
-        ids = [*lids.tolist(), *mono_ids[keep_mono].tolist()]
-        uv = np.vstack([st[:, [0, 2]], mono[keep_mono, 1:3]])
+        stereo = self.bundle.right_from_left is not None
+        n_st = lids.size
+        ids = [*lids.tolist(), *(lids.tolist() if stereo else []), *mono_ids[keep_mono].tolist()]
+        uv = np.vstack([st[:, [0, 2]], *([st[:, [1, 2]]] if stereo else []), mono[keep_mono, 1:3]])
+        right = [False] * n_st + [True] * (n_st if stereo else 0) + [False] * int(keep_mono.sum())
         first = not self.bundle.frames
-        mask = self.screen(int(keyframe.id), T, ids, uv, first_frame=first)
-        m_st = mask[: lids.size]
+        mask = self.screen(int(keyframe.id), T, ids, uv, first_frame=first, right=right)
+        m_st = mask[:n_st] & (mask[n_st : 2 * n_st] if stereo else True)
         m_mono = np.ones(mono_ids.size, dtype=bool)
-        m_mono[np.flatnonzero(keep_mono)] = mask[lids.size :]
+        m_mono[np.flatnonzero(keep_mono)] = mask[(2 if stereo else 1) * n_st :]
         return m_st, m_mono
 
     def add_point(self, pid: Hashable, p_in_world: ArrayLike, prior_sigma_m: float | None = None) -> None:
@@ -396,8 +417,10 @@ class GivensScreen:
         point_ids: Sequence[Hashable],
         uv_px: ArrayLike,
         first_frame: bool = False,
+        right: Sequence[bool] | None = None,
     ) -> NDArray[np.bool_]:
-        """Insert one keyframe's observations (N point ids, N x 2 pixels); return accepted mask."""
+        """Insert one keyframe's observations (N point ids, N x 2 pixels, optionally flagged as
+        right-image observations); return the accepted mask."""
         b = self.bundle
         sr, sm = self.frame_prior
         if first_frame:
@@ -406,7 +429,8 @@ class GivensScreen:
         uv = np.asarray(uv_px, dtype=float).reshape(-1, 2)
         if len(point_ids) != uv.shape[0]:
             raise EstimationError("screen: point_ids and uv_px differ in length")
-        oids = [b.add_image_point(frame_id, pid, uv[i]) for i, pid in enumerate(point_ids)]
+        flags = list(right) if right is not None else [False] * len(point_ids)
+        oids = [b.add_image_point(frame_id, pid, uv[i], right=flags[i]) for i, pid in enumerate(point_ids)]
         for oid, pid in zip(oids, point_ids, strict=True):
             self._key[oid] = (frame_id, pid)
         self._pending.extend(oids)
