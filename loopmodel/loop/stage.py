@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.config import LoopConfig
+from loopmodel.errors import LoopmodelError
 from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.closer import LoopCloser, LoopClosure
 from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hybrid_ba
@@ -217,9 +218,13 @@ class LoopClosingStage:
             rm = np.asarray(getattr(m, "rect_from_cam", np.eye(4)))
             q_from_m = invert_pose(rq) @ closure.query_from_match @ rm
             t0 = time.perf_counter()
-            record["constraint_id"] = int(be.add_loop_constraint(closure.query_kf, closure.match_kf, q_from_m))
+            try:
+                record["constraint_id"] = int(be.add_loop_constraint(closure.query_kf, closure.match_kf, q_from_m))
+                n += 1
+            except LoopmodelError as exc:  # e.g. a back end without relative-pose factors
+                record["constraint_id"] = None
+                logger.info("loop %d -> %d: no loop constraint (%s)", closure.query_kf, closure.match_kf, exc)
             record["optimise_ms"] = (time.perf_counter() - t0) * 1e3
-            n += 1
         self._awaiting = [r for _, r in self._queued]
         self._queued = []
         return n
