@@ -166,6 +166,11 @@ def run(
         ("fps", m["fps"]),
         ("back end", f"{m['backend']}, {_fmt(m['backend_ms_median'])} ms per keyframe (median)"),
     ]
+    if "loop_closure_count" in m:
+        rows.append(
+            ("loops / relocalizations", f"{m['loop_closure_count']} / {m['relocalization_count']} "
+             f"({m['loop_candidates_rejected']} candidates rejected)")
+        )
     if "ate_rmse_m" in m:
         rows.append(("ATE online / final [m]", f"{m['ate_rmse_m_online']:.4f} / {m['ate_rmse_m']:.4f}"))
         rows.append(("drift final [%]", m["drift_pct"]))
@@ -565,6 +570,101 @@ def eval_command(
         cmp_dir = out or Path("eval_comparison")
         csv_path, md_path = rep.write_comparison([e for e, _ in evals], cmp_dir)
         console.print(f"comparison: {csv_path} {md_path}")
+
+
+loop_app = typer.Typer(help="Place recognition, relocalization and loop detection.", no_args_is_help=True)
+app.add_typer(loop_app, name="loop")
+
+
+def _image_files(folder: Path) -> list[Path]:
+    import re
+
+    if not folder.is_dir():
+        raise InputError(folder, "is not a folder of images")
+    files = [p for p in folder.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp", ".pgm")]
+    if not files:
+        raise InputError(folder, "holds no .png/.jpg/.bmp/.pgm image")
+
+    def key(p: Path) -> tuple[int, str]:
+        m = re.search(r"(\d+)", p.stem)
+        return (int(m.group(1)) if m else -1, p.name)
+
+    return sorted(files, key=key)
+
+
+@loop_app.command("detect")
+def loop_detect(
+    folder: Annotated[Path, typer.Argument(help="Folder of images in time order (numbered names)")],
+    out: Annotated[Path | None, typer.Option("--out", help="CSV of accepted loops")] = None,
+    vocabulary: Annotated[Path | None, typer.Option("--vocabulary", help="trained vocabulary .npz")] = None,
+    config: ConfigOption = None,
+) -> None:
+    """Loop detection on an image sequence (monocular: fundamental-matrix verification)."""
+    import cv2
+
+    from loopmodel.io.atomic import write_text_atomic
+    from loopmodel.loop.closure import detector_from_config
+    from loopmodel.loop.features import detect_and_describe, make_extractor
+
+    cfg = load_config(config).loop
+    if vocabulary is not None:
+        cfg = cfg.model_copy(update={"vocabulary_path": str(vocabulary)})
+    files = _image_files(folder)
+    ex = make_extractor(cfg.descriptor, cfg.n_features)
+    det = None
+    rows = ["query_index,query_file,match_index,match_file,inliers"]
+    with progress_bar() as bar:
+        task = bar.add_task("images", total=len(files))
+        for i, f in enumerate(files):
+            img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            if img is None:
+                raise InputError(f, "cannot be read as an image")
+            if det is None:
+                det = detector_from_config(cfg, None, image_width_px=float(img.shape[1]))
+            ev = det.process(i, detect_and_describe(img, cfg.descriptor, cfg.n_features, ex))
+            if ev is not None:
+                rows.append(f"{i},{f.name},{ev.match_id},{files[ev.match_id].name},{ev.n_inliers}")
+            bar.advance(task)
+    assert det is not None
+    for r in rows[1:]:
+        q, qf, m, mf, n = r.split(",")
+        console.print(f"loop: {qf} -> {mf} ({n} inliers)")
+    console.print(f"{len(rows) - 1} loops accepted, {len(det.rejected)} candidates rejected")
+    if out is not None:
+        write_text_atomic(out, "\n".join(rows) + "\n")
+        console.print(f"loops written to {out}")
+
+
+@loop_app.command("vocabulary")
+def loop_vocabulary(
+    folder: Annotated[Path, typer.Argument(help="Folder of training images")],
+    out: Annotated[Path, typer.Argument(help="Output vocabulary (.npz)")],
+    config: ConfigOption = None,
+) -> None:
+    """Train a vocabulary tree (k-majority for ORB, k-means for SIFT) on a folder of images."""
+    import cv2
+    import numpy as np
+
+    from loopmodel.loop.features import detect_and_describe, make_extractor
+    from loopmodel.loop.vocabulary import Vocabulary
+
+    cfg = load_config(config).loop
+    ex = make_extractor(cfg.descriptor, cfg.n_features)
+    docs = []
+    for f in _image_files(folder):
+        img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise InputError(f, "cannot be read as an image")
+        fs = detect_and_describe(img, cfg.descriptor, cfg.n_features, ex)
+        if len(fs):
+            docs.append(fs.descriptors)
+    if not docs:
+        raise InputError(folder, "no features found in any image")
+    voc = Vocabulary.train(
+        np.concatenate(docs), cfg.vocabulary_branching, cfg.vocabulary_levels, documents=docs
+    )
+    voc.save(out)
+    console.print(f"{voc.n_words} words from {len(docs)} images written to {out}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -340,6 +340,30 @@ class EvalConfig(_Section):
     plots: bool = True
 
 
+class LoopConfig(_Section):
+    """Appearance-based relocalization and loop closing (``loopmodel.loop``)."""
+
+    enabled: bool = True
+    descriptor: str = Field("orb", pattern="^(orb|sift|surf)$", description="orb, sift or surf")
+    n_features: int = Field(1500, ge=50, description="features per keyframe")
+    ratio: float = Field(0.8, gt=0, le=1, description="Lowe ratio of descriptor matching")
+    vocabulary_path: str | None = Field(None, description="trained vocabulary .npz; None: on the fly")
+    vocabulary_branching: int = Field(8, ge=2)
+    vocabulary_levels: int = Field(4, ge=1)
+    vocabulary_train_after: int = Field(6, ge=2, description="keyframes before on-the-fly training")
+    min_gap_keyframes: int = Field(10, ge=1, description="recent keyframes never loop candidates")
+    consistency: int = Field(2, ge=1, description="consecutive agreeing queries before a loop")
+    min_score: float = Field(0.01, ge=0)
+    threshold_px: float = Field(2.0, gt=0, description="P3P inlier bound (pixels)")
+    min_inliers: int = Field(25, ge=6)
+    min_inlier_ratio: float = Field(0.25, gt=0, le=1)
+    max_samples: int = Field(4096, ge=64, description="P3P bank minimal samples per query")
+    min_epipolar_inliers: int = Field(40, ge=8, description="monocular verification")
+    max_cycle_rot_deg: float = Field(2.0, gt=0, description="forward/reverse pose agreement")
+    max_cycle_trans_m: float = Field(0.05, gt=0)
+    background_ba: bool = Field(True, description="global BA in a worker process")
+
+
 class AccuracyConfig(_Section):
     """Marker-pose Cramér–Rao bound (``loopmodel bound``, seed 001)."""
 
@@ -393,6 +417,7 @@ class Config(_Section):
     frontend: FrontendConfig = Field(default_factory=FrontendConfig)
     mapping: MappingConfig = Field(default_factory=MappingConfig)
     eval: EvalConfig = Field(default_factory=EvalConfig)
+    loop: LoopConfig = Field(default_factory=LoopConfig)
     accuracy: AccuracyConfig = Field(default_factory=AccuracyConfig)
     simulation: SimulationConfig = Field(default_factory=SimulationConfig)
     vvs: VvsConfig = Field(default_factory=VvsConfig)

@@ -309,9 +309,12 @@ def run_pipeline(
 ) -> RunOutput:
     """Reader -> front end -> back end -> results folder ``<out_dir>/<name>/``.
 
-    Every keyframe goes to the back end (``config.backend.kind``); keyframes it moves are
-    handed back to the front end and to the anchored trajectory, in which every frame is
-    stored relative to its keyframe. Writes ``config.yaml``, ``trajectory_online.tum`` (poses
+    Every keyframe first goes to loop closing (``config.loop``: relocalization of a new
+    segment, verified revisits whose observations of old landmarks join the keyframe's
+    monocular observations, plus a relative-pose loop constraint), then to the back end
+    (``config.backend.kind``); keyframes it moves are handed back to the front end and to
+    the anchored trajectory, in which every frame is stored relative to its keyframe.
+    ``metrics.json`` lists each closure under ``loop_events``. Writes ``config.yaml``, ``trajectory_online.tum`` (poses
     as estimated live), ``trajectory_final.tum`` (frames recomposed with the final keyframe
     poses), ``keyframes.tum``, ``map.npz``, ``metrics.json``, ``run.log`` (KITTI variants
     of the trajectories when ``output.write_kitti``) and ``stripes.npz`` when the sequence
@@ -323,6 +326,11 @@ def run_pipeline(
     frontend = FrontEnd(sequence.calibration, config.frontend)
     backend = create_backend(config.backend, frontend.calibration, config.givens)
     anchored = AnchoredTrajectory()
+    loop_stage = None
+    if config.loop.enabled:
+        from loopmodel.loop.stage import LoopClosingStage
+
+        loop_stage = LoopClosingStage(frontend, frontend.calibration, config.loop, backend=backend)
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     frames: list[FrameResult] = []
     keyframes: list[tuple[int, int]] = []
@@ -347,11 +355,17 @@ def run_pipeline(
                 kf = res.keyframe
                 if kf is not None:
                     keyframes.append((kf.id, kf.timestamp_ns))
+                    if loop_stage is not None:  # revisits and relocalization, before the back end
+                        loop_stage.on_keyframe(kf)
                     anchored.set_keyframe(kf.id, kf.world_from_kf)
                     tb = time.perf_counter()
                     backend.add_keyframe(kf)
+                    if loop_stage is not None:
+                        loop_stage.update_backend()
                     estimate = backend.estimate(landmarks=False)
                     backend_ms.append((time.perf_counter() - tb) * 1e3)
+                    if loop_stage is not None:
+                        loop_stage.note_estimate(estimate.world_from_kf, backend_ms[-1])
                     moved = {
                         k: estimate.world_from_kf[k]
                         for k in estimate.changed_keyframes
@@ -402,6 +416,8 @@ def run_pipeline(
             metrics.update(frontend_metrics(frames, wall))
             metrics["fps"] = len(frames) / (sum(frame_ms) / 1e3) if sum(frame_ms) > 0 else None
             metrics["backend"] = config.backend.kind
+            if loop_stage is not None:
+                metrics.update(loop_stage.metrics())
             screen_stats = getattr(backend, "screen_stats", None)
             if callable(screen_stats):
                 stats = screen_stats()

@@ -1,0 +1,80 @@
+"""Loop closing inside the pipeline (front end -> loop stage -> back end): a revisit is
+closed, recorded in metrics.json, and the final trajectory agrees with ground truth.
+(No-revisit runs: tests/test_loop_closure.py and the ``browse`` run of the sim-loop bench.)"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+if not hasattr(pytest.importorskip("loopmodel.pipeline"), "run_pipeline"):
+    pytest.skip("the pipeline has no back end yet (run_pipeline)", allow_module_level=True)
+
+from frontend_scene import default_scene, render, stereo_rig  # noqa: E402
+
+from loopmodel.config import Config  # noqa: E402
+from loopmodel.geometry.se3 import invert_pose, make_pose, so3_exp  # noqa: E402
+from loopmodel.io.sequence import open_sequence  # noqa: E402
+from loopmodel.io.trajectory_io import read_trajectory  # noqa: E402
+from loopmodel.pipeline import run_pipeline  # noqa: E402
+
+
+def _poses(revisit: bool) -> list[np.ndarray]:
+    xs = np.linspace(0.0, 1.8, 30)
+    if revisit:  # and back to the start view
+        xs = np.concatenate([xs, np.linspace(1.8, 0.0, 30)[1:]])
+    return [
+        make_pose(so3_exp([0.0, 0.03 * np.sin(i / 7), 0.0]), [x, 0.01 * np.sin(i / 3), 0.0]) for i, x in enumerate(xs)
+    ]
+
+
+def _write_kitti(folder: Path, poses: list[np.ndarray], rng: np.random.Generator) -> None:
+    planes = default_scene(rng)
+    cal = stereo_rig()
+    (folder / "image_0").mkdir(parents=True)
+    (folder / "image_1").mkdir()
+    for i, world_from_cam in enumerate(poses):
+        cam_from_world = invert_pose(world_from_cam)
+        for sub, T in (("image_0", cam_from_world), ("image_1", cal.right_from_left @ cam_from_world)):
+            cv2.imwrite(str(folder / sub / f"{i:06d}.png"), render(planes, cal.K_left, T, cal.image_size))
+    P0 = np.hstack([cal.K_left, np.zeros((3, 1))])
+    P1 = P0.copy()
+    P1[0, 3] = -cal.K_left[0, 0] * cal.baseline_m
+    rows = [" ".join(repr(float(x)) for x in P.ravel()) for P in (P0, P1)]
+    (folder / "calib.txt").write_text(f"P0: {rows[0]}\nP1: {rows[1]}\n")
+    (folder / "poses.txt").write_text("".join(" ".join(repr(float(x)) for x in T[:3, :].ravel()) + "\n" for T in poses))
+
+
+def _config() -> Config:
+    cfg = Config()
+    cfg.frontend.max_parallax_ratio = 0.04  # a keyframe every few frames
+    cfg.loop.min_gap_keyframes = 3
+    cfg.loop.consistency = 1
+    cfg.loop.vocabulary_train_after = 4
+    cfg.loop.n_features = 800
+    return cfg
+
+
+@pytest.mark.slow
+def test_pipeline_closes_the_loop_and_records_it(tmp_path: Path) -> None:
+    poses = _poses(revisit=True)
+    _write_kitti(tmp_path / "seq", poses, np.random.default_rng(4))
+    out = run_pipeline(open_sequence(tmp_path / "seq"), _config(), tmp_path, "loop")
+    metrics = json.loads((out.folder / "metrics.json").read_text())
+    assert metrics["loop_closure_count"] >= 1
+    events = [e for e in metrics["loop_events"] if e["type"] == "loop"]
+    assert events and all(e["frame"] > e["match_frame"] >= 0 for e in events)
+    assert all(e["inliers"] >= 25 and "correction_m" in e and "optimise_ms" in e for e in events)
+    # the loop's keyframes sit where ground truth has them (relative pose, final trajectory)
+    final = read_trajectory(out.folder / "trajectory_final.tum")
+    by_time = dict(zip(final.timestamps_ns.tolist(), final.world_from_cam, strict=True))
+    stamps = open_sequence(tmp_path / "seq").ground_truth.timestamps_ns
+    for e in events:
+        a, b = by_time[int(stamps[e["frame"]])], by_time[int(stamps[e["match_frame"]])]
+        est = invert_pose(b) @ a
+        gt = invert_pose(poses[e["match_frame"]]) @ poses[e["frame"]]
+        assert np.linalg.norm(est[:3, 3] - gt[:3, 3]) < 0.03
