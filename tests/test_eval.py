@@ -22,12 +22,7 @@ def _wiggly_path(n: int, rng: np.random.Generator) -> np.ndarray:
     s = np.linspace(0, 2 * np.pi, n, endpoint=False)
     pos = np.stack([2 * np.cos(s), 2 * np.sin(s), 0.3 * np.sin(3 * s)], axis=1)
     pos += 0.01 * rng.standard_normal(pos.shape)
-    return np.stack(
-        [
-            make_pose(so3_exp([0.1 * np.sin(a), 0.2 * np.cos(a), a]), p)
-            for a, p in zip(s, pos, strict=True)
-        ]
-    )
+    return np.stack([make_pose(so3_exp([0.1 * np.sin(a), 0.2 * np.cos(a), a]), p) for a, p in zip(s, pos, strict=True)])
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -110,9 +105,7 @@ EVO_CASES = [
 
 
 @pytest.mark.parametrize("gt_name, est_name, kind, delta_m", EVO_CASES)
-def test_agreement_with_evo(
-    shared_data: Path, gt_name: str, est_name: str, kind: str, delta_m: float
-) -> None:
+def test_agreement_with_evo(shared_data: Path, gt_name: str, est_name: str, kind: str, delta_m: float) -> None:
     import copy
 
     evo_fi = pytest.importorskip("evo.tools.file_interface")
@@ -186,9 +179,9 @@ def _make_run(
     t = 1_000_000_000_000 + np.arange(n, dtype=np.int64) * 50_000_000  # 20 Hz
     gt_T = _wiggly_path(n, rng)
     online_T = gt_T.copy()
-    online_T[:, :3, 3] += np.cumsum(
-        drift * rng.standard_normal((n, 3)), axis=0
-    ) * 0.2 + np.linspace(0, 1, n)[:, None] * [0.3, 0.0, 0.0]
+    online_T[:, :3, 3] += np.cumsum(drift * rng.standard_normal((n, 3)), axis=0) * 0.2 + np.linspace(0, 1, n)[
+        :, None
+    ] * [0.3, 0.0, 0.0]
     final_T = gt_T.copy()
     final_T[:, :3, 3] += 0.005 * rng.standard_normal((n, 3))
     gt, online, final = Trajectory(t, gt_T), Trajectory(t, online_T), Trajectory(t, final_T)
@@ -207,10 +200,7 @@ def test_report_without_loop_closure(tmp_path: Path, rng: np.random.Generator) -
     gt, _, final = _make_run(tmp_path / "run", rng, closures=[])
     write_trajectory(tmp_path / "gt.tum", gt)
     out = tmp_path / "out"
-    assert (
-        main(["eval", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.tum"), "--out", str(out)])
-        == 0
-    )
+    assert main(["eval", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.tum"), "--out", str(out)]) == 0
     md = (out / "report.md").read_text()
     assert "No loop closure was recorded in this run" in md
     html = (out / "report.html").read_text()
@@ -336,9 +326,7 @@ def _one_line_error(capsys: pytest.CaptureFixture[str], *words: str) -> str:
     return err
 
 
-def test_bad_input_exit_2(
-    tmp_path: Path, rng: np.random.Generator, capsys: pytest.CaptureFixture[str]
-) -> None:
+def test_bad_input_exit_2(tmp_path: Path, rng: np.random.Generator, capsys: pytest.CaptureFixture[str]) -> None:
     T = _wiggly_path(50, rng)
     t = np.arange(50, dtype=np.int64) * 100_000_000
     write_trajectory(tmp_path / "ref.tum", Trajectory(t, T))
@@ -364,12 +352,7 @@ def test_bad_input_exit_2(
     )
     _one_line_error(capsys, "no poses overlap in time", "late.tum")
     # a trajectory with one pose
-    assert (
-        main(
-            ["eval", "--ref", ref, "--est", str(tmp_path / "one.tum"), "--out", str(tmp_path / "x")]
-        )
-        == 2
-    )
+    assert main(["eval", "--ref", ref, "--est", str(tmp_path / "one.tum"), "--out", str(tmp_path / "x")]) == 2
     _one_line_error(capsys, "one.tum", "1 pose")
     # unequal formats: KITTI (no times) against TUM
     assert (
@@ -403,9 +386,7 @@ def test_eval_config_defaults() -> None:
     assert cfg.align == "se3" and cfg.max_dt_ms == 10.0 and cfg.kitti_segment_lengths_m[0] == 100.0
 
 
-def test_ground_truth_from_sequence_folder(
-    shared_data: Path, tmp_path: Path, rng: np.random.Generator
-) -> None:
+def test_ground_truth_from_sequence_folder(shared_data: Path, tmp_path: Path, rng: np.random.Generator) -> None:
     """``--gt SEQ``: the ground truth of a KITTI folder (poses.txt, 10 Hz) read by
     open_sequence; a noisy copy in a results folder is evaluated against it."""
     from loopmodel.io.trajectory_io import read_trajectory
@@ -431,3 +412,24 @@ def test_ground_truth_from_sequence_folder(
     ape.process_data((ref, est))
     assert m["ate_rmse_m"] == pytest.approx(ape.get_statistic(em.StatisticsType.rmse), rel=1e-9)
     assert m["before_after"] is None  # no online trajectory in this folder
+
+
+def test_pipeline_loop_events_are_read_as_closures(tmp_path: Path) -> None:
+    """The pipeline's ``loop_events`` (type loop / relocalization) count as loop closures."""
+    import json
+
+    from loopmodel.eval.report import load_run
+    from loopmodel.geometry.se3 import se3_exp
+    from loopmodel.io.trajectory_io import write_trajectory
+    from loopmodel.types import Trajectory
+
+    traj = Trajectory(np.arange(5) * 100_000_000, np.array([se3_exp([0.1 * i, 0, 0, 0, 0, 0]) for i in range(5)]))
+    write_trajectory(tmp_path / "trajectory_online.tum", traj)
+    write_trajectory(tmp_path / "trajectory_final.tum", traj)
+    events = [
+        {"type": "loop", "frame": 4, "keyframe": 2, "match_frame": 0},
+        {"type": "relocalization", "frame": 3, "keyframe": 1},
+    ]
+    (tmp_path / "metrics.json").write_text(json.dumps({"loop_events": events}))
+    run = load_run(tmp_path)
+    assert run.loop_closures_recorded and len(run.loop_closures) == 1

@@ -88,9 +88,7 @@ def load_trajectory_file(path: str | Path, rate_hz: float = 10.0) -> TimedTrajec
     return TimedTrajectory(traj, str(p), fmt != "kitti")
 
 
-def load_ground_truth(
-    spec: str | Path, sequence_config: SequenceConfig | None = None
-) -> TimedTrajectory:
+def load_ground_truth(spec: str | Path, sequence_config: SequenceConfig | None = None) -> TimedTrajectory:
     """Ground truth from a trajectory file (TUM, KITTI, EuRoC) or from a sequence (MCAP file,
     EuRoC or KITTI folder) read with :func:`loopmodel.io.open_sequence`."""
     p = Path(spec)
@@ -188,9 +186,7 @@ def parse_loop_closures(events: Any, run: RunData, source: str) -> list[LoopClos
     out: list[LoopClosureEvent] = []
     for k, ev in enumerate(events):
         if not isinstance(ev, dict):
-            raise FormatError(
-                source, f"loop_closures[{k}] must be an object, got {type(ev).__name__}"
-            )
+            raise FormatError(source, f"loop_closures[{k}] must be an object, got {type(ev).__name__}")
         out.append(
             LoopClosureEvent(
                 k,
@@ -228,8 +224,13 @@ def load_run(path: str | Path, rate_hz: float = 10.0) -> RunData:
         if not isinstance(data, dict):
             raise FormatError(mpath, "expected a JSON object")
         run.run_metrics = data
-        run.loop_closures_recorded = "loop_closures" in data
-        run.loop_closures = parse_loop_closures(data.get("loop_closures"), run, str(mpath))
+        # the pipeline records every loop-closing event in ``loop_events`` (type "loop" or
+        # "relocalization"); a plain ``loop_closures`` list is read too
+        events = data.get("loop_closures")
+        if events is None and isinstance(data.get("loop_events"), list):
+            events = [e for e in data["loop_events"] if isinstance(e, dict) and e.get("type", "loop") == "loop"]
+        run.loop_closures_recorded = events is not None
+        run.loop_closures = parse_loop_closures(events, run, str(mpath))
     return run
 
 
@@ -284,18 +285,14 @@ def _nearest_index(times_ns: NDArray[np.int64], t_ns: int, max_dt_ns: int) -> in
     k = int(np.searchsorted(times_ns, t_ns))
     best = None
     for c in (k - 1, k):
-        if 0 <= c < len(times_ns) and (
-            best is None or abs(times_ns[c] - t_ns) < abs(times_ns[best] - t_ns)
-        ):
+        if 0 <= c < len(times_ns) and (best is None or abs(times_ns[c] - t_ns) < abs(times_ns[best] - t_ns)):
             best = c
     if best is None or abs(int(times_ns[best]) - t_ns) > max_dt_ns:
         return None
     return best
 
 
-def _closure_numbers(
-    run: RunData, pairs: dict[str, PairEvaluation], cfg: EvalConfig
-) -> list[dict[str, Any]]:
+def _closure_numbers(run: RunData, pairs: dict[str, PairEvaluation], cfg: EvalConfig) -> list[dict[str, Any]]:
     """Per closure: the correction it made (final minus online pose at the closure time,
     in the run's own world frame) and the ground-truth error there before and after."""
     out: list[dict[str, Any]] = []
@@ -306,9 +303,7 @@ def _closure_numbers(
             "time_ns": ev.time_ns,
             "match_time_ns": ev.match_time_ns,
         }
-        rec["recorded"] = {
-            k: v for k, v in ev.fields.items() if isinstance(v, int | float | str | bool)
-        }
+        rec["recorded"] = {k: v for k, v in ev.fields.items() if isinstance(v, int | float | str | bool)}
         if ev.time_ns is not None and run.online is not None and run.final is not None:
             io_ = _nearest_index(run.online.traj.timestamps_ns, ev.time_ns, max_dt_ns)
             if_ = _nearest_index(run.final.traj.timestamps_ns, ev.time_ns, max_dt_ns)
@@ -510,9 +505,7 @@ def make_plots(ev: RunEvaluation) -> dict[str, bytes]:
     title = f"{ev.run.name}: top view ({align} aligned)"
     out = {
         PLOT_TOP: plot_top_view(ref_span, tracks, closures, title),
-        PLOT_ERROR_TIME: plot_error_over_time(
-            tracks, closures, f"{ev.run.name}: ATE over time ({align})"
-        ),
+        PLOT_ERROR_TIME: plot_error_over_time(tracks, closures, f"{ev.run.name}: ATE over time ({align})"),
         PLOT_ERROR_COLORED: plot_error_colored(
             ref_span, tracks[-1], f"{ev.run.name}: {tracks[-1].label}, coloured by ATE ({align})"
         ),
@@ -646,10 +639,7 @@ def _tables(ev: RunEvaluation) -> list[tuple[str, list[str], list[list[str]], st
             (
                 "KITTI segment errors (final)",
                 ["length [m]", "t_err [%]", "r_err [deg/100 m]", "segments"],
-                [
-                    [k, _num(v["t_err_pct"]), _num(v["r_err_deg_per_100m"]), str(v["segments"])]
-                    for k, v in ks.items()
-                ],
+                [[k, _num(v["t_err_pct"]), _num(v["r_err_deg_per_100m"]), str(v["segments"])] for k, v in ks.items()],
                 "",
             )
         )
@@ -709,9 +699,7 @@ def _tables(ev: RunEvaluation) -> list[tuple[str, list[str], list[list[str]], st
 
 
 _ALL_TIME_KEYS = tuple(
-    p + k
-    for p in (*_QUERY_PREFIXES, *_MATCH_PREFIXES)
-    for k in (*_NS_KEYS, *_S_KEYS, *_FRAME_KEYS, *_KF_KEYS)
+    p + k for p in (*_QUERY_PREFIXES, *_MATCH_PREFIXES) for k in (*_NS_KEYS, *_S_KEYS, *_FRAME_KEYS, *_KF_KEYS)
 ) + ("index",)
 
 
@@ -793,9 +781,7 @@ def write_outputs(ev: RunEvaluation, out_dir: str | Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     for name, png in ev.plots.items():
         write_bytes_atomic(out / name, png)
-    write_text_atomic(
-        out / "metrics.json", json.dumps(_json_clean(ev.metrics), indent=2, allow_nan=False) + "\n"
-    )
+    write_text_atomic(out / "metrics.json", json.dumps(_json_clean(ev.metrics), indent=2, allow_nan=False) + "\n")
     write_text_atomic(out / "report.md", render_markdown(ev))
     write_text_atomic(out / "report.html", render_html(ev))
     return out
