@@ -41,7 +41,9 @@ def _version_callback(value: bool) -> None:
 
 @app.callback()
 def _root(
-    version: Annotated[bool, typer.Option("--version", callback=_version_callback, is_eager=True, help="Print the version")] = False,
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version_callback, is_eager=True, help="Print the version")
+    ] = False,
     debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks and debug logging")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Info logging")] = False,
 ) -> None:
@@ -52,8 +54,13 @@ def _root(
 def progress_bar(*extra: Any) -> Progress:
     """The project's progress bar (frames done / total, rate, time left)."""
     return Progress(
-        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-        *extra, TimeRemainingColumn(), console=err_console, transient=False,
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        *extra,
+        TimeRemainingColumn(),
+        console=err_console,
+        transient=False,
     )
 
 
@@ -135,7 +142,11 @@ def run(
         with progress_bar(_Text("{task.fields[fps]:.1f} fps")) as bar:
             task = bar.add_task("front end", total=total, fps=0.0)
             result = run_frontend(
-                seq, cfg, out, run_name, max_frames=max_frames,
+                seq,
+                cfg,
+                out,
+                run_name,
+                max_frames=max_frames,
                 progress=lambda i, n, fps: bar.update(task, completed=i, fps=fps),
             )
         m = result.metrics
@@ -151,7 +162,11 @@ def run(
         task = bar.add_task("run", total=total, fps=0.0, kf=0)
         try:
             result = run_pipeline(
-                seq, cfg, out, run_name, max_frames=max_frames,
+                seq,
+                cfg,
+                out,
+                run_name,
+                max_frames=max_frames,
                 progress=lambda i, n, fps, kf: bar.update(task, completed=i, fps=fps, kf=kf),
             )
         except KeyboardInterrupt:
@@ -168,8 +183,11 @@ def run(
     ]
     if "loop_closure_count" in m:
         rows.append(
-            ("loops / relocalizations", f"{m['loop_closure_count']} / {m['relocalization_count']} "
-             f"({m['loop_candidates_rejected']} candidates rejected)")
+            (
+                "loops / relocalizations",
+                f"{m['loop_closure_count']} / {m['relocalization_count']} "
+                f"({m['loop_candidates_rejected']} candidates rejected)",
+            )
         )
     if "ate_rmse_m" in m:
         rows.append(("ATE online / final [m]", f"{m['ate_rmse_m_online']:.4f} / {m['ate_rmse_m']:.4f}"))
@@ -244,8 +262,10 @@ def simulate_scan_cmd(
     noise: Annotated[float | None, typer.Option("--noise", help="Image noise sigma (grey levels)")] = None,
     fault: Annotated[
         list[str] | None,
-        typer.Option("--fault", help="KIND:FIRST[-LAST], repeatable; KIND: dropped, blackout, blur, occluder, "
-                     "duplicate_timestamp"),
+        typer.Option(
+            "--fault",
+            help="KIND:FIRST[-LAST], repeatable; KIND: dropped, blackout, blur, occluder, duplicate_timestamp",
+        ),
     ] = None,
     laser_image: Annotated[
         bool | None, typer.Option("--laser-image/--no-laser-image", help="Also write /laser/image")
@@ -259,10 +279,15 @@ def simulate_scan_cmd(
 
     cfg = load_config(config)
     sim = resolve_config(
-        cfg.simulation, preset,
-        {"trajectory": {"frames": frames, "rate_hz": rate}, "scene": {"kind": scene},
-         "camera": {"width_px": width, "height_px": height, "baseline_m": baseline},
-         "render": {"noise_sigma": noise}, "laser": {"image": laser_image}},
+        cfg.simulation,
+        preset,
+        {
+            "trajectory": {"frames": frames, "rate_hz": rate},
+            "scene": {"kind": scene},
+            "camera": {"width_px": width, "height_px": height, "baseline_m": baseline},
+            "render": {"noise_sigma": noise},
+            "laser": {"image": laser_image},
+        },
         fault,
     )
     updates: dict[str, Any] = {}
@@ -402,7 +427,7 @@ def givens_sim(
             mask = scr.screen(f, tf.world_from_cam[f], ids.tolist(), uv, first_frame=(f == 0))
             truth |= {(f, i) for i, b in zip(ids.tolist(), tf.blunder[f], strict=True) if b}
             flagged |= {(f, i) for i, ok in zip(ids.tolist(), mask, strict=True) if not ok}
-            flagged |= set(scr.late_rejections())
+            flagged |= {(int(a), int(b)) for a, b in scr.late_rejections()}  # type: ignore[call-overload]
             bar.update(task, completed=f + 1)
     est = scr.bundle.est
     table = Table(title="sequential Givens bundle")
@@ -427,7 +452,9 @@ def config_dump(config: ConfigOption = None) -> None:
     sys.stdout.write(dump_config(load_config(config)))
 
 
-depth_app = typer.Typer(help="Lyapunov-based adaptive depth estimation from one moving camera (seed 003).", no_args_is_help=True)
+depth_app = typer.Typer(
+    help="Lyapunov-based adaptive depth estimation from one moving camera (seed 003).", no_args_is_help=True
+)
 app.add_typer(depth_app, name="depth")
 
 
@@ -450,12 +477,19 @@ def depth_simulate(
     save_figure_atomic(out / "lambda_convergence.png", f1)
     save_figure_atomic(out / "depth_error.png", f2)
     n = res.lambda_hat.shape[1]
-    header = "t_s," + ",".join(f"lambda_hat_{i}" for i in range(n)) + "," + ",".join(f"lambda_true_{i}" for i in range(n))
-    rows = [",".join(repr(float(x)) for x in [t, *lam, *res.lambda_true]) for t, lam in zip(res.t_s, res.lambda_hat, strict=True)]
+    header = (
+        "t_s," + ",".join(f"lambda_hat_{i}" for i in range(n)) + "," + ",".join(f"lambda_true_{i}" for i in range(n))
+    )
+    rows = [
+        ",".join(repr(float(x)) for x in [t, *lam, *res.lambda_true])
+        for t, lam in zip(res.t_s, res.lambda_hat, strict=True)
+    ]
     write_text_atomic(out / "lambda.csv", header + "\n" + "\n".join(rows) + "\n")
     conv = res.converge_time_s(0.05)
-    console.print(f"converged to 5 % after {conv:.2f} s; final relative error max {res.rel_err[-1].max():.4f}, "
-                  f"median {float(np.median(res.rel_err[-1])):.4f}; excitation {'ok' if res.observer.excited else 'MISSING'}")
+    console.print(
+        f"converged to 5 % after {conv:.2f} s; final relative error max {res.rel_err[-1].max():.4f}, "
+        f"median {float(np.median(res.rel_err[-1])):.4f}; excitation {'ok' if res.observer.excited else 'MISSING'}"
+    )
     console.print(f"results in {out}")
 
 
@@ -484,12 +518,18 @@ def depth_track(
         raise InputError(seq_path, "no window had enough tracked features")
     rows = ["ref_frame,feature,depth_observer_m,depth_stereo_m"]
     for r in results:
-        rows += [f"{r.start_index},{i},{a!r},{b!r}" for i, (a, b) in enumerate(zip(r.depth_observer_m, r.depth_stereo_m, strict=True))]
+        rows += [
+            f"{r.start_index},{i},{a!r},{b!r}"
+            for i, (a, b) in enumerate(zip(r.depth_observer_m, r.depth_stereo_m, strict=True))
+        ]
     write_text_atomic(out / "depths.csv", "\n".join(rows) + "\n")
     save_figure_atomic(out / "observer_vs_stereo.png", stereo_comparison_figure(results))
     errs = np.concatenate([r.rel_err for r in results])
-    console.print(f"{len(results)} windows, {errs.size} features: median relative depth error {float(np.median(errs)):.3f}")
+    console.print(
+        f"{len(results)} windows, {errs.size} features: median relative depth error {float(np.median(errs)):.3f}"
+    )
     console.print(f"results in {out}")
+
 
 @app.command("eval")
 def eval_command(
@@ -510,9 +550,7 @@ def eval_command(
 
     cfg = load_config(config)
     ecfg = cfg.eval.model_copy()
-    overrides = {
-        "align": align, "first_n": first_n, "max_dt_ms": max_dt_ms, "rpe_delta_m": rpe_delta_m
-    }
+    overrides = {"align": align, "first_n": first_n, "max_dt_ms": max_dt_ms, "rpe_delta_m": rpe_delta_m}
     for key, value in overrides.items():
         if value is not None:
             try:
@@ -560,10 +598,13 @@ def eval_command(
         tr = m["trajectories"]
         online = tr.get("online", {}).get("ate_m", {}).get("rmse")
         table.add_row(
-            m["run"], str(tr["final"]["matched"]), f"{m['ate_rmse_m']:.6g}",
+            m["run"],
+            str(tr["final"]["matched"]),
+            f"{m['ate_rmse_m']:.6g}",
             f"{online:.6g}" if online is not None else "-",
             f"{tr['final'].get('rpe_frames', {}).get('trans_m', {}).get('rmse', float('nan')):.6g}",
-            str(m["loop_closure_count"]), str(target / "report.md"),
+            str(m["loop_closure_count"]),
+            str(target / "report.md"),
         )
     console.print(table)
     if len(evals) > 1:
@@ -660,9 +701,7 @@ def loop_vocabulary(
             docs.append(fs.descriptors)
     if not docs:
         raise InputError(folder, "no features found in any image")
-    voc = Vocabulary.train(
-        np.concatenate(docs), cfg.vocabulary_branching, cfg.vocabulary_levels, documents=docs
-    )
+    voc = Vocabulary.train(np.concatenate(docs), cfg.vocabulary_branching, cfg.vocabulary_levels, documents=docs)
     voc.save(out)
     console.print(f"{voc.n_words} words from {len(docs)} images written to {out}")
 
@@ -693,7 +732,10 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # a bug, not bad input: say so in one line unless --debug
         if debug:
             raise
-        err_console.print(f"[red]internal error:[/red] {type(exc).__name__}: {exc} (rerun with --debug for the traceback)", highlight=False)
+        err_console.print(
+            f"[red]internal error:[/red] {type(exc).__name__}: {exc} (rerun with --debug for the traceback)",
+            highlight=False,
+        )
         return 1
     return 0
 
@@ -739,8 +781,15 @@ def vvs_simulate(
         with progress_bar() as bar:
             task = bar.add_task(f"{m} mirrors", total=frames)
             run = simulate_tracking(
-                sel, frames, seed, cfg.lost_rot_deg, cfg.lost_pos_mm, opt, cfg.search_px, cfg.edge_noise_px,
-                progress=lambda _k, bar=bar, task=task: bar.advance(task),
+                sel,
+                frames,
+                seed,
+                cfg.lost_rot_deg,
+                cfg.lost_pos_mm,
+                opt,
+                cfg.search_px,
+                cfg.edge_noise_px,
+                progress=lambda _k, bar=bar, task=task: bar.advance(task),  # type: ignore[misc]
             )
         runs.append(run)
         first = np.flatnonzero(run.lost)
@@ -796,8 +845,11 @@ def vvs_calibrate(
         rng = np.random.default_rng(seed + 1)
         cams = tuple(
             CentralCamera(
-                c.px * rng.uniform(0.97, 1.03), c.py * rng.uniform(0.97, 1.03),
-                c.u0 + rng.normal(0, 4), c.v0 + rng.normal(0, 4), 1.0,
+                c.px * rng.uniform(0.97, 1.03),
+                c.py * rng.uniform(0.97, 1.03),
+                c.u0 + rng.normal(0, 4),
+                c.v0 + rng.normal(0, 4),
+                1.0,
             )
             for c in truth.cameras
         )
@@ -824,8 +876,13 @@ def vvs_calibrate(
         for j, (c, t) in enumerate(zip(cal.rig.cameras, truth.cameras, strict=True)):
             e = se3_log(cal.rig.cam_from_rig[j] @ np.linalg.inv(truth.cam_from_rig[j]))
             table.add_row(
-                str(j + 1), f"{c.px - t.px:+.3f}", f"{c.py - t.py:+.3f}", f"{c.u0 - t.u0:+.3f}",
-                f"{c.v0 - t.v0:+.3f}", f"{c.xi - t.xi:+.5f}", f"{1e3 * np.linalg.norm(e[:3]):.3f}",
+                str(j + 1),
+                f"{c.px - t.px:+.3f}",
+                f"{c.py - t.py:+.3f}",
+                f"{c.u0 - t.u0:+.3f}",
+                f"{c.v0 - t.v0:+.3f}",
+                f"{c.xi - t.xi:+.5f}",
+                f"{1e3 * np.linalg.norm(e[:3]):.3f}",
                 f"{np.degrees(np.linalg.norm(e[3:])):.4f}",
             )
         console.print(table)
