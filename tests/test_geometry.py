@@ -89,3 +89,16 @@ def test_central_camera_jacobian_and_lift(rng: np.random.Generator, xi: float) -
         assert np.allclose(J[:, :, k], fd, atol=1e-5)
     rays = cam.lift(cam.project(P))
     assert np.allclose(rays, P / np.linalg.norm(P, axis=1, keepdims=True), atol=1e-9)
+
+
+def test_look_at_points_the_optical_axis_and_keeps_image_y_against_up(rng: np.random.Generator) -> None:
+    from loopmodel.geometry.se3 import Y_DOWN_UP, look_at
+
+    for up in (np.array([0.0, 0.0, 1.0]), Y_DOWN_UP):
+        eye, target = rng.normal(size=3), rng.normal(size=3)
+        T = look_at(eye, target, up)
+        R = T[:3, :3]
+        assert np.allclose(R.T @ R, np.eye(3), atol=1e-12) and np.linalg.det(R) == pytest.approx(1.0)
+        assert np.allclose(R[:, 2], (target - eye) / np.linalg.norm(target - eye), atol=1e-12)
+        assert abs(R[:, 0] @ up) < 1e-12 and R[:, 1] @ up < 0  # x level, image y against up
+        assert np.allclose(T[:3, 3], eye)

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.geometry.camera import CentralCamera
-from loopmodel.geometry.se3 import so3_exp
+from loopmodel.geometry.se3 import Y_DOWN_UP, look_at, so3_exp
 
 F64 = NDArray[np.float64]
 
@@ -32,19 +32,6 @@ class TestField:
     observations: list[tuple[NDArray[np.int64], F64]]  # per frame: point ids, N x 2 pixels
     blunder: list[NDArray[np.bool_]]  # per frame: which observations carry a blunder
     sigma_px: float
-
-
-def _look_at(C: F64, target: F64) -> F64:
-    z = target - C
-    z /= np.linalg.norm(z)
-    y_hint = np.array([0.0, 1.0, 0.0])
-    x = np.cross(y_hint, z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.column_stack([x, y, z])
-    T[:3, 3] = C
-    return T
 
 
 def make_testfield(
@@ -81,7 +68,7 @@ def make_testfield(
         y = 0.6 if upper else 1.8
         C = np.array([x, y, -4.3]) + rng.normal(0.0, 0.03, 3)
         target = np.array([2.0 + 0.7 * (x - 2.0), 1.2, 0.0])
-        T = _look_at(C, target)
+        T = look_at(C, target, Y_DOWN_UP)
         T[:3, :3] = T[:3, :3] @ so3_exp(rng.normal(0.0, 0.01, 3))
         poses.append(T)
     obs: list[tuple[NDArray[np.int64], F64]] = []

@@ -185,3 +185,25 @@ def interpolate_poses(a_from_b0: ArrayLike, a_from_b1: ArrayLike, alpha: ArrayLi
     out[:, :3, 3] = (1.0 - a)[:, None] * T0[:, :3, 3] + a[:, None] * T1[:, :3, 3]
     out[:, 3, 3] = 1.0
     return out
+
+
+#: ``up_world`` of worlds whose y axis points down like a camera's (image y along world +y)
+Y_DOWN_UP = np.array([0.0, -1.0, 0.0])
+
+
+def look_at(position_world: ArrayLike, target_world: ArrayLike, up_world: ArrayLike | None = None) -> F64:
+    """``world_from_cam`` of a camera at ``position_world`` looking at ``target_world``
+    (metres): z towards the target, image y down, i.e. against ``up_world`` (default +z)."""
+    up = np.array([0.0, 0.0, 1.0]) if up_world is None else np.asarray(up_world, float)
+    z = np.asarray(target_world, float) - np.asarray(position_world, float)
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    nx = np.linalg.norm(x)
+    if nx < 1e-9:
+        raise ValueError("look_at: viewing direction parallel to up")
+    x /= nx
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, y, z])
+    T[:3, 3] = np.asarray(position_world, float)
+    return T

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from loopmodel.geometry.se3 import invert_pose, make_pose, se3_exp
+from loopmodel.geometry.se3 import Y_DOWN_UP, invert_pose, look_at, se3_exp
 from loopmodel.loop.global_ba import LoopObservations
 
 F64 = NDArray[np.float64]
@@ -43,15 +43,6 @@ class SynthLoopProblem:
     baseline_m: float
 
 
-def _look_at(eye: F64, target: F64) -> F64:
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross([0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return make_pose(np.column_stack([x, y, z]), eye)
-
-
 def orbit_problem(
     n_keyframes: int = 44,
     features_per_kf: int = 41,
@@ -73,7 +64,7 @@ def orbit_problem(
     for i in range(n_keyframes):
         a = 2 * np.pi * i / n_keyframes
         eye = np.array([radius_m * np.sin(a), 0.05 * np.sin(3 * a), -radius_m * np.cos(a)])
-        true_T.append(_look_at(eye, centre))
+        true_T.append(look_at(eye, centre, Y_DOWN_UP))
     # dead reckoning: the true relative motions perturbed, accumulated
     est_T = [true_T[0].copy()]
     for i in range(1, n_keyframes):

@@ -12,29 +12,18 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
-from loopmodel.geometry.se3 import invert_pose, make_pose
+from loopmodel.geometry.se3 import Y_DOWN_UP, invert_pose, look_at
 from loopmodel.mapping.extraction import LightPlane
 from loopmodel.types import StripeProfile, Trajectory
 
 F64 = NDArray[np.float64]
 
 
-def look_at(eye: F64, target: F64) -> F64:
-    """``world_from_cam`` of a camera at ``eye`` looking at ``target``, image y towards +y."""
-    f = np.asarray(target, float) - np.asarray(eye, float)
-    f /= np.linalg.norm(f)
-    d = np.array([0.0, 1.0, 0.0])
-    y = d - (d @ f) * f
-    y /= np.linalg.norm(y)
-    x = np.cross(y, f)
-    return make_pose(np.column_stack([x, y, f]), eye)
-
-
 def orbit_pose(t_s: float, radius_m: float, rate_rad_s: float, height_m: float) -> F64:
     """Pose on a horizontal circle around the origin at angular rate ``rate_rad_s``."""
     a = rate_rad_s * t_s
     eye = np.array([radius_m * np.sin(a), height_m, -radius_m * np.cos(a)])
-    return look_at(eye, np.zeros(3))
+    return look_at(eye, np.zeros(3), Y_DOWN_UP)
 
 
 def default_light_plane(baseline_m: float = 0.06, cross_depth_m: float = 0.3) -> LightPlane:

@@ -14,30 +14,12 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from loopmodel.geometry.se3 import so3_exp
+from loopmodel.geometry.se3 import look_at, so3_exp
 
 F64 = NDArray[np.float64]
 
 KINDS = ("orbit", "sweeps", "browse")
 TARGET_HEIGHT_FRACTION = 0.45  # look-at point on the object axis, fraction of its height
-
-
-def look_at(position_world: F64, target_world: F64, up_world: F64 | None = None) -> F64:
-    """``world_from_cam`` of a camera at ``position_world`` looking at ``target_world``
-    (camera y points down, i.e. against ``up_world``, default +z)."""
-    up = np.array([0.0, 0.0, 1.0]) if up_world is None else np.asarray(up_world, float)
-    z = np.asarray(target_world, float) - np.asarray(position_world, float)
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    nx = np.linalg.norm(x)
-    if nx < 1e-9:
-        raise ValueError("look_at: viewing direction parallel to up")
-    x /= nx
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.column_stack([x, y, z])
-    T[:3, 3] = position_world
-    return T
 
 
 class _Shake:
