@@ -562,27 +562,21 @@ class GivensEstimator:
     def _solve(self) -> tuple[F64, F64]:
         if self._x_cache is not None:
             return self._x_cache
-        n, P = self._n, self._slot_used
-        xg = np.zeros(n)
-        xp = np.zeros((P, self.smax))
-        bad = _k.solve_structured(
-            self._Rg,
-            self._dg,
-            n,
-            self._Rpp,
-            self._Rpf,
-            self._dp,
-            P,
-            self._psize,
-            self._pfirst,
-            xg,
-            xp,
-            1e-13,
-        )
-        if bad >= 0:
-            raise self._singular(int(bad))
+        xg, xp = self._back_substitute(self._slot_used)
         self._x_cache = (xp, xg)
         return self._x_cache
+
+    def _back_substitute(self, n_local: int) -> tuple[F64, F64]:
+        """x̂ of the global blocks and of the first ``n_local`` local slots (R x = d)."""
+        xg = np.zeros(self._n)
+        xp = np.zeros((n_local, self.smax))
+        bad = _k.solve_structured(
+            self._Rg, self._dg, self._n, self._Rpp, self._Rpf, self._dp, n_local,
+            self._psize, self._pfirst, xg, xp, 1e-13,
+        )  # fmt: skip
+        if bad >= 0:
+            raise self._singular(int(bad))
+        return xg, xp
 
     def partial_solution(self, local_name: Hashable | None = None) -> tuple[F64, F64 | None]:
         """x̂ of all global blocks and (optionally) of one local block, without the other points.
@@ -597,23 +591,7 @@ class GivensEstimator:
             b = self._block(local_name)
             return xg, xp_all[b.slot, : b.size]
         n = self._n
-        xg = np.zeros(n)
-        bad = _k.solve_structured(
-            self._Rg,
-            self._dg,
-            n,
-            self._Rpp,
-            self._Rpf,
-            self._dp,
-            0,
-            self._psize,
-            self._pfirst,
-            xg,
-            np.zeros((0, self.smax)),
-            1e-13,
-        )
-        if bad >= 0:
-            raise self._singular(int(bad))
+        xg, _ = self._back_substitute(0)
         if local_name is None:
             return xg, None
         b = self._block(local_name)
