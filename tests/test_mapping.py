@@ -433,19 +433,14 @@ def test_stripe_extraction_on_the_simulators_laser_images(rng: np.random.Generat
     inner = (peaks[:, ia] > a_t[0] + 3) & (peaks[:, ia] < a_t[-1] - 3)
     assert inner.sum() > 50
     err = np.abs(peaks[inner, ib] - np.interp(peaks[inner, ia], a_t, b_t))
-    # The simulator draws the line as an anti-aliased 1-px OpenCV polyline (1/16 px vertices)
-    # blurred with sigma 0.8 px; that drawing itself departs from the true curve by about
-    # 0.1 px (median) and up to about 0.45 px, so the 0.1 px bound applies to the recovery of
-    # the drawn line: the extracted peaks match the intensity centroid of each
-    # (dark-background) row or column to 0.05 px, and the true curve within the drawing's error.
-    line_only = laser.draw_laser_image(np.zeros_like(texture), p, cam).astype(float)
-    if vertical:
-        line_only = line_only.T
-    lines = peaks[inner, ia].astype(int)
-    across = np.arange(line_only.shape[0])[:, None]
-    centroid = (line_only[:, lines] * across).sum(0) / line_only[:, lines].sum(0)
-    assert np.median(np.abs(peaks[inner, ib] - centroid)) < 0.05
-    assert np.median(err) < 0.2 and err.max() < 0.6, (err.max(), np.median(err))
+    # the simulator's line has a Gaussian cross-section centred on the projected profile:
+    # the extracted sub-pixel positions recover the profile to 0.1 px (textured background,
+    # 8-bit quantisation)
+    assert np.median(err) < 0.05 and np.quantile(err, 0.95) < 0.1 and err.max() < 0.15, (
+        np.median(err),
+        np.quantile(err, 0.95),
+        err.max(),
+    )
     # depth sensitivity: a few mm per pixel at this range and laser offset
     pts = triangulate_with_plane(peaks[inner], K, plane)
     assert distances_to_mesh(pts, sphere).mean() < 1e-3

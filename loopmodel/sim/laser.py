@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -89,23 +88,63 @@ def stripe_profile(
     return p_cam[ok], dirs_c[ok]
 
 
+def _densify_px(uv_px: F64, step_px: float) -> tuple[F64, F64]:
+    """Segment end points (a, b) of a polyline cut so that no segment is longer than
+    ``step_px``; the cut points lie on the original straight segments."""
+    a, b = uv_px[:-1], uv_px[1:]
+    pieces = np.maximum(np.ceil(np.linalg.norm(b - a, axis=1) / step_px), 1).astype(int)
+    seg = np.repeat(np.arange(a.shape[0]), pieces)
+    k = np.arange(seg.size) - np.repeat(np.cumsum(pieces) - pieces, pieces)
+    f0 = (k / pieces[seg])[:, None]
+    f1 = ((k + 1) / pieces[seg])[:, None]
+    d = b[seg] - a[seg]
+    return a[seg] + f0 * d, a[seg] + f1 * d
+
+
 def draw_laser_image(
-    background: NDArray[np.uint8], points_in_cam: F64, camera: CentralCamera, peak: float = 230.0
+    background: NDArray[np.uint8],
+    points_in_cam: F64,
+    camera: CentralCamera,
+    peak: float = 230.0,
+    sigma_px: float = 1.0,
 ) -> NDArray[np.uint8]:
-    """Image of the laser line: the stripe points projected into the left image and drawn as
-    an anti-aliased polyline (broken where neighbours are more than 5 mm apart) over a
-    dimmed ``background``."""
+    """Image of the laser line over a dimmed ``background``: the stripe points projected into
+    the left image and joined into a polyline (broken where neighbours are more than 5 mm
+    apart); every pixel centre gets ``peak · exp(-d² / 2σ²)`` for its distance ``d`` (px) to
+    the polyline, the Gaussian cross-section of a focused laser line of standard deviation
+    ``sigma_px``. The intensity ridge therefore runs exactly along the projected profile."""
     img = background.astype(np.float32) * 0.15
-    line = np.zeros(background.shape[:2], np.float32)
-    if points_in_cam.shape[0] >= 2:
-        uv = camera.project(points_in_cam)
-        shift = 4
-        pts = np.round(uv * (1 << shift)).astype(np.int32)
-        gaps = np.linalg.norm(np.diff(points_in_cam, axis=0), axis=1) > 0.005
-        breaks = np.flatnonzero(gaps) + 1
-        for seg in np.split(pts, breaks):
-            if seg.shape[0] >= 2:
-                cv2.polylines(line, [seg.reshape(-1, 1, 2)], False, 1.0, 1, cv2.LINE_AA, shift)
-        line = cv2.GaussianBlur(line, (0, 0), 0.8)
-        line *= peak / max(float(line.max()), 1e-6)
+    h, w = background.shape[:2]
+    if points_in_cam.shape[0] < 2:
+        return np.clip(img, 0, 255).astype(np.uint8)
+    uv = camera.project(points_in_cam)
+    gaps = np.linalg.norm(np.diff(points_in_cam, axis=0), axis=1) > 0.005
+    keep = ~gaps & np.all(np.isfinite(uv[:-1]) & np.isfinite(uv[1:]), axis=1)
+    starts, ends = [], []
+    for seg in np.split(np.arange(uv.shape[0]), np.flatnonzero(~keep) + 1):
+        if seg.size >= 2:
+            a, b = _densify_px(uv[seg], 0.5)
+            starts.append(a)
+            ends.append(b)
+    if not starts:
+        return np.clip(img, 0, 255).astype(np.uint8)
+    a, b = np.concatenate(starts), np.concatenate(ends)
+    # every segment is at most 0.5 px long: a fixed window around its start covers every pixel
+    # within 4 sigma of it
+    reach = int(np.ceil(4.0 * sigma_px)) + 1
+    offs = np.arange(-reach, reach + 1)
+    x = np.floor(a[:, 0]).astype(int)[:, None, None] + offs[None, None, :]
+    y = np.floor(a[:, 1]).astype(int)[:, None, None] + offs[None, :, None]
+    x, y = np.broadcast_arrays(x, y)
+    d = b - a
+    ax, ay = a[:, 0, None, None], a[:, 1, None, None]
+    dx, dy = d[:, 0, None, None], d[:, 1, None, None]
+    s = np.clip(((x - ax) * dx + (y - ay) * dy) / np.maximum(dx * dx + dy * dy, 1e-12), 0.0, 1.0)
+    dist2 = (x - ax - s * dx) ** 2 + (y - ay - s * dy) ** 2
+    inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    best = np.full(h * w, np.inf)
+    np.minimum.at(best, (y[inside] * w + x[inside]), dist2[inside])
+    line = (peak * np.exp(-0.5 * best / sigma_px**2)).reshape(h, w).astype(np.float32)
+    if img.ndim == 3:
+        line = line[:, :, None]
     return np.clip(img + line, 0, 255).astype(np.uint8)
