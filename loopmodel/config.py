@@ -186,6 +186,13 @@ class MappingConfig(_Section):
     max_stripe_gap_ns: int = Field(
         default=200_000_000, ge=0, description="widest frame interval a stripe is interpolated in"
     )
+    live_mesh_every_kf: int = Field(
+        default=0, ge=0, description="during a run, re-mesh the live mesh's changed blocks every N keyframes; 0 = off"
+    )
+    live_voxel_m: float = Field(
+        default=0.003, gt=0, description="voxel size of the live mesh (coarser than voxel_m: faster updates)"
+    )
+    poisson_threads: int = Field(default=0, ge=0, description="threads of a Poisson reconstruction; 0 = all cores")
     chunk_m: float = Field(default=0.05, gt=0, description="block edge of the chunked live mesh")
     chunk_margin_m: float = Field(default=0.006, ge=0, description="overlap meshed around a live block")
     min_points: int = Field(default=100, ge=4, description="fewest points a surface is made from")

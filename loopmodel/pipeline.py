@@ -17,12 +17,12 @@ from typing import Any
 import numpy as np
 
 from loopmodel.backend import BackendEstimate, create_backend
-from loopmodel.backend.anchored import AnchoredTrajectory
 from loopmodel.config import Config
 from loopmodel.errors import LoopmodelError
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder
+from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.types import StripeProfile, Trajectory
 
 logger = logging.getLogger(__name__)
@@ -50,14 +50,10 @@ def _online_trajectory(frames: list[FrameResult]) -> Trajectory:
     ok = [f for f in frames if f.ok]
     if not ok:
         return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
-    return Trajectory(
-        np.array([f.timestamp_ns for f in ok]), np.stack([f.world_from_cam for f in ok])
-    )
+    return Trajectory(np.array([f.timestamp_ns for f in ok]), np.stack([f.world_from_cam for f in ok]))
 
 
-def _keyframe_trajectory(
-    keyframes: list[tuple[int, int]], world_from_kf: dict[int, np.ndarray]
-) -> Trajectory:
+def _keyframe_trajectory(keyframes: list[tuple[int, int]], world_from_kf: dict[int, np.ndarray]) -> Trajectory:
     if not keyframes:
         return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
     return Trajectory(
@@ -75,7 +71,10 @@ def _ground_truth_errors(est: Trajectory, gt: Trajectory | None) -> dict[str, fl
 
     try:
         ev = evaluate_pair(
-            gt.timestamps_ns, gt.world_from_cam, est.timestamps_ns, est.world_from_cam,
+            gt.timestamps_ns,
+            gt.world_from_cam,
+            est.timestamps_ns,
+            est.world_from_cam,
             max_dt_ns=1_000_000,
         )
     except EvalInputError as exc:
@@ -165,9 +164,7 @@ def run_frontend(
             wall = time.perf_counter() - t_start
             online = _online_trajectory(frames)
             folder.write_trajectory("trajectory_online.tum", online)
-            folder.write_trajectory(
-                "keyframes.tum", _keyframe_trajectory(keyframes, frontend.world_from_kf)
-            )
+            folder.write_trajectory("keyframes.tum", _keyframe_trajectory(keyframes, frontend.world_from_kf))
             metrics: dict[str, Any] = {"sequence": str(sequence.path), "interrupted": interrupted}
             metrics.update(frontend_metrics(frames, wall))
             metrics.update(_ground_truth_errors(online, sequence.ground_truth))
@@ -219,13 +216,9 @@ def _map_arrays(
     return {
         "keyframe_ids": np.array([k for k, _ in keyframes], dtype=np.int64),
         "keyframe_timestamps_ns": np.array([t for _, t in keyframes], dtype=np.int64),
-        "world_from_kf": np.stack([world_from_kf[k] for k, _ in keyframes])
-        if keyframes
-        else np.zeros((0, 4, 4)),
+        "world_from_kf": np.stack([world_from_kf[k] for k, _ in keyframes]) if keyframes else np.zeros((0, 4, 4)),
         "landmark_ids": estimate.landmark_ids if estimate is not None else np.zeros(0, np.int64),
-        "landmarks_in_world": estimate.landmarks_in_world
-        if estimate is not None
-        else np.zeros((0, 3)),
+        "landmarks_in_world": estimate.landmarks_in_world if estimate is not None else np.zeros((0, 3)),
     }
 
 
@@ -245,6 +238,109 @@ def _write_stripes(folder: ResultsFolder, sequence: Sequence, frames: list[Frame
     if stripes:
         save_stripes(folder.file(STRIPES_FILE), stripes)
     return stripes
+
+
+class _LiveMapping:
+    """The sequence's laser stripes handed to the pipeline's :class:`StripeMap` in time order
+    as frames arrive, and the chunked live mesh: every ``live_mesh_every_kf`` keyframes the
+    blocks that new stripes entered or that pose corrections moved are re-meshed in a worker
+    thread (open3d releases the GIL), so tracking does not wait for it."""
+
+    def __init__(self, world: StripeMap, sequence: Sequence, every_kf: int) -> None:
+        self._world = world
+        self._every = every_kf
+        self._stripes = sequence.stripes() if every_kf > 0 and sequence.stripe_count() != 0 else iter(())
+        self._next: StripeProfile | None = None
+        self._keyframes = 0
+        self._pool: Any = None
+        self._job: Any = None
+        self.update_ms: list[float] = []
+        self.blocks_remeshed = 0
+
+    def feed(self, t_ns: int) -> None:
+        """Add every stripe taken up to ``t_ns``. A bad stripe stops the live feed (logged);
+        the run and its final mesh go on."""
+        batch: list[StripeProfile] = []
+        try:
+            while True:
+                if self._next is None:
+                    self._next = next(self._stripes, None)
+                    if self._next is None:
+                        break
+                if self._next.timestamp_ns > t_ns:
+                    break
+                if np.asarray(self._next.points_in_cam).size:
+                    batch.append(self._next)
+                self._next = None
+            if batch:
+                self._world.add_many(batch)
+        except LoopmodelError as exc:
+            logger.error("live mesh: laser stripes no longer fed: %s", exc)
+            self._stripes, self._next = iter(()), None
+
+    def on_keyframe(self) -> None:
+        """Count a keyframe; every ``every_kf``-th one installs the worker's finished blocks
+        and, when the worker is free, hands it the blocks that changed since."""
+        self._keyframes += 1
+        if self._every <= 0 or self._keyframes % self._every or self._world.point_count == 0:
+            return
+        if self._job is not None:
+            if not self._job.done():
+                return  # still busy: the dirty blocks wait for the next turn
+            self._collect()
+        snap = self._world.take_dirty_blocks()
+        if snap is None:
+            return
+        if self._pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="live-mesh")
+        self._job = self._pool.submit(self._remesh, *snap)
+
+    def _remesh(self, points_w: np.ndarray, sensors_w: np.ndarray, blocks: set[tuple[int, int, int]]) -> Any:
+        from loopmodel.mapping.meshing import live_mesh_config, mesh_blocks
+
+        t0 = time.perf_counter()
+        meshes = mesh_blocks(points_w, sensors_w, blocks, live_mesh_config(self._world.config))
+        return meshes, (time.perf_counter() - t0) * 1e3
+
+    def _collect(self) -> None:
+        job, self._job = self._job, None
+        try:
+            meshes, ms = job.result()
+        except Exception as exc:  # the live view is a convenience: log, keep tracking
+            logger.error("live mesh update failed: %s", exc)
+            return
+        self._world.install_blocks(meshes)
+        self.blocks_remeshed += len(meshes)
+        self.update_ms.append(ms)
+        logger.info("live mesh: %d block(s) re-meshed in %.0f ms", len(meshes), ms)
+
+    def close(self, wait: bool) -> None:
+        """Install the last worker result (``wait``) or abandon it; stop the worker."""
+        if self._job is not None and wait:
+            self._collect()
+        if self._pool is not None:
+            self._pool.shutdown(wait=wait, cancel_futures=True)
+
+    def write(self, folder: ResultsFolder) -> None:
+        """``mesh_live.ply``: the live mesh as the run left it (``live_mesh_every_kf`` > 0)."""
+        if self._every <= 0 or not self.update_ms:
+            return
+        from loopmodel.io.mesh_io import write_mesh
+
+        mesh = self._world.live_mesh()
+        if len(mesh.triangles):
+            write_mesh(folder.file("mesh_live.ply"), mesh, "ply")
+
+    def metrics(self) -> dict[str, Any]:
+        if self._every <= 0:
+            return {}
+        return {
+            "live_mesh_updates": len(self.update_ms),
+            "live_mesh_blocks_remeshed": self.blocks_remeshed,
+            **_quantiles(self.update_ms, "live_mesh_update_ms"),
+        }
 
 
 def _aligned_to(traj: Trajectory, reference: Trajectory) -> Trajectory:
@@ -325,7 +421,9 @@ def run_pipeline(
     folder.write_config(config)
     frontend = FrontEnd(sequence.calibration, config.frontend)
     backend = create_backend(config.backend, frontend.calibration, config.givens)
-    anchored = AnchoredTrajectory()
+    # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
+    anchored = StripeMap(config.mapping)
+    live = _LiveMapping(anchored, sequence, config.mapping.live_mesh_every_kf)
     loop_stage = None
     if config.loop.enabled:
         from loopmodel.loop.stage import LoopClosingStage
@@ -341,9 +439,7 @@ def run_pipeline(
     estimate: BackendEstimate | None = None
     t_start = time.perf_counter()
     with LogCapture() as log, _sigterm_as_interrupt():
-        logger.info(
-            "pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind
-        )
+        logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
         try:
             for i, frame in enumerate(sequence.frames()):
                 if i >= total:
@@ -367,9 +463,7 @@ def run_pipeline(
                     if loop_stage is not None:
                         loop_stage.note_estimate(estimate.world_from_kf, backend_ms[-1])
                     moved = {
-                        k: estimate.world_from_kf[k]
-                        for k in estimate.changed_keyframes
-                        if k in estimate.world_from_kf
+                        k: estimate.world_from_kf[k] for k in estimate.changed_keyframes if k in estimate.world_from_kf
                     }
                     if moved:
                         frontend.apply_correction(moved)
@@ -379,8 +473,17 @@ def run_pipeline(
                     # do not hold every keyframe (and its image) for the whole run
                     res = dataclasses.replace(res, keyframe=None)
                 frames.append(res)
-                if res.ok:
-                    anchored.add(res.timestamp_ns, res.keyframe_id, res.kf_from_cam)
+                if res.ok and anchored.frame_count and res.timestamp_ns <= anchored.frame_times_ns[-1]:
+                    logger.warning(
+                        "frame %d: timestamp %d ns not after the previous frame; pose not kept",
+                        frame.index,
+                        res.timestamp_ns,
+                    )
+                elif res.ok:
+                    anchored.add_frame(res.timestamp_ns, kf_id=res.keyframe_id, kf_from_cam=res.kf_from_cam)
+                    live.feed(res.timestamp_ns)
+                if kf is not None:
+                    live.on_keyframe()
                 frame_ms.append((time.perf_counter() - t0) * 1e3)
                 if progress is not None:
                     el = time.perf_counter() - t_start
@@ -390,6 +493,8 @@ def run_pipeline(
             logger.warning("interrupted after %d frames", len(frames))
         finally:
             wall = time.perf_counter() - t_start
+            live.close(wait=not interrupted)
+            live.write(folder)
             online = _online_trajectory(frames)
             folder.write_trajectory("trajectory_online.tum", online)
             try:
@@ -418,6 +523,7 @@ def run_pipeline(
             metrics["backend"] = config.backend.kind
             if loop_stage is not None:
                 metrics.update(loop_stage.metrics())
+            metrics.update(live.metrics())
             screen_stats = getattr(backend, "screen_stats", None)
             if callable(screen_stats):
                 stats = screen_stats()

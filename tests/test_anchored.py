@@ -1,23 +1,25 @@
-"""Frame poses anchored to keyframes follow keyframe corrections."""
+"""Frame poses anchored to keyframes (the pipeline's :class:`StripeMap`) follow keyframe
+corrections."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from loopmodel.backend.anchored import AnchoredTrajectory
+from loopmodel.errors import EstimationError
 from loopmodel.geometry.se3 import make_pose, so3_exp
+from loopmodel.mapping.stripe_map import StripeMap
 
 
 def test_recomposes_with_moved_keyframes(rng):
-    traj = AnchoredTrajectory()
+    traj = StripeMap()
     kf0 = make_pose(so3_exp([0, 0.1, 0]), [1, 2, 3])
     kf1 = make_pose(so3_exp([0.05, 0, 0]), [2, 2, 3])
     traj.set_keyframe(0, kf0)
     traj.set_keyframe(1, kf1)
     rel = [make_pose(so3_exp(rng.normal(0, 0.1, 3)), rng.normal(0, 0.5, 3)) for _ in range(4)]
     for i, (k, r) in enumerate(zip([0, 0, 1, 1], rel, strict=True)):
-        traj.add(i * 10, k, r)
+        traj.add_frame(i * 10, kf_id=k, kf_from_cam=r)
     t = traj.trajectory()
     assert np.allclose(t.world_from_cam[1], kf0 @ rel[1])
     assert np.allclose(t.world_from_cam[3], kf1 @ rel[3])
@@ -28,10 +30,11 @@ def test_recomposes_with_moved_keyframes(rng):
     assert np.allclose(t2.world_from_cam[:2], t.world_from_cam[:2])
     assert np.allclose(t2.world_from_cam[2], new1 @ rel[2])
     assert np.array_equal(t2.timestamps_ns, [0, 10, 20, 30])
+    assert set(traj.keyframe_poses) == {0, 1} and np.allclose(traj.keyframe_poses[1], new1)
 
 
 def test_unknown_keyframe_is_an_error():
-    traj = AnchoredTrajectory()
-    with pytest.raises(KeyError, match="unknown keyframe 3"):
-        traj.add(0, 3, np.eye(4))
+    traj = StripeMap()
+    with pytest.raises(EstimationError, match="keyframe 3 was not declared"):
+        traj.add_frame(0, kf_id=3, kf_from_cam=np.eye(4))
     assert len(traj.trajectory()) == 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import open3d as o3d
 import pytest
 
@@ -21,7 +22,8 @@ def test_run_writes_mesh_and_mesh_errors(tmp_path: Path) -> None:
                 "seed": 5,
                 "camera": {"width_px": 320, "height_px": 240, "fx_px": 250.0},
                 "trajectory": {"frames": 40},
-            }
+            },
+            "mapping": {"live_mesh_every_kf": 1},
         }
     )
     seq_path = tmp_path / "scan.mcap"
@@ -34,3 +36,29 @@ def test_run_writes_mesh_and_mesh_errors(tmp_path: Path) -> None:
     assert m["mesh_err_gt_mm"] < 1.0
     # with the tracked poses (aligned to the truth's world) the error stays at the pose error
     assert m["mesh_err_after_mm"] < 10.0 and m["mesh_err_before_mm"] < 10.0
+    # the live mesh (re-meshed in blocks while the run went on, coarser) lies on the final one
+    assert m["live_mesh_updates"] >= 1 and m["live_mesh_blocks_remeshed"] >= 1
+    live = o3d.io.read_triangle_mesh(str(out.folder / "mesh_live.ply"))
+    assert len(live.triangles) > 500
+    # both meshes in the truth's world (the SE(3) alignment of the final trajectory) against
+    # the simulated scene: the live mesh is about as close to it as the final mesh
+    from loopmodel.geometry.se3 import invert_pose
+    from loopmodel.io.mesh_io import mesh_from_bytes
+    from loopmodel.io.trajectory_io import read_trajectory
+    from loopmodel.pipeline import _aligned_to
+
+    seq = open_sequence(seq_path)
+    final = read_trajectory(out.folder / "trajectory_final.tum")
+    truth_from_run = _aligned_to(final, seq.ground_truth).world_from_cam[0] @ invert_pose(final.world_from_cam[0])
+    scene = o3d.t.geometry.RaycastingScene()
+    gt_mesh = mesh_from_bytes(seq.read_attachment("scene.ply"), "ply", seq_path)
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(gt_mesh))
+
+    def dist_mm(m: o3d.geometry.TriangleMesh) -> np.ndarray:
+        v = np.asarray(m.vertices) @ truth_from_run[:3, :3].T + truth_from_run[:3, 3]
+        return 1e3 * scene.compute_distance(o3d.core.Tensor(v.astype(np.float32))).numpy()
+
+    d_live, d_final = dist_mm(live), dist_mm(mesh)
+    # measured: live 0.49 / 1.41 mm (median / p90), final 0.46 / 1.23 mm
+    assert np.median(d_live) < 1.0 and np.median(d_live) < 1.5 * np.median(d_final)
+    assert np.quantile(d_live, 0.9) < 1.5 * np.quantile(d_final, 0.9)

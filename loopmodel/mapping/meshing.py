@@ -74,6 +74,7 @@ def _poisson(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geome
         depth=poisson_depth(cloud, config),
         scale=config.poisson_scale,
         linear_fit=config.poisson_linear_fit,
+        n_threads=config.poisson_threads or -1,
     )
     if len(mesh.vertices) == 0:
         return mesh
@@ -133,40 +134,61 @@ def mesh_from_points(points_w: F64, sensors_w: F64, config: MappingConfig) -> o3
     return mesh
 
 
-def crop_triangles(mesh: o3d.geometry.TriangleMesh, lo: F64, hi: F64) -> o3d.geometry.TriangleMesh:
-    """Keep the triangles whose centroid lies in the box [lo, hi) (world, metres)."""
+BlockKey = tuple[int, int, int]
+
+
+def live_mesh_config(config: MappingConfig) -> MappingConfig:
+    """The settings of live-mesh updates: ``live_voxel_m`` resolution, one Poisson thread
+    (the other core keeps tracking)."""
+    return config.model_copy(update={"voxel_m": config.live_voxel_m, "poisson_threads": 1})
+
+
+def mesh_blocks(
+    points_w: F64, sensors_w: F64, blocks: set[BlockKey], config: MappingConfig
+) -> dict[BlockKey, o3d.geometry.TriangleMesh | None]:
+    """Meshes of the live blocks ``blocks`` (cubes of edge ``chunk_m``, keyed by
+    ``floor(p / chunk_m)``), all from ONE surface reconstruction of the points in these blocks
+    and their 26 neighbours (context for the surface near block faces); each block keeps the
+    triangles whose centroid lies inside it. None for a block without triangles or when
+    the selection is too small for a surface. Points and sensors: P x 3, world, metres."""
+    out: dict[BlockKey, o3d.geometry.TriangleMesh | None] = dict.fromkeys(blocks)
+    if not blocks or points_w.shape[0] == 0:
+        return out
+    keys = np.floor(points_w / config.chunk_m).astype(np.int64)
+    wanted = np.array(sorted(blocks), dtype=np.int64)
+    offs = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    context = np.unique((wanted[:, None, :] + offs[None]).reshape(-1, 3), axis=0)
+    near = _rows_in(keys, context)
+    if np.count_nonzero(near) < config.min_points:
+        return out
+    try:
+        mesh = mesh_from_points(points_w[near], sensors_w[near], config)
+    except InputError:
+        return out
     v = np.asarray(mesh.vertices)
     t = np.asarray(mesh.triangles)
-    c = v[t].mean(axis=1)
-    keep = np.all((c >= lo) & (c < hi), axis=1)
-    mesh.remove_triangles_by_mask(~keep)
-    mesh.remove_unreferenced_vertices()
-    return mesh
+    tri_key = np.floor(v[t].mean(axis=1) / config.chunk_m).astype(np.int64)
+    normals = np.asarray(mesh.vertex_normals)
+    for key in blocks:
+        sel = np.all(tri_key == np.asarray(key), axis=1)
+        if not np.any(sel):
+            continue
+        used, inv = np.unique(t[sel], return_inverse=True)
+        part = o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(v[used]), o3d.utility.Vector3iVector(inv.reshape(-1, 3).astype(np.int32))
+        )
+        part.vertex_normals = o3d.utility.Vector3dVector(normals[used])
+        out[key] = part
+    return out
 
 
-def mesh_block(
-    points_w: F64,
-    sensors_w: F64,
-    keys: NDArray[np.int64],
-    key: tuple[int, int, int],
-    config: MappingConfig,
-) -> o3d.geometry.TriangleMesh | None:
-    """Mesh of one live block: the points of block ``key`` (edge ``chunk_m``) plus a margin
-    of ``chunk_margin_m``, cropped back to the block. None when the block holds too little."""
-    k = np.asarray(key, dtype=np.int64)
-    near = np.all(np.abs(keys - k) <= 1, axis=1)
-    if not np.any(near):
-        return None
-    lo = (k * config.chunk_m).astype(np.float64)
-    hi = lo + config.chunk_m
-    p = points_w[near]
-    m = config.chunk_margin_m
-    inside = np.all((p >= lo - m) & (p < hi + m), axis=1)
-    if np.count_nonzero(inside) < config.min_points:
-        return None
-    try:
-        mesh = mesh_from_points(p[inside], sensors_w[near][inside], config)
-    except InputError:
-        return None
-    mesh = crop_triangles(mesh, lo, hi)
-    return mesh if len(mesh.triangles) else None
+def _rows_in(rows: NDArray[np.int64], table: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Which rows of ``rows`` (N x 3 ints) occur in ``table`` (M x 3 ints)."""
+    lo = np.minimum(rows.min(axis=0), table.min(axis=0))
+    span = np.maximum(rows.max(axis=0), table.max(axis=0)) - lo + 1
+
+    def code(a: NDArray[np.int64]) -> NDArray[np.int64]:
+        b = a - lo
+        return (b[:, 0] * span[1] + b[:, 1]) * span[2] + b[:, 2]
+
+    return np.isin(code(rows), code(table))

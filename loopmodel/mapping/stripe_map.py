@@ -161,10 +161,21 @@ class StripeMap:
         """``world_from_cam`` of every frame (N x 4 x 4)."""
         kf = self._frame_kf.a
         out = np.empty((kf.shape[0], 4, 4))
+        if kf.shape[0] == 0:
+            return out
         for k in np.unique(kf):
             sel = kf == k
             out[sel] = np.einsum("ij,njk->nik", self._world_from_kf[int(k)], self._frame_kf_from_cam.a[sel])
         return out
+
+    def trajectory(self) -> Trajectory:
+        """Every frame's ``world_from_cam`` recomposed with the current keyframe poses."""
+        return Trajectory(self._frame_t.a.copy(), self.frame_poses())
+
+    @property
+    def keyframe_poses(self) -> dict[int, F64]:
+        """Current ``world_from_kf`` of every declared keyframe (copies; ids >= 0)."""
+        return {k: T.copy() for k, T in self._world_from_kf.items() if k >= 0}
 
     def update_keyframes(self, world_from_kf: Mapping[int, ArrayLike]) -> I64:
         """Correct keyframe poses; re-transforms only the stripes these keyframes govern.
@@ -340,15 +351,20 @@ class StripeMap:
         pw = self._p_world.a
         pc = self._p_cam.a
         starts, counts = self._s_start.a[stripes], self._s_count.a[stripes]
+        # the live mesh only re-meshes where a stripe moved by a quarter voxel or more
+        tol_m = 0.25 * self.config.voxel_m
         for s, a, n, M in zip(stripes, starts, counts, T, strict=True):
             b = a + n
-            if live and np.isfinite(pw[a]).all():
-                self._mark_dirty(pw[a:b])
-            pw[a:b] = pc[a:b] @ M[:3, :3].T + M[:3, 3]
+            new = pc[a:b] @ M[:3, :3].T + M[:3, 3]
+            if live:
+                old = pw[a:b]
+                if not np.isfinite(old).all():
+                    self._mark_dirty(new)
+                elif np.abs(new - old).max() >= tol_m:
+                    self._mark_dirty(old)
+                    self._mark_dirty(new)
+            pw[a:b] = new
             self._s_world_from_cam.a[s] = M
-        if live:
-            idx = np.concatenate([np.arange(a, a + n) for a, n in zip(starts, counts, strict=True)])
-            self._mark_dirty(pw[idx])
         return stripes
 
     @classmethod
@@ -388,25 +404,37 @@ class StripeMap:
 
     def update_live_mesh(self) -> o3d.geometry.TriangleMesh:
         """Chunked live mesh: re-mesh only the blocks (``chunk_m``) touched by stripes added or
-        moved since the last call, and return the union of all block meshes."""
-        from loopmodel.mapping.meshing import mesh_block
+        moved since the last call (one reconstruction for all of them, at ``live_voxel_m``),
+        and return the union of all block meshes."""
+        from loopmodel.mapping.meshing import live_mesh_config, mesh_blocks
 
+        snap = self.take_dirty_blocks()
+        if snap is not None:
+            self.install_blocks(mesh_blocks(*snap, live_mesh_config(self.config)))
+        return self.live_mesh()
+
+    def take_dirty_blocks(self) -> tuple[F64, F64, set[tuple[int, int, int]]] | None:
+        """Copies of the placed world points and their sensor positions, and the dirty blocks
+        (which are then marked clean): the input of :func:`~loopmodel.mapping.meshing.mesh_blocks`,
+        which may run in another thread. None when no block is dirty."""
         if not self._live:
             self._live = True
             self._mark_dirty(self._p_world.a[self._point_placed_mask()])
-        if self._dirty:
-            mask = self._point_placed_mask()
-            pts = self._p_world.a[mask]
-            sensors = self._s_world_from_cam.a[:, :3, 3][self._p_stripe.a[mask]]
-            keys = np.floor(pts / self.config.chunk_m).astype(np.int64)
-            for key in sorted(self._dirty):
-                m = mesh_block(pts, sensors, keys, key, self.config)
-                if m is None:
-                    self._blocks.pop(key, None)
-                else:
-                    self._blocks[key] = m
-            self._dirty.clear()
-        return self.live_mesh()
+        if not self._dirty:
+            return None
+        mask = self._point_placed_mask()
+        pts = self._p_world.a[mask].copy()
+        sensors = self._s_world_from_cam.a[:, :3, 3][self._p_stripe.a[mask]]
+        dirty, self._dirty = self._dirty, set()
+        return pts, sensors, dirty
+
+    def install_blocks(self, blocks: Mapping[tuple[int, int, int], o3d.geometry.TriangleMesh | None]) -> None:
+        """Replace the live meshes of these blocks (None removes a block)."""
+        for key, m in blocks.items():
+            if m is None:
+                self._blocks.pop(key, None)
+            else:
+                self._blocks[key] = m
 
     def live_mesh(self) -> o3d.geometry.TriangleMesh:
         """Union of the current block meshes (no re-meshing)."""
