@@ -31,6 +31,7 @@ class ObserverConfig:
     excitation_window_s: float = 1.0  # window of the persistent-excitation monitor
     excitation_min: float = 1e-3  # min mean |h1|^2 (normalised units, 1/s^2) for "excited"
     warmup_s: float = 0.0  # adaptation starts after the velocity estimators' transient
+    implicit_sign: bool = True  # chattering-free implicit Euler of the estimator's sign term
 
 
 @dataclass
@@ -95,10 +96,23 @@ class DepthObserver:
         """One integration step: velocity estimators (eq. 20), then the adaptive update."""
         cfg = self.cfg
         gain = cfg.k_gain + 1.0
-        e_tilde = e - self.e_hat
-        self.e_dot_hat = self.integral + gain * e_tilde
-        self.integral += dt * (gain * e_tilde + cfg.rho_gain * np.sign(e_tilde))
-        self.e_hat += dt * self.e_dot_hat
+        if cfg.implicit_sign:
+            # implicit (backward) Euler of eq. 20 with the set-valued sign solved exactly:
+            # with x = e_tilde at the end of the step, b = c x + dt^2 rho sigma, sigma in Sgn(x)
+            b = e - self.e_hat - dt * self.integral
+            c = 1.0 + dt * gain + dt * dt * gain
+            rho_dt2 = dt * dt * cfg.rho_gain
+            sliding = np.abs(b) <= rho_dt2
+            sigma = np.where(sliding, b / rho_dt2 if rho_dt2 > 0 else 0.0, np.sign(b))
+            x = np.where(sliding, 0.0, (b - rho_dt2 * sigma) / c)
+            self.integral += dt * (gain * x + cfg.rho_gain * sigma)
+            self.e_hat = e - x
+            self.e_dot_hat = self.integral + gain * x
+        else:
+            e_tilde = e - self.e_hat
+            self.e_dot_hat = self.integral + gain * e_tilde
+            self.integral += dt * (gain * e_tilde + cfg.rho_gain * np.sign(e_tilde))
+            self.e_hat += dt * self.e_dot_hat
         return self.adapt(self.e_dot_hat, p, alpha, e[0, 3:], dt)
 
     def adapt(self, e_dot: F64, p: F64, alpha: F64, e_w: F64, dt: float) -> float:
