@@ -61,7 +61,7 @@ def test_frontend_mono_depth_matches_stereo_on_kitti(shared_data: Path) -> None:
     root = Path(__file__).resolve().parents[1]
     cfg = load_config(root / "configs" / "kitti.yaml").frontend.model_copy(update={"mono_depth": "observer"})
     fe = FrontEnd(seq.calibration, cfg)
-    frames = [f for f, _ in zip(seq.frames(), range(10), strict=False)]
+    frames = [f for f, _ in zip(seq.frames(), range(12), strict=False)]
     kf_frame = {}
     used = 0
     for f in frames:
