@@ -135,7 +135,7 @@ def test_kitti_tracks_against_stereo(shared_data: Path) -> None:
 
 
 def test_velocity_estimator_tracks_the_true_rates_without_chattering() -> None:
-    """Eq. 20 discretised at 1 kHz: once the start-up transient is over, the estimated signal
+    """Eq. 20 discretised at 1 kHz: once the start-up transient is over (1.2 s), the estimated signal
     rates match the analytic rates J (v_s/z*, w_s) (the implicit treatment of the sign term
     removes the numerical limit cycle of explicit Euler, rms ~1e-2 at these gains)."""
     pts = np.array([[0.5, -0.2, 4.0], [-0.8, 0.4, 3.0], [0.1, 0.6, 5.5]])
@@ -144,7 +144,7 @@ def test_velocity_estimator_tracks_the_true_rates_without_chattering() -> None:
     for implicit in (True, False):
         obs = DepthObserver(A, pts[:, :2] / pts[:, 2:3], ObserverConfig(implicit_sign=implicit))
         ref_from_cam, dt, err = np.eye(4), 1e-3, []
-        for k in range(2501):
+        for k in range(2001):
             t = k * dt
             if k > 0:
                 v, w = np.array([np.cos(t - dt / 2), -np.sin(t - dt / 2), 0.1]), np.array([0.1, 0.05, 0.0])
@@ -153,10 +153,10 @@ def test_velocity_estimator_tracks_the_true_rates_without_chattering() -> None:
             P = pts @ cam_from_ref[:3, :3].T + cam_from_ref[:3, 3]
             p, alpha, ew = P[:, :2] / P[:, 2:3], pts[:, 2] / P[:, 2], so3_log(cam_from_ref[:3, :3])
             obs.feed(ViewMeasurement(t, p, alpha, cam_from_ref[:3, :3]))
-            v_s, w_s = -np.array([np.cos(t), -np.sin(t), 0.1]), -np.array([0.1, 0.05, 0.0])
-            true = np.array([feature_jacobian(A, p[i], alpha[i], ew) @ np.r_[v_s / pts[i, 2], w_s] for i in range(3)])
-            if t > 1.5:
-                err.append(obs.e_dot_hat - true)
+            if t > 1.2 and k % 5 == 0:
+                v_s, w_s = -np.array([np.cos(t), -np.sin(t), 0.1]), -np.array([0.1, 0.05, 0.0])
+                true = [feature_jacobian(A, p[i], alpha[i], ew) @ np.r_[v_s / pts[i, 2], w_s] for i in range(3)]
+                err.append(obs.e_dot_hat - np.array(true))
         errs[implicit] = float(np.sqrt(np.mean(np.square(err))))
     assert errs[True] < 1e-3  # ~1e-4: the one-step lag of the discretisation
     assert errs[False] > 3 * errs[True]

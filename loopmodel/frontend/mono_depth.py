@@ -7,6 +7,14 @@ converged (persistent excitation and a small predicted uncertainty) the feature 
 per-frame pose solve as a 3-D point, down-weighted by its depth uncertainty like the stereo
 points. These points stay in the front end: keyframes, the local BA and the back end see only
 stereo landmarks.
+
+The poses come from the tracker, so the depths inherit its scale and its pose errors; the
+observer's velocity estimator is not used (see :mod:`loopmodel.observers.known_motion`).
+``mono_sigma_px`` (default 3 px) is the image noise of the depth uncertainty and so of the
+convergence test and the pose weights: KLT noise alone (~0.5 px) made the predicted depth
+uncertainty 4-27x too small on KITTI, where the tracker's frame-to-frame pose errors
+(~0.03-0.08 deg rotation, ~0.4 deg translation direction) dominate; with 3 px the median
+ratio of actual (against stereo) to predicted depth error is ~0.7 on the half-masked clip.
 """
 
 from __future__ import annotations
