@@ -337,6 +337,7 @@ class FrontEnd:
             )
         keep = np.flatnonzero(ok)[inl]
         self._track_idx = idx[keep]
+        self._mono_used = 0
         if self._mono is not None and m_ok is not None:
             m_keep = m_ok.copy()
             m_keep[mono_sel[~inl_all[tracked:]]] = False  # converged points the pose rejected
