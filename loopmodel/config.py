@@ -157,6 +157,12 @@ class FrontendConfig(_Section):
     ba_iterations: int = Field(5, ge=1)
     ba_huber_px: float = Field(1.0, gt=0)
     ba_final_stereo: bool = Field(False, description="add the final right projections to eq. 1")
+    # depth of features without a stereo match (seed-003 observer with the tracker's poses)
+    mono_depth: str = Field("none", pattern="^(none|observer)$", description="depth of unmatched corners")
+    mono_max_features: int = Field(300, ge=0, description="most tracks without stereo depth")
+    mono_max_rel_sigma: float = Field(0.1, gt=0, description="converged below this relative depth std")
+    mono_min_parallax_deg: float = Field(1.0, ge=0, description="excitation: recent mean parallax")
+    mono_sigma_px: float = Field(3.0, gt=0, description="pixel noise of KLT and tracker poses (depth std)")
 
 
 class MappingConfig(_Section):

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from loopmodel.geometry.se3 import invert_pose, se3_exp, so3_exp, so3_log
-from loopmodel.observers import DepthObserver, ObserverConfig, feature_jacobian, l_omega
+from loopmodel.observers import DepthObserver, ObserverConfig, ViewMeasurement, feature_jacobian, l_omega
 from loopmodel.observers.homography import decompose_homography, signals_from_essential
 from loopmodel.observers.kinematics import error_signals
 from loopmodel.observers.simulation import pure_rotation, simulate
@@ -76,7 +76,8 @@ def test_true_rates_converge_to_true_ratios(rng: np.random.Generator) -> None:
 def test_paper_simulation_converges() -> None:
     res = simulate(duration_s=4.0, rate_hz=100.0, config=ObserverConfig(l_inv0=1e-3))
     assert res.converge_time_s(0.05) < 3.0
-    assert res.rel_err[-1].max() < 0.03
+    # 1 %: the explicit-Euler sign term chattered (rms rate error ~9e-3) and left 1.3 % here
+    assert res.rel_err[-1].max() < 0.01
     assert res.observer.excited
 
 
@@ -131,3 +132,31 @@ def test_kitti_tracks_against_stereo(shared_data: Path) -> None:
     errs = np.concatenate([r.rel_err for r in results])
     assert errs.size > 50
     assert np.median(errs) < 0.25  # goal 10 %; measured by `bench.py depth` on the whole clip
+
+
+def test_velocity_estimator_tracks_the_true_rates_without_chattering() -> None:
+    """Eq. 20 discretised at 1 kHz: once the start-up transient is over (1.2 s), the estimated signal
+    rates match the analytic rates J (v_s/z*, w_s) (the implicit treatment of the sign term
+    removes the numerical limit cycle of explicit Euler, rms ~1e-2 at these gains)."""
+    pts = np.array([[0.5, -0.2, 4.0], [-0.8, 0.4, 3.0], [0.1, 0.6, 5.5]])
+    A = np.eye(3)
+    errs = {}
+    for implicit in (True, False):
+        obs = DepthObserver(A, pts[:, :2] / pts[:, 2:3], ObserverConfig(implicit_sign=implicit))
+        ref_from_cam, dt, err = np.eye(4), 1e-3, []
+        for k in range(2001):
+            t = k * dt
+            if k > 0:
+                v, w = np.array([np.cos(t - dt / 2), -np.sin(t - dt / 2), 0.1]), np.array([0.1, 0.05, 0.0])
+                ref_from_cam = ref_from_cam @ se3_exp(np.r_[v, w] * dt)
+            cam_from_ref = invert_pose(ref_from_cam)
+            P = pts @ cam_from_ref[:3, :3].T + cam_from_ref[:3, 3]
+            p, alpha, ew = P[:, :2] / P[:, 2:3], pts[:, 2] / P[:, 2], so3_log(cam_from_ref[:3, :3])
+            obs.feed(ViewMeasurement(t, p, alpha, cam_from_ref[:3, :3]))
+            if t > 1.2 and k % 5 == 0:
+                v_s, w_s = -np.array([np.cos(t), -np.sin(t), 0.1]), -np.array([0.1, 0.05, 0.0])
+                true = [feature_jacobian(A, p[i], alpha[i], ew) @ np.r_[v_s / pts[i, 2], w_s] for i in range(3)]
+                err.append(obs.e_dot_hat - np.array(true))
+        errs[implicit] = float(np.sqrt(np.mean(np.square(err))))
+    assert errs[True] < 1e-3  # ~1e-4: the one-step lag of the discretisation
+    assert errs[False] > 3 * errs[True]

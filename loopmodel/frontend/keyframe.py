@@ -55,7 +55,8 @@ class FrameResult:
     prediction and must not be used as a measurement. ``keyframe_id`` is the keyframe the
     pose is expressed against (for a frame that became a keyframe: itself, with
     ``kf_from_cam`` = identity). ``tracked`` counts KLT tracks that passed the
-    forward-backward check, ``inliers`` those the robust pose kept.
+    forward-backward check, ``inliers`` those the robust pose kept (stereo points; the
+    observer-depth points of ``frontend.mono_depth`` are counted in ``mono_points``).
     """
 
     timestamp_ns: int
@@ -73,6 +74,7 @@ class FrameResult:
     track_ms: float = 0.0
     keyframe_ms: float = 0.0
     used_ransac: bool = False
+    mono_points: int = 0  # points with observer depth (frontend.mono_depth) the pose kept
 
     @property
     def ok(self) -> bool:

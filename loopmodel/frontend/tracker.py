@@ -17,6 +17,7 @@ from loopmodel.errors import EstimationError, InputError
 from loopmodel.frontend.hybrid_ba import hybrid_keyframe_ba
 from loopmodel.frontend.keyframe import FrameResult, Keyframe
 from loopmodel.frontend.klt import Pyramid, build_pyramid, track_klt
+from loopmodel.frontend.mono_depth import MonoDepthTracks, kf_from_ref_map
 from loopmodel.frontend.rectify import Rectifier
 from loopmodel.frontend.stereo import (
     detect_corners,
@@ -92,12 +93,36 @@ class FrontEnd:
         self._velocity_known = False  # a measured step exists (the jump test needs one)
         self._frames_since_ok = 0
         self._last_stamp: int | None = None
+        # frontend.mono_depth: observer depths of corners without a stereo match
+        self._mono = (
+            MonoDepthTracks(self.config, self.left_camera, self.calibration.image_size)
+            if self.config.mono_depth == "observer"
+            else None
+        )
+        self._mono_used = 0
+        self._good_stamp = 0
 
     # ------------------------------------------------------------------ public
     @property
     def world_from_kf(self) -> dict[int, F64]:
         """Current estimate of every keyframe pose (original left camera, metres)."""
         return dict(self._world_from_kf)
+
+    def mono_depth_estimates(self) -> dict[str, NDArray] | None:
+        """Observer depths of the current tracks without stereo depth (``frontend.mono_depth``;
+        None when off): ``ref_kf`` reference keyframe ids, ``uv_ref`` (N, 2) rectified pixels
+        in the reference keyframe, ``depth_m`` depths there, ``rel_sigma`` predicted relative
+        standard deviations, ``converged`` whether the pose uses them."""
+        if self._mono is None:
+            return None
+        mono = self._mono
+        return {
+            "ref_kf": mono.ref_kf.copy(),
+            "uv_ref": mono.uv_ref.copy(),
+            "depth_m": mono.obs.depth_m(),
+            "rel_sigma": mono.obs.rel_sigma(mono.sigma_norm),
+            "converged": mono.converged(),
+        }
 
     def apply_correction(self, world_from_kf: dict[int, F64]) -> None:
         """Replace keyframe poses by corrected ones (e.g. from the back end); tracking
@@ -198,6 +223,7 @@ class FrontEnd:
             )
             if res is not None:
                 res.tracked, res.inliers, res.used_ransac = tracked, inliers, used_ransac
+                res.mono_points = self._mono_used
                 res.track_ms = (t_track - t0) * 1e3
                 return res
         kf = active.keyframe
@@ -215,6 +241,7 @@ class FrontEnd:
             segment=self._segment,
             track_ms=(time.perf_counter() - t0) * 1e3,
             used_ransac=used_ransac,
+            mono_points=self._mono_used,
         )
 
     # ------------------------------------------------------------------ tracking
@@ -261,7 +288,18 @@ class FrontEnd:
         prior = None
         if cfg.depth_weighting:
             prior = self._depth_weights(pts[ok], pred_from_kf)
-        term = PointTerm(self.rig, pts[ok], uv[ok], prior_weight=prior)
+        p_all, uv_all, mono_sel, kf_from_ref = pts[ok], uv[ok], np.zeros(0, np.int64), {}
+        m_ok: NDArray[np.bool_] | None = None
+        if self._mono is not None and len(self._mono):
+            kf_from_ref = self._mono_frames()
+            m_uv, m_ok = self._mono.track(self._prev_pyr, cur_pyr, pred_from_kf, kf_from_ref)
+            mono_sel = np.flatnonzero(m_ok & self._mono.converged())
+            if mono_sel.size:
+                p_m = self._mono.points_in(kf_from_ref)[mono_sel]
+                w_m = self._depth_weights(p_m, pred_from_kf, self._mono.sigma_z_m()[mono_sel])
+                prior = np.concatenate([np.ones(len(p_all)) if prior is None else prior, w_m])
+                p_all, uv_all = np.vstack([p_all, p_m]), np.vstack([uv_all, m_uv[mono_sel]])
+        term = PointTerm(self.rig, p_all, uv_all, prior_weight=prior)
         try:
             res = estimate_pose(
                 term,
@@ -272,10 +310,11 @@ class FrontEnd:
             )
         except EstimationError as exc:
             return "LOST", f"pose failed ({exc})", tracked, 0, kf_from_pred, False
-        inl = res.inliers[0]
+        inl_all = res.inliers[0]
+        inl = inl_all[:tracked]  # stereo points; mono-depth points follow
         n_inl = int(inl.sum())
         kf_from_cur = invert_pose(res.rig_from_ref)
-        if n_inl < cfg.min_inliers:
+        if int(inl_all.sum()) < cfg.min_inliers:
             return (
                 "LOST",
                 f"only {n_inl} pose inliers",
@@ -298,16 +337,32 @@ class FrontEnd:
             )
         keep = np.flatnonzero(ok)[inl]
         self._track_idx = idx[keep]
+        self._mono_used = 0
+        if self._mono is not None and m_ok is not None:
+            m_keep = m_ok.copy()
+            m_keep[mono_sel[~inl_all[tracked:]]] = False  # converged points the pose rejected
+            self._mono_used = int(inl_all[tracked:].sum())
+            dt_s = max((self._last_stamp or 0) - self._good_stamp, 1) * 1e-9
+            self._mono.commit(res.rig_from_ref, kf_from_ref, dt_s, m_keep)
+            self._good_stamp = self._last_stamp or 0
         self._track_uv = uv[keep]
         return "OK", "", tracked, n_inl, kf_from_cur, res.used_ransac
 
-    def _depth_weights(self, pts: F64, cur_from_kf: F64) -> F64:
-        """Pixel variance over pixel-plus-stereo-depth variance of each point's projection
-        at the predicted pose (first order): far points, whose stereo depth is uncertain,
-        count less for the pose."""
+    def _mono_frames(self) -> dict[int, F64]:
+        """Reference keyframes of the mono-depth tracks -> the active keyframe (rectified)."""
+        assert self._mono is not None and self._active is not None
+        refs = np.append(self._mono.ref_kf, self._active.keyframe.id)
+        w = {int(k): self._world_from_kf[int(k)] @ self.cam_from_rect for k in np.unique(refs)}
+        return kf_from_ref_map(w, self._active.keyframe.id, self._mono.ref_kf)
+
+    def _depth_weights(self, pts: F64, cur_from_kf: F64, sigma_z: F64 | None = None) -> F64:
+        """Pixel variance over pixel-plus-depth variance of each point's projection at the
+        predicted pose (first order): far points, whose stereo depth is uncertain, count less
+        for the pose. ``sigma_z`` (m): depth standard deviations (default: from stereo)."""
         cfg = self.config
         fb = self.calibration.fx_px * self.calibration.baseline_m
-        sigma_z = pts[:, 2] ** 2 / fb * cfg.disparity_sigma_px
+        if sigma_z is None:
+            sigma_z = pts[:, 2] ** 2 / fb * cfg.disparity_sigma_px
         p = pts @ cur_from_kf[:3, :3].T + cur_from_kf[:3, 3]
         ray = pts / pts[:, 2:3]  # d point / d depth (keyframe frame)
         J = self.left_camera.project_jacobian(p)  # (N, 2, 3)
@@ -445,6 +500,13 @@ class FrontEnd:
         )
         self._world_from_kf[kf_id] = world_from_kf
         depth = float(np.median(pts[:, 2]))
+        if self._mono is not None:
+            if not kf.connected:
+                self._mono.reset()
+            unmatched = np.ones(len(corners), bool)
+            unmatched[m.index] = False
+            self._mono.spawn(kf_id, corners[unmatched], depth, stereo_px[:, [0, 2]])
+            self._good_stamp = frame.timestamp_ns
         self._active = _ActiveSet(kf, world_from_rect, pts, stereo_px, depth)
         self._track_idx = np.arange(pts.shape[0], dtype=np.int64)
         self._track_uv = stereo_px[:, [0, 2]].copy()

@@ -2,7 +2,17 @@
 (eq. 20) and an adaptive least-squares update of the depth ratios ``lambda_i = z*_1/z*_i``
 (eq. 30-36). Independent of where its measurements come from: it is fed views (pixels,
 depth ratios ``alpha_i = z*_i/z_i`` and the rotation ``cur_from_ref``) at camera rate and
-integrates internally at a fixed step with linear interpolation between views."""
+integrates internally at a fixed step with linear interpolation between views.
+
+Discretisation of the velocity estimator: explicit Euler of the sign term of eq. 20 does
+not slide on ``e_tilde = 0`` but settles into a numerical limit cycle (period ~65 ms,
+rms rate error ~1e-2 in normalised units at 1 kHz with K = 10, rho = 1, shrinking only as
+sqrt(dt)); through the least-squares memory of the adaptive law that error left ~1 % in the
+depth ratios of the paper's simulation. We integrate eq. 20 by implicit (backward) Euler with
+the set-valued sign solved exactly per step (Acary & Brogliato 2010, chattering-free
+implicit sliding-mode discretisation): while ``|d^2e/dt^2| < rho`` the estimator slides
+exactly, ``e_hat = e`` and the rate estimate is the one-step lagged rate, as the
+continuous-time estimator of the paper. Gains are unchanged."""
 
 from __future__ import annotations
 
@@ -31,6 +41,7 @@ class ObserverConfig:
     excitation_window_s: float = 1.0  # window of the persistent-excitation monitor
     excitation_min: float = 1e-3  # min mean |h1|^2 (normalised units, 1/s^2) for "excited"
     warmup_s: float = 0.0  # adaptation starts after the velocity estimators' transient
+    implicit_sign: bool = True  # chattering-free implicit Euler of the estimator's sign term
 
 
 @dataclass
@@ -50,6 +61,20 @@ class ObserverHistory:
     t_s: list[float] = field(default_factory=list)
     lambda_hat: list[F64] = field(default_factory=list)
     excitation: list[float] = field(default_factory=list)
+
+
+def adaptive_ls_step(l_inv: F64, h: F64, y_tilde: F64, dt: float, beta: float) -> tuple[F64, F64]:
+    """One step of the adaptive least-squares law (seed 003 eq. 35-36) for N scalar
+    parameters ``theta_i`` with regressors ``h`` (N x k) and residuals ``y_tilde = y - theta h``
+    (N x k): the exact solution over ``dt`` (h, y held constant) of
+    ``d(theta)/dt = beta L h.(y - theta h)``, ``d(L^-1)/dt = |h|^2``, which is unconditionally
+    stable where explicit Euler is not. Returns (the change of theta, the new ``L^-1``)."""
+    hh = np.einsum("ni,ni->n", h, h)
+    l_new = l_inv + dt * hh
+    gain = 1.0 - (l_inv / l_new) ** beta
+    ok = hh > 0
+    step = np.where(ok, gain * np.einsum("ni,ni->n", h, y_tilde) / np.where(ok, hh, 1.0), 0.0)
+    return step, l_new
 
 
 class DepthObserver:
@@ -95,10 +120,23 @@ class DepthObserver:
         """One integration step: velocity estimators (eq. 20), then the adaptive update."""
         cfg = self.cfg
         gain = cfg.k_gain + 1.0
-        e_tilde = e - self.e_hat
-        self.e_dot_hat = self.integral + gain * e_tilde
-        self.integral += dt * (gain * e_tilde + cfg.rho_gain * np.sign(e_tilde))
-        self.e_hat += dt * self.e_dot_hat
+        if cfg.implicit_sign:
+            # implicit (backward) Euler of eq. 20 with the set-valued sign solved exactly:
+            # with x = e_tilde at the end of the step, b = c x + dt^2 rho sigma, sigma in Sgn(x)
+            b = e - self.e_hat - dt * self.integral
+            c = 1.0 + dt * gain + dt * dt * gain
+            rho_dt2 = dt * dt * cfg.rho_gain
+            sliding = np.abs(b) <= rho_dt2
+            sigma = np.where(sliding, b / rho_dt2 if rho_dt2 > 0 else 0.0, np.sign(b))
+            x = np.where(sliding, 0.0, (b - rho_dt2 * sigma) / c)
+            self.integral += dt * (gain * x + cfg.rho_gain * sigma)
+            self.e_hat = e - x
+            self.e_dot_hat = self.integral + gain * x
+        else:
+            e_tilde = e - self.e_hat
+            self.e_dot_hat = self.integral + gain * e_tilde
+            self.integral += dt * (gain * e_tilde + cfg.rho_gain * np.sign(e_tilde))
+            self.e_hat += dt * self.e_dot_hat
         return self.adapt(self.e_dot_hat, p, alpha, e[0, 3:], dt)
 
     def adapt(self, e_dot: F64, p: F64, alpha: F64, e_w: F64, dt: float) -> float:
@@ -117,15 +155,9 @@ class DepthObserver:
         y_tilde = e_dot[:, :3] - self.lambda_hat[:, None] * h1 - h2
         hh = np.einsum("ni,ni->n", h1, h1)
         if self._elapsed_s >= cfg.warmup_s:
-            # exact solution over the step (h1, h2, y held constant) of
-            #   d(lambda)/dt = beta L h1.(y - lambda h1 - h2),  d(L^-1)/dt = |h1|^2,
-            # which is unconditionally stable where explicit Euler is not (|h1| in pixels/s)
-            l_new = self.l_inv + dt * hh
-            gain = 1.0 - (self.l_inv / l_new) ** cfg.beta
-            step = np.where(hh > 0, gain * np.einsum("ni,ni->n", h1, y_tilde) / np.where(hh > 0, hh, 1.0), 0.0)
+            step, self.l_inv = adaptive_ls_step(self.l_inv, h1, y_tilde, dt, cfg.beta)
             step[0] = 0.0  # lambda_1 = 1 by definition
             self.lambda_hat += step
-            self.l_inv = l_new
         self._elapsed_s += dt
         # excitation in normalised image units (independent of the focal length)
         return float(np.mean(hh[1:])) / (self.A[0, 0] * self.A[1, 1]) if self.n > 1 else 0.0
