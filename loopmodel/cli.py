@@ -224,7 +224,7 @@ def mesh(
     if fmt not in MESH_FORMATS:
         raise InputError(None, f"--format must be one of {', '.join(MESH_FORMATS)}, got '{fmt}'")
     cfg = load_config(config)
-    stripes, traj, poses = load_stripes_and_poses(source, trajectory, cfg.sequence)
+    stripes, traj, poses = load_stripes_and_poses(source, trajectory, cfg.sequence, cfg.mapping)
     smap = StripeMap.from_trajectory(traj, stripes, cfg.mapping)
     smap.check_nonempty()
     surface = smap.mesh()

@@ -17,11 +17,12 @@ from typing import Any
 import numpy as np
 
 from loopmodel.backend import BackendEstimate, create_backend
-from loopmodel.config import Config
+from loopmodel.config import Config, MappingConfig
 from loopmodel.errors import LoopmodelError
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder
+from loopmodel.mapping.extraction import sequence_stripe_count, sequence_stripes
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.types import StripeProfile, Trajectory
 
@@ -222,16 +223,18 @@ def _map_arrays(
     }
 
 
-def _write_stripes(folder: ResultsFolder, sequence: Sequence, frames: list[FrameResult]) -> list[StripeProfile]:
+def _write_stripes(
+    folder: ResultsFolder, sequence: Sequence, frames: list[FrameResult], config: MappingConfig
+) -> list[StripeProfile]:
     """``stripes.npz``: the sequence's laser profiles up to the last processed frame (sensor
     frame; ``loopmodel mesh`` places them with the run's trajectory). Skipped without any."""
-    if not frames or sequence.stripe_count() == 0:
+    if not frames or sequence_stripe_count(sequence) == 0:
         return []
     from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
 
     last_ns = frames[-1].timestamp_ns
     try:
-        stripes = [s for s in sequence.stripes() if s.timestamp_ns <= last_ns]
+        stripes = [s for s in sequence_stripes(sequence, config) if s.timestamp_ns <= last_ns]
     except LoopmodelError as exc:  # the trajectories matter more than the stripes
         logger.error("laser stripes not written: %s", exc)
         return []
@@ -249,7 +252,11 @@ class _LiveMapping:
     def __init__(self, world: StripeMap, sequence: Sequence, every_kf: int) -> None:
         self._world = world
         self._every = every_kf
-        self._stripes = sequence.stripes() if every_kf > 0 and sequence.stripe_count() != 0 else iter(())
+        self._stripes = (
+            sequence_stripes(sequence, world.config)
+            if every_kf > 0 and sequence_stripe_count(sequence)
+            else iter(())
+        )
         self._next: StripeProfile | None = None
         self._keyframes = 0
         self._pool: Any = None
@@ -515,7 +522,7 @@ def run_pipeline(
                 folder.write_trajectory("trajectory_online.kitti", online, "kitti")
                 folder.write_trajectory("trajectory_final.kitti", final, "kitti")
             folder.write_npz("map.npz", _map_arrays(keyframes, kf_poses, estimate))
-            stripes = _write_stripes(folder, sequence, frames)
+            stripes = _write_stripes(folder, sequence, frames, config.mapping)
             metrics: dict[str, Any] = {"sequence": str(sequence.path), "interrupted": interrupted}
             metrics.update(_write_mesh(folder, sequence, stripes, online, final, config))
             metrics.update(frontend_metrics(frames, wall))

@@ -530,3 +530,43 @@ def test_isolated_stripes_get_normals_from_the_view_direction(
     assert good.mean_mm < 0.2 and good.p95_mm < 0.5, good
     plain = mesh_accuracy(StripeMap.from_trajectory(traj, sparse, MappingConfig(line_ratio=0.0)).mesh(), sphere)
     assert plain.p95_mm > 2 * good.p95_mm, (plain, good)
+
+
+def test_stripes_extracted_from_a_sequences_laser_images(tmp_path: Path) -> None:
+    """A recording with laser-line images but no stripe messages: its profiles are extracted
+    from the images with the configured light plane and lie on the simulated surface."""
+    from loopmodel.config import config_from_dict
+    from loopmodel.io.mesh_io import mesh_from_bytes
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.mapping.extraction import sequence_stripe_count, sequence_stripes
+    from loopmodel.sim import generate as gen
+
+    cfg = config_from_dict(
+        {
+            "simulation": {
+                "seed": 3,
+                "camera": {"width_px": 320, "height_px": 240, "fx_px": 250.0},
+                "trajectory": {"frames": 6},
+                "laser": {"image": True, "range_noise_m": 0.0},
+            },
+            "sequence": {"topics": {"stripe": "/not/recorded"}},
+        }
+    )
+    path = tmp_path / "laser.mcap"
+    gen.simulate_scan(cfg.simulation, path)
+    seq = open_sequence(path, cfg.sequence)
+    assert seq.stripe_count() == 0 and seq.laser_image_count() == 6 == sequence_stripe_count(seq)
+    profiles = list(sequence_stripes(seq, cfg.mapping))
+    assert len(profiles) >= 5
+    truth = {s.timestamp_ns: s for s in open_sequence(path).stripes()}
+    gt = seq.ground_truth
+    assert gt is not None
+    scene = mesh_from_bytes(seq.read_attachment("scene.ply"), "ply", path)
+    for prof in profiles:
+        # about one point per image row the line crosses, like the ray-cast profile
+        n_true = truth[prof.timestamp_ns].points_in_cam.shape[0]
+        assert prof.points_in_cam.shape[0] > 0.5 * min(n_true, 240)
+        T = gt.world_from_cam[int(np.searchsorted(gt.timestamps_ns, prof.timestamp_ns))]
+        world = prof.points_in_cam @ T[:3, :3].T + T[:3, 3]
+        d_mm = 1e3 * distances_to_mesh(world, scene)
+        assert np.median(d_mm) < 0.3 and np.quantile(d_mm, 0.9) < 1.0, np.quantile(d_mm, [0.5, 0.9])

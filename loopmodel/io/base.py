@@ -6,6 +6,9 @@ import abc
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
+from numpy.typing import NDArray
+
 from loopmodel.types import StereoCalibration, StereoFrame, StripeProfile, Trajectory
 
 
@@ -38,6 +41,15 @@ class Sequence(abc.ABC):
 
     def stripe_count(self) -> int | None:
         """Number of stripe profiles when known without reading them."""
+        return 0
+
+    def laser_images(self) -> Iterator[tuple[int, NDArray[np.uint8]]]:
+        """Images of a laser-line camera (the left camera's view), ``(timestamp_ns, image)`` in
+        time order; none for formats without them."""
+        return iter(())
+
+    def laser_image_count(self) -> int:
+        """Number of laser-line images."""
         return 0
 
     @abc.abstractmethod

@@ -371,6 +371,16 @@ class McapSequence(Sequence):
         for _t, _s, msg in self._messages([topic]):
             yield StripeProfile(stamp_ns(msg), decode_pointcloud_xyz(msg, topic))
 
+    def laser_images(self) -> Iterator[tuple[int, np.ndarray]]:
+        topic = self.topics.laser_image
+        if topic not in self._channels:
+            return
+        for _t, schema, msg in self._messages([topic]):
+            yield stamp_ns(msg), decode_image(msg, schema, topic)
+
+    def laser_image_count(self) -> int:
+        return self._counts.get(self.topics.laser_image, 0)
+
 
 # ----------------------------------------------------------------------------- writer
 

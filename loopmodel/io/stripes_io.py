@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from loopmodel.config import SequenceConfig
+from loopmodel.config import MappingConfig, SequenceConfig
 from loopmodel.errors import FormatError, InputError
 from loopmodel.io.atomic import atomic_path
 from loopmodel.types import StripeProfile, Trajectory
@@ -63,11 +63,15 @@ def load_stripes(path: str | Path) -> list[StripeProfile]:
 
 
 def load_stripes_and_poses(
-    source: str | Path, trajectory: str = "final", sequence_config: SequenceConfig | None = None
+    source: str | Path,
+    trajectory: str = "final",
+    sequence_config: SequenceConfig | None = None,
+    mapping_config: MappingConfig | None = None,
 ) -> tuple[list[StripeProfile], Trajectory, str]:
     """Stripes and the poses to place them with, from a results folder (``stripes.npz`` and
     ``trajectory_<final|online>.tum``; final falls back to online) or from a recorded
-    sequence with stripes and ground truth (e.g. a simulator MCAP). Returns the stripes, the
+    sequence with stripes (or laser-line images, extracted with ``mapping_config``'s light
+    plane) and ground truth (e.g. a simulator MCAP). Returns the stripes, the
     ``world_from_cam`` trajectory and a name for the poses used."""
     from loopmodel.io.trajectory_io import read_trajectory
 
@@ -98,7 +102,9 @@ def load_stripes_and_poses(
     gt = seq.ground_truth
     if gt is None:
         raise InputError(p, "sequence has no ground-truth poses to place its stripes with")
-    stripes = list(seq.stripes())
+    from loopmodel.mapping.extraction import sequence_stripes
+
+    stripes = list(sequence_stripes(seq, mapping_config))
     if not stripes:
         raise InputError(p, "no laser stripes in this sequence")
     return stripes, gt, "ground truth"

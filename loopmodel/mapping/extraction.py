@@ -12,7 +12,9 @@ The light plane is given in the left-camera frame: ``normal_in_cam · p + d_m = 
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -20,6 +22,9 @@ from numpy.typing import ArrayLike, NDArray
 from loopmodel.config import MappingConfig
 from loopmodel.errors import CalibrationError, InputError
 from loopmodel.types import StripeProfile
+
+if TYPE_CHECKING:
+    from loopmodel.io.base import Sequence
 
 F64 = NDArray[np.float64]
 
@@ -164,3 +169,27 @@ def stripe_from_image(
     plane = plane or LightPlane.from_config(cfg)
     uv = extract_laser_peaks(image, cfg.peak_axis, cfg.peak_min_contrast, cfg.peak_window_px, cfg.peak_method)
     return StripeProfile(int(timestamp_ns), triangulate_with_plane(uv, K, plane, dist))
+
+
+def sequence_stripe_count(sequence: Sequence) -> int:
+    """Number of laser profiles a sequence gives: its stripe messages, else its laser images."""
+    return int(sequence.stripe_count() or 0) or sequence.laser_image_count()
+
+
+def sequence_stripes(sequence: Sequence, config: MappingConfig | None = None) -> Iterator[StripeProfile]:
+    """The laser profiles of a sequence in time order (left-camera frame, metres): its stripe
+    messages when it has them, else profiles extracted from its laser-line images with the
+    configured light plane and the left camera's calibration (empty profiles dropped)."""
+    if sequence.stripe_count():
+        yield from sequence.stripes()
+        return
+    if sequence.laser_image_count() == 0:
+        return
+    cfg = config or MappingConfig()
+    plane = LightPlane.from_config(cfg)
+    calib = sequence.calibration
+    dist = None if calib.rectified else calib.dist_left
+    for t_ns, image in sequence.laser_images():
+        profile = stripe_from_image(image, t_ns, calib.K_left, plane, cfg, dist)
+        if profile.points_in_cam.shape[0]:
+            yield profile
