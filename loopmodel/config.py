@@ -51,7 +51,9 @@ class BackendConfig(_Section):
     """Keyframe/landmark back end (``backend/``); iSAM2 keys map onto ``gtsam.ISAM2Params``."""
 
     kind: str = Field(
-        "isam2", pattern="^(isam2|givens|both)$", description="isam2, givens, or both (Givens screen before iSAM2)"
+        "isam2",
+        pattern="^(isam2|givens|both|none)$",
+        description="isam2, givens, both (Givens screen before iSAM2), or none (front-end poses only)",
     )
     pixel_sigma_px: float = Field(1.0, gt=0, description="std. dev. of an image coordinate")
     huber_k: float = Field(

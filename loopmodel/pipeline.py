@@ -127,54 +127,24 @@ def run_frontend(
     max_frames: int | None = None,
     keyframe_hooks: list[KeyframeHook] | None = None,
 ) -> RunOutput:
-    """Run the front end over ``sequence`` and write ``trajectory_online.tum``,
-    ``keyframes.tum``, ``metrics.json``, ``config.yaml`` and ``run.log`` into
-    ``<out_dir>/<name>/`` (``out_dir`` defaults to ``config.output.out_dir``). An interrupted
-    run (Ctrl-C included) still writes what it has, then re-raises."""
-    folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
-    folder.write_config(config)
-    frontend = FrontEnd(sequence.calibration, config.frontend)
-    total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
-    frames: list[FrameResult] = []
-    keyframes: list[tuple[int, int]] = []
-    hooks = keyframe_hooks or []
-    interrupted = False
-    t_start = time.perf_counter()
-    with LogCapture() as log:
-        logger.info("front end on %s (%d frames)", sequence.path, total)
-        try:
-            for i, frame in enumerate(sequence.frames()):
-                if i >= total:
-                    break
-                res = frontend.process(frame)
-                if res.status != "OK":
-                    logger.info("frame %d LOST: %s", frame.index, res.reason)
-                if res.keyframe is not None:
-                    keyframes.append((res.keyframe.id, res.keyframe.timestamp_ns))
-                    for hook in hooks:
-                        hook(res.keyframe, res)
-                    res = dataclasses.replace(res, keyframe=None)
-                frames.append(res)
-                if progress is not None:
-                    el = time.perf_counter() - t_start
-                    progress(i + 1, total, (i + 1) / el if el > 0 else 0.0)
-        except KeyboardInterrupt:
-            interrupted = True
-            logger.warning("interrupted after %d frames", len(frames))
-        finally:
-            wall = time.perf_counter() - t_start
-            online = _online_trajectory(frames)
-            folder.write_trajectory("trajectory_online.tum", online)
-            folder.write_trajectory("keyframes.tum", _keyframe_trajectory(keyframes, frontend.world_from_kf))
-            metrics: dict[str, Any] = {"sequence": str(sequence.path), "interrupted": interrupted}
-            metrics.update(frontend_metrics(frames, wall))
-            metrics.update(_ground_truth_errors(online, sequence.ground_truth))
-            folder.write_json("metrics.json", metrics)
-            logger.info("done: %s", {k: metrics[k] for k in ("frames", "ok_frames", "keyframes")})
-            folder.write_text("run.log", log.text())
-    if interrupted:
-        raise KeyboardInterrupt
-    return RunOutput(folder.path, frames, keyframes, metrics, interrupted)
+    """The front end alone over ``sequence``: :func:`run_pipeline` with ``backend.kind: none``
+    (keyframes keep the tracked poses), no loop closing and no mesh. Writes the same results
+    folder (``trajectory_final.tum`` equals the online trajectory). An interrupted run still
+    writes what it has, then re-raises."""
+    fe_config = config.model_copy(deep=True)
+    fe_config.backend.kind = "none"
+    fe_config.loop.enabled = False
+    fe_config.mapping.write_mesh = False
+    fe_config.mapping.live_mesh_every_kf = 0
+    return run_pipeline(
+        sequence,
+        fe_config,
+        out_dir,
+        name,
+        None if progress is None else (lambda i, n, fps, _kf: progress(i, n, fps)),
+        max_frames,
+        keyframe_hooks,
+    )
 
 
 # --------------------------------------------------------------------------- full pipeline
@@ -432,7 +402,7 @@ def run_pipeline(
     anchored = StripeMap(config.mapping)
     live = _LiveMapping(anchored, sequence, config.mapping.live_mesh_every_kf)
     loop_stage = None
-    if config.loop.enabled:
+    if config.loop.enabled and config.backend.kind != "none":
         from loopmodel.loop.stage import LoopClosingStage
 
         loop_stage = LoopClosingStage(frontend, frontend.calibration, config.loop, backend=backend)
@@ -480,13 +450,7 @@ def run_pipeline(
                     # do not hold every keyframe (and its image) for the whole run
                     res = dataclasses.replace(res, keyframe=None)
                 frames.append(res)
-                if res.ok and anchored.frame_count and res.timestamp_ns <= anchored.frame_times_ns[-1]:
-                    logger.warning(
-                        "frame %d: timestamp %d ns not after the previous frame; pose not kept",
-                        frame.index,
-                        res.timestamp_ns,
-                    )
-                elif res.ok:
+                if res.ok:
                     anchored.add_frame(res.timestamp_ns, kf_id=res.keyframe_id, kf_from_cam=res.kf_from_cam)
                     live.feed(res.timestamp_ns)
                 if kf is not None:
