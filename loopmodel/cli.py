@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 from typing import Annotated, Any
@@ -62,6 +63,13 @@ def progress_bar(*extra: Any) -> Progress:
         console=err_console,
         transient=False,
     )
+
+
+def _length(v_m: float | None) -> str:
+    """A length for people: millimetres below 10 cm (close-range scans), metres above."""
+    if v_m is None or not math.isfinite(v_m):
+        return "-"
+    return f"{v_m * 1e3:.3g} mm" if abs(v_m) < 0.1 else f"{v_m:.4g} m"
 
 
 def _fmt(v: Any) -> str:
@@ -190,7 +198,7 @@ def run(
             )
         )
     if "ate_rmse_m" in m:
-        rows.append(("ATE online / final [m]", f"{m['ate_rmse_m_online']:.4f} / {m['ate_rmse_m']:.4f}"))
+        rows.append(("ATE online / final", f"{_length(m['ate_rmse_m_online'])} / {_length(m['ate_rmse_m'])}"))
         rows.append(("drift final [%]", m["drift_pct"]))
     for k, v in rows:
         table.add_row(k, _fmt(v))
@@ -590,7 +598,7 @@ def eval_command(
             rep.write_outputs(ev, target)
             evals.append((ev, target))
     table = Table(title="loopmodel eval")
-    cols = ("run", "matched", "ATE final [m]", "ATE online [m]", "RPE/frame [m]", "closures")
+    cols = ("run", "matched", "ATE final", "ATE online", "RPE/frame", "closures")
     for col in (*cols, "report"):
         table.add_column(col)
     for ev, target in evals:
@@ -600,9 +608,9 @@ def eval_command(
         table.add_row(
             m["run"],
             str(tr["final"]["matched"]),
-            f"{m['ate_rmse_m']:.6g}",
-            f"{online:.6g}" if online is not None else "-",
-            f"{tr['final'].get('rpe_frames', {}).get('trans_m', {}).get('rmse', float('nan')):.6g}",
+            _length(m["ate_rmse_m"]),
+            _length(online),
+            _length(tr["final"].get("rpe_frames", {}).get("trans_m", {}).get("rmse")),
             str(m["loop_closure_count"]),
             str(target / "report.md"),
         )
