@@ -172,6 +172,42 @@ class StripeMap:
         """Every frame's ``world_from_cam`` recomposed with the current keyframe poses."""
         return Trajectory(self._frame_t.a.copy(), self.frame_poses())
 
+    def bridged_trajectory(
+        self, keyframe_times_ns: Mapping[int, int], tracked_links: Mapping[int, tuple[int, F64]]
+    ) -> Trajectory:
+        """Like :meth:`trajectory`, with each keyframe interval's tracking drift spread over its
+        frames. ``tracked_links[B] = (A, A_from_B_tracked)``: keyframe B was made from a frame
+        tracked against keyframe A at the tracker's pose ``A_from_B_tracked``; the estimated
+        ``A_from_B`` (current keyframe poses) disagrees with it by the interval's drift. The
+        least-squares chain with equal noise per step and both ends held at the estimated
+        keyframes gives a frame at time t the fraction ``(t - t_A) / (t_B - t_A)`` of the end
+        correction (on SE(3), right-multiplied in the frame's coordinates). Frames of a
+        keyframe without a linked successor are recomposed as in :meth:`trajectory`."""
+        from loopmodel.geometry.se3 import se3_exp, se3_log
+
+        base = self.trajectory()
+        known = self._world_from_kf.keys() & keyframe_times_ns.keys()
+        successor = {
+            int(a): (int(b), np.asarray(rel, dtype=float).reshape(4, 4))
+            for b, (a, rel) in tracked_links.items()
+            if a in known and b in known
+        }
+        out = base.world_from_cam.copy()
+        correction: dict[int, F64] = {}
+        for i, (t, k) in enumerate(zip(self._frame_t.a, self._frame_kf.a, strict=True)):
+            nxt = successor.get(int(k))
+            if nxt is None:
+                continue
+            b, a_from_b_tracked = nxt
+            t_a, t_b = keyframe_times_ns[int(k)], keyframe_times_ns[b]
+            if not t_a < t < t_b:
+                continue
+            if k not in correction:
+                a_from_b = invert_pose(self._world_from_kf[int(k)]) @ self._world_from_kf[b]
+                correction[int(k)] = se3_log(invert_pose(a_from_b_tracked) @ a_from_b)
+            out[i] = out[i] @ se3_exp((t - t_a) / (t_b - t_a) * correction[int(k)])
+        return Trajectory(base.timestamps_ns, out)
+
     @property
     def keyframe_poses(self) -> dict[int, F64]:
         """Current ``world_from_kf`` of every declared keyframe (copies; ids >= 0)."""
