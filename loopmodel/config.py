@@ -157,6 +157,12 @@ class FrontendConfig(_Section):
     ba_iterations: int = Field(5, ge=1)
     ba_huber_px: float = Field(1.0, gt=0)
     ba_final_stereo: bool = Field(False, description="add the final right projections to eq. 1")
+    keyframe_remeasure: bool = Field(
+        True, description="re-measure tracks against the keyframe patch (affine) at a new keyframe"
+    )
+    remeasure_half_window_px: int = Field(7, ge=2, description="half size of the re-measured patch")
+    remeasure_min_ncc: float = Field(0.8, ge=-1, le=1, description="keep re-measured tracks above this NCC")
+    remeasure_max_shift_px: float = Field(2.0, gt=0, description="keep re-measured tracks moved less")
 
 
 class MappingConfig(_Section):

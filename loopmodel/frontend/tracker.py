@@ -328,6 +328,32 @@ class FrontEnd:
             return True
         return _rotation_deg(kf_from_cur) > cfg.max_rotation_deg
 
+    def _remeasure_tracks(self, prev: _ActiveSet, left: NDArray[np.uint8], kf_from_cur: F64) -> None:
+        """Measure the tracked features again against the keyframe's own patches (affine
+        warp predicted by the pose, :mod:`loopmodel.frontend.affine_klt`) and keep those
+        that match: frame-to-frame KLT slides over a keyframe interval, and these positions
+        link the keyframes (mono observations, local BA)."""
+        from loopmodel.frontend.affine_klt import predicted_affine, refine_affine
+
+        cfg = self.config
+        idx = self._track_idx
+        if idx.size == 0:
+            return
+        cur_from_kf = invert_pose(kf_from_cur)
+        match = refine_affine(
+            prev.keyframe.image,
+            left,
+            prev.stereo_px[idx][:, [0, 2]],
+            self._track_uv,
+            predicted_affine(self.left_camera, prev.points[idx], cur_from_kf),
+            cfg.remeasure_half_window_px,
+            min_ncc=cfg.remeasure_min_ncc,
+            max_shift_px=cfg.remeasure_max_shift_px,
+        )
+        if int(match.ok.sum()) >= max(6, cfg.min_inliers):
+            self._track_idx = idx[match.ok]
+            self._track_uv = match.uv_px[match.ok]
+
     # ------------------------------------------------------------------ keyframes
     def _start_keyframe(
         self,
@@ -374,6 +400,8 @@ class FrontEnd:
         kf_prev_from_kf = None
         ba_info: dict[str, float] = {}
         if prev is not None and kf_from_cur is not None and connected:
+            if cfg.keyframe_remeasure:
+                self._remeasure_tracks(prev, left, kf_from_cur)
             ids = prev.keyframe.landmark_ids[self._track_idx]
             mono_obs = np.column_stack([ids.astype(float), self._track_uv])
             kf_from_new = kf_from_cur
