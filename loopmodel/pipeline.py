@@ -270,7 +270,9 @@ def _write_mesh(
 ) -> dict[str, Any]:
     """``mesh.ply`` of the stripes placed with the final trajectory; with a ground-truth scene
     (``scene.ply`` attachment) and poses, the mesh error with ground-truth, online (before loop
-    closure) and final (after) poses. Returns the metrics to record."""
+    closure) and final (after) poses, both SE(3)-aligned to the truth by their frame
+    positions; completeness of the scanned object (``object.ply``) and of its swept part when
+    the sequence has it. Returns the metrics to record."""
     if not stripes or not config.mapping.write_mesh or len(final) < 2:
         return {}
     from loopmodel.io.mesh_io import mesh_from_bytes, write_mesh
@@ -292,7 +294,13 @@ def _write_mesh(
             # the run's world is its first keyframe: express both trajectories in the truth's
             # world by the SE(3) alignment of the frame positions before meshing
             trajs = {"gt": gt, "before": _aligned_to(online, gt), "after": _aligned_to(final, gt)}
-            out.update(mesh_error_metrics(stripes, trajs, gt_mesh, config.mapping))
+            # completeness of the scanned object (``object.ply``) when the sequence has it
+            obj = (
+                mesh_from_bytes(sequence.read_attachment("object.ply"), "ply", sequence.path)  # type: ignore[attr-defined]
+                if "object.ply" in names
+                else None
+            )
+            out.update(mesh_error_metrics(stripes, trajs, gt_mesh, config.mapping, object_mesh=obj))
     except LoopmodelError as exc:  # a run without a mesh still has its trajectories
         logger.error("mesh not written: %s", exc)
     return out
