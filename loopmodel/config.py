@@ -415,6 +415,18 @@ class GivensConfig(_Section):
     frame_prior_sigma_m: float = Field(0.1, gt=0, description="weak prior, frame position")
 
 
+class RefineConfig(_Section):
+    """Final refinement after the last loop closure (pipeline, end of a run)."""
+
+    batch_ba: bool = Field(True, description="batch bundle adjustment of all keyframes and landmarks (iSAM2)")
+    pixel_sigma_px: float = Field(0.05, gt=0, description="batch BA: std. dev. of a feature position")
+    huber_k: float = Field(1.345, ge=0, description="batch BA: Huber threshold in sigmas (0: Gaussian)")
+    max_iterations: int = Field(30, ge=1, description="batch BA: Levenberg-Marquardt iterations")
+    bridge_frames: bool = Field(
+        True, description="distribute each keyframe interval's tracking drift over its frames"
+    )
+
+
 class Config(_Section):
     """The whole configuration of loopmodel."""
 
@@ -429,6 +441,7 @@ class Config(_Section):
     vvs: VvsConfig = Field(default_factory=VvsConfig)
     givens: GivensConfig = Field(default_factory=GivensConfig)
     backend: BackendConfig = Field(default_factory=BackendConfig)
+    refine: RefineConfig = Field(default_factory=RefineConfig)
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

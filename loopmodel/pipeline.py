@@ -342,6 +342,8 @@ def run_pipeline(
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     frames: list[FrameResult] = []
     keyframes: list[tuple[int, int]] = []
+    # keyframe -> (previous keyframe, the tracker's pose of it there): drift per interval
+    tracked_links: dict[int, tuple[int, np.ndarray]] = {}
     backend_ms: list[float] = []
     frame_ms: list[float] = []
     hooks = keyframe_hooks or []
@@ -363,6 +365,9 @@ def run_pipeline(
                 kf = res.keyframe
                 if kf is not None:
                     keyframes.append((kf.id, kf.timestamp_ns))
+                    tracked = getattr(kf, "kf_prev_from_kf_tracked", None)
+                    if kf.connected and kf.prev_keyframe_id is not None and tracked is not None:
+                        tracked_links[kf.id] = (kf.prev_keyframe_id, tracked)
                     if loop_stage is not None:  # revisits and relocalization, before the back end
                         loop_stage.on_keyframe(kf)
                     anchored.set_keyframe(kf.id, kf.world_from_kf)
@@ -400,6 +405,7 @@ def run_pipeline(
             wall = time.perf_counter() - t_start
             online = _online_trajectory(frames)
             folder.write_trajectory("trajectory_online.tum", online)
+            t_final = time.perf_counter()
             try:
                 if keyframes and not interrupted:
                     refine = getattr(backend, "refine", None)
@@ -407,10 +413,18 @@ def run_pipeline(
                         refine()
                 if keyframes:
                     estimate = backend.estimate()
+                    batch = getattr(backend, "batch_refine", None)
+                    if config.refine.batch_ba and not interrupted and callable(batch):
+                        rc = config.refine
+                        estimate = batch(rc.pixel_sigma_px, rc.huber_k, rc.max_iterations)
                     anchored.update_keyframes(estimate.world_from_kf)
             except Exception as exc:  # keep the front end's keyframes; still write everything
                 logger.error("back end failed at the end of the run: %s", exc)
-            final = anchored.trajectory()
+            if config.refine.bridge_frames:
+                final = anchored.bridged_trajectory(dict(keyframes), tracked_links)
+            else:
+                final = anchored.trajectory()
+            final_refine_s = time.perf_counter() - t_final
             kf_poses = anchored.keyframe_poses
             folder.write_trajectory("trajectory_final.tum", final)
             folder.write_trajectory("keyframes.tum", _keyframe_trajectory(keyframes, kf_poses))
@@ -424,6 +438,7 @@ def run_pipeline(
             metrics.update(frontend_metrics(frames, wall))
             metrics["fps"] = len(frames) / (sum(frame_ms) / 1e3) if sum(frame_ms) > 0 else None
             metrics["backend"] = config.backend.kind
+            metrics["final_refine_s"] = final_refine_s
             if loop_stage is not None:
                 metrics.update(loop_stage.metrics())
             screen_stats = getattr(backend, "screen_stats", None)

@@ -120,7 +120,6 @@ def refine_affine(
         y = c[idx, 1:] + a[:, 1, :1] * sx + a[:, 1, 1:] * sy
         return x, y
 
-    ones = np.ones_like(T)
     for _ in range(iterations):
         idx = np.flatnonzero(active)
         if idx.size == 0:
@@ -129,10 +128,13 @@ def refine_affine(
         Ic, Gx, Gy = _sample(cur, x, y), _sample(gx, x, y), _sample(gy, x, y)
         Ti = T[idx]
         r = Ic - (gain[idx, None] * Ti + offset[idx, None])
-        J = np.stack([Gx, Gy, Gx * sx, Gx * sy, Gy * sx, Gy * sy, -Ti, -ones[idx]], axis=2)
-        H = np.einsum("npi,npj->nij", J, J)
+        Jt = np.empty((idx.size, 8, Ti.shape[1]))  # Jacobian rows per parameter (batched BLAS)
+        Jt[:, 0], Jt[:, 1] = Gx, Gy
+        Jt[:, 2], Jt[:, 3], Jt[:, 4], Jt[:, 5] = Gx * sx, Gx * sy, Gy * sx, Gy * sy
+        Jt[:, 6], Jt[:, 7] = -Ti, -1.0
+        H = Jt @ Jt.transpose(0, 2, 1)
         H[:, np.arange(8), np.arange(8)] += 1e-6 * (1.0 + H[:, np.arange(8), np.arange(8)])
-        g = np.einsum("npi,np->ni", J, r)
+        g = (Jt @ r[:, :, None])[:, :, 0]
         try:
             dp = -np.linalg.solve(H, g[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:

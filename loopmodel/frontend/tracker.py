@@ -398,6 +398,7 @@ class FrontEnd:
         prev = self._active
         mono_obs = np.zeros((0, 3))
         kf_prev_from_kf = None
+        kf_prev_from_kf_tracked = None
         ba_info: dict[str, float] = {}
         if prev is not None and kf_from_cur is not None and connected:
             if cfg.keyframe_remeasure:
@@ -446,6 +447,7 @@ class FrontEnd:
                 }
             world_from_rect = nearest_rigid(prev.world_from_kfrect @ kf_from_new)
             kf_prev_from_kf = self.cam_from_rect @ kf_from_new @ self.rect_from_cam
+            kf_prev_from_kf_tracked = self.cam_from_rect @ kf_from_cur @ self.rect_from_cam
 
         kf_id = self._next_kf_id
         self._next_kf_id += 1
@@ -467,6 +469,7 @@ class FrontEnd:
             prev_keyframe_id=prev.keyframe.id if prev is not None else None,
             connected=connected and prev is not None,
             kf_prev_from_kf=kf_prev_from_kf,
+            kf_prev_from_kf_tracked=kf_prev_from_kf_tracked,
             rect_from_cam=self.rect_from_cam.copy(),
             segment=self._segment,
             ba_info=ba_info,
