@@ -19,8 +19,10 @@ R = 0.06
 def scan() -> tuple[o3d.geometry.TriangleMesh, o3d.geometry.TriangleMesh, Trajectory, list[StripeProfile]]:
     sphere = o3d.geometry.TriangleMesh.create_sphere(R, 60)
     # the scene: the object plus a large floor the laser never reaches (far below)
-    floor = o3d.geometry.TriangleMesh.create_box(4.0, 4.0, 0.01).translate([-2.0, -2.0, -2.0])
-    scene = sphere + floor
+    floor = o3d.geometry.TriangleMesh.create_box(4.0, 4.0, 0.01)
+    floor.translate([-2.0, -2.0, -2.0])
+    scene = o3d.geometry.TriangleMesh(sphere)
+    scene += floor
     traj, stripes = orbit_scan(sphere, frames=60, stripes_per_frame=1, rays=150)
     return sphere, scene, traj, stripes
 

@@ -740,8 +740,8 @@ class Isam2Backend:
         solution keeps its own weights; this one is returned and not fed back to iSAM2."""
         if not self._kf_seq:
             raise EstimationError("batch refinement of an empty back end")
-        base3 = gtsam.noiseModel.Isotropic.Sigma(3, pixel_sigma_px)
-        base2 = gtsam.noiseModel.Isotropic.Sigma(2, pixel_sigma_px)
+        base3: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(3, pixel_sigma_px)
+        base2: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(2, pixel_sigma_px)
         if huber_k > 0:
             huber = gtsam.noiseModel.mEstimator.Huber.Create(huber_k)
             base3 = gtsam.noiseModel.Robust.Create(huber, base3)
