@@ -28,7 +28,8 @@ class Keyframe:
     grey image. ``connected`` is False when the pose relative to the previous keyframe was
     not measured (recovery after tracking loss); ``kf_prev_from_kf`` is the measured
     transform (after the local hybrid BA) when connected; ``kf_prev_from_kf_tracked`` the
-    tracker's pose of this frame before (the end point of the tracked frames' chain).
+    tracker's own pose of this frame in the previous keyframe, before the local BA (the end
+    of the tracked frames' chain; the final refinement bridges its drift).
     """
 
     id: int
