@@ -163,6 +163,9 @@ class FrontendConfig(_Section):
     remeasure_half_window_px: int = Field(7, ge=2, description="half size of the re-measured patch")
     remeasure_min_ncc: float = Field(0.8, ge=-1, le=1, description="keep re-measured tracks above this NCC")
     remeasure_max_shift_px: float = Field(2.0, gt=0, description="keep re-measured tracks moved less")
+    remeasure_older_keyframes: int = Field(
+        1, ge=0, description="also find the points of this many older keyframes in a new keyframe"
+    )
 
 
 class MappingConfig(_Section):

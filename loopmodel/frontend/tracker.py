@@ -80,6 +80,7 @@ class FrontEnd:
         )
         self._world_from_kf: dict[int, F64] = {}
         self._active: _ActiveSet | None = None
+        self._older: list[_ActiveSet] = []  # keyframes before the active one (re-measured)
         self._next_kf_id = 0
         self._next_landmark_id = 0
         self._segment = 0
@@ -354,6 +355,46 @@ class FrontEnd:
             self._track_idx = idx[match.ok]
             self._track_uv = match.uv_px[match.ok]
 
+    def _observe_older(self, left: NDArray[np.uint8], world_from_rect: F64) -> F64:
+        """Rows (landmark_id, u, v) of older keyframes' points found in the new keyframe
+        image ``left`` (rectified pose ``world_from_rect``): projected with the current
+        poses, then matched against their own keyframe's patch (affine); links keyframes
+        two or more intervals apart."""
+        from loopmodel.frontend.affine_klt import predicted_affine, refine_affine
+
+        cfg = self.config
+        w, h = self.calibration.image_size
+        rows = [np.zeros((0, 3))]
+        for old in self._older:
+            # the old keyframe as the back end has corrected it since
+            world_from_old = self._world_from_kf.get(old.keyframe.id, old.keyframe.world_from_kf) @ self.cam_from_rect
+            cur_from_old = invert_pose(world_from_rect) @ world_from_old
+            p = old.points @ cur_from_old[:3, :3].T + cur_from_old[:3, 3]
+            front = p[:, 2] > 1e-3
+            uv = np.full((p.shape[0], 2), -1.0)
+            uv[front] = self.left_camera.project(p[front])
+            margin = cfg.remeasure_half_window_px + cfg.remeasure_max_shift_px + 2
+            sel = np.flatnonzero(
+                front & (uv[:, 0] > margin) & (uv[:, 0] < w - 1 - margin)
+                & (uv[:, 1] > margin) & (uv[:, 1] < h - 1 - margin)
+            )
+            if sel.size == 0:
+                continue
+            match = refine_affine(
+                old.keyframe.image,
+                left,
+                old.stereo_px[sel][:, [0, 2]],
+                uv[sel],
+                predicted_affine(self.left_camera, old.points[sel], cur_from_old),
+                cfg.remeasure_half_window_px,
+                min_ncc=cfg.remeasure_min_ncc,
+                max_shift_px=cfg.remeasure_max_shift_px,
+            )
+            ok = match.ok
+            ids = old.keyframe.landmark_ids[sel[ok]].astype(float)
+            rows.append(np.column_stack([ids, match.uv_px[ok]]))
+        return np.vstack(rows)
+
     # ------------------------------------------------------------------ keyframes
     def _start_keyframe(
         self,
@@ -405,6 +446,9 @@ class FrontEnd:
                 self._remeasure_tracks(prev, left, kf_from_cur)
             ids = prev.keyframe.landmark_ids[self._track_idx]
             mono_obs = np.column_stack([ids.astype(float), self._track_uv])
+            if cfg.keyframe_remeasure and self._older:
+                older = self._observe_older(left, prev.world_from_kfrect @ kf_from_cur)
+                mono_obs = np.vstack([mono_obs, older])
             kf_from_new = kf_from_cur
             if cfg.local_ba and self._track_idx.size >= 6:
                 tb = time.perf_counter()
@@ -476,6 +520,10 @@ class FrontEnd:
         )
         self._world_from_kf[kf_id] = world_from_kf
         depth = float(np.median(pts[:, 2]))
+        if prev is not None and connected and cfg.remeasure_older_keyframes > 0:
+            self._older = [prev, *self._older][: cfg.remeasure_older_keyframes]
+        else:
+            self._older = []
         self._active = _ActiveSet(kf, world_from_rect, pts, stereo_px, depth)
         self._track_idx = np.arange(pts.shape[0], dtype=np.int64)
         self._track_uv = stereo_px[:, [0, 2]].copy()
