@@ -165,6 +165,15 @@ class FrontendConfig(_Section):
     mono_max_rel_sigma: float = Field(0.1, gt=0, description="converged below this relative depth std")
     mono_min_parallax_deg: float = Field(1.0, ge=0, description="excitation: recent mean parallax")
     mono_sigma_px: float = Field(3.0, gt=0, description="pixel noise of KLT and tracker poses (depth std)")
+    keyframe_remeasure: bool = Field(
+        True, description="re-measure tracks against the keyframe patch (affine) at a new keyframe"
+    )
+    remeasure_half_window_px: int = Field(7, ge=2, description="half size of the re-measured patch")
+    remeasure_min_ncc: float = Field(0.8, ge=-1, le=1, description="keep re-measured tracks above this NCC")
+    remeasure_max_shift_px: float = Field(2.0, gt=0, description="keep re-measured tracks moved less")
+    remeasure_older_keyframes: int = Field(
+        1, ge=0, description="also find the points of this many older keyframes in a new keyframe"
+    )
 
 
 class MappingConfig(_Section):
@@ -424,6 +433,18 @@ class GivensConfig(_Section):
     frame_prior_sigma_m: float = Field(0.1, gt=0, description="weak prior, frame position")
 
 
+class RefineConfig(_Section):
+    """Final refinement after the last loop closure (pipeline, end of a run)."""
+
+    batch_ba: bool = Field(True, description="batch bundle adjustment of all keyframes and landmarks (iSAM2)")
+    pixel_sigma_px: float = Field(0.05, gt=0, description="batch BA: std. dev. of a feature position")
+    huber_k: float = Field(1.345, ge=0, description="batch BA: Huber threshold in sigmas (0: Gaussian)")
+    max_iterations: int = Field(30, ge=1, description="batch BA: Levenberg-Marquardt iterations")
+    bridge_frames: bool = Field(
+        True, description="distribute each keyframe interval's tracking drift over its frames"
+    )
+
+
 class Config(_Section):
     """The whole configuration of loopmodel."""
 
@@ -438,6 +459,7 @@ class Config(_Section):
     vvs: VvsConfig = Field(default_factory=VvsConfig)
     givens: GivensConfig = Field(default_factory=GivensConfig)
     backend: BackendConfig = Field(default_factory=BackendConfig)
+    refine: RefineConfig = Field(default_factory=RefineConfig)
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

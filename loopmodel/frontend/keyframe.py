@@ -27,7 +27,9 @@ class Keyframe:
     frame tracking set i is the left image of keyframe i+1); ``image`` the rectified left
     grey image. ``connected`` is False when the pose relative to the previous keyframe was
     not measured (recovery after tracking loss); ``kf_prev_from_kf`` is the measured
-    transform (after the local hybrid BA) when connected.
+    transform (after the local hybrid BA) when connected; ``kf_prev_from_kf_tracked`` the
+    tracker's own pose of this frame in the previous keyframe, before the local BA (the end
+    of the tracked frames' chain; the final refinement bridges its drift).
     """
 
     id: int
@@ -42,6 +44,7 @@ class Keyframe:
     prev_keyframe_id: int | None = None
     connected: bool = True
     kf_prev_from_kf: F64 | None = None
+    kf_prev_from_kf_tracked: F64 | None = None
     rect_from_cam: F64 = field(default_factory=lambda: np.eye(4))
     segment: int = 0
     ba_info: dict[str, float] = field(default_factory=dict)

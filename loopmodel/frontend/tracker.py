@@ -81,6 +81,7 @@ class FrontEnd:
         )
         self._world_from_kf: dict[int, F64] = {}
         self._active: _ActiveSet | None = None
+        self._older: list[_ActiveSet] = []  # keyframes before the active one (re-measured)
         self._next_kf_id = 0
         self._next_landmark_id = 0
         self._segment = 0
@@ -383,6 +384,72 @@ class FrontEnd:
             return True
         return _rotation_deg(kf_from_cur) > cfg.max_rotation_deg
 
+    def _remeasure_tracks(self, prev: _ActiveSet, left: NDArray[np.uint8], kf_from_cur: F64) -> None:
+        """Measure the tracked features again against the keyframe's own patches (affine
+        warp predicted by the pose, :mod:`loopmodel.frontend.affine_klt`) and keep those
+        that match: frame-to-frame KLT slides over a keyframe interval, and these positions
+        link the keyframes (mono observations, local BA)."""
+        from loopmodel.frontend.affine_klt import predicted_affine, refine_affine
+
+        cfg = self.config
+        idx = self._track_idx
+        if idx.size == 0:
+            return
+        cur_from_kf = invert_pose(kf_from_cur)
+        match = refine_affine(
+            prev.keyframe.image,
+            left,
+            prev.stereo_px[idx][:, [0, 2]],
+            self._track_uv,
+            predicted_affine(self.left_camera, prev.points[idx], cur_from_kf),
+            cfg.remeasure_half_window_px,
+            min_ncc=cfg.remeasure_min_ncc,
+            max_shift_px=cfg.remeasure_max_shift_px,
+        )
+        if int(match.ok.sum()) >= max(6, cfg.min_inliers):
+            self._track_idx = idx[match.ok]
+            self._track_uv = match.uv_px[match.ok]
+
+    def _observe_older(self, left: NDArray[np.uint8], world_from_rect: F64) -> F64:
+        """Rows (landmark_id, u, v) of older keyframes' points found in the new keyframe
+        image ``left`` (rectified pose ``world_from_rect``): projected with the current
+        poses, then matched against their own keyframe's patch (affine); links keyframes
+        two or more intervals apart."""
+        from loopmodel.frontend.affine_klt import predicted_affine, refine_affine
+
+        cfg = self.config
+        w, h = self.calibration.image_size
+        rows = [np.zeros((0, 3))]
+        for old in self._older:
+            # the old keyframe as the back end has corrected it since
+            world_from_old = self._world_from_kf.get(old.keyframe.id, old.keyframe.world_from_kf) @ self.cam_from_rect
+            cur_from_old = invert_pose(world_from_rect) @ world_from_old
+            p = old.points @ cur_from_old[:3, :3].T + cur_from_old[:3, 3]
+            front = p[:, 2] > 1e-3
+            uv = np.full((p.shape[0], 2), -1.0)
+            uv[front] = self.left_camera.project(p[front])
+            margin = cfg.remeasure_half_window_px + cfg.remeasure_max_shift_px + 2
+            sel = np.flatnonzero(
+                front & (uv[:, 0] > margin) & (uv[:, 0] < w - 1 - margin)
+                & (uv[:, 1] > margin) & (uv[:, 1] < h - 1 - margin)
+            )
+            if sel.size == 0:
+                continue
+            match = refine_affine(
+                old.keyframe.image,
+                left,
+                old.stereo_px[sel][:, [0, 2]],
+                uv[sel],
+                predicted_affine(self.left_camera, old.points[sel], cur_from_old),
+                cfg.remeasure_half_window_px,
+                min_ncc=cfg.remeasure_min_ncc,
+                max_shift_px=cfg.remeasure_max_shift_px,
+            )
+            ok = match.ok
+            ids = old.keyframe.landmark_ids[sel[ok]].astype(float)
+            rows.append(np.column_stack([ids, match.uv_px[ok]]))
+        return np.vstack(rows)
+
     # ------------------------------------------------------------------ keyframes
     def _start_keyframe(
         self,
@@ -427,10 +494,16 @@ class FrontEnd:
         prev = self._active
         mono_obs = np.zeros((0, 3))
         kf_prev_from_kf = None
+        kf_prev_from_kf_tracked = None
         ba_info: dict[str, float] = {}
         if prev is not None and kf_from_cur is not None and connected:
+            if cfg.keyframe_remeasure:
+                self._remeasure_tracks(prev, left, kf_from_cur)
             ids = prev.keyframe.landmark_ids[self._track_idx]
             mono_obs = np.column_stack([ids.astype(float), self._track_uv])
+            if cfg.keyframe_remeasure and self._older:
+                older = self._observe_older(left, prev.world_from_kfrect @ kf_from_cur)
+                mono_obs = np.vstack([mono_obs, older])
             kf_from_new = kf_from_cur
             if cfg.local_ba and self._track_idx.size >= 6:
                 tb = time.perf_counter()
@@ -473,6 +546,7 @@ class FrontEnd:
                 }
             world_from_rect = nearest_rigid(prev.world_from_kfrect @ kf_from_new)
             kf_prev_from_kf = self.cam_from_rect @ kf_from_new @ self.rect_from_cam
+            kf_prev_from_kf_tracked = self.cam_from_rect @ kf_from_cur @ self.rect_from_cam
 
         kf_id = self._next_kf_id
         self._next_kf_id += 1
@@ -494,6 +568,7 @@ class FrontEnd:
             prev_keyframe_id=prev.keyframe.id if prev is not None else None,
             connected=connected and prev is not None,
             kf_prev_from_kf=kf_prev_from_kf,
+            kf_prev_from_kf_tracked=kf_prev_from_kf_tracked,
             rect_from_cam=self.rect_from_cam.copy(),
             segment=self._segment,
             ba_info=ba_info,
@@ -507,6 +582,10 @@ class FrontEnd:
             unmatched[m.index] = False
             self._mono.spawn(kf_id, corners[unmatched], depth, stereo_px[:, [0, 2]])
             self._good_stamp = frame.timestamp_ns
+        if prev is not None and connected and cfg.remeasure_older_keyframes > 0:
+            self._older = [prev, *self._older][: cfg.remeasure_older_keyframes]
+        else:
+            self._older = []
         self._active = _ActiveSet(kf, world_from_rect, pts, stereo_px, depth)
         self._track_idx = np.arange(pts.shape[0], dtype=np.int64)
         self._track_uv = stereo_px[:, [0, 2]].copy()

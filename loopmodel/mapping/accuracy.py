@@ -3,7 +3,8 @@
 Accuracy: unsigned point-to-surface distance from every reconstructed vertex to the
 ground-truth mesh (open3d ``RaycastingScene.compute_distance``). Completeness: the share
 of points sampled uniformly on the ground-truth surface that lie within a tolerance of the
-reconstruction (optionally only inside a box, e.g. the scanned object).
+reconstruction (optionally only inside a box, or of another surface such as the scanned
+object alone, or of the part of it the laser swept).
 """
 
 from __future__ import annotations
@@ -49,6 +50,35 @@ def distances_to_mesh(points: NDArray[np.float64], mesh: o3d.geometry.TriangleMe
     return _scene(mesh).compute_distance(q).numpy().astype(np.float64)
 
 
+def sample_surface(mesh: o3d.geometry.TriangleMesh, count: int, seed: int = 0) -> NDArray[np.float64]:
+    """``count`` points uniformly distributed over the surface of ``mesh`` by triangle area
+    (seeded, independent of open3d's random generator); metres, the mesh's frame."""
+    v = np.asarray(mesh.vertices)
+    t = np.asarray(mesh.triangles)
+    if t.shape[0] == 0:
+        raise InputError(None, "cannot sample a mesh without triangles")
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    rng = np.random.default_rng(seed)
+    tri = rng.choice(t.shape[0], size=count, p=area / area.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    s1 = np.sqrt(r1)
+    return (1 - s1)[:, None] * a[tri] + (s1 * (1 - r2))[:, None] * b[tri] + (s1 * r2)[:, None] * c[tri]
+
+
+def swept_samples(
+    samples: NDArray[np.float64], stripe_points: NDArray[np.float64], radius_m: float
+) -> NDArray[np.float64]:
+    """The surface samples (P x 3) within ``radius_m`` of any laser-stripe point (Q x 3,
+    placed with ground-truth poses): the part of the surface the laser swept."""
+    from scipy.spatial import cKDTree
+
+    if stripe_points.shape[0] == 0:
+        return samples[:0]
+    d, _ = cKDTree(stripe_points).query(samples, k=1, distance_upper_bound=radius_m)
+    return samples[np.isfinite(d)]
+
+
 def mesh_accuracy(
     mesh: o3d.geometry.TriangleMesh,
     gt_mesh: o3d.geometry.TriangleMesh,
@@ -57,24 +87,21 @@ def mesh_accuracy(
     region_min: NDArray[np.float64] | None = None,
     region_max: NDArray[np.float64] | None = None,
     seed: int = 0,
+    reference_points: NDArray[np.float64] | None = None,
 ) -> MeshAccuracy:
     """Accuracy of ``mesh`` against ``gt_mesh``; completeness counts ground-truth samples
-    inside the optional box [region_min, region_max] (world, metres)."""
+    inside the optional box [region_min, region_max] (world, metres), or, when given, the
+    share of ``reference_points`` (P x 3, e.g. samples of the scanned object) within the
+    tolerance of the mesh."""
     if len(mesh.triangles) == 0 or len(mesh.vertices) == 0:
         raise InputError(None, "reconstructed mesh is empty")
     if len(gt_mesh.triangles) == 0:
         raise InputError(None, "ground-truth mesh is empty")
     d = distances_to_mesh(np.asarray(mesh.vertices), gt_mesh) * 1e3
-    # uniform samples on the ground truth by triangle area (seeded, independent of open3d RNG)
-    v = np.asarray(gt_mesh.vertices)
-    t = np.asarray(gt_mesh.triangles)
-    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    rng = np.random.default_rng(seed)
-    tri = rng.choice(t.shape[0], size=gt_samples, p=area / area.sum())
-    r1, r2 = rng.random(gt_samples), rng.random(gt_samples)
-    s1 = np.sqrt(r1)
-    samples = (1 - s1)[:, None] * a[tri] + (s1 * (1 - r2))[:, None] * b[tri] + (s1 * r2)[:, None] * c[tri]
+    if reference_points is not None:
+        samples = np.asarray(reference_points, dtype=float).reshape(-1, 3)
+    else:
+        samples = sample_surface(gt_mesh, gt_samples, seed)
     if region_min is not None and region_max is not None:
         inside = np.all((samples >= region_min) & (samples <= region_max), axis=1)
         samples = samples[inside]
@@ -98,18 +125,37 @@ def mesh_error_metrics(
     gt_mesh: o3d.geometry.TriangleMesh,
     config: MappingConfig | None = None,
     completeness_tol_m: float = 0.002,
+    object_mesh: o3d.geometry.TriangleMesh | None = None,
+    swept_radius_m: float = 0.005,
+    object_samples: int = 200_000,
 ) -> dict[str, float]:
     """Mesh the stripes once per named trajectory (e.g. ``gt``, ``before`` = online,
     ``after`` = final) and measure each against the ground truth. Keys per name:
-    ``mesh_err_<name>_mm`` (mean), ``mesh_err_<name>_mm_p95``, ``mesh_completeness_<name>``."""
+    ``mesh_err_<name>_mm`` (mean), ``mesh_err_<name>_mm_p95``, ``mesh_completeness_<name>``.
+
+    Completeness is the share of the ground-truth surface within ``completeness_tol_m`` of
+    the mesh: of the whole scene, or with ``object_mesh`` (the scanned object, e.g. the
+    simulator's ``object.ply``) of that object's surface; then also
+    ``mesh_completeness_swept_<name>``: of the object's surface the laser swept (samples
+    within ``swept_radius_m`` of a stripe point placed with the ``gt`` trajectory; needs a
+    trajectory named ``gt``)."""
     from loopmodel.mapping.stripe_map import StripeMap
 
+    maps = {name: StripeMap.from_trajectory(traj, stripes, config) for name, traj in trajectories.items()}
+    reference = swept = None
+    if object_mesh is not None:
+        reference = sample_surface(object_mesh, object_samples)
+        if "gt" in maps:
+            swept = swept_samples(reference, maps["gt"].world_points(), swept_radius_m)
     out: dict[str, float] = {}
-    for name, traj in trajectories.items():
-        smap = StripeMap.from_trajectory(traj, stripes, config)
+    for name, smap in maps.items():
         smap.check_nonempty()
-        acc = mesh_accuracy(smap.mesh(), gt_mesh, completeness_tol_m)
+        surface = smap.mesh()
+        acc = mesh_accuracy(surface, gt_mesh, completeness_tol_m, reference_points=reference)
         out[f"mesh_err_{name}_mm"] = acc.mean_mm
         out[f"mesh_err_{name}_mm_p95"] = acc.p95_mm
         out[f"mesh_completeness_{name}"] = acc.completeness
+        if swept is not None and swept.shape[0]:
+            dg = distances_to_mesh(swept, surface)
+            out[f"mesh_completeness_swept_{name}"] = float(np.mean(dg <= completeness_tol_m))
     return out
