@@ -9,9 +9,9 @@ from gtsam.symbol_shorthand import L, X
 from test_backend_isam2 import SIGMA_PX, batch_solution, calibration, exact_config, keyframes, scene
 
 from loopmodel.backend import BackendEstimate
-from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.backend.isam2 import Isam2Backend
 from loopmodel.geometry.se3 import invert_pose, make_pose, se3_exp, so3_exp
+from loopmodel.mapping.stripe_map import StripeMap
 
 
 def _backend(kfs: list, **kw: float) -> Isam2Backend:
@@ -77,7 +77,9 @@ def test_bridged_trajectory_removes_drift_that_grows_along_the_interval(rng: np.
                 links[a] = (prev, invert_pose(truth[prev]) @ truth[a] @ se3_exp(-drift[prev]))
         alpha = (i - a) / 10
         # tracked frame pose in its keyframe: the drift grows linearly along the interval
-        anchored.add_frame(int(t_ns[i]), kf_id=a, kf_from_cam=invert_pose(truth[a]) @ truth[i] @ se3_exp(-alpha * drift[a]))
+        anchored.add_frame(
+            int(t_ns[i]), kf_id=a, kf_from_cam=invert_pose(truth[a]) @ truth[i] @ se3_exp(-alpha * drift[a])
+        )
     times = {k: int(t_ns[k]) for k in kf_frames}
     bridged = anchored.bridged_trajectory(times, links).world_from_cam
     plain = anchored.trajectory().world_from_cam
