@@ -23,6 +23,7 @@ from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder
 from loopmodel.mapping.extraction import sequence_stripe_count, sequence_stripes
+from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.types import StripeProfile, Trajectory
 
@@ -213,113 +214,6 @@ def _write_stripes(
     return stripes
 
 
-class _LiveMapping:
-    """The sequence's laser stripes handed to the pipeline's :class:`StripeMap` in time order
-    as frames arrive, and the chunked live mesh: every ``live_mesh_every_kf`` keyframes the
-    blocks that new stripes entered or that pose corrections moved are re-meshed in a worker
-    thread (open3d releases the GIL), so tracking does not wait for it."""
-
-    def __init__(self, world: StripeMap, sequence: Sequence, every_kf: int) -> None:
-        self._world = world
-        self._every = every_kf
-        self._stripes = (
-            sequence_stripes(sequence, world.config)
-            if every_kf > 0 and sequence_stripe_count(sequence)
-            else iter(())
-        )
-        self._next: StripeProfile | None = None
-        self._keyframes = 0
-        self._pool: Any = None
-        self._job: Any = None
-        self.update_ms: list[float] = []
-        self.blocks_remeshed = 0
-
-    def feed(self, t_ns: int) -> None:
-        """Add every stripe taken up to ``t_ns``. A bad stripe stops the live feed (logged);
-        the run and its final mesh go on."""
-        batch: list[StripeProfile] = []
-        try:
-            while True:
-                if self._next is None:
-                    self._next = next(self._stripes, None)
-                    if self._next is None:
-                        break
-                if self._next.timestamp_ns > t_ns:
-                    break
-                if np.asarray(self._next.points_in_cam).size:
-                    batch.append(self._next)
-                self._next = None
-            if batch:
-                self._world.add_many(batch)
-        except LoopmodelError as exc:
-            logger.error("live mesh: laser stripes no longer fed: %s", exc)
-            self._stripes, self._next = iter(()), None
-
-    def on_keyframe(self) -> None:
-        """Count a keyframe; every ``every_kf``-th one installs the worker's finished blocks
-        and, when the worker is free, hands it the blocks that changed since."""
-        self._keyframes += 1
-        if self._every <= 0 or self._keyframes % self._every or self._world.point_count == 0:
-            return
-        if self._job is not None:
-            if not self._job.done():
-                return  # still busy: the dirty blocks wait for the next turn
-            self._collect()
-        snap = self._world.take_dirty_blocks()
-        if snap is None:
-            return
-        if self._pool is None:
-            from concurrent.futures import ThreadPoolExecutor
-
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="live-mesh")
-        self._job = self._pool.submit(self._remesh, *snap)
-
-    def _remesh(self, points_w: np.ndarray, sensors_w: np.ndarray, blocks: set[tuple[int, int, int]]) -> Any:
-        from loopmodel.mapping.meshing import live_mesh_config, mesh_blocks
-
-        t0 = time.perf_counter()
-        meshes = mesh_blocks(points_w, sensors_w, blocks, live_mesh_config(self._world.config))
-        return meshes, (time.perf_counter() - t0) * 1e3
-
-    def _collect(self) -> None:
-        job, self._job = self._job, None
-        try:
-            meshes, ms = job.result()
-        except Exception as exc:  # the live view is a convenience: log, keep tracking
-            logger.error("live mesh update failed: %s", exc)
-            return
-        self._world.install_blocks(meshes)
-        self.blocks_remeshed += len(meshes)
-        self.update_ms.append(ms)
-        logger.info("live mesh: %d block(s) re-meshed in %.0f ms", len(meshes), ms)
-
-    def close(self, wait: bool) -> None:
-        """Install the last worker result (``wait``) or abandon it; stop the worker."""
-        if self._job is not None and wait:
-            self._collect()
-        if self._pool is not None:
-            self._pool.shutdown(wait=wait, cancel_futures=True)
-
-    def write(self, folder: ResultsFolder) -> None:
-        """``mesh_live.ply``: the live mesh as the run left it (``live_mesh_every_kf`` > 0)."""
-        if self._every <= 0 or not self.update_ms:
-            return
-        from loopmodel.io.mesh_io import write_mesh
-
-        mesh = self._world.live_mesh()
-        if len(mesh.triangles):
-            write_mesh(folder.file("mesh_live.ply"), mesh, "ply")
-
-    def metrics(self) -> dict[str, Any]:
-        if self._every <= 0:
-            return {}
-        return {
-            "live_mesh_updates": len(self.update_ms),
-            "live_mesh_blocks_remeshed": self.blocks_remeshed,
-            **_quantiles(self.update_ms, "live_mesh_update_ms"),
-        }
-
-
 def _aligned_to(traj: Trajectory, reference: Trajectory) -> Trajectory:
     """``traj`` moved by the SE(3) transform that best aligns its positions to ``reference``
     at common timestamps (exact match)."""
@@ -408,7 +302,7 @@ def run_pipeline(
     backend = create_backend(config.backend, frontend.calibration, config.givens)
     # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
     anchored = StripeMap(config.mapping)
-    live = _LiveMapping(anchored, sequence, config.mapping.live_mesh_every_kf)
+    live = LiveMapping(anchored, sequence, config.mapping.live_mesh_every_kf)
     loop_stage = None
     if config.loop.enabled and config.backend.kind != "none":
         from loopmodel.loop.stage import LoopClosingStage
@@ -517,7 +411,10 @@ def run_pipeline(
             metrics["final_refine_s"] = final_refine_s
             if loop_stage is not None:
                 metrics.update(loop_stage.metrics())
-            metrics.update(live.metrics())
+            if live.enabled:
+                metrics["live_mesh_updates"] = len(live.update_ms)
+                metrics["live_mesh_blocks_remeshed"] = live.blocks_remeshed
+                metrics.update(_quantiles(live.update_ms, "live_mesh_update_ms"))
             screen_stats = getattr(backend, "screen_stats", None)
             if callable(screen_stats):
                 stats = screen_stats()

@@ -7,6 +7,7 @@ planes' homography warps (far to near). Ground-truth depth comes from ray castin
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -115,3 +116,32 @@ def trajectory(n: int, step_m: float = 0.06) -> np.ndarray:
         R = so3_exp([0.0, np.radians(0.4) * i, np.radians(0.1) * i])
         out.append(make_pose(R, [step_m * i, 0.01 * np.sin(i / 3), 0.5 * step_m * i]))
     return np.array(out)
+
+
+def write_kitti_folder(folder: Path, n: int, rng: np.random.Generator) -> np.ndarray:
+    """A rendered rectified stereo sequence in KITTI layout with ground truth poses."""
+    planes = default_scene(rng)
+    cal = stereo_rig()
+    poses = trajectory(n)
+    poses = invert_pose(poses[0]) @ poses
+    (folder / "image_0").mkdir(parents=True)
+    (folder / "image_1").mkdir()
+    for i, world_from_cam in enumerate(poses):
+        cam_from_world = invert_pose(world_from_cam)
+        cv2.imwrite(
+            str(folder / "image_0" / f"{i:06d}.png"),
+            render(planes, cal.K_left, cam_from_world, cal.image_size),
+        )
+        cv2.imwrite(
+            str(folder / "image_1" / f"{i:06d}.png"),
+            render(planes, cal.K_right, cal.right_from_left @ cam_from_world, cal.image_size),
+        )
+    P0 = np.hstack([cal.K_left, np.zeros((3, 1))])
+    P1 = P0.copy()
+    P1[0, 3] = -cal.K_left[0, 0] * cal.baseline_m
+    row = [" ".join(repr(float(x)) for x in P.ravel()) for P in (P0, P1)]
+    (folder / "calib.txt").write_text(f"P0: {row[0]}\nP1: {row[1]}\n")
+    (folder / "poses.txt").write_text(
+        "".join(" ".join(repr(float(x)) for x in T[:3, :].ravel()) + "\n" for T in poses)
+    )
+    return poses

@@ -7,14 +7,12 @@ import os
 import signal
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
-from frontend_scene import default_scene, render, stereo_rig, trajectory
+from frontend_scene import write_kitti_folder
 
 from loopmodel.cli import main
 from loopmodel.config import Config, load_config
-from loopmodel.geometry.se3 import invert_pose
 from loopmodel.io.sequence import open_sequence
 from loopmodel.io.trajectory_io import read_trajectory
 from loopmodel.pipeline import run_frontend, run_pipeline
@@ -22,39 +20,10 @@ from loopmodel.pipeline import run_frontend, run_pipeline
 N_FRAMES = 14
 
 
-def _write_kitti(folder: Path, n: int, rng: np.random.Generator) -> np.ndarray:
-    """A rendered rectified stereo sequence in KITTI layout with ground truth poses."""
-    planes = default_scene(rng)
-    cal = stereo_rig()
-    poses = trajectory(n)
-    poses = invert_pose(poses[0]) @ poses
-    (folder / "image_0").mkdir(parents=True)
-    (folder / "image_1").mkdir()
-    for i, world_from_cam in enumerate(poses):
-        cam_from_world = invert_pose(world_from_cam)
-        cv2.imwrite(
-            str(folder / "image_0" / f"{i:06d}.png"),
-            render(planes, cal.K_left, cam_from_world, cal.image_size),
-        )
-        cv2.imwrite(
-            str(folder / "image_1" / f"{i:06d}.png"),
-            render(planes, cal.K_right, cal.right_from_left @ cam_from_world, cal.image_size),
-        )
-    P0 = np.hstack([cal.K_left, np.zeros((3, 1))])
-    P1 = P0.copy()
-    P1[0, 3] = -cal.K_left[0, 0] * cal.baseline_m
-    row = [" ".join(repr(float(x)) for x in P.ravel()) for P in (P0, P1)]
-    (folder / "calib.txt").write_text(f"P0: {row[0]}\nP1: {row[1]}\n")
-    (folder / "poses.txt").write_text(
-        "".join(" ".join(repr(float(x)) for x in T[:3, :].ravel()) + "\n" for T in poses)
-    )
-    return poses
-
-
 @pytest.fixture(scope="module")
 def sequence_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.mktemp("pipeline") / "seq"
-    _write_kitti(folder, N_FRAMES, np.random.default_rng(7))
+    write_kitti_folder(folder, N_FRAMES, np.random.default_rng(7))
     return folder
 
 
