@@ -748,8 +748,6 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
 
 
 vvs_app = typer.Typer(help="Virtual visual servoing for N-camera central rigs (seed 002).", no_args_is_help=True)
@@ -895,3 +893,7 @@ def vvs_calibrate(
             )
         console.print(table)
     console.print(f"results in {out}")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
