@@ -895,5 +895,10 @@ def vvs_calibrate(
     console.print(f"results in {out}")
 
 
+from loopmodel.cli.view import view as _view  # noqa: E402
+
+app.command("view")(_view)
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

@@ -510,6 +510,20 @@ def make_plots(ev: RunEvaluation) -> dict[str, bytes]:
             ref_span, tracks[-1], f"{ev.run.name}: {tracks[-1].label}, coloured by ATE ({align})"
         ),
     }
+    if ev.run.path is not None and ev.run.final is not None:
+        from loopmodel.eval.mesh_pictures import PLOT_MESH, mesh_before_after_png
+
+        on = ev.pairs.get("online")
+        png = mesh_before_after_png(
+            ev.run.path,
+            ev.run.online.traj if ev.run.online is not None and on is not None else None,
+            on.alignment if on is not None else None,
+            ev.run.final.traj,
+            ev.pairs["final"].alignment,
+            ev.gt.source,
+        )
+        if png is not None:
+            out[PLOT_MESH] = png
     return out
 
 
