@@ -39,6 +39,7 @@ from loopmodel.errors import LoopmodelError
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder, write_results
+from loopmodel.listener import RunListener
 from loopmodel.loop.stage import LoopConstraint, LoopStage, MapState, NullLoopStage
 from loopmodel.mapping.final import final_mesh, run_stripes
 from loopmodel.mapping.live import LiveMapping
@@ -52,7 +53,6 @@ logger = logging.getLogger(__name__)
 ProgressFn = Callable[[int, int, float], None]
 # progress(frames_done, frames_total, frames_per_second, keyframes)
 PipelineProgressFn = Callable[[int, int, float, int], None]
-KeyframeHook = Callable[[Keyframe, FrameResult], None]
 
 #: The result of :func:`run_pipeline` (the name of earlier versions).
 RunOutput = RunResult
@@ -184,10 +184,10 @@ class _Run:
     """The stages of one run and what it has produced so far; :meth:`step` handles one
     frame whole, :meth:`finish` turns the state into a :class:`RunResult`."""
 
-    def __init__(self, sequence: Sequence, config: Config, hooks: list[KeyframeHook]) -> None:
+    def __init__(self, sequence: Sequence, config: Config, listeners: list[RunListener]) -> None:
         self.sequence = sequence
         self.config = config
-        self.hooks = hooks
+        self.listeners = listeners
         self.frontend = FrontEnd(sequence.calibration, config.frontend)
         self.backend: Backend = create_backend(config.backend, self.frontend.calibration, config.givens)
         self.loop = _loop_stage(config, self.frontend.calibration)
@@ -221,8 +221,17 @@ class _Run:
             self.anchored.add_frame(res.timestamp_ns, kf_id=res.keyframe_id, kf_from_cam=res.kf_from_cam)
             self.live.feed(res.timestamp_ns)
         if kf is not None:
+            updates = len(self.live.update_ms)
             self.live.on_keyframe()
+            if self.listeners and len(self.live.update_ms) > updates:
+                mesh = self.live.mesh()
+                for listener in self.listeners:
+                    listener.on_live_mesh(mesh)
         self.frame_ms.append((time.perf_counter() - t0) * 1e3)
+        if self.listeners:
+            tracks = self.frontend.tracked_features()
+            for listener in self.listeners:
+                listener.on_frame(frame, res, tracks)
         return res
 
     def _state(self) -> MapState:
@@ -245,8 +254,10 @@ class _Run:
         if kf.connected and kf.prev_keyframe_id is not None and kf.kf_prev_from_kf_tracked is not None:
             self.tracked_links[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf_tracked)
         self.keyframes[kf.id] = kf.timestamp_ns
-        for hook in self.hooks:
-            hook(kf, res)
+        for listener in self.listeners:
+            if out.events:
+                listener.on_loop_events(out.events)
+            listener.on_keyframe(kf, res)
 
     def _add_constraints(self, constraints: list[LoopConstraint]) -> tuple[int | None, ...]:
         ids: list[int | None] = []
@@ -263,6 +274,8 @@ class _Run:
         if world_from_kf:
             self.frontend.apply_correction(dict(world_from_kf))
             self.anchored.update_keyframes(world_from_kf)
+            for listener in self.listeners:
+                listener.on_correction(world_from_kf)
 
     # ------------------------------------------------------------------ end of run
     def _final_estimate(self, interrupted: bool) -> BackendEstimate | None:
@@ -318,6 +331,8 @@ class _Run:
         )
         result.live_mesh = self.live.mesh()
         result.metrics = self._metrics(result, wall, final_refine_s, mesh_metrics)
+        for listener in self.listeners:
+            listener.on_finish(result)
         return result
 
     def _metrics(
@@ -350,7 +365,7 @@ def process(
     *,
     progress: PipelineProgressFn | None = None,
     max_frames: int | None = None,
-    keyframe_hooks: list[KeyframeHook] | None = None,
+    listeners: list[RunListener] | None = None,
     stop: StopFlag | None = None,
 ) -> RunResult:
     """Reader -> front end -> loop closing -> back end -> mapping, writing nothing.
@@ -360,7 +375,7 @@ def process(
     error while processing a frame ends the run too: the result of the frames before it is
     returned with the error in ``error`` (and ``metrics["stopped_by"]``), for the caller to
     raise once it has kept what it wants."""
-    run = _Run(sequence, config, keyframe_hooks or [])
+    run = _Run(sequence, config, listeners or [])
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     stop = stop if stop is not None else StopFlag()
     logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
@@ -423,7 +438,7 @@ def run_pipeline(
     name: str = "run",
     progress: PipelineProgressFn | None = None,
     max_frames: int | None = None,
-    keyframe_hooks: list[KeyframeHook] | None = None,
+    listeners: list[RunListener] | None = None,
     handle_signals: bool = True,
 ) -> RunResult:
     """:func:`process` the sequence and write the results folder ``<out_dir>/<name>/``
@@ -440,7 +455,7 @@ def run_pipeline(
     written, then ``KeyboardInterrupt`` is raised (an error ending the run early is raised
     after the write as well)."""
     folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
-    kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "keyframe_hooks": keyframe_hooks}
+    kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
     result = _process_and_write(folder, sequence, config, handle_signals, **kwargs)
     if result.error is not None:
         raise result.error
@@ -458,6 +473,7 @@ def run(
     max_frames: int | None = None,
     progress: PipelineProgressFn | None = None,
     handle_signals: bool = False,
+    listeners: list[RunListener] | None = None,
 ) -> RunResult:
     """Run the whole pipeline over a sequence and return what it produced.
 
@@ -467,7 +483,8 @@ def run(
     the results folder ``<out_dir>/<name>/``). Installs no signal handler unless
     ``handle_signals`` (Ctrl-C and SIGTERM then stop it after the current frame); an
     interrupted run returns its result with ``interrupted`` True; an error is raised (after
-    the write when ``out_dir`` is given)."""
+    the write when ``out_dir`` is given). ``listeners`` are told every event
+    (:class:`~loopmodel.listener.RunListener`: visualisation, recording)."""
     from loopmodel.config import config_from_dict, load_config
     from loopmodel.io.sequence import open_sequence
 
@@ -476,7 +493,7 @@ def run(
     else:
         cfg = config if isinstance(config, Config) else load_config(config)
     seq = source if isinstance(source, Sequence) else open_sequence(source, cfg.sequence)
-    kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames}
+    kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
     if out_dir is not None:
         result = _process_and_write(ResultsFolder(out_dir, name), seq, cfg, handle_signals, **kwargs)
     else:
@@ -495,7 +512,7 @@ def run_frontend(
     name: str = "run",
     progress: ProgressFn | None = None,
     max_frames: int | None = None,
-    keyframe_hooks: list[KeyframeHook] | None = None,
+    listeners: list[RunListener] | None = None,
 ) -> RunResult:
     """The front end alone over ``sequence``: :func:`run_pipeline` with ``backend.kind: none``
     (keyframes keep the tracked poses), no loop closing and no mesh. Writes the same results
@@ -508,7 +525,7 @@ def run_frontend(
         name,
         None if progress is None else (lambda i, n, fps, _kf: progress(i, n, fps)),
         max_frames,
-        keyframe_hooks,
+        listeners,
     )
 
 

@@ -77,18 +77,21 @@ def run_sequence(path: Path, config: Config, max_frames: int | None = None, stri
 
     from loopmodel.io.sequence import open_sequence
     from loopmodel.io.trajectory_io import read_trajectory
+    from loopmodel.listener import RunListener
     from loopmodel.pipeline import run_pipeline
 
     seq = open_sequence(path, config.sequence)
     view: Any = _Strided(seq, stride) if stride > 1 else seq
     chain: dict[int, tuple[int | None, np.ndarray | None, bool, np.ndarray]] = {}
 
-    def hook(kf: Any, res: Any) -> None:
-        chain[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf, kf.connected, kf.world_from_kf.copy())
+    class _Chain(RunListener):
+        def on_keyframe(self, keyframe: Any, result: Any) -> None:
+            kf = keyframe
+            chain[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf, kf.connected, kf.world_from_kf.copy())
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        out = run_pipeline(view, config, tmp, "sim_loop", max_frames=max_frames, keyframe_hooks=[hook])
+        out = run_pipeline(view, config, tmp, "sim_loop", max_frames=max_frames, listeners=[_Chain()])
         final = read_trajectory(out.folder / "trajectory_final.tum")
     wall = time.perf_counter() - t0
     dr: dict[int, np.ndarray] = {}

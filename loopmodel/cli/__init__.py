@@ -15,6 +15,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from loopmodel import __version__
+from loopmodel.cli.view import RerunConnectOption, RerunFileOption, RerunSpawnOption, rerun_listeners
+from loopmodel.cli.view import view as view_results
 from loopmodel.config import dump_config, load_config
 from loopmodel.errors import InputError, LoopmodelError
 
@@ -134,6 +136,9 @@ def run(
     out: Annotated[Path | None, typer.Option("--out", help="Results root (default: output.out_dir)")] = None,
     name: Annotated[str | None, typer.Option("--name", help="Run name (folder under --out)")] = None,
     max_frames: Annotated[int | None, typer.Option("--max-frames", help="Stop after this many frames")] = None,
+    rerun: RerunFileOption = None,
+    rerun_spawn: RerunSpawnOption = False,
+    rerun_connect: RerunConnectOption = None,
 ) -> None:
     """Process a sequence (front end, back end); writes config, trajectories, keyframes, map,
     metrics and log into <out>/<name>/. Ctrl-C or SIGTERM stops it after writing what it has."""
@@ -176,6 +181,7 @@ def run(
                 run_name,
                 max_frames=max_frames,
                 progress=lambda i, n, fps, kf: bar.update(task, completed=i, fps=fps, kf=kf),
+                listeners=rerun_listeners(seq.calibration, rerun, rerun_spawn, rerun_connect),
             )
         except KeyboardInterrupt:
             err_console.print(f"results up to the last processed frame are in {folder}")
@@ -895,9 +901,7 @@ def vvs_calibrate(
     console.print(f"results in {out}")
 
 
-from loopmodel.cli.view import view as _view  # noqa: E402
-
-app.command("view")(_view)
+app.command("view")(view_results)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -8,6 +8,8 @@ from typing import Annotated
 import typer
 
 from loopmodel.errors import InputError
+from loopmodel.listener import RunListener
+from loopmodel.types import StereoCalibration
 
 
 def view(
@@ -34,3 +36,28 @@ def view(
         f"{s.keyframes} keyframes, {s.landmarks} landmarks, {s.stripe_points} stripe points, "
         f"{s.mesh_triangles} mesh triangles, {s.events} loop events; open it with: rerun {target}"
     )
+
+
+RerunFileOption = Annotated[Path | None, typer.Option("--rerun", help="Record the run to this .rrd file (rerun)")]
+RerunSpawnOption = Annotated[bool, typer.Option("--rerun-spawn", help="Stream the run live to a new rerun viewer")]
+RerunConnectOption = Annotated[
+    str | None, typer.Option("--rerun-connect", help="Stream the run live to a rerun viewer at HOST:PORT (or URL)")
+]
+
+
+def rerun_listeners(
+    calibration: StereoCalibration, rrd: Path | None, spawn: bool, connect: str | None
+) -> list[RunListener]:
+    """The run's rerun listener when any rerun option is given (none otherwise)."""
+    from loopmodel.viz.recorder import RerunSink
+
+    sink = RerunSink(path=rrd, spawn=spawn, connect=connect)
+    if not sink.enabled:
+        return []
+    if rrd is not None and rrd.suffix.lower() != ".rrd":
+        raise InputError(rrd, "--rerun file must end in .rrd")
+    from loopmodel.frontend.rectify import Rectifier
+    from loopmodel.viz.recorder import RerunListener, RerunRecorder
+
+    rect = Rectifier(calibration).calibration
+    return [RerunListener(RerunRecorder(sink), rect.K_left, rect.image_size)]

@@ -22,12 +22,18 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import InputError
+from loopmodel.listener import RunListener
+
+if TYPE_CHECKING:
+    from loopmodel.frontend import FrameResult, Keyframe, TrackedFeatures
+    from loopmodel.result import RunResult
+    from loopmodel.types import StereoFrame
 
 F64 = NDArray[np.float64]
 
@@ -222,3 +228,111 @@ class RerunRecorder:
         """Flush and close the recording."""
         self.rec.flush()
         self.rec.disconnect()
+
+
+class RerunListener(RunListener):
+    """Records a run as it happens (:class:`~loopmodel.listener.RunListener` for the pipeline).
+
+    Per frame: camera pose, rectified left image with its tracked features (coloured by the
+    frames since their keyframe; pose outliers red), the online path and scalars. Per
+    keyframe: keyframe positions. On a correction: the corrected path (every frame recomposed
+    from its keyframe's pose, as the run's anchored trajectory does), at most every
+    ``path_every`` corrections and always after a loop event. Loop events as text and lines;
+    the live mesh when it changes; at the end the final path, landmarks, stripes and mesh.
+    """
+
+    def __init__(self, recorder: RerunRecorder, K_rect: F64, image_size: tuple[int, int], path_every: int = 10) -> None:
+        self.rec = recorder
+        self.rec.camera_model(K_rect, image_size[0], image_size[1])
+        self.path_every = max(1, int(path_every))
+        self._world_from_kf: dict[int, F64] = {}
+        self._kf_frame: dict[int, int] = {}
+        self._anchor: list[tuple[int, F64]] = []  # per OK frame: keyframe id, kf_from_cam
+        self._corrections = 0
+        self._n = 0
+        self._t_ns = 0
+
+    def on_frame(self, frame: StereoFrame, result: FrameResult, tracks: TrackedFeatures) -> None:
+        """Pose, image, features and scalars of one frame."""
+        self._n, self._t_ns = int(frame.index), int(result.timestamp_ns)
+        if result.is_keyframe:
+            self._kf_frame[result.keyframe_id] = self._n
+        if result.ok:
+            self._anchor.append((result.keyframe_id, np.asarray(result.kf_from_cam, float)))
+        uv = np.vstack([tracks.inlier_px.reshape(-1, 2), tracks.outlier_px.reshape(-1, 2)])
+        age = np.full(len(uv), self._n - self._kf_frame.get(tracks.keyframe_id, self._n), np.int64)
+        inlier = np.arange(len(uv)) < len(tracks.inlier_px)
+        self.rec.frame(
+            self._n,
+            self._t_ns,
+            result.world_from_cam if result.ok else None,
+            image=tracks.left_rect,
+            features_uv=uv,
+            track_age=age,
+            inlier=inlier,
+            scalars={
+                "track_ms": result.track_ms,
+                "keyframe_ms": result.keyframe_ms,
+                "inliers": float(result.inliers),
+                "tracked": float(result.tracked),
+                "keyframes": float(len(self._world_from_kf)),
+            },
+        )
+
+    def on_keyframe(self, keyframe: Keyframe, result: FrameResult) -> None:
+        """Keyframe positions after the keyframe joined the map."""
+        self._world_from_kf[keyframe.id] = np.asarray(keyframe.world_from_kf, float)
+        self.rec.keyframes(np.stack(list(self._world_from_kf.values())))
+
+    def on_correction(self, world_from_kf: Mapping[int, F64]) -> None:
+        """Corrected keyframes; the corrected path every ``path_every`` corrections."""
+        for k, T in world_from_kf.items():
+            self._world_from_kf[int(k)] = np.asarray(T, float)
+        self._corrections += 1
+        if self._corrections % self.path_every == 0:
+            self._log_corrected_path()
+
+    def _log_corrected_path(self) -> None:
+        poses = [self._world_from_kf[k] @ T for k, T in self._anchor if k in self._world_from_kf]
+        if poses:
+            self.rec.final_path(np.stack(poses))
+        if self._world_from_kf:
+            self.rec.keyframes(np.stack(list(self._world_from_kf.values())))
+
+    def on_live_mesh(self, mesh: Any) -> None:
+        """The live mesh as it grows and moves with corrections."""
+        if mesh is not None and len(mesh.triangles):
+            self.rec.mesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+
+    def on_loop_events(self, events: list[dict[str, Any]]) -> None:
+        """Each loop closure or relocalization as text and a line between its keyframes."""
+        for ev in events:
+            a = self._world_from_kf.get(int(ev.get("keyframe", -1)))
+            b = self._world_from_kf.get(int(ev.get("match_keyframe", -1)))
+            text = (
+                f"{ev.get('type', 'event')}: keyframe {ev.get('keyframe')} ↔ {ev.get('match_keyframe')}, "
+                f"{ev.get('inliers', '?')} inliers, correction {1e3 * float(ev.get('correction_m') or 0.0):.2f} mm"
+            )
+            self.rec.event(text, None if a is None else a[:3, 3], None if b is None else b[:3, 3])
+        self._log_corrected_path()
+
+    def on_finish(self, result: RunResult) -> None:
+        """The final path, landmarks, stripes and mesh; then the recording is closed."""
+        try:
+            self.rec.set_frame(self._n, self._t_ns)
+            self.rec.final_path(result.final.world_from_cam)
+            if len(result.keyframes):
+                self.rec.keyframes(result.keyframes.world_from_cam)
+            if result.landmarks_in_world is not None and len(result.landmarks_in_world):
+                self.rec.landmarks(result.landmarks_in_world)
+            if result.stripes:
+                from loopmodel.mapping.stripe_map import StripeMap
+
+                placed = StripeMap.from_trajectory(result.final, result.stripes).world_points()
+                if len(placed):
+                    self.rec.stripes(placed)
+            if result.mesh is not None and len(result.mesh.triangles):
+                m = result.mesh
+                self.rec.mesh(np.asarray(m.vertices), np.asarray(m.triangles))
+        finally:
+            self.rec.close()
