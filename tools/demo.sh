@@ -12,7 +12,8 @@ if [ ! -f "$SAMPLE" ]; then
   $LM simulate scan --config configs/sim.yaml --out "$SAMPLE"
 fi
 $LM info "$SAMPLE"
-$LM run "$SAMPLE" --config configs/sim.yaml --out "$OUT" --name "$NAME"
+$LM run "$SAMPLE" --config configs/sim.yaml --out "$OUT" --name "$NAME" --rerun "$OUT/$NAME.rrd"
+mv -f "$OUT/$NAME.rrd" "$OUT/$NAME/run.rrd"  # open it with: .venv/bin/rerun results/demo/run.rrd
 [ -f "$OUT/$NAME/mesh.ply" ] || $LM mesh "$OUT/$NAME" --out "$OUT/$NAME/mesh.ply"
 $LM eval "$OUT/$NAME" --gt "$SAMPLE"
 echo
