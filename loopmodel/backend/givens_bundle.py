@@ -305,10 +305,19 @@ class SequentialBundle:
         self.n_relinearizations += 1
 
     # ---------------------------------------------------------------- snooping
-    def snoop(self, oids: Sequence[int] | None = None, **kwargs: object) -> SnoopResult:
-        """Data snooping on image observations (default: all); rejected ones are deleted."""
+    def snoop(
+        self,
+        oids: Sequence[int] | None = None,
+        *,
+        alpha: float = 0.001,
+        min_redundancy: float = 0.05,
+        max_rejections: int | None = None,
+    ) -> SnoopResult:
+        """Data snooping (:func:`~loopmodel.backend.snooping.snoop`, significance level
+        ``alpha``) on image observations (default: all) whose redundancy reaches
+        ``min_redundancy``; rejected ones (at most ``max_rejections``) are deleted."""
         ids = list(self.image_obs) if oids is None else list(oids)
-        res = snoop(self.est, ids, **kwargs)  # type: ignore[arg-type]
+        res = snoop(self.est, ids, alpha=alpha, min_redundancy=min_redundancy, max_rejections=max_rejections)
         for oid in res.rejected:
             o = self.image_obs.pop(oid, None)
             if o is not None:
