@@ -6,8 +6,9 @@ Every run writes the effective configuration into its results folder.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -486,6 +487,37 @@ def config_from_dict(data: dict[str, Any], source: str | Path | None = None) -> 
         if err["type"] == "extra_forbidden":
             raise ConfigError(source, f"unknown key '{key}'") from None
         raise ConfigError(source, f"key '{key}': {err['msg']}") from None
+
+
+SectionT = TypeVar("SectionT", bound=BaseModel)
+
+
+def apply_overrides(
+    section: SectionT, overrides: Mapping[str, Any], names: Mapping[str, str] | None = None
+) -> SectionT:
+    """A validated copy of ``section`` (the whole :class:`Config` or one of its sections)
+    with the dotted keys of ``overrides`` set (``{"eval.align": "sim3"}``); None values are
+    skipped. The one way command-line flags change a configuration: an unknown key or an
+    invalid value raises :class:`ConfigError` naming ``names[key]`` (e.g. the flag) or the key."""
+    names = names or {}
+    data = section.model_dump()
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        *parents, leaf = key.split(".")
+        node: Any = data
+        for part in parents:
+            node = node.get(part) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or leaf not in node:
+            raise ConfigError(names.get(key, key), f"unknown configuration key '{key}'")
+        node[leaf] = value
+    try:
+        return type(section).model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        key = ".".join(str(p) for p in err["loc"])
+        value = overrides.get(key, err.get("input"))
+        raise ConfigError(names.get(key, key), f"{err['msg']}, got {value!r}") from None
 
 
 def load_config(path: str | Path | None = None) -> Config:

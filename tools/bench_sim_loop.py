@@ -178,7 +178,7 @@ def _mesh_errors(out: dict[str, Any], scene_ply: Path, config: Config) -> dict[s
     stripes = list(seq.stripes())
     mesh = o3d.io.read_triangle_mesh(scene_ply)
     obj = None
-    if "object.ply" in getattr(seq, "attachment_names", []):
+    if "object.ply" in seq.attachment_names:
         from loopmodel.io.mesh_io import mesh_from_bytes
 
         obj = mesh_from_bytes(seq.read_attachment("object.ply"), "ply", seq.path)

@@ -17,7 +17,7 @@ from rich.table import Table
 from loopmodel import __version__
 from loopmodel.cli.view import RerunConnectOption, RerunFileOption, RerunSpawnOption, rerun_listeners
 from loopmodel.cli.view import view as view_results
-from loopmodel.config import dump_config, load_config
+from loopmodel.config import apply_overrides, dump_config, load_config
 from loopmodel.errors import InputError, LoopmodelError
 
 console = Console()
@@ -312,7 +312,7 @@ def simulate_scan_cmd(
     if image_format is not None:
         updates["image_format"] = image_format
     if updates:
-        sim = resolve_config(sim.model_copy(update=updates))
+        sim = resolve_config(apply_overrides(sim, updates, {k: "--" + k.replace("_", "-") for k in updates}))
     with progress_bar() as bar:
         task = bar.add_task("simulate", total=sim.trajectory.frames)
         res = simulate_scan(sim, out, cfg.sequence.topics, lambda k, n: bar.update(task, completed=k), preset)
@@ -366,8 +366,8 @@ def bound(
     for key, val in given.items():
         if val is not None and not val > 0:
             raise InputError(None, f"--{key.replace('_', '-')} must be > 0, got {val}")
-    acc = cfg.accuracy.model_copy(update={k: v for k, v in given.items() if v is not None})
-    cfg = cfg.model_copy(update={"accuracy": acc})
+    acc = apply_overrides(cfg.accuracy, given, {k: "--" + k.replace("_", "-") for k in given})
+    cfg = apply_overrides(cfg, {"accuracy": acc.model_dump()})
     markers = [load_marker(m) for m in (marker or ["triangle", "t"])]
     if len({m.name for m in markers}) != len(markers):
         raise InputError(None, "two markers share a name; give each JSON file a distinct 'name'")
@@ -428,7 +428,7 @@ def givens_sim(
         raise InputError(None, f"--blunders must be in [0, 1), got {blunders}")
     cfg = load_config(config).givens
     tf = make_testfield(n_frames=frames, n_points=points, blunder_fraction=blunders, seed=seed)
-    scr = GivensScreen.from_config(tf.camera, cfg.model_copy(update={"sigma_px": tf.sigma_px}))
+    scr = GivensScreen.from_config(tf.camera, apply_overrides(cfg, {"sigma_px": tf.sigma_px}))
     ctrl = set(tf.control.tolist())
     flagged: set[tuple[int, int]] = set()
     truth: set[tuple[int, int]] = set()
@@ -563,15 +563,8 @@ def eval_command(
     from loopmodel.eval import report as rep
 
     cfg = load_config(config)
-    ecfg = cfg.eval.model_copy()
     overrides = {"align": align, "first_n": first_n, "max_dt_ms": max_dt_ms, "rpe_delta_m": rpe_delta_m}
-    for key, value in overrides.items():
-        if value is not None:
-            try:
-                setattr(ecfg, key, value)
-            except ValueError as exc:
-                msg = exc.errors()[0]["msg"] if hasattr(exc, "errors") else str(exc)
-                raise InputError("--" + key.replace("_", "-"), f"{msg}, got {value!r}") from None
+    ecfg = apply_overrides(cfg.eval, overrides, {k: "--" + k.replace("_", "-") for k in overrides})
     if no_plots:
         ecfg.plots = False
     runs = list(runs or [])
@@ -663,7 +656,7 @@ def loop_detect(
 
     cfg = load_config(config).loop
     if vocabulary is not None:
-        cfg = cfg.model_copy(update={"vocabulary_path": str(vocabulary)})
+        cfg = apply_overrides(cfg, {"vocabulary_path": str(vocabulary)}, {"vocabulary_path": "--vocabulary"})
     files = _image_files(folder)
     ex = make_extractor(cfg.descriptor, cfg.n_features)
     det = None

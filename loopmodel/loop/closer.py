@@ -234,18 +234,11 @@ class LoopCloser:
     def relocalize(self, image: NDArray[np.uint8], exclude_after: int | None = None) -> tuple[int | None, RelocResult]:
         """Pose of a lost camera (rectified left image) against the stored keyframes:
         (keyframe id, result with ``cam_from_map`` = rectified cam_from_kf)."""
-        params = RelocParams(
-            ratio=self.config.ratio,
-            threshold_px=self.config.threshold_px,
-            min_inliers=self.config.min_inliers,
-            min_inlier_ratio=self.config.min_inlier_ratio,
-            max_samples=self.config.max_samples,
-        )
         return relocalize_in_database(
             self.frame_features(image),
             self.detector.database,
             self.camera,
-            params,
+            RelocParams.from_config(self.config),
             exclude_after=exclude_after,
         )
 

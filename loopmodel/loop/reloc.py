@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.config import LoopConfig
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.loop.features import FeatureSet, match_descriptors
 from loopmodel.loop.pnp import PnPResult, solve_pnp_bank
@@ -22,22 +23,35 @@ from loopmodel.loop.refine import PoseRefiner, project_refiner
 logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
+_LOOP = LoopConfig.model_fields
 
 
 @dataclass
 class RelocParams:
-    """Thresholds of relocalization and geometric verification."""
+    """Thresholds of relocalization and geometric verification (defaults: those of
+    :class:`loopmodel.config.LoopConfig` where it has the knob)."""
 
-    ratio: float = 0.8
-    threshold_px: float = 2.0
-    min_inliers: int = 25
-    min_inlier_ratio: float = 0.25
-    max_samples: int = 4096
+    ratio: float = _LOOP["ratio"].default
+    threshold_px: float = _LOOP["threshold_px"].default
+    min_inliers: int = _LOOP["min_inliers"].default
+    min_inlier_ratio: float = _LOOP["min_inlier_ratio"].default
+    max_samples: int = _LOOP["max_samples"].default
     confidence: float = 0.999
     #: The inliers' smaller principal standard deviation in the image must reach this
     #: fraction of the image width (rejects poses supported by one small patch).
     min_inlier_spread_frac: float = 0.03
     seed: int = 0
+
+    @classmethod
+    def from_config(cls, cfg: LoopConfig) -> RelocParams:
+        """The thresholds of the ``loop`` configuration section."""
+        return cls(
+            ratio=cfg.ratio,
+            threshold_px=cfg.threshold_px,
+            min_inliers=cfg.min_inliers,
+            min_inlier_ratio=cfg.min_inlier_ratio,
+            max_samples=cfg.max_samples,
+        )
 
 
 @dataclass
