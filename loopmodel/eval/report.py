@@ -760,7 +760,7 @@ def render_html(ev: RunEvaluation) -> str:
         "<!DOCTYPE html><html><head><meta charset='utf-8'>",
         f"<title>Evaluation: {esc(ev.run.name)}</title><style>"
         "body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
-        "table{border-collapse:collapse;margin:0.5em 0 1.5em}"
+        "table{border-collapse:collapse;margin:0.5em 0 1.5em;display:block;overflow-x:auto;max-width:100%}"
         "td,th{border:1px solid #bbb;padding:3px 8px;"
         "text-align:right}th{background:#eee}td:first-child{text-align:left}img{max-width:100%}"
         "</style></head><body>",

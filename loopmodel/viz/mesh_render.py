@@ -65,7 +65,7 @@ def fixed_views(
     centre = (lo + hi) / 2
     radius = max(float(np.linalg.norm(v - centre, axis=1).max()), 1e-6)
     f = 0.5 * min(width_px, height_px) / np.tan(np.radians(18.0))
-    dist = radius / np.sin(np.radians(18.0)) * 1.05
+    dist = radius / np.sin(np.radians(18.0)) * 0.9  # the bounding sphere is loose
     K = np.array([[f, 0, width_px / 2], [0, f, height_px / 2], [0, 0, 1.0]])
     views = []
     el = np.radians(elevation_deg)
