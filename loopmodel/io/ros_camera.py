@@ -146,3 +146,41 @@ def calibration_from_infos(left: Any, right: Any, left_topic: str, right_topic: 
         if not cal.rectified:
             cal.camera_model = "equidistant"
     return cal
+
+
+def camera_info_values(cal: StereoCalibration) -> tuple[dict[str, Any], dict[str, Any]]:
+    """CameraInfo field dicts (left, right) of a calibration: ``plumb_bob`` (or
+    ``rational_polynomial`` for 8 coefficients) through :func:`camera_info_dicts`,
+    ``equidistant`` with the rectification of ``cv2.fisheye.stereoRectify`` in R and P."""
+    from loopmodel.io.mcap_io import camera_info_dicts
+
+    left, right = camera_info_dicts(cal) if cal.camera_model == "pinhole" else _fisheye_infos(cal)
+    if cal.camera_model == "pinhole":
+        for info in (left, right):
+            info["distortion_model"] = "rational_polynomial" if len(info["d"]) == 8 else "plumb_bob"
+    return left, right
+
+
+def _fisheye_infos(cal: StereoCalibration) -> tuple[dict[str, Any], dict[str, Any]]:
+    from loopmodel.io.mcap_io import camera_info_dicts
+
+    w, h = cal.image_size
+    R0, R1, P0, P1, _Q = cv2.fisheye.stereoRectify(
+        cal.K_left,
+        cal.dist_left.reshape(4, 1),
+        cal.K_right,
+        cal.dist_right.reshape(4, 1),
+        (w, h),
+        cal.right_from_left[:3, :3].copy(),
+        cal.right_from_left[:3, 3].reshape(3, 1).copy(),
+        flags=cv2.CALIB_ZERO_DISPARITY,
+        balance=0.0,
+    )
+    pin = StereoCalibration(cal.K_left, cal.K_right, cal.right_from_left, cal.image_size, rectified=True)
+    left, right = camera_info_dicts(pin)
+    for info, d, R, P in ((left, cal.dist_left, R0, P0), (right, cal.dist_right, R1, P1)):
+        info["distortion_model"] = "equidistant"
+        info["d"] = [float(x) for x in d]
+        info["r"] = [float(x) for x in np.asarray(R).ravel()]
+        info["p"] = [float(x) for x in np.asarray(P).ravel()]
+    return left, right

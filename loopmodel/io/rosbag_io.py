@@ -92,6 +92,8 @@ class BagReader:
                 f"ROS 2 bag folder without metadata.yaml (storage files: {files}); open the storage file itself",
             )
         self.is_ros1 = path.is_file() and path.suffix.lower() == ".bag"
+        if path.is_file() and not self.is_ros1 and _head(path, 12) == ROS1_MAGIC:
+            raise FormatError(path, "a ROS 1 bag whose name does not end in .bag; rename it to *.bag")
         store = Stores.ROS1_NOETIC if self.is_ros1 else Stores.ROS2_HUMBLE
         try:
             self._reader = AnyReader([path], default_typestore=get_typestore(store))

@@ -1,7 +1,7 @@
 """Stereo sequences written as ROS bags with the ``rosbags`` writers: ROS 2 folders
 (``metadata.yaml`` + sqlite3 ``.db3`` or ``.mcap`` storage) and ROS 1 ``.bag`` files.
 
-Images are ``sensor_msgs/Image`` (``mono8``, ``mono16``, ``bgr8``, ``rgb8``, ``bgra8``,
+Images are ``sensor_msgs/Image`` (``raw``: mono8 or bgr8 as the image is; ``mono8``, ``mono16``, ``bgr8``, ``rgb8``, ``bgra8``,
 ``bayer_rggb8``) or ``sensor_msgs/CompressedImage`` (``png``, ``jpeg``); each camera has a
 ``CameraInfo`` (once, before its first image); ground truth is ``PoseStamped``; ``/tf_static``
 may carry camera-to-body transforms. The bag appears under its final name only when
@@ -21,11 +21,11 @@ import numpy as np
 
 from loopmodel.config import TopicsConfig
 from loopmodel.geometry.se3 import quat_wxyz_from_rotation
-from loopmodel.io.mcap_io import camera_info_dicts
+from loopmodel.io.ros_camera import camera_info_values
 from loopmodel.types import StereoCalibration, StereoFrame, Trajectory
 
 BAG_KINDS = ("ros2-sqlite3", "ros2-mcap", "ros1")
-ENCODINGS = ("mono8", "mono16", "bgr8", "rgb8", "bgra8", "bayer_rggb8", "png", "jpeg")
+ENCODINGS = ("raw", "mono8", "mono16", "bgr8", "rgb8", "bgra8", "bayer_rggb8", "png", "jpeg")
 
 
 def _build(typestore: Any, msgtype: str, values: dict[str, Any]) -> Any:
@@ -72,6 +72,8 @@ def mosaic_rggb(bgr: np.ndarray) -> np.ndarray:
 
 def image_message_values(img: np.ndarray, t_ns: int, frame_id: str, encoding: str) -> tuple[str, dict[str, Any]]:
     """``(msgtype, values)`` of an image (uint8 grey or BGR) in the given encoding."""
+    if encoding == "raw":
+        encoding = "mono8" if img.ndim == 2 else "bgr8"
     grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     bgr = img if img.ndim == 3 else cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
     if encoding in ("png", "jpeg"):
@@ -130,7 +132,7 @@ class BagSequenceWriter:
         self.kind, self.encoding, self.frame_ids = kind, encoding, frame_ids
         self.topics = topics or TopicsConfig()
         self.calibration = calibration
-        self._infos = camera_info or camera_info_dicts(calibration)
+        self._infos = camera_info or camera_info_values(calibration)
         self._ros1 = kind == "ros1"
         self._ts = get_typestore(Stores.ROS1_NOETIC if self._ros1 else Stores.ROS2_HUMBLE)
         self._tmpdir = self.path.parent / f".{self.path.name}.tmp-{os.getpid()}"
