@@ -164,18 +164,9 @@ def camera_info_values(cal: StereoCalibration) -> tuple[dict[str, Any], dict[str
 def _fisheye_infos(cal: StereoCalibration) -> tuple[dict[str, Any], dict[str, Any]]:
     from loopmodel.io.mcap_io import camera_info_dicts
 
-    w, h = cal.image_size
-    R0, R1, P0, P1, _Q = cv2.fisheye.stereoRectify(
-        cal.K_left,
-        cal.dist_left.reshape(4, 1),
-        cal.K_right,
-        cal.dist_right.reshape(4, 1),
-        (w, h),
-        cal.right_from_left[:3, :3].copy(),
-        cal.right_from_left[:3, 3].reshape(3, 1).copy(),
-        flags=cv2.CALIB_ZERO_DISPARITY,
-        balance=0.0,
-    )
+    from loopmodel.frontend.rectify import rectification
+
+    R0, R1, P0, P1 = rectification(cal)
     pin = StereoCalibration(cal.K_left, cal.K_right, cal.right_from_left, cal.image_size, rectified=True)
     left, right = camera_info_dicts(pin)
     for info, d, R, P in ((left, cal.dist_left, R0, P0), (right, cal.dist_right, R1, P1)):

@@ -1,0 +1,155 @@
+"""Benchmark of the sequence readers: the KITTI clip (51 real 1226x370 stereo pairs) as a
+folder and written with ``rosbags``' writers as a ROS 2 sqlite3 bag, a ROS 2 MCAP bag and a
+ROS 1 bag (mono8, lossless), plus PNG- and JPEG-compressed variants.
+
+``read_ms_per_frame_<format>``: median over 3 passes of the time to stream every stereo pair
+(decoded, as the pipeline gets them), per pair; ``read_overhead_ms_<format>`` is that minus
+the folder reader's in the same run (goal <= 2 ms). ``max_pose_diff_<format>``: the largest
+difference of the final trajectory of ``loopmodel run`` (``configs/kitti.yaml``) on the
+format against the run on the folder (metres for translation, radians for rotation; 0 for
+lossless encodings). ``peak_rss_mib``: the peak resident memory of a child process that
+streams a bag of ``bag_mib`` (2 GiB; 200 MiB with ``--quick``) made of the clip's frames.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("LOOPMODEL_SHARED_DATA", ROOT / ".." / "shared" / "data"))
+CLIP = (SHARED / "kitti_clip").resolve()
+TINY = ROOT / "datasets" / "tiny_kitti"
+
+# name -> (bag kind, image encoding)
+FORMATS = {
+    "ros2_sqlite3": ("ros2-sqlite3", "mono8"),
+    "ros2_mcap": ("ros2-mcap", "mono8"),
+    "ros1": ("ros1", "mono8"),
+    "ros2_sqlite3_png": ("ros2-sqlite3", "png"),
+    "ros1_jpeg": ("ros1", "jpeg"),
+}
+
+
+def _bag_path(tmp: Path, name: str, kind: str) -> Path:
+    return tmp / (f"{name}.bag" if kind == "ros1" else name)
+
+
+def write_bag(src: object, dst: Path, kind: str, encoding: str, repeat: int = 1) -> Path:
+    """Write the frames of ``src`` (a Sequence) ``repeat`` times as a bag."""
+    from loopmodel.io.rosbag_writer import BagSequenceWriter
+    from loopmodel.types import StereoFrame
+
+    with BagSequenceWriter(dst, src.calibration, kind, encoding=encoding) as w:  # type: ignore[attr-defined]
+        if src.ground_truth is not None and repeat == 1:  # type: ignore[attr-defined]
+            w.write_trajectory(src.ground_truth)  # type: ignore[attr-defined]
+        n = len(src)  # type: ignore[arg-type]
+        for r in range(repeat):
+            for f in src.frames():  # type: ignore[attr-defined]
+                t = f.timestamp_ns + r * (n + 1) * 100_000_000
+                w.write_frame(StereoFrame(t, f.left, f.right, f.index + r * n))
+    return dst
+
+
+def read_ms_per_frame(path: Path, passes: int = 3) -> float:
+    """Median over passes of the stream time per stereo pair (ms)."""
+    from loopmodel.io.sequence import open_sequence
+
+    seq = open_sequence(path)
+    times = []
+    for _ in range(passes):
+        t0 = time.perf_counter()
+        n = sum(1 for _f in seq.frames())
+        times.append((time.perf_counter() - t0) * 1e3 / max(n, 1))
+    return statistics.median(times)
+
+
+def final_trajectory(path: Path, out: Path, name: str, max_frames: int | None) -> np.ndarray:
+    """Final ``world_from_cam`` poses of ``loopmodel run -c configs/kitti.yaml``, each in its
+    own process (runs in one process differ by ~1e-8 m through process state)."""
+    from loopmodel.io.trajectory_io import read_trajectory
+
+    cmd = [sys.executable, "-m", "loopmodel", "run", str(path), "-c", str(ROOT / "configs" / "kitti.yaml")]
+    cmd += ["--out", str(out), "--name", name]
+    if max_frames is not None:
+        cmd += ["--max-frames", str(max_frames)]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    subprocess.run(cmd, check=True, capture_output=True, env=env)
+    return read_trajectory(out / name / "trajectory_final.tum", "tum").world_from_cam
+
+
+def pose_diff(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest translation (m) or rotation (rad) difference of two equally long pose lists."""
+    if a.shape != b.shape:
+        return float("inf")
+    dt = np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1)
+    c = (np.einsum("nij,nij->n", a[:, :3, :3], b[:, :3, :3]) - 1.0) / 2.0
+    dr = np.arccos(np.clip(c, -1.0, 1.0))
+    return float(max(dt.max(), dr.max()))
+
+
+_CHILD = """
+import resource, sys
+sys.path.insert(0, {root!r})
+from loopmodel.io.sequence import open_sequence
+n = sum(1 for _ in open_sequence({path!r}).frames())
+print(n, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+"""
+
+
+def streaming_rss_mib(path: Path) -> tuple[int, float]:
+    """(frames, peak RSS MiB) of a child process streaming every frame of ``path``."""
+    code = _CHILD.format(root=str(ROOT), path=str(path))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    return int(out[0]), float(out[1])
+
+
+def run(quick: bool = False) -> dict:
+    from loopmodel.io.sequence import open_sequence
+
+    src_path = CLIP if CLIP.is_dir() else TINY
+    src = open_sequence(src_path)
+    tmp = Path(tempfile.mkdtemp(prefix="bench_readers_"))
+    result: dict[str, object] = {"input": str(src_path), "frames": len(src), "image_size": list(src.calibration.image_size)}
+    try:
+        paths = {"folder": src_path}
+        for name, (kind, enc) in FORMATS.items():
+            paths[name] = write_bag(src, _bag_path(tmp, name, kind), kind, enc)
+        for name, p in paths.items():
+            result[f"read_ms_per_frame_{name}"] = round(read_ms_per_frame(p, 1 if quick else 3), 3)
+        for name in FORMATS:
+            result[f"read_overhead_ms_{name}"] = round(
+                float(result[f"read_ms_per_frame_{name}"]) - float(result["read_ms_per_frame_folder"]), 3  # type: ignore[arg-type]
+            )
+        max_frames = 12 if quick else None
+        ref = final_trajectory(src_path, tmp / "runs", "folder", max_frames)
+        for name, p in paths.items():
+            if name != "folder":
+                result[f"max_pose_diff_{name}"] = pose_diff(ref, final_trajectory(p, tmp / "runs", name, max_frames))
+        frame_mib = (src.calibration.image_size[0] * src.calibration.image_size[1] * 2) / 2**20
+        target_mib = 200 if quick else 2048
+        repeat = max(1, int(np.ceil(target_mib / (frame_mib * len(src)))))
+        big = write_bag(src, tmp / "big", "ros2-sqlite3", "mono8", repeat=repeat)
+        shutil.rmtree(tmp / "runs", ignore_errors=True)
+        result["bag_mib"] = round(sum(q.stat().st_size for q in big.rglob("*")) / 2**20, 1)
+        frames, rss = streaming_rss_mib(big)
+        result["bag_frames"] = frames
+        result["peak_rss_mib"] = round(rss, 1)
+        result["bench_process_peak_rss_mib"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return result
+
+
+if __name__ == "__main__":
+    print(json.dumps(run("--quick" in sys.argv)))
