@@ -120,7 +120,11 @@ def run(quick: bool = False) -> dict:
     src_path = CLIP if CLIP.is_dir() else TINY
     src = open_sequence(src_path)
     tmp = Path(tempfile.mkdtemp(prefix="bench_readers_"))
-    result: dict[str, object] = {"input": str(src_path), "frames": len(src), "image_size": list(src.calibration.image_size)}
+    result: dict[str, object] = {
+        "input": str(src_path),
+        "frames": len(src),
+        "image_size": list(src.calibration.image_size),
+    }
     try:
         paths = {"folder": src_path}
         for name, (kind, enc) in FORMATS.items():
@@ -129,9 +133,10 @@ def run(quick: bool = False) -> dict:
             result[f"read_ms_per_frame_{name}"] = round(read_ms_per_frame(p, 1 if quick else 3), 3)
         for name in FORMATS:
             result[f"read_overhead_ms_{name}"] = round(
-                float(result[f"read_ms_per_frame_{name}"]) - float(result["read_ms_per_frame_folder"]), 3  # type: ignore[arg-type]
+                float(result[f"read_ms_per_frame_{name}"]) - float(result["read_ms_per_frame_folder"]),
+                3,  # type: ignore[arg-type]
             )
-        max_frames = 12 if quick else None
+        max_frames = 6 if quick else None
         ref = final_trajectory(src_path, tmp / "runs", "folder", max_frames)
         for name, p in paths.items():
             if name != "folder":

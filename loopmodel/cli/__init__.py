@@ -117,7 +117,8 @@ def convert(
     dst: Annotated[Path, typer.Argument(help="Output: .mcap, .bag (ROS 1) or a ROS 2 bag folder")],
     config: ConfigOption = None,
     image_format: Annotated[
-        str, typer.Option("--image-format", help="raw, png, jpeg; bags also mono8, mono16, bgr8, rgb8, bgra8, bayer_rggb8")
+        str,
+        typer.Option("--image-format", help="raw, png, jpeg; bags also mono8, mono16, bgr8, rgb8, bgra8, bayer_rggb8"),
     ] = "png",
     to: Annotated[
         str | None, typer.Option("--to", help="mcap, ros2-sqlite3, ros2-mcap or ros1 (default: from the name)")

@@ -43,7 +43,12 @@ _RAW = {
     **{k: (1, 1) for k in _BAYER},
 }
 IMAGE_ENCODINGS = tuple(_RAW)
-DISTORTION_MODELS = {"plumb_bob": "pinhole", "rational_polynomial": "pinhole", "equidistant": "equidistant", "": "pinhole"}
+DISTORTION_MODELS = {
+    "plumb_bob": "pinhole",
+    "rational_polynomial": "pinhole",
+    "equidistant": "equidistant",
+    "": "pinhole",
+}
 
 
 def _field(msg: Any, name: str) -> Any:
@@ -69,6 +74,7 @@ def raw_image_array(msg: Any, topic: str) -> NDArray[Any]:
     if step != row:
         rows = rows[:, :row]
     rows = np.ascontiguousarray(rows)
+    img: NDArray[Any]
     if nbytes == 2:
         img = rows.view(">u2" if bool(msg.is_bigendian) else "<u2").astype(np.uint16)
     else:
@@ -112,7 +118,9 @@ def camera_model(msg: Any, topic: str) -> str:
     n = len(_field(msg, "d"))
     expected = {"plumb_bob": (0, 5), "rational_polynomial": (0, 8), "equidistant": (0, 4), "": (0, 5, 8)}[name]
     if n not in expected:
-        raise CalibrationError(topic, f"{name or 'no'} distortion model with {n} coefficients (expected {expected[-1]})")
+        raise CalibrationError(
+            topic, f"{name or 'no'} distortion model with {n} coefficients (expected {expected[-1]})"
+        )
     return DISTORTION_MODELS[name]
 
 
@@ -132,7 +140,8 @@ def calibration_from_infos(left: Any, right: Any, left_topic: str, right_topic: 
         raise CalibrationError(f"{left_topic}/{right_topic}", "left and right distortion models differ")
     if (int(left.width), int(left.height)) != (int(right.width), int(right.height)):
         raise CalibrationError(
-            right_topic, f"image size {right.width}x{right.height} differs from {left_topic}'s {left.width}x{left.height}"
+            right_topic,
+            f"image size {right.width}x{right.height} differs from {left_topic}'s {left.width}x{left.height}",
         )
     li, ri = _Info(left), _Info(right)
     cal = calibration_from_camera_info(li, ri, f"{left_topic}/{right_topic}")
@@ -162,9 +171,8 @@ def camera_info_values(cal: StereoCalibration) -> tuple[dict[str, Any], dict[str
 
 
 def _fisheye_infos(cal: StereoCalibration) -> tuple[dict[str, Any], dict[str, Any]]:
-    from loopmodel.io.mcap_io import camera_info_dicts
-
     from loopmodel.frontend.rectify import rectification
+    from loopmodel.io.mcap_io import camera_info_dicts
 
     R0, R1, P0, P1 = rectification(cal)
     pin = StereoCalibration(cal.K_left, cal.K_right, cal.right_from_left, cal.image_size, rectified=True)

@@ -26,8 +26,8 @@ import numpy as np
 
 from loopmodel.config import TopicsConfig
 from loopmodel.errors import CalibrationError, FormatError, InputError
-from loopmodel.io.base import Sequence
 from loopmodel.io.bag_topics import IMAGE_MSGTYPES, INFO_MSGTYPE, ImageTopic, camera_info_for, guess_stereo_pair
+from loopmodel.io.base import Sequence
 from loopmodel.io.ros_camera import calibration_from_infos, decode_ros_image
 from loopmodel.io.stereo_pairing import PairingStats, pair_by_stamp, stamp_offset_ns
 from loopmodel.types import StereoCalibration, StereoFrame, Trajectory
@@ -48,8 +48,10 @@ def _head(path: Path, n: int) -> bytes:
 def is_bag(path: Path) -> bool:
     """True for a ROS 1 bag, a sqlite3 ``.db3``, or a folder that is (or was) a ROS 2 bag."""
     if path.is_file():
-        return path.suffix.lower() in (".bag", ".db3") or _head(path, 16) in (SQLITE_MAGIC,) or (
-            _head(path, 12) == ROS1_MAGIC
+        return (
+            path.suffix.lower() in (".bag", ".db3")
+            or _head(path, 16) in (SQLITE_MAGIC,)
+            or (_head(path, 12) == ROS1_MAGIC)
         )
     if path.is_dir():
         return (path / "metadata.yaml").is_file() or any(
@@ -253,8 +255,11 @@ class BagSequence(Sequence):
             self.topics.left_image, self.topics.right_image = li.topic, ri.topic
             for side, it in (("left", li), ("right", ri)):
                 if it.info_topic is None:
-                    raise CalibrationError(it.topic, f"no CameraInfo topic for this {side} image topic (expected a "
-                                           "sensor_msgs/CameraInfo topic camera_info beside it)")
+                    raise CalibrationError(
+                        it.topic,
+                        f"no CameraInfo topic for this {side} image topic (expected a "
+                        "sensor_msgs/CameraInfo topic camera_info beside it)",
+                    )
             assert li.info_topic is not None and ri.info_topic is not None
             self.topics.left_info, self.topics.right_info = li.info_topic, ri.info_topic
             self._calibration = self._read_calibration(bag, li, ri)
@@ -311,7 +316,8 @@ class BagSequence(Sequence):
         for it, info in ((li, left), (ri, right)):
             if it.size is not None and it.size != (int(info.width), int(info.height)):
                 raise InputError(
-                    it.topic, f"image size {it.size[0]}x{it.size[1]} but {it.info_topic} says {info.width}x{info.height}"
+                    it.topic,
+                    f"image size {it.size[0]}x{it.size[1]} but {it.info_topic} says {info.width}x{info.height}",
                 )
         return cal
 
@@ -367,7 +373,10 @@ class BagSequence(Sequence):
         size = self._calibration.image_size
         self.pairing = PairingStats()
         with open_bag(self.path) as bag:
-            stream = ((topic == lt, header_stamp_ns(msg), (msgtype, msg)) for topic, msgtype, _l, msg in bag.messages([lt, rt]))
+            stream = (
+                (topic == lt, header_stamp_ns(msg), (msgtype, msg))
+                for topic, msgtype, _l, msg in bag.messages([lt, rt])
+            )
             for index, pair in enumerate(pair_by_stamp(stream, self.tolerance_ns, self.pairing, (lt, rt))):
                 left = decode_ros_image(pair.left[1], pair.left[0], lt)
                 right = decode_ros_image(pair.right[1], pair.right[0], rt)
@@ -387,4 +396,3 @@ class BagSequence(Sequence):
                 self.pairing.unmatched_right,
                 self.tolerance_ns * 1e-6,
             )
-

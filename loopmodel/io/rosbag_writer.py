@@ -1,8 +1,9 @@
 """Stereo sequences written as ROS bags with the ``rosbags`` writers: ROS 2 folders
 (``metadata.yaml`` + sqlite3 ``.db3`` or ``.mcap`` storage) and ROS 1 ``.bag`` files.
 
-Images are ``sensor_msgs/Image`` (``raw``: mono8 or bgr8 as the image is; ``mono8``, ``mono16``, ``bgr8``, ``rgb8``, ``bgra8``,
-``bayer_rggb8``) or ``sensor_msgs/CompressedImage`` (``png``, ``jpeg``); each camera has a
+Images are ``sensor_msgs/Image`` (``raw``: mono8 or bgr8 as the image is; ``mono8``,
+``mono16``, ``bgr8``, ``rgb8``, ``bgra8``, ``bayer_rggb8``) or ``sensor_msgs/CompressedImage``
+(``png``, ``jpeg``); each camera has a
 ``CameraInfo`` (once, before its first image); ground truth is ``PoseStamped``; ``/tf_static``
 may carry camera-to-body transforms. The bag appears under its final name only when
 :meth:`BagSequenceWriter.close` succeeds.
