@@ -1,6 +1,8 @@
 """Benchmark of the sequence readers: the KITTI clip (51 real 1226x370 stereo pairs) as a
 folder and written with ``rosbags``' writers as a ROS 2 sqlite3 bag, a ROS 2 MCAP bag and a
-ROS 1 bag (mono8, lossless), plus PNG- and JPEG-compressed variants.
+ROS 1 bag (mono8, lossless), plus PNG- and JPEG-compressed variants and an unsynchronised
+MCAP bag (right stamps 2 ms late, two right images missing: its difference is at the common
+stamps, the run tracking across the two dropped pairs).
 
 ``read_ms_per_frame_<format>``: median over 3 passes of the time to stream every stereo pair
 (decoded, as the pipeline gets them), per pair; ``read_overhead_ms_<format>`` is that minus
@@ -39,14 +41,19 @@ FORMATS = {
     "ros2_sqlite3_png": ("ros2-sqlite3", "png"),
     "ros1_jpeg": ("ros1", "jpeg"),
 }
+# unsynchronised: right stamps 2 ms late and two right images missing (frames 3 and 4 of 6 in --quick)
+UNSYNC = ("ros2_mcap_unsync", "ros2-mcap", "mono8", 2_000_000, (3, 20))
 
 
 def _bag_path(tmp: Path, name: str, kind: str) -> Path:
     return tmp / (f"{name}.bag" if kind == "ros1" else name)
 
 
-def write_bag(src: object, dst: Path, kind: str, encoding: str, repeat: int = 1) -> Path:
-    """Write the frames of ``src`` (a Sequence) ``repeat`` times as a bag."""
+def write_bag(
+    src: object, dst: Path, kind: str, encoding: str, repeat: int = 1, offset_ns: int = 0, drop: tuple[int, ...] = ()
+) -> Path:
+    """Write the frames of ``src`` (a Sequence) ``repeat`` times as a bag; right stamps
+    ``offset_ns`` after the left ones, right images of the frames ``drop`` left out."""
     from loopmodel.io.rosbag_writer import BagSequenceWriter
     from loopmodel.types import StereoFrame
 
@@ -57,7 +64,7 @@ def write_bag(src: object, dst: Path, kind: str, encoding: str, repeat: int = 1)
         for r in range(repeat):
             for f in src.frames():  # type: ignore[attr-defined]
                 t = f.timestamp_ns + r * (n + 1) * 100_000_000
-                w.write_frame(StereoFrame(t, f.left, f.right, f.index + r * n))
+                w.write_frame(StereoFrame(t, f.left, f.right, f.index + r * n), offset_ns, f.index not in drop)
     return dst
 
 
@@ -74,7 +81,7 @@ def read_ms_per_frame(path: Path, passes: int = 3) -> float:
     return statistics.median(times)
 
 
-def final_trajectory(path: Path, out: Path, name: str, max_frames: int | None) -> np.ndarray:
+def final_trajectory(path: Path, out: Path, name: str, max_frames: int | None) -> object:
     """Final ``world_from_cam`` poses of ``loopmodel run -c configs/kitti.yaml``, each in its
     own process (runs in one process differ by ~1e-8 m through process state)."""
     from loopmodel.io.trajectory_io import read_trajectory
@@ -85,15 +92,19 @@ def final_trajectory(path: Path, out: Path, name: str, max_frames: int | None) -
         cmd += ["--max-frames", str(max_frames)]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     subprocess.run(cmd, check=True, capture_output=True, env=env)
-    return read_trajectory(out / name / "trajectory_final.tum", "tum").world_from_cam
+    return read_trajectory(out / name / "trajectory_final.tum", "tum")
 
 
-def pose_diff(a: np.ndarray, b: np.ndarray) -> float:
-    """Largest translation (m) or rotation (rad) difference of two equally long pose lists."""
-    if a.shape != b.shape:
+def pose_diff(a: object, b: object) -> float:
+    """Largest translation (m) or rotation (rad) difference of two trajectories at their
+    common timestamps (inf when one misses a time of the other beyond dropped frames)."""
+    ta, tb = a.timestamps_ns, b.timestamps_ns  # type: ignore[attr-defined]
+    common, ia, ib = np.intersect1d(ta, tb, return_indices=True)
+    if len(common) == 0:
         return float("inf")
-    dt = np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1)
-    c = (np.einsum("nij,nij->n", a[:, :3, :3], b[:, :3, :3]) - 1.0) / 2.0
+    A, B = a.world_from_cam[ia], b.world_from_cam[ib]  # type: ignore[attr-defined]
+    dt = np.linalg.norm(A[:, :3, 3] - B[:, :3, 3], axis=1)
+    c = (np.einsum("nij,nij->n", A[:, :3, :3], B[:, :3, :3]) - 1.0) / 2.0
     dr = np.arccos(np.clip(c, -1.0, 1.0))
     return float(max(dt.max(), dr.max()))
 
@@ -129,9 +140,12 @@ def run(quick: bool = False) -> dict:
         paths = {"folder": src_path}
         for name, (kind, enc) in FORMATS.items():
             paths[name] = write_bag(src, _bag_path(tmp, name, kind), kind, enc)
+        uname, ukind, uenc, uoff, udrop = UNSYNC
+        udrop = (3, 4) if quick else udrop
+        paths[uname] = write_bag(src, _bag_path(tmp, uname, ukind), ukind, uenc, offset_ns=uoff, drop=udrop)
         for name, p in paths.items():
             result[f"read_ms_per_frame_{name}"] = round(read_ms_per_frame(p, 1 if quick else 3), 3)
-        for name in FORMATS:
+        for name in (*FORMATS, uname):
             result[f"read_overhead_ms_{name}"] = round(
                 float(result[f"read_ms_per_frame_{name}"]) - float(result["read_ms_per_frame_folder"]),
                 3,  # type: ignore[arg-type]
@@ -140,7 +154,9 @@ def run(quick: bool = False) -> dict:
         ref = final_trajectory(src_path, tmp / "runs", "folder", max_frames)
         for name, p in paths.items():
             if name != "folder":
-                result[f"max_pose_diff_{name}"] = pose_diff(ref, final_trajectory(p, tmp / "runs", name, max_frames))
+                est = final_trajectory(p, tmp / "runs", name, max_frames)
+                result[f"max_pose_diff_{name}"] = pose_diff(ref, est)
+                result[f"poses_{name}"] = len(est)  # type: ignore[arg-type]
         frame_mib = (src.calibration.image_size[0] * src.calibration.image_size[1] * 2) / 2**20
         target_mib = 200 if quick else 2048
         repeat = max(1, int(np.ceil(target_mib / (frame_mib * len(src)))))
