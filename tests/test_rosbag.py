@@ -582,3 +582,26 @@ def test_euroc_folder_into_bags(tmp_path: Path, rng: np.random.Generator, kind: 
         assert x.timestamp_ns == y.timestamp_ns and np.array_equal(x.left, y.left) and np.array_equal(x.right, y.right)
     assert seq.ground_truth is not None and folder.ground_truth is not None
     assert np.allclose(seq.ground_truth.world_from_cam, folder.ground_truth.world_from_cam, atol=1e-12)
+
+
+def test_simulator_fisheye_rays_against_opencv() -> None:
+    """The simulator's fisheye pixel rays project back onto their pixels with OpenCV's
+    equidistant model, and its calibration says equidistant."""
+    from loopmodel.config import SimulationConfig
+    from loopmodel.sim.generate import calibration_of, fisheye_pixel_rays
+
+    cfg = SimulationConfig.model_validate(
+        {
+            "camera": {"width_px": 96, "height_px": 64, "fx_px": 40.0, "fisheye_k": [0.01, -0.002, 0.0005, 0.0]},
+            "laser": {"image": False},
+        }
+    )
+    cal = calibration_of(cfg)
+    assert cal.camera_model == "equidistant" and not cal.rectified
+    rays = fisheye_pixel_rays(cal.K_left, cal.dist_left, (64, 96))
+    assert rays.valid.all()
+    uv, _ = cv2.fisheye.projectPoints(
+        rays.dirs.T.astype(float).reshape(-1, 1, 3), np.zeros(3), np.zeros(3), cal.K_left, cal.dist_left
+    )
+    u, v = np.meshgrid(np.arange(96.0), np.arange(64.0))
+    assert np.abs(uv.reshape(-1, 2) - np.column_stack([u.ravel(), v.ravel()])).max() < 1e-3  # float32 rays

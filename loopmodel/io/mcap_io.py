@@ -249,7 +249,9 @@ class McapSequence(Sequence):
         left, right = self._first(t.left_info), self._first(t.right_info)
         if left is None or right is None:
             raise CalibrationError(self.path, f"no CameraInfo on {t.left_info} and {t.right_info}")
-        return calibration_from_camera_info(left, right, f"{self.path} {t.left_info}/{t.right_info}")
+        from loopmodel.io.ros_camera import calibration_from_infos  # distortion models
+
+        return calibration_from_infos(left, right, f"{self.path} {t.left_info}", f"{self.path} {t.right_info}")
 
     def _read_ground_truth(self) -> Trajectory | None:
         topic = self.topics.ground_truth
@@ -424,7 +426,9 @@ class McapSequenceWriter:
         self._writer.write_message(topic, self._schemas[type_name], msg, log_time=log, publish_time=log)
 
     def _write_info(self, t_ns: int) -> None:
-        left, right = camera_info_dicts(self.calibration)
+        from loopmodel.io.ros_camera import camera_info_values  # equidistant too
+
+        left, right = camera_info_values(self.calibration)
         left["header"] = header(t_ns, "cam0")
         right["header"] = header(t_ns, "cam1")
         self._write(self.topics.left_info, "sensor_msgs/msg/CameraInfo", left, t_ns)
