@@ -20,7 +20,7 @@ from loopmodel.frontend.rectify import Rectifier, rectification, undistort_recti
 from loopmodel.geometry.se3 import se3_exp
 from loopmodel.io.bag_topics import ImageTopic, camera_info_for, guess_stereo_pair
 from loopmodel.io.mcap_io import McapSequence
-from loopmodel.io.ros_camera import decode_ros_image
+from loopmodel.io.ros_camera import camera_info_values, decode_ros_image
 from loopmodel.io.rosbag_io import BagSequence
 from loopmodel.io.rosbag_writer import BagSequenceWriter, image_message_values, mosaic_rggb
 from loopmodel.io.sequence import open_sequence
@@ -270,11 +270,13 @@ def test_bad_bags(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
         list(seq.frames())
     first_bad = tmp_path / "enc2.bag"
     with BagSequenceWriter(first_bad, src.calibration, "ros1") as w:
+        info = camera_info_values(src.calibration)[0]
+        w.write_message("/cam0/camera_info", "sensor_msgs/msg/CameraInfo", info, 0)
         _t, v = image_message_values(f.left, 0, "cam0", "mono8")
         v["encoding"] = "yuv422"
         w.write_message("/cam0/image_raw", "sensor_msgs/msg/Image", v, 0)
         w.write_image(1, 0, f.right)
-    _one_line_exit_2(["info", str(first_bad)], capsys, "/cam0/image_raw")
+    _one_line_exit_2(["info", str(first_bad)], capsys, "/cam0/image_raw: unsupported image encoding 'yuv422'")
     # no camera_info
     noinfo = tmp_path / "noinfo"
     with BagSequenceWriter(noinfo, src.calibration, "ros2-mcap") as w:
@@ -289,8 +291,6 @@ def test_bad_bags(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
         w.write_image(1, 0, f.right[:, :-2])
     _one_line_exit_2(["info", str(small)], capsys, "/cam1/image_raw")
     # unknown distortion model
-    from loopmodel.io.ros_camera import camera_info_values
-
     left, right = camera_info_values(src.calibration)
     left["distortion_model"] = "fov"
     fov = tmp_path / "fov.bag"
@@ -605,3 +605,20 @@ def test_simulator_fisheye_rays_against_opencv() -> None:
     )
     u, v = np.meshgrid(np.arange(96.0), np.arange(64.0))
     assert np.abs(uv.reshape(-1, 2) - np.column_stack([u.ravel(), v.ravel()])).max() < 1e-3  # float32 rays
+
+
+def test_tf_static_camera_to_body(tmp_path: Path) -> None:
+    """``body_from_cam0`` composed along /tf_static from the left image's frame to the root."""
+    src = open_sequence(TINY)
+    base_from_rig = se3_exp([0.1, 0.0, 0.3, 0.0, 0.2, 0.0])
+    rig_from_cam0 = se3_exp([0.0, 0.05, 0.0, -1.5, 0.0, -1.5])
+    bag = tmp_path / "tf"
+    with BagSequenceWriter(bag, src.calibration, "ros2-sqlite3", frame_ids=("cam0_optical", "cam1_optical")) as w:
+        w.write_tf_static([("base_link", "rig", base_from_rig), ("rig", "cam0_optical", rig_from_cam0)])
+        for f in src.frames():
+            w.write_frame(f)
+    seq = open_sequence(bag)
+    assert isinstance(seq, BagSequence) and seq.body_frame == "base_link"
+    assert seq.body_from_cam0 is not None
+    assert np.allclose(seq.body_from_cam0, base_from_rig @ rig_from_cam0, atol=1e-12)
+    assert "base_link" in str(seq.describe()["body_from_cam0"])

@@ -28,7 +28,7 @@ from loopmodel.config import TopicsConfig
 from loopmodel.errors import CalibrationError, FormatError, InputError
 from loopmodel.io.bag_topics import IMAGE_MSGTYPES, INFO_MSGTYPE, ImageTopic, camera_info_for, guess_stereo_pair
 from loopmodel.io.base import Sequence
-from loopmodel.io.ros_camera import calibration_from_infos, decode_ros_image
+from loopmodel.io.ros_camera import IMAGE_ENCODINGS, calibration_from_infos, decode_ros_image
 from loopmodel.io.stereo_pairing import PairingStats, pair_by_stamp, stamp_offset_ns
 from loopmodel.types import StereoCalibration, StereoFrame, Trajectory
 
@@ -172,6 +172,10 @@ def _image_size(msg: Any, msgtype: str, topic: str) -> tuple[tuple[int, int], st
     if msgtype.endswith("CompressedImage"):
         img = decode_ros_image(msg, msgtype, topic)
         return (int(img.shape[1]), int(img.shape[0])), str(msg.format)
+    if str(msg.encoding).lower() not in IMAGE_ENCODINGS:
+        raise FormatError(
+            topic, f"unsupported image encoding '{msg.encoding}' (expected one of {', '.join(IMAGE_ENCODINGS)})"
+        )
     return (int(msg.width), int(msg.height)), str(msg.encoding)
 
 
