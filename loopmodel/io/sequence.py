@@ -54,16 +54,20 @@ def open_sequence(
         if is_bag(p):
             return BagSequence(p, *bag_args)
         raise FormatError(p, "unknown file type (expected an .mcap, .bag or .db3 file or a EuRoC/KITTI folder)")
-    if is_bag(p):
-        return BagSequence(p, *bag_args)
+    folder = euroc_root(p) is not None or is_kitti_folder(p)
+    if folder and (left is not None or right is not None):
+        raise InputError("--left/--right", f"name the image topics of a bag; {p} is a EuRoC/KITTI folder")
     if euroc_root(p) is not None:
         return EurocSequence(p, cfg.stereo_pair_tolerance_ns)
     if is_kitti_folder(p):
         return KittiSequence(p, cfg.kitti_rate_hz)
+    if is_bag(p):
+        return BagSequence(p, *bag_args)
     found = ", ".join(sorted(x.name for x in p.iterdir())[:8]) or "empty folder"
     raise FormatError(
         p,
-        "unknown folder layout (expected EuRoC mav0/cam0+cam1 or KITTI image_0+image_1 with calib.txt); "
+        "unknown folder layout (expected EuRoC mav0/cam0+cam1, KITTI image_0+image_1 with calib.txt, "
+        "or a ROS 2 bag with metadata.yaml); "
         f"found: {found}",
     )
 
