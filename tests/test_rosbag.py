@@ -50,6 +50,7 @@ def _grey(img: np.ndarray) -> np.ndarray:
     return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", KINDS)
 def test_round_trip_every_storage_and_encoding(tmp_path: Path, kind: str) -> None:
     folder = open_sequence(TINY)
@@ -249,6 +250,7 @@ def _one_line_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str], must: 
     assert must in err and "Traceback" not in err and len(err.splitlines()) <= 2, err
 
 
+@pytest.mark.slow
 def test_bad_bags(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # missing metadata.yaml
     bag = _write(tmp_path / "nometa", "ros2-sqlite3")
@@ -421,6 +423,7 @@ def test_run_on_bag_equals_folder(tmp_path: Path, capsys: pytest.CaptureFixture[
 # ------------------------------------------------------------------ trajectories from real bags
 
 
+@pytest.mark.slow
 def test_ros_example_bag_matches_evo(shared_data: Path) -> None:
     """ATE and RPE of ORB-SLAM and S-PTAM against groundtruth in the real ROS 1 bag, through
     ``BAG:TOPIC`` specs, equal evo's (rosbags reader, associate 10 ms, SE(3) Umeyama)."""
