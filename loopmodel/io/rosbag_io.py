@@ -16,6 +16,7 @@ MCAP storage does not expose; this module reads every other MCAP (ROS 2 bags rec
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -78,13 +79,21 @@ def header_stamp_ns(msg: Any) -> int:
     return int(st.sec) * 1_000_000_000 + int(st.nanosec)
 
 
+@functools.cache
+def default_typestore(ros1: bool) -> Any:
+    """The message types of ROS 1 Noetic or ROS 2 Humble, for bags without definitions (old
+    sqlite3 bags); built once (building a store costs about 0.2 s)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+
+
 class BagReader:
     """An open bag: connections by topic and decoded messages. Errors of ``rosbags`` become
     :class:`FormatError` naming the bag."""
 
     def __init__(self, path: Path) -> None:
         from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
 
         self.path = path
         if path.is_dir() and not (path / "metadata.yaml").is_file():
@@ -96,9 +105,8 @@ class BagReader:
         self.is_ros1 = path.is_file() and path.suffix.lower() == ".bag"
         if path.is_file() and not self.is_ros1 and _head(path, 12) == ROS1_MAGIC:
             raise FormatError(path, "a ROS 1 bag whose name does not end in .bag; rename it to *.bag")
-        store = Stores.ROS1_NOETIC if self.is_ros1 else Stores.ROS2_HUMBLE
         try:
-            self._reader = AnyReader([path], default_typestore=get_typestore(store))
+            self._reader = AnyReader([path], default_typestore=default_typestore(self.is_ros1))
             self._reader.open()
         except Exception as exc:  # rosbags raises several types for corrupt or foreign files
             raise FormatError(path, f"cannot read as a ROS bag ({type(exc).__name__}: {exc})") from None
