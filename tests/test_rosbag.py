@@ -625,3 +625,15 @@ def test_tf_static_camera_to_body(tmp_path: Path) -> None:
     assert seq.body_from_cam0 is not None
     assert np.allclose(seq.body_from_cam0, base_from_rig @ rig_from_cam0, atol=1e-12)
     assert "base_link" in str(seq.describe()["body_from_cam0"])
+
+
+def test_project_mcap_reader_takes_bag_encodings(tmp_path: Path) -> None:
+    """An MCAP with the project's topic names but bgra8/bayer images (a ROS 2 recording) is
+    decoded through the same decoder as bags."""
+    src = open_sequence(TINY)
+    for enc in ("bgra8", "bayer_rggb8"):
+        bag = _write(tmp_path / enc, "ros2-mcap", enc)
+        seq = McapSequence(next(bag.glob("*.mcap")))
+        for a, b in zip(src.frames(), seq.frames(), strict=True):
+            d = np.abs(_grey(b.left).astype(int) - a.left.astype(int))
+            assert d.max() == 0 if enc == "bgra8" else np.median(d) <= 2

@@ -59,8 +59,10 @@ def decode_image(msg: Any, schema_name: str, topic: str) -> np.ndarray:
     enc = str(msg.encoding).lower()
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     channels = {"mono8": 1, "8uc1": 1, "bgr8": 3, "rgb8": 3, "8uc3": 3, "mono16": 1, "16uc1": 1}
-    if enc not in channels:
-        raise FormatError(topic, f"unsupported image encoding '{msg.encoding}' (mono8, bgr8, rgb8, mono16)")
+    if enc not in channels:  # bgra8, bayer_*, ...: the bag readers' decoder (8-bit output)
+        from loopmodel.io.ros_camera import decode_ros_image
+
+        return decode_ros_image(msg, schema_name, topic)
     dtype = np.uint16 if enc in ("mono16", "16uc1") else np.uint8
     itemsize = np.dtype(dtype).itemsize
     c = channels[enc]
