@@ -263,6 +263,10 @@ class BagSequence(Sequence):
             images, stamps = scan_image_topics(bag)
             self._images = {t.topic: t for t in images}
             li, ri = self._choose(images, left, right)
+            if self._how == "configured":  # configured camera_info topics win over the guess
+                for it, info in ((li, self.topics.left_info), (ri, self.topics.right_info)):
+                    if bag.msgtype(info) == INFO_MSGTYPE:
+                        it.info_topic = info
             self._left, self._right = li, ri
             self.topics.left_image, self.topics.right_image = li.topic, ri.topic
             for side, it in (("left", li), ("right", ri)):
