@@ -257,6 +257,9 @@ class SimCameraConfig(_Section):
     cy_px: float | None = Field(None, description="defaults to (height_px - 1) / 2")
     xi: float = Field(0.0, ge=0, description="unified-model mirror parameter; 0 is a pinhole")
     baseline_m: float = Field(0.06, gt=0, description="left-to-right camera distance along x")
+    # rosbag (issue 25): render raw equidistant (Kannala-Brandt) fisheye images with these
+    # k1..k4; the calibration is then unrectified with camera_model "equidistant"
+    fisheye_k: list[float] | None = Field(None, min_length=4, max_length=4, description="k1..k4; None: pinhole")
 
 
 class SimSceneConfig(_Section):

@@ -34,6 +34,9 @@ class StereoCalibration:
     dist_left: NDArray[np.float64] = field(default_factory=lambda: np.zeros(5))
     dist_right: NDArray[np.float64] = field(default_factory=lambda: np.zeros(5))
     rectified: bool = True
+    # "pinhole": OpenCV's standard distortion (plumb_bob 5 / rational_polynomial 8 coefficients);
+    # "equidistant": OpenCV's fisheye (Kannala-Brandt, k1..k4) model.
+    camera_model: str = "pinhole"
 
     def __post_init__(self) -> None:
         self.K_left = np.asarray(self.K_left, dtype=float).reshape(3, 3)
@@ -55,6 +58,10 @@ class StereoCalibration:
                 raise CalibrationError(source, f"{name} distortion has non-finite values")
         if not np.all(np.isfinite(self.right_from_left)) or not is_rotation(self.right_from_left[:3, :3], 1e-5):
             raise CalibrationError(source, "right_from_left is not a finite rigid transform")
+        if self.camera_model not in ("pinhole", "equidistant"):
+            raise CalibrationError(source, f"camera model must be pinhole or equidistant, got '{self.camera_model}'")
+        if self.camera_model == "equidistant" and (self.dist_left.size != 4 or self.dist_right.size != 4):
+            raise CalibrationError(source, "equidistant distortion needs 4 coefficients (k1..k4) per camera")
         if self.baseline_m <= 0:
             raise CalibrationError(source, f"stereo baseline must be > 0 m, got {self.baseline_m}")
         if self.image_size[0] <= 0 or self.image_size[1] <= 0:

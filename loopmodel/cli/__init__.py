@@ -34,6 +34,8 @@ config_app = typer.Typer(help="Configuration.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
 
 ConfigOption = Annotated[Path | None, typer.Option("--config", "-c", help="YAML file overriding defaults")]
+LeftTopicOption = Annotated[str | None, typer.Option("--left", help="Left image topic of a bag (default: guessed)")]
+RightTopicOption = Annotated[str | None, typer.Option("--right", help="Right image topic of a bag (default: guessed)")]
 
 
 def _version_callback(value: bool) -> None:
@@ -86,15 +88,18 @@ def _fmt(v: Any) -> str:
 
 @app.command()
 def info(
-    path: Annotated[Path, typer.Argument(help="MCAP file, EuRoC or KITTI folder")],
+    path: Annotated[Path, typer.Argument(help="MCAP file, ROS 1/ROS 2 bag, EuRoC or KITTI folder")],
     config: ConfigOption = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table")] = False,
+    left: LeftTopicOption = None,
+    right: RightTopicOption = None,
 ) -> None:
-    """Describe a sequence: format, frames, duration, image size, calibration, ground truth, stripes."""
+    """Describe a sequence: format, frames, duration, image size, calibration, ground truth, stripes;
+    for a bag its image and camera_info topics with rates and sizes, and the stereo pair chosen."""
     from loopmodel.io.sequence import open_sequence
 
     cfg = load_config(config)
-    desc = open_sequence(path, cfg.sequence).describe()
+    desc = open_sequence(path, cfg.sequence, left, right).describe()
     if as_json:
         console.print_json(json.dumps(desc))
         return
@@ -102,40 +107,66 @@ def info(
     for k, v in desc.items():
         if k == "topics" and isinstance(v, dict):
             v = ", ".join(f"{t} [{d['type'].split('/')[-1]}: {d['messages']}]" for t, d in v.items())
+        if k == "image_topics" and isinstance(v, dict):
+            v = "; ".join(f"{t} " + ", ".join(f"{a} {_fmt(b)}" for a, b in d.items()) for t, d in v.items())
         table.add_row(k, _fmt(v))
     console.print(table)
 
 
 @app.command()
 def convert(
-    src: Annotated[Path, typer.Argument(help="EuRoC or KITTI folder (or MCAP)")],
-    dst: Annotated[Path, typer.Argument(help="Output .mcap file")],
+    src: Annotated[Path, typer.Argument(help="EuRoC or KITTI folder, MCAP file or ROS bag")],
+    dst: Annotated[Path, typer.Argument(help="Output: .mcap, .bag (ROS 1) or a ROS 2 bag folder")],
     config: ConfigOption = None,
-    image_format: Annotated[str, typer.Option("--image-format", help="raw, png or jpeg")] = "png",
+    image_format: Annotated[
+        str,
+        typer.Option("--image-format", help="raw, png, jpeg; bags also mono8, mono16, bgr8, rgb8, bgra8, bayer_rggb8"),
+    ] = "png",
+    to: Annotated[
+        str | None, typer.Option("--to", help="mcap, ros2-sqlite3, ros2-mcap or ros1 (default: from the name)")
+    ] = None,
+    keep_topics: Annotated[bool, typer.Option("--keep-topics", help="Keep the source's topic names")] = False,
+    left: LeftTopicOption = None,
+    right: RightTopicOption = None,
 ) -> None:
-    """Convert a sequence to MCAP with ROS 2 messages (topics of DESIGN.md)."""
-    from loopmodel.io.sequence import convert_to_mcap, open_sequence
+    """Convert a sequence to MCAP with ROS 2 messages (topics of DESIGN.md) or to a ROS bag."""
+    from loopmodel.io.convert import OUTPUT_KINDS, convert_sequence, output_kind
+    from loopmodel.io.rosbag_writer import ENCODINGS
+    from loopmodel.io.sequence import open_sequence
 
-    if dst.suffix.lower() != ".mcap":
+    kind = output_kind(dst, to)
+    if kind not in OUTPUT_KINDS:
+        raise InputError("--to", f"must be one of {', '.join(OUTPUT_KINDS)}, got '{kind}'")
+    if kind == "mcap" and dst.suffix.lower() != ".mcap":
         raise InputError(dst, "output must end in .mcap")
-    if image_format not in ("raw", "png", "jpeg"):
-        raise InputError(None, f"--image-format must be raw, png or jpeg, got '{image_format}'")
+    if kind == "ros1" and dst.suffix.lower() != ".bag":
+        raise InputError(dst, "a ROS 1 bag must end in .bag")
+    allowed = ("raw", "png", "jpeg") if kind == "mcap" else ENCODINGS
+    if image_format not in allowed:
+        raise InputError("--image-format", f"must be one of {', '.join(allowed)} for {kind}, got '{image_format}'")
+    if dst.exists() and kind != "mcap":
+        raise InputError(dst, "exists already; choose a new name")
     cfg = load_config(config)
-    seq = open_sequence(src, cfg.sequence)
+    seq = open_sequence(src, cfg.sequence, left, right)
     with progress_bar() as bar:
         task = bar.add_task("convert", total=len(seq))
-        convert_to_mcap(seq, dst, cfg.sequence, image_format, progress=lambda i: bar.update(task, completed=i))
-    console.print(f"wrote {dst} ({dst.stat().st_size / 2**20:.1f} MiB, {len(seq)} frames)")
+        convert_sequence(
+            seq, dst, kind, cfg.sequence, image_format, keep_topics, progress=lambda i: bar.update(task, completed=i)
+        )
+    size = sum(p.stat().st_size for p in dst.rglob("*")) if dst.is_dir() else dst.stat().st_size
+    console.print(f"wrote {dst} ({kind}, {size / 2**20:.1f} MiB, {len(seq)} frames)")
 
 
 @app.command()
 def run(
-    path: Annotated[Path, typer.Argument(help="MCAP file, EuRoC or KITTI folder")],
+    path: Annotated[Path, typer.Argument(help="MCAP file, ROS 1/ROS 2 bag, EuRoC or KITTI folder")],
     config: ConfigOption = None,
     frontend_only: Annotated[bool, typer.Option("--frontend-only", help="Run only the visual front end")] = False,
     out: Annotated[Path | None, typer.Option("--out", help="Results root (default: output.out_dir)")] = None,
     name: Annotated[str | None, typer.Option("--name", help="Run name (folder under --out)")] = None,
     max_frames: Annotated[int | None, typer.Option("--max-frames", help="Stop after this many frames")] = None,
+    left: LeftTopicOption = None,
+    right: RightTopicOption = None,
     rerun: RerunFileOption = None,
     rerun_spawn: RerunSpawnOption = False,
     rerun_connect: RerunConnectOption = None,
@@ -148,7 +179,9 @@ def run(
     from loopmodel.pipeline import run_frontend, run_pipeline
 
     cfg = load_config(config)
-    seq = open_sequence(path, cfg.sequence)
+    seq = open_sequence(path, cfg.sequence, left, right)
+    if getattr(seq, "choice", None):
+        console.print(f"{seq.format_name}: {seq.choice}")  # type: ignore[attr-defined]
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
     if frontend_only:
         run_name = name or f"{path.stem}_frontend"

@@ -75,9 +75,22 @@ class TimedTrajectory:
     has_times: bool
 
 
+def _bag_trajectory(spec: str | Path) -> TimedTrajectory | None:
+    """A ``BAG:TOPIC`` trajectory (pose topics or ``/tf:PARENT.CHILD``), or None for other specs."""
+    from loopmodel.io.bag_trajectory import parse_bag_spec, read_bag_trajectory
+
+    parsed = parse_bag_spec(spec)
+    if parsed is None:
+        return None
+    return TimedTrajectory(read_bag_trajectory(*parsed), str(spec), True)
+
+
 def load_trajectory_file(path: str | Path, rate_hz: float = 10.0) -> TimedTrajectory:
     """Read a TUM, KITTI or EuRoC trajectory for evaluation. Repeated timestamps are kept
     (some estimators write them), times going backwards are an error."""
+    bag = _bag_trajectory(path)
+    if bag is not None:
+        return bag
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "trajectory file does not exist")
@@ -91,10 +104,13 @@ def load_trajectory_file(path: str | Path, rate_hz: float = 10.0) -> TimedTrajec
 def load_ground_truth(spec: str | Path, sequence_config: SequenceConfig | None = None) -> TimedTrajectory:
     """Ground truth from a trajectory file (TUM, KITTI, EuRoC) or from a sequence (MCAP file,
     EuRoC or KITTI folder) read with :func:`loopmodel.io.open_sequence`."""
+    bag = _bag_trajectory(spec)
+    if bag is not None:
+        return bag
     p = Path(spec)
     if not p.exists():
         raise InputError(p, "ground truth path does not exist")
-    if p.is_dir() or p.suffix.lower() == ".mcap":
+    if p.is_dir() or p.suffix.lower() in (".mcap", ".bag", ".db3"):
         from loopmodel.io.sequence import open_sequence
 
         seq = open_sequence(p, sequence_config)

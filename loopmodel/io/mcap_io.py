@@ -59,8 +59,10 @@ def decode_image(msg: Any, schema_name: str, topic: str) -> np.ndarray:
     enc = str(msg.encoding).lower()
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     channels = {"mono8": 1, "8uc1": 1, "bgr8": 3, "rgb8": 3, "8uc3": 3, "mono16": 1, "16uc1": 1}
-    if enc not in channels:
-        raise FormatError(topic, f"unsupported image encoding '{msg.encoding}' (mono8, bgr8, rgb8, mono16)")
+    if enc not in channels:  # bgra8, bayer_*, ...: the bag readers' decoder (8-bit output)
+        from loopmodel.io.ros_camera import decode_ros_image
+
+        return decode_ros_image(msg, schema_name, topic)
     dtype = np.uint16 if enc in ("mono16", "16uc1") else np.uint8
     itemsize = np.dtype(dtype).itemsize
     c = channels[enc]
@@ -249,7 +251,9 @@ class McapSequence(Sequence):
         left, right = self._first(t.left_info), self._first(t.right_info)
         if left is None or right is None:
             raise CalibrationError(self.path, f"no CameraInfo on {t.left_info} and {t.right_info}")
-        return calibration_from_camera_info(left, right, f"{self.path} {t.left_info}/{t.right_info}")
+        from loopmodel.io.ros_camera import calibration_from_infos  # distortion models
+
+        return calibration_from_infos(left, right, f"{self.path} {t.left_info}", f"{self.path} {t.right_info}")
 
     def _read_ground_truth(self) -> Trajectory | None:
         topic = self.topics.ground_truth
@@ -424,7 +428,9 @@ class McapSequenceWriter:
         self._writer.write_message(topic, self._schemas[type_name], msg, log_time=log, publish_time=log)
 
     def _write_info(self, t_ns: int) -> None:
-        left, right = camera_info_dicts(self.calibration)
+        from loopmodel.io.ros_camera import camera_info_values  # equidistant too
+
+        left, right = camera_info_values(self.calibration)
         left["header"] = header(t_ns, "cam0")
         right["header"] = header(t_ns, "cam1")
         self._write(self.topics.left_info, "sensor_msgs/msg/CameraInfo", left, t_ns)

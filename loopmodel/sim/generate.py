@@ -67,9 +67,13 @@ def calibration_of(cfg: SimulationConfig) -> StereoCalibration:
     K = camera_of(cfg).K
     right_from_left = np.eye(4)
     right_from_left[0, 3] = -cfg.camera.baseline_m
-    return StereoCalibration(K, K, right_from_left, (cfg.camera.width_px, cfg.camera.height_px)).check(
-        "simulation.camera"
-    )
+    size = (cfg.camera.width_px, cfg.camera.height_px)
+    if cfg.camera.fisheye_k is not None:  # raw fisheye images, rectified by the front end
+        if cfg.laser.image:
+            raise ConfigError("simulation.camera.fisheye_k", "laser-line images are drawn pinhole; set laser.image off")
+        k = np.asarray(cfg.camera.fisheye_k, dtype=float)
+        return StereoCalibration(K, K, right_from_left, size, k, k, False, "equidistant").check("simulation.camera")
+    return StereoCalibration(K, K, right_from_left, size).check("simulation.camera")
 
 
 def scene_of(cfg: SimulationConfig) -> Scene:
@@ -217,9 +221,33 @@ def _init_worker(cfg: SimulationConfig, scene: Scene) -> None:
 def _make_state(cfg: SimulationConfig, scene: Scene) -> _WorkerState:
     cam = camera_of(cfg)
     rays = pixel_rays(cam, cfg.camera.width_px, cfg.camera.height_px)
+    if cfg.camera.fisheye_k is not None:
+        rays = fisheye_pixel_rays(cam.K, np.asarray(cfg.camera.fisheye_k, float), rays.shape)
     c01 = np.eye(4)
     c01[0, 3] = cfg.camera.baseline_m
     return _WorkerState(cfg, Raycaster(scene), cam, rays, c01, (cfg.camera.height_px, cfg.camera.width_px))
+
+
+def fisheye_pixel_rays(K: F64, k: F64, shape: tuple[int, int]) -> RayBundle:
+    """Unit rays through the pixel centres of an equidistant (Kannala-Brandt) camera: the
+    distorted angle r_d = |K^-1 uv| is inverted for theta (Newton on theta (1 + k1 theta^2 +
+    ... + k4 theta^8) = r_d); rays beyond 90 degrees are invalid."""
+    h, w = shape
+    u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+    x = (u.ravel() - K[0, 2]) / K[0, 0]
+    y = (v.ravel() - K[1, 2]) / K[1, 1]
+    rd = np.hypot(x, y)
+    th = rd.copy()
+    for _ in range(20):
+        t2 = th * th
+        f = th * (1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])))) - rd
+        df = 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * 9 * k[3])))
+        th -= f / df
+    valid = (th < np.pi / 2 - 1e-3) & np.isfinite(th)
+    s = np.where(rd > 1e-12, np.sin(th) / np.maximum(rd, 1e-12), 1.0)
+    dirs = np.stack([x * s, y * s, np.cos(th)])
+    dirs[:, ~valid] = np.array([[0.0], [0.0], [1.0]])
+    return RayBundle(np.ascontiguousarray(dirs, dtype=np.float32), valid, (int(h), int(w)))
 
 
 def _blur_kernel(dx: float, dy: float) -> NDArray[np.float32] | None:
