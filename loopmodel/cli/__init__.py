@@ -895,5 +895,10 @@ def vvs_calibrate(
     console.print(f"results in {out}")
 
 
+from loopmodel.cli.calibrate import calibrate_app  # noqa: E402
+
+app.add_typer(calibrate_app, name="calibrate")
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())
