@@ -21,6 +21,8 @@ F64 = NDArray[np.float64]
 
 #: cornerSubPix stop rule: 40 iterations or 1e-3 px.
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3)
+#: images larger than this (pixels, longer side) are searched at half size
+DETECT_MAX_SIDE_PX = 1000
 
 
 def parse_board(text: str, source: str = "--board") -> tuple[int, int]:
@@ -95,6 +97,9 @@ def detect_corners(
     """
     grey = grey_of(image)
     size = (int(grey.shape[1]), int(grey.shape[0]))
+    # large images: search on a half-size copy, refine at full resolution
+    scale = 0.5 if max(size) > DETECT_MAX_SIDE_PX else 1.0
+    small = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale != 1.0 else grey
     grids = [board]
     if allow_partial:
         w, h = board
@@ -102,11 +107,12 @@ def detect_corners(
         subs = sorted(set(subs) - {board}, key=lambda g: -g[0] * g[1])
         grids += subs
     for grid in grids:
-        for cand in _candidates(grey):
+        for cand in _candidates(small):
             for g in (grid, grid[::-1]) if grid[0] != grid[1] else (grid,):
                 c = _find(cand, g)
                 if c is None:
                     continue
+                c = (c / scale).astype(np.float32)
                 # the refinement window scales with the square size in the image
                 spacing = float(np.median(np.linalg.norm(np.diff(c.reshape(-1, 2), axis=0), axis=1)))
                 half = int(np.clip(round(spacing / 4), 3, 11))

@@ -65,3 +65,56 @@ def stereo(
     )
     for p in write_stereo_outputs(res, out):
         console.print(f"wrote {p}")
+
+
+@calibrate_app.command("laser")
+def laser(
+    images: Annotated[str, typer.Argument(help="Chessboard images with the laser line: folder, quoted glob or file")],
+    intrinsics: Annotated[Path, typer.Option("--intrinsics", help="Camera YAML (ROS camera_info, OpenCV or ours)")],
+    board: Annotated[str, typer.Option("--board", help="Inner corners WxH")] = "8x6",
+    square_m: Annotated[float, typer.Option("--square-m", help="Square side (metres)")] = 0.04,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Plane YAML")] = Path("plane.yaml"),
+    compare: Annotated[
+        Path | None, typer.Option("--compare", help="laser_planes.json of candidate planes to compare with")
+    ] = None,
+    colour: Annotated[str, typer.Option("--colour", help="Laser colour: green, red or blue")] = "green",
+) -> None:
+    """Calibrate the laser light plane from chessboard images with the laser line on the board."""
+    from loopmodel.calib.chessboard import parse_board
+    from loopmodel.calib.laser import calibrate_laser_plane, plane_summary, read_laser_planes_json
+    from loopmodel.io.atomic import write_text_atomic
+    from loopmodel.io.camera_yaml import dump_yaml, read_intrinsics
+
+    K, dist, size = read_intrinsics(intrinsics)
+    files = image_list(images, "laser calibration")
+    res = calibrate_laser_plane(files, K, dist, parse_board(board), square_m, size, colour)
+    for p, why in res.rejected:
+        err_console.print(f"rejected {p}: {why}", highlight=False)
+    table = Table("image", "corners", "board RMS (px)", "distance (m)", "laser points")
+    for v in res.views:
+        table.add_row(
+            Path(v.path).name + (" (partial)" if v.partial else ""),
+            str(v.corners),
+            f"{v.board_rms_px:.3f}",
+            f"{float((v.cam_from_board[:3, 3] ** 2).sum()) ** 0.5:.3f}",
+            str(len(v.points_in_cam_m)),
+        )
+    console.print(table)
+    n = res.plane.normal_in_cam
+    console.print(
+        f"plane {n[0]:+.5f} x {n[1]:+.5f} y {n[2]:+.5f} z {res.plane.d_m:+.5f} = 0 (camera frame, m); "
+        f"RMS residual {res.rms_mm:.3f} mm ({100 * res.inlier_fraction:.1f} % inliers); per-image lines: "
+        f"direction spread {res.line_angle_spread_deg:.2f} deg, "
+        f"max angle to the plane {res.line_to_plane_deg_max:.3f} deg"
+    )
+    comparison = None
+    if compare is not None:
+        comparison = res.compare(read_laser_planes_json(compare))
+        ctab = Table("candidate", "RMS to our points (mm)", "normal angle (deg)", "|d| difference (mm)")
+        for c in comparison:
+            ctab.add_row(
+                str(c["name"]), f"{c['rms_mm']:.2f}", f"{c['normal_angle_deg']:.2f}", f"{c['offset_diff_mm']:.1f}"
+            )
+        console.print(ctab)
+    write_text_atomic(out, dump_yaml(plane_summary(res, comparison)))
+    console.print(f"wrote {out}")
