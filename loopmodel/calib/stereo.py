@@ -126,8 +126,15 @@ def _calibrate_one(
 
 
 def _stereo(
-    obj: list[F64], uvl: list[F64], uvr: list[F64], K0: F64, d0: F64, K1: F64, d1: F64,
-    size: tuple[int, int], flags: int,
+    obj: list[F64],
+    uvl: list[F64],
+    uvr: list[F64],
+    K0: F64,
+    d0: F64,
+    K1: F64,
+    d1: F64,
+    size: tuple[int, int],
+    flags: int,
 ) -> tuple[float, F64, F64, F64, F64, F64, F64]:
     o = [x.astype(np.float32) for x in obj]
     pl = [x.astype(np.float32).reshape(-1, 1, 2) for x in uvl]
@@ -139,9 +146,7 @@ def _stereo(
     return float(rms), np.asarray(K0), np.asarray(d0).ravel(), np.asarray(K1), np.asarray(d1).ravel(), R, T
 
 
-def epipolar_errors(
-    uvl: list[F64], uvr: list[F64], cal: StereoCalibration, R0: F64, R1: F64, P0: F64, P1: F64
-) -> F64:
+def epipolar_errors(uvl: list[F64], uvr: list[F64], cal: StereoCalibration, R0: F64, R1: F64, P0: F64, P1: F64) -> F64:
     """Row differences (pixels) of all corners after rectification (zero for a perfect rig)."""
     out = []
     for a, b in zip(uvl, uvr, strict=True):

@@ -895,9 +895,10 @@ def vvs_calibrate(
     console.print(f"results in {out}")
 
 
-from loopmodel.cli.calibrate import calibrate_app  # noqa: E402
+from loopmodel.cli.calibrate import calibrate_app, turntable_app  # noqa: E402
 
 app.add_typer(calibrate_app, name="calibrate")
+app.add_typer(turntable_app, name="turntable")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import glob
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.table import Table
@@ -118,3 +118,82 @@ def laser(
         console.print(ctab)
     write_text_atomic(out, dump_yaml(plane_summary(res, comparison)))
     console.print(f"wrote {out}")
+
+
+turntable_app = typer.Typer(help="Real laser-line turntable scans.", no_args_is_help=True)
+
+
+def _open(folder: Path, layout: Path | None, plane: list[Path] | None):  # type: ignore[no-untyped-def]
+    from loopmodel.turntable.reader import open_turntable
+
+    return open_turntable(folder, layout, list(plane or []))
+
+
+@turntable_app.command("scan")
+def turntable_scan(
+    folder: Annotated[Path, typer.Argument(help="Turntable scan folder")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder")] = Path("turntable_out"),
+    layout: Annotated[Path | None, typer.Option("--layout", help="Layout YAML (default FOLDER/turntable.yaml)")] = None,
+    plane: Annotated[list[Path] | None, typer.Option("--plane", help="Extra candidate plane YAML/JSON")] = None,
+) -> None:
+    """Scan: table poses from the markers, loop-closed pose graph, laser points, mesh, report."""
+    from loopmodel.cli import progress_bar
+    from loopmodel.turntable.report import write_outputs
+    from loopmodel.turntable.run import scan_turntable
+
+    scan = _open(folder, layout, plane)
+    with progress_bar() as bar:
+        tasks: dict[str, Any] = {}
+
+        def progress(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(stage, total=total)
+            bar.update(tasks[stage], completed=done)
+
+        res = scan_turntable(scan, progress=progress)
+    f = res.figures
+    table = Table("figure", "value")
+    for k in (
+        "step_angle_err_deg_rms_before",
+        "step_angle_err_deg_rms_after",
+        "loop_closure_err_deg",
+        "laser_plane",
+        "table_plane_residual_mm",
+        "mesh_points",
+        "mesh_err_self_mm",
+        "azimuth_coverage",
+        "marker_angle_scatter_deg_rms",
+    ):
+        v = f[k]
+        table.add_row(k, f"{v:.4g}" if isinstance(v, float) else str(v))
+    console.print(table)
+    for name, c in f["plane_candidates"].items():
+        console.print(
+            f"plane {name}: table residual {c['table_residual_mm']:.3g} mm (median {c['table_median_mm']:.3g} mm)"
+        )
+    paths = write_outputs(res, scan.step_deg, out, str(folder))
+    console.print(f"wrote {len(paths)} files to {out} (report: {out / 'report.md'})")
+
+
+@turntable_app.command("convert")
+def turntable_convert(
+    folder: Annotated[Path, typer.Argument(help="Turntable scan folder")],
+    dst: Annotated[Path, typer.Argument(help="Output .mcap")],
+    layout: Annotated[Path | None, typer.Option("--layout", help="Layout YAML (default FOLDER/turntable.yaml)")] = None,
+    poses: Annotated[bool, typer.Option("--poses/--no-poses", help="Also write the per-frame table pose")] = True,
+) -> None:
+    """Convert a turntable scan to MCAP (/laser/image, camera_info, per-frame pose)."""
+    from loopmodel.turntable.convert import write_turntable_mcap
+    from loopmodel.turntable.markers import calibrate_layout, detect_markers, make_detector, table_poses
+    from loopmodel.turntable.posegraph import optimise_turntable
+
+    scan = _open(folder, layout, None)
+    T = None
+    if poses:
+        det = make_detector(scan.markers.dictionary)
+        dets = [detect_markers(img, det, scan.markers.ids) for _, img in scan.frames()]
+        lay, _ = calibrate_layout(dets, scan.markers, scan.K, scan.dist)
+        tp = table_poses(dets, lay, scan.markers, scan.K, scan.dist)
+        T = optimise_turntable(tp.cam_from_table, tp.covariance, scan.step_deg).cam_from_table
+    write_turntable_mcap(scan, T, dst)
+    console.print(f"wrote {dst} ({len(scan)} frames)")
