@@ -108,7 +108,11 @@ def scan_turntable(
     pos_scatter = np.array(
         [1e3 * (invert_pose(G) @ T)[:3, 3] for T, G in zip(tp.cam_from_table, poses, strict=True) if T is not None]
     )
+    from loopmodel.turntable.accuracy import marker_scatter
+
+    ms = marker_scatter(dets, poses, layout.table_from_marker, scan.markers.side_m, scan.K, scan.dist)
     figures = {
+        "marker_pose_scatter": ms.as_dict(),
         "frames": n,
         "step_deg": scan.step_deg,
         "step_angle_err_deg_rms_before": float(np.sqrt(np.nanmean((before - scan.step_deg) ** 2))),
