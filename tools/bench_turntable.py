@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -70,7 +71,11 @@ def run(quick: bool) -> dict:
     for k in ("loop_closure_err_deg", "table_plane_residual_mm", "mesh_points", "mesh_err_self_mm", "azimuth_coverage"):
         out[k] = f[k]
     out["laser_plane"] = f["laser_plane"]
-    out["plane_candidates"] = {k: v["table_residual_mm"] for k, v in f["plane_candidates"].items()}
+    # inf (no table-top ray meets that plane in front of the camera) as null: strict JSON
+    out["plane_candidates"] = {
+        k: (v["table_residual_mm"] if math.isfinite(v["table_residual_mm"]) else None)
+        for k, v in f["plane_candidates"].items()
+    }
     out["marker_pose_scatter"] = f["marker_pose_scatter"]
     out["frames"] = f["frames"]
     out["time_s"] = {"stereo": t1 - t0, "laser_plane": t2 - t1, "turntable": time.perf_counter() - t2}

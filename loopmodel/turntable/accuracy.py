@@ -7,7 +7,9 @@ line of sight, ``v``/``u`` its position along the image x/y axes, ``gamma`` the 
 optical axis. The measured scatter is each single-marker pose (its four corners, robust
 solver) about the marker pose the loop-closed graph predicts; the bound is the inverse Fisher
 information of the four corners (their image flows from the tool's ``flows``) with the
-measured corner noise.
+measured corner noise. The solver also estimates the marker's two tilts, which the
+seed's four-parameter bound holds fixed: the measured scatter can exceed that bound for this
+reason alone.
 """
 
 from __future__ import annotations
