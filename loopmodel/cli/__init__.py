@@ -929,6 +929,11 @@ def vvs_calibrate(
 
 app.command("view")(view_results)
 
+from loopmodel.cli.calibrate import calibrate_app, turntable_app  # noqa: E402
+
+app.add_typer(calibrate_app, name="calibrate")
+app.add_typer(turntable_app, name="turntable")
+
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

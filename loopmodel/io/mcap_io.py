@@ -396,10 +396,11 @@ class McapSequenceWriter:
     def __init__(
         self,
         path: str | Path,
-        calibration: StereoCalibration,
+        calibration: StereoCalibration | None,
         topics: TopicsConfig | None = None,
         image_format: str = "png",
     ) -> None:
+        """``calibration`` None: a monocular recording that writes its own camera info."""
         if image_format not in ("raw", "png", "jpeg"):
             raise ValueError(f"image_format must be raw, png or jpeg, got {image_format!r}")
         self.path = Path(path)
@@ -430,6 +431,8 @@ class McapSequenceWriter:
     def _write_info(self, t_ns: int) -> None:
         from loopmodel.io.ros_camera import camera_info_values  # equidistant too
 
+        if self.calibration is None:
+            raise ValueError("a stereo frame needs the writer's stereo calibration")
         left, right = camera_info_values(self.calibration)
         left["header"] = header(t_ns, "cam0")
         right["header"] = header(t_ns, "cam1")
@@ -500,8 +503,14 @@ class McapSequenceWriter:
         }
         self._write(self.topics.stripe, "sensor_msgs/msg/PointCloud2", msg, stripe.timestamp_ns)
 
-    def write_pose(self, t_ns: int, world_from_cam: np.ndarray) -> None:
-        """Write one ground-truth pose ``world_from_cam0``."""
+    def write_camera_info(self, topic: str, t_ns: int, info: dict, frame_id: str = "cam0") -> None:
+        """Write one CameraInfo message dict (as :func:`camera_info_dicts` makes) on any topic."""
+        msg = dict(info)
+        msg["header"] = header(t_ns, frame_id)
+        self._write(topic, "sensor_msgs/msg/CameraInfo", msg, t_ns)
+
+    def write_pose(self, t_ns: int, world_from_cam: np.ndarray, topic: str | None = None) -> None:
+        """Write one pose ``world_from_cam0`` (ground truth topic unless ``topic`` is given)."""
         q = quat_wxyz_from_rotation(world_from_cam[:3, :3])
         p = world_from_cam[:3, 3]
         msg = {
@@ -511,7 +520,7 @@ class McapSequenceWriter:
                 "orientation": {"x": float(q[1]), "y": float(q[2]), "z": float(q[3]), "w": float(q[0])},
             },
         }
-        self._write(self.topics.ground_truth, "geometry_msgs/msg/PoseStamped", msg, t_ns)
+        self._write(topic or self.topics.ground_truth, "geometry_msgs/msg/PoseStamped", msg, t_ns)
 
     def write_trajectory(self, traj: Trajectory) -> None:
         """Write every pose of a ground-truth trajectory."""
