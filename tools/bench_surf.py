@@ -4,11 +4,14 @@ Base images: real views of Strecha fountain-P11 (downscaled to 640 px wide) and 
 RTAB-Map corridor (512x384). Each is transformed with a known homography H (rotation
 about the image centre 30-180 degrees on an enlarged canvas, scale 0.5-2 by area/linear
 resampling) or photometrically (Gaussian blur, seeded Gaussian noise, brightness gain
-and offset; H = identity). Every detector keeps its strongest ``N_FEATURES`` keypoints.
+and offset; H = identity). Like with like: only keypoints in the common region of the
+two images count (mapped into the other image at least ``MARGIN_PX`` inside it; this
+also drops responses to the black canvas borders of rotated images), and in each image
+all three detectors keep the same number of them, their strongest: at most
+``N_FEATURES`` and no more than the detector with fewest there offers (SIFT's contrast
+threshold leaves fewer in small images).
 
-- Repeatability (Mikolajczyk & Schmid's point form): keypoints of both images lying in the
-  common region (mapped into the other image at least ``MARGIN_PX`` inside it); a
-  keypoint of image 1 is repeated when a keypoint of image 2 lies within ``EPS_PX`` of
+- Repeatability (Mikolajczyk & Schmid's point form): a keypoint of image 1 is repeated when a keypoint of image 2 lies within ``EPS_PX`` of
   its mapped position (measured in image 1's pixels) with a scale ratio within ``SCALE_TOL``
   of the homography's; ``repeated / min(n1, n2)``.
 - Matching score: the pipeline's matcher (:func:`loopmodel.loop.features.match_descriptors`,
@@ -122,8 +125,14 @@ def conditions(quick: bool) -> list[tuple[str, Callable[[np.ndarray], tuple[np.n
     return out
 
 
+def keep(det: Detection, n: int) -> Detection:
+    """The ``n`` strongest keypoints of a detection (sorted strongest first)."""
+    xy, sc, f = det
+    return xy[:n], sc[:n], f.subset(np.arange(min(n, len(f))))
+
+
 class Detector:
-    """One detector/descriptor keeping its ``n`` strongest keypoints."""
+    """One detector/descriptor; keypoints sorted strongest first, at most ``n``."""
 
     def __init__(self, kind: str, n: int) -> None:
         self.kind = kind
@@ -133,7 +142,8 @@ class Detector:
     def __call__(self, img: np.ndarray) -> Detection:
         if isinstance(self.ex, Surf):
             kp, d = self.ex.detect_and_describe(img)
-            return kp.xy, kp.scale, FeatureSet(kp.xy, d, "surf", laplacian=kp.sign)
+            o = np.argsort(-kp.response, kind="stable")
+            return kp.xy[o], kp.scale[o], FeatureSet(kp.xy[o], d[o], "surf", laplacian=kp.sign[o])
         kps, desc = self.ex.detectAndCompute(img, None)
         kps = list(kps)
         order = np.argsort([-k.response for k in kps], kind="stable")[: self.n]
@@ -153,34 +163,33 @@ def _inside(xy: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return (xy[:, 0] >= m) & (xy[:, 0] <= w - 1 - m) & (xy[:, 1] >= m) & (xy[:, 1] <= h - 1 - m)
 
 
-def evaluate_pair(
-    det1: Detection, det2: Detection, H: np.ndarray, shape1: tuple[int, ...], shape2: tuple[int, ...]
-) -> tuple[float, float]:
-    """Repeatability and matching score of two detections related by H (image 1 -> 2)."""
+def common(det1: Detection, det2: Detection, H: np.ndarray, shape1: tuple[int, ...], shape2: tuple[int, ...]) -> tuple[Detection, Detection]:
+    """The keypoints of both detections that lie in the common region (order kept)."""
+    c1 = _inside(det1[0], shape1) & _inside(_apply(H, det1[0]), shape2)
+    c2 = _inside(det2[0], shape2) & _inside(_apply(np.linalg.inv(H), det2[0]), shape1)
+    i1, i2 = np.flatnonzero(c1), np.flatnonzero(c2)
+    return (det1[0][i1], det1[1][i1], det1[2].subset(i1)), (det2[0][i2], det2[1][i2], det2[2].subset(i2))
+
+
+def evaluate_pair(det1: Detection, det2: Detection, H: np.ndarray) -> tuple[float, float]:
+    """Repeatability and matching score of two detections in the common region related
+    by H (image 1 -> 2)."""
     xy1, s1, f1 = det1
     xy2, s2, f2 = det2
     zoom = float(np.sqrt(abs(np.linalg.det(H[:2, :2]))))
-    Hinv = np.linalg.inv(H)
-    c1 = _inside(xy1, shape1) & _inside(_apply(H, xy1), shape2)
-    c2 = _inside(xy2, shape2) & _inside(_apply(Hinv, xy2), shape1)
-    n = min(int(c1.sum()), int(c2.sum()))
+    n = min(len(xy1), len(xy2))
     if n == 0:
         return 0.0, 0.0
-    p2in1 = _apply(Hinv, xy2)
-    i1 = np.flatnonzero(c1)
-    i2 = np.flatnonzero(c2)
-    d = np.linalg.norm(xy1[i1, None, :] - p2in1[None, i2, :], axis=2)
-    ratio = s2[None, i2] / (s1[i1, None] * zoom)
+    p2in1 = _apply(np.linalg.inv(H), xy2)
+    d = np.linalg.norm(xy1[:, None, :] - p2in1[None, :, :], axis=2)
+    ratio = s2[None, :] / (s1[:, None] * zoom)
     ok = (d < EPS_PX) & (ratio < SCALE_TOL) & (ratio > 1.0 / SCALE_TOL)
     repeat = min(int(np.any(ok, axis=1).sum()), n) / n
     pairs = match_descriptors(f1, f2, ratio=0.8)
     if pairs.shape[0] == 0:
         return repeat, 0.0
-    a, b = pairs[:, 0], pairs[:, 1]
-    keep = c1[a] & c2[b]
-    dist = np.linalg.norm(xy1[a] - p2in1[b], axis=1)
-    correct = int(np.sum(keep & (dist < EPS_PX)))
-    return repeat, correct / n
+    dist = np.linalg.norm(xy1[pairs[:, 0]] - p2in1[pairs[:, 1]], axis=1)
+    return repeat, int(np.sum(dist < EPS_PX)) / n
 
 
 def _timing(det: Detector, img: np.ndarray, runs: int) -> float:
@@ -195,7 +204,8 @@ def _timing(det: Detector, img: np.ndarray, runs: int) -> float:
 
 def run(quick: bool = False) -> dict:
     kinds = ("surf", "sift", "orb")
-    dets = {k: Detector(k, N_FEATURES) for k in kinds}
+    # detect more than kept: the strongest in the common region are selected afterwards
+    dets = {k: Detector(k, 3 * N_FEATURES) for k in kinds}
     images = base_images(quick)
     conds = conditions(quick)
     rep: dict[str, dict[str, list[float]]] = {k: {c: [] for c, _ in conds} for k in kinds}
@@ -204,8 +214,11 @@ def run(quick: bool = False) -> dict:
         base = {k: dets[k](img) for k in kinds}
         for cname, tf in conds:
             img2, H = tf(img)
+            both = {k: common(base[k], dets[k](img2), H, img.shape, img2.shape) for k in kinds}
+            n1 = min(N_FEATURES, *(len(b[0][0]) for b in both.values()))
+            n2 = min(N_FEATURES, *(len(b[1][0]) for b in both.values()))
             for k in kinds:
-                r, m = evaluate_pair(base[k], dets[k](img2), H, img.shape, img2.shape)
+                r, m = evaluate_pair(keep(both[k][0], n1), keep(both[k][1], n2), H)
                 rep[k][cname].append(r)
                 msc[k][cname].append(m)
             print(

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import ConfigError, InputError
-from loopmodel.loop.surf import Surf, SurfKeypoints, integral_image
+from loopmodel.loop.surf import Surf, SurfKeypoints
 from loopmodel.types import StereoCalibration
 
 F64 = NDArray[np.float64]
@@ -147,7 +147,7 @@ def describe_at(
         kept = np.flatnonzero((uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1))
         xy = uv[kept]
         scale = np.full(kept.size, 1.2 * size_px / 9.0)
-        ii = integral_image(grey)
+        ii = ex.integral(grey)
         angle = ex.orient(grey, xy, scale, ii)
         sign = ex.laplacian_sign(grey, xy, scale, ii)
         kp = SurfKeypoints(xy, scale, angle, np.zeros(kept.size), sign)
