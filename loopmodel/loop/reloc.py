@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.loop.features import FeatureSet, match_descriptors
 from loopmodel.loop.pnp import PnPResult, solve_pnp_bank
-from loopmodel.loop.refine import PoseRefiner, project_refiner
+from loopmodel.loop.refine import PoseRefiner
 
 logger = logging.getLogger(__name__)
 
@@ -114,7 +114,7 @@ def localize(
         max_samples=sample_bound(p),
         confidence=p.confidence,
         min_inliers=3,
-        refiner=refiner if refiner is not None else project_refiner(camera),
+        refiner=refiner,
     )
     total = time.perf_counter() - t0
     if res is None:
