@@ -211,7 +211,8 @@ def _extrema(
 
 @nb.njit(cache=True, inline="always")
 def _haar(ii: F64, x: int, y: int, half: int) -> tuple[float, float]:
-    """Haar wavelet responses (x, y) of side 2*half centred at pixel (x, y)."""
+    """Haar wavelet responses (x, y) of side 2*half centred on the corner between pixels
+    (x - 1, y - 1) and (x, y), i.e. at (x - 0.5, y - 0.5) (callers add 0.5 before rounding)."""
     dx = _box(ii, y - half, x, y + half, x + half) - _box(ii, y - half, x - half, y + half, x)
     dy = _box(ii, y, x - half, y + half, x + half) - _box(ii, y - half, x - half, y, x + half)
     return dx, dy
@@ -240,7 +241,7 @@ def _orientations(ii: F64, xy: F64, scale: F64, out: F64) -> None:
                 if i * i + j * j >= 36:
                     continue
                 g = np.exp(-(i * i + j * j) / 8.0)  # sigma = 2s in units of s
-                dx, dy = _haar(ii, int(np.round(x0 + i * s)), int(np.round(y0 + j * s)), half)
+                dx, dy = _haar(ii, int(np.round(x0 + i * s + 0.5)), int(np.round(y0 + j * s + 0.5)), half)
                 if dx == 0.0 and dy == 0.0:
                     continue
                 a = np.arctan2(dy, dx) + np.pi
@@ -290,7 +291,7 @@ def _descriptors(ii: F64, xy: F64, scale: F64, angle: F64, extended: bool, out: 
                         g = np.exp(-(u * u + v * v) / (2.0 * 3.3 * 3.3))
                         px = x0 + s * (co * u - si * v)
                         py = y0 + s * (si * u + co * v)
-                        rx, ry = _haar(ii, int(np.round(px)), int(np.round(py)), half)
+                        rx, ry = _haar(ii, int(np.round(px + 0.5)), int(np.round(py + 0.5)), half)
                         du = g * (co * rx + si * ry)
                         dv = g * (-si * rx + co * ry)
                         if not extended:
