@@ -18,7 +18,7 @@ from loopmodel.config import LoopConfig
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.loop.features import FeatureSet, match_descriptors
 from loopmodel.loop.pnp import PnPResult, solve_pnp_bank
-from loopmodel.loop.refine import PoseRefiner, project_refiner
+from loopmodel.loop.refine import PoseRefiner
 
 logger = logging.getLogger(__name__)
 
@@ -120,19 +120,15 @@ def localize(
     rays = camera.lift(query.keypoints_px[pairs[:, 0]])
     pts = landmarks.points_in_kf[pairs[:, 1]]
     thr = p.threshold_px / max(camera.px, camera.py)
-    # A pose with the minimum acceptable inlier ratio is found with the given confidence
-    # within this many samples; more would only serve poses that are rejected anyway.
-    w3 = min(max(p.min_inlier_ratio, 1e-3), 1.0) ** 3
-    bound = np.log(1 - p.confidence) / np.log(1 - w3) if w3 < 1 else 1.0
     res = solve_pnp_bank(
         rays,
         pts,
         thr,
         rng=np.random.default_rng(p.seed),
-        max_samples=int(min(p.max_samples, max(64, np.ceil(bound)))),
+        max_samples=sample_bound(p),
         confidence=p.confidence,
         min_inliers=3,
-        refiner=refiner if refiner is not None else project_refiner(camera),
+        refiner=refiner,
     )
     total = time.perf_counter() - t0
     if res is None:
@@ -162,6 +158,15 @@ def localize(
             total_s=total,
         )
     return RelocResult(True, "ok", res.cam_from_world, pairs, res.inliers, res, t_match, total)
+
+
+def sample_bound(p: RelocParams) -> int:
+    """Minimal samples after which a pose with the minimum acceptable inlier ratio has been
+    drawn with the given confidence (more would only serve poses that are rejected anyway),
+    at least 64 and at most ``max_samples``."""
+    w3 = min(max(p.min_inlier_ratio, 1e-3), 1.0) ** 3
+    bound = np.log(1 - p.confidence) / np.log(1 - w3) if w3 < 1 else 1.0
+    return int(min(p.max_samples, max(64, np.ceil(bound))))
 
 
 def inlier_spread_px(uv_px: F64) -> float:
