@@ -895,5 +895,9 @@ def vvs_calibrate(
     console.print(f"results in {out}")
 
 
+from loopmodel.cli.batch import batch_app  # noqa: E402
+
+app.add_typer(batch_app, name="batch")
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())
