@@ -4,7 +4,7 @@ Sequences: the real KITTI clip (``../shared/data/kitti_clip``, configs/kitti.yam
 ``datasets/tiny_kitti`` and two small simulated scans (``loopmodel simulate scan``: browse and
 orbit, 320x240, seeds 1 and 2; generated once into ``results/bench_batch/data``). Variants: the
 defaults, ``frontend.max_features: 400`` and ``backend.kind: none``. Every task stops after
-``max_frames`` frames (10; 4 with ``--quick``).
+``max_frames`` frames (10; 6 with ``--quick``).
 
 In one run of this script:
 - ``wall_1_worker_s`` / ``wall_2_workers_s``: the batch on a fresh LocalCluster of 1 and of 2
@@ -31,7 +31,8 @@ from pathlib import Path
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = (ROOT / ".." / "shared" / "data").resolve()
+# the shared real data beside the project (``$LOOPMODEL_SHARED_DATA`` overrides, e.g. from a worktree)
+SHARED = Path(os.environ.get("LOOPMODEL_SHARED_DATA", ROOT / ".." / "shared" / "data")).resolve()
 WORK = ROOT / "results" / "bench_batch"
 
 
@@ -118,7 +119,7 @@ def run(quick: bool = False) -> dict:
     from loopmodel.batch import load_manifest, write_summary
 
     WORK.mkdir(parents=True, exist_ok=True)
-    plan_path = _plan(WORK / "plan.yaml", 4 if quick else 10)
+    plan_path = _plan(WORK / "plan.yaml", 6 if quick else 10)
     one = _batch(plan_path, WORK / "out_1", 1)
     two = _batch(plan_path, WORK / "out_2", 2)
     t0 = time.perf_counter()

@@ -53,7 +53,7 @@ def pin_threads(n: int) -> dict[str, Any]:
     with contextlib.suppress(ImportError, ValueError):
         import numba
 
-        numba.set_num_threads(min(n, int(numba.config.NUMBA_NUM_THREADS)))
+        numba.set_num_threads(min(n, int(numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
         done["numba"] = numba.get_num_threads()
     with contextlib.suppress(ImportError):
         from threadpoolctl import threadpool_limits
@@ -167,6 +167,7 @@ def run_task(spec: TaskSpec) -> dict[str, Any]:
     """Run one task (on a worker); returns its record. A failure of the run is recorded (with a
     one-line error in ``failed/<task>.json``), never raised."""
     from loopmodel.config import config_from_dict
+    from loopmodel.errors import LoopmodelError
 
     final = spec.folder
     done = read_record(final)
@@ -197,7 +198,11 @@ def run_task(spec: TaskSpec) -> dict[str, Any]:
         run_sequence(spec.sequence_path, cfg, tmp_root, tmp.name, spec.max_frames)
         record["run_s"] = time.perf_counter() - t_run
         t_eval = time.perf_counter()
-        ev = evaluate_folder(tmp, spec.sequence_path, cfg)
+        try:
+            ev = evaluate_folder(tmp, spec.sequence_path, cfg)
+        except LoopmodelError as exc:  # the run stands; say why it has no numbers
+            ev = None
+            record["eval_error"] = one_line_error(exc)
         record["eval_s"] = time.perf_counter() - t_eval
         run_metrics = json.loads((tmp / "metrics.json").read_text())
         record.update(

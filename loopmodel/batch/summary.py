@@ -41,7 +41,8 @@ def summary_table(tasks: list[TaskSpec]) -> tuple[list[str], list[list[Any]]]:
     rows: list[list[Any]] = []
     for t, (status, rec), ev in zip(tasks, states, evals, strict=True):
         rec = rec or {}
-        base = [t.task_id, t.sequence_name, t.variant, status, rec.get("error")]
+        error = rec.get("error") or (f"not evaluated: {rec['eval_error']}" if rec.get("eval_error") else None)
+        base = [t.task_id, t.sequence_name, t.variant, status, error]
         base += [rec.get(k) for k in TASK_COLUMNS[5:]]
         rows.append(base + (next(cmp_iter)[1:] if ev is not None else [None] * (len(cmp_head) - 1)))
     return head, rows
@@ -111,8 +112,8 @@ def write_summary(tasks: list[TaskSpec], out_dir: str | Path, plots: bool = True
         )
         panels = {}
         for metric in BOX_METRICS:
-            vals = _by_variant(head, rows, metric)
-            panels[metric] = {v: list(d.values()) for v, d in vals.items()}
+            by_var = _by_variant(head, rows, metric)
+            panels[metric] = {v: list(d.values()) for v, d in by_var.items()}
         paths["box_plot"] = write_bytes_atomic(out / PLOT_BOXES, plot_boxes(panels, "per variant, across sequences"))
         md += ["## Plots", "", f"![ATE per variant]({PLOT_ATE})", "", f"![box plots]({PLOT_BOXES})", ""]
     paths["md"] = write_text_atomic(out / "summary.md", "\n".join(md) + "\n")
