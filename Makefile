@@ -26,7 +26,7 @@ syslibs:
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev,viz]'
+	$(PY) -m pip install -q -e '.[dev,viz,batch]'
 	@touch $(STAMP)
 
 demo: setup

@@ -934,6 +934,9 @@ from loopmodel.cli.calibrate import calibrate_app, turntable_app  # noqa: E402
 app.add_typer(calibrate_app, name="calibrate")
 app.add_typer(turntable_app, name="turntable")
 
+from loopmodel.cli.batch import batch_app  # noqa: E402
+
+app.add_typer(batch_app, name="batch")
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

@@ -836,11 +836,15 @@ COMPARISON_COLUMNS: tuple[tuple[str, tuple[str, ...]], ...] = (
 
 def comparison_rows(evals: list[RunEvaluation]) -> tuple[list[str], list[list[Any]]]:
     """Header and rows of the comparison table of many runs (one row per run)."""
-    mesh_keys = sorted({k for e in evals for k in e.metrics["mesh"]})
+    return comparison_rows_from_metrics([e.metrics for e in evals])
+
+
+def comparison_rows_from_metrics(metrics: list[dict[str, Any]]) -> tuple[list[str], list[list[Any]]]:
+    """:func:`comparison_rows` from the evaluations' ``metrics.json`` contents."""
+    mesh_keys = sorted({k for m in metrics for k in m.get("mesh") or {}})
     head = ["run", "matched", *(c for c, _ in COMPARISON_COLUMNS), "ate_change_pct", *mesh_keys]
     rows: list[list[Any]] = []
-    for e in evals:
-        m = e.metrics
+    for m in metrics:
         vals = [_get(m, *path) for _, path in COMPARISON_COLUMNS]
         before = _get(m, "trajectories", "online", "ate_m", "rmse")
         after = _get(m, "trajectories", "final", "ate_m", "rmse")
@@ -851,7 +855,7 @@ def comparison_rows(evals: list[RunEvaluation]) -> tuple[list[str], list[list[An
                 _get(m, "trajectories", "final", "matched"),
                 *vals,
                 change,
-                *(m["mesh"].get(k) for k in mesh_keys),
+                *((m.get("mesh") or {}).get(k) for k in mesh_keys),
             ]
         )
     return head, rows
@@ -861,22 +865,32 @@ def write_comparison(evals: list[RunEvaluation], out_dir: str | Path) -> tuple[P
     """``comparison.csv`` and ``comparison.md`` of many runs in ``out_dir``."""
     out = Path(out_dir)
     head, rows = comparison_rows(evals)
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(head)
-    for r in rows:
-        w.writerow(["" if v is None else (repr(v) if isinstance(v, float) else v) for v in r])
-    csv_path = write_text_atomic(out / "comparison.csv", buf.getvalue())
+    csv_path = write_text_atomic(out / "comparison.csv", csv_text(head, rows))
     md = [
         "# Comparison of runs",
         "",
         f"Alignment {evals[0].config.align}; `ate_rmse_m` is the SE(3)-aligned ATE RMSE of the "
         "final trajectory; ate_change_pct compares final with online ATE RMSE.",
         "",
-        _md_table(head, [[_num(v) if not isinstance(v, str) else v for v in r] for r in rows]),
+        markdown_table(head, rows),
     ]
     md_path = write_text_atomic(out / "comparison.md", "\n".join(md))
     return csv_path, md_path
+
+
+def markdown_table(head: list[str], rows: list[list[Any]]) -> str:
+    """A Markdown table of values, numbers formatted as in the reports (None as a dash)."""
+    return _md_table(head, [[_num(v) if not isinstance(v, str) else v for v in r] for r in rows])
+
+
+def csv_text(head: list[str], rows: list[list[Any]]) -> str:
+    """CSV text of a table: floats in full precision (``repr``), None empty."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(head)
+    for r in rows:
+        w.writerow(["" if v is None else (repr(v) if isinstance(v, float) else v) for v in r])
+    return buf.getvalue()
 
 
 def plain_run(est: TimedTrajectory) -> RunData:
