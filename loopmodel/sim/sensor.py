@@ -154,7 +154,7 @@ class TrueRig:
         c01_rec = c01.copy()
         c01_rec[:3, :3] = c01[:3, :3] @ so3_exp(rng.normal(0, np.radians(rot_err_deg), 3))
         c01_rec[:3, 3] *= 1.0 + rng.normal(0, baseline_err_m) / baseline_m
-        right_from_left = np.linalg.inv(c01_rec)
+        right_from_left: F64 = np.asarray(np.linalg.inv(c01_rec), dtype=np.float64)
         rec = StereoCalibration(KL_rec, KR_rec, right_from_left, size, dl_rec, dr_rec, rectified=False)
         return cls(KL, KR, dl, dr, c01, size, rec.check("simulation.realism"))
 
