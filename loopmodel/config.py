@@ -289,7 +289,7 @@ class SimRenderConfig(_Section):
 class SimTrajectoryConfig(_Section):
     """Hand-held path around the object (world z up, object on the table at the origin)."""
 
-    kind: Literal["orbit", "sweeps", "browse"] = "orbit"
+    kind: Literal["orbit", "sweeps", "browse", "modeler"] = "orbit"
     frames: int = Field(600, gt=0)
     rate_hz: float = Field(25.0, gt=0)
     radius_m: float = Field(0.65, gt=0, description="camera distance from the object axis")
@@ -330,6 +330,52 @@ class SimFaultsConfig(_Section):
     blur_length_px: float = Field(15.0, gt=0)
 
 
+class SimRealismConfig(_Section):
+    """Realistic sensor, optics, laser and motion (issue 17); ``clean`` is the ideal world of
+    issue 3. Magnitudes and their sources: ``loopmodel/sim/sensor.py`` (image),
+    ``loopmodel/sim/laser.py`` (laser), ``loopmodel/sim/trajectory.py`` (motion)."""
+
+    level: Literal["clean", "realistic"] = "clean"
+    # sensor: Sony IMX250 EMVA 1288 figures (see loopmodel/sim/sensor.py)
+    full_well_e: float = Field(10700.0, gt=0, description="saturation capacity (electrons)")
+    read_noise_e: float = Field(2.9, ge=0, description="temporal dark noise (electrons)")
+    prnu: float = Field(0.006, ge=0, description="photo-response non-uniformity (relative)")
+    dsnu_e: float = Field(1.5, ge=0, description="dark-signal non-uniformity (electrons)")
+    adc_bits: int = Field(12, ge=8, le=16)
+    gamma: float = Field(0.7, gt=0, le=1.5, description="8-bit output = 255 (DN / DN_max)^gamma")
+    light_e_per_s: float = Field(1.8e6, gt=0, description="photo-electrons per second at radiance 1")
+    ae_target: float = Field(0.22, gt=0, lt=1, description="auto-exposure target (share of full well)")
+    ae_max_exposure_s: float = Field(0.008, gt=0)
+    ae_max_gain: float = Field(4.0, ge=1)
+    right_sensitivity: float = Field(0.97, gt=0, description="right camera responsivity / left")
+    # optics
+    vignetting_corner: float = Field(0.6, gt=0, le=1, description="relative illumination at the corner")
+    lens_sigma_px: float = Field(0.5, ge=0, description="lens PSF (Gaussian sigma, px)")
+    f_number: float = Field(2.8, gt=0)
+    focus_m: float = Field(0.6, gt=0)
+    pixel_um: float = Field(6.0, gt=0)
+    specular: float = Field(0.25, ge=0, description="Blinn-Phong specular weight")
+    shininess: float = Field(30.0, gt=0)
+    patches: bool = Field(True, description="textureless and repetitive patches on table and walls")
+    # recorded calibration error (standard deviations)
+    calib_focal_err_px: float = Field(0.3, ge=0)
+    calib_pp_err_px: float = Field(0.3, ge=0)
+    calib_k1_err: float = Field(0.002, ge=0)
+    calib_rot_err_deg: float = Field(0.02, ge=0)
+    calib_baseline_err_m: float = Field(0.00005, ge=0)
+    # laser (see loopmodel/sim/laser.py)
+    laser_peak: float = Field(420.0, gt=0, description="line peak (grey) on white at 0.5 m, normal incidence")
+    laser_sigma_px: float = Field(1.2, gt=0, description="line cross-section sigma (px)")
+    laser_speckle_contrast: float = Field(0.35, ge=0, lt=1)
+    laser_spurious_rate: float = Field(0.08, ge=0, le=1, description="frames with a spurious reflection")
+    laser_plane_rot_err_deg: float = Field(0.02, ge=0, description="true plane vs calibrated plane")
+    laser_plane_offset_err_m: float = Field(0.0001, ge=0)
+    laser_time_offset_s: float = Field(0.001, description="laser exposure after the camera's mid-exposure")
+    # motion (see loopmodel/sim/trajectory.py)
+    pace: Literal["smooth", "handheld"] = Field("handheld", description="handheld: saccades and pauses")
+    revisit_offset_m: float = Field(0.03, ge=0, description="the return misses the start view by this much")
+
+
 class SimulationConfig(_Section):
     """Synthetic scan generator (``loopmodel simulate scan``)."""
 
@@ -340,6 +386,7 @@ class SimulationConfig(_Section):
     trajectory: SimTrajectoryConfig = Field(default_factory=SimTrajectoryConfig)
     laser: SimLaserConfig = Field(default_factory=SimLaserConfig)
     faults: SimFaultsConfig = Field(default_factory=SimFaultsConfig)
+    realism: SimRealismConfig = Field(default_factory=SimRealismConfig)  # issue 17
     workers: int = Field(2, ge=0, description="render processes; 0 = one per core, 1 = in-process")
     image_format: ImageFormat = Field("png")
     write_scene_ply: bool = Field(True, description="also write <out>.scene.ply beside the MCAP")

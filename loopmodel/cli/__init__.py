@@ -298,7 +298,11 @@ app.add_typer(simulate_app, name="simulate")
 @simulate_app.command("scan")
 def simulate_scan_cmd(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output .mcap file")],
-    preset: Annotated[str | None, typer.Option("--preset", help="orbit, sweeps or browse")] = None,
+    preset: Annotated[str | None, typer.Option("--preset", help="orbit, sweeps, browse or modeler")] = None,
+    realism: Annotated[
+        str | None,
+        typer.Option("--realism", help="clean or realistic (default: realistic with a preset, else the config's)"),
+    ] = None,
     frames: Annotated[int | None, typer.Option("--frames", help="Number of frames")] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="Random seed")] = None,
     scene: Annotated[str | None, typer.Option("--scene", help="bust, box or mix")] = None,
@@ -336,6 +340,7 @@ def simulate_scan_cmd(
             "laser": {"image": laser_image},
         },
         fault,
+        realism,
     )
     updates: dict[str, Any] = {}
     if seed is not None:

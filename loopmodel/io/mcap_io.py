@@ -486,8 +486,9 @@ class McapSequenceWriter:
         type_name, msg = self._image_msg(img, t_ns, frame_id)
         self._write(topic, type_name, msg, t_ns)
 
-    def write_stripe(self, stripe: StripeProfile) -> None:
-        """Write one laser-stripe profile as PointCloud2 (float32 x, y, z, left-camera frame)."""
+    def write_stripe(self, stripe: StripeProfile, topic: str | None = None) -> None:
+        """Write one laser-stripe profile as PointCloud2 (float32 x, y, z, left-camera frame)
+        on the stripe topic (or ``topic``)."""
         pts = np.ascontiguousarray(np.asarray(stripe.points_in_cam, dtype=np.float32).reshape(-1, 3))
         fields = [{"name": a, "offset": 4 * i, "datatype": POINTFIELD_FLOAT32, "count": 1} for i, a in enumerate("xyz")]
         msg = {
@@ -501,7 +502,7 @@ class McapSequenceWriter:
             "data": pts.tobytes(),
             "is_dense": bool(np.all(np.isfinite(pts))),
         }
-        self._write(self.topics.stripe, "sensor_msgs/msg/PointCloud2", msg, stripe.timestamp_ns)
+        self._write(topic or self.topics.stripe, "sensor_msgs/msg/PointCloud2", msg, stripe.timestamp_ns)
 
     def write_camera_info(self, topic: str, t_ns: int, info: dict, frame_id: str = "cam0") -> None:
         """Write one CameraInfo message dict (as :func:`camera_info_dicts` makes) on any topic."""
