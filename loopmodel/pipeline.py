@@ -8,7 +8,7 @@ Stages and their one entry point per event (all declared on their protocols):
 * front end  ``FrontEnd.process(frame) -> FrameResult`` (a keyframe when it makes one);
 * loop stage ``LoopStage.on_keyframe(keyframe, MapState) -> LoopOutcome`` (the keyframe to
   pass on, loop constraints, pose corrections), ``close(MapState)``, ``metrics()``;
-  :class:`~loopmodel.loop.stage.NullLoopStage` when loop closing is off;
+  :class:`~loopmodel.stages.NullLoopStage` when loop closing is off;
 * back end   ``Backend.add_keyframe``, ``add_loop_constraint``, ``estimate``, and at the end
   ``final_estimate(RefineConfig | None)``, ``metrics()``;
 * mapping    ``StripeMap.set_keyframe`` / ``add_frame`` / ``update_keyframes`` (frame poses
@@ -39,11 +39,11 @@ from loopmodel.errors import LoopmodelError
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder, write_results
-from loopmodel.loop.stage import LoopConstraint, LoopStage, MapState, NullLoopStage
 from loopmodel.mapping.final import final_mesh, run_stripes
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
+from loopmodel.stages import LoopConstraint, LoopStage, MapState, NullLoopStage
 from loopmodel.types import StereoCalibration, Trajectory
 
 logger = logging.getLogger(__name__)
