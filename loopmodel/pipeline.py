@@ -37,6 +37,7 @@ from loopmodel.backend import Backend, BackendEstimate, create_backend
 from loopmodel.config import Config
 from loopmodel.errors import LoopmodelError
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
+from loopmodel.frontend.metrics import frontend_metrics, percentile_or_none
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder, write_results
 from loopmodel.mapping.final import final_mesh, run_stripes
@@ -56,6 +57,19 @@ KeyframeHook = Callable[[Keyframe, FrameResult], None]
 
 #: The result of :func:`run_pipeline` (the name of earlier versions).
 RunOutput = RunResult
+
+__all__ = [
+    "RunOutput",
+    "RunResult",
+    "StopFlag",
+    "frontend_metrics",
+    "frontend_only",
+    "process",
+    "run",
+    "run_frontend",
+    "run_pipeline",
+    "stop_on_signals",
+]
 
 F64 = np.ndarray
 
@@ -99,34 +113,9 @@ def _ground_truth_errors(est: Trajectory, gt: Trajectory | None) -> dict[str, fl
     }
 
 
-def _q(a: np.ndarray, p: float) -> float | None:
-    return float(np.percentile(a, p)) if a.size else None
-
-
-def frontend_metrics(frames: list[FrameResult], wall_s: float) -> dict[str, Any]:
-    """Counts and timings of a front-end run (milliseconds, medians and 95th percentiles)."""
-    track = np.array([f.track_ms for f in frames], dtype=float)
-    kf_ms = np.array([f.keyframe_ms for f in frames if f.is_keyframe], dtype=float)
-    total = np.array([f.track_ms + f.keyframe_ms for f in frames], dtype=float)
-    busy_s = float(total.sum() / 1e3)
-    return {
-        "frames": len(frames),
-        "ok_frames": sum(f.ok for f in frames),
-        "lost_frames": sum(not f.ok for f in frames),
-        "keyframes": sum(f.is_keyframe for f in frames),
-        "segments": max((f.segment + 1 for f in frames), default=0),
-        "track_ms_median": _q(track, 50),
-        "track_ms_p95": _q(track, 95),
-        "keyframe_ms_median": _q(kf_ms, 50),
-        "frame_ms_median": _q(total, 50),
-        "fps": len(frames) / busy_s if busy_s > 0 else None,
-        "fps_with_io": len(frames) / wall_s if wall_s > 0 else None,
-    }
-
-
 def _quantiles(values: list[float], prefix: str) -> dict[str, float | None]:
     a = np.asarray(values, dtype=float)
-    return {f"{prefix}_median": _q(a, 50), f"{prefix}_p95": _q(a, 95)}
+    return {f"{prefix}_median": percentile_or_none(a, 50), f"{prefix}_p95": percentile_or_none(a, 95)}
 
 
 # --------------------------------------------------------------------------- stopping
