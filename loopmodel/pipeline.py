@@ -40,7 +40,7 @@ from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
 from loopmodel.frontend.metrics import frontend_metrics, percentile_or_none
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder, write_results
-from loopmodel.mapping.final import final_mesh, run_stripes
+from loopmodel.mapping.final import final_mesh, live_stripes, run_stripes
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
@@ -182,7 +182,9 @@ class _Run:
         self.loop = _loop_stage(config, self.frontend.calibration)
         # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
         self.anchored = StripeMap(config.mapping)
-        self.live = LiveMapping(self.anchored, sequence, config.mapping.live_mesh_every_kf)
+        every_kf = config.mapping.live_mesh_every_kf
+        stripes = live_stripes(sequence, config.mapping) if every_kf > 0 else iter(())
+        self.live = LiveMapping(self.anchored, stripes, every_kf)
         self.frames: list[FrameResult] = []
         self.keyframes: dict[int, int] = {}  # keyframe id -> timestamp_ns, in order
         # keyframe -> (previous keyframe, the tracker's pose of it there): drift per interval
