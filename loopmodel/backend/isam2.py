@@ -33,7 +33,7 @@ import re
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import gtsam
 import numpy as np
@@ -62,10 +62,13 @@ class _Obs:
     point_in_kf: F64 | None  # stereo triangulation in the keyframe's left camera (m)
 
 
+FactorKind = Literal["stereo", "mono", "prior", "loop"]
+
+
 @dataclass(slots=True)
 class _FactorRecord:
     factor: gtsam.NonlinearFactor
-    kind: str  # "stereo" | "mono" | "prior" | "loop"
+    kind: FactorKind
     lkey: int = -1  # internal landmark index, or -1
     obs: Observation | None = None
 
