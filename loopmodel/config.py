@@ -386,6 +386,15 @@ class LoopConfig(_Section):
     max_cycle_rot_deg: float = Field(2.0, gt=0, description="forward/reverse pose agreement")
     max_cycle_trans_m: float = Field(0.05, gt=0)
     background_ba: bool = Field(True, description="global BA in a worker process")
+    # robust gate on verified loops (loopmodel.backend.robust_posegraph): a keyframe pose
+    # graph of odometry (known inliers) and loops solved by GNC-TLS; a loop it rejects is
+    # never applied. Sigmas per keyframe step / per loop constraint.
+    robust: str = Field("gnc", pattern="^(gnc|none)$", description="gnc: GNC-TLS loop gate; none: trust loops")
+    robust_probability: float = Field(0.99, gt=0.5, lt=1, description="chi-square inlier quantile")
+    robust_odometry_sigma_deg: float = Field(1.0, gt=0, le=90, description="rotation per keyframe step")
+    robust_odometry_sigma_m: float = Field(0.02, gt=0, le=100, description="translation per keyframe step")
+    robust_loop_sigma_deg: float = Field(1.0, gt=0, le=90, description="loop constraint rotation")
+    robust_loop_sigma_m: float = Field(0.03, gt=0, le=100, description="loop constraint translation")
 
 
 class AccuracyConfig(_Section):

@@ -27,6 +27,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.backend.robust_posegraph import keyframe_loop_inliers
 from loopmodel.config import LoopConfig
 from loopmodel.errors import LoopmodelError
 from loopmodel.geometry.se3 import invert_pose, so3_log
@@ -87,6 +88,8 @@ class LoopClosingStage:
         #: constraint is added; the pipeline's back-end update then does the correction.
         self.backend = backend
         self._queued: list[tuple[LoopClosure, dict[str, Any]]] = []
+        #: loops the robust gate accepted (they join later gates' pose graphs)
+        self._gated: list[LoopClosure] = []
         self._awaiting: list[dict[str, Any]] = []
 
     # ------------------------------------------------------------------ keyframes
@@ -181,7 +184,10 @@ class LoopClosingStage:
 
     def _close(self, closure: LoopClosure) -> dict[str, Any] | None:
         """Start the correction of a verified loop (in the worker process when
-        ``background``); returns the record when it was applied right away."""
+        ``background``); returns the record when it was applied right away. A loop the
+        robust gate rejects (:meth:`_robust_gate`) is recorded and never applied."""
+        if not self._robust_gate(closure):
+            return None
         if self.backend is not None:
             record = self._loop_record(closure)
             self.events.append(record)
@@ -191,6 +197,62 @@ class LoopClosingStage:
             self._rerun = closure  # the running BA finishes first; then this loop's window
             return None
         return self._submit(closure)
+
+    def _cam_from_cam(self, closure: LoopClosure) -> F64:
+        """The closure's ``kf_query_from_kf_match`` between camera (not rectified) frames."""
+        q, m = self.keyframes[closure.query_kf], self.keyframes[closure.match_kf]
+        rq = np.asarray(getattr(q, "rect_from_cam", np.eye(4)))
+        rm = np.asarray(getattr(m, "rect_from_cam", np.eye(4)))
+        return invert_pose(rq) @ closure.query_from_match @ rm
+
+    def _robust_gate(self, closure: LoopClosure) -> bool:
+        """GNC-TLS on the keyframe pose graph from the loop's old keyframe to the current
+        one: the tracker's relative poses between consecutive connected keyframes (known
+        inliers), the loops accepted before and this one. False when this loop is an
+        outlier (it is then kept in ``rejected``, with the reason). A window that a new
+        segment (unconnected keyframe) breaks is not gated."""
+        if self.config.robust == "none":
+            return True
+        lo, hi = closure.match_kf, closure.query_kf
+        world = self.tracker.world_from_kf
+        ids = sorted(k for k in self.keyframes if lo <= k <= hi and k in world)
+        if len(ids) < 2 or ids[0] != lo or ids[-1] != hi:
+            return True
+        if not all(getattr(self.keyframes[k], "connected", True) for k in ids[1:]):
+            return True
+        cfg = self.config
+        loops = [
+            (c.query_kf, c.match_kf, self._cam_from_cam(c))
+            for c in self._gated
+            if lo <= c.match_kf and c.query_kf <= hi
+        ] + [(hi, lo, self._cam_from_cam(closure))]
+        t0 = time.perf_counter()
+        inlier, res = keyframe_loop_inliers(
+            {k: np.asarray(world[k], float) for k in ids},
+            list(zip(ids[:-1], ids[1:], strict=True)),
+            loops,
+            cfg.robust_odometry_sigma_deg,
+            cfg.robust_odometry_sigma_m,
+            cfg.robust_loop_sigma_deg,
+            cfg.robust_loop_sigma_m,
+            cfg.robust_probability,
+        )
+        gate_ms = (time.perf_counter() - t0) * 1e3
+        if bool(inlier[-1]):
+            self._gated.append(closure)
+            closure.info["robust_gate_ms"] = gate_ms
+            return True
+        self.closer.closures.remove(closure)
+        self.rejected.append(
+            {
+                "query_kf": hi,
+                "match_kf": lo,
+                "reason": f"robust gate: inconsistent with odometry (GNC weight {float(res.weights[-1]):.2f})",
+                "gate_ms": gate_ms,
+            }
+        )
+        logger.info("loop %d -> %d rejected by the robust gate", hi, lo)
+        return False
 
     def _to_backend(self, kf: Any, closure: LoopClosure, record: dict[str, Any]) -> None:
         """Append the closure's observations of old landmarks to the keyframe's monocular
@@ -213,10 +275,7 @@ class LoopClosingStage:
             return 0
         n = 0
         for closure, record in self._queued:
-            q, m = self.keyframes[closure.query_kf], self.keyframes[closure.match_kf]
-            rq = np.asarray(getattr(q, "rect_from_cam", np.eye(4)))
-            rm = np.asarray(getattr(m, "rect_from_cam", np.eye(4)))
-            q_from_m = invert_pose(rq) @ closure.query_from_match @ rm
+            q_from_m = self._cam_from_cam(closure)
             t0 = time.perf_counter()
             try:
                 record["constraint_id"] = int(be.add_loop_constraint(closure.query_kf, closure.match_kf, q_from_m))
