@@ -37,6 +37,8 @@ class SequenceConfig(_Section):
     topics: TopicsConfig = Field(default_factory=TopicsConfig)
     stereo_pair_tolerance_ns: int = Field(1_000_000, ge=0, description="max left/right stamp gap")
     kitti_rate_hz: float = Field(10.0, gt=0, description="frame rate when times.txt is absent")
+    # an image (MCAP message) declaring more pixels than this is refused before decoding
+    max_image_pixels: int = Field(100_000_000, ge=1, le=2**31 - 1, description="max width*height")
 
 
 class OutputConfig(_Section):
@@ -505,6 +507,10 @@ def load_config(path: str | Path | None = None) -> Config:
         data = yaml.safe_load(p.read_text()) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(p, f"not valid YAML ({str(exc).splitlines()[0]})") from None
+    except UnicodeDecodeError:  # random bytes
+        raise ConfigError(p, "not a UTF-8 YAML text file") from None
+    except OSError as exc:  # a FIFO, no permission
+        raise ConfigError(p, f"cannot read the configuration: {exc.strerror}") from None
     if not isinstance(data, dict):
         raise ConfigError(p, "expected a mapping of sections at the top level")
     return config_from_dict(data, p)

@@ -22,9 +22,11 @@ def open_sequence(path: str | Path, config: SequenceConfig | None = None) -> Seq
     p = Path(path)
     if not p.exists():
         raise InputError(p, "path does not exist")
+    if not p.is_file() and not p.is_dir():  # /dev/null, a FIFO, a socket
+        raise InputError(p, "expected an .mcap file or a EuRoC/KITTI folder, found a device or pipe")
     if p.is_file():
         if p.suffix.lower() == ".mcap" or is_mcap(p):
-            return McapSequence(p, cfg.topics, cfg.stereo_pair_tolerance_ns)
+            return McapSequence(p, cfg.topics, cfg.stereo_pair_tolerance_ns, cfg.max_image_pixels)
         raise FormatError(p, "unknown file type (expected an .mcap file or a EuRoC/KITTI folder)")
     if euroc_root(p) is not None:
         return EurocSequence(p, cfg.stereo_pair_tolerance_ns)
