@@ -434,6 +434,7 @@ def run_pipeline(
                 f"{metrics['fps']:.1f}" if metrics["fps"] else "-",
             )
             folder.write_text("run.log", log.text())
+            folder.commit()  # the staged folder replaces an older run's only now
     if interrupted:
         raise KeyboardInterrupt
     return RunOutput(folder.path, frames, keyframes, metrics, interrupted)

@@ -118,11 +118,25 @@ def convert(
         raise InputError(dst, "output must end in .mcap")
     if image_format not in ("raw", "png", "jpeg"):
         raise InputError(None, f"--image-format must be raw, png or jpeg, got '{image_format}'")
+    from loopmodel.cli.signals import sigterm_as_interrupt
+    from loopmodel.io.atomic import check_output_file
+
+    check_output_file(dst)  # before the work, not after it
     cfg = load_config(config)
     seq = open_sequence(src, cfg.sequence)
-    with progress_bar() as bar:
-        task = bar.add_task("convert", total=len(seq))
-        convert_to_mcap(seq, dst, cfg.sequence, image_format, progress=lambda i: bar.update(task, completed=i))
+    done = [0]
+
+    def step(i: int) -> None:
+        done[0] = i
+        bar.update(task, completed=i)
+
+    try:
+        with sigterm_as_interrupt(), progress_bar() as bar:
+            task = bar.add_task("convert", total=len(seq))
+            convert_to_mcap(seq, dst, cfg.sequence, image_format, progress=step)
+    except KeyboardInterrupt:
+        err_console.print(f"interrupted after {done[0]} frames; {dst} not written")
+        raise typer.Exit(130) from None
     console.print(f"wrote {dst} ({dst.stat().st_size / 2**20:.1f} MiB, {len(seq)} frames)")
 
 
@@ -142,6 +156,8 @@ def run(
     from loopmodel.io.sequence import open_sequence
     from loopmodel.pipeline import run_frontend, run_pipeline
 
+    if max_frames is not None and max_frames < 1:
+        raise InputError("--max-frames", f"must be at least 1, got {max_frames}")
     cfg = load_config(config)
     seq = open_sequence(path, cfg.sequence)
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
@@ -307,9 +323,21 @@ def simulate_scan_cmd(
         updates["image_format"] = image_format
     if updates:
         sim = resolve_config(sim.model_copy(update=updates))
-    with progress_bar() as bar:
-        task = bar.add_task("simulate", total=sim.trajectory.frames)
-        res = simulate_scan(sim, out, cfg.sequence.topics, lambda k, n: bar.update(task, completed=k), preset)
+    from loopmodel.cli.signals import sigterm_as_interrupt
+
+    done = [0]
+
+    def step(k: int, n: int) -> None:
+        done[0] = k
+        bar.update(task, completed=k)
+
+    try:
+        with sigterm_as_interrupt(), progress_bar() as bar:
+            task = bar.add_task("simulate", total=sim.trajectory.frames)
+            res = simulate_scan(sim, out, cfg.sequence.topics, step, preset)
+    except KeyboardInterrupt:
+        err_console.print(f"interrupted after {done[0]} frames; {out} not written")
+        raise typer.Exit(130) from None
     console.print(
         f"wrote {res.path} ({res.size_bytes / 2**20:.1f} MiB, {res.frames_written} frames, "
         f"{res.stripes_written} stripes, {len(res.faults)} faults) in {res.seconds:.1f} s: "
@@ -719,7 +747,13 @@ def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in args
     try:
-        app(args=args, prog_name="loopmodel", standalone_mode=False)
+        rv = app(args=args, prog_name="loopmodel", standalone_mode=False)
+        # typer turns KeyboardInterrupt into Exit(130) and, outside standalone mode, returns
+        # the code instead of raising it
+        if isinstance(rv, int) and rv != 0:
+            if rv == 130:
+                err_console.print("interrupted")
+            return rv
     except LoopmodelError as exc:
         if debug:
             raise
@@ -737,6 +771,12 @@ def main(argv: list[str] | None = None) -> int:
         else:
             err_console.print(f"error: {exc}")
         return int(getattr(exc, "exit_code", 2))
+    except OSError as exc:  # the environment (full disk, read-only folder): one line naming the path
+        if debug:
+            raise
+        where = f"{exc.filename}: " if exc.filename else ""
+        err_console.print(f"[red]I/O error:[/red] {where}{exc.strerror or exc}", highlight=False, soft_wrap=True)
+        return 1
     except Exception as exc:  # a bug, not bad input: say so in one line unless --debug
         if debug:
             raise

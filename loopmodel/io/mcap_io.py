@@ -226,6 +226,8 @@ class McapSequence(Sequence):
                     schema = summary.schemas.get(ch.schema_id)
                     self._channels[ch.topic] = schema.name if schema else ""
                 if summary.statistics is not None:
+                    for ch in summary.channels.values():  # a channel without messages counts 0
+                        self._counts.setdefault(ch.topic, 0)
                     for cid, n in summary.statistics.channel_message_counts.items():
                         topic = summary.channels[cid].topic
                         self._counts[topic] = self._counts.get(topic, 0) + n

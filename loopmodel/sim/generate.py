@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import multiprocessing as mp
+import signal
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -27,7 +28,7 @@ from loopmodel.config import SimulationConfig, TopicsConfig
 from loopmodel.errors import ConfigError, InputError
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose
-from loopmodel.io.atomic import write_bytes_atomic
+from loopmodel.io.atomic import check_output_file, write_bytes_atomic
 from loopmodel.io.mcap_io import McapSequenceWriter
 from loopmodel.sim.faults import FaultPlan, cam_from_occluder
 from loopmodel.sim.laser import LaserPlane, draw_laser_image, stripe_profile
@@ -209,6 +210,8 @@ _STATE: _WorkerState | None = None
 
 def _init_worker(cfg: SimulationConfig, scene: Scene) -> None:
     global _STATE
+    # Ctrl-C reaches the whole process group: the parent stops the pool, workers stay quiet
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     cv2.setNumThreads(1)
     _STATE = _make_state(cfg, scene)
     _STATE.caster.threads = 1  # one process per core already
@@ -442,6 +445,7 @@ def simulate_scan(
     out = Path(out)
     if out.suffix.lower() != ".mcap":
         raise InputError(out, "output must end in .mcap")
+    check_output_file(out)
     t_start = time.perf_counter()
     tr = cfg.trajectory
     n = tr.frames
