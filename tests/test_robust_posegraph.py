@@ -28,6 +28,7 @@ from loopmodel.types import StereoCalibration
 CSAIL = Path("/work/shared/data/posegraphs/CSAIL.g2o")
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not CSAIL.exists(), reason="shared pose graphs not present")
 def test_gnc_rejects_false_loops_on_csail() -> None:
     g = read_g2o(CSAIL)

@@ -196,7 +196,9 @@ def _pose(dim: int, T: F64) -> Any:
 
 
 def _factor_graph(
-    graph: PoseGraph, keep: NDArray[np.bool_] | None = None
+    graph: PoseGraph,
+    keep: NDArray[np.bool_] | None = None,
+    cauchy_k: float | None = None,
 ) -> tuple[gtsam.NonlinearFactorGraph, list[int]]:
     """GTSAM graph of the (kept) edges plus a prior on the first pose; returns it and the
     edge index of every between-factor (the prior is factor 0)."""
@@ -214,6 +216,8 @@ def _factor_graph(
             continue
         i, j = (int(v) for v in graph.edges_ij[e])
         noise = gtsam.noiseModel.Gaussian.Information(np.asarray(graph.information[e], float))
+        if cauchy_k is not None and not graph.odometry[e]:
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k), noise)
         meas = _pose(graph.dim, graph.i_from_j[e])
         if graph.dim == 2:
             g.add(gtsam.BetweenFactorPose2(i, j, meas, noise))
@@ -269,12 +273,17 @@ def robust_optimize(
     probability: float = 0.99,
     init: dict[int, F64] | None = None,
     max_iterations: int = 100,
-    start_from_odometry: bool = False,
+    start: str = "cauchy",
 ) -> PoseGraphResult:
     """GNC over Levenberg-Marquardt with the odometry edges as known inliers (``loss``:
     ``tls`` or ``gm``). Loop edges with a final weight below 0.5 are rejected; the poses
     are then re-solved by LM over the kept edges (GNC's last iterate has the TLS weights,
-    which are 0 or 1 at convergence, so this only polishes)."""
+    which are 0 or 1 at convergence, so this only polishes). ``start``: GNC's first,
+    convex step weighs every loop 1 (``ls``), only the odometry (``odometry``), or the
+    loops that agree with a Cauchy-kernel LM solution, which is also the initial estimate
+    (``cauchy``)."""
+    if start not in ("ls", "odometry", "cauchy"):
+        raise InputError("robust_optimize", f"unknown start {start!r} (expected ls, odometry or cauchy)")
     if loss not in ("tls", "gm"):
         raise InputError("loop.robust", f"unknown robust loss {loss!r} (expected tls or gm)")
     if not 0.5 < probability < 1.0:
@@ -292,9 +301,19 @@ def robust_optimize(
     params.setKnownInliers(known)
     opt = gtsam.GncLMOptimizer(g, values, params)
     opt.setInlierCostThresholdsAtProbability(probability)
-    if start_from_odometry:
+    if start == "odometry":
         w0 = np.ones(len(order) + 1)
         w0[1:] = graph.odometry[order].astype(float)
+        opt.setWeights(w0)
+    elif start == "cauchy":
+        thr = _chi2_quantile(graph.dim, probability)
+        gc, _ = _factor_graph(graph, cauchy_k=math.sqrt(thr))
+        start_values = gtsam.LevenbergMarquardtOptimizer(gc, values, _lm_params(max_iterations)).optimize()
+        agree = _edge_chi2(graph, _matrices(graph, start_values)) <= thr
+        w0 = np.ones(len(order) + 1)
+        w0[1:] = (agree | graph.odometry)[order].astype(float)
+        opt = gtsam.GncLMOptimizer(g, start_values, params)
+        opt.setInlierCostThresholdsAtProbability(probability)
         opt.setWeights(w0)
     gnc_values = opt.optimize()
     w = np.asarray(opt.getWeights(), dtype=float)
