@@ -363,3 +363,25 @@ def test_staging_of_a_dead_run_is_removed(tmp_path: Path) -> None:
     assert not (tmp_path / f".run.tmp-{dead.pid}").exists()
     rf.commit()
     assert not (tmp_path / ".run.lock").exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_simulate_with_workers_is_quiet_and_cleans_up(tmp_path: Path) -> None:
+    out = tmp_path / "s.mcap"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    cmd = [sys.executable, "-m", "loopmodel", "simulate", "scan", "--out", str(out), "--frames", "200"]
+    cmd += ["--workers", "2", "--width", "160", "--height", "120"]
+    proc = subprocess.Popen(
+        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
+    deadline = time.monotonic() + 240
+    while not list(tmp_path.glob(".s.mcap.tmp-*")) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert proc.poll() is None, "simulate finished before the signal"
+    while proc.poll() is None and time.monotonic() < deadline:  # Ctrl-C until it stops
+        os.killpg(proc.pid, signal.SIGINT)  # (Ctrl-C reaches the whole process group)
+        time.sleep(0.5)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "interrupted after" in err
+    assert not out.exists() and not list(tmp_path.glob(".s.mcap.tmp-*"))

@@ -6,6 +6,7 @@ import json
 import logging
 import math
 import sys
+import warnings
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -742,16 +743,34 @@ def loop_vocabulary(
     console.print(f"{voc.n_words} words from {len(docs)} images written to {out}")
 
 
+_PROGRAM = [False]
+
+
+def _ignore_further_interrupts() -> None:
+    """Once a command was interrupted, another Ctrl-C must not break the exit (worker pools
+    and temporary files are being cleaned up). Only for the program itself (``_PROGRAM``),
+    not for ``main`` called from Python."""
+    import signal
+    import threading
+
+    if _PROGRAM[0] and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: runs the app, turns loopmodel errors into one line and exit status 2."""
     args = list(sys.argv[1:] if argv is None else argv)
+    _PROGRAM[0] = argv is None
     debug = "--debug" in args
+    if not debug:  # numeric warnings are for developers; the results say what went wrong
+        warnings.filterwarnings("ignore", category=RuntimeWarning)
     try:
         rv = app(args=args, prog_name="loopmodel", standalone_mode=False)
         # typer turns KeyboardInterrupt into Exit(130) and, outside standalone mode, returns
         # the code instead of raising it
         if isinstance(rv, int) and rv != 0:
             if rv == 130:
+                _ignore_further_interrupts()
                 err_console.print("interrupted")
             return rv
     except LoopmodelError as exc:
@@ -760,8 +779,11 @@ def main(argv: list[str] | None = None) -> int:
         err_console.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
         return 2
     except typer.Exit as exc:
+        if exc.exit_code == 130:
+            _ignore_further_interrupts()
         return int(exc.exit_code)
     except (typer.Abort, KeyboardInterrupt):
+        _ignore_further_interrupts()
         err_console.print("interrupted")
         return 130
     except typer.exceptions.TyperException as exc:  # usage errors (click's, vendored by typer)

@@ -14,6 +14,7 @@ import json
 import logging
 import multiprocessing as mp
 import signal
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -210,8 +211,7 @@ _STATE: _WorkerState | None = None
 
 def _init_worker(cfg: SimulationConfig, scene: Scene) -> None:
     global _STATE
-    # Ctrl-C reaches the whole process group: the parent stops the pool, workers stay quiet
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # (already ignored from the start; see below)
     cv2.setNumThreads(1)
     _STATE = _make_state(cfg, scene)
     _STATE.caster.threads = 1  # one process per core already
@@ -428,7 +428,17 @@ def _iter_rendered(
             yield render_frame(st, task)
         return
     ctx = mp.get_context("spawn")
-    with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg, scene)) as pool:
+    # workers start with SIGINT ignored (an ignored signal stays ignored across exec, and
+    # Python then installs no KeyboardInterrupt handler): Ctrl-C, which reaches the whole
+    # process group, stops the parent, which terminates the pool; no worker tracebacks
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
+    try:
+        pool = ctx.Pool(workers, initializer=_init_worker, initargs=(cfg, scene))
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+    with pool:
         yield from pool.imap(_worker_render, tasks, chunksize=1)
 
 
