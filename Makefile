@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SHARED ?= ../shared
 
-.PHONY: demo test setup syslibs lint bench clean
+.PHONY: demo test test-fast setup syslibs lint bench clean
 
 setup: syslibs $(STAMP)
 
@@ -26,7 +26,7 @@ syslibs:
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q -e '.[dev,viz,batch]'
 	@touch $(STAMP)
 
 demo: setup
@@ -34,6 +34,10 @@ demo: setup
 
 test: setup
 	$(PY) -m pytest -q -x --durations=15
+
+# Development tier: everything not marked slow (CI still runs the whole suite).
+test-fast: setup
+	$(PY) -m pytest -q -x -m "not slow"
 
 lint: setup
 	$(VENV)/bin/ruff check loopmodel tests tools

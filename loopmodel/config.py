@@ -6,13 +6,23 @@ Every run writes the effective configuration into its results folder.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from loopmodel.errors import ConfigError
+
+BackendKind = Literal["isam2", "givens", "both", "none"]
+"""``backend.kind``: iSAM2, the Givens estimator, iSAM2 behind the Givens screen, or none."""
+ImageFormat = Literal["raw", "png", "jpeg"]
+"""How images are stored in an MCAP file."""
+DescriptorKind = Literal["orb", "sift", "surf"]
+"""Feature descriptor of loop closing."""
+AlignMode = Literal["se3", "sim3", "origin", "none"]
+"""Alignment of an estimated trajectory to the ground truth before its errors."""
 
 
 class _Section(BaseModel):
@@ -46,15 +56,13 @@ class OutputConfig(_Section):
 
     out_dir: str = "results"
     write_kitti: bool = False
-    image_format: str = Field("png", pattern="^(raw|png|jpeg)$", description="MCAP image encoding")
 
 
 class BackendConfig(_Section):
     """Keyframe/landmark back end (``backend/``); iSAM2 keys map onto ``gtsam.ISAM2Params``."""
 
-    kind: str = Field(
+    kind: BackendKind = Field(
         "isam2",
-        pattern="^(isam2|givens|both|none)$",
         description="isam2, givens, both (Givens screen before iSAM2), or none (front-end poses only)",
     )
     pixel_sigma_px: float = Field(1.0, gt=0, description="std. dev. of an image coordinate")
@@ -96,7 +104,7 @@ class BackendConfig(_Section):
         False, description="check relinearisation only in the cliques an update touches"
     )
     wildfire_threshold: float = Field(0.001, ge=0, description="back-substitution stop")
-    factorization: str = Field("CHOLESKY", pattern="^(CHOLESKY|QR)$")
+    factorization: Literal["CHOLESKY", "QR"] = Field("CHOLESKY")
     ordering_window_kf: int = Field(
         10, ge=0, description="eliminate the newest N poses last, oldest first (0: GTSAM default)"
     )
@@ -132,7 +140,7 @@ class FrontendConfig(_Section):
     klt_iterations: int = Field(7, ge=1, le=100)
     fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward tolerance")
     # robust pose
-    pose_loss: str = Field("tukey", pattern="^(tukey|huber)$")
+    pose_loss: Literal["tukey", "huber"] = Field("tukey")
     pose_min_scale_px: float = Field(0.5, gt=0, description="floor of the MAD scale")
     ransac_threshold_px: float = Field(2.0, gt=0)
     prediction_gate_px: float = Field(
@@ -162,7 +170,7 @@ class FrontendConfig(_Section):
     ba_huber_px: float = Field(1.0, gt=0)
     ba_final_stereo: bool = Field(False, description="add the final right projections to eq. 1")
     # depth of features without a stereo match (seed-003 observer with the tracker's poses)
-    mono_depth: str = Field("none", pattern="^(none|observer)$", description="depth of unmatched corners")
+    mono_depth: Literal["none", "observer"] = Field("none", description="depth of unmatched corners")
     mono_max_features: int = Field(300, ge=0, le=100000, description="most tracks without stereo depth")
     mono_max_rel_sigma: float = Field(0.1, gt=0, description="converged below this relative depth std")
     mono_min_parallax_deg: float = Field(1.0, ge=0, description="excitation: recent mean parallax")
@@ -181,7 +189,7 @@ class FrontendConfig(_Section):
 class MappingConfig(_Section):
     """Laser-stripe integration and open3d meshing (lengths in metres, world frame)."""
 
-    method: str = Field(default="poisson", pattern="^(poisson|ball_pivoting)$", description="surface method")
+    method: Literal["poisson", "ball_pivoting"] = Field(default="poisson", description="surface method")
     write_mesh: bool = Field(True, description="the pipeline writes mesh.ply (and mesh errors when truth exists)")
     voxel_m: float = Field(default=0.0015, gt=0, description="voxel down-sampling size before meshing")
     normal_radius_m: float = Field(default=0.006, gt=0, description="neighbourhood radius for normals")
@@ -213,7 +221,6 @@ class MappingConfig(_Section):
     )
     poisson_threads: int = Field(default=0, ge=0, description="threads of a Poisson reconstruction; 0 = all cores")
     chunk_m: float = Field(default=0.05, gt=0, description="block edge of the chunked live mesh")
-    chunk_margin_m: float = Field(default=0.006, ge=0, description="overlap meshed around a live block")
     min_points: int = Field(default=100, ge=4, description="fewest points a surface is made from")
     laser_plane_point_in_cam_m: list[float] = Field(
         default_factory=lambda: [0.12, 0.0, 0.0],
@@ -231,9 +238,9 @@ class MappingConfig(_Section):
         default=20.0, ge=0, description="laser line: min peak above the background (grey levels)"
     )
     peak_window_px: int = Field(default=3, ge=1, description="laser line: half-width of the window")
-    peak_method: str = Field(default="cog", pattern="^(cog|gauss)$", description="sub-pixel method")
-    peak_axis: str = Field(
-        default="rows", pattern="^(columns|rows)$", description="one peak per image row (vertical line) or column"
+    peak_method: Literal["cog", "gauss"] = Field(default="cog", description="sub-pixel method")
+    peak_axis: Literal["columns", "rows"] = Field(
+        default="rows", description="one peak per image row (vertical line) or column"
     )
 
 
@@ -259,6 +266,9 @@ class SimCameraConfig(_Section):
     cy_px: float | None = Field(None, description="defaults to (height_px - 1) / 2")
     xi: float = Field(0.0, ge=0, description="unified-model mirror parameter; 0 is a pinhole")
     baseline_m: float = Field(0.06, gt=0, description="left-to-right camera distance along x")
+    # rosbag (issue 25): render raw equidistant (Kannala-Brandt) fisheye images with these
+    # k1..k4; the calibration is then unrectified with camera_model "equidistant"
+    fisheye_k: list[float] | None = Field(None, min_length=4, max_length=4, description="k1..k4; None: pinhole")
 
 
 class SimSceneConfig(_Section):
@@ -288,7 +298,7 @@ class SimRenderConfig(_Section):
 class SimTrajectoryConfig(_Section):
     """Hand-held path around the object (world z up, object on the table at the origin)."""
 
-    kind: Literal["orbit", "sweeps", "browse"] = "orbit"
+    kind: Literal["orbit", "sweeps", "browse", "modeler"] = "orbit"
     frames: int = Field(600, gt=0, le=1000000)
     rate_hz: float = Field(25.0, gt=0)
     radius_m: float = Field(0.65, gt=0, description="camera distance from the object axis")
@@ -329,6 +339,52 @@ class SimFaultsConfig(_Section):
     blur_length_px: float = Field(15.0, gt=0)
 
 
+class SimRealismConfig(_Section):
+    """Realistic sensor, optics, laser and motion (issue 17); ``clean`` is the ideal world of
+    issue 3. Magnitudes and their sources: ``loopmodel/sim/sensor.py`` (image),
+    ``loopmodel/sim/laser.py`` (laser), ``loopmodel/sim/trajectory.py`` (motion)."""
+
+    level: Literal["clean", "realistic"] = "clean"
+    # sensor: Sony IMX250 EMVA 1288 figures (see loopmodel/sim/sensor.py)
+    full_well_e: float = Field(10700.0, gt=0, description="saturation capacity (electrons)")
+    read_noise_e: float = Field(2.9, ge=0, description="temporal dark noise (electrons)")
+    prnu: float = Field(0.006, ge=0, description="photo-response non-uniformity (relative)")
+    dsnu_e: float = Field(1.5, ge=0, description="dark-signal non-uniformity (electrons)")
+    adc_bits: int = Field(12, ge=8, le=16)
+    gamma: float = Field(0.7, gt=0, le=1.5, description="8-bit output = 255 (DN / DN_max)^gamma")
+    light_e_per_s: float = Field(1.8e6, gt=0, description="photo-electrons per second at radiance 1")
+    ae_target: float = Field(0.22, gt=0, lt=1, description="auto-exposure target (share of full well)")
+    ae_max_exposure_s: float = Field(0.008, gt=0)
+    ae_max_gain: float = Field(4.0, ge=1)
+    right_sensitivity: float = Field(0.97, gt=0, description="right camera responsivity / left")
+    # optics
+    vignetting_corner: float = Field(0.6, gt=0, le=1, description="relative illumination at the corner")
+    lens_sigma_px: float = Field(0.5, ge=0, description="lens PSF (Gaussian sigma, px)")
+    f_number: float = Field(2.8, gt=0)
+    focus_m: float = Field(0.6, gt=0)
+    pixel_um: float = Field(6.0, gt=0)
+    specular: float = Field(0.25, ge=0, description="Blinn-Phong specular weight")
+    shininess: float = Field(30.0, gt=0)
+    patches: bool = Field(True, description="textureless and repetitive patches on table and walls")
+    # recorded calibration error (standard deviations)
+    calib_focal_err_px: float = Field(0.3, ge=0)
+    calib_pp_err_px: float = Field(0.3, ge=0)
+    calib_k1_err: float = Field(0.002, ge=0)
+    calib_rot_err_deg: float = Field(0.02, ge=0)
+    calib_baseline_err_m: float = Field(0.00005, ge=0)
+    # laser (see loopmodel/sim/laser.py)
+    laser_peak: float = Field(420.0, gt=0, description="line peak (grey) on white at 0.5 m, normal incidence")
+    laser_sigma_px: float = Field(1.2, gt=0, description="line cross-section sigma (px)")
+    laser_speckle_contrast: float = Field(0.35, ge=0, lt=1)
+    laser_spurious_rate: float = Field(0.08, ge=0, le=1, description="frames with a spurious reflection")
+    laser_plane_rot_err_deg: float = Field(0.02, ge=0, description="true plane vs calibrated plane")
+    laser_plane_offset_err_m: float = Field(0.0001, ge=0)
+    laser_time_offset_s: float = Field(0.001, description="laser exposure after the camera's mid-exposure")
+    # motion (see loopmodel/sim/trajectory.py)
+    pace: Literal["smooth", "handheld"] = Field("handheld", description="handheld: saccades and pauses")
+    revisit_offset_m: float = Field(0.03, ge=0, description="the return misses the start view by this much")
+
+
 class SimulationConfig(_Section):
     """Synthetic scan generator (``loopmodel simulate scan``)."""
 
@@ -339,8 +395,9 @@ class SimulationConfig(_Section):
     trajectory: SimTrajectoryConfig = Field(default_factory=SimTrajectoryConfig)
     laser: SimLaserConfig = Field(default_factory=SimLaserConfig)
     faults: SimFaultsConfig = Field(default_factory=SimFaultsConfig)
+    realism: SimRealismConfig = Field(default_factory=SimRealismConfig)  # issue 17
     workers: int = Field(2, ge=0, le=256, description="render processes; 0 = one per core, 1 = in-process")
-    image_format: str = Field("png", pattern="^(raw|png|jpeg)$")
+    image_format: ImageFormat = Field("png")
     write_scene_ply: bool = Field(True, description="also write <out>.scene.ply beside the MCAP")
 
     @model_validator(mode="after")
@@ -358,9 +415,7 @@ class SimulationConfig(_Section):
 class EvalConfig(_Section):
     """Trajectory evaluation (``loopmodel eval``)."""
 
-    align: str = Field(
-        default="se3", pattern="^(se3|sim3|origin|none)$", description="alignment to ground truth"
-    )
+    align: AlignMode = Field(default="se3", description="alignment to ground truth")
     first_n: int | None = Field(default=None, ge=3, description="align on the first N poses only")
     max_dt_ms: float = Field(default=10.0, gt=0, description="max time gap of associated poses")
     rpe_delta_frames: int = Field(default=1, ge=1, description="RPE pose-pair spacing in frames")
@@ -377,7 +432,7 @@ class LoopConfig(_Section):
     """Appearance-based relocalization and loop closing (``loopmodel.loop``)."""
 
     enabled: bool = True
-    descriptor: str = Field("orb", pattern="^(orb|sift|surf)$", description="orb, sift or surf")
+    descriptor: DescriptorKind = Field("orb", description="orb, sift or surf")
     n_features: int = Field(1500, ge=50, le=100000, description="features per keyframe")
     ratio: float = Field(0.8, gt=0, le=1, description="Lowe ratio of descriptor matching")
     vocabulary_path: str | None = Field(None, description="trained vocabulary .npz; None: on the fly")
@@ -394,11 +449,10 @@ class LoopConfig(_Section):
     min_epipolar_inliers: int = Field(40, ge=8, le=100000, description="monocular verification")
     max_cycle_rot_deg: float = Field(2.0, gt=0, description="forward/reverse pose agreement")
     max_cycle_trans_m: float = Field(0.05, gt=0)
-    background_ba: bool = Field(True, description="global BA in a worker process")
     # robust gate on verified loops (loopmodel.backend.robust_posegraph): a keyframe pose
     # graph of odometry (known inliers) and loops solved by GNC-TLS; a loop it rejects is
     # never applied. Sigmas per keyframe step / per loop constraint.
-    robust: str = Field("gnc", pattern="^(gnc|none)$", description="gnc: GNC-TLS loop gate; none: trust loops")
+    robust: Literal["gnc", "none"] = Field("gnc", description="gnc: GNC-TLS loop gate; none: trust loops")
     robust_probability: float = Field(0.99, gt=0.5, lt=1, description="chi-square inlier quantile")
     robust_odometry_sigma_deg: float = Field(1.0, gt=0, le=90, description="rotation per keyframe step")
     robust_odometry_sigma_m: float = Field(0.02, gt=0, le=100, description="translation per keyframe step")
@@ -426,7 +480,7 @@ class VvsConfig(_Section):
     sample_step_px: float = Field(3.0, gt=0, description="spacing of edge samples on each conic")
     search_px: int = Field(10, ge=1, le=1000, description="moving-edge search range along the normal")
     edge_noise_px: float = Field(0.15, ge=0, description="simulated edge noise before pixel rounding")
-    loss: str = Field("tukey", pattern="^(tukey|huber|l2)$", description="M-estimator")
+    loss: Literal["tukey", "huber", "l2"] = Field("tukey", description="M-estimator")
     huber_warmup: int = Field(1, ge=0, le=1000, description="first VVS iterations with Huber")
     max_iterations: int = Field(20, ge=1, le=1000)
     min_features: int = Field(20, ge=6, le=100000, description="fewer matched edge points: tracking failure")
@@ -503,6 +557,37 @@ def config_from_dict(data: dict[str, Any], source: str | Path | None = None) -> 
         raise ConfigError(source, f"key '{key}': {err['msg']}") from None
 
 
+SectionT = TypeVar("SectionT", bound=BaseModel)
+
+
+def apply_overrides(
+    section: SectionT, overrides: Mapping[str, Any], names: Mapping[str, str] | None = None
+) -> SectionT:
+    """A validated copy of ``section`` (the whole :class:`Config` or one of its sections)
+    with the dotted keys of ``overrides`` set (``{"eval.align": "sim3"}``); None values are
+    skipped. The one way command-line flags change a configuration: an unknown key or an
+    invalid value raises :class:`ConfigError` naming ``names[key]`` (e.g. the flag) or the key."""
+    names = names or {}
+    data = section.model_dump()
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        *parents, leaf = key.split(".")
+        node: Any = data
+        for part in parents:
+            node = node.get(part) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or leaf not in node:
+            raise ConfigError(names.get(key, key), f"unknown configuration key '{key}'")
+        node[leaf] = value
+    try:
+        return type(section).model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        key = ".".join(str(p) for p in err["loc"])
+        value = overrides.get(key, err.get("input"))
+        raise ConfigError(names.get(key, key), f"{err['msg']}, got {value!r}") from None
+
+
 def load_config(path: str | Path | None = None) -> Config:
     """Defaults overridden by the YAML file at ``path`` (when given)."""
     if path is None:
@@ -523,6 +608,20 @@ def load_config(path: str | Path | None = None) -> Config:
     return config_from_dict(data, p)
 
 
-def dump_config(config: Config) -> str:
-    """The configuration as YAML text (every key, defaults included)."""
-    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)
+#: Top-level sections that configure other commands than the pipeline (``eval``, ``bound``,
+#: ``simulate``, ``vvs``); a run's ``config.yaml`` holds every other section.
+TOOL_SECTIONS: tuple[str, ...] = ("eval", "accuracy", "simulation", "vvs")
+
+
+def pipeline_sections() -> tuple[str, ...]:
+    """The sections the pipeline (``loopmodel run``, :func:`loopmodel.run`) reads."""
+    return tuple(k for k in Config.model_fields if k not in TOOL_SECTIONS)
+
+
+def dump_config(config: Config, sections: tuple[str, ...] | None = None) -> str:
+    """The configuration as YAML text (every key, defaults included), or only the named
+    top-level ``sections``."""
+    data = config.model_dump(mode="json")
+    if sections is not None:
+        data = {k: data[k] for k in sections}
+    return yaml.safe_dump(data, sort_keys=False)

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED_DATA = (ROOT / ".." / "shared" / "data").resolve()
+# LOOPMODEL_SHARED_DATA points elsewhere (e.g. from a git worktree); default ../shared/data
+SHARED_DATA = Path(os.environ.get("LOOPMODEL_SHARED_DATA", ROOT / ".." / "shared" / "data")).resolve()
 
 
 @pytest.fixture

@@ -9,6 +9,7 @@ from loopmodel.backend.givens import GivensEstimator
 from loopmodel.backend.givens_bundle import GivensScreen, SequentialBundle, _fkey, _pkey
 from loopmodel.backend.snooping import critical_value, normalized_residuals
 from loopmodel.backend.testfield import make_testfield
+from loopmodel.config import GivensConfig
 from loopmodel.errors import EstimationError
 from loopmodel.geometry.se3 import so3_exp
 
@@ -329,7 +330,7 @@ def test_snooping_finds_one_and_two_blunders() -> None:
 def test_screen_rejects_injected_blunders() -> None:
     tf = make_testfield(n_frames=14, n_points=40, seed=6, blunder_fraction=0.03, blunder_sigmas=(10.0, 15.0))
     rng = np.random.default_rng(0)
-    scr = GivensScreen(tf.camera, sigma_px=tf.sigma_px)
+    scr = GivensScreen(tf.camera, GivensConfig(sigma_px=tf.sigma_px))
     ctrl = set(tf.control.tolist())
     blunders, flagged = set(), set()
     for f, (ids, uv) in enumerate(tf.observations):
@@ -353,12 +354,12 @@ def test_screen_rejects_injected_blunders() -> None:
 
 
 def test_screen_keyframe_adapter() -> None:
-    """Duck-typed front-end keyframes (stereo + mono observations) through the screen."""
-    from types import SimpleNamespace
+    """Front-end keyframes (stereo + mono observations) through the screen."""
+    from loopmodel.types import Keyframe
 
     tf = make_testfield(n_frames=10, n_points=40, seed=8, blunder_fraction=0.0)
     rng = np.random.default_rng(4)
-    scr = GivensScreen(tf.camera, sigma_px=tf.sigma_px)
+    scr = GivensScreen(tf.camera, GivensConfig(sigma_px=tf.sigma_px))
     seen: set[int] = set()
     bad_key = None
     for f, (ids, uv) in enumerate(tf.observations):
@@ -371,8 +372,9 @@ def test_screen_keyframe_adapter() -> None:
         new = [k for k, i in enumerate(ids.tolist()) if i not in seen]
         old = [k for k, i in enumerate(ids.tolist()) if i in seen]
         p_kf = (tf.points_world[ids[new]] - T[:3, 3]) @ T[:3, :3] + rng.normal(0, 0.005, (len(new), 3))
-        kf = SimpleNamespace(
+        kf = Keyframe(
             id=f,
+            timestamp_ns=f,
             world_from_kf=T,
             landmark_ids=ids[new],
             points_in_kf=p_kf,

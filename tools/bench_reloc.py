@@ -1,9 +1,12 @@
 """Benchmark ``reloc``: relocalization with the P3P bank on Strecha fountain-P11 (real).
 
 Descriptors are triangulated from two views with their ground-truth cameras (the map);
-every other view is relocalized against that map and compared with its ground truth.
-The same matches also go to ``cv2.solvePnPRansac`` (P3P minimal solver, same threshold,
-same iteration cap) for the timing comparison. Images are downscaled by ``SCALE``.
+every other view is relocalized against that map and compared with its ground truth,
+at the pipeline's own thresholds (``loop`` section of the default configuration: ratio,
+P3P inlier bound, minimum inliers and inlier ratio, sample cap). The same matches also go
+to ``cv2.solvePnPRansac`` (P3P minimal solver, same threshold, same sample bound) for the
+timing comparison. Images are downscaled by ``SCALE``. Runs for ORB, SIFT and SURF
+(the top-level keys are SIFT's, per-kind keys ``<kind>_*``).
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from loopmodel.config import LoopConfig
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.features import (
@@ -26,10 +30,20 @@ from loopmodel.loop.features import (
     match_descriptors,
     triangulate,
 )
+from loopmodel.loop.closure import params_from_config
 from loopmodel.loop.pnp import solve_pnp_bank
-from loopmodel.loop.reloc import RelocParams, localize
+from loopmodel.loop.reloc import RelocParams, localize, sample_bound
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "fountain"
+
+def _shared_data() -> Path:
+    """``shared/data`` beside the nearest ancestor of this file (the checkout or a worktree)."""
+    for parent in Path(__file__).resolve().parents:
+        if (parent / "shared" / "data").is_dir():
+            return parent / "shared" / "data"
+    return Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+
+
+DATA = _shared_data() / "fountain"
 SCALE = 0.5
 MAP_VIEWS = (4, 6)
 
@@ -70,7 +84,9 @@ def build_map(kind: str, n_features: int, ex: object) -> FeatureSet:
     pairs = match_descriptors(fa, fb, ratio=0.8, mask=mask)
     X, ok = triangulate(K_a, T_a, K_b, T_b, fa.keypoints_px[pairs[:, 0]], fb.keypoints_px[pairs[:, 1]], 2.0)
     sel = pairs[ok, 0]
-    return FeatureSet(fa.keypoints_px[sel], fa.descriptors[sel], kind, X[ok])
+    out = fa.subset(sel)
+    out.points_in_kf = X[ok]
+    return out
 
 
 def evaluate(kind: str, n_features: int, queries: list[int]) -> dict:
@@ -78,7 +94,7 @@ def evaluate(kind: str, n_features: int, queries: list[int]) -> dict:
     ex = make_extractor(kind, n_features)
     landmarks = build_map(kind, n_features, ex)
     print(f"[{kind}] map: {len(landmarks)} landmarks from views {MAP_VIEWS}")
-    params = RelocParams(threshold_px=2.0, min_inliers=20, min_inlier_ratio=0.15)
+    params: RelocParams = params_from_config(LoopConfig()).reloc
     rot_err, pos_err, q_ms, bank_ms, cv_ms, cv_rot, cv_pos = [], [], [], [], [], [], []
     successes = 0
     throughput_case = None
@@ -104,8 +120,8 @@ def evaluate(kind: str, n_features: int, queries: list[int]) -> dict:
                 img,
                 K,
                 None,
-                iterationsCount=params.max_samples,
-                reprojectionError=2.0,
+                iterationsCount=sample_bound(params),
+                reprojectionError=params.threshold_px,
                 confidence=params.confidence,
                 flags=cv2.SOLVEPNP_P3P,
             )
@@ -179,14 +195,30 @@ def throughput(obj: np.ndarray, img: np.ndarray, K: np.ndarray, samples: int = 4
 
 def run(quick: bool = False) -> dict:
     queries = [i for i in range(11) if i not in MAP_VIEWS]
-    n_sift = 6000
-    main = evaluate("sift", n_sift, queries)
+    main = evaluate("sift", 6000, queries)
     orb = evaluate("orb", 6000, queries[::2] if quick else queries)
+    surf = evaluate("surf", 6000, queries)
+    cfg = LoopConfig()
     out: dict = {"dataset": f"fountain-P11 (map views {MAP_VIEWS}, images downscaled x{SCALE})"}
     out["descriptor"] = "sift"
+    out["thresholds"] = {
+        "threshold_px": cfg.threshold_px,
+        "min_inliers": cfg.min_inliers,
+        "min_inlier_ratio": cfg.min_inlier_ratio,
+        "ratio": cfg.ratio,
+    }
     out.update(main)
     if main["opencv_ransac_ms_median"]:
         out["bank_over_opencv_ms_ratio"] = round((main["p3p_bank_ms_median"] or 0) / main["opencv_ransac_ms_median"], 2)
-    for k in ("queries", "successes", "rot_err_deg_median", "pos_err_m_median", "query_ms_median"):
-        out["orb_" + k] = orb[k]
+    for name, res in (("sift", main), ("orb", orb), ("surf", surf)):
+        for k in (
+            "queries",
+            "successes",
+            "rot_err_deg_median",
+            "pos_err_m_median",
+            "query_ms_median",
+            "p3p_bank_ms_median",
+            "opencv_ransac_ms_median",
+        ):
+            out[f"{name}_{k}"] = res[k]
     return out

@@ -11,23 +11,16 @@ columns, first ``nc`` used; the point rows of the bundle carry the frame columns
   ``1 - (z_k / r_kk)²`` falls below ``min_cos2``: the caller then re-factorises.
 - :func:`retriangularize` restores triangularity after columns were cut out of ``R``.
 
-With numba (optional dependency) the loops are compiled; without it a row-vectorised numpy
-version of the same rotations is used (same arithmetic, slower).
+The loops are compiled by numba (a required dependency; an earlier numpy fallback never ran
+and was removed).
 """
 
 from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
-
-try:  # pragma: no cover - depends on the environment
-    import numba
-
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover
-    numba = None  # type: ignore[assignment]
-    HAVE_NUMBA = False
 
 
 def _rows_update_py(R, d, C, Z, ZC, zl, n, nc):  # type: ignore[no-untyped-def]
@@ -207,128 +200,9 @@ def _solve_py(Rg, dg, n, Rpp, Rpf, dp, P, psize, pfirst, xg, xp, rel_tol):  # ty
     return -1
 
 
-def _solve_np(Rg, dg, n, Rpp, Rpf, dp, P, psize, pfirst, xg, xp, rel_tol):  # type: ignore[no-untyped-def]
-    from scipy.linalg import solve_triangular
-
-    diag = np.abs(np.diag(Rg)[:n])
-    scale = float(diag.max(initial=0.0))
-    bad = np.flatnonzero((diag <= rel_tol * scale) | (diag == 0.0))
-    if bad.size:
-        return int(bad[-1])
-    if n:
-        xg[:n] = solve_triangular(Rg[:n, :n], dg[:n], check_finite=False)
-    smax = Rpp.shape[1]
-    if P == 0:
-        return -1
-    R = Rpp[:P]
-    dd = np.abs(np.diagonal(R, axis1=1, axis2=2))
-    sizes = psize[:P]
-    active = np.arange(smax)[None, :] < sizes[:, None]
-    pscale = np.max(np.where(active, dd, 0.0), axis=1)
-    badm = active & ((dd <= rel_tol * pscale[:, None]) | (dd == 0.0))
-    if badm.any():
-        p, i = np.argwhere(badm)[0]
-        return n + int(p) * smax + int(i)
-    y = dp[:P] - (Rpf[:P, :, :n] @ xg[:n] if n else 0.0)
-    for i in range(smax - 1, -1, -1):
-        acc = y[:, i] - np.einsum("pj,pj->p", R[:, i, i + 1 :], xp[:P, i + 1 :])
-        xp[:P, i] = np.where(active[:, i], acc / np.where(active[:, i], R[:, i, i], 1.0), 0.0)
-    return -1
-
-
-# ---- numpy fallbacks (vectorised along the row; used when numba is absent) ----
-
-
-def _rows_update_np(R, d, C, Z, ZC, zl, n, nc):  # type: ignore[no-untyped-def]
-    m = Z.shape[0]
-    for k in range(n):
-        for r in range(m):
-            a = Z[r, k]
-            if a == 0.0:
-                continue
-            rkk = R[k, k]
-            h = math.hypot(rkk, a)
-            c, s = rkk / h, a / h
-            R[k, k] = h
-            Z[r, k] = 0.0
-            t = R[k, k + 1 : n].copy()
-            u = Z[r, k + 1 : n]
-            R[k, k + 1 : n] = c * t + s * u
-            Z[r, k + 1 : n] = c * u - s * t
-            if nc:
-                t = C[k, :nc].copy()
-                u = ZC[r, :nc]
-                C[k, :nc] = c * t + s * u
-                ZC[r, :nc] = c * u - s * t
-            t0, u0 = d[k], zl[r]
-            d[k] = c * t0 + s * u0
-            zl[r] = c * u0 - s * t0
-
-
-def _rows_downdate_np(R, d, C, Z, ZC, zl, n, nc, min_cos2):  # type: ignore[no-untyped-def]
-    m = Z.shape[0]
-    for k in range(n):
-        for r in range(m):
-            a = Z[r, k]
-            if a == 0.0:
-                continue
-            rkk = R[k, k]
-            if rkk == 0.0:
-                return False
-            t = a / rkk
-            c2 = 1.0 - t * t
-            if c2 < min_cos2:
-                return False
-            ch = math.sqrt(c2)
-            R[k, k] = rkk * ch
-            Z[r, k] = 0.0
-            rk = (R[k, k + 1 : n] - t * Z[r, k + 1 : n]) / ch
-            Z[r, k + 1 : n] = ch * Z[r, k + 1 : n] - t * rk
-            R[k, k + 1 : n] = rk
-            if nc:
-                rk = (C[k, :nc] - t * ZC[r, :nc]) / ch
-                ZC[r, :nc] = ch * ZC[r, :nc] - t * rk
-                C[k, :nc] = rk
-            rk0 = (d[k] - t * zl[r]) / ch
-            zl[r] = ch * zl[r] - t * rk0
-            d[k] = rk0
-    return True
-
-
-def _retriangularize_np(T, dT, band):  # type: ignore[no-untyped-def]
-    rows, cols = T.shape
-    for k in range(cols):
-        for i in range(1, band + 1):
-            rr = k + i
-            if rr >= rows:
-                break
-            a = T[rr, k]
-            if a == 0.0:
-                continue
-            rkk = T[k, k]
-            h = math.hypot(rkk, a)
-            c, s = rkk / h, a / h
-            T[k, k] = h
-            T[rr, k] = 0.0
-            t = T[k, k + 1 :].copy()
-            u = T[rr, k + 1 :]
-            T[k, k + 1 :] = c * t + s * u
-            T[rr, k + 1 :] = c * u - s * t
-            t0, u0 = dT[k], dT[rr]
-            dT[k] = c * t0 + s * u0
-            dT[rr] = c * u0 - s * t0
-
-
-if HAVE_NUMBA:  # pragma: no cover - depends on the environment
-    _jit = numba.njit(cache=True, nogil=True)
-    rows_update = _jit(_rows_update_py)
-    rows_downdate = _jit(_rows_downdate_py)
-    retriangularize = _jit(_retriangularize_py)
-    solve_structured = numba.njit(cache=True, nogil=True, fastmath=True)(_solve_py)
-    KERNELS = "numba"
-else:  # pragma: no cover
-    rows_update = _rows_update_np  # type: ignore[assignment]
-    rows_downdate = _rows_downdate_np  # type: ignore[assignment]
-    retriangularize = _retriangularize_np  # type: ignore[assignment]
-    solve_structured = _solve_np  # type: ignore[assignment]
-    KERNELS = "numpy"
+_jit = numba.njit(cache=True, nogil=True)
+rows_update = _jit(_rows_update_py)
+rows_downdate = _jit(_rows_downdate_py)
+retriangularize = _jit(_retriangularize_py)
+solve_structured = numba.njit(cache=True, nogil=True, fastmath=True)(_solve_py)
+KERNELS = "numba"

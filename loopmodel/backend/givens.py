@@ -669,11 +669,15 @@ class GivensEstimator:
         return Q
 
     # ------------------------------------------------- residuals and redundancy
-    def _forward_rows(self, ids: Sequence[int], need_q: bool = True) -> tuple[F64, F64, list[int]]:
-        """For the rows of ``ids``: whitened residuals v = a x̂ - l and ||R⁻ᵀ aᵀ||² per row.
+    def residual_rows(self, ids: Sequence[int], leverage: bool = True) -> tuple[F64, F64, list[int]]:
+        """For the rows of the observations ``ids``, concatenated: the whitened residuals
+        v = a x̂ - l, the leverages a Q_xx aᵀ = ||R⁻ᵀ aᵀ||² (Gruen's unit observation vector
+        method: forward substitutions with the rows, never the full cofactor matrix), and
+        the number of rows of each observation.
 
-        ``need_q=False`` skips the forward substitutions (the second array is then zeros).
+        ``leverage=False`` skips the forward substitutions (the second array is then zeros).
         """
+        need_q = leverage
         xp, xg = self._solve()
         n = self._n
         recs = [self._get_obs(i) for i in ids]
@@ -736,20 +740,14 @@ class GivensEstimator:
     def residuals(self, ids: Sequence[int] | None = None) -> dict[int, F64]:
         """Whitened residuals √P v = √P (A x̂ - l) per observation."""
         ids = self.observation_ids() if ids is None else list(ids)
-        v, _, counts = self._forward_rows(ids, need_q=False)
+        v, _, counts = self.residual_rows(ids, leverage=False)
         return dict(zip(ids, np.split(v, np.cumsum(counts)[:-1]), strict=True))
 
     def redundancy_numbers(self, ids: Sequence[int] | None = None) -> dict[int, F64]:
         """Diagonal of Q_vv P (redundancy numbers r_i = 1 - a_i Q_xx a_iᵀ p_i) per observation."""
         ids = self.observation_ids() if ids is None else list(ids)
-        _, pn, counts = self._forward_rows(ids)
+        _, pn, counts = self.residual_rows(ids)
         return dict(zip(ids, np.split(1.0 - pn, np.cumsum(counts)[:-1]), strict=True))
-
-    def snoop(self, ids: Sequence[int] | None = None, **kwargs: Any) -> Any:
-        """Baarda data snooping on the given observations; see :func:`snooping.snoop`."""
-        from loopmodel.backend.snooping import snoop
-
-        return snoop(self, ids, **kwargs)
 
     # ------------------------------------------------------------ batch export
     def design_matrix(self) -> tuple[Any, F64, list[Hashable], list[int]]:

@@ -25,16 +25,17 @@ from __future__ import annotations
 
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from loopmodel.backend.givens import GivensEstimator
 from loopmodel.backend.snooping import SnoopResult, normalized_residuals, snoop
+from loopmodel.config import GivensConfig
 from loopmodel.errors import EstimationError
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import hat, so3_exp, so3_log
+from loopmodel.types import Keyframe
 
 F64 = NDArray[np.float64]
 
@@ -304,10 +305,19 @@ class SequentialBundle:
         self.n_relinearizations += 1
 
     # ---------------------------------------------------------------- snooping
-    def snoop(self, oids: Sequence[int] | None = None, **kwargs: object) -> SnoopResult:
-        """Data snooping on image observations (default: all); rejected ones are deleted."""
+    def snoop(
+        self,
+        oids: Sequence[int] | None = None,
+        *,
+        alpha: float = 0.001,
+        min_redundancy: float = 0.05,
+        max_rejections: int | None = None,
+    ) -> SnoopResult:
+        """Data snooping (:func:`~loopmodel.backend.snooping.snoop`, significance level
+        ``alpha``) on image observations (default: all) whose redundancy reaches
+        ``min_redundancy``; rejected ones (at most ``max_rejections``) are deleted."""
         ids = list(self.image_obs) if oids is None else list(oids)
-        res = snoop(self.est, ids, **kwargs)  # type: ignore[arg-type]
+        res = snoop(self.est, ids, alpha=alpha, min_redundancy=min_redundancy, max_rejections=max_rejections)
         for oid in res.rejected:
             o = self.image_obs.pop(oid, None)
             if o is not None:
@@ -335,46 +345,34 @@ class GivensScreen:
     """
 
     def __init__(
-        self,
-        camera: CentralCamera,
-        sigma_px: float = 1.0,
-        alpha: float = 0.001,
-        min_redundancy: float = 0.3,
-        point_prior_sigma_m: float = 1.0,
-        frame_prior_sigma_rad: float = 0.05,
-        frame_prior_sigma_m: float = 0.1,
+        self, camera: CentralCamera, config: GivensConfig, right_from_left: ArrayLike | None = None
     ) -> None:
-        self.bundle = SequentialBundle(camera, sigma_px=sigma_px)
-        self.alpha = float(alpha)
-        self.min_redundancy = float(min_redundancy)
-        self.point_prior_sigma_m = float(point_prior_sigma_m)
-        self.frame_prior = (float(frame_prior_sigma_rad), float(frame_prior_sigma_m))
+        """The screen configured by a :class:`loopmodel.config.GivensConfig` section; with
+        ``right_from_left`` (4x4, rectified rig) the right-image coordinates of stereo
+        observations are screened too."""
+        self.bundle = SequentialBundle(camera, sigma_px=config.sigma_px)
+        self.bundle.relin_px = config.relin_px
+        if right_from_left is not None:
+            self.bundle.right_from_left = np.asarray(right_from_left, dtype=float).reshape(4, 4)
+        self.bundle.est.min_downdate_cos2 = config.min_downdate_cos2
+        self.alpha = float(config.alpha)
+        self.min_redundancy = float(config.min_redundancy)
+        self.point_prior_sigma_m = float(config.point_prior_sigma_m)
+        self.frame_prior = (float(config.frame_prior_sigma_rad), float(config.frame_prior_sigma_m))
         self.stats = ScreenStats()
         self._pending: list[int] = []
         self._key: dict[int, tuple[Hashable, Hashable]] = {}
         self._late: list[tuple[Hashable, Hashable]] = []
 
     @classmethod
-    def from_config(cls, camera: CentralCamera, cfg: Any, right_from_left: ArrayLike | None = None) -> GivensScreen:
-        """Screen from a :class:`loopmodel.config.GivensConfig` section; with ``right_from_left``
-        (4x4, rectified rig) the right-image coordinates of stereo observations are screened too."""
-        scr = cls(
-            camera,
-            sigma_px=cfg.sigma_px,
-            alpha=cfg.alpha,
-            min_redundancy=cfg.min_redundancy,
-            point_prior_sigma_m=cfg.point_prior_sigma_m,
-            frame_prior_sigma_rad=cfg.frame_prior_sigma_rad,
-            frame_prior_sigma_m=cfg.frame_prior_sigma_m,
-        )
-        scr.bundle.relin_px = cfg.relin_px
-        if right_from_left is not None:
-            scr.bundle.right_from_left = np.asarray(right_from_left, dtype=float).reshape(4, 4)
-        scr.bundle.est.min_downdate_cos2 = cfg.min_downdate_cos2
-        return scr
+    def from_config(
+        cls, camera: CentralCamera, config: GivensConfig, right_from_left: ArrayLike | None = None
+    ) -> GivensScreen:
+        """The screen of a :class:`loopmodel.config.GivensConfig` section (the constructor)."""
+        return cls(camera, config, right_from_left)
 
-    def screen_keyframe(self, keyframe: Any) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-        """Screen one front-end keyframe (the back end's ``KeyframeLike``, duck-typed).
+    def screen_keyframe(self, keyframe: Keyframe) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+        """Screen one front-end keyframe, its pose and points in its rectified left camera.
 
         Reads ``id``, ``world_from_kf`` (4x4), ``landmark_ids`` (M,), ``points_in_kf`` (M x 3,
         metres, keyframe frame), ``stereo_px`` (M x 3: u_left, u_right, v) and ``mono_obs``

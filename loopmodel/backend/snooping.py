@@ -55,7 +55,7 @@ def normalized_residuals(
     pass ``est.variance_factor() ** 0.5`` for Pope's τ variant.
     """
     s0 = 1.0 if sigma0 is None else float(sigma0)
-    v, pn, counts = est._forward_rows(list(ids))
+    v, pn, counts = est.residual_rows(list(ids))
     q = 1.0 - pn
     w = v / (s0 * np.sqrt(np.maximum(q, 1e-300)))
     cut = np.cumsum(counts)[:-1]
@@ -136,7 +136,7 @@ def snoop(
         cand_ids = [i for i in cand_ids if i != best]
         if not cand_ids:
             break
-        v, _, counts = est._forward_rows(cand_ids, need_q=False)
+        v, _, counts = est.residual_rows(cand_ids, leverage=False)
         for i, vi in zip(cand_ids, np.split(v, np.cumsum(counts)[:-1]), strict=True):
             w[i] = vi / (s0 * np.sqrt(np.maximum(q[i], 1e-300)))
         fresh = False

@@ -16,7 +16,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from loopmodel import __version__
-from loopmodel.config import dump_config, load_config
+from loopmodel.cli.view import RerunConnectOption, RerunFileOption, RerunSpawnOption, rerun_listeners
+from loopmodel.cli.view import view as view_results
+from loopmodel.config import apply_overrides, dump_config, load_config
 from loopmodel.errors import InputError, LoopmodelError
 
 console = Console()
@@ -33,6 +35,8 @@ config_app = typer.Typer(help="Configuration.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
 
 ConfigOption = Annotated[Path | None, typer.Option("--config", "-c", help="YAML file overriding defaults")]
+LeftTopicOption = Annotated[str | None, typer.Option("--left", help="Left image topic of a bag (default: guessed)")]
+RightTopicOption = Annotated[str | None, typer.Option("--right", help="Right image topic of a bag (default: guessed)")]
 
 
 def _version_callback(value: bool) -> None:
@@ -85,15 +89,18 @@ def _fmt(v: Any) -> str:
 
 @app.command()
 def info(
-    path: Annotated[Path, typer.Argument(help="MCAP file, EuRoC or KITTI folder")],
+    path: Annotated[Path, typer.Argument(help="MCAP file, ROS 1/ROS 2 bag, EuRoC or KITTI folder")],
     config: ConfigOption = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table")] = False,
+    left: LeftTopicOption = None,
+    right: RightTopicOption = None,
 ) -> None:
-    """Describe a sequence: format, frames, duration, image size, calibration, ground truth, stripes."""
+    """Describe a sequence: format, frames, duration, image size, calibration, ground truth, stripes;
+    for a bag its image and camera_info topics with rates and sizes, and the stereo pair chosen."""
     from loopmodel.io.sequence import open_sequence
 
     cfg = load_config(config)
-    desc = open_sequence(path, cfg.sequence).describe()
+    desc = open_sequence(path, cfg.sequence, left, right).describe()
     if as_json:
         console.print_json(json.dumps(desc))
         return
@@ -101,30 +108,52 @@ def info(
     for k, v in desc.items():
         if k == "topics" and isinstance(v, dict):
             v = ", ".join(f"{t} [{d['type'].split('/')[-1]}: {d['messages']}]" for t, d in v.items())
+        if k == "image_topics" and isinstance(v, dict):
+            v = "; ".join(f"{t} " + ", ".join(f"{a} {_fmt(b)}" for a, b in d.items()) for t, d in v.items())
         table.add_row(k, _fmt(v))
     console.print(table)
 
 
 @app.command()
 def convert(
-    src: Annotated[Path, typer.Argument(help="EuRoC or KITTI folder (or MCAP)")],
-    dst: Annotated[Path, typer.Argument(help="Output .mcap file")],
+    src: Annotated[Path, typer.Argument(help="EuRoC or KITTI folder, MCAP file or ROS bag")],
+    dst: Annotated[Path, typer.Argument(help="Output: .mcap, .bag (ROS 1) or a ROS 2 bag folder")],
     config: ConfigOption = None,
-    image_format: Annotated[str, typer.Option("--image-format", help="raw, png or jpeg")] = "png",
+    image_format: Annotated[
+        str,
+        typer.Option("--image-format", help="raw, png, jpeg; bags also mono8, mono16, bgr8, rgb8, bgra8, bayer_rggb8"),
+    ] = "png",
+    to: Annotated[
+        str | None, typer.Option("--to", help="mcap, ros2-sqlite3, ros2-mcap or ros1 (default: from the name)")
+    ] = None,
+    keep_topics: Annotated[bool, typer.Option("--keep-topics", help="Keep the source's topic names")] = False,
+    left: LeftTopicOption = None,
+    right: RightTopicOption = None,
 ) -> None:
-    """Convert a sequence to MCAP with ROS 2 messages (topics of DESIGN.md)."""
-    from loopmodel.io.sequence import convert_to_mcap, open_sequence
+    """Convert a sequence to MCAP with ROS 2 messages (topics of DESIGN.md) or to a ROS bag."""
+    from loopmodel.io.convert import OUTPUT_KINDS, convert_sequence, output_kind
+    from loopmodel.io.rosbag_writer import ENCODINGS
+    from loopmodel.io.sequence import open_sequence
 
-    if dst.suffix.lower() != ".mcap":
+    kind = output_kind(dst, to)
+    if kind not in OUTPUT_KINDS:
+        raise InputError("--to", f"must be one of {', '.join(OUTPUT_KINDS)}, got '{kind}'")
+    if kind == "mcap" and dst.suffix.lower() != ".mcap":
         raise InputError(dst, "output must end in .mcap")
-    if image_format not in ("raw", "png", "jpeg"):
-        raise InputError(None, f"--image-format must be raw, png or jpeg, got '{image_format}'")
+    if kind == "ros1" and dst.suffix.lower() != ".bag":
+        raise InputError(dst, "a ROS 1 bag must end in .bag")
+    allowed = ("raw", "png", "jpeg") if kind == "mcap" else ENCODINGS
+    if image_format not in allowed:
+        raise InputError("--image-format", f"must be one of {', '.join(allowed)} for {kind}, got '{image_format}'")
+    if dst.exists() and kind != "mcap":
+        raise InputError(dst, "exists already; choose a new name")
     from loopmodel.cli.signals import sigterm_as_interrupt
     from loopmodel.io.atomic import check_output_file
 
-    check_output_file(dst)  # before the work, not after it
+    if kind == "mcap":
+        check_output_file(dst)  # before the work, not after it
     cfg = load_config(config)
-    seq = open_sequence(src, cfg.sequence)
+    seq = open_sequence(src, cfg.sequence, left, right)
     done = [0]
 
     def step(i: int) -> None:
@@ -134,21 +163,27 @@ def convert(
     try:
         with sigterm_as_interrupt(), progress_bar() as bar:
             task = bar.add_task("convert", total=len(seq))
-            convert_to_mcap(seq, dst, cfg.sequence, image_format, progress=step)
+            convert_sequence(seq, dst, kind, cfg.sequence, image_format, keep_topics, progress=step)
     except KeyboardInterrupt:
         err_console.print(f"interrupted after {done[0]} frames; {dst} not written")
         raise typer.Exit(130) from None
-    console.print(f"wrote {dst} ({dst.stat().st_size / 2**20:.1f} MiB, {len(seq)} frames)")
+    size = sum(p.stat().st_size for p in dst.rglob("*")) if dst.is_dir() else dst.stat().st_size
+    console.print(f"wrote {dst} ({kind}, {size / 2**20:.1f} MiB, {len(seq)} frames)")
 
 
 @app.command()
 def run(
-    path: Annotated[Path, typer.Argument(help="MCAP file, EuRoC or KITTI folder")],
+    path: Annotated[Path, typer.Argument(help="MCAP file, ROS 1/ROS 2 bag, EuRoC or KITTI folder")],
     config: ConfigOption = None,
     frontend_only: Annotated[bool, typer.Option("--frontend-only", help="Run only the visual front end")] = False,
     out: Annotated[Path | None, typer.Option("--out", help="Results root (default: output.out_dir)")] = None,
     name: Annotated[str | None, typer.Option("--name", help="Run name (folder under --out)")] = None,
     max_frames: Annotated[int | None, typer.Option("--max-frames", help="Stop after this many frames")] = None,
+    left: LeftTopicOption = None,
+    right: RightTopicOption = None,
+    rerun: RerunFileOption = None,
+    rerun_spawn: RerunSpawnOption = False,
+    rerun_connect: RerunConnectOption = None,
 ) -> None:
     """Process a sequence (front end, back end); writes config, trajectories, keyframes, map,
     metrics and log into <out>/<name>/. Ctrl-C or SIGTERM stops it after writing what it has."""
@@ -160,7 +195,9 @@ def run(
     if max_frames is not None and max_frames < 1:
         raise InputError("--max-frames", f"must be at least 1, got {max_frames}")
     cfg = load_config(config)
-    seq = open_sequence(path, cfg.sequence)
+    seq = open_sequence(path, cfg.sequence, left, right)
+    if getattr(seq, "choice", None):
+        console.print(f"{seq.format_name}: {seq.choice}")  # type: ignore[attr-defined]
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
     if frontend_only:
         run_name = name or f"{path.stem}_frontend"
@@ -193,6 +230,7 @@ def run(
                 run_name,
                 max_frames=max_frames,
                 progress=lambda i, n, fps, kf: bar.update(task, completed=i, fps=fps, kf=kf),
+                listeners=rerun_listeners(seq.calibration, rerun, rerun_spawn, rerun_connect),
             )
         except KeyboardInterrupt:
             err_console.print(f"results up to the last processed frame are in {folder}")
@@ -276,7 +314,11 @@ app.add_typer(simulate_app, name="simulate")
 @simulate_app.command("scan")
 def simulate_scan_cmd(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output .mcap file")],
-    preset: Annotated[str | None, typer.Option("--preset", help="orbit, sweeps or browse")] = None,
+    preset: Annotated[str | None, typer.Option("--preset", help="orbit, sweeps, browse or modeler")] = None,
+    realism: Annotated[
+        str | None,
+        typer.Option("--realism", help="clean or realistic (default: realistic with a preset, else the config's)"),
+    ] = None,
     frames: Annotated[int | None, typer.Option("--frames", help="Number of frames")] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="Random seed")] = None,
     scene: Annotated[str | None, typer.Option("--scene", help="bust, box or mix")] = None,
@@ -314,6 +356,7 @@ def simulate_scan_cmd(
             "laser": {"image": laser_image},
         },
         fault,
+        realism,
     )
     updates: dict[str, Any] = {}
     if seed is not None:
@@ -323,7 +366,7 @@ def simulate_scan_cmd(
     if image_format is not None:
         updates["image_format"] = image_format
     if updates:
-        sim = resolve_config(sim.model_copy(update=updates))
+        sim = resolve_config(apply_overrides(sim, updates, {k: "--" + k.replace("_", "-") for k in updates}))
     from loopmodel.cli.signals import sigterm_as_interrupt
 
     done = [0]
@@ -389,8 +432,8 @@ def bound(
     for key, val in given.items():
         if val is not None and not val > 0:
             raise InputError(None, f"--{key.replace('_', '-')} must be > 0, got {val}")
-    acc = cfg.accuracy.model_copy(update={k: v for k, v in given.items() if v is not None})
-    cfg = cfg.model_copy(update={"accuracy": acc})
+    acc = apply_overrides(cfg.accuracy, given, {k: "--" + k.replace("_", "-") for k in given})
+    cfg = apply_overrides(cfg, {"accuracy": acc.model_dump()})
     markers = [load_marker(m) for m in (marker or ["triangle", "t"])]
     if len({m.name for m in markers}) != len(markers):
         raise InputError(None, "two markers share a name; give each JSON file a distinct 'name'")
@@ -451,7 +494,7 @@ def givens_sim(
         raise InputError(None, f"--blunders must be in [0, 1), got {blunders}")
     cfg = load_config(config).givens
     tf = make_testfield(n_frames=frames, n_points=points, blunder_fraction=blunders, seed=seed)
-    scr = GivensScreen.from_config(tf.camera, cfg.model_copy(update={"sigma_px": tf.sigma_px}))
+    scr = GivensScreen.from_config(tf.camera, apply_overrides(cfg, {"sigma_px": tf.sigma_px}))
     ctrl = set(tf.control.tolist())
     flagged: set[tuple[int, int]] = set()
     truth: set[tuple[int, int]] = set()
@@ -586,15 +629,8 @@ def eval_command(
     from loopmodel.eval import report as rep
 
     cfg = load_config(config)
-    ecfg = cfg.eval.model_copy()
     overrides = {"align": align, "first_n": first_n, "max_dt_ms": max_dt_ms, "rpe_delta_m": rpe_delta_m}
-    for key, value in overrides.items():
-        if value is not None:
-            try:
-                setattr(ecfg, key, value)
-            except ValueError as exc:
-                msg = exc.errors()[0]["msg"] if hasattr(exc, "errors") else str(exc)
-                raise InputError("--" + key.replace("_", "-"), f"{msg}, got {value!r}") from None
+    ecfg = apply_overrides(cfg.eval, overrides, {k: "--" + k.replace("_", "-") for k in overrides})
     if no_plots:
         ecfg.plots = False
     runs = list(runs or [])
@@ -686,7 +722,7 @@ def loop_detect(
 
     cfg = load_config(config).loop
     if vocabulary is not None:
-        cfg = cfg.model_copy(update={"vocabulary_path": str(vocabulary)})
+        cfg = apply_overrides(cfg, {"vocabulary_path": str(vocabulary)}, {"vocabulary_path": "--vocabulary"})
     files = _image_files(folder)
     ex = make_extractor(cfg.descriptor, cfg.n_features)
     det = None
@@ -956,6 +992,17 @@ def vvs_calibrate(
         console.print(table)
     console.print(f"results in {out}")
 
+
+app.command("view")(view_results)
+
+from loopmodel.cli.calibrate import calibrate_app, turntable_app  # noqa: E402
+
+app.add_typer(calibrate_app, name="calibrate")
+app.add_typer(turntable_app, name="turntable")
+
+from loopmodel.cli.batch import batch_app  # noqa: E402
+
+app.add_typer(batch_app, name="batch")
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

@@ -149,3 +149,50 @@ def plot_error_colored(reference_m: F64, track: PlotTrack, title: str) -> bytes:
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
     return _png(fig)
+
+
+# --------------------------------------------------------------------------- many runs
+
+
+def plot_metric_by_group(values: dict[str, dict[str, float]], metric: str, title: str, log: bool = False) -> bytes:
+    """One metric of many runs: a marker per (series, category), e.g. series = configuration
+    variants and categories = sequences (``values[series][category]``; missing ones left out)."""
+    fig = _figure(8.0, 4.8)
+    ax = fig.add_subplot(111)
+    cats = sorted({c for v in values.values() for c in v})
+    xs = np.arange(len(cats), dtype=float)
+    n = max(len(values), 1)
+    for k, (series, vals) in enumerate(values.items()):
+        off = (k - (n - 1) / 2) * 0.6 / n
+        pts = [(xs[i] + off, vals[c]) for i, c in enumerate(cats) if c in vals and np.isfinite(vals[c])]
+        if pts:
+            a = np.array(pts)
+            ax.plot(a[:, 0], a[:, 1], "o", color=f"C{k % 10}", label=series)
+    ax.set_xticks(xs, cats, rotation=20, ha="right")
+    ax.set_ylabel(metric)
+    if log:
+        ax.set_yscale("log")
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize="small")
+    fig.tight_layout()
+    return _png(fig)
+
+
+def plot_boxes(panels: dict[str, dict[str, list[float]]], title: str) -> bytes:
+    """Box plots, one panel per metric (``panels[metric][series]`` = values across runs)."""
+    n = max(len(panels), 1)
+    cols = min(n, 2)
+    rows = (n + cols - 1) // cols
+    fig = _figure(5.0 * cols, 3.8 * rows)
+    for k, (metric, groups) in enumerate(panels.items()):
+        ax = fig.add_subplot(rows, cols, k + 1)
+        names = [g for g, v in groups.items() if len(v)]
+        if names:
+            ax.boxplot([groups[g] for g in names], tick_labels=names)
+        ax.set_title(metric, fontsize="medium")
+        ax.tick_params(axis="x", labelrotation=20)
+        ax.grid(True, alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return _png(fig)

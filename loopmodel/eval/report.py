@@ -75,9 +75,22 @@ class TimedTrajectory:
     has_times: bool
 
 
+def _bag_trajectory(spec: str | Path) -> TimedTrajectory | None:
+    """A ``BAG:TOPIC`` trajectory (pose topics or ``/tf:PARENT.CHILD``), or None for other specs."""
+    from loopmodel.io.bag_trajectory import parse_bag_spec, read_bag_trajectory
+
+    parsed = parse_bag_spec(spec)
+    if parsed is None:
+        return None
+    return TimedTrajectory(read_bag_trajectory(*parsed), str(spec), True)
+
+
 def load_trajectory_file(path: str | Path, rate_hz: float = 10.0) -> TimedTrajectory:
     """Read a TUM, KITTI or EuRoC trajectory for evaluation. Repeated timestamps are kept
     (some estimators write them), times going backwards are an error."""
+    bag = _bag_trajectory(path)
+    if bag is not None:
+        return bag
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "trajectory file does not exist")
@@ -91,10 +104,13 @@ def load_trajectory_file(path: str | Path, rate_hz: float = 10.0) -> TimedTrajec
 def load_ground_truth(spec: str | Path, sequence_config: SequenceConfig | None = None) -> TimedTrajectory:
     """Ground truth from a trajectory file (TUM, KITTI, EuRoC) or from a sequence (MCAP file,
     EuRoC or KITTI folder) read with :func:`loopmodel.io.open_sequence`."""
+    bag = _bag_trajectory(spec)
+    if bag is not None:
+        return bag
     p = Path(spec)
     if not p.exists():
         raise InputError(p, "ground truth path does not exist")
-    if p.is_dir() or p.suffix.lower() == ".mcap":
+    if p.is_dir() or p.suffix.lower() in (".mcap", ".bag", ".db3"):
         from loopmodel.io.sequence import open_sequence
 
         seq = open_sequence(p, sequence_config)
@@ -510,6 +526,20 @@ def make_plots(ev: RunEvaluation) -> dict[str, bytes]:
             ref_span, tracks[-1], f"{ev.run.name}: {tracks[-1].label}, coloured by ATE ({align})"
         ),
     }
+    if ev.run.path is not None and ev.run.final is not None:
+        from loopmodel.eval.mesh_pictures import PLOT_MESH, mesh_before_after_png
+
+        on = ev.pairs.get("online")
+        png = mesh_before_after_png(
+            ev.run.path,
+            ev.run.online.traj if ev.run.online is not None and on is not None else None,
+            on.alignment if on is not None else None,
+            ev.run.final.traj,
+            ev.pairs["final"].alignment,
+            ev.gt.source,
+        )
+        if png is not None:
+            out[PLOT_MESH] = png
     return out
 
 
@@ -746,7 +776,7 @@ def render_html(ev: RunEvaluation) -> str:
         "<!DOCTYPE html><html><head><meta charset='utf-8'>",
         f"<title>Evaluation: {esc(ev.run.name)}</title><style>"
         "body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
-        "table{border-collapse:collapse;margin:0.5em 0 1.5em}"
+        "table{border-collapse:collapse;margin:0.5em 0 1.5em;display:block;overflow-x:auto;max-width:100%}"
         "td,th{border:1px solid #bbb;padding:3px 8px;"
         "text-align:right}th{background:#eee}td:first-child{text-align:left}img{max-width:100%}"
         "</style></head><body>",
@@ -806,11 +836,15 @@ COMPARISON_COLUMNS: tuple[tuple[str, tuple[str, ...]], ...] = (
 
 def comparison_rows(evals: list[RunEvaluation]) -> tuple[list[str], list[list[Any]]]:
     """Header and rows of the comparison table of many runs (one row per run)."""
-    mesh_keys = sorted({k for e in evals for k in e.metrics["mesh"]})
+    return comparison_rows_from_metrics([e.metrics for e in evals])
+
+
+def comparison_rows_from_metrics(metrics: list[dict[str, Any]]) -> tuple[list[str], list[list[Any]]]:
+    """:func:`comparison_rows` from the evaluations' ``metrics.json`` contents."""
+    mesh_keys = sorted({k for m in metrics for k in m.get("mesh") or {}})
     head = ["run", "matched", *(c for c, _ in COMPARISON_COLUMNS), "ate_change_pct", *mesh_keys]
     rows: list[list[Any]] = []
-    for e in evals:
-        m = e.metrics
+    for m in metrics:
         vals = [_get(m, *path) for _, path in COMPARISON_COLUMNS]
         before = _get(m, "trajectories", "online", "ate_m", "rmse")
         after = _get(m, "trajectories", "final", "ate_m", "rmse")
@@ -821,7 +855,7 @@ def comparison_rows(evals: list[RunEvaluation]) -> tuple[list[str], list[list[An
                 _get(m, "trajectories", "final", "matched"),
                 *vals,
                 change,
-                *(m["mesh"].get(k) for k in mesh_keys),
+                *((m.get("mesh") or {}).get(k) for k in mesh_keys),
             ]
         )
     return head, rows
@@ -831,22 +865,32 @@ def write_comparison(evals: list[RunEvaluation], out_dir: str | Path) -> tuple[P
     """``comparison.csv`` and ``comparison.md`` of many runs in ``out_dir``."""
     out = Path(out_dir)
     head, rows = comparison_rows(evals)
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(head)
-    for r in rows:
-        w.writerow(["" if v is None else (repr(v) if isinstance(v, float) else v) for v in r])
-    csv_path = write_text_atomic(out / "comparison.csv", buf.getvalue())
+    csv_path = write_text_atomic(out / "comparison.csv", csv_text(head, rows))
     md = [
         "# Comparison of runs",
         "",
         f"Alignment {evals[0].config.align}; `ate_rmse_m` is the SE(3)-aligned ATE RMSE of the "
         "final trajectory; ate_change_pct compares final with online ATE RMSE.",
         "",
-        _md_table(head, [[_num(v) if not isinstance(v, str) else v for v in r] for r in rows]),
+        markdown_table(head, rows),
     ]
     md_path = write_text_atomic(out / "comparison.md", "\n".join(md))
     return csv_path, md_path
+
+
+def markdown_table(head: list[str], rows: list[list[Any]]) -> str:
+    """A Markdown table of values, numbers formatted as in the reports (None as a dash)."""
+    return _md_table(head, [[_num(v) if not isinstance(v, str) else v for v in r] for r in rows])
+
+
+def csv_text(head: list[str], rows: list[list[Any]]) -> str:
+    """CSV text of a table: floats in full precision (``repr``), None empty."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(head)
+    for r in rows:
+        w.writerow(["" if v is None else (repr(v) if isinstance(v, float) else v) for v in r])
+    return buf.getvalue()
 
 
 def plain_run(est: TimedTrajectory) -> RunData:

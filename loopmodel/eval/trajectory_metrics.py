@@ -11,18 +11,18 @@ longer one within ``max_dt``; RPE pairs are chosen on the estimate; an aligned e
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import get_args
 
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.config import AlignMode
 from loopmodel.errors import InputError
 from loopmodel.geometry.align import umeyama_alignment
 from loopmodel.geometry.se3 import invert_pose
 from loopmodel.io.trajectory_io import ns_to_seconds_text
 
-AlignMode = Literal["se3", "sim3", "origin", "none"]
-ALIGN_MODES: tuple[str, ...] = ("se3", "sim3", "origin", "none")
+ALIGN_MODES: tuple[str, ...] = get_args(AlignMode)
 KITTI_SEGMENT_LENGTHS_M: tuple[float, ...] = (100, 200, 300, 400, 500, 600, 700, 800)
 
 F64 = NDArray[np.float64]
@@ -410,3 +410,25 @@ __all__ = [
     "se3_ate_rmse_m",
     "statistics",
 ]
+
+
+def false_loop_mask(
+    final_world_from_cam: F64,
+    gt_world_from_cam: F64,
+    pairs: list[tuple[int, int]],
+    ate_rmse_m: float,
+    factor: float = 3.0,
+    floor_m: float = 0.005,
+) -> NDArray[np.bool_]:
+    """Which loop closures (index pairs into the two N x 4 x 4 trajectories) are false: the
+    final relative pose of the two frames is off the ground-truth relative pose by more than
+    ``factor`` x the run's final ATE or ``floor_m``, whichever is larger (issue 17's gate;
+    translation of the relative-pose error, metres)."""
+    gate = max(factor * float(ate_rmse_m), floor_m)
+    if not pairs:
+        return np.zeros(0, bool)
+    i = np.array([p[0] for p in pairs], np.intp)
+    j = np.array([p[1] for p in pairs], np.intp)
+    est = relative_poses(final_world_from_cam, j, i)
+    ref = relative_poses(gt_world_from_cam, j, i)
+    return np.linalg.norm(inv_mul(ref, est)[:, :3, 3], axis=1) > gate

@@ -15,7 +15,7 @@ Usage::
 result; a LOST result's pose is only the motion-model prediction.
 """
 
-from loopmodel.frontend.keyframe import FrameResult, Keyframe
+from loopmodel.frontend.keyframe import FrameResult, Keyframe, TrackedFeatures
 from loopmodel.frontend.tracker import FrontEnd
 
-__all__ = ["FrontEnd", "FrameResult", "Keyframe"]
+__all__ = ["FrontEnd", "FrameResult", "Keyframe", "TrackedFeatures"]

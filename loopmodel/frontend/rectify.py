@@ -20,6 +20,51 @@ def to_grey(img: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return img
 
 
+def rectification(cal: StereoCalibration) -> tuple[F64, F64, F64, F64]:
+    """``R1, R2`` (rectified_from_cam rotations) and ``P1, P2`` (3x4 rectified projections) of
+    an unrectified rig: ``cv2.stereoRectify`` for the pinhole model (plumb_bob, rational
+    polynomial), ``cv2.fisheye.stereoRectify`` for equidistant (Kannala-Brandt) cameras."""
+    R = cal.right_from_left[:3, :3].copy()
+    t = cal.right_from_left[:3, 3].reshape(3, 1).copy()
+    if cal.camera_model == "equidistant":
+        R1, R2, P1, P2, _Q = cv2.fisheye.stereoRectify(
+            cal.K_left,
+            cal.dist_left.reshape(4, 1),
+            cal.K_right,
+            cal.dist_right.reshape(4, 1),
+            cal.image_size,
+            R,
+            t,
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            balance=0.0,
+        )
+    else:
+        R1, R2, P1, P2, _Q, _roi1, _roi2 = cv2.stereoRectify(
+            cal.K_left,
+            cal.dist_left,
+            cal.K_right,
+            cal.dist_right,
+            cal.image_size,
+            R,
+            t,
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            alpha=0.0,
+        )
+    return np.asarray(R1), np.asarray(R2), np.asarray(P1), np.asarray(P2)
+
+
+def undistort_rectify_map(
+    cal: StereoCalibration, side: int, R: F64, P: F64, m1type: int = cv2.CV_32FC1
+) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.remap`` maps from the rectified image of camera ``side`` (0 left, 1 right) to its
+    raw pixels, for the calibration's camera model."""
+    K = cal.K_left if side == 0 else cal.K_right
+    D = cal.dist_left if side == 0 else cal.dist_right
+    if cal.camera_model == "equidistant":
+        return cv2.fisheye.initUndistortRectifyMap(K, D.reshape(4, 1), R, P, cal.image_size, m1type)
+    return cv2.initUndistortRectifyMap(K, D, R, P, cal.image_size, m1type)
+
+
 class Rectifier:
     """Maps raw stereo images to a rectified pair.
 
@@ -39,25 +84,9 @@ class Rectifier:
             self.calibration = calibration
             return
         size = calibration.image_size
-        R = calibration.right_from_left[:3, :3]
-        t = calibration.right_from_left[:3, 3].reshape(3, 1).copy()
-        R1, R2, P1, P2, _Q, _roi1, _roi2 = cv2.stereoRectify(
-            calibration.K_left,
-            calibration.dist_left,
-            calibration.K_right,
-            calibration.dist_right,
-            size,
-            R,
-            t,
-            flags=cv2.CALIB_ZERO_DISPARITY,
-            alpha=0.0,
-        )
-        m1 = cv2.initUndistortRectifyMap(
-            calibration.K_left, calibration.dist_left, R1, P1, size, cv2.CV_16SC2
-        )
-        m2 = cv2.initUndistortRectifyMap(
-            calibration.K_right, calibration.dist_right, R2, P2, size, cv2.CV_16SC2
-        )
+        R1, R2, P1, P2 = rectification(calibration)
+        m1 = undistort_rectify_map(calibration, 0, R1, P1, cv2.CV_16SC2)
+        m2 = undistort_rectify_map(calibration, 1, R2, P2, cv2.CV_16SC2)
         self._maps = (m1, m2)
         self.rect_from_cam = make_pose(R1, np.zeros(3))
         K = P1[:3, :3].copy()

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from loopmodel.config import FrontendConfig
 from loopmodel.errors import EstimationError, InputError
 from loopmodel.frontend.hybrid_ba import hybrid_keyframe_ba
-from loopmodel.frontend.keyframe import FrameResult, Keyframe
+from loopmodel.frontend.keyframe import FrameResult, Keyframe, TrackedFeatures
 from loopmodel.frontend.klt import Pyramid, build_pyramid, track_klt
 from loopmodel.frontend.mono_depth import MonoDepthTracks, kf_from_ref_map
 from loopmodel.frontend.rectify import Rectifier
@@ -88,6 +88,8 @@ class FrontEnd:
         # tracking state (rectified frames)
         self._track_idx = np.zeros(0, dtype=np.int64)
         self._track_uv = np.zeros((0, 2))
+        self._outlier_uv = np.zeros((0, 2))  # tracked in the last frame, rejected by the pose
+        self._left_rect: NDArray[np.uint8] | None = None  # the last rectified left image
         self._prev_pyr: Pyramid | None = None
         self._kf_from_prev: F64 = np.eye(4)
         self._velocity: F64 = np.eye(4)  # prev_from_cur of the last measured step
@@ -125,6 +127,11 @@ class FrontEnd:
             "converged": mono.converged(),
         }
 
+    def tracked_features(self) -> TrackedFeatures:
+        """The last frame's rectified left image and its tracked features (pixels)."""
+        kf = self._active.keyframe.id if self._active is not None else -1
+        return TrackedFeatures(self._left_rect, self._track_uv.copy(), self._outlier_uv.copy(), kf)
+
     def apply_correction(self, world_from_kf: dict[int, F64]) -> None:
         """Replace keyframe poses by corrected ones (e.g. from the back end); tracking
         continues from the corrected pose of the current keyframe."""
@@ -147,6 +154,8 @@ class FrontEnd:
         self._last_stamp = frame.timestamp_ns
         cfg = self.config
         left = self.rectifier.left(frame.left)
+        self._left_rect = left
+        self._outlier_uv = np.zeros((0, 2))
         quality_ok, why = self._image_ok(left)
         if self._active is None:
             if not quality_ok:
@@ -337,6 +346,7 @@ class FrontEnd:
                 res.used_ransac,
             )
         keep = np.flatnonzero(ok)[inl]
+        self._outlier_uv = uv[np.flatnonzero(ok)[~inl]]
         self._track_idx = idx[keep]
         self._mono_used = 0
         if self._mono is not None and m_ok is not None:

@@ -48,9 +48,15 @@ def _camera_from_yaml(data: dict, path: Path) -> tuple[np.ndarray, np.ndarray, n
     except (KeyError, TypeError, ValueError):
         raise CalibrationError(path, "sensor.yaml: T_BS, intrinsics or resolution malformed") from None
     K = np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1.0]])
-    if dist.size == 4:
+    if dist.size == 4 and camera_model_of(data) == "pinhole":
         dist = np.append(dist, 0.0)
     return K, dist, body_from_cam, (w, h)
+
+
+def camera_model_of(data: dict) -> str:
+    """``equidistant`` for a sensor.yaml ``distortion_model: equidistant`` (Kannala-Brandt, k1..k4),
+    else ``pinhole`` (radial-tangential)."""
+    return "equidistant" if str(data.get("distortion_model", "")).lower() in ("equidistant", "fisheye") else "pinhole"
 
 
 def _read_index(csv: Path) -> tuple[list[int], list[str]]:
@@ -97,17 +103,19 @@ class EurocSequence(FolderSequence):
                 j += 1
         if not self._pairs:
             raise InputError(path, "no left/right image pairs with matching timestamps")
-        K0, d0, body_from_cam0, size0 = _camera_from_yaml(
-            _read_sensor_yaml(root / "cam0" / "sensor.yaml"), root / "cam0" / "sensor.yaml"
-        )
-        K1, d1, body_from_cam1, size1 = _camera_from_yaml(
-            _read_sensor_yaml(root / "cam1" / "sensor.yaml"), root / "cam1" / "sensor.yaml"
-        )
+        yaml0 = _read_sensor_yaml(root / "cam0" / "sensor.yaml")
+        yaml1 = _read_sensor_yaml(root / "cam1" / "sensor.yaml")
+        K0, d0, body_from_cam0, size0 = _camera_from_yaml(yaml0, root / "cam0" / "sensor.yaml")
+        K1, d1, body_from_cam1, size1 = _camera_from_yaml(yaml1, root / "cam1" / "sensor.yaml")
+        if camera_model_of(yaml0) != camera_model_of(yaml1):
+            raise CalibrationError(root / "cam1" / "sensor.yaml", "distortion_model differs from cam0's")
         if size0 != size1:
             raise InputError(path, f"left and right image sizes differ: {size0} vs {size1}")
         right_from_left = invert_pose(body_from_cam1) @ body_from_cam0
         self._body_from_cam0 = body_from_cam0
-        self._calibration = StereoCalibration(K0, K1, right_from_left, size0, d0, d1, rectified=False).check(
+        self._calibration = StereoCalibration(
+            K0, K1, right_from_left, size0, d0, d1, rectified=False, camera_model=camera_model_of(yaml0)
+        ).check(
             str(root / "cam0" / "sensor.yaml")
         )
         self._gt = self._read_ground_truth(root)

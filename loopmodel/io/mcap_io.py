@@ -64,9 +64,11 @@ def decode_image(msg: Any, schema_name: str, topic: str, max_pixels: int = MAX_I
     enc = str(msg.encoding).lower()
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     channels = {"mono8": 1, "8uc1": 1, "bgr8": 3, "rgb8": 3, "8uc3": 3, "mono16": 1, "16uc1": 1}
-    if enc not in channels:
-        raise FormatError(topic, f"unsupported image encoding '{msg.encoding}' (mono8, bgr8, rgb8, mono16)")
     check_declared_size(w, h, max_pixels, topic)
+    if enc not in channels:  # bgra8, bayer_*, ...: the bag readers' decoder (8-bit output)
+        from loopmodel.io.ros_camera import decode_ros_image
+
+        return decode_ros_image(msg, schema_name, topic)
     dtype = np.uint16 if enc in ("mono16", "16uc1") else np.uint8
     itemsize = np.dtype(dtype).itemsize
     c = channels[enc]
@@ -280,8 +282,10 @@ class McapSequence(Sequence):
         left, right = self._first(t.left_info), self._first(t.right_info)
         if left is None or right is None:
             raise CalibrationError(self.path, f"no CameraInfo on {t.left_info} and {t.right_info}")
-        return calibration_from_camera_info(
-            left, right, f"{self.path} {t.left_info}/{t.right_info}", self.max_image_pixels
+        from loopmodel.io.ros_camera import calibration_from_infos  # distortion models
+
+        return calibration_from_infos(
+            left, right, f"{self.path} {t.left_info}", f"{self.path} {t.right_info}", self.max_image_pixels
         )
 
     def _read_ground_truth(self) -> Trajectory | None:
@@ -428,10 +432,11 @@ class McapSequenceWriter:
     def __init__(
         self,
         path: str | Path,
-        calibration: StereoCalibration,
+        calibration: StereoCalibration | None,
         topics: TopicsConfig | None = None,
         image_format: str = "png",
     ) -> None:
+        """``calibration`` None: a monocular recording that writes its own camera info."""
         if image_format not in ("raw", "png", "jpeg"):
             raise ValueError(f"image_format must be raw, png or jpeg, got {image_format!r}")
         self.path = Path(path)
@@ -460,7 +465,11 @@ class McapSequenceWriter:
         self._writer.write_message(topic, self._schemas[type_name], msg, log_time=log, publish_time=log)
 
     def _write_info(self, t_ns: int) -> None:
-        left, right = camera_info_dicts(self.calibration)
+        from loopmodel.io.ros_camera import camera_info_values  # equidistant too
+
+        if self.calibration is None:
+            raise ValueError("a stereo frame needs the writer's stereo calibration")
+        left, right = camera_info_values(self.calibration)
         left["header"] = header(t_ns, "cam0")
         right["header"] = header(t_ns, "cam1")
         self._write(self.topics.left_info, "sensor_msgs/msg/CameraInfo", left, t_ns)
@@ -513,8 +522,9 @@ class McapSequenceWriter:
         type_name, msg = self._image_msg(img, t_ns, frame_id)
         self._write(topic, type_name, msg, t_ns)
 
-    def write_stripe(self, stripe: StripeProfile) -> None:
-        """Write one laser-stripe profile as PointCloud2 (float32 x, y, z, left-camera frame)."""
+    def write_stripe(self, stripe: StripeProfile, topic: str | None = None) -> None:
+        """Write one laser-stripe profile as PointCloud2 (float32 x, y, z, left-camera frame)
+        on the stripe topic (or ``topic``)."""
         pts = np.ascontiguousarray(np.asarray(stripe.points_in_cam, dtype=np.float32).reshape(-1, 3))
         fields = [{"name": a, "offset": 4 * i, "datatype": POINTFIELD_FLOAT32, "count": 1} for i, a in enumerate("xyz")]
         msg = {
@@ -528,10 +538,16 @@ class McapSequenceWriter:
             "data": pts.tobytes(),
             "is_dense": bool(np.all(np.isfinite(pts))),
         }
-        self._write(self.topics.stripe, "sensor_msgs/msg/PointCloud2", msg, stripe.timestamp_ns)
+        self._write(topic or self.topics.stripe, "sensor_msgs/msg/PointCloud2", msg, stripe.timestamp_ns)
 
-    def write_pose(self, t_ns: int, world_from_cam: np.ndarray) -> None:
-        """Write one ground-truth pose ``world_from_cam0``."""
+    def write_camera_info(self, topic: str, t_ns: int, info: dict, frame_id: str = "cam0") -> None:
+        """Write one CameraInfo message dict (as :func:`camera_info_dicts` makes) on any topic."""
+        msg = dict(info)
+        msg["header"] = header(t_ns, frame_id)
+        self._write(topic, "sensor_msgs/msg/CameraInfo", msg, t_ns)
+
+    def write_pose(self, t_ns: int, world_from_cam: np.ndarray, topic: str | None = None) -> None:
+        """Write one pose ``world_from_cam0`` (ground truth topic unless ``topic`` is given)."""
         q = quat_wxyz_from_rotation(world_from_cam[:3, :3])
         p = world_from_cam[:3, 3]
         msg = {
@@ -541,7 +557,7 @@ class McapSequenceWriter:
                 "orientation": {"x": float(q[1]), "y": float(q[2]), "z": float(q[3]), "w": float(q[0])},
             },
         }
-        self._write(self.topics.ground_truth, "geometry_msgs/msg/PoseStamped", msg, t_ns)
+        self._write(topic or self.topics.ground_truth, "geometry_msgs/msg/PoseStamped", msg, t_ns)
 
     def write_trajectory(self, traj: Trajectory) -> None:
         """Write every pose of a ground-truth trajectory."""

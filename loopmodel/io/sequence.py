@@ -1,4 +1,5 @@
-"""``open_sequence``: pick the reader for a path (MCAP file, EuRoC folder, KITTI folder)."""
+"""``open_sequence``: pick the reader for a path (MCAP file, ROS 1/ROS 2 bag, EuRoC folder,
+KITTI folder)."""
 
 from __future__ import annotations
 
@@ -11,31 +12,64 @@ from loopmodel.io.base import Sequence
 from loopmodel.io.euroc import EurocSequence, euroc_root
 from loopmodel.io.kitti import KittiSequence, is_kitti_folder
 from loopmodel.io.mcap_io import McapSequence, McapSequenceWriter, is_mcap
+from loopmodel.io.rosbag_io import BagSequence, is_bag
 
 __all__ = ["Sequence", "open_sequence", "convert_to_mcap"]
 
 
-def open_sequence(path: str | Path, config: SequenceConfig | None = None) -> Sequence:
+def _has_project_topics(path: Path, cfg: SequenceConfig) -> bool:
+    """True when an MCAP file has the configured stereo topics (or no readable summary, so
+    that :class:`McapSequence` reports it)."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception:
+        return True
+    if summary is None:
+        return True
+    names = {ch.topic for ch in summary.channels.values()}
+    return cfg.topics.left_image in names and cfg.topics.right_image in names
+
+
+def open_sequence(
+    path: str | Path, config: SequenceConfig | None = None, left: str | None = None, right: str | None = None
+) -> Sequence:
     """Open a recorded sequence; raises :class:`InputError` naming the path when it is
-    missing or of an unknown layout."""
+    missing or of an unknown layout. ``left``/``right`` name the stereo image topics of a
+    bag (default: the configured ones when present, else guessed)."""
     cfg = config or SequenceConfig()
     p = Path(path)
     if not p.exists():
         raise InputError(p, "path does not exist")
     if not p.is_file() and not p.is_dir():  # /dev/null, a FIFO, a socket
         raise InputError(p, "expected an .mcap file or a EuRoC/KITTI folder, found a device or pipe")
+    bag_args = (cfg.topics, cfg.stereo_pair_tolerance_ns, left, right)
     if p.is_file():
         if p.suffix.lower() == ".mcap" or is_mcap(p):
-            return McapSequence(p, cfg.topics, cfg.stereo_pair_tolerance_ns, cfg.max_image_pixels)
-        raise FormatError(p, "unknown file type (expected an .mcap file or a EuRoC/KITTI folder)")
+            # the project's own MCAP (attachments, stripes, metadata) through mcap; any other
+            # ROS 2 MCAP (other topic names) through rosbags
+            if left is None and right is None and _has_project_topics(p, cfg):
+                return McapSequence(p, cfg.topics, cfg.stereo_pair_tolerance_ns, cfg.max_image_pixels)
+            return BagSequence(p, *bag_args)
+        if is_bag(p):
+            return BagSequence(p, *bag_args)
+        raise FormatError(p, "unknown file type (expected an .mcap, .bag or .db3 file or a EuRoC/KITTI folder)")
+    folder = euroc_root(p) is not None or is_kitti_folder(p)
+    if folder and (left is not None or right is not None):
+        raise InputError("--left/--right", f"name the image topics of a bag; {p} is a EuRoC/KITTI folder")
     if euroc_root(p) is not None:
         return EurocSequence(p, cfg.stereo_pair_tolerance_ns)
     if is_kitti_folder(p):
         return KittiSequence(p, cfg.kitti_rate_hz)
+    if is_bag(p):
+        return BagSequence(p, *bag_args)
     found = ", ".join(sorted(x.name for x in p.iterdir())[:8]) or "empty folder"
     raise FormatError(
         p,
-        "unknown folder layout (expected EuRoC mav0/cam0+cam1 or KITTI image_0+image_1 with calib.txt); "
+        "unknown folder layout (expected EuRoC mav0/cam0+cam1, KITTI image_0+image_1 with calib.txt, "
+        "or a ROS 2 bag with metadata.yaml); "
         f"found: {found}",
     )
 

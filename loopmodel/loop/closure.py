@@ -254,21 +254,8 @@ def relocalize_in_database(
 
 def params_from_config(cfg: LoopConfig) -> LoopParams:
     """Loop parameters from the ``loop`` configuration section."""
-    reloc = RelocParams(
-        ratio=cfg.ratio,
-        threshold_px=cfg.threshold_px,
-        min_inliers=cfg.min_inliers,
-        min_inlier_ratio=cfg.min_inlier_ratio,
-        max_samples=cfg.max_samples,
-    )
-    place = PlaceParams(
-        min_gap=cfg.min_gap_keyframes,
-        min_score=cfg.min_score,
-        consistency=cfg.consistency,
-        branching=cfg.vocabulary_branching,
-        levels=cfg.vocabulary_levels,
-        train_after=cfg.vocabulary_train_after,
-    )
+    reloc = RelocParams.from_config(cfg)
+    place = PlaceParams.from_config(cfg)
     return LoopParams(
         place=place,
         reloc=reloc,

@@ -23,6 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from loopmodel.config import LoopConfig
 from loopmodel.errors import EstimationError
 from loopmodel.loop.features import FeatureSet
 from loopmodel.loop.vocabulary import Vocabulary
@@ -31,26 +32,40 @@ logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
+_LOOP = LoopConfig.model_fields
 
 
 @dataclass
 class PlaceParams:
-    """Place-recognition parameters (ids are keyframe or frame indices)."""
+    """Place-recognition parameters (ids are keyframe or frame indices; defaults: those of
+    :class:`loopmodel.config.LoopConfig` where it has the knob)."""
 
-    min_gap: int = 10
-    min_score: float = 0.01
+    min_gap: int = _LOOP["min_gap_keyframes"].default
+    min_score: float = _LOOP["min_score"].default
     relative_score: float = 0.5
     island_gap: int = 2
-    consistency: int = 2
+    consistency: int = _LOOP["consistency"].default
     consistency_tol: int = 3
     max_islands: int = 4
-    branching: int = 8
-    levels: int = 4
-    train_after: int = 8
+    branching: int = _LOOP["vocabulary_branching"].default
+    levels: int = _LOOP["vocabulary_levels"].default
+    train_after: int = _LOOP["vocabulary_train_after"].default
     retrain_growth: float = 1.5
     max_train_keyframes: int = 400
     max_train_descriptors: int = 60000
     seed: int = 0
+
+    @classmethod
+    def from_config(cls, cfg: LoopConfig) -> PlaceParams:
+        """The place-recognition knobs of the ``loop`` configuration section."""
+        return cls(
+            min_gap=cfg.min_gap_keyframes,
+            min_score=cfg.min_score,
+            consistency=cfg.consistency,
+            branching=cfg.vocabulary_branching,
+            levels=cfg.vocabulary_levels,
+            train_after=cfg.vocabulary_train_after,
+        )
 
 
 @dataclass

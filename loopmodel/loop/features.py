@@ -2,9 +2,10 @@
 
 A :class:`FeatureSet` holds keypoints (pixels), descriptors and, for stereo keyframes, the
 3-D position of each feature in the keyframe's left-camera frame (seed 004, eq. 5;
-``NaN`` where a feature has no stereo match). SURF needs an OpenCV build with the
-non-free ``xfeatures2d`` module; without it a :class:`~loopmodel.errors.LoopmodelError`
-names ORB and SIFT as the alternatives.
+``NaN`` where a feature has no stereo match). ORB and SIFT come from OpenCV; SURF is
+:mod:`loopmodel.loop.surf` (written here; OpenCV wheels lack the non-free module). SURF
+features also carry the sign of the Laplacian, and only features of the same sign are
+matched.
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from loopmodel.errors import ConfigError, InputError, LoopmodelError
+from loopmodel.errors import ConfigError, InputError
+from loopmodel.loop.surf import Surf, SurfKeypoints
 from loopmodel.types import StereoCalibration
 
 F64 = NDArray[np.float64]
@@ -28,13 +30,15 @@ KINDS = ("orb", "sift", "surf")
 class FeatureSet:
     """Keypoints ``keypoints_px`` (N, 2), descriptors (N, D: uint8 for ORB, float32 for
     SIFT/SURF), ``points_in_kf`` (N, 3) metres in the keyframe's left-camera frame (NaN
-    rows where unknown), ``kind`` the descriptor name, ``ids`` (N,) landmark ids (-1: none)."""
+    rows where unknown), ``kind`` the descriptor name, ``ids`` (N,) landmark ids (-1: none),
+    ``laplacian`` (N,) int8 sign of the Laplacian of SURF features (0: unknown / not SURF)."""
 
     keypoints_px: F64
     descriptors: NDArray[Any]
     kind: str
     points_in_kf: F64 = field(default_factory=lambda: np.zeros((0, 3)))
     ids: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    laplacian: NDArray[np.int8] = field(default_factory=lambda: np.zeros(0, np.int8))
 
     def __post_init__(self) -> None:
         self.keypoints_px = np.asarray(self.keypoints_px, dtype=float).reshape(-1, 2)
@@ -43,6 +47,8 @@ class FeatureSet:
             self.points_in_kf = np.full((n, 3), np.nan)
         if self.ids.shape[0] != n:
             self.ids = np.full(n, -1, np.int64)
+        if self.laplacian.shape[0] != n:
+            self.laplacian = np.zeros(n, np.int8)
         if self.descriptors.shape[0] != n:
             raise InputError("FeatureSet", f"{n} keypoints but {self.descriptors.shape[0]} descriptors")
 
@@ -67,6 +73,7 @@ class FeatureSet:
             self.kind,
             self.points_in_kf[mask],
             self.ids[mask],
+            self.laplacian[mask],
         )
 
     @staticmethod
@@ -78,6 +85,7 @@ class FeatureSet:
             a.kind,
             np.concatenate([a.points_in_kf, b.points_in_kf]),
             np.concatenate([a.ids, b.ids]),
+            np.concatenate([a.laplacian, b.laplacian]),
         )
 
 
@@ -89,21 +97,7 @@ def make_extractor(kind: str = "orb", n_features: int = 2000) -> Any:
     if k == "sift":
         return cv2.SIFT_create(nfeatures=n_features)  # type: ignore[attr-defined]
     if k == "surf":
-        xf = getattr(cv2, "xfeatures2d", None)
-        creator = getattr(xf, "SURF_create", None) if xf is not None else None
-        if creator is None:
-            raise LoopmodelError(
-                "SURF is not available in this OpenCV build (it needs the non-free "
-                "xfeatures2d module, opencv-contrib built with OPENCV_ENABLE_NONFREE); "
-                "use descriptor 'orb' or 'sift' instead"
-            )
-        try:
-            return creator(hessianThreshold=400)
-        except cv2.error as exc:
-            raise LoopmodelError(
-                f"SURF could not be created ({str(exc).strip().splitlines()[-1]}); "
-                "use descriptor 'orb' or 'sift' instead"
-            ) from None
+        return Surf(max_features=n_features)
     raise ConfigError("loop.descriptor", f"unknown descriptor '{kind}', expected one of {KINDS}")
 
 
@@ -116,8 +110,8 @@ def _grey(image: NDArray[Any]) -> NDArray[np.uint8]:
     return img
 
 
-def _empty(kind: str) -> FeatureSet:
-    d = np.zeros((0, 32), np.uint8) if kind == "orb" else np.zeros((0, 128), np.float32)
+def _empty(kind: str, dim: int = 128) -> FeatureSet:
+    d = np.zeros((0, 32), np.uint8) if kind == "orb" else np.zeros((0, dim), np.float32)
     return FeatureSet(np.zeros((0, 2)), d, kind)
 
 
@@ -126,6 +120,9 @@ def detect_and_describe(
 ) -> FeatureSet:
     """Detect keypoints and compute descriptors in one image (uint8 grey or BGR)."""
     ex = extractor if extractor is not None else make_extractor(kind, n_features)
+    if isinstance(ex, Surf):
+        kp, d = ex.detect_and_describe(_grey(image))
+        return FeatureSet(kp.xy, d, "surf", laplacian=kp.sign)
     kps, desc = ex.detectAndCompute(_grey(image), None)
     if desc is None or len(kps) == 0:
         return _empty(kind.lower())
@@ -139,9 +136,22 @@ def describe_at(
     """Descriptors at given pixel positions (e.g. a keyframe's tracked features).
 
     Returns the feature set and the indices (into ``keypoints_px``) that OpenCV kept
-    (keypoints too close to the border are dropped)."""
+    (keypoints too close to the border are dropped). For SURF, ``size_px`` is the side
+    of the box filter the scale corresponds to (scale ``1.2 size_px / 9``); the
+    orientation and the sign of the Laplacian are computed at that scale."""
     ex = make_extractor(kind)
     uv = np.asarray(keypoints_px, dtype=float).reshape(-1, 2)
+    if isinstance(ex, Surf):
+        grey = _grey(image)
+        h, w = grey.shape
+        kept = np.flatnonzero((uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1))
+        xy = uv[kept]
+        scale = np.full(kept.size, 1.2 * size_px / 9.0)
+        ii = ex.integral(grey)
+        angle = ex.orient(grey, xy, scale, ii)
+        sign = ex.laplacian_sign(grey, xy, scale, ii)
+        kp = SurfKeypoints(xy, scale, angle, np.zeros(kept.size), sign)
+        return FeatureSet(xy, ex.describe(grey, kp, ii), "surf", laplacian=sign), kept.astype(np.int64)
     kps = [cv2.KeyPoint(float(u), float(v), size_px, -1, 0, 0, int(i)) for i, (u, v) in enumerate(uv)]
     kps_out, desc = ex.compute(_grey(image), kps)
     if desc is None or len(kps_out) == 0:
@@ -159,13 +169,36 @@ def match_descriptors(
 ) -> NDArray[np.int64]:
     """Nearest-neighbour matches with Lowe's ratio test, optionally mutual.
 
-    ``mask`` (len(query) x len(train), uint8) restricts the allowed pairs. Returns (K, 2)
-    index pairs ``(i_query, i_train)``."""
-    if len(query) < 2 or len(train) < 2:
+    ``mask`` (len(query) x len(train), uint8) restricts the allowed pairs. When both sets
+    carry Laplacian signs (SURF), only features of the same sign are compared (the ratio
+    test then runs within each sign). Returns (K, 2) index pairs ``(i_query, i_train)``."""
+    if np.all(query.laplacian != 0) and np.all(train.laplacian != 0) and len(query) and len(train):
+        out = []
+        for sign in (-1, 1):
+            qi = np.flatnonzero(query.laplacian == sign)
+            ti = np.flatnonzero(train.laplacian == sign)
+            sub = None if mask is None else np.ascontiguousarray(mask[np.ix_(qi, ti)])
+            pairs = _match(query.descriptors[qi], train.descriptors[ti], query.binary, ratio, sub, mutual)
+            out.append(np.column_stack([qi[pairs[:, 0]], ti[pairs[:, 1]]]))
+        res = np.concatenate(out).astype(np.int64)
+        return res[np.argsort(res[:, 0], kind="stable")]
+    return _match(query.descriptors, train.descriptors, query.binary, ratio, mask, mutual)
+
+
+def _match(
+    qd: NDArray[Any],
+    td: NDArray[Any],
+    binary: bool,
+    ratio: float,
+    mask: NDArray[np.uint8] | None,
+    mutual: bool,
+) -> NDArray[np.int64]:
+    """Ratio-test (and mutual) matches between two descriptor arrays -> (K, 2) indices."""
+    if qd.shape[0] < 2 or td.shape[0] < 2:
         return np.zeros((0, 2), np.int64)
-    norm = cv2.NORM_HAMMING if query.binary else cv2.NORM_L2
+    norm = cv2.NORM_HAMMING if binary else cv2.NORM_L2
     matcher = cv2.BFMatcher(norm)
-    knn = matcher.knnMatch(query.descriptors, train.descriptors, k=2, mask=mask)
+    knn = matcher.knnMatch(qd, td, k=2, mask=mask)
     pairs = []
     for m in knn:
         if len(m) == 0:
@@ -174,8 +207,8 @@ def match_descriptors(
             pairs.append((m[0].queryIdx, m[0].trainIdx))
     out = np.array(pairs, dtype=np.int64).reshape(-1, 2)
     if mutual and out.shape[0]:
-        back = matcher.match(train.descriptors, query.descriptors, mask=None if mask is None else mask.T.copy())
-        best_q = np.full(len(train), -1, np.int64)
+        back = matcher.match(td, qd, mask=None if mask is None else mask.T.copy())
+        best_q = np.full(td.shape[0], -1, np.int64)
         for bm in back:
             best_q[bm.queryIdx] = bm.trainIdx
         out = out[best_q[out[:, 1]] == out[:, 0]]
@@ -322,7 +355,7 @@ def stereo_keyframe_features(
             -1, 2
         )
     if len(fr) < 2:
-        return FeatureSet(uvl, fl.descriptors, fl.kind)
+        return FeatureSet(uvl, fl.descriptors, fl.kind, laplacian=fl.laplacian)
     F = fundamental_from_poses(calib.K_left, np.eye(4), calib.K_right, calib.right_from_left)
     mask = epipolar_mask(uvl, uvr, F, max_epipolar_px)
     pairs = match_descriptors(fl, fr, ratio=ratio, mask=mask)
@@ -344,4 +377,4 @@ def stereo_keyframe_features(
         )
         ok &= (X[:, 2] > min_depth_m) & (X[:, 2] < max_depth_m)
         pts[pairs[ok, 0]] = X[ok]
-    return FeatureSet(uvl, fl.descriptors, fl.kind, pts)
+    return FeatureSet(uvl, fl.descriptors, fl.kind, pts, laplacian=fl.laplacian)

@@ -14,30 +14,44 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.config import LoopConfig
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.loop.features import FeatureSet, match_descriptors
 from loopmodel.loop.pnp import PnPResult, solve_pnp_bank
-from loopmodel.loop.refine import PoseRefiner, project_refiner
+from loopmodel.loop.refine import PoseRefiner
 
 logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
+_LOOP = LoopConfig.model_fields
 
 
 @dataclass
 class RelocParams:
-    """Thresholds of relocalization and geometric verification."""
+    """Thresholds of relocalization and geometric verification (defaults: those of
+    :class:`loopmodel.config.LoopConfig` where it has the knob)."""
 
-    ratio: float = 0.8
-    threshold_px: float = 2.0
-    min_inliers: int = 25
-    min_inlier_ratio: float = 0.25
-    max_samples: int = 4096
+    ratio: float = _LOOP["ratio"].default
+    threshold_px: float = _LOOP["threshold_px"].default
+    min_inliers: int = _LOOP["min_inliers"].default
+    min_inlier_ratio: float = _LOOP["min_inlier_ratio"].default
+    max_samples: int = _LOOP["max_samples"].default
     confidence: float = 0.999
     #: The inliers' smaller principal standard deviation in the image must reach this
     #: fraction of the image width (rejects poses supported by one small patch).
     min_inlier_spread_frac: float = 0.03
     seed: int = 0
+
+    @classmethod
+    def from_config(cls, cfg: LoopConfig) -> RelocParams:
+        """The thresholds of the ``loop`` configuration section."""
+        return cls(
+            ratio=cfg.ratio,
+            threshold_px=cfg.threshold_px,
+            min_inliers=cfg.min_inliers,
+            min_inlier_ratio=cfg.min_inlier_ratio,
+            max_samples=cfg.max_samples,
+        )
 
 
 @dataclass
@@ -106,19 +120,15 @@ def localize(
     rays = camera.lift(query.keypoints_px[pairs[:, 0]])
     pts = landmarks.points_in_kf[pairs[:, 1]]
     thr = p.threshold_px / max(camera.px, camera.py)
-    # A pose with the minimum acceptable inlier ratio is found with the given confidence
-    # within this many samples; more would only serve poses that are rejected anyway.
-    w3 = min(max(p.min_inlier_ratio, 1e-3), 1.0) ** 3
-    bound = np.log(1 - p.confidence) / np.log(1 - w3) if w3 < 1 else 1.0
     res = solve_pnp_bank(
         rays,
         pts,
         thr,
         rng=np.random.default_rng(p.seed),
-        max_samples=int(min(p.max_samples, max(64, np.ceil(bound)))),
+        max_samples=sample_bound(p),
         confidence=p.confidence,
         min_inliers=3,
-        refiner=refiner if refiner is not None else project_refiner(camera),
+        refiner=refiner,
     )
     total = time.perf_counter() - t0
     if res is None:
@@ -148,6 +158,15 @@ def localize(
             total_s=total,
         )
     return RelocResult(True, "ok", res.cam_from_world, pairs, res.inliers, res, t_match, total)
+
+
+def sample_bound(p: RelocParams) -> int:
+    """Minimal samples after which a pose with the minimum acceptable inlier ratio has been
+    drawn with the given confidence (more would only serve poses that are rejected anyway),
+    at least 64 and at most ``max_samples``."""
+    w3 = min(max(p.min_inlier_ratio, 1e-3), 1.0) ** 3
+    bound = np.log(1 - p.confidence) / np.log(1 - w3) if w3 < 1 else 1.0
+    return int(min(p.max_samples, max(64, np.ceil(bound))))
 
 
 def inlier_spread_px(uv_px: F64) -> float:

@@ -61,6 +61,41 @@ class LightPlane:
         return np.asarray(points_in_cam, dtype=float).reshape(-1, 3) @ self.normal_in_cam + self.d_m
 
 
+def fit_plane(
+    points_m: ArrayLike, threshold_m: float = 1e-3, iterations: int = 500, seed: int = 0
+) -> tuple[LightPlane, NDArray[np.bool_]]:
+    """Robust plane through N x 3 points (metres): RANSAC on three-point samples with an
+    inlier band of ``threshold_m``, then a total-least-squares (SVD) refit on the inliers,
+    repeated once with the refitted plane's inliers. Returns the plane and the inlier mask."""
+    P = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    if P.shape[0] < 3:
+        raise InputError(None, f"a plane needs at least 3 points, got {P.shape[0]}")
+    rng = np.random.default_rng(seed)
+    best = np.zeros(P.shape[0], dtype=bool)
+    for _ in range(iterations):
+        a, b, c = P[rng.choice(P.shape[0], 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        norm = float(np.linalg.norm(n))
+        if norm < 1e-15:
+            continue
+        n /= norm
+        inl = np.abs((P - a) @ n) < threshold_m
+        if inl.sum() > best.sum():
+            best = inl
+    if best.sum() < 3:
+        best = np.ones(P.shape[0], dtype=bool)
+    plane = LightPlane(np.array([0.0, 0.0, 1.0]), 0.0)
+    for _ in range(2):
+        centre = P[best].mean(axis=0)
+        _, _, vt = np.linalg.svd(P[best] - centre, full_matrices=False)
+        plane = LightPlane.from_point_normal(centre, vt[2])
+        inl = np.abs(plane.signed_distance_m(P)) < threshold_m
+        if inl.sum() < 3:
+            break
+        best = inl
+    return plane, best
+
+
 def _grey(image: NDArray) -> F64:  # type: ignore[type-arg]
     img = np.asarray(image)
     if img.ndim == 3:
@@ -70,28 +105,95 @@ def _grey(image: NDArray) -> F64:  # type: ignore[type-arg]
     return img.astype(np.float64)
 
 
+def line_response(
+    image: NDArray,  # type: ignore[type-arg]
+    channel: str = "green",
+    axis: str = "rows",
+    background_px: int = 15,
+    min_colour: float = 8.0,
+) -> F64:
+    """Laser-line response of a colour (BGR) image of a real surface, float H x W.
+
+    The laser's channel minus its grey-scale opening across the line (a top-hat over
+    ``background_px`` pixels, ``axis`` as in :func:`extract_laser_peaks`), which removes
+    broad lit surfaces - a white table, a yellow toy - and keeps lines narrower than
+    ``background_px``. Pixels are kept only where the laser colour dominates the other
+    channels by ``min_colour`` grey levels somewhere within ``background_px // 2`` pixels
+    across the line: the saturated (white) core of a blooming line keeps its coloured
+    fringe, white highlights and grey texture have none.
+    """
+    import cv2
+
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] < 3:
+        raise InputError(None, f"colour line response needs an H x W x 3 BGR image, got shape {img.shape}")
+    index = {"blue": 0, "green": 1, "red": 2}
+    if channel not in index:
+        raise InputError(None, f"laser colour must be one of {sorted(index)}, got '{channel}'")
+    c = index[channel]
+    chan = img[:, :, c].astype(np.float32)
+    others = np.delete(img, c, axis=2).astype(np.float32).max(axis=2)
+    size = (max(3, int(background_px)), 1) if axis == "rows" else (1, max(3, int(background_px)))
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, size)
+    tophat = chan - cv2.morphologyEx(chan, cv2.MORPH_OPEN, kernel)
+    colour = (chan - others) >= min_colour
+    r = max(3, int(background_px) // 2 * 2 + 1)
+    reach = (r, 1) if axis == "rows" else (1, r)
+    near_colour = cv2.dilate(colour.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_RECT, reach)) > 0
+    return np.where(near_colour, tophat, 0.0).astype(np.float64)
+
+
 def extract_laser_peaks(
     image: NDArray,  # type: ignore[type-arg]
     axis: str = "columns",
     min_contrast: float = 20.0,
     window_px: int = 3,
     method: str = "cog",
+    mask: NDArray[np.bool_] | None = None,
+    max_width_px: float | None = None,
 ) -> F64:
     """Sub-pixel laser-line positions: M x 2 pixel coordinates (u, v), one per image column
     (``axis="columns"``, v refined) or row (``axis="rows"``, u refined) where the peak
-    stands ``min_contrast`` above the background."""
+    stands ``min_contrast`` above the background.
+
+    ``mask`` (H x W, optional) limits the search to a region (a board, a working volume's
+    image); ``max_width_px`` rejects peaks whose half-maximum width exceeds it (blooming,
+    broad reflections)."""
     if axis not in ("columns", "rows"):
         raise InputError(None, f"laser peak axis must be 'columns' or 'rows', got '{axis}'")
     if method not in ("cog", "gauss"):
         raise InputError(None, f"laser peak method must be 'cog' or 'gauss', got '{method}'")
     g = _grey(image)
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != g.shape:
+            raise InputError(None, f"peak mask of shape {mask.shape} does not match the image {g.shape}")
     prof = g if axis == "columns" else g.T  # profiles along axis 0, one per column of prof
     n, m = prof.shape
-    k = np.argmax(prof, axis=0)
     cols = np.arange(m)
-    background = np.median(prof, axis=0)
-    peak = prof[k, cols]
-    ok = (peak - background) >= max(min_contrast, 1e-9)
+    if mask is not None:
+        inside = mask if axis == "columns" else mask.T
+        background = np.zeros(m)
+        has = inside.any(axis=0)
+        if has.any():
+            background[has] = np.nanmedian(np.where(inside[:, has], prof[:, has], np.nan), axis=0)
+        k = np.argmax(np.where(inside, prof, -np.inf), axis=0)
+        peak = prof[k, cols]
+        ok = inside[k, cols]
+    else:
+        k = np.argmax(prof, axis=0)
+        background = np.median(prof, axis=0)
+        peak = prof[k, cols]
+        ok = np.ones(m, dtype=bool)
+    ok &= (peak - background) >= max(min_contrast, 1e-9)
+    if max_width_px is not None:
+        half = background + 0.5 * (peak - background)
+        above = prof >= half[None, :]
+        # the run of samples above half maximum that contains the peak
+        rows = np.arange(n)[:, None]
+        below_before = np.where(~above & (rows < k[None, :]), rows, -1).max(axis=0)
+        below_after = np.where(~above & (rows > k[None, :]), rows, n).min(axis=0)
+        ok &= (below_after - below_before - 1) <= max_width_px
     if method == "cog":
         offs = np.arange(-window_px, window_px + 1)
         idx = k[None, :] + offs[:, None]

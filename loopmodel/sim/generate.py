@@ -28,13 +28,28 @@ from loopmodel import __version__
 from loopmodel.config import SimulationConfig, TopicsConfig
 from loopmodel.errors import ConfigError, InputError
 from loopmodel.geometry.camera import CentralCamera
-from loopmodel.geometry.se3 import invert_pose
+from loopmodel.geometry.se3 import invert_pose, so3_exp
 from loopmodel.io.atomic import check_output_file, write_bytes_atomic
 from loopmodel.io.mcap_io import McapSequenceWriter
 from loopmodel.sim.faults import FaultPlan, cam_from_occluder
-from loopmodel.sim.laser import LaserPlane, draw_laser_image, stripe_profile
+from loopmodel.sim.laser import (
+    LaserPlane,
+    draw_laser_image,
+    realistic_laser_image,
+    stripe_profile,
+    stripe_reflectance,
+)
 from loopmodel.sim.render import RayBundle, Raycaster, View, pixel_rays, to_tensor
 from loopmodel.sim.scene import Scene, build_scene
+from loopmodel.sim.sensor import (
+    SensorModel,
+    TrueRig,
+    auto_exposure,
+    defocus,
+    defocus_sigma_px,
+    motion_blur,
+    vignetting_map,
+)
 from loopmodel.sim.trajectory import HandheldPath
 from loopmodel.types import StereoCalibration, StereoFrame, StripeProfile
 
@@ -42,13 +57,18 @@ logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 
+_REAL: dict[str, object] = {"level": "realistic"}
 PRESETS: dict[str, dict[str, dict[str, object]]] = {
-    "orbit": {"trajectory": {"kind": "orbit", "frames": 600}},
-    "sweeps": {"trajectory": {"kind": "sweeps", "frames": 750}},
-    "browse": {"trajectory": {"kind": "browse", "frames": 450}},
+    "orbit": {"trajectory": {"kind": "orbit", "frames": 600}, "realism": _REAL},
+    "sweeps": {"trajectory": {"kind": "sweeps", "frames": 750}, "realism": _REAL},
+    "browse": {"trajectory": {"kind": "browse", "frames": 450}, "realism": _REAL},
+    # seed 004's scan: 4 sweeps over 90 deg, a loop closure, a second orbit (120 s at 25 Hz)
+    "modeler": {"trajectory": {"kind": "modeler", "frames": 3000}, "realism": _REAL},
 }
+REALISM_LEVELS = ("clean", "realistic")
 
-_NOISE_STREAM, _STRIPE_STREAM = 11, 13
+_NOISE_STREAM, _STRIPE_STREAM, _LASER_STREAM = 11, 13, 31
+GT_STRIPE_TOPIC = "/ground_truth/laser_stripe"  # realistic world: the true stripe (not used by the pipeline)
 MAX_BLUR_PX = 60.0
 
 
@@ -64,14 +84,46 @@ def camera_of(cfg: SimulationConfig) -> CentralCamera:
     return CentralCamera(c.fx_px, fy, cx, cy, c.xi)
 
 
+def realistic(cfg: SimulationConfig) -> bool:
+    """True for the realistic world (issue 17), False for the clean one."""
+    return cfg.realism.level == "realistic"
+
+
+def rig_of(cfg: SimulationConfig) -> TrueRig:
+    """The true (distorted, unrectified) rig of a realistic configuration and its recorded
+    calibration (off by the configured calibration errors)."""
+    if cfg.camera.xi != 0:
+        raise ConfigError("simulation.realism.level", "the realistic world needs a pinhole camera (xi = 0)")
+    r = cfg.realism
+    return TrueRig.create(
+        camera_of(cfg).K,
+        cfg.camera.baseline_m,
+        (cfg.camera.width_px, cfg.camera.height_px),
+        cfg.seed,
+        r.calib_focal_err_px,
+        r.calib_pp_err_px,
+        r.calib_k1_err,
+        r.calib_rot_err_deg,
+        r.calib_baseline_err_m,
+    )
+
+
 def calibration_of(cfg: SimulationConfig) -> StereoCalibration:
-    """Rectified stereo calibration: identical K, right camera ``baseline_m`` along +x."""
+    """The calibration a recording carries: rectified (identical K, right camera
+    ``baseline_m`` along +x) in the clean world; the realistic rig's recorded (erroneous,
+    unrectified, distorted) calibration otherwise."""
+    if realistic(cfg):
+        return rig_of(cfg).recorded
     K = camera_of(cfg).K
     right_from_left = np.eye(4)
     right_from_left[0, 3] = -cfg.camera.baseline_m
-    return StereoCalibration(K, K, right_from_left, (cfg.camera.width_px, cfg.camera.height_px)).check(
-        "simulation.camera"
-    )
+    size = (cfg.camera.width_px, cfg.camera.height_px)
+    if cfg.camera.fisheye_k is not None:  # raw fisheye images, rectified by the front end
+        if cfg.laser.image:
+            raise ConfigError("simulation.camera.fisheye_k", "laser-line images are drawn pinhole; set laser.image off")
+        k = np.asarray(cfg.camera.fisheye_k, dtype=float)
+        return StereoCalibration(K, K, right_from_left, size, k, k, False, "equidistant").check("simulation.camera")
+    return StereoCalibration(K, K, right_from_left, size).check("simulation.camera")
 
 
 def scene_of(cfg: SimulationConfig) -> Scene:
@@ -93,6 +145,8 @@ def path_of(cfg: SimulationConfig) -> HandheldPath:
         tr.sweeps,
         tr.shake_translation_m,
         tr.shake_rotation_deg,
+        cfg.realism.pace if realistic(cfg) else "smooth",
+        cfg.realism.revisit_offset_m if realistic(cfg) else 0.0,
     )
 
 
@@ -145,9 +199,11 @@ def resolve_config(
     preset: str | None = None,
     overrides: dict[str, dict[str, object]] | None = None,
     faults: list[str] | None = None,
+    realism: str | None = None,
 ) -> SimulationConfig:
-    """``base`` with a preset (trajectory kind and its frame count) and then section overrides
-    (``{"trajectory": {"frames": 50}}``) and fault specs applied; errors name the key."""
+    """``base`` with a preset (trajectory kind, its frame count, realism level ``realistic``)
+    and then section overrides (``{"trajectory": {"frames": 50}}``), fault specs and a
+    realism level (``clean`` or ``realistic``) applied; errors name the key."""
     from loopmodel.config import config_from_dict
 
     data = base.model_dump()
@@ -158,6 +214,10 @@ def resolve_config(
             data[sec].update(vals)
     for sec, vals in (overrides or {}).items():
         data[sec].update({k: v for k, v in vals.items() if v is not None})
+    if realism is not None:
+        if realism not in REALISM_LEVELS:
+            raise ConfigError("--realism", f"unknown level '{realism}'; expected one of {', '.join(REALISM_LEVELS)}")
+        data["realism"]["level"] = realism
     for spec in faults or []:
         kind, first, last = parse_fault(spec)
         if kind in ("dropped", "duplicate_timestamp"):
@@ -183,6 +243,14 @@ class FrameTask:
     blur_min_px: float
     world_from_occluder: F64 | None
     stripe_in_cam: F64 | None
+    # realistic world: per camera (left, right) exposure time (s), analog gain and the poses
+    # at the start and end of each camera's exposure; the laser line's true pixels, stripe
+    # points (camera frame at the laser's time) and relative brightness
+    exposure_s: tuple[float, float] = (0.0, 0.0)
+    analog_gain: tuple[float, float] = (1.0, 1.0)
+    exposure_poses_right: tuple[F64, F64] | None = None
+    laser_uv: F64 | None = None
+    laser_reflectance: F64 | None = None
 
 
 @dataclass
@@ -204,6 +272,17 @@ class _WorkerState:
     rays: RayBundle
     cam0_from_cam1: F64
     shape: tuple[int, int]
+    real: _RealState | None = None
+
+
+@dataclass
+class _RealState:
+    """The realistic world's rig, per-camera rays, vignetting and sensors."""
+
+    rig: TrueRig
+    rays: tuple[RayBundle, RayBundle]
+    vignette: tuple[NDArray[np.float32], NDArray[np.float32]]
+    sensors: tuple[SensorModel, SensorModel]
 
 
 _STATE: _WorkerState | None = None
@@ -220,9 +299,69 @@ def _init_worker(cfg: SimulationConfig, scene: Scene) -> None:
 def _make_state(cfg: SimulationConfig, scene: Scene) -> _WorkerState:
     cam = camera_of(cfg)
     rays = pixel_rays(cam, cfg.camera.width_px, cfg.camera.height_px)
+    if cfg.camera.fisheye_k is not None:
+        rays = fisheye_pixel_rays(cam.K, np.asarray(cfg.camera.fisheye_k, float), rays.shape)
     c01 = np.eye(4)
     c01[0, 3] = cfg.camera.baseline_m
-    return _WorkerState(cfg, Raycaster(scene), cam, rays, c01, (cfg.camera.height_px, cfg.camera.width_px))
+    shape = (cfg.camera.height_px, cfg.camera.width_px)
+    caster = Raycaster(scene)
+    real = None
+    if realistic(cfg):
+        r = cfg.realism
+        rig = rig_of(cfg)
+        c01 = rig.cam0_from_cam1
+        bundles = []
+        for right in (False, True):
+            dirs = rig.rays(right)
+            bundles.append(RayBundle(dirs, np.ones(dirs.shape[1], bool), shape))
+        vig = tuple(vignetting_map(b.dirs, shape, r.vignetting_corner) for b in bundles)
+        sensors = tuple(
+            SensorModel.create(
+                shape, cfg.seed, k, r.full_well_e, r.read_noise_e, r.prnu, r.dsnu_e, r.adc_bits, r.gamma,
+                1.0 if k == 0 else r.right_sensitivity,
+            )
+            for k in (0, 1)
+        )
+        real = _RealState(rig, (bundles[0], bundles[1]), (vig[0], vig[1]), (sensors[0], sensors[1]))
+        if r.patches:
+            caster.patches = scene_patches(cfg)
+    return _WorkerState(cfg, caster, cam, rays, c01, shape, real)
+
+
+def scene_patches(cfg: SimulationConfig) -> list[tuple[F64, float, str]]:
+    """Textureless (``flat``) and repetitive (``tiles``) regions of the realistic world: two
+    of each on the table top around the object, one of each on the object's lower part."""
+    hgt = cfg.scene.object_height_m
+    return [
+        (np.array([0.26, 0.10, 0.0]), 0.09, "flat"),
+        (np.array([-0.22, -0.20, 0.0]), 0.08, "flat"),
+        (np.array([0.05, -0.30, 0.0]), 0.10, "tiles"),
+        (np.array([-0.25, 0.22, 0.0]), 0.08, "tiles"),
+        (np.array([0.16, 0.0, 0.3 * hgt]), 0.06, "flat"),
+        (np.array([-0.16, 0.0, 0.25 * hgt]), 0.06, "tiles"),
+    ]
+
+
+def fisheye_pixel_rays(K: F64, k: F64, shape: tuple[int, int]) -> RayBundle:
+    """Unit rays through the pixel centres of an equidistant (Kannala-Brandt) camera: the
+    distorted angle r_d = |K^-1 uv| is inverted for theta (Newton on theta (1 + k1 theta^2 +
+    ... + k4 theta^8) = r_d); rays beyond 90 degrees are invalid."""
+    h, w = shape
+    u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+    x = (u.ravel() - K[0, 2]) / K[0, 0]
+    y = (v.ravel() - K[1, 2]) / K[1, 1]
+    rd = np.hypot(x, y)
+    th = rd.copy()
+    for _ in range(20):
+        t2 = th * th
+        f = th * (1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])))) - rd
+        df = 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * 9 * k[3])))
+        th -= f / df
+    valid = (th < np.pi / 2 - 1e-3) & np.isfinite(th)
+    s = np.where(rd > 1e-12, np.sin(th) / np.maximum(rd, 1e-12), 1.0)
+    dirs = np.stack([x * s, y * s, np.cos(th)])
+    dirs[:, ~valid] = np.array([[0.0], [0.0], [1.0]])
+    return RayBundle(np.ascontiguousarray(dirs, dtype=np.float32), valid, (int(h), int(w)))
 
 
 def _blur_kernel(dx: float, dy: float) -> NDArray[np.float32] | None:
@@ -268,9 +407,76 @@ def _image_motion(st: _WorkerState, view: View, task: FrameTask) -> tuple[float,
     return float(d[0]), float(d[1])
 
 
+def pixel_flow(rig: TrueRig, view: View, poses: tuple[F64, F64], right: bool, step: int = 4) -> NDArray[np.float32]:
+    """H x W x 2 image motion (true distorted pixels) of each pixel's scene point from the
+    start to the end of the exposure (``poses``: world_from_cam at both instants); computed on
+    every ``step``-th pixel and interpolated; zero where nothing is hit."""
+    h, w = view.radiance.shape
+    pts = view.points_soa.reshape(3, h, w)[:, ::step, ::step]
+    hs, ws = pts.shape[1:]
+    p = pts.reshape(3, -1).T.astype(float)
+    ok = np.isfinite(view.range_m[::step, ::step].ravel())
+    uv = []
+    for T in poses:
+        Tc = invert_pose(T)
+        pc = p @ Tc[:3, :3].T + Tc[:3, 3]
+        ok &= pc[:, 2] > 1e-3
+        uv.append(rig.project(np.where(ok[:, None], pc, [0.0, 0.0, 1.0]), right))
+    flow = np.where(ok[:, None], uv[1] - uv[0], 0.0).astype(np.float32).reshape(hs, ws, 2)
+    return cv2.resize(flow, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+def _render_realistic(st: _WorkerState, task: FrameTask, t0: float) -> FrameImages:
+    """The realistic world's stereo pair: distorted unrectified views, specular shading,
+    per-pixel motion blur, defocus, vignetting, sensor noise and response, auto-exposure."""
+    cfg, real = st.cfg, st.real
+    assert real is not None
+    r = cfg.realism
+    seeds = np.random.SeedSequence([cfg.seed, _NOISE_STREAM, task.index]).generate_state(3)
+    out = []
+    scale = cfg.render.brightness * task.gain * (0.0 if task.blackout else 1.0) * r.light_e_per_s
+    for k in (0, 1):
+        T = task.world_from_cam if k == 0 else task.world_from_cam @ st.cam0_from_cam1
+        view = st.caster.render(
+            real.rays[k], T, task.light_world_m, cfg.render.ambient, task.world_from_occluder, r.specular, r.shininess
+        )
+        rad = view.radiance
+        poses = task.exposure_poses if k == 0 else task.exposure_poses_right
+        if cfg.render.motion_blur and poses is not None:
+            rad = motion_blur(rad, pixel_flow(real.rig, view, poses, k == 1))
+        if task.blur_min_px > 0:
+            kernel = _blur_kernel(task.blur_min_px, 0.0)
+            if kernel is not None:
+                rad = cv2.filter2D(rad, -1, kernel, borderType=cv2.BORDER_REFLECT)
+        focal_mm = real.rig.K_left[0, 0] * r.pixel_um * 1e-3
+        sigma = defocus_sigma_px(view.depth_m, focal_mm, r.f_number, r.focus_m, r.pixel_um, r.lens_sigma_px)
+        rad = defocus(rad, sigma)
+        electrons = rad * real.vignette[k] * np.float32(scale * task.exposure_s[k])
+        dn = real.sensors[k].expose_dn(electrons, task.analog_gain[k], int(seeds[k]))
+        out.append(real.sensors[k].to_8bit(dn))
+    laser = None
+    if task.laser_uv is not None and task.stripe_in_cam is not None and task.laser_reflectance is not None:
+        rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, _LASER_STREAM, task.index]))
+        laser = realistic_laser_image(
+            out[0],
+            task.laser_uv,
+            task.stripe_in_cam,
+            task.laser_reflectance,
+            rng,
+            r.laser_peak,
+            r.laser_sigma_px,
+            r.laser_speckle_contrast,
+            r.laser_spurious_rate,
+            r.full_well_e / 255.0,
+        )
+    return FrameImages(task.index, out[0], out[1], laser, time.perf_counter() - t0)
+
+
 def render_frame(st: _WorkerState, task: FrameTask) -> FrameImages:
     """Render, blur, expose, add noise and quantise the stereo pair of one frame."""
     t0 = time.perf_counter()
+    if st.real is not None:
+        return _render_realistic(st, task, t0)
     cfg = st.cfg
     amb = cfg.render.ambient
     left = st.caster.render(
@@ -374,7 +580,7 @@ def plan_frames(
         frac = plan.occluder_fraction(i)
         w_occ = T @ cam_from_occluder(frac) if frac is not None else None
         stripe = None
-        if laser is not None:
+        if laser is not None and not realistic(cfg):
             stripe, _dirs = stripe_profile(caster, laser, cam, size, T, w_occ)
         stripes.append(stripe)
         exposure = (path.pose(t_s - exp_s / 2), path.pose(t_s + exp_s / 2)) if exp_s > 0 else None
@@ -391,6 +597,8 @@ def plan_frames(
                 stripe_in_cam=stripe if cfg.laser.image else None,
             )
         )
+    if realistic(cfg):
+        _plan_realistic(cfg, caster, path, laser, tasks, stripes)
     # the camera must stay in free space, clear of the scene surface
     import open3d as o3d
 
@@ -415,6 +623,79 @@ def plan_frames(
             "(check origin_in_cam_m, normal_in_cam and fan_deg)",
         )
     return tasks, stripes, poses
+
+
+def true_light_plane(cfg: SimulationConfig, nominal: LaserPlane) -> LaserPlane:
+    """The light plane the realistic world really casts: the configured (calibrated) plane
+    rotated by ``laser_plane_rot_err_deg`` about a seeded axis in the plane and shifted by
+    ``laser_plane_offset_err_m`` along its normal."""
+    r = cfg.realism
+    rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 37]))
+    n = nominal.normal_in_cam
+    a = np.cross(n, rng.standard_normal(3))
+    a /= np.linalg.norm(a)
+    n_true = so3_exp(np.radians(r.laser_plane_rot_err_deg) * a) @ n
+    o_true = nominal.origin_in_cam_m + r.laser_plane_offset_err_m * n_true
+    return LaserPlane.create(o_true, n_true, nominal.fan_deg, nominal.rays, nominal.max_range_m)
+
+
+def _plan_realistic(
+    cfg: SimulationConfig,
+    caster: Raycaster,
+    path: HandheldPath,
+    laser: LaserPlane | None,
+    tasks: list[FrameTask],
+    stripes: list[F64 | None],
+) -> None:
+    """Per-camera auto-exposure (from a 1/8-resolution render of every frame) and each
+    camera's exposure interval; the laser stripe of the true light plane at the laser's
+    exposure time, its true pixels and brightness (the realistic world's additions to
+    :func:`plan_frames`, in place)."""
+    r = cfg.realism
+    rig = rig_of(cfg)
+    w, h = cfg.camera.width_px, cfg.camera.height_px
+    sub_shape = (len(range(0, h, 8)), len(range(0, w, 8)))
+    means = np.zeros((len(tasks), 2))
+    for k in (0, 1):
+        dirs = rig.rays(k == 1)
+        vig = vignetting_map(dirs, (h, w), r.vignetting_corner)[::8, ::8].ravel()
+        sub = dirs.reshape(3, h, w)[:, ::8, ::8].reshape(3, -1)
+        bundle = RayBundle(np.ascontiguousarray(sub), np.ones(sub.shape[1], bool), sub_shape)
+        for i, task in enumerate(tasks):
+            T = task.world_from_cam if k == 0 else task.world_from_cam @ rig.cam0_from_cam1
+            v = caster.render(bundle, T, task.light_world_m, cfg.render.ambient, task.world_from_occluder,
+                              r.specular, r.shininess)
+            sens = 1.0 if k == 0 else r.right_sensitivity
+            means[i, k] = float(np.mean(v.radiance.ravel() * vig)) * sens * task.gain * cfg.render.brightness
+    ae = [auto_exposure(means[:, k], r.light_e_per_s, r.full_well_e, r.ae_target, 2e-5, r.ae_max_exposure_s,
+                        r.ae_max_gain) for k in (0, 1)]
+    rate = cfg.trajectory.rate_hz
+    plane = true_light_plane(cfg, laser) if laser is not None else None
+    cam = camera_of(cfg)
+    size = (w, h)
+    for i, task in enumerate(tasks):
+        t_s = i / rate
+        e0, e1 = float(ae[0][0][i]), float(ae[1][0][i])
+        task.exposure_s = (e0, e1)
+        task.analog_gain = (float(ae[0][1][i]), float(ae[1][1][i]))
+        c01 = rig.cam0_from_cam1
+        task.exposure_poses = (path.pose(t_s - e0 / 2), path.pose(t_s + e0 / 2))
+        task.exposure_poses_right = (path.pose(t_s - e1 / 2) @ c01, path.pose(t_s + e1 / 2) @ c01)
+        if plane is None:
+            continue
+        T_l = path.pose(t_s + r.laser_time_offset_s)
+        w_occ = task.world_from_occluder
+        pts, _dirs = stripe_profile(caster, plane, cam, size, T_l, w_occ)
+        if pts.shape[0]:
+            uv = rig.project(pts)
+            inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= w - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= h - 0.5)
+            pts, uv = pts[inside], uv[inside]
+        else:
+            uv = np.zeros((0, 2))
+        stripes[i] = pts
+        task.stripe_in_cam = pts
+        task.laser_uv = uv
+        task.laser_reflectance = stripe_reflectance(caster, plane, T_l, pts, w_occ)
 
 
 def _iter_rendered(
@@ -486,7 +767,10 @@ def simulate_scan(
                 writer.write_frame(StereoFrame(t_ns, img.left, img.right, i))
                 frames_written += 1
                 s = stripes[i]
-                if s is not None and i not in dup and i not in black:
+                if realistic(cfg):  # only measured: the laser image; the true stripe as ground truth
+                    if s is not None and i not in dup:
+                        writer.write_stripe(StripeProfile(t_ns, s), GT_STRIPE_TOPIC)
+                elif s is not None and i not in dup and i not in black:
                     noise_rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, _STRIPE_STREAM, i]))
                     pts = _noisy_stripe(s, cfg, noise_rng)
                     writer.write_stripe(StripeProfile(t_ns, pts))

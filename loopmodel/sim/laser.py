@@ -1,11 +1,29 @@
 """Laser-stripe profiler: a fan of rays in a light plane fixed in the left-camera frame,
 intersected with the scene by ray casting. A profile keeps the points the left camera sees
-(in front, inside the image, not occluded), in the left-camera frame (metres)."""
+(in front, inside the image, not occluded), in the left-camera frame (metres).
+
+The realistic world (issue 17) only *images* the stripe (:func:`realistic_laser_image`): the
+line's brightness follows the surface (albedo x cos(incidence) x (0.5 m / range)^2, so dark
+or grazing surfaces drop out below the extractor's contrast), it saturates on bright
+surfaces (``laser_peak`` 420 grey levels on white at 0.5 m: clipped at 255, with blooming
+into the neighbours), it carries laser speckle (multiplicative, gamma-distributed, contrast
+0.35: a red laser imaged at f/2.8 has speckle grains of about lambda / NA = 0.65 um / 0.18
+= 3.6 um, under one 6 um pixel, so each pixel averages about two grains and the contrast drops
+from 1 to about 1 / sqrt(2 * 4) per pixel by the aperture-and-pixel integration), photon
+shot noise, and spurious reflections (inter-reflections: in 8 % of the frames a copy of part
+of the line, 6-40 px aside, at 30-90 % of its brightness). The light plane the scene sees is
+the configured one rotated by ``laser_plane_rot_err_deg`` (0.02 deg) and shifted by
+``laser_plane_offset_err_m`` (0.1 mm): a light-plane calibration of a few hundredths of a
+degree, as a good plane fit on a calibration target gives (with the 12 cm laser-camera
+baseline at 0.6 m, 0.02 deg moves the triangulated surface by about 1 mm). The laser is exposed
+``laser_time_offset_s`` (1 ms) after the camera's mid-exposure (trigger latency): the stripe
+is cast from the pose at that time but stamped with the frame's time."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -99,6 +117,115 @@ def _densify_px(uv_px: F64, step_px: float) -> tuple[F64, F64]:
     f1 = ((k + 1) / pieces[seg])[:, None]
     d = b[seg] - a[seg]
     return a[seg] + f0 * d, a[seg] + f1 * d
+
+
+def stripe_reflectance(
+    caster: Raycaster,
+    plane: LaserPlane,
+    world_from_cam: F64,
+    points_in_cam: F64,
+    world_from_occluder: F64 | None = None,
+) -> F64:
+    """Relative line brightness at N stripe points: albedo x |cos(incidence)| x
+    (0.5 m / distance from the laser)^2 (1 for a white surface at 0.5 m, normal incidence)."""
+    if points_in_cam.shape[0] == 0:
+        return np.zeros(0)
+    R, t = world_from_cam[:3, :3], world_from_cam[:3, 3]
+    d = points_in_cam - plane.origin_in_cam_m
+    dist = np.linalg.norm(d, axis=1)
+    d = d / np.maximum(dist, 1e-12)[:, None]
+    origin_w = R @ plane.origin_in_cam_m + t
+    hits = caster.cast_points(origin_w, d @ R.T, world_from_occluder)
+    pts_w = (origin_w[:, None] + (d @ R.T).T * hits.range_m.astype(float)).astype(np.float32)
+    albedo = caster.albedo(pts_w, hits.normal, hits.primitive).astype(float)
+    cos_i = np.abs(np.sum(hits.normal.T.astype(float) * (d @ R.T), axis=1))
+    return albedo * cos_i * (0.5 / np.maximum(dist, 1e-3)) ** 2
+
+
+def _line_intensity(shape: tuple[int, int], uv: F64, points_in_cam: F64, peaks: F64, sigma_px: float) -> F64:
+    """H x W intensity of a polyline through pixels ``uv`` (broken where neighbouring 3-D
+    points are more than 5 mm apart): ``peak · exp(-d² / 2σ²)`` for the distance ``d`` (px)
+    of each pixel centre to the nearest segment, ``peak`` that of the segment's start point."""
+    h, w = shape
+    line = np.zeros(h * w)
+    if uv.shape[0] < 2:
+        return line.reshape(h, w)
+    gaps = np.linalg.norm(np.diff(points_in_cam, axis=0), axis=1) > 0.005
+    keep = ~gaps & np.all(np.isfinite(uv[:-1]) & np.isfinite(uv[1:]), axis=1)
+    starts, ends, pk = [], [], []
+    for seg in np.split(np.arange(uv.shape[0]), np.flatnonzero(~keep) + 1):
+        if seg.size >= 2:
+            a, b = _densify_px(uv[seg], 0.5)
+            starts.append(a)
+            ends.append(b)
+            # the peak of each piece: interpolated along its original segment
+            idx = np.interp(np.linspace(0, seg.size - 1, a.shape[0]), np.arange(seg.size), peaks[seg])
+            pk.append(idx)
+    if not starts:
+        return line.reshape(h, w)
+    a, b, p = np.concatenate(starts), np.concatenate(ends), np.concatenate(pk)
+    # every segment is at most 0.5 px long: a fixed window around its start covers every pixel
+    # within 4 sigma of it
+    reach = int(np.ceil(4.0 * sigma_px)) + 1
+    offs = np.arange(-reach, reach + 1)
+    x = np.floor(a[:, 0]).astype(int)[:, None, None] + offs[None, None, :]
+    y = np.floor(a[:, 1]).astype(int)[:, None, None] + offs[None, :, None]
+    x, y = np.broadcast_arrays(x, y)
+    d = b - a
+    ax, ay = a[:, 0, None, None], a[:, 1, None, None]
+    dx, dy = d[:, 0, None, None], d[:, 1, None, None]
+    s = np.clip(((x - ax) * dx + (y - ay) * dy) / np.maximum(dx * dx + dy * dy, 1e-12), 0.0, 1.0)
+    dist2 = (x - ax - s * dx) ** 2 + (y - ay - s * dy) ** 2
+    val = p[:, None, None] * np.exp(-0.5 * dist2 / sigma_px**2)
+    inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    np.maximum.at(line, (y[inside] * w + x[inside]), val[inside])
+    return line.reshape(h, w)
+
+
+def realistic_laser_image(
+    background: NDArray[np.uint8],
+    uv_px: F64,
+    points_in_cam: F64,
+    reflectance: F64,
+    rng: np.random.Generator,
+    peak: float = 420.0,
+    sigma_px: float = 1.2,
+    speckle_contrast: float = 0.35,
+    spurious_rate: float = 0.08,
+    e_per_grey: float = 42.0,
+) -> NDArray[np.uint8]:
+    """Laser-line image of the realistic world over a dimmed ``background`` (see the module
+    docstring): the line through the true (distorted) pixels ``uv_px`` of the stripe points,
+    peak ``peak x reflectance``, a spurious reflection in ``spurious_rate`` of the frames,
+    speckle, shot noise (``e_per_grey`` electrons per grey level), saturation and blooming."""
+    h, w = background.shape[:2]
+    bg = background.astype(np.float64)
+    if bg.ndim == 3:
+        bg = bg.mean(axis=2)
+    line = _line_intensity((h, w), uv_px, points_in_cam, peak * reflectance, sigma_px)
+    n = uv_px.shape[0]
+    if n >= 8 and rng.random() < spurious_rate:
+        m = int(rng.integers(max(n // 10, 2), max(n // 3, 3)))
+        i0 = int(rng.integers(0, n - m))
+        seg = slice(i0, i0 + m)
+        along = uv_px[min(i0 + m, n - 1)] - uv_px[i0]
+        perp = np.array([-along[1], along[0]]) / max(float(np.linalg.norm(along)), 1e-9)
+        shift = perp * rng.uniform(6.0, 40.0) * rng.choice([-1.0, 1.0])
+        ghost = _line_intensity(
+            (h, w), uv_px[seg] + shift, points_in_cam[seg], peak * reflectance[seg] * rng.uniform(0.3, 0.9), sigma_px
+        )
+        np.maximum(line, ghost, out=line)
+    lit = line > 0.5
+    if speckle_contrast > 0 and np.any(lit):
+        k = 1.0 / speckle_contrast**2
+        line[lit] *= rng.gamma(k, 1.0 / k, size=int(lit.sum()))
+    if np.any(lit):
+        line[lit] += np.sqrt(line[lit] / e_per_grey) * rng.standard_normal(int(lit.sum()))
+    img = 0.15 * bg + np.maximum(line, 0.0)
+    excess = np.maximum(img - 255.0, 0.0)
+    if np.any(excess > 0):  # blooming: charge above full well spills into the neighbours
+        img += 0.5 * cv2.GaussianBlur(excess, (0, 0), 1.5)
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
 
 def draw_laser_image(

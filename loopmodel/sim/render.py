@@ -2,7 +2,8 @@
 
 Rays come from :meth:`CentralCamera.lift` of the pixel centres, so pinhole (xi = 0) and
 unified-model omnidirectional (xi > 0) cameras render alike. Shading is Lambertian with a
-point light and an ambient term; albedo is the scene's tri-planar procedural texture at the
+point light and an ambient term (plus an optional Blinn-Phong specular term, which makes
+the appearance depend on the viewing direction); albedo is the scene's tri-planar procedural texture at the
 3-D surface point. A rigid moving occluder (a hand-sized ellipsoid) can be added per view.
 """
 
@@ -95,7 +96,9 @@ class Raycaster:
     """Ray casting and shading of a scene; build once, render many views.
 
     ``markers`` is a list of (world point, sigma_m, amplitude): each adds a 3-D Gaussian
-    spot to the albedo (for checking where the renderer shows a known point)."""
+    spot to the albedo (for checking where the renderer shows a known point). ``patches`` is a
+    list of (world centre, radius_m, kind): surface inside the sphere is ``"flat"`` (uniform
+    albedo 0.55: textureless) or ``"tiles"`` (a 12 mm checkerboard: repetitive)."""
 
     def __init__(self, scene: Scene) -> None:
         self.scene = scene
@@ -106,6 +109,7 @@ class Raycaster:
         )
         self._ntri = scene.triangles.shape[0]
         self.markers: list[tuple[F64, float, float]] = []
+        self.patches: list[tuple[F64, float, str]] = []
         self.threads = 0  # open3d ray-casting threads (0: all cores)
         cn = scene.corner_normals
         # rows: n0 (xyz), n1 - n0, n2 - n0: barycentric interpolation n0 + u dn1 + v dn2
@@ -222,6 +226,22 @@ class Raycaster:
             r2 = (points_world[0] - c[0]) ** 2 + (points_world[1] - c[1]) ** 2
             r2 += (points_world[2] - c[2]) ** 2
             out += np.float32(amplitude) * np.exp(r2 * np.float32(-0.5 / sigma**2))
+        for centre, radius, kind in self.patches:
+            c = np.asarray(centre, np.float32)
+            r2 = (points_world[0] - c[0]) ** 2 + (points_world[1] - c[1]) ** 2
+            r2 += (points_world[2] - c[2]) ** 2
+            inside = r2 < np.float32(radius * radius)
+            if not np.any(inside):
+                continue
+            if kind == "flat":
+                out[inside] = 0.55
+            else:  # tiles on the dominant tri-planar axis: period 24 mm, 0.3 / 0.7
+                ax = np.argmax(w[:, inside], axis=0)
+                pts = points_world[:, inside]
+                a = np.choose(ax, [pts[1], pts[0], pts[0]])
+                b = np.choose(ax, [pts[2], pts[2], pts[1]])
+                par = (np.floor(a / 0.012) + np.floor(b / 0.012)) % 2
+                out[inside] = (0.3 + 0.4 * par).astype(np.float32)
         out[primitive == -2] = OCCLUDER_ALBEDO
         out[primitive == -1] = 0.0
         return out
@@ -233,8 +253,11 @@ class Raycaster:
         light_world_m: F64,
         ambient: float,
         world_from_occluder: F64 | None = None,
+        specular: float = 0.0,
+        shininess: float = 30.0,
     ) -> View:
-        """Render the view of a camera at ``world_from_cam`` with pixel rays ``rays``."""
+        """Render the view of a camera at ``world_from_cam`` with pixel rays ``rays``;
+        ``specular`` weights a Blinn-Phong highlight of exponent ``shininess``."""
         R = world_from_cam[:3, :3].astype(np.float32)
         o = world_from_cam[:3, 3].astype(np.float32)
         c = rays.dirs
@@ -258,6 +281,12 @@ class Raycaster:
         diffuse = (nrm[0] * L[0] + nrm[1] * L[1] + nrm[2] * L[2]) * inv
         np.maximum(diffuse, 0.0, out=diffuse)
         rad = albedo * (np.float32(ambient) + np.float32(1.0 - ambient) * diffuse)  # albedo 0 on a miss
+        if specular > 0:
+            hx, hy, hz = L[0] * inv - d[0], L[1] * inv - d[1], L[2] * inv - d[2]  # light + view
+            hn = 1.0 / np.maximum(np.sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
+            nh = np.maximum((nrm[0] * hx + nrm[1] * hy + nrm[2] * hz) * hn, 0.0)
+            spec = np.float32(specular * (1.0 - ambient)) * np.power(nh, np.float32(shininess))
+            rad += np.where((diffuse > 0) & hit, spec, np.float32(0.0))
         depth = np.where(hit, t * c[2], np.float32(np.inf))
         h, w = rays.shape
         return View(

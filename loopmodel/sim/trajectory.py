@@ -6,7 +6,18 @@ right, y down, z forward) at any time, so exposure intervals can be sampled for 
 
 Kinds: ``orbit`` (one full turn that returns to the start view), ``sweeps`` (back-and-forth
 sweeps over 90 degrees of yaw at rising then falling height, ending at the start view),
-``browse`` (a monotone 240-degree arc with a height change: no view is revisited).
+``browse`` (a monotone 240-degree arc with a height change: no view is revisited),
+``modeler`` (in the spirit of seed 004's scan of a 50 cm sculpture: four sweeps over about
+90 degrees of yaw, a return that closes the loop on the start view, then a full orbit at
+another height that revisits the swept side).
+
+Pace ``handheld`` (realistic world) replaces the even progress along the path by a hand's:
+pauses (0.4-1.2 s at a tenth of the speed) and saccades (0.25-0.5 s at 2.5x) drawn from the
+seed, about one event every 3 s; the mean speed over the path is unchanged. Human hand-held
+scanning alternates fixations and quick re-orientations in this way (seed 004: "jerky
+motion", "saccadic motion"). ``revisit_offset_m`` makes revisits inexact: the path drifts
+linearly in radius, height and aim so that the end view misses the start view by about that
+distance (a person never returns exactly).
 """
 
 from __future__ import annotations
@@ -18,7 +29,7 @@ from loopmodel.geometry.se3 import look_at, so3_exp
 
 F64 = NDArray[np.float64]
 
-KINDS = ("orbit", "sweeps", "browse")
+KINDS = ("orbit", "sweeps", "browse", "modeler")
 TARGET_HEIGHT_FRACTION = 0.45  # look-at point on the object axis, fraction of its height
 
 
@@ -49,6 +60,8 @@ class HandheldPath:
         sweeps: int = 3,
         shake_translation_m: float = 0.002,
         shake_rotation_deg: float = 0.3,
+        pace: str = "smooth",
+        revisit_offset_m: float = 0.0,
     ) -> None:
         if kind not in KINDS:
             raise ValueError(f"unknown trajectory kind {kind!r}; expected one of {KINDS}")
@@ -66,6 +79,19 @@ class HandheldPath:
         self._shake = _Shake(rng, 6)
         self.shake_translation_m = float(shake_translation_m)
         self.shake_rotation_rad = float(np.radians(shake_rotation_deg))
+        self.revisit_offset_m = float(revisit_offset_m)
+        self._warp: tuple[F64, F64] | None = None
+        if pace == "handheld":
+            self._warp = _handheld_pace(np.random.default_rng(np.random.SeedSequence([int(seed), 7])), duration_s)
+        elif pace != "smooth":
+            raise ValueError(f"unknown pace {pace!r}; expected 'smooth' or 'handheld'")
+
+    def progress(self, t_s: float) -> float:
+        """Path parameter s in [0, 1] at time ``t_s`` (even, or the hand's pace)."""
+        s = float(np.clip(t_s / self.duration_s, 0.0, 1.0))
+        if self._warp is None:
+            return s
+        return float(np.interp(s, self._warp[0], self._warp[1]))
 
     def _nominal(self, s: float) -> tuple[float, float, float, F64]:
         """Azimuth (rad), radius (m), height (m) and look-at target at path parameter s in [0, 1]."""
@@ -91,17 +117,47 @@ class HandheldPath:
             r = self.radius_m * (1 + 0.08 * np.sin(two_pi * 2 * s + w[0]) - 0.08 * np.sin(w[0]))
             h = self.height_m + 0.15 * np.sin(np.pi * s) ** 2 * np.sin(np.pi * s)
             target = target + 0.02 * np.array([np.sin(two_pi * s + w[2]) - np.sin(w[2]), 0.0, 0.0])
+        elif self.kind == "modeler":
+            phi, r, h, target = self._modeler(s)
         else:  # browse: monotone arc, no revisit
             u = s - 0.1 * np.sin(two_pi * s) / two_pi
             phi = self.phi0 + np.radians(240.0) * u
             r = self.radius_m * (1.1 - 0.25 * s)
             h = self.height_m - 0.1 + 0.3 * s
+        if self.revisit_offset_m > 0 and self.kind != "browse":
+            # inexact revisit: a slow drift away from the periodic path (zero at the start)
+            d = self.revisit_offset_m * s
+            r += 0.6 * d
+            h += 0.6 * d
+            target = target + np.array([0.0, 0.0, 0.5 * d])
+        return float(phi), float(r), float(h), target
+
+    def _modeler(self, s: float) -> tuple[float, float, float, F64]:
+        """Seed-004-like scan: s in [0, 0.5): four sweeps over 90 deg of yaw (two back and
+        forth, height rising by 8 cm); [0.5, 0.6): back to the start view (the loop closes);
+        [0.6, 1]: one full orbit 15 cm higher, passing over the swept side again."""
+        two_pi = 2 * np.pi
+        w = self._wobble
+        target = np.array([0.0, 0.0, TARGET_HEIGHT_FRACTION * self.object_height_m])
+        r = self.radius_m * (1 + 0.06 * np.sin(two_pi * 3 * s + w[0]) - 0.06 * np.sin(w[0]))
+        if s < 0.5:
+            u = s / 0.5
+            phi = self.phi0 + np.radians(90.0) * 0.5 * (1 - np.cos(two_pi * 2 * u))  # 0 -> 90 -> 0 -> 90 -> 0
+            h = self.height_m + 0.08 * u
+        elif s < 0.6:
+            u = (s - 0.5) / 0.1
+            phi = self.phi0 - np.radians(10.0) * np.sin(np.pi * u)  # a short look past the start
+            h = self.height_m + 0.08 * (1 - u)
+        else:
+            u = (s - 0.6) / 0.4
+            e = u - 0.1 * np.sin(two_pi * u) / two_pi
+            phi = self.phi0 - two_pi * e
+            h = self.height_m + 0.15 * np.sin(np.pi * min(4 * u, 1.0) / 2) ** 2 * (1 - np.clip((u - 0.85) / 0.15, 0, 1))
         return float(phi), float(r), float(h), target
 
     def nominal_pose(self, t_s: float) -> F64:
         """``world_from_cam0`` without hand shake at time ``t_s``."""
-        s = float(np.clip(t_s / self.duration_s, 0.0, 1.0))
-        phi, r, h, target = self._nominal(s)
+        phi, r, h, target = self._nominal(self.progress(t_s))
         pos = np.array([r * np.cos(phi), r * np.sin(phi), h])
         return look_at(pos, target)
 
@@ -112,3 +168,27 @@ class HandheldPath:
         T[:3, 3] += self.shake_translation_m * sh[:3]
         T[:3, :3] = T[:3, :3] @ so3_exp(self.shake_rotation_rad * sh[3:])
         return T
+
+
+def _handheld_pace(rng: np.random.Generator, duration_s: float) -> tuple[F64, F64]:
+    """Monotone map (time fraction -> path fraction) of a hand's pace: unit speed with pauses
+    (0.4-1.2 s at 0.1x) and saccades (0.25-0.5 s at 2.5x), one event per 3 s on average,
+    smoothed over 0.12 s (arm inertia) and normalised to end at 1."""
+    n = max(int(duration_s * 200), 50)
+    t = np.linspace(0.0, duration_s, n)
+    speed = np.ones(n)
+    k = 0.0
+    while True:
+        k += rng.exponential(3.0)
+        if k >= duration_s - 0.5:
+            break
+        if rng.random() < 0.5:
+            speed[(t >= k) & (t < k + rng.uniform(0.4, 1.2))] = 0.1
+        else:
+            speed[(t >= k) & (t < k + rng.uniform(0.25, 0.5))] = 2.5
+    dt = t[1] - t[0]
+    half = max(int(0.12 / dt), 1)
+    kern = np.exp(-0.5 * (np.arange(-3 * half, 3 * half + 1) / half) ** 2)
+    speed = np.convolve(np.pad(speed, 3 * half, mode="edge"), kern / kern.sum(), mode="valid")
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * dt)])
+    return t / duration_s, cum / cum[-1]

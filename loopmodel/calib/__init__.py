@@ -1,0 +1,1 @@
+"""Calibration of real rigs: stereo cameras from chessboards, the laser light plane."""

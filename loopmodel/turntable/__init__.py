@@ -1,0 +1,1 @@
+"""Real laser-line turntable scans: reader, markers, pose graph, laser points, mesh, report."""

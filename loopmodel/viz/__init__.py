@@ -1,0 +1,1 @@
+"""Seeing a run: rerun recordings (live or from a results folder) and mesh pictures for reports."""

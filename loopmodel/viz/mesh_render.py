@@ -1,0 +1,184 @@
+"""Pictures of a triangle mesh for reports, rendered headless.
+
+open3d's offscreen renderer needs a GPU context (EGL/Vulkan), which a headless machine often
+lacks (here: "Failed to load vulkan library"). :func:`render_mesh` therefore tries it only when
+asked and otherwise rasterises on the CPU: triangles projected with a pinhole camera, drawn far
+to near (painter's order) with OpenCV's polygon fill, flat-shaded by a head light, or coloured
+per vertex (for example by the distance to a ground-truth surface). Large meshes are decimated
+first (open3d quadric decimation) so a picture takes well under a second.
+
+Frames: vertices in the mesh's world frame (metres); ``cam_from_world`` maps them into an
+OpenCV camera (x right, y down, z forward); ``K`` in pixels.
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+U8 = NDArray[np.uint8]
+
+BACKGROUND = (255, 255, 255)
+MAX_TRIANGLES = 80_000
+
+#: One row of a before/after picture: title, vertices (V x 3), triangles (T x 3), vertex colours or None.
+Panel = tuple[str, F64, NDArray[np.int64], F64 | None]
+
+
+@dataclass(frozen=True)
+class View:
+    """A pinhole view of a mesh: intrinsics (pixels), pose and image size."""
+
+    K: F64
+    cam_from_world: F64
+    width_px: int
+    height_px: int
+
+
+def look_at(eye_m: F64, target_m: F64, up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> F64:
+    """``cam_from_world`` of an OpenCV camera at ``eye_m`` looking at ``target_m``."""
+    z = np.asarray(target_m, float) - np.asarray(eye_m, float)
+    z /= np.linalg.norm(z)
+    x = np.cross(z, np.asarray(up, float))
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(z, np.array([0.0, 1.0, 0.0]))
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])  # rows: camera axes in world
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ np.asarray(eye_m, float)
+    return T
+
+
+def fixed_views(
+    vertices: F64, n_views: int = 3, elevation_deg: float = 30.0, width_px: int = 480, height_px: int = 400
+) -> list[View]:
+    """``n_views`` cameras around the mesh's bounding sphere, at equal azimuth steps, looking at
+    its centre from ``elevation_deg`` above the x-y plane, the whole mesh in view."""
+    v = np.asarray(vertices, float)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    centre = (lo + hi) / 2
+    radius = max(float(np.linalg.norm(v - centre, axis=1).max()), 1e-6)
+    f = 0.5 * min(width_px, height_px) / np.tan(np.radians(18.0))
+    dist = radius / np.sin(np.radians(18.0)) * 0.9  # the bounding sphere is loose
+    K = np.array([[f, 0, width_px / 2], [0, f, height_px / 2], [0, 0, 1.0]])
+    views = []
+    el = np.radians(elevation_deg)
+    for k in range(n_views):
+        az = 2 * np.pi * k / n_views - np.pi / 2
+        eye = centre + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        views.append(View(K, look_at(eye, centre), width_px, height_px))
+    return views
+
+
+def _decimate(
+    vertices: F64, triangles: NDArray[np.int64], colors: F64 | None
+) -> tuple[F64, NDArray[np.int64], F64 | None]:
+    if len(triangles) <= MAX_TRIANGLES:
+        return vertices, triangles, colors
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles))
+    if colors is not None:
+        m.vertex_colors = o3d.utility.Vector3dVector(colors)
+    d = m.simplify_quadric_decimation(MAX_TRIANGLES)
+    c = np.asarray(d.vertex_colors) if colors is not None else None
+    return np.asarray(d.vertices), np.asarray(d.triangles), c
+
+
+def render_mesh(
+    vertices: F64,
+    triangles: NDArray[np.int64],
+    view: View,
+    vertex_colors: F64 | None = None,
+) -> tuple[U8, NDArray[np.bool_]]:
+    """RGB picture (H x W x 3) of the mesh seen from ``view`` and its foreground mask.
+
+    ``vertex_colors`` (V x 3 in [0, 1]) colour the triangles (mean of their vertices) and are
+    modulated by shading; without them the mesh is light grey. CPU rasteriser, painter's order.
+    """
+    import cv2
+
+    v, t, c = _decimate(np.asarray(vertices, float), np.asarray(triangles, np.int64), vertex_colors)
+    W, H = view.width_px, view.height_px
+    img = np.empty((H, W, 3), np.uint8)
+    img[:] = BACKGROUND
+    mask = np.zeros((H, W), np.uint8)
+    if len(t) == 0:
+        return img, mask.astype(bool)
+    p_cam = v @ view.cam_from_world[:3, :3].T + view.cam_from_world[:3, 3]
+    tri_cam = p_cam[t]  # T x 3 x 3
+    depth = tri_cam[:, :, 2]
+    keep = np.all(depth > 1e-6, axis=1)
+    n = np.cross(tri_cam[:, 1] - tri_cam[:, 0], tri_cam[:, 2] - tri_cam[:, 0])
+    nn = np.linalg.norm(n, axis=1)
+    keep &= nn > 0
+    centre = tri_cam.mean(axis=1)
+    n_unit = n / np.maximum(nn, 1e-300)[:, None]
+    # head light: |cos| between the normal and the viewing ray (two-sided surfaces)
+    ray = centre / np.maximum(np.linalg.norm(centre, axis=1), 1e-300)[:, None]
+    shade = 0.25 + 0.75 * np.abs(np.einsum("ij,ij->i", n_unit, ray))
+    base = np.full((len(t), 3), 0.82) if c is None else np.asarray(c, float)[t].mean(axis=1)
+    rgb = np.clip(base * shade[:, None] * 255, 0, 255).astype(np.uint8)
+    uv = (tri_cam @ view.K.T)[:, :, :2] / depth[:, :, None]
+    order = np.argsort(-centre[:, 2])
+    order = order[keep[order]]
+    pts = np.round(uv * 16).astype(np.int32)  # 4 fractional bits for cv2's shift
+    for i in order:
+        poly = pts[i]
+        col = (int(rgb[i, 2]), int(rgb[i, 1]), int(rgb[i, 0]))  # BGR for cv2
+        cv2.fillConvexPoly(img, poly, col, lineType=cv2.LINE_AA, shift=4)
+        cv2.fillConvexPoly(mask, poly, 1, lineType=cv2.LINE_8, shift=4)
+    return _bgr_to_rgb(img), mask.astype(bool)
+
+
+def _bgr_to_rgb(img: U8) -> U8:
+    return np.ascontiguousarray(img[..., ::-1])
+
+
+def distance_colors(distance_m: F64, scale_m: float) -> F64:
+    """Vertex colours (V x 3 in [0, 1]) for distances: 0 blue → ``scale_m`` and beyond red."""
+    from matplotlib import colormaps
+
+    x = np.clip(np.asarray(distance_m, float) / max(scale_m, 1e-12), 0, 1)
+    return np.asarray(colormaps["turbo"](x))[:, :3]
+
+
+def before_after_png(
+    panels: list[Panel],
+    n_views: int = 3,
+    colorbar_mm: float | None = None,
+) -> bytes:
+    """One PNG: a row per panel (title, vertices, triangles, vertex colours) and a column per
+    fixed viewpoint; all panels share the viewpoints of the first so they compare directly."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    views = fixed_views(panels[0][1], n_views)
+    fig = Figure(figsize=(3.2 * n_views, 2.8 * len(panels) + (0.5 if colorbar_mm else 0)), dpi=100)
+    FigureCanvasAgg(fig)
+    for r, (title, v, t, c) in enumerate(panels):
+        for k, view in enumerate(views):
+            ax = fig.add_subplot(len(panels), n_views, r * n_views + k + 1)
+            img, _ = render_mesh(v, t, view, c)
+            ax.imshow(img)
+            ax.set_axis_off()
+            if k == 0:
+                ax.set_title(title, loc="left", fontsize=9)
+    if colorbar_mm:
+        from matplotlib import colormaps
+        from matplotlib.cm import ScalarMappable
+        from matplotlib.colors import Normalize
+
+        sm = ScalarMappable(Normalize(0, colorbar_mm), colormaps["turbo"])
+        fig.colorbar(
+            sm, ax=fig.axes, orientation="horizontal", fraction=0.04, pad=0.02, label="distance to ground truth [mm]"
+        )
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    return buf.getvalue()

@@ -1,0 +1,98 @@
+"""Stopping a run: a signal only sets the stop flag, the frame loop stops between frames, and
+an interruption inside a keyframe's step still leaves a complete, consistent results folder."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+from frontend_scene import write_kitti_folder
+
+from loopmodel.backend.isam2 import Isam2Backend
+from loopmodel.config import Config
+from loopmodel.io.sequence import open_sequence
+from loopmodel.io.trajectory_io import read_trajectory
+from loopmodel.pipeline import StopFlag, process, run_pipeline
+
+N_FRAMES = 10
+
+
+@pytest.fixture(scope="module")
+def sequence_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("stop") / "seq"
+    write_kitti_folder(folder, N_FRAMES, np.random.default_rng(11))
+    return folder
+
+
+def _config() -> Config:
+    cfg = Config()
+    cfg.frontend.max_disparity_px = 64
+    cfg.frontend.max_features = 300
+    cfg.frontend.min_tracked_fraction = 0.95  # several keyframes in a short sequence
+    return cfg
+
+
+def _check_folder(out: Path) -> dict[str, object]:
+    """Every result file is there and parses; the trajectories agree with the metrics."""
+    m = json.loads((out / "metrics.json").read_text())
+    online = read_trajectory(out / "trajectory_online.tum")
+    final = read_trajectory(out / "trajectory_final.tum")
+    kfs = read_trajectory(out / "keyframes.tum")
+    z = np.load(out / "map.npz")
+    assert len(online) == m["ok_frames"] and len(final) == len(online)
+    assert z["keyframe_ids"].size == len(kfs) and np.array_equal(z["keyframe_timestamps_ns"], kfs.timestamps_ns)
+    assert "interrupted after" in (out / "run.log").read_text()
+    return m
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_stops_the_run_between_frames(sequence_dir: Path, tmp_path: Path, signum: int) -> None:
+    def progress(i: int, n: int, fps: float, kf: int) -> None:
+        if i == 4:
+            os.kill(os.getpid(), signum)  # the handler only sets the flag: frame 4 is the last
+
+    before = signal.getsignal(signum)
+    with pytest.raises(KeyboardInterrupt):
+        run_pipeline(open_sequence(sequence_dir), _config(), tmp_path, "cut", progress=progress)
+    m = _check_folder(tmp_path / "cut")
+    assert m["interrupted"] is True and m["frames"] == 4
+    assert signal.getsignal(signum) == before
+
+
+def test_an_interrupt_inside_a_keyframe_step_leaves_a_consistent_folder(
+    sequence_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A ``KeyboardInterrupt`` in the back end's update of the third keyframe (no signal
+    handler installed): the keyframe is in the map but not recorded; every file is written."""
+    calls = {"n": 0}
+    add = Isam2Backend.add_keyframe
+
+    def interrupted_add(self: Isam2Backend, keyframe: object) -> object:
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return add(self, keyframe)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Isam2Backend, "add_keyframe", interrupted_add)
+    with pytest.raises(KeyboardInterrupt):
+        run_pipeline(open_sequence(sequence_dir), _config(), tmp_path, "half", handle_signals=False)
+    m = _check_folder(tmp_path / "half")
+    # the frame that made the third keyframe is not recorded, nor is the keyframe
+    assert m["interrupted"] is True and m["keyframes"] == 2 and m["frames"] < N_FRAMES
+    assert len(read_trajectory(tmp_path / "half" / "keyframes.tum")) == 2
+
+
+def test_a_set_stop_flag_ends_the_run_before_the_next_frame(sequence_dir: Path) -> None:
+    stop = StopFlag()
+
+    def progress(i: int, n: int, fps: float, kf: int) -> None:
+        if i == 3:
+            stop.set("enough")
+
+    result = process(open_sequence(sequence_dir), _config(), progress=progress, stop=stop)
+    assert result.interrupted and len(result.frames) == 3 and stop.reason == "enough"
+    assert len(result.final) == 3 and result.folder is None
