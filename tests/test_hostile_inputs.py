@@ -385,3 +385,31 @@ def test_ctrl_c_on_simulate_with_workers_is_quiet_and_cleans_up(tmp_path: Path) 
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "interrupted after" in err
     assert not out.exists() and not list(tmp_path.glob(".s.mcap.tmp-*"))
+
+
+def test_full_disk_keeps_the_old_results_and_says_so(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import errno
+
+    from frontend_scene import write_kitti_folder
+
+    seq = tmp_path / "seq"
+    write_kitti_folder(seq, 3, np.random.default_rng(3))
+    args = ["run", str(seq), "--out", str(tmp_path / "out"), "--name", "r", "--max-frames", "2"]
+    assert main(args) == 0
+    before = (tmp_path / "out" / "r" / "metrics.json").read_text()
+    real = ResultsFolder.write_text
+
+    def full(self: ResultsFolder, name: str, text: str) -> Path:
+        if name == "run.log":
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.file(name)))
+        return real(self, name, text)
+
+    monkeypatch.setattr(ResultsFolder, "write_text", full)
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "I/O error:" in err and "run.log: No space left on device" in err and "Traceback" not in err
+    # the older run's folder is untouched, nothing half-written is left beside it
+    assert (tmp_path / "out" / "r" / "metrics.json").read_text() == before
+    assert [p.name for p in (tmp_path / "out").iterdir()] == ["r"]

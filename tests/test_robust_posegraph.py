@@ -22,8 +22,8 @@ from loopmodel.errors import FormatError
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_exp
 from loopmodel.loop.closer import LoopCloser, LoopClosure
 from loopmodel.loop.global_ba import LoopObservations
-from loopmodel.loop.stage import LoopClosingStage
-from loopmodel.types import StereoCalibration
+from loopmodel.loop.stage import LoopClosingStage, MapState
+from loopmodel.types import Keyframe, StereoCalibration
 
 CSAIL = Path("/work/shared/data/posegraphs/CSAIL.g2o")
 
@@ -72,11 +72,11 @@ def _run_stage(inject: bool, robust: str) -> tuple[LoopClosingStage, _FakeTracke
         lid += len(kfs[-1].landmark_ids)
     _add_mono(kfs, true, rng)
     tracker = _FakeTracker()
-    cfg = LoopConfig(min_gap_keyframes=8, n_features=800, robust=robust, background_ba=False)
-    stage = LoopClosingStage(tracker, calib, cfg)
+    cfg = LoopConfig(min_gap_keyframes=8, n_features=800, robust=robust)
+    stage = LoopClosingStage(calib, cfg, via_backend=False, background=False)
     real = LoopCloser.process_keyframe
 
-    def process(self: LoopCloser, kf: object) -> LoopClosure | None:
+    def process(self: LoopCloser, kf: Keyframe) -> LoopClosure | None:
         closure = real(self, kf)
         if inject and int(kf.id) == 12:  # a "verified" loop 12 -> 1 that is 0.4 m / 8 deg wrong
             # (perceptual aliasing: keyframe 1's landmarks seen where that wrong pose puts them)
@@ -94,8 +94,12 @@ def _run_stage(inject: bool, robust: str) -> tuple[LoopClosingStage, _FakeTracke
     try:
         for kf in kfs:
             tracker.poses[kf.id] = kf.world_from_kf.copy()
-            stage.on_keyframe(kf)
-        stage.finish()
+            out = stage.on_keyframe(kf, MapState(tracker.world_from_kf))
+            if out.corrections:
+                tracker.apply_correction(out.corrections)
+        final = stage.close(MapState(tracker.world_from_kf))
+        if final:
+            tracker.apply_correction(final)
     finally:
         LoopCloser.process_keyframe = real  # type: ignore[method-assign]
     return stage, tracker, true

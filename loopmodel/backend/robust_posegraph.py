@@ -215,7 +215,7 @@ def _factor_graph(
         if keep is not None and not keep[e]:
             continue
         i, j = (int(v) for v in graph.edges_ij[e])
-        noise = gtsam.noiseModel.Gaussian.Information(np.asarray(graph.information[e], float))
+        noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Information(np.asarray(graph.information[e], float))
         if cauchy_k is not None and not graph.odometry[e]:
             noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k), noise)
         meas = _pose(graph.dim, graph.i_from_j[e])

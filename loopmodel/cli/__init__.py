@@ -800,8 +800,11 @@ def main(argv: list[str] | None = None) -> int:
     debug = "--debug" in args
     if not debug:  # numeric warnings are for developers; the results say what went wrong
         warnings.filterwarnings("ignore", category=RuntimeWarning)
+    from loopmodel.cli.signals import sigterm_as_interrupt
+
     try:
-        rv = app(args=args, prog_name="loopmodel", standalone_mode=False)
+        with sigterm_as_interrupt():  # SIGTERM is Ctrl-C everywhere (temporary files removed)
+            rv = app(args=args, prog_name="loopmodel", standalone_mode=False)
         # typer turns KeyboardInterrupt into Exit(130) and, outside standalone mode, returns
         # the code instead of raising it
         if isinstance(rv, int) and rv != 0:
