@@ -47,6 +47,8 @@ class SequenceConfig(_Section):
     topics: TopicsConfig = Field(default_factory=TopicsConfig)
     stereo_pair_tolerance_ns: int = Field(1_000_000, ge=0, description="max left/right stamp gap")
     kitti_rate_hz: float = Field(10.0, gt=0, description="frame rate when times.txt is absent")
+    # an image (MCAP message) declaring more pixels than this is refused before decoding
+    max_image_pixels: int = Field(100_000_000, ge=1, le=2**31 - 1, description="max width*height")
 
 
 class OutputConfig(_Section):
@@ -78,7 +80,7 @@ class BackendConfig(_Section):
     loop_sigma_rad: float = Field(0.01, gt=0, description="default loop-constraint sigma")
     loop_sigma_m: float = Field(0.01, gt=0, description="default loop-constraint sigma")
     min_disparity_px: float = Field(2.0, ge=0, description="stereo observations below: dropped")
-    min_observations: int = Field(2, ge=1, description="a landmark enters once seen this often")
+    min_observations: int = Field(2, ge=1, le=1000, description="a landmark enters once seen this often")
     pending_max_age_kf: int = Field(
         3, ge=1, description="forget a not-yet-added landmark unseen for this many keyframes"
     )
@@ -97,7 +99,7 @@ class BackendConfig(_Section):
     relinearize_threshold_rad: float = Field(0.005, gt=0, description="pose rotation")
     relinearize_threshold_m: float = Field(0.02, gt=0, description="pose position")
     relinearize_threshold_landmark_m: float = Field(0.2, gt=0, description="landmark position")
-    relinearize_skip: int = Field(1, ge=1, description="check relinearisation every N updates")
+    relinearize_skip: int = Field(1, ge=1, le=10000, description="check relinearisation every N updates")
     partial_relinearization_check: bool = Field(
         False, description="check relinearisation only in the cliques an update touches"
     )
@@ -115,27 +117,27 @@ class FrontendConfig(_Section):
     """Stereo keyframe front end: detection, stereo matching, KLT, robust pose, keyframes."""
 
     # keyframe features (rectified left image)
-    max_features: int = Field(800, ge=10, description="corners per keyframe (before stereo)")
-    grid_cols: int = Field(8, ge=1, description="detection grid columns (bucketing)")
-    grid_rows: int = Field(4, ge=1, description="detection grid rows (bucketing)")
+    max_features: int = Field(800, ge=10, le=100000, description="corners per keyframe (before stereo)")
+    grid_cols: int = Field(8, ge=1, le=256, description="detection grid columns (bucketing)")
+    grid_rows: int = Field(4, ge=1, le=256, description="detection grid rows (bucketing)")
     gftt_quality: float = Field(0.005, gt=0, lt=1, description="Shi-Tomasi quality, per cell")
     min_distance_px: float = Field(10.0, gt=0, description="minimum corner spacing")
-    border_px: int = Field(12, ge=0, description="no corners this close to the image border")
+    border_px: int = Field(12, ge=0, le=1000, description="no corners this close to the image border")
     detect_half_resolution: bool = Field(False, description="find corners in the half-size image")
     # stereo row search (rectified pair)
-    patch_px: int = Field(11, ge=3, description="matching window (odd)")
+    patch_px: int = Field(11, ge=3, le=101, description="matching window (odd)")
     min_disparity_px: float = Field(1.0, ge=0, description="reject matches below (far points)")
     max_disparity_px: float = Field(160.0, gt=0, description="search range along the row")
     min_zncc: float = Field(0.7, ge=-1, le=1, description="minimum normalised correlation")
     lr_tolerance_px: float = Field(1.0, gt=0, description="left-right consistency tolerance")
     max_row_error_px: float = Field(1.0, ge=0, description="max vertical offset of the match")
     max_depth_m: float = Field(200.0, gt=0, description="reject triangulated points beyond")
-    min_stereo_points: int = Field(30, ge=6, description="fewest points for a keyframe")
-    max_keyframe_points: int = Field(300, ge=0, description="keep at most this many (spread); 0: all")
+    min_stereo_points: int = Field(30, ge=6, le=100000, description="fewest points for a keyframe")
+    max_keyframe_points: int = Field(300, ge=0, le=100000, description="keep at most this many (spread); 0: all")
     # KLT
-    klt_window_px: int = Field(13, ge=5, description="Lucas-Kanade window")
-    klt_levels: int = Field(3, ge=0, description="pyramid levels above the base")
-    klt_iterations: int = Field(7, ge=1)
+    klt_window_px: int = Field(13, ge=5, le=101, description="Lucas-Kanade window")
+    klt_levels: int = Field(3, ge=0, le=10, description="pyramid levels above the base")
+    klt_iterations: int = Field(7, ge=1, le=100)
     fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward tolerance")
     # robust pose
     pose_loss: Literal["tukey", "huber"] = Field("tukey")
@@ -145,38 +147,38 @@ class FrontendConfig(_Section):
         4.0, gt=0, description="prediction good enough to skip RANSAC"
     )
     pose_step_tolerance: float = Field(5e-5, gt=0, description="LM stops below this step (m, rad)")
-    pose_max_iterations: int = Field(10, ge=1)
-    pose_huber_warmup: int = Field(2, ge=0, description="Huber IRLS iterations before Tukey")
-    pose_reweight_iterations: int = Field(4, ge=1, description="IRLS weight updates, then frozen")
+    pose_max_iterations: int = Field(10, ge=1, le=1000)
+    pose_huber_warmup: int = Field(2, ge=0, le=1000, description="Huber IRLS iterations before Tukey")
+    pose_reweight_iterations: int = Field(4, ge=1, le=1000, description="IRLS weight updates, then frozen")
     depth_weighting: bool = Field(True, description="down-weight points of uncertain stereo depth")
     disparity_sigma_px: float = Field(0.3, gt=0, description="stereo disparity noise (weighting)")
     # keyframe policy
     min_tracked_fraction: float = Field(0.5, gt=0, le=1, description="new keyframe below this")
-    min_tracked: int = Field(100, ge=6, description="new keyframe below this many inliers")
+    min_tracked: int = Field(100, ge=6, le=100000, description="new keyframe below this many inliers")
     max_parallax_ratio: float = Field(0.25, gt=0, description="translation / median depth")
     max_rotation_deg: float = Field(20.0, gt=0, description="rotation since the keyframe")
     # tracking loss
-    min_inliers: int = Field(20, ge=6, description="LOST below this many inliers")
+    min_inliers: int = Field(20, ge=6, le=100000, description="LOST below this many inliers")
     max_jump_m: float = Field(0.6, gt=0, description="LOST when the pose departs from the motion model by more")
     max_jump_deg: float = Field(15.0, gt=0)
     min_image_std: float = Field(4.0, ge=0, description="black/flat image threshold (grey levels)")
     min_sharpness: float = Field(20.0, ge=0, description="variance of the Laplacian (blur) threshold")
-    max_retrack_frames: int = Field(5, ge=0, description="frames to try resuming on the old keyframe")
+    max_retrack_frames: int = Field(5, ge=0, le=1000, description="frames to try resuming on the old keyframe")
     # local hybrid keyframe BA (seed 004 eq. 1)
     local_ba: bool = True
-    ba_iterations: int = Field(5, ge=1)
+    ba_iterations: int = Field(5, ge=1, le=1000)
     ba_huber_px: float = Field(1.0, gt=0)
     ba_final_stereo: bool = Field(False, description="add the final right projections to eq. 1")
     # depth of features without a stereo match (seed-003 observer with the tracker's poses)
     mono_depth: Literal["none", "observer"] = Field("none", description="depth of unmatched corners")
-    mono_max_features: int = Field(300, ge=0, description="most tracks without stereo depth")
+    mono_max_features: int = Field(300, ge=0, le=100000, description="most tracks without stereo depth")
     mono_max_rel_sigma: float = Field(0.1, gt=0, description="converged below this relative depth std")
     mono_min_parallax_deg: float = Field(1.0, ge=0, description="excitation: recent mean parallax")
     mono_sigma_px: float = Field(3.0, gt=0, description="pixel noise of KLT and tracker poses (depth std)")
     keyframe_remeasure: bool = Field(
         True, description="re-measure tracks against the keyframe patch (affine) at a new keyframe"
     )
-    remeasure_half_window_px: int = Field(7, ge=2, description="half size of the re-measured patch")
+    remeasure_half_window_px: int = Field(7, ge=2, le=50, description="half size of the re-measured patch")
     remeasure_min_ncc: float = Field(0.8, ge=-1, le=1, description="keep re-measured tracks above this NCC")
     remeasure_max_shift_px: float = Field(2.0, gt=0, description="keep re-measured tracks moved less")
     remeasure_older_keyframes: int = Field(
@@ -244,13 +246,20 @@ class MappingConfig(_Section):
 
 # ----------------------------------------------------------------------------- simulation (issue 3)
 
+    @model_validator(mode="after")
+    def _positive_radii(self) -> MappingConfig:
+        # a negative or zero ball-pivoting radius makes Open3D fail deep inside the mesher
+        if any(not (0 < r < 1e3) for r in self.bpa_radii_m):
+            raise ValueError(f"bpa_radii_m: every radius must be in (0, 1000) metres, got {self.bpa_radii_m}")
+        return self
+
 
 class SimCameraConfig(_Section):
     """Rectified stereo pair of the simulator (pixels, metres); ``xi > 0`` renders the unified
     central model (omnidirectional). Principal point defaults to the image centre."""
 
-    width_px: int = Field(640, gt=0)
-    height_px: int = Field(480, gt=0)
+    width_px: int = Field(640, gt=0, le=8192)
+    height_px: int = Field(480, gt=0, le=8192)
     fx_px: float = Field(500.0, gt=0)
     fy_px: float | None = Field(None, gt=0, description="defaults to fx_px")
     cx_px: float | None = Field(None, description="defaults to (width_px - 1) / 2")
@@ -290,11 +299,11 @@ class SimTrajectoryConfig(_Section):
     """Hand-held path around the object (world z up, object on the table at the origin)."""
 
     kind: Literal["orbit", "sweeps", "browse", "modeler"] = "orbit"
-    frames: int = Field(600, gt=0)
+    frames: int = Field(600, gt=0, le=1000000)
     rate_hz: float = Field(25.0, gt=0)
     radius_m: float = Field(0.65, gt=0, description="camera distance from the object axis")
     height_m: float = Field(0.35, description="camera height above the table")
-    sweeps: int = Field(3, ge=1, description="'sweeps': number of back-and-forth sweeps")
+    sweeps: int = Field(3, ge=1, le=1000, description="'sweeps': number of back-and-forth sweeps")
     shake_translation_m: float = Field(0.002, ge=0)
     shake_rotation_deg: float = Field(0.3, ge=0)
     start_time_ns: int = Field(1_000_000_000, ge=0)
@@ -313,7 +322,7 @@ class SimLaserConfig(_Section):
         description="vertical plane crossing the optical axis about 0.55 m ahead",
     )
     fan_deg: float = Field(70.0, gt=0, lt=180)
-    rays: int = Field(640, ge=2)
+    rays: int = Field(640, ge=2, le=100000)
     range_noise_m: float = Field(0.0002, ge=0)
     max_range_m: float = Field(1.2, gt=0, description="measuring range: farther points are not reported")
     image: bool = Field(False, description="also write /laser/image")
@@ -387,7 +396,7 @@ class SimulationConfig(_Section):
     laser: SimLaserConfig = Field(default_factory=SimLaserConfig)
     faults: SimFaultsConfig = Field(default_factory=SimFaultsConfig)
     realism: SimRealismConfig = Field(default_factory=SimRealismConfig)  # issue 17
-    workers: int = Field(2, ge=0, description="render processes; 0 = one per core, 1 = in-process")
+    workers: int = Field(2, ge=0, le=256, description="render processes; 0 = one per core, 1 = in-process")
     image_format: ImageFormat = Field("png")
     write_scene_ply: bool = Field(True, description="also write <out>.scene.ply beside the MCAP")
 
@@ -424,22 +433,31 @@ class LoopConfig(_Section):
 
     enabled: bool = True
     descriptor: DescriptorKind = Field("orb", description="orb, sift or surf")
-    n_features: int = Field(1500, ge=50, description="features per keyframe")
+    n_features: int = Field(1500, ge=50, le=100000, description="features per keyframe")
     ratio: float = Field(0.8, gt=0, le=1, description="Lowe ratio of descriptor matching")
     vocabulary_path: str | None = Field(None, description="trained vocabulary .npz; None: on the fly")
-    vocabulary_branching: int = Field(8, ge=2)
-    vocabulary_levels: int = Field(4, ge=1)
-    vocabulary_train_after: int = Field(6, ge=2, description="keyframes before on-the-fly training")
-    min_gap_keyframes: int = Field(10, ge=1, description="recent keyframes never loop candidates")
-    consistency: int = Field(2, ge=1, description="consecutive agreeing queries before a loop")
+    vocabulary_branching: int = Field(8, ge=2, le=64)
+    vocabulary_levels: int = Field(4, ge=1, le=10)
+    vocabulary_train_after: int = Field(6, ge=2, le=100000, description="keyframes before on-the-fly training")
+    min_gap_keyframes: int = Field(10, ge=1, le=100000, description="recent keyframes never loop candidates")
+    consistency: int = Field(2, ge=1, le=1000, description="consecutive agreeing queries before a loop")
     min_score: float = Field(0.01, ge=0)
     threshold_px: float = Field(2.0, gt=0, description="P3P inlier bound (pixels)")
-    min_inliers: int = Field(25, ge=6)
+    min_inliers: int = Field(25, ge=6, le=100000)
     min_inlier_ratio: float = Field(0.25, gt=0, le=1)
-    max_samples: int = Field(4096, ge=64, description="P3P bank minimal samples per query")
-    min_epipolar_inliers: int = Field(40, ge=8, description="monocular verification")
+    max_samples: int = Field(4096, ge=64, le=1000000, description="P3P bank minimal samples per query")
+    min_epipolar_inliers: int = Field(40, ge=8, le=100000, description="monocular verification")
     max_cycle_rot_deg: float = Field(2.0, gt=0, description="forward/reverse pose agreement")
     max_cycle_trans_m: float = Field(0.05, gt=0)
+    # robust gate on verified loops (loopmodel.backend.robust_posegraph): a keyframe pose
+    # graph of odometry (known inliers) and loops solved by GNC-TLS; a loop it rejects is
+    # never applied. Sigmas per keyframe step / per loop constraint.
+    robust: Literal["gnc", "none"] = Field("gnc", description="gnc: GNC-TLS loop gate; none: trust loops")
+    robust_probability: float = Field(0.99, gt=0.5, lt=1, description="chi-square inlier quantile")
+    robust_odometry_sigma_deg: float = Field(1.0, gt=0, le=90, description="rotation per keyframe step")
+    robust_odometry_sigma_m: float = Field(0.02, gt=0, le=100, description="translation per keyframe step")
+    robust_loop_sigma_deg: float = Field(1.0, gt=0, le=90, description="loop constraint rotation")
+    robust_loop_sigma_m: float = Field(0.03, gt=0, le=100, description="loop constraint translation")
 
 
 class AccuracyConfig(_Section):
@@ -451,8 +469,8 @@ class AccuracyConfig(_Section):
     noise: float = Field(0.2, gt=0, description="N0/2, contrast^2 px^2 (variance on a 1 px cell)")
     theta_deg: list[float] = Field(default_factory=lambda: [5.0 + 10.0 * k for k in range(7)])
     phi_deg: list[float] = Field(default_factory=lambda: [10.0 * k for k in range(36)])
-    edge_subdivisions: int = Field(64, ge=1, description="trapezoid sub-intervals per polygon edge")
-    circle_points: int = Field(256, ge=8, description="trapezoid points per circle")
+    edge_subdivisions: int = Field(64, ge=1, le=100000, description="trapezoid sub-intervals per polygon edge")
+    circle_points: int = Field(256, ge=8, le=100000, description="trapezoid points per circle")
     pixel_study_px: list[float] = Field(default_factory=lambda: [0.25, 0.5, 1.0, 2.0, 4.0])
 
 
@@ -460,12 +478,12 @@ class VvsConfig(_Section):
     """Model-based tracking by virtual visual servoing (``loopmodel vvs``, seed 002)."""
 
     sample_step_px: float = Field(3.0, gt=0, description="spacing of edge samples on each conic")
-    search_px: int = Field(10, ge=1, description="moving-edge search range along the normal")
+    search_px: int = Field(10, ge=1, le=1000, description="moving-edge search range along the normal")
     edge_noise_px: float = Field(0.15, ge=0, description="simulated edge noise before pixel rounding")
     loss: Literal["tukey", "huber", "l2"] = Field("tukey", description="M-estimator")
-    huber_warmup: int = Field(1, ge=0, description="first VVS iterations with Huber")
-    max_iterations: int = Field(20, ge=1)
-    min_features: int = Field(20, ge=6, description="fewer matched edge points: tracking failure")
+    huber_warmup: int = Field(1, ge=0, le=1000, description="first VVS iterations with Huber")
+    max_iterations: int = Field(20, ge=1, le=1000)
+    min_features: int = Field(20, ge=6, le=100000, description="fewer matched edge points: tracking failure")
     lost_rot_deg: float = Field(5.0, gt=0, description="frame counted lost above this rotation error")
     lost_pos_mm: float = Field(50.0, gt=0, description="frame counted lost above this position error")
 
@@ -493,7 +511,7 @@ class RefineConfig(_Section):
     batch_ba: bool = Field(True, description="batch bundle adjustment of all keyframes and landmarks (iSAM2)")
     pixel_sigma_px: float = Field(0.05, gt=0, description="batch BA: std. dev. of a feature position")
     huber_k: float = Field(1.345, ge=0, description="batch BA: Huber threshold in sigmas (0: Gaussian)")
-    max_iterations: int = Field(30, ge=1, description="batch BA: Levenberg-Marquardt iterations")
+    max_iterations: int = Field(30, ge=1, le=1000, description="batch BA: Levenberg-Marquardt iterations")
     bridge_frames: bool = Field(
         True, description="distribute each keyframe interval's tracking drift over its frames"
     )
@@ -581,6 +599,10 @@ def load_config(path: str | Path | None = None) -> Config:
         data = yaml.safe_load(p.read_text()) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(p, f"not valid YAML ({str(exc).splitlines()[0]})") from None
+    except UnicodeDecodeError:  # random bytes
+        raise ConfigError(p, "not a UTF-8 YAML text file") from None
+    except OSError as exc:  # a FIFO, no permission
+        raise ConfigError(p, f"cannot read the configuration: {exc.strerror}") from None
     if not isinstance(data, dict):
         raise ConfigError(p, "expected a mapping of sections at the top level")
     return config_from_dict(data, p)

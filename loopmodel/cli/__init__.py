@@ -6,6 +6,7 @@ import json
 import logging
 import math
 import sys
+import warnings
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -146,13 +147,26 @@ def convert(
         raise InputError("--image-format", f"must be one of {', '.join(allowed)} for {kind}, got '{image_format}'")
     if dst.exists() and kind != "mcap":
         raise InputError(dst, "exists already; choose a new name")
+    from loopmodel.cli.signals import sigterm_as_interrupt
+    from loopmodel.io.atomic import check_output_file
+
+    if kind == "mcap":
+        check_output_file(dst)  # before the work, not after it
     cfg = load_config(config)
     seq = open_sequence(src, cfg.sequence, left, right)
-    with progress_bar() as bar:
-        task = bar.add_task("convert", total=len(seq))
-        convert_sequence(
-            seq, dst, kind, cfg.sequence, image_format, keep_topics, progress=lambda i: bar.update(task, completed=i)
-        )
+    done = [0]
+
+    def step(i: int) -> None:
+        done[0] = i
+        bar.update(task, completed=i)
+
+    try:
+        with sigterm_as_interrupt(), progress_bar() as bar:
+            task = bar.add_task("convert", total=len(seq))
+            convert_sequence(seq, dst, kind, cfg.sequence, image_format, keep_topics, progress=step)
+    except KeyboardInterrupt:
+        err_console.print(f"interrupted after {done[0]} frames; {dst} not written")
+        raise typer.Exit(130) from None
     size = sum(p.stat().st_size for p in dst.rglob("*")) if dst.is_dir() else dst.stat().st_size
     console.print(f"wrote {dst} ({kind}, {size / 2**20:.1f} MiB, {len(seq)} frames)")
 
@@ -178,6 +192,8 @@ def run(
     from loopmodel.io.sequence import open_sequence
     from loopmodel.pipeline import run_frontend, run_pipeline
 
+    if max_frames is not None and max_frames < 1:
+        raise InputError("--max-frames", f"must be at least 1, got {max_frames}")
     cfg = load_config(config)
     seq = open_sequence(path, cfg.sequence, left, right)
     if getattr(seq, "choice", None):
@@ -351,9 +367,21 @@ def simulate_scan_cmd(
         updates["image_format"] = image_format
     if updates:
         sim = resolve_config(apply_overrides(sim, updates, {k: "--" + k.replace("_", "-") for k in updates}))
-    with progress_bar() as bar:
-        task = bar.add_task("simulate", total=sim.trajectory.frames)
-        res = simulate_scan(sim, out, cfg.sequence.topics, lambda k, n: bar.update(task, completed=k), preset)
+    from loopmodel.cli.signals import sigterm_as_interrupt
+
+    done = [0]
+
+    def step(k: int, n: int) -> None:
+        done[0] = k
+        bar.update(task, completed=k)
+
+    try:
+        with sigterm_as_interrupt(), progress_bar() as bar:
+            task = bar.add_task("simulate", total=sim.trajectory.frames)
+            res = simulate_scan(sim, out, cfg.sequence.topics, step, preset)
+    except KeyboardInterrupt:
+        err_console.print(f"interrupted after {done[0]} frames; {out} not written")
+        raise typer.Exit(130) from None
     console.print(
         f"wrote {res.path} ({res.size_bytes / 2**20:.1f} MiB, {res.frames_written} frames, "
         f"{res.stripes_written} stripes, {len(res.faults)} faults) in {res.seconds:.1f} s: "
@@ -751,20 +779,50 @@ def loop_vocabulary(
     console.print(f"{voc.n_words} words from {len(docs)} images written to {out}")
 
 
+_PROGRAM = [False]
+
+
+def _ignore_further_interrupts() -> None:
+    """Once a command was interrupted, another Ctrl-C must not break the exit (worker pools
+    and temporary files are being cleaned up). Only for the program itself (``_PROGRAM``),
+    not for ``main`` called from Python."""
+    import signal
+    import threading
+
+    if _PROGRAM[0] and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: runs the app, turns loopmodel errors into one line and exit status 2."""
     args = list(sys.argv[1:] if argv is None else argv)
+    _PROGRAM[0] = argv is None
     debug = "--debug" in args
+    if not debug:  # numeric warnings are for developers; the results say what went wrong
+        warnings.filterwarnings("ignore", category=RuntimeWarning)
+    from loopmodel.cli.signals import sigterm_as_interrupt
+
     try:
-        app(args=args, prog_name="loopmodel", standalone_mode=False)
+        with sigterm_as_interrupt():  # SIGTERM is Ctrl-C everywhere (temporary files removed)
+            rv = app(args=args, prog_name="loopmodel", standalone_mode=False)
+        # typer turns KeyboardInterrupt into Exit(130) and, outside standalone mode, returns
+        # the code instead of raising it
+        if isinstance(rv, int) and rv != 0:
+            if rv == 130:
+                _ignore_further_interrupts()
+                err_console.print("interrupted")
+            return rv
     except LoopmodelError as exc:
         if debug:
             raise
         err_console.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
         return 2
     except typer.Exit as exc:
+        if exc.exit_code == 130:
+            _ignore_further_interrupts()
         return int(exc.exit_code)
     except (typer.Abort, KeyboardInterrupt):
+        _ignore_further_interrupts()
         err_console.print("interrupted")
         return 130
     except typer.exceptions.TyperException as exc:  # usage errors (click's, vendored by typer)
@@ -774,6 +832,12 @@ def main(argv: list[str] | None = None) -> int:
         else:
             err_console.print(f"error: {exc}")
         return int(getattr(exc, "exit_code", 2))
+    except OSError as exc:  # the environment (full disk, read-only folder): one line naming the path
+        if debug:
+            raise
+        where = f"{exc.filename}: " if exc.filename else ""
+        err_console.print(f"[red]I/O error:[/red] {where}{exc.strerror or exc}", highlight=False, soft_wrap=True)
+        return 1
     except Exception as exc:  # a bug, not bad input: say so in one line unless --debug
         if debug:
             raise

@@ -4,6 +4,7 @@ so an interrupted program never leaves a half-written file."""
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,6 +16,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     on any exception (KeyboardInterrupt included)."""
     final = Path(path)
     final.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(final)
     tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
     try:
         yield tmp
@@ -23,6 +25,54 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: str | Path) -> list[Path]:
+    """Delete ``.NAME.tmp-PID`` files beside ``path`` left by processes that no longer run
+    (a SIGKILL leaves them); returns what was removed."""
+    final = Path(path)
+    removed: list[Path] = []
+    prefix = f".{final.name}.tmp-"
+    with contextlib.suppress(OSError):
+        for p in final.parent.glob(f"{glob.escape(prefix)}*"):
+            pid = p.name[len(prefix) :]
+            if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+                with contextlib.suppress(OSError):
+                    p.unlink()
+                    removed.append(p)
+    return removed
+
+
+def check_output_file(path: str | Path) -> Path:
+    """Before any work: ``path`` must not be a folder and its folder must be writable
+    (created when missing). Raises :class:`InputError` naming the path."""
+    from loopmodel.errors import InputError
+
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(p, "output is a folder; give a file name")
+    if p.exists() and not p.is_file():
+        raise InputError(p, "output exists and is not a regular file")
+    parent = p.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise InputError(parent, "is a file, not a folder for the output") from None
+    except OSError as exc:
+        raise InputError(parent, f"cannot create the output folder: {exc.strerror}") from None
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(parent, "output folder is not writable")
+    return p
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:

@@ -12,6 +12,7 @@ import yaml
 from loopmodel.errors import CalibrationError, FormatError, InputError
 from loopmodel.geometry.se3 import invert_pose
 from loopmodel.io.base import FolderSequence
+from loopmodel.io.text import read_text_file
 from loopmodel.io.trajectory_io import read_trajectory
 from loopmodel.types import StereoCalibration, Trajectory
 
@@ -27,7 +28,7 @@ def euroc_root(path: Path) -> Path | None:
 def _read_sensor_yaml(path: Path) -> dict:
     if not path.is_file():
         raise CalibrationError(path, "camera sensor.yaml is missing")
-    text = "\n".join(s for s in path.read_text().splitlines() if not s.startswith("%"))
+    text = "\n".join(s for s in read_text_file(path, "sensor.yaml").splitlines() if not s.startswith("%"))
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError:
@@ -61,7 +62,7 @@ def camera_model_of(data: dict) -> str:
 def _read_index(csv: Path) -> tuple[list[int], list[str]]:
     times: list[int] = []
     names: list[str] = []
-    for lineno, line in enumerate(csv.read_text().splitlines(), 1):
+    for lineno, line in enumerate(read_text_file(csv, "image index").splitlines(), 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -10,8 +11,11 @@ import numpy as np
 from loopmodel.errors import CalibrationError, FormatError, InputError
 from loopmodel.io.base import FolderSequence
 from loopmodel.io.images import image_size
+from loopmodel.io.text import read_text_file
 from loopmodel.io.trajectory_io import read_trajectory, seconds_text_to_ns
 from loopmodel.types import StereoCalibration, Trajectory
+
+logger = logging.getLogger(__name__)
 
 IMAGE_DIRS = (("image_0", "image_1"), ("image_l", "image_r"))
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".pgm", ".bmp")
@@ -30,7 +34,7 @@ def parse_kitti_calib(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """P0 and P1 (3x4) from a KITTI calib.txt (named ``P0:`` lines or two unnamed lines)."""
     named: dict[str, np.ndarray] = {}
     unnamed: list[np.ndarray] = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    for lineno, line in enumerate(read_text_file(path).splitlines(), 1):
         s = line.strip()
         if not s:
             continue
@@ -84,16 +88,32 @@ class KittiSequence(FolderSequence):
                 break
         if left_dir is None or right_dir is None:
             raise FormatError(path, "no KITTI image folders (image_0/image_1 or image_l/image_r)")
-        self._left = sorted(p for p in left_dir.iterdir() if p.suffix.lower() in IMAGE_EXTS)
-        self._right = sorted(p for p in right_dir.iterdir() if p.suffix.lower() in IMAGE_EXTS)
-        if not self._left:
+        left_all = sorted(p for p in left_dir.iterdir() if p.suffix.lower() in IMAGE_EXTS)
+        right_all = sorted(p for p in right_dir.iterdir() if p.suffix.lower() in IMAGE_EXTS)
+        if not left_all:
             raise FormatError(left_dir, "no images found")
-        if len(self._left) != len(self._right):
+        # left and right images pair by file name (stem), never by sorted position
+        right_by_stem = {p.stem: p for p in right_all}
+        left_stems = {p.stem for p in left_all}
+        self._left_index = [i for i, p in enumerate(left_all) if p.stem in right_by_stem]
+        self._left = [left_all[i] for i in self._left_index]
+        self._right = [right_by_stem[p.stem] for p in self._left]
+        self._n_left_files = len(left_all)
+        only_left = [p.name for p in left_all if p.stem not in right_by_stem]
+        only_right = [p.name for p in right_all if p.stem not in left_stems]
+        if not self._left:
             raise InputError(
-                path,
-                f"left and right image counts differ: {len(self._left)} in {left_dir.name}, "
-                f"{len(self._right)} in {right_dir.name}",
+                path, f"no left image in {left_dir.name} has a right image of the same name in {right_dir.name}"
             )
+        if only_left or only_right:
+            logger.warning(
+                "%s: %d unpaired images skipped (left only: %s; right only: %s)",
+                path,
+                len(only_left) + len(only_right),
+                ", ".join(only_left[:5]) or "none",
+                ", ".join(only_right[:5]) or "none",
+            )
+        self.unpaired = only_left + only_right
         size_l, size_r = image_size(self._left[0]), image_size(self._right[0])
         if size_l != size_r:
             raise InputError(path, f"left and right image sizes differ: {size_l} vs {size_r}")
@@ -104,11 +124,12 @@ class KittiSequence(FolderSequence):
         self._gt = self._read_poses(path)
 
     def _read_times(self, path: Path, rate_hz: float) -> list[int]:
+        """Timestamps of the paired frames (``times.txt`` has one line per left image)."""
         times_file = path / "times.txt"
-        n = len(self._left)
+        n = self._n_left_files
         if not times_file.is_file():
-            return [round(i * 1e9 / rate_hz) for i in range(n)]
-        lines = [s.strip() for s in times_file.read_text().splitlines() if s.strip()]
+            return [round(i * 1e9 / rate_hz) for i in self._left_index]
+        lines = [s.strip() for s in read_text_file(times_file).splitlines() if s.strip()]
         if len(lines) != n:
             raise FormatError(times_file, f"{len(lines)} times for {n} images")
         try:
@@ -118,13 +139,24 @@ class KittiSequence(FolderSequence):
         for i in range(1, n):
             if times[i] <= times[i - 1]:
                 raise FormatError(times_file, f"timestamps go backwards at line {i + 1}")
-        return times
+        return [times[i] for i in self._left_index]
 
     def _read_poses(self, path: Path) -> Trajectory | None:
+        """Ground truth: one pose row per left image (row i = image i in sorted order); fewer
+        than 90 % of the rows it needs is an error, a shortfall below that a warning."""
         for name in ("poses.txt", "groundtruth.txt"):
             p = path / name
             if p.is_file():
                 traj = read_trajectory(p, "kitti", check=False)
-                n = min(len(traj), len(self._times))
-                return Trajectory(np.asarray(self._times[:n]), traj.world_from_cam[:n]).check(str(p))
+                n_img = self._n_left_files
+                if len(traj) < 0.9 * n_img or len(traj) > n_img:
+                    raise FormatError(p, f"{len(traj)} pose rows for {n_img} images (expected one row per image)")
+                if len(traj) < n_img:
+                    logger.warning(
+                        "%s: %d pose rows for %d images; the last frames have no ground truth", p, len(traj), n_img
+                    )
+                rows = [k for k, i in enumerate(self._left_index) if i < len(traj)]
+                idx = [self._left_index[k] for k in rows]
+                times = np.asarray([self._times[k] for k in rows])
+                return Trajectory(times, traj.world_from_cam[idx]).check(str(p))
         return None

@@ -27,6 +27,7 @@ from loopmodel.errors import CalibrationError, FormatError, InputError
 from loopmodel.geometry.se3 import quat_wxyz_from_rotation, rotation_from_quat_wxyz
 from loopmodel.io.atomic import atomic_path
 from loopmodel.io.base import Sequence
+from loopmodel.io.images import MAX_IMAGE_PIXELS, check_declared_size, declared_image_size
 from loopmodel.io.ros2_msgs import MSGDEFS, POINTFIELD_FLOAT32, header, stamp_ns
 from loopmodel.types import StereoCalibration, StereoFrame, StripeProfile, Trajectory
 
@@ -48,10 +49,14 @@ def is_mcap(path: Path) -> bool:
 # ----------------------------------------------------------------------------- decoding
 
 
-def decode_image(msg: Any, schema_name: str, topic: str) -> np.ndarray:
-    """numpy image of a decoded Image or CompressedImage message."""
+def decode_image(msg: Any, schema_name: str, topic: str, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
+    """numpy image of a decoded Image or CompressedImage message; the size it declares (PNG/
+    JPEG header, or width and height) must be at most ``max_pixels`` before it is decoded."""
     data = bytes(msg.data)
     if schema_name.endswith("CompressedImage"):
+        declared = declared_image_size(data[: 1 << 16])
+        if declared is not None:
+            check_declared_size(declared[0], declared[1], max_pixels, topic)
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise FormatError(topic, f"cannot decode compressed image (format '{msg.format}')")
@@ -59,6 +64,7 @@ def decode_image(msg: Any, schema_name: str, topic: str) -> np.ndarray:
     enc = str(msg.encoding).lower()
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     channels = {"mono8": 1, "8uc1": 1, "bgr8": 3, "rgb8": 3, "8uc3": 3, "mono16": 1, "16uc1": 1}
+    check_declared_size(w, h, max_pixels, topic)
     if enc not in channels:  # bgra8, bayer_*, ...: the bag readers' decoder (8-bit output)
         from loopmodel.io.ros_camera import decode_ros_image
 
@@ -78,7 +84,9 @@ def decode_image(msg: Any, schema_name: str, topic: str) -> np.ndarray:
     return img
 
 
-def calibration_from_camera_info(left: Any, right: Any, source: str) -> StereoCalibration:
+def calibration_from_camera_info(
+    left: Any, right: Any, source: str, max_pixels: int = MAX_IMAGE_PIXELS
+) -> StereoCalibration:
     """Stereo calibration from two decoded CameraInfo messages (ROS conventions: R rectifies,
     P of the right camera carries ``fx * t_x`` of the rectified baseline)."""
     K0 = np.array(left.k, dtype=float).reshape(3, 3)
@@ -99,6 +107,11 @@ def calibration_from_camera_info(left: Any, right: Any, source: str) -> StereoCa
     right_from_left[:3, :3] = R1.T @ R0
     right_from_left[:3, 3] = R1.T @ t_rect
     size = (int(left.width), int(left.height))
+    if (int(right.width), int(right.height)) != size:
+        raise CalibrationError(
+            source, f"left and right CameraInfo sizes differ: {size} vs {(right.width, right.height)}"
+        )
+    check_declared_size(size[0], size[1], max_pixels, f"{source} (CameraInfo width x height)")
     return StereoCalibration(K0, K1, right_from_left, size, d0, d1, rectified).check(source)
 
 
@@ -151,8 +164,14 @@ def decode_pointcloud_xyz(msg: Any, topic: str) -> np.ndarray:
     n = int(msg.width) * int(msg.height)
     step = int(msg.point_step)
     buf = np.frombuffer(bytes(msg.data), np.uint8)
+    if step < 12 or max(offsets[a][0] for a in "xyz") + 4 > step:
+        raise FormatError(topic, f"PointCloud2 point_step {step} cannot hold float32 x, y, z")
     if buf.size < n * step:
-        raise FormatError(topic, "PointCloud2 data shorter than width*height*point_step")
+        raise FormatError(
+            topic,
+            f"PointCloud2 declares {n} points ({msg.width}x{msg.height}, {step} bytes each) "
+            f"but carries {buf.size} bytes",
+        )
     endian = ">" if msg.is_bigendian else "<"
     dt = np.dtype(
         {
@@ -174,10 +193,17 @@ class McapSequence(Sequence):
 
     format_name = "mcap"
 
-    def __init__(self, path: Path, topics: TopicsConfig | None = None, tolerance_ns: int = 1_000_000) -> None:
+    def __init__(
+        self,
+        path: Path,
+        topics: TopicsConfig | None = None,
+        tolerance_ns: int = 1_000_000,
+        max_image_pixels: int = MAX_IMAGE_PIXELS,
+    ) -> None:
         super().__init__(path)
         self.topics = topics or TopicsConfig()
         self.tolerance_ns = tolerance_ns
+        self.max_image_pixels = max_image_pixels
         self._channels: dict[str, str] = {}  # topic -> schema name
         self._counts: dict[str, int] = {}
         self._attachments: list[str] = []
@@ -202,6 +228,8 @@ class McapSequence(Sequence):
                     schema = summary.schemas.get(ch.schema_id)
                     self._channels[ch.topic] = schema.name if schema else ""
                 if summary.statistics is not None:
+                    for ch in summary.channels.values():  # a channel without messages counts 0
+                        self._counts.setdefault(ch.topic, 0)
                     for cid, n in summary.statistics.channel_message_counts.items():
                         topic = summary.channels[cid].topic
                         self._counts[topic] = self._counts.get(topic, 0) + n
@@ -223,6 +251,9 @@ class McapSequence(Sequence):
                 f"(sensor_msgs Image/CompressedImage); topics found: {found}",
             )
         nl, nr = self._counts.get(t.left_image), self._counts.get(t.right_image)
+        empty = [x for x, n in ((t.left_image, nl), (t.right_image, nr)) if n == 0]
+        if empty:
+            raise InputError(self.path, f"image topic {' and '.join(empty)} has no messages")
         if nl is not None and nr is not None and nl != nr:
             raise InputError(
                 self.path, f"left and right image counts differ: {nl} on {t.left_image}, {nr} on {t.right_image}"
@@ -253,7 +284,9 @@ class McapSequence(Sequence):
             raise CalibrationError(self.path, f"no CameraInfo on {t.left_info} and {t.right_info}")
         from loopmodel.io.ros_camera import calibration_from_infos  # distortion models
 
-        return calibration_from_infos(left, right, f"{self.path} {t.left_info}", f"{self.path} {t.right_info}")
+        return calibration_from_infos(
+            left, right, f"{self.path} {t.left_info}", f"{self.path} {t.right_info}", self.max_image_pixels
+        )
 
     def _read_ground_truth(self) -> Trajectory | None:
         topic = self.topics.ground_truth
@@ -350,13 +383,16 @@ class McapSequence(Sequence):
                 if abs(tl - tr) <= self.tolerance_ns:
                     lq.popleft()
                     rq.popleft()
-                    left = decode_image(ml, sl, t.left_image)
-                    right = decode_image(mr, sr, t.right_image)
-                    if left.shape[:2] != right.shape[:2]:
-                        raise InputError(
-                            self.path,
-                            f"left and right image sizes differ at {tl} ns: {left.shape[:2]} vs {right.shape[:2]}",
-                        )
+                    left = decode_image(ml, sl, t.left_image, self.max_image_pixels)
+                    right = decode_image(mr, sr, t.right_image, self.max_image_pixels)
+                    w, h = self._calibration.image_size
+                    for tp, img in ((t.left_image, left), (t.right_image, right)):
+                        if img.shape[:2] != (h, w):
+                            raise InputError(
+                                f"{self.path} {tp}",
+                                f"frame {index} ({tl} ns) is {img.shape[1]}x{img.shape[0]} pixels, "
+                                f"the CameraInfo says {w}x{h}",
+                            )
                     yield StereoFrame(tl, left, right, index)
                     index += 1
                 elif tl < tr:
@@ -380,7 +416,7 @@ class McapSequence(Sequence):
         if topic not in self._channels:
             return
         for _t, schema, msg in self._messages([topic]):
-            yield stamp_ns(msg), decode_image(msg, schema, topic)
+            yield stamp_ns(msg), decode_image(msg, schema, topic, self.max_image_pixels)
 
     def laser_image_count(self) -> int:
         return self._counts.get(self.topics.laser_image, 0)

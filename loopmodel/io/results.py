@@ -3,8 +3,12 @@ metrics, the effective configuration and the run log, every file written atomica
 
 from __future__ import annotations
 
+import contextlib
+import glob
 import json
 import logging
+import os
+import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -19,15 +23,77 @@ if TYPE_CHECKING:
 
 
 class ResultsFolder:
-    """Writer for ``<out>/<name>/``; creates the folder, never leaves half-written files."""
+    """Writer for ``<out>/<name>/``; never leaves half-written files, never mixes runs.
 
-    def __init__(self, out_dir: str | Path, name: str) -> None:
-        if not name or "/" in name or name in (".", ".."):
+    With ``staged`` (the default) files go to a fresh ``<out>/.<name>.tmp-<pid>/`` and
+    :meth:`commit` moves it to ``<out>/<name>/``, replacing an older run's folder only then
+    (``overwrite=False`` refuses an existing folder up front instead). A lock file
+    ``<out>/.<name>.lock`` (holding the PID) stops a second concurrent run of the same name;
+    the staging folders and locks of dead processes are removed at the next start."""
+
+    def __init__(self, out_dir: str | Path, name: str, staged: bool = True, overwrite: bool = True) -> None:
+        if not name or "/" in name or name in (".", "..") or name.startswith("."):
             raise InputError("--name", f"run name must be a plain folder name, got '{name}'")
-        self.path = Path(out_dir) / name
-        if self.path.exists() and not self.path.is_dir():
-            raise InputError(self.path, "results path exists and is not a folder")
-        self.path.mkdir(parents=True, exist_ok=True)
+        out = Path(out_dir)
+        self.final = out / name
+        if self.final.exists() and not self.final.is_dir():
+            raise InputError(self.final, "results path exists and is not a folder")
+        if not overwrite and self.final.exists():
+            raise InputError(self.final, "results folder exists; choose another --name or pass --overwrite")
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except FileExistsError:
+            raise InputError(out, "--out is a file, not a folder") from None
+        except OSError as exc:
+            raise InputError(out, f"cannot create the results folder: {exc.strerror}") from None
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise InputError(out, "results folder is not writable")
+        self.staged = staged
+        self._lock: Path | None = None
+        self.committed = False
+        if staged:
+            self._lock = _acquire_lock(out / f".{name}.lock", self.final)
+            _remove_dead_staging(out, name)
+            self.path = out / f".{name}.tmp-{os.getpid()}"
+            if self.path.exists():
+                shutil.rmtree(self.path)
+            self.path.mkdir()
+        else:
+            self.path = self.final
+            self.path.mkdir(parents=True, exist_ok=True)
+
+    def commit(self) -> Path:
+        """Move the staged folder to ``<out>/<name>/`` (replacing an older one) and release
+        the lock; returns the final path. Without staging: nothing to do."""
+        if not self.staged or self.committed:
+            return self.final
+        old = None
+        if self.final.exists():
+            old = self.final.with_name(f".{self.final.name}.old-{os.getpid()}")
+            if old.exists():
+                shutil.rmtree(old)
+            os.replace(self.final, old)
+        os.replace(self.path, self.final)
+        self.path = self.final
+        self.committed = True
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        self.release()
+        return self.final
+
+    def abandon(self) -> None:
+        """Drop the staged folder (the older run's folder stays) and release the lock."""
+        if self.staged and not self.committed:
+            shutil.rmtree(self.path, ignore_errors=True)
+        self.release()
+
+    def release(self) -> None:
+        """Release the lock (also done by :meth:`commit`)."""
+        if self._lock is not None:
+            _HELD.discard(self._lock)
+            with contextlib.suppress(FileNotFoundError):
+                self._lock.unlink()
+            self._lock = None
 
     def file(self, name: str) -> Path:
         """Path of a file in the folder."""
@@ -39,9 +105,7 @@ class ResultsFolder:
 
     def write_json(self, name: str, data: dict[str, Any]) -> Path:
         """A JSON file (indented, keys in insertion order)."""
-        return write_text_atomic(
-            self.file(name), json.dumps(data, indent=2, default=_json_default) + "\n"
-        )
+        return write_text_atomic(self.file(name), json.dumps(data, indent=2, default=_json_default) + "\n")
 
     def write_text(self, name: str, text: str) -> Path:
         """A text file."""
@@ -66,27 +130,86 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
     configuration), ``trajectory_online.tum``, ``trajectory_final.tum``, ``keyframes.tum``
     (KITTI variants of the first two when ``output.write_kitti``), ``map.npz``,
     ``metrics.json``, ``run.log``, then ``stripes.npz`` (when the run has laser profiles),
-    ``mesh.ply`` and ``mesh_live.ply`` (when made). Returns the folder's path."""
-    folder.write_config(run.config)
-    folder.write_trajectory("trajectory_online.tum", run.online)
-    folder.write_trajectory("trajectory_final.tum", run.final)
-    folder.write_trajectory("keyframes.tum", run.keyframes)
-    if run.config.output.write_kitti:
-        folder.write_trajectory("trajectory_online.kitti", run.online, "kitti")
-        folder.write_trajectory("trajectory_final.kitti", run.final, "kitti")
-    folder.write_npz("map.npz", run.map_arrays())
-    folder.write_json("metrics.json", run.metrics)
-    folder.write_text("run.log", run.log)
-    if run.stripes:
-        from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
+    ``mesh.ply`` and ``mesh_live.ply`` (when made). Returns the folder's path.
 
-        save_stripes(folder.file(STRIPES_FILE), run.stripes)
-    for name, mesh in (("mesh.ply", run.mesh), ("mesh_live.ply", run.live_mesh)):
-        if mesh is not None:
-            from loopmodel.io.mesh_io import write_mesh
+    A staged folder (:class:`ResultsFolder`) replaces the older run's folder once the small
+    files through ``run.log`` are written, even when a large file then fails (a full disk:
+    the error is raised after the commit); when a small file fails, the older folder stays
+    and the staging is removed."""
+    try:
+        folder.write_config(run.config)
+        folder.write_trajectory("trajectory_online.tum", run.online)
+        folder.write_trajectory("trajectory_final.tum", run.final)
+        folder.write_trajectory("keyframes.tum", run.keyframes)
+        if run.config.output.write_kitti:
+            folder.write_trajectory("trajectory_online.kitti", run.online, "kitti")
+            folder.write_trajectory("trajectory_final.kitti", run.final, "kitti")
+        folder.write_npz("map.npz", run.map_arrays())
+        folder.write_json("metrics.json", run.metrics)
+        folder.write_text("run.log", run.log)
+    except BaseException:
+        folder.abandon()
+        raise
+    try:
+        if run.stripes:
+            from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
 
-            write_mesh(folder.file(name), mesh, "ply")
+            save_stripes(folder.file(STRIPES_FILE), run.stripes)
+        for name, mesh in (("mesh.ply", run.mesh), ("mesh_live.ply", run.live_mesh)):
+            if mesh is not None:
+                from loopmodel.io.mesh_io import write_mesh
+
+                write_mesh(folder.file(name), mesh, "ply")
+    finally:
+        folder.commit()
     return folder.path
+
+
+#: lock files held by this process (a lock with our PID but not in here is stale)
+_HELD: set[Path] = set()
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _acquire_lock(lock: Path, final: Path) -> Path:
+    """Create ``lock`` exclusively with our PID; a lock of a dead process is taken over."""
+    for _ in range(3):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                pid = int(lock.read_text().strip() or "0")
+            except (OSError, ValueError):
+                pid = 0
+            ours = pid == os.getpid() and lock not in _HELD
+            if pid > 0 and not ours and _pid_alive(pid):
+                raise InputError(final, f"another run (pid {pid}) is writing this results folder") from None
+            with contextlib.suppress(FileNotFoundError):
+                lock.unlink()
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(str(os.getpid()))
+        _HELD.add(lock)
+        return lock
+    raise InputError(final, f"cannot take the lock {lock}")
+
+
+def _remove_dead_staging(out: Path, name: str) -> None:
+    """Delete ``.<name>.tmp-<pid>`` / ``.<name>.old-<pid>`` folders of processes that died."""
+    for kind in ("tmp", "old"):
+        prefix = f".{name}.{kind}-"
+        for p in out.glob(glob.escape(prefix) + "*"):
+            pid = p.name[len(prefix) :]
+            if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)) and p.is_dir():
+                shutil.rmtree(p, ignore_errors=True)
 
 
 def _json_default(obj: Any) -> Any:

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import CalibrationError, FormatError
+from loopmodel.io.images import MAX_IMAGE_PIXELS, check_declared_size, declared_image_size
 from loopmodel.io.mcap_io import calibration_from_camera_info
 from loopmodel.types import StereoCalibration
 
@@ -58,7 +59,7 @@ def _field(msg: Any, name: str) -> Any:
     return getattr(msg, name.upper())
 
 
-def raw_image_array(msg: Any, topic: str) -> NDArray[Any]:
+def raw_image_array(msg: Any, topic: str, max_pixels: int = MAX_IMAGE_PIXELS) -> NDArray[Any]:
     """The pixels of a ``sensor_msgs/Image`` as stored (HxW, HxWxC; uint8 or uint16), no copy
     where the rows are packed."""
     enc = str(msg.encoding).lower()
@@ -66,6 +67,7 @@ def raw_image_array(msg: Any, topic: str) -> NDArray[Any]:
         raise FormatError(topic, f"unsupported image encoding '{msg.encoding}' (expected one of {', '.join(_RAW)})")
     c, nbytes = _RAW[enc]
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    check_declared_size(w, h, max_pixels, topic)
     data = np.frombuffer(msg.data, np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data.view(np.uint8)
     row = w * c * nbytes
     if h <= 0 or w <= 0 or step < row or data.size < h * step:
@@ -82,15 +84,19 @@ def raw_image_array(msg: Any, topic: str) -> NDArray[Any]:
     return img.reshape(h, w, c) if c > 1 else img.reshape(h, w)
 
 
-def decode_ros_image(msg: Any, msgtype: str, topic: str) -> NDArray[np.uint8]:
-    """uint8 grey or BGR image of an Image or CompressedImage message (any encoding above)."""
+def decode_ros_image(msg: Any, msgtype: str, topic: str, max_pixels: int = MAX_IMAGE_PIXELS) -> NDArray[np.uint8]:
+    """uint8 grey or BGR image of an Image or CompressedImage message (any encoding above);
+    the size it declares must be at most ``max_pixels`` before it is decoded."""
     if msgtype.endswith("CompressedImage"):
         data = msg.data if isinstance(msg.data, np.ndarray) else np.frombuffer(bytes(msg.data), np.uint8)
+        declared = declared_image_size(data[: 1 << 16].tobytes())
+        if declared is not None:
+            check_declared_size(declared[0], declared[1], max_pixels, topic)
         img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
         if img is None:
             raise FormatError(topic, f"cannot decode compressed image (format '{msg.format}')")
         return to_uint8(np.asarray(img), "bgra8" if img.ndim == 3 and img.shape[2] == 4 else "")
-    return to_uint8(raw_image_array(msg, topic), str(msg.encoding).lower())
+    return to_uint8(raw_image_array(msg, topic, max_pixels), str(msg.encoding).lower())
 
 
 def to_uint8(img: NDArray[Any], encoding: str) -> NDArray[np.uint8]:
@@ -133,8 +139,11 @@ class _Info:
         self.k, self.r, self.p = (np.asarray(_field(msg, n), dtype=float) for n in ("k", "r", "p"))
 
 
-def calibration_from_infos(left: Any, right: Any, left_topic: str, right_topic: str) -> StereoCalibration:
-    """Stereo calibration of two CameraInfo messages (any of the three distortion models)."""
+def calibration_from_infos(
+    left: Any, right: Any, left_topic: str, right_topic: str, max_pixels: int = MAX_IMAGE_PIXELS
+) -> StereoCalibration:
+    """Stereo calibration of two CameraInfo messages (any of the three distortion models);
+    a declared image size above ``max_pixels`` is refused (before any undistortion map)."""
     models = {camera_model(left, left_topic), camera_model(right, right_topic)}
     if len(models) != 1:
         raise CalibrationError(f"{left_topic}/{right_topic}", "left and right distortion models differ")
@@ -144,7 +153,7 @@ def calibration_from_infos(left: Any, right: Any, left_topic: str, right_topic: 
             f"image size {right.width}x{right.height} differs from {left_topic}'s {left.width}x{left.height}",
         )
     li, ri = _Info(left), _Info(right)
-    cal = calibration_from_camera_info(li, ri, f"{left_topic}/{right_topic}")
+    cal = calibration_from_camera_info(li, ri, f"{left_topic}/{right_topic}", max_pixels)
     model = models.pop()
     if model == "equidistant":
         if len(li.d) == 0:

@@ -43,13 +43,15 @@ def open_sequence(
     p = Path(path)
     if not p.exists():
         raise InputError(p, "path does not exist")
+    if not p.is_file() and not p.is_dir():  # /dev/null, a FIFO, a socket
+        raise InputError(p, "expected an .mcap file or a EuRoC/KITTI folder, found a device or pipe")
     bag_args = (cfg.topics, cfg.stereo_pair_tolerance_ns, left, right)
     if p.is_file():
         if p.suffix.lower() == ".mcap" or is_mcap(p):
             # the project's own MCAP (attachments, stripes, metadata) through mcap; any other
             # ROS 2 MCAP (other topic names) through rosbags
             if left is None and right is None and _has_project_topics(p, cfg):
-                return McapSequence(p, cfg.topics, cfg.stereo_pair_tolerance_ns)
+                return McapSequence(p, cfg.topics, cfg.stereo_pair_tolerance_ns, cfg.max_image_pixels)
             return BagSequence(p, *bag_args)
         if is_bag(p):
             return BagSequence(p, *bag_args)

@@ -7,6 +7,7 @@ short text saying so). Stripes stay in the sensor frame; the run's trajectories 
 
 from __future__ import annotations
 
+import zipfile
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -48,8 +49,8 @@ def load_stripes(path: str | Path) -> list[StripeProfile]:
             t = z["timestamps_ns"].astype(np.int64).ravel()
             counts = z["counts"].astype(np.int64).ravel()
             pts = z["points_in_cam"].astype(np.float64)
-    except (OSError, ValueError) as exc:
-        raise FormatError(p, f"not a readable .npz file ({exc})") from None
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
+        raise FormatError(p, f"not a readable .npz file ({type(exc).__name__}: {exc})") from None
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise FormatError(p, f"points_in_cam must be P x 3, got {pts.shape}")
     if t.shape != counts.shape or np.any(counts < 0) or int(counts.sum()) != pts.shape[0]:

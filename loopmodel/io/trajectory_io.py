@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from loopmodel.errors import FormatError, InputError
 from loopmodel.geometry.se3 import quat_wxyz_from_rotation, rotation_from_quat_wxyz
 from loopmodel.io.atomic import write_text_atomic
+from loopmodel.io.text import read_text_file
 from loopmodel.types import Trajectory
 
 TrajectoryFormat = Literal["tum", "kitti", "euroc"]
@@ -45,29 +46,27 @@ def guess_format(path: str | Path) -> TrajectoryFormat:
         return "euroc"
     if p.suffix.lower() == ".tum":
         return "tum"
-    with open(p) as f:
-        for line in f:
-            s = line.strip()
-            if s and not s.startswith("#"):
-                n = len(s.replace(",", " ").split())
-                if "," in s:
-                    return "euroc"
-                return "kitti" if n == 12 else "tum"
+    for line in read_text_file(p, "trajectory file").splitlines():
+        s = line.strip()
+        if s and not s.startswith("#"):
+            n = len(s.replace(",", " ").split())
+            if "," in s:
+                return "euroc"
+            return "kitti" if n == 12 else "tum"
     raise FormatError(p, "trajectory file has no data lines")
 
 
 def _rows(path: Path, sep: str | None, expected: tuple[int, ...]) -> list[list[str]]:
     rows: list[list[str]] = []
-    with open(path) as f:
-        for lineno, line in enumerate(f, 1):
-            s = line.strip()
-            if not s or s.startswith("#") or (sep == "," and s[0].isalpha()):
-                continue
-            parts = [p.strip() for p in s.split(sep)] if sep else s.split()
-            if len(parts) not in expected:
-                want = " or ".join(str(e) for e in expected)
-                raise FormatError(path, f"line {lineno}: expected {want} columns, found {len(parts)}")
-            rows.append(parts)
+    for lineno, line in enumerate(read_text_file(path, "trajectory file").splitlines(), 1):
+        s = line.strip()
+        if not s or s.startswith("#") or (sep == "," and s[0].isalpha()):
+            continue
+        parts = [p.strip() for p in s.split(sep)] if sep else s.split()
+        if len(parts) not in expected:
+            want = " or ".join(str(e) for e in expected)
+            raise FormatError(path, f"line {lineno}: expected {want} columns, found {len(parts)}")
+        rows.append(parts)
     if not rows:
         raise FormatError(path, "trajectory file has no data lines")
     return rows
@@ -97,8 +96,8 @@ def read_trajectory(
         rows = _rows(p, None, (8,))
         try:
             t = np.array([seconds_text_to_ns(r[0]) for r in rows], dtype=np.int64)
-        except InvalidOperation:
-            raise FormatError(p, "timestamp column is not a number") from None
+        except (InvalidOperation, ValueError, OverflowError):
+            raise FormatError(p, "timestamp column is not a finite number") from None
         v = _floats(p, rows, slice(1, 8))
         T = np.tile(np.eye(4), (len(rows), 1, 1))
         T[:, :3, 3] = v[:, :3]
@@ -118,7 +117,7 @@ def read_trajectory(
         rows = _rows(p, ",", (8, 17))
         try:
             t = np.array([int(Decimal(r[0])) for r in rows], dtype=np.int64)
-        except InvalidOperation:
+        except (InvalidOperation, ValueError, OverflowError):
             raise FormatError(p, "timestamp column is not an integer of nanoseconds") from None
         v = _floats(p, rows, slice(1, 8))
         T = np.tile(np.eye(4), (len(rows), 1, 1))

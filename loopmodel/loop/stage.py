@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.backend.robust_posegraph import keyframe_loop_inliers
 from loopmodel.config import LoopConfig
 from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.closer import LoopCloser, LoopClosure
@@ -94,6 +95,8 @@ class LoopClosingStage:
         self._rerun: LoopClosure | None = None
         #: records of the last outcome's constraints, completed from the next MapState
         self._awaiting: list[dict[str, Any]] = []
+        #: loops the robust gate accepted (they join later gates' pose graphs)
+        self._gated: list[LoopClosure] = []
 
     @classmethod
     def from_config(cls, config: LoopConfig, calibration: StereoCalibration) -> LoopClosingStage:
@@ -215,7 +218,10 @@ class LoopClosingStage:
 
     def _close(self, closure: LoopClosure, out: LoopOutcome, state: MapState) -> None:
         """Hand a verified loop to the back end, or start its correction (in the worker
-        process when ``background``; a finished one lands in ``out``)."""
+        process when ``background``; a finished one lands in ``out``). A loop the robust
+        gate rejects (:meth:`_robust_gate`) is recorded in ``rejected`` and never applied."""
+        if not self._robust_gate(closure, state.world_from_kf):
+            return
         if self.via_backend:
             record = self._loop_record(closure)
             self.events.append(record)
@@ -226,6 +232,55 @@ class LoopClosingStage:
             self._rerun = closure  # the running BA finishes first; then this loop's window
             return
         self._collect(self._submit(closure, dict(state.world_from_kf)), out)
+
+    def _cam_from_cam(self, closure: LoopClosure) -> F64:
+        """The closure's ``kf_query_from_kf_match`` between left camera (not rectified) frames."""
+        q, m = self.keyframes[closure.query_kf], self.keyframes[closure.match_kf]
+        return invert_pose(q.rect_from_cam) @ closure.query_from_match @ m.rect_from_cam
+
+    def _robust_gate(self, closure: LoopClosure, world_from_kf: Mapping[int, F64]) -> bool:
+        """GNC-TLS on the keyframe pose graph from the loop's old keyframe to the current
+        one: the current relative poses of consecutive connected keyframes (known inliers),
+        the loops accepted before and this one. False when this loop is an outlier (it is
+        then kept in ``rejected``, with the reason). A window that a new segment
+        (unconnected keyframe) breaks is not gated."""
+        if self.config.robust == "none":
+            return True
+        lo, hi = closure.match_kf, closure.query_kf
+        ids = sorted(k for k in self.keyframes if lo <= k <= hi and k in world_from_kf)
+        if len(ids) < 2 or ids[0] != lo or ids[-1] != hi:
+            return True
+        if not all(self.keyframes[k].connected for k in ids[1:]):
+            return True
+        cfg = self.config
+        loops = [
+            (c.query_kf, c.match_kf, self._cam_from_cam(c))
+            for c in self._gated
+            if lo <= c.match_kf and c.query_kf <= hi
+        ]
+        loops.append((hi, lo, self._cam_from_cam(closure)))
+        t0 = time.perf_counter()
+        inlier, res = keyframe_loop_inliers(
+            {k: np.asarray(world_from_kf[k], float) for k in ids},
+            list(zip(ids[:-1], ids[1:], strict=True)),
+            loops,
+            cfg.robust_odometry_sigma_deg,
+            cfg.robust_odometry_sigma_m,
+            cfg.robust_loop_sigma_deg,
+            cfg.robust_loop_sigma_m,
+            cfg.robust_probability,
+        )
+        gate_ms = (time.perf_counter() - t0) * 1e3
+        if bool(inlier[-1]):
+            self._gated.append(closure)
+            closure.info["robust_gate_ms"] = gate_ms
+            return True
+        self.closer.closures.remove(closure)
+        weight = float(res.weights[-1])
+        reason = f"robust gate: inconsistent with odometry and earlier loops (GNC weight {weight:.2f})"
+        self.rejected.append({"query_kf": hi, "match_kf": lo, "reason": reason, "gate_ms": gate_ms})
+        logger.info("loop %d -> %d rejected by the robust gate", hi, lo)
+        return False
 
     def _to_backend(self, closure: LoopClosure, record: dict[str, Any], out: LoopOutcome) -> None:
         """Append the closure's observations of old landmarks to the keyframe's monocular
@@ -254,9 +309,7 @@ class LoopClosingStage:
         }
 
     # ------------------------------------------------------------------ standalone global BA
-    def _submit(
-        self, closure: LoopClosure, before: dict[int, F64]
-    ) -> tuple[dict[str, Any], dict[int, F64]] | None:
+    def _submit(self, closure: LoopClosure, before: dict[int, F64]) -> tuple[dict[str, Any], dict[int, F64]] | None:
         # the BA starts from the current estimate
         kfs = [
             dataclasses.replace(k, world_from_kf=np.asarray(before.get(k.id, k.world_from_kf)))

@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 import logging
 import multiprocessing as mp
+import signal
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -27,7 +29,7 @@ from loopmodel.config import SimulationConfig, TopicsConfig
 from loopmodel.errors import ConfigError, InputError
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose, so3_exp
-from loopmodel.io.atomic import write_bytes_atomic
+from loopmodel.io.atomic import check_output_file, write_bytes_atomic
 from loopmodel.io.mcap_io import McapSequenceWriter
 from loopmodel.sim.faults import FaultPlan, cam_from_occluder
 from loopmodel.sim.laser import (
@@ -288,6 +290,7 @@ _STATE: _WorkerState | None = None
 
 def _init_worker(cfg: SimulationConfig, scene: Scene) -> None:
     global _STATE
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # (already ignored from the start; see below)
     cv2.setNumThreads(1)
     _STATE = _make_state(cfg, scene)
     _STATE.caster.threads = 1  # one process per core already
@@ -706,7 +709,17 @@ def _iter_rendered(
             yield render_frame(st, task)
         return
     ctx = mp.get_context("spawn")
-    with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg, scene)) as pool:
+    # workers start with SIGINT ignored (an ignored signal stays ignored across exec, and
+    # Python then installs no KeyboardInterrupt handler): Ctrl-C, which reaches the whole
+    # process group, stops the parent, which terminates the pool; no worker tracebacks
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
+    try:
+        pool = ctx.Pool(workers, initializer=_init_worker, initargs=(cfg, scene))
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+    with pool:
         yield from pool.imap(_worker_render, tasks, chunksize=1)
 
 
@@ -723,6 +736,7 @@ def simulate_scan(
     out = Path(out)
     if out.suffix.lower() != ".mcap":
         raise InputError(out, "output must end in .mcap")
+    check_output_file(out)
     t_start = time.perf_counter()
     tr = cfg.trajectory
     n = tr.frames

@@ -1,0 +1,447 @@
+"""Pose graphs with loop closures that may be wrong: g2o reading, plain and robust solving.
+
+A :class:`PoseGraph` holds 2-D (SE(2)) or 3-D (SE(3)) poses and relative-pose edges
+``i_from_j`` (homogeneous 3x3 or 4x4 matrices, metres and radians) with information
+matrices in GTSAM's tangent order ((x, y, theta) for SE(2); (rotation, translation) for
+SE(3)). Odometry edges (``j == i + 1``, or flagged by the caller) are known inliers.
+
+:func:`robust_optimize` runs GTSAM's graduated non-convexity optimizer (GNC with a
+truncated-least-squares or Geman-McClure loss, Yang et al. 2020) over Levenberg-Marquardt,
+with the odometry edges as known inliers; a loop edge whose final weight is below one half
+is rejected. Its inlier threshold is the chi-square quantile of the edge's dimension at
+``probability`` (the whitened residual of a correct edge is chi-square distributed when the
+information matrices are right). :func:`optimize_lm` is the plain (non-robust) solve.
+
+:func:`read_g2o` reads ``VERTEX_SE2``/``EDGE_SE2`` and ``VERTEX_SE3:QUAT``/``EDGE_SE3:QUAT``
+files; when vertices are missing the initial poses are chained from the odometry edges.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from loopmodel.errors import FormatError, InputError
+from loopmodel.geometry.se3 import rotation_from_quat_wxyz
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class PoseGraph:
+    """Poses ``world_from_i`` (dim 2: 3x3, dim 3: 4x4) and edges ``i_from_j`` with
+    information matrices (3x3 or 6x6, GTSAM tangent order). ``odometry[e]`` marks edge e
+    as a known inlier."""
+
+    dim: int
+    world_from_pose: dict[int, F64]
+    edges_ij: NDArray[np.int64]
+    i_from_j: list[F64]
+    information: list[F64]
+    odometry: NDArray[np.bool_]
+    name: str = ""
+
+    @property
+    def n_edges(self) -> int:
+        """Number of edges."""
+        return int(self.edges_ij.shape[0])
+
+    def subset(self, keep: NDArray[np.bool_]) -> PoseGraph:
+        """The graph with only the edges where ``keep`` is true."""
+        idx = np.flatnonzero(keep)
+        return PoseGraph(
+            self.dim,
+            self.world_from_pose,
+            self.edges_ij[idx],
+            [self.i_from_j[k] for k in idx],
+            [self.information[k] for k in idx],
+            self.odometry[idx],
+            self.name,
+        )
+
+
+@dataclass
+class PoseGraphResult:
+    """Optimised ``world_from_pose``, the kept edges (``inlier[e]``), the GNC weights, the
+    graph's total error (GTSAM's 0.5 * sum of squared whitened residuals) over the kept
+    edges, and the solve time."""
+
+    world_from_pose: dict[int, F64]
+    inlier: NDArray[np.bool_]
+    weights: F64
+    error: float
+    solve_s: float
+    info: dict[str, float] = field(default_factory=dict)
+
+
+def _se2(x: float, y: float, th: float) -> F64:
+    c, s = math.cos(th), math.sin(th)
+    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
+
+
+def _upper_to_full(vals: list[float], n: int) -> F64:
+    M = np.zeros((n, n))
+    k = 0
+    for r in range(n):
+        for c in range(r, n):
+            M[r, c] = M[c, r] = vals[k]
+            k += 1
+    return M
+
+
+def _se3_info_to_gtsam(info_g2o: F64) -> F64:
+    """g2o orders SE(3) tangents (translation, rotation); GTSAM (rotation, translation)."""
+    P = np.zeros((6, 6))
+    P[:3, 3:] = np.eye(3)
+    P[3:, :3] = np.eye(3)
+    return P @ info_g2o @ P.T
+
+
+def read_g2o(path: str | Path) -> PoseGraph:
+    """Read a 2-D or 3-D g2o pose graph (raises :class:`FormatError` on a bad line)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise FormatError(p, "not a text g2o pose graph (undecodable bytes)") from None
+    except OSError as exc:
+        raise InputError(p, f"cannot read a g2o pose graph ({exc.strerror or exc.__class__.__name__})") from None
+    poses: dict[int, F64] = {}
+    edges: list[tuple[int, int]] = []
+    meas: list[F64] = []
+    infos: list[F64] = []
+    dim = 0
+    for lineno, line in enumerate(text.splitlines(), 1):
+        tok = line.split()
+        if not tok:
+            continue
+        kind = tok[0]
+        try:
+            vals = [float(t) for t in tok[1:]]
+            if kind == "VERTEX_SE2" and len(vals) == 4:
+                poses[int(vals[0])] = _se2(*vals[1:4])
+                d = 2
+            elif kind == "VERTEX_SE3:QUAT" and len(vals) == 8:
+                T = np.eye(4)
+                T[:3, :3] = rotation_from_quat_wxyz([vals[7], vals[4], vals[5], vals[6]])
+                T[:3, 3] = vals[1:4]
+                poses[int(vals[0])] = T
+                d = 3
+            elif kind == "EDGE_SE2" and len(vals) == 11:
+                edges.append((int(vals[0]), int(vals[1])))
+                meas.append(_se2(*vals[2:5]))
+                infos.append(_upper_to_full(vals[5:11], 3))
+                d = 2
+            elif kind == "EDGE_SE3:QUAT" and len(vals) == 30:
+                edges.append((int(vals[0]), int(vals[1])))
+                T = np.eye(4)
+                T[:3, :3] = rotation_from_quat_wxyz([vals[8], vals[5], vals[6], vals[7]])
+                T[:3, 3] = vals[2:5]
+                meas.append(T)
+                infos.append(_se3_info_to_gtsam(_upper_to_full(vals[9:30], 6)))
+                d = 3
+            elif kind.startswith("FIX"):
+                continue
+            else:
+                raise ValueError(f"unknown record {kind!r} with {len(vals)} numbers")
+        except ValueError as exc:
+            raise FormatError(p, f"line {lineno}: {exc}") from None
+        if dim and d != dim:
+            raise FormatError(p, f"line {lineno}: mixes 2-D and 3-D records")
+        dim = d
+    if not edges:
+        raise FormatError(p, "no EDGE_SE2 or EDGE_SE3:QUAT records")
+    for M, info in zip(meas, infos, strict=True):
+        if not (np.all(np.isfinite(M)) and np.all(np.isfinite(info))):
+            raise FormatError(p, "non-finite edge measurement or information")
+    ij = np.asarray(edges, dtype=np.int64)
+    odo = ij[:, 1] == ij[:, 0] + 1
+    graph = PoseGraph(dim, poses, ij, meas, infos, odo, p.stem)
+    ids = set(ij.ravel().tolist())
+    if not ids.issubset(poses):
+        graph.world_from_pose = chain_odometry(graph)
+    return graph
+
+
+def chain_odometry(graph: PoseGraph) -> dict[int, F64]:
+    """Initial poses by composing the odometry edges from the smallest id (a pose that
+    no odometry edge reaches keeps the previous pose)."""
+    ids = sorted(set(graph.edges_ij.ravel().tolist()))
+    step: dict[int, F64] = {}
+    for e in np.flatnonzero(graph.odometry):
+        i, j = graph.edges_ij[e]
+        step.setdefault(int(j), graph.i_from_j[e])
+    n = graph.dim + 1
+    out: dict[int, F64] = {}
+    prev = np.eye(n)
+    for k in ids:
+        if k - 1 in out and k in step:
+            prev = out[k - 1] @ step[k]
+        out[k] = prev
+    return out
+
+
+def _pose(dim: int, T: F64) -> Any:
+    if dim == 2:
+        return gtsam.Pose2(float(T[0, 2]), float(T[1, 2]), math.atan2(T[1, 0], T[0, 0]))
+    return gtsam.Pose3(gtsam.Rot3(np.asarray(T[:3, :3])), gtsam.Point3(*np.asarray(T[:3, 3], float)))
+
+
+def _factor_graph(
+    graph: PoseGraph,
+    keep: NDArray[np.bool_] | None = None,
+    cauchy_k: float | None = None,
+) -> tuple[gtsam.NonlinearFactorGraph, list[int]]:
+    """GTSAM graph of the (kept) edges plus a prior on the first pose; returns it and the
+    edge index of every between-factor (the prior is factor 0)."""
+    g = gtsam.NonlinearFactorGraph()
+    first = int(min(graph.world_from_pose))
+    n = 3 if graph.dim == 2 else 6
+    prior_noise = gtsam.noiseModel.Isotropic.Sigma(n, 1e-6)
+    if graph.dim == 2:
+        g.add(gtsam.PriorFactorPose2(first, _pose(2, graph.world_from_pose[first]), prior_noise))
+    else:
+        g.add(gtsam.PriorFactorPose3(first, _pose(3, graph.world_from_pose[first]), prior_noise))
+    order: list[int] = []
+    for e in range(graph.n_edges):
+        if keep is not None and not keep[e]:
+            continue
+        i, j = (int(v) for v in graph.edges_ij[e])
+        noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Information(np.asarray(graph.information[e], float))
+        if cauchy_k is not None and not graph.odometry[e]:
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k), noise)
+        meas = _pose(graph.dim, graph.i_from_j[e])
+        if graph.dim == 2:
+            g.add(gtsam.BetweenFactorPose2(i, j, meas, noise))
+        else:
+            g.add(gtsam.BetweenFactorPose3(i, j, meas, noise))
+        order.append(e)
+    return g, order
+
+
+def _values(graph: PoseGraph, init: dict[int, F64] | None = None) -> gtsam.Values:
+    v = gtsam.Values()
+    src = init if init is not None else graph.world_from_pose
+    for k in sorted(set(graph.edges_ij.ravel().tolist()) | {int(min(graph.world_from_pose))}):
+        v.insert(k, _pose(graph.dim, src[k]))
+    return v
+
+
+def _matrices(graph: PoseGraph, values: gtsam.Values) -> dict[int, F64]:
+    ids = sorted(set(graph.edges_ij.ravel().tolist()) | {int(min(graph.world_from_pose))})
+    if graph.dim == 2:
+        return {k: np.asarray(values.atPose2(k).matrix()) for k in ids}
+    return {k: np.asarray(values.atPose3(k).matrix()) for k in ids}
+
+
+def _lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(1e-6)
+    params.setAbsoluteErrorTol(1e-9)
+    return params
+
+
+def optimize_lm(
+    graph: PoseGraph,
+    keep: NDArray[np.bool_] | None = None,
+    init: dict[int, F64] | None = None,
+    max_iterations: int = 100,
+) -> PoseGraphResult:
+    """Plain Levenberg-Marquardt over every (kept) edge, the first pose fixed."""
+    g, order = _factor_graph(graph, keep)
+    values = _values(graph, init)
+    t0 = time.perf_counter()
+    result = gtsam.LevenbergMarquardtOptimizer(g, values, _lm_params(max_iterations)).optimize()
+    solve_s = time.perf_counter() - t0
+    inl = np.zeros(graph.n_edges, dtype=bool)
+    inl[order] = True
+    return PoseGraphResult(_matrices(graph, result), inl, inl.astype(float), float(g.error(result)), solve_s)
+
+
+def robust_optimize(
+    graph: PoseGraph,
+    loss: str = "tls",
+    probability: float = 0.99,
+    init: dict[int, F64] | None = None,
+    max_iterations: int = 100,
+    start: str = "cauchy",
+) -> PoseGraphResult:
+    """GNC over Levenberg-Marquardt with the odometry edges as known inliers (``loss``:
+    ``tls`` or ``gm``). Loop edges with a final weight below 0.5 are rejected; the poses
+    are then re-solved by LM over the kept edges (GNC's last iterate has the TLS weights,
+    which are 0 or 1 at convergence, so this only polishes). ``start``: GNC's first,
+    convex step weighs every loop 1 (``ls``), only the odometry (``odometry``), or the
+    loops that agree with a Cauchy-kernel LM solution, which is also the initial estimate
+    (``cauchy``)."""
+    if start not in ("ls", "odometry", "cauchy"):
+        raise InputError("robust_optimize", f"unknown start {start!r} (expected ls, odometry or cauchy)")
+    if loss not in ("tls", "gm"):
+        raise InputError("loop.robust", f"unknown robust loss {loss!r} (expected tls or gm)")
+    if not 0.5 < probability < 1.0:
+        raise InputError("loop.robust_probability", f"{probability} is not in (0.5, 1)")
+    g, order = _factor_graph(graph)
+    values = _values(graph, init)
+    t0 = time.perf_counter()
+    if bool(np.all(graph.odometry[order])):
+        res = optimize_lm(graph, init=init, max_iterations=max_iterations)
+        res.solve_s = time.perf_counter() - t0
+        return res
+    params = gtsam.GncLMParams(_lm_params(max_iterations))
+    params.setLossType(gtsam.GncLossType.TLS if loss == "tls" else gtsam.GncLossType.GM)
+    known = [0] + [f + 1 for f, e in enumerate(order) if graph.odometry[e]]
+    params.setKnownInliers(known)
+    opt = gtsam.GncLMOptimizer(g, values, params)
+    opt.setInlierCostThresholdsAtProbability(probability)
+    if start == "odometry":
+        w0 = np.ones(len(order) + 1)
+        w0[1:] = graph.odometry[order].astype(float)
+        opt.setWeights(w0)
+    elif start == "cauchy":
+        thr = _chi2_quantile(graph.dim, probability)
+        gc, _ = _factor_graph(graph, cauchy_k=math.sqrt(thr))
+        start_values = gtsam.LevenbergMarquardtOptimizer(gc, values, _lm_params(max_iterations)).optimize()
+        agree = _edge_chi2(graph, _matrices(graph, start_values)) <= thr
+        w0 = np.ones(len(order) + 1)
+        w0[1:] = (agree | graph.odometry)[order].astype(float)
+        opt = gtsam.GncLMOptimizer(g, start_values, params)
+        opt.setInlierCostThresholdsAtProbability(probability)
+        opt.setWeights(w0)
+    gnc_values = opt.optimize()
+    w = np.asarray(opt.getWeights(), dtype=float)
+    weights = np.ones(graph.n_edges)
+    weights[order] = w[1:]
+    inlier = weights >= 0.5
+    polished = optimize_lm(graph, keep=inlier, init=_matrices(graph, gnc_values), max_iterations=max_iterations)
+    # re-admit rejected loops that agree with the polished estimate (GNC can drop a true
+    # loop while the estimate is still far from the optimum)
+    for _ in range(3):
+        back = ~inlier & (_edge_chi2(graph, polished.world_from_pose) <= _chi2_quantile(graph.dim, probability))
+        if not back.any():
+            break
+        inlier |= back
+        polished = optimize_lm(graph, keep=inlier, init=polished.world_from_pose, max_iterations=max_iterations)
+    solve_s = time.perf_counter() - t0
+    return PoseGraphResult(
+        polished.world_from_pose,
+        inlier,
+        weights,
+        polished.error,
+        solve_s,
+        {"loops_rejected": float(np.sum(~inlier & ~graph.odometry))},
+    )
+
+
+def _edge_chi2(graph: PoseGraph, world_from_pose: dict[int, F64]) -> F64:
+    """Squared whitened residual of every edge at the given poses."""
+    g, order = _factor_graph(graph)
+    v = _values(graph, world_from_pose)
+    out = np.zeros(graph.n_edges)
+    for f, e in enumerate(order):
+        out[e] = 2.0 * g.at(f + 1).error(v)
+    return out
+
+
+def _chi2_quantile(dim: int, probability: float) -> float:
+    """Chi-square quantile for an edge of a ``dim``-D graph (3 or 6 degrees of freedom)."""
+    return float(chi2.ppf(probability, 3 if dim == 2 else 6))
+
+
+def graph_error(graph: PoseGraph, world_from_pose: dict[int, F64]) -> float:
+    """GTSAM's error of ``graph`` (every edge plus the first-pose prior) at the given poses."""
+    g, _ = _factor_graph(graph)
+    return float(g.error(_values(graph, world_from_pose)))
+
+
+def add_false_loops(graph: PoseGraph, rate: float, seed: int, min_gap: int = 10) -> PoseGraph:
+    """The graph plus ``round(rate * n_loop_edges)`` random false loop edges (their count is
+    relative to the true loop edges, odometry excluded): random pose pairs at least
+    ``min_gap`` ids apart, a random relative pose (translation uniform within the graph's
+    bounding box, heading uniform; in 3-D a uniformly random rotation) and the information
+    matrix of a randomly chosen true loop edge. The false edges come last."""
+    rng = np.random.default_rng(seed)
+    n_loops = int(np.sum(~graph.odometry))
+    n_false = int(round(rate * max(n_loops, 1)))
+    ids = np.array(sorted(graph.world_from_pose))
+    pos = np.array([graph.world_from_pose[k][: graph.dim, graph.dim] for k in ids])
+    extent = np.maximum(pos.max(axis=0) - pos.min(axis=0), 1.0)
+    loop_idx = np.flatnonzero(~graph.odometry)
+    if loop_idx.size == 0:
+        loop_idx = np.arange(graph.n_edges)
+    new_ij: list[tuple[int, int]] = []
+    new_T: list[F64] = []
+    new_info: list[F64] = []
+    while len(new_ij) < n_false:
+        a, b = (int(v) for v in rng.choice(ids, 2, replace=False))
+        if abs(a - b) < min_gap:
+            continue
+        t = rng.uniform(-0.5, 0.5, graph.dim) * extent
+        if graph.dim == 2:
+            T = _se2(float(t[0]), float(t[1]), float(rng.uniform(-math.pi, math.pi)))
+        else:
+            q = rng.normal(size=4)
+            q /= np.linalg.norm(q)
+            T = np.eye(4)
+            T[:3, :3] = rotation_from_quat_wxyz(q)
+            T[:3, 3] = t
+        new_ij.append((min(a, b), max(a, b)))
+        new_T.append(T)
+        new_info.append(graph.information[int(rng.choice(loop_idx))])
+    if not new_ij:
+        return graph
+    return PoseGraph(
+        graph.dim,
+        graph.world_from_pose,
+        np.vstack([graph.edges_ij, np.asarray(new_ij, dtype=np.int64)]),
+        graph.i_from_j + new_T,
+        graph.information + new_info,
+        np.concatenate([graph.odometry, np.zeros(len(new_ij), dtype=bool)]),
+        graph.name,
+    )
+
+
+def keyframe_loop_inliers(
+    world_from_kf: dict[int, F64],
+    odometry: list[tuple[int, int]],
+    loops: list[tuple[int, int, F64]],
+    odometry_sigma_deg: float,
+    odometry_sigma_m: float,
+    loop_sigma_deg: float,
+    loop_sigma_m: float,
+    probability: float = 0.99,
+) -> tuple[NDArray[np.bool_], PoseGraphResult]:
+    """Which loop constraints ``(kf_a, kf_b, kf_a_from_kf_b)`` (4x4, camera frames, metres)
+    agree with the odometry between the keyframes (``(kf_prev, kf)`` pairs whose current
+    relative pose ``world_from_kf`` is trusted) and with each other: GNC-TLS on the
+    keyframe pose graph. Returns the per-loop inlier mask and the solve."""
+
+    def info(sig_deg: float, sig_m: float) -> F64:
+        return np.diag(np.r_[np.full(3, 1.0 / math.radians(sig_deg) ** 2), np.full(3, 1.0 / sig_m**2)])
+
+    ij = [(a, b) for a, b in odometry] + [(a, b) for a, b, _ in loops]
+    meas = [np.linalg.inv(world_from_kf[a]) @ world_from_kf[b] for a, b in odometry] + [
+        np.asarray(T, float) for *_, T in loops
+    ]
+    infos = [info(odometry_sigma_deg, odometry_sigma_m)] * len(odometry) + [info(loop_sigma_deg, loop_sigma_m)] * len(
+        loops
+    )
+    used = {k for e in ij for k in e}
+    graph = PoseGraph(
+        3,
+        {k: np.asarray(world_from_kf[k], float) for k in sorted(used)},
+        np.asarray(ij, dtype=np.int64).reshape(-1, 2),
+        meas,
+        infos,
+        np.r_[np.ones(len(odometry), bool), np.zeros(len(loops), bool)],
+        "keyframes",
+    )
+    res = robust_optimize(graph, probability=probability)
+    return res.inlier[len(odometry) :], res

@@ -1,0 +1,415 @@
+"""Hostile and careless inputs (issue 24): each case is one line naming the file/topic/key,
+exit 2 (130 when interrupted, 1 with an I/O line for environment failures), no traceback,
+no half-written or mixed output. Every case here failed on main before its fix."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+import zlib
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from loopmodel.cli import main
+from loopmodel.config import load_config
+from loopmodel.errors import CalibrationError, ConfigError, FormatError, InputError
+from loopmodel.geometry.se3 import make_pose
+from loopmodel.io.atomic import atomic_path
+from loopmodel.io.images import read_image
+from loopmodel.io.mcap_io import (
+    McapSequence,
+    McapSequenceWriter,
+    calibration_from_camera_info,
+    decode_image,
+    decode_pointcloud_xyz,
+)
+from loopmodel.io.results import ResultsFolder
+from loopmodel.io.sequence import open_sequence
+from loopmodel.io.stripes_io import load_stripes
+from loopmodel.io.trajectory_io import read_trajectory
+from loopmodel.types import StereoCalibration, StereoFrame
+
+ROOT = Path(__file__).resolve().parents[1]
+CALIB = "P0: 400 0 32 0 0 400 24 0 0 0 1 0\nP1: 400 0 32 -48 0 400 24 0 0 0 1 0\n"
+POSE_ROW = "1 0 0 0 0 1 0 0 0 0 1 0\n"
+
+
+def _kitti(root: Path, left: list[str], right: list[str], poses: int | None = None, size=(64, 48)) -> Path:
+    rng = np.random.default_rng(0)
+    for d, names in (("image_0", left), ("image_1", right)):
+        (root / d).mkdir(parents=True)
+        for n in names:
+            cv2.imwrite(str(root / d / f"{n}.png"), rng.integers(0, 256, (size[1], size[0]), dtype=np.uint8))
+    (root / "calib.txt").write_text(CALIB)
+    if poses is not None:
+        (root / "poses.txt").write_text(POSE_ROW * poses)
+    return root
+
+
+def _names(n: int) -> list[str]:
+    return [f"{i:06d}" for i in range(n)]
+
+
+def _cal(w: int = 64, h: int = 48) -> StereoCalibration:
+    K = np.array([[400.0, 0, w / 2], [0, 400.0, h / 2], [0, 0, 1]])
+    return StereoCalibration(K, K, make_pose(np.eye(3), [-0.12, 0, 0]), (w, h))
+
+
+def _png_declaring(w: int, h: int) -> bytes:
+    """A real 8x8 PNG whose IHDR is patched to declare w x h (CRC fixed up)."""
+    ok, buf = cv2.imencode(".png", np.zeros((8, 8), np.uint8))
+    assert ok
+    b = bytearray(buf.tobytes())
+    b[16:20], b[20:24] = w.to_bytes(4, "big"), h.to_bytes(4, "big")
+    b[29:33] = zlib.crc32(bytes(b[12:29])).to_bytes(4, "big")
+    return bytes(b)
+
+
+# ----------------------------------------------------------------------------- KITTI
+
+
+def test_kitti_pairs_by_name_and_reports_unpaired(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    # right image 000002 missing, an extra 000005: same counts, shifted by position
+    root = _kitti(tmp_path / "k", _names(5), ["000000", "000001", "000003", "000004", "000005"])
+    with caplog.at_level(logging.WARNING, logger="loopmodel"):
+        seq = open_sequence(root)
+    assert [(lp.stem, rp.stem) for _, lp, rp in seq._pairs] == [
+        (n, n) for n in ("000000", "000001", "000003", "000004")
+    ]
+    assert "2 unpaired images skipped (left only: 000002.png; right only: 000005.png)" in caplog.text
+    # frame times stay those of the left image index (frame 3 at 0.3 s at 10 Hz)
+    assert seq.frame_times_ns()[2] == 300_000_000
+
+
+def test_kitti_poses_rows_must_match_images(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    with pytest.raises(FormatError, match="10 pose rows for 51 images"):
+        open_sequence(_kitti(tmp_path / "a", _names(51), _names(51), poses=10))
+    with caplog.at_level(logging.WARNING, logger="loopmodel"):
+        seq = open_sequence(_kitti(tmp_path / "b", _names(51), _names(51), poses=50))
+    assert len(seq.ground_truth) == 50 and "50 pose rows for 51 images" in caplog.text
+
+
+def test_random_bytes_in_text_inputs(tmp_path: Path) -> None:
+    junk = bytes(np.random.default_rng(1).integers(128, 256, 300, dtype=np.uint8))
+    root = _kitti(tmp_path / "k", _names(3), _names(3), poses=3)
+    (root / "calib.txt").write_bytes(junk)
+    with pytest.raises(FormatError, match="calib.txt: not a UTF-8"):
+        open_sequence(root)
+    (root / "calib.txt").write_text(CALIB)
+    (root / "poses.txt").write_bytes(junk)
+    with pytest.raises(FormatError, match="poses.txt: not a UTF-8"):
+        open_sequence(root)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_bytes(junk)
+    with pytest.raises(ConfigError, match="not a UTF-8"):
+        load_config(cfg)
+    tum = tmp_path / "t.tum"
+    tum.write_bytes(junk)
+    with pytest.raises(FormatError, match="not a UTF-8"):
+        read_trajectory(tum)
+    assert main(["eval", "--ref", str(tum), "--est", str(tum)]) == 2
+    assert main(["info", str(root), "--config", str(cfg)]) == 2
+
+
+def test_eval_nan_and_inf_timestamps(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    good = tmp_path / "ref.tum"
+    good.write_text("".join(f"{i}.0 {i} 0 0 0 0 0 1\n" for i in range(5)))
+    for bad_t in ("nan", "inf", "-inf"):
+        est = tmp_path / f"est_{bad_t}.tum"
+        est.write_text("".join(f"{t} {i} 0 0 0 0 0 1\n" for i, t in enumerate(["0.0", "1.0", bad_t, "3.0"])))
+        assert main(["eval", "--ref", str(good), "--est", str(est)]) == 2
+        err = capsys.readouterr().err
+        assert "timestamp" in err and "internal error" not in err
+
+
+# ----------------------------------------------------------------------------- MCAP
+
+
+def test_image_size_checked_against_camera_info_every_frame(tmp_path: Path) -> None:
+    path = tmp_path / "small.mcap"
+    rng = np.random.default_rng(2)
+    with McapSequenceWriter(path, _cal(64, 48), image_format="raw") as w:
+        for k in range(3):
+            h, wd = (48, 64) if k < 2 else (24, 32)  # frame 2 is 32x24
+            img = rng.integers(0, 256, (h, wd), dtype=np.uint8)
+            w.write_frame(StereoFrame((k + 1) * 100_000_000, img, img))
+    seq = McapSequence(path)
+    it = seq.frames()
+    next(it), next(it)
+    with pytest.raises(InputError, match=r"/cam0/image_raw.*frame 2 .* 32x24 pixels, the CameraInfo says 64x48"):
+        next(it)
+
+
+def test_declared_image_sizes_refused_before_decoding(tmp_path: Path) -> None:
+    big = _png_declaring(30000, 30000)
+    msg = SimpleNamespace(data=big, format="png")
+    with pytest.raises(InputError, match=r"/cam0/image_raw: image declares 30000x30000 = 900000000 pixels"):
+        decode_image(msg, "sensor_msgs/msg/CompressedImage", "/cam0/image_raw")
+    raw = SimpleNamespace(data=b"\0" * 16, height=60000, width=60000, step=60000, encoding="mono8", is_bigendian=0)
+    with pytest.raises(InputError, match="declares 60000x60000"):
+        decode_image(raw, "sensor_msgs/msg/Image", "/cam1/image_raw")
+    # the limit is configurable (sequence.max_image_pixels)
+    small = SimpleNamespace(data=_png_declaring(100, 100), format="png")
+    with pytest.raises(InputError, match="above the limit of 5000"):
+        decode_image(small, "sensor_msgs/msg/CompressedImage", "/x", max_pixels=5000)
+    # a PNG file declaring 100000 x 100000 (above OpenCV's own pixel limit)
+    f = tmp_path / "huge.png"
+    f.write_bytes(_png_declaring(100000, 100000))
+    with pytest.raises(InputError, match="huge.png: image declares 100000x100000"):
+        read_image(f)
+    # JPEG: the start-of-frame marker's size
+    ok, jpg = cv2.imencode(".jpg", np.zeros((16, 16), np.uint8))
+    b = bytearray(jpg.tobytes())
+    i = b.find(b"\xff\xc0")
+    b[i + 5 : i + 7], b[i + 7 : i + 9] = (40000).to_bytes(2, "big"), (50000).to_bytes(2, "big")
+    with pytest.raises(InputError, match="declares 50000x40000"):
+        decode_image(SimpleNamespace(data=bytes(b), format="jpeg"), "sensor_msgs/msg/CompressedImage", "/j")
+
+
+def test_camera_info_of_absurd_size() -> None:
+    K = [400.0, 0, 30000, 0, 400.0, 30000, 0, 0, 1]
+    P0 = [400.0, 0, 30000, 0, 0, 400.0, 30000, 0, 0, 0, 1, 0]
+    P1 = [400.0, 0, 30000, -48, 0, 400.0, 30000, 0, 0, 0, 1, 0]
+    R = [1.0, 0, 0, 0, 1, 0, 0, 0, 1]
+    left = SimpleNamespace(k=K, r=R, p=P0, d=[0.1, 0, 0, 0, 0], width=60000, height=60000)
+    right = SimpleNamespace(k=K, r=R, p=P1, d=[0.1, 0, 0, 0, 0], width=60000, height=60000)
+    with pytest.raises(InputError, match="CameraInfo width x height.*60000x60000"):
+        calibration_from_camera_info(left, right, "cal.mcap /cam0/camera_info")
+    right.width = 640
+    with pytest.raises(CalibrationError, match="sizes differ"):
+        calibration_from_camera_info(left, right, "cal.mcap")
+
+
+def test_pointcloud_declaring_absurd_size_is_named() -> None:
+    fields = [SimpleNamespace(name=a, offset=4 * i, datatype=7) for i, a in enumerate("xyz")]
+    msg = SimpleNamespace(fields=fields, width=100000, height=100000, point_step=12, data=b"\0" * 120, is_bigendian=0)
+    with pytest.raises(FormatError, match=r"/laser/points: PointCloud2 declares 10000000000 points"):
+        decode_pointcloud_xyz(msg, "/laser/points")
+    msg.width, msg.height, msg.point_step = 10, 1, 4
+    with pytest.raises(FormatError, match="point_step 4"):
+        decode_pointcloud_xyz(msg, "/laser/points")
+
+
+def test_image_channel_without_messages(tmp_path: Path) -> None:
+    path = tmp_path / "empty.mcap"
+    w = McapSequenceWriter(path, _cal(), image_format="raw")
+    w._write_info(0)
+    img = np.zeros((48, 64), np.uint8)
+    typ, m = w._image_msg(img, 1, "cam0")
+    w._write("/cam0/image_raw", typ, m, 1)
+    # register /cam1/image_raw without writing on it
+    w._writer._writer.register_channel("/cam1/image_raw", "cdr", w._schemas["sensor_msgs/msg/Image"].id)
+    w.close()
+    with pytest.raises(InputError, match="/cam1/image_raw has no messages"):
+        McapSequence(path)
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def test_cli_arguments_and_special_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    root = _kitti(tmp_path / "k", _names(3), _names(3), poses=3)
+    assert main(["run", str(root), "--max-frames", "-5", "--out", str(tmp_path / "o")]) == 2
+    assert "--max-frames: must be at least 1, got -5" in capsys.readouterr().err
+    assert main(["run", str(root), "--max-frames", "0", "--out", str(tmp_path / "o")]) == 2
+    assert main(["info", "/dev/null"]) == 2
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    assert main(["info", str(fifo)]) == 2  # (would block reading it before)
+    assert main(["eval", "--ref", str(fifo), "--est", str(fifo)]) == 2
+    err = capsys.readouterr().err
+    assert "device or pipe" in err and "internal error" not in err
+
+
+def test_config_size_knobs_are_bounded(tmp_path: Path) -> None:
+    for section, key, value in (
+        ("frontend", "grid_cols", 100000),
+        ("frontend", "grid_rows", 100000),
+        ("frontend", "max_features", 10**9),
+        ("loop", "n_features", 10**8),
+        ("simulation", "workers", 100000),
+        ("mapping", "bpa_radii_m", [0.01, -0.02]),
+    ):
+        cfg = tmp_path / f"{key}.yaml"
+        cfg.write_text(json.dumps({section: {key: value}}))
+        with pytest.raises(ConfigError, match=key):
+            load_config(cfg)
+
+
+def test_corrupt_stripes_npz(tmp_path: Path) -> None:
+    (tmp_path / "stripes.npz").write_bytes(b"PK\x03\x04" + b"\x00" * 50)
+    with pytest.raises(FormatError, match="stripes.npz: not a readable .npz file"):
+        load_stripes(tmp_path)
+    (tmp_path / "stripes.npz").write_bytes(os.urandom(200))
+    with pytest.raises(FormatError):
+        load_stripes(tmp_path)
+
+
+def test_convert_checks_its_output_before_the_work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import loopmodel.io.sequence as sequence
+
+    root = _kitti(tmp_path / "k", _names(3), _names(3))
+    (tmp_path / "out.mcap").mkdir()
+
+    def no_work(*a: object, **k: object) -> None:
+        raise AssertionError("converted before checking the output")
+
+    monkeypatch.setattr(sequence, "convert_to_mcap", no_work)
+    assert main(["convert", str(root), str(tmp_path / "out.mcap")]) == 2
+    (tmp_path / "afile").write_text("x")
+    assert main(["convert", str(root), str(tmp_path / "afile" / "out.mcap")]) == 2
+
+
+def test_interrupted_command_exits_130(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    import loopmodel.io.sequence as sequence
+
+    def interrupt(*a: object, **k: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sequence, "open_sequence", interrupt)
+    assert main(["info", str(tmp_path)]) == 130
+    root = _kitti(tmp_path / "k", _names(3), _names(3))
+    monkeypatch.undo()
+    monkeypatch.setattr(sequence, "convert_to_mcap", interrupt)
+    assert main(["convert", str(root), str(tmp_path / "c.mcap")]) == 130
+
+
+def test_stale_temporary_of_a_dead_process_is_removed(tmp_path: Path) -> None:
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = tmp_path / f".out.mcap.tmp-{dead.pid}"
+    stale.write_bytes(b"\0" * 1000)
+    live = tmp_path / f".out.mcap.tmp-{os.getppid()}"  # a running process's file stays
+    live.write_bytes(b"x")
+    with atomic_path(tmp_path / "out.mcap") as tmp:
+        tmp.write_bytes(b"new")
+    assert not stale.exists() and live.exists() and (tmp_path / "out.mcap").read_bytes() == b"new"
+
+
+def test_sigterm_on_convert_cleans_up_and_exits_130(tmp_path: Path) -> None:
+    root = _kitti(tmp_path / "k", _names(400), _names(400), size=(320, 240))
+    dst = tmp_path / "c.mcap"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "loopmodel", "convert", str(root), str(dst)],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    tmp = tmp_path / f".c.mcap.tmp-{proc.pid}"
+    deadline = time.monotonic() + 60
+    while not tmp.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert proc.poll() is None, "convert finished before the signal"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "interrupted after" in err and "Traceback" not in err
+    assert not dst.exists() and not list(tmp_path.glob(".c.mcap.tmp-*"))
+
+
+# ----------------------------------------------------------------------------- results folders
+
+
+def test_results_folder_never_mixes_runs(tmp_path: Path) -> None:
+    old = ResultsFolder(tmp_path, "run")
+    old.write_text("stripes.npz", "old stripes")
+    old.write_text("metrics.json", "{}")
+    old.commit()
+    new = ResultsFolder(tmp_path, "run")
+    # a second run of the same name at the same time is refused, in one line
+    with pytest.raises(InputError, match="another run .* is writing"):
+        ResultsFolder(tmp_path, "run")
+    new.write_text("metrics.json", '{"new": 1}')
+    assert (tmp_path / "run" / "stripes.npz").exists()  # the old run stays whole until then
+    assert new.commit() == tmp_path / "run"
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["metrics.json"]
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]  # no lock, no staging left
+    with pytest.raises(InputError, match="pass --overwrite"):
+        ResultsFolder(tmp_path, "run", overwrite=False)
+
+
+def test_results_folder_out_is_a_file_or_read_only(tmp_path: Path) -> None:
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(InputError, match="file"):
+        ResultsFolder(f, "run")
+    with pytest.raises(InputError, match="not a folder"):
+        ResultsFolder(tmp_path, "file")
+    if os.geteuid() != 0:  # root writes anywhere
+        ro = tmp_path / "ro"
+        ro.mkdir(0o500)
+        with pytest.raises(InputError, match="not writable"):
+            ResultsFolder(ro, "run")
+
+
+def test_staging_of_a_dead_run_is_removed(tmp_path: Path) -> None:
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (tmp_path / f".run.tmp-{dead.pid}").mkdir()
+    (tmp_path / f".run.tmp-{dead.pid}" / "map.npz").write_bytes(b"x")
+    (tmp_path / ".run.lock").write_text(str(dead.pid))  # a SIGKILLed run's lock
+    rf = ResultsFolder(tmp_path, "run")
+    assert not (tmp_path / f".run.tmp-{dead.pid}").exists()
+    rf.commit()
+    assert not (tmp_path / ".run.lock").exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_simulate_with_workers_is_quiet_and_cleans_up(tmp_path: Path) -> None:
+    out = tmp_path / "s.mcap"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    cmd = [sys.executable, "-m", "loopmodel", "simulate", "scan", "--out", str(out), "--frames", "200"]
+    cmd += ["--workers", "2", "--width", "160", "--height", "120"]
+    proc = subprocess.Popen(
+        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
+    deadline = time.monotonic() + 240
+    while not list(tmp_path.glob(".s.mcap.tmp-*")) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert proc.poll() is None, "simulate finished before the signal"
+    while proc.poll() is None and time.monotonic() < deadline:  # Ctrl-C until it stops
+        os.killpg(proc.pid, signal.SIGINT)  # (Ctrl-C reaches the whole process group)
+        time.sleep(0.5)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "interrupted after" in err
+    assert not out.exists() and not list(tmp_path.glob(".s.mcap.tmp-*"))
+
+
+def test_full_disk_keeps_the_old_results_and_says_so(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import errno
+
+    from frontend_scene import write_kitti_folder
+
+    seq = tmp_path / "seq"
+    write_kitti_folder(seq, 3, np.random.default_rng(3))
+    args = ["run", str(seq), "--out", str(tmp_path / "out"), "--name", "r", "--max-frames", "2"]
+    assert main(args) == 0
+    before = (tmp_path / "out" / "r" / "metrics.json").read_text()
+    real = ResultsFolder.write_text
+
+    def full(self: ResultsFolder, name: str, text: str) -> Path:
+        if name == "run.log":
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.file(name)))
+        return real(self, name, text)
+
+    monkeypatch.setattr(ResultsFolder, "write_text", full)
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "I/O error:" in err and "run.log: No space left on device" in err and "Traceback" not in err
+    # the older run's folder is untouched, nothing half-written is left beside it
+    assert (tmp_path / "out" / "r" / "metrics.json").read_text() == before
+    assert [p.name for p in (tmp_path / "out").iterdir()] == ["r"]
