@@ -32,7 +32,8 @@ EXCLUDE = 5
 def run(quick: bool = False, kind: str = "orb") -> dict:
     shipped = _run(kind, online=False)
     trained = _run(kind, online=True)
-    shipped.update({f"trained_on_test_{k}": trained[k] for k in ("precision", "recall", "detections", "query_ms_median")})
+    for k in ("precision", "recall", "detections", "query_ms_median"):
+        shipped[f"trained_on_test_{k}"] = trained[k]
     return shipped
 
 
@@ -63,7 +64,8 @@ def _run(kind: str, online: bool) -> dict:
         if ev is not None:
             detections[i] = ev.match_id
             mark = "ok" if gt[i, ev.match_id] else "FALSE"
-            print(f"{'trained' if online else 'shipped'}: image {i + 1}: loop with {ev.match_id + 1} ({ev.n_inliers} inliers) {mark}")
+            tag = "trained" if online else "shipped"
+            print(f"{tag}: image {i + 1}: loop with {ev.match_id + 1} ({ev.n_inliers} inliers) {mark}")
     far = np.tril(gt, -(EXCLUDE + 1))
     pairs_true = int(far.sum())
     queries_true = int(np.any(far, axis=1).sum())
