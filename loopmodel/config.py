@@ -392,6 +392,13 @@ class LoopConfig(_Section):
     max_cycle_rot_deg: float = Field(2.0, gt=0, description="forward/reverse pose agreement")
     max_cycle_trans_m: float = Field(0.05, gt=0)
     background_ba: bool = Field(True, description="global BA in a worker process")
+    # perf (issue 26): loop detection off the tracking path
+    background_detection: bool = Field(
+        True, description="retrieval and verification in a worker thread, applied at the next keyframe"
+    )
+    max_queued_keyframes: int = Field(
+        4, ge=1, description="worker backlog above which new keyframes are stored but not queried"
+    )
 
 
 class AccuracyConfig(_Section):

@@ -509,6 +509,34 @@ class Isam2Backend:
         report.update_ms = (time.perf_counter() - t0) * 1e3
         return report
 
+    def add_observations(self, kf_id: int, mono_obs: F64) -> int:
+        """Monocular observations (rows ``landmark_id, u, v``, rectified pixels) of a keyframe
+        already in the graph, e.g. old landmarks a loop verified after the keyframe was added;
+        one update. Returns how many joined (unknown landmarks and repeats are skipped)."""
+        if kf_id not in self._kf_seq:
+            raise EstimationError(f"observations for keyframe {kf_id}, which is not in the back end")
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        candidates: list[int] = []
+        n = 0
+        for row in np.asarray(mono_obs, dtype=float).reshape(-1, 3).tolist():
+            lm_id = int(row[0])
+            if not all(np.isfinite(row)) or (kf_id, lm_id) in self._obs_fid:
+                continue
+            if lm_id not in self._lm_current and lm_id not in self._pending:
+                continue
+            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates)
+            n += 1
+        self._create_landmarks(candidates, graph, values)
+        if graph.size() == 0:
+            return n
+        new_fids = list(self._batch)
+        self._theta0.insert(values)
+        self._run_update(graph, values, [], None)
+        if self.config.blunder_sigma > 0:
+            self._screen_new([f for f in new_fids if f in self._factors])
+        return n
+
     def _prune_pending(self, seq: int) -> None:
         """Forget pending landmarks not observed in the last ``pending_max_age_kf`` keyframes
         (they would never reach the graph; keeps memory bounded)."""

@@ -126,12 +126,15 @@ class LoopCloser:
         )
 
     # ---------------------------------------------------------------- loops
-    def process_keyframe(self, kf: Any) -> LoopClosure | None:
-        """Store a new keyframe and check it for a verified revisit."""
+    def process_keyframe(
+        self, kf: Any, neighbours: set[int] | None = None, query: bool = True
+    ) -> LoopClosure | None:
+        """Store a new keyframe and check it for a verified revisit (``neighbours``: temporal
+        neighbours, never verified; ``query`` False: store only)."""
         t0 = time.perf_counter()
         fs = self.keyframe_features(kf)
         self._kf[int(kf.id)] = self._kf_data(kf)
-        ev = self.detector.process(int(kf.id), fs)
+        ev = self.detector.process(int(kf.id), fs, query=query, neighbours=neighbours)
         t1 = time.perf_counter()
         if ev is None or ev.match_from_query is None:
             return None

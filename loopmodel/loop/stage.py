@@ -20,8 +20,9 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import time
+from collections import deque
 from collections.abc import Callable
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from typing import Any, Protocol
 
 import numpy as np
@@ -31,6 +32,7 @@ from loopmodel.config import LoopConfig
 from loopmodel.errors import LoopmodelError
 from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.closer import LoopCloser, LoopClosure
+from loopmodel.loop.closure import LoopEvent
 from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hybrid_ba
 from loopmodel.types import StereoCalibration
 
@@ -88,6 +90,16 @@ class LoopClosingStage:
         self.backend = backend
         self._queued: list[tuple[LoopClosure, dict[str, Any]]] = []
         self._awaiting: list[dict[str, Any]] = []
+        #: Place recognition and verification in a worker thread (``background_detection``):
+        #: OpenCV's detection and KLT and numpy's large array operations release the GIL; a
+        #: keyframe never waits for them, their result is applied at a later keyframe.
+        self._detect_pool: ThreadPoolExecutor | None = None
+        self._inflight: deque[tuple[int, Future[tuple[LoopClosure | None, list[LoopEvent]]]]] = deque()
+        self.keyframes_not_queried = 0
+        self.late_closures = 0
+        # temporal neighbours: keyframes whose points stayed in view of every keyframe since
+        self._covisible: list[int] = []
+        self._points_rect: dict[int, F64] = {}
 
     # ------------------------------------------------------------------ keyframes
     def on_keyframe(self, kf: Any) -> dict[str, Any] | None:
@@ -95,15 +107,103 @@ class LoopClosingStage:
         relocalization it caused (None otherwise)."""
         self.keyframes[int(kf.id)] = kf
         event = self.poll()
+        event = self._collect(wait=False) or event
+        neighbours = self._temporal_neighbours(kf)
         if not getattr(kf, "connected", True) and len(self.keyframes) > 1:
-            event = self._relocalize_segment(kf)
-        n_rej = len(self.closer.detector.rejected)
-        closure = self.closer.process_keyframe(kf)
-        for ev in self.closer.detector.rejected[n_rej:]:
-            self.rejected.append({"query_kf": ev.query_id, "match_kf": ev.match_id, "reason": ev.reason})
-        if closure is not None:
-            event = self._close(closure) or event
+            self._collect(wait=True)  # relocalization reads the database the worker writes
+            event = self._relocalize_segment(kf) or event
+        if not self.config.background_detection:
+            closure, rejected = self._detect(kf, neighbours, True)
+            self._note_rejected(rejected)
+            if closure is not None:
+                event = self._close(closure) or event
+            return event
+        if self._detect_pool is None:
+            self._detect_pool = ThreadPoolExecutor(1, thread_name_prefix="loop-detect")
+        query = len(self._inflight) < self.config.max_queued_keyframes
+        self.keyframes_not_queried += not query
+        self._inflight.append((int(kf.id), self._detect_pool.submit(self._detect, kf, neighbours, query)))
         return event
+
+    def _detect(
+        self, kf: Any, neighbours: set[int], query: bool
+    ) -> tuple[LoopClosure | None, list[LoopEvent]]:
+        """Place recognition and verification of one keyframe (worker thread when
+        ``background_detection``): the closure found and the candidates rejected."""
+        rejected = self.closer.detector.rejected
+        n = len(rejected)
+        closure = self.closer.process_keyframe(kf, neighbours=neighbours, query=query)
+        return closure, rejected[n:]
+
+    def _note_rejected(self, rejected: list[LoopEvent]) -> None:
+        for ev in rejected:
+            self.rejected.append({"query_kf": ev.query_id, "match_kf": ev.match_id, "reason": ev.reason})
+
+    def _collect(self, wait: bool) -> dict[str, Any] | None:
+        """Apply the worker's finished detections in keyframe order (``wait``: all of them);
+        returns the record of the last closure applied."""
+        event = None
+        while self._inflight and (wait or self._inflight[0][1].done()):
+            _kf_id, fut = self._inflight.popleft()
+            try:
+                closure, rejected = fut.result()
+            except LoopmodelError as exc:  # a failed detection is logged, never applied
+                logger.warning("loop detection of keyframe %d failed (%s)", _kf_id, exc)
+                continue
+            self._note_rejected(rejected)
+            if closure is not None:
+                self.late_closures += 1
+                event = self._close(closure, late=True) or event
+        return event
+
+    def _temporal_neighbours(self, kf: Any) -> set[int]:
+        """Keyframes co-visible with the new keyframe's local map: at least ``min_inliers``
+        (enough for a verified loop) of their points stayed in view of this and every
+        keyframe in between (in front, inside the image, viewing direction within 60 degrees
+        and distance within a factor 3 of the first view, as ORB-SLAM's frustum test), with
+        the tracker's poses. A loop with them adds nothing that tracking does not already
+        hold. (KITTI clip: the 9-14 keyframes before, 20-30 m of road.)"""
+        q = int(kf.id)
+        self._points_rect[q] = self.closer._kf_data(kf).p_rect
+        if not getattr(kf, "connected", True):
+            for k in self._covisible:
+                self._points_rect.pop(k, None)
+            self._covisible = []
+        world = self.tracker.world_from_kf
+        if q not in world:
+            world = {**world, q: np.asarray(kf.world_from_kf, float)}
+
+        def world_from_rect(k: int) -> F64:
+            rect_from_cam = np.asarray(getattr(self.keyframes[k], "rect_from_cam", np.eye(4)))
+            return np.asarray(world[k]) @ invert_pose(rect_from_cam)
+
+        W_q = world_from_rect(q)
+        q_from_world = invert_pose(W_q)
+        cam = self.closer.camera
+        w_px, h_px = self.closer.calibration.image_size
+        keep: list[int] = []
+        for k in self._covisible:
+            pts = self._points_rect.get(k)
+            if pts is None or pts.shape[0] == 0 or k not in world:
+                self._points_rect.pop(k, None)
+                continue
+            W_k = world_from_rect(k)
+            pw = pts @ W_k[:3, :3].T + W_k[:3, 3]
+            pq = pw @ q_from_world[:3, :3].T + q_from_world[:3, 3]
+            front = pq[:, 2] > 0.05
+            uv = cam.project(np.where(front[:, None], pq, 1.0))
+            inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < w_px) & (uv[:, 1] >= 0) & (uv[:, 1] < h_px)
+            v_k, v_q = pw - W_k[:3, 3], pw - W_q[:3, 3]
+            d_k, d_q = np.linalg.norm(v_k, axis=1), np.linalg.norm(v_q, axis=1)
+            cos = np.einsum("ij,ij->i", v_k, v_q) / np.maximum(d_k * d_q, 1e-12)
+            ratio = d_q / np.maximum(d_k, 1e-12)
+            seen = inside & (cos > 0.5) & (ratio > 1 / 3) & (ratio < 3)
+            if seen.sum() >= self.config.min_inliers:
+                keep.append(k)
+            else:
+                self._points_rect.pop(k, None)
+        self._covisible = [*keep, q]
+        return set(keep)
 
     def _relocalize_segment(self, kf: Any) -> dict[str, Any] | None:
         """Place the first keyframe of a new segment in the old map: descriptors and the
@@ -179,13 +279,19 @@ class LoopClosingStage:
         logger.info("keyframe %d relocalized against keyframe %d (%s)", new_id, kf_id, method)
         return record
 
-    def _close(self, closure: LoopClosure) -> dict[str, Any] | None:
+    def _close(self, closure: LoopClosure, late: bool = False) -> dict[str, Any] | None:
         """Start the correction of a verified loop (in the worker process when
-        ``background``); returns the record when it was applied right away."""
+        ``background``); returns the record when it was applied right away. ``late``: the
+        query keyframe is already in the back end (detection ran in the worker), so its
+        loop observations go in by ``add_observations``."""
         if self.backend is not None:
             record = self._loop_record(closure)
+            record["applied_at_keyframe"] = max(self.keyframes)
             self.events.append(record)
-            self._to_backend(self.keyframes[closure.query_kf], closure, record)
+            if late:
+                self._late_to_backend(closure, record)
+            else:
+                self._to_backend(self.keyframes[closure.query_kf], closure, record)
             return record
         if self._pending is not None:
             self._rerun = closure  # the running BA finishes first; then this loop's window
@@ -202,6 +308,22 @@ class LoopClosingStage:
             keep = np.array([int(i) not in have for i in obs.landmark_ids], dtype=bool)
             extra = np.column_stack([obs.landmark_ids[keep].astype(float), obs.uv_px[keep]])
             kf.mono_obs = np.vstack([np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3), extra])
+        record["pose_before"] = np.asarray(self.tracker.world_from_kf[closure.query_kf]).copy()
+        self._queued.append((closure, record))
+
+    def _late_to_backend(self, closure: LoopClosure, record: dict[str, Any]) -> None:
+        """A loop found after its query keyframe went into the back end: its observations of
+        old landmarks join that keyframe now; its relative pose is queued as for
+        :meth:`_to_backend`."""
+        obs = closure.observations
+        add = getattr(self.backend, "add_observations", None)
+        record["loop_observations_added"] = 0
+        if obs.landmark_ids.size and callable(add):
+            rows = np.column_stack([obs.landmark_ids.astype(float), obs.uv_px])
+            try:
+                record["loop_observations_added"] = int(add(closure.query_kf, rows))
+            except LoopmodelError as exc:
+                logger.info("loop %d -> %d: observations not added (%s)", closure.query_kf, closure.match_kf, exc)
         record["pose_before"] = np.asarray(self.tracker.world_from_kf[closure.query_kf]).copy()
         self._queued.append((closure, record))
 
@@ -292,7 +414,13 @@ class LoopClosingStage:
         return record
 
     def finish(self) -> None:
-        """Wait for and apply every pending correction; stop the worker process."""
+        """Wait for and apply every pending detection and correction; stop the workers."""
+        self._collect(wait=True)
+        if self._queued:
+            self.update_backend()
+        if self._detect_pool is not None:
+            self._detect_pool.shutdown()
+            self._detect_pool = None
         while self._pending is not None:
             self.poll(wait=True)
         if self._pool is not None:
@@ -357,11 +485,16 @@ class LoopClosingStage:
 
     # ------------------------------------------------------------------ metrics
     def metrics(self) -> dict[str, Any]:
-        """Summary for ``metrics.json``."""
+        """Summary for ``metrics.json`` (waits for the detections still running)."""
+        self._collect(wait=True)
         loops = [e for e in self.events if e["type"] == "loop"]
+        det = self.closer.detector
         return {
             "loop_closure_count": len(loops),
             "relocalization_count": len(self.events) - len(loops),
             "loop_events": self.events,
             "loop_candidates_rejected": len(self.rejected),
+            "loop_neighbours_skipped": det.neighbours_skipped,
+            "loop_keyframes_not_queried": self.keyframes_not_queried,
+            "loop_detect_ms_median": float(np.median(det.query_s) * 1e3) if det.query_s else None,
         }
