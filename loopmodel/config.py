@@ -450,7 +450,11 @@ class RefineConfig(_Section):
     """Final refinement after the last loop closure (pipeline, end of a run)."""
 
     batch_ba: bool = Field(True, description="batch bundle adjustment of all keyframes and landmarks (iSAM2)")
-    pixel_sigma_px: float = Field(0.05, gt=0, description="batch BA: std. dev. of a feature position")
+    # perf (issue 26): the former constant 0.05 px was tuned on the simulator; KITTI's KLT
+    # residuals are several times larger
+    pixel_sigma_px: float | None = Field(
+        None, gt=0, description="batch BA: std. dev. of a feature position; None: the run's residual MAD"
+    )
     huber_k: float = Field(1.345, ge=0, description="batch BA: Huber threshold in sigmas (0: Gaussian)")
     max_iterations: int = Field(30, ge=1, description="batch BA: Levenberg-Marquardt iterations")
     bridge_frames: bool = Field(

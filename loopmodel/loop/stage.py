@@ -97,9 +97,9 @@ class LoopClosingStage:
         self._inflight: deque[tuple[int, Future[tuple[LoopClosure | None, list[LoopEvent]]]]] = deque()
         self.keyframes_not_queried = 0
         self.late_closures = 0
-        # temporal neighbours: keyframes whose points stayed in view of every keyframe since
-        self._covisible: list[int] = []
-        self._points_rect: dict[int, F64] = {}
+        # covisibility: (first, last landmark id, keyframe) per keyframe; direct neighbours
+        self._lm_ranges: list[tuple[int, int, int]] = []
+        self._covisible_of: dict[int, set[int]] = {}
 
     # ------------------------------------------------------------------ keyframes
     def on_keyframe(self, kf: Any) -> dict[str, Any] | None:
@@ -157,53 +157,29 @@ class LoopClosingStage:
         return event
 
     def _temporal_neighbours(self, kf: Any) -> set[int]:
-        """Keyframes co-visible with the new keyframe's local map: at least ``min_inliers``
-        (enough for a verified loop) of their points stayed in view of this and every
-        keyframe in between (in front, inside the image, viewing direction within 60 degrees
-        and distance within a factor 3 of the first view, as ORB-SLAM's frustum test), with
-        the tracker's poses. A loop with them adds nothing that tracking does not already
-        hold. (KITTI clip: the 9-14 keyframes before, 20-30 m of road.)"""
+        """Keyframes co-visible with the new keyframe's local map (the covisibility graph of
+        ORB-SLAM, two levels): those whose landmarks it observes (its stereo and monocular
+        observations), and theirs. The front end and the back end link these already; a
+        loop with them adds nothing. Landmark ids are looked up by each keyframe's id range."""
         q = int(kf.id)
-        self._points_rect[q] = self.closer._kf_data(kf).p_rect
-        if not getattr(kf, "connected", True):
-            for k in self._covisible:
-                self._points_rect.pop(k, None)
-            self._covisible = []
-        world = self.tracker.world_from_kf
-        if q not in world:
-            world = {**world, q: np.asarray(kf.world_from_kf, float)}
-
-        def world_from_rect(k: int) -> F64:
-            rect_from_cam = np.asarray(getattr(self.keyframes[k], "rect_from_cam", np.eye(4)))
-            return np.asarray(world[k]) @ invert_pose(rect_from_cam)
-
-        W_q = world_from_rect(q)
-        q_from_world = invert_pose(W_q)
-        cam = self.closer.camera
-        w_px, h_px = self.closer.calibration.image_size
-        keep: list[int] = []
-        for k in self._covisible:
-            pts = self._points_rect.get(k)
-            if pts is None or pts.shape[0] == 0 or k not in world:
-                self._points_rect.pop(k, None)
-                continue
-            W_k = world_from_rect(k)
-            pw = pts @ W_k[:3, :3].T + W_k[:3, 3]
-            pq = pw @ q_from_world[:3, :3].T + q_from_world[:3, 3]
-            front = pq[:, 2] > 0.05
-            uv = cam.project(np.where(front[:, None], pq, 1.0))
-            inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < w_px) & (uv[:, 1] >= 0) & (uv[:, 1] < h_px)
-            v_k, v_q = pw - W_k[:3, 3], pw - W_q[:3, 3]
-            d_k, d_q = np.linalg.norm(v_k, axis=1), np.linalg.norm(v_q, axis=1)
-            cos = np.einsum("ij,ij->i", v_k, v_q) / np.maximum(d_k * d_q, 1e-12)
-            ratio = d_q / np.maximum(d_k, 1e-12)
-            seen = inside & (cos > 0.5) & (ratio > 1 / 3) & (ratio < 3)
-            if seen.sum() >= self.config.min_inliers:
-                keep.append(k)
-            else:
-                self._points_rect.pop(k, None)
-        self._covisible = [*keep, q]
-        return set(keep)
+        ids = np.asarray(kf.landmark_ids, dtype=np.int64).ravel()
+        mono = np.asarray(getattr(kf, "mono_obs", np.zeros((0, 3))), dtype=float).reshape(-1, 3)
+        seen = np.concatenate([ids, mono[:, 0].astype(np.int64)])
+        direct: set[int] = set()
+        if seen.size and self._lm_ranges:
+            lo = np.array([r[0] for r in self._lm_ranges])
+            hi = np.array([r[1] for r in self._lm_ranges])
+            owners = np.array([r[2] for r in self._lm_ranges])
+            j = np.searchsorted(lo, seen, side="right") - 1
+            ok = (j >= 0) & (seen <= hi[np.maximum(j, 0)])
+            direct = set(owners[j[ok]].tolist()) - {q}
+        if ids.size and (not self._lm_ranges or ids.min() > self._lm_ranges[-1][1]):
+            self._lm_ranges.append((int(ids.min()), int(ids.max()), q))
+        self._covisible_of[q] = direct
+        out = set(direct)
+        for k in direct:
+            out |= self._covisible_of.get(k, set())
+        return out - {q}
 
     def _relocalize_segment(self, kf: Any) -> dict[str, Any] | None:
         """Place the first keyframe of a new segment in the old map: descriptors and the
