@@ -801,7 +801,8 @@ class Isam2Backend:
         ``pose_residual_sigma_px``), else the robust scale (1.4826 x median absolute value)
         of the image residuals at the incremental solution (biased low: a landmark seen by
         two keyframes leaves little redundancy). The result is kept only when it lowers
-        the robust reprojection error (:meth:`robust_error_px` at that scale); otherwise the
+        the robust reprojection error (:meth:`robust_error_px` at that scale) by more than
+        the noise could (robust chi-square drop above sqrt(2 n), n residuals); otherwise the
         incremental solution is returned. :attr:`refine_info` says which, with the noise.
         The incremental solution keeps its own weights; this one is not fed back to iSAM2."""
         if not self._kf_seq:
@@ -845,7 +846,11 @@ class Isam2Backend:
         values = gtsam.LevenbergMarquardtOptimizer(graph, start, params).optimize()
         before = self.robust_error_px(r0, sigma, huber_k)
         after = self.robust_error_px(self.reprojection_residuals_px(values), sigma, huber_k)
-        applied = bool(after < before)
+        # the robust chi-square (sum of 2 rho(r / sigma)) must drop by more than its own
+        # standard deviation sqrt(2 n): a smaller drop is not told apart from the noise
+        n_res = int(np.isfinite(r0).sum())
+        drop = n_res * ((before / sigma) ** 2 - (after / sigma) ** 2)
+        applied = bool(drop > np.sqrt(2.0 * n_res))
         self.refine_info = {
             "pixel_sigma_px": sigma,
             "pixel_sigma_source": source,
@@ -853,6 +858,8 @@ class Isam2Backend:
             "backend_residual_mad_px": mad_px,
             "refine_robust_px_before": before,
             "refine_robust_px_after": after,
+            "refine_chi2_drop": float(drop),
+            "refine_chi2_sd": float(np.sqrt(2.0 * n_res)),
             "refine_applied": applied,
         }
         if not applied:
