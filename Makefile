@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SHARED ?= ../shared
 
-.PHONY: demo test setup syslibs lint bench clean
+.PHONY: demo test test-fast setup syslibs lint bench clean
 
 setup: syslibs $(STAMP)
 
@@ -34,6 +34,10 @@ demo: setup
 
 test: setup
 	$(PY) -m pytest -q -x --durations=15
+
+# Development tier: everything not marked slow (CI still runs the whole suite).
+test-fast: setup
+	$(PY) -m pytest -q -x -m "not slow"
 
 lint: setup
 	$(VENV)/bin/ruff check loopmodel tests tools

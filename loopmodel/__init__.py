@@ -1,9 +1,69 @@
-"""loopmodel: close-range 3-D modelling with a hand-held stereo camera and a laser-stripe profiler."""
+"""loopmodel: close-range 3-D modelling with a hand-held stereo camera and a laser-stripe profiler.
 
+The Python API (imported on first use, so ``import loopmodel`` stays light)::
+
+    import loopmodel
+    result = loopmodel.run("datasets/tiny_kitti")          # writes nothing
+    result.final.positions_m, result.metrics["ate_rmse_m"]
+
+``run(source, config=None, out_dir=None) -> RunResult``, ``open_sequence(path, config=None)``,
+``load_config(path=None) -> Config``.
+"""
+
+from __future__ import annotations
+
+import importlib
 import logging
+from typing import TYPE_CHECKING, Any
 
 from loopmodel._version import __version__
 
+if TYPE_CHECKING:
+    from loopmodel.config import Config, load_config
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.pipeline import run
+    from loopmodel.result import RunResult
+    from loopmodel.types import Keyframe, StereoCalibration, StereoFrame, StripeProfile, Trajectory
+
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
-__all__ = ["__version__"]
+_LAZY = {
+    "run": "loopmodel.pipeline",
+    "RunResult": "loopmodel.result",
+    "open_sequence": "loopmodel.io.sequence",
+    "load_config": "loopmodel.config",
+    "Config": "loopmodel.config",
+    "Keyframe": "loopmodel.types",
+    "StereoCalibration": "loopmodel.types",
+    "StereoFrame": "loopmodel.types",
+    "StripeProfile": "loopmodel.types",
+    "Trajectory": "loopmodel.types",
+}
+
+__all__ = [
+    "Config",
+    "Keyframe",
+    "RunResult",
+    "StereoCalibration",
+    "StereoFrame",
+    "StripeProfile",
+    "Trajectory",
+    "__version__",
+    "load_config",
+    "open_sequence",
+    "run",
+]
+
+
+def __getattr__(name: str) -> Any:
+    """The public API, imported when first used."""
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'loopmodel' has no attribute '{name}'")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

@@ -14,6 +14,15 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from loopmodel.errors import ConfigError
 
+BackendKind = Literal["isam2", "givens", "both", "none"]
+"""``backend.kind``: iSAM2, the Givens estimator, iSAM2 behind the Givens screen, or none."""
+ImageFormat = Literal["raw", "png", "jpeg"]
+"""How images are stored in an MCAP file."""
+DescriptorKind = Literal["orb", "sift", "surf"]
+"""Feature descriptor of loop closing."""
+AlignMode = Literal["se3", "sim3", "origin", "none"]
+"""Alignment of an estimated trajectory to the ground truth before its errors."""
+
 
 class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -44,15 +53,13 @@ class OutputConfig(_Section):
 
     out_dir: str = "results"
     write_kitti: bool = False
-    image_format: str = Field("png", pattern="^(raw|png|jpeg)$", description="MCAP image encoding")
 
 
 class BackendConfig(_Section):
     """Keyframe/landmark back end (``backend/``); iSAM2 keys map onto ``gtsam.ISAM2Params``."""
 
-    kind: str = Field(
+    kind: BackendKind = Field(
         "isam2",
-        pattern="^(isam2|givens|both|none)$",
         description="isam2, givens, both (Givens screen before iSAM2), or none (front-end poses only)",
     )
     pixel_sigma_px: float = Field(1.0, gt=0, description="std. dev. of an image coordinate")
@@ -94,7 +101,7 @@ class BackendConfig(_Section):
         False, description="check relinearisation only in the cliques an update touches"
     )
     wildfire_threshold: float = Field(0.001, ge=0, description="back-substitution stop")
-    factorization: str = Field("CHOLESKY", pattern="^(CHOLESKY|QR)$")
+    factorization: Literal["CHOLESKY", "QR"] = Field("CHOLESKY")
     ordering_window_kf: int = Field(
         10, ge=0, description="eliminate the newest N poses last, oldest first (0: GTSAM default)"
     )
@@ -130,7 +137,7 @@ class FrontendConfig(_Section):
     klt_iterations: int = Field(7, ge=1)
     fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward tolerance")
     # robust pose
-    pose_loss: str = Field("tukey", pattern="^(tukey|huber)$")
+    pose_loss: Literal["tukey", "huber"] = Field("tukey")
     pose_min_scale_px: float = Field(0.5, gt=0, description="floor of the MAD scale")
     ransac_threshold_px: float = Field(2.0, gt=0)
     prediction_gate_px: float = Field(
@@ -160,7 +167,7 @@ class FrontendConfig(_Section):
     ba_huber_px: float = Field(1.0, gt=0)
     ba_final_stereo: bool = Field(False, description="add the final right projections to eq. 1")
     # depth of features without a stereo match (seed-003 observer with the tracker's poses)
-    mono_depth: str = Field("none", pattern="^(none|observer)$", description="depth of unmatched corners")
+    mono_depth: Literal["none", "observer"] = Field("none", description="depth of unmatched corners")
     mono_max_features: int = Field(300, ge=0, description="most tracks without stereo depth")
     mono_max_rel_sigma: float = Field(0.1, gt=0, description="converged below this relative depth std")
     mono_min_parallax_deg: float = Field(1.0, ge=0, description="excitation: recent mean parallax")
@@ -179,7 +186,7 @@ class FrontendConfig(_Section):
 class MappingConfig(_Section):
     """Laser-stripe integration and open3d meshing (lengths in metres, world frame)."""
 
-    method: str = Field(default="poisson", pattern="^(poisson|ball_pivoting)$", description="surface method")
+    method: Literal["poisson", "ball_pivoting"] = Field(default="poisson", description="surface method")
     write_mesh: bool = Field(True, description="the pipeline writes mesh.ply (and mesh errors when truth exists)")
     voxel_m: float = Field(default=0.0015, gt=0, description="voxel down-sampling size before meshing")
     normal_radius_m: float = Field(default=0.006, gt=0, description="neighbourhood radius for normals")
@@ -211,7 +218,6 @@ class MappingConfig(_Section):
     )
     poisson_threads: int = Field(default=0, ge=0, description="threads of a Poisson reconstruction; 0 = all cores")
     chunk_m: float = Field(default=0.05, gt=0, description="block edge of the chunked live mesh")
-    chunk_margin_m: float = Field(default=0.006, ge=0, description="overlap meshed around a live block")
     min_points: int = Field(default=100, ge=4, description="fewest points a surface is made from")
     laser_plane_point_in_cam_m: list[float] = Field(
         default_factory=lambda: [0.12, 0.0, 0.0],
@@ -229,9 +235,9 @@ class MappingConfig(_Section):
         default=20.0, ge=0, description="laser line: min peak above the background (grey levels)"
     )
     peak_window_px: int = Field(default=3, ge=1, description="laser line: half-width of the window")
-    peak_method: str = Field(default="cog", pattern="^(cog|gauss)$", description="sub-pixel method")
-    peak_axis: str = Field(
-        default="rows", pattern="^(columns|rows)$", description="one peak per image row (vertical line) or column"
+    peak_method: Literal["cog", "gauss"] = Field(default="cog", description="sub-pixel method")
+    peak_axis: Literal["columns", "rows"] = Field(
+        default="rows", description="one peak per image row (vertical line) or column"
     )
 
 
@@ -331,7 +337,7 @@ class SimulationConfig(_Section):
     laser: SimLaserConfig = Field(default_factory=SimLaserConfig)
     faults: SimFaultsConfig = Field(default_factory=SimFaultsConfig)
     workers: int = Field(2, ge=0, description="render processes; 0 = one per core, 1 = in-process")
-    image_format: str = Field("png", pattern="^(raw|png|jpeg)$")
+    image_format: ImageFormat = Field("png")
     write_scene_ply: bool = Field(True, description="also write <out>.scene.ply beside the MCAP")
 
     @model_validator(mode="after")
@@ -349,9 +355,7 @@ class SimulationConfig(_Section):
 class EvalConfig(_Section):
     """Trajectory evaluation (``loopmodel eval``)."""
 
-    align: str = Field(
-        default="se3", pattern="^(se3|sim3|origin|none)$", description="alignment to ground truth"
-    )
+    align: AlignMode = Field(default="se3", description="alignment to ground truth")
     first_n: int | None = Field(default=None, ge=3, description="align on the first N poses only")
     max_dt_ms: float = Field(default=10.0, gt=0, description="max time gap of associated poses")
     rpe_delta_frames: int = Field(default=1, ge=1, description="RPE pose-pair spacing in frames")
@@ -368,7 +372,7 @@ class LoopConfig(_Section):
     """Appearance-based relocalization and loop closing (``loopmodel.loop``)."""
 
     enabled: bool = True
-    descriptor: str = Field("orb", pattern="^(orb|sift|surf)$", description="orb, sift or surf")
+    descriptor: DescriptorKind = Field("orb", description="orb, sift or surf")
     n_features: int = Field(1500, ge=50, description="features per keyframe")
     ratio: float = Field(0.8, gt=0, le=1, description="Lowe ratio of descriptor matching")
     vocabulary_path: str | None = Field(
@@ -391,7 +395,6 @@ class LoopConfig(_Section):
     min_epipolar_inliers: int = Field(40, ge=8, description="monocular verification")
     max_cycle_rot_deg: float = Field(2.0, gt=0, description="forward/reverse pose agreement")
     max_cycle_trans_m: float = Field(0.05, gt=0)
-    background_ba: bool = Field(True, description="global BA in a worker process")
     # perf (issue 26): loop detection off the tracking path
     background_detection: bool = Field(
         True, description="retrieval and verification in a worker thread, applied at the next keyframe"
@@ -421,7 +424,7 @@ class VvsConfig(_Section):
     sample_step_px: float = Field(3.0, gt=0, description="spacing of edge samples on each conic")
     search_px: int = Field(10, ge=1, description="moving-edge search range along the normal")
     edge_noise_px: float = Field(0.15, ge=0, description="simulated edge noise before pixel rounding")
-    loss: str = Field("tukey", pattern="^(tukey|huber|l2)$", description="M-estimator")
+    loss: Literal["tukey", "huber", "l2"] = Field("tukey", description="M-estimator")
     huber_warmup: int = Field(1, ge=0, description="first VVS iterations with Huber")
     max_iterations: int = Field(20, ge=1)
     min_features: int = Field(20, ge=6, description="fewer matched edge points: tracking failure")
@@ -518,6 +521,20 @@ def load_config(path: str | Path | None = None) -> Config:
     return config_from_dict(data, p)
 
 
-def dump_config(config: Config) -> str:
-    """The configuration as YAML text (every key, defaults included)."""
-    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)
+#: Top-level sections that configure other commands than the pipeline (``eval``, ``bound``,
+#: ``simulate``, ``vvs``); a run's ``config.yaml`` holds every other section.
+TOOL_SECTIONS: tuple[str, ...] = ("eval", "accuracy", "simulation", "vvs")
+
+
+def pipeline_sections() -> tuple[str, ...]:
+    """The sections the pipeline (``loopmodel run``, :func:`loopmodel.run`) reads."""
+    return tuple(k for k in Config.model_fields if k not in TOOL_SECTIONS)
+
+
+def dump_config(config: Config, sections: tuple[str, ...] | None = None) -> str:
+    """The configuration as YAML text (every key, defaults included), or only the named
+    top-level ``sections``."""
+    data = config.model_dump(mode="json")
+    if sections is not None:
+        data = {k: data[k] for k in sections}
+    return yaml.safe_dump(data, sort_keys=False)

@@ -1,5 +1,23 @@
-"""Wiring of the stages: a sequence goes through the front end and the back end (later also
-loop closing and meshing); outputs go to the results folder. Owns nothing else."""
+"""Wiring of the stages, as a recipe: a sequence's frames go through the front end; each
+keyframe goes through loop closing, the anchored trajectory and the back end; corrections
+flow back to the front end and the map by one mechanism; at the end the back end and the
+mapping finish, and the result is returned (and written by :func:`loopmodel.io.results.write_results`).
+
+Stages and their one entry point per event (all declared on their protocols):
+
+* front end  ``FrontEnd.process(frame) -> FrameResult`` (a keyframe when it makes one);
+* loop stage ``LoopStage.on_keyframe(keyframe, MapState) -> LoopOutcome`` (the keyframe to
+  pass on, loop constraints, pose corrections), ``close(MapState)``, ``metrics()``;
+  :class:`~loopmodel.loop.stage.NullLoopStage` when loop closing is off;
+* back end   ``Backend.add_keyframe``, ``add_loop_constraint``, ``estimate``, and at the end
+  ``final_estimate(RefineConfig | None)``, ``metrics()``;
+* mapping    ``StripeMap.set_keyframe`` / ``add_frame`` / ``update_keyframes`` (frame poses
+  anchored to keyframes), ``LiveMapping.feed`` / ``on_keyframe`` / ``close`` / ``mesh`` /
+  ``metrics``; :func:`loopmodel.mapping.final.final_mesh` at the end.
+
+A stop request (:class:`StopFlag`, set by the signal handlers of :func:`stop_on_signals`)
+is checked between frames, so every frame's and keyframe's bookkeeping is done whole.
+"""
 
 from __future__ import annotations
 
@@ -9,59 +27,45 @@ import logging
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from loopmodel.backend import BackendEstimate, create_backend
-from loopmodel.config import Config, MappingConfig
+from loopmodel.backend import Backend, BackendEstimate, create_backend
+from loopmodel.config import Config
 from loopmodel.errors import LoopmodelError
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
 from loopmodel.io.base import Sequence
-from loopmodel.io.results import LogCapture, ResultsFolder
-from loopmodel.mapping.extraction import sequence_stripe_count, sequence_stripes
+from loopmodel.io.results import LogCapture, ResultsFolder, write_results
+from loopmodel.loop.stage import LoopConstraint, LoopStage, MapState, NullLoopStage
+from loopmodel.mapping.final import final_mesh, run_stripes
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
-from loopmodel.types import StripeProfile, Trajectory
+from loopmodel.result import RunResult
+from loopmodel.types import StereoCalibration, Trajectory
 
 logger = logging.getLogger(__name__)
 
 # progress(frames_done, frames_total, frames_per_second)
 ProgressFn = Callable[[int, int, float], None]
+# progress(frames_done, frames_total, frames_per_second, keyframes)
+PipelineProgressFn = Callable[[int, int, float, int], None]
 KeyframeHook = Callable[[Keyframe, FrameResult], None]
 
+#: The result of :func:`run_pipeline` (the name of earlier versions).
+RunOutput = RunResult
 
-@dataclass
-class RunOutput:
-    """What a run produced: the results folder, per-frame results (without their keyframe
-    payload, so a long run does not hold every keyframe image), the keyframe ids and times,
-    and the metrics. Keyframes themselves go to the keyframe hooks as they are made."""
-
-    folder: Path
-    frames: list[FrameResult]
-    keyframes: list[tuple[int, int]]  # (keyframe id, timestamp_ns)
-    metrics: dict[str, Any]
-    interrupted: bool = False
-    extra: dict[str, Any] = field(default_factory=dict)
+F64 = np.ndarray
 
 
+# --------------------------------------------------------------------------- metrics
 def _online_trajectory(frames: list[FrameResult]) -> Trajectory:
     ok = [f for f in frames if f.ok]
     if not ok:
         return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
     return Trajectory(np.array([f.timestamp_ns for f in ok]), np.stack([f.world_from_cam for f in ok]))
-
-
-def _keyframe_trajectory(keyframes: list[tuple[int, int]], world_from_kf: dict[int, np.ndarray]) -> Trajectory:
-    if not keyframes:
-        return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
-    return Trajectory(
-        np.array([t for _, t in keyframes]),
-        np.stack([world_from_kf[k] for k, _ in keyframes]),
-    )
 
 
 def _ground_truth_errors(est: Trajectory, gt: Trajectory | None) -> dict[str, float]:
@@ -95,182 +99,321 @@ def _ground_truth_errors(est: Trajectory, gt: Trajectory | None) -> dict[str, fl
     }
 
 
+def _q(a: np.ndarray, p: float) -> float | None:
+    return float(np.percentile(a, p)) if a.size else None
+
+
 def frontend_metrics(frames: list[FrameResult], wall_s: float) -> dict[str, Any]:
     """Counts and timings of a front-end run (milliseconds, medians and 95th percentiles)."""
-    track = np.array([f.track_ms for f in frames]) if frames else np.zeros(0)
-    kf_ms = np.array([f.keyframe_ms for f in frames if f.is_keyframe])
-    total = np.array([f.track_ms + f.keyframe_ms for f in frames]) if frames else np.zeros(0)
-
-    def q(a: np.ndarray, p: float) -> float | None:
-        return float(np.percentile(a, p)) if a.size else None
-
+    track = np.array([f.track_ms for f in frames], dtype=float)
+    kf_ms = np.array([f.keyframe_ms for f in frames if f.is_keyframe], dtype=float)
+    total = np.array([f.track_ms + f.keyframe_ms for f in frames], dtype=float)
+    busy_s = float(total.sum() / 1e3)
     return {
         "frames": len(frames),
         "ok_frames": sum(f.ok for f in frames),
         "lost_frames": sum(not f.ok for f in frames),
         "keyframes": sum(f.is_keyframe for f in frames),
-        "segments": (max(f.segment for f in frames) + 1) if frames else 0,
-        "track_ms_median": q(track, 50),
-        "track_ms_p95": q(track, 95),
-        "keyframe_ms_median": q(kf_ms, 50),
-        "frame_ms_median": q(total, 50),
-        "fps": len(frames) / float(total.sum() / 1e3) if total.size and total.sum() > 0 else None,
+        "segments": max((f.segment + 1 for f in frames), default=0),
+        "track_ms_median": _q(track, 50),
+        "track_ms_p95": _q(track, 95),
+        "keyframe_ms_median": _q(kf_ms, 50),
+        "frame_ms_median": _q(total, 50),
+        "fps": len(frames) / busy_s if busy_s > 0 else None,
         "fps_with_io": len(frames) / wall_s if wall_s > 0 else None,
     }
 
 
-def run_frontend(
-    sequence: Sequence,
-    config: Config,
-    out_dir: str | Path | None = None,
-    name: str = "run",
-    progress: ProgressFn | None = None,
-    max_frames: int | None = None,
-    keyframe_hooks: list[KeyframeHook] | None = None,
-) -> RunOutput:
-    """The front end alone over ``sequence``: :func:`run_pipeline` with ``backend.kind: none``
-    (keyframes keep the tracked poses), no loop closing and no mesh. Writes the same results
-    folder (``trajectory_final.tum`` equals the online trajectory). An interrupted run still
-    writes what it has, then re-raises."""
-    fe_config = config.model_copy(deep=True)
-    fe_config.backend.kind = "none"
-    fe_config.loop.enabled = False
-    fe_config.mapping.write_mesh = False
-    fe_config.mapping.live_mesh_every_kf = 0
-    return run_pipeline(
-        sequence,
-        fe_config,
-        out_dir,
-        name,
-        None if progress is None else (lambda i, n, fps, _kf: progress(i, n, fps)),
-        max_frames,
-        keyframe_hooks,
-    )
+def _quantiles(values: list[float], prefix: str) -> dict[str, float | None]:
+    a = np.asarray(values, dtype=float)
+    return {f"{prefix}_median": _q(a, 50), f"{prefix}_p95": _q(a, 95)}
 
 
-# --------------------------------------------------------------------------- full pipeline
-# progress(frames_done, frames_total, frames_per_second, keyframes)
-PipelineProgressFn = Callable[[int, int, float, int], None]
+# --------------------------------------------------------------------------- stopping
+class StopFlag:
+    """A request to stop the run after the current frame (thread- and signal-safe: a
+    signal handler only sets it; the frame loop checks it between frames)."""
+
+    def __init__(self) -> None:
+        self._event = threading.Event()
+        self.reason = ""
+
+    def set(self, reason: str = "stop requested") -> None:
+        """Ask the run to stop after the current frame."""
+        if not self._event.is_set():
+            self.reason = reason
+        self._event.set()
+
+    def is_set(self) -> bool:
+        """Whether a stop was requested."""
+        return self._event.is_set()
 
 
 @contextlib.contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """While a run is going, SIGTERM behaves like Ctrl-C (main thread only), so a killed run
-    still writes what it has."""
+def stop_on_signals(stop: StopFlag) -> Iterator[StopFlag]:
+    """While the block runs, SIGINT (Ctrl-C) and SIGTERM only set ``stop`` (main thread
+    only; elsewhere nothing is installed); the previous handlers come back afterwards."""
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield stop
         return
 
-    def _raise(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt(f"signal {signum}")
+    def _request(signum: int, frame: object) -> None:
+        if stop.is_set():
+            logger.warning("signal %d: already stopping (the results are being written)", signum)
+        stop.set(f"signal {signum}")
 
-    previous = signal.signal(signal.SIGTERM, _raise)
+    previous = {s: signal.signal(s, _request) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        yield
+        yield stop
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
-def _quantiles(values: list[float], prefix: str) -> dict[str, float | None]:
-    a = np.asarray(values, dtype=float)
-    return {
-        f"{prefix}_median": float(np.median(a)) if a.size else None,
-        f"{prefix}_p95": float(np.percentile(a, 95)) if a.size else None,
-    }
+# --------------------------------------------------------------------------- the run
+def _loop_stage(config: Config, calibration: StereoCalibration) -> LoopStage:
+    """Loop closing when it is on and the back end can take constraints; else the null stage."""
+    if not config.loop.enabled or config.backend.kind == "none":
+        return NullLoopStage()
+    from loopmodel.loop.stage import LoopClosingStage
+
+    return LoopClosingStage.from_config(config.loop, calibration)
 
 
-def _map_arrays(
-    keyframes: list[tuple[int, int]],
-    world_from_kf: dict[int, np.ndarray],
-    estimate: BackendEstimate | None,
-) -> dict[str, np.ndarray]:
-    """``map.npz`` content: keyframe ids, times and poses; landmark ids and world points."""
-    return {
-        "keyframe_ids": np.array([k for k, _ in keyframes], dtype=np.int64),
-        "keyframe_timestamps_ns": np.array([t for _, t in keyframes], dtype=np.int64),
-        "world_from_kf": np.stack([world_from_kf[k] for k, _ in keyframes]) if keyframes else np.zeros((0, 4, 4)),
-        "landmark_ids": estimate.landmark_ids if estimate is not None else np.zeros(0, np.int64),
-        "landmarks_in_world": estimate.landmarks_in_world if estimate is not None else np.zeros((0, 3)),
-    }
+class _Run:
+    """The stages of one run and what it has produced so far; :meth:`step` handles one
+    frame whole, :meth:`finish` turns the state into a :class:`RunResult`."""
+
+    def __init__(self, sequence: Sequence, config: Config, hooks: list[KeyframeHook]) -> None:
+        self.sequence = sequence
+        self.config = config
+        self.hooks = hooks
+        self.frontend = FrontEnd(sequence.calibration, config.frontend)
+        self.backend: Backend = create_backend(config.backend, self.frontend.calibration, config.givens)
+        self.loop = _loop_stage(config, self.frontend.calibration)
+        # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
+        self.anchored = StripeMap(config.mapping)
+        self.live = LiveMapping(self.anchored, sequence, config.mapping.live_mesh_every_kf)
+        self.frames: list[FrameResult] = []
+        self.keyframes: dict[int, int] = {}  # keyframe id -> timestamp_ns, in order
+        # keyframe -> (previous keyframe, the tracker's pose of it there): drift per interval
+        self.tracked_links: dict[int, tuple[int, F64]] = {}
+        self.backend_ms: list[float] = []
+        self.frame_ms: list[float] = []
+        self._last_ms = 0.0
+        self._last_ids: tuple[int | None, ...] = ()
+        self.t_start = time.perf_counter()
+
+    # ------------------------------------------------------------------ per frame
+    def step(self, frame: Any) -> FrameResult:
+        """Track one frame; a keyframe goes through loop closing and the back end; the frame
+        joins the anchored trajectory and the live map."""
+        t0 = time.perf_counter()
+        res = self.frontend.process(frame)
+        if not res.ok:
+            logger.info("frame %d LOST: %s", frame.index, res.reason)
+        kf = res.keyframe
+        if kf is not None:
+            self._keyframe_step(kf, res)
+            res = dataclasses.replace(res, keyframe=None)  # do not hold every keyframe image
+        self.frames.append(res)
+        if res.ok:
+            self.anchored.add_frame(res.timestamp_ns, kf_id=res.keyframe_id, kf_from_cam=res.kf_from_cam)
+            self.live.feed(res.timestamp_ns)
+        if kf is not None:
+            self.live.on_keyframe()
+        self.frame_ms.append((time.perf_counter() - t0) * 1e3)
+        return res
+
+    def _state(self) -> MapState:
+        return MapState(self.frontend.world_from_kf, self._last_ms, self._last_ids)
+
+    def _keyframe_step(self, kf: Keyframe, res: FrameResult) -> None:
+        """Loop closing, then the back end; the keyframe is recorded last, once the map
+        holds it, so an interruption never leaves it half registered."""
+        out = self.loop.on_keyframe(kf, self._state())
+        kf = out.keyframe
+        self.anchored.set_keyframe(kf.id, kf.world_from_kf)
+        self._correct(out.corrections)
+        tb = time.perf_counter()
+        self.backend.add_keyframe(kf)
+        self._last_ids = self._add_constraints(out.constraints)
+        estimate = self.backend.estimate(landmarks=False)
+        self._last_ms = (time.perf_counter() - tb) * 1e3
+        self.backend_ms.append(self._last_ms)
+        self._correct({k: estimate.world_from_kf[k] for k in estimate.changed_keyframes if k in estimate.world_from_kf})
+        if kf.connected and kf.prev_keyframe_id is not None and kf.kf_prev_from_kf_tracked is not None:
+            self.tracked_links[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf_tracked)
+        self.keyframes[kf.id] = kf.timestamp_ns
+        for hook in self.hooks:
+            hook(kf, res)
+
+    def _add_constraints(self, constraints: list[LoopConstraint]) -> tuple[int | None, ...]:
+        ids: list[int | None] = []
+        for c in constraints:
+            try:
+                ids.append(int(self.backend.add_loop_constraint(c.kf_a, c.kf_b, c.a_from_b)))
+            except LoopmodelError as exc:  # e.g. a back end without relative-pose factors
+                logger.info("loop %d -> %d: no loop constraint (%s)", c.kf_a, c.kf_b, exc)
+                ids.append(None)
+        return tuple(ids)
+
+    def _correct(self, world_from_kf: Mapping[int, F64]) -> None:
+        """The one way corrections flow back: to the tracker and to the anchored frames."""
+        if world_from_kf:
+            self.frontend.apply_correction(dict(world_from_kf))
+            self.anchored.update_keyframes(world_from_kf)
+
+    # ------------------------------------------------------------------ end of run
+    def _final_estimate(self, interrupted: bool) -> BackendEstimate | None:
+        """The back end's end-of-run solution (refined unless interrupted), applied to the
+        anchored frames; None without keyframes or when the back end fails (logged: the
+        front end's keyframes are kept)."""
+        if not self.keyframes:
+            return None
+        try:
+            estimate = self.backend.final_estimate(None if interrupted else self.config.refine)
+            self.anchored.update_keyframes(estimate.world_from_kf)
+        except Exception as exc:  # keep the front end's keyframes; still write everything
+            logger.error("back end failed at the end of the run: %s", exc)
+            return None
+        return estimate
+
+    def _final_trajectory(self) -> Trajectory:
+        if self.config.refine.bridge_frames:
+            return self.anchored.bridged_trajectory(self.keyframes, self.tracked_links)
+        return self.anchored.trajectory()
+
+    def _keyframe_trajectory(self) -> Trajectory:
+        poses = self.anchored.keyframe_poses
+        ids = list(self.keyframes)
+        return Trajectory(
+            np.array([self.keyframes[k] for k in ids], dtype=np.int64),
+            np.stack([poses[k] for k in ids]) if ids else np.zeros((0, 4, 4)),
+        )
+
+    def finish(self, interrupted: bool) -> RunResult:
+        """Stop the workers, refine, place the stripes, mesh, gather the metrics."""
+        wall = time.perf_counter() - self.t_start
+        self.live.close(wait=not interrupted)
+        self._correct(self.loop.close(self._state()))
+        t_final = time.perf_counter()
+        estimate = self._final_estimate(interrupted)
+        result = RunResult(
+            config=self.config,
+            frames=self.frames,
+            online=_online_trajectory(self.frames),
+            final=self._final_trajectory(),
+            keyframes=self._keyframe_trajectory(),
+            keyframe_ids=np.array(list(self.keyframes), dtype=np.int64),
+            interrupted=interrupted,
+        )
+        if estimate is not None:
+            result.landmark_ids, result.landmarks_in_world = estimate.landmark_ids, estimate.landmarks_in_world
+        final_refine_s = time.perf_counter() - t_final
+        last_ns = self.frames[-1].timestamp_ns if self.frames else None
+        result.stripes = run_stripes(self.sequence, last_ns, self.config.mapping)
+        result.mesh, mesh_metrics = final_mesh(
+            self.sequence, result.stripes, result.online, result.final, self.config.mapping
+        )
+        result.live_mesh = self.live.mesh()
+        result.metrics = self._metrics(result, wall, final_refine_s, mesh_metrics)
+        return result
+
+    def _metrics(
+        self, result: RunResult, wall_s: float, final_refine_s: float, mesh_metrics: dict[str, Any]
+    ) -> dict[str, Any]:
+        """``metrics.json``: each stage's own figures, the run's timings, the errors against
+        the ground truth of the online and the final trajectories."""
+        busy_s = sum(self.frame_ms) / 1e3
+        m: dict[str, Any] = {"sequence": str(self.sequence.path), "interrupted": result.interrupted}
+        m.update(mesh_metrics)
+        m.update(frontend_metrics(self.frames, wall_s))
+        m["fps"] = len(self.frames) / busy_s if busy_s > 0 else None
+        m["backend"] = self.config.backend.kind
+        m["final_refine_s"] = final_refine_s
+        m.update(self.loop.metrics())
+        m.update(self.live.metrics())
+        m.update(self.backend.metrics())
+        m["landmarks"] = int(result.landmark_ids.size)
+        m.update(_quantiles(self.frame_ms, "frame_total_ms"))
+        m.update(_quantiles(self.backend_ms, "backend_ms"))
+        gt = self.sequence.ground_truth
+        for suffix, traj in (("_online", result.online), ("", result.final)):
+            m.update({k + suffix: v for k, v in _ground_truth_errors(traj, gt).items()})
+        return m
 
 
-def _write_stripes(
-    folder: ResultsFolder, sequence: Sequence, frames: list[FrameResult], config: MappingConfig
-) -> list[StripeProfile]:
-    """``stripes.npz``: the sequence's laser profiles up to the last processed frame (sensor
-    frame; ``loopmodel mesh`` places them with the run's trajectory). Skipped without any."""
-    if not frames or sequence_stripe_count(sequence) == 0:
-        return []
-    from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
-
-    last_ns = frames[-1].timestamp_ns
-    try:
-        stripes = [s for s in sequence_stripes(sequence, config) if s.timestamp_ns <= last_ns]
-    except LoopmodelError as exc:  # the trajectories matter more than the stripes
-        logger.error("laser stripes not written: %s", exc)
-        return []
-    if stripes:
-        save_stripes(folder.file(STRIPES_FILE), stripes)
-    return stripes
-
-
-def _aligned_to(traj: Trajectory, reference: Trajectory) -> Trajectory:
-    """``traj`` moved by the SE(3) transform that best aligns its positions to ``reference``
-    at common timestamps (exact match)."""
-    from loopmodel.geometry.align import umeyama_alignment
-    from loopmodel.geometry.se3 import make_pose
-
-    _, ia, ib = np.intersect1d(traj.timestamps_ns, reference.timestamps_ns, return_indices=True)
-    if ia.size < 3:
-        return traj
-    R, t, _s = umeyama_alignment(traj.positions_m[ia], reference.positions_m[ib])
-    return Trajectory(traj.timestamps_ns, make_pose(R, t)[None] @ traj.world_from_cam)
-
-
-def _write_mesh(
-    folder: ResultsFolder,
+def process(
     sequence: Sequence,
-    stripes: list[StripeProfile],
-    online: Trajectory,
-    final: Trajectory,
     config: Config,
-) -> dict[str, Any]:
-    """``mesh.ply`` of the stripes placed with the final trajectory; with a ground-truth scene
-    (``scene.ply`` attachment) and poses, the mesh error with ground-truth, online (before loop
-    closure) and final (after) poses, both SE(3)-aligned to the truth by their frame
-    positions; completeness of the scanned object (``object.ply``) and of its swept part when
-    the sequence has it. Returns the metrics to record."""
-    if not stripes or not config.mapping.write_mesh or len(final) < 2:
-        return {}
-    from loopmodel.io.mesh_io import mesh_from_bytes, write_mesh
-    from loopmodel.mapping.accuracy import mesh_error_metrics
-    from loopmodel.mapping.stripe_map import StripeMap
+    *,
+    progress: PipelineProgressFn | None = None,
+    max_frames: int | None = None,
+    keyframe_hooks: list[KeyframeHook] | None = None,
+    stop: StopFlag | None = None,
+) -> RunResult:
+    """Reader -> front end -> loop closing -> back end -> mapping, writing nothing.
 
-    out: dict[str, Any] = {}
+    Runs until the sequence ends, ``max_frames`` frames are done, ``stop`` is set (checked
+    between frames) or a ``KeyboardInterrupt`` arrives (the last two: ``interrupted``). An
+    error while processing a frame ends the run too: the result of the frames before it is
+    returned with the error in ``error`` (and ``metrics["stopped_by"]``), for the caller to
+    raise once it has kept what it wants."""
+    run = _Run(sequence, config, keyframe_hooks or [])
+    total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
+    stop = stop if stop is not None else StopFlag()
+    logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
+    interrupted, error = _frame_loop(run, total, stop, progress)
+    if interrupted:
+        logger.warning("interrupted after %d frames", len(run.frames))
+    if error is not None:
+        logger.error("stopped after %d frames: %s", len(run.frames), error)
+    result = run.finish(interrupted)
+    if error is not None:
+        result.error = error
+        result.metrics["stopped_by"] = str(error).splitlines()[0] if str(error) else type(error).__name__
+    fps = result.metrics["fps"]
+    logger.info(
+        "done: %d frames, %d keyframes, %s fps", len(run.frames), len(run.keyframes), f"{fps:.1f}" if fps else "-"
+    )
+    return result
+
+
+def _frame_loop(
+    run: _Run, total: int, stop: StopFlag, progress: PipelineProgressFn | None
+) -> tuple[bool, Exception | None]:
+    """Feed the frames to ``run`` one whole step at a time. Returns whether it was stopped
+    early (stop flag, ``KeyboardInterrupt``) and the error that ended it, if any."""
     try:
-        smap = StripeMap.from_trajectory(final, stripes, config.mapping)
-        smap.check_nonempty()
-        surface = smap.mesh()
-        write_mesh(folder.file("mesh.ply"), surface, "ply")
-        out["mesh_vertices"] = len(surface.vertices)
-        names = getattr(sequence, "attachment_names", [])
-        gt = sequence.ground_truth
-        if "scene.ply" in names and gt is not None:
-            scene = sequence.read_attachment("scene.ply")  # type: ignore[attr-defined]
-            gt_mesh = mesh_from_bytes(scene, "ply", sequence.path)
-            # the run's world is its first keyframe: express both trajectories in the truth's
-            # world by the SE(3) alignment of the frame positions before meshing
-            trajs = {"gt": gt, "before": _aligned_to(online, gt), "after": _aligned_to(final, gt)}
-            # completeness of the scanned object (``object.ply``) when the sequence has it
-            obj = (
-                mesh_from_bytes(sequence.read_attachment("object.ply"), "ply", sequence.path)  # type: ignore[attr-defined]
-                if "object.ply" in names
-                else None
-            )
-            out.update(mesh_error_metrics(stripes, trajs, gt_mesh, config.mapping, object_mesh=obj))
-    except LoopmodelError as exc:  # a run without a mesh still has its trajectories
-        logger.error("mesh not written: %s", exc)
-    return out
+        for i, frame in enumerate(run.sequence.frames()):
+            if i >= total:
+                break
+            if stop.is_set():
+                return True, None
+            run.step(frame)
+            if progress is not None:
+                el = time.perf_counter() - run.t_start
+                progress(i + 1, total, (i + 1) / el if el > 0 else 0.0, len(run.keyframes))
+    except KeyboardInterrupt:
+        return True, None
+    except Exception as exc:  # the frames before it still give a result
+        return False, exc
+    return False, None
+
+
+def _process_and_write(
+    folder: ResultsFolder, sequence: Sequence, config: Config, handle_signals: bool, **kwargs: Any
+) -> RunResult:
+    """:func:`process` under a log capture (and the signal handlers when asked), then
+    :func:`~loopmodel.io.results.write_results` into ``folder``."""
+    stop = StopFlag()
+    signals = stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop)
+    with LogCapture() as log, signals:
+        result = process(sequence, config, stop=stop, **kwargs)
+        result.log = log.text()
+        result.folder = write_results(folder, result)
+    return result
 
 
 def run_pipeline(
@@ -281,159 +424,99 @@ def run_pipeline(
     progress: PipelineProgressFn | None = None,
     max_frames: int | None = None,
     keyframe_hooks: list[KeyframeHook] | None = None,
-) -> RunOutput:
-    """Reader -> front end -> back end -> results folder ``<out_dir>/<name>/``.
+    handle_signals: bool = True,
+) -> RunResult:
+    """:func:`process` the sequence and write the results folder ``<out_dir>/<name>/``
+    (:func:`loopmodel.io.results.write_results`; ``out_dir`` defaults to
+    ``output.out_dir``).
 
     Every keyframe first goes to loop closing (``config.loop``: relocalization of a new
     segment, verified revisits whose observations of old landmarks join the keyframe's
     monocular observations, plus a relative-pose loop constraint), then to the back end
     (``config.backend.kind``); keyframes it moves are handed back to the front end and to
     the anchored trajectory, in which every frame is stored relative to its keyframe.
-    ``metrics.json`` lists each closure under ``loop_events``. Writes ``config.yaml``, ``trajectory_online.tum`` (poses
-    as estimated live), ``trajectory_final.tum`` (frames recomposed with the final keyframe
-    poses), ``keyframes.tum``, ``map.npz``, ``metrics.json``, ``run.log`` (KITTI variants
-    of the trajectories when ``output.write_kitti``) and ``stripes.npz`` when the sequence
-    has laser profiles. Ctrl-C or SIGTERM stops the run after
-    the current frame; everything up to it is written, then ``KeyboardInterrupt`` is raised.
-    """
+    ``metrics.json`` lists each closure under ``loop_events``. With ``handle_signals``
+    Ctrl-C or SIGTERM stops the run after the current frame; everything up to it is
+    written, then ``KeyboardInterrupt`` is raised (an error ending the run early is raised
+    after the write as well)."""
     folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
-    folder.write_config(config)
-    frontend = FrontEnd(sequence.calibration, config.frontend)
-    backend = create_backend(config.backend, frontend.calibration, config.givens)
-    # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
-    anchored = StripeMap(config.mapping)
-    live = LiveMapping(anchored, sequence, config.mapping.live_mesh_every_kf)
-    loop_stage = None
-    if config.loop.enabled and config.backend.kind != "none":
-        from loopmodel.loop.stage import LoopClosingStage
-
-        loop_stage = LoopClosingStage(frontend, frontend.calibration, config.loop, backend=backend)
-    total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
-    frames: list[FrameResult] = []
-    keyframes: list[tuple[int, int]] = []
-    # keyframe -> (previous keyframe, the tracker's pose of it there): drift per interval
-    tracked_links: dict[int, tuple[int, np.ndarray]] = {}
-    backend_ms: list[float] = []
-    frame_ms: list[float] = []
-    hooks = keyframe_hooks or []
-    interrupted = False
-    estimate: BackendEstimate | None = None
-    t_start = time.perf_counter()
-    with LogCapture() as log, _sigterm_as_interrupt():
-        logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
-        try:
-            for i, frame in enumerate(sequence.frames()):
-                if i >= total:
-                    break
-                t0 = time.perf_counter()
-                res = frontend.process(frame)
-                if res.status != "OK":
-                    logger.info("frame %d LOST: %s", frame.index, res.reason)
-                kf = res.keyframe
-                if kf is not None:
-                    keyframes.append((kf.id, kf.timestamp_ns))
-                    tracked = getattr(kf, "kf_prev_from_kf_tracked", None)
-                    if kf.connected and kf.prev_keyframe_id is not None and tracked is not None:
-                        tracked_links[kf.id] = (kf.prev_keyframe_id, tracked)
-                    if loop_stage is not None:  # revisits and relocalization, before the back end
-                        loop_stage.on_keyframe(kf)
-                    anchored.set_keyframe(kf.id, kf.world_from_kf)
-                    tb = time.perf_counter()
-                    backend.add_keyframe(kf)
-                    if loop_stage is not None:
-                        loop_stage.update_backend()
-                    estimate = backend.estimate(landmarks=False)
-                    backend_ms.append((time.perf_counter() - tb) * 1e3)
-                    if loop_stage is not None:
-                        loop_stage.note_estimate(estimate.world_from_kf, backend_ms[-1])
-                    moved = {
-                        k: estimate.world_from_kf[k] for k in estimate.changed_keyframes if k in estimate.world_from_kf
-                    }
-                    if moved:
-                        frontend.apply_correction(moved)
-                        anchored.update_keyframes(moved)
-                    for hook in hooks:
-                        hook(kf, res)
-                    # do not hold every keyframe (and its image) for the whole run
-                    res = dataclasses.replace(res, keyframe=None)
-                frames.append(res)
-                if res.ok:
-                    anchored.add_frame(res.timestamp_ns, kf_id=res.keyframe_id, kf_from_cam=res.kf_from_cam)
-                    live.feed(res.timestamp_ns)
-                if kf is not None:
-                    live.on_keyframe()
-                frame_ms.append((time.perf_counter() - t0) * 1e3)
-                if progress is not None:
-                    el = time.perf_counter() - t_start
-                    progress(i + 1, total, (i + 1) / el if el > 0 else 0.0, len(keyframes))
-        except KeyboardInterrupt:
-            interrupted = True
-            logger.warning("interrupted after %d frames", len(frames))
-        finally:
-            wall = time.perf_counter() - t_start
-            live.close(wait=not interrupted)
-            live.write(folder)
-            online = _online_trajectory(frames)
-            folder.write_trajectory("trajectory_online.tum", online)
-            t_final = time.perf_counter()
-            try:
-                if keyframes and not interrupted:
-                    refine = getattr(backend, "refine", None)
-                    if callable(refine):
-                        refine()
-                if keyframes:
-                    estimate = backend.estimate()
-                    batch = getattr(backend, "batch_refine", None)
-                    if config.refine.batch_ba and not interrupted and callable(batch):
-                        rc = config.refine
-                        estimate = batch(rc.pixel_sigma_px, rc.huber_k, rc.max_iterations)
-                    anchored.update_keyframes(estimate.world_from_kf)
-            except Exception as exc:  # keep the front end's keyframes; still write everything
-                logger.error("back end failed at the end of the run: %s", exc)
-            if config.refine.bridge_frames:
-                final = anchored.bridged_trajectory(dict(keyframes), tracked_links)
-            else:
-                final = anchored.trajectory()
-            final_refine_s = time.perf_counter() - t_final
-            kf_poses = anchored.keyframe_poses
-            folder.write_trajectory("trajectory_final.tum", final)
-            folder.write_trajectory("keyframes.tum", _keyframe_trajectory(keyframes, kf_poses))
-            if config.output.write_kitti:
-                folder.write_trajectory("trajectory_online.kitti", online, "kitti")
-                folder.write_trajectory("trajectory_final.kitti", final, "kitti")
-            folder.write_npz("map.npz", _map_arrays(keyframes, kf_poses, estimate))
-            stripes = _write_stripes(folder, sequence, frames, config.mapping)
-            metrics: dict[str, Any] = {"sequence": str(sequence.path), "interrupted": interrupted}
-            metrics.update(_write_mesh(folder, sequence, stripes, online, final, config))
-            metrics.update(frontend_metrics(frames, wall))
-            metrics["fps"] = len(frames) / (sum(frame_ms) / 1e3) if sum(frame_ms) > 0 else None
-            metrics["backend"] = config.backend.kind
-            metrics["final_refine_s"] = final_refine_s
-            if loop_stage is not None:
-                metrics.update(loop_stage.metrics())
-            if live.enabled:
-                metrics["live_mesh_updates"] = len(live.update_ms)
-                metrics["live_mesh_blocks_remeshed"] = live.blocks_remeshed
-                metrics.update(_quantiles(live.update_ms, "live_mesh_update_ms"))
-            screen_stats = getattr(backend, "screen_stats", None)
-            if callable(screen_stats):
-                stats = screen_stats()
-                metrics["givens_tested_observations"] = stats["tested"]
-                metrics["givens_rejected_observations"] = stats["rejected"]
-            metrics["landmarks"] = 0 if estimate is None else int(estimate.landmark_ids.size)
-            metrics.update(_quantiles(frame_ms, "frame_total_ms"))
-            metrics.update(_quantiles(backend_ms, "backend_ms"))
-            gt = sequence.ground_truth
-            for suffix, traj in (("_online", online), ("", final)):
-                metrics.update({k + suffix: v for k, v in _ground_truth_errors(traj, gt).items()})
-            folder.write_json("metrics.json", metrics)
-            logger.info(
-                "done: %d frames, %d keyframes, %s fps",
-                len(frames),
-                len(keyframes),
-                f"{metrics['fps']:.1f}" if metrics["fps"] else "-",
-            )
-            folder.write_text("run.log", log.text())
-    if interrupted:
+    kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "keyframe_hooks": keyframe_hooks}
+    result = _process_and_write(folder, sequence, config, handle_signals, **kwargs)
+    if result.error is not None:
+        raise result.error
+    if result.interrupted:
         raise KeyboardInterrupt
-    return RunOutput(folder.path, frames, keyframes, metrics, interrupted)
+    return result
+
+
+def run(
+    source: str | Path | Sequence,
+    config: Config | str | Path | Mapping[str, Any] | None = None,
+    out_dir: str | Path | None = None,
+    *,
+    name: str = "run",
+    max_frames: int | None = None,
+    progress: PipelineProgressFn | None = None,
+    handle_signals: bool = False,
+) -> RunResult:
+    """Run the whole pipeline over a sequence and return what it produced.
+
+    ``source``: an MCAP file, a EuRoC or KITTI folder, or an opened sequence;
+    ``config``: a :class:`~loopmodel.config.Config`, the path of a YAML file, a (partial)
+    nested dict, or None for the defaults. Writes nothing unless ``out_dir`` is given (then
+    the results folder ``<out_dir>/<name>/``). Installs no signal handler unless
+    ``handle_signals`` (Ctrl-C and SIGTERM then stop it after the current frame); an
+    interrupted run returns its result with ``interrupted`` True; an error is raised (after
+    the write when ``out_dir`` is given)."""
+    from loopmodel.config import config_from_dict, load_config
+    from loopmodel.io.sequence import open_sequence
+
+    if isinstance(config, Mapping):
+        cfg = config_from_dict(dict(config))
+    else:
+        cfg = config if isinstance(config, Config) else load_config(config)
+    seq = source if isinstance(source, Sequence) else open_sequence(source, cfg.sequence)
+    kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames}
+    if out_dir is not None:
+        result = _process_and_write(ResultsFolder(out_dir, name), seq, cfg, handle_signals, **kwargs)
+    else:
+        stop = StopFlag()
+        with stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop):
+            result = process(seq, cfg, stop=stop, **kwargs)
+    if result.error is not None:
+        raise result.error
+    return result
+
+
+def run_frontend(
+    sequence: Sequence,
+    config: Config,
+    out_dir: str | Path | None = None,
+    name: str = "run",
+    progress: ProgressFn | None = None,
+    max_frames: int | None = None,
+    keyframe_hooks: list[KeyframeHook] | None = None,
+) -> RunResult:
+    """The front end alone over ``sequence``: :func:`run_pipeline` with ``backend.kind: none``
+    (keyframes keep the tracked poses), no loop closing and no mesh. Writes the same results
+    folder (``trajectory_final.tum`` equals the online trajectory). An interrupted run still
+    writes what it has, then re-raises."""
+    return run_pipeline(
+        sequence,
+        frontend_only(config),
+        out_dir,
+        name,
+        None if progress is None else (lambda i, n, fps, _kf: progress(i, n, fps)),
+        max_frames,
+        keyframe_hooks,
+    )
+
+
+def frontend_only(config: Config) -> Config:
+    """``config`` for a front-end-only run: no back end, no loop closing, no meshes."""
+    fe_config = config.model_copy(deep=True)
+    fe_config.backend.kind = "none"
+    fe_config.loop.enabled = False
+    fe_config.mapping.write_mesh = False
+    fe_config.mapping.live_mesh_every_kf = 0
+    return fe_config

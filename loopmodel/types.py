@@ -1,4 +1,4 @@
-"""The data every stage shares: calibration, frames, stripe profiles, trajectories.
+"""The data every stage shares: calibration, frames, stripe profiles, keyframes, trajectories.
 
 Times are ``int`` nanoseconds; poses are 4x4 ``world_from_cam`` matrices (metres); the
 camera frame is x right, y down, z forward.
@@ -6,14 +6,15 @@ camera frame is x right, y down, z forward.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import CalibrationError, InputError
 from loopmodel.geometry.camera import CentralCamera
-from loopmodel.geometry.se3 import is_rotation
+from loopmodel.geometry.se3 import invert_pose, is_rotation
 
 
 @dataclass
@@ -108,6 +109,61 @@ class StripeProfile:
 
     timestamp_ns: int
     points_in_cam: NDArray[np.float64]
+
+
+TrackingStatus = Literal["OK", "LOST"]
+"""A frame's tracking state: ``OK`` (pose measured) or ``LOST`` (only the motion model)."""
+
+
+def _empty_image() -> NDArray[np.uint8]:
+    return np.zeros((0, 0), np.uint8)
+
+
+@dataclass
+class Keyframe:
+    """A stereo keyframe and its feature set: the one keyframe type of the front end, the
+    back ends, loop closing, tests and tools.
+
+    Poses are of the (original, unrectified) left camera; pixel measurements are in the
+    rectified images, and ``rect_from_cam`` relates the two frames (identity for rectified
+    input). ``landmark_ids`` (M,) unique ids; ``points_in_kf`` (M, 3) metres in this
+    keyframe's left camera frame (stereo triangulation); ``stereo_px`` (M, 3) = (u_left,
+    u_right, v) in the rectified pair; ``mono_obs`` (K, 3) = (landmark_id, u, v): earlier
+    keyframes' landmarks as seen in this keyframe's left image (rectified pixels; seed 004:
+    the last frame tracking set i is the left image of keyframe i+1); ``image`` the
+    rectified left grey image (empty where no stage needs it). ``connected`` is False when
+    the pose relative to the previous keyframe was not measured (recovery after tracking
+    loss); ``kf_prev_from_kf`` is the measured transform (after the local hybrid BA) when
+    connected; ``kf_prev_from_kf_tracked`` the tracker's own pose of this frame in the
+    previous keyframe, before the local BA (the end of the tracked frames' chain; the final
+    refinement bridges its drift).
+    """
+
+    id: int
+    timestamp_ns: int
+    world_from_kf: NDArray[np.float64]
+    landmark_ids: NDArray[np.int64]
+    points_in_kf: NDArray[np.float64]
+    stereo_px: NDArray[np.float64]
+    mono_obs: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    image: NDArray[np.uint8] = field(default_factory=_empty_image)
+    frame_index: int = 0
+    prev_keyframe_id: int | None = None
+    connected: bool = True
+    kf_prev_from_kf: NDArray[np.float64] | None = None
+    kf_prev_from_kf_tracked: NDArray[np.float64] | None = None
+    rect_from_cam: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
+    segment: int = 0
+    ba_info: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def world_from_rect(self) -> NDArray[np.float64]:
+        """Pose of the keyframe's rectified left camera (4x4, metres)."""
+        return np.asarray(self.world_from_kf, dtype=float) @ invert_pose(self.rect_from_cam)
+
+    def without_image(self) -> Keyframe:
+        """A shallow copy without the image (small to hold or send to a worker process)."""
+        return replace(self, image=_empty_image())
 
 
 @dataclass

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import gtsam
 import numpy as np
 import pytest
@@ -13,21 +11,11 @@ from loopmodel.backend import Backend
 from loopmodel.backend.isam2 import Isam2Backend
 from loopmodel.config import BackendConfig
 from loopmodel.geometry.se3 import make_pose, so3_exp
-from loopmodel.types import StereoCalibration
+from loopmodel.types import Keyframe, StereoCalibration
 
 FX, CX, CY, BASELINE = 500.0, 320.0, 240.0, 0.3
 SIGMA_PX = 0.5
 
-
-@dataclass
-class KF:
-    id: int
-    timestamp_ns: int
-    world_from_kf: np.ndarray
-    landmark_ids: np.ndarray
-    points_in_kf: np.ndarray
-    stereo_px: np.ndarray
-    mono_obs: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def calibration() -> StereoCalibration:
@@ -68,7 +56,7 @@ def keyframes(rng, poses, pts, mono_from: int = 3, blunder: tuple[int, int] | No
             px[blunder[1], 1] += 25.0
         guess = T @ make_pose(so3_exp(rng.normal(0, 0.01, 3)), rng.normal(0, 0.03, 3)) if i else T
         kfs.append(
-            KF(
+            Keyframe(
                 i,
                 i * 10**8,
                 guess,
@@ -383,7 +371,7 @@ def test_rectified_frame_differs_from_camera_frame(rng):
         px, _ = project(T @ np.linalg.inv(rect_from_cam), pts)
         p_cam = (pts - T[:3, 3]) @ T[:3, :3]
         guess = T @ make_pose(so3_exp(rng.normal(0, 0.01, 3)), rng.normal(0, 0.02, 3)) if i else T
-        kf = KF(i, i, guess, np.arange(len(pts)), p_cam, px)
+        kf = Keyframe(i, i, guess, np.arange(len(pts)), p_cam, px)
         kf.rect_from_cam = rect_from_cam
         kfs.append(kf)
     backend = run_backend(kfs, exact_config())

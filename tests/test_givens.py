@@ -353,8 +353,8 @@ def test_screen_rejects_injected_blunders() -> None:
 
 
 def test_screen_keyframe_adapter() -> None:
-    """Duck-typed front-end keyframes (stereo + mono observations) through the screen."""
-    from types import SimpleNamespace
+    """Front-end keyframes (stereo + mono observations) through the screen."""
+    from loopmodel.types import Keyframe
 
     tf = make_testfield(n_frames=10, n_points=40, seed=8, blunder_fraction=0.0)
     rng = np.random.default_rng(4)
@@ -371,8 +371,9 @@ def test_screen_keyframe_adapter() -> None:
         new = [k for k, i in enumerate(ids.tolist()) if i not in seen]
         old = [k for k, i in enumerate(ids.tolist()) if i in seen]
         p_kf = (tf.points_world[ids[new]] - T[:3, 3]) @ T[:3, :3] + rng.normal(0, 0.005, (len(new), 3))
-        kf = SimpleNamespace(
+        kf = Keyframe(
             id=f,
+            timestamp_ns=f,
             world_from_kf=T,
             landmark_ids=ids[new],
             points_in_kf=p_kf,

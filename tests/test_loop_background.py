@@ -47,12 +47,12 @@ def test_keyframes_do_not_wait_for_a_blocked_verifier(monkeypatch: pytest.Monkey
             release.set()
 
     out = run_pipeline(seq, cfg, tmp_path, "bg", progress=progress)
-    n_kf = len(out.keyframes)
+    n_kf = len(out.keyframe_ids)
     assert n_kf >= 3
     # every frame and keyframe went through while the first detection was still blocked
     assert frames_while_blocked == list(range(1, len(seq) + 1))
     assert keyframes_while_blocked[-1] == n_kf
-    assert finished == [k for k, _ in out.keyframes]  # each keyframe detected once, in order
+    assert finished == out.keyframe_ids.tolist()  # each keyframe detected once, in order
     assert started == finished
     assert out.metrics["loop_keyframes_not_queried"] == 0
 
@@ -77,7 +77,7 @@ def test_backlog_stores_keyframes_without_querying(monkeypatch: pytest.MonkeyPat
             release.set()
 
     out = run_pipeline(open_sequence(TINY), cfg, tmp_path, "bg", progress=progress)
-    n_kf = len(out.keyframes)
+    n_kf = len(out.keyframe_ids)
     assert len(queried) == n_kf
     # the first two were queried; while the backlog held 2, the rest were only stored
     assert queried[:2] == [True, True] and not any(queried[2:])

@@ -3,8 +3,6 @@ global hybrid BA with its loop observations removes the drift, a lost view reloc
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import cv2
 import numpy as np
 
@@ -12,26 +10,14 @@ from loopmodel.config import LoopConfig
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose, make_pose, se3_exp, so3_exp, so3_log
 from loopmodel.loop.closer import LoopCloser
-from loopmodel.loop.stage import LoopClosingStage
-from loopmodel.types import StereoCalibration
+from loopmodel.loop.stage import LoopClosingStage, MapState
+from loopmodel.types import Keyframe, StereoCalibration
 
 CAM = CentralCamera(400.0, 400.0, 319.5, 239.5)
 BASELINE = 0.12
 PLANE_Z = 3.0
 S = 200.0  # texture pixels per metre
 
-
-@dataclass
-class Kf:
-    id: int
-    image: np.ndarray
-    world_from_kf: np.ndarray
-    landmark_ids: np.ndarray
-    points_in_kf: np.ndarray
-    stereo_px: np.ndarray
-    mono_obs: np.ndarray
-    rect_from_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
-    connected: bool = True
 
 
 def _texture(rng: np.random.Generator) -> np.ndarray:
@@ -52,7 +38,7 @@ def _render(tex: np.ndarray, world_from_cam: np.ndarray) -> np.ndarray:
     return cv2.warpPerspective(tex, H, (640, 480), flags=cv2.INTER_LINEAR)
 
 
-def _keyframe(kf_id: int, tex, true_T, est_T, next_lid: int, rng) -> Kf:
+def _keyframe(kf_id: int, tex, true_T, est_T, next_lid: int, rng) -> Keyframe:
     img = _render(tex, true_T)
     c = cv2.goodFeaturesToTrack(img, 150, 0.01, 20).reshape(-1, 2)
     rays = CAM.lift(c)
@@ -62,14 +48,15 @@ def _keyframe(kf_id: int, tex, true_T, est_T, next_lid: int, rng) -> Kf:
     s = (PLANE_Z - wt[2]) / d_w[:, 2]
     p = rays * s[:, None]
     uR = CAM.px * (p[:, 0] - BASELINE) / p[:, 2] + CAM.u0 + rng.normal(0, 0.2, len(p))
-    return Kf(
+    return Keyframe(
         kf_id,
-        img,
+        kf_id,
         est_T,
         np.arange(next_lid, next_lid + len(p)),
         p,
         np.column_stack([c[:, 0], uR, c[:, 1]]),
         np.zeros((0, 3)),
+        img,
     )
 
 
@@ -84,7 +71,7 @@ def _sequence(rng):
     return true, est
 
 
-def _add_mono(kfs: list[Kf], true: list[np.ndarray], rng) -> None:
+def _add_mono(kfs: list[Keyframe], true: list[np.ndarray], rng) -> None:
     """Each keyframe's monocular observations of the previous keyframe's landmarks."""
     for i in range(1, len(kfs)):
         prev = kfs[i - 1]
@@ -142,15 +129,19 @@ def test_stage_feeds_corrections_back_and_records_events() -> None:
         lid += len(kfs[-1].landmark_ids)
     _add_mono(kfs, true, rng)
     tracker = _FakeTracker()
-    heard: list[dict[int, np.ndarray]] = []
-    stage = LoopClosingStage(tracker, calib, LoopConfig(min_gap_keyframes=8, n_features=800), [heard.append])
+    stage = LoopClosingStage(calib, LoopConfig(min_gap_keyframes=8, n_features=800), via_backend=False)
     for kf in kfs:
         tracker.poses[kf.id] = kf.world_from_kf.copy()
-        stage.on_keyframe(kf)
-    stage.finish()  # the BA runs in a worker process; wait for it
+        out = stage.on_keyframe(kf, MapState(tracker.world_from_kf))
+        assert not out.constraints  # the stage corrects loops itself: poses, no constraints
+        if out.corrections:
+            tracker.apply_correction(out.corrections)
+    final = stage.close(MapState(tracker.world_from_kf))  # the BA runs in a worker process; wait for it
+    if final:
+        tracker.apply_correction(final)
     m = stage.metrics()
     assert m["loop_closure_count"] >= 1
-    assert tracker.corrections and len(heard) == len(tracker.corrections)
+    assert tracker.corrections
     last = max(e["keyframe"] for e in m["loop_events"])
     err_before = np.linalg.norm(est[last][:3, 3] - true[last][:3, 3])
     err_after = np.linalg.norm(tracker.poses[last][:3, 3] - true[last][:3, 3])

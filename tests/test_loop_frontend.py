@@ -12,7 +12,7 @@ from frontend_scene import default_scene, render, stereo_rig  # noqa: E402
 from loopmodel.config import FrontendConfig, LoopConfig  # noqa: E402
 from loopmodel.frontend import FrontEnd  # noqa: E402
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_exp  # noqa: E402
-from loopmodel.loop.stage import LoopClosingStage  # noqa: E402
+from loopmodel.loop.stage import LoopClosingStage, MapState  # noqa: E402
 from loopmodel.types import StereoFrame  # noqa: E402
 
 
@@ -32,7 +32,7 @@ def test_corrected_keyframes_reach_the_tracker() -> None:
     K = calib.K_left
     fe = FrontEnd(calib, FrontendConfig(max_parallax_ratio=0.04))  # a keyframe every ~6 frames
     cfg = LoopConfig(min_gap_keyframes=3, consistency=1, vocabulary_train_after=4, n_features=800)
-    stage = LoopClosingStage(fe, fe.calibration, cfg, background=False)
+    stage = LoopClosingStage(fe.calibration, cfg, via_backend=False, background=False)
     right_from_left = calib.right_from_left
     checked = False
     for i, world_from_cam in enumerate(_path()):
@@ -49,8 +49,10 @@ def test_corrected_keyframes_reach_the_tracker() -> None:
             assert ev["correction_m"] > 0
             checked = True
         if res.keyframe is not None:
-            stage.on_keyframe(res.keyframe)
-    stage.finish()
+            out = stage.on_keyframe(res.keyframe, MapState(fe.world_from_kf))
+            if out.corrections:
+                fe.apply_correction(out.corrections)
+    fe.apply_correction(stage.close(MapState(fe.world_from_kf)))
     loops = [e for e in stage.events if e["type"] == "loop"]
     assert loops, stage.rejected
     assert checked

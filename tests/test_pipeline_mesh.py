@@ -45,11 +45,11 @@ def test_run_writes_mesh_and_mesh_errors(tmp_path: Path) -> None:
     from loopmodel.geometry.se3 import invert_pose
     from loopmodel.io.mesh_io import mesh_from_bytes
     from loopmodel.io.trajectory_io import read_trajectory
-    from loopmodel.pipeline import _aligned_to
+    from loopmodel.mapping.final import aligned_to
 
     seq = open_sequence(seq_path)
     final = read_trajectory(out.folder / "trajectory_final.tum")
-    truth_from_run = _aligned_to(final, seq.ground_truth).world_from_cam[0] @ invert_pose(final.world_from_cam[0])
+    truth_from_run = aligned_to(final, seq.ground_truth).world_from_cam[0] @ invert_pose(final.world_from_cam[0])
     scene = o3d.t.geometry.RaycastingScene()
     gt_mesh = mesh_from_bytes(seq.read_attachment("scene.ply"), "ply", seq_path)
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(gt_mesh))

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -26,7 +25,7 @@ from gtsam.symbol_shorthand import L, X
 
 from loopmodel.backend.isam2 import Isam2Backend
 from loopmodel.config import BackendConfig
-from loopmodel.types import StereoCalibration
+from loopmodel.types import Keyframe, StereoCalibration
 
 #: the configuration measured here: long KITTI tracks continue in a new landmark variable
 #: after 4 frames (bounds the root clique); a landmark enters once seen 3 times (two-view
@@ -34,18 +33,8 @@ from loopmodel.types import StereoCalibration
 BENCH_CONFIG = {"max_landmark_span_kf": 4, "min_observations": 3}
 
 
-@dataclass
-class _KF:
-    id: int
-    timestamp_ns: int
-    world_from_kf: np.ndarray
-    landmark_ids: np.ndarray
-    points_in_kf: np.ndarray
-    stereo_px: np.ndarray
-    mono_obs: np.ndarray
 
-
-def load_vo00() -> tuple[StereoCalibration, list[_KF]]:
+def load_vo00() -> tuple[StereoCalibration, list[Keyframe]]:
     """gtsam's KITTI 00 stereo VO data as keyframes (frame order)."""
     cal = np.loadtxt(gtsam.findExampleDataFile("VO_calibration00.txt")).ravel()
     fx, fy, skew, cx, cy, baseline = cal[:6]
@@ -65,7 +54,7 @@ def load_vo00() -> tuple[StereoCalibration, list[_KF]]:
         m = meas[a:b]
         fid = int(row[0])
         kfs.append(
-            _KF(
+            Keyframe(
                 fid,
                 fid * 100_000_000,
                 row[1:].reshape(4, 4),
@@ -95,7 +84,7 @@ class NaiveIsam2:
         self.seen: set[int] = set()
         self.first = True
 
-    def step(self, kf: _KF) -> None:
+    def step(self, kf: Keyframe) -> None:
         """Add one frame (raises RuntimeError when GTSAM finds the system indeterminate)."""
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         pose = gtsam.Pose3(kf.world_from_kf)
@@ -136,7 +125,7 @@ def run(quick: bool) -> dict:
     naive_error = None
     times, cpu, est_ms, n_times, n_cpu = [], [], [], [], []
     world_from_kf: dict[int, np.ndarray] = {}
-    prev: _KF | None = None
+    prev: Keyframe | None = None
     for raw in kfs:
         kf = raw
         if prev is not None:

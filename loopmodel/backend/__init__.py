@@ -6,7 +6,6 @@ from loopmodel.backend.base import (
     Backend,
     BackendEstimate,
     BackendUpdate,
-    KeyframeLike,
     Observation,
 )
 from loopmodel.config import BackendConfig, GivensConfig
@@ -17,7 +16,6 @@ __all__ = [
     "Backend",
     "BackendEstimate",
     "BackendUpdate",
-    "KeyframeLike",
     "Observation",
     "create_backend",
 ]

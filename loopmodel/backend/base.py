@@ -10,34 +10,15 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.config import RefineConfig
+from loopmodel.types import Keyframe
+
 F64 = NDArray[np.float64]
-
-
-@runtime_checkable
-class KeyframeLike(Protocol):
-    """What the back end reads from a front-end keyframe (``loopmodel.frontend.Keyframe``).
-
-    ``world_from_kf`` 4x4 pose of the keyframe's left camera (the initial guess);
-    ``landmark_ids`` (M,) ints; ``points_in_kf`` (M, 3) stereo triangulations in the
-    keyframe's left camera frame (metres); ``stereo_px`` (M, 3) = (u_left, u_right, v) in
-    the rectified pair; ``mono_obs`` (K, 3) = (landmark_id, u, v) in the rectified left
-    image, for landmarks first seen in earlier keyframes. Optional attributes read with
-    defaults: ``rect_from_cam`` (identity), ``connected`` (True: a measured link to the
-    previous keyframe exists).
-    """
-
-    id: int
-    timestamp_ns: int
-    world_from_kf: F64
-    landmark_ids: NDArray[np.int64]
-    points_in_kf: F64
-    stereo_px: F64
-    mono_obs: F64
 
 
 @dataclass
@@ -78,7 +59,7 @@ Observation = tuple[int, int]
 class Backend(Protocol):
     """A keyframe/landmark estimator the pipeline can drive without knowing which it is."""
 
-    def add_keyframe(self, keyframe: KeyframeLike) -> BackendUpdate:
+    def add_keyframe(self, keyframe: Keyframe) -> BackendUpdate:
         """Add a keyframe pose and its stereo and monocular observations; update the solution."""
         ...
 
@@ -94,4 +75,13 @@ class Backend(Protocol):
     def estimate(self, landmarks: bool = True) -> BackendEstimate:
         """Current keyframe poses (and landmarks unless ``landmarks`` is False, which is
         cheaper), and which keyframes changed since the last call."""
+        ...
+
+    def final_estimate(self, refine: RefineConfig | None) -> BackendEstimate:
+        """The end-of-run solution with landmarks: after the refinement ``refine`` asks for
+        where the back end has one (None: none, e.g. after an interruption)."""
+        ...
+
+    def metrics(self) -> dict[str, Any]:
+        """The back end's own figures for ``metrics.json`` (may be empty)."""
         ...

@@ -4,11 +4,14 @@ the pose the front end gave it and estimates nothing (no landmarks, no loop cons
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import Any
 
 import numpy as np
 
-from loopmodel.backend.base import BackendEstimate, BackendUpdate, KeyframeLike, Observation
+from loopmodel.backend.base import BackendEstimate, BackendUpdate, Observation
+from loopmodel.config import RefineConfig
 from loopmodel.errors import ConfigError
+from loopmodel.types import Keyframe
 
 F64 = np.ndarray
 
@@ -20,7 +23,7 @@ class FrontEndPoses:
         self._world_from_kf: dict[int, F64] = {}
         self._new: set[int] = set()
 
-    def add_keyframe(self, keyframe: KeyframeLike) -> BackendUpdate:
+    def add_keyframe(self, keyframe: Keyframe) -> BackendUpdate:
         """Record the keyframe's pose."""
         self._world_from_kf[int(keyframe.id)] = np.asarray(keyframe.world_from_kf, dtype=float).reshape(4, 4).copy()
         self._new.add(int(keyframe.id))
@@ -38,3 +41,11 @@ class FrontEndPoses:
         """The recorded poses; keyframes added since the last call count as changed."""
         changed, self._new = self._new, set()
         return BackendEstimate({k: T.copy() for k, T in self._world_from_kf.items()}, changed_keyframes=changed)
+
+    def final_estimate(self, refine: RefineConfig | None) -> BackendEstimate:
+        """The recorded poses (nothing to refine)."""
+        return self.estimate()
+
+    def metrics(self) -> dict[str, Any]:
+        """No figures of its own."""
+        return {}

@@ -35,6 +35,7 @@ from loopmodel.backend.snooping import SnoopResult, normalized_residuals, snoop
 from loopmodel.errors import EstimationError
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import hat, so3_exp, so3_log
+from loopmodel.types import Keyframe
 
 F64 = NDArray[np.float64]
 
@@ -373,8 +374,8 @@ class GivensScreen:
         scr.bundle.est.min_downdate_cos2 = cfg.min_downdate_cos2
         return scr
 
-    def screen_keyframe(self, keyframe: Any) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-        """Screen one front-end keyframe (the back end's ``KeyframeLike``, duck-typed).
+    def screen_keyframe(self, keyframe: Keyframe) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+        """Screen one front-end keyframe, its pose and points in its rectified left camera.
 
         Reads ``id``, ``world_from_kf`` (4x4), ``landmark_ids`` (M,), ``points_in_kf`` (M x 3,
         metres, keyframe frame), ``stereo_px`` (M x 3: u_left, u_right, v) and ``mono_obs``

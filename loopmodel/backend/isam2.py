@@ -40,11 +40,11 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 from numpy.typing import NDArray
 
-from loopmodel.backend.base import F64, BackendEstimate, BackendUpdate, KeyframeLike, Observation
-from loopmodel.config import BackendConfig
+from loopmodel.backend.base import F64, BackendEstimate, BackendUpdate, Observation
+from loopmodel.config import BackendConfig, RefineConfig
 from loopmodel.errors import EstimationError, InputError
 from loopmodel.geometry.se3 import invert_pose
-from loopmodel.types import StereoCalibration
+from loopmodel.types import Keyframe, StereoCalibration
 
 logger = logging.getLogger(__name__)
 
@@ -419,7 +419,7 @@ class Isam2Backend:
             candidates.append(lm_id)
 
     # ------------------------------------------------------------------ updates
-    def add_keyframe(self, keyframe: KeyframeLike) -> BackendUpdate:
+    def add_keyframe(self, keyframe: Keyframe) -> BackendUpdate:
         """Add keyframe ``keyframe.id`` with its stereo and monocular observations and update."""
         t0 = time.perf_counter()
         kf_id = int(keyframe.id)
@@ -435,15 +435,15 @@ class Isam2Backend:
         self._kf_seq[kf_id] = len(self._kf_seq)
         self._kf_order.append(kf_id)
         self._pose_guess[kf_id] = T
-        rect_from_cam = getattr(keyframe, "rect_from_cam", None)
-        if rect_from_cam is not None and not _is_identity(np.asarray(rect_from_cam, float)):
+        rect_from_cam = keyframe.rect_from_cam
+        if not _is_identity(np.asarray(rect_from_cam, float)):
             self._body[kf_id] = np.asarray(rect_from_cam, float).reshape(4, 4)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         values.insert(X(kf_id), gtsam.Pose3(T))
         report = BackendUpdate(kf_id)
         first = len(self._kf_seq) == 1
-        if first or not bool(getattr(keyframe, "connected", True)):
+        if first or not keyframe.connected:
             self._add_prior(kf_id, T, first, graph)
 
         ids = np.asarray(keyframe.landmark_ids, dtype=np.int64).ravel()
@@ -503,7 +503,7 @@ class Isam2Backend:
         report.new_landmarks = self._create_landmarks(candidates, graph, values)
         self._prune_pending(seq)
         linked = sum(1 for f in self._batch if (r := self._factors[f]).obs is not None and r.obs[0] == kf_id)
-        if linked < 3 and not (first or not bool(getattr(keyframe, "connected", True))):
+        if linked < 3 and not (first or not keyframe.connected):
             # too few observations determine this pose: a loose prior keeps the system solvable
             self._add_prior(kf_id, T, False, graph)
         report.new_factors = graph.size()
@@ -515,34 +515,6 @@ class Isam2Backend:
         report.pending_landmarks = len(self._pending)
         report.update_ms = (time.perf_counter() - t0) * 1e3
         return report
-
-    def add_observations(self, kf_id: int, mono_obs: F64) -> int:
-        """Monocular observations (rows ``landmark_id, u, v``, rectified pixels) of a keyframe
-        already in the graph, e.g. old landmarks a loop verified after the keyframe was added;
-        one update. Returns how many joined (unknown landmarks and repeats are skipped)."""
-        if kf_id not in self._kf_seq:
-            raise EstimationError(f"observations for keyframe {kf_id}, which is not in the back end")
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        candidates: list[int] = []
-        n = 0
-        for row in np.asarray(mono_obs, dtype=float).reshape(-1, 3).tolist():
-            lm_id = int(row[0])
-            if not all(np.isfinite(row)) or (kf_id, lm_id) in self._obs_fid:
-                continue
-            if lm_id not in self._lm_current and lm_id not in self._pending:
-                continue
-            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates)
-            n += 1
-        self._create_landmarks(candidates, graph, values)
-        if graph.size() == 0:
-            return n
-        new_fids = list(self._batch)
-        self._theta0.insert(values)
-        self._run_update(graph, values, [], None)
-        if self.config.blunder_sigma > 0:
-            self._screen_new([f for f in new_fids if f in self._factors])
-        return n
 
     def _prune_pending(self, seq: int) -> None:
         """Forget pending landmarks not observed in the last ``pending_max_age_kf`` keyframes
@@ -870,6 +842,22 @@ class Isam2Backend:
         pts = np.array([values.atPoint3(L(k)) for k in lkeys], dtype=float).reshape(-1, 3)
         ids = np.array([self._landmarks[k].landmark_id for k in lkeys], dtype=np.int64)
         return BackendEstimate(world_from_kf, ids, pts, set(world_from_kf))
+
+    def final_estimate(self, refine: RefineConfig | None) -> BackendEstimate:
+        """Extra iSAM2 iterations (:meth:`refine`), then the batch bundle adjustment
+        (:meth:`batch_refine`) when ``refine.batch_ba``; the plain estimate when ``refine``
+        is None."""
+        if refine is None:
+            return self.estimate()
+        self.refine()
+        if not refine.batch_ba:
+            return self.estimate()
+        return self.batch_refine(refine.pixel_sigma_px, refine.huber_k, refine.max_iterations)
+
+    def metrics(self) -> dict[str, Any]:
+        """Factor and landmark counts of the graph; the noise and outcome of the final batch
+        refinement (:attr:`refine_info`: ``pixel_sigma_px`` and where it came from)."""
+        return {"isam2_factors": self.num_factors, "isam2_landmarks": self.num_landmarks, **self.refine_info}
 
     def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
         """Add ``kf_a_from_kf_b`` (4x4) as a robust between-factor; ``sigmas`` (rad x3, m x3)

@@ -14,50 +14,44 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Iterable
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
-from loopmodel.backend.base import F64, Backend, BackendEstimate, BackendUpdate, KeyframeLike, Observation
+from loopmodel.backend.base import F64, Backend, BackendEstimate, BackendUpdate, Observation
 from loopmodel.backend.givens_bundle import GivensScreen
+from loopmodel.config import RefineConfig
 from loopmodel.errors import EstimationError
-from loopmodel.geometry.se3 import invert_pose
+from loopmodel.types import Keyframe
 
 
-def _rect_from_cam(kf: KeyframeLike) -> F64:
-    return np.asarray(getattr(kf, "rect_from_cam", np.eye(4)), dtype=float)
-
-
-def _rectified_view(kf: KeyframeLike) -> SimpleNamespace:
+def _rectified_view(kf: Keyframe) -> Keyframe:
     """The keyframe with its pose and points expressed in its rectified left camera."""
-    rect_from_cam = _rect_from_cam(kf)
+    rect_from_cam = np.asarray(kf.rect_from_cam, dtype=float)
     pts = np.asarray(kf.points_in_kf, dtype=float).reshape(-1, 3)
-    return SimpleNamespace(
-        id=kf.id,
-        world_from_kf=np.asarray(kf.world_from_kf, dtype=float) @ invert_pose(rect_from_cam),
-        landmark_ids=kf.landmark_ids,
+    return dataclasses.replace(
+        kf,
+        world_from_kf=kf.world_from_rect,
         points_in_kf=pts @ rect_from_cam[:3, :3].T + rect_from_cam[:3, 3],
-        stereo_px=kf.stereo_px,
-        mono_obs=kf.mono_obs,
+        rect_from_cam=np.eye(4),
     )
 
 
-def _subset(kf: KeyframeLike, keep_stereo: np.ndarray, keep_mono: np.ndarray) -> Any:
+def _subset(kf: Keyframe, keep_stereo: np.ndarray, keep_mono: np.ndarray) -> Keyframe:
     """A copy of the keyframe without the rejected observations (a landmark whose first,
     stereo observation is rejected is dropped altogether)."""
-    fields = {
-        "landmark_ids": np.asarray(kf.landmark_ids)[keep_stereo],
-        "points_in_kf": np.asarray(kf.points_in_kf)[keep_stereo],
-        "stereo_px": np.asarray(kf.stereo_px)[keep_stereo],
-        "mono_obs": np.asarray(kf.mono_obs).reshape(-1, 3)[keep_mono],
-    }
-    if dataclasses.is_dataclass(kf) and not isinstance(kf, type):
-        return dataclasses.replace(kf, **fields)
-    out = SimpleNamespace(**vars(kf))
-    for k, v in fields.items():
-        setattr(out, k, v)
-    return out
+    return dataclasses.replace(
+        kf,
+        landmark_ids=np.asarray(kf.landmark_ids)[keep_stereo],
+        points_in_kf=np.asarray(kf.points_in_kf)[keep_stereo],
+        stereo_px=np.asarray(kf.stereo_px)[keep_stereo],
+        mono_obs=np.asarray(kf.mono_obs).reshape(-1, 3)[keep_mono],
+    )
+
+
+def _screen_metrics(screen: GivensScreen) -> dict[str, Any]:
+    stats = screen.stats
+    return {"givens_tested_observations": stats.tested, "givens_rejected_observations": stats.rejected}
 
 
 class ScreenedBackend:
@@ -67,7 +61,7 @@ class ScreenedBackend:
         self.inner = inner
         self.screen = screen
 
-    def add_keyframe(self, keyframe: KeyframeLike) -> BackendUpdate:
+    def add_keyframe(self, keyframe: Keyframe) -> BackendUpdate:
         """Screen the keyframe's observations, pass the accepted ones on, remove late rejections."""
         keep_st, keep_mono = self.screen.screen_keyframe(_rectified_view(keyframe))
         update = self.inner.add_keyframe(_subset(keyframe, keep_st, keep_mono))
@@ -90,12 +84,17 @@ class ScreenedBackend:
         """The inner back end's estimate."""
         return self.inner.estimate(landmarks)
 
+    def final_estimate(self, refine: RefineConfig | None) -> BackendEstimate:
+        """The inner back end's end-of-run solution."""
+        return self.inner.final_estimate(refine)
+
     def screen_stats(self) -> dict[str, int]:
-        """Tested, rejected and not-yet-tested observation counts (for metrics.json)."""
+        """Tested, rejected and not-yet-tested observation counts."""
         return dataclasses.asdict(self.screen.stats)
 
-    def __getattr__(self, name: str) -> Any:  # e.g. refine(), stats of the inner back end
-        return getattr(self.inner, name)
+    def metrics(self) -> dict[str, Any]:
+        """The screen's observation counts and the inner back end's figures."""
+        return {**self.inner.metrics(), **_screen_metrics(self.screen)}
 
 
 class GivensBackend:
@@ -107,12 +106,12 @@ class GivensBackend:
         self._rect_from_cam: dict[int, F64] = {}
         self._last: dict[int, F64] = {}
 
-    def add_keyframe(self, keyframe: KeyframeLike) -> BackendUpdate:
+    def add_keyframe(self, keyframe: Keyframe) -> BackendUpdate:
         """Insert the keyframe's observations point by point, testing each for blunders."""
         t0 = time.perf_counter()
         n_points = len(self.screen.bundle.points)
         keep_st, keep_mono = self.screen.screen_keyframe(_rectified_view(keyframe))
-        self._rect_from_cam[int(keyframe.id)] = _rect_from_cam(keyframe)
+        self._rect_from_cam[int(keyframe.id)] = np.asarray(keyframe.rect_from_cam, dtype=float)
         late = self.screen.late_rejections()
         removed = self.remove_observations((int(f), int(p)) for f, p in late)  # type: ignore[call-overload,operator]
         return BackendUpdate(
@@ -162,3 +161,11 @@ class GivensBackend:
     def screen_stats(self) -> dict[str, int]:
         """Tested, rejected and not-yet-tested observation counts (for metrics.json)."""
         return dataclasses.asdict(self.screen.stats)
+
+    def final_estimate(self, refine: RefineConfig | None) -> BackendEstimate:
+        """The current sequential solution (it is the least-squares solution already)."""
+        return self.estimate()
+
+    def metrics(self) -> dict[str, Any]:
+        """Tested and rejected observation counts."""
+        return _screen_metrics(self.screen)

@@ -11,18 +11,18 @@ longer one within ``max_dt``; RPE pairs are chosen on the estimate; an aligned e
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import get_args
 
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.config import AlignMode
 from loopmodel.errors import InputError
 from loopmodel.geometry.align import umeyama_alignment
 from loopmodel.geometry.se3 import invert_pose
 from loopmodel.io.trajectory_io import ns_to_seconds_text
 
-AlignMode = Literal["se3", "sim3", "origin", "none"]
-ALIGN_MODES: tuple[str, ...] = ("se3", "sim3", "origin", "none")
+ALIGN_MODES: tuple[str, ...] = get_args(AlignMode)
 KITTI_SEGMENT_LENGTHS_M: tuple[float, ...] = (100, 200, 300, 400, 500, 600, 700, 800)
 
 F64 = NDArray[np.float64]

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.errors import InputError
 from loopmodel.types import StereoCalibration, StereoFrame, StripeProfile, Trajectory
 
 
@@ -51,6 +52,16 @@ class Sequence(abc.ABC):
     def laser_image_count(self) -> int:
         """Number of laser-line images."""
         return 0
+
+    @property
+    def attachment_names(self) -> list[str]:
+        """Names of the files attached to the sequence (e.g. a ground-truth ``scene.ply``);
+        none for formats without attachments."""
+        return []
+
+    def read_attachment(self, name: str) -> bytes:
+        """Bytes of the attachment called ``name``."""
+        raise InputError(self.path, f"no attachment '{name}'")
 
     @abc.abstractmethod
     def __len__(self) -> int:

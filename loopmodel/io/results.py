@@ -6,13 +6,16 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from loopmodel.config import Config, dump_config
+from loopmodel.config import Config, dump_config, pipeline_sections
 from loopmodel.errors import InputError
 from loopmodel.io.atomic import atomic_path, write_text_atomic
 from loopmodel.io.trajectory_io import TrajectoryFormat, write_trajectory
 from loopmodel.types import Trajectory
+
+if TYPE_CHECKING:
+    from loopmodel.result import RunResult
 
 
 class ResultsFolder:
@@ -53,8 +56,37 @@ class ResultsFolder:
         return self.file(name)
 
     def write_config(self, config: Config) -> Path:
-        """``config.yaml``: the effective configuration of the run."""
-        return self.write_text("config.yaml", dump_config(config))
+        """``config.yaml``: the effective configuration of the run (the sections the
+        pipeline reads, :func:`loopmodel.config.pipeline_sections`)."""
+        return self.write_text("config.yaml", dump_config(config, pipeline_sections()))
+
+
+def write_results(folder: ResultsFolder, run: RunResult) -> Path:
+    """Write a run into ``folder``, the small files first: ``config.yaml`` (the pipeline's
+    configuration), ``trajectory_online.tum``, ``trajectory_final.tum``, ``keyframes.tum``
+    (KITTI variants of the first two when ``output.write_kitti``), ``map.npz``,
+    ``metrics.json``, ``run.log``, then ``stripes.npz`` (when the run has laser profiles),
+    ``mesh.ply`` and ``mesh_live.ply`` (when made). Returns the folder's path."""
+    folder.write_config(run.config)
+    folder.write_trajectory("trajectory_online.tum", run.online)
+    folder.write_trajectory("trajectory_final.tum", run.final)
+    folder.write_trajectory("keyframes.tum", run.keyframes)
+    if run.config.output.write_kitti:
+        folder.write_trajectory("trajectory_online.kitti", run.online, "kitti")
+        folder.write_trajectory("trajectory_final.kitti", run.final, "kitti")
+    folder.write_npz("map.npz", run.map_arrays())
+    folder.write_json("metrics.json", run.metrics)
+    folder.write_text("run.log", run.log)
+    if run.stripes:
+        from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
+
+        save_stripes(folder.file(STRIPES_FILE), run.stripes)
+    for name, mesh in (("mesh.ply", run.mesh), ("mesh_live.ply", run.live_mesh)):
+        if mesh is not None:
+            from loopmodel.io.mesh_io import write_mesh
+
+            write_mesh(folder.file(name), mesh, "ply")
+    return folder.path
 
 
 def _json_default(obj: Any) -> Any:

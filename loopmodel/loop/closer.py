@@ -38,7 +38,7 @@ from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hy
 from loopmodel.loop.pnp import solve_pnp_bank
 from loopmodel.loop.refine import project_refiner
 from loopmodel.loop.reloc import RelocParams, RelocResult
-from loopmodel.types import StereoCalibration
+from loopmodel.types import Keyframe, StereoCalibration
 
 logger = logging.getLogger(__name__)
 
@@ -103,7 +103,7 @@ class LoopCloser:
         extra, _ = describe_at(image, corners.reshape(-1, 2), self.config.descriptor)
         return FeatureSet.concat(det, extra) if len(det) else extra
 
-    def keyframe_features(self, kf: Any) -> FeatureSet:
+    def keyframe_features(self, kf: Keyframe) -> FeatureSet:
         """Detected features plus descriptors at the keyframe's stereo features (with 3-D
         positions in the rectified keyframe frame and landmark ids)."""
         det = self.image_features(kf.image)
@@ -114,8 +114,8 @@ class LoopCloser:
         return FeatureSet.concat(det, lm) if len(det) else lm
 
     @staticmethod
-    def _kf_data(kf: Any) -> _KfData:
-        rect_from_cam = np.asarray(getattr(kf, "rect_from_cam", np.eye(4)))
+    def _kf_data(kf: Keyframe) -> _KfData:
+        rect_from_cam = np.asarray(kf.rect_from_cam)
         pts = np.asarray(kf.points_in_kf, dtype=float).reshape(-1, 3)
         sp = np.asarray(kf.stereo_px, dtype=float).reshape(-1, 3)
         return _KfData(
@@ -127,7 +127,7 @@ class LoopCloser:
 
     # ---------------------------------------------------------------- loops
     def process_keyframe(
-        self, kf: Any, neighbours: set[int] | None = None, query: bool = True
+        self, kf: Keyframe, neighbours: set[int] | None = None, query: bool = True
     ) -> LoopClosure | None:
         """Store a new keyframe and check it for a verified revisit (``neighbours``: temporal
         neighbours, never verified; ``query`` False: store only)."""
@@ -253,25 +253,12 @@ class LoopCloser:
         )
 
     # ---------------------------------------------------------------- correction
-    def correction_problem(self, keyframes: Sequence[Any], closure: LoopClosure) -> dict[str, Any]:
+    def correction_problem(self, keyframes: Sequence[Keyframe], closure: LoopClosure) -> dict[str, Any]:
         """Arguments of :func:`global_hybrid_ba` for the loop's window, as plain arrays (can
         be sent to a worker process): keyframes from the loop's old keyframe to the current
         one, every loop's observations among them, the old keyframe held fixed."""
         lo, hi = closure.match_kf, closure.query_kf
-        window = [
-            BAKeyframe(
-                int(k.id),
-                np.asarray(k.world_from_kf, float).copy(),
-                np.asarray(k.landmark_ids, np.int64),
-                np.asarray(k.points_in_kf, float),
-                np.asarray(k.stereo_px, float),
-                np.asarray(k.mono_obs, float),
-                np.asarray(getattr(k, "rect_from_cam", np.eye(4)), float),
-                bool(getattr(k, "connected", True)),
-            )
-            for k in keyframes
-            if lo <= int(k.id) <= hi
-        ]
+        window = [k.without_image() for k in keyframes if lo <= int(k.id) <= hi]
         loops = [c.observations for c in self.closures if lo <= c.match_kf and c.query_kf <= hi]
         K = self.calibration.K_left
         return {
@@ -285,21 +272,7 @@ class LoopCloser:
             "fixed_kf_id": lo,
         }
 
-    def correct(self, keyframes: Sequence[Any], closure: LoopClosure, max_iterations: int = 20) -> GlobalBAResult:
+    def correct(self, keyframes: Sequence[Keyframe], closure: LoopClosure, max_iterations: int = 20) -> GlobalBAResult:
         """Global hybrid BA over the keyframes from the loop's old keyframe to the current
         one (the old keyframe held fixed) with every loop's observations among them."""
         return global_hybrid_ba(**self.correction_problem(keyframes, closure), max_iterations=max_iterations)
-
-
-@dataclass
-class BAKeyframe:
-    """The parts of a keyframe the global hybrid BA reads (picklable)."""
-
-    id: int
-    world_from_kf: F64
-    landmark_ids: NDArray[np.int64]
-    points_in_kf: F64
-    stereo_px: F64
-    mono_obs: F64
-    rect_from_cam: F64
-    connected: bool = True

@@ -9,13 +9,13 @@ loss), with the oldest keyframe of the loop held fixed (gauge). The seed paramet
 features in their keyframe and poses relatively; optimising absolute poses and world
 points has the same minimum and lets GTSAM's sparse solver do the work.
 
-Inputs are duck-typed keyframes (the front end's ``Keyframe``): ``id``, ``world_from_kf``
-(4x4, the keyframe's left camera), ``landmark_ids`` (M,), ``points_in_kf`` (M, 3, metres in
-that camera frame), ``stereo_px`` (M, 3: u_left, u_right, v) and ``mono_obs`` (K, 3:
-landmark id, u, v) in rectified pixels; ``rect_from_cam`` (optional, identity otherwise)
-maps the camera frame to the rectified one. Keyframes with ``connected = False`` (a new
-segment after tracking loss) get a weak prior on their pose so that a segment without a
-loop link cannot make the problem singular.
+Inputs are keyframes (:class:`loopmodel.types.Keyframe`; the image is not read): ``id``,
+``world_from_kf`` (4x4, the keyframe's left camera), ``landmark_ids`` (M,), ``points_in_kf``
+(M, 3, metres in that camera frame), ``stereo_px`` (M, 3: u_left, u_right, v) and
+``mono_obs`` (K, 3: landmark id, u, v) in rectified pixels; ``rect_from_cam`` maps the camera
+frame to the rectified one. Keyframes with ``connected = False`` (a new segment after
+tracking loss) get a weak prior on their pose so that a segment without a loop link cannot
+make the problem singular.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import EstimationError, InputError
+from loopmodel.types import Keyframe
 
 F64 = NDArray[np.float64]
 
@@ -66,7 +67,7 @@ def _pose3(T: F64) -> gtsam.Pose3:
 
 
 def global_hybrid_ba(
-    keyframes: Sequence[Any],
+    keyframes: Sequence[Keyframe],
     loops: Sequence[LoopObservations],
     fx_px: float,
     fy_px: float,
@@ -95,15 +96,14 @@ def global_hybrid_ba(
     values = gtsam.Values()
     world_from_rect: dict[int, F64] = {}
     for kf in keyframes:
-        rect_from_cam = np.asarray(getattr(kf, "rect_from_cam", np.eye(4)))
-        Tw = np.asarray(kf.world_from_kf) @ np.linalg.inv(rect_from_cam)
+        Tw = kf.world_from_rect
         world_from_rect[int(kf.id)] = Tw
         values.insert(X(int(kf.id)), _pose3(Tw))
     owner: dict[int, int] = {}
     n_res = 0
     weak = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0, 1.0, 1.0, 10.0, 10.0, 10.0]))
     for kf in keyframes:
-        if not getattr(kf, "connected", True):
+        if not kf.connected:
             graph.add(gtsam.PriorFactorPose3(X(int(kf.id)), _pose3(world_from_rect[int(kf.id)]), weak))
     for kf in keyframes:
         Tw = np.asarray(kf.world_from_kf, dtype=float)
@@ -160,8 +160,7 @@ def global_hybrid_ba(
     solve_s = time.perf_counter() - t1
     out_T: dict[int, F64] = {}
     for kf in keyframes:
-        rect_from_cam = np.asarray(getattr(kf, "rect_from_cam", np.eye(4)))
-        out_T[int(kf.id)] = result.atPose3(X(int(kf.id))).matrix() @ rect_from_cam
+        out_T[int(kf.id)] = result.atPose3(X(int(kf.id))).matrix() @ np.asarray(kf.rect_from_cam)
     pts_out = {lid: np.asarray(result.atPoint3(L(lid))) for lid in owner}
     return GlobalBAResult(
         world_from_kf=out_T,

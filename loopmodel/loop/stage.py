@@ -1,28 +1,43 @@
-"""Loop closing as a pipeline stage: keyframes in, corrections out to the tracker.
+"""Loop closing as a pipeline stage: a keyframe in, constraints and corrections out.
 
-:class:`LoopClosingStage` is fed every new keyframe of the front end. It
+:class:`LoopClosingStage` is fed every new keyframe of the front end through one entry
+point, :meth:`LoopClosingStage.on_keyframe`, and never changes another stage: it returns a
+:class:`LoopOutcome` that the pipeline applies. It
 
 * relocalizes the first keyframe of a new segment (the front end starts one, unconnected,
-  after tracking was lost) against the stored keyframes and, when that succeeds, moves
-  the new segment into the old map;
+  after tracking was lost) against the stored keyframes and, when that succeeds, returns
+  the new segment's keyframe pose in the old map as a correction;
 * checks every keyframe for a verified revisit (:class:`~loopmodel.loop.closer.LoopCloser`)
-  and, on one, runs the global hybrid BA over the loop — in a worker process by default,
-  so tracking does not wait — and feeds the corrected keyframe poses back to the tracker
-  (``apply_correction``) and to optional listeners (mesher, back end). Keyframes created
-  while the BA ran move rigidly with the loop's current keyframe.
+  and, on one, either (``via_backend``, the pipeline's way) adds the loop's observations of
+  old landmarks to the keyframe's monocular observations and returns the loop's relative
+  pose as a :class:`LoopConstraint` for the back end, or (standalone) runs the global
+  hybrid BA over the loop — in a worker process by default, so tracking does not wait — and
+  returns the corrected keyframe poses when it is done. Keyframes created while the BA ran
+  move rigidly with the loop's current keyframe.
+
+Place recognition and verification run in a worker thread (``loop.background_detection``):
+a keyframe never waits for them. A loop found for an earlier keyframe is applied at the
+next keyframe that arrives after it: the old keyframe's features are tracked (KLT) into
+that keyframe's image from the pose the tracker and the loop predict, and the loop's
+observations and relative pose are those of the new keyframe. Candidates co-visible with
+the query's local map (its temporal neighbours) are never verified.
 
 Each closure and relocalization is recorded as a plain dict (for ``metrics.json``):
-keyframes and frames involved, inliers, correction size, optimisation time.
+keyframes and frames involved, inliers, correction size, optimisation time. The back end's
+effect on a loop (how far it moved the keyframe, how long the update took) is read from the
+:class:`MapState` the pipeline hands to the next call.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import multiprocessing as mp
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Mapping
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -34,22 +49,84 @@ from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.closer import LoopCloser, LoopClosure
 from loopmodel.loop.closure import LoopEvent
 from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hybrid_ba
-from loopmodel.types import StereoCalibration
+from loopmodel.types import Keyframe, StereoCalibration
 
 logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
-#: Called with the corrected ``world_from_kf`` of every keyframe that moved.
-CorrectionListener = Callable[[dict[int, F64]], None]
 
 
-class Tracker(Protocol):
-    """What the stage needs from the front end."""
+@dataclass(frozen=True)
+class MapState:
+    """What the loop stage reads of the rest of the run when a keyframe arrives.
 
-    @property
-    def world_from_kf(self) -> dict[int, F64]: ...
+    ``world_from_kf``: the current pose (4x4, metres, left camera) of every keyframe so far,
+    the new one included; ``last_update_ms``: wall time of the back end's update of the
+    previous keyframe (its loop constraints included); ``last_constraint_ids``: the ids the
+    back end gave the constraints of the previous :class:`LoopOutcome` (None where it took
+    none), in their order."""
 
-    def apply_correction(self, world_from_kf: dict[int, F64]) -> None: ...
+    world_from_kf: Mapping[int, F64]
+    last_update_ms: float = 0.0
+    last_constraint_ids: tuple[int | None, ...] = ()
+
+
+@dataclass
+class LoopConstraint:
+    """A relative-pose measurement ``kf_a_from_kf_b`` (4x4, metres) between the left
+    cameras of two keyframes, for :meth:`loopmodel.backend.Backend.add_loop_constraint`."""
+
+    kf_a: int
+    kf_b: int
+    a_from_b: F64
+
+
+@dataclass
+class LoopOutcome:
+    """What one keyframe caused in loop closing.
+
+    ``keyframe``: the keyframe to hand on to the back end (the input, or a copy at its
+    relocalized pose with the loop's observations of old landmarks appended to
+    ``mono_obs``); ``constraints`` for the back end; ``corrections``: keyframe id ->
+    corrected ``world_from_kf`` for the tracker and the map (relocalization, a finished
+    global BA); ``events``: the records of the closures and relocalizations it produced."""
+
+    keyframe: Keyframe
+    constraints: list[LoopConstraint] = field(default_factory=list)
+    corrections: dict[int, F64] = field(default_factory=dict)
+    events: list[dict[str, Any]] = field(default_factory=list)
+
+
+class LoopStage(Protocol):
+    """The pipeline's loop-closing stage: one call per keyframe, one at the end."""
+
+    def on_keyframe(self, keyframe: Keyframe, state: MapState) -> LoopOutcome:
+        """Process a new keyframe (after the front end, before the back end)."""
+        ...
+
+    def close(self, state: MapState) -> dict[int, F64]:
+        """Finish pending work at the end of the run; returns its last corrections."""
+        ...
+
+    def metrics(self) -> dict[str, Any]:
+        """Summary for ``metrics.json``."""
+        ...
+
+
+class NullLoopStage:
+    """Loop closing switched off: every keyframe passes unchanged, nothing is recorded."""
+
+    def on_keyframe(self, keyframe: Keyframe, state: MapState) -> LoopOutcome:
+        """The keyframe as it came."""
+        return LoopOutcome(keyframe)
+
+    def close(self, state: MapState) -> dict[int, F64]:
+        """Nothing pending."""
+        return {}
+
+    def metrics(self) -> dict[str, Any]:
+        """No loop-closing figures."""
+        return {}
 
 
 def _motion(a: F64, b: F64) -> tuple[float, float]:
@@ -57,78 +134,94 @@ def _motion(a: F64, b: F64) -> tuple[float, float]:
     return float(np.linalg.norm(d[:3, 3])), float(np.degrees(np.linalg.norm(so3_log(d[:3, :3]))))
 
 
-class LoopClosingStage:
-    """Relocalization and loop closing wired to a tracker.
+def _with_observations(kf: Keyframe, obs: LoopObservations) -> Keyframe:
+    """The keyframe with the loop's observations of old landmarks appended to its
+    monocular observations (those it has already are kept as they are)."""
+    if not obs.landmark_ids.size:
+        return kf
+    mono = np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3)
+    have = set(mono[:, 0].astype(np.int64).tolist())
+    keep = np.array([int(i) not in have for i in obs.landmark_ids], dtype=bool)
+    extra = np.column_stack([obs.landmark_ids[keep].astype(float), obs.uv_px[keep]])
+    return dataclasses.replace(kf, mono_obs=np.vstack([mono, extra]))
 
-    ``calibration`` is the rectified calibration of the keyframes' pixels."""
+
+class LoopClosingStage:
+    """Relocalization and loop closing over the keyframes of a run (:class:`LoopStage`).
+
+    ``calibration`` is the rectified calibration of the keyframes' pixels. ``via_backend``
+    (the pipeline): loops become back-end constraints; otherwise the stage corrects them
+    itself by the global hybrid BA, in a worker process when ``background``."""
 
     def __init__(
         self,
-        tracker: Tracker,
         calibration: StereoCalibration,
         config: LoopConfig | None = None,
-        listeners: list[CorrectionListener] | None = None,
-        background: bool | None = None,
-        backend: Any | None = None,
+        *,
+        via_backend: bool = True,
+        background: bool = True,
     ) -> None:
-        self.tracker = tracker
         self.config = config if config is not None else LoopConfig()
         self.closer = LoopCloser(calibration, self.config)
-        self.listeners = listeners or []
-        self.keyframes: dict[int, Any] = {}
+        self.keyframes: dict[int, Keyframe] = {}
         self.events: list[dict[str, Any]] = []
         self.rejected: list[dict[str, Any]] = []
+        self.via_backend = via_backend
         #: Run the global BA in a worker process (GTSAM holds the GIL while optimising,
         #: so a thread would stall tracking) and apply it when done (:meth:`poll`).
-        self.background = self.config.background_ba if background is None else background
+        self.background = background
         self._pool: ProcessPoolExecutor | None = None
         self._pending: tuple[Future[GlobalBAResult], LoopClosure, dict[int, F64], float] | None = None
         self._rerun: LoopClosure | None = None
-        #: With a back end the loop's observations join the keyframe's monocular
-        #: observations (seed 004 eq. 6 inside the incremental graph) and a relative-pose
-        #: constraint is added; the pipeline's back-end update then does the correction.
-        self.backend = backend
-        self._queued: list[tuple[LoopClosure, dict[str, Any]]] = []
+        #: records of the last outcome's constraints, completed from the next MapState
         self._awaiting: list[dict[str, Any]] = []
         #: Place recognition and verification in a worker thread (``background_detection``):
-        #: OpenCV's detection and KLT and numpy's large array operations release the GIL; a
-        #: keyframe never waits for them, their result is applied at a later keyframe.
+        #: OpenCV's detection and KLT and numpy's large array operations release the GIL.
         self._detect_pool: ThreadPoolExecutor | None = None
         self._inflight: deque[tuple[int, Future[tuple[LoopClosure | None, list[LoopEvent]]]]] = deque()
         self.keyframes_not_queried = 0
         self.late_closures = 0
+        self.detections_unapplied = 0
         # covisibility: (first, last landmark id, keyframe) per keyframe; direct neighbours
         self._lm_ranges: list[tuple[int, int, int]] = []
         self._covisible_of: dict[int, set[int]] = {}
 
+    @classmethod
+    def from_config(cls, config: LoopConfig, calibration: StereoCalibration) -> LoopClosingStage:
+        """The pipeline's stage: loops go to the back end as constraints."""
+        return cls(calibration, config, via_backend=True)
+
     # ------------------------------------------------------------------ keyframes
-    def on_keyframe(self, kf: Any) -> dict[str, Any] | None:
-        """Process a new keyframe; returns the event record of a closure or
-        relocalization it caused (None otherwise)."""
-        self.keyframes[int(kf.id)] = kf
-        event = self.poll()
-        event = self._collect(wait=False) or event
-        neighbours = self._temporal_neighbours(kf)
-        if not getattr(kf, "connected", True) and len(self.keyframes) > 1:
-            self._collect(wait=True)  # relocalization reads the database the worker writes
-            event = self._relocalize_segment(kf) or event
-        if not self.config.background_detection:
-            closure, rejected = self._detect(kf, neighbours, True)
+    def on_keyframe(self, keyframe: Keyframe, state: MapState) -> LoopOutcome:
+        """Process a new keyframe: complete the records of the previous keyframe's loops
+        from ``state``, apply a finished background correction, relocalize a new segment,
+        look for a revisit. ``state.world_from_kf`` must hold the new keyframe."""
+        self._note_backend(state)
+        out = LoopOutcome(keyframe)
+        self.keyframes[int(keyframe.id)] = keyframe
+        self._collect(self.poll(state), out)
+        self._apply_detections(out, state, wait=False)
+        neighbours = self._temporal_neighbours(keyframe)
+        if not keyframe.connected and len(self.keyframes) > 1:
+            self._apply_detections(out, state, wait=True)  # relocalization reads the database
+            self._relocalize_segment(out, state)
+        if self.config.background_detection:
+            if self._detect_pool is None:
+                self._detect_pool = ThreadPoolExecutor(1, thread_name_prefix="loop-detect")
+            query = len(self._inflight) < self.config.max_queued_keyframes
+            self.keyframes_not_queried += not query
+            fut = self._detect_pool.submit(self._detect, out.keyframe, neighbours, query)
+            self._inflight.append((int(keyframe.id), fut))
+        else:
+            closure, rejected = self._detect(out.keyframe, neighbours, True)
             self._note_rejected(rejected)
             if closure is not None:
-                event = self._close(closure) or event
-            return event
-        if self._detect_pool is None:
-            self._detect_pool = ThreadPoolExecutor(1, thread_name_prefix="loop-detect")
-        query = len(self._inflight) < self.config.max_queued_keyframes
-        self.keyframes_not_queried += not query
-        self._inflight.append((int(kf.id), self._detect_pool.submit(self._detect, kf, neighbours, query)))
-        return event
+                self._close(closure, out, state)
+        self.keyframes[int(keyframe.id)] = out.keyframe
+        return out
 
-    def _detect(
-        self, kf: Any, neighbours: set[int], query: bool
-    ) -> tuple[LoopClosure | None, list[LoopEvent]]:
-        """Place recognition and verification of one keyframe (worker thread when
+    def _detect(self, kf: Keyframe, neighbours: set[int], query: bool) -> tuple[LoopClosure | None, list[LoopEvent]]:
+        """Place recognition and verification of one keyframe (in the worker thread with
         ``background_detection``): the closure found and the candidates rejected."""
         rejected = self.closer.detector.rejected
         n = len(rejected)
@@ -139,31 +232,74 @@ class LoopClosingStage:
         for ev in rejected:
             self.rejected.append({"query_kf": ev.query_id, "match_kf": ev.match_id, "reason": ev.reason})
 
-    def _collect(self, wait: bool) -> dict[str, Any] | None:
-        """Apply the worker's finished detections in keyframe order (``wait``: all of them);
-        returns the record of the last closure applied."""
-        event = None
+    def _apply_detections(self, out: LoopOutcome, state: MapState, wait: bool) -> None:
+        """The worker's finished detections, in keyframe order (``wait``: all of them); a
+        loop found for an earlier keyframe is applied at ``out``'s keyframe."""
         while self._inflight and (wait or self._inflight[0][1].done()):
-            _kf_id, fut = self._inflight.popleft()
+            kf_id, fut = self._inflight.popleft()
             try:
                 closure, rejected = fut.result()
             except LoopmodelError as exc:  # a failed detection is logged, never applied
-                logger.warning("loop detection of keyframe %d failed (%s)", _kf_id, exc)
+                logger.warning("loop detection of keyframe %d failed (%s)", kf_id, exc)
                 continue
             self._note_rejected(rejected)
             if closure is not None:
                 self.late_closures += 1
-                event = self._close(closure, late=True) or event
-        return event
+                self._close_late(closure, out, state)
 
-    def _temporal_neighbours(self, kf: Any) -> set[int]:
-        """Keyframes co-visible with the new keyframe's local map (the covisibility graph of
-        ORB-SLAM, two levels): those whose landmarks it observes (its stereo and monocular
+    def _close_late(self, closure: LoopClosure, out: LoopOutcome, state: MapState) -> None:
+        """A loop verified for an earlier keyframe, applied at the current one: the old
+        keyframe's features are tracked into the current image from the predicted
+        ``current_from_match`` (tracker poses times the loop's pose) and the loop is closed
+        from the current keyframe; when too few are found, the loop's own relative pose
+        becomes the constraint (without observations)."""
+        cur = out.keyframe
+        c, q = int(cur.id), closure.query_kf
+        if c == q:
+            self._close(closure, out, state)
+            return
+        world = state.world_from_kf
+        w_q = np.asarray(world[q]) @ invert_pose(self.keyframes[q].rect_from_cam)
+        w_c = np.asarray(cur.world_from_kf) @ invert_pose(cur.rect_from_cam)
+        pred = invert_pose(w_c) @ w_q @ closure.query_from_match
+        tr = self.closer.track_old_features(closure.match_kf, cur.image, pred)
+        if tr is not None and tr[1].size >= self.config.min_inliers:
+            moved = LoopClosure(
+                c,
+                closure.match_kf,
+                tr[0],
+                LoopObservations(c, tr[1], tr[2]),
+                closure.n_descriptor_inliers,
+                int(tr[1].size),
+                closure.event,
+                closure.detect_ms,
+                closure.refine_ms,
+                {**closure.info, "verified_at_keyframe": q},
+            )
+            self.closer.closures.append(moved)
+            self._close(moved, out, state)
+            return
+        if not self.via_backend:
+            self._close(closure, out, state)
+            return
+        record = self._loop_record(closure)
+        record["applied_at_keyframe"] = c
+        self.events.append(record)
+        out.events.append(record)
+        record["pose_before"] = np.asarray(world[q]).copy()
+        self._awaiting.append(record)
+        m = self.keyframes[closure.match_kf]
+        q_from_m = invert_pose(self.keyframes[q].rect_from_cam) @ closure.query_from_match @ m.rect_from_cam
+        out.constraints.append(LoopConstraint(q, closure.match_kf, q_from_m))
+
+    def _temporal_neighbours(self, kf: Keyframe) -> set[int]:
+        """Keyframes co-visible with the new keyframe's local map (ORB-SLAM's covisibility
+        graph, two levels): those whose landmarks it observes (its stereo and monocular
         observations), and theirs. The front end and the back end link these already; a
-        loop with them adds nothing. Landmark ids are looked up by each keyframe's id range."""
+        loop with them adds nothing. Landmarks are found by each keyframe's id range."""
         q = int(kf.id)
         ids = np.asarray(kf.landmark_ids, dtype=np.int64).ravel()
-        mono = np.asarray(getattr(kf, "mono_obs", np.zeros((0, 3))), dtype=float).reshape(-1, 3)
+        mono = np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3)
         seen = np.concatenate([ids, mono[:, 0].astype(np.int64)])
         direct: set[int] = set()
         if seen.size and self._lm_ranges:
@@ -181,68 +317,71 @@ class LoopClosingStage:
             out |= self._covisible_of.get(k, set())
         return out - {q}
 
-    def _relocalize_segment(self, kf: Any) -> dict[str, Any] | None:
+    @staticmethod
+    def _collect(done: tuple[dict[str, Any], dict[int, F64]] | None, out: LoopOutcome) -> None:
+        if done is not None:
+            out.events.append(done[0])
+            out.corrections.update(done[1])
+
+    def _note_backend(self, state: MapState) -> None:
+        """Record how far the back end moved the keyframes of the previous keyframe's loops,
+        how long that took, and the ids of their constraints."""
+        ids = list(state.last_constraint_ids)
+        for record in self._awaiting:
+            before = record.pop("pose_before", None)
+            k = record["keyframe"]
+            if before is not None and k in state.world_from_kf:
+                key = "correction" if record["type"] == "loop" else "backend_correction"
+                record[key + "_m"], record[key + "_deg"] = _motion(before, np.asarray(state.world_from_kf[k]))
+            record["constraint_id"] = ids.pop(0) if ids else None
+            record["optimise_ms"] = state.last_update_ms
+        self._awaiting = []
+
+    def _relocalize_segment(self, out: LoopOutcome, state: MapState) -> None:
         """Place the first keyframe of a new segment in the old map: descriptors and the
         P3P bank against the stored keyframes, or — when that fails — the latest keyframes'
         features searched by KLT from the rough (motion-model) pose; then the KLT accuracy
         stage. The observations link the segments in later global BAs."""
         t0 = time.perf_counter()
+        kf = out.keyframe
         new_id = int(kf.id)
-        world = self.tracker.world_from_kf
+        world = state.world_from_kf
 
         def world_from_rect(k: int) -> F64:
-            rect_from_cam = np.asarray(getattr(self.keyframes[k], "rect_from_cam", np.eye(4)))
-            return world[k] @ invert_pose(rect_from_cam)
+            return np.asarray(world[k]) @ invert_pose(self.keyframes[k].rect_from_cam)
 
-        method = "descriptors"
-        kf_id, res = self.closer.relocalize(kf.image, exclude_after=new_id - 1)
-        new_from_old: F64 | None = None
-        inliers = 0
-        if kf_id is not None and res.cam_from_map is not None:
-            new_from_old, inliers = res.cam_from_map, res.n_inliers
-        else:
-            method = "klt from predicted pose"
-            older = sorted(k for k in self.keyframes if k < new_id)[-3:][::-1]
-            for cand in older:
-                pred = invert_pose(world_from_rect(new_id)) @ world_from_rect(cand)
-                tr = self.closer.track_old_features(cand, kf.image, pred)
-                if tr is not None and tr[1].size >= self.config.min_inliers:
-                    kf_id, new_from_old, inliers = cand, tr[0], int(tr[1].size)
-                    break
-        if kf_id is None or new_from_old is None:
-            logger.info("keyframe %d: relocalization failed (%s)", new_id, res.reason)
-            return None
+        found = self._find_old_keyframe(kf, world_from_rect)
+        if found is None:
+            return
+        kf_id, new_from_old, inliers, method = found
         tr = self.closer.track_old_features(kf_id, kf.image, new_from_old)
         obs_ids, obs_uv = np.zeros(0, np.int64), np.zeros((0, 2))
         if tr is not None and tr[1].size >= self.config.min_inliers:
             new_from_old, obs_ids, obs_uv = tr
-        self.closer.closures.append(
-            LoopClosure(
-                new_id,
-                kf_id,
-                new_from_old,
-                LoopObservations(new_id, obs_ids, obs_uv),
-                inliers,
-                int(obs_ids.size),
-                None,
-                0.0,
-                (time.perf_counter() - t0) * 1e3,
-                {"relocalization": method},
-            )
+        closure = LoopClosure(
+            new_id,
+            kf_id,
+            new_from_old,
+            LoopObservations(new_id, obs_ids, obs_uv),
+            inliers,
+            int(obs_ids.size),
+            None,
+            0.0,
+            (time.perf_counter() - t0) * 1e3,
+            {"relocalization": method},
         )
-        rect_from_cam = np.asarray(getattr(kf, "rect_from_cam", np.eye(4)))
-        world_from_new = world_from_rect(kf_id) @ invert_pose(new_from_old) @ rect_from_cam
-        before = world[new_id]
-        self._apply({new_id: world_from_new})
-        kf.world_from_kf = world_from_new  # the back end's initial guess
-        trans, rot = _motion(before, world_from_new)
+        self.closer.closures.append(closure)
+        world_from_new = world_from_rect(kf_id) @ invert_pose(new_from_old) @ kf.rect_from_cam
+        trans, rot = _motion(np.asarray(world[new_id]), world_from_new)
+        out.corrections[new_id] = world_from_new
+        out.keyframe = dataclasses.replace(kf, world_from_kf=world_from_new)  # the back end's initial guess
         record = {
             "type": "relocalization",
             "method": method,
             "keyframe": new_id,
-            "frame": int(getattr(kf, "frame_index", -1)),
+            "frame": kf.frame_index,
             "match_keyframe": int(kf_id),
-            "match_frame": int(getattr(self.keyframes[kf_id], "frame_index", -1)),
+            "match_frame": self.keyframes[kf_id].frame_index,
             "inliers": inliers,
             "klt_inliers": int(obs_ids.size),
             "correction_m": trans,
@@ -250,101 +389,59 @@ class LoopClosingStage:
             "time_ms": (time.perf_counter() - t0) * 1e3,
         }
         self.events.append(record)
-        if self.backend is not None:
-            self._to_backend(kf, self.closer.closures[-1], record)
+        out.events.append(record)
+        if self.via_backend:
+            self._to_backend(closure, record, out)
         logger.info("keyframe %d relocalized against keyframe %d (%s)", new_id, kf_id, method)
-        return record
 
-    def _close(self, closure: LoopClosure, late: bool = False) -> dict[str, Any] | None:
-        """Start the correction of a verified loop (in the worker process when
-        ``background``); returns the record when it was applied right away. ``late``: the
-        query keyframe is already in the back end (detection ran in the worker), so its
-        loop observations go in by ``add_observations``."""
-        if self.backend is not None:
+    def _find_old_keyframe(self, kf: Keyframe, world_from_rect: Any) -> tuple[int, F64, int, str] | None:
+        """An old keyframe and ``new_from_old`` (rectified frames) for a relocalization, its
+        inlier count and the method that found it; None when both methods fail."""
+        new_id = int(kf.id)
+        kf_id, res = self.closer.relocalize(kf.image, exclude_after=new_id - 1)
+        if kf_id is not None and res.cam_from_map is not None:
+            return kf_id, res.cam_from_map, res.n_inliers, "descriptors"
+        older = sorted(k for k in self.keyframes if k < new_id)[-3:][::-1]
+        for cand in older:
+            pred = invert_pose(world_from_rect(new_id)) @ world_from_rect(cand)
+            tr = self.closer.track_old_features(cand, kf.image, pred)
+            if tr is not None and tr[1].size >= self.config.min_inliers:
+                return cand, tr[0], int(tr[1].size), "klt from predicted pose"
+        logger.info("keyframe %d: relocalization failed (%s)", new_id, res.reason)
+        return None
+
+    def _close(self, closure: LoopClosure, out: LoopOutcome, state: MapState) -> None:
+        """Hand a verified loop to the back end, or start its correction (in the worker
+        process when ``background``; a finished one lands in ``out``)."""
+        if self.via_backend:
             record = self._loop_record(closure)
             record["applied_at_keyframe"] = max(self.keyframes)
             self.events.append(record)
-            if late:
-                self._late_to_backend(closure, record)
-            else:
-                self._to_backend(self.keyframes[closure.query_kf], closure, record)
-            return record
+            out.events.append(record)
+            self._to_backend(closure, record, out)
+            return
         if self._pending is not None:
             self._rerun = closure  # the running BA finishes first; then this loop's window
-            return None
-        return self._submit(closure)
+            return
+        self._collect(self._submit(closure, dict(state.world_from_kf)), out)
 
-    def _to_backend(self, kf: Any, closure: LoopClosure, record: dict[str, Any]) -> None:
+    def _to_backend(self, closure: LoopClosure, record: dict[str, Any], out: LoopOutcome) -> None:
         """Append the closure's observations of old landmarks to the keyframe's monocular
-        observations (before the pipeline adds it to the back end) and queue its relative
-        pose as a loop constraint for :meth:`update_backend`."""
-        obs = closure.observations
-        if obs.landmark_ids.size:
-            have = set(np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3)[:, 0].astype(np.int64).tolist())
-            keep = np.array([int(i) not in have for i in obs.landmark_ids], dtype=bool)
-            extra = np.column_stack([obs.landmark_ids[keep].astype(float), obs.uv_px[keep]])
-            kf.mono_obs = np.vstack([np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3), extra])
-        record["pose_before"] = np.asarray(self.tracker.world_from_kf[closure.query_kf]).copy()
-        self._queued.append((closure, record))
-
-    def _late_to_backend(self, closure: LoopClosure, record: dict[str, Any]) -> None:
-        """A loop found after its query keyframe went into the back end: its observations of
-        old landmarks join that keyframe now; its relative pose is queued as for
-        :meth:`_to_backend`."""
-        obs = closure.observations
-        add = getattr(self.backend, "add_observations", None)
-        record["loop_observations_added"] = 0
-        if obs.landmark_ids.size and callable(add):
-            rows = np.column_stack([obs.landmark_ids.astype(float), obs.uv_px])
-            try:
-                record["loop_observations_added"] = int(add(closure.query_kf, rows))
-            except LoopmodelError as exc:
-                logger.info("loop %d -> %d: observations not added (%s)", closure.query_kf, closure.match_kf, exc)
-        record["pose_before"] = np.asarray(self.tracker.world_from_kf[closure.query_kf]).copy()
-        self._queued.append((closure, record))
-
-    def update_backend(self, backend: Any | None = None) -> int:
-        """After the pipeline added the keyframe to the back end: add the queued loop
-        constraints (``kf_query_from_kf_match``, camera frames). Returns how many."""
-        be = backend if backend is not None else self.backend
-        if be is None:
-            return 0
-        n = 0
-        for closure, record in self._queued:
-            q, m = self.keyframes[closure.query_kf], self.keyframes[closure.match_kf]
-            rq = np.asarray(getattr(q, "rect_from_cam", np.eye(4)))
-            rm = np.asarray(getattr(m, "rect_from_cam", np.eye(4)))
-            q_from_m = invert_pose(rq) @ closure.query_from_match @ rm
-            t0 = time.perf_counter()
-            try:
-                record["constraint_id"] = int(be.add_loop_constraint(closure.query_kf, closure.match_kf, q_from_m))
-                n += 1
-            except LoopmodelError as exc:  # e.g. a back end without relative-pose factors
-                record["constraint_id"] = None
-                logger.info("loop %d -> %d: no loop constraint (%s)", closure.query_kf, closure.match_kf, exc)
-            record["optimise_ms"] = (time.perf_counter() - t0) * 1e3
-        self._awaiting = [r for _, r in self._queued]
-        self._queued = []
-        return n
-
-    def note_estimate(self, world_from_kf: dict[int, F64], update_ms: float = 0.0) -> None:
-        """Record how far the back end moved the keyframes of the loops just added."""
-        for record in self._awaiting:
-            before = record.pop("pose_before", None)
-            k = record["keyframe"]
-            if before is not None and k in world_from_kf:
-                key = "correction" if record["type"] == "loop" else "backend_correction"
-                record[key + "_m"], record[key + "_deg"] = _motion(before, world_from_kf[k])
-            record["optimise_ms"] = record.get("optimise_ms", 0.0) + update_ms
-        self._awaiting = []
+        observations and return its relative pose (left camera frames) as a constraint."""
+        out.keyframe = _with_observations(out.keyframe, closure.observations)
+        record["pose_before"] = np.asarray(out.keyframe.world_from_kf).copy()
+        self._awaiting.append(record)
+        q, m = self.keyframes[closure.query_kf], self.keyframes[closure.match_kf]
+        q_from_m = invert_pose(q.rect_from_cam) @ closure.query_from_match @ m.rect_from_cam
+        out.constraints.append(LoopConstraint(closure.query_kf, closure.match_kf, q_from_m))
 
     def _loop_record(self, closure: LoopClosure) -> dict[str, Any]:
         return {
             "type": "loop",
             "keyframe": closure.query_kf,
-            "frame": int(getattr(self.keyframes[closure.query_kf], "frame_index", -1)),
+            "frame": self.keyframes[closure.query_kf].frame_index,
             "match_keyframe": closure.match_kf,
-            "match_frame": int(getattr(self.keyframes[closure.match_kf], "frame_index", -1)),
+            "match_frame": self.keyframes[closure.match_kf].frame_index,
             "inliers": closure.n_descriptor_inliers,
             "klt_inliers": closure.n_klt_inliers,
             "loop_observations": int(closure.observations.landmark_ids.size),
@@ -354,23 +451,27 @@ class LoopClosingStage:
             "via": "backend",
         }
 
-    def _submit(self, closure: LoopClosure) -> dict[str, Any] | None:
-        before = dict(self.tracker.world_from_kf)
-        kfs = [self.keyframes[k] for k in sorted(self.keyframes)]
-        for k in kfs:  # the BA starts from the tracker's current estimate
-            k.world_from_kf = before.get(int(k.id), k.world_from_kf)
+    # ------------------------------------------------------------------ standalone global BA
+    def _submit(
+        self, closure: LoopClosure, before: dict[int, F64]
+    ) -> tuple[dict[str, Any], dict[int, F64]] | None:
+        # the BA starts from the current estimate
+        kfs = [
+            dataclasses.replace(k, world_from_kf=np.asarray(before.get(k.id, k.world_from_kf)))
+            for k in (self.keyframes[i] for i in sorted(self.keyframes))
+        ]
         problem = self.closer.correction_problem(kfs, closure)
         t0 = time.perf_counter()
         if not self.background:
-            return self._finish(closure, global_hybrid_ba(**problem), before, t0)
+            return self._finish(closure, global_hybrid_ba(**problem), before, t0, before)
         if self._pool is None:
             self._pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
         self._pending = (self._pool.submit(global_hybrid_ba, **problem), closure, before, t0)
         return None
 
-    def poll(self, wait: bool = False) -> dict[str, Any] | None:
-        """Apply a finished background correction (``wait``: block until it is done);
-        returns its record. Call once per frame."""
+    def poll(self, state: MapState, wait: bool = False) -> tuple[dict[str, Any], dict[int, F64]] | None:
+        """A finished background correction (``wait``: block until it is done) as its
+        record and the corrected poses, or None."""
         if self._pending is None:
             return None
         fut, closure, before, t0 = self._pending
@@ -381,52 +482,74 @@ class LoopClosingStage:
             res = fut.result()
         except Exception as exc:  # a failed correction is logged, never applied
             logger.warning("loop %d -> %d: correction failed (%s)", closure.query_kf, closure.match_kf, exc)
-            record = None
+            done = None
         else:
-            record = self._finish(closure, res, before, t0)
+            done = self._finish(closure, res, before, t0, state.world_from_kf)
         if self._rerun is not None:
             again, self._rerun = self._rerun, None
-            self._submit(again)
-        return record
+            now = dict(state.world_from_kf)
+            if done is not None:
+                now.update(done[1])
+            self._submit(again, now)
+        return done
 
-    def finish(self) -> None:
-        """Wait for and apply every pending detection and correction; stop the workers."""
-        self._collect(wait=True)
-        if self._queued:
-            self.update_backend()
+    def close(self, state: MapState) -> dict[int, F64]:
+        """Complete the last records; wait for every pending correction; stop the worker
+        process. Returns the corrections that arrived meanwhile."""
+        self._note_backend(state)
+        # detections still running: their loops have no later keyframe to be applied at
+        while self._inflight:
+            _kf_id, fut = self._inflight.popleft()
+            try:
+                closure, rejected = fut.result()
+            except LoopmodelError:
+                continue
+            self._note_rejected(rejected)
+            self.detections_unapplied += closure is not None
         if self._detect_pool is not None:
             self._detect_pool.shutdown()
             self._detect_pool = None
+        corrected: dict[int, F64] = {}
+        world = dict(state.world_from_kf)
         while self._pending is not None:
-            self.poll(wait=True)
+            done = self.poll(MapState(world), wait=True)
+            if done is not None:
+                corrected.update(done[1])
+                world.update(done[1])
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
+        return corrected
 
-    def _finish(self, closure: LoopClosure, res: GlobalBAResult, before: dict[int, F64], t0: float) -> dict[str, Any]:
+    def _finish(
+        self,
+        closure: LoopClosure,
+        res: GlobalBAResult,
+        before: dict[int, F64],
+        t0: float,
+        now: Mapping[int, F64],
+    ) -> tuple[dict[str, Any], dict[int, F64]]:
         corrected = dict(res.world_from_kf)
         # keyframes created while the BA ran move with the loop's current keyframe
         # (through their measured relative transforms when they have them)
-        now = self.tracker.world_from_kf
         delta = corrected[closure.query_kf] @ invert_pose(before[closure.query_kf])
         for k in sorted(now):
             if k <= closure.query_kf or k not in self.keyframes:
                 continue
             kf = self.keyframes[k]
-            prev = getattr(kf, "prev_keyframe_id", None)
-            rel = getattr(kf, "kf_prev_from_kf", None)
-            if getattr(kf, "connected", False) and rel is not None and prev in corrected:
+            prev = kf.prev_keyframe_id
+            rel = kf.kf_prev_from_kf
+            if kf.connected and rel is not None and prev in corrected:
                 corrected[k] = corrected[prev] @ np.asarray(rel)
             else:
-                corrected[k] = delta @ now[k]
-        self._apply(corrected)
+                corrected[k] = delta @ np.asarray(now[k])
         trans, rot = _motion(before[closure.query_kf], res.world_from_kf[closure.query_kf])
         record = {
             "type": "loop",
             "keyframe": closure.query_kf,
-            "frame": int(getattr(self.keyframes[closure.query_kf], "frame_index", -1)),
+            "frame": self.keyframes[closure.query_kf].frame_index,
             "match_keyframe": closure.match_kf,
-            "match_frame": int(getattr(self.keyframes[closure.match_kf], "frame_index", -1)),
+            "match_frame": self.keyframes[closure.match_kf].frame_index,
             "inliers": closure.n_descriptor_inliers,
             "klt_inliers": closure.n_klt_inliers,
             "loop_observations": int(closure.observations.landmark_ids.size),
@@ -449,28 +572,20 @@ class LoopClosingStage:
             rot,
             record["optimise_ms"],
         )
-        return record
-
-    def _apply(self, corrected: dict[int, F64]) -> None:
-        for k, T in corrected.items():
-            if k in self.keyframes:
-                self.keyframes[k].world_from_kf = T
-        self.tracker.apply_correction(corrected)
-        for fn in self.listeners:
-            fn(corrected)
+        return record, corrected
 
     # ------------------------------------------------------------------ metrics
     def metrics(self) -> dict[str, Any]:
-        """Summary for ``metrics.json`` (waits for the detections still running)."""
-        self._collect(wait=True)
+        """Summary for ``metrics.json``."""
         loops = [e for e in self.events if e["type"] == "loop"]
-        det = self.closer.detector
         return {
             "loop_closure_count": len(loops),
             "relocalization_count": len(self.events) - len(loops),
             "loop_events": self.events,
             "loop_candidates_rejected": len(self.rejected),
-            "loop_neighbours_skipped": det.neighbours_skipped,
+            "loop_neighbours_skipped": self.closer.detector.neighbours_skipped,
             "loop_keyframes_not_queried": self.keyframes_not_queried,
-            "loop_detect_ms_median": float(np.median(det.query_s) * 1e3) if det.query_s else None,
+            "loop_closures_late": self.late_closures,
+            "loop_closures_after_last_keyframe": self.detections_unapplied,
+            "loop_detect_ms_median": float(np.median(q) * 1e3) if (q := self.closer.detector.query_s) else None,
         }

@@ -16,25 +16,14 @@ from numpy.typing import NDArray
 
 from loopmodel.geometry.se3 import Y_DOWN_UP, invert_pose, look_at, se3_exp
 from loopmodel.loop.global_ba import LoopObservations
+from loopmodel.types import Keyframe
 
 F64 = NDArray[np.float64]
 
 
 @dataclass
-class SynthKeyframe:
-    """Duck-typed keyframe for :func:`loopmodel.loop.global_ba.global_hybrid_ba`."""
-
-    id: int
-    world_from_kf: F64
-    landmark_ids: NDArray[np.int64]
-    points_in_kf: F64
-    stereo_px: F64
-    mono_obs: F64
-
-
-@dataclass
 class SynthLoopProblem:
-    keyframes: list[SynthKeyframe]
+    keyframes: list[Keyframe]
     loops: list[LoopObservations]
     true_world_from_kf: list[F64]
     fx_px: float
@@ -71,7 +60,7 @@ def orbit_problem(
         rel = invert_pose(true_T[i - 1]) @ true_T[i]
         noise = np.concatenate([rng.normal(0, drift_trans_m, 3), rng.normal(0, drift_rot_rad, 3)])
         est_T.append(est_T[-1] @ rel @ se3_exp(noise))
-    kfs: list[SynthKeyframe] = []
+    kfs: list[Keyframe] = []
     next_lid = 0
     sets: list[tuple[NDArray[np.int64], F64]] = []
     for i in range(n_keyframes):
@@ -104,7 +93,7 @@ def orbit_problem(
             ok = q[:, 2] > 0.05
             uv = fx_px * q[ok, :2] / q[ok, 2:] + [cx, cy] + rng.normal(0, noise_px, (ok.sum(), 2))
             mono = np.column_stack([pid[ok].astype(float), uv])
-        kfs.append(SynthKeyframe(i, est_T[i], ids, p_kf, np.column_stack([uL, uR, v]), mono))
+        kfs.append(Keyframe(i, i, est_T[i], ids, p_kf, np.column_stack([uL, uR, v]), mono))
     # loop: the last keyframe re-observes the first set
     last_cfw = invert_pose(true_T[-1])
     ids0, P0 = sets[0]

@@ -11,7 +11,6 @@ import numpy as np
 
 from loopmodel.errors import LoopmodelError
 from loopmodel.io.base import Sequence
-from loopmodel.io.results import ResultsFolder
 from loopmodel.mapping.extraction import sequence_stripe_count, sequence_stripes
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.types import StripeProfile
@@ -111,12 +110,22 @@ class LiveMapping:
         if self._pool is not None:
             self._pool.shutdown(wait=wait, cancel_futures=True)
 
-    def write(self, folder: ResultsFolder) -> None:
-        """``mesh_live.ply``: the live mesh as the run left it (``live_mesh_every_kf`` > 0)."""
+    def mesh(self) -> Any:
+        """The live mesh as the run left it (an open3d mesh), or None when it was off or
+        never updated."""
         if self._every <= 0 or not self.update_ms:
-            return
-        from loopmodel.io.mesh_io import write_mesh
-
+            return None
         mesh = self._world.live_mesh()
-        if len(mesh.triangles):
-            write_mesh(folder.file("mesh_live.ply"), mesh, "ply")
+        return mesh if len(mesh.triangles) else None
+
+    def metrics(self) -> dict[str, Any]:
+        """Live-mesh update counts and times (ms) for ``metrics.json``; empty when off."""
+        if not self.enabled:
+            return {}
+        a = np.asarray(self.update_ms, dtype=float)
+        return {
+            "live_mesh_updates": len(self.update_ms),
+            "live_mesh_blocks_remeshed": self.blocks_remeshed,
+            "live_mesh_update_ms_median": float(np.median(a)) if a.size else None,
+            "live_mesh_update_ms_p95": float(np.percentile(a, 95)) if a.size else None,
+        }

@@ -1,0 +1,93 @@
+"""The end-of-run mapping step: the run's laser stripes, and the mesh of them placed with the
+final trajectory, with its accuracy when the sequence carries a ground-truth scene."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from loopmodel.config import MappingConfig
+from loopmodel.errors import LoopmodelError
+from loopmodel.io.base import Sequence
+from loopmodel.mapping.extraction import sequence_stripe_count, sequence_stripes
+from loopmodel.types import StripeProfile, Trajectory
+
+logger = logging.getLogger(__name__)
+
+
+def run_stripes(sequence: Sequence, last_ns: int | None, config: MappingConfig) -> list[StripeProfile]:
+    """The sequence's laser profiles up to ``last_ns`` (the last processed frame; sensor
+    frame, metres); none without a processed frame or without profiles. A reader error is
+    logged and gives none (the trajectories matter more than the stripes)."""
+    if last_ns is None or sequence_stripe_count(sequence) == 0:
+        return []
+    try:
+        return [s for s in sequence_stripes(sequence, config) if s.timestamp_ns <= last_ns]
+    except LoopmodelError as exc:
+        logger.error("laser stripes not written: %s", exc)
+        return []
+
+
+def aligned_to(traj: Trajectory, reference: Trajectory) -> Trajectory:
+    """``traj`` moved by the SE(3) transform that best aligns its positions to ``reference``
+    at common timestamps (exact match)."""
+    from loopmodel.geometry.align import umeyama_alignment
+    from loopmodel.geometry.se3 import make_pose
+
+    _, ia, ib = np.intersect1d(traj.timestamps_ns, reference.timestamps_ns, return_indices=True)
+    if ia.size < 3:
+        return traj
+    R, t, _s = umeyama_alignment(traj.positions_m[ia], reference.positions_m[ib])
+    return Trajectory(traj.timestamps_ns, make_pose(R, t)[None] @ traj.world_from_cam)
+
+
+def _mesh_errors(
+    sequence: Sequence, stripes: list[StripeProfile], online: Trajectory, final: Trajectory, config: MappingConfig
+) -> dict[str, Any]:
+    """With a ground-truth scene (``scene.ply`` attachment) and poses: the mesh error with
+    ground-truth, online (before loop closure) and final (after) poses, both SE(3)-aligned to
+    the truth by their frame positions, and the completeness of the scanned object
+    (``object.ply``) and of its swept part when the sequence has it."""
+    from loopmodel.io.mesh_io import mesh_from_bytes
+    from loopmodel.mapping.accuracy import mesh_error_metrics
+
+    names = sequence.attachment_names
+    gt = sequence.ground_truth
+    if "scene.ply" not in names or gt is None:
+        return {}
+    gt_mesh = mesh_from_bytes(sequence.read_attachment("scene.ply"), "ply", sequence.path)
+    # the run's world is its first keyframe: express both trajectories in the truth's world by
+    # the SE(3) alignment of the frame positions before meshing
+    trajs = {"gt": gt, "before": aligned_to(online, gt), "after": aligned_to(final, gt)}
+    obj = None
+    if "object.ply" in names:
+        obj = mesh_from_bytes(sequence.read_attachment("object.ply"), "ply", sequence.path)
+    return mesh_error_metrics(stripes, trajs, gt_mesh, config, object_mesh=obj)
+
+
+def final_mesh(
+    sequence: Sequence, stripes: list[StripeProfile], online: Trajectory, final: Trajectory, config: MappingConfig
+) -> tuple[Any, dict[str, Any]]:
+    """The mesh of ``stripes`` placed with ``final`` (open3d, world frame) and its metrics
+    (vertex count, accuracy against the sequence's ground truth); (None, {}) when meshing is
+    off, there is nothing to mesh, or it fails (logged: a run without a mesh still has its
+    trajectories)."""
+    if not stripes or not config.write_mesh or len(final) < 2:
+        return None, {}
+    from loopmodel.mapping.stripe_map import StripeMap
+
+    try:
+        smap = StripeMap.from_trajectory(final, stripes, config)
+        smap.check_nonempty()
+        surface = smap.mesh()
+    except LoopmodelError as exc:
+        logger.error("mesh not written: %s", exc)
+        return None, {}
+    out: dict[str, Any] = {"mesh_vertices": len(surface.vertices)}
+    try:
+        out.update(_mesh_errors(sequence, stripes, online, final, config))
+    except LoopmodelError as exc:
+        logger.error("no mesh accuracy: %s", exc)
+    return surface, out
