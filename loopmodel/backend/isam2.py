@@ -762,19 +762,25 @@ class Isam2Backend:
         return float(sigma_px * np.sqrt(2.0 * rho.mean()))
 
     def batch_refine(
-        self, pixel_sigma_px: float | None = None, huber_k: float = 1.345, max_iterations: int = 30
+        self,
+        pixel_sigma_px: float | None = None,
+        huber_k: float = 1.345,
+        max_iterations: int = 30,
+        min_gain_sd: float = 3.0,
     ) -> BackendEstimate:
         """Final batch bundle adjustment of every keyframe and landmark on all live factors
         (gtsam Levenberg-Marquardt from the current estimate), with the stereo and
         monocular observations re-weighted to ``pixel_sigma_px`` under a Huber loss of
         ``huber_k`` sigmas (priors and loop constraints as they are). ``pixel_sigma_px``
-        None: the run's own noise, the median over keyframe intervals of the front end's
-        robust pose-residual scale (KLT tracks against stereo points; ``ba_info``
-        ``pose_residual_sigma_px``), else the robust scale (1.4826 x median absolute value)
-        of the image residuals at the incremental solution (biased low: a landmark seen by
-        two keyframes leaves little redundancy). The result is kept only when it lowers
-        the robust reprojection error (:meth:`robust_error_px` at that scale) by more than
-        the noise could (robust chi-square drop above sqrt(2 n), n residuals); otherwise the
+        None: the run's own noise, the robust scale (1.4826 x median absolute value) of the
+        image residuals (KLT and stereo observations) at the incremental solution, corrected
+        for the redundancy ``sqrt(n / (n - u))`` (n residuals, u pose and landmark unknowns:
+        a landmark seen by two keyframes leaves little redundancy, so the raw scale is far
+        too small); without redundancy, the median over keyframe intervals of the front
+        end's robust pose-residual scale (``ba_info`` ``pose_residual_sigma_px``). The result
+        is kept only when it lowers the robust reprojection error (:meth:`robust_error_px` at
+        that scale) significantly: the robust chi-square drops by more than ``min_gain_sd``
+        standard deviations sqrt(2 n) of a chi-square of n residuals; otherwise the
         incremental solution is returned. :attr:`refine_info` says which, with the noise.
         The incremental solution keeps its own weights; this one is not fed back to iSAM2."""
         if not self._kf_seq:
@@ -782,14 +788,19 @@ class Isam2Backend:
         start = self._isam.calculateEstimate()
         r0 = self.reprojection_residuals_px(start)
         mad_px = float(1.4826 * np.median(np.abs(r0))) if r0.size else float("nan")
+        keys = np.asarray(start.keys(), dtype=np.uint64)
+        chars = (keys >> np.uint64(56)).astype(np.int64)
+        unknowns = 6 * int((chars == ord("x")).sum()) + 3 * int((chars == ord("l")).sum())
+        redundancy = r0.size - unknowns
+        backend_px = mad_px * np.sqrt(r0.size / redundancy) if redundancy > 0 else float("nan")
         frontend_px = float(np.median(self._frontend_sigma_px)) if self._frontend_sigma_px else float("nan")
         source = "configured"
         if pixel_sigma_px is not None:
             sigma = float(pixel_sigma_px)
+        elif np.isfinite(backend_px) and backend_px > 0:
+            sigma, source = max(backend_px, 1e-3), "back-end residual MAD, redundancy-corrected"
         elif np.isfinite(frontend_px):
             sigma, source = max(frontend_px, 1e-3), "front-end pose residuals"
-        elif np.isfinite(mad_px) and mad_px > 0:
-            sigma, source = max(mad_px, 1e-3), "back-end residual MAD"
         else:
             raise EstimationError("no image residuals to estimate the noise from")
         base3: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(3, sigma)
@@ -818,16 +829,19 @@ class Isam2Backend:
         values = gtsam.LevenbergMarquardtOptimizer(graph, start, params).optimize()
         before = self.robust_error_px(r0, sigma, huber_k)
         after = self.robust_error_px(self.reprojection_residuals_px(values), sigma, huber_k)
-        # the robust chi-square (sum of 2 rho(r / sigma)) must drop by more than its own
-        # standard deviation sqrt(2 n): a smaller drop is not told apart from the noise
+        # the robust chi-square (sum of 2 rho(r / sigma)) must drop by more than min_gain_sd
+        # of its standard deviations sqrt(2 n): a smaller drop is not told apart from noise
         n_res = int(np.isfinite(r0).sum())
         drop = n_res * ((before / sigma) ** 2 - (after / sigma) ** 2)
-        applied = bool(drop > np.sqrt(2.0 * n_res))
+        applied = bool(drop > min_gain_sd * np.sqrt(2.0 * n_res))
         self.refine_info = {
             "pixel_sigma_px": sigma,
             "pixel_sigma_source": source,
             "frontend_residual_sigma_px": frontend_px,
             "backend_residual_mad_px": mad_px,
+            "backend_residual_sigma_px": backend_px,
+            "refine_residuals": int(r0.size),
+            "refine_unknowns": unknowns,
             "refine_robust_px_before": before,
             "refine_robust_px_after": after,
             "refine_chi2_drop": float(drop),
@@ -852,7 +866,7 @@ class Isam2Backend:
         self.refine()
         if not refine.batch_ba:
             return self.estimate()
-        return self.batch_refine(refine.pixel_sigma_px, refine.huber_k, refine.max_iterations)
+        return self.batch_refine(refine.pixel_sigma_px, refine.huber_k, refine.max_iterations, refine.min_gain_sd)
 
     def metrics(self) -> dict[str, Any]:
         """Factor and landmark counts of the graph; the noise and outcome of the final batch

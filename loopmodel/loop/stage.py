@@ -108,6 +108,10 @@ class LoopStage(Protocol):
         """Finish pending work at the end of the run; returns its last corrections."""
         ...
 
+    def final_constraints(self) -> list[LoopConstraint]:
+        """Constraints of loops found after the last keyframe (read after :meth:`close`)."""
+        ...
+
     def metrics(self) -> dict[str, Any]:
         """Summary for ``metrics.json``."""
         ...
@@ -123,6 +127,10 @@ class NullLoopStage:
     def close(self, state: MapState) -> dict[int, F64]:
         """Nothing pending."""
         return {}
+
+    def final_constraints(self) -> list[LoopConstraint]:
+        """None."""
+        return []
 
     def metrics(self) -> dict[str, Any]:
         """No loop-closing figures."""
@@ -182,6 +190,7 @@ class LoopClosingStage:
         self.keyframes_not_queried = 0
         self.late_closures = 0
         self.detections_unapplied = 0
+        self._final_constraints: list[LoopConstraint] = []
         # covisibility: (first, last landmark id, keyframe) per keyframe; direct neighbours
         self._lm_ranges: list[tuple[int, int, int]] = []
         self._covisible_of: dict[int, set[int]] = {}
@@ -255,14 +264,11 @@ class LoopClosingStage:
         becomes the constraint (without observations)."""
         cur = out.keyframe
         c, q = int(cur.id), closure.query_kf
-        if c == q:
-            self._close(closure, out, state)
-            return
         world = state.world_from_kf
         w_q = np.asarray(world[q]) @ invert_pose(self.keyframes[q].rect_from_cam)
         w_c = np.asarray(cur.world_from_kf) @ invert_pose(cur.rect_from_cam)
         pred = invert_pose(w_c) @ w_q @ closure.query_from_match
-        tr = self.closer.track_old_features(closure.match_kf, cur.image, pred)
+        tr = self.closer.track_old_features(closure.match_kf, cur.image, pred) if c != q else None
         if tr is not None and tr[1].size >= self.config.min_inliers:
             moved = LoopClosure(
                 c,
@@ -279,18 +285,25 @@ class LoopClosingStage:
             self.closer.closures.append(moved)
             self._close(moved, out, state)
             return
-        if not self.via_backend:
+        if not self.via_backend or c == q:
             self._close(closure, out, state)
             return
+        out.constraints.append(self._constraint_only(closure, state, c))
+        out.events.append(self.events[-1])
+
+    def _constraint_only(self, closure: LoopClosure, state: MapState, at_keyframe: int | None) -> LoopConstraint:
+        """The record and the relative-pose constraint of a loop applied without its
+        observations (its query keyframe is already in the back end)."""
+        q = closure.query_kf
         record = self._loop_record(closure)
-        record["applied_at_keyframe"] = c
+        record["applied_at_keyframe"] = at_keyframe
+        record["loop_observations"] = 0
         self.events.append(record)
-        out.events.append(record)
-        record["pose_before"] = np.asarray(world[q]).copy()
+        record["pose_before"] = np.asarray(state.world_from_kf[q]).copy()
         self._awaiting.append(record)
         m = self.keyframes[closure.match_kf]
         q_from_m = invert_pose(self.keyframes[q].rect_from_cam) @ closure.query_from_match @ m.rect_from_cam
-        out.constraints.append(LoopConstraint(q, closure.match_kf, q_from_m))
+        return LoopConstraint(q, closure.match_kf, q_from_m)
 
     def _temporal_neighbours(self, kf: Keyframe) -> set[int]:
         """Keyframes co-visible with the new keyframe's local map (ORB-SLAM's covisibility
@@ -497,15 +510,21 @@ class LoopClosingStage:
         """Complete the last records; wait for every pending correction; stop the worker
         process. Returns the corrections that arrived meanwhile."""
         self._note_backend(state)
-        # detections still running: their loops have no later keyframe to be applied at
+        # detections still running: their loops have no later keyframe to be applied at;
+        # with the back end they become constraints (:meth:`final_constraints`)
         while self._inflight:
-            _kf_id, fut = self._inflight.popleft()
+            kf_id, fut = self._inflight.popleft()
             try:
                 closure, rejected = fut.result()
-            except LoopmodelError:
+            except LoopmodelError as exc:
+                logger.warning("loop detection of keyframe %d failed (%s)", kf_id, exc)
                 continue
             self._note_rejected(rejected)
-            self.detections_unapplied += closure is not None
+            if closure is None:
+                continue
+            self.detections_unapplied += 1
+            if self.via_backend:
+                self._final_constraints.append(self._constraint_only(closure, state, None))
         if self._detect_pool is not None:
             self._detect_pool.shutdown()
             self._detect_pool = None
@@ -520,6 +539,11 @@ class LoopClosingStage:
             self._pool.shutdown()
             self._pool = None
         return corrected
+
+    def final_constraints(self) -> list[LoopConstraint]:
+        """Constraints of the loops whose detection finished after the last keyframe."""
+        out, self._final_constraints = self._final_constraints, []
+        return out
 
     def _finish(
         self,
