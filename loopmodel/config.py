@@ -396,11 +396,13 @@ class LoopConfig(_Section):
     max_cycle_rot_deg: float = Field(2.0, gt=0, description="forward/reverse pose agreement")
     max_cycle_trans_m: float = Field(0.05, gt=0)
     # perf (issue 26): loop detection off the tracking path
-    background_detection: bool = Field(
-        True, description="retrieval and verification in a worker thread, applied at the next keyframe"
+    # process: the thread variant slowed tracking by GIL contention (KITTI clip, load 20:
+    # track_ms median 52 vs 31 ms without a worker; measured by tools/bench.py pipeline)
+    detection_worker: Literal["process", "thread", "none"] = Field(
+        "process", description="where retrieval and verification run; applied at the next keyframe"
     )
     max_queued_keyframes: int = Field(
-        4, ge=1, description="worker backlog above which new keyframes are stored but not queried"
+        16, ge=1, description="worker backlog above which new keyframes are stored but not queried"
     )
 
 

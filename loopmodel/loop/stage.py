@@ -15,8 +15,9 @@ point, :meth:`LoopClosingStage.on_keyframe`, and never changes another stage: it
   returns the corrected keyframe poses when it is done. Keyframes created while the BA ran
   move rigidly with the loop's current keyframe.
 
-Place recognition and verification run in a worker thread (``loop.background_detection``):
-a keyframe never waits for them. A loop found for an earlier keyframe is applied at the
+Place recognition and verification run in a worker (``loop.detection_worker``: a process
+by default, which holds the keyframe database; a thread; or inline): a keyframe never waits
+for them. A loop found for an earlier keyframe is applied at the
 next keyframe that arrives after it: the old keyframe's features are tracked (KLT) into
 that keyframe's image from the pose the tracker and the loop predict, and the loop's
 observations and relative pose are those of the new keyframe. Candidates co-visible with
@@ -54,6 +55,46 @@ from loopmodel.types import Keyframe, StereoCalibration
 logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
+
+
+@dataclass
+class Detection:
+    """What place recognition and verification of one keyframe produced: the closure (or
+    None), the candidates rejected, how many temporal neighbours were skipped and the
+    detection's wall time (s)."""
+
+    closure: LoopClosure | None
+    rejected: list[LoopEvent]
+    neighbours_skipped: int
+    detect_s: float
+
+
+def detect_keyframe(closer: LoopCloser, kf: Keyframe, neighbours: set[int], query: bool) -> Detection:
+    """Store ``kf`` in ``closer``'s database and look for a verified revisit."""
+    det = closer.detector
+    n_rej, n_skip = len(det.rejected), det.neighbours_skipped
+    t0 = time.perf_counter()
+    closure = closer.process_keyframe(kf, neighbours=neighbours, query=query)
+    return Detection(closure, det.rejected[n_rej:], det.neighbours_skipped - n_skip, time.perf_counter() - t0)
+
+
+#: The worker process's own loop closer (its keyframe database), made by :func:`_worker_start`.
+_WORKER_CLOSER: LoopCloser | None = None
+
+
+def _worker_start(calibration: StereoCalibration, config: LoopConfig) -> None:
+    global _WORKER_CLOSER
+    _WORKER_CLOSER = LoopCloser(calibration, config)
+
+
+def _worker_detect(kf: Keyframe, neighbours: set[int], query: bool) -> Detection:
+    assert _WORKER_CLOSER is not None
+    return detect_keyframe(_WORKER_CLOSER, kf, neighbours, query)
+
+
+def _worker_relocalize(image: NDArray[np.uint8], exclude_after: int) -> tuple[int | None, Any]:
+    assert _WORKER_CLOSER is not None
+    return _WORKER_CLOSER.relocalize(image, exclude_after=exclude_after)
 
 
 @dataclass(frozen=True)
@@ -183,10 +224,15 @@ class LoopClosingStage:
         self._rerun: LoopClosure | None = None
         #: records of the last outcome's constraints, completed from the next MapState
         self._awaiting: list[dict[str, Any]] = []
-        #: Place recognition and verification in a worker thread (``background_detection``):
-        #: OpenCV's detection and KLT and numpy's large array operations release the GIL.
-        self._detect_pool: ThreadPoolExecutor | None = None
-        self._inflight: deque[tuple[int, Future[tuple[LoopClosure | None, list[LoopEvent]]]]] = deque()
+        #: Place recognition and verification in a worker (``detection_worker``); in the
+        #: process variant the database lives there and ``self.closer`` keeps only the
+        #: keyframes' images and landmarks (KLT stage, corrections)
+        self._detect_pool: ThreadPoolExecutor | ProcessPoolExecutor | None = None
+        self._inflight: deque[tuple[int, Future[Detection]]] = deque()
+        self.neighbours_skipped = 0
+        self.detect_s: list[float] = []
+        if self.config.detection_worker == "process":
+            self._workers().submit(int, 0)  # start the worker now, while tracking starts
         self.keyframes_not_queried = 0
         self.late_closures = 0
         self.detections_unapplied = 0
@@ -214,32 +260,46 @@ class LoopClosingStage:
         if not keyframe.connected and len(self.keyframes) > 1:
             self._apply_detections(out, state, wait=True)  # relocalization reads the database
             self._relocalize_segment(out, state)
-        if self.config.background_detection:
-            if self._detect_pool is None:
-                self._detect_pool = ThreadPoolExecutor(1, thread_name_prefix="loop-detect")
-            query = len(self._inflight) < self.config.max_queued_keyframes
-            self.keyframes_not_queried += not query
-            fut = self._detect_pool.submit(self._detect, out.keyframe, neighbours, query)
-            self._inflight.append((int(keyframe.id), fut))
-        else:
-            closure, rejected = self._detect(out.keyframe, neighbours, True)
-            self._note_rejected(rejected)
+        mode = self.config.detection_worker
+        if mode == "none":
+            closure = self._note(detect_keyframe(self.closer, out.keyframe, neighbours, True))
             if closure is not None:
                 self._close(closure, out, state)
+        else:
+            query = len(self._inflight) < self.config.max_queued_keyframes
+            self.keyframes_not_queried += not query
+            if mode == "process":
+                self.closer.remember(out.keyframe)
+                fut = self._workers().submit(_worker_detect, out.keyframe, neighbours, query)
+            else:
+                fut = self._workers().submit(detect_keyframe, self.closer, out.keyframe, neighbours, query)
+            self._inflight.append((int(keyframe.id), fut))
         self.keyframes[int(keyframe.id)] = out.keyframe
         return out
 
-    def _detect(self, kf: Keyframe, neighbours: set[int], query: bool) -> tuple[LoopClosure | None, list[LoopEvent]]:
-        """Place recognition and verification of one keyframe (in the worker thread with
-        ``background_detection``): the closure found and the candidates rejected."""
-        rejected = self.closer.detector.rejected
-        n = len(rejected)
-        closure = self.closer.process_keyframe(kf, neighbours=neighbours, query=query)
-        return closure, rejected[n:]
+    def _workers(self) -> ThreadPoolExecutor | ProcessPoolExecutor:
+        if self._detect_pool is None:
+            if self.config.detection_worker == "process":
+                self._detect_pool = ProcessPoolExecutor(
+                    1,
+                    mp_context=mp.get_context("spawn"),
+                    initializer=_worker_start,
+                    initargs=(self.closer.calibration, self.config),
+                )
+            else:
+                self._detect_pool = ThreadPoolExecutor(1, thread_name_prefix="loop-detect")
+        return self._detect_pool
 
-    def _note_rejected(self, rejected: list[LoopEvent]) -> None:
-        for ev in rejected:
+    def _note(self, d: Detection) -> LoopClosure | None:
+        """Record a detection's rejected candidates and counts; its closure (the process
+        worker's closures join this closer's list)."""
+        for ev in d.rejected:
             self.rejected.append({"query_kf": ev.query_id, "match_kf": ev.match_id, "reason": ev.reason})
+        self.neighbours_skipped += d.neighbours_skipped
+        self.detect_s.append(d.detect_s)
+        if d.closure is not None and self.config.detection_worker == "process":
+            self.closer.closures.append(d.closure)
+        return d.closure
 
     def _apply_detections(self, out: LoopOutcome, state: MapState, wait: bool) -> None:
         """The worker's finished detections, in keyframe order (``wait``: all of them); a
@@ -247,11 +307,10 @@ class LoopClosingStage:
         while self._inflight and (wait or self._inflight[0][1].done()):
             kf_id, fut = self._inflight.popleft()
             try:
-                closure, rejected = fut.result()
+                closure = self._note(fut.result())
             except LoopmodelError as exc:  # a failed detection is logged, never applied
                 logger.warning("loop detection of keyframe %d failed (%s)", kf_id, exc)
                 continue
-            self._note_rejected(rejected)
             if closure is not None:
                 self.late_closures += 1
                 self._close_late(closure, out, state)
@@ -411,7 +470,10 @@ class LoopClosingStage:
         """An old keyframe and ``new_from_old`` (rectified frames) for a relocalization, its
         inlier count and the method that found it; None when both methods fail."""
         new_id = int(kf.id)
-        kf_id, res = self.closer.relocalize(kf.image, exclude_after=new_id - 1)
+        if self.config.detection_worker == "process":  # the database is in the worker
+            kf_id, res = self._workers().submit(_worker_relocalize, kf.image, new_id - 1).result()
+        else:
+            kf_id, res = self.closer.relocalize(kf.image, exclude_after=new_id - 1)
         if kf_id is not None and res.cam_from_map is not None:
             return kf_id, res.cam_from_map, res.n_inliers, "descriptors"
         older = sorted(k for k in self.keyframes if k < new_id)[-3:][::-1]
@@ -511,25 +573,29 @@ class LoopClosingStage:
         process. Returns the corrections that arrived meanwhile."""
         self._note_backend(state)
         # detections still running: their loops have no later keyframe to be applied at;
-        # with the back end they become constraints (:meth:`final_constraints`)
+        # with the back end they become constraints (:meth:`final_constraints`), without it
+        # their global BA runs now
+        corrected: dict[int, F64] = {}
         while self._inflight:
             kf_id, fut = self._inflight.popleft()
             try:
-                closure, rejected = fut.result()
+                closure = self._note(fut.result())
             except LoopmodelError as exc:
                 logger.warning("loop detection of keyframe %d failed (%s)", kf_id, exc)
                 continue
-            self._note_rejected(rejected)
             if closure is None:
                 continue
             self.detections_unapplied += 1
             if self.via_backend:
                 self._final_constraints.append(self._constraint_only(closure, state, None))
+            else:
+                last = LoopOutcome(self.keyframes[max(self.keyframes)])
+                self._close(closure, last, state)
+                corrected.update(last.corrections)
         if self._detect_pool is not None:
             self._detect_pool.shutdown()
             self._detect_pool = None
-        corrected: dict[int, F64] = {}
-        world = dict(state.world_from_kf)
+        world = {**state.world_from_kf, **corrected}
         while self._pending is not None:
             done = self.poll(MapState(world), wait=True)
             if done is not None:
@@ -607,9 +673,10 @@ class LoopClosingStage:
             "relocalization_count": len(self.events) - len(loops),
             "loop_events": self.events,
             "loop_candidates_rejected": len(self.rejected),
-            "loop_neighbours_skipped": self.closer.detector.neighbours_skipped,
+            "loop_neighbours_skipped": self.neighbours_skipped,
             "loop_keyframes_not_queried": self.keyframes_not_queried,
             "loop_closures_late": self.late_closures,
             "loop_closures_after_last_keyframe": self.detections_unapplied,
-            "loop_detect_ms_median": float(np.median(q) * 1e3) if (q := self.closer.detector.query_s) else None,
+            "loop_detect_ms_median": float(np.median(self.detect_s) * 1e3) if self.detect_s else None,
+            "loop_detection_worker": self.config.detection_worker,
         }
