@@ -396,10 +396,12 @@ class LoopConfig(_Section):
     max_cycle_rot_deg: float = Field(2.0, gt=0, description="forward/reverse pose agreement")
     max_cycle_trans_m: float = Field(0.05, gt=0)
     # perf (issue 26): loop detection off the tracking path
-    # process: the thread variant slowed tracking by GIL contention (KITTI clip, load 20:
-    # track_ms median 52 vs 31 ms without a worker; measured by tools/bench.py pipeline)
+    # KITTI clip, 2 runs each at load 25 on 2 cores (frame-time p95 / track_ms median):
+    # thread 472, 466 / 57, 53 ms; process 416, 473 / 61, 69 ms; none 506, 904 / 29, 40 ms.
+    # Both workers take CPU from tracking on a loaded machine; the thread starts at once
+    # (the process imports the package again, ~2 s) and is the default
     detection_worker: Literal["process", "thread", "none"] = Field(
-        "process", description="where retrieval and verification run; applied at the next keyframe"
+        "thread", description="where retrieval and verification run; applied at the next keyframe"
     )
     max_queued_keyframes: int = Field(
         16, ge=1, description="worker backlog above which new keyframes are stored but not queried"

@@ -35,7 +35,7 @@ def test_keyframes_do_not_wait_for_a_blocked_verifier(monkeypatch: pytest.Monkey
     seq = open_sequence(TINY)
     cfg = Config()
     cfg.frontend.max_parallax_ratio = 0.005  # a keyframe every frame or two on this short clip
-    cfg.loop.detection_worker = "thread"  # the patched verifier runs in this process
+    cfg.loop.detection_worker = "thread"  # (the default) the patched verifier runs in this process
     cfg.loop.max_queued_keyframes = 100
     frames_while_blocked: list[int] = []
     keyframes_while_blocked: list[int] = []
