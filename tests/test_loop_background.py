@@ -84,3 +84,42 @@ def test_backlog_stores_keyframes_without_querying(monkeypatch: pytest.MonkeyPat
     # the first two were queried; while the backlog held 2, the rest were only stored
     assert queried[:2] == [True, True] and not any(queried[2:])
     assert out.metrics["loop_keyframes_not_queried"] == n_kf - 2
+
+
+@pytest.mark.slow
+def test_process_worker_finds_the_loops_the_inline_detection_finds() -> None:
+    """The database in a worker process (``detection_worker: process``): the same loops as
+    inline detection on test_loop_closer's synthetic revisit, applied by its global BA."""
+    import numpy as np
+    from test_loop_closer import BASELINE, CAM, _add_mono, _keyframe, _sequence, _texture
+
+    from loopmodel.config import LoopConfig
+    from loopmodel.geometry.se3 import make_pose
+    from loopmodel.loop.stage import LoopClosingStage, MapState
+    from loopmodel.types import StereoCalibration
+
+    counts = {}
+    for mode in ("none", "process"):
+        rng = np.random.default_rng(7)
+        tex = _texture(rng)
+        true, est = _sequence(rng)
+        calib = StereoCalibration(CAM.K, CAM.K, make_pose(np.eye(3), [-BASELINE, 0, 0]), (640, 480))
+        kfs, lid = [], 0
+        for i, (Tt, Te) in enumerate(zip(true, est, strict=True)):
+            kfs.append(_keyframe(i, tex, Tt, Te, lid, rng))
+            lid += len(kfs[-1].landmark_ids)
+        _add_mono(kfs, true, rng)
+        # keyframes arrive at once here: no backlog limit, so every keyframe is queried
+        cfg = LoopConfig(min_gap_keyframes=8, n_features=800, detection_worker=mode, max_queued_keyframes=100)
+        stage = LoopClosingStage(calib, cfg, via_backend=False)
+        poses = {}
+        for kf in kfs:
+            poses[kf.id] = kf.world_from_kf.copy()
+            stage.on_keyframe(kf, MapState(dict(poses)))
+        stage.close(MapState(dict(poses)))
+        m = stage.metrics()
+        verified = [c for c in stage.closer.closures if "verified_at_keyframe" not in c.info]
+        counts[mode] = (m["loop_closure_count"], sorted((c.query_kf, c.match_kf) for c in verified))
+        assert m["loop_detection_worker"] == mode
+    assert counts["process"][0] >= 1
+    assert counts["process"][1] == counts["none"][1]  # the same loops were verified
