@@ -301,6 +301,10 @@ class _Run:
         wall = time.perf_counter() - self.t_start
         self.live.close(wait=not interrupted)
         self._correct(self.loop.close(self._state()))
+        # perf (issue 26): loops whose (background) detection finished after the last keyframe
+        if self._add_constraints(self.loop.final_constraints()):
+            moved = self.backend.estimate(landmarks=False)
+            self._correct({k: moved.world_from_kf[k] for k in moved.changed_keyframes})
         t_final = time.perf_counter()
         estimate = self._final_estimate(interrupted)
         result = RunResult(

@@ -74,6 +74,10 @@ class LoopStage(Protocol):
         """Finish pending work at the end of the run; returns its last corrections."""
         ...
 
+    def final_constraints(self) -> list[LoopConstraint]:
+        """Constraints of loops found after the last keyframe (read after :meth:`close`)."""
+        ...
+
     def metrics(self) -> dict[str, Any]:
         """Summary for ``metrics.json``."""
         ...
@@ -89,6 +93,10 @@ class NullLoopStage:
     def close(self, state: MapState) -> dict[int, F64]:
         """Nothing pending."""
         return {}
+
+    def final_constraints(self) -> list[LoopConstraint]:
+        """None."""
+        return []
 
     def metrics(self) -> dict[str, Any]:
         """No loop-closing figures."""
