@@ -154,8 +154,11 @@ def before_after_png(
     n_views: int = 3,
     colorbar_mm: float | None = None,
 ) -> bytes:
-    """One PNG: a row per panel (title, vertices, triangles, vertex colours) and a column per
-    fixed viewpoint; all panels share the viewpoints of the first so they compare directly."""
+    """One PNG.
+
+    A row per panel (title, vertices, triangles, vertex colours) and a column per fixed viewpoint;
+    all panels share the viewpoints of the first so they compare directly.
+    """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
