@@ -420,6 +420,7 @@ class TrackingRun:
     iter_ms: F64  # one VVS iteration (all cameras), per frame
     frame_ms: F64  # sampling + edge search + VVS, per frame
     lost: NDArray[np.bool_]
+    search_ms: F64 | None = None  # the moving-edge search alone, per frame (image tracking)
 
 
 def simulate_tracking(
