@@ -943,5 +943,10 @@ from loopmodel.cli.batch import batch_app  # noqa: E402
 
 app.add_typer(batch_app, name="batch")
 
+from loopmodel.cli.vvs_images import vvs_render, vvs_track  # noqa: E402
+
+vvs_app.command("render")(vvs_render)
+vvs_app.command("track")(vvs_track)
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

@@ -113,7 +113,13 @@ class ImageTracker:
         self._frames += 1
         it = res.vvs.info.get("iter_ms", np.nan) if res.vvs is not None else np.nan
         return FrameTrack(
-            self.pose.copy(), res.ok, res.num_matched, res.num_inliers, search_ms, (time.perf_counter() - t0) * 1e3, float(it)
+            self.pose.copy(),
+            res.ok,
+            res.num_matched,
+            res.num_inliers,
+            search_ms,
+            (time.perf_counter() - t0) * 1e3,
+            float(it),
         )
 
 

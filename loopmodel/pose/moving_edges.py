@@ -66,8 +66,16 @@ class ImageMovingEdges:
         n = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
         t = np.column_stack([-n[:, 1], n[:, 0]])
         # (samples, steps, across) sample positions
-        px = uv[:, None, None, 0] + steps[None, :, None] * n[:, None, None, 0] + across[None, None, :] * t[:, None, None, 0]
-        py = uv[:, None, None, 1] + steps[None, :, None] * n[:, None, None, 1] + across[None, None, :] * t[:, None, None, 1]
+        px = (
+            uv[:, None, None, 0]
+            + steps[None, :, None] * n[:, None, None, 0]
+            + across[None, None, :] * t[:, None, None, 0]
+        )
+        py = (
+            uv[:, None, None, 1]
+            + steps[None, :, None] * n[:, None, None, 1]
+            + across[None, None, :] * t[:, None, None, 1]
+        )
         k = len(uv)
         vals = cv2.remap(
             self.image,

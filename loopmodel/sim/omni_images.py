@@ -90,7 +90,10 @@ def omni_scenario(seed: int, n_frames: int = 60, clutter: bool = True) -> OmniSc
         for _ in range(int(rng.integers(6, 14))):
             az, dist = rng.uniform(0, 2 * np.pi), rng.uniform(0.95, 1.8)
             size = rng.uniform([0.1, 0.1, 0.1], [0.5, 0.5, 0.7])
-            T = make_pose(so3_exp([0, 0, rng.uniform(0, np.pi)]), centre + [dist * np.cos(az), dist * np.sin(az), rng.uniform(-0.3, 0.4)])
+            T = make_pose(
+                so3_exp([0, 0, rng.uniform(0, np.pi)]),
+                centre + [dist * np.cos(az), dist * np.sin(az), rng.uniform(-0.3, 0.4)],
+            )
             m = _box_mesh(size, T)
             meshes.append((m, np.repeat(rng.uniform(0.1, 0.95, 6), 2)))
         # clutter behind the self-occlusion zone of two random neighbouring or diagonal mirrors
@@ -120,14 +123,14 @@ def omni_scenario(seed: int, n_frames: int = 60, clutter: bool = True) -> OmniSc
         return np.asarray(PchipInterpolator(keys, rng.uniform(lo, hi, len(keys)))(t_s))
 
     rate = np.deg2rad(rng.uniform(4.0, 9.0)) * rng.choice([-1.0, 1.0])
-    az = rng.uniform(0, 2 * np.pi) + rate * t_s + np.deg2rad(3) * np.sin(2 * np.pi * 0.3 * t_s)
-    dist, z = wander(0.42, 0.7), wander(-0.04, 0.08)
+    box_az = np.asarray(rng.uniform(0, 2 * np.pi) + rate * t_s + np.deg2rad(3) * np.sin(2 * np.pi * 0.3 * t_s))
+    box_dist, box_z = wander(0.42, 0.7), wander(-0.04, 0.08)
     spin, tilt, roll = np.deg2rad(wander(20, 70)), np.deg2rad(wander(10, 35)), np.deg2rad(wander(-12, 12))
     tremor = rng.normal(0, 0.0015, (n_frames, 3))
     poses = []
     for k in range(n_frames):
-        R = so3_exp([0, 0, az[k]]) @ so3_exp([0, tilt[k], 0]) @ so3_exp([roll[k], 0, 0]) @ so3_exp([0, 0, spin[k]])
-        p = centre + [dist[k] * np.cos(az[k]), dist[k] * np.sin(az[k]), z[k]] + tremor[k]
+        R = so3_exp([0, 0, box_az[k]]) @ so3_exp([0, tilt[k], 0]) @ so3_exp([roll[k], 0, 0]) @ so3_exp([0, 0, spin[k]])
+        p = centre + [box_dist[k] * np.cos(box_az[k]), box_dist[k] * np.sin(box_az[k]), box_z[k]] + tremor[k]
         poses.append(make_pose(R, p))
     return OmniScenario(seed, sensor, meshes, BOX_SIZE_M, face, poses, pairs)
 
@@ -139,7 +142,9 @@ class OmniRenderer:
 
     scenario: OmniScenario
     light_dir: F64 = field(default_factory=lambda: np.array([0.3, -0.2, -1.0]))  # towards the light (z down)
-    _pix: list[tuple[NDArray[np.int64], F64, F64]] = field(default_factory=list, repr=False)  # flat index, ray, t_static
+    _pix: list[tuple[NDArray[np.int64], F64, F64]] = field(
+        default_factory=list, repr=False
+    )  # flat index, ray, t_static
 
     def __post_init__(self) -> None:
         s = self.scenario.sensor
@@ -171,7 +176,9 @@ class OmniRenderer:
         for other in range(len(s.cameras)):  # the other mirrors: dark metal solids
             if other == m:
                 continue
-            cyl = o3d.geometry.TriangleMesh.create_cylinder(radius=s.mirror_radius_m, height=s.z_vertex_m - s.z_rim_m, resolution=48)
+            cyl = o3d.geometry.TriangleMesh.create_cylinder(
+                radius=s.mirror_radius_m, height=s.z_vertex_m - s.z_rim_m, resolution=48
+            )
             cyl.translate(s.foci_m[other] + [0, 0, 0.5 * (s.z_vertex_m + s.z_rim_m)])
             scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(cyl))
             albedo.append(np.full(len(cyl.triangles), 0.08))
@@ -179,7 +186,7 @@ class OmniRenderer:
         r = np.empty((len(rays), 6), np.float32)
         r[:, :3] = s.foci_m[m]
         r[:, 3:] = rays
-        ans = scene.cast_rays(o3d.core.Tensor(r))
+        ans = scene.cast_rays(o3d.core.Tensor(r))  # type: ignore[call-overload]
         t = ans["t_hit"].numpy().astype(float)
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         normal = ans["primitive_normals"].numpy().astype(float)
@@ -312,8 +319,32 @@ def track_scenario(
         lost = (~ok) | (r["rot"] > lost_rot_deg) | (r["pos"] > lost_pos_mm)
         runs.append(
             TrackingRun(
-                mirrors, r["rot"], r["pos"], r["matched"].astype(np.int64), r["inl"].astype(np.int64), ok,
-                r["iter"], r["frame"], lost, r["search"],
+                mirrors,
+                r["rot"],
+                r["pos"],
+                r["matched"].astype(np.int64),
+                r["inl"].astype(np.int64),
+                ok,
+                r["iter"],
+                r["frame"],
+                lost,
+                r["search"],
             )
         )
     return runs, init_rot, init_pos
+
+
+def sensor_mask(sensor: OmniSensor) -> U8:
+    """Label image of the sensor: value ``m + 1`` where mirror ``m`` sees the scene (inside its
+    rim, outside the zones its neighbours hide), 0 elsewhere."""
+    w, h = sensor.image_size
+    mask = np.zeros((h, w), np.uint8)
+    for m, cam in enumerate(sensor.cameras):
+        r_px = sensor.rim * cam.px
+        us = np.arange(max(0, int(cam.u0 - r_px) - 1), min(w, int(cam.u0 + r_px) + 2))
+        vs = np.arange(max(0, int(cam.v0 - r_px) - 1), min(h, int(cam.v0 + r_px) + 2))
+        U, V = np.meshgrid(us, vs)
+        uv = np.column_stack([U.ravel(), V.ravel()]).astype(float)
+        ok = sensor.valid(m, uv)
+        mask[V.ravel()[ok], U.ravel()[ok]] = m + 1
+    return mask
