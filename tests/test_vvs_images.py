@@ -102,3 +102,27 @@ def test_cli_renders_a_folder_and_tracks_it_from_its_images(tmp_path, capsys) ->
     assert main(bad) == 2
     err = capsys.readouterr().err
     assert "--init" in err and "Traceback" not in err
+
+
+def test_calibration_from_the_nominal_design_recovers_the_sensor_as_built() -> None:
+    from loopmodel.geometry.se3 import se3_log
+    from loopmodel.pose import PointTerm, estimate_pose
+    from loopmodel.pose.calibration import CalibrationView, calibrate_rig
+    from loopmodel.sim.omni import calibration_views, manufactured_rig, omni_sensor
+
+    sensor = omni_sensor()
+    truth = manufactured_rig(sensor, seed=0)
+    design = sensor.rig()
+    obs, _ = calibration_views(sensor, 8, 0.3, 0, rig=truth)
+    starts = [estimate_pose(PointTerm(design, P, uv, ci), ransac_threshold_px=8.0).rig_from_ref for P, uv, ci in obs]
+    cal = calibrate_rig([CalibrationView(*o) for o in obs], design, starts)
+    # the design is really off: xi up to 0.05, a few % of focal length, ~0.5 deg and ~2 mm
+    assert max(abs(c.xi - 1.0) for c in truth.cameras) > 0.01
+    for c, t in zip(cal.rig.cameras, truth.cameras, strict=True):
+        # measured: xi within 4e-4, focal and principal point within 0.15 px
+        assert abs(c.xi - t.xi) < 2e-3
+        assert max(abs(c.px - t.px), abs(c.py - t.py), abs(c.u0 - t.u0), abs(c.v0 - t.v0)) < 0.5
+    for E, T in zip(cal.rig.cam_from_rig, truth.cam_from_rig, strict=True):
+        e = se3_log(E @ np.linalg.inv(T))
+        # measured: 0.55 mm and 0.04 deg at most
+        assert np.linalg.norm(e[:3]) < 1.5e-3 and np.degrees(np.linalg.norm(e[3:])) < 0.1
