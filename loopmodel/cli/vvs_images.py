@@ -70,7 +70,7 @@ def vvs_track(
     from loopmodel.io.atomic import write_text_atomic
     from loopmodel.io.rig_yaml import parse_pose, read_model, read_rig
     from loopmodel.io.trajectory_io import read_trajectory, write_trajectory
-    from loopmodel.pose.image_tracking import ImageTracker
+    from loopmodel.pose.image_tracking import ImageTracker, mask_valid
     from loopmodel.types import Trajectory
 
     if not images.is_dir():
@@ -89,17 +89,7 @@ def vvs_track(
             rig, f"mask is {mask.shape[1]}x{mask.shape[0]} but the images are {first.shape[1]}x{first.shape[0]}"
         )
 
-    def valid(j: int, uv: np.ndarray) -> np.ndarray:
-        h, w = first.shape
-        u, v = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
-        inside = (u >= 0) & (v >= 0) & (u < w) & (v < h)
-        if mask is None:
-            return inside
-        ok = np.zeros(len(uv), bool)
-        ok[inside] = mask[v[inside], u[inside]] == j + 1
-        return ok
-
-    tracker = ImageTracker(the_rig, the_model, start, valid)
+    tracker = ImageTracker(the_rig, the_model, start, mask_valid(mask, first.shape))
     poses, rows = [], ["frame,ok,matched,inliers,search_ms,frame_ms"]
     with progress_bar() as bar:
         task = bar.add_task("track", total=len(files))

@@ -140,3 +140,20 @@ def track_images(
         if progress is not None:
             progress(k)
     return out
+
+
+def mask_valid(mask: NDArray[np.uint8] | None, image_shape: tuple[int, int]) -> ValidFn:
+    """The ``valid`` of a label mask (pixel value ``j + 1``: usable by camera ``j``); without a
+    mask every pixel inside the image is usable."""
+    h, w = image_shape
+
+    def valid(j: int, uv: F64) -> NDArray[np.bool_]:
+        u, v = np.rint(uv[:, 0]).astype(np.int64), np.rint(uv[:, 1]).astype(np.int64)
+        inside = (u >= 0) & (v >= 0) & (u < w) & (v < h)
+        if mask is None:
+            return inside
+        ok = np.zeros(len(uv), dtype=bool)
+        ok[inside] = mask[v[inside], u[inside]] == j + 1
+        return ok
+
+    return valid

@@ -277,7 +277,7 @@ def track_scenario(
     import time
 
     from loopmodel.geometry.se3 import so3_log
-    from loopmodel.pose.image_tracking import ImageTracker, ImageTrackingOptions
+    from loopmodel.pose.image_tracking import ImageTracker, ImageTrackingOptions, mask_valid
 
     renderer = OmniRenderer(scenario)
     rng = np.random.default_rng(10_000 + scenario.seed)
@@ -286,15 +286,15 @@ def track_scenario(
     init_rot = float(np.degrees(np.linalg.norm(so3_log(start[:3, :3].T @ truth[0][:3, :3]))))
     init_pos = float(np.linalg.norm(start[:3, 3] - truth[0][:3, 3]))
     sensor = scenario.sensor
+    labels = sensor_mask(sensor)  # the rim and self-occlusion zones, cast once
     trackers = []
     for mirrors in mirror_sets:
-        rig = sensor.rig(mirrors)
-
-        def valid(j: int, uv: F64, mirrors: tuple[int, ...] = mirrors) -> NDArray[np.bool_]:
-            return sensor.valid(mirrors[j], uv)
-
+        # the label mask of the chosen mirrors, renumbered 1..len(mirrors) in rig order
+        sub = np.zeros_like(labels)
+        for j, m in enumerate(mirrors):
+            sub[labels == m + 1] = j + 1
         opt = options if isinstance(options, ImageTrackingOptions) else ImageTrackingOptions()
-        trackers.append(ImageTracker(rig, scenario.model, start, valid, opt))
+        trackers.append(ImageTracker(sensor.rig(mirrors), scenario.model, start, mask_valid(sub, labels.shape), opt))
     n = len(truth)
     per = [
         {k: np.zeros(n) for k in ("rot", "pos", "matched", "inl", "ok", "iter", "frame", "search")} for _ in mirror_sets
