@@ -70,7 +70,7 @@ def vvs_track(
     from loopmodel.io.atomic import write_text_atomic
     from loopmodel.io.rig_yaml import parse_pose, read_model, read_rig
     from loopmodel.io.trajectory_io import read_trajectory, write_trajectory
-    from loopmodel.pose.image_tracking import ImageTracker, mask_valid
+    from loopmodel.pose.image_tracking import ImageTracker, ImageTrackingOptions, mask_valid
     from loopmodel.types import Trajectory
 
     if not images.is_dir():
@@ -89,7 +89,9 @@ def vvs_track(
             rig, f"mask is {mask.shape[1]}x{mask.shape[0]} but the images are {first.shape[1]}x{first.shape[0]}"
         )
 
-    tracker = ImageTracker(the_rig, the_model, start, mask_valid(mask, first.shape))
+    edges = ImageTrackingOptions().edges
+    margin = edges.range_px + edges.half_depth_px
+    tracker = ImageTracker(the_rig, the_model, start, mask_valid(mask, first.shape, margin))
     poses, rows = [], ["frame,ok,matched,inliers,search_ms,frame_ms"]
     with progress_bar() as bar:
         task = bar.add_task("track", total=len(files))

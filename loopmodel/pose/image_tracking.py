@@ -27,7 +27,9 @@ class ImageTrackingOptions:
 
     tracker: TrackerOptions = field(default_factory=TrackerOptions)
     edges: MovingEdgeOptions = field(default_factory=MovingEdgeOptions)
-    first_frame_iterations: int = 8  # search + VVS repeated on the first image at most
+    first_frame_iterations: int = 10  # search + VVS repeated on the first image at most
+    # the first rounds search wider (pixels), coarse to fine, then at ``edges.range_px``
+    first_frame_ranges_px: tuple[int, ...] = (14,)
     converged_deg: float = 0.05  # ... until the pose moves less than this
     converged_m: float = 0.0005
 
@@ -96,17 +98,25 @@ class ImageTracker:
         t0 = time.perf_counter()
         self.edges.set_image(image)
         opt = self.options
-        rounds = opt.first_frame_iterations if self._frames == 0 else 1
+        first = self._frames == 0
+        rounds = opt.first_frame_iterations if first else 1
         search_ms = 0.0
         res: TrackResult | None = None
-        for _ in range(rounds):
-            res, ms = self._once()
-            search_ms += ms
-            moved_deg, moved_m = _step(self.pose, res.rig_from_ref)
-            if res.ok:
-                self.pose = res.rig_from_ref
-            if not res.ok or (moved_deg < opt.converged_deg and moved_m < opt.converged_m):
-                break
+        base_range = opt.edges.range_px
+        try:
+            for r in range(rounds):
+                wide = first and r < len(opt.first_frame_ranges_px)
+                self.edges.options.range_px = opt.first_frame_ranges_px[r] if wide else base_range
+                res, ms = self._once()
+                search_ms += ms
+                moved_deg, moved_m = _step(self.pose, res.rig_from_ref)
+                if res.ok:
+                    self.pose = res.rig_from_ref
+                converged = moved_deg < opt.converged_deg and moved_m < opt.converged_m
+                if not res.ok or (converged and not wide):
+                    break
+        finally:
+            self.edges.options.range_px = base_range
         assert res is not None
         if res.ok:
             self._remember(res)
@@ -142,10 +152,21 @@ def track_images(
     return out
 
 
-def mask_valid(mask: NDArray[np.uint8] | None, image_shape: tuple[int, int]) -> ValidFn:
+def mask_valid(mask: NDArray[np.uint8] | None, image_shape: tuple[int, int], margin_px: int = 0) -> ValidFn:
     """The ``valid`` of a label mask (pixel value ``j + 1``: usable by camera ``j``); without a
-    mask every pixel inside the image is usable."""
+    mask every pixel inside the image is usable. ``margin_px``: samples closer than this to the
+    border of their camera's region are not used (a search along the normal must not reach the
+    rim or a masked zone, whose boundary is a strong edge of its own)."""
+    import cv2
+
     h, w = image_shape
+    if mask is not None and margin_px > 0:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin_px + 1, 2 * margin_px + 1))
+        eroded = np.zeros_like(mask)
+        for label in np.unique(mask[mask > 0]):
+            region = cv2.erode((mask == label).astype(np.uint8), kernel)
+            eroded[region > 0] = label
+        mask = eroded
 
     def valid(j: int, uv: F64) -> NDArray[np.bool_]:
         u, v = np.rint(uv[:, 0]).astype(np.int64), np.rint(uv[:, 1]).astype(np.int64)

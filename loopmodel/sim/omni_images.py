@@ -294,7 +294,10 @@ def track_scenario(
         for j, m in enumerate(mirrors):
             sub[labels == m + 1] = j + 1
         opt = options if isinstance(options, ImageTrackingOptions) else ImageTrackingOptions()
-        trackers.append(ImageTracker(sensor.rig(mirrors), scenario.model, start, mask_valid(sub, labels.shape), opt))
+        margin = opt.edges.range_px + opt.edges.half_depth_px
+        trackers.append(
+            ImageTracker(sensor.rig(mirrors), scenario.model, start, mask_valid(sub, labels.shape, margin), opt)
+        )
     n = len(truth)
     per = [
         {k: np.zeros(n) for k in ("rot", "pos", "matched", "inl", "ok", "iter", "frame", "search")} for _ in mirror_sets
