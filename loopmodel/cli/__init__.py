@@ -933,12 +933,11 @@ def vvs_calibrate(
     import numpy as np
 
     from loopmodel.errors import CalibrationError
-    from loopmodel.geometry.camera import CentralCamera
     from loopmodel.geometry.se3 import se3_log
     from loopmodel.io.atomic import write_text_atomic
-    from loopmodel.pose import CameraRig, PointTerm, estimate_pose
+    from loopmodel.pose import PointTerm, estimate_pose
     from loopmodel.pose.calibration import CalibrationView, calibrate_rig
-    from loopmodel.sim.omni import calibration_views, omni_sensor
+    from loopmodel.sim.omni import calibration_views, manufactured_rig, omni_sensor
 
     sensor = omni_sensor()
     truth = None
@@ -956,22 +955,10 @@ def vvs_calibrate(
         obs = [(P[vi == v], uv[vi == v], ci[vi == v].astype(np.int64)) for v in np.unique(vi)]
         nominal = sensor.rig()
     else:
-        obs, truth_poses = calibration_views(sensor, views, noise_px, seed)
-        truth = sensor.rig()
-        rng = np.random.default_rng(seed + 1)
-        cams = tuple(
-            CentralCamera(
-                c.px * rng.uniform(0.97, 1.03),
-                c.py * rng.uniform(0.97, 1.03),
-                c.u0 + rng.normal(0, 4),
-                c.v0 + rng.normal(0, 4),
-                1.0,
-            )
-            for c in truth.cameras
-        )
-        nominal = CameraRig(cams, tuple(T.copy() for T in truth.cam_from_rig))
-        for T in nominal.cam_from_rig[1:]:
-            T[:3, 3] += rng.normal(0, 0.003, 3)  # assembly tolerance
+        # the sensor as built differs from its design; calibration starts from the design
+        truth = manufactured_rig(sensor, seed)
+        obs, _truth_poses = calibration_views(sensor, views, noise_px, seed, rig=truth)
+        nominal = sensor.rig()
     starts = []
     for k, (P, uv, ci) in enumerate(obs):
         try:
@@ -1015,6 +1002,11 @@ app.add_typer(turntable_app, name="turntable")
 from loopmodel.cli.batch import batch_app  # noqa: E402
 
 app.add_typer(batch_app, name="batch")
+
+from loopmodel.cli.vvs_images import vvs_render, vvs_track  # noqa: E402
+
+vvs_app.command("render")(vvs_render)
+vvs_app.command("track")(vvs_track)
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())
