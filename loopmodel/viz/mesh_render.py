@@ -168,3 +168,18 @@ def before_after_png(
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
     return buf.getvalue()
+
+
+def mesh_picture_png(mesh: object, title: str, gt_mesh: object | None = None, n_views: int = 3) -> bytes:
+    """A picture of one open3d mesh from ``n_views`` fixed viewpoints; coloured by the distance
+    to ``gt_mesh`` (same world frame) when given, shaded grey otherwise."""
+    v = np.asarray(mesh.vertices)  # type: ignore[attr-defined]
+    t = np.asarray(mesh.triangles)  # type: ignore[attr-defined]
+    if gt_mesh is None:
+        return before_after_png([(title, v, t, None)], n_views)
+    from loopmodel.mapping.accuracy import distances_to_mesh
+
+    d = distances_to_mesh(v, gt_mesh)  # type: ignore[arg-type]
+    scale_mm = max(1.0, float(np.percentile(d, 95)) * 1e3)
+    label = f"{title}: mean {1e3 * d.mean():.2f} mm to the true surface"
+    return before_after_png([(label, v, t, distance_colors(d, scale_mm * 1e-3))], n_views, colorbar_mm=scale_mm)
