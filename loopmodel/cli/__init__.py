@@ -276,6 +276,9 @@ def mesh(
     gt_attachment: Annotated[
         str, typer.Option("--gt-attachment", help="Attachment of an .mcap --gt-mesh (e.g. object.ply)")
     ] = "scene.ply",
+    picture: Annotated[
+        bool, typer.Option("--picture/--no-picture", help="Also write a PNG picture of the mesh beside it")
+    ] = True,
     config: ConfigOption = None,
 ) -> None:
     """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run)."""
@@ -297,14 +300,22 @@ def mesh(
         f"wrote {target} ({len(surface.vertices)} vertices, {len(surface.triangles)} triangles, "
         f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes, poses: {poses})"
     )
-    if gt_mesh is not None:
+    truth = read_mesh(gt_mesh, gt_attachment) if gt_mesh is not None else None
+    if truth is not None:
         from loopmodel.mapping.accuracy import mesh_accuracy
 
-        acc = mesh_accuracy(surface, read_mesh(gt_mesh, gt_attachment))
+        acc = mesh_accuracy(surface, truth)
         console.print(
             f"accuracy: mean {acc.mean_mm:.3f} mm, p95 {acc.p95_mm:.3f} mm, "
             f"completeness {100 * acc.completeness:.1f} % within {acc.completeness_tol_mm:g} mm"
         )
+    if picture:
+        from loopmodel.io.atomic import write_bytes_atomic
+        from loopmodel.viz.mesh_render import mesh_picture_png
+
+        png = target.with_suffix(".png")
+        write_bytes_atomic(png, mesh_picture_png(surface, target.name, truth))
+        console.print(f"wrote {png} (the mesh from three viewpoints)")
 
 
 simulate_app = typer.Typer(help="Synthetic data.", no_args_is_help=True)
