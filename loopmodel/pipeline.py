@@ -8,7 +8,7 @@ Stages and their one entry point per event (all declared on their protocols):
 * front end  ``FrontEnd.process(frame) -> FrameResult`` (a keyframe when it makes one);
 * loop stage ``LoopStage.on_keyframe(keyframe, MapState) -> LoopOutcome`` (the keyframe to
   pass on, loop constraints, pose corrections), ``close(MapState)``, ``metrics()``;
-  :class:`~loopmodel.loop.stage.NullLoopStage` when loop closing is off;
+  :class:`~loopmodel.stages.NullLoopStage` when loop closing is off;
 * back end   ``Backend.add_keyframe``, ``add_loop_constraint``, ``estimate``, and at the end
   ``final_estimate(RefineConfig | None)``, ``metrics()``;
 * mapping    ``StripeMap.set_keyframe`` / ``add_frame`` / ``update_keyframes`` (frame poses
@@ -37,14 +37,15 @@ from loopmodel.backend import Backend, BackendEstimate, create_backend
 from loopmodel.config import Config
 from loopmodel.errors import LoopmodelError
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
+from loopmodel.frontend.metrics import frontend_metrics, percentile_or_none
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder, write_results
 from loopmodel.listener import RunListener
-from loopmodel.loop.stage import LoopConstraint, LoopStage, MapState, NullLoopStage
-from loopmodel.mapping.final import final_mesh, run_stripes
+from loopmodel.mapping.final import final_mesh, live_stripes, run_stripes
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
+from loopmodel.stages import LoopConstraint, LoopStage, MapState, NullLoopStage
 from loopmodel.types import StereoCalibration, Trajectory
 
 logger = logging.getLogger(__name__)
@@ -56,6 +57,19 @@ PipelineProgressFn = Callable[[int, int, float, int], None]
 
 #: The result of :func:`run_pipeline` (the name of earlier versions).
 RunOutput = RunResult
+
+__all__ = [
+    "RunOutput",
+    "RunResult",
+    "StopFlag",
+    "frontend_metrics",
+    "frontend_only",
+    "process",
+    "run",
+    "run_frontend",
+    "run_pipeline",
+    "stop_on_signals",
+]
 
 F64 = np.ndarray
 
@@ -99,34 +113,9 @@ def _ground_truth_errors(est: Trajectory, gt: Trajectory | None) -> dict[str, fl
     }
 
 
-def _q(a: np.ndarray, p: float) -> float | None:
-    return float(np.percentile(a, p)) if a.size else None
-
-
-def frontend_metrics(frames: list[FrameResult], wall_s: float) -> dict[str, Any]:
-    """Counts and timings of a front-end run (milliseconds, medians and 95th percentiles)."""
-    track = np.array([f.track_ms for f in frames], dtype=float)
-    kf_ms = np.array([f.keyframe_ms for f in frames if f.is_keyframe], dtype=float)
-    total = np.array([f.track_ms + f.keyframe_ms for f in frames], dtype=float)
-    busy_s = float(total.sum() / 1e3)
-    return {
-        "frames": len(frames),
-        "ok_frames": sum(f.ok for f in frames),
-        "lost_frames": sum(not f.ok for f in frames),
-        "keyframes": sum(f.is_keyframe for f in frames),
-        "segments": max((f.segment + 1 for f in frames), default=0),
-        "track_ms_median": _q(track, 50),
-        "track_ms_p95": _q(track, 95),
-        "keyframe_ms_median": _q(kf_ms, 50),
-        "frame_ms_median": _q(total, 50),
-        "fps": len(frames) / busy_s if busy_s > 0 else None,
-        "fps_with_io": len(frames) / wall_s if wall_s > 0 else None,
-    }
-
-
 def _quantiles(values: list[float], prefix: str) -> dict[str, float | None]:
     a = np.asarray(values, dtype=float)
-    return {f"{prefix}_median": _q(a, 50), f"{prefix}_p95": _q(a, 95)}
+    return {f"{prefix}_median": percentile_or_none(a, 50), f"{prefix}_p95": percentile_or_none(a, 95)}
 
 
 # --------------------------------------------------------------------------- stopping
@@ -193,7 +182,9 @@ class _Run:
         self.loop = _loop_stage(config, self.frontend.calibration)
         # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
         self.anchored = StripeMap(config.mapping)
-        self.live = LiveMapping(self.anchored, sequence, config.mapping.live_mesh_every_kf)
+        every_kf = config.mapping.live_mesh_every_kf
+        stripes = live_stripes(sequence, config.mapping) if every_kf > 0 else iter(())
+        self.live = LiveMapping(self.anchored, stripes, every_kf)
         self.frames: list[FrameResult] = []
         self.keyframes: dict[int, int] = {}  # keyframe id -> timestamp_ns, in order
         # keyframe -> (previous keyframe, the tracker's pose of it there): drift per interval
@@ -310,6 +301,10 @@ class _Run:
         wall = time.perf_counter() - self.t_start
         self.live.close(wait=not interrupted)
         self._correct(self.loop.close(self._state()))
+        # perf (issue 26): loops whose (background) detection finished after the last keyframe
+        if self._add_constraints(self.loop.final_constraints()):
+            moved = self.backend.estimate(landmarks=False)
+            self._correct({k: moved.world_from_kf[k] for k in moved.changed_keyframes})
         t_final = time.perf_counter()
         estimate = self._final_estimate(interrupted)
         result = RunResult(

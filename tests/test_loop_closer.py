@@ -155,3 +155,37 @@ def test_stage_feeds_corrections_back_and_records_events() -> None:
     ev = m["loop_events"][-1]
     assert ev["type"] == "loop" and ev["correction_m"] > 0 and ev["optimise_ms"] > 0
     assert ev["inliers"] >= 25
+
+
+def test_stage_via_backend_returns_constraints_and_changes_no_keyframe() -> None:
+    """The pipeline's mode: a verified revisit comes back as a relative-pose constraint
+    (checked against the true relative pose) and a copy of the keyframe carrying the old
+    landmarks' observations; the keyframe handed in is left as it was."""
+    rng = np.random.default_rng(7)
+    tex = _texture(rng)
+    true, est = _sequence(rng)
+    calib = StereoCalibration(CAM.K, CAM.K, make_pose(np.eye(3), [-BASELINE, 0, 0]), (640, 480))
+    kfs, lid = [], 0
+    for i, (Tt, Te) in enumerate(zip(true, est, strict=True)):
+        kfs.append(_keyframe(i, tex, Tt, Te, lid, rng))
+        lid += len(kfs[-1].landmark_ids)
+    _add_mono(kfs, true, rng)
+    stage = LoopClosingStage.from_config(LoopConfig(min_gap_keyframes=8, n_features=800), calib)
+    poses: dict[int, np.ndarray] = {}
+    constraints = []
+    for kf in kfs:
+        poses[kf.id] = kf.world_from_kf.copy()
+        mono_before = kf.mono_obs.copy()
+        out = stage.on_keyframe(kf, MapState(dict(poses), last_update_ms=3.0, last_constraint_ids=(7,) * 3))
+        assert np.array_equal(kf.mono_obs, mono_before) and not out.corrections
+        if out.constraints:
+            assert out.keyframe is not kf and len(out.keyframe.mono_obs) > len(kf.mono_obs)
+        constraints += out.constraints
+    stage.close(MapState(dict(poses), last_update_ms=3.0, last_constraint_ids=(7,) * 3))
+    assert constraints and stage.metrics()["loop_closure_count"] == len(constraints)
+    for c in constraints:
+        true_a_from_b = invert_pose(true[c.kf_a]) @ true[c.kf_b]
+        err = invert_pose(true_a_from_b) @ c.a_from_b
+        assert np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) < 0.3 and np.linalg.norm(err[:3, 3]) < 0.02
+    for e in stage.events:  # completed from the next MapState: the back end's time and ids
+        assert e["optimise_ms"] == 3.0 and e["constraint_id"] == 7

@@ -33,7 +33,7 @@ import re
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import gtsam
 import numpy as np
@@ -62,10 +62,13 @@ class _Obs:
     point_in_kf: F64 | None  # stereo triangulation in the keyframe's left camera (m)
 
 
+FactorKind = Literal["stereo", "mono", "prior", "loop"]
+
+
 @dataclass(slots=True)
 class _FactorRecord:
     factor: gtsam.NonlinearFactor
-    kind: str  # "stereo" | "mono" | "prior" | "loop"
+    kind: FactorKind
     lkey: int = -1  # internal landmark index, or -1
     obs: Observation | None = None
 
@@ -126,6 +129,10 @@ class Isam2Backend:
         self._theta0 = gtsam.Values()  # every variable's initial value
         self.rebuilds = 0
         self.last_result: gtsam.ISAM2Result | None = None
+        #: noise and outcome of the last :meth:`batch_refine` (for metrics.json)
+        self.refine_info: dict[str, Any] = {}
+        # the front end's robust pose-residual scale per keyframe interval (px)
+        self._frontend_sigma_px: list[float] = []
         self.dropped_landmarks = 0
 
     # ------------------------------------------------------------------ set-up
@@ -425,6 +432,9 @@ class Isam2Backend:
         if not np.all(np.isfinite(T)):
             raise InputError(f"keyframe {kf_id}", "world_from_kf has non-finite values")
         cfg = self.config
+        sig = getattr(keyframe, "ba_info", {}).get("pose_residual_sigma_px")
+        if sig is not None and np.isfinite(sig) and sig > 0:
+            self._frontend_sigma_px.append(float(sig))
         self._kf_seq[kf_id] = len(self._kf_seq)
         self._kf_order.append(kf_id)
         self._pose_guess[kf_id] = T
@@ -709,18 +719,74 @@ class Isam2Backend:
                 return it + 1
         return max_iterations
 
+    def reprojection_residuals_px(self, values: gtsam.Values | None = None) -> F64:
+        """Image residuals (measured minus predicted, pixels; u_left, u_right, v of stereo and
+        u, v of monocular observations, concatenated) of every live observation factor at
+        ``values`` (default: the current iSAM2 estimate)."""
+        vals = values if values is not None else self._isam.calculateEstimate()
+        out: list[F64] = []
+        for rec in self._factors.values():
+            if rec.kind in ("stereo", "mono"):
+                f: Any = rec.factor
+                out.append(np.asarray(f.unwhitenedError(vals), dtype=np.float64).ravel())
+        return np.concatenate(out) if out else np.zeros(0)
+
+    @staticmethod
+    def robust_error_px(residuals_px: F64, sigma_px: float, huber_k: float) -> float:
+        """Huber-robust RMS of image residuals (pixels): ``sigma * sqrt(mean(2 rho(r / sigma)))``
+        with ``rho`` Huber's loss at ``huber_k`` (the plain RMS when every residual is within
+        ``huber_k`` sigmas; Gaussian when ``huber_k`` <= 0)."""
+        r = np.abs(np.asarray(residuals_px, float)) / sigma_px
+        r = r[np.isfinite(r)]
+        if r.size == 0:
+            return float("nan")
+        rho = 0.5 * r**2 if huber_k <= 0 else np.where(r <= huber_k, 0.5 * r**2, huber_k * r - 0.5 * huber_k**2)
+        return float(sigma_px * np.sqrt(2.0 * rho.mean()))
+
     def batch_refine(
-        self, pixel_sigma_px: float, huber_k: float = 1.345, max_iterations: int = 30
+        self,
+        pixel_sigma_px: float | None = None,
+        huber_k: float = 1.345,
+        max_iterations: int = 30,
+        min_gain_sd: float = 3.0,
     ) -> BackendEstimate:
         """Final batch bundle adjustment of every keyframe and landmark on all live factors
         (gtsam Levenberg-Marquardt from the current estimate), with the stereo and
         monocular observations re-weighted to ``pixel_sigma_px`` under a Huber loss of
-        ``huber_k`` sigmas (priors and loop constraints as they are). The incremental
-        solution keeps its own weights; this one is returned and not fed back to iSAM2."""
+        ``huber_k`` sigmas (priors and loop constraints as they are). ``pixel_sigma_px``
+        None: the run's own noise, the robust scale (1.4826 x median absolute value) of the
+        image residuals (KLT and stereo observations) at the incremental solution, corrected
+        for the redundancy ``sqrt(n / (n - u))`` (n residuals, u pose and landmark unknowns:
+        a landmark seen by two keyframes leaves little redundancy, so the raw scale is far
+        too small); without redundancy, the median over keyframe intervals of the front
+        end's robust pose-residual scale (``ba_info`` ``pose_residual_sigma_px``). The result
+        is kept only when it lowers the robust reprojection error (:meth:`robust_error_px` at
+        that scale) significantly: the robust chi-square drops by more than ``min_gain_sd``
+        standard deviations sqrt(2 n) of a chi-square of n residuals; otherwise the
+        incremental solution is returned. :attr:`refine_info` says which, with the noise.
+        The incremental solution keeps its own weights; this one is not fed back to iSAM2."""
         if not self._kf_seq:
             raise EstimationError("batch refinement of an empty back end")
-        base3: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(3, pixel_sigma_px)
-        base2: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(2, pixel_sigma_px)
+        start = self._isam.calculateEstimate()
+        r0 = self.reprojection_residuals_px(start)
+        mad_px = float(1.4826 * np.median(np.abs(r0))) if r0.size else float("nan")
+        keys = np.asarray(start.keys(), dtype=np.uint64)
+        chars = (keys >> np.uint64(56)).astype(np.int64)
+        unknowns = 6 * int((chars == ord("x")).sum()) + 3 * int((chars == ord("l")).sum())
+        redundancy = r0.size - unknowns
+        backend_px = mad_px * np.sqrt(r0.size / redundancy) if redundancy > 0 else float("nan")
+        frontend_px = float(np.median(self._frontend_sigma_px)) if self._frontend_sigma_px else float("nan")
+        source = "configured"
+        if pixel_sigma_px is not None:
+            sigma = float(pixel_sigma_px)
+        elif np.isfinite(backend_px) and backend_px > 0:
+            sigma, source = max(backend_px, 1e-3), "back-end residual MAD, redundancy-corrected"
+        elif np.isfinite(frontend_px):
+            sigma, source = max(frontend_px, 1e-3), "front-end pose residuals"
+        else:
+            raise EstimationError("no image residuals to estimate the noise from")
+        base3: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(3, sigma)
+        base2: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(2, sigma)
         if huber_k > 0:
             huber = gtsam.noiseModel.mEstimator.Huber.Create(huber_k)
             base3 = gtsam.noiseModel.Robust.Create(huber, base3)
@@ -742,7 +808,31 @@ class Isam2Backend:
             graph.add(f)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
-        values = gtsam.LevenbergMarquardtOptimizer(graph, self._isam.calculateEstimate(), params).optimize()
+        values = gtsam.LevenbergMarquardtOptimizer(graph, start, params).optimize()
+        before = self.robust_error_px(r0, sigma, huber_k)
+        after = self.robust_error_px(self.reprojection_residuals_px(values), sigma, huber_k)
+        # the robust chi-square (sum of 2 rho(r / sigma)) must drop by more than min_gain_sd
+        # of its standard deviations sqrt(2 n): a smaller drop is not told apart from noise
+        n_res = int(np.isfinite(r0).sum())
+        drop = n_res * ((before / sigma) ** 2 - (after / sigma) ** 2)
+        applied = bool(drop > min_gain_sd * np.sqrt(2.0 * n_res))
+        self.refine_info = {
+            "pixel_sigma_px": sigma,
+            "pixel_sigma_source": source,
+            "frontend_residual_sigma_px": frontend_px,
+            "backend_residual_mad_px": mad_px,
+            "backend_residual_sigma_px": backend_px,
+            "refine_residuals": int(r0.size),
+            "refine_unknowns": unknowns,
+            "refine_robust_px_before": before,
+            "refine_robust_px_after": after,
+            "refine_chi2_drop": float(drop),
+            "refine_chi2_sd": float(np.sqrt(2.0 * n_res)),
+            "refine_applied": applied,
+        }
+        if not applied:
+            logger.info("batch refinement not applied: robust error %.4f px -> %.4f px", before, after)
+            values = start
         world_from_kf = {k: values.atPose3(X(k)).matrix() for k in self._kf_seq}
         lkeys = sorted(k for k in self._landmarks if values.exists(L(k)))
         pts = np.array([values.atPoint3(L(k)) for k in lkeys], dtype=float).reshape(-1, 3)
@@ -758,11 +848,12 @@ class Isam2Backend:
         self.refine()
         if not refine.batch_ba:
             return self.estimate()
-        return self.batch_refine(refine.pixel_sigma_px, refine.huber_k, refine.max_iterations)
+        return self.batch_refine(refine.pixel_sigma_px, refine.huber_k, refine.max_iterations, refine.min_gain_sd)
 
     def metrics(self) -> dict[str, Any]:
-        """Factor and landmark counts of the graph."""
-        return {"isam2_factors": self.num_factors, "isam2_landmarks": self.num_landmarks}
+        """Factor and landmark counts of the graph; the noise and outcome of the final batch
+        refinement (:attr:`refine_info`: ``pixel_sigma_px`` and where it came from)."""
+        return {"isam2_factors": self.num_factors, "isam2_landmarks": self.num_landmarks, **self.refine_info}
 
     def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
         """Add ``kf_a_from_kf_b`` (4x4) as a robust between-factor; ``sigmas`` (rad x3, m x3)

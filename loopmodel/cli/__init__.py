@@ -753,30 +753,39 @@ def loop_detect(
 def loop_vocabulary(
     folder: Annotated[Path, typer.Argument(help="Folder of training images")],
     out: Annotated[Path, typer.Argument(help="Output vocabulary (.npz)")],
+    source: Annotated[str, typer.Option("--source", help="what the images are (kept in the file)")] = "",
+    seed: Annotated[int, typer.Option("--seed", help="random seed of the clustering")] = 0,
     config: ConfigOption = None,
 ) -> None:
-    """Train a vocabulary tree (k-majority for ORB, k-means for SIFT) on a folder of images."""
-    import cv2
-    import numpy as np
+    """Train a vocabulary tree (k-majority for ORB, k-means for SIFT/SURF) on a folder of
+    images, for ``loop.descriptor`` with ``loop.n_features`` per image (reproducible)."""
+    from collections.abc import Iterator
 
-    from loopmodel.loop.features import detect_and_describe, make_extractor
-    from loopmodel.loop.vocabulary import Vocabulary
+    import cv2
+
+    from loopmodel.loop.vocabulary import train_from_images
 
     cfg = load_config(config).loop
-    ex = make_extractor(cfg.descriptor, cfg.n_features)
-    docs = []
-    for f in _image_files(folder):
-        img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            raise InputError(f, "cannot be read as an image")
-        fs = detect_and_describe(img, cfg.descriptor, cfg.n_features, ex)
-        if len(fs):
-            docs.append(fs.descriptors)
-    if not docs:
-        raise InputError(folder, "no features found in any image")
-    voc = Vocabulary.train(np.concatenate(docs), cfg.vocabulary_branching, cfg.vocabulary_levels, documents=docs)
+    files = _image_files(folder)
+
+    def images() -> Iterator[Any]:
+        for f in files:
+            img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            if img is None:
+                raise InputError(f, "cannot be read as an image")
+            yield img
+
+    voc = train_from_images(
+        images(),
+        cfg.descriptor,
+        cfg.n_features,
+        cfg.vocabulary_branching,
+        cfg.vocabulary_levels,
+        seed,
+        source=source or folder.name,
+    )
     voc.save(out)
-    console.print(f"{voc.n_words} words from {len(docs)} images written to {out}")
+    console.print(f"{voc.n_words} {cfg.descriptor} words from {voc.info['images']} images written to {out}")
 
 
 _PROGRAM = [False]

@@ -27,6 +27,7 @@ from loopmodel.frontend.stereo import (
 )
 from loopmodel.geometry.se3 import invert_pose, nearest_rigid, se3_exp, se3_log, so3_log
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, estimate_pose
+from loopmodel.pose.robust import robust_scale
 from loopmodel.types import StereoCalibration, StereoFrame
 
 logger = logging.getLogger(__name__)
@@ -104,6 +105,8 @@ class FrontEnd:
         )
         self._mono_used = 0
         self._good_stamp = 0
+        # robust per-coordinate scale (px) of each frame's pose residuals since the keyframe
+        self._pose_sigma_px: list[float] = []
 
     # ------------------------------------------------------------------ public
     @property
@@ -347,6 +350,8 @@ class FrontEnd:
             )
         keep = np.flatnonzero(ok)[inl]
         self._outlier_uv = uv[np.flatnonzero(ok)[~inl]]
+        if n_inl >= 6:  # the run's own KLT/stereo noise (for the back end's final refinement)
+            self._pose_sigma_px.append(robust_scale(res.residual_norms[0][:tracked][inl], 2, 0.0))
         self._track_idx = idx[keep]
         self._mono_used = 0
         if self._mono is not None and m_ok is not None:
@@ -554,10 +559,14 @@ class FrontEnd:
                     "ba_rms_after_px": ba.final_rms_px,
                     "ba_points": float(self._track_idx.size),
                 }
+            if self._pose_sigma_px:
+                # robust scale (px per coordinate) of the pose residuals over the interval
+                ba_info["pose_residual_sigma_px"] = float(np.median(self._pose_sigma_px))
             world_from_rect = nearest_rigid(prev.world_from_kfrect @ kf_from_new)
             kf_prev_from_kf = self.cam_from_rect @ kf_from_new @ self.rect_from_cam
             kf_prev_from_kf_tracked = self.cam_from_rect @ kf_from_cur @ self.rect_from_cam
 
+        self._pose_sigma_px = []
         kf_id = self._next_kf_id
         self._next_kf_id += 1
         ids = np.arange(

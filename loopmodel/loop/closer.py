@@ -113,6 +113,10 @@ class LoopCloser:
         lm.ids = data.ids[kept]
         return FeatureSet.concat(det, lm) if len(det) else lm
 
+    def remember(self, kf: Keyframe) -> None:
+        """Keep what :meth:`track_old_features` needs of a keyframe (image, landmarks)."""
+        self._kf[int(kf.id)] = self._kf_data(kf)
+
     @staticmethod
     def _kf_data(kf: Keyframe) -> _KfData:
         rect_from_cam = np.asarray(kf.rect_from_cam)
@@ -126,12 +130,15 @@ class LoopCloser:
         )
 
     # ---------------------------------------------------------------- loops
-    def process_keyframe(self, kf: Keyframe) -> LoopClosure | None:
-        """Store a new keyframe and check it for a verified revisit."""
+    def process_keyframe(
+        self, kf: Keyframe, neighbours: set[int] | None = None, query: bool = True
+    ) -> LoopClosure | None:
+        """Store a new keyframe and check it for a verified revisit (``neighbours``: temporal
+        neighbours, never verified; ``query`` False: store only)."""
         t0 = time.perf_counter()
         fs = self.keyframe_features(kf)
-        self._kf[int(kf.id)] = self._kf_data(kf)
-        ev = self.detector.process(int(kf.id), fs)
+        self.remember(kf)
+        ev = self.detector.process(int(kf.id), fs, query=query, neighbours=neighbours)
         t1 = time.perf_counter()
         if ev is None or ev.match_from_query is None:
             return None

@@ -31,7 +31,7 @@ from loopmodel.loop.database import KeyframeDatabase, PlaceCandidate, PlaceParam
 from loopmodel.loop.features import FeatureSet, match_descriptors
 from loopmodel.loop.refine import PoseRefiner
 from loopmodel.loop.reloc import RelocParams, RelocResult, inlier_spread_px, localize
-from loopmodel.loop.vocabulary import Vocabulary
+from loopmodel.loop.vocabulary import Vocabulary, shipped_vocabulary
 
 logger = logging.getLogger(__name__)
 
@@ -159,17 +159,36 @@ class LoopDetector:
             image_width_px = 2.0 * camera.u0 + 1.0 if camera is not None else 640.0
         self.image_width_px = image_width_px
         self.query_s: list[float] = []
+        #: candidate keyframes not verified because they were temporal neighbours
+        self.neighbours_skipped = 0
 
-    def process(self, kf_id: int, features: FeatureSet, add: bool = True) -> LoopEvent | None:
+    def process(
+        self,
+        kf_id: int,
+        features: FeatureSet,
+        add: bool = True,
+        query: bool = True,
+        neighbours: set[int] | None = None,
+    ) -> LoopEvent | None:
         """Query with a new keyframe, verify consistent candidates, then store it.
 
-        Returns the accepted loop event (or ``None``)."""
+        ``neighbours``: keyframes co-visible with the query's local map (temporal
+        neighbours), never verified; ``query`` False only stores the keyframe. Returns the
+        accepted loop event (or ``None``)."""
         t0 = time.perf_counter()
-        candidates = self.database.query(kf_id, features)
+        candidates = self.database.query(kf_id, features) if query else []
         event = None
         for cand in candidates:
             if not cand.accepted:
                 continue
+            if neighbours:
+                kept = [m for m in cand.members if m not in neighbours]
+                self.neighbours_skipped += len(cand.members) - len(kept)
+                if not kept:
+                    continue
+                if cand.best_id not in kept:
+                    cand.best_id = kept[0]
+                cand.members = kept
             event = self._verify(kf_id, features, cand)
             if event is not None:
                 break
@@ -269,7 +288,14 @@ def params_from_config(cfg: LoopConfig) -> LoopParams:
 def detector_from_config(
     cfg: LoopConfig, camera: CentralCamera | None, image_width_px: float | None = None
 ) -> LoopDetector:
-    """A :class:`LoopDetector` set up from the ``loop`` configuration section (loads the
-    vocabulary file when one is configured)."""
-    voc = Vocabulary.load(cfg.vocabulary_path) if cfg.vocabulary_path else None
+    """A :class:`LoopDetector` set up from the ``loop`` configuration section: the
+    configured vocabulary file, else the one shipped for the descriptor kind, else (or with
+    ``vocabulary_online``) one trained on the fly from the keyframes."""
+    voc: Vocabulary | None = None
+    if cfg.vocabulary_path:
+        voc = Vocabulary.load(cfg.vocabulary_path)
+    elif not cfg.vocabulary_online:
+        voc = shipped_vocabulary(cfg.descriptor)
+        if voc is None:
+            logger.warning("no vocabulary shipped for %s descriptors: training one on the fly", cfg.descriptor)
     return LoopDetector(camera, params_from_config(cfg), voc, image_width_px=image_width_px)

@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from loopmodel.config import LoopConfig
@@ -166,6 +165,8 @@ class KeyframeDatabase:
 
     def _csr(self) -> Any:
         if self._matrix is None:
+            import scipy.sparse as sp  # about 0.3 s to import: not with the pipeline
+
             assert self.vocabulary is not None
             rows = np.concatenate([np.full(e.bow_ids.size, i) for i, e in enumerate(self._entries)])
             cols = np.concatenate([e.bow_ids for e in self._entries])

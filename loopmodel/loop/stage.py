@@ -15,6 +15,14 @@ point, :meth:`LoopClosingStage.on_keyframe`, and never changes another stage: it
   returns the corrected keyframe poses when it is done. Keyframes created while the BA ran
   move rigidly with the loop's current keyframe.
 
+Place recognition and verification run in a worker (``loop.detection_worker``: a process
+by default, which holds the keyframe database; a thread; or inline): a keyframe never waits
+for them. A loop found for an earlier keyframe is applied at the
+next keyframe that arrives after it: the old keyframe's features are tracked (KLT) into
+that keyframe's image from the pose the tracker and the loop predict, and the loop's
+observations and relative pose are those of the new keyframe. Candidates co-visible with
+the query's local map (its temporal neighbours) are never verified.
+
 Each closure and relocalization is recorded as a plain dict (for ``metrics.json``):
 keyframes and frames involved, inliers, correction size, optimisation time. The back end's
 effect on a loop (how far it moved the keyframe, how long the update took) is read from the
@@ -27,97 +35,70 @@ import dataclasses
 import logging
 import multiprocessing as mp
 import time
+from collections import deque
 from collections.abc import Mapping
-from concurrent.futures import Future, ProcessPoolExecutor
-from dataclasses import dataclass, field
-from typing import Any, Protocol
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.backend.robust_posegraph import keyframe_loop_inliers
 from loopmodel.config import LoopConfig
+from loopmodel.errors import LoopmodelError
 from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.closer import LoopCloser, LoopClosure
+from loopmodel.loop.closure import LoopEvent
 from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hybrid_ba
+from loopmodel.stages import LoopConstraint, LoopOutcome, LoopStage, MapState, NullLoopStage
 from loopmodel.types import Keyframe, StereoCalibration
+
+__all__ = ["LoopClosingStage", "LoopConstraint", "LoopOutcome", "LoopStage", "MapState", "NullLoopStage"]
 
 logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
-class MapState:
-    """What the loop stage reads of the rest of the run when a keyframe arrives.
-
-    ``world_from_kf``: the current pose (4x4, metres, left camera) of every keyframe so far,
-    the new one included; ``last_update_ms``: wall time of the back end's update of the
-    previous keyframe (its loop constraints included); ``last_constraint_ids``: the ids the
-    back end gave the constraints of the previous :class:`LoopOutcome` (None where it took
-    none), in their order."""
-
-    world_from_kf: Mapping[int, F64]
-    last_update_ms: float = 0.0
-    last_constraint_ids: tuple[int | None, ...] = ()
-
-
 @dataclass
-class LoopConstraint:
-    """A relative-pose measurement ``kf_a_from_kf_b`` (4x4, metres) between the left
-    cameras of two keyframes, for :meth:`loopmodel.backend.Backend.add_loop_constraint`."""
+class Detection:
+    """What place recognition and verification of one keyframe produced: the closure (or
+    None), the candidates rejected, how many temporal neighbours were skipped and the
+    detection's wall time (s)."""
 
-    kf_a: int
-    kf_b: int
-    a_from_b: F64
-
-
-@dataclass
-class LoopOutcome:
-    """What one keyframe caused in loop closing.
-
-    ``keyframe``: the keyframe to hand on to the back end (the input, or a copy at its
-    relocalized pose with the loop's observations of old landmarks appended to
-    ``mono_obs``); ``constraints`` for the back end; ``corrections``: keyframe id ->
-    corrected ``world_from_kf`` for the tracker and the map (relocalization, a finished
-    global BA); ``events``: the records of the closures and relocalizations it produced."""
-
-    keyframe: Keyframe
-    constraints: list[LoopConstraint] = field(default_factory=list)
-    corrections: dict[int, F64] = field(default_factory=dict)
-    events: list[dict[str, Any]] = field(default_factory=list)
+    closure: LoopClosure | None
+    rejected: list[LoopEvent]
+    neighbours_skipped: int
+    detect_s: float
 
 
-class LoopStage(Protocol):
-    """The pipeline's loop-closing stage: one call per keyframe, one at the end."""
-
-    def on_keyframe(self, keyframe: Keyframe, state: MapState) -> LoopOutcome:
-        """Process a new keyframe (after the front end, before the back end)."""
-        ...
-
-    def close(self, state: MapState) -> dict[int, F64]:
-        """Finish pending work at the end of the run; returns its last corrections."""
-        ...
-
-    def metrics(self) -> dict[str, Any]:
-        """Summary for ``metrics.json``."""
-        ...
+def detect_keyframe(closer: LoopCloser, kf: Keyframe, neighbours: set[int], query: bool) -> Detection:
+    """Store ``kf`` in ``closer``'s database and look for a verified revisit."""
+    det = closer.detector
+    n_rej, n_skip = len(det.rejected), det.neighbours_skipped
+    t0 = time.perf_counter()
+    closure = closer.process_keyframe(kf, neighbours=neighbours, query=query)
+    return Detection(closure, det.rejected[n_rej:], det.neighbours_skipped - n_skip, time.perf_counter() - t0)
 
 
-class NullLoopStage:
-    """Loop closing switched off: every keyframe passes unchanged, nothing is recorded."""
+#: The worker process's own loop closer (its keyframe database), made by :func:`_worker_start`.
+_WORKER_CLOSER: LoopCloser | None = None
 
-    def on_keyframe(self, keyframe: Keyframe, state: MapState) -> LoopOutcome:
-        """The keyframe as it came."""
-        return LoopOutcome(keyframe)
 
-    def close(self, state: MapState) -> dict[int, F64]:
-        """Nothing pending."""
-        return {}
+def _worker_start(calibration: StereoCalibration, config: LoopConfig) -> None:
+    global _WORKER_CLOSER
+    _WORKER_CLOSER = LoopCloser(calibration, config)
 
-    def metrics(self) -> dict[str, Any]:
-        """No loop-closing figures."""
-        return {}
+
+def _worker_detect(kf: Keyframe, neighbours: set[int], query: bool) -> Detection:
+    assert _WORKER_CLOSER is not None
+    return detect_keyframe(_WORKER_CLOSER, kf, neighbours, query)
+
+
+def _worker_relocalize(image: NDArray[np.uint8], exclude_after: int) -> tuple[int | None, Any]:
+    assert _WORKER_CLOSER is not None
+    return _WORKER_CLOSER.relocalize(image, exclude_after=exclude_after)
 
 
 def _motion(a: F64, b: F64) -> tuple[float, float]:
@@ -168,6 +149,22 @@ class LoopClosingStage:
         self._awaiting: list[dict[str, Any]] = []
         #: loops the robust gate accepted (they join later gates' pose graphs)
         self._gated: list[LoopClosure] = []
+        #: Place recognition and verification in a worker (``detection_worker``); in the
+        #: process variant the database lives there and ``self.closer`` keeps only the
+        #: keyframes' images and landmarks (KLT stage, corrections)
+        self._detect_pool: ThreadPoolExecutor | ProcessPoolExecutor | None = None
+        self._inflight: deque[tuple[int, Future[Detection]]] = deque()
+        self.neighbours_skipped = 0
+        self.detect_s: list[float] = []
+        if self.config.detection_worker == "process":
+            self._workers().submit(int, 0)  # start the worker now, while tracking starts
+        self.keyframes_not_queried = 0
+        self.late_closures = 0
+        self.detections_unapplied = 0
+        self._final_constraints: list[LoopConstraint] = []
+        # covisibility: (first, last landmark id, keyframe) per keyframe; direct neighbours
+        self._lm_ranges: list[tuple[int, int, int]] = []
+        self._covisible_of: dict[int, set[int]] = {}
 
     @classmethod
     def from_config(cls, config: LoopConfig, calibration: StereoCalibration) -> LoopClosingStage:
@@ -183,16 +180,139 @@ class LoopClosingStage:
         out = LoopOutcome(keyframe)
         self.keyframes[int(keyframe.id)] = keyframe
         self._collect(self.poll(state), out)
+        self._apply_detections(out, state, wait=False)
+        neighbours = self._temporal_neighbours(keyframe)
         if not keyframe.connected and len(self.keyframes) > 1:
+            self._apply_detections(out, state, wait=True)  # relocalization reads the database
             self._relocalize_segment(out, state)
-        n_rej = len(self.closer.detector.rejected)
-        closure = self.closer.process_keyframe(out.keyframe)
-        for ev in self.closer.detector.rejected[n_rej:]:
-            self.rejected.append({"query_kf": ev.query_id, "match_kf": ev.match_id, "reason": ev.reason})
-        if closure is not None:
-            self._close(closure, out, state)
+        mode = self.config.detection_worker
+        if mode == "none":
+            closure = self._note(detect_keyframe(self.closer, out.keyframe, neighbours, True))
+            if closure is not None:
+                self._close(closure, out, state)
+        else:
+            query = len(self._inflight) < self.config.max_queued_keyframes
+            self.keyframes_not_queried += not query
+            if mode == "process":
+                self.closer.remember(out.keyframe)
+                fut = self._workers().submit(_worker_detect, out.keyframe, neighbours, query)
+            else:
+                fut = self._workers().submit(detect_keyframe, self.closer, out.keyframe, neighbours, query)
+            self._inflight.append((int(keyframe.id), fut))
         self.keyframes[int(keyframe.id)] = out.keyframe
         return out
+
+    def _workers(self) -> ThreadPoolExecutor | ProcessPoolExecutor:
+        if self._detect_pool is None:
+            if self.config.detection_worker == "process":
+                self._detect_pool = ProcessPoolExecutor(
+                    1,
+                    mp_context=mp.get_context("spawn"),
+                    initializer=_worker_start,
+                    initargs=(self.closer.calibration, self.config),
+                )
+            else:
+                self._detect_pool = ThreadPoolExecutor(1, thread_name_prefix="loop-detect")
+        return self._detect_pool
+
+    def _note(self, d: Detection) -> LoopClosure | None:
+        """Record a detection's rejected candidates and counts; its closure (the process
+        worker's closures join this closer's list)."""
+        for ev in d.rejected:
+            self.rejected.append({"query_kf": ev.query_id, "match_kf": ev.match_id, "reason": ev.reason})
+        self.neighbours_skipped += d.neighbours_skipped
+        self.detect_s.append(d.detect_s)
+        if d.closure is not None and self.config.detection_worker == "process":
+            self.closer.closures.append(d.closure)
+        return d.closure
+
+    def _apply_detections(self, out: LoopOutcome, state: MapState, wait: bool) -> None:
+        """The worker's finished detections, in keyframe order (``wait``: all of them); a
+        loop found for an earlier keyframe is applied at ``out``'s keyframe."""
+        while self._inflight and (wait or self._inflight[0][1].done()):
+            kf_id, fut = self._inflight.popleft()
+            try:
+                closure = self._note(fut.result())
+            except LoopmodelError as exc:  # a failed detection is logged, never applied
+                logger.warning("loop detection of keyframe %d failed (%s)", kf_id, exc)
+                continue
+            if closure is not None:
+                self.late_closures += 1
+                self._close_late(closure, out, state)
+
+    def _close_late(self, closure: LoopClosure, out: LoopOutcome, state: MapState) -> None:
+        """A loop verified for an earlier keyframe, applied at the current one: the old
+        keyframe's features are tracked into the current image from the predicted
+        ``current_from_match`` (tracker poses times the loop's pose) and the loop is closed
+        from the current keyframe; when too few are found, the loop's own relative pose
+        becomes the constraint (without observations)."""
+        cur = out.keyframe
+        c, q = int(cur.id), closure.query_kf
+        world = state.world_from_kf
+        w_q = np.asarray(world[q]) @ invert_pose(self.keyframes[q].rect_from_cam)
+        w_c = np.asarray(cur.world_from_kf) @ invert_pose(cur.rect_from_cam)
+        pred = invert_pose(w_c) @ w_q @ closure.query_from_match
+        tr = self.closer.track_old_features(closure.match_kf, cur.image, pred) if c != q else None
+        if tr is not None and tr[1].size >= self.config.min_inliers:
+            moved = LoopClosure(
+                c,
+                closure.match_kf,
+                tr[0],
+                LoopObservations(c, tr[1], tr[2]),
+                closure.n_descriptor_inliers,
+                int(tr[1].size),
+                closure.event,
+                closure.detect_ms,
+                closure.refine_ms,
+                {**closure.info, "verified_at_keyframe": q},
+            )
+            self.closer.closures.append(moved)
+            self._close(moved, out, state)
+            return
+        if not self.via_backend or c == q:
+            self._close(closure, out, state)
+            return
+        out.constraints.append(self._constraint_only(closure, state, c))
+        out.events.append(self.events[-1])
+
+    def _constraint_only(self, closure: LoopClosure, state: MapState, at_keyframe: int | None) -> LoopConstraint:
+        """The record and the relative-pose constraint of a loop applied without its
+        observations (its query keyframe is already in the back end)."""
+        q = closure.query_kf
+        record = self._loop_record(closure)
+        record["applied_at_keyframe"] = at_keyframe
+        record["loop_observations"] = 0
+        self.events.append(record)
+        record["pose_before"] = np.asarray(state.world_from_kf[q]).copy()
+        self._awaiting.append(record)
+        m = self.keyframes[closure.match_kf]
+        q_from_m = invert_pose(self.keyframes[q].rect_from_cam) @ closure.query_from_match @ m.rect_from_cam
+        return LoopConstraint(q, closure.match_kf, q_from_m)
+
+    def _temporal_neighbours(self, kf: Keyframe) -> set[int]:
+        """Keyframes co-visible with the new keyframe's local map (ORB-SLAM's covisibility
+        graph, two levels): those whose landmarks it observes (its stereo and monocular
+        observations), and theirs. The front end and the back end link these already; a
+        loop with them adds nothing. Landmarks are found by each keyframe's id range."""
+        q = int(kf.id)
+        ids = np.asarray(kf.landmark_ids, dtype=np.int64).ravel()
+        mono = np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3)
+        seen = np.concatenate([ids, mono[:, 0].astype(np.int64)])
+        direct: set[int] = set()
+        if seen.size and self._lm_ranges:
+            lo = np.array([r[0] for r in self._lm_ranges])
+            hi = np.array([r[1] for r in self._lm_ranges])
+            owners = np.array([r[2] for r in self._lm_ranges])
+            j = np.searchsorted(lo, seen, side="right") - 1
+            ok = (j >= 0) & (seen <= hi[np.maximum(j, 0)])
+            direct = set(owners[j[ok]].tolist()) - {q}
+        if ids.size and (not self._lm_ranges or ids.min() > self._lm_ranges[-1][1]):
+            self._lm_ranges.append((int(ids.min()), int(ids.max()), q))
+        self._covisible_of[q] = direct
+        out = set(direct)
+        for k in direct:
+            out |= self._covisible_of.get(k, set())
+        return out - {q}
 
     @staticmethod
     def _collect(done: tuple[dict[str, Any], dict[int, F64]] | None, out: LoopOutcome) -> None:
@@ -275,7 +395,10 @@ class LoopClosingStage:
         """An old keyframe and ``new_from_old`` (rectified frames) for a relocalization, its
         inlier count and the method that found it; None when both methods fail."""
         new_id = int(kf.id)
-        kf_id, res = self.closer.relocalize(kf.image, exclude_after=new_id - 1)
+        if self.config.detection_worker == "process":  # the database is in the worker
+            kf_id, res = self._workers().submit(_worker_relocalize, kf.image, new_id - 1).result()
+        else:
+            kf_id, res = self.closer.relocalize(kf.image, exclude_after=new_id - 1)
         if kf_id is not None and res.cam_from_map is not None:
             return kf_id, res.cam_from_map, res.n_inliers, "descriptors"
         older = sorted(k for k in self.keyframes if k < new_id)[-3:][::-1]
@@ -295,6 +418,7 @@ class LoopClosingStage:
             return
         if self.via_backend:
             record = self._loop_record(closure)
+            record["applied_at_keyframe"] = max(self.keyframes)
             self.events.append(record)
             out.events.append(record)
             self._to_backend(closure, record, out)
@@ -423,8 +547,30 @@ class LoopClosingStage:
         """Complete the last records; wait for every pending correction; stop the worker
         process. Returns the corrections that arrived meanwhile."""
         self._note_backend(state)
+        # detections still running: their loops have no later keyframe to be applied at;
+        # with the back end they become constraints (:meth:`final_constraints`), without it
+        # their global BA runs now
         corrected: dict[int, F64] = {}
-        world = dict(state.world_from_kf)
+        while self._inflight:
+            kf_id, fut = self._inflight.popleft()
+            try:
+                closure = self._note(fut.result())
+            except LoopmodelError as exc:
+                logger.warning("loop detection of keyframe %d failed (%s)", kf_id, exc)
+                continue
+            if closure is None:
+                continue
+            self.detections_unapplied += 1
+            if self.via_backend:
+                self._final_constraints.append(self._constraint_only(closure, state, None))
+            else:
+                last = LoopOutcome(self.keyframes[max(self.keyframes)])
+                self._close(closure, last, state)
+                corrected.update(last.corrections)
+        if self._detect_pool is not None:
+            self._detect_pool.shutdown()
+            self._detect_pool = None
+        world = {**state.world_from_kf, **corrected}
         while self._pending is not None:
             done = self.poll(MapState(world), wait=True)
             if done is not None:
@@ -434,6 +580,11 @@ class LoopClosingStage:
             self._pool.shutdown()
             self._pool = None
         return corrected
+
+    def final_constraints(self) -> list[LoopConstraint]:
+        """Constraints of the loops whose detection finished after the last keyframe."""
+        out, self._final_constraints = self._final_constraints, []
+        return out
 
     def _finish(
         self,
@@ -497,4 +648,10 @@ class LoopClosingStage:
             "relocalization_count": len(self.events) - len(loops),
             "loop_events": self.events,
             "loop_candidates_rejected": len(self.rejected),
+            "loop_neighbours_skipped": self.neighbours_skipped,
+            "loop_keyframes_not_queried": self.keyframes_not_queried,
+            "loop_closures_late": self.late_closures,
+            "loop_closures_after_last_keyframe": self.detections_unapplied,
+            "loop_detect_ms_median": float(np.median(self.detect_s) * 1e3) if self.detect_s else None,
+            "loop_detection_worker": self.config.detection_worker,
         }

@@ -6,12 +6,18 @@ words. A descriptor is quantised by descending from the root to the nearest chil
 level (Hamming distance for binary descriptors, Euclidean for float ones). A bag of words
 is the L1-normalised vector of term frequency times inverse document frequency; two bags
 are compared with the L1 score ``1 - |v1 - v2|_1 / 2`` (the sum of element-wise minima).
-The vocabulary is trained on the fly from the descriptors at hand or loaded from ``.npz``.
+The vocabulary is loaded from ``.npz``: a pre-trained one per descriptor kind ships as
+package data (``loopmodel/data/vocabulary_<kind>.npz``, written by
+``loopmodel loop vocabulary``, :func:`train_from_images`); training on the fly from the
+descriptors at hand is an option.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import functools
+import logging
+from collections.abc import Iterable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -20,8 +26,13 @@ from numpy.typing import NDArray
 
 from loopmodel.errors import FormatError, InputError
 
+logger = logging.getLogger(__name__)
+
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
+
+#: Package data folder holding the shipped vocabularies (``vocabulary_<kind>.npz``).
+DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 
 
 def hamming_to(desc: NDArray[np.uint8], centers: NDArray[np.uint8]) -> NDArray[np.int64]:
@@ -93,6 +104,8 @@ class Vocabulary:
     word: NDArray[np.int32]
     idf: F64
     binary: bool
+    #: Provenance (descriptor kind, training images, parameters) as plain strings.
+    info: dict[str, str] = field(default_factory=dict)
 
     @property
     def n_words(self) -> int:
@@ -234,6 +247,8 @@ class Vocabulary:
                 word=self.word,
                 idf=self.idf,
                 binary=np.array(self.binary),
+                info_keys=np.array(list(self.info), dtype=str),
+                info_values=np.array(list(self.info.values()), dtype=str),
             )
 
     @classmethod
@@ -244,7 +259,12 @@ class Vocabulary:
             raise InputError(p, "vocabulary file does not exist")
         try:
             z = np.load(p)
-            return cls(z["centers"], z["children"], z["word"], z["idf"], bool(z["binary"]))
+            info = (
+                dict(zip(z["info_keys"].tolist(), z["info_values"].tolist(), strict=True))
+                if "info_keys" in z.files
+                else {}
+            )
+            return cls(z["centers"], z["children"], z["word"], z["idf"], bool(z["binary"]), info)
         except (KeyError, ValueError, OSError) as exc:
             raise FormatError(p, f"not a loopmodel vocabulary ({exc})") from None
 
@@ -255,3 +275,61 @@ def bow_score(a: tuple[I64, F64], b: tuple[I64, F64]) -> float:
     if common.size == 0:
         return 0.0
     return float(np.minimum(a[1][ia], b[1][ib]).sum())
+
+
+def shipped_path(kind: str) -> Path:
+    """Path of the vocabulary shipped for a descriptor kind (may not exist)."""
+    return DATA_DIR / f"vocabulary_{kind.lower()}.npz"
+
+
+@functools.lru_cache(maxsize=8)
+def _load_cached(path: str, mtime_ns: int) -> Vocabulary:
+    return Vocabulary.load(path)
+
+
+def shipped_vocabulary(kind: str) -> Vocabulary | None:
+    """The pre-trained vocabulary shipped for ``kind`` (``orb``, ``sift``, ``surf``), or
+    None when the package has none for it (cached; do not modify the result)."""
+    p = shipped_path(kind)
+    if not p.is_file():
+        return None
+    return _load_cached(str(p), p.stat().st_mtime_ns)
+
+
+def train_from_images(
+    images: Iterable[NDArray[np.uint8]],
+    kind: str = "orb",
+    n_features: int = 1500,
+    branching: int = 8,
+    levels: int = 4,
+    seed: int = 0,
+    max_descriptors: int = 200000,
+    source: str = "",
+) -> Vocabulary:
+    """Train a vocabulary for descriptor ``kind`` on grey images: ``n_features`` detected
+    per image (:func:`loopmodel.loop.features.detect_and_describe`), at most
+    ``max_descriptors`` of them (seeded random subset) clustered into a
+    ``branching``^``levels`` tree, IDF weights from the images as documents. ``source``
+    describes the images (kept in :attr:`Vocabulary.info`). Deterministic for a seed."""
+    from loopmodel.loop.features import detect_and_describe, make_extractor
+
+    ex = make_extractor(kind, n_features)
+    docs = [fs.descriptors for fs in (detect_and_describe(im, kind, n_features, ex) for im in images) if len(fs)]
+    if not docs:
+        raise InputError("vocabulary", "no features found in the training images")
+    rng = np.random.default_rng(seed)
+    allx = np.concatenate(docs)
+    if allx.shape[0] > max_descriptors:
+        allx = allx[np.sort(rng.choice(allx.shape[0], max_descriptors, replace=False))]
+    voc = Vocabulary.train(allx, branching, levels, rng=rng, documents=docs)
+    voc.info = {
+        "kind": kind.lower(),
+        "images": str(len(docs)),
+        "descriptors": str(allx.shape[0]),
+        "n_features": str(n_features),
+        "branching": str(branching),
+        "levels": str(levels),
+        "seed": str(seed),
+        "source": source,
+    }
+    return voc

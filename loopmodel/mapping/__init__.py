@@ -18,7 +18,8 @@ Pipeline use (poses ``world_from_*`` 4x4 in metres, times in ns)::
 Offline: ``StripeMap.from_trajectory(trajectory, stripes, config)``.
 """
 
-from loopmodel.mapping.accuracy import MeshAccuracy, mesh_accuracy, mesh_error_metrics
+from typing import Any
+
 from loopmodel.mapping.extraction import (
     LightPlane,
     extract_laser_peaks,
@@ -37,3 +38,12 @@ __all__ = [
     "stripe_from_image",
     "triangulate_with_plane",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """The accuracy functions import open3d (about 1 s): loaded on first use only."""
+    if name in ("MeshAccuracy", "mesh_accuracy", "mesh_error_metrics"):
+        from loopmodel.mapping import accuracy
+
+        return getattr(accuracy, name)
+    raise AttributeError(f"module 'loopmodel.mapping' has no attribute {name!r}")

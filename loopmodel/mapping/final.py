@@ -1,9 +1,11 @@
-"""The end-of-run mapping step: the run's laser stripes, and the mesh of them placed with the
-final trajectory, with its accuracy when the sequence carries a ground-truth scene."""
+"""The mapping steps that read the sequence: its laser stripes for the live mapping and at the
+end of the run, and the mesh of them placed with the final trajectory, with its accuracy when
+the sequence carries a ground-truth scene."""
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -15,6 +17,11 @@ from loopmodel.mapping.extraction import sequence_stripe_count, sequence_stripes
 from loopmodel.types import StripeProfile, Trajectory
 
 logger = logging.getLogger(__name__)
+
+
+def live_stripes(sequence: Sequence, config: MappingConfig) -> Iterator[StripeProfile]:
+    """The sequence's laser profiles in time order, for the live mapping (none without)."""
+    return sequence_stripes(sequence, config) if sequence_stripe_count(sequence) else iter(())
 
 
 def run_stripes(sequence: Sequence, last_ns: int | None, config: MappingConfig) -> list[StripeProfile]:

@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 
 from loopmodel.errors import LoopmodelError
-from loopmodel.io.base import Sequence
-from loopmodel.mapping.extraction import sequence_stripe_count, sequence_stripes
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.types import StripeProfile
 
@@ -19,19 +18,16 @@ logger = logging.getLogger(__name__)
 
 
 class LiveMapping:
-    """The sequence's laser stripes handed to the pipeline's :class:`StripeMap` in time order
-    as frames arrive, and the chunked live mesh: every ``live_mesh_every_kf`` keyframes the
-    blocks that new stripes entered or that pose corrections moved are re-meshed in a worker
-    thread (open3d releases the GIL), so tracking does not wait for it."""
+    """The run's laser stripes (``stripes``, in time order, e.g. the reader's) handed to the
+    pipeline's :class:`StripeMap` as frames arrive, and the chunked live mesh: every
+    ``live_mesh_every_kf`` keyframes the blocks that new stripes entered or that pose
+    corrections moved are re-meshed in a worker thread (open3d releases the GIL), so tracking
+    does not wait for it."""
 
-    def __init__(self, world: StripeMap, sequence: Sequence, every_kf: int) -> None:
+    def __init__(self, world: StripeMap, stripes: Iterator[StripeProfile], every_kf: int) -> None:
         self._world = world
         self._every = every_kf
-        self._stripes = (
-            sequence_stripes(sequence, world.config)
-            if every_kf > 0 and sequence_stripe_count(sequence)
-            else iter(())
-        )
+        self._stripes = stripes if every_kf > 0 else iter(())
         self._next: StripeProfile | None = None
         self._keyframes = 0
         self._pool: Any = None
