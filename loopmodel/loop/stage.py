@@ -272,6 +272,8 @@ class LoopClosingStage:
         if not self.via_backend or c == q:
             self._close(closure, out, state)
             return
+        if not self._robust_gate(closure, state.world_from_kf):
+            return
         out.constraints.append(self._constraint_only(closure, state, c))
         out.events.append(self.events[-1])
 
@@ -470,7 +472,7 @@ class LoopClosingStage:
             self._gated.append(closure)
             closure.info["robust_gate_ms"] = gate_ms
             return True
-        self.closer.closures.remove(closure)
+        self.closer.closures = [c for c in self.closer.closures if c is not closure]
         weight = float(res.weights[-1])
         reason = f"robust gate: inconsistent with odometry and earlier loops (GNC weight {weight:.2f})"
         self.rejected.append({"query_kf": hi, "match_kf": lo, "reason": reason, "gate_ms": gate_ms})
@@ -562,7 +564,8 @@ class LoopClosingStage:
                 continue
             self.detections_unapplied += 1
             if self.via_backend:
-                self._final_constraints.append(self._constraint_only(closure, state, None))
+                if self._robust_gate(closure, state.world_from_kf):
+                    self._final_constraints.append(self._constraint_only(closure, state, None))
             else:
                 last = LoopOutcome(self.keyframes[max(self.keyframes)])
                 self._close(closure, last, state)
