@@ -637,3 +637,21 @@ def test_project_mcap_reader_takes_bag_encodings(tmp_path: Path) -> None:
         for a, b in zip(src.frames(), seq.frames(), strict=True):
             d = np.abs(_grey(b.left).astype(int) - a.left.astype(int))
             assert d.max() == 0 if enc == "bgra8" else np.median(d) <= 2
+
+
+def test_bag_without_camera_info_with_calibration_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """EuRoC/TUM-VI style ROS 1 bags have images only: ``--calib`` gives the calibration (a
+    EuRoC sensor.yaml folder or a KITTI calib.txt)."""
+    src = open_sequence(TINY)
+    bag = tmp_path / "noinfo.bag"
+    with BagSequenceWriter(bag, src.calibration, "ros1") as w:
+        for f in src.frames():
+            for side, img in ((0, f.left), (1, f.right)):
+                topic = ("/cam0/image_raw", "/cam1/image_raw")[side]
+                w.write_message(topic, *image_message_values(img, f.timestamp_ns, "c", "mono8"), f.timestamp_ns)
+    _one_line_exit_2(["info", str(bag)], capsys, "/cam0/image_raw: no CameraInfo")
+    seq = open_sequence(bag, calibration_file=TINY / "calib.txt")
+    assert np.allclose(seq.calibration.K_left, src.calibration.K_left)
+    assert seq.calibration.baseline_m == pytest.approx(src.calibration.baseline_m)
+    assert main(["info", str(bag), "--calib", str(TINY / "calib.txt")]) == 0
+    _one_line_exit_2(["info", str(TINY), "--calib", str(TINY / "calib.txt")], capsys, "apply to bags")
