@@ -655,3 +655,25 @@ def test_bag_without_camera_info_with_calibration_file(tmp_path: Path, capsys: p
     assert seq.calibration.baseline_m == pytest.approx(src.calibration.baseline_m)
     assert main(["info", str(bag), "--calib", str(TINY / "calib.txt")]) == 0
     _one_line_exit_2(["info", str(TINY), "--calib", str(TINY / "calib.txt")], capsys, "apply to bags")
+
+
+def test_kalibr_camchain(tmp_path: Path) -> None:
+    from loopmodel.io.calib_files import read_stereo_calibration
+
+    cal = _fisheye_cal()
+    cams = {}
+    for name, d in (("cam0", cal.dist_left), ("cam1", cal.dist_right)):
+        cams[name] = {
+            "camera_model": "pinhole",
+            "intrinsics": [190.0, 190.5, 256.0, 255.0],
+            "distortion_model": "equidistant",
+            "distortion_coeffs": [float(x) for x in d],
+            "resolution": [512, 512],
+        }
+    cams["cam1"]["T_cn_cnm1"] = [[float(x) for x in row] for row in cal.right_from_left]
+    (tmp_path / "camchain.yaml").write_text(yaml.safe_dump(cams))
+    got = read_stereo_calibration(tmp_path / "camchain.yaml", (512, 512))
+    assert got.camera_model == "equidistant" and np.allclose(got.right_from_left, cal.right_from_left)
+    assert np.allclose(got.dist_right, cal.dist_right) and np.allclose(got.K_left, cal.K_left)
+    with pytest.raises(CalibrationError, match="resolution"):
+        read_stereo_calibration(tmp_path / "camchain.yaml", (640, 480))
