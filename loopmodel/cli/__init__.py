@@ -36,7 +36,7 @@ LeftTopicOption = Annotated[str | None, typer.Option("--left", help="Left image 
 RightTopicOption = Annotated[str | None, typer.Option("--right", help="Right image topic of a bag (default: guessed)")]
 CalibOption = Annotated[
     Path | None,
-    typer.Option("--calib", help="Calibration of a bag without CameraInfo: EuRoC sensor.yaml folder, camchain.yaml, calib.txt"),
+    typer.Option("--calib", help="Bag without CameraInfo: EuRoC sensor.yaml folder, camchain.yaml or calib.txt"),
 ]
 
 
