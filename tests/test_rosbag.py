@@ -418,6 +418,15 @@ def test_run_on_bag_equals_folder(tmp_path: Path, capsys: pytest.CaptureFixture[
     a = (tmp_path / "o" / "folder" / "trajectory_final.tum").read_text()
     b = (tmp_path / "o" / "bag" / "trajectory_final.tum").read_text()
     assert a == b and len(a.splitlines()) == 1 + 8
+    # a results folder against a bag topic: the same numbers as against the folder's poses.txt
+    import json
+
+    run = tmp_path / "o" / "bag"
+    assert main(["eval", str(run), "--gt", f"{bag}:/ground_truth/pose", "--no-plots", "-o", str(tmp_path / "e1")]) == 0
+    assert main(["eval", str(run), "--gt", str(TINY), "--no-plots", "-o", str(tmp_path / "e2")]) == 0
+    m1, m2 = (json.loads((tmp_path / e / "metrics.json").read_text()) for e in ("e1", "e2"))
+    assert m1["trajectories"]["final"]["matched"] == 8
+    assert m1["ate_rmse_m"] == m2["ate_rmse_m"]
 
 
 # ------------------------------------------------------------------ trajectories from real bags
