@@ -37,6 +37,10 @@ app.add_typer(config_app, name="config")
 ConfigOption = Annotated[Path | None, typer.Option("--config", "-c", help="YAML file overriding defaults")]
 LeftTopicOption = Annotated[str | None, typer.Option("--left", help="Left image topic of a bag (default: guessed)")]
 RightTopicOption = Annotated[str | None, typer.Option("--right", help="Right image topic of a bag (default: guessed)")]
+CalibOption = Annotated[
+    Path | None,
+    typer.Option("--calib", help="Bag without CameraInfo: EuRoC sensor.yaml folder, camchain.yaml or calib.txt"),
+]
 
 
 def _version_callback(value: bool) -> None:
@@ -94,13 +98,14 @@ def info(
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table")] = False,
     left: LeftTopicOption = None,
     right: RightTopicOption = None,
+    calib: CalibOption = None,
 ) -> None:
     """Describe a sequence: format, frames, duration, image size, calibration, ground truth, stripes;
     for a bag its image and camera_info topics with rates and sizes, and the stereo pair chosen."""
     from loopmodel.io.sequence import open_sequence
 
     cfg = load_config(config)
-    desc = open_sequence(path, cfg.sequence, left, right).describe()
+    desc = open_sequence(path, cfg.sequence, left, right, calib).describe()
     if as_json:
         console.print_json(json.dumps(desc))
         return
@@ -129,6 +134,7 @@ def convert(
     keep_topics: Annotated[bool, typer.Option("--keep-topics", help="Keep the source's topic names")] = False,
     left: LeftTopicOption = None,
     right: RightTopicOption = None,
+    calib: CalibOption = None,
 ) -> None:
     """Convert a sequence to MCAP with ROS 2 messages (topics of DESIGN.md) or to a ROS bag."""
     from loopmodel.io.convert import OUTPUT_KINDS, convert_sequence, output_kind
@@ -153,7 +159,7 @@ def convert(
     if kind == "mcap":
         check_output_file(dst)  # before the work, not after it
     cfg = load_config(config)
-    seq = open_sequence(src, cfg.sequence, left, right)
+    seq = open_sequence(src, cfg.sequence, left, right, calib)
     done = [0]
 
     def step(i: int) -> None:
@@ -184,6 +190,7 @@ def run(
     rerun: RerunFileOption = None,
     rerun_spawn: RerunSpawnOption = False,
     rerun_connect: RerunConnectOption = None,
+    calib: CalibOption = None,
 ) -> None:
     """Process a sequence (front end, back end); writes config, trajectories, keyframes, map,
     metrics and log into <out>/<name>/. Ctrl-C or SIGTERM stops it after writing what it has."""
@@ -195,7 +202,7 @@ def run(
     if max_frames is not None and max_frames < 1:
         raise InputError("--max-frames", f"must be at least 1, got {max_frames}")
     cfg = load_config(config)
-    seq = open_sequence(path, cfg.sequence, left, right)
+    seq = open_sequence(path, cfg.sequence, left, right, calib)
     if getattr(seq, "choice", None):
         console.print(f"{seq.format_name}: {seq.choice}")  # type: ignore[attr-defined]
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
