@@ -148,6 +148,9 @@ def run(quick: bool = False) -> dict:
         "overhead_s_per_task": round((one["wall_s"] - one["task_s_sum"]) / n, 3),
         "wall_1_worker_s": round(one["wall_s"], 2),
         "wall_2_workers_s": round(two["wall_s"], 2),
+        # the tasks' own time over workers x wall: near 1 when Dask keeps every worker busy; a
+        # task_s_sum that grows with the worker count means the CPU (shared machine) is the limit
+        "worker_busy_fraction_2_workers": round(two["task_s_sum"] / (2 * two["wall_s"]), 3),
         "task_s_sum_1_worker": round(one["task_s_sum"], 2),
         "task_s_sum_2_workers": round(two["task_s_sum"], 2),
         "cluster_start_1_worker_s": round(one["cluster_start_s"], 2),

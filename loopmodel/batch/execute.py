@@ -4,7 +4,8 @@ against the sequence's ground truth, record time and peak memory, rename it into
 Tasks run in the worker process itself, not in a subprocess per task: a fresh Python with
 loopmodel's imports (open3d, gtsam, cv2) costs about 2.5 s per task on this machine (measured
 with ``/usr/bin/time python -c "import loopmodel.pipeline, ..."``: 2.2-2.6 s), five times the
-0.5 s per-task overhead budget, while the worker imports them once (:class:`BatchWorkerPlugin`).
+0.5 s per-task overhead budget, while the worker imports them once (:func:`warm_up`, run by
+``plugin.BatchWorkerPlugin``).
 Isolation from crashes comes from Dask's nanny instead: a worker that dies (segfault, out of
 memory, SIGKILL) is restarted and its task rescheduled, at most
 ``distributed.scheduler.allowed-failures`` times. Peak memory per task is the worker's peak
@@ -94,25 +95,6 @@ def warm_up(threads: int = 1) -> dict[str, Any]:
     import loopmodel.pipeline  # noqa: F401
 
     return pinned
-
-
-try:
-    from distributed.diagnostics.plugin import WorkerPlugin
-except ImportError:  # pragma: no cover - the batch extra is not installed
-    WorkerPlugin = object  # type: ignore[misc,assignment]
-
-
-class BatchWorkerPlugin(WorkerPlugin):  # type: ignore[misc,valid-type]
-    """Runs :func:`warm_up` on every worker, also on those that join or restart later."""
-
-    name = "loopmodel-batch"
-
-    def __init__(self, threads: int = 1) -> None:
-        self.threads = threads
-
-    def setup(self, worker: Any) -> None:
-        """Called by Dask on each worker."""
-        warm_up(self.threads)
 
 
 def run_sequence(source: str | Path, config: Any, out_dir: Path, name: str, max_frames: int | None) -> Path:

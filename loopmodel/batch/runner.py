@@ -301,7 +301,8 @@ def open_client(
         raise InputError(
             "--scheduler", "Dask is not installed: pip install 'loopmodel[batch]' (dask[distributed])"
         ) from None
-    from loopmodel.batch.execute import THREAD_ENV, BatchWorkerPlugin
+    from loopmodel.batch.execute import THREAD_ENV
+    from loopmodel.batch.plugin import BatchWorkerPlugin
 
     if logging.getLogger().getEffectiveLevel() > logging.INFO:  # Dask's own INFO lines only with -v
         logging.getLogger("distributed").setLevel(logging.WARNING)
