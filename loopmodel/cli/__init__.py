@@ -719,7 +719,12 @@ def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in args
     try:
-        app(args=args, prog_name="loopmodel", standalone_mode=False)
+        # typer returns the status of typer.Exit (and 130 for Ctrl-C) instead of raising
+        status = app(args=args, prog_name="loopmodel", standalone_mode=False)
+        if status == 130:
+            err_console.print("interrupted")
+        if isinstance(status, int) and not isinstance(status, bool):
+            return status
     except LoopmodelError as exc:
         if debug:
             raise
