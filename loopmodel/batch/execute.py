@@ -184,7 +184,7 @@ def run_task(spec: TaskSpec) -> dict[str, Any]:
             ev = evaluate_folder(tmp, spec.sequence_path, cfg)
         except LoopmodelError as exc:  # the run stands; say why it has no numbers
             ev = None
-            record["eval_error"] = one_line_error(exc)
+            record["eval_error"] = one_line_error(exc).replace(str(tmp), str(final))
         record["eval_s"] = time.perf_counter() - t_eval
         run_metrics = json.loads((tmp / "metrics.json").read_text())
         record.update(
@@ -213,7 +213,8 @@ def run_task(spec: TaskSpec) -> dict[str, Any]:
         return read_record(final) or record
     except Exception as exc:
         shutil.rmtree(tmp, ignore_errors=True)
-        record.update({"status": "failed", "error": one_line_error(exc), "task_s": time.perf_counter() - t0})
+        error = one_line_error(exc).replace(str(tmp), str(final))
+        record.update({"status": "failed", "error": error, "task_s": time.perf_counter() - t0})
         logger.warning("task %s failed: %s", spec.task_id, record["error"])
         write_text_atomic(Path(spec.out_dir) / FAILED_DIR / f"{spec.task_id}.json", json.dumps(record, indent=2) + "\n")
         return record
