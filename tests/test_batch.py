@@ -181,7 +181,8 @@ def test_external_scheduler_and_two_workers(tmp_path):
             )
         plan = _write_plan(tmp_path / "plan.yaml", [str(_tiny_copy(tmp_path / "tiny5", 5))], 8)
         out = tmp_path / "out"
-        assert main(["batch", str(plan), "--scheduler", address, "--workers", "2", "--out", str(out)]) == 0
+        args = ["batch", str(plan), "--scheduler", address, "--workers", "2", "--out", str(out), "--no-plots"]
+        assert main(args) == 0
         recs = [json.loads(p.read_text()) for p in (out / "tasks").glob("*/task.json")]
         assert len(recs) == 2 and all(r["status"] == "done" for r in recs)
         assert main(["batch", "status", str(out)]) == 0
