@@ -21,6 +21,7 @@ import numpy as np
 from loopmodel.config import LoopConfig
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose, so3_log
+from loopmodel.loop.closure import params_from_config
 from loopmodel.loop.features import (
     FeatureSet,
     detect_and_describe,
@@ -30,7 +31,6 @@ from loopmodel.loop.features import (
     match_descriptors,
     triangulate,
 )
-from loopmodel.loop.closure import params_from_config
 from loopmodel.loop.pnp import solve_pnp_bank
 from loopmodel.loop.reloc import RelocParams, localize, sample_bound
 

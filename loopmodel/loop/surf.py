@@ -178,9 +178,15 @@ def _extrema(
                 hxx = stack[k, i, j + 1] + stack[k, i, j - 1] - 2.0 * v
                 hyy = stack[k, i + 1, j] + stack[k, i - 1, j] - 2.0 * v
                 hss = stack[k + 1, i, j] + stack[k - 1, i, j] - 2.0 * v
-                hxy = 0.25 * (stack[k, i + 1, j + 1] - stack[k, i + 1, j - 1] - stack[k, i - 1, j + 1] + stack[k, i - 1, j - 1])
-                hxs = 0.25 * (stack[k + 1, i, j + 1] - stack[k + 1, i, j - 1] - stack[k - 1, i, j + 1] + stack[k - 1, i, j - 1])
-                hys = 0.25 * (stack[k + 1, i + 1, j] - stack[k + 1, i - 1, j] - stack[k - 1, i + 1, j] + stack[k - 1, i - 1, j])
+                hxy = 0.25 * (
+                    stack[k, i + 1, j + 1] - stack[k, i + 1, j - 1] - stack[k, i - 1, j + 1] + stack[k, i - 1, j - 1]
+                )
+                hxs = 0.25 * (
+                    stack[k + 1, i, j + 1] - stack[k + 1, i, j - 1] - stack[k - 1, i, j + 1] + stack[k - 1, i, j - 1]
+                )
+                hys = 0.25 * (
+                    stack[k + 1, i + 1, j] - stack[k + 1, i - 1, j] - stack[k - 1, i + 1, j] + stack[k - 1, i - 1, j]
+                )
                 # solve H o = -g (Cramer's rule)
                 a00, a01, a02 = hxx, hxy, hxs
                 a11, a12, a22 = hyy, hys, hss
@@ -415,7 +421,9 @@ class Surf:
         kp = self.detect(image, ii)
         return kp, self.describe(image, kp, ii)
 
-    def laplacian_sign(self, image: NDArray[np.generic], xy: F64, scale: F64, ii: F64 | None = None) -> NDArray[np.int8]:
+    def laplacian_sign(
+        self, image: NDArray[np.generic], xy: F64, scale: F64, ii: F64 | None = None
+    ) -> NDArray[np.int8]:
         """Sign of the box-filter Laplacian at given positions and scales (N,)."""
         ii = self.integral(image) if ii is None else ii
         out = np.ones(xy.shape[0], np.int8)
@@ -434,6 +442,10 @@ def _laplacian_at(ii: F64, xy: F64, scale: F64, out: NDArray[np.int8]) -> None:
         hl = (lobe - 1) // 2
         r = int(np.round(xy[p, 1]))
         c = int(np.round(xy[p, 0]))
-        dyy = _box(ii, r - b, c - lobe + 1, r + b + 1, c + lobe) - 3.0 * _box(ii, r - hl, c - lobe + 1, r + hl + 1, c + lobe)
-        dxx = _box(ii, r - lobe + 1, c - b, r + lobe, c + b + 1) - 3.0 * _box(ii, r - lobe + 1, c - hl, r + lobe, c + hl + 1)
+        dyy = _box(ii, r - b, c - lobe + 1, r + b + 1, c + lobe) - 3.0 * _box(
+            ii, r - hl, c - lobe + 1, r + hl + 1, c + lobe
+        )
+        dxx = _box(ii, r - lobe + 1, c - b, r + lobe, c + b + 1) - 3.0 * _box(
+            ii, r - lobe + 1, c - hl, r + lobe, c + hl + 1
+        )
         out[p] = 1 if dxx + dyy >= 0 else -1
