@@ -6,7 +6,8 @@ verified with a fundamental matrix, and the accepted loop (at most one per image
 compared with ``samples_GT.bmp``. Pairs within 5 frames never count (the database does not
 offer them). ``precision`` = correct loops / loops; ``recall`` = images with a correct loop
 / images that have a true partner more than 5 frames back; ``pairs_true`` = number of such
-true pairs in the matrix.
+true pairs in the matrix. The top-level keys are ORB's (the default descriptor); the run
+repeats for SIFT and SURF (``<kind>_precision``, ``<kind>_recall``, ...).
 """
 
 from __future__ import annotations
@@ -22,11 +23,22 @@ from loopmodel.loop.closure import LoopDetector, LoopParams
 from loopmodel.loop.database import PlaceParams
 from loopmodel.loop.features import detect_and_describe, make_extractor
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "loop_images"
+
+
+def _shared_data() -> Path:
+    """``shared/data`` beside the nearest ancestor of this file (the checkout or a worktree)."""
+    for parent in Path(__file__).resolve().parents:
+        if (parent / "shared" / "data").is_dir():
+            return parent / "shared" / "data"
+    return Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+
+
+DATA = _shared_data() / "loop_images"
 EXCLUDE = 5
 
 
-def run(quick: bool = False, kind: str = "orb") -> dict:
+def evaluate(kind: str) -> dict:
+    """Loop detection over the 84 images with one descriptor kind."""
     gt_img = cv2.imread(str(DATA / "samples_GT.bmp"), cv2.IMREAD_GRAYSCALE)
     if gt_img is None:
         raise FileNotFoundError(DATA / "samples_GT.bmp")
@@ -52,7 +64,7 @@ def run(quick: bool = False, kind: str = "orb") -> dict:
         if ev is not None:
             detections[i] = ev.match_id
             mark = "ok" if gt[i, ev.match_id] else "FALSE"
-            print(f"image {i + 1}: loop with {ev.match_id + 1} ({ev.n_inliers} inliers) {mark}")
+            print(f"[{kind}] image {i + 1}: loop with {ev.match_id + 1} ({ev.n_inliers} inliers) {mark}")
     far = np.tril(gt, -(EXCLUDE + 1))
     pairs_true = int(far.sum())
     queries_true = int(np.any(far, axis=1).sum())
@@ -73,3 +85,14 @@ def run(quick: bool = False, kind: str = "orb") -> dict:
         "query_ms_p95": round(float(np.percentile(q_ms, 95)), 2),
         "vocabulary_words": det.database.vocabulary.n_words if det.database.vocabulary else 0,
     }
+
+
+def run(quick: bool = False) -> dict:
+    out = evaluate("orb")
+    for kind in ("sift", "surf"):
+        res = evaluate(kind)
+        for k in ("detections", "true_positives", "precision", "recall", "query_ms_median"):
+            out[f"{kind}_{k}"] = res[k]
+    for k in ("detections", "true_positives", "precision", "recall", "query_ms_median"):
+        out[f"orb_{k}"] = out[k]
+    return out
