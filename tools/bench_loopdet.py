@@ -24,7 +24,6 @@ from loopmodel.loop.database import PlaceParams
 from loopmodel.loop.features import detect_and_describe, make_extractor
 
 
-
 def _shared_data() -> Path:
     """``shared/data`` beside the nearest ancestor of this file (the checkout or a worktree)."""
     for parent in Path(__file__).resolve().parents:
