@@ -87,12 +87,52 @@ def _box(ii: F64, r0: int, c0: int, r1: int, c1: int) -> float:
     return ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]
 
 
+@nb.njit(cache=True, inline="always")
+def _box_in(ii: F64, r0: int, c0: int, r1: int, c1: int) -> float:
+    """Sum over rows [r0, r1) and columns [c0, c1) lying inside the image (no clipping)."""
+    return ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]
+
+
+@nb.njit(cache=True, inline="always")
+def _hessian_at(ii: F64, r: int, c: int, b: int, lobe: int, hl: int, clip: bool) -> tuple[float, float, float]:
+    """Box-filter (Dxx, Dyy, Dxy) of lobe ``lobe`` at pixel (r, c), unnormalised."""
+    if clip:
+        dyy = _box(ii, r - b, c - lobe + 1, r + b + 1, c + lobe) - 3.0 * _box(
+            ii, r - hl, c - lobe + 1, r + hl + 1, c + lobe
+        )
+        dxx = _box(ii, r - lobe + 1, c - b, r + lobe, c + b + 1) - 3.0 * _box(
+            ii, r - lobe + 1, c - hl, r + lobe, c + hl + 1
+        )
+        dxy = (
+            _box(ii, r - lobe, c - lobe, r, c)
+            + _box(ii, r + 1, c + 1, r + lobe + 1, c + lobe + 1)
+            - _box(ii, r - lobe, c + 1, r, c + lobe + 1)
+            - _box(ii, r + 1, c - lobe, r + lobe + 1, c)
+        )
+    else:
+        dyy = _box_in(ii, r - b, c - lobe + 1, r + b + 1, c + lobe) - 3.0 * _box_in(
+            ii, r - hl, c - lobe + 1, r + hl + 1, c + lobe
+        )
+        dxx = _box_in(ii, r - lobe + 1, c - b, r + lobe, c + b + 1) - 3.0 * _box_in(
+            ii, r - lobe + 1, c - hl, r + lobe, c + hl + 1
+        )
+        dxy = (
+            _box_in(ii, r - lobe, c - lobe, r, c)
+            + _box_in(ii, r + 1, c + 1, r + lobe + 1, c + lobe + 1)
+            - _box_in(ii, r - lobe, c + 1, r, c + lobe + 1)
+            - _box_in(ii, r + 1, c - lobe, r + lobe + 1, c)
+        )
+    return dxx, dyy, dxy
+
+
 @nb.njit(cache=True, parallel=True)
 def _hessian_octave(ii: F64, sizes: NDArray[np.int64], step: int, det: F32, lap: F32) -> None:
     """Determinants of the box-filter Hessian for every filter side in ``sizes`` at pixels
     (i * step, j * step) -> ``det`` (layers, rows, cols); its trace -> ``lap`` (both
-    normalised by the filter area)."""
+    normalised by the filter area). Filters reaching past the border are clipped."""
     n_layers, rows, cols = det.shape
+    h = ii.shape[0] - 1
+    w = ii.shape[1] - 1
     w2 = HESSIAN_DXY_WEIGHT * HESSIAN_DXY_WEIGHT
     for i in nb.prange(rows):
         r = i * step
@@ -102,20 +142,13 @@ def _hessian_octave(ii: F64, sizes: NDArray[np.int64], step: int, det: F32, lap:
             b = (size - 1) // 2
             hl = (lobe - 1) // 2
             inv_area = 1.0 / float(size * size)
+            row_in = r - b - 1 >= 0 and r + b + 1 <= h
+            j_lo = (b + 1 + step - 1) // step  # first column with c - b - 1 >= 0
+            j_hi = (w - b - 1) // step  # last column with c + b + 1 <= w
             for j in range(cols):
                 c = j * step
-                dyy = _box(ii, r - b, c - lobe + 1, r + b + 1, c + lobe) - 3.0 * _box(
-                    ii, r - hl, c - lobe + 1, r + hl + 1, c + lobe
-                )
-                dxx = _box(ii, r - lobe + 1, c - b, r + lobe, c + b + 1) - 3.0 * _box(
-                    ii, r - lobe + 1, c - hl, r + lobe, c + hl + 1
-                )
-                dxy = (
-                    _box(ii, r - lobe, c - lobe, r, c)
-                    + _box(ii, r + 1, c + 1, r + lobe + 1, c + lobe + 1)
-                    - _box(ii, r - lobe, c + 1, r, c + lobe + 1)
-                    - _box(ii, r + 1, c - lobe, r + lobe + 1, c)
-                )
+                clip = not (row_in and j_lo <= j <= j_hi)
+                dxx, dyy, dxy = _hessian_at(ii, r, c, b, lobe, hl, clip)
                 dxx *= inv_area
                 dyy *= inv_area
                 dxy *= inv_area
