@@ -148,8 +148,8 @@ def render_turntable_frame(
     dd = Pc @ ln + ld
     g = np.where(np.isfinite(hit), 255.0 * np.exp(-0.5 * (dd / laser_sigma_m) ** 2), 0.0)
     colour[:, 1] = np.minimum(255.0, colour[:, 1] + g)
-    colour[:, 0] = np.minimum(255.0, colour[:, 0] + 0.3 * g)
-    colour[:, 2] = np.minimum(255.0, colour[:, 2] + 0.3 * g)
+    colour[:, 0] = np.minimum(255.0, colour[:, 0] + 0.1 * g)
+    colour[:, 2] = np.minimum(255.0, colour[:, 2] + 0.1 * g)
     w, h = size
     return _finish(colour.reshape(h * s, w * s, 3), s, rng)
 
