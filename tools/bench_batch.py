@@ -14,7 +14,9 @@ In one run of this script:
 - ``rerun_s``: ``loopmodel batch PLAN --out`` (a new process) on the finished 2-worker folder;
 - ``killed_worker_tasks_lost``: a third fresh batch on 2 workers where the bench SIGKILLs the
   worker process of the first task it sees running; tasks not done at the end;
-- ``overhead_s_per_task``: (1-worker wall - sum of the tasks' own times measured inside them) / tasks.
+- ``overhead_s_per_task``: (1-worker wall - sum of the tasks' own times measured inside them) / tasks;
+  ``subprocess_start_s_per_task`` is what a subprocess per task would add instead (a new
+  interpreter importing the pipeline, median of 3).
 The machine is shared: ``load_1min_*`` is ``/proc/loadavg`` before each timed part.
 """
 
@@ -109,6 +111,7 @@ def _batch(plan_path: Path, out: Path, workers: int, kill: bool = False) -> dict
         "cluster_start_s": start_s,
         "wall_s": outcome.submit_wall_s,
         "task_s_sum": sum(float(r.get("task_s") or 0.0) for r in recs),
+        "cpu_s_sum": sum(float(r.get("cpu_s") or 0.0) for r in recs),
         "done": sum(r.get("status") == "done" for r in recs),
         "failed": [r.get("error") for r in recs if r.get("status") != "done"],
         "tasks": len(recs),
@@ -141,6 +144,17 @@ def run(quick: bool = False) -> dict:
         raise RuntimeError(f"re-run failed: {proc.stderr.strip().splitlines()[-1:]}")
     rerun_skipped_all = "(12 already finished)" in proc.stdout or f"({one['tasks']} already finished)" in proc.stdout
     killed = _batch(plan_path, WORK / "out_kill", 2, kill=True)
+    # what a subprocess per task would add: a fresh interpreter importing what a task needs
+    # (median of 3), against the in-worker overhead above
+    starts = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        subprocess.run(
+            [sys.executable, "-c", "import loopmodel.pipeline, loopmodel.io.sequence, loopmodel.eval.report"],
+            env=env,
+            check=True,
+        )
+        starts.append(time.perf_counter() - t0)
     n = one["tasks"]
     return {
         "tasks": n,
@@ -148,12 +162,16 @@ def run(quick: bool = False) -> dict:
         "rerun_s": round(rerun_s, 2),
         "killed_worker_tasks_lost": killed["tasks"] - killed["done"],
         "overhead_s_per_task": round((one["wall_s"] - one["task_s_sum"]) / n, 3),
+        "subprocess_start_s_per_task": round(sorted(starts)[1], 2),
         "wall_1_worker_s": round(one["wall_s"], 2),
         "wall_2_workers_s": round(two["wall_s"], 2),
         # the tasks' own time over workers x wall: near 1 when Dask keeps every worker busy; a
         # task_s_sum that grows with the worker count means the CPU (shared machine) is the limit
         "worker_busy_fraction_2_workers": round(two["task_s_sum"] / (2 * two["wall_s"]), 3),
         "task_s_sum_1_worker": round(one["task_s_sum"], 2),
+        # CPU seconds per wall second of a task on 1 worker: above 1, a task already uses more
+        # than one core (threads of its own), which caps what a second worker can add
+        "task_cpu_per_wall_1_worker": round(one["cpu_s_sum"] / one["task_s_sum"], 3),
         "task_s_sum_2_workers": round(two["task_s_sum"], 2),
         "cluster_start_1_worker_s": round(one["cluster_start_s"], 2),
         "cluster_start_2_workers_s": round(two["cluster_start_s"], 2),

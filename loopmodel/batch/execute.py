@@ -156,6 +156,7 @@ def run_task(spec: TaskSpec) -> dict[str, Any]:
     if done is not None:  # finished by an earlier attempt (e.g. before its worker was killed)
         return done
     t0 = time.perf_counter()
+    cpu0 = time.process_time()
     record: dict[str, Any] = {
         "task": spec.task_id,
         "sequence": spec.sequence_name,
@@ -200,6 +201,7 @@ def run_task(spec: TaskSpec) -> dict[str, Any]:
             }
         )
         record["task_s"] = time.perf_counter() - t0
+        record["cpu_s"] = time.process_time() - cpu0  # every thread of the worker process
         write_text_atomic(tmp / TASK_FILE, json.dumps(record, indent=2) + "\n")
         final.parent.mkdir(parents=True, exist_ok=True)
         try:
