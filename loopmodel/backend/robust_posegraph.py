@@ -27,7 +27,6 @@ from typing import Any
 import gtsam
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
 from loopmodel.errors import FormatError, InputError
 from loopmodel.geometry.se3 import rotation_from_quat_wxyz
@@ -355,6 +354,8 @@ def _edge_chi2(graph: PoseGraph, world_from_pose: dict[int, F64]) -> F64:
 
 def _chi2_quantile(dim: int, probability: float) -> float:
     """Chi-square quantile for an edge of a ``dim``-D graph (3 or 6 degrees of freedom)."""
+    from scipy.stats import chi2  # about 1 s to import: only when a pose graph is screened
+
     return float(chi2.ppf(probability, 3 if dim == 2 else 6))
 
 
