@@ -74,6 +74,7 @@ class ImageTracker:
     def _once(self) -> tuple[TrackResult, float]:
         t_search = [0.0]
         edges = self.edges
+        edges.last = {}  # only this round's matches are remembered
 
         def measure(j: int, uv: F64, normals: F64, line_index: NDArray[np.int64]) -> tuple[NDArray[np.bool_], F64]:
             t0 = time.perf_counter()
@@ -91,7 +92,8 @@ class ImageTracker:
             n = len(self.edges.last[j][0])
             w = w_all[start : start + n] if w_all is not None else np.ones(n)
             start += n
-            self.edges.remember(j, w > 0.5)
+            if len(w) == n:
+                self.edges.remember(j, w > 0.5)
 
     def track(self, image: NDArray[np.uint8]) -> FrameTrack:
         """Track the next image; the pose carries over to the next frame (no motion model)."""
