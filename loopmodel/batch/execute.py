@@ -100,13 +100,15 @@ def warm_up(threads: int = 1) -> dict[str, Any]:
 def run_sequence(source: str | Path, config: Any, out_dir: Path, name: str, max_frames: int | None) -> Path:
     """Run the pipeline on ``source`` into ``out_dir/name``; the one call into the run machinery.
 
-    Returns the results folder (``loopmodel.run`` replaces this body when it exists on main).
+    Returns the results folder. Through the public :func:`loopmodel.run` (no signal handlers:
+    the worker owns them).
     """
-    from loopmodel.io.sequence import open_sequence
-    from loopmodel.pipeline import run_pipeline
+    from loopmodel.pipeline import run
 
-    seq = open_sequence(source, config.sequence)
-    return Path(run_pipeline(seq, config, out_dir, name, max_frames=max_frames).folder)
+    result = run(source, config, out_dir, name=name, max_frames=max_frames)
+    if result.folder is None:  # pragma: no cover - run() with out_dir always writes
+        raise RuntimeError(f"no results folder for {source}")
+    return Path(result.folder)
 
 
 def evaluate_folder(folder: Path, source: str | Path, config: Any) -> dict[str, Any] | None:
