@@ -596,10 +596,13 @@ SectionT = TypeVar("SectionT", bound=BaseModel)
 def apply_overrides(
     section: SectionT, overrides: Mapping[str, Any], names: Mapping[str, str] | None = None
 ) -> SectionT:
-    """A validated copy of ``section`` (the whole :class:`Config` or one of its sections)
-    with the dotted keys of ``overrides`` set (``{"eval.align": "sim3"}``); None values are
-    skipped. The one way command-line flags change a configuration: an unknown key or an
-    invalid value raises :class:`ConfigError` naming ``names[key]`` (e.g. the flag) or the key."""
+    """A validated copy of ``section`` with the dotted keys of ``overrides`` set.
+
+    ``section`` is the whole :class:`Config` or one of its sections; overrides such as
+    ``{"eval.align": "sim3"}``; None values are skipped. The one way command-line flags change a
+    configuration: an unknown key or an invalid value raises :class:`ConfigError` naming
+    ``names[key]`` (e.g. the flag) or the key.
+    """
     names = names or {}
     data = section.model_dump()
     for key, value in overrides.items():
@@ -652,8 +655,10 @@ def pipeline_sections() -> tuple[str, ...]:
 
 
 def dump_config(config: Config, sections: tuple[str, ...] | None = None) -> str:
-    """The configuration as YAML text (every key, defaults included), or only the named
-    top-level ``sections``."""
+    """The configuration as YAML text (every key, defaults included).
+
+    Or only the named top-level ``sections``.
+    """
     data = config.model_dump(mode="json")
     if sections is not None:
         data = {k: data[k] for k in sections}

@@ -85,8 +85,10 @@ def _online_trajectory(frames: list[FrameResult]) -> Trajectory:
 
 
 def _ground_truth_errors(est: Trajectory, gt: Trajectory | None) -> dict[str, float]:
-    """ATE RMSE after SE(3) alignment and drift (end-point error with the first poses
-    aligned, percent of the ground-truth path), computed by :mod:`loopmodel.eval`."""
+    """ATE RMSE after SE(3) alignment and drift, computed by :mod:`loopmodel.eval`.
+
+    Drift: end-point error with the first poses aligned, percent of the ground-truth path.
+    """
     if gt is None or len(est) < 3:
         return {}
     from loopmodel.eval.trajectory_metrics import EvalInputError, evaluate_pair
@@ -122,8 +124,10 @@ def _quantiles(values: list[float], prefix: str) -> dict[str, float | None]:
 
 # --------------------------------------------------------------------------- stopping
 class StopFlag:
-    """A request to stop the run after the current frame (thread- and signal-safe: a
-    signal handler only sets it; the frame loop checks it between frames)."""
+    """A request to stop the run after the current frame.
+
+    Thread- and signal-safe: a signal handler only sets it; the frame loop checks it between frames.
+    """
 
     def __init__(self) -> None:
         self._event = threading.Event()
@@ -142,8 +146,10 @@ class StopFlag:
 
 @contextlib.contextmanager
 def stop_on_signals(stop: StopFlag) -> Iterator[StopFlag]:
-    """While the block runs, SIGINT (Ctrl-C) and SIGTERM only set ``stop`` (main thread
-    only; elsewhere nothing is installed); the previous handlers come back afterwards."""
+    """While the block runs, SIGINT (Ctrl-C) and SIGTERM only set ``stop``.
+
+    Main thread only; elsewhere nothing is installed. The previous handlers come back afterwards.
+    """
     if threading.current_thread() is not threading.main_thread():
         yield stop
         return
@@ -433,8 +439,11 @@ def _frame_loop(
 def _process_and_write(
     folder: ResultsFolder, sequence: Sequence, config: Config, handle_signals: bool, **kwargs: Any
 ) -> RunResult:
-    """:func:`process` under a log capture (and the signal handlers when asked), then
-    :func:`~loopmodel.io.results.write_results` into ``folder``."""
+    """Run :func:`process` under a log capture, then write the results into ``folder``.
+
+    :func:`process` runs under a log capture (and the signal handlers when asked), then
+    :func:`~loopmodel.io.results.write_results` writes into ``folder``.
+    """
     stop = StopFlag()
     signals = stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop)
     with LogCapture() as log, signals:
@@ -454,9 +463,9 @@ def run_pipeline(
     listeners: list[RunListener] | None = None,
     handle_signals: bool = True,
 ) -> RunResult:
-    """:func:`process` the sequence and write the results folder ``<out_dir>/<name>/``
-    (:func:`loopmodel.io.results.write_results`; ``out_dir`` defaults to
-    ``output.out_dir``).
+    """:func:`process` the sequence and write the results folder ``<out_dir>/<name>/``.
+
+    By :func:`loopmodel.io.results.write_results`; ``out_dir`` defaults to ``output.out_dir``.
 
     Every keyframe first goes to loop closing (``config.loop``: relocalization of a new
     segment, verified revisits whose observations of old landmarks join the keyframe's
@@ -466,7 +475,8 @@ def run_pipeline(
     ``metrics.json`` lists each closure under ``loop_events``. With ``handle_signals``
     Ctrl-C or SIGTERM stops the run after the current frame; everything up to it is
     written, then ``KeyboardInterrupt`` is raised (an error ending the run early is raised
-    after the write as well)."""
+    after the write as well).
+    """
     folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
     kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
     result = _process_and_write(folder, sequence, config, handle_signals, **kwargs)

@@ -1,6 +1,8 @@
-"""The interfaces of the pipeline's stages that are not a back end (the back end's is
-:class:`loopmodel.backend.Backend`): what the loop-closing stage is handed at a keyframe and
-what it returns. Light on purpose (no OpenCV or GTSAM): the pipeline imports it at start.
+"""The interfaces of the pipeline's stages that are not a back end.
+
+The back end's is :class:`loopmodel.backend.Backend`. What the loop-closing stage is handed at a
+keyframe and what it returns. Light on purpose (no OpenCV or GTSAM): the pipeline imports it at
+start.
 
 Data flow at a keyframe: the front end's keyframe and the current :class:`MapState` go to
 :meth:`LoopStage.on_keyframe`; the :class:`LoopOutcome` it returns carries the keyframe to
@@ -39,8 +41,10 @@ class MapState:
 
 @dataclass
 class LoopConstraint:
-    """A relative-pose measurement ``kf_a_from_kf_b`` (4x4, metres) between the left
-    cameras of two keyframes, for :meth:`loopmodel.backend.Backend.add_loop_constraint`."""
+    """A relative-pose measurement ``kf_a_from_kf_b`` (4x4, metres) between two keyframes' left cameras.
+
+    For :meth:`loopmodel.backend.Backend.add_loop_constraint`.
+    """
 
     kf_a: int
     kf_b: int

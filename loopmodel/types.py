@@ -199,8 +199,10 @@ class Trajectory:
         return self.timestamps_ns.astype(np.float64) * 1e-9
 
     def check(self, source: str | None = None, strict: bool = True) -> Trajectory:
-        """Raise :class:`InputError` unless shapes agree, rotations are proper and times
-        increase (strictly, or allowing repeats when ``strict`` is False)."""
+        """Raise :class:`InputError` unless shapes agree, rotations are proper and times increase.
+
+        Strictly, or allowing repeats when ``strict`` is False.
+        """
         n = len(self)
         if self.world_from_cam.shape != (n, 4, 4):
             raise InputError(source, f"{n} timestamps but {self.world_from_cam.shape[0]} poses")

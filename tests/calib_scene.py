@@ -1,7 +1,9 @@
-"""Ray-cast renderings for the calibration and turntable tests: chessboards seen by a
-distorted pinhole camera, a laser line on them, and a turntable with ArUco markers and a
-cylinder lit by a laser plane. Every pixel is traced exactly (OpenCV's distortion model
-inverted per pixel), then lightly blurred and noised (seeded)."""
+"""Ray-cast renderings for the calibration and turntable tests.
+
+Chessboards seen by a distorted pinhole camera, a laser line on them, and a turntable with ArUco
+markers and a cylinder lit by a laser plane. Every pixel is traced exactly (OpenCV's distortion
+model inverted per pixel), then lightly blurred and noised (seeded).
+"""
 
 from __future__ import annotations
 
@@ -62,9 +64,11 @@ def render_board(
     laser_sigma_m: float = 4e-4,
     margin_squares: float = 1.0,
 ) -> np.ndarray:
-    """BGR image of a chessboard (``board`` inner corners; corner (0, 0) at the board origin,
-    squares of ``square_m``) on a white sheet, optionally crossed by the laser plane
-    ``(normal, d)`` (camera frame) drawn as a green line of ``laser_sigma_m`` width."""
+    """BGR image of a chessboard on a white sheet, optionally crossed by a laser line.
+
+    ``board`` inner corners; corner (0, 0) at the board origin, squares of ``square_m``. The laser
+    plane ``(normal, d)`` (camera frame) is drawn as a green line of ``laser_sigma_m`` width.
+    """
     s = 2
     rays = pixel_rays(K, dist, size, s)
     R, t = cam_from_board[:3, :3], cam_from_board[:3, 3]
@@ -104,9 +108,12 @@ def render_turntable_frame(
     rng: np.random.Generator,
     laser_sigma_m: float = 4e-4,
 ) -> np.ndarray:
-    """BGR frame of a table disc (z = 0, texture over [-R, R]^2) carrying an upright cylinder
-    at its centre, a dark wall behind, and the laser plane (camera frame) lighting the table
-    and the cylinder in green. No distortion."""
+    """BGR frame of a table disc carrying an upright cylinder, lit by the laser plane.
+
+    A table disc (z = 0, texture over [-R, R]^2) carrying an upright cylinder at its centre, a dark
+    wall behind, and the laser plane (camera frame) lighting the table and the cylinder in green. No
+    distortion.
+    """
     s = 2
     rays = pixel_rays(K, np.zeros(5), size, s).reshape(-1, 3)
     Ti = np.linalg.inv(cam_from_table)
@@ -157,8 +164,10 @@ def render_turntable_frame(
 def table_texture(
     marker_ids: list[int], side_m: float, centres_m: list[tuple[float, float]], radius_m: float, n: int = 2000
 ) -> np.ndarray:
-    """White table-top texture (n x n over [-R, R]^2, x right, y up) with ArUco 4x4_50
-    markers of side ``side_m`` centred at ``centres_m`` (table frame), axes along the table's."""
+    """White table-top texture (n x n over [-R, R]^2, x right, y up) with ArUco 4x4_50 markers.
+
+    Markers of side ``side_m`` centred at ``centres_m`` (table frame), axes along the table's.
+    """
     tex = np.full((n, n), 235, np.uint8)
     dic = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
     px = int(round(side_m / (2 * radius_m) * n))

@@ -29,8 +29,10 @@ def random_texture(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
 
 @dataclass
 class Plane:
-    """Rectangle ``origin + s*axis_s + t*axis_t`` (s, t in texels, metres per texel in the
-    axes) in the world frame, carrying ``texture``."""
+    """Rectangle ``origin + s*axis_s + t*axis_t`` in the world frame, carrying ``texture``.
+
+    s, t in texels, metres per texel in the axes.
+    """
 
     origin: np.ndarray
     axis_s: np.ndarray

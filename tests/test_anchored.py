@@ -1,5 +1,4 @@
-"""Frame poses anchored to keyframes (the pipeline's :class:`StripeMap`) follow keyframe
-corrections."""
+"""Frame poses anchored to keyframes (the pipeline's :class:`StripeMap`) follow keyframe corrections."""
 
 from __future__ import annotations
 

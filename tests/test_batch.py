@@ -1,5 +1,8 @@
-"""Batch runs on Dask: a two-worker LocalCluster, re-runs, failing tasks, a killed worker, and a
-separately started ``dask scheduler`` + ``dask worker`` pair."""
+"""Batch runs on Dask.
+
+A two-worker LocalCluster, re-runs, failing tasks, a killed worker, and a separately started
+``dask scheduler`` + ``dask worker`` pair.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,8 @@
-"""Stereo and laser-plane calibration: rendered chessboards with a known rig and plane,
-the real OpenCV stereo sample and the real laser-calibration images, and bad input."""
+"""Stereo and laser-plane calibration.
+
+Rendered chessboards with a known rig and plane, the real OpenCV stereo sample and the real
+laser-calibration images, and bad input.
+"""
 
 from __future__ import annotations
 

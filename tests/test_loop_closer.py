@@ -1,5 +1,8 @@
-"""LoopCloser on rendered keyframes: a revisit is found with the right relative pose, the
-global hybrid BA with its loop observations removes the drift, a lost view relocalizes."""
+"""LoopCloser on rendered keyframes.
+
+A revisit is found with the right relative pose, the global hybrid BA with its loop observations
+removes the drift, a lost view relocalizes.
+"""
 
 from __future__ import annotations
 
@@ -158,9 +161,11 @@ def test_stage_feeds_corrections_back_and_records_events() -> None:
 
 
 def test_stage_via_backend_returns_constraints_and_changes_no_keyframe() -> None:
-    """The pipeline's mode: a verified revisit comes back as a relative-pose constraint
-    (checked against the true relative pose) and a copy of the keyframe carrying the old
-    landmarks' observations; the keyframe handed in is left as it was."""
+    """The pipeline's mode: a verified revisit comes back as a constraint and an extended keyframe.
+
+    A relative-pose constraint (checked against the true relative pose) and a copy of the keyframe
+    carrying the old landmarks' observations; the keyframe handed in is left as it was.
+    """
     rng = np.random.default_rng(7)
     tex = _texture(rng)
     true, est = _sequence(rng)

@@ -19,10 +19,12 @@ CAM = CentralCamera(400.0, 400.0, 319.5, 239.5)
 
 
 def test_vocabulary_tree_separates_prototypes(rng: np.random.Generator, tmp_path: Path) -> None:
-    """Noisy copies of 27 binary prototypes built as a 3-level hierarchy (3 random roots,
-    each with 3 children 25 % of bits away, each with 3 children 12 % away): after training
-    (k=3, 3 levels) every copy of a prototype falls into that prototype's word and
-    different prototypes do not share one."""
+    """Vocabulary training on noisy copies of 27 hierarchical binary prototypes.
+
+    The prototypes are built as a 3-level hierarchy (3 random roots, each with 3 children 25 % of
+    bits away, each with 3 children 12 % away): after training (k=3, 3 levels) every copy of a
+    prototype falls into that prototype's word and different prototypes do not share one.
+    """
 
     def children(parents: np.ndarray, p_flip: float) -> np.ndarray:
         kids = np.repeat(parents, 3, axis=0)
@@ -126,8 +128,11 @@ def test_no_revisit_closes_no_loop(rng: np.random.Generator) -> None:
 
 
 def test_false_place_candidates_are_rejected_and_logged(rng: np.random.Generator) -> None:
-    """A keyframe whose descriptors copy an old one but whose geometry is scrambled passes
-    place recognition and must fail verification (logged, not used)."""
+    """A keyframe with copied descriptors but scrambled geometry fails verification.
+
+    Its descriptors copy an old one but its geometry is scrambled; it passes place recognition and
+    must fail verification (logged, not used).
+    """
     world = _World(rng)
     det = LoopDetector(CAM, _params())
     kfs = [world.keyframe(world.pose(y)) for y in np.radians(np.arange(0, 200, 15))]

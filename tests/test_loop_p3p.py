@@ -32,8 +32,10 @@ def test_p3p_recovers_known_poses(rng: np.random.Generator) -> None:
 
 
 def test_p3p_finds_every_real_solution(rng: np.random.Generator) -> None:
-    """Every returned pose maps the 3 points onto their rays, and the set of solutions equals
-    the one of OpenCV's independent P3P solver (Gao et al.)."""
+    """Every returned pose maps the 3 points onto their rays.
+
+    And the set of solutions equals the one of OpenCV's independent P3P solver (Gao et al.).
+    """
     _, _, Pw, rays = _random_problems(rng, 200)
     sol = p3p_grunert(rays, Pw)
     assert sol.count.max() == 4  # some problems have four real solutions
@@ -113,8 +115,7 @@ def test_compiled_p3p_matches_the_vectorised_solver(rng: np.random.Generator) ->
 
 
 def test_bank_true_pose_on_noiseless_data(rng: np.random.Generator) -> None:
-    """Exact correspondences (30 % gross outliers): the true pose to 1e-9 and exactly the
-    true inliers."""
+    """Exact correspondences (30 % gross outliers): the true pose to 1e-9 and exactly the true inliers."""
     cam = CentralCamera(500.0, 500.0, 320.0, 240.0)
     cam_from_world = make_pose(so3_exp([-0.2, 0.4, 0.1]), [0.3, 0.1, 0.5])
     m = 300
@@ -130,11 +131,13 @@ def test_bank_true_pose_on_noiseless_data(rng: np.random.Generator) -> None:
 
 
 def test_bank_same_inliers_as_opencv_ransac() -> None:
-    """A seeded noisy set (0.5 px noise, 40 % gross outliers of 15-80 px): the bank's
-    inliers equal those of cv2.solvePnPRansac's pose (P3P, same 2 px threshold) and the
-    true set, both poses within 0.05 degree of the truth. OpenCV's own inlier list comes
-    from its unrefined minimal-sample pose; it is a subset of ours missing at most 2 %
-    (measured: 3 of 221 points, errors 1.0-1.3 px under the refined poses)."""
+    """A seeded noisy set (0.5 px noise, 40 % gross outliers of 15-80 px).
+
+    The bank's inliers equal those of cv2.solvePnPRansac's pose (P3P, same 2 px threshold) and the
+    true set, both poses within 0.05 degree of the truth. OpenCV's own inlier list comes from its
+    unrefined minimal-sample pose; it is a subset of ours missing at most 2 % (measured: 3 of 221
+    points, errors 1.0-1.3 px under the refined poses).
+    """
     rng = np.random.default_rng(42)
     cam = CentralCamera(600.0, 600.0, 320.0, 240.0)
     cam_from_world = make_pose(so3_exp([0.15, -0.25, 0.05]), [-0.5, 0.2, 0.8])

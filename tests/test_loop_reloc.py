@@ -45,8 +45,11 @@ def test_surf_extractor_and_unknown_kind() -> None:
 
 
 def test_stereo_keyframe_features_depth(rng: np.random.Generator) -> None:
-    """Fronto-parallel textured plane at 3 m: the right image is the left shifted by the
-    disparity f*B/Z = 20 px, so every triangulated feature must lie at Z = 3 m."""
+    """Fronto-parallel textured plane at 3 m.
+
+    The right image is the left shifted by the disparity f*B/Z = 20 px, so every triangulated
+    feature must lie at Z = 3 m.
+    """
     left = _texture(rng, 480, 680)
     right = np.roll(left, -20, axis=1)
     left, right = left[:, :640].copy(), right[:, :640].copy()
@@ -63,8 +66,11 @@ def test_stereo_keyframe_features_depth(rng: np.random.Generator) -> None:
 
 
 def test_relocalization_with_half_wrong_matches(rng: np.random.Generator) -> None:
-    """Synthetic map of 600 landmarks with binary descriptors; the query view sees them from
-    a new pose with 0.5 px noise, and half of its descriptors belong to other landmarks."""
+    """Synthetic map of 600 landmarks with binary descriptors.
+
+    The query view sees them from a new pose with 0.5 px noise, and half of its descriptors belong
+    to other landmarks.
+    """
     m = 600
     p_map = np.column_stack([rng.uniform(-3, 3, m), rng.uniform(-2, 2, m), rng.uniform(4, 9, m)])
     desc = rng.integers(0, 256, (m, 32), dtype=np.uint8)
@@ -113,9 +119,11 @@ def test_detect_and_describe_kinds(rng: np.random.Generator) -> None:
 
 
 def test_stereo_keyframe_features_surf(rng: np.random.Generator) -> None:
-    """SURF on a stereo keyframe: the fronto-parallel plane at 3 m is triangulated at 3 m
-    (same set-up as the ORB test above), and descriptors at given pixels keep every point
-    inside the image."""
+    """SURF on a stereo keyframe.
+
+    The fronto-parallel plane at 3 m is triangulated at 3 m (same set-up as the ORB test above), and
+    descriptors at given pixels keep every point inside the image.
+    """
     left = _texture(rng, 480, 680)
     right = np.roll(left, -20, axis=1)
     left, right = left[:, :640].copy(), right[:, :640].copy()

@@ -23,13 +23,16 @@ def _texture(seed: int, h: int = 480, w: int = 640) -> np.ndarray:
 
 
 def test_old_features_found_again_from_a_drifted_pose() -> None:
-    """Keyframe: a textured plane at Z = 3 m with 150 Shi-Tomasi corners on it; the current
-    camera is rotated 15 degrees and moved 0.5 m; the predicted pose is off by 0.4 degree
-    and 2 cm (about 4.5 px in the image, beyond a plain KLT window). At least 90 % of the
-    visible features are found again (measured 122 of 126), within 0.12 px of their true
-    positions (measured: median 0.025 px, max 0.077 px), with their own ids; a wrong
-    prediction (off by 8 degrees) finds almost none (measured 4, all wrong: repeated
-    texture can correlate, which is why the pose must come from a verified revisit)."""
+    """Old keyframe features are found again from a slightly wrong predicted pose, not from a wrong one.
+
+    Keyframe: a textured plane at Z = 3 m with 150 Shi-Tomasi corners on it; the current camera is
+    rotated 15 degrees and moved 0.5 m; the predicted pose is off by 0.4 degree and 2 cm (about
+    4.5 px in the image, beyond a plain KLT window). At least 90 % of the visible features are found
+    again (measured 122 of 126), within 0.12 px of their true positions (measured: median 0.025 px,
+    max 0.077 px), with their own ids; a wrong prediction (off by 8 degrees) finds almost none
+    (measured 4, all wrong: repeated texture can correlate, which is why the pose must come from a
+    verified revisit).
+    """
     kf = _texture(21)
     cur_from_kf = make_pose(so3_exp(np.radians([4.0, 14.0, 3.0])), [-0.5, 0.05, 0.1])
     R, t = cur_from_kf[:3, :3], cur_from_kf[:3, 3]

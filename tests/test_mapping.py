@@ -389,8 +389,10 @@ def test_bad_input_gives_clear_errors_and_no_mesh_file(tmp_path: Path, capsys: p
 
 
 def test_stripe_extraction_on_the_simulators_laser_images(rng: np.random.Generator) -> None:
-    """Laser-line images drawn by the simulator (``loopmodel.sim.laser.draw_laser_image``)
-    for the simulator's default light plane; extraction must recover the drawn profile."""
+    """Laser-line images drawn by the simulator (``loopmodel.sim.laser.draw_laser_image``).
+
+    For the simulator's default light plane; extraction must recover the drawn profile.
+    """
     laser = pytest.importorskip("loopmodel.sim.laser")
     import cv2
 

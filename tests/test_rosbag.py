@@ -1,6 +1,9 @@
-"""ROS bags (rosbags): round trips of every storage and encoding against the folder reader and
-an independent reader (mcap), stereo pairing by stamp, topic guessing, camera models, bad
-bags, trajectories from bag topics against evo, and the real bags of ../shared/data."""
+"""ROS bags (rosbags).
+
+Round trips of every storage and encoding against the folder reader and an independent reader
+(mcap), stereo pairing by stamp, topic guessing, camera models, bad bags, trajectories from bag
+topics against evo, and the real bags of ../shared/data.
+"""
 
 from __future__ import annotations
 
@@ -434,8 +437,10 @@ def test_run_on_bag_equals_folder(tmp_path: Path, capsys: pytest.CaptureFixture[
 
 @pytest.mark.slow
 def test_ros_example_bag_matches_evo(shared_data: Path) -> None:
-    """ATE and RPE of ORB-SLAM and S-PTAM against groundtruth in the real ROS 1 bag, through
-    ``BAG:TOPIC`` specs, equal evo's (rosbags reader, associate 10 ms, SE(3) Umeyama)."""
+    """ATE and RPE of ORB-SLAM and S-PTAM against groundtruth in the real ROS 1 bag equal evo's.
+
+    Through ``BAG:TOPIC`` specs; evo: rosbags reader, associate 10 ms, SE(3) Umeyama.
+    """
     import copy
 
     from evo.core import metrics, sync
@@ -469,8 +474,10 @@ def test_ros_example_bag_matches_evo(shared_data: Path) -> None:
 
 
 def test_tf_example_trajectory(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """/tf odom -> base_footprint (+ static base_link) from the real ROS 2 sqlite3 bag equals
-    the same chain from the real ROS 1 bag and each /tf message composed by hand."""
+    """/tf odom -> base_footprint (+ static base_link) from the real ROS 2 sqlite3 bag.
+
+    Equals the same chain from the real ROS 1 bag and each /tf message composed by hand.
+    """
     from rosbags.highlevel import AnyReader
 
     from loopmodel.io.bag_trajectory import read_bag_trajectory
@@ -575,8 +582,10 @@ def test_bag_folder_copy_without_storage(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_euroc_folder_into_bags(tmp_path: Path, rng: np.random.Generator, kind: str) -> None:
-    """An unrectified EuRoC rig (radial-tangential) through CameraInfo K, D, R, P: the same
-    images and, after the front end's rectification, the same rectified rig."""
+    """An unrectified EuRoC rig (radial-tangential) through CameraInfo K, D, R, P.
+
+    The same images and, after the front end's rectification, the same rectified rig.
+    """
     from test_sequences import _write_euroc
 
     _write_euroc(tmp_path / "E", rng, n=5)
@@ -597,8 +606,10 @@ def test_euroc_folder_into_bags(tmp_path: Path, rng: np.random.Generator, kind: 
 
 
 def test_simulator_fisheye_rays_against_opencv() -> None:
-    """The simulator's fisheye pixel rays project back onto their pixels with OpenCV's
-    equidistant model, and its calibration says equidistant."""
+    """The simulator's fisheye pixel rays project back onto their pixels.
+
+    With OpenCV's equidistant model, and its calibration says equidistant.
+    """
     from loopmodel.config import SimulationConfig
     from loopmodel.sim.generate import calibration_of, fisheye_pixel_rays
 
@@ -637,8 +648,10 @@ def test_tf_static_camera_to_body(tmp_path: Path) -> None:
 
 
 def test_project_mcap_reader_takes_bag_encodings(tmp_path: Path) -> None:
-    """An MCAP with the project's topic names but bgra8/bayer images (a ROS 2 recording) is
-    decoded through the same decoder as bags."""
+    """An MCAP with the project's topic names but bgra8/bayer images is decoded like bags.
+
+    Such a file is a ROS 2 recording; it is decoded through the same decoder as bags.
+    """
     src = open_sequence(TINY)
     for enc in ("bgra8", "bayer_rggb8"):
         bag = _write(tmp_path / enc, "ros2-mcap", enc)
@@ -649,8 +662,10 @@ def test_project_mcap_reader_takes_bag_encodings(tmp_path: Path) -> None:
 
 
 def test_bag_without_camera_info_with_calibration_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """EuRoC/TUM-VI style ROS 1 bags have images only: ``--calib`` gives the calibration (a
-    EuRoC sensor.yaml folder or a KITTI calib.txt)."""
+    """EuRoC/TUM-VI style ROS 1 bags have images only: ``--calib`` gives the calibration.
+
+    A EuRoC sensor.yaml folder or a KITTI calib.txt.
+    """
     src = open_sequence(TINY)
     bag = tmp_path / "noinfo.bag"
     with BagSequenceWriter(bag, src.calibration, "ros1") as w:

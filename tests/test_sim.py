@@ -52,9 +52,11 @@ def wide() -> tuple[SimulationConfig, Raycaster]:
 def _sub_lk_disparity(
     L: np.ndarray, R: tuple[np.ndarray, np.ndarray], u: float, v: float, d0: float, half: int = 4
 ) -> float:
-    """Disparity of left pixel (u, v) in the right image by 1-D Lucas-Kanade on float images
-    (cubic interpolation; ``R``, ``gxR`` are spline-prefiltered right image and x-gradient),
-    with a disparity affine over the window, started from d0."""
+    """Disparity of left pixel (u, v) in the right image by 1-D Lucas-Kanade on float images.
+
+    Cubic interpolation; ``R``, ``gxR`` are spline-prefiltered right image and x-gradient; with a
+    disparity affine over the window, started from d0.
+    """
     R, gxR = R
     ys, xs = np.mgrid[v - half: v + half + 1, u - half: u + half + 1].astype(float)
     tmpl = L[ys.astype(int), xs.astype(int)]

@@ -1,5 +1,8 @@
-"""The realistic world of the simulator (issue 17): each image effect against its model, the
-measured-only laser, the false-loop gate, and (slow) a short realistic orbit end to end."""
+"""The realistic world of the simulator (issue 17).
+
+Each image effect against its model, the measured-only laser, the false-loop gate, and (slow) a
+short realistic orbit end to end.
+"""
 
 from __future__ import annotations
 
@@ -37,8 +40,11 @@ def _rig(seed: int = 1) -> TrueRig:
 
 
 def test_noise_variance_follows_shot_plus_read_noise() -> None:
-    """EMVA 1288 photon transfer: the temporal variance (from the difference of two frames,
-    which cancels the fixed pattern) is K^2 (mu_e + sigma_d^2) + 1/12 DN^2 at every level."""
+    """EMVA 1288 photon transfer: the temporal variance at every level.
+
+    The temporal variance (from the difference of two frames, which cancels the fixed pattern) is
+    K^2 (mu_e + sigma_d^2) + 1/12 DN^2 at every level.
+    """
     shape = (200, 200)
     s = SensorModel.create(shape, 0, 0, 10700.0, 2.9, 0.006, 1.5, 12, 0.7, 1.0)
     K = s.dn_per_e
@@ -63,9 +69,12 @@ def test_noise_variance_follows_shot_plus_read_noise() -> None:
 
 
 def test_distortion_round_trips_with_the_calibration() -> None:
-    """The renderer's rays undistort each pixel; projecting them back through the lens (here:
-    OpenCV's projectPoints, an independent implementation) returns the pixel. The recorded
-    calibration differs from the true rig by the stated, realistic amounts."""
+    """The renderer's rays undistort each pixel.
+
+    Projecting them back through the lens (here: OpenCV's projectPoints, an independent
+    implementation) returns the pixel. The recorded calibration differs from the true rig by the
+    stated, realistic amounts.
+    """
     rig = _rig()
     rays = rig.rays(right=False).T.astype(float)
     u, v = np.meshgrid(np.arange(640.0), np.arange(480.0))
@@ -93,9 +102,11 @@ def test_distortion_round_trips_with_the_calibration() -> None:
 
 
 def test_motion_blur_length_matches_the_pixel_motion() -> None:
-    """A point imaged under a constant motion of (8, 3) px during the exposure smears into a
-    segment of that length: its intensity's second moment along the motion is L^2 / 12 (box),
-    across it only the interpolation's."""
+    """A point imaged under a constant motion of (8, 3) px during the exposure smears into a segment.
+
+    The segment has that length: its intensity's second moment along the motion is L^2 / 12 (box),
+    across it only the interpolation's.
+    """
     img = np.zeros((64, 64), np.float32)
     img[32, 32] = 1.0
     flow = np.zeros((64, 64, 2), np.float32)
@@ -113,8 +124,11 @@ def test_motion_blur_length_matches_the_pixel_motion() -> None:
 
 
 def test_pixel_flow_is_each_pixels_own_motion(tmp_path: Path) -> None:
-    """The per-pixel flow used for blur equals the independent projection (OpenCV) of each
-    pixel's scene point at the start and end of the exposure: depth- and rotation-dependent."""
+    """The per-pixel flow used for blur equals the independent projection (OpenCV).
+
+    The projection of each pixel's scene point at the start and end of the exposure: depth- and
+    rotation-dependent.
+    """
     cfg = gen.resolve_config(
         SimulationConfig(), overrides={"scene": {"texture_size_px": 256}}, realism="realistic"
     )
@@ -184,10 +198,13 @@ def _small_realistic(frames: int = 6, **sections: dict) -> SimulationConfig:
 
 
 def test_realistic_recording_has_no_stripes_and_still_meshes(tmp_path: Path) -> None:
-    """The realistic recording only images the laser: no /laser/stripe, a /laser/image per
-    frame, an unrectified distorted calibration. Profiles extracted from the images with the
-    recorded calibration and the calibrated plane, placed with the true poses, lie on the
-    scene surface within the stated error budget (calibration, plane error, time offset)."""
+    """The realistic recording only images the laser.
+
+    No /laser/stripe, a /laser/image per frame, an unrectified distorted calibration. Profiles
+    extracted from the images with the recorded calibration and the calibrated plane, placed with
+    the true poses, lie on the scene surface within the stated error budget (calibration, plane
+    error, time offset).
+    """
     cfg = _small_realistic(6)
     out = tmp_path / "r.mcap"
     gen.simulate_scan(cfg, out)
@@ -216,9 +233,10 @@ def test_realistic_recording_has_no_stripes_and_still_meshes(tmp_path: Path) -> 
 
 
 def test_false_loop_gate_fails_a_wrong_1cm_constraint() -> None:
-    """A pose graph (gtsam, LM) of a 40-pose circle with odometry noise and one loop edge:
-    the true loop passes the gate (3x final ATE or 5 mm), a loop constraint wrong by 1 cm
-    fails it."""
+    """A pose graph (gtsam, LM) of a 40-pose circle with odometry noise and one loop edge.
+
+    The true loop passes the gate (3x final ATE or 5 mm), a loop constraint wrong by 1 cm fails it.
+    """
     import gtsam
 
     rng = np.random.default_rng(4)
@@ -252,9 +270,12 @@ def test_false_loop_gate_fails_a_wrong_1cm_constraint() -> None:
 
 @pytest.mark.slow
 def test_short_realistic_orbit_closes_its_loop(tmp_path: Path) -> None:
-    """A seeded 400-frame realistic orbit (400 x 300): the pipeline closes the loop, the final
-    trajectory's ATE is below the dead-reckoning one and the final mesh error below the
-    uncorrected one (tolerances: strictly better; measured in the closing note)."""
+    """A seeded 400-frame realistic orbit (400 x 300) closes the loop and improves on dead reckoning.
+
+    The pipeline closes the loop, the final trajectory's ATE is below the dead-reckoning one and the
+    final mesh error below the uncorrected one (tolerances: strictly better; measured in the closing
+    note).
+    """
     import importlib.util
 
     tool = Path(__file__).parents[1] / "tools" / "bench_sim_loop.py"

@@ -21,8 +21,10 @@ CAM = CentralCamera(500.0, 500.0, 319.5, 239.5)
 
 
 def _blobs() -> tuple[np.ndarray, np.ndarray]:
-    """A 640x480 image of 20 Gaussian blobs (bright and dark) on a grey background at
-    known positions and sigmas 2, 3, 4.5, 6, 8 px -> image, (20, 3) x, y, sigma."""
+    """A 640x480 image of 20 Gaussian blobs (bright and dark) on a grey background.
+
+    At known positions and sigmas 2, 3, 4.5, 6, 8 px -> image, (20, 3) x, y, sigma.
+    """
     rng = np.random.default_rng(0)
     yy, xx = np.mgrid[0:480, 0:640].astype(float)
     img = np.full((480, 640), 128.0)
@@ -73,11 +75,12 @@ def test_blob_positions_and_scales() -> None:
 
 
 def test_descriptor_rotation_invariance() -> None:
-    """Under an exact 90-degree rotation the same keypoints come back (box filters are
-    symmetric under it) and their descriptors stay close: median distance of the
-    corresponding unit descriptors below 0.05 (measured 0.021; 90th percentile 0.07),
-    while unrelated keypoints are about 0.7 apart; U-SURF (no orientation) loses this
-    (measured 0.70)."""
+    """Under an exact 90-degree rotation the same keypoints come back with close descriptors.
+
+    Box filters are symmetric under it; median distance of the corresponding unit descriptors below
+    0.05 (measured 0.021; 90th percentile 0.07), while unrelated keypoints are about 0.7 apart;
+    U-SURF (no orientation) loses this (measured 0.70).
+    """
     img = _texture(3)
     rot = np.ascontiguousarray(np.rot90(img, k=-1))  # clockwise: (x, y) -> (h-1-y, x)
     h = img.shape[0]
@@ -100,8 +103,11 @@ def test_descriptor_rotation_invariance() -> None:
 
 
 def _plane_views() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A textured plane at Z = 3 m seen by the map camera (identity) and by a query camera
-    ``cam_from_map`` (rotated about 12 degrees, moved 0.4 m) -> map image, query image, pose."""
+    """A textured plane at Z = 3 m seen by the map camera and by a query camera.
+
+    Map camera: identity; query camera ``cam_from_map`` (rotated about 12 degrees, moved 0.4 m) ->
+    map image, query image, pose.
+    """
     img = _texture(5)
     cam_from_map = make_pose(so3_exp([0.05, 0.2, 0.06]), [-0.4, 0.05, 0.1])
     R, t = cam_from_map[:3, :3], cam_from_map[:3, 3]
@@ -130,9 +136,11 @@ def _reloc_errors(describe_ok: bool) -> tuple[bool, float, float]:
 
 
 def test_surf_relocalization_and_broken_descriptor() -> None:
-    """SURF relocalizes the rendered query at the pipeline's default thresholds within
-    0.1 degree and 5 mm (measured about 0.01 deg, 1 mm); with its descriptor entries
-    shuffled (a broken descriptor) relocalization fails."""
+    """SURF relocalizes the rendered query at the pipeline's default thresholds.
+
+    Within 0.1 degree and 5 mm (measured about 0.01 deg, 1 mm); with its descriptor entries shuffled
+    (a broken descriptor) relocalization fails.
+    """
     ok, rot, pos = _reloc_errors(True)
     assert ok
     assert rot < 0.1 and pos < 0.005

@@ -1,5 +1,7 @@
-"""The vocabularies shipped as package data (issue 26): load, provenance, retrieval on the
-real loop images (which they were not trained on)."""
+"""The vocabularies shipped as package data (issue 26).
+
+Load, provenance, retrieval on the real loop images (which they were not trained on).
+"""
 
 from __future__ import annotations
 
@@ -35,9 +37,12 @@ def test_detector_uses_shipped_vocabulary_unless_online() -> None:
 
 @pytest.mark.parametrize("kind", ["orb", pytest.param("sift", marks=pytest.mark.slow)])
 def test_shipped_vocabulary_retrieves_true_revisits(shared_data: Path, kind: str) -> None:
-    """Images 41-84 revisit 1-44: with images 1-40 stored, the best-scoring stored image of
-    each revisit with a true partner among them is a true match (samples_GT.bmp). Measured
-    42 of 44 for both ORB and SIFT; at least 40 required."""
+    """Images 41-84 revisit 1-44: the best-scoring stored image of each revisit is a true match.
+
+    With images 1-40 stored, the best-scoring stored image of each revisit with a true partner among
+    them is a true match (samples_GT.bmp). Measured 42 of 44 for both ORB and SIFT; at least 40
+    required.
+    """
     folder = shared_data / "loop_images"
     gt = cv2.imread(str(folder / "samples_GT.bmp"), cv2.IMREAD_GRAYSCALE) > 128
     ex = make_extractor(kind, 1000)

@@ -1,5 +1,8 @@
-"""VVS tracking from rendered omnidirectional images (seed 002): renderer geometry against the
-unified model, the moving-edge search against a known edge, tracking from a perturbed start."""
+"""VVS tracking from rendered omnidirectional images (seed 002).
+
+Renderer geometry against the unified model, the moving-edge search against a known edge, tracking
+from a perturbed start.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
-"""Benchmark: front-end drift of an equidistant (fisheye) rig against the pinhole rig on the
-same simulated path (issue 25's target: fisheye drift within 1.5x the pinhole's).
+"""Benchmark: front-end drift of an equidistant (fisheye) rig against the pinhole rig.
+
+On the same simulated path (issue 25's target: fisheye drift within 1.5x the pinhole's).
 
 For each seed, ``loopmodel simulate scan --preset orbit`` renders the scan twice, once with a
 pinhole pair and once with raw Kannala-Brandt images (TUM-VI's room-sequence coefficients,

@@ -32,8 +32,11 @@ EXCLUDE = 5
 
 
 def evaluate(kind: str) -> dict:
-    """Loop detection over the images with one descriptor kind: the shipped vocabulary, and one
-    trained on the fly from the test images (``trained_on_test_*``) for comparison."""
+    """Loop detection over the images with one descriptor kind.
+
+    With the shipped vocabulary, and one trained on the fly from the test images
+    (``trained_on_test_*``) for comparison.
+    """
     shipped = _run(kind, online=False)
     trained = _run(kind, online=True)
     for k in ("precision", "recall", "detections", "query_ms_median"):

@@ -95,8 +95,11 @@ def umeyama_se3(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 def errors(est: np.ndarray, gt: np.ndarray) -> dict[str, float]:
-    """ATE RMSE (m, SE(3)-aligned), drift (% of path, first poses aligned) and the last
-    pose's rotation error (deg, first poses aligned) of matched pose stacks (N, 4, 4)."""
+    """ATE RMSE, drift and last-pose rotation error of matched pose stacks (N, 4, 4).
+
+    ATE RMSE (m, SE(3)-aligned), drift (% of path, first poses aligned) and the last pose's rotation
+    error (deg, first poses aligned).
+    """
     R, t = umeyama_se3(est[:, :3, 3], gt[:, :3, 3])
     aligned = est[:, :3, 3] @ R.T + t
     ate = float(np.sqrt(np.mean(np.sum((aligned - gt[:, :3, 3]) ** 2, axis=1))))

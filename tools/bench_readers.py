@@ -1,9 +1,11 @@
-"""Benchmark of the sequence readers: the KITTI clip (51 real 1226x370 stereo pairs) as a
-folder and written with ``rosbags``' writers as a ROS 2 sqlite3 bag, a ROS 2 MCAP bag and a
-ROS 1 bag (mono8, lossless), plus PNG- and JPEG-compressed variants and an unsynchronised
-MCAP bag (right stamps 2 ms late, two right images missing): that one is compared with the
-folder without the two pairs the reader must drop (``max_pose_diff_ros2_mcap_unsync``), and
-with the full folder at the common stamps (``..._vs_full_folder``).
+"""Benchmark of the sequence readers on the KITTI clip as a folder and as bags.
+
+The KITTI clip (51 real 1226x370 stereo pairs) as a folder and written with ``rosbags``' writers as
+a ROS 2 sqlite3 bag, a ROS 2 MCAP bag and a ROS 1 bag (mono8, lossless), plus PNG- and
+JPEG-compressed variants and an unsynchronised MCAP bag (right stamps 2 ms late, two right images
+missing): that one is compared with the folder without the two pairs the reader must drop
+(``max_pose_diff_ros2_mcap_unsync``), and with the full folder at the common stamps
+(``..._vs_full_folder``).
 
 ``read_ms_per_frame_<format>``: median over 3 passes (interleaved over the formats) of the
 time to stream every stereo pair (decoded, as the pipeline gets them), per pair, and
@@ -55,8 +57,10 @@ def _bag_path(tmp: Path, name: str, kind: str) -> Path:
 def write_bag(
     src: object, dst: Path, kind: str, encoding: str, repeat: int = 1, offset_ns: int = 0, drop: tuple[int, ...] = ()
 ) -> Path:
-    """Write the frames of ``src`` (a Sequence) ``repeat`` times as a bag; right stamps
-    ``offset_ns`` after the left ones, right images of the frames ``drop`` left out."""
+    """Write the frames of ``src`` (a Sequence) ``repeat`` times as a bag.
+
+    Right stamps ``offset_ns`` after the left ones, right images of the frames ``drop`` left out.
+    """
     from loopmodel.io.rosbag_writer import BagSequenceWriter
     from loopmodel.types import StereoFrame
 
@@ -72,8 +76,10 @@ def write_bag(
 
 
 def read_ms_per_frame(path: Path) -> tuple[float, float]:
-    """Wall and CPU time (ms) per stereo pair of one pass streaming every pair (the CPU time
-    of the reading thread is what a loaded machine disturbs least)."""
+    """Wall and CPU time (ms) per stereo pair of one pass streaming every pair.
+
+    The CPU time of the reading thread is what a loaded machine disturbs least.
+    """
     from loopmodel.io.sequence import open_sequence
 
     seq = open_sequence(path)
@@ -83,8 +89,10 @@ def read_ms_per_frame(path: Path) -> tuple[float, float]:
 
 
 def final_trajectory(path: Path, out: Path, name: str, max_frames: int | None) -> object:
-    """Final ``world_from_cam`` poses of ``loopmodel run -c configs/kitti.yaml``, each in its
-    own process (runs in one process differ by ~1e-8 m through process state)."""
+    """Final ``world_from_cam`` poses of ``loopmodel run -c configs/kitti.yaml``.
+
+    Each in its own process (runs in one process differ by ~1e-8 m through process state).
+    """
     from loopmodel.io.trajectory_io import read_trajectory
 
     cmd = [sys.executable, "-m", "loopmodel", "run", str(path), "-c", str(ROOT / "configs" / "kitti.yaml")]
@@ -97,8 +105,10 @@ def final_trajectory(path: Path, out: Path, name: str, max_frames: int | None) -
 
 
 def pose_diff(a: object, b: object) -> float:
-    """Largest translation (m) or rotation (rad) difference of two trajectories at their
-    common timestamps (inf when one misses a time of the other beyond dropped frames)."""
+    """Largest translation (m) or rotation (rad) difference of two trajectories at common timestamps.
+
+    Inf when one misses a time of the other beyond dropped frames.
+    """
     ta, tb = a.timestamps_ns, b.timestamps_ns  # type: ignore[attr-defined]
     common, ia, ib = np.intersect1d(ta, tb, return_indices=True)
     if len(common) == 0:
@@ -113,8 +123,11 @@ def pose_diff(a: object, b: object) -> float:
 
 
 def folder_without(src: Path, dst: Path, drop: tuple[int, ...]) -> Path:
-    """A KITTI folder of ``src``'s pairs without the frames ``drop`` (links to the images;
-    times.txt and poses.txt filtered): the folder counterpart of a bag missing those pairs."""
+    """A KITTI folder of ``src``'s pairs without the frames ``drop``.
+
+    Links to the images; times.txt and poses.txt filtered: the folder counterpart of a bag missing
+    those pairs.
+    """
     from loopmodel.io.kitti import IMAGE_DIRS
 
     a, b = next((x, y) for x, y in IMAGE_DIRS if (src / x).is_dir())

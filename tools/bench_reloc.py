@@ -49,8 +49,10 @@ MAP_VIEWS = (4, 6)
 
 
 def read_camera(path: Path, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """K (scaled to the downscaled image) and cam_from_world of a Strecha camera file
-    (x = K Rᵀ (X − t))."""
+    """K (scaled to the downscaled image) and cam_from_world of a Strecha camera file.
+
+    The camera file's model: x = K Rᵀ (X − t).
+    """
     rows = [list(map(float, ln.split())) for ln in path.read_text().split("\n") if ln.strip()]
     K = np.array(rows[0:3])
     R = np.array(rows[4:7])
@@ -163,9 +165,11 @@ def evaluate(kind: str, n_features: int, queries: list[int]) -> dict:
 
 
 def throughput(obj: np.ndarray, img: np.ndarray, K: np.ndarray, samples: int = 4096) -> dict:
-    """Hypotheses per second with a fixed number of minimal samples, ours and OpenCV's RANSAC
-    loop with its P3P solver, on the same correspondences with the image points shuffled
-    (all outliers, so neither stops early and both run every sample)."""
+    """Hypotheses per second with a fixed number of minimal samples, ours and OpenCV's.
+
+    OpenCV's RANSAC loop with its P3P solver, on the same correspondences with the image points
+    shuffled (all outliers, so neither stops early and both run every sample).
+    """
     cam = CentralCamera.from_K(K)
     img = img[np.random.default_rng(1).permutation(img.shape[0])]
     rays = cam.lift(img)

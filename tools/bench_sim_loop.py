@@ -166,8 +166,10 @@ def _path_length(gt: np.ndarray) -> float:
 
 
 def _false_loops(out: dict[str, Any]) -> int:
-    """Loop events whose final relative pose misses the truth by more than 3x the final ATE or
-    5 mm (issue 17's gate)."""
+    """Loop events whose final relative pose misses the truth by more than 3x the final ATE or 5 mm.
+
+    Issue 17's gate.
+    """
     from loopmodel.eval.trajectory_metrics import false_loop_mask
 
     pos = {f: j for j, f in enumerate(out["kept"])}
@@ -179,9 +181,11 @@ def _false_loops(out: dict[str, Any]) -> int:
 
 
 def _stripe_extraction_px(path: Path, config: Config, every: int = 5) -> dict[str, float | None]:
-    """The pipeline's laser-peak extractor on every ``every``-th laser image against the true
-    stripe projected through the true lens: p95 distance (px) of the peaks within 3 px of it
-    and the share of peaks farther away."""
+    """The pipeline's laser-peak extractor on every ``every``-th laser image against the true stripe.
+
+    The true stripe is projected through the true lens: p95 distance (px) of the peaks within 3 px
+    of it and the share of peaks farther away.
+    """
     import json
 
     from loopmodel.config import SimulationConfig
@@ -223,12 +227,14 @@ def _stripe_extraction_px(path: Path, config: Config, every: int = 5) -> dict[st
 
 
 def _mesh_errors(out: dict[str, Any], scene_ply: Path, config: Config) -> dict[str, float | None]:
-    """Mesh the laser stripes with the ground-truth, before and after trajectories and
-    measure them against the scene mesh (mm). ``mesh_err_<name>_mm``: SE(3)-aligned to the
+    """Mesh the laser stripes with the ground-truth, before and after trajectories.
+
+    Each mesh is measured against the scene mesh (mm). ``mesh_err_<name>_mm``: SE(3)-aligned to the
     truth by the frame positions, as ATE and the pipeline's ``metrics.json``;
-    ``mesh_err_<name>_anchored_mm``: anchored at the first ground-truth pose (the run's
-    gauge: its first keyframe is fixed). Completeness: share of the scanned object's surface
-    (``object.ply`` attachment) within 2 mm of the mesh, and of the part the laser swept."""
+    ``mesh_err_<name>_anchored_mm``: anchored at the first ground-truth pose (the run's gauge: its
+    first keyframe is fixed). Completeness: share of the scanned object's surface (``object.ply``
+    attachment) within 2 mm of the mesh, and of the part the laser swept.
+    """
     if not scene_ply.is_file():
         return {"mesh_err_before_mm": None, "mesh_err_after_mm": None}
     import open3d as o3d

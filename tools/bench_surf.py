@@ -174,8 +174,10 @@ def common(
 
 
 def evaluate_pair(det1: Detection, det2: Detection, H: np.ndarray) -> tuple[float, float]:
-    """Repeatability and matching score of two detections in the common region related
-    by H (image 1 -> 2)."""
+    """Repeatability and matching score of two detections in the common region.
+
+    The images are related by H (image 1 -> 2).
+    """
     xy1, s1, f1 = det1
     xy2, s2, f2 = det2
     zoom = float(np.sqrt(abs(np.linalg.det(H[:2, :2]))))

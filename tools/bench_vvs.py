@@ -1,5 +1,6 @@
-"""Benchmark ``vvs`` (seed 002): model-based tracking of a box from rendered images of the
-4-mirror omnidirectional stereo sensor, and of its two widest-baseline mirrors only.
+"""Benchmark ``vvs`` (seed 002): model-based tracking of a box from rendered images.
+
+Images of the 4-mirror omnidirectional stereo sensor, and of its two widest-baseline mirrors only.
 
 Each of ``scenarios`` seeded scenarios (:func:`loopmodel.sim.omni_images.omni_scenario`:
 clutter behind random mirrors, random hand-held motion) is rendered once per frame; the
@@ -29,8 +30,10 @@ from loopmodel.sim.omni import BOX_SIZE_M, box_trajectory, omni_sensor
 
 
 def _pose_update_timing(repeats: int) -> dict[str, float]:
-    """One robust VVS pose update (Tukey, from a pose 2 deg / 1 cm off) with 4 cameras x
-    100 edge points (0.3 px noise, 10 % outliers)."""
+    """One robust VVS pose update (Tukey, from a pose 2 deg / 1 cm off).
+
+    With 4 cameras x 100 edge points (0.3 px noise, 10 % outliers).
+    """
     sensor = omni_sensor()
     model = PolyhedronModel.box(BOX_SIZE_M)
     rig = sensor.rig()

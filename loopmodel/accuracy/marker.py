@@ -178,8 +178,11 @@ class Marker:
 
 
 def triangle_marker(spot_radius_m: float = TRIANGLE_SPOT_RADIUS_M) -> Marker:
-    """The paper's isosceles triangle (base 2 m, height 3 m) with a dark round spot of radius
-    ``spot_radius_m`` at its centroid; the centroid is the marker-frame origin."""
+    """The paper's isosceles triangle marker (base 2 m, height 3 m).
+
+    It carries a dark round spot of radius ``spot_radius_m`` at its centroid; the centroid is the
+    marker-frame origin.
+    """
     tri = np.array([[-1.0, -1.0], [1.0, -1.0], [0.0, 2.0]])
     shapes: list[Shape] = [Polygon(tri)]
     if spot_radius_m > 0:
@@ -188,9 +191,11 @@ def triangle_marker(spot_radius_m: float = TRIANGLE_SPOT_RADIUS_M) -> Marker:
 
 
 def t_marker(area_m2: float | None = None) -> Marker:
-    """A T of the same bright area as :func:`triangle_marker` (unless ``area_m2`` is given),
-    inside the triangle's 2 m x 3 m bounding box: a 2 m bar on a stem, bar thickness equal to
-    stem width ``w`` with ``2 w + (3 - w) w = area``. The area centroid is the origin."""
+    """A T of the same bright area as :func:`triangle_marker` (unless ``area_m2`` is given).
+
+    It lies inside the triangle's 2 m x 3 m bounding box: a 2 m bar on a stem, bar thickness equal
+    to stem width ``w`` with ``2 w + (3 - w) w = area``. The area centroid is the origin.
+    """
     area = triangle_marker().area if area_m2 is None else float(area_m2)
     w = (5.0 - math.sqrt(25.0 - 4.0 * area)) / 2.0
     h = w / 2.0
@@ -315,8 +320,11 @@ def _boundaries_meet(s1: Shape, s2: Shape, eps: float) -> bool:
 
 
 def validate_marker(marker: Marker, source: str | Path | None = None) -> Marker:
-    """Check that every boundary is simple with non-zero area, that boundaries do not meet and
-    that brightness alternates across nested boundaries; raise :class:`InputError` otherwise."""
+    """Check that the boundaries form a valid marker; raise :class:`InputError` otherwise.
+
+    Every boundary must be simple with non-zero area, boundaries must not meet and brightness must
+    alternate across nested boundaries.
+    """
     if not marker.shapes:
         raise _fail(source, "key 'shapes': a marker needs at least one shape")
     extent = max(float(np.max(np.abs(s.outline(8)))) for s in marker.shapes) + 1.0

@@ -142,8 +142,10 @@ class BlurredRenderer:
         return (below % 2).astype(float)
 
     def render(self, params: ArrayLike) -> tuple[F64, F64]:
-        """Sample values (K,) and Jacobian d values / d A (K, 4) at parameters ``params``
-        (offsets (r, v, u, gamma) from the nominal pose; m, m, m, rad)."""
+        """Sample values (K,) and Jacobian d values / d A (K, 4) at parameters ``params``.
+
+        The parameters are offsets (r, v, u, gamma) from the nominal pose; m, m, m, rad.
+        """
         v = self.view.with_params(np.asarray(params, dtype=float).reshape(1, 4))
         E = len(self.pa)
         pts = np.concatenate([self.pa, self.pm, self.pb])

@@ -88,8 +88,10 @@ def focal_px(focal_mm: float, pixel_um: float) -> float:
 def stabilised_views(
     distance_m: float, theta_deg: ArrayLike, phi_deg: ArrayLike, focal_length_px: float
 ) -> Views:
-    """Cameras at distance ``distance_m`` for every pair of the broadcast ``theta_deg`` and
-    ``phi_deg`` arrays (flattened in C order), aimed at the marker origin."""
+    """Cameras at distance ``distance_m``, aimed at the marker origin.
+
+    One for every pair of the broadcast ``theta_deg`` and ``phi_deg`` arrays (flattened in C order).
+    """
     th, ph = np.broadcast_arrays(
         np.radians(np.asarray(theta_deg, float)), np.radians(np.asarray(phi_deg, float))
     )
@@ -107,8 +109,10 @@ def _lift(points: ArrayLike) -> F64:
 
 
 def camera_coords(views: Views, points: ArrayLike) -> tuple[F64, F64, F64]:
-    """Coordinates ``(x1, x2, x3)`` of marker points (M x 2 or M x 3, metres) along the camera
-    axes, each (n, M)."""
+    """Coordinates ``(x1, x2, x3)`` of marker points along the camera axes, each (n, M).
+
+    The marker points are M x 2 or M x 3, metres.
+    """
     P = _lift(points).reshape(-1, 3)
     C = views.centre
     out = []
@@ -124,8 +128,11 @@ def project(views: Views, points: ArrayLike) -> F64:
 
 
 def flows(views: Views, points: ArrayLike) -> F64:
-    """(n, M, 4, 2) image flows ``Q_i = d a / d A_i`` of marker points (pixels per metre for
-    r, v, u; pixels per radian for gamma), exact at the current parameters of ``views``."""
+    """(n, M, 4, 2) image flows ``Q_i = d a / d A_i`` of marker points.
+
+    Pixels per metre for r, v, u; pixels per radian for gamma; exact at the current parameters of
+    ``views``.
+    """
     x1, x2, x3 = camera_coords(views, points)
     F = views.focal_px
     a2, a3 = F * x2 / x1, F * x3 / x1

@@ -24,10 +24,12 @@ __all__ = [
 def create_backend(
     config: BackendConfig, calibration: StereoCalibration, givens: GivensConfig | None = None
 ) -> Backend:
-    """The back end named by ``config.kind`` for the rectified stereo ``calibration`` in which
-    keyframe pixels are expressed: ``isam2``, ``givens`` (the sequential Givens estimator),
-    ``both`` (iSAM2 behind the Givens blunder screen; ``givens`` configures the screen) or
-    ``none`` (the front end's poses, for front-end-only runs)."""
+    """The back end named by ``config.kind``.
+
+    For the rectified stereo ``calibration`` in which keyframe pixels are expressed: ``isam2``,
+    ``givens`` (the sequential Givens estimator), ``both`` (iSAM2 behind the Givens blunder screen;
+    ``givens`` configures the screen) or ``none`` (the front end's poses, for front-end-only runs).
+    """
     if config.kind == "none":
         from loopmodel.backend.frontend_poses import FrontEndPoses
 

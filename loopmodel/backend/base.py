@@ -64,8 +64,10 @@ class Backend(Protocol):
         ...
 
     def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
-        """Add a relative-pose measurement ``kf_a_from_kf_b`` (4x4) with standard deviations
-        ``sigmas`` = (rx, ry, rz [rad], tx, ty, tz [m]); returns a constraint id."""
+        """Add a relative-pose measurement ``kf_a_from_kf_b`` (4x4); returns a constraint id.
+
+        Standard deviations ``sigmas`` = (rx, ry, rz [rad], tx, ty, tz [m]).
+        """
         ...
 
     def remove_observations(self, observations: Iterable[Observation]) -> int:
@@ -73,8 +75,10 @@ class Backend(Protocol):
         ...
 
     def estimate(self, landmarks: bool = True) -> BackendEstimate:
-        """Current keyframe poses (and landmarks unless ``landmarks`` is False, which is
-        cheaper), and which keyframes changed since the last call."""
+        """Current keyframe poses, landmarks and which keyframes changed since the last call.
+
+        Landmarks are left out when ``landmarks`` is False, which is cheaper.
+        """
         ...
 
     def final_estimate(self, refine: RefineConfig | None) -> BackendEstimate:

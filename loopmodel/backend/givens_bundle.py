@@ -315,9 +315,12 @@ class SequentialBundle:
         min_redundancy: float = 0.05,
         max_rejections: int | None = None,
     ) -> SnoopResult:
-        """Data snooping (:func:`~loopmodel.backend.snooping.snoop`, significance level
-        ``alpha``) on image observations (default: all) whose redundancy reaches
-        ``min_redundancy``; rejected ones (at most ``max_rejections``) are deleted."""
+        """Data snooping on image observations; rejected ones are deleted.
+
+        Uses :func:`~loopmodel.backend.snooping.snoop` at significance level ``alpha`` on image
+        observations (default: all) whose redundancy reaches ``min_redundancy``; rejected ones (at
+        most ``max_rejections``) are deleted.
+        """
         ids = list(self.image_obs) if oids is None else list(oids)
         res = snoop(self.est, ids, alpha=alpha, min_redundancy=min_redundancy, max_rejections=max_rejections)
         for oid in res.rejected:
@@ -421,8 +424,10 @@ class GivensScreen:
         first_frame: bool = False,
         right: Sequence[bool] | None = None,
     ) -> NDArray[np.bool_]:
-        """Insert one keyframe's observations (N point ids, N x 2 pixels, optionally flagged as
-        right-image observations); return the accepted mask."""
+        """Insert one keyframe's observations; return the accepted mask.
+
+        N point ids, N x 2 pixels, optionally flagged as right-image observations.
+        """
         b = self.bundle
         sr, sm = self.frame_prior
         if first_frame:

@@ -236,9 +236,11 @@ class Isam2Backend:
         graph.add(factor)
 
     def _project(self, kf_ids: list[int], p_world: F64, poses: dict[int, F64] | None = None) -> F64:
-        """Predicted (u_left, u_right, v) rectified pixels of world points ``p_world`` (N, 3)
-        in keyframes ``kf_ids`` (N) at ``poses`` (default: the current pose guesses); NaN
-        rows behind the camera."""
+        """Predicted (u_left, u_right, v) rectified pixels of world points ``p_world`` (N, 3).
+
+        In keyframes ``kf_ids`` (N) at ``poses`` (default: the current pose guesses); NaN rows
+        behind the camera.
+        """
         src = self._pose_guess if poses is None else poses
         T = np.stack([src[k] for k in kf_ids]) if kf_ids else np.zeros((0, 4, 4))
         p = np.einsum("nji,nj->ni", T[:, :3, :3], p_world - T[:, :3, 3])
@@ -257,10 +259,12 @@ class Isam2Backend:
         return np.column_stack([u, ur, v])
 
     def _triangulate(self, owner: NDArray[np.int64], kf_ids: list[int], meas: F64, p0: F64, iterations: int) -> F64:
-        """Gauss-Newton refinement of world points ``p0`` (M, 3) on observations ``meas``
-        (N, 3: u_left, u_right or NaN for monocular, v) in keyframes ``kf_ids`` at their pose
-        guesses; observation ``j`` belongs to point ``owner[j]`` (every point observed). A
-        point whose update fails keeps its start value."""
+        """Gauss-Newton refinement of world points ``p0`` (M, 3) on observations ``meas``.
+
+        Observations are (N, 3: u_left, u_right or NaN for monocular, v) in keyframes ``kf_ids`` at
+        their pose guesses; observation ``j`` belongs to point ``owner[j]`` (every point observed).
+        A point whose update fails keeps its start value.
+        """
         if owner.size and np.any(np.diff(owner) < 0):  # group the observations by point
             order = np.argsort(owner, kind="stable")
             owner, meas = owner[order], meas[order]
@@ -403,8 +407,10 @@ class Isam2Backend:
         return created
 
     def _observe(self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int]) -> None:
-        """Route one observation to its landmark in the graph or to the pending buffer
-        (landmarks whose buffer is full enough are appended to ``candidates``)."""
+        """Route one observation to its landmark in the graph or to the pending buffer.
+
+        Landmarks whose buffer is full enough are appended to ``candidates``.
+        """
         lkey = self._lm_current.get(lm_id)
         if lkey is not None:
             span = self.config.max_landmark_span_kf
@@ -501,8 +507,10 @@ class Isam2Backend:
         return report
 
     def _prune_pending(self, seq: int) -> None:
-        """Forget pending landmarks not observed in the last ``pending_max_age_kf`` keyframes
-        (they would never reach the graph; keeps memory bounded)."""
+        """Forget pending landmarks not observed in the last ``pending_max_age_kf`` keyframes.
+
+        They would never reach the graph; keeps memory bounded.
+        """
         cut = seq - self.config.pending_max_age_kf
         for old in [k for k in self._pending_buckets if k <= cut]:
             for lm in self._pending_buckets.pop(old):
@@ -682,8 +690,10 @@ class Isam2Backend:
         return n
 
     def _screen_new(self, new_fids: list[int]) -> int:
-        """Remove new observations whose whitened residual exceeds ``blunder_sigma`` at the
-        updated estimate (robust weights aside)."""
+        """Remove new observations whose whitened residual exceeds ``blunder_sigma`` at the updated estimate.
+
+        Robust weights aside.
+        """
         recs = [(f, self._factors[f]) for f in new_fids if self._factors[f].obs is not None]
         if not recs:
             return 0
@@ -730,9 +740,11 @@ class Isam2Backend:
         return max_iterations
 
     def reprojection_residuals_px(self, values: gtsam.Values | None = None) -> F64:
-        """Image residuals (measured minus predicted, pixels; u_left, u_right, v of stereo and
-        u, v of monocular observations, concatenated) of every live observation factor at
-        ``values`` (default: the current iSAM2 estimate)."""
+        """Image residuals (measured minus predicted, pixels) of every live observation factor.
+
+        u_left, u_right, v of stereo and u, v of monocular observations, concatenated, at ``values``
+        (default: the current iSAM2 estimate).
+        """
         vals = values if values is not None else self._isam.calculateEstimate()
         out: list[F64] = []
         for rec in self._factors.values():
@@ -762,21 +774,23 @@ class Isam2Backend:
         max_iterations: int = 30,
         min_gain_sd: float = 3.0,
     ) -> BackendEstimate:
-        """Final batch bundle adjustment of every keyframe and landmark on all live factors
-        (gtsam Levenberg-Marquardt from the current estimate), with the stereo and
-        monocular observations re-weighted to ``pixel_sigma_px`` under a Huber loss of
-        ``huber_k`` sigmas (priors and loop constraints as they are). ``pixel_sigma_px``
-        None: the run's own noise, the robust scale (1.4826 x median absolute value) of the
-        image residuals (KLT and stereo observations) at the incremental solution, corrected
-        for the redundancy ``sqrt(n / (n - u))`` (n residuals, u pose and landmark unknowns:
-        a landmark seen by two keyframes leaves little redundancy, so the raw scale is far
-        too small); without redundancy, the median over keyframe intervals of the front
-        end's robust pose-residual scale (``ba_info`` ``pose_residual_sigma_px``). The result
-        is kept only when it lowers the robust reprojection error (:meth:`robust_error_px` at
-        that scale) significantly: the robust chi-square drops by more than ``min_gain_sd``
-        standard deviations sqrt(2 n) of a chi-square of n residuals; otherwise the
-        incremental solution is returned. :attr:`refine_info` says which, with the noise.
-        The incremental solution keeps its own weights; this one is not fed back to iSAM2."""
+        """Final batch bundle adjustment of every keyframe and landmark on all live factors.
+
+        By gtsam Levenberg-Marquardt from the current estimate, with the stereo and monocular
+        observations re-weighted to ``pixel_sigma_px`` under a Huber loss of ``huber_k`` sigmas
+        (priors and loop constraints as they are). ``pixel_sigma_px`` None: the run's own noise, the
+        robust scale (1.4826 x median absolute value) of the image residuals (KLT and stereo
+        observations) at the incremental solution, corrected for the redundancy
+        ``sqrt(n / (n - u))`` (n residuals, u pose and landmark unknowns: a landmark seen by two
+        keyframes leaves little redundancy, so the raw scale is far too small); without redundancy,
+        the median over keyframe intervals of the front end's robust pose-residual scale
+        (``ba_info`` ``pose_residual_sigma_px``). The result is kept only when it lowers the robust
+        reprojection error (:meth:`robust_error_px` at that scale) significantly: the robust
+        chi-square drops by more than ``min_gain_sd`` standard deviations sqrt(2 n) of a chi-square
+        of n residuals; otherwise the incremental solution is returned. :attr:`refine_info` says
+        which, with the noise. The incremental solution keeps its own weights; this one is not fed
+        back to iSAM2.
+        """
         if not self._kf_seq:
             raise EstimationError("batch refinement of an empty back end")
         start = self._isam.calculateEstimate()
@@ -852,9 +866,11 @@ class Isam2Backend:
         return BackendEstimate(world_from_kf, ids, pts, set(world_from_kf))
 
     def final_estimate(self, refine: RefineConfig | None) -> BackendEstimate:
-        """Extra iSAM2 iterations (:meth:`refine`), then the batch bundle adjustment
-        (:meth:`batch_refine`) when ``refine.batch_ba``; the plain estimate when ``refine``
-        is None."""
+        """Extra iSAM2 iterations, then the batch bundle adjustment when ``refine.batch_ba``.
+
+        Extra iterations by :meth:`refine`, the batch bundle adjustment by :meth:`batch_refine`; the
+        plain estimate when ``refine`` is None.
+        """
         if refine is None:
             return self.estimate()
         self.refine()
@@ -907,9 +923,11 @@ class Isam2Backend:
 
     # ------------------------------------------------------------------ estimate
     def estimate(self, landmarks: bool = True) -> BackendEstimate:
-        """Current keyframe poses (and landmarks unless ``landmarks`` is False: cost then
-        grows with the keyframes only); keyframes whose pose moved more than
-        ``change_tolerance_m`` (position, or rotation x 1 m) since the previous call."""
+        """Current keyframe poses, landmarks, and the keyframes whose pose moved since the previous call.
+
+        Landmarks are left out when ``landmarks`` is False: cost then grows with the keyframes only.
+        Moved: more than ``change_tolerance_m`` (position, or rotation x 1 m).
+        """
         lm_ids = np.zeros(0, dtype=np.int64)
         pts = np.zeros((0, 3))
         if landmarks:

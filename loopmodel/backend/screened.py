@@ -38,8 +38,10 @@ def _rectified_view(kf: Keyframe) -> Keyframe:
 
 
 def _subset(kf: Keyframe, keep_stereo: np.ndarray, keep_mono: np.ndarray) -> Keyframe:
-    """A copy of the keyframe without the rejected observations (a landmark whose first,
-    stereo observation is rejected is dropped altogether)."""
+    """A copy of the keyframe without the rejected observations.
+
+    A landmark whose first, stereo observation is rejected is dropped altogether.
+    """
     return dataclasses.replace(
         kf,
         landmark_ids=np.asarray(kf.landmark_ids)[keep_stereo],

@@ -1,5 +1,7 @@
-"""Run a plan's tasks on a Dask cluster: skip the finished ones, submit the rest, follow them,
-record what a dead worker or a failing run leaves, and cancel cleanly on Ctrl-C.
+"""Run a plan's tasks on a Dask cluster.
+
+Skip the finished ones, submit the rest, follow them, record what a dead worker or a failing run
+leaves, and cancel cleanly on Ctrl-C.
 
 The results folder ``OUT`` (shared by the client and every worker) holds ``plan.yaml`` (a copy),
 ``batch.json`` (the expanded tasks), ``running.json`` while a client follows the batch,
@@ -201,9 +203,11 @@ def run_batch(
     progress: ProgressFn | None = None,
     poll_s: float = 0.25,
 ) -> BatchOutcome:
-    """Run every unfinished task of ``plan`` into ``out_dir`` on the client ``get_client()``
-    returns (called only when something is left to run). Ctrl-C cancels what is not finished,
-    keeps every finished result and re-raises ``KeyboardInterrupt``."""
+    """Run every unfinished task of ``plan`` into ``out_dir``.
+
+    On the client ``get_client()`` returns (called only when something is left to run). Ctrl-C
+    cancels what is not finished, keeps every finished result and re-raises ``KeyboardInterrupt``.
+    """
     t_start = time.perf_counter()
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -291,9 +295,12 @@ def _follow(
 def open_client(
     scheduler: str = "local", workers: int | None = None, threads_per_task: int = 1, timeout_s: float = 30.0
 ) -> Iterator[Any]:
-    """A Dask client: a new ``LocalCluster`` of ``workers`` single-thread worker processes
-    (default: one per core) for ``scheduler="local"``, else the cluster at ``tcp://HOST:PORT``
-    (waiting for ``workers`` of them when given). Registers :class:`BatchWorkerPlugin`."""
+    """A Dask client, local or of a running cluster; registers :class:`BatchWorkerPlugin`.
+
+    A new ``LocalCluster`` of ``workers`` single-thread worker processes (default: one per core) for
+    ``scheduler="local"``, else the cluster at ``tcp://HOST:PORT`` (waiting for ``workers`` of them
+    when given).
+    """
     try:
         import dask
         from distributed import Client, LocalCluster

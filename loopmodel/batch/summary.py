@@ -1,6 +1,9 @@
-"""Summary of a batch: ``summary.csv`` (one row per task: status, time, peak memory and the
-``loopmodel eval`` comparison columns), ``summary.md`` (tasks ranked by ATE, the median per
-variant across sequences, failures) and plots (ATE per variant across sequences, box plots)."""
+"""Summary of a batch: ``summary.csv``, ``summary.md`` and plots.
+
+``summary.csv``: one row per task: status, time, peak memory and the ``loopmodel eval`` comparison
+columns. ``summary.md``: tasks ranked by ATE, the median per variant across sequences, failures.
+Plots: ATE per variant across sequences, box plots.
+"""
 
 from __future__ import annotations
 

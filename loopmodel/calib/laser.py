@@ -94,8 +94,10 @@ class LaserPlaneResult:
 def board_region_mask(
     cam_from_board: F64, board_m: F64, square_m: float, K: F64, dist: F64, shape: tuple[int, int], margin: float
 ) -> NDArray[np.bool_]:
-    """Image mask of the board plane's rectangle spanning the detected corners plus
-    ``margin`` squares on every side."""
+    """Image mask of the board plane's rectangle spanning the detected corners.
+
+    Plus ``margin`` squares on every side.
+    """
     lo = board_m[:, :2].min(axis=0) - margin * square_m
     hi = board_m[:, :2].max(axis=0) + margin * square_m
     quad = np.array([[lo[0], lo[1], 0], [hi[0], lo[1], 0], [hi[0], hi[1], 0], [lo[0], hi[1], 0]], dtype=np.float64)
@@ -137,8 +139,10 @@ def laser_view(
     calib_size: tuple[int, int] | None = None,
     channel: str = "green",
 ) -> LaserView:
-    """Board pose and laser points of one calibration image (raises InputError naming the
-    file when it has no board or no laser line on the board)."""
+    """Board pose and laser points of one calibration image.
+
+    Raises InputError naming the file when it has no board or no laser line on the board.
+    """
     img = read_image(path)
     if img.ndim != 3:
         raise InputError(path, "laser calibration needs a colour image (the laser's colour picks the line)")
@@ -213,8 +217,10 @@ def calibrate_laser_plane(
 
 
 def read_laser_planes_json(path: str | Path) -> dict[str, LightPlane]:
-    """Planes ``[a, b, c, d]`` (``a x + b y + c z + d = 0``, metres) of a ``laser_planes.json``
-    (``{"planes": {name: [a, b, c, d]}}``)."""
+    """Planes ``[a, b, c, d]`` (``a x + b y + c z + d = 0``, metres) of a ``laser_planes.json``.
+
+    The file holds ``{"planes": {name: [a, b, c, d]}}``.
+    """
     import json
 
     p = Path(path)

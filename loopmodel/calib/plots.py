@@ -11,8 +11,11 @@ from loopmodel.io.atomic import save_figure_atomic
 
 
 def plot_stereo_calibration(result: StereoCalibrationResult, path: str | Path) -> Path:
-    """Bar chart of the per-view RMS (pixels, left and right) and the corners of all views
-    over each image (coverage), written as PNG."""
+    """Per-view RMS bar chart and corner coverage over each image, written as PNG.
+
+    Bar chart of the per-view RMS (pixels, left and right) and the corners of all views over each
+    image (coverage).
+    """
     import matplotlib
 
     matplotlib.use("Agg")

@@ -1,5 +1,7 @@
-"""Pose of a known planar target (chessboard, ArUco markers) from its corners, by the
-project's robust pose solver (:func:`loopmodel.pose.estimate_pose`) on undistorted pixels."""
+"""Pose of a known planar target (chessboard, ArUco markers) from its corners.
+
+By the project's robust pose solver (:func:`loopmodel.pose.estimate_pose`) on undistorted pixels.
+"""
 
 from __future__ import annotations
 
@@ -31,8 +33,10 @@ def target_pose(
     cam_from_target_init: F64 | None = None,
     ransac_threshold_px: float = 3.0,
 ) -> PoseResult:
-    """``cam_from_target`` (as ``rig_from_ref`` of the result, 4x4, metres) of a target whose
-    points (N x 3, target frame, metres) are seen at ``uv_px`` (N x 2, raw pixels)."""
+    """``cam_from_target`` (as ``rig_from_ref`` of the result, 4x4, metres) of a target.
+
+    The target's points (N x 3, target frame, metres) are seen at ``uv_px`` (N x 2, raw pixels).
+    """
     rig = CameraRig.single(CentralCamera.from_K(np.asarray(K, dtype=np.float64)))
     term = PointTerm(rig, np.asarray(points_in_target_m, dtype=np.float64), undistort_px(uv_px, K, dist))
     return estimate_pose(term, cam_from_target_init, ransac_threshold_px=ransac_threshold_px)

@@ -1,5 +1,7 @@
-"""Stereo rig calibration from chessboard pairs: intrinsics and distortion per camera,
-the extrinsics ``right_from_left``, rectification, and the errors that judge them.
+"""Stereo rig calibration from chessboard pairs.
+
+Intrinsics and distortion per camera, the extrinsics ``right_from_left``, rectification, and the
+errors that judge them.
 
 Steps: corners with sub-pixel refinement in every image; views without a board in both
 images are rejected with the reason; each camera is calibrated alone (``cv2.calibrateCamera``),
@@ -94,8 +96,11 @@ def _number(path: Path) -> int | None:
 
 
 def pair_images(left: list[Path], right: list[Path]) -> list[tuple[Path, Path]]:
-    """Left/right image pairs: by the last number in the file names when every name has one,
-    else in sorted order (then the counts must agree)."""
+    """Left/right image pairs, matched by file name number or by sorted order.
+
+    By the last number in the file names when every name has one, else in sorted order (then the
+    counts must agree).
+    """
     if not left:
         raise InputError("IMAGES_LEFT", "no images")
     if not right:
@@ -164,8 +169,10 @@ def _same_grid(c: Corners, board: tuple[int, int]) -> bool:
 def calibrate_stereo(
     pairs: list[tuple[Path, Path]], board: tuple[int, int], square_m: float
 ) -> StereoCalibrationResult:
-    """Calibrate a stereo rig from chessboard image pairs (``board`` inner corners,
-    squares of ``square_m`` metres)."""
+    """Calibrate a stereo rig from chessboard image pairs.
+
+    ``board`` inner corners, squares of ``square_m`` metres.
+    """
     if not (np.isfinite(square_m) and square_m > 0):
         raise InputError("--square-m", f"square size must be a positive number of metres, got {square_m}")
     rejected: list[RejectedView] = []
@@ -272,8 +279,11 @@ def calibrate_stereo(
 
 
 def stereo_summary(result: StereoCalibrationResult) -> dict[str, object]:
-    """The calibration summary written as ``--out``: both cameras as ROS ``camera_info``
-    dicts, the extrinsics, the rectification and every error figure."""
+    """The calibration summary written as ``--out``.
+
+    Both cameras as ROS ``camera_info`` dicts, the extrinsics, the rectification and every error
+    figure.
+    """
     from loopmodel.io.camera_yaml import camera_info_yaml
 
     left, right = camera_info_dicts(result.calibration)
@@ -303,8 +313,11 @@ def stereo_summary(result: StereoCalibrationResult) -> dict[str, object]:
 
 
 def write_stereo_outputs(result: StereoCalibrationResult, out: Path) -> list[Path]:
-    """Write ``out`` (summary YAML), ``<stem>_left.yaml`` / ``<stem>_right.yaml`` (ROS
-    ``camera_info``), ``<stem>_kitti_calib.txt`` (rectified P0/P1) and ``<stem>_errors.png``."""
+    """Write the summary YAML, the ROS camera_info files, the KITTI calib file and the errors plot.
+
+    ``out`` (summary YAML), ``<stem>_left.yaml`` / ``<stem>_right.yaml`` (ROS ``camera_info``),
+    ``<stem>_kitti_calib.txt`` (rectified P0/P1) and ``<stem>_errors.png``.
+    """
     from loopmodel.calib.plots import plot_stereo_calibration
     from loopmodel.io.atomic import write_text_atomic
     from loopmodel.io.camera_yaml import dump_yaml, write_camera_info_yaml, write_kitti_calib

@@ -100,8 +100,10 @@ def info(
     right: RightTopicOption = None,
     calib: CalibOption = None,
 ) -> None:
-    """Describe a sequence: format, frames, duration, image size, calibration, ground truth, stripes;
-    for a bag its image and camera_info topics with rates and sizes, and the stereo pair chosen."""
+    """Describe a sequence: format, frames, duration, image size, calibration, ground truth, stripes.
+
+    For a bag its image and camera_info topics with rates and sizes, and the stereo pair chosen.
+    """
     from loopmodel.io.sequence import open_sequence
 
     cfg = load_config(config)
@@ -192,8 +194,11 @@ def run(
     rerun_connect: RerunConnectOption = None,
     calib: CalibOption = None,
 ) -> None:
-    """Process a sequence (front end, back end); writes config, trajectories, keyframes, map,
-    metrics and log into <out>/<name>/. Ctrl-C or SIGTERM stops it after writing what it has."""
+    """Process a sequence (front end, back end).
+
+    Writes config, trajectories, keyframes, map, metrics and log into <out>/<name>/. Ctrl-C or
+    SIGTERM stops it after writing what it has.
+    """
     from rich.progress import TextColumn as _Text
 
     from loopmodel.io.sequence import open_sequence
@@ -775,8 +780,11 @@ def loop_vocabulary(
     seed: Annotated[int, typer.Option("--seed", help="random seed of the clustering")] = 0,
     config: ConfigOption = None,
 ) -> None:
-    """Train a vocabulary tree (k-majority for ORB, k-means for SIFT/SURF) on a folder of
-    images, for ``loop.descriptor`` with ``loop.n_features`` per image (reproducible)."""
+    """Train a vocabulary tree on a folder of images (reproducible).
+
+    By k-majority for ORB, k-means for SIFT/SURF; for ``loop.descriptor`` with ``loop.n_features``
+    per image.
+    """
     from collections.abc import Iterator
 
     import cv2
@@ -810,9 +818,11 @@ _PROGRAM = [False]
 
 
 def _ignore_further_interrupts() -> None:
-    """Once a command was interrupted, another Ctrl-C must not break the exit (worker pools
-    and temporary files are being cleaned up). Only for the program itself (``_PROGRAM``),
-    not for ``main`` called from Python."""
+    """Once a command was interrupted, another Ctrl-C must not break the exit.
+
+    Worker pools and temporary files are being cleaned up. Only for the program itself
+    (``_PROGRAM``), not for ``main`` called from Python.
+    """
     import signal
     import threading
 
@@ -890,8 +900,10 @@ def vvs_simulate(
     seed: Annotated[int, typer.Option("--seed")] = 0,
     config: ConfigOption = None,
 ) -> None:
-    """Track the hand-held box with the simulated 4-mirror sensor (or its 2 diagonal mirrors):
-    per-frame pose errors as CSV and PNG."""
+    """Track the hand-held box with the simulated 4-mirror sensor (or its 2 diagonal mirrors).
+
+    Writes per-frame pose errors as CSV and PNG.
+    """
     import numpy as np
 
     from loopmodel.io.atomic import save_figure_atomic, write_text_atomic
@@ -946,8 +958,10 @@ def vvs_calibrate(
     noise_px: Annotated[float, typer.Option("--noise-px", min=0.0, help="simulated image noise")] = 0.3,
     seed: Annotated[int, typer.Option("--seed")] = 0,
 ) -> None:
-    """Calibrate the 4-mirror rig (intrinsics of every mirror and jM1) from known 3-D points
-    (eq. 16), starting from the nominal sensor design; writes rig.json."""
+    """Calibrate the 4-mirror rig (intrinsics of every mirror and jM1) from known 3-D points (eq. 16).
+
+    Starts from the nominal sensor design; writes rig.json.
+    """
     import numpy as np
 
     from loopmodel.errors import CalibrationError

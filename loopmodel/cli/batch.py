@@ -47,9 +47,12 @@ def batch_run(
     out: Annotated[Path | None, typer.Option("--out", help="Results folder (default results/<plan name>)")] = None,
     no_plots: Annotated[bool, typer.Option("--no-plots", help="Summary without pictures")] = False,
 ) -> None:
-    """Run every (sequence, variant) task of a plan: each into its own results folder keyed by
-    its identity, evaluated against ground truth; finished tasks are skipped; writes summary.csv,
-    summary.md and plots. Ctrl-C cancels and keeps every finished result."""
+    """Run every (sequence, variant) task of a plan.
+
+    Each into its own results folder keyed by its identity, evaluated against ground truth; finished
+    tasks are skipped; writes summary.csv, summary.md and plots. Ctrl-C cancels and keeps every
+    finished result.
+    """
     from loopmodel.batch import load_manifest, load_plan, open_client, run_batch, write_summary
     from loopmodel.batch.runner import BatchState, dashboard_address
 
@@ -117,8 +120,10 @@ def batch_status_cmd(
     folder: Annotated[Path, typer.Argument(help="Results folder of a batch (holds batch.json)")],
     show_all: Annotated[bool, typer.Option("--all", help="List every task, not only unfinished ones")] = False,
 ) -> None:
-    """State of a batch that is running, was interrupted or has finished: tasks done, running,
-    failed and pending."""
+    """State of a batch that is running, was interrupted or has finished.
+
+    Tasks done, running, failed and pending.
+    """
     import json
 
     from loopmodel.batch import batch_status, load_manifest

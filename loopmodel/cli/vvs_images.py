@@ -20,8 +20,11 @@ def vvs_render(
     init_rot_deg: Annotated[float, typer.Option(help="Rotation error of the start pose written to init.txt")] = 6.0,
     init_pos_m: Annotated[float, typer.Option(help="Position error of the start pose (m)")] = 0.025,
 ) -> None:
-    """Render a seeded scenario of the 4-mirror sensor as a folder 'vvs track' reads: images/,
-    rig.yaml + mask.png, model.yaml, truth.tum (rig_from_model) and init.txt (a perturbed start)."""
+    """Render a seeded scenario of the 4-mirror sensor as a folder 'vvs track' reads.
+
+    The folder holds images/, rig.yaml + mask.png, model.yaml, truth.tum (rig_from_model) and
+    init.txt (a perturbed start).
+    """
     import cv2
     import numpy as np
 
@@ -60,8 +63,10 @@ def vvs_track(
     truth: Annotated[Path | None, typer.Option("--truth", help="Ground truth (TUM) to report errors")] = None,
     rate_hz: Annotated[float, typer.Option("--rate", help="Frame rate for the output times")] = 10.0,
 ) -> None:
-    """Track a box model through a folder of images by moving edges and robust VVS; writes
-    poses.tum (rig_from_model per frame) and track.csv."""
+    """Track a box model through a folder of images by moving edges and robust VVS.
+
+    Writes poses.tum (rig_from_model per frame) and track.csv.
+    """
     import cv2
     import numpy as np
 

@@ -38,8 +38,10 @@ def mesh_before_after_png(
     final_alignment: Alignment,
     gt_source: str | None,
 ) -> bytes | None:
-    """The before/after mesh picture of the run at ``run_path``, or None when it has no
-    stripes (or they do not mesh)."""
+    """The before/after mesh picture of the run at ``run_path``.
+
+    None when it has no stripes (or they do not mesh).
+    """
     from loopmodel.config import load_config
     from loopmodel.io.stripes_io import load_stripes
     from loopmodel.mapping.accuracy import distances_to_mesh

@@ -68,8 +68,10 @@ TRACK_LABELS = {
 
 @dataclass
 class TimedTrajectory:
-    """A trajectory with where it came from and whether its times are real (KITTI files
-    carry none; their poses are numbered at a fixed rate)."""
+    """A trajectory with where it came from and whether its times are real.
+
+    KITTI files carry none; their poses are numbered at a fixed rate.
+    """
 
     traj: Trajectory
     source: str
@@ -105,8 +107,10 @@ def load_trajectory_file(path: str | Path, rate_hz: float = 10.0) -> TimedTrajec
 
 
 def load_ground_truth(spec: str | Path, sequence_config: SequenceConfig | None = None) -> TimedTrajectory:
-    """Ground truth from a trajectory file (TUM, KITTI, EuRoC) or from a sequence (MCAP file,
-    EuRoC or KITTI folder) read with :func:`loopmodel.io.open_sequence`."""
+    """Ground truth from a trajectory file (TUM, KITTI, EuRoC) or from a sequence.
+
+    A sequence (MCAP file, EuRoC or KITTI folder) is read with :func:`loopmodel.io.open_sequence`.
+    """
     bag = _bag_trajectory(spec)
     if bag is not None:
         return bag
@@ -816,8 +820,10 @@ def render_html(ev: RunEvaluation) -> str:
 
 
 def write_outputs(ev: RunEvaluation, out_dir: str | Path) -> Path:
-    """Write ``metrics.json``, ``report.md``, ``report.html`` and the PNGs into ``out_dir``
-    (atomically, file by file)."""
+    """Write ``metrics.json``, ``report.md``, ``report.html`` and the PNGs into ``out_dir``.
+
+    Atomically, file by file.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     for name, png in ev.plots.items():

@@ -37,8 +37,10 @@ class EvalInputError(InputError):
 
 
 def seconds_of_ns(times_ns: I64) -> F64:
-    """Float seconds of integer nanosecond times, correctly rounded (the same double a
-    reader gets from the decimal seconds text of a TUM file)."""
+    """Float seconds of integer nanosecond times, correctly rounded.
+
+    The same double a reader gets from the decimal seconds text of a TUM file.
+    """
     t = np.asarray(times_ns, dtype=np.int64)
     return np.array([ns_to_seconds_text(int(x)) for x in t], dtype=np.float64)
 
@@ -306,8 +308,11 @@ def evaluate_pair(
     rpe_delta_m: float | None = None,
     kitti_lengths_m: tuple[float, ...] = KITTI_SEGMENT_LENGTHS_M,
 ) -> PairEvaluation:
-    """Associate, align and compute ATE, RPE (per frames and per distance), KITTI segment
-    errors and end-point errors of an estimate against a reference."""
+    """Compare an estimate against a reference.
+
+    Associate, align and compute ATE, RPE (per frames and per distance), KITTI segment errors and
+    end-point errors of an estimate against a reference.
+    """
     if len(ref_poses) < 2 or len(est_poses) < 2:
         which = "reference" if len(ref_poses) < 2 else "estimate"
         n = min(len(ref_poses), len(est_poses))

@@ -28,9 +28,11 @@ F64 = NDArray[np.float64]
 
 @dataclass
 class AffineMatch:
-    """Re-measured positions ``uv_px`` (N, 2) in the current image, ``ok`` where the match
-    converged, stayed within the shift limit and correlates (NCC) above the threshold;
-    ``ncc`` per feature."""
+    """Re-measured positions ``uv_px`` (N, 2) in the current image, ``ok`` flags and ``ncc`` per feature.
+
+    ``ok`` where the match converged, stayed within the shift limit and correlates (NCC) above the
+    threshold.
+    """
 
     uv_px: F64
     ok: NDArray[np.bool_]
@@ -40,9 +42,11 @@ class AffineMatch:
 def predicted_affine(
     camera: CentralCamera, points_ref: F64, cur_from_ref: F64
 ) -> F64:
-    """(N, 2, 2) pixel Jacobians d uv_cur / d uv_ref of the plane through each reference
-    point facing the reference camera (normal along the viewing ray), moved by
-    ``cur_from_ref``; identity where the point is behind either camera."""
+    """(N, 2, 2) pixel Jacobians d uv_cur / d uv_ref of the plane through each reference point.
+
+    The plane faces the reference camera (normal along the viewing ray) and is moved by
+    ``cur_from_ref``; identity where the point is behind either camera.
+    """
     X = np.asarray(points_ref, dtype=float).reshape(-1, 3)
     n = X.shape[0]
     out = np.tile(np.eye(2), (n, 1, 1))

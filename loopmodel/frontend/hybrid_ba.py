@@ -25,8 +25,11 @@ F64 = NDArray[np.float64]
 
 @dataclass
 class HybridBAResult:
-    """Refined ``f_from_kf`` (4x4), points (M, 3, metres, keyframe frame), iterations,
-    RMS reprojection error (pixels) before and after, and per-point inlier flags."""
+    """Refined ``f_from_kf`` (4x4), points, iterations, RMS errors and inlier flags.
+
+    Points (M, 3, metres, keyframe frame), RMS reprojection error (pixels) before and after, and
+    per-point inlier flags.
+    """
 
     f_from_kf: F64
     points_in_kf: F64

@@ -66,9 +66,11 @@ class MonoDepthTracks:
         return (np.column_stack([uv, np.ones(len(uv))]) @ self.K_inv.T)[:, :2]
 
     def spawn(self, kf_id: int, corners_px: F64, median_depth_m: float, avoid_px: F64) -> None:
-        """Start tracks at the corners of keyframe ``kf_id`` that found no stereo match,
-        away from existing tracks and the keyframe's stereo points (``avoid_px``), up to
-        ``mono_max_features``; initial depth: the keyframe's median stereo depth."""
+        """Start tracks at the corners of keyframe ``kf_id`` that found no stereo match.
+
+        Away from existing tracks and the keyframe's stereo points (``avoid_px``), up to
+        ``mono_max_features``; initial depth: the keyframe's median stereo depth.
+        """
         room = self.cfg.mono_max_features - len(self)
         if room <= 0 or len(corners_px) == 0:
             return

@@ -61,8 +61,10 @@ def rectification(cal: StereoCalibration) -> tuple[F64, F64, F64, F64]:
 def undistort_rectify_map(
     cal: StereoCalibration, side: int, R: F64, P: F64, m1type: int = cv2.CV_32FC1
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``cv2.remap`` maps from the rectified image of camera ``side`` (0 left, 1 right) to its
-    raw pixels, for the calibration's camera model."""
+    """``cv2.remap`` maps from the rectified image of camera ``side`` to its raw pixels.
+
+    ``side``: 0 left, 1 right; for the calibration's camera model.
+    """
     K = cal.K_left if side == 0 else cal.K_right
     D = cal.dist_left if side == 0 else cal.dist_right
     if cal.camera_model == "equidistant":

@@ -95,9 +95,11 @@ def _zncc_scan(
     half: int,
     row_offsets: tuple[int, ...] = (0,),
 ) -> NDArray[np.float32]:
-    """ZNCC of the (2*half+1)^2 template of ``src`` at integer (u, v) with the windows of
-    ``dst`` centred at columns ``start + k`` (k < length) and rows ``v + r``. Images are
-    padded by ``pad`` pixels. Returns (N, len(row_offsets), length)."""
+    """ZNCC of the (2*half+1)^2 template of ``src`` at integer (u, v) with windows of ``dst``.
+
+    The windows of ``dst`` are centred at columns ``start + k`` (k < length) and rows ``v + r``.
+    Images are padded by ``pad`` pixels. Returns (N, len(row_offsets), length).
+    """
     p = 2 * half + 1
     n = u.shape[0]
     stride = dst.shape[1]
@@ -162,10 +164,12 @@ def _search_row(
     width: int,
     rows: tuple[int, ...],
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], F64, F64, F64]:
-    """Coarse (half resolution, 7x7) search over disparities 0..dmax along the row, in the
-    direction ``sign`` (-1: right image, +1: left image), then a fine (full resolution)
-    search of +-2 pixels and ``rows``. Returns integer column, row offset index, sub-pixel
-    column and row offsets, and the best score."""
+    """Coarse-to-fine search over disparities 0..dmax along the row.
+
+    Coarse (half resolution, 7x7) search in the direction ``sign`` (-1: right image, +1: left
+    image), then a fine (full resolution) search of +-2 pixels and ``rows``. Returns integer column,
+    row offset index, sub-pixel column and row offsets, and the best score.
+    """
     half_c = 3
     uh, vh = (u + 1) // 2, (v + 1) // 2
     Dh = dmax // 2 + 2
@@ -283,8 +287,10 @@ def spread_subset(
 
 
 def triangulate_rectified(uv_left: F64, disparity: F64, K: F64, baseline_m: float) -> F64:
-    """(N, 3) points (metres) in the rectified left camera frame from left pixels and
-    disparities (pixels)."""
+    """(N, 3) points (metres) in the rectified left camera frame.
+
+    From left pixels and disparities (pixels).
+    """
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     Z = fx * baseline_m / disparity
     X = (uv_left[:, 0] - cx) * Z / fx

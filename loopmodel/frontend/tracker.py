@@ -408,10 +408,12 @@ class FrontEnd:
         return _rotation_deg(kf_from_cur) > cfg.max_rotation_deg
 
     def _remeasure_tracks(self, prev: _ActiveSet, left: NDArray[np.uint8], kf_from_cur: F64) -> None:
-        """Measure the tracked features again against the keyframe's own patches (affine
-        warp predicted by the pose, :mod:`loopmodel.frontend.affine_klt`) and keep those
-        that match: frame-to-frame KLT slides over a keyframe interval, and these positions
-        link the keyframes (mono observations, local BA)."""
+        """Measure the tracked features again against the keyframe's own patches and keep those that match.
+
+        Affine warp predicted by the pose, :mod:`loopmodel.frontend.affine_klt`. Frame-to-frame KLT
+        slides over a keyframe interval, and these positions link the keyframes (mono observations,
+        local BA).
+        """
         from loopmodel.frontend.affine_klt import predicted_affine, refine_affine
 
         cfg = self.config
@@ -434,10 +436,12 @@ class FrontEnd:
             self._track_uv = match.uv_px[match.ok]
 
     def _observe_older(self, left: NDArray[np.uint8], world_from_rect: F64) -> F64:
-        """Rows (landmark_id, u, v) of older keyframes' points found in the new keyframe
-        image ``left`` (rectified pose ``world_from_rect``): projected with the current
-        poses, then matched against their own keyframe's patch (affine); links keyframes
-        two or more intervals apart."""
+        """Rows (landmark_id, u, v) of older keyframes' points found in the new keyframe image ``left``.
+
+        ``left`` has the rectified pose ``world_from_rect``. Points are projected with the current
+        poses, then matched against their own keyframe's patch (affine); links keyframes two or more
+        intervals apart.
+        """
         from loopmodel.frontend.affine_klt import predicted_affine, refine_affine
 
         cfg = self.config

@@ -76,8 +76,10 @@ def se3_log(T: ArrayLike) -> F64:
 
 
 def nearest_rigid(T: ArrayLike) -> F64:
-    """The rigid transform nearest to a 4x4 matrix whose rotation block drifted from SO(3)
-    (rounding in long products of poses): rotation projected by SVD, translation kept."""
+    """The rigid transform nearest to a 4x4 matrix whose rotation block drifted from SO(3).
+
+    Drift from rounding in long products of poses; rotation projected by SVD, translation kept.
+    """
     T = np.asarray(T, dtype=float)
     U, _s, Vt = np.linalg.svd(T[:3, :3])
     R = U @ Vt

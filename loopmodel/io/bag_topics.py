@@ -62,8 +62,11 @@ def _tokens(topic: str) -> list[str]:
 
 
 def _pair_rank(a: str, b: str) -> int | None:
-    """Rank (lower is better) of ``a`` as left and ``b`` as right when the names differ in
-    exactly one path component by a known left/right token, else None."""
+    """Rank (lower is better) of ``a`` as left and ``b`` as right, or None.
+
+    A rank when the names differ in exactly one path component by a known left/right token, else
+    None.
+    """
     ta, tb = _tokens(a), _tokens(b)
     if len(ta) != len(tb):
         return None

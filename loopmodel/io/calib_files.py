@@ -1,8 +1,10 @@
-"""Stereo calibrations from files, for bags without CameraInfo (EuRoC and TUM-VI ROS 1 bags
-carry none): a EuRoC-style folder (``cam0/sensor.yaml`` and ``cam1/sensor.yaml``, or under
-``mav0/``), a Kalibr ``camchain.yaml`` (``cam0``/``cam1`` with ``intrinsics``,
-``distortion_model`` radtan or equidistant, ``distortion_coeffs``, ``resolution``, and
-``cam1.T_cn_cnm1`` = ``cam1_from_cam0``) or a KITTI ``calib.txt``."""
+"""Stereo calibrations from files, for bags without CameraInfo.
+
+EuRoC and TUM-VI ROS 1 bags carry none. Formats: a EuRoC-style folder (``cam0/sensor.yaml`` and
+``cam1/sensor.yaml``, or under ``mav0/``), a Kalibr ``camchain.yaml`` (``cam0``/``cam1`` with
+``intrinsics``, ``distortion_model`` radtan or equidistant, ``distortion_coeffs``, ``resolution``,
+and ``cam1.T_cn_cnm1`` = ``cam1_from_cam0``) or a KITTI ``calib.txt``.
+"""
 
 from __future__ import annotations
 
@@ -19,8 +21,11 @@ from loopmodel.types import StereoCalibration
 
 
 def read_stereo_calibration(path: str | Path, image_size: tuple[int, int] | None = None) -> StereoCalibration:
-    """The calibration in ``path``; ``image_size`` (width, height) is needed for a KITTI
-    calib.txt, which holds none, and checked against a sensor.yaml's resolution."""
+    """The calibration in ``path``.
+
+    ``image_size`` (width, height) is needed for a KITTI calib.txt, which holds none, and checked
+    against a sensor.yaml's resolution.
+    """
     p = Path(path)
     if p.is_file() and p.name == "sensor.yaml":
         p = p.parent.parent

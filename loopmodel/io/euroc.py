@@ -1,6 +1,9 @@
-"""EuRoC ASL folders: ``mav0/cam0``, ``mav0/cam1`` (``data.csv``, ``data/``, ``sensor.yaml``)
-and optional ``mav0/state_groundtruth_estimate0/data.csv``. Images are not rectified; the
-calibration says so and the front end rectifies."""
+"""EuRoC ASL folders.
+
+``mav0/cam0``, ``mav0/cam1`` (``data.csv``, ``data/``, ``sensor.yaml``) and optional
+``mav0/state_groundtruth_estimate0/data.csv``. Images are not rectified; the calibration says so and
+the front end rectifies.
+"""
 
 from __future__ import annotations
 
@@ -54,14 +57,20 @@ def _camera_from_yaml(data: dict, path: Path) -> tuple[np.ndarray, np.ndarray, n
 
 
 def camera_model_of(data: dict) -> str:
-    """``equidistant`` for a sensor.yaml ``distortion_model: equidistant`` (Kannala-Brandt, k1..k4),
-    else ``pinhole`` (radial-tangential)."""
+    """Camera model of a sensor.yaml: ``equidistant`` or ``pinhole``.
+
+    ``equidistant`` for a sensor.yaml ``distortion_model: equidistant`` (Kannala-Brandt, k1..k4),
+    else ``pinhole`` (radial-tangential).
+    """
     return "equidistant" if str(data.get("distortion_model", "")).lower() in ("equidistant", "fisheye") else "pinhole"
 
 
 def stereo_calibration_of(root: Path, source: Path | None = None) -> tuple[StereoCalibration, np.ndarray]:
-    """Unrectified stereo calibration and ``body_from_cam0`` of ``root/cam0/sensor.yaml`` and
-    ``root/cam1/sensor.yaml`` (``source`` names the sequence in size errors)."""
+    """Unrectified stereo calibration and ``body_from_cam0`` of two sensor.yaml files.
+
+    Of ``root/cam0/sensor.yaml`` and ``root/cam1/sensor.yaml`` (``source`` names the sequence in
+    size errors).
+    """
     yaml0 = _read_sensor_yaml(root / "cam0" / "sensor.yaml")
     yaml1 = _read_sensor_yaml(root / "cam1" / "sensor.yaml")
     K0, d0, body_from_cam0, size0 = _camera_from_yaml(yaml0, root / "cam0" / "sensor.yaml")

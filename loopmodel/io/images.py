@@ -43,9 +43,11 @@ MAX_IMAGE_PIXELS = 100_000_000
 
 
 def declared_image_size(header: bytes) -> tuple[int, int] | None:
-    """(width, height) a PNG or JPEG stream declares in its header (None: another format,
-    or no size found in ``header``). Reads only the bytes given (PNG: 24; JPEG: up to the
-    first start-of-frame marker)."""
+    """(width, height) a PNG or JPEG stream declares in its header.
+
+    None: another format, or no size found in ``header``. Reads only the bytes given (PNG: 24; JPEG:
+    up to the first start-of-frame marker).
+    """
     if header[:8] == b"\x89PNG\r\n\x1a\n" and len(header) >= 24 and header[12:16] == b"IHDR":
         return int.from_bytes(header[16:20], "big"), int.from_bytes(header[20:24], "big")
     if header[:2] == b"\xff\xd8":

@@ -90,8 +90,11 @@ def decode_image(msg: Any, schema_name: str, topic: str, max_pixels: int = MAX_I
 def calibration_from_camera_info(
     left: Any, right: Any, source: str, max_pixels: int = MAX_IMAGE_PIXELS
 ) -> StereoCalibration:
-    """Stereo calibration from two decoded CameraInfo messages (ROS conventions: R rectifies,
-    P of the right camera carries ``fx * t_x`` of the rectified baseline)."""
+    """Stereo calibration from two decoded CameraInfo messages.
+
+    ROS conventions: R rectifies, P of the right camera carries ``fx * t_x`` of the rectified
+    baseline.
+    """
     K0 = np.array(left.k, dtype=float).reshape(3, 3)
     K1 = np.array(right.k, dtype=float).reshape(3, 3)
     R0 = np.array(left.r, dtype=float).reshape(3, 3)
@@ -533,8 +536,10 @@ class McapSequenceWriter:
         self._write(topic, type_name, msg, t_ns)
 
     def write_stripe(self, stripe: StripeProfile, topic: str | None = None) -> None:
-        """Write one laser-stripe profile as PointCloud2 (float32 x, y, z, left-camera frame)
-        on the stripe topic (or ``topic``)."""
+        """Write one laser-stripe profile as PointCloud2 on the stripe topic (or ``topic``).
+
+        Fields: float32 x, y, z in the left-camera frame.
+        """
         pts = np.ascontiguousarray(np.asarray(stripe.points_in_cam, dtype=np.float32).reshape(-1, 3))
         fields = [{"name": a, "offset": 4 * i, "datatype": POINTFIELD_FLOAT32, "count": 1} for i, a in enumerate("xyz")]
         msg = {

@@ -22,9 +22,12 @@ UNITS_NOTE = "loopmodel mesh: units metres, world frame of the run"
 
 
 def _glb_embed_buffer(data: bytes, note: str) -> bytes:
-    """open3d 0.20 writes GLB files whose buffer is a base64 data URI inside the JSON chunk,
-    which readers (assimp, hence open3d itself) reject. Move that buffer into the binary
-    chunk, as the GLB layout intends, and record the units note in ``asset.extras``."""
+    """Fix open3d 0.20 GLB files and record the units note in ``asset.extras``.
+
+    GLB files written by open3d 0.20 have their buffer as a base64 data URI inside the JSON chunk,
+    which readers (assimp, hence open3d itself) reject. Move that buffer into the binary chunk, as
+    the GLB layout intends, and record the units note in ``asset.extras``.
+    """
     magic, version, _ = struct.unpack_from("<4sII", data, 0)
     if magic != b"glTF" or version != 2:
         return data
@@ -75,8 +78,10 @@ def _add_header_note(data: bytes, fmt: str, note: str) -> bytes:
 
 
 def write_mesh(path: str | Path, mesh: o3d.geometry.TriangleMesh, fmt: str | None = None) -> Path:
-    """Write ``mesh`` to ``path`` in ``fmt`` (default: from the extension, else PLY) without
-    ever leaving an empty or half-written file."""
+    """Write ``mesh`` to ``path`` in ``fmt`` without ever leaving an empty or half-written file.
+
+    ``fmt`` defaults to the one of the extension, else PLY.
+    """
     p = Path(path)
     fmt = (fmt or p.suffix.lstrip(".") or "ply").lower()
     if fmt not in MESH_FORMATS:

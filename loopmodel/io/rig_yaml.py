@@ -1,5 +1,6 @@
-"""Files of ``loopmodel vvs track``: the rig of central cameras sharing one image, its mask,
-and the polyhedral model.
+"""Files of ``loopmodel vvs track``.
+
+The rig of central cameras sharing one image, its mask, and the polyhedral model.
 
 ``rig.yaml``::
 

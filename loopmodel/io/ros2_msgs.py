@@ -1,5 +1,8 @@
-"""ROS 2 message definitions (concatenated form) for the topics of DESIGN.md, so MCAP files
-can be written without a ROS installation, and conversions between messages and our types."""
+"""ROS 2 message definitions, and conversions between messages and our types.
+
+The definitions (concatenated form) cover the topics of DESIGN.md, so MCAP files can be written
+without a ROS installation.
+"""
 
 from __future__ import annotations
 

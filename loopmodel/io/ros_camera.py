@@ -61,8 +61,10 @@ def _field(msg: Any, name: str) -> Any:
 
 
 def raw_image_array(msg: Any, topic: str, max_pixels: int = MAX_IMAGE_PIXELS) -> NDArray[Any]:
-    """The pixels of a ``sensor_msgs/Image`` as stored (HxW, HxWxC; uint8 or uint16), no copy
-    where the rows are packed."""
+    """The pixels of a ``sensor_msgs/Image`` as stored (HxW, HxWxC; uint8 or uint16).
+
+    No copy where the rows are packed.
+    """
     enc = str(msg.encoding).lower()
     if enc not in _RAW:
         raise FormatError(topic, f"unsupported image encoding '{msg.encoding}' (expected one of {', '.join(_RAW)})")

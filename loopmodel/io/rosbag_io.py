@@ -1,5 +1,6 @@
-"""ROS bags read with the pure-Python ``rosbags`` package (no ROS installation): ROS 2 bag
-folders (``metadata.yaml`` with sqlite3 or MCAP storage), single ``.db3``/``.mcap`` files
+"""ROS bags read with the pure-Python ``rosbags`` package (no ROS installation).
+
+ROS 2 bag folders (``metadata.yaml`` with sqlite3 or MCAP storage), single ``.db3``/``.mcap`` files
 and ROS 1 ``.bag`` files, as a streaming :class:`~loopmodel.io.base.Sequence`.
 
 The stereo topics are the configured ones when the bag has them, ``--left/--right`` when
@@ -81,16 +82,20 @@ def header_stamp_ns(msg: Any) -> int:
 
 @functools.cache
 def default_typestore(ros1: bool) -> Any:
-    """The message types of ROS 1 Noetic or ROS 2 Humble, for bags without definitions (old
-    sqlite3 bags); built once (building a store costs about 0.2 s)."""
+    """The message types of ROS 1 Noetic or ROS 2 Humble, for bags without definitions.
+
+    Such as old sqlite3 bags; built once (building a store costs about 0.2 s).
+    """
     from rosbags.typesys import Stores, get_typestore
 
     return get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
 
 
 class BagReader:
-    """An open bag: connections by topic and decoded messages. Errors of ``rosbags`` become
-    :class:`FormatError` naming the bag."""
+    """An open bag: connections by topic and decoded messages.
+
+    Errors of ``rosbags`` become :class:`FormatError` naming the bag.
+    """
 
     def __init__(self, path: Path) -> None:
         from rosbags.highlevel import AnyReader
@@ -188,8 +193,11 @@ def _image_size(msg: Any, msgtype: str, topic: str) -> tuple[tuple[int, int], st
 
 
 def scan_image_topics(bag: BagReader) -> tuple[list[ImageTopic], dict[str, list[int]]]:
-    """Image topics of a bag with rate, size, encoding and camera_info (from their first
-    messages), and those messages' header stamps by topic."""
+    """Image topics of a bag with rate, size, encoding and camera_info, and header stamps by topic.
+
+    Rate, size, encoding and camera_info come from their first messages; the stamps are those
+    messages' header stamps.
+    """
     infos = bag.topics_of_type(INFO_MSGTYPE)
     out: list[ImageTopic] = []
     stamps: dict[str, list[int]] = {}
@@ -223,8 +231,10 @@ def static_transforms(bag: BagReader, topic: str = "/tf_static") -> dict[str, tu
 
 
 def root_from_frame(frame: str, tree: dict[str, tuple[str, np.ndarray]]) -> tuple[str, np.ndarray] | None:
-    """The root frame above ``frame`` in a static tree and ``root_from_frame`` (None when
-    ``frame`` is not in the tree)."""
+    """The root frame above ``frame`` in a static tree and ``root_from_frame``.
+
+    None when ``frame`` is not in the tree.
+    """
     frame = frame.lstrip("/")
     if frame not in tree:
         return None
@@ -353,8 +363,10 @@ class BagSequence(Sequence):
 
     @staticmethod
     def _tolerance(tol_ns: int, left: list[int], right: list[int]) -> tuple[int, int | None]:
-        """Pairing tolerance: the configured one, widened by a constant left/right offset
-        (unsynchronised cameras) when the sampled stamps show one below a quarter frame."""
+        """Pairing tolerance: the configured one, widened by a constant left/right offset.
+
+        Widened for unsynchronised cameras, when the sampled stamps show one below a quarter frame.
+        """
         offset = stamp_offset_ns(left, right)
         if offset is None or offset <= tol_ns or len(left) < 2:
             return tol_ns, offset

@@ -31,8 +31,11 @@ ENCODINGS = ("raw", "mono8", "mono16", "bgr8", "rgb8", "bgra8", "bayer_rggb8", "
 
 
 def _build(typestore: Any, msgtype: str, values: dict[str, Any]) -> Any:
-    """A message object of ``msgtype`` from a dict (nested dicts for nested messages;
-    missing fields zero/empty; ROS 1 upper-case CameraInfo names filled from lower case)."""
+    """A message object of ``msgtype`` from a dict.
+
+    Nested dicts for nested messages; missing fields zero/empty; ROS 1 upper-case CameraInfo names
+    filled from lower case.
+    """
     from rosbags.typesys.base import Nodetype
 
     _consts, fields = typestore.fielddefs[msgtype]

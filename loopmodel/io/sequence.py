@@ -1,5 +1,7 @@
-"""``open_sequence``: pick the reader for a path (MCAP file, ROS 1/ROS 2 bag, EuRoC folder,
-KITTI folder)."""
+"""``open_sequence``: pick the reader for a path.
+
+An MCAP file, ROS 1/ROS 2 bag, EuRoC folder or KITTI folder.
+"""
 
 from __future__ import annotations
 
@@ -18,8 +20,10 @@ __all__ = ["Sequence", "open_sequence", "convert_to_mcap"]
 
 
 def _has_project_topics(path: Path, cfg: SequenceConfig) -> bool:
-    """True when an MCAP file has the configured stereo topics (or no readable summary, so
-    that :class:`McapSequence` reports it)."""
+    """True when an MCAP file has the configured stereo topics.
+
+    Also when it has no readable summary, so that :class:`McapSequence` reports it.
+    """
     from mcap.reader import make_reader
 
     try:
@@ -40,10 +44,13 @@ def open_sequence(
     right: str | None = None,
     calibration_file: str | Path | None = None,
 ) -> Sequence:
-    """Open a recorded sequence; raises :class:`InputError` naming the path when it is
-    missing or of an unknown layout. ``left``/``right`` name the stereo image topics of a
-    bag (default: the configured ones when present, else guessed); ``calibration_file``
-    (EuRoC sensor.yaml folder or KITTI calib.txt) replaces a bag's CameraInfo."""
+    """Open a recorded sequence.
+
+    Raises :class:`InputError` naming the path when it is missing or of an unknown layout.
+    ``left``/``right`` name the stereo image topics of a bag (default: the configured ones when
+    present, else guessed); ``calibration_file`` (EuRoC sensor.yaml folder or KITTI calib.txt)
+    replaces a bag's CameraInfo.
+    """
     cfg = config or SequenceConfig()
     p = Path(path)
     if not p.exists():
@@ -88,7 +95,9 @@ def convert_to_mcap(
     progress: Callable[[int], None] | None = None,
 ) -> Path:
     """Write a sequence (frames, stripes, ground truth) to an MCAP file, atomically.
-    ``progress`` is called with the number of frames written so far."""
+
+    ``progress`` is called with the number of frames written so far.
+    """
     cfg = config or SequenceConfig()
     with McapSequenceWriter(dst, seq.calibration, cfg.topics, image_format) as writer:
         if seq.ground_truth is not None:

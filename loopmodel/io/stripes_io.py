@@ -69,11 +69,13 @@ def load_stripes_and_poses(
     sequence_config: SequenceConfig | None = None,
     mapping_config: MappingConfig | None = None,
 ) -> tuple[list[StripeProfile], Trajectory, str]:
-    """Stripes and the poses to place them with, from a results folder (``stripes.npz`` and
-    ``trajectory_<final|online>.tum``; final falls back to online) or from a recorded
-    sequence with stripes (or laser-line images, extracted with ``mapping_config``'s light
-    plane) and ground truth (e.g. a simulator MCAP). Returns the stripes, the
-    ``world_from_cam`` trajectory and a name for the poses used."""
+    """Stripes and the poses to place them with, from a results folder or a recorded sequence.
+
+    A results folder: ``stripes.npz`` and ``trajectory_<final|online>.tum`` (final falls back to
+    online). A recorded sequence: with stripes (or laser-line images, extracted with
+    ``mapping_config``'s light plane) and ground truth (e.g. a simulator MCAP). Returns the stripes,
+    the ``world_from_cam`` trajectory and a name for the poses used.
+    """
     from loopmodel.io.trajectory_io import read_trajectory
 
     p = Path(source)

@@ -95,8 +95,11 @@ class LoopCloser:
         return detect_and_describe(image, self.config.descriptor, self.config.n_features, self._extractor)
 
     def frame_features(self, image: NDArray[np.uint8]) -> FeatureSet:
-        """Features of a non-keyframe image (relocalization query): detected ones plus
-        descriptors at Shi-Tomasi corners, the kind of point a keyframe's landmarks are."""
+        """Features of a non-keyframe image (relocalization query).
+
+        Detected ones plus descriptors at Shi-Tomasi corners, the kind of point a keyframe's
+        landmarks are.
+        """
         det = self.image_features(image)
         corners = cv2.goodFeaturesToTrack(image, 400, 0.01, 8)
         if corners is None:
@@ -105,8 +108,10 @@ class LoopCloser:
         return FeatureSet.concat(det, extra) if len(det) else extra
 
     def keyframe_features(self, kf: Keyframe) -> FeatureSet:
-        """Detected features plus descriptors at the keyframe's stereo features (with 3-D
-        positions in the rectified keyframe frame and landmark ids)."""
+        """Detected features plus descriptors at the keyframe's stereo features.
+
+        The stereo features carry 3-D positions in the rectified keyframe frame and landmark ids.
+        """
         det = self.image_features(kf.image)
         data = self._kf_data(kf)
         lm, kept = describe_at(kf.image, data.uv, self.config.descriptor)
@@ -134,8 +139,10 @@ class LoopCloser:
     def process_keyframe(
         self, kf: Keyframe, neighbours: set[int] | None = None, query: bool = True
     ) -> LoopClosure | None:
-        """Store a new keyframe and check it for a verified revisit (``neighbours``: temporal
-        neighbours, never verified; ``query`` False: store only)."""
+        """Store a new keyframe and check it for a verified revisit.
+
+        ``neighbours``: temporal neighbours, never verified; ``query`` False: store only.
+        """
         t0 = time.perf_counter()
         fs = self.keyframe_features(kf)
         self.remember(kf)
@@ -182,12 +189,14 @@ class LoopCloser:
     def track_old_features(
         self, match_id: int, image: NDArray[np.uint8], query_from_match: F64
     ) -> tuple[F64, NDArray[np.int64], F64] | None:
-        """Seed 004's accuracy stage: the old set's features found again in the current
-        image from their predicted positions, then the P3P bank on them. Two trackers run:
-        templates warped by the predicted pose with an enlarged search region
-        (:func:`loopmodel.loop.resume.retrack_keyframe_features`) and pyramidal KLT; the
-        one whose features give more P3P inliers is kept. Returns (query_from_match,
-        landmark ids, pixels) of the inliers."""
+        """Seed 004's accuracy stage: re-find the old set's features, then run the P3P bank on them.
+
+        The old set's features are found again in the current image from their predicted positions.
+        Two trackers run: templates warped by the predicted pose with an enlarged search region
+        (:func:`loopmodel.loop.resume.retrack_keyframe_features`) and pyramidal KLT; the one whose
+        features give more P3P inliers is kept. Returns (query_from_match, landmark ids, pixels) of
+        the inliers.
+        """
         old = self._kf.get(match_id)
         if old is None or old.ids.size < 6:
             return None
@@ -216,8 +225,10 @@ class LoopCloser:
         return rt.uv_px, rt.ids
 
     def _klt_old(self, old: _KfData, image: NDArray[np.uint8], query_from_match: F64) -> tuple[F64, NDArray[np.int64]]:
-        """Old features tracked by pyramidal KLT (forward-backward checked): pixels (K, 2)
-        and their indices."""
+        """Old features tracked by pyramidal KLT (forward-backward checked).
+
+        Returns pixels (K, 2) and their indices.
+        """
         none = (np.zeros((0, 2)), np.zeros(0, np.int64))
         p_q = old.p_rect @ query_from_match[:3, :3].T + query_from_match[:3, 3]
         front = p_q[:, 2] > 0.05
@@ -257,8 +268,10 @@ class LoopCloser:
 
     # ---------------------------------------------------------------- relocalization
     def relocalize(self, image: NDArray[np.uint8], exclude_after: int | None = None) -> tuple[int | None, RelocResult]:
-        """Pose of a lost camera (rectified left image) against the stored keyframes:
-        (keyframe id, result with ``cam_from_map`` = rectified cam_from_kf)."""
+        """Pose of a lost camera (rectified left image) against the stored keyframes.
+
+        Returns (keyframe id, result with ``cam_from_map`` = rectified cam_from_kf).
+        """
         return relocalize_in_database(
             self.frame_features(image),
             self.detector.database,
@@ -269,9 +282,11 @@ class LoopCloser:
 
     # ---------------------------------------------------------------- correction
     def correction_problem(self, keyframes: Sequence[Keyframe], closure: LoopClosure) -> dict[str, Any]:
-        """Arguments of :func:`global_hybrid_ba` for the loop's window, as plain arrays (can
-        be sent to a worker process): keyframes from the loop's old keyframe to the current
-        one, every loop's observations among them, the old keyframe held fixed."""
+        """Arguments of :func:`global_hybrid_ba` for the loop's window, as plain arrays.
+
+        Plain arrays can be sent to a worker process. Keyframes from the loop's old keyframe to the
+        current one, every loop's observations among them, the old keyframe held fixed.
+        """
         lo, hi = closure.match_kf, closure.query_kf
         window = [k.without_image() for k in keyframes if lo <= int(k.id) <= hi]
         loops = [c.observations for c in self.closures if lo <= c.match_kf and c.query_kf <= hi]
@@ -288,6 +303,8 @@ class LoopCloser:
         }
 
     def correct(self, keyframes: Sequence[Keyframe], closure: LoopClosure, max_iterations: int = 20) -> GlobalBAResult:
-        """Global hybrid BA over the keyframes from the loop's old keyframe to the current
-        one (the old keyframe held fixed) with every loop's observations among them."""
+        """Global hybrid BA over the keyframes from the loop's old keyframe to the current one.
+
+        The old keyframe is held fixed; with every loop's observations among them.
+        """
         return global_hybrid_ba(**self.correction_problem(keyframes, closure), max_iterations=max_iterations)

@@ -36,8 +36,11 @@ _LOOP = LoopConfig.model_fields
 
 @dataclass
 class PlaceParams:
-    """Place-recognition parameters (ids are keyframe or frame indices; defaults: those of
-    :class:`loopmodel.config.LoopConfig` where it has the knob)."""
+    """Place-recognition parameters.
+
+    Ids are keyframe or frame indices; defaults: those of :class:`loopmodel.config.LoopConfig` where
+    it has the knob.
+    """
 
     min_gap: int = _LOOP["min_gap_keyframes"].default
     min_score: float = _LOOP["min_score"].default

@@ -28,10 +28,13 @@ KINDS = ("orb", "sift", "surf")
 
 @dataclass
 class FeatureSet:
-    """Keypoints ``keypoints_px`` (N, 2), descriptors (N, D: uint8 for ORB, float32 for
-    SIFT/SURF), ``points_in_kf`` (N, 3) metres in the keyframe's left-camera frame (NaN
-    rows where unknown), ``kind`` the descriptor name, ``ids`` (N,) landmark ids (-1: none),
-    ``laplacian`` (N,) int8 sign of the Laplacian of SURF features (0: unknown / not SURF)."""
+    """Loop-closing features of one image: keypoints, descriptors, 3-D points, kind, ids, Laplacian signs.
+
+    Keypoints ``keypoints_px`` (N, 2), descriptors (N, D: uint8 for ORB, float32 for SIFT/SURF),
+    ``points_in_kf`` (N, 3) metres in the keyframe's left-camera frame (NaN rows where unknown),
+    ``kind`` the descriptor name, ``ids`` (N,) landmark ids (-1: none), ``laplacian`` (N,) int8 sign
+    of the Laplacian of SURF features (0: unknown / not SURF).
+    """
 
     keypoints_px: F64
     descriptors: NDArray[Any]

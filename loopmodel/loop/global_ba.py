@@ -49,8 +49,10 @@ class LoopObservations:
 
 @dataclass
 class GlobalBAResult:
-    """Optimised ``world_from_kf`` per keyframe id (camera frame, metres), landmark
-    positions in the world frame, problem size and timing."""
+    """Optimised ``world_from_kf`` per keyframe id (camera frame, metres) and landmark positions.
+
+    Landmark positions in the world frame, problem size and timing.
+    """
 
     world_from_kf: dict[int, F64]
     p_in_world: dict[int, F64]
@@ -81,9 +83,11 @@ def global_hybrid_ba(
     max_iterations: int = 20,
     fixed_kf_id: int | None = None,
 ) -> GlobalBAResult:
-    """Jointly optimise keyframe poses and feature positions (rectified pinhole stereo
-    with focal lengths/centre in pixels and the baseline in metres). ``fixed_kf_id``
-    (default: the first keyframe) is held at its current pose."""
+    """Jointly optimise keyframe poses and feature positions.
+
+    Rectified pinhole stereo with focal lengths/centre in pixels and the baseline in metres.
+    ``fixed_kf_id`` (default: the first keyframe) is held at its current pose.
+    """
     if not keyframes:
         raise InputError("global_hybrid_ba", "no keyframes")
     t0 = time.perf_counter()

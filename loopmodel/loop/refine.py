@@ -1,5 +1,6 @@
-"""Robust refinement of a camera pose from 2-D/3-D correspondences (after the P3P bank),
-by the project's one robust pose solver (``loopmodel.pose``, the front end's as well).
+"""Robust refinement of a camera pose from 2-D/3-D correspondences (after the P3P bank).
+
+By the project's one robust pose solver (``loopmodel.pose``, the front end's as well).
 
 The P3P bank works on unit rays; :func:`project_refiner` maps them back to the pixels of the
 query camera for the solver. Without a camera at hand, :data:`refine_pose` uses the unified

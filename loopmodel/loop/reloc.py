@@ -28,8 +28,10 @@ _LOOP = LoopConfig.model_fields
 
 @dataclass
 class RelocParams:
-    """Thresholds of relocalization and geometric verification (defaults: those of
-    :class:`loopmodel.config.LoopConfig` where it has the knob)."""
+    """Thresholds of relocalization and geometric verification.
+
+    Defaults: those of :class:`loopmodel.config.LoopConfig` where it has the knob.
+    """
 
     ratio: float = _LOOP["ratio"].default
     threshold_px: float = _LOOP["threshold_px"].default
@@ -161,9 +163,12 @@ def localize(
 
 
 def sample_bound(p: RelocParams) -> int:
-    """Minimal samples after which a pose with the minimum acceptable inlier ratio has been
-    drawn with the given confidence (more would only serve poses that are rejected anyway),
-    at least 64 and at most ``max_samples``."""
+    """Minimal samples to draw, at least 64 and at most ``max_samples``.
+
+    The number after which a pose with the minimum acceptable inlier ratio has been drawn with the
+    given confidence (more would only serve poses that are rejected anyway), at least 64 and at most
+    ``max_samples``.
+    """
     w3 = min(max(p.min_inlier_ratio, 1e-3), 1.0) ** 3
     bound = np.log(1 - p.confidence) / np.log(1 - w3) if w3 < 1 else 1.0
     return int(min(p.max_samples, max(64, np.ceil(bound))))

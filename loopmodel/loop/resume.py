@@ -29,8 +29,11 @@ F64 = NDArray[np.float64]
 
 @dataclass
 class Retracked:
-    """Old features found again: ``ids`` (K,) landmark ids, ``uv_px`` (K, 2) positions in
-    the current image, ``predicted_px`` (K, 2) where the pose put them, ``ncc`` (K,)."""
+    """Old features found again: ids, positions, predicted positions and NCC.
+
+    ``ids`` (K,) landmark ids, ``uv_px`` (K, 2) positions in the current image, ``predicted_px``
+    (K, 2) where the pose put them, ``ncc`` (K,).
+    """
 
     ids: NDArray[np.int64]
     uv_px: F64
@@ -53,10 +56,12 @@ def retrack_keyframe_features(
     half_window_px: int = 7,
     min_ncc: float = 0.85,
 ) -> Retracked:
-    """Find the old keyframe's features (pixels ``kf_uv_px`` (N, 2), points ``kf_points``
-    (N, 3) metres in its camera frame, ids (N,)) in the current image, given the predicted
-    pose ``cur_from_kf`` (4x4). Each warped template is searched within ``search_px`` of its
-    prediction (NCC), then refined by the affine KLT (converged, NCC >= ``min_ncc``)."""
+    """Find the old keyframe's features in the current image, given the predicted pose ``cur_from_kf``.
+
+    Features: pixels ``kf_uv_px`` (N, 2), points ``kf_points`` (N, 3) metres in its camera frame,
+    ids (N,); ``cur_from_kf`` is 4x4. Each warped template is searched within ``search_px`` of its
+    prediction (NCC), then refined by the affine KLT (converged, NCC >= ``min_ncc``).
+    """
     uv0 = np.asarray(kf_uv_px, float).reshape(-1, 2)
     X = np.asarray(kf_points, float).reshape(-1, 3)
     ids = np.asarray(kf_ids, np.int64).reshape(-1)

@@ -63,9 +63,11 @@ F64 = NDArray[np.float64]
 
 @dataclass
 class Detection:
-    """What place recognition and verification of one keyframe produced: the closure (or
-    None), the candidates rejected, how many temporal neighbours were skipped and the
-    detection's wall time (s)."""
+    """What place recognition and verification of one keyframe produced.
+
+    The closure (or None), the candidates rejected, how many temporal neighbours were skipped and
+    the detection's wall time (s).
+    """
 
     closure: LoopClosure | None
     rejected: list[LoopEvent]
@@ -107,8 +109,10 @@ def _motion(a: F64, b: F64) -> tuple[float, float]:
 
 
 def _with_observations(kf: Keyframe, obs: LoopObservations) -> Keyframe:
-    """The keyframe with the loop's observations of old landmarks appended to its
-    monocular observations (those it has already are kept as they are)."""
+    """The keyframe with the loop's observations of old landmarks appended to its monocular observations.
+
+    Those it has already are kept as they are.
+    """
     if not obs.landmark_ids.size:
         return kf
     mono = np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3)
@@ -173,9 +177,12 @@ class LoopClosingStage:
 
     # ------------------------------------------------------------------ keyframes
     def on_keyframe(self, keyframe: Keyframe, state: MapState) -> LoopOutcome:
-        """Process a new keyframe: complete the records of the previous keyframe's loops
-        from ``state``, apply a finished background correction, relocalize a new segment,
-        look for a revisit. ``state.world_from_kf`` must hold the new keyframe."""
+        """Process a new keyframe.
+
+        Complete the records of the previous keyframe's loops from ``state``, apply a finished
+        background correction, relocalize a new segment, look for a revisit. ``state.world_from_kf``
+        must hold the new keyframe.
+        """
         self._note_backend(state)
         out = LoopOutcome(keyframe)
         self.keyframes[int(keyframe.id)] = keyframe
@@ -216,8 +223,10 @@ class LoopClosingStage:
         return self._detect_pool
 
     def _note(self, d: Detection) -> LoopClosure | None:
-        """Record a detection's rejected candidates and counts; its closure (the process
-        worker's closures join this closer's list)."""
+        """Record a detection's rejected candidates and counts, and its closure.
+
+        The process worker's closures join this closer's list.
+        """
         for ev in d.rejected:
             self.rejected.append({"query_kf": ev.query_id, "match_kf": ev.match_id, "reason": ev.reason})
         self.neighbours_skipped += d.neighbours_skipped
@@ -227,8 +236,10 @@ class LoopClosingStage:
         return d.closure
 
     def _apply_detections(self, out: LoopOutcome, state: MapState, wait: bool) -> None:
-        """The worker's finished detections, in keyframe order (``wait``: all of them); a
-        loop found for an earlier keyframe is applied at ``out``'s keyframe."""
+        """The worker's finished detections, in keyframe order (``wait``: all of them).
+
+        A loop found for an earlier keyframe is applied at ``out``'s keyframe.
+        """
         while self._inflight and (wait or self._inflight[0][1].done()):
             kf_id, fut = self._inflight.popleft()
             try:
@@ -241,11 +252,13 @@ class LoopClosingStage:
                 self._close_late(closure, out, state)
 
     def _close_late(self, closure: LoopClosure, out: LoopOutcome, state: MapState) -> None:
-        """A loop verified for an earlier keyframe, applied at the current one: the old
-        keyframe's features are tracked into the current image from the predicted
-        ``current_from_match`` (tracker poses times the loop's pose) and the loop is closed
-        from the current keyframe; when too few are found, the loop's own relative pose
-        becomes the constraint (without observations)."""
+        """A loop verified for an earlier keyframe, applied at the current one.
+
+        The old keyframe's features are tracked into the current image from the predicted
+        ``current_from_match`` (tracker poses times the loop's pose) and the loop is closed from the
+        current keyframe; when too few are found, the loop's own relative pose becomes the
+        constraint (without observations).
+        """
         cur = out.keyframe
         c, q = int(cur.id), closure.query_kf
         world = state.world_from_kf
@@ -278,8 +291,10 @@ class LoopClosingStage:
         out.events.append(self.events[-1])
 
     def _constraint_only(self, closure: LoopClosure, state: MapState, at_keyframe: int | None) -> LoopConstraint:
-        """The record and the relative-pose constraint of a loop applied without its
-        observations (its query keyframe is already in the back end)."""
+        """The record and the relative-pose constraint of a loop applied without its observations.
+
+        Its query keyframe is already in the back end.
+        """
         q = closure.query_kf
         record = self._loop_record(closure)
         record["applied_at_keyframe"] = at_keyframe
@@ -292,10 +307,12 @@ class LoopClosingStage:
         return LoopConstraint(q, closure.match_kf, q_from_m)
 
     def _temporal_neighbours(self, kf: Keyframe) -> set[int]:
-        """Keyframes co-visible with the new keyframe's local map (ORB-SLAM's covisibility
-        graph, two levels): those whose landmarks it observes (its stereo and monocular
-        observations), and theirs. The front end and the back end link these already; a
-        loop with them adds nothing. Landmarks are found by each keyframe's id range."""
+        """Keyframes co-visible with the new keyframe's local map.
+
+        ORB-SLAM's covisibility graph, two levels: those whose landmarks it observes (its stereo and
+        monocular observations), and theirs. The front end and the back end link these already; a
+        loop with them adds nothing. Landmarks are found by each keyframe's id range.
+        """
         q = int(kf.id)
         ids = np.asarray(kf.landmark_ids, dtype=np.int64).ravel()
         mono = np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3)
@@ -323,8 +340,10 @@ class LoopClosingStage:
             out.corrections.update(done[1])
 
     def _note_backend(self, state: MapState) -> None:
-        """Record how far the back end moved the keyframes of the previous keyframe's loops,
-        how long that took, and the ids of their constraints."""
+        """Record how the back end handled the keyframes of the previous keyframe's loops.
+
+        How far it moved them, how long that took, and the ids of their constraints.
+        """
         ids = list(state.last_constraint_ids)
         for record in self._awaiting:
             before = record.pop("pose_before", None)
@@ -337,10 +356,12 @@ class LoopClosingStage:
         self._awaiting = []
 
     def _relocalize_segment(self, out: LoopOutcome, state: MapState) -> None:
-        """Place the first keyframe of a new segment in the old map: descriptors and the
-        P3P bank against the stored keyframes, or — when that fails — the latest keyframes'
-        features searched by KLT from the rough (motion-model) pose; then the KLT accuracy
-        stage. The observations link the segments in later global BAs."""
+        """Place the first keyframe of a new segment in the old map.
+
+        Descriptors and the P3P bank against the stored keyframes, or — when that fails — the latest
+        keyframes' features searched by KLT from the rough (motion-model) pose; then the KLT
+        accuracy stage. The observations link the segments in later global BAs.
+        """
         t0 = time.perf_counter()
         kf = out.keyframe
         new_id = int(kf.id)
@@ -394,8 +415,10 @@ class LoopClosingStage:
         logger.info("keyframe %d relocalized against keyframe %d (%s)", new_id, kf_id, method)
 
     def _find_old_keyframe(self, kf: Keyframe, world_from_rect: Any) -> tuple[int, F64, int, str] | None:
-        """An old keyframe and ``new_from_old`` (rectified frames) for a relocalization, its
-        inlier count and the method that found it; None when both methods fail."""
+        """An old keyframe and ``new_from_old`` (rectified frames) for a relocalization.
+
+        With its inlier count and the method that found it; None when both methods fail.
+        """
         new_id = int(kf.id)
         if self.config.detection_worker == "process":  # the database is in the worker
             kf_id, res = self._workers().submit(_worker_relocalize, kf.image, new_id - 1).result()
@@ -413,9 +436,12 @@ class LoopClosingStage:
         return None
 
     def _close(self, closure: LoopClosure, out: LoopOutcome, state: MapState) -> None:
-        """Hand a verified loop to the back end, or start its correction (in the worker
-        process when ``background``; a finished one lands in ``out``). A loop the robust
-        gate rejects (:meth:`_robust_gate`) is recorded in ``rejected`` and never applied."""
+        """Hand a verified loop to the back end, or start its correction.
+
+        The correction runs in the worker process when ``background``; a finished one lands in
+        ``out``. A loop the robust gate rejects (:meth:`_robust_gate`) is recorded in ``rejected``
+        and never applied.
+        """
         if not self._robust_gate(closure, state.world_from_kf):
             return
         if self.via_backend:
@@ -436,11 +462,13 @@ class LoopClosingStage:
         return invert_pose(q.rect_from_cam) @ closure.query_from_match @ m.rect_from_cam
 
     def _robust_gate(self, closure: LoopClosure, world_from_kf: Mapping[int, F64]) -> bool:
-        """GNC-TLS on the keyframe pose graph from the loop's old keyframe to the current
-        one: the current relative poses of consecutive connected keyframes (known inliers),
-        the loops accepted before and this one. False when this loop is an outlier (it is
-        then kept in ``rejected``, with the reason). A window that a new segment
-        (unconnected keyframe) breaks is not gated."""
+        """GNC-TLS on the keyframe pose graph from the loop's old keyframe to the current one.
+
+        Edges: the current relative poses of consecutive connected keyframes (known inliers), the
+        loops accepted before and this one. False when this loop is an outlier (it is then kept in
+        ``rejected``, with the reason). A window that a new segment (unconnected keyframe) breaks is
+        not gated.
+        """
         if self.config.robust == "none":
             return True
         lo, hi = closure.match_kf, closure.query_kf
@@ -480,8 +508,10 @@ class LoopClosingStage:
         return False
 
     def _to_backend(self, closure: LoopClosure, record: dict[str, Any], out: LoopOutcome) -> None:
-        """Append the closure's observations of old landmarks to the keyframe's monocular
-        observations and return its relative pose (left camera frames) as a constraint."""
+        """Append the closure's observations of old landmarks to the keyframe's monocular observations.
+
+        Returns its relative pose (left camera frames) as a constraint.
+        """
         out.keyframe = _with_observations(out.keyframe, closure.observations)
         record["pose_before"] = np.asarray(out.keyframe.world_from_kf).copy()
         self._awaiting.append(record)
@@ -522,8 +552,10 @@ class LoopClosingStage:
         return None
 
     def poll(self, state: MapState, wait: bool = False) -> tuple[dict[str, Any], dict[int, F64]] | None:
-        """A finished background correction (``wait``: block until it is done) as its
-        record and the corrected poses, or None."""
+        """A finished background correction as its record and the corrected poses, or None.
+
+        ``wait``: block until it is done.
+        """
         if self._pending is None:
             return None
         fut, closure, before, t0 = self._pending
@@ -546,8 +578,10 @@ class LoopClosingStage:
         return done
 
     def close(self, state: MapState) -> dict[int, F64]:
-        """Complete the last records; wait for every pending correction; stop the worker
-        process. Returns the corrections that arrived meanwhile."""
+        """Complete the last records; wait for every pending correction; stop the worker process.
+
+        Returns the corrections that arrived meanwhile.
+        """
         self._note_backend(state)
         # detections still running: their loops have no later keyframe to be applied at;
         # with the back end they become constraints (:meth:`final_constraints`), without it

@@ -45,9 +45,12 @@ HESSIAN_DXY_WEIGHT = 0.9
 
 @dataclass
 class SurfKeypoints:
-    """Keypoints: ``xy`` (N, 2) pixels, ``scale`` (N,) s in pixels (1.2 for the 9x9
-    filter), ``angle`` (N,) radians, ``response`` (N,) Hessian determinant, ``sign``
-    (N,) int8 sign of the Laplacian (+1 / -1)."""
+    """Keypoints: positions, scales, angles, Hessian responses and Laplacian signs.
+
+    ``xy`` (N, 2) pixels, ``scale`` (N,) s in pixels (1.2 for the 9x9 filter), ``angle`` (N,)
+    radians, ``response`` (N,) Hessian determinant, ``sign`` (N,) int8 sign of the Laplacian
+    (+1 / -1).
+    """
 
     xy: F64
     scale: F64
@@ -64,8 +67,10 @@ class SurfKeypoints:
 
 
 def integral_image(image: NDArray[np.generic], sigma_px: float = 0.0) -> F64:
-    """(h+1, w+1) integral image of a grey image scaled to [0, 1] (uint8) or as given,
-    optionally smoothed first with a Gaussian of ``sigma_px``."""
+    """(h+1, w+1) integral image of a grey image scaled to [0, 1] (uint8) or as given.
+
+    Optionally smoothed first with a Gaussian of ``sigma_px``.
+    """
     img = np.asarray(image)
     f = img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else img.astype(np.float32)
     if sigma_px > 0:
@@ -127,9 +132,11 @@ def _hessian_at(ii: F64, r: int, c: int, b: int, lobe: int, hl: int, clip: bool)
 
 @nb.njit(cache=True, parallel=True)
 def _hessian_octave(ii: F64, sizes: NDArray[np.int64], step: int, det: F32, lap: F32) -> None:
-    """Determinants of the box-filter Hessian for every filter side in ``sizes`` at pixels
-    (i * step, j * step) -> ``det`` (layers, rows, cols); its trace -> ``lap`` (both
-    normalised by the filter area). Filters reaching past the border are clipped."""
+    """Determinants of the box-filter Hessian for every filter side in ``sizes``.
+
+    At pixels (i * step, j * step) -> ``det`` (layers, rows, cols); its trace -> ``lap`` (both
+    normalised by the filter area). Filters reaching past the border are clipped.
+    """
     n_layers, rows, cols = det.shape
     h = ii.shape[0] - 1
     w = ii.shape[1] - 1
@@ -169,9 +176,11 @@ def _extrema(
     out: F64,
     count: int,
 ) -> int:
-    """3x3x3 maxima of one octave's determinant stack (layers, rows, cols) above
-    ``threshold``, interpolated in (x, y, size); rows of ``out``: x, y, size, response,
-    sign. Returns the new count."""
+    """3x3x3 maxima of one octave's determinant stack (layers, rows, cols) above ``threshold``.
+
+    Interpolated in (x, y, size); rows of ``out``: x, y, size, response, sign. Returns the new
+    count.
+    """
     n_layers, rows, cols = stack.shape
     for k in range(1, n_layers - 1):
         # the largest filter involved must lie inside the image
@@ -251,8 +260,11 @@ def _extrema(
 
 @nb.njit(cache=True, inline="always")
 def _haar(ii: F64, x: int, y: int, half: int) -> tuple[float, float]:
-    """Haar wavelet responses (x, y) of side 2*half centred on the corner between pixels
-    (x - 1, y - 1) and (x, y), i.e. at (x - 0.5, y - 0.5) (callers add 0.5 before rounding)."""
+    """Haar wavelet responses (x, y) of side 2*half centred on the corner between two pixels.
+
+    The corner between pixels (x - 1, y - 1) and (x, y), i.e. at (x - 0.5, y - 0.5) (callers add 0.5
+    before rounding).
+    """
     dx = _box(ii, y - half, x, y + half, x + half) - _box(ii, y - half, x - half, y + half, x)
     dy = _box(ii, y, x - half, y + half, x + half) - _box(ii, y - half, x - half, y, x + half)
     return dx, dy
@@ -265,9 +277,11 @@ _ORI_WIN = 12
 
 @nb.njit(cache=True, parallel=True)
 def _orientations(ii: F64, xy: F64, scale: F64, out: F64) -> None:
-    """Dominant orientation of each keypoint: the weighted Haar responses are summed in
-    5-degree bins, a 60-degree window (12 bins) slides over them, and the direction of
-    the longest window sum is the orientation."""
+    """Dominant orientation of each keypoint.
+
+    The weighted Haar responses are summed in 5-degree bins, a 60-degree window (12 bins) slides
+    over them, and the direction of the longest window sum is the orientation.
+    """
     n = xy.shape[0]
     for p in nb.prange(n):
         s = scale[p]
@@ -310,11 +324,13 @@ def _orientations(ii: F64, xy: F64, scale: F64, out: F64) -> None:
 
 @nb.njit(cache=True, parallel=True)
 def _descriptors_overlap(ii: F64, xy: F64, scale: F64, angle: F64, extended: bool, out: F32) -> None:
-    """Descriptors with overlapping sub-regions (Agrawal, Konolige & Blas 2008): Haar
-    responses on a 24 x 24 grid (step s) around the keypoint; each of the 4 x 4 sub-regions
-    (centres 5s apart) sums the 9 x 9 samples around its centre weighted by a Gaussian of
-    sigma 2.5s, and its four sums are weighted by a Gaussian of sigma 1.5 sub-regions
-    centred on the keypoint. Same layout as the standard descriptor."""
+    """Descriptors with overlapping sub-regions (Agrawal, Konolige & Blas 2008).
+
+    Haar responses on a 24 x 24 grid (step s) around the keypoint; each of the 4 x 4 sub-regions
+    (centres 5s apart) sums the 9 x 9 samples around its centre weighted by a Gaussian of sigma
+    2.5s, and its four sums are weighted by a Gaussian of sigma 1.5 sub-regions centred on the
+    keypoint. Same layout as the standard descriptor.
+    """
     n = xy.shape[0]
     dim = out.shape[1]
     g1 = np.empty(9)

@@ -292,8 +292,10 @@ def _load_cached(path: str, mtime_ns: int) -> Vocabulary:
 
 
 def shipped_vocabulary(kind: str) -> Vocabulary | None:
-    """The pre-trained vocabulary shipped for ``kind`` (``orb``, ``sift``, ``surf``), or
-    None when the package has none for it (cached; do not modify the result)."""
+    """The pre-trained vocabulary shipped for ``kind`` (``orb``, ``sift``, ``surf``).
+
+    None when the package has none for it (cached; do not modify the result).
+    """
     p = shipped_path(kind)
     if not p.is_file():
         return None

@@ -51,8 +51,10 @@ def distances_to_mesh(points: NDArray[np.float64], mesh: o3d.geometry.TriangleMe
 
 
 def sample_surface(mesh: o3d.geometry.TriangleMesh, count: int, seed: int = 0) -> NDArray[np.float64]:
-    """``count`` points uniformly distributed over the surface of ``mesh`` by triangle area
-    (seeded, independent of open3d's random generator); metres, the mesh's frame."""
+    """``count`` points uniformly distributed over the surface of ``mesh`` by triangle area.
+
+    Seeded, independent of open3d's random generator; metres, the mesh's frame.
+    """
     v = np.asarray(mesh.vertices)
     t = np.asarray(mesh.triangles)
     if t.shape[0] == 0:
@@ -69,8 +71,11 @@ def sample_surface(mesh: o3d.geometry.TriangleMesh, count: int, seed: int = 0) -
 def swept_samples(
     samples: NDArray[np.float64], stripe_points: NDArray[np.float64], radius_m: float
 ) -> NDArray[np.float64]:
-    """The surface samples (P x 3) within ``radius_m`` of any laser-stripe point (Q x 3,
-    placed with ground-truth poses): the part of the surface the laser swept."""
+    """The surface samples (P x 3) within ``radius_m`` of any laser-stripe point.
+
+    Stripe points: Q x 3, placed with ground-truth poses. The result is the part of the surface the
+    laser swept.
+    """
     from scipy.spatial import cKDTree
 
     if stripe_points.shape[0] == 0:
@@ -131,8 +136,9 @@ def mesh_error_metrics(
     swept_radius_m: float = 0.005,
     object_samples: int = 200_000,
 ) -> dict[str, float]:
-    """Mesh the stripes once per named trajectory (e.g. ``gt``, ``before`` = online,
-    ``after`` = final) and measure each against the ground truth. Keys per name:
+    """Mesh the stripes once per named trajectory and measure each against the ground truth.
+
+    Names such as ``gt``, ``before`` = online, ``after`` = final. Keys per name:
     ``mesh_err_<name>_mm`` (mean), ``mesh_err_<name>_mm_p95``, ``mesh_completeness_<name>``.
 
     Completeness is the share of the ground-truth surface within ``completeness_tol_m`` of
@@ -140,7 +146,8 @@ def mesh_error_metrics(
     simulator's ``object.ply``) of that object's surface; then also
     ``mesh_completeness_swept_<name>``: of the object's surface the laser swept (samples
     within ``swept_radius_m`` of a stripe point placed with the ``gt`` trajectory; needs a
-    trajectory named ``gt``)."""
+    trajectory named ``gt``).
+    """
     from loopmodel.mapping.stripe_map import StripeMap
 
     maps = {name: StripeMap.from_trajectory(traj, stripes, config) for name, traj in trajectories.items()}

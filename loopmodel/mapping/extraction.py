@@ -64,9 +64,11 @@ class LightPlane:
 def fit_plane(
     points_m: ArrayLike, threshold_m: float = 1e-3, iterations: int = 500, seed: int = 0
 ) -> tuple[LightPlane, NDArray[np.bool_]]:
-    """Robust plane through N x 3 points (metres): RANSAC on three-point samples with an
-    inlier band of ``threshold_m``, then a total-least-squares (SVD) refit on the inliers,
-    repeated once with the refitted plane's inliers. Returns the plane and the inlier mask."""
+    """Robust plane through N x 3 points (metres); returns the plane and the inlier mask.
+
+    RANSAC on three-point samples with an inlier band of ``threshold_m``, then a total-least-squares
+    (SVD) refit on the inliers, repeated once with the refitted plane's inliers.
+    """
     P = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
     if P.shape[0] < 3:
         raise InputError(None, f"a plane needs at least 3 points, got {P.shape[0]}")
@@ -157,13 +159,15 @@ def extract_laser_peaks(
     mask: NDArray[np.bool_] | None = None,
     max_width_px: float | None = None,
 ) -> F64:
-    """Sub-pixel laser-line positions: M x 2 pixel coordinates (u, v), one per image column
-    (``axis="columns"``, v refined) or row (``axis="rows"``, u refined) where the peak
-    stands ``min_contrast`` above the background.
+    """Sub-pixel laser-line positions: M x 2 pixel coordinates (u, v).
+
+    One per image column (``axis="columns"``, v refined) or row (``axis="rows"``, u refined) where
+    the peak stands ``min_contrast`` above the background.
 
     ``mask`` (H x W, optional) limits the search to a region (a board, a working volume's
     image); ``max_width_px`` rejects peaks whose half-maximum width exceeds it (blooming,
-    broad reflections)."""
+    broad reflections).
+    """
     if axis not in ("columns", "rows"):
         raise InputError(None, f"laser peak axis must be 'columns' or 'rows', got '{axis}'")
     if method not in ("cog", "gauss"):
@@ -235,9 +239,11 @@ def triangulate_with_plane(
     dist: ArrayLike | None = None,
     min_depth_m: float = 1e-3,
 ) -> F64:
-    """Camera-frame points (N' x 3, metres) where the viewing rays of the N x 2 pixels meet the
-    light plane; rays (nearly) parallel to the plane or meeting it behind the camera or
-    closer than ``min_depth_m`` are dropped. ``dist`` are OpenCV distortion coefficients."""
+    """Camera-frame points (N' x 3, metres) where the viewing rays of the N x 2 pixels meet the light plane.
+
+    Rays (nearly) parallel to the plane or meeting it behind the camera or closer than
+    ``min_depth_m`` are dropped. ``dist`` are OpenCV distortion coefficients.
+    """
     uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
     Km = np.asarray(K, dtype=np.float64).reshape(3, 3)
     if uv.shape[0] == 0:
@@ -270,8 +276,11 @@ def stripe_from_image(
     config: MappingConfig | None = None,
     dist: ArrayLike | None = None,
 ) -> StripeProfile:
-    """Laser-stripe profile (left-camera frame, metres) of one laser-line image taken by the
-    left camera (intrinsics ``K``); the plane defaults to the configured one."""
+    """Laser-stripe profile (left-camera frame, metres) of one laser-line image.
+
+    The image is taken by the left camera (intrinsics ``K``); the plane defaults to the configured
+    one.
+    """
     cfg = config or MappingConfig()
     plane = plane or LightPlane.from_config(cfg)
     uv = extract_laser_peaks(image, cfg.peak_axis, cfg.peak_min_contrast, cfg.peak_window_px, cfg.peak_method)
@@ -284,9 +293,11 @@ def sequence_stripe_count(sequence: Sequence) -> int:
 
 
 def sequence_stripes(sequence: Sequence, config: MappingConfig | None = None) -> Iterator[StripeProfile]:
-    """The laser profiles of a sequence in time order (left-camera frame, metres): its stripe
-    messages when it has them, else profiles extracted from its laser-line images with the
-    configured light plane and the left camera's calibration (empty profiles dropped)."""
+    """The laser profiles of a sequence in time order (left-camera frame, metres).
+
+    Its stripe messages when it has them, else profiles extracted from its laser-line images with
+    the configured light plane and the left camera's calibration (empty profiles dropped).
+    """
     if sequence.stripe_count():
         yield from sequence.stripes()
         return

@@ -42,8 +42,10 @@ def run_stripes(sequence: Sequence, last_ns: int | None, config: MappingConfig) 
 
 
 def aligned_to(traj: Trajectory, reference: Trajectory) -> Trajectory:
-    """``traj`` moved by the SE(3) transform that best aligns its positions to ``reference``
-    at common timestamps (exact match)."""
+    """``traj`` moved by the SE(3) transform that best aligns its positions to ``reference``.
+
+    At common timestamps (exact match).
+    """
     from loopmodel.geometry.align import umeyama_alignment
     from loopmodel.geometry.se3 import make_pose
 
@@ -83,10 +85,12 @@ def _mesh_errors(
 def final_mesh(
     sequence: Sequence, stripes: list[StripeProfile], online: Trajectory, final: Trajectory, config: MappingConfig
 ) -> tuple[Any, dict[str, Any]]:
-    """The mesh of ``stripes`` placed with ``final`` (open3d, world frame) and its metrics
-    (vertex count, accuracy against the sequence's ground truth); (None, {}) when meshing is
+    """The mesh of ``stripes`` placed with ``final`` (open3d, world frame) and its metrics.
+
+    Metrics: vertex count, accuracy against the sequence's ground truth. (None, {}) when meshing is
     off, there is nothing to mesh, or it fails (logged: a run without a mesh still has its
-    trajectories)."""
+    trajectories).
+    """
     if not stripes or not config.write_mesh or len(final) < 2:
         return None, {}
     from loopmodel.mapping.stripe_map import StripeMap

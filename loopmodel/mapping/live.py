@@ -21,11 +21,13 @@ logger = logging.getLogger(__name__)
 
 
 class LiveMapping:
-    """The run's laser stripes (``stripes``, in time order, e.g. the reader's) handed to the
-    pipeline's :class:`StripeMap` as frames arrive, and the chunked live mesh: every
-    ``live_mesh_every_kf`` keyframes the blocks that new stripes entered or that pose
-    corrections moved are re-meshed in a worker thread (open3d releases the GIL), so tracking
-    does not wait for it."""
+    """The run's laser stripes handed to the pipeline's :class:`StripeMap`, and the chunked live mesh.
+
+    The stripes (``stripes``, in time order, e.g. the reader's) are handed over as frames arrive.
+    Every ``live_mesh_every_kf`` keyframes the blocks that new stripes entered or that pose
+    corrections moved are re-meshed in a worker thread (open3d releases the GIL), so tracking does
+    not wait for it.
+    """
 
     def __init__(self, world: StripeMap, stripes: Iterator[StripeProfile], every_kf: int) -> None:
         self._world = world
@@ -115,8 +117,10 @@ class LiveMapping:
             self._pool.shutdown(wait=wait, cancel_futures=True)
 
     def mesh(self) -> Any:
-        """The live mesh as the run left it (an open3d mesh), or None when it was off or
-        never updated."""
+        """The live mesh as the run left it (an open3d mesh).
+
+        None when it was off or never updated.
+        """
         if self._every <= 0 or not self.update_ms:
             return None
         mesh = self._world.live_mesh()

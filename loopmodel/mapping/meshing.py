@@ -150,11 +150,14 @@ def live_mesh_config(config: MappingConfig) -> MappingConfig:
 def mesh_blocks(
     points_w: F64, sensors_w: F64, blocks: set[BlockKey], config: MappingConfig
 ) -> dict[BlockKey, o3d.geometry.TriangleMesh | None]:
-    """Meshes of the live blocks ``blocks`` (cubes of edge ``chunk_m``, keyed by
-    ``floor(p / chunk_m)``), all from ONE surface reconstruction of the points in these blocks
-    and their 26 neighbours (context for the surface near block faces); each block keeps the
-    triangles whose centroid lies inside it. None for a block without triangles or when
-    the selection is too small for a surface. Points and sensors: P x 3, world, metres."""
+    """Meshes of the live blocks ``blocks``, all from one surface reconstruction.
+
+    Blocks are cubes of edge ``chunk_m``, keyed by ``floor(p / chunk_m)``; ONE surface
+    reconstruction of the points in these blocks and their 26 neighbours (context for the surface
+    near block faces); each block keeps the triangles whose centroid lies inside it. None for a
+    block without triangles or when the selection is too small for a surface. Points and sensors:
+    P x 3, world, metres.
+    """
     out: dict[BlockKey, o3d.geometry.TriangleMesh | None] = dict.fromkeys(blocks)
     if not blocks or points_w.shape[0] == 0:
         return out

@@ -238,8 +238,10 @@ class StripeMap:
         return self._retransform(self.stripes_governed_by(ids))
 
     def update_poses(self, trajectory: Trajectory, atol_m: float = 0.0) -> I64:
-        """Replace frame poses by those of ``trajectory`` (frames matched by exact timestamp;
-        unmatched frames keep theirs) and re-transform the stripes of the changed frames."""
+        """Replace frame poses by those of ``trajectory`` and re-transform the stripes of the changed frames.
+
+        Frames are matched by exact timestamp; unmatched frames keep theirs.
+        """
         trajectory.check("update_poses trajectory")
         idx = np.searchsorted(trajectory.timestamps_ns, self._frame_t.a)
         idx = np.clip(idx, 0, max(len(trajectory) - 1, 0))
@@ -471,9 +473,12 @@ class StripeMap:
         return self.live_mesh()
 
     def take_dirty_blocks(self) -> tuple[F64, F64, set[tuple[int, int, int]]] | None:
-        """Copies of the placed world points and their sensor positions, and the dirty blocks
-        (which are then marked clean): the input of :func:`~loopmodel.mapping.meshing.mesh_blocks`,
-        which may run in another thread. None when no block is dirty."""
+        """Copies of the placed world points and their sensor positions, and the dirty blocks.
+
+        The dirty blocks are then marked clean. The input of
+        :func:`~loopmodel.mapping.meshing.mesh_blocks`, which may run in another thread. None when
+        no block is dirty.
+        """
         if not self._live:
             self._live = True
             self._mark_dirty(self._p_world.a[self._point_placed_mask()])

@@ -1,5 +1,6 @@
-"""Small synthetic laser scans by ray casting open3d primitives (tests and benchmarks of the
-mapping stage; the full simulator lives in ``loopmodel.sim``).
+"""Small synthetic laser scans by ray casting open3d primitives.
+
+For tests and benchmarks of the mapping stage; the full simulator lives in ``loopmodel.sim``.
 
 World frame: y down (like the camera); the object sits around the origin. The camera orbits
 the object looking at it; the light plane is fixed in the camera frame, its laser source
@@ -27,8 +28,10 @@ def orbit_pose(t_s: float, radius_m: float, rate_rad_s: float, height_m: float) 
 
 
 def default_light_plane(baseline_m: float = 0.06, cross_depth_m: float = 0.3) -> LightPlane:
-    """Plane through the laser at (baseline, 0, 0) (camera frame) containing the camera y
-    direction and crossing the optical axis at ``cross_depth_m``."""
+    """Plane through the laser at (baseline, 0, 0) (camera frame).
+
+    It contains the camera y direction and crosses the optical axis at ``cross_depth_m``.
+    """
     n = np.array([cross_depth_m, 0.0, baseline_m])
     return LightPlane.from_point_normal([baseline_m, 0.0, 0.0], n)
 
@@ -93,8 +96,10 @@ def orbit_scan(
     turns: float = 1.0,
     rays: int = 400,
 ) -> tuple[Trajectory, list[StripeProfile]]:
-    """Ground-truth frame poses of an orbit and noiseless stripes taken at frame times and
-    between them (``stripes_per_frame`` per frame interval), posed exactly on the orbit."""
+    """Ground-truth frame poses of an orbit and noiseless stripes posed exactly on the orbit.
+
+    Stripes are taken at frame times and between them (``stripes_per_frame`` per frame interval).
+    """
     scene = raycasting_scene(mesh)
     duration = (frames - 1) / rate_hz
     rate = 2 * np.pi * turns / duration

@@ -1,5 +1,7 @@
-"""Lyapunov-based adaptive estimation of Euclidean feature positions from one moving
-camera (seed 003, Chitrakaran & Dawson)."""
+"""Lyapunov-based adaptive estimation of Euclidean feature positions from one moving camera.
+
+Seed 003, Chitrakaran & Dawson.
+"""
 
 from loopmodel.observers.depth_observer import DepthObserver, ObserverConfig, ViewMeasurement
 from loopmodel.observers.kinematics import feature_jacobian, l_omega

@@ -65,11 +65,13 @@ class ObserverHistory:
 
 
 def adaptive_ls_step(l_inv: F64, h: F64, y_tilde: F64, dt: float, beta: float) -> tuple[F64, F64]:
-    """One step of the adaptive least-squares law (seed 003 eq. 35-36) for N scalar
-    parameters ``theta_i`` with regressors ``h`` (N x k) and residuals ``y_tilde = y - theta h``
-    (N x k): the exact solution over ``dt`` (h, y held constant) of
+    """One step of the adaptive least-squares law (seed 003 eq. 35-36).
+
+    For N scalar parameters ``theta_i`` with regressors ``h`` (N x k) and residuals
+    ``y_tilde = y - theta h`` (N x k): the exact solution over ``dt`` (h, y held constant) of
     ``d(theta)/dt = beta L h.(y - theta h)``, ``d(L^-1)/dt = |h|^2``, which is unconditionally
-    stable where explicit Euler is not. Returns (the change of theta, the new ``L^-1``)."""
+    stable where explicit Euler is not. Returns (the change of theta, the new ``L^-1``).
+    """
     hh = np.einsum("ni,ni->n", h, h)
     l_new = l_inv + dt * hh
     gain = 1.0 - (l_inv / l_new) ** beta
@@ -79,8 +81,10 @@ def adaptive_ls_step(l_inv: F64, h: F64, y_tilde: F64, dt: float, beta: float) -
 
 
 class DepthObserver:
-    """Estimates ``lambda_i = z*_1 / z*_i`` of N static features (feature 0 is the reference)
-    seen in a reference view (pixels ``p_ref_px``) and a moving current view."""
+    """Estimates ``lambda_i = z*_1 / z*_i`` of N static features (feature 0 is the reference).
+
+    Seen in a reference view (pixels ``p_ref_px``) and a moving current view.
+    """
 
     def __init__(self, A: ArrayLike, p_ref_px: ArrayLike, config: ObserverConfig | None = None) -> None:
         self.A = np.asarray(A, dtype=float).reshape(3, 3)
@@ -141,8 +145,11 @@ class DepthObserver:
         return self.adapt(self.e_dot_hat, p, alpha, e[0, 3:], dt)
 
     def adapt(self, e_dot: F64, p: F64, alpha: F64, e_w: F64, dt: float) -> float:
-        """Adaptive least-squares update of the depth ratios (eq. 30-36) from signal rates
-        ``e_dot`` (N x 6, estimated or true); returns the mean ``|h1|^2`` of this step."""
+        """Adaptive least-squares update of the depth ratios (eq. 30-36).
+
+        From signal rates ``e_dot`` (N x 6, estimated or true); returns the mean ``|h1|^2`` of this
+        step.
+        """
         cfg = self.cfg
         # scaled velocity of feature 0: v_hat_1 = J_1^{-1} e_dot_1
         w_hat = np.linalg.solve(l_omega(e_w), e_dot[0, 3:])
@@ -217,8 +224,10 @@ class DepthObserver:
         return self.excitation() >= self.cfg.excitation_min
 
     def points_from_reference_depth(self, z1_ref_m: float) -> F64:
-        """N x 3 feature positions (metres, reference camera frame) given the reference depth
-        of feature 0 (eq. 46)."""
+        """N x 3 feature positions (metres, reference camera frame).
+
+        Given the reference depth of feature 0 (eq. 46).
+        """
         rays = np.column_stack([self.p_ref, np.ones(self.n)]) @ self.A_inv.T
         return (z1_ref_m / self.lambda_hat)[:, None] * rays
 

@@ -46,11 +46,13 @@ def decompose_homography(
     p_cur_px: ArrayLike,
     normal_prior: ArrayLike = (0.0, 0.0, 1.0),
 ) -> TwoViewSignals:
-    """Decompose the pixel homography ``G ~ A H A^-1`` of coplanar points (``p_cur ~ G p_ref``)
-    into ``R_bar``, ``x_h = x_f/d*`` and ``n*``. Of the four solutions, those that put every
-    point in front of both cameras remain (usually two, which explain the images equally);
-    the one whose normal is closest to ``normal_prior`` (reference frame; default: a plane
-    facing the camera) is returned."""
+    """Decompose the pixel homography ``G ~ A H A^-1`` of coplanar points (``p_cur ~ G p_ref``).
+
+    Into ``R_bar``, ``x_h = x_f/d*`` and ``n*``. Of the four solutions, those that put every point
+    in front of both cameras remain (usually two, which explain the images equally); the one whose
+    normal is closest to ``normal_prior`` (reference frame; default: a plane facing the camera) is
+    returned.
+    """
     G = np.asarray(H, dtype=float)
     A = np.asarray(A, dtype=float)
     pr = np.asarray(p_ref_px, dtype=float).reshape(-1, 2)

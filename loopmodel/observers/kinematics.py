@@ -45,8 +45,10 @@ def a_e(A: ArrayLike, p_px: ArrayLike) -> F64:
 
 
 def feature_jacobian(A: ArrayLike, p_px: ArrayLike, alpha: float, e_w: ArrayLike) -> F64:
-    """6 x 6 ``J_i`` of one feature (pixel ``p_px``, depth ratio ``alpha = z*/z``), acting on
-    ``(v_s / z*_i, w_s)``."""
+    """6 x 6 ``J_i`` of one feature, acting on ``(v_s / z*_i, w_s)``.
+
+    The feature: pixel ``p_px``, depth ratio ``alpha = z*/z``.
+    """
     A = np.asarray(A, dtype=float)
     p = np.asarray(p_px, dtype=float).reshape(2)
     m = np.linalg.solve(A, np.array([p[0], p[1], 1.0]))

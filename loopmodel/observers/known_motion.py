@@ -30,8 +30,11 @@ F64 = NDArray[np.float64]
 
 
 class KnownMotionDepthObserver:
-    """Inverse depths ``theta_i = 1/z*_i`` (1/m) of features along reference rays ``m*_i``
-    (normalised, z = 1, each in its own reference camera frame) from views of known pose."""
+    """Inverse depths ``theta_i = 1/z*_i`` (1/m) of features from views of known pose.
+
+    Features along reference rays ``m*_i`` (normalised, z = 1, each in its own reference camera
+    frame).
+    """
 
     def __init__(self, beta: float = 1.5, l_inv0: float = 1e-4, excitation_window_s: float = 1.0) -> None:
         self.beta = beta
@@ -107,9 +110,11 @@ class KnownMotionDepthObserver:
             return np.where(self.theta > 0, 1.0 / np.where(self.theta > 0, self.theta, 1.0), np.nan)
 
     def rel_sigma(self, sigma_norm: float) -> F64:
-        """Relative standard deviation of the depths for a normalised image noise
-        ``sigma_norm`` (pixels / focal length): independent noise of the current views through
-        the accumulated information, plus the reference pixel's error, common to all views."""
+        """Relative standard deviation of the depths for a normalised image noise ``sigma_norm``.
+
+        ``sigma_norm`` in pixels / focal length: independent noise of the current views through the
+        accumulated information, plus the reference pixel's error, common to all views.
+        """
         with np.errstate(divide="ignore", invalid="ignore"):
             var = sigma_norm**2 * (1.0 / self.info + 1.0 / self.h_max2)
             out = np.sqrt(var) / np.abs(self.theta)

@@ -27,15 +27,19 @@ KLT_WINDOW_PX, KLT_LEVELS = 21, 4
 def klt_fb(
     prev: NDArray[np.uint8], cur: NDArray[np.uint8], pts: F64, fb_px: float = 0.5
 ) -> tuple[F64, NDArray[np.bool_]]:
-    """Track points from ``prev`` to ``cur`` with the front end's pyramidal LK and its
-    forward-backward check (no motion prediction: the search starts at the same pixel)."""
+    """Track points from ``prev`` to ``cur`` with the front end's pyramidal LK.
+
+    With its forward-backward check (no motion prediction: the search starts at the same pixel).
+    """
     tracked, ok, _fb = track_klt(prev, cur, pts, None, KLT_WINDOW_PX, KLT_LEVELS, fb_px, iterations=30)
     return tracked, ok
 
 
 def stereo_depths(left: NDArray[np.uint8], right: NDArray[np.uint8], pts: F64, cal: StereoCalibration) -> F64:
-    """Depth (m) of left-image points by LK search in the rectified right image (NaN where
-    the match fails the row, disparity or forward-backward checks)."""
+    """Depth (m) of left-image points by LK search in the rectified right image.
+
+    NaN where the match fails the row, disparity or forward-backward checks.
+    """
     if not cal.rectified:
         raise InputError("stereo depth", "needs a rectified stereo pair")
     p1, ok = klt_fb(left, right, pts, fb_px=0.5)
@@ -132,8 +136,11 @@ def observe_sequence(
     stride: int = 10,
     config: ObserverConfig | None = None,
 ) -> tuple[list[WindowResult], list[str]]:
-    """Windows of ``window`` frames starting every ``stride`` frames (stride >= window; frames
-    stream, at most one window is held). Returns the results and the windows skipped, with why."""
+    """Windows of ``window`` frames starting every ``stride`` frames.
+
+    Stride >= window; frames stream, at most one window is held. Returns the results and the windows
+    skipped, with why.
+    """
     if stride < window:
         raise InputError("depth observer", f"stride ({stride}) must be >= window ({window})")
     results: list[WindowResult] = []

@@ -40,8 +40,10 @@ class CalibrationView:
 
 @dataclass
 class RigCalibration:
-    """Calibrated rig, per-view poses ``rig_from_ref``, final RMS reprojection error of
-    the inliers (pixels) and the number of iterations."""
+    """Calibrated rig, per-view poses ``rig_from_ref``, final inlier RMS and iteration count.
+
+    Final RMS reprojection error of the inliers (pixels) and the number of iterations.
+    """
 
     rig: CameraRig
     rig_from_ref: list[F64]

@@ -1,5 +1,7 @@
-"""Model-based tracking from images: moving edges (:mod:`loopmodel.pose.moving_edges`) feeding
-the robust VVS of :func:`loopmodel.pose.tracking.track_frame`, frame after frame.
+"""Model-based tracking from images, frame after frame.
+
+Moving edges (:mod:`loopmodel.pose.moving_edges`) feeding the robust VVS of
+:func:`loopmodel.pose.tracking.track_frame`, frame after frame.
 
 The first frame starts from an initial pose that may be several degrees and centimetres off:
 it is tracked repeatedly on the same image (search, VVS, search again from the new pose) until
@@ -155,10 +157,12 @@ def track_images(
 
 
 def mask_valid(mask: NDArray[np.uint8] | None, image_shape: tuple[int, int], margin_px: int = 0) -> ValidFn:
-    """The ``valid`` of a label mask (pixel value ``j + 1``: usable by camera ``j``); without a
-    mask every pixel inside the image is usable. ``margin_px``: samples closer than this to the
-    border of their camera's region are not used (a search along the normal must not reach the
-    rim or a masked zone, whose boundary is a strong edge of its own)."""
+    """The ``valid`` of a label mask (pixel value ``j + 1``: usable by camera ``j``).
+
+    Without a mask every pixel inside the image is usable. ``margin_px``: samples closer than this
+    to the border of their camera's region are not used (a search along the normal must not reach
+    the rim or a masked zone, whose boundary is a strong edge of its own).
+    """
     import cv2
 
     h, w = image_shape

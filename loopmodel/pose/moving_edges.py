@@ -1,6 +1,7 @@
-"""Moving-edge search in images (seed 002, section V; the ViSP method): for every sample of a
-projected model edge, a 1-D search along the edge normal for the strongest grey-level step
-of the expected orientation and polarity.
+"""Moving-edge search in images (seed 002, section V; the ViSP method).
+
+For every sample of a projected model edge, a 1-D search along the edge normal for the strongest
+grey-level step of the expected orientation and polarity.
 
 At each candidate offset ``s`` (whole pixels, within ``±range_px``) along the unit normal
 ``n`` of a sample ``p``, an oriented step mask measures the contrast
@@ -39,9 +40,11 @@ class MovingEdgeOptions:
 
 @dataclass
 class ImageMovingEdges:
-    """The moving-edge ``measure`` of :func:`loopmodel.pose.tracking.track_frame` on one image
-    shared by all cameras of a rig (the mirror discs of a catadioptric sensor), with the
-    sites' memory carried from frame to frame (call :meth:`set_image` for each new frame)."""
+    """The moving-edge ``measure`` of :func:`loopmodel.pose.tracking.track_frame` on one shared image.
+
+    One image shared by all cameras of a rig (the mirror discs of a catadioptric sensor), with the
+    sites' memory carried from frame to frame (call :meth:`set_image` for each new frame).
+    """
 
     options: MovingEdgeOptions = field(default_factory=MovingEdgeOptions)
     image: NDArray[np.float32] | None = None
@@ -127,9 +130,11 @@ class ImageMovingEdges:
         return found, out
 
     def remember(self, j: int, keep: NDArray[np.bool_] | None = None) -> None:
-        """Store what camera ``j``'s sites matched in this frame (median contrast and the
-        majority polarity per model edge), leaving out matches ``keep`` rejects (the
-        M-estimator's outliers), as ViSP suppresses such sites."""
+        """Store what camera ``j``'s sites matched in this frame.
+
+        Median contrast and the majority polarity per model edge, leaving out matches ``keep``
+        rejects (the M-estimator's outliers), as ViSP suppresses such sites.
+        """
         if j not in self.last:
             return
         li, cc, ss = self.last[j]

@@ -1,5 +1,6 @@
-"""A rig of N central cameras with known ``cam_from_rig`` transforms, and the point
-feature term of the pose solver (2-D/3-D correspondences).
+"""A rig of N central cameras with known ``cam_from_rig`` transforms, and a point feature term.
+
+The point feature term of the pose solver (2-D/3-D correspondences).
 
 The solver (:mod:`loopmodel.pose.solver`) works on *terms*: anything that returns, for a
 pose ``rig_from_ref``, residual vectors and their Jacobian with respect to a left

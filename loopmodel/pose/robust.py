@@ -22,8 +22,10 @@ GAUSS_MAD = 0.6744897501960817  # median of |N(0,1)|
 
 
 def robust_scale(norms: F64, dim: int, floor: float) -> float:
-    """Robust standard deviation (per component) of residual vectors of dimension ``dim``
-    from the median of their norms; never below ``floor``."""
+    """Robust standard deviation (per component) of residual vectors of dimension ``dim``.
+
+    From the median of their norms; never below ``floor``.
+    """
     if norms.size == 0:
         return floor
     med = float(np.median(norms))
@@ -65,8 +67,10 @@ def default_cutoff(loss: Loss) -> float:
 
 
 def mad_scale(residuals: F64, floor: float) -> float:
-    """Robust standard deviation of scalar residuals from the median absolute deviation
-    about their median (``1.4826 MAD``); never below ``floor``."""
+    """Robust standard deviation of scalar residuals (``1.4826 MAD``); never below ``floor``.
+
+    From the median absolute deviation about their median.
+    """
     if residuals.size == 0:
         return floor
     med = float(np.median(residuals))

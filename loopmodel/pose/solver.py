@@ -38,8 +38,11 @@ class PoseOptions:
 
 @dataclass
 class PoseResult:
-    """Estimated ``rig_from_ref`` (4x4) with per-feature weights and inlier flags (one list
-    entry per term), the final scale(s), and the 6x6 covariance of a left twist (v, w)."""
+    """Estimated ``rig_from_ref`` (4x4) with weights, inlier flags, scales and covariance.
+
+    Per-feature weights and inlier flags (one list entry per term), the final scale(s), and the 6x6
+    covariance of a left twist (v, w).
+    """
 
     rig_from_ref: F64
     inliers: list[NDArray[np.bool_]]

@@ -66,9 +66,11 @@ class PolyhedronModel:
         return self.vertices[self.edges]
 
     def visible_edges(self, centre_in_ref: F64, min_view_angle_deg: float = 0.0) -> NDArray[np.bool_]:
-        """Edges with at least one face turned towards a viewpoint (object frame) and seen
-        at more than ``min_view_angle_deg`` from grazing: an edge whose only visible face is
-        seen edge-on projects onto the face's opposite edge (ambiguous for edge search)."""
+        """Edges with at least one face turned towards a viewpoint (object frame), not seen grazing.
+
+        Seen at more than ``min_view_angle_deg`` from grazing: an edge whose only visible face is
+        seen edge-on projects onto the face's opposite edge (ambiguous for edge search).
+        """
         d = centre_in_ref - self.face_points
         cos = np.einsum("fk,fk->f", self.face_normals, d) / np.linalg.norm(d, axis=1)
         front = cos > np.sin(np.deg2rad(min_view_angle_deg))
@@ -94,8 +96,11 @@ def sample_model_edges(
     margin: float = 0.08,
     min_view_angle_deg: float = 8.0,
 ) -> EdgeSamples:
-    """Sample the visible edges of the model at the pose, about every ``step_px`` pixels
-    along each projected conic, leaving out a fraction ``margin`` at both ends (corners)."""
+    """Sample the visible edges of the model at the pose.
+
+    About every ``step_px`` pixels along each projected conic, leaving out a fraction ``margin`` at
+    both ends (corners).
+    """
     cams, lines_i, uvs, normals = [], [], [], []
     L = model.lines
     for j, cam in enumerate(rig.cameras):

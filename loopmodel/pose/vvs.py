@@ -58,10 +58,12 @@ def twist_transform(b_from_a: ArrayLike) -> F64:
 
 
 def point_interaction_matrix(p_in_cam: ArrayLike, xi: float) -> F64:
-    """(N, 2, 6) interaction matrix of the normalised unified-model coordinates
-    ``x = X / (Z + xi rho)`` of static points ``p_in_cam`` (N x 3, metres, camera frame) for
-    the camera velocity ``(upsilon, omega)``. For ``xi = 0`` it is the classical
-    ``[[-1/Z, 0, x/Z, xy, -(1+x^2), y], [0, -1/Z, y/Z, 1+y^2, -xy, -x]]``."""
+    """(N, 2, 6) interaction matrix of the normalised unified-model coordinates of static points.
+
+    Coordinates ``x = X / (Z + xi rho)`` of static points ``p_in_cam`` (N x 3, metres, camera frame)
+    for the camera velocity ``(upsilon, omega)``. For ``xi = 0`` it is the classical
+    ``[[-1/Z, 0, x/Z, xy, -(1+x^2), y], [0, -1/Z, y/Z, 1+y^2, -xy, -x]]``.
+    """
     P = np.asarray(p_in_cam, dtype=float).reshape(-1, 3)
     X, Y, Z = P[:, 0], P[:, 1], P[:, 2]
     rho_ = np.linalg.norm(P, axis=1)
@@ -86,8 +88,10 @@ def point_interaction_matrix(p_in_cam: ArrayLike, xi: float) -> F64:
 
 
 def pixel_point_interaction_matrix(camera: CentralCamera, p_in_cam: ArrayLike) -> F64:
-    """(N, 2, 6) interaction matrix of the pixel coordinates (``diag(px, py)`` times the
-    normalised one)."""
+    """(N, 2, 6) interaction matrix of the pixel coordinates.
+
+    ``diag(px, py)`` times the normalised one.
+    """
     L = point_interaction_matrix(p_in_cam, camera.xi)
     L[:, 0] *= camera.px
     L[:, 1] *= camera.py
@@ -114,8 +118,10 @@ class LineConics:
 def line_conics(
     p0_in_cam: ArrayLike, p1_in_cam: ArrayLike, xi: float | ArrayLike
 ) -> LineConics:
-    """Conics (normalised image coordinates) of 3-D lines through ``p0`` and ``p1`` (M x 3,
-    metres, camera frame) on the unified model with parameter ``xi`` (scalar or per line).
+    """Conics (normalised image coordinates) of 3-D lines through ``p0`` and ``p1``.
+
+    ``p0``, ``p1``: M x 3, metres, camera frame; on the unified model with parameter ``xi`` (scalar
+    or per line).
 
     ``Q(x, y) = a0 x^2 + a1 y^2 + 2 a2 xy + 2 a3 x + 2 a4 y + 1`` with ``a3 = A1/C1``,
     ``a4 = B1/C1``, ``a0 = (1-xi^2) a3^2 - xi^2``, ``a1 = (1-xi^2) a4^2 - xi^2``,
@@ -177,8 +183,10 @@ def _cross(a: F64, b: F64) -> F64:
 
 
 def conic_value(a: F64, xy: F64) -> F64:
-    """Algebraic distance ``Q(x, y)`` (eq. 20/23) of points ``xy`` (K x 2) to conics ``a``
-    (K x 5, one per point)."""
+    """Algebraic distance ``Q(x, y)`` (eq. 20/23) of points ``xy`` (K x 2) to conics ``a``.
+
+    ``a``: K x 5, one per point.
+    """
     x, y = xy[:, 0], xy[:, 1]
     return (
         a[:, 0] * x * x + a[:, 1] * y * y + 2 * a[:, 2] * x * y + 2 * a[:, 3] * x
@@ -210,10 +218,12 @@ def conic_matrix(a: ArrayLike) -> F64:
 def sample_conic_arc(
     a: ArrayLike, xy_start: ArrayLike, xy_end: ArrayLike, xy_mid: ArrayLike, n: int
 ) -> F64 | None:
-    """``n`` points (n x 2, normalised coordinates) regularly spaced in the circle parameter
-    along the arc of an elliptic conic from ``xy_start`` to ``xy_end`` through ``xy_mid``
-    (eq. 26-28: ``C = R S R^T``, ``T = |S|^(1/2) R^T`` maps the conic onto the unit circle).
-    None when the conic is not an ellipse (the caller then samples the 3-D segment)."""
+    """``n`` points (n x 2, normalised coordinates) along the arc of an elliptic conic.
+
+    Regularly spaced in the circle parameter along the arc from ``xy_start`` to ``xy_end`` through
+    ``xy_mid`` (eq. 26-28: ``C = R S R^T``, ``T = |S|^(1/2) R^T`` maps the conic onto the unit
+    circle). None when the conic is not an ellipse (the caller then samples the 3-D segment).
+    """
     C = conic_matrix(a)
     w, R = np.linalg.eigh(C)
     signs = np.sign(w)
@@ -376,8 +386,10 @@ def vvs_pose(
     rig_from_ref_init: ArrayLike,
     options: VvsOptions | None = None,
 ) -> PoseResult:
-    """Robust VVS pose ``rig_from_ref`` (= 1Mo) of an N-camera rig from feature terms
-    (points, point-to-conic distances, ...), from an initial pose (4x4, metres)."""
+    """Robust VVS pose ``rig_from_ref`` (= 1Mo) of an N-camera rig from feature terms.
+
+    Feature terms: points, point-to-conic distances, ...; from an initial pose (4x4, metres).
+    """
     opt = options or VvsOptions()
     tlist = [terms] if not isinstance(terms, Sequence) else list(terms)
     total = sum(len(t) for t in tlist)

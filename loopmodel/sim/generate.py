@@ -94,8 +94,10 @@ def realistic(cfg: SimulationConfig) -> bool:
 
 
 def rig_of(cfg: SimulationConfig) -> TrueRig:
-    """The true (distorted, unrectified) rig of a realistic configuration and its recorded
-    calibration (off by the configured calibration errors)."""
+    """The true (distorted, unrectified) rig of a realistic configuration and its recorded calibration.
+
+    The recorded calibration is off by the configured calibration errors.
+    """
     if cfg.camera.xi != 0:
         raise ConfigError("simulation.realism.level", "the realistic world needs a pinhole camera (xi = 0)")
     r = cfg.realism
@@ -113,9 +115,11 @@ def rig_of(cfg: SimulationConfig) -> TrueRig:
 
 
 def calibration_of(cfg: SimulationConfig) -> StereoCalibration:
-    """The calibration a recording carries: rectified (identical K, right camera
-    ``baseline_m`` along +x) in the clean world; the realistic rig's recorded (erroneous,
-    unrectified, distorted) calibration otherwise."""
+    """The calibration a recording carries.
+
+    Rectified (identical K, right camera ``baseline_m`` along +x) in the clean world; the realistic
+    rig's recorded (erroneous, unrectified, distorted) calibration otherwise.
+    """
     if realistic(cfg):
         return rig_of(cfg).recorded
     K = camera_of(cfg).K
@@ -205,9 +209,12 @@ def resolve_config(
     faults: list[str] | None = None,
     realism: str | None = None,
 ) -> SimulationConfig:
-    """``base`` with a preset (trajectory kind, its frame count, realism level ``realistic``)
-    and then section overrides (``{"trajectory": {"frames": 50}}``), fault specs and a
-    realism level (``clean`` or ``realistic``) applied; errors name the key."""
+    """``base`` with a preset, section overrides, fault specs and a realism level applied.
+
+    The preset: trajectory kind, its frame count, realism level ``realistic``; then section
+    overrides (``{"trajectory": {"frames": 50}}``), fault specs and a realism level (``clean`` or
+    ``realistic``); errors name the key.
+    """
     from loopmodel.config import config_from_dict
 
     data = base.model_dump()
@@ -333,8 +340,10 @@ def _make_state(cfg: SimulationConfig, scene: Scene) -> _WorkerState:
 
 
 def scene_patches(cfg: SimulationConfig) -> list[tuple[F64, float, str]]:
-    """Textureless (``flat``) and repetitive (``tiles``) regions of the realistic world: two
-    of each on the table top around the object, one of each on the object's lower part."""
+    """Textureless (``flat``) and repetitive (``tiles``) regions of the realistic world.
+
+    Two of each on the table top around the object, one of each on the object's lower part.
+    """
     hgt = cfg.scene.object_height_m
     return [
         (np.array([0.26, 0.10, 0.0]), 0.09, "flat"),
@@ -347,9 +356,11 @@ def scene_patches(cfg: SimulationConfig) -> list[tuple[F64, float, str]]:
 
 
 def fisheye_pixel_rays(K: F64, k: F64, shape: tuple[int, int]) -> RayBundle:
-    """Unit rays through the pixel centres of an equidistant (Kannala-Brandt) camera: the
-    distorted angle r_d = |K^-1 uv| is inverted for theta (Newton on theta (1 + k1 theta^2 +
-    ... + k4 theta^8) = r_d); rays beyond 90 degrees are invalid."""
+    """Unit rays through the pixel centres of an equidistant (Kannala-Brandt) camera.
+
+    The distorted angle r_d = |K^-1 uv| is inverted for theta (Newton on theta (1 + k1 theta^2 + ...
+    + k4 theta^8) = r_d); rays beyond 90 degrees are invalid.
+    """
     h, w = shape
     u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
     x = (u.ravel() - K[0, 2]) / K[0, 0]
@@ -412,9 +423,11 @@ def _image_motion(st: _WorkerState, view: View, task: FrameTask) -> tuple[float,
 
 
 def pixel_flow(rig: TrueRig, view: View, poses: tuple[F64, F64], right: bool, step: int = 4) -> NDArray[np.float32]:
-    """H x W x 2 image motion (true distorted pixels) of each pixel's scene point from the
-    start to the end of the exposure (``poses``: world_from_cam at both instants); computed on
-    every ``step``-th pixel and interpolated; zero where nothing is hit."""
+    """H x W x 2 image motion (true distorted pixels) of each pixel's scene point during the exposure.
+
+    From the start to the end of the exposure (``poses``: world_from_cam at both instants); computed
+    on every ``step``-th pixel and interpolated; zero where nothing is hit.
+    """
     h, w = view.radiance.shape
     pts = view.points_soa.reshape(3, h, w)[:, ::step, ::step]
     hs, ws = pts.shape[1:]
@@ -431,8 +444,11 @@ def pixel_flow(rig: TrueRig, view: View, poses: tuple[F64, F64], right: bool, st
 
 
 def _render_realistic(st: _WorkerState, task: FrameTask, t0: float) -> FrameImages:
-    """The realistic world's stereo pair: distorted unrectified views, specular shading,
-    per-pixel motion blur, defocus, vignetting, sensor noise and response, auto-exposure."""
+    """The realistic world's stereo pair.
+
+    Distorted unrectified views, specular shading, per-pixel motion blur, defocus, vignetting,
+    sensor noise and response, auto-exposure.
+    """
     cfg, real = st.cfg, st.real
     assert real is not None
     r = cfg.realism
@@ -554,8 +570,10 @@ class SimulationResult:
 def plan_frames(
     cfg: SimulationConfig, caster: Raycaster, plan: FaultPlan, path: HandheldPath
 ) -> tuple[list[FrameTask], list[F64 | None], F64]:
-    """Poses, lights, faults and noiseless stripes of every frame; validates that the path
-    stays clear of the scene and that the light plane hits it."""
+    """Poses, lights, faults and noiseless stripes of every frame.
+
+    Validates that the path stays clear of the scene and that the light plane hits it.
+    """
     tr = cfg.trajectory
     n = tr.frames
     cam = camera_of(cfg)
@@ -630,9 +648,11 @@ def plan_frames(
 
 
 def true_light_plane(cfg: SimulationConfig, nominal: LaserPlane) -> LaserPlane:
-    """The light plane the realistic world really casts: the configured (calibrated) plane
-    rotated by ``laser_plane_rot_err_deg`` about a seeded axis in the plane and shifted by
-    ``laser_plane_offset_err_m`` along its normal."""
+    """The light plane the realistic world really casts.
+
+    The configured (calibrated) plane rotated by ``laser_plane_rot_err_deg`` about a seeded axis in
+    the plane and shifted by ``laser_plane_offset_err_m`` along its normal.
+    """
     r = cfg.realism
     rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 37]))
     n = nominal.normal_in_cam
@@ -651,10 +671,12 @@ def _plan_realistic(
     tasks: list[FrameTask],
     stripes: list[F64 | None],
 ) -> None:
-    """Per-camera auto-exposure (from a 1/8-resolution render of every frame) and each
-    camera's exposure interval; the laser stripe of the true light plane at the laser's
-    exposure time, its true pixels and brightness (the realistic world's additions to
-    :func:`plan_frames`, in place)."""
+    """The realistic world's additions to :func:`plan_frames`, in place.
+
+    Per-camera auto-exposure (from a 1/8-resolution render of every frame) and each camera's
+    exposure interval; the laser stripe of the true light plane at the laser's exposure time, its
+    true pixels and brightness.
+    """
     r = cfg.realism
     rig = rig_of(cfg)
     w, h = cfg.camera.width_px, cfg.camera.height_px
@@ -735,8 +757,10 @@ def simulate_scan(
     preset: str | None = None,
 ) -> SimulationResult:
     """Generate the scan described by ``cfg`` into the MCAP file ``out`` (written atomically).
-    ``progress(done, total)`` is called after each frame. Raises :class:`ConfigError` for
-    impossible parameters (before any rendering)."""
+
+    ``progress(done, total)`` is called after each frame. Raises :class:`ConfigError` for impossible
+    parameters (before any rendering).
+    """
     out = Path(out)
     if out.suffix.lower() != ".mcap":
         raise InputError(out, "output must end in .mcap")

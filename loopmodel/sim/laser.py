@@ -1,6 +1,7 @@
-"""Laser-stripe profiler: a fan of rays in a light plane fixed in the left-camera frame,
-intersected with the scene by ray casting. A profile keeps the points the left camera sees
-(in front, inside the image, not occluded), in the left-camera frame (metres).
+"""Laser-stripe profiler: a fan of rays in a light plane fixed in the left-camera frame.
+
+The rays are intersected with the scene by ray casting. A profile keeps the points the left camera
+sees (in front, inside the image, not occluded), in the left-camera frame (metres).
 
 The realistic world (issue 17) only *images* the stripe (:func:`realistic_laser_image`): the
 line's brightness follows the surface (albedo x cos(incidence) x (0.5 m / range)^2, so dark
@@ -17,7 +18,8 @@ the configured one rotated by ``laser_plane_rot_err_deg`` (0.02 deg) and shifted
 degree, as a good plane fit on a calibration target gives (with the 12 cm laser-camera
 baseline at 0.6 m, 0.02 deg moves the triangulated surface by about 1 mm). The laser is exposed
 ``laser_time_offset_s`` (1 ms) after the camera's mid-exposure (trigger latency): the stripe
-is cast from the pose at that time but stamped with the frame's time."""
+is cast from the pose at that time but stamped with the frame's time.
+"""
 
 from __future__ import annotations
 
@@ -35,8 +37,10 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class LaserPlane:
-    """Light plane through ``origin_in_cam_m`` with unit ``normal_in_cam`` (left-camera
-    frame); the fan spans ``fan_deg`` around the plane direction closest to the optical axis."""
+    """Light plane through ``origin_in_cam_m`` with unit ``normal_in_cam`` (left-camera frame).
+
+    The fan spans ``fan_deg`` around the plane direction closest to the optical axis.
+    """
 
     origin_in_cam_m: F64
     normal_in_cam: F64
@@ -53,8 +57,11 @@ class LaserPlane:
         rays: int,
         max_range_m: float = np.inf,
     ) -> LaserPlane:
-        """Validated plane; raises ValueError for a zero normal. Points farther than
-        ``max_range_m`` from the camera are outside the profiler's measuring range."""
+        """Validated plane; raises ValueError for a zero normal.
+
+        Points farther than ``max_range_m`` from the camera are outside the profiler's measuring
+        range.
+        """
         n = np.asarray(normal, float).reshape(3)
         norm = np.linalg.norm(n)
         if not np.isfinite(norm) or norm < 1e-9:
@@ -81,8 +88,10 @@ def stripe_profile(
     world_from_cam: F64,
     world_from_occluder: F64 | None = None,
 ) -> tuple[F64, F64]:
-    """Noiseless stripe of one frame: (N x 3 points in the left-camera frame, N x 3 unit laser
-    ray directions in that frame), keeping points visible in the left image."""
+    """Noiseless stripe of one frame, keeping points visible in the left image.
+
+    Returns (N x 3 points in the left-camera frame, N x 3 unit laser ray directions in that frame).
+    """
     R, t = world_from_cam[:3, :3], world_from_cam[:3, 3]
     dirs_c = plane.directions_in_cam()
     origin_w = R @ plane.origin_in_cam_m + t
@@ -107,8 +116,10 @@ def stripe_profile(
 
 
 def _densify_px(uv_px: F64, step_px: float) -> tuple[F64, F64]:
-    """Segment end points (a, b) of a polyline cut so that no segment is longer than
-    ``step_px``; the cut points lie on the original straight segments."""
+    """Segment end points (a, b) of a polyline cut so that no segment is longer than ``step_px``.
+
+    The cut points lie on the original straight segments.
+    """
     a, b = uv_px[:-1], uv_px[1:]
     pieces = np.maximum(np.ceil(np.linalg.norm(b - a, axis=1) / step_px), 1).astype(int)
     seg = np.repeat(np.arange(a.shape[0]), pieces)
@@ -126,8 +137,11 @@ def stripe_reflectance(
     points_in_cam: F64,
     world_from_occluder: F64 | None = None,
 ) -> F64:
-    """Relative line brightness at N stripe points: albedo x |cos(incidence)| x
-    (0.5 m / distance from the laser)^2 (1 for a white surface at 0.5 m, normal incidence)."""
+    """Relative line brightness at N stripe points.
+
+    Albedo x |cos(incidence)| x (0.5 m / distance from the laser)^2 (1 for a white surface at 0.5 m,
+    normal incidence).
+    """
     if points_in_cam.shape[0] == 0:
         return np.zeros(0)
     R, t = world_from_cam[:3, :3], world_from_cam[:3, 3]
@@ -143,9 +157,12 @@ def stripe_reflectance(
 
 
 def _line_intensity(shape: tuple[int, int], uv: F64, points_in_cam: F64, peaks: F64, sigma_px: float) -> F64:
-    """H x W intensity of a polyline through pixels ``uv`` (broken where neighbouring 3-D
-    points are more than 5 mm apart): ``peak · exp(-d² / 2σ²)`` for the distance ``d`` (px)
-    of each pixel centre to the nearest segment, ``peak`` that of the segment's start point."""
+    """H x W intensity of a polyline through pixels ``uv``.
+
+    Broken where neighbouring 3-D points are more than 5 mm apart: ``peak · exp(-d² / 2σ²)`` for the
+    distance ``d`` (px) of each pixel centre to the nearest segment, ``peak`` that of the segment's
+    start point.
+    """
     h, w = shape
     line = np.zeros(h * w)
     if uv.shape[0] < 2:
@@ -194,10 +211,12 @@ def realistic_laser_image(
     spurious_rate: float = 0.08,
     e_per_grey: float = 42.0,
 ) -> NDArray[np.uint8]:
-    """Laser-line image of the realistic world over a dimmed ``background`` (see the module
-    docstring): the line through the true (distorted) pixels ``uv_px`` of the stripe points,
-    peak ``peak x reflectance``, a spurious reflection in ``spurious_rate`` of the frames,
-    speckle, shot noise (``e_per_grey`` electrons per grey level), saturation and blooming."""
+    """Laser-line image of the realistic world over a dimmed ``background``.
+
+    See the module docstring: the line through the true (distorted) pixels ``uv_px`` of the stripe
+    points, peak ``peak x reflectance``, a spurious reflection in ``spurious_rate`` of the frames,
+    speckle, shot noise (``e_per_grey`` electrons per grey level), saturation and blooming.
+    """
     h, w = background.shape[:2]
     bg = background.astype(np.float64)
     if bg.ndim == 3:
@@ -235,11 +254,14 @@ def draw_laser_image(
     peak: float = 230.0,
     sigma_px: float = 1.0,
 ) -> NDArray[np.uint8]:
-    """Image of the laser line over a dimmed ``background``: the stripe points projected into
-    the left image and joined into a polyline (broken where neighbours are more than 5 mm
-    apart); every pixel centre gets ``peak · exp(-d² / 2σ²)`` for its distance ``d`` (px) to
-    the polyline, the Gaussian cross-section of a focused laser line of standard deviation
-    ``sigma_px``. The intensity ridge therefore runs exactly along the projected profile."""
+    """Image of the laser line over a dimmed ``background``.
+
+    The stripe points are projected into the left image and joined into a polyline (broken where
+    neighbours are more than 5 mm apart); every pixel centre gets ``peak · exp(-d² / 2σ²)`` for its
+    distance ``d`` (px) to the polyline, the Gaussian cross-section of a focused laser line of
+    standard deviation ``sigma_px``. The intensity ridge therefore runs exactly along the projected
+    profile.
+    """
     img = background.astype(np.float32) * 0.15
     h, w = background.shape[:2]
     if points_in_cam.shape[0] < 2:

@@ -1,5 +1,6 @@
-"""Feature-level simulation of the 4-mirror catadioptric stereo sensor of seed 002 tracking
-a hand-held box in a cluttered scene.
+"""Feature-level simulation of the 4-mirror catadioptric stereo sensor of seed 002.
+
+The sensor tracks a hand-held box in a cluttered scene.
 
 Sensor: one orthographic camera above four parabolic mirrors (xi = 1) on a square, mirror
 axes parallel to the optical axis; modelled as four central cameras ``CentralCamera`` with
@@ -40,8 +41,11 @@ _SIDE_M = 0.08  # distance between neighbouring mirror foci
 
 @dataclass
 class OmniSensor:
-    """The 4-mirror sensor: mirror cameras, foci in the sensor frame (metres), mirror radius
-    and the extent of the mirror solid along z (vertex below the focus, rim above)."""
+    """The 4-mirror sensor: mirror cameras, foci, mirror radius and the mirror solid's extent along z.
+
+    Foci in the sensor frame (metres); the extent of the mirror solid along z: vertex below the
+    focus, rim above.
+    """
 
     cameras: tuple[CentralCamera, ...]
     foci_m: F64  # (4, 3) in the sensor frame (= mirror 1 frame)
@@ -102,9 +106,11 @@ def omni_sensor(
     semi_latus_m: float = 0.02,
     image_size: tuple[int, int] = (1024, 1024),
 ) -> OmniSensor:
-    """The sensor: 4 parabolic mirrors (xi = 1) on a square of side ``side_m``, mirror 1
-    top-left, 2 top-right, 3 bottom-left, 4 bottom-right (1 and 4: widest baseline). The
-    paraboloid ``z = (h^2 - r^2) / (2h)`` (z down, focus at 0) ends at the mirror radius."""
+    """The sensor: 4 parabolic mirrors (xi = 1) on a square of side ``side_m``.
+
+    Mirror 1 top-left, 2 top-right, 3 bottom-left, 4 bottom-right (1 and 4: widest baseline). The
+    paraboloid ``z = (h^2 - r^2) / (2h)`` (z down, focus at 0) ends at the mirror radius.
+    """
     h = semi_latus_m
     z_rim = (h * h - mirror_radius_m**2) / (2 * h)  # negative: above the focus
     theta_max = np.pi / 2 + np.arctan2(-z_rim, mirror_radius_m)  # from +z (down)
@@ -126,9 +132,11 @@ def omni_sensor(
 
 @dataclass
 class ClutterScene:
-    """Static clutter: boxes (occluders with edges) and background line segments, each line
-    with an edge contrast; per-mirror ray-casting scenes with the clutter and the other
-    mirrors."""
+    """Static clutter and per-mirror ray-casting scenes.
+
+    Clutter: boxes (occluders with edges) and background line segments, each line with an edge
+    contrast; per-mirror ray-casting scenes with the clutter and the other mirrors.
+    """
 
     lines: F64  # (K, 2, 3) sensor frame
     contrast: F64  # (K,)
@@ -160,8 +168,10 @@ class ClutterScene:
 
 
 def clutter_scene(sensor: OmniSensor, seed: int = 7, n_boxes: int = 16, n_posters: int = 40) -> ClutterScene:
-    """Boxes 0.95-1.6 m around the sensor and rectangular 'posters' (edges only) on a
-    cylinder of radius 2.2 m, all in the mirrors' field of view."""
+    """Boxes 0.95-1.6 m around the sensor and rectangular 'posters' (edges only) on a cylinder.
+
+    The cylinder has radius 2.2 m; all in the mirrors' field of view.
+    """
     rng = np.random.default_rng(seed)
     lines, contrast, boxes = [], [], []
     for _ in range(n_boxes):
@@ -214,10 +224,12 @@ def clutter_scene(sensor: OmniSensor, seed: int = 7, n_boxes: int = 16, n_poster
 
 
 def box_trajectory(n_frames: int = 312, seed: int = 3) -> list[F64]:
-    """``sensor_from_box`` of a hand-held box (10 frames/s): centre 40-70 cm from the
-    sensor, sweeping about 200 degrees of azimuth around it, turned and tilted by the hand;
-    in the last fifth it moves, shaken faster, into the inter-reflection zone of the
-    diagonal mirrors 1 and 4 (behind mirror 4 as seen from mirror 1, at mirror height)."""
+    """``sensor_from_box`` of a hand-held box (10 frames/s).
+
+    Centre 40-70 cm from the sensor, sweeping about 200 degrees of azimuth around it, turned and
+    tilted by the hand; in the last fifth it moves, shaken faster, into the inter-reflection zone of
+    the diagonal mirrors 1 and 4 (behind mirror 4 as seen from mirror 1, at mirror height).
+    """
     from scipy.interpolate import PchipInterpolator
 
     rng = np.random.default_rng(seed)
@@ -436,10 +448,12 @@ def simulate_tracking(
     start_frame: int = 0,
     stop_frame: int | None = None,
 ) -> TrackingRun:
-    """Track the box through the simulated sequence with the listed mirrors, starting from
-    the true pose of ``start_frame`` (frames before it, and from ``stop_frame`` on, are
-    skipped). A frame is lost when the tracker fails or the pose error exceeds
-    ``lost_rot_deg`` / ``lost_pos_mm``; tracking continues from the estimate (no reset)."""
+    """Track the box through the simulated sequence with the listed mirrors.
+
+    Starts from the true pose of ``start_frame`` (frames before it, and from ``stop_frame`` on, are
+    skipped). A frame is lost when the tracker fails or the pose error exceeds ``lost_rot_deg`` /
+    ``lost_pos_mm``; tracking continues from the estimate (no reset).
+    """
     import time
 
     from loopmodel.geometry.se3 import so3_log
@@ -549,11 +563,13 @@ def tracking_figure(runs: list[TrackingRun]) -> object:
 
 
 def manufactured_rig(sensor: OmniSensor, seed: int = 0) -> CameraRig:
-    """A sensor as built, not as designed: each mirror camera's focal lengths off by up to
-    3 %, principal point by a few pixels, ``xi`` between 0.95 and 1 (a lens that is not
-    exactly telecentric makes the parabolic mirror's effective ``xi`` smaller than 1), each
-    mirror tilted by about 0.5 deg and displaced by about 2 mm (assembly tolerances). Mirror 1
-    keeps the rig frame."""
+    """A sensor as built, not as designed.
+
+    Each mirror camera's focal lengths off by up to 3 %, principal point by a few pixels, ``xi``
+    between 0.95 and 1 (a lens that is not exactly telecentric makes the parabolic mirror's
+    effective ``xi`` smaller than 1), each mirror tilted by about 0.5 deg and displaced by about
+    2 mm (assembly tolerances). Mirror 1 keeps the rig frame.
+    """
     rng = np.random.default_rng(seed + 1)
     design = sensor.rig()
     cams = tuple(
@@ -576,10 +592,12 @@ def manufactured_rig(sensor: OmniSensor, seed: int = 0) -> CameraRig:
 def calibration_views(
     sensor: OmniSensor, n_views: int = 8, noise_px: float = 0.3, seed: int = 0, rig: CameraRig | None = None
 ) -> tuple[list[tuple[F64, F64, NDArray[np.int64]]], list[F64]]:
-    """Views of a 3-D calibration object (points on three faces of a 40 cm corner) around
-    the sensor: per view ``(p_in_ref, uv_px, cam_index)`` and the true ``sensor_from_ref``.
-    Points hidden by the other mirrors or outside a rim are not observed. ``rig``: the
-    cameras that see them (default: the sensor as designed)."""
+    """Views of a 3-D calibration object (points on three faces of a 40 cm corner) around the sensor.
+
+    Per view ``(p_in_ref, uv_px, cam_index)`` and the true ``sensor_from_ref``. Points hidden by the
+    other mirrors or outside a rim are not observed. ``rig``: the cameras that see them (default:
+    the sensor as designed).
+    """
     rng = np.random.default_rng(seed)
     g = np.linspace(-0.15, 0.15, 6)
     A, B = np.meshgrid(g, g)

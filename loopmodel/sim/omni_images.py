@@ -48,8 +48,11 @@ def _hash_texture(p: F64, scale_m: float, seed: int) -> F64:
 
 @dataclass
 class OmniScenario:
-    """A seeded scene and box motion: static meshes with one albedo per triangle, the box's
-    face albedos and its ``sensor_from_box`` poses (10 frames per second)."""
+    """A seeded scene and box motion.
+
+    Static meshes with one albedo per triangle, the box's face albedos and its ``sensor_from_box``
+    poses (10 frames per second).
+    """
 
     seed: int
     sensor: OmniSensor
@@ -73,8 +76,11 @@ def _box_mesh(size: F64, T: F64) -> o3d.geometry.TriangleMesh:
 
 
 def omni_scenario(seed: int, n_frames: int = 60, clutter: bool = True) -> OmniScenario:
-    """Draw a scenario by seed: room, clutter (boxes and posters, some behind the occlusion
-    zone of two random mirrors), box albedos and a random smooth motion of the box."""
+    """Draw a scenario by seed.
+
+    Room, clutter (boxes and posters, some behind the occlusion zone of two random mirrors), box
+    albedos and a random smooth motion of the box.
+    """
     from scipy.interpolate import PchipInterpolator
 
     rng = np.random.default_rng(seed)
@@ -137,8 +143,11 @@ def omni_scenario(seed: int, n_frames: int = 60, clutter: bool = True) -> OmniSc
 
 @dataclass
 class OmniRenderer:
-    """Renders the frames of a scenario. The static part (room, clutter, mirrors) is cast once
-    per mirror; each frame only intersects the mirror rays with the moving box."""
+    """Renders the frames of a scenario.
+
+    The static part (room, clutter, mirrors) is cast once per mirror; each frame only intersects the
+    mirror rays with the moving box.
+    """
 
     scenario: OmniScenario
     light_dir: F64 = field(default_factory=lambda: np.array([0.3, -0.2, -1.0]))  # towards the light (z down)
@@ -249,8 +258,11 @@ class OmniRenderer:
 
 
 def perturbed_pose(T: F64, rot_deg: float, pos_m: float, rng: np.random.Generator) -> F64:
-    """``T`` moved by a rotation of ``rot_deg`` about a random axis (about the box centre) and
-    a translation of ``pos_m`` in a random direction."""
+    """``T`` moved by a random rotation and translation.
+
+    A rotation of ``rot_deg`` about a random axis (about the box centre) and a translation of
+    ``pos_m`` in a random direction.
+    """
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
     d = rng.normal(size=3)
@@ -271,9 +283,11 @@ def track_scenario(
     options: object | None = None,
     progress: object | None = None,
 ) -> tuple[list[TrackingRun], float, float]:
-    """Render the scenario's frames once and track them from images with each mirror set,
-    every set from the same perturbed start. Returns the runs and the start's rotation (deg)
-    and position (m) error."""
+    """Render the scenario's frames once and track them from images with each mirror set.
+
+    Every set starts from the same perturbed start. Returns the runs and the start's rotation (deg)
+    and position (m) error.
+    """
     import time
 
     from loopmodel.geometry.se3 import so3_log
@@ -338,8 +352,10 @@ def track_scenario(
 
 
 def sensor_mask(sensor: OmniSensor) -> U8:
-    """Label image of the sensor: value ``m + 1`` where mirror ``m`` sees the scene (inside its
-    rim, outside the zones its neighbours hide), 0 elsewhere."""
+    """Label image of the sensor: value ``m + 1`` where mirror ``m`` sees the scene, 0 elsewhere.
+
+    Mirror ``m`` sees the scene inside its rim, outside the zones its neighbours hide.
+    """
     w, h = sensor.image_size
     mask = np.zeros((h, w), np.uint8)
     for m, cam in enumerate(sensor.cameras):

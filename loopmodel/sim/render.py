@@ -35,8 +35,11 @@ def to_tensor(a: NDArray) -> o3d.core.Tensor:
 
 
 def pixel_rays(camera: CentralCamera, width: int, height: int) -> RayBundle:
-    """Unit rays (camera frame) through the pixel centres (pixel (u, v) has its centre at
-    u, v, row-major) and which pixels have a valid ray (the unified model's image disc)."""
+    """Unit rays (camera frame) through the pixel centres and which pixels have a valid ray.
+
+    Pixel (u, v) has its centre at u, v, row-major; a valid ray lies in the unified model's image
+    disc.
+    """
     u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
     uv = np.column_stack([u.ravel(), v.ravel()])
     x = (uv[:, 0] - camera.u0) / camera.px
@@ -146,8 +149,10 @@ class Raycaster:
 
     # -- ray casting
     def cast(self, origins_world: F32 | F64, dirs_world: F32, world_from_occluder: F64 | None = None) -> Hits:
-        """Nearest hits of rays with origins ``origins_world`` (3 or 3 x N) and unit
-        directions ``dirs_world`` (3 x N), world frame, metres."""
+        """Nearest hits of rays with origins ``origins_world`` (3 or 3 x N).
+
+        Unit directions ``dirs_world`` (3 x N), world frame, metres.
+        """
         n = dirs_world.shape[1]
         org = np.asarray(origins_world, np.float32)
         rays = np.empty((n, 6), np.float32)
@@ -198,8 +203,11 @@ class Raycaster:
 
     # -- appearance
     def albedo(self, points_world: F32, normals_world: F32, primitive: NDArray[np.int64]) -> F32:
-        """Albedo (about 0..1) at N surface points (3 x N world, unit normals 3 x N) from the
-        tri-planar texture of their triangles' materials (occluder: uniform)."""
+        """Albedo (about 0..1) at N surface points.
+
+        Points 3 x N world, unit normals 3 x N; from the tri-planar texture of their triangles'
+        materials (occluder: uniform).
+        """
         n = points_world.shape[1]
         mat = np.take(self._tri_mat, primitive, mode="clip")
         scale = np.take(self._mat_scale, mat)

@@ -131,8 +131,11 @@ class TrueRig:
         rot_err_deg: float,
         baseline_err_m: float,
     ) -> TrueRig:
-        """The rig of a nominal camera ``K`` (both cameras), EuRoC's lens and stereo rotation,
-        and a recorded calibration off by the stated errors (seeded)."""
+        """The rig of a nominal camera ``K`` (both cameras) and a recorded calibration.
+
+        With EuRoC's lens and stereo rotation; the recorded calibration is off by the stated errors
+        (seeded).
+        """
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), 23]))
         KL = np.array(K, float)
         KR = np.array(K, float)
@@ -183,8 +186,11 @@ class TrueRig:
 
 
 def vignetting_map(rays: F32, shape: tuple[int, int], corner_relative: float) -> F32:
-    """Relative illumination (H x W) as cos^n of each pixel's field angle, n chosen so that
-    the darkest image corner receives ``corner_relative`` of the on-axis illumination."""
+    """Relative illumination (H x W) as cos^n of each pixel's field angle.
+
+    n is chosen so that the darkest image corner receives ``corner_relative`` of the on-axis
+    illumination.
+    """
     cos_t = np.clip(rays[2], 1e-3, 1.0).reshape(shape)
     cmin = float(cos_t.min())
     if corner_relative >= 1.0 or cmin >= 1.0 - 1e-9:
@@ -336,10 +342,12 @@ def auto_exposure(
     max_gain: float,
     damping: float = 0.6,
 ) -> tuple[F64, F64]:
-    """Exposure time (s) and analog gain of each frame from an AE loop that sees the previous
-    frame's mean signal (``mean_radiance`` times the exposure, in electrons) and moves
-    towards ``target_fraction`` of the full well by the power ``damping`` of the ratio;
-    exposure first (up to ``max_exposure_s``), then gain. Frame 0 starts converged."""
+    """Exposure time (s) and analog gain of each frame from an AE loop.
+
+    The loop sees the previous frame's mean signal (``mean_radiance`` times the exposure, in
+    electrons) and moves towards ``target_fraction`` of the full well by the power ``damping`` of
+    the ratio; exposure first (up to ``max_exposure_s``), then gain. Frame 0 starts converged.
+    """
     n = mean_radiance.shape[0]
     exp_s = np.zeros(n)
     gain = np.ones(n)

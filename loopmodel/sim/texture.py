@@ -18,8 +18,10 @@ STYLES = ("stone", "wood", "poster")
 
 
 def _fractal_noise(rng: np.random.Generator, n: int, beta: float, fmin: float, fmax: float) -> F32:
-    """Periodic n x n noise with amplitude spectrum ~ f^-beta between fmin and fmax
-    (cycles per texel), normalised to zero mean and unit standard deviation."""
+    """Periodic n x n noise with amplitude spectrum ~ f^-beta between fmin and fmax.
+
+    Frequencies in cycles per texel; normalised to zero mean and unit standard deviation.
+    """
     white = rng.standard_normal((n, n))
     spec = np.fft.rfft2(white)
     fy = np.fft.fftfreq(n)[:, None]
@@ -35,8 +37,10 @@ def _fractal_noise(rng: np.random.Generator, n: int, beta: float, fmin: float, f
 
 
 def _blobs(rng: np.random.Generator, n: int, count: int, rmin: float, rmax: float) -> F32:
-    """Anti-aliased ellipses of log-uniform sizes and random grey levels in [-1, 1], painted
-    over each other with wrap-around so the texture stays seamless."""
+    """Anti-aliased ellipses of log-uniform sizes and random grey levels in [-1, 1].
+
+    Painted over each other with wrap-around so the texture stays seamless.
+    """
     canvas = np.zeros((n, n), np.float32)
     shift = 4
     scale = 1 << shift

@@ -1,6 +1,7 @@
-"""Scatter of single-marker poses on the real turntable against the Cramér–Rao bound of the
-project's ``bound`` tool (:mod:`loopmodel.accuracy`) for the same marker, distance, viewing
-angle and the measured corner noise.
+"""Scatter of single-marker poses on the real turntable against the Cramér–Rao bound.
+
+The bound of the project's ``bound`` tool (:mod:`loopmodel.accuracy`) for the same marker, distance,
+viewing angle and the measured corner noise.
 
 Parameters as in seed 001 (:mod:`loopmodel.accuracy.view`): ``r`` the camera's range along the
 line of sight, ``v``/``u`` its position along the image x/y axes, ``gamma`` the roll about the

@@ -66,8 +66,11 @@ def single_marker_pose(corners_px: F64, side_m: float, K: F64, dist: F64, init: 
 
 
 def _planar_median(poses: list[F64]) -> F64:
-    """A marker's pose relative to another on the same flat table top: the median in-plane
-    offset and turn of many noisy relative poses (robust to single-marker pose flips)."""
+    """A marker's pose relative to another on the same flat table top.
+
+    The median in-plane offset and turn of many noisy relative poses (robust to single-marker pose
+    flips).
+    """
     t = np.median([T[:3, 3] for T in poses], axis=0)
     yaw = float(np.median([np.arctan2(T[1, 0], T[0, 0]) for T in poses]))
     c, s = np.cos(yaw), np.sin(yaw)
@@ -106,8 +109,10 @@ def fit_circle_3d(points: F64) -> tuple[F64, F64, float, float]:
 def calibrate_layout(
     detections: list[dict[int, F64]], layout: MarkerLayout, K: F64, dist: F64
 ) -> tuple[LayoutCalibration, list[dict[int, F64]]]:
-    """Self-calibrate the marker layout from all frames' detections; returns it and the
-    per-frame single-marker poses ``cam_from_marker`` used for it."""
+    """Self-calibrate the marker layout from all frames' detections.
+
+    Returns it and the per-frame single-marker poses ``cam_from_marker`` used for it.
+    """
     single: list[dict[int, F64]] = []
     for det in detections:
         poses = {}
@@ -180,8 +185,10 @@ def frame_pose(
     dist: F64,
     init: F64 | None = None,
 ) -> F64 | None:
-    """``cam_from_table`` of one frame from the corners of all its visible known markers
-    (``marker_from_table`` per id), or None with no known marker."""
+    """``cam_from_table`` of one frame from the corners of all its visible known markers.
+
+    ``marker_from_table`` per id; None with no known marker.
+    """
     P, uv = [], []
     local = marker_corners_in_marker(layout.side_m)
     for i, c in det.items():
@@ -200,8 +207,10 @@ def frame_pose(
 
 @dataclass
 class TablePoses:
-    """Per-frame ``cam_from_table`` (None where no marker was seen), with the solver's 6x6
-    covariance (left twist v, w) and the corner residual RMS (px)."""
+    """Per-frame ``cam_from_table`` (None where no marker was seen), covariance and residual RMS.
+
+    With the solver's 6x6 covariance (left twist v, w) and the corner residual RMS (px).
+    """
 
     cam_from_table: list[F64 | None]
     covariance: list[F64 | None]

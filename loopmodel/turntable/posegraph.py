@@ -35,8 +35,10 @@ WOBBLE_SIGMA_M = 2e-5
 
 
 def right_covariance_wv(cam_from_table: F64, cov_left_vw: F64) -> F64:
-    """gtsam (w, v) right-tangent covariance of a pose whose covariance is given for the left
-    twist (v, w) of ``T <- exp(delta) T``."""
+    """The gtsam (w, v) right-tangent covariance of a pose from its left-twist covariance.
+
+    The given covariance is that of the left twist (v, w) of ``T <- exp(delta) T``.
+    """
     R, t = cam_from_table[:3, :3], cam_from_table[:3, 3]
     ad_inv = np.zeros((6, 6))
     ad_inv[:3, :3] = R.T
@@ -48,8 +50,10 @@ def right_covariance_wv(cam_from_table: F64, cov_left_vw: F64) -> F64:
 
 
 def step_angles_deg(cam_from_table: Sequence[F64 | None], closed: bool = True) -> F64:
-    """Signed rotation (deg) about the table's z axis from each frame to the next (and from the
-    last to the first when ``closed``); NaN where a pose is missing."""
+    """Signed rotation (deg) about the table's z axis from each frame to the next.
+
+    And from the last to the first when ``closed``; NaN where a pose is missing.
+    """
     n = len(cam_from_table)
     out = []
     for k in range(n if closed else n - 1):

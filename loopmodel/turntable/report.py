@@ -1,5 +1,8 @@
-"""Turntable scan outputs: meshes (PLY/OBJ/STL/GLB), a software-rendered picture of the mesh,
-the step-angle plot and a Markdown report."""
+"""Turntable scan outputs.
+
+Meshes (PLY/OBJ/STL/GLB), a software-rendered picture of the mesh, the step-angle plot and a
+Markdown report.
+"""
 
 from __future__ import annotations
 
@@ -20,8 +23,10 @@ MESH_EXPORTS = ("ply", "obj", "stl", "glb")
 def render_mesh(
     mesh: o3d.geometry.TriangleMesh, path: Path, views: tuple[float, ...] = (0.0, 90.0, 180.0, 270.0)
 ) -> Path:
-    """Lambert-shaded software render (matplotlib) of the mesh from several azimuths (deg)
-    about the table axis, 20 deg above the table; table frame, millimetres on the axes."""
+    """Lambert-shaded software render (matplotlib) of the mesh from several azimuths (deg).
+
+    About the table axis, 20 deg above the table; table frame, millimetres on the axes.
+    """
     import matplotlib
 
     matplotlib.use("Agg")

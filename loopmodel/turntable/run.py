@@ -1,5 +1,7 @@
-"""A whole turntable scan: markers -> table poses -> loop-closed pose graph -> laser points
-in the table frame -> mesh, with the accuracy figures of the issue (degrees, millimetres)."""
+"""A whole turntable scan, with the accuracy figures of the issue (degrees, millimetres).
+
+Markers -> table poses -> loop-closed pose graph -> laser points in the table frame -> mesh.
+"""
 
 from __future__ import annotations
 
@@ -55,8 +57,10 @@ class TurntableResult:
 
 
 def azimuth_coverage(points_in_table_m: F64, bins: int = 72) -> float:
-    """Fraction of 5-degree sectors about the table axis that hold object points (1 = closed
-    around the whole circumference)."""
+    """Fraction of 5-degree sectors about the table axis that hold object points.
+
+    1 = closed around the whole circumference.
+    """
     a = np.arctan2(points_in_table_m[:, 1], points_in_table_m[:, 0])
     h, _ = np.histogram(a, bins=bins, range=(-np.pi, np.pi))
     return float(np.mean(h > 0))
@@ -72,8 +76,11 @@ def scan_turntable(
     progress: Progress = _nothing,
     plane_gate_mm: float = 1.0,
 ) -> TurntableResult:
-    """Run the turntable pipeline on an opened scan; a candidate laser plane is taken when its
-    table-plane residual is within ``plane_gate_mm`` (else the plane is self-calibrated)."""
+    """Run the turntable pipeline on an opened scan.
+
+    A candidate laser plane is taken when its table-plane residual is within ``plane_gate_mm`` (else
+    the plane is self-calibrated).
+    """
     cfg = config or MappingConfig()
     detector = make_detector(scan.markers.dictionary)
     n = len(scan)

@@ -44,8 +44,10 @@ class View:
 def fixed_views(
     vertices: F64, n_views: int = 3, elevation_deg: float = 30.0, width_px: int = 480, height_px: int = 400
 ) -> list[View]:
-    """``n_views`` cameras around the mesh's bounding sphere, at equal azimuth steps, looking at
-    its centre from ``elevation_deg`` above the x-y plane, the whole mesh in view."""
+    """``n_views`` cameras around the mesh's bounding sphere, the whole mesh in view.
+
+    At equal azimuth steps, looking at its centre from ``elevation_deg`` above the x-y plane.
+    """
     v = np.asarray(vertices, float)
     lo, hi = v.min(axis=0), v.max(axis=0)
     centre = (lo + hi) / 2
@@ -174,8 +176,10 @@ def before_after_png(
 
 
 def mesh_picture_png(mesh: object, title: str, gt_mesh: object | None = None, n_views: int = 3) -> bytes:
-    """A picture of one open3d mesh from ``n_views`` fixed viewpoints; coloured by the distance
-    to ``gt_mesh`` (same world frame) when given, shaded grey otherwise."""
+    """A picture of one open3d mesh from ``n_views`` fixed viewpoints.
+
+    Coloured by the distance to ``gt_mesh`` (same world frame) when given, shaded grey otherwise.
+    """
     v = np.asarray(mesh.vertices)  # type: ignore[attr-defined]
     t = np.asarray(mesh.triangles)  # type: ignore[attr-defined]
     if gt_mesh is None:
