@@ -51,6 +51,7 @@ def stereo_pairs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_stereo_recovers_rendered_rig(stereo_pairs: Path, tmp_path: Path) -> None:
     pairs = pair_images(sorted(stereo_pairs.glob("left*.png")), sorted(stereo_pairs.glob("right*.png")))
     res = calibrate_stereo(pairs, BOARD, SQUARE)
@@ -81,6 +82,7 @@ def test_stereo_recovers_rendered_rig(stereo_pairs: Path, tmp_path: Path) -> Non
     assert np.allclose(K, cal.K_left) and size == SIZE
 
 
+@pytest.mark.slow
 def test_stereo_bad_input_one_line_exit_2(
     stereo_pairs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

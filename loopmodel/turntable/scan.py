@@ -11,7 +11,8 @@ plane, they must lie on the table plane the markers give (``table_plane_residual
 When no candidate does, the plane is self-calibrated: it contains the 3-D line the laser
 draws on the table top (the table plane is known from the markers in every frame) and its
 one remaining angle about that line is the one for which the surfaces seen from opposite
-sides (180° apart) agree best.
+sides (180° apart) agree best - within 10 %, the angle nearest the plane that contains the
+table axis (the agreement is flat near its minimum).
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ LINE_MAX_WIDTH_PX = 12.0
 #: table-top annulus (fraction of the table radius) used for the table-plane residual: outside
 #: the object's base, inside the rim (on the real table the rim's edge starts near 0.85 R)
 TABLE_ANNULUS = (0.52, 0.84)
+#: relative cost margin within which the self-calibrated plane prefers the axis-containing one
+SELF_COST_SLACK = 0.1
 #: overlap radius for the 180° self-consistency (metres)
 SELF_OVERLAP_M = 3e-3
 
@@ -267,12 +270,13 @@ def choose_plane(
         P, f = object_points(peaks, poses, pl, scan)
         return self_consistency_mm(P, f, len(poses))
 
+    # the 180° agreement is flat near its minimum (on the real scan within 10 % over +-8 deg):
+    # take the angle nearest the axis-containing plane whose cost is within SELF_COST_SLACK of
+    # the best, not the noisy minimum itself
     grid = np.radians(np.arange(-10.0, 10.1, 1.0))
-    costs = [cost(a) for a in grid]
-    a0 = float(grid[int(np.argmin(costs))])
-    fine = a0 + np.radians(np.arange(-1.0, 1.01, 0.25))
-    fcost = [cost(a) for a in fine]
-    a_best = float(fine[int(np.argmin(fcost))])
+    costs = np.array([cost(a) for a in grid])
+    ok = costs <= (1.0 + SELF_COST_SLACK) * float(np.min(costs))
+    a_best = float(grid[ok][int(np.argmin(np.abs(grid[ok])))])
     plane = plane_through_line(c, d, ref_normal, a_best)
     rms, med, _ = table_residual(peaks, poses, plane, scan.K, scan.dist)
     return PlaneChoice("self-calibrated", plane, rms, med, cands, 1e3 * line_rms, float(np.degrees(a_best)))
