@@ -255,8 +255,11 @@ class MappingConfig(_Section):
 
 
 class SimCameraConfig(_Section):
-    """Rectified stereo pair of the simulator (pixels, metres); ``xi > 0`` renders the unified
-    central model (omnidirectional). Principal point defaults to the image centre."""
+    """Rectified stereo pair of the simulator (pixels, metres).
+
+    ``xi > 0`` renders the unified central model (omnidirectional). Principal point defaults to the
+    image centre.
+    """
 
     width_px: int = Field(640, gt=0, le=8192)
     height_px: int = Field(480, gt=0, le=8192)
@@ -340,9 +343,12 @@ class SimFaultsConfig(_Section):
 
 
 class SimRealismConfig(_Section):
-    """Realistic sensor, optics, laser and motion (issue 17); ``clean`` is the ideal world of
-    issue 3. Magnitudes and their sources: ``loopmodel/sim/sensor.py`` (image),
-    ``loopmodel/sim/laser.py`` (laser), ``loopmodel/sim/trajectory.py`` (motion)."""
+    """Realistic sensor, optics, laser and motion (issue 17).
+
+    ``clean`` is the ideal world of issue 3. Magnitudes and their sources:
+    ``loopmodel/sim/sensor.py`` (image), ``loopmodel/sim/laser.py`` (laser),
+    ``loopmodel/sim/trajectory.py`` (motion).
+    """
 
     level: Literal["clean", "realistic"] = "clean"
     # sensor: Sony IMX250 EMVA 1288 figures (see loopmodel/sim/sensor.py)

@@ -1,7 +1,9 @@
-"""Wiring of the stages, as a recipe: a sequence's frames go through the front end; each
-keyframe goes through loop closing, the anchored trajectory and the back end; corrections
-flow back to the front end and the map by one mechanism; at the end the back end and the
-mapping finish, and the result is returned (and written by :func:`loopmodel.io.results.write_results`).
+"""Wiring of the stages, as a recipe.
+
+A sequence's frames go through the front end; each keyframe goes through loop closing, the anchored
+trajectory and the back end; corrections flow back to the front end and the map by one mechanism; at
+the end the back end and the mapping finish, and the result is returned (and written by
+:func:`loopmodel.io.results.write_results`).
 
 Stages and their one entry point per event (all declared on their protocols):
 
@@ -170,8 +172,10 @@ def _loop_stage(config: Config, calibration: StereoCalibration) -> LoopStage:
 
 
 class _Run:
-    """The stages of one run and what it has produced so far; :meth:`step` handles one
-    frame whole, :meth:`finish` turns the state into a :class:`RunResult`."""
+    """The stages of one run and what it has produced so far.
+
+    :meth:`step` handles one frame whole, :meth:`finish` turns the state into a :class:`RunResult`.
+    """
 
     def __init__(self, sequence: Sequence, config: Config, listeners: list[RunListener]) -> None:
         self.sequence = sequence
@@ -197,8 +201,11 @@ class _Run:
 
     # ------------------------------------------------------------------ per frame
     def step(self, frame: Any) -> FrameResult:
-        """Track one frame; a keyframe goes through loop closing and the back end; the frame
-        joins the anchored trajectory and the live map."""
+        """Track one frame.
+
+        A keyframe goes through loop closing and the back end; the frame joins the anchored
+        trajectory and the live map.
+        """
         t0 = time.perf_counter()
         res = self.frontend.process(frame)
         if not res.ok:
@@ -229,8 +236,11 @@ class _Run:
         return MapState(self.frontend.world_from_kf, self._last_ms, self._last_ids)
 
     def _keyframe_step(self, kf: Keyframe, res: FrameResult) -> None:
-        """Loop closing, then the back end; the keyframe is recorded last, once the map
-        holds it, so an interruption never leaves it half registered."""
+        """Loop closing, then the back end.
+
+        The keyframe is recorded last, once the map holds it, so an interruption never leaves it
+        half registered.
+        """
         out = self.loop.on_keyframe(kf, self._state())
         kf = out.keyframe
         self.anchored.set_keyframe(kf.id, kf.world_from_kf)
@@ -270,9 +280,11 @@ class _Run:
 
     # ------------------------------------------------------------------ end of run
     def _final_estimate(self, interrupted: bool) -> BackendEstimate | None:
-        """The back end's end-of-run solution (refined unless interrupted), applied to the
-        anchored frames; None without keyframes or when the back end fails (logged: the
-        front end's keyframes are kept)."""
+        """The back end's end-of-run solution (refined unless interrupted), applied to the anchored frames.
+
+        None without keyframes or when the back end fails (logged: the front end's keyframes are
+        kept).
+        """
         if not self.keyframes:
             return None
         try:
@@ -333,8 +345,11 @@ class _Run:
     def _metrics(
         self, result: RunResult, wall_s: float, final_refine_s: float, mesh_metrics: dict[str, Any]
     ) -> dict[str, Any]:
-        """``metrics.json``: each stage's own figures, the run's timings, the errors against
-        the ground truth of the online and the final trajectories."""
+        """``metrics.json``.
+
+        Each stage's own figures, the run's timings, the errors against the ground truth of the
+        online and the final trajectories.
+        """
         busy_s = sum(self.frame_ms) / 1e3
         m: dict[str, Any] = {"sequence": str(self.sequence.path), "interrupted": result.interrupted}
         m.update(mesh_metrics)
@@ -393,8 +408,11 @@ def process(
 def _frame_loop(
     run: _Run, total: int, stop: StopFlag, progress: PipelineProgressFn | None
 ) -> tuple[bool, Exception | None]:
-    """Feed the frames to ``run`` one whole step at a time. Returns whether it was stopped
-    early (stop flag, ``KeyboardInterrupt``) and the error that ended it, if any."""
+    """Feed the frames to ``run`` one whole step at a time.
+
+    Returns whether it was stopped early (stop flag, ``KeyboardInterrupt``) and the error that ended
+    it, if any.
+    """
     try:
         for i, frame in enumerate(run.sequence.frames()):
             if i >= total:
@@ -509,10 +527,12 @@ def run_frontend(
     max_frames: int | None = None,
     listeners: list[RunListener] | None = None,
 ) -> RunResult:
-    """The front end alone over ``sequence``: :func:`run_pipeline` with ``backend.kind: none``
-    (keyframes keep the tracked poses), no loop closing and no mesh. Writes the same results
-    folder (``trajectory_final.tum`` equals the online trajectory). An interrupted run still
-    writes what it has, then re-raises."""
+    """The front end alone over ``sequence``.
+
+    :func:`run_pipeline` with ``backend.kind: none`` (keyframes keep the tracked poses), no loop
+    closing and no mesh. Writes the same results folder (``trajectory_final.tum`` equals the online
+    trajectory). An interrupted run still writes what it has, then re-raises.
+    """
     return run_pipeline(
         sequence,
         frontend_only(config),

@@ -1,5 +1,8 @@
-"""What a run produced (:class:`RunResult`): trajectories, keyframes, landmarks, stripes,
-the mesh and the metrics; written to a results folder by :func:`loopmodel.io.results.write_results`."""
+"""What a run produced (:class:`RunResult`).
+
+Trajectories, keyframes, landmarks, stripes, the mesh and the metrics; written to a results folder
+by :func:`loopmodel.io.results.write_results`.
+"""
 
 from __future__ import annotations
 

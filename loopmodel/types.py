@@ -128,8 +128,9 @@ def _empty_image() -> NDArray[np.uint8]:
 
 @dataclass
 class Keyframe:
-    """A stereo keyframe and its feature set: the one keyframe type of the front end, the
-    back ends, loop closing, tests and tools.
+    """A stereo keyframe and its feature set.
+
+    The one keyframe type of the front end, the back ends, loop closing, tests and tools.
 
     Poses are of the (original, unrectified) left camera; pixel measurements are in the
     rectified images, and ``rect_from_cam`` relates the two frames (identity for rectified

@@ -1,5 +1,7 @@
-"""Re-measurement of tracked features against the keyframe patch (affine warp): checked
-against images related by an exact plane homography and against finite differences."""
+"""Re-measurement of tracked features against the keyframe patch (affine warp).
+
+Checked against images related by an exact plane homography and against finite differences.
+"""
 
 from __future__ import annotations
 

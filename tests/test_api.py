@@ -1,5 +1,8 @@
-"""The public Python API: the README's notebook example runs on the bundled KITTI sample,
-writes nothing, installs no signal handler, and its trajectory matches the ground truth."""
+"""The public Python API.
+
+The README's notebook example runs on the bundled KITTI sample, writes nothing, installs no signal
+handler, and its trajectory matches the ground truth.
+"""
 
 from __future__ import annotations
 

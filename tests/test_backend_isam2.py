@@ -40,8 +40,11 @@ def project(world_from_cam: np.ndarray, p_world: np.ndarray) -> np.ndarray:
 
 
 def keyframes(rng, poses, pts, mono_from: int = 3, blunder: tuple[int, int] | None = None):
-    """Stereo observations of every point in every keyframe; from keyframe ``mono_from`` on,
-    every third point is observed monocularly instead. Noisy initial poses."""
+    """Stereo observations of every point in every keyframe.
+
+    From keyframe ``mono_from`` on, every third point is observed monocularly instead. Noisy initial
+    poses.
+    """
     kfs = []
     for i, T in enumerate(poses):
         px, p_cam = project(T, pts)
@@ -268,9 +271,11 @@ def test_indeterminate_system_rebuilds_without_the_landmark(rng):
 
 @pytest.mark.slow
 def test_real_indeterminate_system_is_survived():
-    """gtsam's KITTI 00 factors without a disparity floor, landmarks added on first sight
-    (as the plain set-up does): GTSAM raises IndeterminateSystemException near far points;
-    the back end rebuilds without them and carries on."""
+    """gtsam's KITTI 00 factors without a disparity floor, landmarks added on first sight (as the plain set-up does).
+
+    GTSAM raises IndeterminateSystemException near far points; the back end rebuilds without them
+    and carries on.
+    """
     import sys
     from pathlib import Path
 
@@ -320,8 +325,10 @@ def test_landmark_triangulation_converges_to_truth(rng):
 
 
 def test_keyframe_with_too_few_links_gets_a_loose_prior(rng):
-    """A keyframe that sees only two known landmarks (monocularly) cannot be determined by
-    them: the back end ties it loosely to its guess instead of failing."""
+    """A keyframe that sees only two known landmarks (monocularly) cannot be determined by them.
+
+    The back end ties it loosely to its guess instead of failing.
+    """
     poses, pts = scene(rng, n_kf=3, n_pts=30)
     kfs = keyframes(rng, poses, pts, mono_from=2)
     kfs[2].landmark_ids = kfs[2].landmark_ids[:0]
@@ -361,8 +368,10 @@ def test_indeterminate_pose_gets_a_loose_prior(rng):
 
 
 def test_rectified_frame_differs_from_camera_frame(rng):
-    """Pixels in a rectified frame rotated against the camera (``rect_from_cam``, as for
-    unrectified EuRoC input): noise-free observations give back the true poses."""
+    """Pixels in a rectified frame rotated against the camera (``rect_from_cam``, as for unrectified EuRoC input).
+
+    Noise-free observations give back the true poses.
+    """
     poses, pts = scene(rng, n_kf=4, n_pts=50)
     rect_from_cam = make_pose(so3_exp([0.02, -0.03, 0.01]), [0.0, 0.0, 0.0])
     kfs = []
@@ -381,9 +390,11 @@ def test_rectified_frame_differs_from_camera_frame(rng):
 
 
 def test_small_updates_after_many_keyframes(rng):
-    """CCOLAMD rejects elimination groups not below the number of variables it orders:
-    small updates late in a run (a keyframe with few observations, a single removal) must
-    not hand it large group numbers ("ccolamd failed with return value 0")."""
+    """CCOLAMD rejects elimination groups not below the number of variables it orders.
+
+    Small updates late in a run (a keyframe with few observations, a single removal) must not hand
+    it large group numbers ("ccolamd failed with return value 0").
+    """
     _, pts = scene(rng, n_kf=1, n_pts=12)
     poses = [make_pose(so3_exp([0, 0.004 * i, 0]), [0.03 * i, 0, 0.01 * i]) for i in range(16)]
     kfs = keyframes(rng, poses, pts, mono_from=99)

@@ -1,5 +1,8 @@
-"""``backend.kind: both`` and ``givens``: the Givens screen rejects injected blunder tracks
-before iSAM2 sees them, and the result is closer to the truth than iSAM2 alone."""
+"""``backend.kind.
+
+Both`` and ``givens``: the Givens screen rejects injected blunder tracks before iSAM2 sees them, and
+the result is closer to the truth than iSAM2 alone.
+"""
 
 from __future__ import annotations
 
@@ -83,8 +86,10 @@ def test_right_image_rows_match_finite_differences() -> None:
 
 
 def test_every_back_end_offers_the_end_of_run_protocol() -> None:
-    """``final_estimate`` and ``metrics`` on every kind, declared on :class:`Backend` (no
-    forwarding): the screened back end reports its screen's counts and refines through iSAM2."""
+    """``final_estimate`` and ``metrics`` on every kind, declared on :class:`Backend` (no forwarding).
+
+    The screened back end reports its screen's counts and refines through iSAM2.
+    """
     from loopmodel.config import RefineConfig
 
     for kind in ("isam2", "givens", "both", "none"):

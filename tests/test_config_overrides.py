@@ -1,5 +1,8 @@
-"""``apply_overrides``: the one way flags change a configuration; the run's ``config.yaml``
-holds only the pipeline's sections; kinds are checked as literals."""
+"""``apply_overrides``.
+
+The one way flags change a configuration; the run's ``config.yaml`` holds only the pipeline's
+sections; kinds are checked as literals.
+"""
 
 from __future__ import annotations
 

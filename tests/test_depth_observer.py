@@ -1,5 +1,8 @@
-"""Seed 003 depth observer: kinematics vs finite differences, convergence, excitation,
-two-view decomposition, Euclidean reconstruction, real KITTI tracks vs stereo."""
+"""Seed 003 depth observer.
+
+Kinematics vs finite differences, convergence, excitation, two-view decomposition, Euclidean
+reconstruction, real KITTI tracks vs stereo.
+"""
 
 from __future__ import annotations
 
@@ -135,9 +138,12 @@ def test_kitti_tracks_against_stereo(shared_data: Path) -> None:
 
 
 def test_velocity_estimator_tracks_the_true_rates_without_chattering() -> None:
-    """Eq. 20 discretised at 1 kHz: once the start-up transient is over (1.2 s), the estimated signal
-    rates match the analytic rates J (v_s/z*, w_s) (the implicit treatment of the sign term
-    removes the numerical limit cycle of explicit Euler, rms ~1e-2 at these gains)."""
+    """Eq. 20 discretised at 1 kHz.
+
+    Once the start-up transient is over (1.2 s), the estimated signal rates match the analytic rates
+    J (v_s/z*, w_s) (the implicit treatment of the sign term removes the numerical limit cycle of
+    explicit Euler, rms ~1e-2 at these gains).
+    """
     pts = np.array([[0.5, -0.2, 4.0], [-0.8, 0.4, 3.0], [0.1, 0.6, 5.5]])
     A = np.eye(3)
     errs = {}

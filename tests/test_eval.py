@@ -53,8 +53,11 @@ def test_alignment_recovers_random_transform(mode: str, rng: np.random.Generator
 
 
 def test_alignment_with_noise_matches_brute_force(rng: np.random.Generator) -> None:
-    """Noisy SE(3) alignment: the Umeyama solution is a least-squares minimum (no small
-    perturbation lowers the squared error)."""
+    """Noisy SE(3) alignment.
+
+    The Umeyama solution is a least-squares minimum (no small perturbation lowers the squared
+    error).
+    """
     ref = _wiggly_path(100, rng)
     est = ref.copy()
     est[:, :3, 3] += 0.05 * rng.standard_normal((100, 3))
@@ -173,8 +176,11 @@ def test_agreement_with_evo(shared_data: Path, gt_name: str, est_name: str, kind
 def _make_run(
     folder: Path, rng: np.random.Generator, closures: list[dict] | None, drift: float = 0.02
 ) -> tuple[Trajectory, Trajectory, Trajectory]:
-    """A results folder: ground truth (returned), an online trajectory that drifts, a final one
-    close to the ground truth, keyframes every 5th final pose, metrics.json."""
+    """A results folder.
+
+    Ground truth (returned), an online trajectory that drifts, a final one close to the ground
+    truth, keyframes every 5th final pose, metrics.json.
+    """
     n = 300
     t = 1_000_000_000_000 + np.arange(n, dtype=np.int64) * 50_000_000  # 20 Hz
     gt_T = _wiggly_path(n, rng)
@@ -387,8 +393,11 @@ def test_eval_config_defaults() -> None:
 
 
 def test_ground_truth_from_sequence_folder(shared_data: Path, tmp_path: Path, rng: np.random.Generator) -> None:
-    """``--gt SEQ``: the ground truth of a KITTI folder (poses.txt, 10 Hz) read by
-    open_sequence; a noisy copy in a results folder is evaluated against it."""
+    """``--gt SEQ``.
+
+    The ground truth of a KITTI folder (poses.txt, 10 Hz) read by open_sequence; a noisy copy in a
+    results folder is evaluated against it.
+    """
     from loopmodel.io.trajectory_io import read_trajectory
 
     clip = shared_data / "kitti_clip"

@@ -1,6 +1,9 @@
-"""Final refinement of a run: batch BA of the iSAM2 graph with re-weighted observations
-(against an independent gtsam batch solution and the truth) and frames bridged between
-keyframes (against ground-truth motion with an exactly known drift)."""
+"""Final refinement of a run.
+
+Batch BA of the iSAM2 graph with re-weighted observations (against an independent gtsam batch
+solution and the truth) and frames bridged between keyframes (against ground-truth motion with an
+exactly known drift).
+"""
 
 from __future__ import annotations
 

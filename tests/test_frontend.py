@@ -186,8 +186,11 @@ def test_apply_correction_moves_later_poses(rng: np.random.Generator) -> None:
 
 
 def test_long_track_on_one_keyframe_stays_rigid(rng: np.random.Generator) -> None:
-    """Many frames against one keyframe: the motion-model products must stay in SE(3)
-    (rounding in the rotation blocks once grew geometrically here)."""
+    """Many frames against one keyframe.
+
+    The motion-model products must stay in SE(3) (rounding in the rotation blocks once grew
+    geometrically here).
+    """
     planes = default_scene(rng)
     cal = stereo_rig()
     poses = trajectory(40, step_m=0.004)

@@ -1,6 +1,9 @@
-"""Hostile and careless inputs (issue 24): each case is one line naming the file/topic/key,
-exit 2 (130 when interrupted, 1 with an I/O line for environment failures), no traceback,
-no half-written or mixed output. Every case here failed on main before its fix."""
+"""Hostile and careless inputs (issue 24).
+
+Each case is one line naming the file/topic/key, exit 2 (130 when interrupted, 1 with an I/O line
+for environment failures), no traceback, no half-written or mixed output. Every case here failed on
+main before its fix.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,7 @@
-"""On the real KITTI clip the back end's final trajectory is no worse than the online one
-(issue 26); errors computed here in plain numpy against the clip's ``poses.txt``."""
+"""On the real KITTI clip the back end's final trajectory is no worse than the online one (issue 26).
+
+Errors computed here in plain numpy against the clip's ``poses.txt``.
+"""
 
 from __future__ import annotations
 
@@ -16,8 +18,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _ate_and_drift(est: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
-    """ATE RMSE (m) after the SE(3) Umeyama alignment of positions; drift (% of the path)
-    of the last position with the first poses aligned."""
+    """ATE RMSE (m) after the SE(3) Umeyama alignment of positions.
+
+    Drift (% of the path) of the last position with the first poses aligned.
+    """
     a, b = est[:, :3, 3], gt[:, :3, 3]
     ma, mb = a.mean(0), b.mean(0)
     U, _, Vt = np.linalg.svd((b - mb).T @ (a - ma))

@@ -1,5 +1,8 @@
-"""Loop detection off the tracking path (issue 26): with the verifier blocked, the pipeline
-still processes every frame and keyframe; the detections are applied afterwards, in order."""
+"""Loop detection off the tracking path (issue 26).
+
+With the verifier blocked, the pipeline still processes every frame and keyframe; the detections are
+applied afterwards, in order.
+"""
 
 from __future__ import annotations
 
@@ -88,8 +91,11 @@ def test_backlog_stores_keyframes_without_querying(monkeypatch: pytest.MonkeyPat
 
 @pytest.mark.slow
 def test_process_worker_finds_the_loops_the_inline_detection_finds() -> None:
-    """The database in a worker process (``detection_worker: process``): the same loops as
-    inline detection on test_loop_closer's synthetic revisit, applied by its global BA."""
+    """The database in a worker process (``detection_worker: process``).
+
+    The same loops as inline detection on test_loop_closer's synthetic revisit, applied by its
+    global BA.
+    """
     import numpy as np
     from test_loop_closer import BASELINE, CAM, _add_mono, _keyframe, _sequence, _texture
 

@@ -170,7 +170,10 @@ def test_stage_via_backend_returns_constraints_and_changes_no_keyframe() -> None
         kfs.append(_keyframe(i, tex, Tt, Te, lid, rng))
         lid += len(kfs[-1].landmark_ids)
     _add_mono(kfs, true, rng)
-    stage = LoopClosingStage.from_config(LoopConfig(min_gap_keyframes=8, n_features=800), calib)
+    # inline detection: each loop comes back with its own keyframe (a worker would hand it
+    # to a later one; tests/test_loop_background.py)
+    cfg = LoopConfig(min_gap_keyframes=8, n_features=800, detection_worker="none")
+    stage = LoopClosingStage.from_config(cfg, calib)
     poses: dict[int, np.ndarray] = {}
     constraints = []
     for kf in kfs:

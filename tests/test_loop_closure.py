@@ -58,9 +58,11 @@ def test_vocabulary_float_descriptors(rng: np.random.Generator) -> None:
 
 
 class _World:
-    """Landmarks on the inside of a cylinder (radius 6 m) with random binary descriptors;
-    a camera at the centre, looking outwards, sees them with 0.5 px noise and stereo depth
-    with 1 % noise."""
+    """Landmarks on the inside of a cylinder (radius 6 m) with random binary descriptors.
+
+    A camera at the centre, looking outwards, sees them with 0.5 px noise and stereo depth with 1 %
+    noise.
+    """
 
     def __init__(self, rng: np.random.Generator, n: int = 4000) -> None:
         ang = rng.uniform(0, 2 * np.pi, n)

@@ -1,6 +1,8 @@
-"""Loop closing inside the pipeline (front end -> loop stage -> back end): a revisit is
-closed, recorded in metrics.json, and the final trajectory agrees with ground truth.
-(No-revisit runs: tests/test_loop_closure.py and the ``browse`` run of the sim-loop bench.)"""
+"""Loop closing inside the pipeline (front end -> loop stage -> back end).
+
+A revisit is closed, recorded in metrics.json, and the final trajectory agrees with ground truth.
+(No-revisit runs: tests/test_loop_closure.py and the ``browse`` run of the sim-loop bench.)
+"""
 
 from __future__ import annotations
 

@@ -6,16 +6,18 @@ import cv2
 import numpy as np
 import pytest
 
-from loopmodel.errors import ConfigError, LoopmodelError
+from loopmodel.errors import ConfigError
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_exp, so3_log
 from loopmodel.loop.features import (
     FeatureSet,
+    describe_at,
     detect_and_describe,
     make_extractor,
     stereo_keyframe_features,
 )
 from loopmodel.loop.reloc import RelocParams, localize
+from loopmodel.loop.surf import Surf
 from loopmodel.types import StereoCalibration
 
 CAM = CentralCamera(500.0, 500.0, 319.5, 239.5)
@@ -35,11 +37,9 @@ def _flip_bits(desc: np.ndarray, rng: np.random.Generator, n_bits: int) -> np.nd
     return out
 
 
-def test_surf_or_clear_error() -> None:
-    try:
-        make_extractor("surf")
-    except LoopmodelError as exc:
-        assert "orb" in str(exc) and "sift" in str(exc)
+def test_surf_extractor_and_unknown_kind() -> None:
+    """SURF is always available (written here); an unknown kind is a configuration error."""
+    assert isinstance(make_extractor("surf", 300), Surf)
     with pytest.raises(ConfigError, match="unknown descriptor"):
         make_extractor("akaze-ish")
 
@@ -105,7 +105,25 @@ def test_relocalization_refuses_unrelated_view(rng: np.random.Generator) -> None
 
 def test_detect_and_describe_kinds(rng: np.random.Generator) -> None:
     img = _texture(rng, 240, 320)
-    for kind, dtype in (("orb", np.uint8), ("sift", np.float32)):
+    for kind, dtype, dim in (("orb", np.uint8, 32), ("sift", np.float32, 128), ("surf", np.float32, 64)):
         fs = detect_and_describe(img, kind, 300)
-        assert len(fs) > 50 and fs.descriptors.dtype == dtype
+        assert len(fs) > 50 and fs.descriptors.dtype == dtype and fs.descriptors.shape[1] == dim
         assert np.all(np.isnan(fs.points_in_kf))
+        assert np.all(fs.laplacian != 0) == (kind == "surf")
+
+
+def test_stereo_keyframe_features_surf(rng: np.random.Generator) -> None:
+    """SURF on a stereo keyframe: the fronto-parallel plane at 3 m is triangulated at 3 m
+    (same set-up as the ORB test above), and descriptors at given pixels keep every point
+    inside the image."""
+    left = _texture(rng, 480, 680)
+    right = np.roll(left, -20, axis=1)
+    left, right = left[:, :640].copy(), right[:, :640].copy()
+    calib = StereoCalibration(CAM.K, CAM.K, make_pose(np.eye(3), [-0.12, 0.0, 0.0]), (640, 480))
+    fs = stereo_keyframe_features(left, right, calib, "surf", 1500)
+    has = fs.has_3d
+    assert has.sum() > 150
+    assert np.median(np.abs(fs.points_in_kf[has, 2] - 3.0)) < 0.02
+    uv = np.array([[10.0, 10.0], [320.0, 240.0], [639.0, 479.0], [700.0, 10.0]])
+    at, kept = describe_at(left, uv, "surf")
+    assert kept.tolist() == [0, 1, 2] and at.descriptors.shape == (3, 64) and np.all(at.laplacian != 0)

@@ -37,8 +37,10 @@ def sphere_scan(sphere: o3d.geometry.TriangleMesh) -> tuple[Trajectory, list[Str
 
 
 def _gt_motion(t_s: np.ndarray) -> np.ndarray:
-    """Rotation at a constant rate about a fixed body axis, translation linear in time: the
-    geodesic/linear interpolation between any two samples is exact."""
+    """Rotation at a constant rate about a fixed body axis, translation linear in time.
+
+    The geodesic/linear interpolation between any two samples is exact.
+    """
     R0 = so3_exp([0.3, -0.2, 0.1])
     w = np.array([0.4, 1.1, -0.7])
     a, b = np.array([0.1, -0.2, 0.5]), np.array([0.05, 0.02, -0.03])
@@ -522,8 +524,11 @@ def test_cli_mesh_of_a_sequence_with_ground_truth(
 def test_isolated_stripes_get_normals_from_the_view_direction(
     sphere: o3d.geometry.TriangleMesh, sphere_scan: tuple[Trajectory, list[StripeProfile]]
 ) -> None:
-    """Every 10th stripe: about 13 mm apart, beyond the 6 mm normal radius, so each
-    neighbourhood is a line whose plain PCA normal is arbitrary about the stripe."""
+    """Every 10th stripe.
+
+    About 13 mm apart, beyond the 6 mm normal radius, so each neighbourhood is a line whose plain
+    PCA normal is arbitrary about the stripe.
+    """
     traj, stripes = sphere_scan
     sparse = stripes[::10]
     good = mesh_accuracy(StripeMap.from_trajectory(traj, sparse).mesh(), sphere)
@@ -533,8 +538,11 @@ def test_isolated_stripes_get_normals_from_the_view_direction(
 
 
 def test_stripes_extracted_from_a_sequences_laser_images(tmp_path: Path) -> None:
-    """A recording with laser-line images but no stripe messages: its profiles are extracted
-    from the images with the configured light plane and lie on the simulated surface."""
+    """A recording with laser-line images but no stripe messages.
+
+    Its profiles are extracted from the images with the configured light plane and lie on the
+    simulated surface.
+    """
     from loopmodel.config import config_from_dict
     from loopmodel.io.mesh_io import mesh_from_bytes
     from loopmodel.io.sequence import open_sequence

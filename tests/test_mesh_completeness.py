@@ -1,5 +1,7 @@
-"""Completeness against the scanned object and its swept part (issue 8, mesh accuracy):
-checked against closed-form areas and ray-cast ground truth."""
+"""Completeness against the scanned object and its swept part (issue 8, mesh accuracy).
+
+Checked against closed-form areas and ray-cast ground truth.
+"""
 
 from __future__ import annotations
 

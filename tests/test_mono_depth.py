@@ -1,6 +1,9 @@
-"""frontend.mono_depth: the seed-003 adaptive depth update with known camera motion, on
-synthetic views against ground truth and in the front end on real KITTI frames whose right
-image is half blanked, against stereo depths from the unblanked right image."""
+"""frontend.mono_depth.
+
+The seed-003 adaptive depth update with known camera motion, on synthetic views against ground truth
+and in the front end on real KITTI frames whose right image is half blanked, against stereo depths
+from the unblanked right image.
+"""
 
 from __future__ import annotations
 
@@ -50,8 +53,11 @@ def test_known_motion_observer_without_translation_is_not_excited(rng: np.random
 
 
 def test_frontend_mono_depth_matches_stereo_on_kitti(shared_data: Path) -> None:
-    """Right image blanked left of its middle: corners there find no stereo match and get
-    observer depths from the tracker's poses; compare with stereo on the full right image."""
+    """Right image blanked left of its middle.
+
+    Corners there find no stereo match and get observer depths from the tracker's poses; compare
+    with stereo on the full right image.
+    """
     from loopmodel.config import load_config
     from loopmodel.frontend import FrontEnd
     from loopmodel.frontend.stereo import match_stereo

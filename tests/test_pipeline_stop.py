@@ -1,5 +1,8 @@
-"""Stopping a run: a signal only sets the stop flag, the frame loop stops between frames, and
-an interruption inside a keyframe's step still leaves a complete, consistent results folder."""
+"""Stopping a run.
+
+A signal only sets the stop flag, the frame loop stops between frames, and an interruption inside a
+keyframe's step still leaves a complete, consistent results folder.
+"""
 
 from __future__ import annotations
 
@@ -66,8 +69,10 @@ def test_a_signal_stops_the_run_between_frames(sequence_dir: Path, tmp_path: Pat
 def test_an_interrupt_inside_a_keyframe_step_leaves_a_consistent_folder(
     sequence_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """A ``KeyboardInterrupt`` in the back end's update of the third keyframe (no signal
-    handler installed): the keyframe is in the map but not recorded; every file is written."""
+    """A ``KeyboardInterrupt`` in the back end's update of the third keyframe (no signal handler installed).
+
+    The keyframe is in the map but not recorded; every file is written.
+    """
     calls = {"n": 0}
     add = Isam2Backend.add_keyframe
 

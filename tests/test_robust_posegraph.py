@@ -1,6 +1,9 @@
-"""Robust loop closing: GNC-TLS rejects false loop edges on a real pose graph, and a wrong
-loop constraint injected into a simulated loop-closing run is rejected by the gate without
-moving the trajectory (while the run's true loop is still closed)."""
+"""Robust loop closing.
+
+GNC-TLS rejects false loop edges on a real pose graph, and a wrong loop constraint injected into a
+simulated loop-closing run is rejected by the gate without moving the trajectory (while the run's
+true loop is still closed).
+"""
 
 from __future__ import annotations
 

@@ -418,6 +418,15 @@ def test_run_on_bag_equals_folder(tmp_path: Path, capsys: pytest.CaptureFixture[
     a = (tmp_path / "o" / "folder" / "trajectory_final.tum").read_text()
     b = (tmp_path / "o" / "bag" / "trajectory_final.tum").read_text()
     assert a == b and len(a.splitlines()) == 1 + 8
+    # a results folder against a bag topic: the same numbers as against the folder's poses.txt
+    import json
+
+    run = tmp_path / "o" / "bag"
+    assert main(["eval", str(run), "--gt", f"{bag}:/ground_truth/pose", "--no-plots", "-o", str(tmp_path / "e1")]) == 0
+    assert main(["eval", str(run), "--gt", str(TINY), "--no-plots", "-o", str(tmp_path / "e2")]) == 0
+    m1, m2 = (json.loads((tmp_path / e / "metrics.json").read_text()) for e in ("e1", "e2"))
+    assert m1["trajectories"]["final"]["matched"] == 8
+    assert m1["ate_rmse_m"] == m2["ate_rmse_m"]
 
 
 # ------------------------------------------------------------------ trajectories from real bags
@@ -637,3 +646,43 @@ def test_project_mcap_reader_takes_bag_encodings(tmp_path: Path) -> None:
         for a, b in zip(src.frames(), seq.frames(), strict=True):
             d = np.abs(_grey(b.left).astype(int) - a.left.astype(int))
             assert d.max() == 0 if enc == "bgra8" else np.median(d) <= 2
+
+
+def test_bag_without_camera_info_with_calibration_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """EuRoC/TUM-VI style ROS 1 bags have images only: ``--calib`` gives the calibration (a
+    EuRoC sensor.yaml folder or a KITTI calib.txt)."""
+    src = open_sequence(TINY)
+    bag = tmp_path / "noinfo.bag"
+    with BagSequenceWriter(bag, src.calibration, "ros1") as w:
+        for f in src.frames():
+            for side, img in ((0, f.left), (1, f.right)):
+                topic = ("/cam0/image_raw", "/cam1/image_raw")[side]
+                w.write_message(topic, *image_message_values(img, f.timestamp_ns, "c", "mono8"), f.timestamp_ns)
+    _one_line_exit_2(["info", str(bag)], capsys, "/cam0/image_raw: no CameraInfo")
+    seq = open_sequence(bag, calibration_file=TINY / "calib.txt")
+    assert np.allclose(seq.calibration.K_left, src.calibration.K_left)
+    assert seq.calibration.baseline_m == pytest.approx(src.calibration.baseline_m)
+    assert main(["info", str(bag), "--calib", str(TINY / "calib.txt")]) == 0
+    _one_line_exit_2(["info", str(TINY), "--calib", str(TINY / "calib.txt")], capsys, "apply to bags")
+
+
+def test_kalibr_camchain(tmp_path: Path) -> None:
+    from loopmodel.io.calib_files import read_stereo_calibration
+
+    cal = _fisheye_cal()
+    cams = {}
+    for name, d in (("cam0", cal.dist_left), ("cam1", cal.dist_right)):
+        cams[name] = {
+            "camera_model": "pinhole",
+            "intrinsics": [190.0, 190.5, 256.0, 255.0],
+            "distortion_model": "equidistant",
+            "distortion_coeffs": [float(x) for x in d],
+            "resolution": [512, 512],
+        }
+    cams["cam1"]["T_cn_cnm1"] = [[float(x) for x in row] for row in cal.right_from_left]
+    (tmp_path / "camchain.yaml").write_text(yaml.safe_dump(cams))
+    got = read_stereo_calibration(tmp_path / "camchain.yaml", (512, 512))
+    assert got.camera_model == "equidistant" and np.allclose(got.right_from_left, cal.right_from_left)
+    assert np.allclose(got.dist_right, cal.dist_right) and np.allclose(got.K_left, cal.K_left)
+    with pytest.raises(CalibrationError, match="resolution"):
+        read_stereo_calibration(tmp_path / "camchain.yaml", (640, 480))

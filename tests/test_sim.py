@@ -1,5 +1,8 @@
-"""Synthetic scan simulator (issue 3): stereo geometry, ground-truth consistency, laser
-stripes, faults, determinism, parameter errors. Small images and few frames keep it fast."""
+"""Synthetic scan simulator (issue 3).
+
+Stereo geometry, ground-truth consistency, laser stripes, faults, determinism, parameter errors.
+Small images and few frames keep it fast.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,8 @@
-"""SURF (loopmodel.loop.surf) against known truth: blob positions and scales, rotation
-invariance of the descriptor, relocalization on a rendered plane, and the vocabulary."""
+"""SURF (loopmodel.loop.surf) against known truth.
+
+Blob positions and scales, rotation invariance of the descriptor, relocalization on a rendered
+plane, and the vocabulary.
+"""
 
 from __future__ import annotations
 
@@ -45,10 +48,12 @@ def _texture(seed: int, h: int = 480, w: int = 640) -> np.ndarray:
 
 
 def test_blob_positions_and_scales() -> None:
-    """Every blob is found; the strongest keypoint within 3 px of a blob lies within 0.1 px
-    of its centre (measured: at most 0.04 px), and its scale s is a fixed multiple of the
-    blob's sigma (pre-smoothing included): measured 0.70-0.78 over sigma 2-8 px, i.e. the
-    detector is scale-covariant to within +-6 %."""
+    """Every blob is found.
+
+    The strongest keypoint within 3 px of a blob lies within 0.1 px of its centre (measured: at most
+    0.04 px), and its scale s is a fixed multiple of the blob's sigma (pre-smoothing included):
+    measured 0.70-0.78 over sigma 2-8 px, i.e. the detector is scale-covariant to within +-6 %.
+    """
     img, truth = _blobs()
     s = Surf()
     kp = s.detect(img)
@@ -148,8 +153,10 @@ def test_laplacian_sign_restricts_matches() -> None:
 
 @pytest.mark.parametrize("extended", [False, True])
 def test_vocabulary_on_surf_descriptors(extended: bool) -> None:
-    """Float SURF descriptors train a vocabulary; an image's words are closer to its own
-    slightly rotated copy than to an unrelated texture."""
+    """Float SURF descriptors train a vocabulary.
+
+    An image's words are closer to its own slightly rotated copy than to an unrelated texture.
+    """
     s = Surf(max_features=500, extended=extended)
     a = s.detect_and_describe(_texture(11))[1]
     m = cv2.getRotationMatrix2D((319.5, 239.5), 8.0, 1.0)

@@ -16,7 +16,7 @@ from loopmodel.loop.features import detect_and_describe, make_extractor
 from loopmodel.loop.vocabulary import Vocabulary, shipped_path, shipped_vocabulary
 
 
-@pytest.mark.parametrize("kind", ["orb", "sift"])
+@pytest.mark.parametrize("kind", ["orb", "sift", "surf"])
 def test_shipped_vocabulary_loads_with_provenance(kind: str) -> None:
     voc = Vocabulary.load(shipped_path(kind))
     assert voc.info["kind"] == kind

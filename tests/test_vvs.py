@@ -1,5 +1,8 @@
-"""Virtual visual servoing (seed 002): interaction matrices vs finite differences, conics of
-projected lines, robust N-camera pose, rig calibration."""
+"""Virtual visual servoing (seed 002).
+
+Interaction matrices vs finite differences, conics of projected lines, robust N-camera pose, rig
+calibration.
+"""
 
 from __future__ import annotations
 
@@ -375,8 +378,11 @@ def test_cli_vvs(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
 
 
 def test_line_term_plugs_into_the_shared_lm_solver(rng: np.random.Generator) -> None:
-    """One core: the front end's LM solver and the VVS control law reach the same pose
-    with the same point + point-to-conic terms."""
+    """One core.
+
+    The front end's LM solver and the VVS control law reach the same pose with the same point +
+    point-to-conic terms.
+    """
     from loopmodel.pose import PoseOptions, refine_pose
 
     rig = _rig(2, 1.0)

@@ -1,5 +1,8 @@
-"""Benchmark `depth`: the seed-003 simulation (noiseless, gains of eq. 49) and the observer on
-KLT tracks of the real KITTI clip against stereo depths."""
+"""Benchmark `depth`.
+
+The seed-003 simulation (noiseless, gains of eq. 49) and the observer on KLT tracks of the real
+KITTI clip against stereo depths.
+"""
 
 from __future__ import annotations
 

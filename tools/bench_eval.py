@@ -1,5 +1,7 @@
-"""Benchmark of ``loopmodel eval``: KITTI 00 (4,541 poses, ORB-SLAM2 estimate against ground
-truth) evaluated end to end with every picture, report and metrics file.
+"""Benchmark of ``loopmodel eval``.
+
+KITTI 00 (4,541 poses, ORB-SLAM2 estimate against ground truth) evaluated end to end with every
+picture, report and metrics file.
 
 Two timings: ``eval_s`` for a results folder (online = the ORB estimate, final = the same
 estimate, keyframes every 5th pose, two loop-closure events) against the ground-truth file,

@@ -109,8 +109,11 @@ def _synthetic_sample() -> Path | None:
 
 
 def _run_synthetic(path: Path, quick: bool) -> dict[str, Any]:
-    """The synthetic hand-held sample (orbit): drift before any loop closure and the largest
-    pose error of a frame reported OK (world frames aligned at the first frame)."""
+    """The synthetic hand-held sample (orbit).
+
+    Drift before any loop closure and the largest pose error of a frame reported OK (world frames
+    aligned at the first frame).
+    """
     from loopmodel.config import load_config
     from loopmodel.frontend import FrontEnd
     from loopmodel.io.sequence import open_sequence

@@ -1,6 +1,7 @@
-"""Benchmark ``mono_depth``: does ``frontend.mono_depth: observer`` (seed-003 depths of
-corners without a stereo match, from the tracker's own poses) help the stereo front end on
-the real KITTI clip?
+"""Benchmark ``mono_depth``.
+
+Does ``frontend.mono_depth: observer`` (seed-003 depths of corners without a stereo match, from the
+tracker's own poses) help the stereo front end on the real KITTI clip?
 
 Conditions: the clip as recorded, and the clip with the left part of every right image
 blanked (``mask`` = fraction of the width; a wall or a narrow right view: left-image

@@ -1,5 +1,7 @@
-"""Benchmark ``pipeline``: the whole pipeline (``loopmodel run``) on the real KITTI clip and
-on the simulated orbit scan, as a user runs it.
+"""Benchmark ``pipeline``.
+
+The whole pipeline (``loopmodel run``) on the real KITTI clip and on the simulated orbit scan, as a
+user runs it.
 
 Keys (BENCHMARKS.md): ``kitti_fps`` (frames / time spent in the pipeline's per-frame work:
 front end, loop stage, back end, live mapping; image decoding excluded), ``kitti_frame_ms_p95``,

@@ -5,9 +5,11 @@ MCAP bag (right stamps 2 ms late, two right images missing): that one is compare
 folder without the two pairs the reader must drop (``max_pose_diff_ros2_mcap_unsync``), and
 with the full folder at the common stamps (``..._vs_full_folder``).
 
-``read_ms_per_frame_<format>``: median over 3 passes of the time to stream every stereo pair
-(decoded, as the pipeline gets them), per pair; ``read_overhead_ms_<format>`` is that minus
-the folder reader's in the same run (goal <= 2 ms). ``max_pose_diff_<format>``: the largest
+``read_ms_per_frame_<format>``: median over 3 passes (interleaved over the formats) of the
+time to stream every stereo pair (decoded, as the pipeline gets them), per pair, and
+``read_cpu_ms_per_frame_<format>`` the reading thread's CPU time; ``read_overhead_ms_<format>``
+(``read_cpu_overhead_ms_<format>``) is that minus the folder reader's in the same run (goal
+<= 2 ms). ``max_pose_diff_<format>``: the largest
 difference of the final trajectory of ``loopmodel run`` (``configs/kitti.yaml``) on the
 format against the run on the folder (metres for translation, radians for rotation; 0 for
 lossless encodings). ``peak_rss_mib``: the peak resident memory of a child process that
@@ -69,17 +71,15 @@ def write_bag(
     return dst
 
 
-def read_ms_per_frame(path: Path, passes: int = 3) -> float:
-    """Median over passes of the stream time per stereo pair (ms)."""
+def read_ms_per_frame(path: Path) -> tuple[float, float]:
+    """Wall and CPU time (ms) per stereo pair of one pass streaming every pair (the CPU time
+    of the reading thread is what a loaded machine disturbs least)."""
     from loopmodel.io.sequence import open_sequence
 
     seq = open_sequence(path)
-    times = []
-    for _ in range(passes):
-        t0 = time.perf_counter()
-        n = sum(1 for _f in seq.frames())
-        times.append((time.perf_counter() - t0) * 1e3 / max(n, 1))
-    return statistics.median(times)
+    t0, c0 = time.perf_counter(), time.thread_time()
+    n = max(sum(1 for _f in seq.frames()), 1)
+    return (time.perf_counter() - t0) * 1e3 / n, (time.thread_time() - c0) * 1e3 / n
 
 
 def final_trajectory(path: Path, out: Path, name: str, max_frames: int | None) -> object:
@@ -134,12 +134,15 @@ def folder_without(src: Path, dst: Path, drop: tuple[int, ...]) -> Path:
     return dst
 
 
+# VmHWM (the peak of this process's own memory map; ru_maxrss would carry the parent's peak
+# across fork and exec)
 _CHILD = """
-import resource, sys
+import sys
 sys.path.insert(0, {root!r})
 from loopmodel.io.sequence import open_sequence
 n = sum(1 for _ in open_sequence({path!r}).frames())
-print(n, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+hwm = next(x for x in open("/proc/self/status") if x.startswith("VmHWM:")).split()[1]
+print(n, int(hwm) / 1024.0)
 """
 
 
@@ -168,9 +171,19 @@ def run(quick: bool = False) -> dict:
         uname, ukind, uenc, uoff, udrop = UNSYNC
         udrop = (3, 4) if quick else udrop
         paths[uname] = write_bag(src, _bag_path(tmp, uname, ukind), ukind, uenc, offset_ns=uoff, drop=udrop)
-        for name, p in paths.items():
-            result[f"read_ms_per_frame_{name}"] = round(read_ms_per_frame(p, 1 if quick else 3), 3)
+        # passes interleaved over the formats, so that a change of machine load hits all alike
+        runs: dict[str, list[tuple[float, float]]] = {name: [] for name in paths}
+        for _ in range(1 if quick else 3):
+            for name, p in paths.items():
+                runs[name].append(read_ms_per_frame(p))
+        for name in paths:
+            result[f"read_ms_per_frame_{name}"] = round(statistics.median(w for w, _c in runs[name]), 3)
+            result[f"read_cpu_ms_per_frame_{name}"] = round(statistics.median(c for _w, c in runs[name]), 3)
         for name in (*FORMATS, uname):
+            result[f"read_cpu_overhead_ms_{name}"] = round(
+                float(result[f"read_cpu_ms_per_frame_{name}"]) - float(result["read_cpu_ms_per_frame_folder"]),  # type: ignore[arg-type]
+                3,
+            )
             result[f"read_overhead_ms_{name}"] = round(
                 float(result[f"read_ms_per_frame_{name}"]) - float(result["read_ms_per_frame_folder"]),
                 3,  # type: ignore[arg-type]

@@ -1,6 +1,8 @@
-"""Benchmark ``sim-loop``: loop closing and meshing on the simulator's realistic scans
-(issue 17): the ``orbit`` (600 frames) and the ``modeler`` scan (seed 004's 4 sweeps over 90
-deg, a loop closure, a second orbit; 3,000 frames), plus the ``browse`` scan (no revisit).
+"""Benchmark ``sim-loop``.
+
+Loop closing and meshing on the simulator's realistic scans (issue 17): the ``orbit`` (600 frames)
+and the ``modeler`` scan (seed 004's 4 sweeps over 90 deg, a loop closure, a second orbit; 3,000
+frames), plus the ``browse`` scan (no revisit).
 
 ``loopmodel.pipeline.run_pipeline`` runs each sequence with the pipeline's own thresholds:
 front end, loop-closing stage, iSAM2 back end, corrections fed back to the tracker, laser
@@ -94,8 +96,10 @@ class _Strided:
 
 
 def run_sequence(path: Path, config: Config, max_frames: int | None = None, stride: int = 1) -> dict[str, Any]:
-    """The pipeline (front end, loop stage, iSAM2 back end) over one sequence (every
-    ``stride``-th frame); dead-reckoning and final trajectories, loop events."""
+    """The pipeline (front end, loop stage, iSAM2 back end) over one sequence (every ``stride``-th frame).
+
+    Dead-reckoning and final trajectories, loop events.
+    """
     import tempfile
 
     from loopmodel.io.sequence import open_sequence

@@ -11,9 +11,9 @@ all three detectors keep the same number of them, their strongest: at most
 ``N_FEATURES`` and no more than the detector with fewest there offers (SIFT's contrast
 threshold leaves fewer in small images).
 
-- Repeatability (Mikolajczyk & Schmid's point form): a keypoint of image 1 is repeated when a keypoint of image 2 lies within ``EPS_PX`` of
-  its mapped position (measured in image 1's pixels) with a scale ratio within ``SCALE_TOL``
-  of the homography's; ``repeated / min(n1, n2)``.
+- Repeatability (Mikolajczyk & Schmid's point form): a keypoint of image 1 is repeated
+  when a keypoint of image 2 lies within ``EPS_PX`` of its mapped position (measured in
+  image 1's pixels) with a scale ratio within ``SCALE_TOL`` of the homography's; ``repeated / min(n1, n2)``.
 - Matching score: the pipeline's matcher (:func:`loopmodel.loop.features.match_descriptors`,
   ratio 0.8, mutual) between the two images; correct matches (same geometric test) over
   ``min(n1, n2)``.
@@ -163,7 +163,9 @@ def _inside(xy: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return (xy[:, 0] >= m) & (xy[:, 0] <= w - 1 - m) & (xy[:, 1] >= m) & (xy[:, 1] <= h - 1 - m)
 
 
-def common(det1: Detection, det2: Detection, H: np.ndarray, shape1: tuple[int, ...], shape2: tuple[int, ...]) -> tuple[Detection, Detection]:
+def common(
+    det1: Detection, det2: Detection, H: np.ndarray, shape1: tuple[int, ...], shape2: tuple[int, ...]
+) -> tuple[Detection, Detection]:
     """The keypoints of both detections that lie in the common region (order kept)."""
     c1 = _inside(det1[0], shape1) & _inside(_apply(H, det1[0]), shape2)
     c2 = _inside(det2[0], shape2) & _inside(_apply(np.linalg.inv(H), det2[0]), shape1)

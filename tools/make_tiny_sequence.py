@@ -1,7 +1,9 @@
-"""Write the bundled tiny KITTI-layout sequence (``datasets/tiny_kitti``): a textured
-fronto-parallel plane 2 m away seen by a rectified stereo pair moving sideways, so the
-disparity (fx*b/z = 6 px) and the poses are known exactly. Used by `make demo` when
-``../shared`` is absent. Deterministic (seeded)."""
+"""Write the bundled tiny KITTI-layout sequence (``datasets/tiny_kitti``).
+
+A textured fronto-parallel plane 2 m away seen by a rectified stereo pair moving sideways, so the
+disparity (fx*b/z = 6 px) and the poses are known exactly. Used by `make demo` when ``../shared`` is
+absent. Deterministic (seeded).
+"""
 
 from __future__ import annotations
 

@@ -142,8 +142,10 @@ class Marker:
         return acc / self.area
 
     def contour(self, n_edge: int = 64, n_circle: int = 256) -> ContourSamples:
-        """Trapezoid-rule samples of all boundaries: ``n_edge`` sub-intervals per polygon edge,
-        ``n_circle`` points per circle."""
+        """Trapezoid-rule samples of all boundaries.
+
+        ``n_edge`` sub-intervals per polygon edge, ``n_circle`` points per circle.
+        """
         pts, tans, wts = [], [], []
         t = np.linspace(0.0, 1.0, n_edge + 1)
         w_edge = np.full(n_edge + 1, 1.0 / n_edge)
@@ -164,8 +166,10 @@ class Marker:
         return ContourSamples(np.concatenate(pts), np.concatenate(tans), np.concatenate(wts))
 
     def outlines(self, n_circle: int = 256) -> list[tuple[F64, bool]]:
-        """Every boundary as a closed polygon (vertices N x 2, metres) with its hole flag;
-        circles become inscribed ``n_circle``-gons."""
+        """Every boundary as a closed polygon (vertices N x 2, metres) with its hole flag.
+
+        Circles become inscribed ``n_circle``-gons.
+        """
         return [(s.outline(n_circle), s.hole) for s in self.shapes]
 
 

@@ -60,8 +60,11 @@ class MonteCarloResult:
 def gauss_newton(
     renderer: BlurredRenderer, data: F64, start: F64, tol: F64, max_iter: int = 20
 ) -> tuple[F64, int]:
-    """Least-squares fit of ``A`` to the band samples ``data``; ``tol`` (4,) per-parameter step
-    size below which it stops. Returns the estimate and the number of iterations."""
+    """Least-squares fit of ``A`` to the band samples ``data``.
+
+    ``tol`` (4,) per-parameter step size below which it stops. Returns the estimate and the number
+    of iterations.
+    """
     A = np.array(start, dtype=float)
     for it in range(1, max_iter + 1):
         model, jac = renderer.render(A)

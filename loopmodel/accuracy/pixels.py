@@ -63,8 +63,10 @@ def fisher_pixels(
     n_phase: int = 4,
     rng: np.random.Generator | None = None,
 ) -> F64:
-    """(4, 4) Fisher information of ``A`` from pixels of pitch ``pixel_px`` for one camera
-    (``view`` with n = 1); ``noise`` = N0/2 (contrast^2 px^2)."""
+    """(4, 4) Fisher information of ``A`` from pixels of pitch ``pixel_px`` for one camera (``view`` with n = 1).
+
+    ``noise`` = N0/2 (contrast^2 px^2).
+    """
     rng = np.random.default_rng(0) if rng is None else rng
     p, sg = float(pixel_px), float(psf_sigma_px)
     step = min(p, sg if sg > 0 else p) / (4.0 if sg > 0 else 16.0)

@@ -151,9 +151,12 @@ def image_tangents(views: Views, points: ArrayLike, tangents: ArrayLike) -> F64:
 
 
 def normal_flows(views: Views, points: ArrayLike, tangents: ArrayLike) -> tuple[F64, F64]:
-    """``(c, speed)``: ``c`` (n, M, 4) = ``adot x Q_i`` = ``|adot| (n.Q_i)`` (up to one common
-    sign) and ``speed`` (n, M) = ``|adot|``, for marker points with plane tangents dP/dt; the
-    cheap form of :func:`flows` and :func:`image_tangents` used by the contour integral."""
+    """``(c, speed)``.
+
+    ``c`` (n, M, 4) = ``adot x Q_i`` = ``|adot| (n.Q_i)`` (up to one common sign) and ``speed`` (n,
+    M) = ``|adot|``, for marker points with plane tangents dP/dt; the cheap form of :func:`flows`
+    and :func:`image_tangents` used by the contour integral.
+    """
     x1, x2, x3 = camera_coords(views, points)
     T = _lift(tangents).reshape(-1, 3)
     F = views.focal_px

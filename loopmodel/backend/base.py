@@ -78,8 +78,11 @@ class Backend(Protocol):
         ...
 
     def final_estimate(self, refine: RefineConfig | None) -> BackendEstimate:
-        """The end-of-run solution with landmarks: after the refinement ``refine`` asks for
-        where the back end has one (None: none, e.g. after an interruption)."""
+        """The end-of-run solution with landmarks.
+
+        After the refinement ``refine`` asks for where the back end has one (None: none, e.g. after
+        an interruption).
+        """
         ...
 
     def metrics(self) -> dict[str, Any]:

@@ -1,5 +1,8 @@
-"""The back end of a front-end-only run (``backend.kind: none``): it keeps every keyframe at
-the pose the front end gave it and estimates nothing (no landmarks, no loop constraints)."""
+"""The back end of a front-end-only run (``backend.kind: none``).
+
+It keeps every keyframe at the pose the front end gave it and estimates nothing (no landmarks, no
+loop constraints).
+"""
 
 from __future__ import annotations
 

@@ -670,10 +670,11 @@ class GivensEstimator:
 
     # ------------------------------------------------- residuals and redundancy
     def residual_rows(self, ids: Sequence[int], leverage: bool = True) -> tuple[F64, F64, list[int]]:
-        """For the rows of the observations ``ids``, concatenated: the whitened residuals
-        v = a x̂ - l, the leverages a Q_xx aᵀ = ||R⁻ᵀ aᵀ||² (Gruen's unit observation vector
-        method: forward substitutions with the rows, never the full cofactor matrix), and
-        the number of rows of each observation.
+        """For the rows of the observations ``ids``, concatenated.
+
+        The whitened residuals v = a x̂ - l, the leverages a Q_xx aᵀ = ||R⁻ᵀ aᵀ||² (Gruen's unit
+        observation vector method: forward substitutions with the rows, never the full cofactor
+        matrix), and the number of rows of each observation.
 
         ``leverage=False`` skips the forward substitutions (the second array is then zeros).
         """

@@ -185,8 +185,10 @@ class SequentialBundle:
     def add_image_point(
         self, fid: Hashable, pid: Hashable, uv_px: ArrayLike, sigma_px: float | None = None, right: bool = False
     ) -> int:
-        """Insert one image point (u, v pixels) of ``pid`` in ``fid`` (its right camera when
-        ``right``); returns its id."""
+        """Insert one image point (u, v pixels) of ``pid`` in ``fid`` (its right camera when ``right``).
+
+        Returns its id.
+        """
         if fid not in self.frames:
             raise EstimationError(f"unknown frame {fid!r}")
         if pid not in self.points:
@@ -347,9 +349,11 @@ class GivensScreen:
     def __init__(
         self, camera: CentralCamera, config: GivensConfig, right_from_left: ArrayLike | None = None
     ) -> None:
-        """The screen configured by a :class:`loopmodel.config.GivensConfig` section; with
-        ``right_from_left`` (4x4, rectified rig) the right-image coordinates of stereo
-        observations are screened too."""
+        """The screen configured by a :class:`loopmodel.config.GivensConfig` section.
+
+        With ``right_from_left`` (4x4, rectified rig) the right-image coordinates of stereo
+        observations are screened too.
+        """
         self.bundle = SequentialBundle(camera, sigma_px=config.sigma_px)
         self.bundle.relin_px = config.relin_px
         if right_from_left is not None:

@@ -314,9 +314,11 @@ class Isam2Backend:
         return p
 
     def _create_landmarks(self, candidates: list[int], graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> int:
-        """Move pending landmarks with enough observations into the graph. Each is initialised
-        from its stereo triangulation of largest disparity; observations farther than
-        ``init_gate_px`` from that point are dropped first. Returns how many were created."""
+        """Move pending landmarks with enough observations into the graph.
+
+        Each is initialised from its stereo triangulation of largest disparity; observations farther
+        than ``init_gate_px`` from that point are dropped first. Returns how many were created.
+        """
         cfg = self.config
         todo = []
         for lm in candidates:
@@ -549,10 +551,12 @@ class Isam2Backend:
             self._slot[fid] = slot
 
     def _ordering_groups(self, n_keys: int) -> gtsam.KeyGroupMap | None:
-        """Elimination groups for an update whose affected set has at least ``n_keys``
-        variables: the newest ``ordering_window_kf`` poses last, oldest to newest, the rest
-        (landmarks, older poses) first. CCOLAMD needs every group below the number of
-        variables it orders, hence the window and the bound."""
+        """Elimination groups for an update whose affected set has at least ``n_keys`` variables.
+
+        The newest ``ordering_window_kf`` poses last, oldest to newest, the rest (landmarks, older
+        poses) first. CCOLAMD needs every group below the number of variables it orders, hence the
+        window and the bound.
+        """
         window = min(self.config.ordering_window_kf, n_keys - 1, len(self._kf_order))
         if window <= 0:
             return None
@@ -562,8 +566,10 @@ class Isam2Backend:
         return groups
 
     def _recover(self, exc: RuntimeError) -> None:
-        """Rebuild iSAM2 after an indeterminate system: without the offending landmark, or with
-        a loose prior on an undetermined keyframe pose."""
+        """Rebuild iSAM2 after an indeterminate system.
+
+        Without the offending landmark, or with a loose prior on an undetermined keyframe pose.
+        """
         message = str(exc)
         for _attempt in range(20):
             match = _SYMBOL_RE.search(message)
@@ -654,8 +660,10 @@ class Isam2Backend:
         return slots
 
     def remove_observations(self, observations: Iterable[Observation]) -> int:
-        """Remove observations ``(keyframe_id, landmark_id)`` (blunders) with
-        ``removeFactorIndices``; pending ones are just forgotten. Returns the count removed."""
+        """Remove observations ``(keyframe_id, landmark_id)`` (blunders) with ``removeFactorIndices``.
+
+        Pending ones are just forgotten. Returns the count removed.
+        """
         fids = []
         n = 0
         for kf_id, lm_id in observations:
@@ -711,8 +719,10 @@ class Isam2Backend:
         return np.array([uv[0], np.nan, uv[1]])
 
     def refine(self, max_iterations: int = 10) -> int:
-        """Extra iSAM2 iterations without new factors (e.g. at the end of a run) until no
-        variable needs relinearising; returns the iterations run."""
+        """Extra iSAM2 iterations without new factors (e.g. at the end of a run) until no variable needs relinearising.
+
+        Returns the iterations run.
+        """
         for it in range(max_iterations):
             result = self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
             if result.getVariablesRelinearized() == 0:
@@ -733,9 +743,11 @@ class Isam2Backend:
 
     @staticmethod
     def robust_error_px(residuals_px: F64, sigma_px: float, huber_k: float) -> float:
-        """Huber-robust RMS of image residuals (pixels): ``sigma * sqrt(mean(2 rho(r / sigma)))``
-        with ``rho`` Huber's loss at ``huber_k`` (the plain RMS when every residual is within
-        ``huber_k`` sigmas; Gaussian when ``huber_k`` <= 0)."""
+        """Huber-robust RMS of image residuals (pixels).
+
+        ``sigma * sqrt(mean(2 rho(r / sigma)))`` with ``rho`` Huber's loss at ``huber_k`` (the plain
+        RMS when every residual is within ``huber_k`` sigmas; Gaussian when ``huber_k`` <= 0).
+        """
         r = np.abs(np.asarray(residuals_px, float)) / sigma_px
         r = r[np.isfinite(r)]
         if r.size == 0:
@@ -851,13 +863,19 @@ class Isam2Backend:
         return self.batch_refine(refine.pixel_sigma_px, refine.huber_k, refine.max_iterations, refine.min_gain_sd)
 
     def metrics(self) -> dict[str, Any]:
-        """Factor and landmark counts of the graph; the noise and outcome of the final batch
-        refinement (:attr:`refine_info`: ``pixel_sigma_px`` and where it came from)."""
+        """Factor and landmark counts of the graph.
+
+        The noise and outcome of the final batch refinement (:attr:`refine_info`: ``pixel_sigma_px``
+        and where it came from).
+        """
         return {"isam2_factors": self.num_factors, "isam2_landmarks": self.num_landmarks, **self.refine_info}
 
     def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
-        """Add ``kf_a_from_kf_b`` (4x4) as a robust between-factor; ``sigmas`` (rad x3, m x3)
-        default to the configured loop sigmas. Returns the constraint's factor id."""
+        """Add ``kf_a_from_kf_b`` (4x4) as a robust between-factor.
+
+        ``sigmas`` (rad x3, m x3) default to the configured loop sigmas. Returns the constraint's
+        factor id.
+        """
         for k in (kf_a, kf_b):
             if k not in self._kf_seq:
                 raise EstimationError(f"loop constraint names keyframe {k}, which is not in the back end")

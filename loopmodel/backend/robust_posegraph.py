@@ -200,8 +200,10 @@ def _factor_graph(
     keep: NDArray[np.bool_] | None = None,
     cauchy_k: float | None = None,
 ) -> tuple[gtsam.NonlinearFactorGraph, list[int]]:
-    """GTSAM graph of the (kept) edges plus a prior on the first pose; returns it and the
-    edge index of every between-factor (the prior is factor 0)."""
+    """GTSAM graph of the (kept) edges plus a prior on the first pose.
+
+    Returns it and the edge index of every between-factor (the prior is factor 0).
+    """
     g = gtsam.NonlinearFactorGraph()
     first = int(min(graph.world_from_pose))
     n = 3 if graph.dim == 2 else 6
@@ -275,13 +277,14 @@ def robust_optimize(
     max_iterations: int = 100,
     start: str = "cauchy",
 ) -> PoseGraphResult:
-    """GNC over Levenberg-Marquardt with the odometry edges as known inliers (``loss``:
-    ``tls`` or ``gm``). Loop edges with a final weight below 0.5 are rejected; the poses
-    are then re-solved by LM over the kept edges (GNC's last iterate has the TLS weights,
-    which are 0 or 1 at convergence, so this only polishes). ``start``: GNC's first,
-    convex step weighs every loop 1 (``ls``), only the odometry (``odometry``), or the
-    loops that agree with a Cauchy-kernel LM solution, which is also the initial estimate
-    (``cauchy``)."""
+    """GNC over Levenberg-Marquardt with the odometry edges as known inliers (``loss``: ``tls`` or ``gm``).
+
+    Loop edges with a final weight below 0.5 are rejected; the poses are then re-solved by LM over
+    the kept edges (GNC's last iterate has the TLS weights, which are 0 or 1 at convergence, so this
+    only polishes). ``start``: GNC's first, convex step weighs every loop 1 (``ls``), only the
+    odometry (``odometry``), or the loops that agree with a Cauchy-kernel LM solution, which is also
+    the initial estimate (``cauchy``).
+    """
     if start not in ("ls", "odometry", "cauchy"):
         raise InputError("robust_optimize", f"unknown start {start!r} (expected ls, odometry or cauchy)")
     if loss not in ("tls", "gm"):

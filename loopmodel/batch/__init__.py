@@ -1,5 +1,7 @@
-"""Batch processing: many (sequence, configuration) runs on Dask distributed, each into a
-results folder keyed by its identity, evaluated against ground truth and summarised.
+"""Batch processing.
+
+Many (sequence, configuration) runs on Dask distributed, each into a results folder keyed by its
+identity, evaluated against ground truth and summarised.
 
 ``plan`` parses plans into tasks, ``execute`` runs one task on a worker, ``runner`` submits
 and follows tasks, ``summary`` writes the tables and plots. Dask is imported only by

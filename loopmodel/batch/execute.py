@@ -4,7 +4,8 @@ against the sequence's ground truth, record time and peak memory, rename it into
 Tasks run in the worker process itself, not in a subprocess per task: a fresh Python with
 loopmodel's imports (open3d, gtsam, cv2) costs about 2.5 s per task on this machine (measured
 with ``/usr/bin/time python -c "import loopmodel.pipeline, ..."``: 2.2-2.6 s), five times the
-0.5 s per-task overhead budget, while the worker imports them once (:class:`BatchWorkerPlugin`).
+0.5 s per-task overhead budget, while the worker imports them once (:func:`warm_up`, run by
+``plugin.BatchWorkerPlugin``).
 Isolation from crashes comes from Dask's nanny instead: a worker that dies (segfault, out of
 memory, SIGKILL) is restarted and its task rescheduled, at most
 ``distributed.scheduler.allowed-failures`` times. Peak memory per task is the worker's peak
@@ -96,25 +97,6 @@ def warm_up(threads: int = 1) -> dict[str, Any]:
     return pinned
 
 
-try:
-    from distributed.diagnostics.plugin import WorkerPlugin
-except ImportError:  # pragma: no cover - the batch extra is not installed
-    WorkerPlugin = object  # type: ignore[misc,assignment]
-
-
-class BatchWorkerPlugin(WorkerPlugin):  # type: ignore[misc,valid-type]
-    """Runs :func:`warm_up` on every worker, also on those that join or restart later."""
-
-    name = "loopmodel-batch"
-
-    def __init__(self, threads: int = 1) -> None:
-        self.threads = threads
-
-    def setup(self, worker: Any) -> None:
-        """Called by Dask on each worker."""
-        warm_up(self.threads)
-
-
 def run_sequence(source: str | Path, config: Any, out_dir: Path, name: str, max_frames: int | None) -> Path:
     """Run the pipeline on ``source`` into ``out_dir/name``; the one call into the run machinery.
 
@@ -202,7 +184,7 @@ def run_task(spec: TaskSpec) -> dict[str, Any]:
             ev = evaluate_folder(tmp, spec.sequence_path, cfg)
         except LoopmodelError as exc:  # the run stands; say why it has no numbers
             ev = None
-            record["eval_error"] = one_line_error(exc)
+            record["eval_error"] = one_line_error(exc).replace(str(tmp), str(final))
         record["eval_s"] = time.perf_counter() - t_eval
         run_metrics = json.loads((tmp / "metrics.json").read_text())
         record.update(
@@ -231,7 +213,8 @@ def run_task(spec: TaskSpec) -> dict[str, Any]:
         return read_record(final) or record
     except Exception as exc:
         shutil.rmtree(tmp, ignore_errors=True)
-        record.update({"status": "failed", "error": one_line_error(exc), "task_s": time.perf_counter() - t0})
+        error = one_line_error(exc).replace(str(tmp), str(final))
+        record.update({"status": "failed", "error": error, "task_s": time.perf_counter() - t0})
         logger.warning("task %s failed: %s", spec.task_id, record["error"])
         write_text_atomic(Path(spec.out_dir) / FAILED_DIR / f"{spec.task_id}.json", json.dumps(record, indent=2) + "\n")
         return record

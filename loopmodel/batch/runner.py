@@ -301,10 +301,14 @@ def open_client(
         raise InputError(
             "--scheduler", "Dask is not installed: pip install 'loopmodel[batch]' (dask[distributed])"
         ) from None
-    from loopmodel.batch.execute import THREAD_ENV, BatchWorkerPlugin
+    from loopmodel.batch.execute import THREAD_ENV
+    from loopmodel.batch.plugin import BatchWorkerPlugin
 
     if logging.getLogger().getEffectiveLevel() > logging.INFO:  # Dask's own INFO lines only with -v
         logging.getLogger("distributed").setLevel(logging.WARNING)
+        # "worker process still alive after 4 s, killing" at the end: the workers' interpreter
+        # teardown (open3d's destructors) is slow, and every result is in by then
+        logging.getLogger("distributed.nanny").setLevel(logging.ERROR)
     if scheduler == "local":
         n = workers or os.cpu_count() or 1
         env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
@@ -336,10 +340,27 @@ def open_client(
             client.wait_for_workers(workers, timeout=timeout_s)
         client.register_plugin(BatchWorkerPlugin(threads_per_task))
         yield client
+    except KeyboardInterrupt:
+        if cluster is not None:  # their running tasks are discarded anyway: no slow, noisy shutdown
+            _kill_local_workers(cluster)
+        raise
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _kill_local_workers(cluster: Any) -> None:
+    """SIGKILL the worker processes of a LocalCluster (their nannies told not to restart them)."""
+    import signal
+
+    for nanny in list(getattr(cluster, "workers", {}).values()):
+        with contextlib.suppress(AttributeError):
+            nanny.auto_restart = False
+        pid = getattr(getattr(nanny, "process", None), "pid", None)
+        if isinstance(pid, int):
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
 
 
 def _has_bokeh() -> bool:

@@ -4,13 +4,14 @@ variant across sequences, failures) and plots (ATE per variant across sequences,
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import statistics
 from pathlib import Path
 from typing import Any
 
-from loopmodel.batch.execute import read_record
+from loopmodel.batch.execute import FAILED_DIR, TASK_FILE, read_record
 from loopmodel.batch.plan import TaskSpec
 from loopmodel.batch.runner import running_tmp, task_status
 from loopmodel.eval import report as rep
@@ -19,6 +20,7 @@ from loopmodel.io.atomic import write_bytes_atomic, write_text_atomic
 TASK_COLUMNS = ("task", "sequence", "variant", "status", "error", "task_s", "run_s", "peak_rss_mib", "frames", "fps")
 PLOT_ATE = "ate_by_variant.png"
 PLOT_BOXES = "boxes_by_variant.png"
+SUMMARY_KEY_FILE = ".summary_inputs"
 BOX_METRICS = ("ate_rmse_m", "rpe_frames_rmse_m", "run_s", "peak_rss_mib")
 
 
@@ -67,9 +69,40 @@ def _by_variant(head: list[str], rows: list[list[Any]], metric: str) -> dict[str
     return out
 
 
+def _inputs_key(tasks: list[TaskSpec], plots: bool) -> str:
+    """Fingerprint of what a summary is made of: each task's record file (name, size, time)."""
+    h = hashlib.sha256(f"{plots}".encode())
+    for t in tasks:
+        for f in (t.folder / TASK_FILE, Path(t.out_dir) / FAILED_DIR / f"{t.task_id}.json"):
+            try:
+                st = f.stat()
+            except OSError:
+                h.update(f"{t.task_id}:-;".encode())
+            else:
+                h.update(f"{t.task_id}:{f.name}:{st.st_size}:{st.st_mtime_ns};".encode())
+    return h.hexdigest()
+
+
 def write_summary(tasks: list[TaskSpec], out_dir: str | Path, plots: bool = True) -> dict[str, Path]:
-    """Write ``summary.csv``, ``summary.md`` and the plots into ``out_dir``; returns their paths."""
+    """Write ``summary.csv``, ``summary.md`` and the plots into ``out_dir``; returns their paths.
+
+    Nothing is redrawn when the tasks' records are unchanged since the last summary (a re-run
+    of a finished batch).
+    """
     out = Path(out_dir)
+    key = _inputs_key(tasks, plots)
+    key_file = out / SUMMARY_KEY_FILE
+    existing = {"csv": out / "summary.csv", "md": out / "summary.md"}
+    if all(p.is_file() for p in existing.values()) and key_file.is_file() and key_file.read_text().strip() == key:
+        if plots and (out / PLOT_ATE).is_file():
+            existing.update({"ate_plot": out / PLOT_ATE, "box_plot": out / PLOT_BOXES})
+        return existing
+    paths = _write_summary(tasks, out, plots)
+    write_text_atomic(key_file, key + "\n")
+    return paths
+
+
+def _write_summary(tasks: list[TaskSpec], out: Path, plots: bool) -> dict[str, Path]:
     head, rows = summary_table(tasks)
     paths = {"csv": write_text_atomic(out / "summary.csv", rep.csv_text(head, rows))}
     status = _col(head, rows, "status")

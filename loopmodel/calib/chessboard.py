@@ -107,7 +107,7 @@ def detect_corners(
         subs = sorted(set(subs) - {board}, key=lambda g: -g[0] * g[1])
         grids += subs
     for grid in grids:
-        for cand in _candidates(small):
+        for cand in _candidates(small) if allow_partial else [small]:
             for g in (grid, grid[::-1]) if grid[0] != grid[1] else (grid,):
                 c = _find(cand, g)
                 if c is None:

@@ -71,8 +71,10 @@ class LaserPlaneResult:
     inliers: NDArray[np.bool_] = field(repr=False, default_factory=lambda: np.zeros(0, dtype=bool))
 
     def compare(self, planes: dict[str, LightPlane]) -> list[dict[str, float | str]]:
-        """Each candidate plane's RMS distance (mm) to this fit's inlier points and angle (deg)
-        between normals; sorted best first."""
+        """Each candidate plane's RMS distance (mm) to this fit's inlier points and angle (deg) between normals.
+
+        Sorted best first.
+        """
         P = self.points_in_cam_m[self.inliers]
         rows: list[dict[str, float | str]] = []
         for name, pl in planes.items():

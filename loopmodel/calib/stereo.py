@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from loopmodel.calib.chessboard import Corners, detect_in_file
 from loopmodel.errors import InputError
+from loopmodel.io.images import image_size
 from loopmodel.io.mcap_io import camera_info_dicts
 from loopmodel.types import StereoCalibration
 
@@ -169,16 +170,17 @@ def calibrate_stereo(
         raise InputError("--square-m", f"square size must be a positive number of metres, got {square_m}")
     rejected: list[RejectedView] = []
     accepted: list[tuple[Path, Path, Corners, Corners]] = []
-    size: tuple[int, int] | None = None
-    first: Path | None = None
+    first = pairs[0][0]
+    size = image_size(first)
+    for lp, rp in pairs:  # sizes first: a wrong image fails before any corner search
+        for p in (lp, rp):
+            s = image_size(p)
+            if s != size:
+                raise InputError(p, f"image size {s[0]}x{s[1]}, expected {size[0]}x{size[1]} (as {first})")
     for lp, rp in pairs:
         found = []
         for p in (lp, rp):
-            c, s = detect_in_file(p, board, square_m)
-            if size is None:
-                size, first = s, p
-            elif s != size:
-                raise InputError(p, f"image size {s[0]}x{s[1]}, expected {size[0]}x{size[1]} (as {first})")
+            c, _ = detect_in_file(p, board, square_m)
             found.append(c)
         cl, cr = found
         if cl is None or cr is None:
@@ -189,7 +191,6 @@ def calibrate_stereo(
             rejected.append(RejectedView(str(lp), "board detected with a different orientation in the two images"))
             continue
         accepted.append((lp, rp, cl, cr))
-    assert size is not None
     if len(accepted) < MIN_VIEWS:
         why = "; ".join(f"{r.path}: {r.reason}" for r in rejected[:3])
         raise InputError(

@@ -37,6 +37,10 @@ app.add_typer(config_app, name="config")
 ConfigOption = Annotated[Path | None, typer.Option("--config", "-c", help="YAML file overriding defaults")]
 LeftTopicOption = Annotated[str | None, typer.Option("--left", help="Left image topic of a bag (default: guessed)")]
 RightTopicOption = Annotated[str | None, typer.Option("--right", help="Right image topic of a bag (default: guessed)")]
+CalibOption = Annotated[
+    Path | None,
+    typer.Option("--calib", help="Bag without CameraInfo: EuRoC sensor.yaml folder, camchain.yaml or calib.txt"),
+]
 
 
 def _version_callback(value: bool) -> None:
@@ -94,13 +98,14 @@ def info(
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table")] = False,
     left: LeftTopicOption = None,
     right: RightTopicOption = None,
+    calib: CalibOption = None,
 ) -> None:
     """Describe a sequence: format, frames, duration, image size, calibration, ground truth, stripes;
     for a bag its image and camera_info topics with rates and sizes, and the stereo pair chosen."""
     from loopmodel.io.sequence import open_sequence
 
     cfg = load_config(config)
-    desc = open_sequence(path, cfg.sequence, left, right).describe()
+    desc = open_sequence(path, cfg.sequence, left, right, calib).describe()
     if as_json:
         console.print_json(json.dumps(desc))
         return
@@ -129,6 +134,7 @@ def convert(
     keep_topics: Annotated[bool, typer.Option("--keep-topics", help="Keep the source's topic names")] = False,
     left: LeftTopicOption = None,
     right: RightTopicOption = None,
+    calib: CalibOption = None,
 ) -> None:
     """Convert a sequence to MCAP with ROS 2 messages (topics of DESIGN.md) or to a ROS bag."""
     from loopmodel.io.convert import OUTPUT_KINDS, convert_sequence, output_kind
@@ -153,7 +159,7 @@ def convert(
     if kind == "mcap":
         check_output_file(dst)  # before the work, not after it
     cfg = load_config(config)
-    seq = open_sequence(src, cfg.sequence, left, right)
+    seq = open_sequence(src, cfg.sequence, left, right, calib)
     done = [0]
 
     def step(i: int) -> None:
@@ -184,6 +190,7 @@ def run(
     rerun: RerunFileOption = None,
     rerun_spawn: RerunSpawnOption = False,
     rerun_connect: RerunConnectOption = None,
+    calib: CalibOption = None,
 ) -> None:
     """Process a sequence (front end, back end); writes config, trajectories, keyframes, map,
     metrics and log into <out>/<name>/. Ctrl-C or SIGTERM stops it after writing what it has."""
@@ -195,7 +202,7 @@ def run(
     if max_frames is not None and max_frames < 1:
         raise InputError("--max-frames", f"must be at least 1, got {max_frames}")
     cfg = load_config(config)
-    seq = open_sequence(path, cfg.sequence, left, right)
+    seq = open_sequence(path, cfg.sequence, left, right, calib)
     if getattr(seq, "choice", None):
         console.print(f"{seq.format_name}: {seq.choice}")  # type: ignore[attr-defined]
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
@@ -276,6 +283,9 @@ def mesh(
     gt_attachment: Annotated[
         str, typer.Option("--gt-attachment", help="Attachment of an .mcap --gt-mesh (e.g. object.ply)")
     ] = "scene.ply",
+    picture: Annotated[
+        bool, typer.Option("--picture/--no-picture", help="Also write a PNG picture of the mesh beside it")
+    ] = True,
     config: ConfigOption = None,
 ) -> None:
     """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run)."""
@@ -297,14 +307,22 @@ def mesh(
         f"wrote {target} ({len(surface.vertices)} vertices, {len(surface.triangles)} triangles, "
         f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes, poses: {poses})"
     )
-    if gt_mesh is not None:
+    truth = read_mesh(gt_mesh, gt_attachment) if gt_mesh is not None else None
+    if truth is not None:
         from loopmodel.mapping.accuracy import mesh_accuracy
 
-        acc = mesh_accuracy(surface, read_mesh(gt_mesh, gt_attachment))
+        acc = mesh_accuracy(surface, truth)
         console.print(
             f"accuracy: mean {acc.mean_mm:.3f} mm, p95 {acc.p95_mm:.3f} mm, "
             f"completeness {100 * acc.completeness:.1f} % within {acc.completeness_tol_mm:g} mm"
         )
+    if picture:
+        from loopmodel.io.atomic import write_bytes_atomic
+        from loopmodel.viz.mesh_render import mesh_picture_png
+
+        png = target.with_suffix(".png")
+        write_bytes_atomic(png, mesh_picture_png(surface, target.name, truth))
+        console.print(f"wrote {png} (the mesh from three viewpoints)")
 
 
 simulate_app = typer.Typer(help="Synthetic data.", no_args_is_help=True)
@@ -933,12 +951,11 @@ def vvs_calibrate(
     import numpy as np
 
     from loopmodel.errors import CalibrationError
-    from loopmodel.geometry.camera import CentralCamera
     from loopmodel.geometry.se3 import se3_log
     from loopmodel.io.atomic import write_text_atomic
-    from loopmodel.pose import CameraRig, PointTerm, estimate_pose
+    from loopmodel.pose import PointTerm, estimate_pose
     from loopmodel.pose.calibration import CalibrationView, calibrate_rig
-    from loopmodel.sim.omni import calibration_views, omni_sensor
+    from loopmodel.sim.omni import calibration_views, manufactured_rig, omni_sensor
 
     sensor = omni_sensor()
     truth = None
@@ -956,22 +973,10 @@ def vvs_calibrate(
         obs = [(P[vi == v], uv[vi == v], ci[vi == v].astype(np.int64)) for v in np.unique(vi)]
         nominal = sensor.rig()
     else:
-        obs, truth_poses = calibration_views(sensor, views, noise_px, seed)
-        truth = sensor.rig()
-        rng = np.random.default_rng(seed + 1)
-        cams = tuple(
-            CentralCamera(
-                c.px * rng.uniform(0.97, 1.03),
-                c.py * rng.uniform(0.97, 1.03),
-                c.u0 + rng.normal(0, 4),
-                c.v0 + rng.normal(0, 4),
-                1.0,
-            )
-            for c in truth.cameras
-        )
-        nominal = CameraRig(cams, tuple(T.copy() for T in truth.cam_from_rig))
-        for T in nominal.cam_from_rig[1:]:
-            T[:3, 3] += rng.normal(0, 0.003, 3)  # assembly tolerance
+        # the sensor as built differs from its design; calibration starts from the design
+        truth = manufactured_rig(sensor, seed)
+        obs, _truth_poses = calibration_views(sensor, views, noise_px, seed, rig=truth)
+        nominal = sensor.rig()
     starts = []
     for k, (P, uv, ci) in enumerate(obs):
         try:
@@ -1015,6 +1020,11 @@ app.add_typer(turntable_app, name="turntable")
 from loopmodel.cli.batch import batch_app  # noqa: E402
 
 app.add_typer(batch_app, name="batch")
+
+from loopmodel.cli.vvs_images import vvs_render, vvs_track  # noqa: E402
+
+vvs_app.command("render")(vvs_render)
+vvs_app.command("track")(vvs_track)
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

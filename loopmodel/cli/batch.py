@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -79,26 +80,24 @@ def batch_run(
             skipped=state.skipped,
         )
 
-    def client_factory() -> Any:
-        stack.append(open_client(scheduler, workers, plan.threads_per_task))
-        client = stack[-1].__enter__()
-        link = dashboard_address(client)
-        n = len(client.scheduler_info().get("workers", {}))
-        err_console.print(f"Dask scheduler {client.scheduler.address}, {n} worker(s)")
-        err_console.print(
-            f"dashboard: {link}" if link else "dashboard: unavailable (the scheduler runs none; pip install bokeh)"
-        )
-        return client
+    with contextlib.ExitStack() as stack:
 
-    stack: list[Any] = []
-    try:
-        with progress:
-            outcome = run_batch(plan, out_dir, client_factory, update)
-    except KeyboardInterrupt:
-        _close(stack)
-        err_console.print(f"interrupted; finished results are kept in {out_dir}; run the same command to continue")
-        raise
-    _close(stack)
+        def client_factory() -> Any:
+            client = stack.enter_context(open_client(scheduler, workers, plan.threads_per_task))
+            link = dashboard_address(client)
+            n = len(client.scheduler_info().get("workers", {}))
+            err_console.print(f"Dask scheduler {client.scheduler.address}, {n} worker(s)")
+            err_console.print(
+                f"dashboard: {link}" if link else "dashboard: unavailable (the scheduler runs none; pip install bokeh)"
+            )
+            return client
+
+        try:
+            with progress:
+                outcome = run_batch(plan, out_dir, client_factory, update)
+        except KeyboardInterrupt:
+            err_console.print(f"interrupted; finished results are kept in {out_dir}; run the same command to continue")
+            raise
     paths = write_summary(load_manifest(out_dir.resolve()), out_dir, plots=not no_plots)
     done = sum(r.get("status") == "done" for r in outcome.records)
     failed = [r for r in outcome.records if r.get("status") != "done"]
@@ -111,11 +110,6 @@ def batch_run(
     console.print(f"summary: {paths['csv']} {paths['md']}")
     if failed:
         raise typer.Exit(1)
-
-
-def _close(stack: list[Any]) -> None:
-    while stack:
-        stack.pop().__exit__(None, None, None)
 
 
 @batch_app.command("status")

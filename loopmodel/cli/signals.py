@@ -1,5 +1,8 @@
-"""Signal handling of the long commands: SIGTERM behaves like Ctrl-C, so temporary files
-are removed by the ``atomic_path`` cleanup and the command exits 130."""
+"""Signal handling of the long commands.
+
+SIGTERM behaves like Ctrl-C, so temporary files are removed by the ``atomic_path`` cleanup and the
+command exits 130.
+"""
 
 from __future__ import annotations
 

@@ -18,8 +18,11 @@ def view(
     images: Annotated[bool, typer.Option("--images/--no-images", help="Log the sequence's left images")] = True,
     image_every: Annotated[int, typer.Option("--image-every", help="Log every N-th image")] = 1,
 ) -> None:
-    """Build a rerun recording (.rrd) of a past run: paths before/after correction, keyframes,
-    landmarks, stripes, mesh, loop events, and the images when the sequence is still there."""
+    """Build a rerun recording (.rrd) of a past run.
+
+    Paths before/after correction, keyframes, landmarks, stripes, mesh, loop events, and the images
+    when the sequence is still there.
+    """
     from loopmodel.cli import console
     from loopmodel.viz.from_results import record_results
 

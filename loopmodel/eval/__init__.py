@@ -1,5 +1,8 @@
-"""Evaluation: ATE/RPE/drift against ground truth, loop-closure effect, mesh error, plots,
-report (``loopmodel eval``)."""
+"""Evaluation.
+
+ATE/RPE/drift against ground truth, loop-closure effect, mesh error, plots, report (``loopmodel
+eval``).
+"""
 
 from loopmodel.eval.trajectory_metrics import (
     ALIGN_MODES,

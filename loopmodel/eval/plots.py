@@ -1,6 +1,8 @@
-"""Evaluation pictures (matplotlib, Agg canvas, no pyplot state): top view of ground truth,
-online and final trajectories with loop closures; error over time before and after closing;
-error-coloured trajectory. Each function returns PNG bytes."""
+"""Evaluation pictures (matplotlib, Agg canvas, no pyplot state).
+
+Top view of ground truth, online and final trajectories with loop closures; error over time before
+and after closing; error-coloured trajectory. Each function returns PNG bytes.
+"""
 
 from __future__ import annotations
 
@@ -155,8 +157,11 @@ def plot_error_colored(reference_m: F64, track: PlotTrack, title: str) -> bytes:
 
 
 def plot_metric_by_group(values: dict[str, dict[str, float]], metric: str, title: str, log: bool = False) -> bytes:
-    """One metric of many runs: a marker per (series, category), e.g. series = configuration
-    variants and categories = sequences (``values[series][category]``; missing ones left out)."""
+    """One metric of many runs.
+
+    A marker per (series, category), e.g. series = configuration variants and categories = sequences
+    (``values[series][category]``; missing ones left out).
+    """
     fig = _figure(8.0, 4.8)
     ax = fig.add_subplot(111)
     cats = sorted({c for v in values.values() for c in v})

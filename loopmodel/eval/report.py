@@ -1,7 +1,8 @@
-"""Evaluation of results folders and trajectory files against ground truth: inputs, the
-before/after (online/final) comparison, per-loop-closure corrections, mesh error, and the
-outputs (``metrics.json``, ``report.md``, self-contained ``report.html``, PNG plots,
-comparison tables of many runs).
+"""Evaluation of results folders and trajectory files against ground truth.
+
+Inputs, the before/after (online/final) comparison, per-loop-closure corrections, mesh error, and
+the outputs (``metrics.json``, ``report.md``, self-contained ``report.html``, PNG plots, comparison
+tables of many runs).
 
 A results folder (DESIGN.md) holds ``trajectory_online.tum`` (poses as estimated live),
 ``trajectory_final.tum`` (after every loop closure), ``keyframes.tum`` and ``metrics.json``
@@ -86,8 +87,10 @@ def _bag_trajectory(spec: str | Path) -> TimedTrajectory | None:
 
 
 def load_trajectory_file(path: str | Path, rate_hz: float = 10.0) -> TimedTrajectory:
-    """Read a TUM, KITTI or EuRoC trajectory for evaluation. Repeated timestamps are kept
-    (some estimators write them), times going backwards are an error."""
+    """Read a TUM, KITTI or EuRoC trajectory for evaluation.
+
+    Repeated timestamps are kept (some estimators write them), times going backwards are an error.
+    """
     bag = _bag_trajectory(path)
     if bag is not None:
         return bag
@@ -125,8 +128,10 @@ def load_ground_truth(spec: str | Path, sequence_config: SequenceConfig | None =
 
 
 def check_comparable(ref: TimedTrajectory, est: TimedTrajectory) -> None:
-    """Raise :class:`FormatError` when the two cannot be associated: a KITTI file (no times)
-    against a timed one, or two KITTI files of different lengths."""
+    """Raise :class:`FormatError` when the two cannot be associated.
+
+    A KITTI file (no times) against a timed one, or two KITTI files of different lengths.
+    """
     if ref.has_times != est.has_times:
         untimed, timed = (ref, est) if not ref.has_times else (est, ref)
         raise FormatError(
@@ -215,8 +220,11 @@ def parse_loop_closures(events: Any, run: RunData, source: str) -> list[LoopClos
 
 
 def load_run(path: str | Path, rate_hz: float = 10.0) -> RunData:
-    """Read a results folder: the online, final and keyframe trajectories (those present; one
-    of online/final is required), ``metrics.json`` and its loop-closure events."""
+    """Read a results folder.
+
+    The online, final and keyframe trajectories (those present; one of online/final is required),
+    ``metrics.json`` and its loop-closure events.
+    """
     p = Path(path)
     if not p.is_dir():
         raise InputError(p, "results folder does not exist (or is not a folder)")
@@ -309,8 +317,11 @@ def _nearest_index(times_ns: NDArray[np.int64], t_ns: int, max_dt_ns: int) -> in
 
 
 def _closure_numbers(run: RunData, pairs: dict[str, PairEvaluation], cfg: EvalConfig) -> list[dict[str, Any]]:
-    """Per closure: the correction it made (final minus online pose at the closure time,
-    in the run's own world frame) and the ground-truth error there before and after."""
+    """Per closure.
+
+    The correction it made (final minus online pose at the closure time, in the run's own world
+    frame) and the ground-truth error there before and after.
+    """
     out: list[dict[str, Any]] = []
     max_dt_ns = int(round(cfg.max_dt_ms * 1e6))
     for ev in run.loop_closures:

@@ -210,8 +210,11 @@ def pairs_by_distance(poses: F64, delta_m: float) -> tuple[NDArray[np.intp], NDA
 def rpe(
     ref_poses: F64, est_poses: F64, i: NDArray[np.intp], j: NDArray[np.intp]
 ) -> tuple[F64, F64]:
-    """Relative pose error of pairs (i, j): translation norm (metres) and angle (degrees) of
-    ``inv(inv(Q_i) Q_j) @ inv(P_i) P_j`` (Q reference, P estimate)."""
+    """Relative pose error of pairs (i, j).
+
+    Translation norm (metres) and angle (degrees) of ``inv(inv(Q_i) Q_j) @ inv(P_i) P_j`` (Q
+    reference, P estimate).
+    """
     Q = relative_poses(ref_poses, i, j)
     P = relative_poses(est_poses, i, j)
     E = inv_mul(Q, P)
@@ -230,10 +233,13 @@ def kitti_segment_errors(
     lengths_m: tuple[float, ...] = KITTI_SEGMENT_LENGTHS_M,
     step_frames: int = 10,
 ) -> dict[str, object] | None:
-    """KITTI odometry errors: for start frames every ``step_frames`` and each segment length,
-    the relative error between the start and the first frame ``length`` further along the
-    reference path. Returns translational error (%) and rotational error (deg/100 m), overall
-    and per length; None when the path is shorter than the shortest length."""
+    """KITTI odometry errors.
+
+    For start frames every ``step_frames`` and each segment length, the relative error between the
+    start and the first frame ``length`` further along the reference path. Returns translational
+    error (%) and rotational error (deg/100 m), overall and per length; None when the path is
+    shorter than the shortest length.
+    """
     dist = path_lengths_m(ref_poses)
     firsts = np.arange(0, len(ref_poses), step_frames)
     per_length: dict[str, dict[str, float]] = {}
@@ -420,10 +426,12 @@ def false_loop_mask(
     factor: float = 3.0,
     floor_m: float = 0.005,
 ) -> NDArray[np.bool_]:
-    """Which loop closures (index pairs into the two N x 4 x 4 trajectories) are false: the
-    final relative pose of the two frames is off the ground-truth relative pose by more than
+    """Which loop closures (index pairs into the two N x 4 x 4 trajectories) are false.
+
+    The final relative pose of the two frames is off the ground-truth relative pose by more than
     ``factor`` x the run's final ATE or ``floor_m``, whichever is larger (issue 17's gate;
-    translation of the relative-pose error, metres)."""
+    translation of the relative-pose error, metres).
+    """
     gate = max(factor * float(ate_rmse_m), floor_m)
     if not pairs:
         return np.zeros(0, bool)

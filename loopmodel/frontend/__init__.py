@@ -1,6 +1,7 @@
-"""Stereo keyframe front end (seed 004, section 4): stereo matching and triangulation at
-keyframes, KLT tracking, robust pose (via :mod:`loopmodel.pose`), keyframe policy, local
-hybrid keyframe BA.
+"""Stereo keyframe front end (seed 004, section 4).
+
+Stereo matching and triangulation at keyframes, KLT tracking, robust pose (via
+:mod:`loopmodel.pose`), keyframe policy, local hybrid keyframe BA.
 
 Usage::
 

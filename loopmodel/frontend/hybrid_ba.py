@@ -66,9 +66,11 @@ def hybrid_keyframe_ba(
     huber_px: float = 1.0,
     uv_final_right: F64 | None = None,
 ) -> HybridBAResult:
-    """Minimise eq. (1) of seed 004 over the points and ``f_from_kf``; all pixels are
-    undistorted (rectified) coordinates. ``uv_final_right`` (M, 2; NaN rows where
-    unmatched) adds the final right projections."""
+    """Minimise eq. (1) of seed 004 over the points and ``f_from_kf``.
+
+    All pixels are undistorted (rectified) coordinates. ``uv_final_right`` (M, 2; NaN rows where
+    unmatched) adds the final right projections.
+    """
     X = np.asarray(points_in_kf, dtype=float).copy()
     T = np.asarray(f_from_kf, dtype=float).copy()
     M = X.shape[0]

@@ -57,9 +57,12 @@ class FrameResult:
 
 @dataclass
 class TrackedFeatures:
-    """What the front end tracked in its last frame, for display: the rectified left image
-    (None before the first frame), the features the pose kept and those it rejected (N x 2,
-    pixels of the rectified left image), and the keyframe whose set they belong to (-1: none)."""
+    """What the front end tracked in its last frame, for display.
+
+    The rectified left image (None before the first frame), the features the pose kept and those it
+    rejected (N x 2, pixels of the rectified left image), and the keyframe whose set they belong to
+    (-1: none).
+    """
 
     left_rect: NDArray[np.uint8] | None
     inlier_px: NDArray[np.float64]

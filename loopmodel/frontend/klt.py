@@ -11,9 +11,11 @@ Pyramid = NDArray[np.uint8]
 
 
 def build_pyramid(img: NDArray[np.uint8], window_px: int, levels: int) -> Pyramid:
-    """What :func:`track_klt` takes for an image. OpenCV 5's Python binding of
-    ``calcOpticalFlowPyrLK`` accepts no prebuilt pyramid, so this is the image itself
-    (the pyramid is built inside each call)."""
+    """What :func:`track_klt` takes for an image.
+
+    OpenCV 5's Python binding of ``calcOpticalFlowPyrLK`` accepts no prebuilt pyramid, so this is
+    the image itself (the pyramid is built inside each call).
+    """
     del window_px, levels
     return img
 

@@ -112,8 +112,11 @@ class MonoDepthTracks:
     def track(
         self, prev: Pyramid, cur: Pyramid, pred_from_kf: F64, kf_from_ref: dict[int, F64]
     ) -> tuple[F64, NDArray[np.bool_]]:
-        """KLT from the last good frame; the search starts at the projection of the current
-        depth estimate at the predicted pose. Held until :meth:`commit`."""
+        """KLT from the last good frame.
+
+        The search starts at the projection of the current depth estimate at the predicted pose.
+        Held until :meth:`commit`.
+        """
         cfg = self.cfg
         if len(self) == 0:
             self._pending = (np.zeros((0, 2)), np.zeros(0, bool))
@@ -129,8 +132,11 @@ class MonoDepthTracks:
         return self._pending
 
     def commit(self, cur_from_kf: F64, kf_from_ref: dict[int, F64], dt_s: float, keep: NDArray[np.bool_]) -> None:
-        """After a measured pose: update the depths of the tracks kept (KLT and pose checks
-        passed) with ``cur_from_ref`` = ``cur_from_kf @ kf_from_ref``; drop the others."""
+        """After a measured pose.
+
+        Update the depths of the tracks kept (KLT and pose checks passed) with ``cur_from_ref`` =
+        ``cur_from_kf @ kf_from_ref``; drop the others.
+        """
         assert self._pending is not None
         uv, _ok = self._pending
         self._pending = None

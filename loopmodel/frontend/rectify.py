@@ -1,5 +1,8 @@
-"""Stereo rectification: unrectified input (distortion, rotated cameras) becomes a
-row-aligned pair with one pinhole camera matrix and the baseline along x."""
+"""Stereo rectification.
+
+Unrectified input (distortion, rotated cameras) becomes a row-aligned pair with one pinhole camera
+matrix and the baseline along x.
+"""
 
 from __future__ import annotations
 
@@ -21,9 +24,11 @@ def to_grey(img: NDArray[np.uint8]) -> NDArray[np.uint8]:
 
 
 def rectification(cal: StereoCalibration) -> tuple[F64, F64, F64, F64]:
-    """``R1, R2`` (rectified_from_cam rotations) and ``P1, P2`` (3x4 rectified projections) of
-    an unrectified rig: ``cv2.stereoRectify`` for the pinhole model (plumb_bob, rational
-    polynomial), ``cv2.fisheye.stereoRectify`` for equidistant (Kannala-Brandt) cameras."""
+    """``R1, R2`` (rectified_from_cam rotations) and ``P1, P2`` (3x4 rectified projections) of an unrectified rig.
+
+    ``cv2.stereoRectify`` for the pinhole model (plumb_bob, rational polynomial),
+    ``cv2.fisheye.stereoRectify`` for equidistant (Kannala-Brandt) cameras.
+    """
     R = cal.right_from_left[:3, :3].copy()
     t = cal.right_from_left[:3, 3].reshape(3, 1).copy()
     if cal.camera_model == "equidistant":

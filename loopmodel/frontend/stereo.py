@@ -1,6 +1,9 @@
-"""Keyframe features: grid-bucketed Shi-Tomasi corners in the rectified left image, row
-search in the rectified right image (normalised correlation, sub-pixel parabola, left-right
-consistency, vertical offset check) and triangulation in the left camera frame."""
+"""Keyframe features.
+
+Grid-bucketed Shi-Tomasi corners in the rectified left image, row search in the rectified right
+image (normalised correlation, sub-pixel parabola, left-right consistency, vertical offset check)
+and triangulation in the left camera frame.
+"""
 
 from __future__ import annotations
 
@@ -24,10 +27,11 @@ def detect_corners(
     border_px: int,
     half_resolution: bool = False,
 ) -> F64:
-    """(N, 2) corner pixels (u, v), spread over a ``grid`` = (cols, rows) of cells with an
-    equal quota each; the Shi-Tomasi quality level is relative to each cell. With
-    ``half_resolution`` the corners are found in the half-size image (4x less work) and
-    scaled to full-resolution pixels."""
+    """(N, 2) corner pixels (u, v), spread over a ``grid`` = (cols, rows) of cells with an equal quota each.
+
+    The Shi-Tomasi quality level is relative to each cell. With ``half_resolution`` the corners are
+    found in the half-size image (4x less work) and scaled to full-resolution pixels.
+    """
     if half_resolution:
         small = cv2.pyrDown(img)
         pts = detect_corners(small, max_features, grid, quality, max(1.0, min_distance_px / 2),
@@ -59,8 +63,11 @@ def detect_corners(
 
 @dataclass
 class StereoMatches:
-    """Matched features: left pixel (u, v, rounded to integers), right u and v (sub-pixel),
-    disparity (pixels), ZNCC score, and the index of each match in the input corners."""
+    """Matched features.
+
+    Left pixel (u, v, rounded to integers), right u and v (sub-pixel), disparity (pixels), ZNCC
+    score, and the index of each match in the input corners.
+    """
 
     uv_left: F64
     u_right: F64
@@ -253,8 +260,10 @@ def spread_subset(
     grid: tuple[int, int],
     image_size: tuple[int, int],
 ) -> NDArray[np.bool_]:
-    """Mask of at most ``count`` of the ``candidates``, spread over a (cols, rows) grid:
-    cells take turns, each giving its best-scoring remaining point."""
+    """Mask of at most ``count`` of the ``candidates``, spread over a (cols, rows) grid.
+
+    Cells take turns, each giving its best-scoring remaining point.
+    """
     cols, rows = grid
     w, h = image_size
     cx = np.clip((uv[:, 0] * cols / w).astype(int), 0, cols - 1)

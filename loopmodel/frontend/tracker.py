@@ -1,6 +1,8 @@
-"""The stereo keyframe front end (seed 004, section 4): stereo-triangulated feature sets
-tracked by KLT, robust pose per frame against the current keyframe, keyframe policy, local
-hybrid keyframe BA, and LOST/recovery handling."""
+"""The stereo keyframe front end (seed 004, section 4).
+
+Stereo-triangulated feature sets tracked by KLT, robust pose per frame against the current keyframe,
+keyframe policy, local hybrid keyframe BA, and LOST/recovery handling.
+"""
 
 from __future__ import annotations
 
@@ -115,10 +117,12 @@ class FrontEnd:
         return dict(self._world_from_kf)
 
     def mono_depth_estimates(self) -> dict[str, NDArray] | None:
-        """Observer depths of the current tracks without stereo depth (``frontend.mono_depth``;
-        None when off): ``ref_kf`` reference keyframe ids, ``uv_ref`` (N, 2) rectified pixels
-        in the reference keyframe, ``depth_m`` depths there, ``rel_sigma`` predicted relative
-        standard deviations, ``converged`` whether the pose uses them."""
+        """Observer depths of the current tracks without stereo depth (``frontend.mono_depth``; None when off).
+
+        ``ref_kf`` reference keyframe ids, ``uv_ref`` (N, 2) rectified pixels in the reference
+        keyframe, ``depth_m`` depths there, ``rel_sigma`` predicted relative standard deviations,
+        ``converged`` whether the pose uses them.
+        """
         if self._mono is None:
             return None
         mono = self._mono
@@ -136,8 +140,10 @@ class FrontEnd:
         return TrackedFeatures(self._left_rect, self._track_uv.copy(), self._outlier_uv.copy(), kf)
 
     def apply_correction(self, world_from_kf: dict[int, F64]) -> None:
-        """Replace keyframe poses by corrected ones (e.g. from the back end); tracking
-        continues from the corrected pose of the current keyframe."""
+        """Replace keyframe poses by corrected ones (e.g. from the back end).
+
+        Tracking continues from the corrected pose of the current keyframe.
+        """
         for kf_id, T in world_from_kf.items():
             if kf_id in self._world_from_kf:
                 self._world_from_kf[kf_id] = np.asarray(T, dtype=float).reshape(4, 4).copy()
@@ -372,9 +378,11 @@ class FrontEnd:
         return kf_from_ref_map(w, self._active.keyframe.id, self._mono.ref_kf)
 
     def _depth_weights(self, pts: F64, cur_from_kf: F64, sigma_z: F64 | None = None) -> F64:
-        """Pixel variance over pixel-plus-depth variance of each point's projection at the
-        predicted pose (first order): far points, whose stereo depth is uncertain, count less
-        for the pose. ``sigma_z`` (m): depth standard deviations (default: from stereo)."""
+        """Pixel variance over pixel-plus-depth variance of each point's projection at the predicted pose (first order).
+
+        Far points, whose stereo depth is uncertain, count less for the pose. ``sigma_z`` (m): depth
+        standard deviations (default: from stereo).
+        """
         cfg = self.config
         fb = self.calibration.fx_px * self.calibration.baseline_m
         if sigma_z is None:
@@ -476,8 +484,11 @@ class FrontEnd:
         connected: bool,
         kf_from_cur: F64 | None = None,
     ) -> FrameResult | None:
-        """Stereo-initialise a feature set at this frame; with ``kf_from_cur`` (tracked) the
-        previous set is closed by the local hybrid BA first. None when too few points."""
+        """Stereo-initialise a feature set at this frame.
+
+        With ``kf_from_cur`` (tracked) the previous set is closed by the local hybrid BA first. None
+        when too few points.
+        """
         cfg = self.config
         t_kf = time.perf_counter()
         right = self.rectifier.right(frame.right)

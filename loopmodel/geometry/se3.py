@@ -151,8 +151,10 @@ def quat_wxyz_from_rotation(R: ArrayLike) -> F64:
 
 
 def interpolate_pose(a_from_b0: ArrayLike, a_from_b1: ArrayLike, alpha: float) -> F64:
-    """Pose at fraction ``alpha`` in [0, 1] between two poses: rotation along the geodesic
-    of SO(3), translation linear. Returns an exact SE(3) element."""
+    """Pose at fraction ``alpha`` in [0, 1] between two poses.
+
+    Rotation along the geodesic of SO(3), translation linear. Returns an exact SE(3) element.
+    """
     T0 = np.asarray(a_from_b0, dtype=float)
     T1 = np.asarray(a_from_b1, dtype=float)
     R0 = T0[:3, :3]
@@ -169,8 +171,10 @@ def is_rotation(R: ArrayLike, tol: float = 1e-6) -> bool:
 
 
 def interpolate_poses(a_from_b0: ArrayLike, a_from_b1: ArrayLike, alpha: ArrayLike) -> F64:
-    """Vectorised :func:`interpolate_pose` for N pose pairs (N x 4 x 4 each) and N fractions:
-    rotation along the SO(3) geodesic, translation linear. Returns N x 4 x 4 poses."""
+    """Vectorised :func:`interpolate_pose` for N pose pairs (N x 4 x 4 each) and N fractions.
+
+    Rotation along the SO(3) geodesic, translation linear. Returns N x 4 x 4 poses.
+    """
     from scipy.spatial.transform import Rotation
 
     T0 = np.asarray(a_from_b0, dtype=float).reshape(-1, 4, 4)
@@ -192,8 +196,10 @@ Y_DOWN_UP = np.array([0.0, -1.0, 0.0])
 
 
 def look_at(position_world: ArrayLike, target_world: ArrayLike, up_world: ArrayLike | None = None) -> F64:
-    """``world_from_cam`` of a camera at ``position_world`` looking at ``target_world``
-    (metres): z towards the target, image y down, i.e. against ``up_world`` (default +z)."""
+    """``world_from_cam`` of a camera at ``position_world`` looking at ``target_world`` (metres).
+
+    Z towards the target, image y down, i.e. against ``up_world`` (default +z).
+    """
     up = np.array([0.0, 0.0, 1.0]) if up_world is None else np.asarray(up_world, float)
     z = np.asarray(target_world, float) - np.asarray(position_world, float)
     z /= np.linalg.norm(z)

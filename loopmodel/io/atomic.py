@@ -1,5 +1,8 @@
-"""Atomic file writing: content goes to a temporary name and is renamed when complete,
-so an interrupted program never leaves a half-written file."""
+"""Atomic file writing.
+
+Content goes to a temporary name and is renamed when complete, so an interrupted program never
+leaves a half-written file.
+"""
 
 from __future__ import annotations
 
@@ -12,8 +15,10 @@ from pathlib import Path
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; rename it to ``path`` on success, delete it
-    on any exception (KeyboardInterrupt included)."""
+    """Yield a temporary path beside ``path``.
+
+    Rename it to ``path`` on success, delete it on any exception (KeyboardInterrupt included).
+    """
     final = Path(path)
     final.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(final)
@@ -38,8 +43,10 @@ def _alive(pid: int) -> bool:
 
 
 def remove_stale_temporaries(path: str | Path) -> list[Path]:
-    """Delete ``.NAME.tmp-PID`` files beside ``path`` left by processes that no longer run
-    (a SIGKILL leaves them); returns what was removed."""
+    """Delete ``.NAME.tmp-PID`` files beside ``path`` left by processes that no longer run (a SIGKILL leaves them).
+
+    Returns what was removed.
+    """
     final = Path(path)
     removed: list[Path] = []
     prefix = f".{final.name}.tmp-"
@@ -54,8 +61,11 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
 
 
 def check_output_file(path: str | Path) -> Path:
-    """Before any work: ``path`` must not be a folder and its folder must be writable
-    (created when missing). Raises :class:`InputError` naming the path."""
+    """Before any work.
+
+    ``path`` must not be a folder and its folder must be writable (created when missing). Raises
+    :class:`InputError` naming the path.
+    """
     from loopmodel.errors import InputError
 
     p = Path(path)

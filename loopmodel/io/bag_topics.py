@@ -1,5 +1,8 @@
-"""Topic discovery in bags: which image topics form the stereo pair, and which camera_info
-belongs to an image topic. Pure functions on topic names and per-topic statistics."""
+"""Topic discovery in bags.
+
+Which image topics form the stereo pair, and which camera_info belongs to an image topic. Pure
+functions on topic names and per-topic statistics.
+"""
 
 from __future__ import annotations
 
@@ -27,8 +30,11 @@ _PAIR_TOKENS = (
 
 @dataclass
 class ImageTopic:
-    """What discovery learns of one image topic: type, message count, rate (Hz, from the
-    first messages' header stamps), size (width, height), encoding, its camera_info topic."""
+    """What discovery learns of one image topic.
+
+    Type, message count, rate (Hz, from the first messages' header stamps), size (width, height),
+    encoding, its camera_info topic.
+    """
 
     topic: str
     msgtype: str
@@ -79,9 +85,12 @@ def _pair_rank(a: str, b: str) -> int | None:
 
 
 def guess_stereo_pair(topics: list[ImageTopic]) -> tuple[ImageTopic, ImageTopic]:
-    """The most likely (left, right) pair: names differing by a left/right token, the same
-    message type, size and rate (within 10 %); raw images before rectified ones and Image
-    before CompressedImage. Raises ``LookupError`` with the reason when none fits."""
+    """The most likely (left, right) pair.
+
+    Names differing by a left/right token, the same message type, size and rate (within 10 %); raw
+    images before rectified ones and Image before CompressedImage. Raises ``LookupError`` with the
+    reason when none fits.
+    """
     best: tuple[tuple[int, int, int, int], ImageTopic, ImageTopic] | None = None
     for a in topics:
         for b in topics:
@@ -112,8 +121,11 @@ def guess_stereo_pair(topics: list[ImageTopic]) -> tuple[ImageTopic, ImageTopic]
 
 
 def camera_info_for(image_topic: str, info_topics: list[str]) -> str | None:
-    """The camera_info topic of an image topic: ``camera_info`` beside the image topic or in
-    a parent namespace (``/cam0/image_raw`` -> ``/cam0/camera_info``)."""
+    """The camera_info topic of an image topic.
+
+    ``camera_info`` beside the image topic or in a parent namespace (``/cam0/image_raw`` ->
+    ``/cam0/camera_info``).
+    """
     parts = [p for p in image_topic.split("/") if p]
     have = set(info_topics)
     lead = "/" if image_topic.startswith("/") else ""

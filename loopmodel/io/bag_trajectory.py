@@ -1,6 +1,8 @@
-"""Trajectories from bag topics for ``loopmodel eval``: ``BAG:TOPIC`` for ``PoseStamped``,
-``PoseWithCovarianceStamped``, ``Odometry``, ``TransformStamped``, and ``BAG:/tf:PARENT.CHILD``
-for a chain of ``/tf`` (and ``/tf_static``) transforms (the spelling of ``evo``'s bag tools).
+"""Trajectories from bag topics for ``loopmodel eval``.
+
+``BAG:TOPIC`` for ``PoseStamped``, ``PoseWithCovarianceStamped``, ``Odometry``,
+``TransformStamped``, and ``BAG:/tf:PARENT.CHILD`` for a chain of ``/tf`` (and ``/tf_static``)
+transforms (the spelling of ``evo``'s bag tools).
 
 Poses are ``parent_from_child`` (metres) at the messages' header stamps (ns). A TF chain is
 evaluated at the stamps of its dynamic edge with the fewest messages; the other dynamic
@@ -91,8 +93,10 @@ def _tf_edges(bag: BagReader) -> tuple[dict[tuple[str, str], list[tuple[int, np.
 
 
 def _chain(edges: set[tuple[str, str]], parent: str, child: str) -> list[tuple[str, str, bool]] | None:
-    """Edges from ``parent`` to ``child`` (breadth first over the undirected tree); the flag
-    says the edge is used forward (parent -> child as stored)."""
+    """Edges from ``parent`` to ``child`` (breadth first over the undirected tree).
+
+    The flag says the edge is used forward (parent -> child as stored).
+    """
     nbr: dict[str, list[tuple[str, tuple[str, str, bool]]]] = {}
     for a, b in edges:
         nbr.setdefault(a, []).append((b, (a, b, True)))

@@ -14,8 +14,11 @@ from loopmodel.types import StereoCalibration, StereoFrame, StripeProfile, Traje
 
 
 class Sequence(abc.ABC):
-    """A recorded stereo sequence. Frames and stripes stream in time order; nothing but the
-    calibration and the ground truth is held in memory."""
+    """A recorded stereo sequence.
+
+    Frames and stripes stream in time order; nothing but the calibration and the ground truth is
+    held in memory.
+    """
 
     format_name: str = "?"
 
@@ -45,8 +48,10 @@ class Sequence(abc.ABC):
         return 0
 
     def laser_images(self) -> Iterator[tuple[int, NDArray[np.uint8]]]:
-        """Images of a laser-line camera (the left camera's view), ``(timestamp_ns, image)`` in
-        time order; none for formats without them."""
+        """Images of a laser-line camera (the left camera's view), ``(timestamp_ns, image)`` in time order.
+
+        None for formats without them.
+        """
         return iter(())
 
     def laser_image_count(self) -> int:
@@ -55,8 +60,10 @@ class Sequence(abc.ABC):
 
     @property
     def attachment_names(self) -> list[str]:
-        """Names of the files attached to the sequence (e.g. a ground-truth ``scene.ply``);
-        none for formats without attachments."""
+        """Names of the files attached to the sequence (e.g. a ground-truth ``scene.ply``).
+
+        None for formats without attachments.
+        """
         return []
 
     def read_attachment(self, name: str) -> bytes:
@@ -90,8 +97,10 @@ class Sequence(abc.ABC):
 
 
 class FolderSequence(Sequence):
-    """A sequence of left/right image files (EuRoC, KITTI): subclasses fill ``_pairs``
-    (time in ns, left path, right path), ``_calibration`` and ``_gt``."""
+    """A sequence of left/right image files (EuRoC, KITTI).
+
+    Subclasses fill ``_pairs`` (time in ns, left path, right path), ``_calibration`` and ``_gt``.
+    """
 
     _pairs: list[tuple[int, Path, Path]]
     _calibration: StereoCalibration

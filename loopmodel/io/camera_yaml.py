@@ -1,5 +1,7 @@
-"""Camera calibration files: ROS ``camera_info`` YAML (camera_calibration_parsers layout),
-the KITTI ``calib.txt`` of a rectified pair, and intrinsics from OpenCV-style YAML.
+"""Camera calibration files.
+
+ROS ``camera_info`` YAML (camera_calibration_parsers layout), the KITTI ``calib.txt`` of a rectified
+pair, and intrinsics from OpenCV-style YAML.
 
 ROS YAML: ``image_width``, ``image_height``, ``camera_name``, ``camera_matrix``,
 ``distortion_model``, ``distortion_coefficients``, ``rectification_matrix`` and
@@ -118,10 +120,12 @@ def write_kitti_calib(path: str | Path, P_left: F64, P_right: F64) -> Path:
 
 
 def read_intrinsics(path: str | Path) -> tuple[F64, F64, tuple[int, int] | None]:
-    """Camera matrix K (3x3, pixels), distortion (OpenCV order) and image size (or None) of
-    one camera from YAML: ROS ``camera_info`` (``camera_matrix``/``distortion_coefficients``),
-    OpenCV-style (``camera_matrix`` as rows, ``dist_coeff``), or a stereo calibration summary
-    of ``loopmodel calibrate stereo`` (its ``left`` camera)."""
+    """Camera matrix K (3x3, pixels), distortion (OpenCV order) and image size (or None) of one camera from YAML.
+
+    ROS ``camera_info`` (``camera_matrix``/``distortion_coefficients``), OpenCV-style
+    (``camera_matrix`` as rows, ``dist_coeff``), or a stereo calibration summary of ``loopmodel
+    calibrate stereo`` (its ``left`` camera).
+    """
     p = Path(path)
     data = _load(p)
     if "camera_matrix" not in data and isinstance(data.get("left"), dict):

@@ -1,5 +1,8 @@
-"""``loopmodel convert``: any readable sequence to the project's MCAP or to a ROS bag
-(ROS 2 sqlite3, ROS 2 MCAP, ROS 1), with the project's topic names or the source's."""
+"""``loopmodel convert``.
+
+Any readable sequence to the project's MCAP or to a ROS bag (ROS 2 sqlite3, ROS 2 MCAP, ROS 1), with
+the project's topic names or the source's.
+"""
 
 from __future__ import annotations
 
@@ -14,8 +17,10 @@ OUTPUT_KINDS = ("mcap", *BAG_KINDS)
 
 
 def output_kind(dst: Path, kind: str | None) -> str:
-    """The output kind given or implied by the name: ``.mcap`` the project's MCAP, ``.bag``
-    ROS 1, anything else a ROS 2 sqlite3 bag folder."""
+    """The output kind given or implied by the name.
+
+    ``.mcap`` the project's MCAP, ``.bag`` ROS 1, anything else a ROS 2 sqlite3 bag folder.
+    """
     if kind is not None:
         return kind
     suffix = dst.suffix.lower()
@@ -37,8 +42,10 @@ def convert_sequence(
     keep_topics: bool = False,
     progress: Callable[[int], None] | None = None,
 ) -> Path:
-    """Write ``seq`` as ``kind`` (see :data:`OUTPUT_KINDS`) to ``dst``, atomically. Frames and
-    ground truth go into bags; stripes, laser images and attachments only into the MCAP."""
+    """Write ``seq`` as ``kind`` (see :data:`OUTPUT_KINDS`) to ``dst``, atomically.
+
+    Frames and ground truth go into bags; stripes, laser images and attachments only into the MCAP.
+    """
     from loopmodel.io.sequence import convert_to_mcap
 
     cfg = (config or SequenceConfig()).model_copy()

@@ -59,6 +59,23 @@ def camera_model_of(data: dict) -> str:
     return "equidistant" if str(data.get("distortion_model", "")).lower() in ("equidistant", "fisheye") else "pinhole"
 
 
+def stereo_calibration_of(root: Path, source: Path | None = None) -> tuple[StereoCalibration, np.ndarray]:
+    """Unrectified stereo calibration and ``body_from_cam0`` of ``root/cam0/sensor.yaml`` and
+    ``root/cam1/sensor.yaml`` (``source`` names the sequence in size errors)."""
+    yaml0 = _read_sensor_yaml(root / "cam0" / "sensor.yaml")
+    yaml1 = _read_sensor_yaml(root / "cam1" / "sensor.yaml")
+    K0, d0, body_from_cam0, size0 = _camera_from_yaml(yaml0, root / "cam0" / "sensor.yaml")
+    K1, d1, body_from_cam1, size1 = _camera_from_yaml(yaml1, root / "cam1" / "sensor.yaml")
+    if camera_model_of(yaml0) != camera_model_of(yaml1):
+        raise CalibrationError(root / "cam1" / "sensor.yaml", "distortion_model differs from cam0's")
+    if size0 != size1:
+        raise InputError(source or root, f"left and right image sizes differ: {size0} vs {size1}")
+    right_from_left = invert_pose(body_from_cam1) @ body_from_cam0
+    model = camera_model_of(yaml0)
+    cal = StereoCalibration(K0, K1, right_from_left, size0, d0, d1, rectified=False, camera_model=model)
+    return cal.check(str(root / "cam0" / "sensor.yaml")), body_from_cam0
+
+
 def _read_index(csv: Path) -> tuple[list[int], list[str]]:
     times: list[int] = []
     names: list[str] = []
@@ -103,21 +120,7 @@ class EurocSequence(FolderSequence):
                 j += 1
         if not self._pairs:
             raise InputError(path, "no left/right image pairs with matching timestamps")
-        yaml0 = _read_sensor_yaml(root / "cam0" / "sensor.yaml")
-        yaml1 = _read_sensor_yaml(root / "cam1" / "sensor.yaml")
-        K0, d0, body_from_cam0, size0 = _camera_from_yaml(yaml0, root / "cam0" / "sensor.yaml")
-        K1, d1, body_from_cam1, size1 = _camera_from_yaml(yaml1, root / "cam1" / "sensor.yaml")
-        if camera_model_of(yaml0) != camera_model_of(yaml1):
-            raise CalibrationError(root / "cam1" / "sensor.yaml", "distortion_model differs from cam0's")
-        if size0 != size1:
-            raise InputError(path, f"left and right image sizes differ: {size0} vs {size1}")
-        right_from_left = invert_pose(body_from_cam1) @ body_from_cam0
-        self._body_from_cam0 = body_from_cam0
-        self._calibration = StereoCalibration(
-            K0, K1, right_from_left, size0, d0, d1, rectified=False, camera_model=camera_model_of(yaml0)
-        ).check(
-            str(root / "cam0" / "sensor.yaml")
-        )
+        self._calibration, self._body_from_cam0 = stereo_calibration_of(root, path)
         self._gt = self._read_ground_truth(root)
 
     def _read_ground_truth(self, root: Path) -> Trajectory | None:

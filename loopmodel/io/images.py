@@ -12,8 +12,10 @@ from loopmodel.errors import InputError
 
 
 def read_image(path: Path) -> NDArray[np.uint8]:
-    """Read an image file unchanged (grey stays HxW); a clear error when unreadable or when
-    its header declares more than ``MAX_IMAGE_PIXELS``."""
+    """Read an image file unchanged (grey stays HxW).
+
+    A clear error when unreadable or when its header declares more than ``MAX_IMAGE_PIXELS``.
+    """
     check_image_file_header(path)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:

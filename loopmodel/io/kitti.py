@@ -1,5 +1,8 @@
-"""KITTI odometry folders: ``image_0``/``image_1`` (or ``image_l``/``image_r``), ``calib.txt``
-(P0/P1, or the unnamed two-line form), optional ``times.txt`` and ``poses.txt``."""
+"""KITTI odometry folders.
+
+``image_0``/``image_1`` (or ``image_l``/``image_r``), ``calib.txt`` (P0/P1, or the unnamed two-line
+form), optional ``times.txt`` and ``poses.txt``.
+"""
 
 from __future__ import annotations
 
@@ -142,8 +145,11 @@ class KittiSequence(FolderSequence):
         return [times[i] for i in self._left_index]
 
     def _read_poses(self, path: Path) -> Trajectory | None:
-        """Ground truth: one pose row per left image (row i = image i in sorted order); fewer
-        than 90 % of the rows it needs is an error, a shortfall below that a warning."""
+        """Ground truth.
+
+        One pose row per left image (row i = image i in sorted order); fewer than 90 % of the rows
+        it needs is an error, a shortfall below that a warning.
+        """
         for name in ("poses.txt", "groundtruth.txt"):
             p = path / name
             if p.is_file():

@@ -50,8 +50,11 @@ def is_mcap(path: Path) -> bool:
 
 
 def decode_image(msg: Any, schema_name: str, topic: str, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
-    """numpy image of a decoded Image or CompressedImage message; the size it declares (PNG/
-    JPEG header, or width and height) must be at most ``max_pixels`` before it is decoded."""
+    """numpy image of a decoded Image or CompressedImage message.
+
+    The size it declares (PNG/ JPEG header, or width and height) must be at most ``max_pixels``
+    before it is decoded.
+    """
     data = bytes(msg.data)
     if schema_name.endswith("CompressedImage"):
         declared = declared_image_size(data[: 1 << 16])
@@ -116,8 +119,10 @@ def calibration_from_camera_info(
 
 
 def camera_info_dicts(cal: StereoCalibration) -> tuple[dict, dict]:
-    """CameraInfo message dicts (left, right) for a calibration; unrectified rigs get the
-    rectification of ``cv2.stereoRectify`` in R and P."""
+    """CameraInfo message dicts (left, right) for a calibration.
+
+    Unrectified rigs get the rectification of ``cv2.stereoRectify`` in R and P.
+    """
     w, h = cal.image_size
     if cal.rectified:
         R0 = R1 = np.eye(3)
@@ -426,8 +431,11 @@ class McapSequence(Sequence):
 
 
 class McapSequenceWriter:
-    """Writes a stereo sequence as MCAP with ROS 2 messages. The file appears under its final
-    name only when :meth:`close` succeeds; on error the partial file is removed."""
+    """Writes a stereo sequence as MCAP with ROS 2 messages.
+
+    The file appears under its final name only when :meth:`close` succeeds; on error the partial
+    file is removed.
+    """
 
     def __init__(
         self,
@@ -506,8 +514,10 @@ class McapSequenceWriter:
         }
 
     def write_frame(self, frame: StereoFrame, log_time_ns: int | None = None) -> None:
-        """Write one stereo pair (and the camera info before the first). The header stamp is
-        the frame's time; ``log_time_ns`` (receive time) defaults to it."""
+        """Write one stereo pair (and the camera info before the first).
+
+        The header stamp is the frame's time; ``log_time_ns`` (receive time) defaults to it.
+        """
         if not self._info_written:
             self._write_info(frame.timestamp_ns if log_time_ns is None else log_time_ns)
         for img, topic, fid in (

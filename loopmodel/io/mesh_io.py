@@ -123,8 +123,11 @@ def _mcap_attachment(path: Path, name: str) -> bytes:
 
 
 def read_mesh(path: str | Path, attachment: str = "scene.ply") -> o3d.geometry.TriangleMesh:
-    """Read a triangle mesh with open3d; from an ``.mcap`` file, its attachment of that name
-    (the simulator's ground-truth scene). Raises :class:`InputError` if missing or empty."""
+    """Read a triangle mesh with open3d.
+
+    From an ``.mcap`` file, its attachment of that name (the simulator's ground-truth scene). Raises
+    :class:`InputError` if missing or empty.
+    """
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "mesh file does not exist")

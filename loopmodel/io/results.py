@@ -1,5 +1,8 @@
-"""The results folder of a run (DESIGN.md): ``<out>/<run-name>/`` with trajectories,
-metrics, the effective configuration and the run log, every file written atomically."""
+"""The results folder of a run (DESIGN.md).
+
+``<out>/<run-name>/`` with trajectories, metrics, the effective configuration and the run log, every
+file written atomically.
+"""
 
 from __future__ import annotations
 
@@ -63,8 +66,10 @@ class ResultsFolder:
             self.path.mkdir(parents=True, exist_ok=True)
 
     def commit(self) -> Path:
-        """Move the staged folder to ``<out>/<name>/`` (replacing an older one) and release
-        the lock; returns the final path. Without staging: nothing to do."""
+        """Move the staged folder to ``<out>/<name>/`` (replacing an older one) and release the lock.
+
+        Returns the final path. Without staging: nothing to do.
+        """
         if not self.staged or self.committed:
             return self.final
         old = None
@@ -120,17 +125,22 @@ class ResultsFolder:
         return self.file(name)
 
     def write_config(self, config: Config) -> Path:
-        """``config.yaml``: the effective configuration of the run (the sections the
-        pipeline reads, :func:`loopmodel.config.pipeline_sections`)."""
+        """``config.yaml``.
+
+        The effective configuration of the run (the sections the pipeline reads,
+        :func:`loopmodel.config.pipeline_sections`).
+        """
         return self.write_text("config.yaml", dump_config(config, pipeline_sections()))
 
 
 def write_results(folder: ResultsFolder, run: RunResult) -> Path:
-    """Write a run into ``folder``, the small files first: ``config.yaml`` (the pipeline's
-    configuration), ``trajectory_online.tum``, ``trajectory_final.tum``, ``keyframes.tum``
-    (KITTI variants of the first two when ``output.write_kitti``), ``map.npz``,
-    ``metrics.json``, ``run.log``, then ``stripes.npz`` (when the run has laser profiles),
-    ``mesh.ply`` and ``mesh_live.ply`` (when made). Returns the folder's path.
+    """Write a run into ``folder``, the small files first.
+
+    ``config.yaml`` (the pipeline's configuration), ``trajectory_online.tum``,
+    ``trajectory_final.tum``, ``keyframes.tum`` (KITTI variants of the first two when
+    ``output.write_kitti``), ``map.npz``, ``metrics.json``, ``run.log``, then ``stripes.npz`` (when
+    the run has laser profiles), ``mesh.ply`` and ``mesh_live.ply`` (when made). Returns the
+    folder's path.
 
     A staged folder (:class:`ResultsFolder`) replaces the older run's folder once the small
     files through ``run.log`` are written, even when a large file then fails (a full disk:

@@ -1,5 +1,6 @@
-"""ROS camera messages read from any bag (ROS 1 or ROS 2, decoded by ``rosbags`` or
-``mcap_ros2``): image encodings beyond the plain ones, and CameraInfo distortion models.
+"""ROS camera messages read from any bag (ROS 1 or ROS 2, decoded by ``rosbags`` or ``mcap_ros2``).
+
+Image encodings beyond the plain ones, and CameraInfo distortion models.
 
 Images come back as uint8 (grey HxW or BGR HxWx3) as the front end uses them: ``mono16``
 is scaled to 8 bits like ``cv_bridge`` does (divided by 256), ``bayer_*`` is debayered to
@@ -85,8 +86,10 @@ def raw_image_array(msg: Any, topic: str, max_pixels: int = MAX_IMAGE_PIXELS) ->
 
 
 def decode_ros_image(msg: Any, msgtype: str, topic: str, max_pixels: int = MAX_IMAGE_PIXELS) -> NDArray[np.uint8]:
-    """uint8 grey or BGR image of an Image or CompressedImage message (any encoding above);
-    the size it declares must be at most ``max_pixels`` before it is decoded."""
+    """uint8 grey or BGR image of an Image or CompressedImage message (any encoding above).
+
+    The size it declares must be at most ``max_pixels`` before it is decoded.
+    """
     if msgtype.endswith("CompressedImage"):
         data = msg.data if isinstance(msg.data, np.ndarray) else np.frombuffer(bytes(msg.data), np.uint8)
         declared = declared_image_size(data[: 1 << 16].tobytes())
@@ -114,8 +117,10 @@ def to_uint8(img: NDArray[Any], encoding: str) -> NDArray[np.uint8]:
 
 
 def camera_model(msg: Any, topic: str) -> str:
-    """``pinhole`` or ``equidistant`` for a CameraInfo's distortion model; an error naming
-    the topic for anything else."""
+    """``pinhole`` or ``equidistant`` for a CameraInfo's distortion model.
+
+    An error naming the topic for anything else.
+    """
     name = str(msg.distortion_model).strip().lower()
     if name not in DISTORTION_MODELS:
         raise CalibrationError(
@@ -142,8 +147,10 @@ class _Info:
 def calibration_from_infos(
     left: Any, right: Any, left_topic: str, right_topic: str, max_pixels: int = MAX_IMAGE_PIXELS
 ) -> StereoCalibration:
-    """Stereo calibration of two CameraInfo messages (any of the three distortion models);
-    a declared image size above ``max_pixels`` is refused (before any undistortion map)."""
+    """Stereo calibration of two CameraInfo messages (any of the three distortion models).
+
+    A declared image size above ``max_pixels`` is refused (before any undistortion map).
+    """
     models = {camera_model(left, left_topic), camera_model(right, right_topic)}
     if len(models) != 1:
         raise CalibrationError(f"{left_topic}/{right_topic}", "left and right distortion models differ")
@@ -167,9 +174,11 @@ def calibration_from_infos(
 
 
 def camera_info_values(cal: StereoCalibration) -> tuple[dict[str, Any], dict[str, Any]]:
-    """CameraInfo field dicts (left, right) of a calibration: ``plumb_bob`` (or
-    ``rational_polynomial`` for 8 coefficients) through :func:`camera_info_dicts`,
-    ``equidistant`` with the rectification of ``cv2.fisheye.stereoRectify`` in R and P."""
+    """CameraInfo field dicts (left, right) of a calibration.
+
+    ``plumb_bob`` (or ``rational_polynomial`` for 8 coefficients) through :func:`camera_info_dicts`,
+    ``equidistant`` with the rectification of ``cv2.fisheye.stereoRectify`` in R and P.
+    """
     from loopmodel.io.mcap_io import camera_info_dicts
 
     left, right = camera_info_dicts(cal) if cal.camera_model == "pinhole" else _fisheye_infos(cal)

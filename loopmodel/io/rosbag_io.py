@@ -250,6 +250,7 @@ class BagSequence(Sequence):
         tolerance_ns: int = 1_000_000,
         left: str | None = None,
         right: str | None = None,
+        calibration_file: Path | None = None,
     ) -> None:
         super().__init__(path)
         self.topics = (topics or TopicsConfig()).model_copy()
@@ -270,24 +271,37 @@ class BagSequence(Sequence):
             self._left, self._right = li, ri
             self.topics.left_image, self.topics.right_image = li.topic, ri.topic
             for side, it in (("left", li), ("right", ri)):
-                if it.info_topic is None:
+                if it.info_topic is None and calibration_file is None:
                     raise CalibrationError(
                         it.topic,
                         f"no CameraInfo topic for this {side} image topic (expected a "
-                        "sensor_msgs/CameraInfo topic camera_info beside it)",
+                        "sensor_msgs/CameraInfo topic camera_info beside it, or give a calibration file)",
                     )
-            assert li.info_topic is not None and ri.info_topic is not None
-            self.topics.left_info, self.topics.right_info = li.info_topic, ri.info_topic
-            self._calibration = self._read_calibration(bag, li, ri)
+            if calibration_file is not None:  # a calibration file wins over CameraInfo
+                from loopmodel.io.calib_files import read_stereo_calibration
+
+                calibration = read_stereo_calibration(calibration_file, li.size)
+                for it in (li, ri):
+                    if it.size is not None and it.size != calibration.image_size:
+                        raise InputError(
+                            it.topic,
+                            f"image size {it.size[0]}x{it.size[1]}, the calibration says "
+                            f"{calibration.image_size[0]}x{calibration.image_size[1]}",
+                        )
+                self._calibration = calibration
+                self._how += ", calibration from file"
+            else:
+                assert li.info_topic is not None and ri.info_topic is not None
+                self.topics.left_info, self.topics.right_info = li.info_topic, ri.info_topic
+                self._calibration = self._read_calibration(bag, li, ri)
             self.tolerance_ns, self.stamp_offset_ns = self._tolerance(tolerance_ns, stamps[li.topic], stamps[ri.topic])
             self._gt = self._read_ground_truth(bag)
             tree = static_transforms(bag)
             found = root_from_frame(li.frame_id, tree)
             if found is not None:
                 self.body_frame, self.body_from_cam0 = found
-        self.choice = (
-            f"stereo topics {li.topic} and {ri.topic} ({self._how}); camera info {li.info_topic}, {ri.info_topic}"
-        )
+        info = f"camera info {li.info_topic}, {ri.info_topic}" if calibration_file is None else str(calibration_file)
+        self.choice = f"stereo topics {li.topic} and {ri.topic} ({self._how}); {info}"
 
     @staticmethod
     def _format_of(bag: BagReader) -> str:

@@ -1,5 +1,6 @@
-"""Stereo sequences written as ROS bags with the ``rosbags`` writers: ROS 2 folders
-(``metadata.yaml`` + sqlite3 ``.db3`` or ``.mcap`` storage) and ROS 1 ``.bag`` files.
+"""Stereo sequences written as ROS bags with the ``rosbags`` writers.
+
+ROS 2 folders (``metadata.yaml`` + sqlite3 ``.db3`` or ``.mcap`` storage) and ROS 1 ``.bag`` files.
 
 Images are ``sensor_msgs/Image`` (``raw``: mono8 or bgr8 as the image is; ``mono8``,
 ``mono16``, ``bgr8``, ``rgb8``, ``bgra8``, ``bayer_rggb8``) or ``sensor_msgs/CompressedImage``
@@ -110,8 +111,10 @@ def image_message_values(img: np.ndarray, t_ns: int, frame_id: str, encoding: st
 
 
 class BagSequenceWriter:
-    """Writes a stereo sequence as a ROS bag of kind ``ros2-sqlite3``, ``ros2-mcap`` or
-    ``ros1``; topics from ``topics`` (DESIGN.md names by default)."""
+    """Writes a stereo sequence as a ROS bag of kind ``ros2-sqlite3``, ``ros2-mcap`` or ``ros1``.
+
+    Topics from ``topics`` (DESIGN.md names by default).
+    """
 
     def __init__(
         self,
@@ -187,8 +190,11 @@ class BagSequenceWriter:
         self.write_message(image_topic, msgtype, values, log)
 
     def write_frame(self, frame: StereoFrame, right_offset_ns: int = 0, right: bool = True) -> None:
-        """Write a stereo pair; the right stamp may be offset (unsynchronised cameras) or the
-        right image left out (a dropped frame)."""
+        """Write a stereo pair.
+
+        The right stamp may be offset (unsynchronised cameras) or the right image left out (a
+        dropped frame).
+        """
         self.write_image(0, frame.timestamp_ns, frame.left)
         if right:
             self.write_image(1, frame.timestamp_ns + right_offset_ns, frame.right)

@@ -34,31 +34,37 @@ def _has_project_topics(path: Path, cfg: SequenceConfig) -> bool:
 
 
 def open_sequence(
-    path: str | Path, config: SequenceConfig | None = None, left: str | None = None, right: str | None = None
+    path: str | Path,
+    config: SequenceConfig | None = None,
+    left: str | None = None,
+    right: str | None = None,
+    calibration_file: str | Path | None = None,
 ) -> Sequence:
     """Open a recorded sequence; raises :class:`InputError` naming the path when it is
     missing or of an unknown layout. ``left``/``right`` name the stereo image topics of a
-    bag (default: the configured ones when present, else guessed)."""
+    bag (default: the configured ones when present, else guessed); ``calibration_file``
+    (EuRoC sensor.yaml folder or KITTI calib.txt) replaces a bag's CameraInfo."""
     cfg = config or SequenceConfig()
     p = Path(path)
     if not p.exists():
         raise InputError(p, "path does not exist")
     if not p.is_file() and not p.is_dir():  # /dev/null, a FIFO, a socket
         raise InputError(p, "expected an .mcap file or a EuRoC/KITTI folder, found a device or pipe")
-    bag_args = (cfg.topics, cfg.stereo_pair_tolerance_ns, left, right)
+    calib = None if calibration_file is None else Path(calibration_file)
+    bag_args = (cfg.topics, cfg.stereo_pair_tolerance_ns, left, right, calib)
     if p.is_file():
         if p.suffix.lower() == ".mcap" or is_mcap(p):
             # the project's own MCAP (attachments, stripes, metadata) through mcap; any other
             # ROS 2 MCAP (other topic names) through rosbags
-            if left is None and right is None and _has_project_topics(p, cfg):
+            if left is None and right is None and calib is None and _has_project_topics(p, cfg):
                 return McapSequence(p, cfg.topics, cfg.stereo_pair_tolerance_ns, cfg.max_image_pixels)
             return BagSequence(p, *bag_args)
         if is_bag(p):
             return BagSequence(p, *bag_args)
         raise FormatError(p, "unknown file type (expected an .mcap, .bag or .db3 file or a EuRoC/KITTI folder)")
     folder = euroc_root(p) is not None or is_kitti_folder(p)
-    if folder and (left is not None or right is not None):
-        raise InputError("--left/--right", f"name the image topics of a bag; {p} is a EuRoC/KITTI folder")
+    if folder and (left is not None or right is not None or calib is not None):
+        raise InputError("--left/--right/--calib", f"apply to bags; {p} is a EuRoC/KITTI folder")
     if euroc_root(p) is not None:
         return EurocSequence(p, cfg.stereo_pair_tolerance_ns)
     if is_kitti_folder(p):

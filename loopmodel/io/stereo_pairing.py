@@ -50,9 +50,11 @@ def pair_by_stamp(
     names: tuple[str, str] = ("left", "right"),
     max_queue: int = 64,
 ) -> Iterator[StereoPair[T]]:
-    """Pairs of ``items`` = ``(is_left, stamp_ns, payload)`` in arrival order; ``stats``
-    (updated as pairs are yielded) counts what was dropped. ``names`` name the streams in
-    errors (stamps going backwards)."""
+    """Pairs of ``items`` = ``(is_left, stamp_ns, payload)`` in arrival order.
+
+    ``stats`` (updated as pairs are yielded) counts what was dropped. ``names`` name the streams in
+    errors (stamps going backwards).
+    """
     st = stats if stats is not None else PairingStats()
     queues: tuple[deque[tuple[int, T]], deque[tuple[int, T]]] = (deque(), deque())
     last = [-1, -1]

@@ -11,8 +11,11 @@ MAX_TEXT_BYTES = 1 << 30
 
 
 def read_text_file(path: str | Path, what: str = "text file") -> str:
-    """The UTF-8 text of ``path``; :class:`FormatError` when it is not text (random bytes),
-    :class:`InputError` when it cannot be read (a folder, a FIFO, no permission, too large)."""
+    """The UTF-8 text of ``path``.
+
+    :class:`FormatError` when it is not text (random bytes), :class:`InputError` when it cannot be
+    read (a folder, a FIFO, no permission, too large).
+    """
     p = Path(path)
     try:
         if not p.is_file():

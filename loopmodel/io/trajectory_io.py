@@ -86,8 +86,11 @@ def read_trajectory(
     rate_hz: float = 10.0,
     check: bool = True,
 ) -> Trajectory:
-    """Read a trajectory file. KITTI files take ``timestamps_ns`` or ``rate_hz`` for times.
-    Repeated timestamps (found in real files) are kept; times going backwards are an error."""
+    """Read a trajectory file.
+
+    KITTI files take ``timestamps_ns`` or ``rate_hz`` for times. Repeated timestamps (found in real
+    files) are kept; times going backwards are an error.
+    """
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "trajectory file does not exist")
@@ -152,8 +155,10 @@ def format_trajectory(traj: Trajectory, fmt: TrajectoryFormat) -> str:
 
 
 def write_trajectory(path: str | Path, traj: Trajectory, fmt: TrajectoryFormat | None = None) -> Path:
-    """Write a trajectory atomically; the format defaults from the extension (.tum/.txt: TUM,
-    .kitti: KITTI, .csv: EuRoC)."""
+    """Write a trajectory atomically.
+
+    The format defaults from the extension (.tum/.txt: TUM, .kitti: KITTI, .csv: EuRoC).
+    """
     p = Path(path)
     if fmt is None:
         fmt = {".csv": "euroc", ".kitti": "kitti"}.get(p.suffix.lower(), "tum")  # type: ignore[assignment]

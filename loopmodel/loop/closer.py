@@ -38,6 +38,7 @@ from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hy
 from loopmodel.loop.pnp import solve_pnp_bank
 from loopmodel.loop.refine import project_refiner
 from loopmodel.loop.reloc import RelocParams, RelocResult
+from loopmodel.loop.resume import retrack_keyframe_features
 from loopmodel.types import Keyframe, StereoCalibration
 
 logger = logging.getLogger(__name__)
@@ -181,18 +182,50 @@ class LoopCloser:
     def track_old_features(
         self, match_id: int, image: NDArray[np.uint8], query_from_match: F64
     ) -> tuple[F64, NDArray[np.int64], F64] | None:
-        """Seed 004's accuracy stage: the old set's features tracked into the current
-        image by KLT from their predicted positions, then the P3P bank on them."""
+        """Seed 004's accuracy stage: the old set's features found again in the current
+        image from their predicted positions, then the P3P bank on them. Two trackers run:
+        templates warped by the predicted pose with an enlarged search region
+        (:func:`loopmodel.loop.resume.retrack_keyframe_features`) and pyramidal KLT; the
+        one whose features give more P3P inliers is kept. Returns (query_from_match,
+        landmark ids, pixels) of the inliers."""
         old = self._kf.get(match_id)
         if old is None or old.ids.size < 6:
             return None
+        best: tuple[F64, NDArray[np.int64], F64] | None = None
+        for uv, idx in (self._warped_old(old, image, query_from_match), self._klt_old(old, image, query_from_match)):
+            if idx.size < 6:
+                continue
+            res = solve_pnp_bank(
+                self.camera.lift(uv),
+                old.p_rect[idx],
+                self.config.threshold_px / self.camera.px,
+                rng=np.random.default_rng(0),
+                max_samples=self.config.max_samples,
+                min_inliers=6,
+                refiner=project_refiner(self.camera),
+            )
+            if res is not None and (best is None or res.n_inliers > best[1].size):
+                inl = res.inliers
+                best = (res.cam_from_world, old.ids[idx[inl]], uv[inl])
+        return best
+
+    def _warped_old(self, old: _KfData, image: NDArray[np.uint8], cur_from_old: F64) -> tuple[F64, NDArray[np.int64]]:
+        """Old features re-tracked with warped templates: pixels (K, 2) and their indices."""
+        pos = np.arange(old.ids.size, dtype=np.int64)
+        rt = retrack_keyframe_features(self.camera, old.image, old.uv, old.p_rect, pos, image, cur_from_old, 16)
+        return rt.uv_px, rt.ids
+
+    def _klt_old(self, old: _KfData, image: NDArray[np.uint8], query_from_match: F64) -> tuple[F64, NDArray[np.int64]]:
+        """Old features tracked by pyramidal KLT (forward-backward checked): pixels (K, 2)
+        and their indices."""
+        none = (np.zeros((0, 2)), np.zeros(0, np.int64))
         p_q = old.p_rect @ query_from_match[:3, :3].T + query_from_match[:3, 3]
         front = p_q[:, 2] > 0.05
         pred = self.camera.project(np.where(front[:, None], p_q, 1.0))
         h, w = image.shape[:2]
         inside = front & np.all((pred >= 0) & (pred < [w - 1, h - 1]), axis=1)
         if inside.sum() < 6:
-            return None
+            return none
         src = old.uv[inside].astype(np.float32).reshape(-1, 1, 2)
         guess = pred[inside].astype(np.float32).reshape(-1, 1, 2)
         crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
@@ -219,23 +252,8 @@ class LoopCloser:
         ok = (st.ravel() == 1) & (st2.ravel() == 1)
         ok &= np.linalg.norm((back - src).reshape(-1, 2), axis=1) < 1.0
         if ok.sum() < 6:
-            return None
-        uv = nxt.reshape(-1, 2)[ok].astype(float)
-        idx = np.flatnonzero(inside)[ok]
-        thr = self.config.threshold_px / self.camera.px
-        res = solve_pnp_bank(
-            self.camera.lift(uv),
-            old.p_rect[idx],
-            thr,
-            rng=np.random.default_rng(0),
-            max_samples=self.config.max_samples,
-            min_inliers=6,
-            refiner=project_refiner(self.camera),
-        )
-        if res is None:
-            return None
-        inl = res.inliers
-        return res.cam_from_world, old.ids[idx[inl]], uv[inl]
+            return none
+        return nxt.reshape(-1, 2)[ok].astype(float), np.flatnonzero(inside)[ok]
 
     # ---------------------------------------------------------------- relocalization
     def relocalize(self, image: NDArray[np.uint8], exclude_after: int | None = None) -> tuple[int | None, RelocResult]:

@@ -114,9 +114,12 @@ def verify_metric(
     params: LoopParams,
     refiner: PoseRefiner | None = None,
 ) -> tuple[bool, str, RelocResult, F64 | None]:
-    """Geometric check of two stereo keyframes: the query camera relocalized against the
-    candidate's 3-D features, and (when the query has 3-D features) the reverse, which must
-    agree. Returns (ok, reason, forward result, ``candidate_from_query``)."""
+    """Geometric check of two stereo keyframes.
+
+    The query camera relocalized against the candidate's 3-D features, and (when the query has 3-D
+    features) the reverse, which must agree. Returns (ok, reason, forward result,
+    ``candidate_from_query``).
+    """
     fwd = localize(query, candidate, camera, params.reloc, refiner)
     if not fwd.success or fwd.cam_from_map is None:
         return False, f"relocalization failed: {fwd.reason}", fwd, None
@@ -255,10 +258,13 @@ def relocalize_in_database(
     exclude_after: int | None = None,
     refiner: PoseRefiner | None = None,
 ) -> tuple[int | None, RelocResult]:
-    """Relocalize a lost camera: the ``max_candidates`` best-scoring stored keyframes (ids
-    up to ``exclude_after`` when given) are tried with the P3P bank against their 3-D
-    features; the first success wins. Returns (keyframe id, result) where
-    ``result.cam_from_map`` is ``cam_from_kf``; (None, last failure) when none succeeds."""
+    """Relocalize a lost camera.
+
+    The ``max_candidates`` best-scoring stored keyframes (ids up to ``exclude_after`` when given)
+    are tried with the P3P bank against their 3-D features; the first success wins. Returns
+    (keyframe id, result) where ``result.cam_from_map`` is ``cam_from_kf``; (None, last failure)
+    when none succeeds.
+    """
     p = params if params is not None else RelocParams()
     ids, scores = database.score_all(query, max_id=exclude_after)
     last = RelocResult(False, "no keyframe in the database")
@@ -288,9 +294,11 @@ def params_from_config(cfg: LoopConfig) -> LoopParams:
 def detector_from_config(
     cfg: LoopConfig, camera: CentralCamera | None, image_width_px: float | None = None
 ) -> LoopDetector:
-    """A :class:`LoopDetector` set up from the ``loop`` configuration section: the
-    configured vocabulary file, else the one shipped for the descriptor kind, else (or with
-    ``vocabulary_online``) one trained on the fly from the keyframes."""
+    """A :class:`LoopDetector` set up from the ``loop`` configuration section.
+
+    The configured vocabulary file, else the one shipped for the descriptor kind, else (or with
+    ``vocabulary_online``) one trained on the fly from the keyframes.
+    """
     voc: Vocabulary | None = None
     if cfg.vocabulary_path:
         voc = Vocabulary.load(cfg.vocabulary_path)

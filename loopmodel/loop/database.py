@@ -179,8 +179,10 @@ class KeyframeDatabase:
         return self._entries[self._index[kf_id]].words
 
     def score_all(self, features: FeatureSet, max_id: int | None = None) -> tuple[I64, F64]:
-        """L1 bag-of-words scores of ``features`` against every stored keyframe with id
-        ``<= max_id``: (ids, scores)."""
+        """L1 bag-of-words scores of ``features`` against every stored keyframe with id ``<= max_id``.
+
+        (ids, scores).
+        """
         if self.vocabulary is None or not self._entries:
             return np.zeros(0, np.int64), np.zeros(0)
         q_ids, q_w = self.vocabulary.bow(features.descriptors)
@@ -198,9 +200,11 @@ class KeyframeDatabase:
 
     # -- place recognition --------------------------------------------------------------
     def query(self, query_id: int, features: FeatureSet) -> list[PlaceCandidate]:
-        """Candidate revisits of the place seen by ``features`` (keyframe ``query_id``),
-        best island first; ``accepted`` marks the temporally consistent ones. Call once
-        per keyframe in increasing id order (before or after :meth:`add`)."""
+        """Candidate revisits of the place seen by ``features`` (keyframe ``query_id``), best island first.
+
+        ``accepted`` marks the temporally consistent ones. Call once per keyframe in increasing id
+        order (before or after :meth:`add`).
+        """
         p = self.params
         ids, scores = self.score_all(features, max_id=query_id - p.min_gap)
         islands: list[PlaceCandidate] = []

@@ -279,11 +279,13 @@ def refine_rectified_match(
     half_px: int = 5,
     search_px: int = 3,
 ) -> tuple[F64, NDArray[np.bool_]]:
-    """Sub-pixel right-image column of rectified stereo matches: the left patch around each
-    match is compared (sum of absolute differences) with right patches shifted along the
-    row by up to ``search_px`` around ``u_right``, and a parabola through the best cost and
-    its neighbours gives the sub-pixel minimum. Returns the refined columns and a mask of
-    the matches whose minimum lies inside the search window."""
+    """Sub-pixel right-image column of rectified stereo matches.
+
+    The left patch around each match is compared (sum of absolute differences) with right patches
+    shifted along the row by up to ``search_px`` around ``u_right``, and a parabola through the best
+    cost and its neighbours gives the sub-pixel minimum. Returns the refined columns and a mask of
+    the matches whose minimum lies inside the search window.
+    """
     h, w = left.shape
     L = left.astype(np.float32)
     Rt = right.astype(np.float32)
@@ -338,10 +340,12 @@ def stereo_keyframe_features(
     min_depth_m: float = 0.05,
     max_depth_m: float = 50.0,
 ) -> FeatureSet:
-    """Features of a stereo keyframe: all left-image features, with 3-D positions (left
-    camera frame, metres) for those matched in the right image along the epipolar lines
-    of the calibration. Pixel coordinates are undistorted when the calibration has
-    distortion."""
+    """Features of a stereo keyframe.
+
+    All left-image features, with 3-D positions (left camera frame, metres) for those matched in the
+    right image along the epipolar lines of the calibration. Pixel coordinates are undistorted when
+    the calibration has distortion.
+    """
     ex = make_extractor(kind, n_features)
     fl = detect_and_describe(left, kind, n_features, ex)
     fr = detect_and_describe(right, kind, n_features, ex)

@@ -37,8 +37,10 @@ F64 = NDArray[np.float64]
 
 @dataclass
 class LoopObservations:
-    """Monocular observations of old landmarks at the loop-closing keyframe ``kf_id``:
-    ``landmark_ids`` (N,) and rectified left pixels ``uv_px`` (N, 2)."""
+    """Monocular observations of old landmarks at the loop-closing keyframe ``kf_id``.
+
+    ``landmark_ids`` (N,) and rectified left pixels ``uv_px`` (N, 2).
+    """
 
     kf_id: int
     landmark_ids: NDArray[np.int64]

@@ -32,8 +32,11 @@ _IMAG_TOL = 1e-6
 
 @dataclass
 class P3PSolutions:
-    """Up to four poses per problem: ``R`` (H, 4, 3, 3), ``t`` (H, 4, 3) with
-    ``p_in_cam = R @ p_in_world + t`` (``cam_from_world``), ``valid`` (H, 4)."""
+    """Up to four poses per problem.
+
+    ``R`` (H, 4, 3, 3), ``t`` (H, 4, 3) with ``p_in_cam = R @ p_in_world + t`` (``cam_from_world``),
+    ``valid`` (H, 4).
+    """
 
     R: F64
     t: F64
@@ -46,8 +49,11 @@ class P3PSolutions:
 
 
 def _quartic_roots(coeffs: F64) -> tuple[F64, B]:
-    """Roots of stacked quartics ``c4 v⁴ + ... + c0`` (H, 5) -> (H, 4) real parts and a
-    mask of the real ones. A vanishing ``c4`` sends one root to infinity (then masked)."""
+    """Roots of stacked quartics ``c4 v⁴ + ...
+
+    + c0`` (H, 5) -> (H, 4) real parts and a mask of the real ones. A vanishing ``c4`` sends one
+    root to infinity (then masked).
+    """
     H = coeffs.shape[0]
     c = coeffs.copy()
     scale = np.max(np.abs(c), axis=1)

@@ -1,5 +1,7 @@
-"""Compiled kernels of the P3P bank: one Grunert P3P per minimal sample, MSAC scoring with
-early exit, adaptive sample count, and a robust Gauss-Newton refinement on unit rays.
+"""Compiled kernels of the P3P bank.
+
+One Grunert P3P per minimal sample, MSAC scoring with early exit, adaptive sample count, and a
+robust Gauss-Newton refinement on unit rays.
 
 The P3P solver is the scalar form of :func:`loopmodel.loop.p3p.p3p_grunert` (same
 equations: the quartic in ``v``, ``s1`` from the ``b`` equation, ``u`` from ``c``, a Newton
@@ -65,9 +67,11 @@ def _cubic_max_root(b: float, c: float, d: float) -> float:
 
 @nb.njit(cache=True)
 def quartic_real_roots(A4: float, A3: float, A2: float, A1: float, A0: float, out: F64) -> int:
-    """Real roots of A4 v^4 + ... + A0 (Ferrari: depressed quartic, resolvent cubic, two
-    quadratics; each root polished by Newton on the original quartic) -> ``out`` (4,),
-    returns their number."""
+    """Real roots of A4 v^4 + ...
+
+    + A0 (Ferrari: depressed quartic, resolvent cubic, two quadratics; each root polished by Newton
+    on the original quartic) -> ``out`` (4,), returns their number.
+    """
     if A4 == 0:
         return 0
     a, b, c, d = A3 / A4, A2 / A4, A1 / A4, A0 / A4

@@ -1,5 +1,6 @@
-"""The P3P bank: P3P hypotheses from minimal samples, scored with early exit, then robust
-refinement.
+"""The P3P bank.
+
+P3P hypotheses from minimal samples, scored with early exit, then robust refinement.
 
 Profiled on the fountain queries (cProfile), the former batch version spent its time in
 numpy call overhead (stacked companion matrices, array temporaries for a few dozen

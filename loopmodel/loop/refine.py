@@ -27,8 +27,11 @@ PoseRefiner = Callable[[F64, F64, F64, float], F64]
 
 
 def project_refiner(camera: CentralCamera) -> PoseRefiner:
-    """A :data:`PoseRefiner` for images of ``camera``: LM with a Huber loss at the given
-    noise scale on the pixels of the rays. A refinement that fails keeps the hypothesis."""
+    """A :data:`PoseRefiner` for images of ``camera``.
+
+    LM with a Huber loss at the given noise scale on the pixels of the rays. A refinement that fails
+    keeps the hypothesis.
+    """
     rig = CameraRig.single(camera)
     f = max(camera.px, camera.py)
 

@@ -44,8 +44,10 @@ def orbit_problem(
     fx_px: float = 500.0,
     baseline_m: float = 0.05,
 ) -> SynthLoopProblem:
-    """An orbit of ``n_keyframes`` keyframes (one full turn), ``features_per_kf`` new
-    features each; the last keyframe closes the loop on the first feature set."""
+    """An orbit of ``n_keyframes`` keyframes (one full turn), ``features_per_kf`` new features each.
+
+    The last keyframe closes the loop on the first feature set.
+    """
     rng = np.random.default_rng(seed)
     cx, cy = 319.5, 239.5
     centre = np.zeros(3)

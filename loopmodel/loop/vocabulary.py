@@ -1,5 +1,7 @@
-"""Visual vocabulary: a tree of descriptor clusters (hierarchical k-means; k-majority for
-binary descriptors such as ORB) and TF-IDF bag-of-words vectors.
+"""Visual vocabulary.
+
+A tree of descriptor clusters (hierarchical k-means; k-majority for binary descriptors such as ORB)
+and TF-IDF bag-of-words vectors.
 
 The tree has branching factor ``k`` and at most ``levels`` levels; its leaves are the
 words. A descriptor is quantised by descending from the root to the nearest child at each
@@ -210,8 +212,10 @@ class Vocabulary:
         return self.word[node].astype(np.int64)
 
     def set_idf(self, documents: list[NDArray[Any]]) -> None:
-        """IDF weights ``log(N / n_w)`` from N documents (descriptor arrays per image);
-        words no document contains get ``log(N)``."""
+        """IDF weights ``log(N / n_w)`` from N documents (descriptor arrays per image).
+
+        Words no document contains get ``log(N)``.
+        """
         counts = np.zeros(self.n_words)
         for d in documents:
             counts[np.unique(self.transform(d))] += 1
@@ -306,11 +310,13 @@ def train_from_images(
     max_descriptors: int = 200000,
     source: str = "",
 ) -> Vocabulary:
-    """Train a vocabulary for descriptor ``kind`` on grey images: ``n_features`` detected
-    per image (:func:`loopmodel.loop.features.detect_and_describe`), at most
-    ``max_descriptors`` of them (seeded random subset) clustered into a
-    ``branching``^``levels`` tree, IDF weights from the images as documents. ``source``
-    describes the images (kept in :attr:`Vocabulary.info`). Deterministic for a seed."""
+    """Train a vocabulary for descriptor ``kind`` on grey images.
+
+    ``n_features`` detected per image (:func:`loopmodel.loop.features.detect_and_describe`), at most
+    ``max_descriptors`` of them (seeded random subset) clustered into a ``branching``^``levels``
+    tree, IDF weights from the images as documents. ``source`` describes the images (kept in
+    :attr:`Vocabulary.info`). Deterministic for a seed.
+    """
     from loopmodel.loop.features import detect_and_describe, make_extractor
 
     ex = make_extractor(kind, n_features)

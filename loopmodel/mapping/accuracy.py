@@ -89,10 +89,12 @@ def mesh_accuracy(
     seed: int = 0,
     reference_points: NDArray[np.float64] | None = None,
 ) -> MeshAccuracy:
-    """Accuracy of ``mesh`` against ``gt_mesh``; completeness counts ground-truth samples
-    inside the optional box [region_min, region_max] (world, metres), or, when given, the
-    share of ``reference_points`` (P x 3, e.g. samples of the scanned object) within the
-    tolerance of the mesh."""
+    """Accuracy of ``mesh`` against ``gt_mesh``.
+
+    Completeness counts ground-truth samples inside the optional box [region_min, region_max]
+    (world, metres), or, when given, the share of ``reference_points`` (P x 3, e.g. samples of the
+    scanned object) within the tolerance of the mesh.
+    """
     if len(mesh.triangles) == 0 or len(mesh.vertices) == 0:
         raise InputError(None, "reconstructed mesh is empty")
     if len(gt_mesh.triangles) == 0:

@@ -118,9 +118,10 @@ def line_response(
     ``background_px`` pixels, ``axis`` as in :func:`extract_laser_peaks`), which removes
     broad lit surfaces - a white table, a yellow toy - and keeps lines narrower than
     ``background_px``. Pixels are kept only where the laser colour dominates the other
-    channels by ``min_colour`` grey levels somewhere within ``background_px // 2`` pixels
-    across the line: the saturated (white) core of a blooming line keeps its coloured
-    fringe, white highlights and grey texture have none.
+    channels by ``min_colour`` grey levels (outright, or in its rise over the local
+    background) somewhere within ``background_px // 2`` pixels across the line: the
+    saturated (white) core of a blooming line keeps its coloured fringe, white highlights
+    and grey texture have none.
     """
     import cv2
 
@@ -136,7 +137,11 @@ def line_response(
     size = (max(3, int(background_px)), 1) if axis == "rows" else (1, max(3, int(background_px)))
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, size)
     tophat = chan - cv2.morphologyEx(chan, cv2.MORPH_OPEN, kernel)
-    colour = (chan - others) >= min_colour
+    rest = [img[:, :, j].astype(np.float32) for j in range(3) if j != c]
+    rest_tophat = np.maximum(*[x - cv2.morphologyEx(x, cv2.MORPH_OPEN, kernel) for x in rest])
+    # the laser's colour dominates outright, or its channel rises over the local background
+    # clearly more than the others (a thin line on a surface whose own colour is another)
+    colour = ((chan - others) >= min_colour) | ((tophat - rest_tophat) >= min_colour)
     r = max(3, int(background_px) // 2 * 2 + 1)
     reach = (r, 1) if axis == "rows" else (1, r)
     near_colour = cv2.dilate(colour.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_RECT, reach)) > 0

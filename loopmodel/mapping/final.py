@@ -1,6 +1,8 @@
-"""The mapping steps that read the sequence: its laser stripes for the live mapping and at the
-end of the run, and the mesh of them placed with the final trajectory, with its accuracy when
-the sequence carries a ground-truth scene."""
+"""The mapping steps that read the sequence.
+
+Its laser stripes for the live mapping and at the end of the run, and the mesh of them placed with
+the final trajectory, with its accuracy when the sequence carries a ground-truth scene.
+"""
 
 from __future__ import annotations
 
@@ -25,9 +27,11 @@ def live_stripes(sequence: Sequence, config: MappingConfig) -> Iterator[StripePr
 
 
 def run_stripes(sequence: Sequence, last_ns: int | None, config: MappingConfig) -> list[StripeProfile]:
-    """The sequence's laser profiles up to ``last_ns`` (the last processed frame; sensor
-    frame, metres); none without a processed frame or without profiles. A reader error is
-    logged and gives none (the trajectories matter more than the stripes)."""
+    """The sequence's laser profiles up to ``last_ns`` (the last processed frame; sensor frame, metres).
+
+    None without a processed frame or without profiles. A reader error is logged and gives none (the
+    trajectories matter more than the stripes).
+    """
     if last_ns is None or sequence_stripe_count(sequence) == 0:
         return []
     try:
@@ -53,10 +57,12 @@ def aligned_to(traj: Trajectory, reference: Trajectory) -> Trajectory:
 def _mesh_errors(
     sequence: Sequence, stripes: list[StripeProfile], online: Trajectory, final: Trajectory, config: MappingConfig
 ) -> dict[str, Any]:
-    """With a ground-truth scene (``scene.ply`` attachment) and poses: the mesh error with
-    ground-truth, online (before loop closure) and final (after) poses, both SE(3)-aligned to
-    the truth by their frame positions, and the completeness of the scanned object
-    (``object.ply``) and of its swept part when the sequence has it."""
+    """With a ground-truth scene (``scene.ply`` attachment) and poses.
+
+    The mesh error with ground-truth, online (before loop closure) and final (after) poses, both
+    SE(3)-aligned to the truth by their frame positions, and the completeness of the scanned object
+    (``object.ply``) and of its swept part when the sequence has it.
+    """
     from loopmodel.io.mesh_io import mesh_from_bytes
     from loopmodel.mapping.accuracy import mesh_error_metrics
 

@@ -1,5 +1,8 @@
-"""The pipeline's live mapping stage: laser stripes fed to the run's :class:`StripeMap` as
-frames arrive, and the chunked live mesh re-meshed in a worker thread."""
+"""The pipeline's live mapping stage.
+
+Laser stripes fed to the run's :class:`StripeMap` as frames arrive, and the chunked live mesh
+re-meshed in a worker thread.
+"""
 
 from __future__ import annotations
 
@@ -41,8 +44,10 @@ class LiveMapping:
         return self._every > 0
 
     def feed(self, t_ns: int) -> None:
-        """Add every stripe taken up to ``t_ns``. A bad stripe stops the live feed (logged);
-        the run and its final mesh go on."""
+        """Add every stripe taken up to ``t_ns``.
+
+        A bad stripe stops the live feed (logged); the run and its final mesh go on.
+        """
         batch: list[StripeProfile] = []
         try:
             while True:
@@ -62,8 +67,11 @@ class LiveMapping:
             self._stripes, self._next = iter(()), None
 
     def on_keyframe(self) -> None:
-        """Count a keyframe; every ``every_kf``-th one installs the worker's finished blocks
-        and, when the worker is free, hands it the blocks that changed since."""
+        """Count a keyframe.
+
+        Every ``every_kf``-th one installs the worker's finished blocks and, when the worker is
+        free, hands it the blocks that changed since.
+        """
         self._keyframes += 1
         if self._every <= 0 or self._keyframes % self._every or self._world.point_count == 0:
             return

@@ -113,7 +113,9 @@ def mesh_cloud(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geo
 
 def mesh_from_points(points_w: F64, sensors_w: F64, config: MappingConfig) -> o3d.geometry.TriangleMesh:
     """Triangle mesh (world, metres) of stripe points seen from the given sensor positions.
-    Raises :class:`InputError` when there is too little data or no surface comes out."""
+
+    Raises :class:`InputError` when there is too little data or no surface comes out.
+    """
     if np.asarray(points_w).size == 0:
         raise InputError(None, "no stripe points to mesh")
     t0 = time.perf_counter()
@@ -138,8 +140,10 @@ BlockKey = tuple[int, int, int]
 
 
 def live_mesh_config(config: MappingConfig) -> MappingConfig:
-    """The settings of live-mesh updates: ``live_voxel_m`` resolution, one Poisson thread
-    (the other core keeps tracking)."""
+    """The settings of live-mesh updates.
+
+    ``live_voxel_m`` resolution, one Poisson thread (the other core keeps tracking).
+    """
     return config.model_copy(update={"voxel_m": config.live_voxel_m, "poisson_threads": 1})
 
 

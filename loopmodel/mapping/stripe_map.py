@@ -1,5 +1,7 @@
-"""Laser-stripe integration: profiles kept in the sensor frame, placed in the world with the
-pose interpolated on SE(3) at each stripe's time, re-placed when the backend corrects poses.
+"""Laser-stripe integration.
+
+Profiles kept in the sensor frame, placed in the world with the pose interpolated on SE(3) at each
+stripe's time, re-placed when the backend corrects poses.
 
 Pose bookkeeping is keyframe-relative: every frame pose is
 ``world_from_cam = world_from_kf[kf] @ kf_from_cam``. A stripe taken between frames ``f0`` and
@@ -113,8 +115,11 @@ class StripeMap:
         return self._frame_kf.a.copy()
 
     def set_keyframe(self, kf_id: int, world_from_kf: ArrayLike) -> None:
-        """Declare keyframe ``kf_id`` (>= 0) with its pose; setting a known keyframe again
-        corrects it like :meth:`update_keyframes` (its stripes are re-transformed)."""
+        """Declare keyframe ``kf_id`` (>= 0) with its pose.
+
+        Setting a known keyframe again corrects it like :meth:`update_keyframes` (its stripes are
+        re-transformed).
+        """
         if kf_id < 0:
             raise InputError(None, f"keyframe id must be >= 0, got {kf_id}")
         if int(kf_id) in self._world_from_kf:
@@ -130,9 +135,12 @@ class StripeMap:
         kf_id: int | None = None,
         kf_from_cam: ArrayLike | None = None,
     ) -> int:
-        """Add a tracked frame (times strictly increasing). Give either ``world_from_cam`` (the
-        frame anchors itself) or ``kf_id`` and ``kf_from_cam`` (the keyframe must be set).
-        Places every waiting stripe the new frame brackets; returns the frame index."""
+        """Add a tracked frame (times strictly increasing).
+
+        Give either ``world_from_cam`` (the frame anchors itself) or ``kf_id`` and ``kf_from_cam``
+        (the keyframe must be set). Places every waiting stripe the new frame brackets; returns the
+        frame index.
+        """
         t = int(timestamp_ns)
         if self._frame_t.n and t <= int(self._frame_t.a[-1]):
             raise EstimationError(f"frames must arrive in time order: {t} ns after {int(self._frame_t.a[-1])} ns")
@@ -175,14 +183,16 @@ class StripeMap:
     def bridged_trajectory(
         self, keyframe_times_ns: Mapping[int, int], tracked_links: Mapping[int, tuple[int, F64]]
     ) -> Trajectory:
-        """Like :meth:`trajectory`, with each keyframe interval's tracking drift spread over its
-        frames. ``tracked_links[B] = (A, A_from_B_tracked)``: keyframe B was made from a frame
-        tracked against keyframe A at the tracker's pose ``A_from_B_tracked``; the estimated
-        ``A_from_B`` (current keyframe poses) disagrees with it by the interval's drift. The
-        least-squares chain with equal noise per step and both ends held at the estimated
-        keyframes gives a frame at time t the fraction ``(t - t_A) / (t_B - t_A)`` of the end
-        correction (on SE(3), right-multiplied in the frame's coordinates). Frames of a
-        keyframe without a linked successor are recomposed as in :meth:`trajectory`."""
+        """Like :meth:`trajectory`, with each keyframe interval's tracking drift spread over its frames.
+
+        ``tracked_links[B] = (A, A_from_B_tracked)``: keyframe B was made from a frame tracked
+        against keyframe A at the tracker's pose ``A_from_B_tracked``; the estimated ``A_from_B``
+        (current keyframe poses) disagrees with it by the interval's drift. The least-squares chain
+        with equal noise per step and both ends held at the estimated keyframes gives a frame at
+        time t the fraction ``(t - t_A) / (t_B - t_A)`` of the end correction (on SE(3),
+        right-multiplied in the frame's coordinates). Frames of a keyframe without a linked
+        successor are recomposed as in :meth:`trajectory`.
+        """
         from loopmodel.geometry.se3 import se3_exp, se3_log
 
         base = self.trajectory()
@@ -214,8 +224,11 @@ class StripeMap:
         return {k: T.copy() for k, T in self._world_from_kf.items() if k >= 0}
 
     def update_keyframes(self, world_from_kf: Mapping[int, ArrayLike]) -> I64:
-        """Correct keyframe poses; re-transforms only the stripes these keyframes govern.
-        Returns the indices of the re-transformed stripes."""
+        """Correct keyframe poses.
+
+        Re-transforms only the stripes these keyframes govern. Returns the indices of the
+        re-transformed stripes.
+        """
         ids = []
         for k, T in world_from_kf.items():
             if int(k) not in self._world_from_kf:
@@ -260,8 +273,10 @@ class StripeMap:
         return self._s_f0.a >= 0
 
     def add(self, stripe: StripeProfile) -> int:
-        """Add a profile (times need not be ordered). It is placed in the world as soon as
-        frames bracket its time; returns the stripe index."""
+        """Add a profile (times need not be ordered).
+
+        It is placed in the world as soon as frames bracket its time; returns the stripe index.
+        """
         self.add_many([stripe])
         return self._s_t.n - 1
 
@@ -410,8 +425,11 @@ class StripeMap:
         stripes: Iterable[StripeProfile],
         config: MappingConfig | None = None,
     ) -> StripeMap:
-        """Offline map: every trajectory pose anchors its own frame; profiles without points
-        (the laser hit nothing) are skipped."""
+        """Offline map.
+
+        Every trajectory pose anchors its own frame; profiles without points (the laser hit nothing)
+        are skipped.
+        """
         trajectory.check("trajectory")
         m = cls(config)
         for t, T in zip(trajectory.timestamps_ns, trajectory.world_from_cam, strict=True):
@@ -439,9 +457,12 @@ class StripeMap:
         return mesh_from_points(self.world_points(), self.sensor_positions(), self.config)
 
     def update_live_mesh(self) -> o3d.geometry.TriangleMesh:
-        """Chunked live mesh: re-mesh only the blocks (``chunk_m``) touched by stripes added or
-        moved since the last call (one reconstruction for all of them, at ``live_voxel_m``),
-        and return the union of all block meshes."""
+        """Chunked live mesh.
+
+        Re-mesh only the blocks (``chunk_m``) touched by stripes added or moved since the last call
+        (one reconstruction for all of them, at ``live_voxel_m``), and return the union of all block
+        meshes.
+        """
         from loopmodel.mapping.meshing import live_mesh_config, mesh_blocks
 
         snap = self.take_dirty_blocks()

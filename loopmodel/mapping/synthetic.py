@@ -54,8 +54,11 @@ def cast_stripe(
     baseline_m: float = 0.06,
     cross_depth_m: float = 0.3,
 ) -> StripeProfile:
-    """One noiseless profile: laser rays fanned in the light plane, kept where they hit the
-    scene and the camera sees the hit point. Points in the camera frame (metres)."""
+    """One noiseless profile.
+
+    Laser rays fanned in the light plane, kept where they hit the scene and the camera sees the hit
+    point. Points in the camera frame (metres).
+    """
     o_cam = laser_origin(baseline_m)
     e1 = np.array([0.0, 1.0, 0.0])
     e2 = np.array([-baseline_m, 0.0, cross_depth_m])

@@ -1,8 +1,9 @@
-"""The adaptive depth observer of seed 003: one robust velocity estimator per feature
-(eq. 20) and an adaptive least-squares update of the depth ratios ``lambda_i = z*_1/z*_i``
-(eq. 30-36). Independent of where its measurements come from: it is fed views (pixels,
-depth ratios ``alpha_i = z*_i/z_i`` and the rotation ``cur_from_ref``) at camera rate and
-integrates internally at a fixed step with linear interpolation between views.
+"""The adaptive depth observer of seed 003.
+
+One robust velocity estimator per feature (eq. 20) and an adaptive least-squares update of the depth
+ratios ``lambda_i = z*_1/z*_i`` (eq. 30-36). Independent of where its measurements come from: it is
+fed views (pixels, depth ratios ``alpha_i = z*_i/z_i`` and the rotation ``cur_from_ref``) at camera
+rate and integrates internally at a fixed step with linear interpolation between views.
 
 Discretisation of the velocity estimator: explicit Euler of the sign term of eq. 20 does
 not slide on ``e_tilde = 0`` but settles into a numerical limit cycle (period ~65 ms,

@@ -1,7 +1,8 @@
-"""Partial Euclidean reconstruction between a reference view and the current view
-(seed 003 section 2): the rotation ``R_bar = cur_from_ref``, the scaled translation, the
-depth ratios ``alpha_i = z*_i / z_i`` and the Euclidean homography
-``H = R_bar + x_h n*^T`` of the (possibly virtual) plane through three features.
+"""Partial Euclidean reconstruction between a reference view and the current view (seed 003 section 2).
+
+The rotation ``R_bar = cur_from_ref``, the scaled translation, the depth ratios ``alpha_i = z*_i /
+z_i`` and the Euclidean homography ``H = R_bar + x_h n*^T`` of the (possibly virtual) plane through
+three features.
 
 For coplanar features the homography is estimated from pixels and decomposed
 (OpenCV's decomposition, solutions filtered by the visibility constraint). For
@@ -91,9 +92,12 @@ def signals_from_essential(
     plane_features: tuple[int, int, int] = (0, 1, 2),
     threshold_px: float = 1.0,
 ) -> TwoViewSignals:
-    """Two-view signals of non-coplanar features: ``R_bar`` and the translation direction from
-    the essential matrix, ``alpha_i`` by least squares from ``(1/alpha_i) m_i - b_i t = R_bar m*_i``,
-    and the virtual plane through three features (scale: ``x_h = x_f / d*``)."""
+    """Two-view signals of non-coplanar features.
+
+    ``R_bar`` and the translation direction from the essential matrix, ``alpha_i`` by least squares
+    from ``(1/alpha_i) m_i - b_i t = R_bar m*_i``, and the virtual plane through three features
+    (scale: ``x_h = x_f / d*``).
+    """
     A = np.asarray(A, dtype=float)
     pr = np.asarray(p_ref_px, dtype=float).reshape(-1, 2)
     pc = np.asarray(p_cur_px, dtype=float).reshape(-1, 2)

@@ -21,8 +21,10 @@ F64 = NDArray[np.float64]
 
 
 def l_omega(e_w: ArrayLike) -> F64:
-    """``L_w = I - (phi/2)[u]x + (1 - sinc(phi)/sinc^2(phi/2)) [u]x^2`` for ``e_w = u*phi``
-    (radians): the map from ``w_s`` to ``d(u*phi)/dt``."""
+    """``L_w = I - (phi/2)[u]x + (1 - sinc(phi)/sinc^2(phi/2)) [u]x^2`` for ``e_w = u*phi`` (radians).
+
+    The map from ``w_s`` to ``d(u*phi)/dt``.
+    """
     ew = np.asarray(e_w, dtype=float).reshape(3)
     phi = float(np.linalg.norm(ew))
     if phi < 1e-9:

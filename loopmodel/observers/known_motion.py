@@ -1,6 +1,6 @@
-"""The seed-003 adaptive depth update when the camera motion is known (e.g. from a visual
-odometry front end): inverse depths of tracked features, each feature with its own reference
-view.
+"""The seed-003 adaptive depth update when the camera motion is known (e.g. from a visual odometry front end).
+
+Inverse depths of tracked features, each feature with its own reference view.
 
 With the motion unknown, seed 003 estimates the signal rates (eq. 20) and regresses them on
 the scaled velocity, ``y = lambda h1 + h2 + eta``. When the pose ``cur_from_ref = (R, t)``
@@ -49,8 +49,11 @@ class KnownMotionDepthObserver:
         return int(self.theta.size)
 
     def add(self, m_ref: ArrayLike, theta0: ArrayLike) -> None:
-        """Append features: reference rays (N x 2 normalised or N x 3 with z = 1) and initial
-        inverse depths (1/m, scalar or N)."""
+        """Append features.
+
+        Reference rays (N x 2 normalised or N x 3 with z = 1) and initial inverse depths (1/m,
+        scalar or N).
+        """
         m = np.asarray(m_ref, dtype=float)
         m = m.reshape(-1, m.shape[-1]) if m.size else np.zeros((0, 2))
         if m.shape[1] == 2:
@@ -71,9 +74,12 @@ class KnownMotionDepthObserver:
 
     def update(self, cur_from_ref_rot: ArrayLike, cur_from_ref_t: ArrayLike, m_cur: ArrayLike, dt_s: float,
                which: NDArray[np.int64] | None = None) -> None:
-        """One view: per-feature rotations (N x 3 x 3 or 3 x 3), translations (N x 3 or 3,
-        metres) of ``cur_from_ref`` and the current normalised image points (N x 2) of the
-        features ``which`` (default: all); ``dt_s`` the time since the previous view."""
+        """One view.
+
+        Per-feature rotations (N x 3 x 3 or 3 x 3), translations (N x 3 or 3, metres) of
+        ``cur_from_ref`` and the current normalised image points (N x 2) of the features ``which``
+        (default: all); ``dt_s`` the time since the previous view.
+        """
         idx = np.arange(len(self)) if which is None else np.asarray(which, dtype=np.int64)
         if idx.size == 0:
             return

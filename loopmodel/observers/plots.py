@@ -1,5 +1,8 @@
-"""Figures of the depth observer (matplotlib, Agg): convergence of the depth ratios and of
-the depth errors (seed 003 Fig. 2-3), and observer-vs-stereo depths on real tracks."""
+"""Figures of the depth observer (matplotlib, Agg).
+
+Convergence of the depth ratios and of the depth errors (seed 003 Fig. 2-3), and observer-vs-stereo
+depths on real tracks.
+"""
 
 from __future__ import annotations
 

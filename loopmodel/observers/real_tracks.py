@@ -1,6 +1,8 @@
-"""The depth observer on real image sequences: KLT tracks on the left camera, two-view
-signals from the essential matrix, scale from one stereo depth, and a comparison of every
-recovered depth with the stereo depth of the same feature."""
+"""The depth observer on real image sequences.
+
+KLT tracks on the left camera, two-view signals from the essential matrix, scale from one stereo
+depth, and a comparison of every recovered depth with the stereo depth of the same feature.
+"""
 
 from __future__ import annotations
 
@@ -69,8 +71,11 @@ def observe_window(
     max_features: int = 400,
     max_depth_m: float = 40.0,
 ) -> WindowResult:
-    """Run the observer over consecutive frames; the first is the reference view. Feature 0
-    (the one whose stereo depth gives the scale) is the best-matched near feature."""
+    """Run the observer over consecutive frames.
+
+    The first is the reference view. Feature 0 (the one whose stereo depth gives the scale) is the
+    best-matched near feature.
+    """
     if len(frames) < 3:
         raise InputError("depth observer", "needs at least 3 frames in a window")
     ref_left = to_grey(frames[0].left)

@@ -1,7 +1,9 @@
-"""The simulation of seed 003 section 6: 12 static features, a camera translating with
-``v_cam(t) = (cos t, -sin t, 0.1 sin t)`` m/s and rotating with ``w_cam(t) =
-(0.1 sin t, 0.1 cos t, 0.05)`` rad/s (our choice: the seed does not state it), both in the
-camera frame; identity intrinsics; gains of eq. 49; 10 s."""
+"""The simulation of seed 003 section 6.
+
+12 static features, a camera translating with ``v_cam(t) = (cos t, -sin t, 0.1 sin t)`` m/s and
+rotating with ``w_cam(t) = (0.1 sin t, 0.1 cos t, 0.05)`` rad/s (our choice: the seed does not state
+it), both in the camera frame; identity intrinsics; gains of eq. 49; 10 s.
+"""
 
 from __future__ import annotations
 

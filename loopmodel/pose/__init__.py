@@ -1,5 +1,8 @@
-"""The one robust pose solver of the project: pose of an N-camera central rig from
-feature correspondences (points now; lines/conics plug in as further terms)."""
+"""The one robust pose solver of the project.
+
+Pose of an N-camera central rig from feature correspondences (points now; lines/conics plug in as
+further terms).
+"""
 
 from loopmodel.pose.ransac import ransac_pose
 from loopmodel.pose.rig import CameraRig, PointTerm, PoseTerm

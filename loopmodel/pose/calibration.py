@@ -1,7 +1,8 @@
-"""Rig calibration by virtual visual servoing (seed 002, eq. 16): the intrinsics
-``gamma_j = (px, py, u0, v0, xi)`` of every camera and the rig transforms ``jM1``
-(``cam_from_rig[j]``, camera 1 = rig frame, fixed) from known 3-D points seen in several
-views of a calibration object (one unknown ``rig_from_ref`` per view).
+"""Rig calibration by virtual visual servoing (seed 002, eq. 16).
+
+The intrinsics ``gamma_j = (px, py, u0, v0, xi)`` of every camera and the rig transforms ``jM1``
+(``cam_from_rig[j]``, camera 1 = rig frame, fixed) from known 3-D points seen in several views of a
+calibration object (one unknown ``rig_from_ref`` per view).
 
 ``ds/dt = L_s v + (ds/dgamma) dgamma/dt``: the pose part is the point interaction matrix of
 :mod:`loopmodel.pose.vvs` (here as the Jacobian of a left twist, ``J = -L``); the intrinsic
@@ -26,8 +27,11 @@ from loopmodel.pose.robust import Loss, default_cutoff, robust_scale, weights
 
 @dataclass
 class CalibrationView:
-    """One view of a known object: points ``p_in_ref`` (N x 3, metres, object frame)
-    observed at ``uv_px`` (N x 2) by camera ``cam_index`` (N,)."""
+    """One view of a known object.
+
+    Points ``p_in_ref`` (N x 3, metres, object frame) observed at ``uv_px`` (N x 2) by camera
+    ``cam_index`` (N,).
+    """
 
     p_in_ref: F64
     uv_px: F64

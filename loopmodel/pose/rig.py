@@ -23,8 +23,10 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class CameraRig:
-    """N central cameras rigidly mounted; ``cam_from_rig[j]`` maps rig-frame points
-    (metres) into camera j's frame."""
+    """N central cameras rigidly mounted.
+
+    ``cam_from_rig[j]`` maps rig-frame points (metres) into camera j's frame.
+    """
 
     cameras: tuple[CentralCamera, ...]
     cam_from_rig: tuple[F64, ...]
@@ -65,8 +67,10 @@ class CameraRig:
 
 
 def point_cross_rows(p: F64, A: F64) -> F64:
-    """Rows ``p_i x a_ik`` for points p (N, 3) and row stacks A (N, K, 3); equals
-    ``-A_i [p_i]x``, the rotation block of a left-perturbation Jacobian."""
+    """Rows ``p_i x a_ik`` for points p (N, 3) and row stacks A (N, K, 3).
+
+    Equals ``-A_i [p_i]x``, the rotation block of a left-perturbation Jacobian.
+    """
     px, py, pz = p[:, 0, None], p[:, 1, None], p[:, 2, None]
     ax, ay, az = A[:, :, 0], A[:, :, 1], A[:, :, 2]
     return np.stack([py * az - pz * ay, pz * ax - px * az, px * ay - py * ax], axis=2)
@@ -90,10 +94,13 @@ class PoseTerm(Protocol):
 
 @dataclass
 class PointTerm:
-    """2-D/3-D point correspondences: ``p_in_ref`` (N, 3, metres, reference frame) seen at
-    ``uv_px`` (N, 2, pixels) by camera ``cam_index`` (N,) of the rig. Residual =
-    projection - measurement (pixels). ``prior_weight`` (optional, N) multiplies the robust
-    weights (e.g. the ratio of pixel variance to pixel-plus-depth variance)."""
+    """2-D/3-D point correspondences.
+
+    ``p_in_ref`` (N, 3, metres, reference frame) seen at ``uv_px`` (N, 2, pixels) by camera
+    ``cam_index`` (N,) of the rig. Residual = projection - measurement (pixels). ``prior_weight``
+    (optional, N) multiplies the robust weights (e.g. the ratio of pixel variance to
+    pixel-plus-depth variance).
+    """
 
     rig: CameraRig
     p_in_ref: F64

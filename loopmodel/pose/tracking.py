@@ -1,8 +1,9 @@
-"""Model-based tracking of a known 3-D line model with an N-camera central rig (seed 002,
-sections IV-V): sample every visible projected edge on its conic (eq. 26-28), search the
-image along the conic normal (eq. 29) for the matching edge (moving edges, supplied by the
-caller as a ``measure`` function so images or a feature-level simulator can be used), then
-estimate ``rig_from_ref`` by robust VVS on the point-to-conic distances.
+"""Model-based tracking of a known 3-D line model with an N-camera central rig (seed 002, sections IV-V).
+
+Sample every visible projected edge on its conic (eq. 26-28), search the image along the conic
+normal (eq. 29) for the matching edge (moving edges, supplied by the caller as a ``measure``
+function so images or a feature-level simulator can be used), then estimate ``rig_from_ref`` by
+robust VVS on the point-to-conic distances.
 """
 
 from __future__ import annotations
@@ -28,8 +29,11 @@ ValidFn = Callable[[int, F64], NDArray[np.bool_]]
 
 @dataclass(frozen=True)
 class PolyhedronModel:
-    """A convex polyhedral object (metres, object frame): vertices, edges as vertex index
-    pairs, the two faces adjacent to each edge and the outward face normals."""
+    """A convex polyhedral object (metres, object frame).
+
+    Vertices, edges as vertex index pairs, the two faces adjacent to each edge and the outward face
+    normals.
+    """
 
     vertices: F64
     edges: NDArray[np.int64]
@@ -149,8 +153,11 @@ class TrackerOptions:
 
 @dataclass
 class TrackResult:
-    """One frame: the pose, the VVS result (None when too few features), the samples and
-    how many edge points were matched."""
+    """One frame.
+
+    The pose, the VVS result (None when too few features), the samples and how many edge points were
+    matched.
+    """
 
     rig_from_ref: F64
     ok: bool

@@ -44,8 +44,10 @@ from loopmodel.pose.solver import PoseResult
 
 
 def twist_transform(b_from_a: ArrayLike) -> F64:
-    """6x6 velocity twist transform ``bVa = [[R, [t]x R], [0, R]]`` of ``b_from_a`` (eq. 11):
-    maps a velocity ``(upsilon, omega)`` of frame a, expressed in a, to frame b."""
+    """6x6 velocity twist transform ``bVa = [[R, [t]x R], [0, R]]`` of ``b_from_a`` (eq. 11).
+
+    Maps a velocity ``(upsilon, omega)`` of frame a, expressed in a, to frame b.
+    """
     T = np.asarray(b_from_a, dtype=float)
     R, t = T[:3, :3], T[:3, 3]
     V = np.zeros((6, 6))
@@ -94,9 +96,12 @@ def pixel_point_interaction_matrix(camera: CentralCamera, p_in_cam: ArrayLike) -
 
 @dataclass
 class LineConics:
-    """Projection of 3-D lines in one camera (arrays over lines): conic coefficients
-    ``a = (a0..a4)`` of eq. 20-21 and their interaction matrices ``L_a`` (eq. 22), plus the
-    two planes (P1 through the sphere centre, P2 orthogonal to it: ``N2 . X + D2 = 0``)."""
+    """Projection of 3-D lines in one camera (arrays over lines).
+
+    Conic coefficients ``a = (a0..a4)`` of eq. 20-21 and their interaction matrices ``L_a`` (eq.
+    22), plus the two planes (P1 through the sphere centre, P2 orthogonal to it: ``N2 . X + D2 =
+    0``).
+    """
 
     a: F64  # (M, 5)
     L_a: F64  # (M, 5, 6)
@@ -237,11 +242,13 @@ def sample_conic_arc(
 
 @dataclass
 class LineTerm:
-    """Point-to-conic features (eq. 17-25): edge points ``uv_px`` (K x 2, pixels) seen by
-    camera ``cam_index`` and matched to model line ``line_index``; the model lines are
-    segments ``lines_in_ref`` (M x 2 x 3, metres, reference frame). Residual = algebraic
-    distance ``Q(x, y)`` of the normalised edge point to the projected conic (dimensionless,
-    ``s* = 0``); Jacobian w.r.t. a left twist of ``rig_from_ref`` (``J = -L_da jV1``).
+    """Point-to-conic features (eq. 17-25).
+
+    Edge points ``uv_px`` (K x 2, pixels) seen by camera ``cam_index`` and matched to model line
+    ``line_index``; the model lines are segments ``lines_in_ref`` (M x 2 x 3, metres, reference
+    frame). Residual = algebraic distance ``Q(x, y)`` of the normalised edge point to the projected
+    conic (dimensionless, ``s* = 0``); Jacobian w.r.t. a left twist of ``rig_from_ref`` (``J = -L_da
+    jV1``).
 
     ``distance = "normalized"`` divides ``Q`` by ``|grad Q| / px`` at the edge point (first-
     order geometric distance in pixels, exact Jacobian): the same zero set, but every line

@@ -1,5 +1,8 @@
-"""Synthetic scan generator: scene, ray-cast renderer, hand-held trajectories with loops,
-laser-stripe profiler, fault injection, MCAP output (``loopmodel simulate scan``)."""
+"""Synthetic scan generator.
+
+Scene, ray-cast renderer, hand-held trajectories with loops, laser-stripe profiler, fault injection,
+MCAP output (``loopmodel simulate scan``).
+"""
 
 from loopmodel.sim.generate import (
     PRESETS,

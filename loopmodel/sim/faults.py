@@ -1,6 +1,8 @@
-"""Faults on demand: which generated frames are dropped, blacked out, blurred, occluded or
-carry a duplicated timestamp. Frame indices count generated frames from 0; ranges are
-inclusive."""
+"""Faults on demand.
+
+Which generated frames are dropped, blacked out, blurred, occluded or carry a duplicated timestamp.
+Frame indices count generated frames from 0; ranges are inclusive.
+"""
 
 from __future__ import annotations
 
@@ -89,8 +91,11 @@ class FaultPlan:
 
 
 def cam_from_occluder(fraction: float) -> F64:
-    """Pose of the occluder (a hand-sized ellipsoid) in the left-camera frame: it crosses the
-    view from left to right 0.2 m in front of the camera (always in view) as ``fraction`` goes 0 -> 1."""
+    """Pose of the occluder (a hand-sized ellipsoid) in the left-camera frame.
+
+    It crosses the view from left to right 0.2 m in front of the camera (always in view) as
+    ``fraction`` goes 0 -> 1.
+    """
     T = np.eye(4)
     T[:3, 3] = [-0.1 + 0.2 * fraction, 0.04 - 0.06 * fraction, 0.2]
     a = 0.6 * fraction - 0.3

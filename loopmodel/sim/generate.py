@@ -1,7 +1,11 @@
 """Generate a synthetic hand-held scan and write it as MCAP (topics of DESIGN.md).
 
 Per frame: a rectified stereo pair rendered by ray casting, one laser-stripe profile (left
-camera frame), the ground-truth ``world_from_cam0``, optionally the laser-line image. The
+camera frame), the ground-truth ``world_from_cam0``, optionally the laser-line image. In the
+realistic world (``realism.level``, issue 17) the pair is unrectified and distorted and goes
+through the sensor model of :mod:`loopmodel.sim.sensor`, the recorded calibration is off by
+a stated error, and the stripe is only imaged (``/laser/image``; the true stripe is written
+to ``/ground_truth/laser_stripe`` for evaluation). The
 scene mesh rides along as attachments ``scene.ply`` (everything) and ``object.ply``; the
 generator's parameters and the injected faults (with frame and time ranges) are MCAP
 metadata records ``simulation`` and ``faults``. All randomness derives from the seed, per

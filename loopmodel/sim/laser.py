@@ -7,9 +7,9 @@ line's brightness follows the surface (albedo x cos(incidence) x (0.5 m / range)
 or grazing surfaces drop out below the extractor's contrast), it saturates on bright
 surfaces (``laser_peak`` 420 grey levels on white at 0.5 m: clipped at 255, with blooming
 into the neighbours), it carries laser speckle (multiplicative, gamma-distributed, contrast
-0.35: a red laser imaged at f/2.8 has speckle grains of about lambda / NA = 0.65 um / 0.18
-= 3.6 um, under one 6 um pixel, so each pixel averages about two grains and the contrast drops
-from 1 to about 1 / sqrt(2 * 4) per pixel by the aperture-and-pixel integration), photon
+0.35 per pixel: a red laser imaged at f/2.8 has speckle grains of about lambda / NA =
+0.65 um / 0.18 = 3.6 um, finer than a 6 um pixel, so a pixel averages a few grains and the
+fully developed contrast of 1 drops to about 1 / sqrt(8); assumed, not measured), photon
 shot noise, and spurious reflections (inter-reflections: in 8 % of the frames a copy of part
 of the line, 6-40 px aside, at 30-90 % of its brightness). The light plane the scene sees is
 the configured one rotated by ``laser_plane_rot_err_deg`` (0.02 deg) and shifted by
@@ -245,33 +245,7 @@ def draw_laser_image(
     if points_in_cam.shape[0] < 2:
         return np.clip(img, 0, 255).astype(np.uint8)
     uv = camera.project(points_in_cam)
-    gaps = np.linalg.norm(np.diff(points_in_cam, axis=0), axis=1) > 0.005
-    keep = ~gaps & np.all(np.isfinite(uv[:-1]) & np.isfinite(uv[1:]), axis=1)
-    starts, ends = [], []
-    for seg in np.split(np.arange(uv.shape[0]), np.flatnonzero(~keep) + 1):
-        if seg.size >= 2:
-            a, b = _densify_px(uv[seg], 0.5)
-            starts.append(a)
-            ends.append(b)
-    if not starts:
-        return np.clip(img, 0, 255).astype(np.uint8)
-    a, b = np.concatenate(starts), np.concatenate(ends)
-    # every segment is at most 0.5 px long: a fixed window around its start covers every pixel
-    # within 4 sigma of it
-    reach = int(np.ceil(4.0 * sigma_px)) + 1
-    offs = np.arange(-reach, reach + 1)
-    x = np.floor(a[:, 0]).astype(int)[:, None, None] + offs[None, None, :]
-    y = np.floor(a[:, 1]).astype(int)[:, None, None] + offs[None, :, None]
-    x, y = np.broadcast_arrays(x, y)
-    d = b - a
-    ax, ay = a[:, 0, None, None], a[:, 1, None, None]
-    dx, dy = d[:, 0, None, None], d[:, 1, None, None]
-    s = np.clip(((x - ax) * dx + (y - ay) * dy) / np.maximum(dx * dx + dy * dy, 1e-12), 0.0, 1.0)
-    dist2 = (x - ax - s * dx) ** 2 + (y - ay - s * dy) ** 2
-    inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-    best = np.full(h * w, np.inf)
-    np.minimum.at(best, (y[inside] * w + x[inside]), dist2[inside])
-    line = (peak * np.exp(-0.5 * best / sigma_px**2)).reshape(h, w).astype(np.float32)
+    line = _line_intensity((h, w), uv, points_in_cam, np.full(uv.shape[0], peak), sigma_px).astype(np.float32)
     if img.ndim == 3:
         line = line[:, :, None]
     return np.clip(img + line, 0, 255).astype(np.uint8)

@@ -420,6 +420,7 @@ class TrackingRun:
     iter_ms: F64  # one VVS iteration (all cameras), per frame
     frame_ms: F64  # sampling + edge search + VVS, per frame
     lost: NDArray[np.bool_]
+    search_ms: F64 | None = None  # the moving-edge search alone, per frame (image tracking)
 
 
 def simulate_tracking(
@@ -547,12 +548,38 @@ def tracking_figure(runs: list[TrackingRun]) -> object:
     return fig
 
 
+def manufactured_rig(sensor: OmniSensor, seed: int = 0) -> CameraRig:
+    """A sensor as built, not as designed: each mirror camera's focal lengths off by up to
+    3 %, principal point by a few pixels, ``xi`` between 0.95 and 1 (a lens that is not
+    exactly telecentric makes the parabolic mirror's effective ``xi`` smaller than 1), each
+    mirror tilted by about 0.5 deg and displaced by about 2 mm (assembly tolerances). Mirror 1
+    keeps the rig frame."""
+    rng = np.random.default_rng(seed + 1)
+    design = sensor.rig()
+    cams = tuple(
+        CentralCamera(
+            c.px * rng.uniform(0.97, 1.03),
+            c.py * rng.uniform(0.97, 1.03),
+            c.u0 + rng.normal(0, 4),
+            c.v0 + rng.normal(0, 4),
+            float(rng.uniform(0.95, 1.0)),
+        )
+        for c in design.cameras
+    )
+    poses = [design.cam_from_rig[0].copy()]
+    for T in design.cam_from_rig[1:]:
+        D = make_pose(so3_exp(rng.normal(0, np.deg2rad(0.5), 3)), rng.normal(0, 0.002, 3))
+        poses.append(D @ T)
+    return CameraRig(cams, tuple(poses))
+
+
 def calibration_views(
-    sensor: OmniSensor, n_views: int = 8, noise_px: float = 0.3, seed: int = 0
+    sensor: OmniSensor, n_views: int = 8, noise_px: float = 0.3, seed: int = 0, rig: CameraRig | None = None
 ) -> tuple[list[tuple[F64, F64, NDArray[np.int64]]], list[F64]]:
     """Views of a 3-D calibration object (points on three faces of a 40 cm corner) around
     the sensor: per view ``(p_in_ref, uv_px, cam_index)`` and the true ``sensor_from_ref``.
-    Points hidden by the other mirrors or outside a rim are not observed."""
+    Points hidden by the other mirrors or outside a rim are not observed. ``rig``: the
+    cameras that see them (default: the sensor as designed)."""
     rng = np.random.default_rng(seed)
     g = np.linspace(-0.15, 0.15, 6)
     A, B = np.meshgrid(g, g)
@@ -563,7 +590,7 @@ def calibration_views(
             np.column_stack([np.full(A.size, -0.15), A.ravel(), B.ravel()]),
         ]
     )
-    rig = sensor.rig()
+    rig = rig if rig is not None else sensor.rig()
     views, poses = [], []
     for v in range(n_views):
         az = 2 * np.pi * v / n_views + rng.uniform(-0.3, 0.3)

@@ -50,8 +50,11 @@ def pixel_rays(camera: CentralCamera, width: int, height: int) -> RayBundle:
 
 @dataclass
 class RayBundle:
-    """Unit ray directions of a camera's pixels: ``dirs`` 3 x N (camera frame, float32),
-    ``valid`` (N,) and the image ``shape`` (H, W) with N = H * W."""
+    """Unit ray directions of a camera's pixels.
+
+    ``dirs`` 3 x N (camera frame, float32), ``valid`` (N,) and the image ``shape`` (H, W) with N = H
+    * W.
+    """
 
     dirs: F32
     valid: NDArray[np.bool_]
@@ -65,8 +68,11 @@ class RayBundle:
 
 @dataclass
 class Hits:
-    """Nearest hits of N rays: ``range_m`` (inf for a miss), ``primitive`` (triangle id, -1
-    miss, -2 occluder) and unit ``normal`` (3 x N, world, facing the ray origin)."""
+    """Nearest hits of N rays.
+
+    ``range_m`` (inf for a miss), ``primitive`` (triangle id, -1 miss, -2 occluder) and unit
+    ``normal`` (3 x N, world, facing the ray origin).
+    """
 
     range_m: F32
     primitive: NDArray[np.int64]
@@ -75,9 +81,12 @@ class Hits:
 
 @dataclass
 class View:
-    """One rendered view (H x W arrays): ``radiance`` (albedo x shading, about 0..1),
-    ``range_m`` (distance along the ray, inf where nothing is hit), ``depth_m`` (camera z),
-    ``primitive`` (triangle id, -1 miss, -2 occluder), ``points_world`` (H x W x 3)."""
+    """One rendered view (H x W arrays).
+
+    ``radiance`` (albedo x shading, about 0..1), ``range_m`` (distance along the ray, inf where
+    nothing is hit), ``depth_m`` (camera z), ``primitive`` (triangle id, -1 miss, -2 occluder),
+    ``points_world`` (H x W x 3).
+    """
 
     radiance: F32
     range_m: F32
@@ -256,8 +265,10 @@ class Raycaster:
         specular: float = 0.0,
         shininess: float = 30.0,
     ) -> View:
-        """Render the view of a camera at ``world_from_cam`` with pixel rays ``rays``;
-        ``specular`` weights a Blinn-Phong highlight of exponent ``shininess``."""
+        """Render the view of a camera at ``world_from_cam`` with pixel rays ``rays``.
+
+        ``specular`` weights a Blinn-Phong highlight of exponent ``shininess``.
+        """
         R = world_from_cam[:3, :3].astype(np.float32)
         o = world_from_cam[:3, 3].astype(np.float32)
         c = rays.dirs

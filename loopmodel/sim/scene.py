@@ -1,5 +1,7 @@
-"""Synthetic scene: an object (bust, box or a mix of shapes) about 0.5 m tall on a table in
-a room, as one triangle mesh with a material per triangle.
+"""Synthetic scene.
+
+An object (bust, box or a mix of shapes) about 0.5 m tall on a table in a room, as one triangle mesh
+with a material per triangle.
 
 World frame: metres, z up, origin at the centre of the table top (the object stands on it).
 Each material maps a procedural texture onto the surface by tri-planar projection of the 3-D
@@ -50,8 +52,11 @@ class Part:
 
 @dataclass
 class Scene:
-    """The whole scene: merged mesh (world frame, metres), per-triangle material and corner
-    normals, the materials and their textures, and which triangles belong to the object."""
+    """The whole scene.
+
+    Merged mesh (world frame, metres), per-triangle material and corner normals, the materials and
+    their textures, and which triangles belong to the object.
+    """
 
     vertices: F64
     triangles: NDArray[np.int32]
@@ -122,9 +127,12 @@ def _rot_z(v: F64, angle: float, about: F64 | None = None) -> F64:
 
 
 def _bust(height: float, rng: np.random.Generator) -> tuple[F64, NDArray[np.int32]]:
-    """Sculpture-like bust: a lathe surface with elliptic sections (pedestal, torso with
-    shoulders, neck, head) plus nose, ears, chin and seeded low-frequency asymmetry.
-    Base at z = 0, front towards -y. Open at the bottom (it stands on the table)."""
+    """Sculpture-like bust.
+
+    A lathe surface with elliptic sections (pedestal, torso with shoulders, neck, head) plus nose,
+    ears, chin and seeded low-frequency asymmetry. Base at z = 0, front towards -y. Open at the
+    bottom (it stands on the table).
+    """
     key = np.array(
         [
             # z, rx, ry (fractions of the height)
@@ -236,8 +244,10 @@ def _object_parts(kind: str, height: float, rng: np.random.Generator) -> list[tu
 
 
 def _room_parts(rng: np.random.Generator) -> list[tuple[str, F64, NDArray[np.int32], int]]:
-    """Table legs, floor/walls/ceiling (inward) and shelves; material index 1 = wood,
-    2 = walls, 3 = furniture."""
+    """Table legs, floor/walls/ceiling (inward) and shelves.
+
+    Material index 1 = wood, 2 = walls, 3 = furniture.
+    """
     out: list[tuple[str, F64, NDArray[np.int32], int]] = []
     tx, ty, _ = TABLE_SIZE_M
     leg_h = TABLE_HEIGHT_M - TABLE_SIZE_M[2]
@@ -265,8 +275,11 @@ def _room_parts(rng: np.random.Generator) -> list[tuple[str, F64, NDArray[np.int
 
 
 def _corner_normals(v: F64, t: NDArray[np.int32]) -> NDArray[np.float32]:
-    """Per-corner normals: the smooth vertex normal where the surface is smooth, the face
-    normal across creases sharper than ``CREASE_DEG``."""
+    """Per-corner normals.
+
+    The smooth vertex normal where the surface is smooth, the face normal across creases sharper
+    than ``CREASE_DEG``.
+    """
     fn = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])  # area-weighted
     vn = np.zeros_like(v)
     for k in range(3):
@@ -286,8 +299,11 @@ def build_scene(
     room: bool = True,
     texture_size_px: int = 2048,
 ) -> Scene:
-    """The scene of a scan: ``kind`` object (``bust``, ``box``, ``mix``) of the given height on
-    the table, with the room when ``room``; textures and shape details come from ``seed``."""
+    """The scene of a scan.
+
+    ``kind`` object (``bust``, ``box``, ``mix``) of the given height on the table, with the room
+    when ``room``; textures and shape details come from ``seed``.
+    """
     ss = np.random.SeedSequence([int(seed), 3])
     shape_seed, tex_seed, place_seed = ss.spawn(3)
     rng = np.random.default_rng(shape_seed)

@@ -82,10 +82,11 @@ def project_distorted(p_in_cam: F64, K: F64, dist: F64) -> F64:
 
 
 def undistort_pixels(uv_px: F64, K: F64, dist: F64, iterations: int = 60) -> F64:
-    """N x 2 undistorted normalised coordinates of N x 2 distorted pixels (inverse of
-    :func:`project_distorted`): fixed-point iteration x = (x_d - tangential(x)) / radial(x),
-    as OpenCV's undistortPoints but run to convergence (residual below 1e-9 px for the
-    EuRoC lens over a 640 x 480 image)."""
+    """N x 2 undistorted normalised coordinates of N x 2 distorted pixels (inverse of :func:`project_distorted`).
+
+    Fixed-point iteration x = (x_d - tangential(x)) / radial(x), as OpenCV's undistortPoints but run
+    to convergence (residual below 1e-9 px for the EuRoC lens over a 640 x 480 image).
+    """
     uv = np.asarray(uv_px, float).reshape(-1, 2)
     k1, k2, p1, p2, k3 = (list(np.asarray(dist, float).ravel()) + [0.0] * 5)[:5]
     yd = (uv[:, 1] - K[1, 2]) / K[1, 1]
@@ -103,8 +104,11 @@ def undistort_pixels(uv_px: F64, K: F64, dist: F64, iterations: int = 60) -> F64
 
 @dataclass
 class TrueRig:
-    """The simulated stereo rig as it really is: left/right intrinsics and distortion and
-    ``cam0_from_cam1`` (4x4, metres); ``recorded`` is what its camera_info says."""
+    """The simulated stereo rig as it really is.
+
+    Left/right intrinsics and distortion and ``cam0_from_cam1`` (4x4, metres); ``recorded`` is what
+    its camera_info says.
+    """
 
     K_left: F64
     K_right: F64
@@ -190,9 +194,12 @@ def vignetting_map(rays: F32, shape: tuple[int, int], corner_relative: float) ->
 
 
 def motion_blur(img: F32, flow_px: F32, max_taps: int = 12) -> F32:
-    """Per-pixel motion blur: pixel x averages the sharp image along its own image motion
-    during the exposure, ``mean_s img(x + s * flow(x))`` for s uniform in [-1/2, 1/2]
-    (``flow_px`` H x W x 2: each pixel's displacement from exposure start to end)."""
+    """Per-pixel motion blur.
+
+    Pixel x averages the sharp image along its own image motion during the exposure, ``mean_s img(x
+    + s * flow(x))`` for s uniform in [-1/2, 1/2] (``flow_px`` H x W x 2: each pixel's displacement
+    from exposure start to end).
+    """
     length = float(np.max(np.hypot(flow_px[..., 0], flow_px[..., 1]))) if flow_px.size else 0.0
     if length < 0.25:
         return img
@@ -210,8 +217,11 @@ def motion_blur(img: F32, flow_px: F32, max_taps: int = 12) -> F32:
 def defocus_sigma_px(
     depth_m: F32, focal_mm: float, f_number: float, focus_m: float, pixel_um: float, lens_sigma_px: float
 ) -> F32:
-    """Gaussian PSF sigma (px) per pixel: the lens PSF combined with the thin-lens circle of
-    confusion c = f^2 |z - z_f| / (N z (z_f - f)), sigma_c = c / 2.4 (px)."""
+    """Gaussian PSF sigma (px) per pixel.
+
+    The lens PSF combined with the thin-lens circle of confusion c = f^2 |z - z_f| / (N z (z_f -
+    f)), sigma_c = c / 2.4 (px).
+    """
     f = focal_mm * 1e-3
     z = np.where(np.isfinite(depth_m), depth_m, 10.0).astype(np.float32)
     c_m = (f * f / f_number) * np.abs(z - focus_m) / np.maximum(z * (focus_m - f), 1e-9)
@@ -220,8 +230,11 @@ def defocus_sigma_px(
 
 
 def defocus(img: F32, sigma_px: F32, levels: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0)) -> F32:
-    """Spatially varying Gaussian blur: per pixel, linear interpolation between the image
-    blurred at the bracketing ``levels`` of its sigma (clamped to the range of levels)."""
+    """Spatially varying Gaussian blur.
+
+    Per pixel, linear interpolation between the image blurred at the bracketing ``levels`` of its
+    sigma (clamped to the range of levels).
+    """
     s = np.clip(sigma_px, levels[0], levels[-1])
     need = [lv for i, lv in enumerate(levels) if i == 0 or float(s.max()) > levels[i - 1]]
     blurred = [cv2.GaussianBlur(img, (0, 0), lv, borderType=cv2.BORDER_REFLECT) for lv in need]
@@ -287,9 +300,11 @@ class SensorModel:
         return self.dn_max / self.full_well_e
 
     def expose_dn(self, electrons: F32, analog_gain: float, noise_seed: int, fixed_pattern: bool = True) -> F32:
-        """12-bit DN of a mean photo-electron image: PRNU/DSNU, shot + read noise (Gaussian
-        approximations of Poisson and of the dark noise), full-well clipping, analog gain,
-        ADC clipping and quantisation."""
+        """12-bit DN of a mean photo-electron image.
+
+        PRNU/DSNU, shot + read noise (Gaussian approximations of Poisson and of the dark noise),
+        full-well clipping, analog gain, ADC clipping and quantisation.
+        """
         e = electrons * np.float32(self.sensitivity)
         if fixed_pattern:
             e = e * self.prnu_map + self.dsnu_map

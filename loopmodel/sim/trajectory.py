@@ -133,9 +133,12 @@ class HandheldPath:
         return float(phi), float(r), float(h), target
 
     def _modeler(self, s: float) -> tuple[float, float, float, F64]:
-        """Seed-004-like scan: s in [0, 0.5): four sweeps over 90 deg of yaw (two back and
-        forth, height rising by 8 cm); [0.5, 0.6): back to the start view (the loop closes);
-        [0.6, 1]: one full orbit 15 cm higher, passing over the swept side again."""
+        """Seed-004-like scan.
+
+        S in [0, 0.5): four sweeps over 90 deg of yaw (two back and forth, height rising by 8 cm);
+        [0.5, 0.6): back to the start view (the loop closes); [0.6, 1]: one full orbit 15 cm higher,
+        passing over the swept side again.
+        """
         two_pi = 2 * np.pi
         w = self._wobble
         target = np.array([0.0, 0.0, TARGET_HEIGHT_FRACTION * self.object_height_m])
@@ -171,9 +174,11 @@ class HandheldPath:
 
 
 def _handheld_pace(rng: np.random.Generator, duration_s: float) -> tuple[F64, F64]:
-    """Monotone map (time fraction -> path fraction) of a hand's pace: unit speed with pauses
-    (0.4-1.2 s at 0.1x) and saccades (0.25-0.5 s at 2.5x), one event per 3 s on average,
-    smoothed over 0.12 s (arm inertia) and normalised to end at 1."""
+    """Monotone map (time fraction -> path fraction) of a hand's pace.
+
+    Unit speed with pauses (0.4-1.2 s at 0.1x) and saccades (0.25-0.5 s at 2.5x), one event per 3 s
+    on average, smoothed over 0.12 s (arm inertia) and normalised to end at 1.
+    """
     n = max(int(duration_s * 200), 50)
     t = np.linspace(0.0, duration_s, n)
     speed = np.ones(n)

@@ -1,5 +1,8 @@
-"""A turntable scan as MCAP: ``/laser/image`` frames, the camera's ``camera_info`` and the
-per-frame pose ``table_from_cam`` (the table is the world: the camera circles the object)."""
+"""A turntable scan as MCAP.
+
+``/laser/image`` frames, the camera's ``camera_info`` and the per-frame pose ``table_from_cam`` (the
+table is the world: the camera circles the object).
+"""
 
 from __future__ import annotations
 

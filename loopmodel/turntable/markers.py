@@ -37,12 +37,14 @@ def marker_corners_in_marker(side_m: float) -> F64:
 
 
 def make_detector(dictionary: str) -> cv2.aruco.ArucoDetector:
-    """ArUco detector for a predefined dictionary name (e.g. ``DICT_4X4_50``), sub-pixel corners."""
+    """ArUco detector for a predefined dictionary name (e.g. ``DICT_4X4_50``), refined corners."""
     if not hasattr(cv2.aruco, dictionary):
         raise InputError("markers.dictionary", f"unknown ArUco dictionary '{dictionary}'")
     params = cv2.aruco.DetectorParameters()
-    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-    params.cornerRefinementWinSize = 4
+    # AprilTag-style edge refinement: on rendered 40 px markers its corners sit 0.015 px inside
+    # the true square on average, the subpix (saddle) refinement's 0.29 px inside - a 1.7 %
+    # scale, i.e. 7 mm of table depth at 0.42 m
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG
     return cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)), params)
 
 

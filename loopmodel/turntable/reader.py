@@ -48,8 +48,10 @@ F64 = NDArray[np.float64]
 
 @dataclass
 class MarkerLayout:
-    """ArUco markers on the table top: dictionary, side (m), ids and the nominal table centre
-    in each marker's frame (m)."""
+    """ArUco markers on the table top.
+
+    Dictionary, side (m), ids and the nominal table centre in each marker's frame (m).
+    """
 
     dictionary: str = "DICT_4X4_50"
     side_m: float = 0.03

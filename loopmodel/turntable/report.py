@@ -11,6 +11,7 @@ import open3d as o3d
 
 from loopmodel.io.atomic import save_figure_atomic, write_text_atomic
 from loopmodel.io.mesh_io import write_mesh
+from loopmodel.turntable.posegraph import MOTOR_SIGMA_DEG
 from loopmodel.turntable.run import TurntableResult
 
 MESH_EXPORTS = ("ply", "obj", "stl", "glb")
@@ -121,8 +122,8 @@ plane from the markers; `inf` = no table-top ray meets that plane in front of th
 
 ![steps](steps.png)
 
-The step angles after the graph lean on the motor factors (sigma {0.05} deg per step, an assumption):
-the marker-only figures are the independent measurement.
+The step angles after the graph lean on the motor factors (sigma {MOTOR_SIGMA_DEG:g} deg per step, an
+assumption): the marker-only figures are the independent measurement.
 """
     paths.append(write_text_atomic(out / "report.md", md))
     return paths

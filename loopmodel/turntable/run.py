@@ -67,9 +67,13 @@ def _nothing(stage: str, done: int, total: int) -> None:
 
 
 def scan_turntable(
-    scan: TurntableScan, config: MappingConfig | None = None, progress: Progress = _nothing
+    scan: TurntableScan,
+    config: MappingConfig | None = None,
+    progress: Progress = _nothing,
+    plane_gate_mm: float = 1.0,
 ) -> TurntableResult:
-    """Run the turntable pipeline on an opened scan."""
+    """Run the turntable pipeline on an opened scan; a candidate laser plane is taken when its
+    table-plane residual is within ``plane_gate_mm`` (else the plane is self-calibrated)."""
     cfg = config or MappingConfig()
     detector = make_detector(scan.markers.dictionary)
     n = len(scan)
@@ -87,7 +91,7 @@ def scan_turntable(
     for k, img in scan.frames():
         peaks.append(frame_peaks(img, poses[k], scan))
         progress("laser", k + 1, n)
-    choice = choose_plane(peaks, poses, scan)
+    choice = choose_plane(peaks, poses, scan, plane_gate_mm)
     progress("plane", 1, 1)
     P, frame = object_points(peaks, poses, choice.plane, scan)
     if len(P) < 100:

@@ -117,8 +117,10 @@ def in_volume(P: F64, vol: WorkingVolume) -> NDArray[np.bool_]:
 def table_residual(
     peaks: list[FramePeaks], poses: list[F64], plane: LightPlane, K: F64, dist: F64
 ) -> tuple[float, float, int]:
-    """Table-top laser points triangulated with ``plane`` against the markers' table plane
-    z = 0: (RMS mm after 3-sigma (MAD) rejection about the median, median mm, count)."""
+    """Table-top laser points triangulated with ``plane`` against the markers' table plane z = 0.
+
+    (RMS mm after 3-sigma (MAD) rejection about the median, median mm, count).
+    """
     z = np.concatenate(
         [
             to_table(triangulate_with_plane(p.table_uv, K, plane, dist), T)[:, 2]
@@ -134,9 +136,11 @@ def table_residual(
 
 
 def table_line_in_cam(peaks: list[FramePeaks], poses: list[F64], K: F64, dist: F64) -> tuple[F64, F64, float]:
-    """The 3-D line the laser draws on the table top (camera frame): point, unit direction and
-    the RMS distance (m) of the table-top points from it. Each frame's table-top rays meet its
-    table plane (from the markers)."""
+    """The 3-D line the laser draws on the table top (camera frame).
+
+    Point, unit direction and the RMS distance (m) of the table-top points from it. Each frame's
+    table-top rays meet its table plane (from the markers).
+    """
     pts = []
     for p, T in zip(peaks, poses, strict=True):
         n = T[:3, 2]
@@ -197,9 +201,11 @@ def object_points(
 
 
 def self_consistency_mm(P: F64, frame: NDArray[np.int64], n_frames: int, overlap_m: float = SELF_OVERLAP_M) -> float:
-    """RMS point-to-surface distance (mm) between the points seen from views 180° apart: the
-    first half-turn's points against a local plane through the second half-turn's neighbours
-    within ``overlap_m`` (where the two overlap)."""
+    """RMS point-to-surface distance (mm) between the points seen from views 180° apart.
+
+    The first half-turn's points against a local plane through the second half-turn's neighbours
+    within ``overlap_m`` (where the two overlap).
+    """
     half = n_frames // 2
     A, B = P[frame < half], P[frame >= half]
     if len(A) < 10 or len(B) < 10:

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.geometry.se3 import invert_pose, look_at
+
 F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]
 
@@ -39,22 +41,6 @@ class View:
     height_px: int
 
 
-def look_at(eye_m: F64, target_m: F64, up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> F64:
-    """``cam_from_world`` of an OpenCV camera at ``eye_m`` looking at ``target_m``."""
-    z = np.asarray(target_m, float) - np.asarray(eye_m, float)
-    z /= np.linalg.norm(z)
-    x = np.cross(z, np.asarray(up, float))
-    if np.linalg.norm(x) < 1e-9:
-        x = np.cross(z, np.array([0.0, 1.0, 0.0]))
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])  # rows: camera axes in world
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = -R @ np.asarray(eye_m, float)
-    return T
-
-
 def fixed_views(
     vertices: F64, n_views: int = 3, elevation_deg: float = 30.0, width_px: int = 480, height_px: int = 400
 ) -> list[View]:
@@ -72,7 +58,7 @@ def fixed_views(
     for k in range(n_views):
         az = 2 * np.pi * k / n_views - np.pi / 2
         eye = centre + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-        views.append(View(K, look_at(eye, centre), width_px, height_px))
+        views.append(View(K, invert_pose(look_at(eye, centre)), width_px, height_px))
     return views
 
 
@@ -154,8 +140,11 @@ def before_after_png(
     n_views: int = 3,
     colorbar_mm: float | None = None,
 ) -> bytes:
-    """One PNG: a row per panel (title, vertices, triangles, vertex colours) and a column per
-    fixed viewpoint; all panels share the viewpoints of the first so they compare directly."""
+    """One PNG.
+
+    A row per panel (title, vertices, triangles, vertex colours) and a column per fixed viewpoint;
+    all panels share the viewpoints of the first so they compare directly.
+    """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -182,3 +171,18 @@ def before_after_png(
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
     return buf.getvalue()
+
+
+def mesh_picture_png(mesh: object, title: str, gt_mesh: object | None = None, n_views: int = 3) -> bytes:
+    """A picture of one open3d mesh from ``n_views`` fixed viewpoints; coloured by the distance
+    to ``gt_mesh`` (same world frame) when given, shaded grey otherwise."""
+    v = np.asarray(mesh.vertices)  # type: ignore[attr-defined]
+    t = np.asarray(mesh.triangles)  # type: ignore[attr-defined]
+    if gt_mesh is None:
+        return before_after_png([(title, v, t, None)], n_views)
+    from loopmodel.mapping.accuracy import distances_to_mesh
+
+    d = distances_to_mesh(v, gt_mesh)  # type: ignore[arg-type]
+    scale_mm = max(1.0, float(np.percentile(d, 95)) * 1e3)
+    label = f"{title}: mean {1e3 * d.mean():.2f} mm to the true surface"
+    return before_after_png([(label, v, t, distance_colors(d, scale_mm * 1e-3))], n_views, colorbar_mm=scale_mm)

@@ -154,8 +154,11 @@ class RerunRecorder:
         inlier: NDArray[np.bool_] | None = None,
         scalars: Mapping[str, float] | None = None,
     ) -> None:
-        """One processed frame: camera pose, image with tracked features (pixels of the
-        rectified left image), path so far and scalars."""
+        """One processed frame.
+
+        Camera pose, image with tracked features (pixels of the rectified left image), path so far
+        and scalars.
+        """
         rr = self._rr
         self.set_frame(index, timestamp_ns)
         if world_from_cam is not None and np.all(np.isfinite(world_from_cam)):
