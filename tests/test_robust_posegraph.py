@@ -75,12 +75,12 @@ def _run_stage(inject: bool, robust: str) -> tuple[LoopClosingStage, _FakeTracke
         lid += len(kfs[-1].landmark_ids)
     _add_mono(kfs, true, rng)
     tracker = _FakeTracker()
-    cfg = LoopConfig(min_gap_keyframes=8, n_features=800, robust=robust)
+    cfg = LoopConfig(min_gap_keyframes=8, n_features=800, robust=robust, detection_worker="none")
     stage = LoopClosingStage(calib, cfg, via_backend=False, background=False)
     real = LoopCloser.process_keyframe
 
-    def process(self: LoopCloser, kf: Keyframe) -> LoopClosure | None:
-        closure = real(self, kf)
+    def process(self: LoopCloser, kf: Keyframe, *args: object, **kwargs: object) -> LoopClosure | None:
+        closure = real(self, kf, *args, **kwargs)  # type: ignore[arg-type]
         if inject and int(kf.id) == 12:  # a "verified" loop 12 -> 1 that is 0.4 m / 8 deg wrong
             # (perceptual aliasing: keyframe 1's landmarks seen where that wrong pose puts them)
             wrong = invert_pose(true[12]) @ true[1] @ make_pose(so3_exp([0.0, 0.14, 0.0]), [0.4, 0.0, 0.1])
