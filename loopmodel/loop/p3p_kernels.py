@@ -5,7 +5,7 @@ The P3P solver is the scalar form of :func:`loopmodel.loop.p3p.p3p_grunert` (sam
 equations: the quartic in ``v``, ``s1`` from the ``b`` equation, ``u`` from ``c``, a Newton
 polish of the three distances, the pose from the two triangles' frames). Ray errors are the
 squared sines of the angle between an observed unit ray and the direction of the
-transformed point (4 for points behind the camera), as in :func:`loopmodel.loop.pnp.ray_errors`.
+transformed point (4 for points behind the camera).
 Poses are ``cam_from_world``: ``p_cam = R p_world + t``.
 """
 
