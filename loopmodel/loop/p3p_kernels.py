@@ -7,7 +7,7 @@ The P3P solver is the scalar form of :func:`loopmodel.loop.p3p.p3p_grunert` (sam
 equations: the quartic in ``v``, ``s1`` from the ``b`` equation, ``u`` from ``c``, a Newton
 polish of the three distances, the pose from the two triangles' frames). Ray errors are the
 squared sines of the angle between an observed unit ray and the direction of the
-transformed point (4 for points behind the camera), as in :func:`loopmodel.loop.pnp.ray_errors`.
+transformed point (4 for points behind the camera).
 Poses are ``cam_from_world``: ``p_cam = R p_world + t``.
 """
 
@@ -18,6 +18,58 @@ import numpy as np
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
+
+
+@nb.njit(cache=True)
+def _mm3(A: F64, B: F64) -> F64:
+    """3x3 matrix product (explicit loops: no BLAS binding to compile)."""
+    out = np.zeros((3, 3))
+    for i in range(3):
+        for k in range(3):
+            a = A[i, k]
+            for j in range(3):
+                out[i, j] += a * B[k, j]
+    return out
+
+
+@nb.njit(cache=True)
+def _mv3(A: F64, x: F64) -> F64:
+    """3x3 matrix times 3-vector."""
+    out = np.zeros(3)
+    for i in range(3):
+        out[i] = A[i, 0] * x[0] + A[i, 1] * x[1] + A[i, 2] * x[2]
+    return out
+
+
+@nb.njit(cache=True)
+def _solve_spd(H: F64, g: F64) -> tuple[bool, F64]:
+    """Solve H x = g for a symmetric positive definite H (Cholesky, explicit loops)."""
+    n = H.shape[0]
+    L = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            acc = H[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            if i == j:
+                if acc <= 0:
+                    return False, np.zeros(n)
+                L[i, i] = np.sqrt(acc)
+            else:
+                L[i, j] = acc / L[j, j]
+    y = np.zeros(n)
+    for i in range(n):
+        acc = g[i]
+        for k in range(i):
+            acc -= L[i, k] * y[k]
+        y[i] = acc / L[i, i]
+    x = np.zeros(n)
+    for i in range(n - 1, -1, -1):
+        acc = y[i]
+        for k in range(i + 1, n):
+            acc -= L[k, i] * x[k]
+        x[i] = acc / L[i, i]
+    return True, x
 
 
 @nb.njit(cache=True)
@@ -195,28 +247,33 @@ def p3p_one(j: F64, P: F64, Rs: F64, ts: F64) -> int:
             f0 = s[0] ** 2 + s[1] ** 2 - 2 * s[0] * s[1] * cg - c2
             f1 = s[0] ** 2 + s[2] ** 2 - 2 * s[0] * s[2] * cb - b2
             f2 = s[1] ** 2 + s[2] ** 2 - 2 * s[1] * s[2] * ca - a2
-            J = np.zeros((3, 3))
-            J[0, 0] = 2 * s[0] - 2 * s[1] * cg
-            J[0, 1] = 2 * s[1] - 2 * s[0] * cg
-            J[1, 0] = 2 * s[0] - 2 * s[2] * cb
-            J[1, 2] = 2 * s[2] - 2 * s[0] * cb
-            J[2, 1] = 2 * s[1] - 2 * s[2] * ca
-            J[2, 2] = 2 * s[2] - 2 * s[1] * ca
-            det = np.linalg.det(J)
+            # Jacobian [[p, q, 0], [r, 0, u], [0, w, z]]; Cramer's rule
+            jp = 2 * s[0] - 2 * s[1] * cg
+            jq = 2 * s[1] - 2 * s[0] * cg
+            jr = 2 * s[0] - 2 * s[2] * cb
+            ju = 2 * s[2] - 2 * s[0] * cb
+            jw = 2 * s[1] - 2 * s[2] * ca
+            jz = 2 * s[2] - 2 * s[1] * ca
+            det = -jp * ju * jw - jq * jr * jz
             if abs(det) <= 1e-14 * side2**1.5:
                 break
-            s = s - np.linalg.solve(J, np.array([f0, f1, f2]))
+            d0 = (-f0 * ju * jw - jq * (f1 * jz - ju * f2)) / det
+            d1 = (jp * (f1 * jz - ju * f2) - f0 * jr * jz) / det
+            d2 = (-jp * f1 * jw - jq * jr * f2 + f0 * jr * jw) / det
+            s[0] -= d0
+            s[1] -= d1
+            s[2] -= d2
         if not (s[0] > 0 and s[1] > 0 and s[2] > 0):
             continue
         for r in range(3):
             X[r] = s[r] * j[r]
         if not _frame(X[0], X[1], X[2], Fx):
             continue
-        R = Fx @ Fp.T
-        t = X[0] - R @ P[0]
+        R = _mm3(Fx, Fp.T.copy())
+        t = X[0] - _mv3(R, P[0])
         err = 0.0
         for r in range(3):
-            d = R @ P[r] + t - X[r]
+            d = _mv3(R, P[r]) + t - X[r]
             err = max(err, np.sqrt(np.sum(d * d)))
         if err > 1e-5 * np.sqrt(side2) + 1e-9:
             continue
@@ -226,7 +283,7 @@ def p3p_one(j: F64, P: F64, Rs: F64, ts: F64) -> int:
     return n
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _ray_err(R: F64, t: F64, b: F64, p: F64) -> float:
     x0 = R[0, 0] * p[0] + R[0, 1] * p[1] + R[0, 2] * p[2] + t[0]
     x1 = R[1, 0] * p[0] + R[1, 1] * p[1] + R[1, 2] * p[2] + t[1]
@@ -319,7 +376,7 @@ def inlier_mask(R: F64, t: F64, rays: F64, P: F64, thr2: float) -> NDArray[np.bo
     return out
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _tangent_residual(R: F64, t: F64, p: F64, e: F64) -> tuple[float, float, float, float, float, float]:
     """Transformed point x = R p + t and the residuals (e0 . u, e1 . u) of its direction
     u = x / |x| on the tangent basis ``e`` (6,) of the observed ray -> (r0, r1, x0, x1, x2, |x|)."""
@@ -406,16 +463,19 @@ def refine_rays(R: F64, t: F64, rays: F64, P: F64, sigma: float, iterations: int
             for q2 in range(q):
                 H[q, q2] = H[q2, q]
             H[q, q] *= 1.0 + 1e-9
-        delta = -np.linalg.solve(H, g)
+        ok, sol = _solve_spd(H, g)
+        if not ok:
+            break
+        delta = -sol
         om0, om1, om2 = delta[0], delta[1], delta[2]
         th = np.sqrt(om0 * om0 + om1 * om1 + om2 * om2)
         K = np.array([[0.0, -om2, om1], [om2, 0.0, -om0], [-om1, om0, 0.0]])
         if th < 1e-12:
             dR = np.eye(3) + K
         else:
-            dR = np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * (K @ K)
-        R_new = dR @ R
-        t_new = dR @ t + delta[3:]
+            dR = np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * _mm3(K, K)
+        R_new = _mm3(dR, R)
+        t_new = _mv3(dR, t) + delta[3:]
         new = _huber_cost(R_new, t_new, P, E, c)
         if new > cur:
             break

@@ -50,28 +50,6 @@ class PnPResult:
         return int(self.inliers.sum())
 
 
-def ray_errors(R: F64, t: F64, rays: NDArray[np.floating], p_in_world: NDArray[np.floating]) -> NDArray[np.floating]:
-    """Squared sines of the angles between observed unit rays (M, 3) and the directions of
-    world points (M, 3) under each of H poses (``R`` (H, 3, 3), ``t`` (H, 3)) -> (H, M).
-    Points behind the camera (negative along the observed ray) get an error of 4. The
-    arithmetic runs in the dtype of ``p_in_world`` (float32 for fast bulk scoring)."""
-    H = R.shape[0]
-    dt = p_in_world.dtype
-    X = (R.astype(dt).reshape(3 * H, 3) @ p_in_world.T).reshape(H, 3, -1)
-    X += t.astype(dt)[:, :, None]
-    X0, X1, X2 = X[:, 0], X[:, 1], X[:, 2]
-    bx, by, bz = rays[:, 0], rays[:, 1], rays[:, 2]
-    dot = X0 * bx + X1 * by + X2 * bz
-    c = by * X2 - bz * X1
-    s2 = c * c
-    c = bz * X0 - bx * X2
-    s2 += c * c
-    c = bx * X1 - by * X0
-    s2 += c * c
-    s2 /= np.maximum(X0 * X0 + X1 * X1 + X2 * X2, 1e-30)
-    return np.where(dot > 0, s2, 4.0)
-
-
 def solve_pnp_bank(
     rays_in_cam: F64,
     p_in_world: F64,

@@ -80,7 +80,7 @@ def integral_image(image: NDArray[np.generic], sigma_px: float = 0.0) -> F64:
     return ii
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _box(ii: F64, r0: int, c0: int, r1: int, c1: int) -> float:
     """Sum over rows [r0, r1) and columns [c0, c1), clipped to the image."""
     h = ii.shape[0] - 1
@@ -92,13 +92,13 @@ def _box(ii: F64, r0: int, c0: int, r1: int, c1: int) -> float:
     return ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _box_in(ii: F64, r0: int, c0: int, r1: int, c1: int) -> float:
     """Sum over rows [r0, r1) and columns [c0, c1) lying inside the image (no clipping)."""
     return ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _hessian_at(ii: F64, r: int, c: int, b: int, lobe: int, hl: int, clip: bool) -> tuple[float, float, float]:
     """Box-filter (Dxx, Dyy, Dxy) of lobe ``lobe`` at pixel (r, c), unnormalised."""
     if clip:
@@ -258,7 +258,7 @@ def _extrema(
     return count
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _haar(ii: F64, x: int, y: int, half: int) -> tuple[float, float]:
     """Haar wavelet responses (x, y) of side 2*half centred on the corner between two pixels.
 
