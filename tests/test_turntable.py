@@ -108,7 +108,7 @@ def test_turntable_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str])
 
 @pytest.mark.slow
 def test_real_turntable_scan(shared_data: Path) -> None:
-    scan = open_turntable(shared_data / "turntable_laser", ROOT / "configs" / "turntable_laser.yaml")
+    scan = open_turntable(shared_data / "turntable_laser", ROOT / "datasets" / "layouts" / "turntable_laser.yaml")
     scan.frame_paths = scan.frame_paths[::2]  # every other frame (2.25 deg) keeps the test short
     scan.step_deg *= 2
     f = scan_turntable(scan).figures

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-LAYOUT = Path(__file__).resolve().parents[1] / "configs" / "turntable_laser.yaml"
+LAYOUT = Path(__file__).resolve().parents[1] / "datasets" / "layouts" / "turntable_laser.yaml"
 
 
 def run(quick: bool) -> dict:
