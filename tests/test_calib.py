@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 import pytest
 
-from loopmodel.calib.chessboard import parse_board
-from loopmodel.calib.laser import calibrate_laser_plane, read_laser_planes_json
-from loopmodel.calib.stereo import calibrate_stereo, pair_images, write_stereo_outputs
+from loopmodel.calibration.chessboard import parse_board
+from loopmodel.calibration.laser import calibrate_laser_plane, read_laser_planes_json
+from loopmodel.calibration.stereo import calibrate_stereo, pair_images, write_stereo_outputs
 from loopmodel.cli import main
 from loopmodel.errors import InputError
 from loopmodel.geometry.se3 import make_pose, so3_exp, so3_log

@@ -27,8 +27,8 @@ LAYOUT = Path(__file__).resolve().parents[1] / "datasets" / "layouts" / "turntab
 
 
 def run(quick: bool) -> dict:
-    from loopmodel.calib.laser import calibrate_laser_plane, read_laser_planes_json
-    from loopmodel.calib.stereo import calibrate_stereo, pair_images
+    from loopmodel.calibration.laser import calibrate_laser_plane, read_laser_planes_json
+    from loopmodel.calibration.stereo import calibrate_stereo, pair_images
     from loopmodel.io.camera_yaml import read_intrinsics
     from loopmodel.turntable.reader import open_turntable
     from loopmodel.turntable.run import scan_turntable

@@ -42,8 +42,8 @@ def stereo(
     ),
 ) -> None:
     """Calibrate a stereo rig from chessboard pairs: intrinsics, distortion, extrinsics, rectification."""
-    from loopmodel.calib.chessboard import parse_board
-    from loopmodel.calib.stereo import calibrate_stereo, pair_images, write_stereo_outputs
+    from loopmodel.calibration.chessboard import parse_board
+    from loopmodel.calibration.stereo import calibrate_stereo, pair_images, write_stereo_outputs
 
     pairs = pair_images(image_list(images_left, "left"), image_list(images_right, "right"))
     res = calibrate_stereo(pairs, parse_board(board), square_m)
@@ -80,8 +80,8 @@ def laser(
     colour: Annotated[str, typer.Option("--colour", help="Laser colour: green, red or blue")] = "green",
 ) -> None:
     """Calibrate the laser light plane from chessboard images with the laser line on the board."""
-    from loopmodel.calib.chessboard import parse_board
-    from loopmodel.calib.laser import calibrate_laser_plane, plane_summary, read_laser_planes_json
+    from loopmodel.calibration.chessboard import parse_board
+    from loopmodel.calibration.laser import calibrate_laser_plane, plane_summary, read_laser_planes_json
     from loopmodel.io.atomic import write_text_atomic
     from loopmodel.io.camera_yaml import dump_yaml, read_intrinsics
 

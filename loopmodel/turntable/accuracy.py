@@ -61,7 +61,7 @@ def marker_scatter(
     dist: F64,
 ) -> MarkerScatter:
     """Single-marker pose scatter about the graph's prediction, and the corner-noise bound."""
-    from loopmodel.calib.pose import target_pose
+    from loopmodel.calibration.pose import target_pose
 
     dev, res2, dists, thetas = [], [], [], []
     local = marker_corners_in_marker(side_m)

@@ -1,7 +1,7 @@
 """Table pose per frame from the ArUco markers on the turntable.
 
 OpenCV's aruco module only detects the markers (corners refined to sub-pixel); every pose
-comes from the project's robust pose solver (:func:`loopmodel.calib.pose.target_pose`).
+comes from the project's robust pose solver (:func:`loopmodel.calibration.pose.target_pose`).
 
 Frames: camera (x right, y down, z forward); marker m (x right, y up on the print, z out
 of the table); table frame: origin on the rotation axis in the table-top plane, z along the
@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from loopmodel.calib.pose import target_pose
+from loopmodel.calibration.pose import target_pose
 from loopmodel.errors import EstimationError, InputError, LoopmodelError
 from loopmodel.geometry.se3 import invert_pose, make_pose
 from loopmodel.pose import refine_pose
@@ -222,7 +222,7 @@ def table_poses(
     detections: list[dict[int, F64]], calib: LayoutCalibration, layout: MarkerLayout, K: F64, dist: F64
 ) -> TablePoses:
     """``cam_from_table`` per frame from all visible markers' corners (robust solver)."""
-    from loopmodel.calib.pose import undistort_px
+    from loopmodel.calibration.pose import undistort_px
     from loopmodel.geometry.camera import CentralCamera
     from loopmodel.pose import CameraRig, PointTerm
 

@@ -110,7 +110,7 @@ def _number(p: Path) -> tuple[int, str]:
 
 def _planes(path: Path) -> dict[str, LightPlane]:
     if path.suffix.lower() == ".json":
-        from loopmodel.calib.laser import read_laser_planes_json
+        from loopmodel.calibration.laser import read_laser_planes_json
 
         return read_laser_planes_json(path)
     try:
@@ -190,7 +190,7 @@ def open_turntable(
         volume,
         lp,
     )
-    from loopmodel.calib.laser import check_intrinsics_fit
+    from loopmodel.calibration.laser import check_intrinsics_fit
 
     check_intrinsics_fit(frames[0], size, K, None)
     return scan

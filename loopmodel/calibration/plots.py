@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from loopmodel.calib.stereo import StereoCalibrationResult
+from loopmodel.calibration.stereo import StereoCalibrationResult
 from loopmodel.io.atomic import save_figure_atomic
 
 

@@ -18,8 +18,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from loopmodel.calib.chessboard import detect_corners
-from loopmodel.calib.pose import target_pose
+from loopmodel.calibration.chessboard import detect_corners
+from loopmodel.calibration.pose import target_pose
 from loopmodel.errors import InputError, LoopmodelError
 from loopmodel.io.images import read_image
 from loopmodel.mapping.extraction import (

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from loopmodel.calib.chessboard import Corners, detect_in_file
+from loopmodel.calibration.chessboard import Corners, detect_in_file
 from loopmodel.errors import InputError
 from loopmodel.io.images import image_size
 from loopmodel.io.mcap_io import camera_info_dicts
@@ -318,7 +318,7 @@ def write_stereo_outputs(result: StereoCalibrationResult, out: Path) -> list[Pat
     ``out`` (summary YAML), ``<stem>_left.yaml`` / ``<stem>_right.yaml`` (ROS ``camera_info``),
     ``<stem>_kitti_calib.txt`` (rectified P0/P1) and ``<stem>_errors.png``.
     """
-    from loopmodel.calib.plots import plot_stereo_calibration
+    from loopmodel.calibration.plots import plot_stereo_calibration
     from loopmodel.io.atomic import write_text_atomic
     from loopmodel.io.camera_yaml import dump_yaml, write_camera_info_yaml, write_kitti_calib
 
