@@ -29,7 +29,7 @@ batch_app = typer.Typer(
 
 
 def _console() -> tuple[Any, Any]:
-    from loopmodel.cli import console, err_console
+    from loopmodel.cli.common import console, err_console
 
     return console, err_console
 

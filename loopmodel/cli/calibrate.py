@@ -9,7 +9,7 @@ from typing import Annotated, Any
 import typer
 from rich.table import Table
 
-from loopmodel.cli import console, err_console
+from loopmodel.cli.common import console, err_console
 from loopmodel.errors import InputError
 
 calibrate_app = typer.Typer(help="Calibrate a real rig: stereo cameras, the laser plane.", no_args_is_help=True)
@@ -137,7 +137,7 @@ def turntable_scan(
     plane: Annotated[list[Path] | None, typer.Option("--plane", help="Extra candidate plane YAML/JSON")] = None,
 ) -> None:
     """Scan: table poses from the markers, loop-closed pose graph, laser points, mesh, report."""
-    from loopmodel.cli import progress_bar
+    from loopmodel.cli.common import progress_bar
     from loopmodel.turntable.report import write_outputs
     from loopmodel.turntable.run import scan_turntable
 

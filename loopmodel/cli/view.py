@@ -23,7 +23,7 @@ def view(
     Paths before/after correction, keyframes, landmarks, stripes, mesh, loop events, and the images
     when the sequence is still there.
     """
-    from loopmodel.cli import console
+    from loopmodel.cli.common import console
     from loopmodel.viz.from_results import record_results
 
     target = out or results / "run.rrd"

@@ -28,7 +28,7 @@ def vvs_render(
     import cv2
     import numpy as np
 
-    from loopmodel.cli import console, progress_bar
+    from loopmodel.cli.common import console, progress_bar
     from loopmodel.io.atomic import write_text_atomic
     from loopmodel.io.rig_yaml import format_pose, write_model, write_rig
     from loopmodel.io.trajectory_io import write_trajectory
@@ -70,7 +70,7 @@ def vvs_track(
     import cv2
     import numpy as np
 
-    from loopmodel.cli import console, progress_bar
+    from loopmodel.cli.common import console, progress_bar
     from loopmodel.geometry.se3 import so3_log
     from loopmodel.io.atomic import write_text_atomic
     from loopmodel.io.rig_yaml import parse_pose, read_model, read_rig

@@ -1,0 +1,89 @@
+"""Shared pieces of the command line: the typer app, consoles, progress bar, formatting, common options."""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+from loopmodel import __version__
+
+console = Console()
+
+err_console = Console(stderr=True)
+
+app = typer.Typer(
+    name="loopmodel",
+    help="Close-range 3-D modelling with a hand-held stereo camera and a laser-stripe profiler.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+
+config_app = typer.Typer(help="Configuration.", no_args_is_help=True)
+
+app.add_typer(config_app, name="config")
+
+ConfigOption = Annotated[Path | None, typer.Option("--config", "-c", help="YAML file overriding defaults")]
+
+LeftTopicOption = Annotated[str | None, typer.Option("--left", help="Left image topic of a bag (default: guessed)")]
+
+RightTopicOption = Annotated[str | None, typer.Option("--right", help="Right image topic of a bag (default: guessed)")]
+
+CalibOption = Annotated[
+    Path | None,
+    typer.Option("--calib", help="Bag without CameraInfo: EuRoC sensor.yaml folder, camchain.yaml or calib.txt"),
+]
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        console.print(f"loopmodel {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version_callback, is_eager=True, help="Print the version")
+    ] = False,
+    debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks and debug logging")] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Info logging")] = False,
+) -> None:
+    level = logging.DEBUG if debug else logging.INFO if verbose else logging.WARNING
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+
+
+def progress_bar(*extra: Any) -> Progress:
+    """The project's progress bar (frames done / total, rate, time left)."""
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        *extra,
+        TimeRemainingColumn(),
+        console=err_console,
+        transient=False,
+    )
+
+
+def _length(v_m: float | None) -> str:
+    """A length for people: millimetres below 10 cm (close-range scans), metres above."""
+    if v_m is None or not math.isfinite(v_m):
+        return "-"
+    return f"{v_m * 1e3:.3g} mm" if abs(v_m) < 0.1 else f"{v_m:.4g} m"
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if isinstance(v, dict):
+        return ", ".join(f"{k}={_fmt(x)}" for k, x in v.items())
+    if isinstance(v, list):
+        return "x".join(str(x) for x in v) if all(isinstance(x, int) for x in v) else ", ".join(map(str, v))
+    return str(v)
