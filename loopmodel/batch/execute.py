@@ -16,6 +16,7 @@ resident set during the task: Linux resets the peak (``VmHWM``) on writing 5 to
 from __future__ import annotations
 
 import contextlib
+import glob
 import json
 import logging
 import os
@@ -147,6 +148,35 @@ def tmp_name(spec: TaskSpec) -> str:
     return f"{spec.task_id}.{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:6]}"
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_dead_attempts(tmp_root: Path, task_id: str) -> int:
+    """Delete what earlier attempts of ``task_id`` on this host left in ``tmp_root`` when their
+    worker died (their task folder ``<task>.<host>.<pid>.*`` and the results folder's own
+    staging and lock, ``.<task>.<host>.<pid>.*``). Returns how many entries went."""
+    host = socket.gethostname()
+    gone = 0
+    for prefix in (f"{task_id}.{host}.", f".{task_id}.{host}."):
+        for p in tmp_root.glob(glob.escape(prefix) + "*"):
+            pid = p.name[len(prefix) :].split(".", 1)[0]
+            if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+                if p.is_dir():
+                    shutil.rmtree(p, ignore_errors=True)
+                else:
+                    with contextlib.suppress(FileNotFoundError):
+                        p.unlink()
+                gone += 1
+    return gone
+
+
 def run_task(spec: TaskSpec) -> dict[str, Any]:
     """Run one task (on a worker); returns its record. A failure of the run is recorded (with a
     one-line error in ``failed/<task>.json``), never raised."""
@@ -171,6 +201,8 @@ def run_task(spec: TaskSpec) -> dict[str, Any]:
         "pid": os.getpid(),
     }
     tmp_root = Path(spec.out_dir) / TMP_DIR
+    if tmp_root.is_dir():
+        remove_dead_attempts(tmp_root, spec.task_id)
     tmp = tmp_root / tmp_name(spec)
     try:
         tmp.mkdir(parents=True)
