@@ -102,10 +102,11 @@ def test_signals_at_seeded_times_leave_complete_results(tmp_path: Path, monkeypa
         # writes) finds the run complete (all frames, the writes not cut; exit 130 or 0)
         assert rc == 130 if m["interrupted"] else rc in (0, 130) and m["frames"] == N_FRAMES, (k, at_frame, rc)
         outcomes.append((at_frame, int(m["frames"]), rc))
-    # a signal in frame f's step stops the run after frame f (f + 1 frames recorded)
+    # a signal armed in frame f's step (landing up to 80 ms later: in that frame or a
+    # following one) stops the run after the frame it lands in
     for at_frame, frames, rc in outcomes:
-        if 0 <= at_frame < N_FRAMES - 1:
-            assert rc == 130 and frames in (at_frame + 1, at_frame + 2), outcomes
+        if at_frame >= 0:
+            assert frames >= at_frame + 1 and (rc == 130 or frames == N_FRAMES), outcomes
         else:
             assert frames == N_FRAMES, outcomes
-    assert sum(rc == 130 for *_, rc in outcomes) >= 12, outcomes
+    assert sum(rc == 130 and frames < N_FRAMES for _, frames, rc in outcomes) >= 10, outcomes
