@@ -1,5 +1,8 @@
-"""Turntable scans: a rendered short scan (known step, known cylinder, known laser plane) and
-the real scan of ../shared/data/turntable_laser; MCAP conversion; bad input."""
+"""Turntable scans against a rendered scan with known answers and the real scan.
+
+A rendered short scan (known step, known cylinder, known laser plane) and the real scan of
+../shared/data/turntable_laser; MCAP conversion; bad input.
+"""
 
 from __future__ import annotations
 

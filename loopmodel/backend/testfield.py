@@ -96,8 +96,11 @@ def make_testfield(
 
 @dataclass
 class ScreeningOutcome:
-    """What the Givens screen did over a test field: the image points (frame, point id) that
-    carried an injected blunder, and those the screen rejected (at once or later)."""
+    """What the Givens screen did over a test field.
+
+    The image points (frame, point id) that carried an injected blunder, and those the screen
+    rejected (at once or later).
+    """
 
     blunders: set[tuple[int, int]]
     flagged: set[tuple[int, int]]
@@ -116,8 +119,10 @@ class ScreeningOutcome:
 def screen_testfield(
     tf: TestField, screen: GivensScreen, progress: Callable[[int], None] | None = None
 ) -> ScreeningOutcome:
-    """Feed the test field frame by frame to ``screen`` (control points with a 0.1 mm prior)
-    and score its rejections against the injected blunders."""
+    """Feed the test field frame by frame to ``screen`` and score its rejections.
+
+    Control points get a 0.1 mm prior; rejections are scored against the injected blunders.
+    """
     ctrl = set(tf.control.tolist())
     flagged: set[tuple[int, int]] = set()
     truth: set[tuple[int, int]] = set()

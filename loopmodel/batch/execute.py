@@ -1,5 +1,7 @@
-"""One batch task on a Dask worker: run the pipeline into a temporary folder, evaluate it
-against the sequence's ground truth, record time and peak memory, rename it into place.
+"""One batch task on a Dask worker.
+
+Run the pipeline into a temporary folder, evaluate it against the sequence's ground truth,
+record time and peak memory, rename it into place.
 
 Tasks run in the worker process itself, not in a subprocess per task: a fresh Python with
 loopmodel's imports (open3d, gtsam, cv2) costs about 2.5 s per task on this machine (measured
@@ -113,8 +115,10 @@ def run_sequence(source: str | Path, config: Any, out_dir: Path, name: str, max_
 
 
 def evaluate_folder(folder: Path, source: str | Path, config: Any) -> dict[str, Any] | None:
-    """``loopmodel eval`` of a results folder against the sequence's ground truth into
-    ``folder/eval``; None when the sequence has none."""
+    """``loopmodel eval`` of a results folder against the sequence's ground truth.
+
+    Written into ``folder/eval``; None when the sequence has none.
+    """
     from loopmodel.eval import report as rep
     from loopmodel.io.sequence import open_sequence
 
@@ -159,9 +163,11 @@ def _pid_alive(pid: int) -> bool:
 
 
 def remove_dead_attempts(tmp_root: Path, task_id: str) -> int:
-    """Delete what earlier attempts of ``task_id`` on this host left in ``tmp_root`` when their
-    worker died (their task folder ``<task>.<host>.<pid>.*`` and the results folder's own
-    staging and lock, ``.<task>.<host>.<pid>.*``). Returns how many entries went."""
+    """Delete what earlier attempts of ``task_id`` on this host left when their worker died.
+
+    Their task folder ``<task>.<host>.<pid>.*`` in ``tmp_root`` and the results folder's own
+    staging and lock, ``.<task>.<host>.<pid>.*``. Returns how many entries went.
+    """
     host = socket.gethostname()
     gone = 0
     for prefix in (f"{task_id}.{host}.", f".{task_id}.{host}."):
@@ -178,8 +184,11 @@ def remove_dead_attempts(tmp_root: Path, task_id: str) -> int:
 
 
 def run_task(spec: TaskSpec) -> dict[str, Any]:
-    """Run one task (on a worker); returns its record. A failure of the run is recorded (with a
-    one-line error in ``failed/<task>.json``), never raised."""
+    """Run one task (on a worker); returns its record.
+
+    A failure of the run is recorded (with a one-line error in ``failed/<task>.json``), never
+    raised.
+    """
     from loopmodel.config import config_from_dict
     from loopmodel.errors import LoopmodelError
 

@@ -170,8 +170,10 @@ def quartic_real_roots(A4: float, A3: float, A2: float, A1: float, A0: float, ou
 
 @nb.njit(cache=True)
 def p3p_one(j: F64, P: F64, Rs: F64, ts: F64) -> int:
-    """All valid P3P poses (at most 4) of unit rays ``j`` (3, 3) and world points ``P``
-    (3, 3) -> ``Rs`` (4, 3, 3), ``ts`` (4, 3); returns their number."""
+    """All valid P3P poses (at most 4) of three unit rays and world points; returns their number.
+
+    Rays ``j`` (3, 3) and world points ``P`` (3, 3) -> ``Rs`` (4, 3, 3), ``ts`` (4, 3).
+    """
     a2 = np.sum((P[1] - P[2]) ** 2)
     b2 = np.sum((P[0] - P[2]) ** 2)
     c2 = np.sum((P[0] - P[1]) ** 2)
@@ -378,8 +380,11 @@ def inlier_mask(R: F64, t: F64, rays: F64, P: F64, thr2: float) -> NDArray[np.bo
 
 @nb.njit(cache=True)
 def _tangent_residual(R: F64, t: F64, p: F64, e: F64) -> tuple[float, float, float, float, float, float]:
-    """Transformed point x = R p + t and the residuals (e0 . u, e1 . u) of its direction
-    u = x / |x| on the tangent basis ``e`` (6,) of the observed ray -> (r0, r1, x0, x1, x2, |x|)."""
+    """Transformed point x = R p + t and the tangent-plane residuals of its direction.
+
+    Residuals (e0 . u, e1 . u) of u = x / |x| on the tangent basis ``e`` (6,) of the observed
+    ray -> (r0, r1, x0, x1, x2, |x|).
+    """
     x0 = R[0, 0] * p[0] + R[0, 1] * p[1] + R[0, 2] * p[2] + t[0]
     x1 = R[1, 0] * p[0] + R[1, 1] * p[1] + R[1, 2] * p[2] + t[1]
     x2 = R[2, 0] * p[0] + R[2, 1] * p[1] + R[2, 2] * p[2] + t[2]
@@ -406,8 +411,10 @@ def _huber_cost(R: F64, t: F64, P: F64, E: F64, c: float) -> float:
 
 @nb.njit(cache=True)
 def refine_rays(R: F64, t: F64, rays: F64, P: F64, sigma: float, iterations: int) -> tuple[F64, F64]:
-    """Gauss-Newton with Huber weights (cutoff 1.345 ``sigma``) on the tangent-plane errors
-    of unit rays (radians) -> refined (R, t). A step that raises the robust cost stops it."""
+    """Gauss-Newton with Huber weights on the tangent-plane errors of unit rays -> (R, t).
+
+    Huber cutoff 1.345 ``sigma`` (radians). A step that raises the robust cost stops it.
+    """
     m = rays.shape[0]
     E = np.empty((m, 6))  # tangent bases (e1, e2) of the observed rays
     for k in range(m):

@@ -179,8 +179,10 @@ def table_line_in_cam(peaks: list[FramePeaks], poses: list[F64], K: F64, dist: F
 
 
 def plane_through_line(point: F64, direction: F64, reference_normal: F64, angle_rad: float) -> LightPlane:
-    """Plane containing the line, its normal the reference normal (made perpendicular to the
-    line) turned by ``angle_rad`` about the line."""
+    """Plane containing the line, its normal turned by ``angle_rad`` about the line.
+
+    The normal starts as the reference normal, made perpendicular to the line.
+    """
     d = direction / np.linalg.norm(direction)
     n0 = reference_normal - (reference_normal @ d) * d
     n0 /= np.linalg.norm(n0)
@@ -244,8 +246,11 @@ class PlaneChoice:
 def choose_plane(
     peaks: list[FramePeaks], poses: list[F64], scan: TurntableScan, max_residual_mm: float = 1.0
 ) -> PlaneChoice:
-    """The candidate plane whose table-top points lie on the markers' table plane within
-    ``max_residual_mm`` (and with the smallest |median|), else the self-calibrated plane."""
+    """The candidate laser plane that fits the table, else the self-calibrated plane.
+
+    A candidate fits when its table-top points lie on the markers' table plane within
+    ``max_residual_mm``; among those, the one with the smallest |median|.
+    """
     cands: dict[str, dict[str, float]] = {}
     for name, pl in scan.planes.items():
         rms, med, n = table_residual(peaks, poses, pl, scan.K, scan.dist)
