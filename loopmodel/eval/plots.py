@@ -59,9 +59,7 @@ def top_view_axes(positions_m: F64) -> tuple[int, int]:
     return int(keep[0]), int(keep[1])
 
 
-def plot_top_view(
-    reference_m: F64, tracks: list[PlotTrack], closures: list[PlotClosure], title: str
-) -> bytes:
+def plot_top_view(reference_m: F64, tracks: list[PlotTrack], closures: list[PlotClosure], title: str) -> bytes:
     """Ground truth and trajectories seen from above, loop closures marked."""
     a, b = top_view_axes(reference_m)
     fig = _figure()
@@ -113,9 +111,7 @@ def plot_error_over_time(tracks: list[PlotTrack], closures: list[PlotClosure], t
         if tr.errors_m is not None:
             ax.plot(tr.times_s, tr.errors_m, tr.style, color=tr.color, lw=1.0, label=tr.label)
     for k, c in enumerate(closures):
-        ax.axvline(
-            c.time_s, color="red", lw=0.8, alpha=0.6, label="loop closure" if k == 0 else None
-        )
+        ax.axvline(c.time_s, color="red", lw=0.8, alpha=0.6, label="loop closure" if k == 0 else None)
     ax.set_xlabel("time [s]")
     ax.set_ylabel("ATE [m]")
     ax.grid(True, alpha=0.3)

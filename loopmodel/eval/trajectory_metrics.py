@@ -45,9 +45,7 @@ def seconds_of_ns(times_ns: I64) -> F64:
     return np.array([ns_to_seconds_text(int(x)) for x in t], dtype=np.float64)
 
 
-def associate(
-    ref_times_ns: I64, est_times_ns: I64, max_dt_ns: int
-) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+def associate(ref_times_ns: I64, est_times_ns: I64, max_dt_ns: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """Indices ``(i_ref, i_est)`` of associated poses.
 
     Every pose of the shorter trajectory (the estimate when both are equally long) is paired
@@ -108,9 +106,7 @@ class Alignment:
         }
 
 
-def align(
-    ref_poses: F64, est_poses: F64, mode: str = "se3", first_n: int | None = None
-) -> Alignment:
+def align(ref_poses: F64, est_poses: F64, mode: str = "se3", first_n: int | None = None) -> Alignment:
     """Alignment of associated estimated poses onto reference poses (both N x 4 x 4).
 
     ``se3``/``sim3``: Umeyama on positions (of the first ``first_n`` pairs when given);
@@ -119,9 +115,7 @@ def align(
     """
     n = len(ref_poses)
     if mode not in ALIGN_MODES:
-        raise EvalInputError(
-            f"unknown alignment '{mode}' (expected one of {', '.join(ALIGN_MODES)})"
-        )
+        raise EvalInputError(f"unknown alignment '{mode}' (expected one of {', '.join(ALIGN_MODES)})")
     if mode == "none":
         return Alignment("none", poses_used=0)
     if mode == "origin":
@@ -133,9 +127,7 @@ def align(
     src = est_poses[:use, :3, 3]
     dst = ref_poses[:use, :3, 3]
     if np.linalg.matrix_rank(src - src.mean(axis=0), tol=1e-9) < 2:
-        raise EvalInputError(
-            f"{mode} alignment is degenerate: the estimated positions are collinear"
-        )
+        raise EvalInputError(f"{mode} alignment is degenerate: the estimated positions are collinear")
     R, t, s = umeyama_alignment(src, dst, with_scale=(mode == "sim3"))
     return Alignment(mode, R, t, float(s), use)
 
@@ -182,9 +174,7 @@ def rotation_angles_rad(R: F64) -> F64:
     return np.arccos(np.clip(c, -1.0, 1.0))
 
 
-def pairs_by_frames(
-    n: int, delta: int, all_pairs: bool = False
-) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+def pairs_by_frames(n: int, delta: int, all_pairs: bool = False) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """Index pairs ``delta`` poses apart: consecutive (0, d), (d, 2d), ... or all (i, i + d)."""
     if delta < 1:
         raise EvalInputError(f"RPE frame delta must be >= 1, got {delta}")
@@ -209,9 +199,7 @@ def pairs_by_distance(poses: F64, delta_m: float) -> tuple[NDArray[np.intp], NDA
     return a[:-1], a[1:]
 
 
-def rpe(
-    ref_poses: F64, est_poses: F64, i: NDArray[np.intp], j: NDArray[np.intp]
-) -> tuple[F64, F64]:
+def rpe(ref_poses: F64, est_poses: F64, i: NDArray[np.intp], j: NDArray[np.intp]) -> tuple[F64, F64]:
     """Relative pose error of pairs (i, j).
 
     Translation norm (metres) and angle (degrees) of ``inv(inv(Q_i) Q_j) @ inv(P_i) P_j`` (Q
@@ -325,17 +313,13 @@ def evaluate_pair(
             f"{est_times_ns[0] / 1e9:.3f}..{est_times_ns[-1] / 1e9:.3f} s)"
         )
     if len(i_ref) < 2:
-        raise EvalInputError(
-            f"only {len(i_ref)} pose pair associated in time; at least 2 are needed"
-        )
+        raise EvalInputError(f"only {len(i_ref)} pose pair associated in time; at least 2 are needed")
     Q = ref_poses[i_ref]
     P = est_poses[i_est]
     al = align(Q, P, align_mode, first_n)
     Pa = al.apply(P)
     ate = ate_errors(Q, Pa)
-    rot_err = np.degrees(
-        rotation_angles_rad(np.einsum("nji,njk->nik", Q[:, :3, :3], Pa[:, :3, :3]))
-    )
+    rot_err = np.degrees(rotation_angles_rad(np.einsum("nji,njk->nik", Q[:, :3, :3], Pa[:, :3, :3])))
     metrics: dict[str, object] = {
         "poses_reference": int(len(ref_poses)),
         "poses_estimate": int(len(est_poses)),
@@ -384,9 +368,7 @@ def evaluate_pair(
     return PairEvaluation(i_ref, i_est, Q, Pa, est_times_ns[i_est], al, ate, metrics)
 
 
-def se3_ate_rmse_m(
-    ref_times_ns: I64, ref_poses: F64, est_times_ns: I64, est_poses: F64, max_dt_ns: int
-) -> float:
+def se3_ate_rmse_m(ref_times_ns: I64, ref_poses: F64, est_times_ns: I64, est_poses: F64, max_dt_ns: int) -> float:
     """Translational ATE RMSE (metres) after SE(3) Umeyama alignment on all associated poses."""
     i_ref, i_est = associate(ref_times_ns, est_times_ns, max_dt_ns)
     Q, P = ref_poses[i_ref], est_poses[i_est]
