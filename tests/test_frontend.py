@@ -9,9 +9,9 @@ from frontend_scene import default_scene, depth_at, random_texture, render, ster
 
 from loopmodel.config import FrontendConfig
 from loopmodel.frontend import FrontEnd
-from loopmodel.frontend.klt import track_klt
 from loopmodel.frontend.stereo import detect_corners, match_stereo, triangulate_rectified
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_exp, so3_log
+from loopmodel.imaging.klt import track_klt
 from loopmodel.types import StereoCalibration, StereoFrame
 
 CFG = FrontendConfig(

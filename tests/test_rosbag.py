@@ -19,8 +19,8 @@ import yaml
 from loopmodel.cli import main
 from loopmodel.config import SequenceConfig, TopicsConfig
 from loopmodel.errors import CalibrationError, FormatError, InputError
-from loopmodel.frontend.rectify import Rectifier, rectification, undistort_rectify_map
 from loopmodel.geometry.se3 import se3_exp
+from loopmodel.imaging.rectify import Rectifier, rectification, undistort_rectify_map
 from loopmodel.io.bag_topics import ImageTopic, camera_info_for, guess_stereo_pair
 from loopmodel.io.mcap_io import McapSequence
 from loopmodel.io.ros_camera import camera_info_values, decode_ros_image

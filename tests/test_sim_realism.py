@@ -96,7 +96,7 @@ def test_distortion_round_trips_with_the_calibration() -> None:
     ang = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))
     assert 0.001 < ang < 4 * 0.02 * np.sqrt(3)
     # the pipeline's rectifier accepts it: rectified rows agree to the calibration error
-    from loopmodel.frontend.rectify import Rectifier
+    from loopmodel.imaging.rectify import Rectifier
 
     assert Rectifier(rec).calibration.rectified
 

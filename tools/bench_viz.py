@@ -26,7 +26,7 @@ SAMPLE = ROOT / "datasets" / "sample" / "scan.mcap"
 
 def _one(seq_path: Path, config_path: Path, rrd: Path | None, max_frames: int | None) -> tuple[float, int]:
     from loopmodel.config import load_config
-    from loopmodel.frontend.rectify import Rectifier
+    from loopmodel.imaging.rectify import Rectifier
     from loopmodel.io.sequence import open_sequence
     from loopmodel.pipeline import process
     from loopmodel.viz.recorder import RerunListener, RerunRecorder, RerunSink

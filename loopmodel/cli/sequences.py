@@ -230,7 +230,7 @@ def mesh(
 ) -> None:
     """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run)."""
     from loopmodel.io.mesh_io import MESH_FORMATS, read_mesh, write_mesh
-    from loopmodel.io.stripes_io import load_stripes_and_poses
+    from loopmodel.mapping.sources import load_stripes_and_poses
     from loopmodel.mapping.stripe_map import StripeMap
 
     fmt = fmt.lower()

@@ -59,7 +59,7 @@ def rerun_listeners(
         return []
     if rrd is not None and rrd.suffix.lower() != ".rrd":
         raise InputError(rrd, "--rerun file must end in .rrd")
-    from loopmodel.frontend.rectify import Rectifier
+    from loopmodel.imaging.rectify import Rectifier
     from loopmodel.viz.recorder import RerunListener, RerunRecorder
 
     rect = Rectifier(calibration).calibration

@@ -23,9 +23,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.config import FrontendConfig
-from loopmodel.frontend.klt import Pyramid, track_klt
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose
+from loopmodel.imaging.klt import Pyramid, track_klt
 from loopmodel.observers.depth_observer import ObserverConfig
 from loopmodel.observers.known_motion import KnownMotionDepthObserver
 

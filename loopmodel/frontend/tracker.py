@@ -18,9 +18,7 @@ from loopmodel.config import FrontendConfig
 from loopmodel.errors import EstimationError, InputError
 from loopmodel.frontend.hybrid_ba import hybrid_keyframe_ba
 from loopmodel.frontend.keyframe import FrameResult, Keyframe, TrackedFeatures
-from loopmodel.frontend.klt import Pyramid, build_pyramid, track_klt
 from loopmodel.frontend.mono_depth import MonoDepthTracks, kf_from_ref_map
-from loopmodel.frontend.rectify import Rectifier
 from loopmodel.frontend.stereo import (
     detect_corners,
     match_stereo,
@@ -28,6 +26,8 @@ from loopmodel.frontend.stereo import (
     triangulate_rectified,
 )
 from loopmodel.geometry.se3 import invert_pose, nearest_rigid, se3_exp, se3_log, so3_log
+from loopmodel.imaging.klt import Pyramid, build_pyramid, track_klt
+from loopmodel.imaging.rectify import Rectifier
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, estimate_pose
 from loopmodel.pose.robust import robust_scale
 from loopmodel.types import StereoCalibration, StereoFrame

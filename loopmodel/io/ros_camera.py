@@ -191,7 +191,7 @@ def camera_info_values(cal: StereoCalibration) -> tuple[dict[str, Any], dict[str
 
 
 def _fisheye_infos(cal: StereoCalibration) -> tuple[dict[str, Any], dict[str, Any]]:
-    from loopmodel.frontend.rectify import rectification
+    from loopmodel.imaging.rectify import rectification
     from loopmodel.io.mcap_io import camera_info_dicts
 
     R0, R1, P0, P1 = rectification(cal)

@@ -13,10 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from loopmodel.config import MappingConfig, SequenceConfig
 from loopmodel.errors import FormatError, InputError
 from loopmodel.io.atomic import atomic_path
-from loopmodel.types import StripeProfile, Trajectory
+from loopmodel.types import StripeProfile
 
 STRIPES_FILE = "stripes.npz"
 META = "loopmodel stripes v1: points_in_cam float32 metres, left-camera frame (x right, y down, z forward)"
@@ -61,53 +60,3 @@ def load_stripes(path: str | Path) -> list[StripeProfile]:
         raise FormatError(p, f"stripe {s} (t={int(t[s])} ns) has non-finite points")
     bounds = np.concatenate([[0], np.cumsum(counts)])
     return [StripeProfile(int(t[i]), pts[bounds[i] : bounds[i + 1]]) for i in range(t.shape[0])]
-
-
-def load_stripes_and_poses(
-    source: str | Path,
-    trajectory: str = "final",
-    sequence_config: SequenceConfig | None = None,
-    mapping_config: MappingConfig | None = None,
-) -> tuple[list[StripeProfile], Trajectory, str]:
-    """Stripes and the poses to place them with, from a results folder or a recorded sequence.
-
-    A results folder: ``stripes.npz`` and ``trajectory_<final|online>.tum`` (final falls back to
-    online). A recorded sequence: with stripes (or laser-line images, extracted with
-    ``mapping_config``'s light plane) and ground truth (e.g. a simulator MCAP). Returns the stripes,
-    the ``world_from_cam`` trajectory and a name for the poses used.
-    """
-    from loopmodel.io.trajectory_io import read_trajectory
-
-    p = Path(source)
-    if not p.exists():
-        raise InputError(p, "results folder does not exist")
-    run_files = (STRIPES_FILE, "trajectory_final.tum", "trajectory_online.tum")
-    if p.is_dir() and any((p / f).exists() for f in run_files):
-        if trajectory not in ("final", "online"):
-            raise InputError(p, f"a results folder has final or online poses, not '{trajectory}'")
-        traj_path = p / f"trajectory_{trajectory}.tum"
-        if trajectory == "final" and not traj_path.is_file():
-            traj_path = p / "trajectory_online.tum"
-        if not traj_path.is_file():
-            raise InputError(p, f"no trajectory_{trajectory}.tum in the results folder")
-        stripes = load_stripes(p)
-        if not stripes:
-            raise InputError(p / STRIPES_FILE, "no laser stripes in the stripe file")
-        return stripes, read_trajectory(traj_path), traj_path.name
-    from loopmodel.io.sequence import open_sequence
-
-    try:
-        seq = open_sequence(p, sequence_config)
-    except InputError:
-        if p.is_dir():
-            raise InputError(p, f"no laser stripes here (expected a results folder with {STRIPES_FILE})") from None
-        raise
-    gt = seq.ground_truth
-    if gt is None:
-        raise InputError(p, "sequence has no ground-truth poses to place its stripes with")
-    from loopmodel.mapping.extraction import sequence_stripes
-
-    stripes = list(sequence_stripes(seq, mapping_config))
-    if not stripes:
-        raise InputError(p, "no laser stripes in this sequence")
-    return stripes, gt, "ground truth"

@@ -10,7 +10,7 @@ Pipeline use (poses ``world_from_*`` 4x4 in metres, times in ns)::
     moved = smap.update_keyframes({kf: world_from_kf})  # after iSAM2 / loop closure
     smap.update_poses(final_trajectory)                 # or: frame poses by timestamp
     mesh = smap.mesh()                                  # whole surface (Poisson or BPA)
-    smap.save_stripes(results / "stripes.npz")          # io.stripes_io format
+    io.stripes_io.save_stripes(results / "stripes.npz", smap.stripes())  # sensor frame
     io.mesh_io.write_mesh(results / "mesh.ply", mesh)   # binary PLY, metres, world frame
     metrics.update(mesh_error_metrics(stripes, {"gt": gt, "before": online, "after": final},
                                       read_mesh(mcap_path)))   # scene.ply attachment

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable, Mapping
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -518,9 +517,3 @@ class StripeMap:
             raise InputError(None, "no laser stripes")
         if not np.any(self.placed_mask):
             raise InputError(None, "no laser stripe lies within the tracked frames' times")
-
-    def save_stripes(self, path: str | Path) -> Path:
-        """Write every profile (sensor frame) to ``path`` (``stripes.npz`` format of io)."""
-        from loopmodel.io.stripes_io import save_stripes
-
-        return save_stripes(path, self.stripes())

@@ -14,8 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import InputError
-from loopmodel.frontend.klt import track_klt
-from loopmodel.frontend.rectify import to_grey
+from loopmodel.imaging.klt import track_klt
+from loopmodel.imaging.rectify import to_grey
 from loopmodel.observers.depth_observer import DepthObserver, ObserverConfig, ViewMeasurement
 from loopmodel.observers.homography import signals_from_essential
 from loopmodel.types import StereoCalibration, StereoFrame
