@@ -172,8 +172,8 @@ class RerunRecorder:
 
             s = self.image_scale
             small = image if s == 1.0 else cv2.resize(image, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
-            ok, jpeg = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 80])  # OpenCV's is 2x rerun's
-            if ok:
+            encoded, jpeg = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 80])  # 2x faster than rerun
+            if encoded:
                 self.rec.log("world/camera/image", rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
             if features_uv is not None and len(features_uv):
                 uv = np.asarray(features_uv, float).reshape(-1, 2) * s
