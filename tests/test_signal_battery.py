@@ -1,8 +1,10 @@
-"""Ctrl-C and SIGTERM at 20 seeded moments across a run (frames, keyframes, the final writes;
-every fourth time a second signal follows): `loopmodel run` exits 130 (0 when the signal
-came after the run had finished its work), and every time every result file is complete
-and parseable, ``metrics.json`` saying how many frames it covers, with nothing left behind
-(no staging folder, no lock, no temporary file)."""
+"""Ctrl-C and SIGTERM at 20 seeded moments across a run leave complete results.
+
+Signals land in frames, keyframes and the final writes; every fourth time a second signal
+follows. `loopmodel run` exits 130 (0 when the signal came after the run had finished its
+work), and every time every result file is complete and parseable, ``metrics.json`` saying how
+many frames it covers, with nothing left behind (no staging folder, no lock, no temporary file).
+"""
 
 from __future__ import annotations
 

@@ -36,9 +36,11 @@ F64 = NDArray[np.float64]
 
 @dataclass
 class PoseGraph:
-    """Poses ``world_from_i`` (dim 2: 3x3, dim 3: 4x4) and edges ``i_from_j`` with
-    information matrices (3x3 or 6x6, GTSAM tangent order). ``odometry[e]`` marks edge e
-    as a known inlier."""
+    """A pose graph: poses ``world_from_i`` and edges ``i_from_j`` with information matrices.
+
+    Poses are 3x3 (dim 2) or 4x4 (dim 3); information matrices 3x3 or 6x6 in GTSAM's tangent
+    order. ``odometry[e]`` marks edge e as a known inlier.
+    """
 
     dim: int
     world_from_pose: dict[int, F64]
@@ -69,9 +71,12 @@ class PoseGraph:
 
 @dataclass
 class PoseGraphResult:
-    """Optimised ``world_from_pose``, the kept edges (``inlier[e]``), the GNC weights, the
-    graph's total error (GTSAM's 0.5 * sum of squared whitened residuals) over the kept
-    edges, and the solve time."""
+    """The result of a robust solve.
+
+    Optimised ``world_from_pose``, the kept edges (``inlier[e]``), the GNC weights, the graph's
+    total error (GTSAM's 0.5 * sum of squared whitened residuals) over the kept edges, and the
+    solve time.
+    """
 
     world_from_pose: dict[int, F64]
     inlier: NDArray[np.bool_]
@@ -171,8 +176,10 @@ def read_g2o(path: str | Path) -> PoseGraph:
 
 
 def chain_odometry(graph: PoseGraph) -> dict[int, F64]:
-    """Initial poses by composing the odometry edges from the smallest id (a pose that
-    no odometry edge reaches keeps the previous pose)."""
+    """Initial poses by composing the odometry edges from the smallest id.
+
+    A pose that no odometry edge reaches keeps the previous pose.
+    """
     ids = sorted(set(graph.edges_ij.ravel().tolist()))
     step: dict[int, F64] = {}
     for e in np.flatnonzero(graph.odometry):
@@ -366,11 +373,13 @@ def graph_error(graph: PoseGraph, world_from_pose: dict[int, F64]) -> float:
 
 
 def add_false_loops(graph: PoseGraph, rate: float, seed: int, min_gap: int = 10) -> PoseGraph:
-    """The graph plus ``round(rate * n_loop_edges)`` random false loop edges (their count is
-    relative to the true loop edges, odometry excluded): random pose pairs at least
-    ``min_gap`` ids apart, a random relative pose (translation uniform within the graph's
+    """The graph plus ``round(rate * n_loop_edges)`` random false loop edges.
+
+    Their count is relative to the true loop edges, odometry excluded: random pose pairs at
+    least ``min_gap`` ids apart, a random relative pose (translation uniform within the graph's
     bounding box, heading uniform; in 3-D a uniformly random rotation) and the information
-    matrix of a randomly chosen true loop edge. The false edges come last."""
+    matrix of a randomly chosen true loop edge. The false edges come last.
+    """
     rng = np.random.default_rng(seed)
     n_loops = int(np.sum(~graph.odometry))
     n_false = int(round(rate * max(n_loops, 1)))
@@ -422,10 +431,12 @@ def keyframe_loop_inliers(
     loop_sigma_m: float,
     probability: float = 0.99,
 ) -> tuple[NDArray[np.bool_], PoseGraphResult]:
-    """Which loop constraints ``(kf_a, kf_b, kf_a_from_kf_b)`` (4x4, camera frames, metres)
-    agree with the odometry between the keyframes (``(kf_prev, kf)`` pairs whose current
-    relative pose ``world_from_kf`` is trusted) and with each other: GNC-TLS on the
-    keyframe pose graph. Returns the per-loop inlier mask and the solve."""
+    """Which loop constraints agree with the odometry and with each other (GNC-TLS).
+
+    Constraints are ``(kf_a, kf_b, kf_a_from_kf_b)`` (4x4, camera frames, metres); the odometry
+    is the ``(kf_prev, kf)`` pairs whose current relative pose ``world_from_kf`` is trusted.
+    Solved on the keyframe pose graph. Returns the per-loop inlier mask and the solve.
+    """
 
     def info(sig_deg: float, sig_m: float) -> F64:
         return np.diag(np.r_[np.full(3, 1.0 / math.radians(sig_deg) ** 2), np.full(3, 1.0 / sig_m**2)])
