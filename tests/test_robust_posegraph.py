@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SHARED_DATA
 from test_loop_closer import BASELINE, CAM, _add_mono, _FakeTracker, _keyframe, _sequence, _texture
 
 from loopmodel.backend.robust_posegraph import (
@@ -28,7 +29,7 @@ from loopmodel.loop.global_ba import LoopObservations
 from loopmodel.loop.stage import LoopClosingStage, MapState
 from loopmodel.types import Keyframe, StereoCalibration
 
-CSAIL = Path("/work/shared/data/posegraphs/CSAIL.g2o")
+CSAIL = SHARED_DATA / "posegraphs" / "CSAIL.g2o"
 
 
 @pytest.mark.slow

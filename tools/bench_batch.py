@@ -31,10 +31,11 @@ import time
 from pathlib import Path
 
 import yaml
+from shared_data import SHARED_DATA
 
 ROOT = Path(__file__).resolve().parents[1]
 # the shared real data beside the project (``$LOOPMODEL_SHARED_DATA`` overrides, e.g. from a worktree)
-SHARED = Path(os.environ.get("LOOPMODEL_SHARED_DATA", ROOT / ".." / "shared" / "data")).resolve()
+SHARED = SHARED_DATA
 WORK = ROOT / "results" / "bench_batch"
 
 

@@ -7,15 +7,15 @@ KITTI clip against stereo depths.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
+from shared_data import SHARED_DATA
 
 from loopmodel.io import open_sequence
 from loopmodel.observers.real_tracks import observe_sequence
 from loopmodel.observers.simulation import simulate
 
-KITTI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti_clip"
+KITTI = SHARED_DATA / "kitti_clip"
 
 
 def run(quick: bool) -> dict:

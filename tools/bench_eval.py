@@ -19,8 +19,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+from shared_data import SHARED_DATA
 
-SHARED = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "trajectories"
+SHARED = SHARED_DATA / "trajectories"
 
 
 def run(quick: bool = False) -> dict:

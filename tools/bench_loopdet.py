@@ -17,17 +17,17 @@ from __future__ import annotations
 
 import statistics
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
+from shared_data import SHARED_DATA
 
 from loopmodel.loop.closure import LoopDetector, LoopParams
 from loopmodel.loop.database import PlaceParams
 from loopmodel.loop.features import detect_and_describe, make_extractor
 from loopmodel.loop.vocabulary import shipped_vocabulary
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "loop_images"
+DATA = SHARED_DATA / "loop_images"
 EXCLUDE = 5
 
 

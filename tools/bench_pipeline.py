@@ -36,17 +36,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from shared_data import SHARED_DATA
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def shared_data() -> Path:
-    """``$LOOPMODEL_SHARED_DATA``, else ``../shared/data`` beside the project, else ``/work/shared/data``."""
-    env = os.environ.get("LOOPMODEL_SHARED_DATA")
-    for p in ([Path(env)] if env else []) + [ROOT / ".." / "shared" / "data", ROOT / ".." / ".." / "shared" / "data"]:
-        if p.is_dir():
-            return p.resolve()
-    return (ROOT / ".." / "shared" / "data").resolve()
+    """The shared real data (``tools/shared_data.py``)."""
+    return SHARED_DATA
 
 
 def sim_sample() -> Path:

@@ -1,6 +1,6 @@
 """Benchmark ``posegraph``: robust loop closing on real pose graphs with false loop edges.
 
-Graphs: ``/work/shared/data/posegraphs/*.g2o`` (intel, MIT, CSAIL, kitti_00: 2-D;
+Graphs: ``../shared/data/posegraphs/*.g2o`` (intel, MIT, CSAIL, kitti_00: 2-D;
 parking-garage, cubicle, sphere2500: 3-D). Each gets 0/5/10/25 % extra random false loop
 edges (count relative to the graph's true loop edges; seeded per graph and rate; see
 :func:`loopmodel.backend.robust_posegraph.add_false_loops`). ``ours`` is
@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import sys
 import zlib
-from pathlib import Path
 
 import numpy as np
+from shared_data import SHARED_DATA
 
 from loopmodel.backend.robust_posegraph import (
     PoseGraph,
@@ -30,7 +30,7 @@ from loopmodel.backend.robust_posegraph import (
     robust_optimize,
 )
 
-DATA = Path("/work/shared/data/posegraphs")
+DATA = SHARED_DATA / "posegraphs"
 ALL = ["intel", "MIT", "CSAIL", "kitti_00", "parking-garage", "cubicle", "sphere2500"]
 RATES = [0.0, 0.05, 0.10, 0.25]
 

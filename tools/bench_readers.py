@@ -32,9 +32,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+from shared_data import SHARED_DATA
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("LOOPMODEL_SHARED_DATA", ROOT / ".." / "shared" / "data"))
+SHARED = SHARED_DATA
 CLIP = (SHARED / "kitti_clip").resolve()
 TINY = ROOT / "datasets" / "tiny_kitti"
 

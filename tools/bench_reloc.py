@@ -17,6 +17,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from shared_data import SHARED_DATA
 
 from loopmodel.config import LoopConfig
 from loopmodel.geometry.camera import CentralCamera
@@ -34,16 +35,7 @@ from loopmodel.loop.features import (
 from loopmodel.loop.pnp import solve_pnp_bank
 from loopmodel.loop.reloc import RelocParams, localize, sample_bound
 
-
-def _shared_data() -> Path:
-    """``shared/data`` beside the nearest ancestor of this file (the checkout or a worktree)."""
-    for parent in Path(__file__).resolve().parents:
-        if (parent / "shared" / "data").is_dir():
-            return parent / "shared" / "data"
-    return Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-
-
-DATA = _shared_data() / "fountain"
+DATA = SHARED_DATA / "fountain"
 SCALE = 0.5
 MAP_VIEWS = (4, 6)
 

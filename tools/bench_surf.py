@@ -27,24 +27,15 @@ from __future__ import annotations
 import statistics
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import cv2
 import numpy as np
+from shared_data import SHARED_DATA
 
 from loopmodel.loop.features import FeatureSet, make_extractor, match_descriptors
 from loopmodel.loop.surf import Surf
 
-
-def _shared_data() -> Path:
-    """``shared/data`` beside the nearest ancestor of this file (the checkout or a worktree)."""
-    for parent in Path(__file__).resolve().parents:
-        if (parent / "shared" / "data").is_dir():
-            return parent / "shared" / "data"
-    return Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-
-
-DATA = _shared_data()
+DATA = SHARED_DATA
 N_FEATURES = 1000
 EPS_PX = 2.5
 SCALE_TOL = 2.0**0.5

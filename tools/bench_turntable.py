@@ -22,7 +22,9 @@ import math
 import time
 from pathlib import Path
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+from shared_data import SHARED_DATA
+
+DATA = SHARED_DATA
 LAYOUT = Path(__file__).resolve().parents[1] / "datasets" / "layouts" / "turntable_laser.yaml"
 
 

@@ -18,9 +18,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from shared_data import SHARED_DATA
 
 ROOT = Path(__file__).resolve().parents[1]
-KITTI = (ROOT / ".." / "shared" / "data" / "kitti_clip").resolve()
+KITTI = SHARED_DATA / "kitti_clip"
 SAMPLE = ROOT / "datasets" / "sample" / "scan.mcap"
 
 
