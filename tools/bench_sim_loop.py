@@ -23,8 +23,11 @@ against the true stripe (``/ground_truth/laser_stripe`` projected through the tr
 lens): p95 of the distance (px) of the extracted peaks within 3 px of it;
 ``stripe_outlier_fraction``: the share farther away (spurious reflections, background).
 ``givens_rejected`` needs the Givens screen (``backend.kind: both``); the default back end is
-iSAM2 without it, so the key is null and ``givens_injected`` 0. ``old_features_retracked``
-is not measured (the loop stage reports no such count): omitted.
+iSAM2 without it, so the key is null and ``givens_injected`` 0. ``old_features_retracked``:
+the most old landmarks a closure's KLT stage tracked again into the current keyframe (the
+loop's ``loop_observations``, which join the back end); per loop in
+``old_features_retracked_per_loop``. The front end does not go on tracking the old set after
+the closure (seed 004 section 5 does).
 
 Sequences are generated with the presets when missing (slow: minutes) into
 ``datasets/sample`` (the orbit is ``make demo``'s ``scan.mcap``) and ``~/.cache/loopmodel``
@@ -292,6 +295,9 @@ def _sequence_keys(path: Path, config: Config, stride: int) -> dict[str, Any]:
         "loop_optimise_ms_median": round(float(np.median([e["optimise_ms"] for e in loops])), 1) if loops else None,
         "givens_rejected": out.get("givens_rejected"),
         "givens_injected": 0,
+        # old landmarks the closure's KLT stage found again in the current keyframe (seed 004: 55)
+        "old_features_retracked": int(max((e.get("loop_observations", 0) for e in loops), default=0)),
+        "old_features_retracked_per_loop": [int(e.get("loop_observations", 0)) for e in loops],
     }
     res.update(_mesh_errors(out, path.with_suffix(".scene.ply"), config))
     res.update(_stripe_extraction_px(path, config))
