@@ -31,7 +31,7 @@ from typing import Any
 
 from loopmodel import __version__
 from loopmodel.batch.plan import TaskSpec
-from loopmodel.io.atomic import write_text_atomic
+from loopmodel.io.atomic import pid_alive, write_text_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -152,16 +152,6 @@ def tmp_name(spec: TaskSpec) -> str:
     return f"{spec.task_id}.{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:6]}"
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def remove_dead_attempts(tmp_root: Path, task_id: str) -> int:
     """Delete what earlier attempts of ``task_id`` on this host left when their worker died.
 
@@ -173,7 +163,7 @@ def remove_dead_attempts(tmp_root: Path, task_id: str) -> int:
     for prefix in (f"{task_id}.{host}.", f".{task_id}.{host}."):
         for p in tmp_root.glob(glob.escape(prefix) + "*"):
             pid = p.name[len(prefix) :].split(".", 1)[0]
-            if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+            if pid.isdigit() and int(pid) != os.getpid() and not pid_alive(int(pid)):
                 if p.is_dir():
                     shutil.rmtree(p, ignore_errors=True)
                 else:

@@ -26,7 +26,7 @@ from typing import Any
 from loopmodel.batch.execute import FAILED_DIR, TMP_DIR, read_record
 from loopmodel.batch.plan import Plan, TaskSpec
 from loopmodel.errors import InputError
-from loopmodel.io.atomic import write_text_atomic
+from loopmodel.io.atomic import pid_alive, write_text_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -65,16 +65,6 @@ class BatchOutcome:
 ProgressFn = Callable[[BatchState], None]
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def running_tmp(out_dir: Path) -> dict[str, Path]:
     """Temporary folders of tasks being run, by task id (dead ones on this host left out)."""
     root = out_dir / TMP_DIR
@@ -87,7 +77,7 @@ def running_tmp(out_dir: Path) -> dict[str, Path]:
         if len(parts) != 4:
             continue
         task, h, pid, _ = parts
-        if h == host and pid.isdigit() and not _pid_alive(int(pid)):
+        if h == host and pid.isdigit() and not pid_alive(int(pid)):
             continue
         out[task] = d
     return out

@@ -127,7 +127,8 @@ def batch_status_cmd(
     import json
 
     from loopmodel.batch import batch_status, load_manifest
-    from loopmodel.batch.runner import RUNNING_FILE, _pid_alive
+    from loopmodel.batch.runner import RUNNING_FILE
+    from loopmodel.io.atomic import pid_alive
 
     console, _ = _console()
     tasks = load_manifest(folder.resolve())
@@ -142,7 +143,7 @@ def batch_status_cmd(
             client = json.loads(marker.read_text())
         except ValueError:
             client = None
-    if client is not None and _pid_alive(int(client.get("pid", -1))):
+    if client is not None and pid_alive(int(client.get("pid", -1))):
         state = f"running (client pid {client['pid']} on {client.get('host')}, scheduler {client.get('scheduler')})"
     elif counts.get("done", 0) == len(tasks):
         state = "finished"

@@ -32,7 +32,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether a process with this id runs (on this machine)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -53,7 +54,7 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
     with contextlib.suppress(OSError):
         for p in final.parent.glob(f"{glob.escape(prefix)}*"):
             pid = p.name[len(prefix) :]
-            if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+            if pid.isdigit() and int(pid) != os.getpid() and not pid_alive(int(pid)):
                 with contextlib.suppress(OSError):
                     p.unlink()
                     removed.append(p)

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from loopmodel.config import Config, dump_config, pipeline_sections
 from loopmodel.errors import InputError
-from loopmodel.io.atomic import atomic_path, write_text_atomic
+from loopmodel.io.atomic import atomic_path, pid_alive, write_text_atomic
 from loopmodel.io.trajectory_io import TrajectoryFormat, write_trajectory
 from loopmodel.types import Trajectory
 
@@ -179,16 +179,6 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
 _HELD: set[Path] = set()
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def _acquire_lock(lock: Path, final: Path) -> Path:
     """Create ``lock`` exclusively with our PID; a lock of a dead process is taken over."""
     for _ in range(3):
@@ -200,7 +190,7 @@ def _acquire_lock(lock: Path, final: Path) -> Path:
             except (OSError, ValueError):
                 pid = 0
             ours = pid == os.getpid() and lock not in _HELD
-            if pid > 0 and not ours and _pid_alive(pid):
+            if pid > 0 and not ours and pid_alive(pid):
                 raise InputError(final, f"another run (pid {pid}) is writing this results folder") from None
             with contextlib.suppress(FileNotFoundError):
                 lock.unlink()
@@ -218,7 +208,7 @@ def _remove_dead_staging(out: Path, name: str) -> None:
         prefix = f".{name}.{kind}-"
         for p in out.glob(glob.escape(prefix) + "*"):
             pid = p.name[len(prefix) :]
-            if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)) and p.is_dir():
+            if pid.isdigit() and int(pid) != os.getpid() and not pid_alive(int(pid)) and p.is_dir():
                 shutil.rmtree(p, ignore_errors=True)
 
 
