@@ -13,8 +13,9 @@ Stages and their one entry point per event (all declared on their protocols):
   :class:`~loopmodel.stages.NullLoopStage` when loop closing is off;
 * back end   ``Backend.add_keyframe``, ``add_loop_constraint``, ``estimate``, and at the end
   ``final_estimate(RefineConfig | None)``, ``metrics()``;
-* mapping    ``StripeMap.set_keyframe`` / ``add_frame`` / ``update_keyframes`` (frame poses
-  anchored to keyframes), ``LiveMapping.feed`` / ``on_keyframe`` / ``close`` / ``mesh`` /
+* mapping    ``AnchoredTrajectory.set_keyframe`` / ``add_frame`` / ``update_keyframes`` (frame
+  poses anchored to keyframes; the live :class:`StripeMap` follows them),
+  ``LiveMapping.feed`` / ``on_keyframe`` / ``close`` / ``mesh`` /
   ``metrics``; :func:`loopmodel.mapping.final.final_mesh` at the end.
 
 A stop request (:class:`StopFlag`, set by the signal handlers of :func:`stop_on_signals`)
@@ -43,6 +44,7 @@ from loopmodel.frontend.metrics import frontend_metrics, percentile_or_none
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder, write_results
 from loopmodel.listener import RunListener
+from loopmodel.mapping.anchored import AnchoredTrajectory
 from loopmodel.mapping.final import final_mesh, live_stripes, run_stripes
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
@@ -191,10 +193,12 @@ class _Run:
         self.backend: Backend = create_backend(config.backend, self.frontend.calibration, config.givens)
         self.loop = _loop_stage(config, self.frontend.calibration)
         # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
-        self.anchored = StripeMap(config.mapping)
+        # placed with them (the stripe map follows every change of the anchored poses)
+        self.anchored = AnchoredTrajectory()
+        self.stripe_map = StripeMap(config.mapping, self.anchored)
         every_kf = config.mapping.live_mesh_every_kf
         stripes = live_stripes(sequence, config.mapping) if every_kf > 0 else iter(())
-        self.live = LiveMapping(self.anchored, stripes, every_kf)
+        self.live = LiveMapping(self.stripe_map, stripes, every_kf)
         self.frames: list[FrameResult] = []
         self.keyframes: dict[int, int] = {}  # keyframe id -> timestamp_ns, in order
         # keyframe -> (previous keyframe, the tracker's pose of it there): drift per interval

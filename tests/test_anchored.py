@@ -1,4 +1,4 @@
-"""Frame poses anchored to keyframes (the pipeline's :class:`StripeMap`) follow keyframe corrections."""
+"""Frame poses anchored to keyframes (:class:`AnchoredTrajectory`) follow keyframe corrections."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ import pytest
 
 from loopmodel.errors import EstimationError
 from loopmodel.geometry.se3 import make_pose, so3_exp
-from loopmodel.mapping.stripe_map import StripeMap
+from loopmodel.mapping.anchored import AnchoredTrajectory
 
 
 def test_recomposes_with_moved_keyframes(rng):
-    traj = StripeMap()
+    traj = AnchoredTrajectory()
     kf0 = make_pose(so3_exp([0, 0.1, 0]), [1, 2, 3])
     kf1 = make_pose(so3_exp([0.05, 0, 0]), [2, 2, 3])
     traj.set_keyframe(0, kf0)
@@ -33,7 +33,7 @@ def test_recomposes_with_moved_keyframes(rng):
 
 
 def test_unknown_keyframe_is_an_error():
-    traj = StripeMap()
+    traj = AnchoredTrajectory()
     with pytest.raises(EstimationError, match="keyframe 3 was not declared"):
         traj.add_frame(0, kf_id=3, kf_from_cam=np.eye(4))
     assert len(traj.trajectory()) == 0

@@ -14,7 +14,7 @@ from test_backend_isam2 import SIGMA_PX, batch_solution, calibration, exact_conf
 from loopmodel.backend import BackendEstimate
 from loopmodel.backend.isam2 import Isam2Backend
 from loopmodel.geometry.se3 import invert_pose, make_pose, se3_exp, so3_exp
-from loopmodel.mapping.stripe_map import StripeMap
+from loopmodel.mapping.anchored import AnchoredTrajectory
 
 
 def _backend(kfs: list, **kw: float) -> Isam2Backend:
@@ -69,7 +69,7 @@ def test_bridged_trajectory_removes_drift_that_grows_along_the_interval(rng: np.
     )
     kf_frames = [0, 10, 20]
     drift = {0: _twist(rng, 2e-4, 3e-4), 10: _twist(rng, 2e-4, 3e-4), 20: _twist(rng, 2e-4, 3e-4)}
-    anchored = StripeMap()
+    anchored = AnchoredTrajectory()
     links: dict[int, tuple[int, np.ndarray]] = {}
     for i in range(n):
         a = max(k for k in kf_frames if k <= i)

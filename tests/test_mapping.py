@@ -61,8 +61,8 @@ def test_interpolated_poses_equal_ground_truth_and_stay_on_se3(rng: np.random.Ge
     for i, (t, T) in enumerate(zip(frame_t_ns, gt_frames, strict=True)):
         kf = i // 4
         if i % 4 == 0:
-            m.set_keyframe(kf, T)
-        m.add_frame(int(t), kf_id=kf, kf_from_cam=invert_pose(_gt_motion(frame_t_ns[4 * kf] * 1e-9)[0]) @ T)
+            m.poses.set_keyframe(kf, T)
+        m.poses.add_frame(int(t), kf_id=kf, kf_from_cam=invert_pose(_gt_motion(frame_t_ns[4 * kf] * 1e-9)[0]) @ T)
     # stripes at every frame time and at random times in between
     between = rng.integers(frame_t_ns[0], frame_t_ns[-1], size=200)
     stripe_t = np.concatenate([frame_t_ns, between])
@@ -89,13 +89,13 @@ def test_interpolated_poses_equal_ground_truth_and_stay_on_se3(rng: np.random.Ge
 
 def test_stripes_wait_for_a_bracketing_frame_and_gaps_are_not_bridged() -> None:
     m = StripeMap(MappingConfig(max_stripe_gap_ns=100_000_000))
-    m.add_frame(0, np.eye(4))
+    m.poses.add_frame(0, np.eye(4))
     m.add(_unit_stripe(30_000_000))  # after the last frame: waits
     assert not m.placed_mask[0]
-    m.add_frame(50_000_000, make_pose(np.eye(3), [0.01, 0, 0]))
+    m.poses.add_frame(50_000_000, make_pose(np.eye(3), [0.01, 0, 0]))
     assert m.placed_mask[0]
     np.testing.assert_allclose(m.stripe_poses()[0][:3, 3], [0.006, 0, 0], atol=1e-15)
-    m.add_frame(500_000_000, np.eye(4))
+    m.poses.add_frame(500_000_000, np.eye(4))
     m.add(_unit_stripe(300_000_000))  # inside a 450 ms gap: not placed
     m.add(_unit_stripe(-5))  # before the first frame: not placed
     assert m.placed_mask.tolist() == [True, False, False]
@@ -109,8 +109,8 @@ def test_moving_one_keyframe_moves_exactly_the_stripes_it_governs(rng: np.random
     kf_of = np.arange(40) // 5
     for i, t in enumerate(frame_t_ns):
         if i % 5 == 0:
-            m.set_keyframe(int(kf_of[i]), gt[i])
-        m.add_frame(int(t), kf_id=int(kf_of[i]), kf_from_cam=invert_pose(gt[5 * kf_of[i]]) @ gt[i])
+            m.poses.set_keyframe(int(kf_of[i]), gt[i])
+        m.poses.add_frame(int(t), kf_id=int(kf_of[i]), kf_from_cam=invert_pose(gt[5 * kf_of[i]]) @ gt[i])
     stripe_t = np.concatenate([frame_t_ns, rng.integers(0, frame_t_ns[-1], size=300)])
     for t in stripe_t:
         m.add(_unit_stripe(int(t)))
@@ -118,7 +118,7 @@ def test_moving_one_keyframe_moves_exactly_the_stripes_it_governs(rng: np.random
     kf = 3  # frames 15..19
     correction = se3_exp([0.004, -0.002, 0.003, 0.01, 0.0, -0.02])
     new_world_from_kf = correction @ gt[15]
-    moved = m.update_keyframes({kf: new_world_from_kf})
+    moved = m.stripes_of_frames(m.poses.update_keyframes({kf: new_world_from_kf}))
     # independent: a stripe depends on keyframe 3 iff a neighbouring frame is one of 15..19,
     # i.e. its time lies strictly between frame 14 and frame 20
     expected = np.flatnonzero((stripe_t > frame_t_ns[14]) & (stripe_t < frame_t_ns[20]))
@@ -149,7 +149,7 @@ def test_update_poses_retransforms_only_changed_frames(sphere_scan: tuple[Trajec
     before = m.world_points().copy()
     changed = traj.world_from_cam.copy()
     changed[40:43] = se3_exp([0.002, 0, 0, 0, 0.01, 0]) @ changed[40:43]
-    moved = m.update_poses(Trajectory(traj.timestamps_ns, changed))
+    moved = m.stripes_of_frames(m.poses.update_poses(Trajectory(traj.timestamps_ns, changed)))
     st = np.array([s.timestamp_ns for s in stripes])
     expected = np.flatnonzero((st > traj.timestamps_ns[39]) & (st < traj.timestamps_ns[43]))
     np.testing.assert_array_equal(np.sort(moved), expected)
@@ -201,8 +201,8 @@ def test_live_mesh_updates_only_affected_blocks(
     kf_of = np.arange(len(traj)) // 10
     for i, (t, T) in enumerate(zip(traj.timestamps_ns, traj.world_from_cam, strict=True)):
         if i % 10 == 0:
-            m.set_keyframe(int(kf_of[i]), T)
-        m.add_frame(int(t), kf_id=int(kf_of[i]), kf_from_cam=invert_pose(traj.world_from_cam[10 * kf_of[i]]) @ T)
+            m.poses.set_keyframe(int(kf_of[i]), T)
+        m.poses.add_frame(int(t), kf_id=int(kf_of[i]), kf_from_cam=invert_pose(traj.world_from_cam[10 * kf_of[i]]) @ T)
     half = len(stripes) // 2
     m.add_many(stripes[:half])
     first = m.update_live_mesh()
@@ -215,7 +215,7 @@ def test_live_mesh_updates_only_affected_blocks(
     # a correction of keyframe 2 dirties exactly the blocks its stripes left and entered
     gov = m.stripes_governed_by([2])
     old = np.concatenate([m.world_points(s) for s in gov])
-    m.update_keyframes({2: se3_exp([0.003, 0, 0, 0, 0, 0]) @ traj.world_from_cam[20]})
+    m.poses.update_keyframes({2: se3_exp([0.003, 0, 0, 0, 0, 0]) @ traj.world_from_cam[20]})
     new = np.concatenate([m.world_points(s) for s in gov])
     keys = {tuple(k) for k in np.floor(np.vstack([old, new]) / cfg.chunk_m).astype(int).tolist()}
     assert m.dirty_blocks == keys
@@ -356,7 +356,7 @@ def test_bad_input_gives_clear_errors_and_no_mesh_file(tmp_path: Path, capsys: p
     from loopmodel.cli import main
 
     m = StripeMap()
-    m.add_frame(0, np.eye(4))
+    m.poses.add_frame(0, np.eye(4))
     with pytest.raises(InputError, match="no points"):
         m.add(StripeProfile(1, np.zeros((0, 3))))
     bad = np.ones((4, 3))

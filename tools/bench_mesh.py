@@ -50,10 +50,10 @@ def run(quick: bool = False) -> dict:
 
     smap = StripeMap(cfg)
     for k in range(n_kf):
-        smap.set_keyframe(k, drifted[k])
+        smap.poses.set_keyframe(k, drifted[k])
     for i, (t, T) in enumerate(zip(traj.timestamps_ns, gt, strict=True)):
         k = int(kf_ids[i])
-        smap.add_frame(int(t), kf_id=k, kf_from_cam=invert_pose(gt[k * kf_every]) @ T)
+        smap.poses.add_frame(int(t), kf_id=k, kf_from_cam=invert_pose(gt[k * kf_every]) @ T)
     smap.add_many(stripes)
 
     # warm-up: the mesh with drifted (online) poses
@@ -64,10 +64,10 @@ def run(quick: bool = False) -> dict:
     times, retransform, cpu = [], [], []
     mesh = mesh_before
     for _ in range(reps):
-        smap.update_keyframes(drifted)
+        smap.poses.update_keyframes(drifted)
         c0 = time.process_time()
         t0 = time.perf_counter()
-        moved = smap.update_keyframes(truth)
+        moved = smap.stripes_of_frames(smap.poses.update_keyframes(truth))
         t1 = time.perf_counter()
         mesh = smap.mesh()
         t2 = time.perf_counter()

@@ -2,13 +2,14 @@
 
 Pipeline use (poses ``world_from_*`` 4x4 in metres, times in ns)::
 
-    smap = StripeMap(config.mapping)
-    smap.set_keyframe(kf_id, world_from_kf)             # each new keyframe
-    smap.add_frame(t_ns, kf_id=kf_id, kf_from_cam=T)    # each tracked frame, in time order
+    poses = AnchoredTrajectory()                        # frame poses relative to keyframes
+    smap = StripeMap(config.mapping, poses)             # stripes placed with those poses
+    poses.set_keyframe(kf_id, world_from_kf)            # each new keyframe
+    poses.add_frame(t_ns, kf_id=kf_id, kf_from_cam=T)   # each tracked frame, in time order
     smap.add(stripe)                                    # each StripeProfile (left-camera frame)
     live = smap.update_live_mesh()                      # chunked live mesh (dirty blocks only)
-    moved = smap.update_keyframes({kf: world_from_kf})  # after iSAM2 / loop closure
-    smap.update_poses(final_trajectory)                 # or: frame poses by timestamp
+    poses.update_keyframes({kf: world_from_kf})         # after iSAM2 / loop closure: stripes follow
+    poses.update_poses(final_trajectory)                # or: frame poses by timestamp
     mesh = smap.mesh()                                  # whole surface (Poisson or BPA)
     io.stripes_io.save_stripes(results / "stripes.npz", smap.stripes())  # sensor frame
     io.mesh_io.write_mesh(results / "mesh.ply", mesh)   # binary PLY, metres, world frame
@@ -20,6 +21,7 @@ Offline: ``StripeMap.from_trajectory(trajectory, stripes, config)``.
 
 from typing import Any
 
+from loopmodel.mapping.anchored import AnchoredTrajectory
 from loopmodel.mapping.extraction import (
     LightPlane,
     extract_laser_peaks,
@@ -31,6 +33,7 @@ from loopmodel.mapping.stripe_map import StripeMap
 __all__ = [
     "LightPlane",
     "MeshAccuracy",
+    "AnchoredTrajectory",
     "StripeMap",
     "extract_laser_peaks",
     "mesh_accuracy",

@@ -1,13 +1,11 @@
 """Laser-stripe integration.
 
 Profiles kept in the sensor frame, placed in the world with the pose interpolated on SE(3) at each
-stripe's time, re-placed when the backend corrects poses.
+stripe's time, re-placed when frame poses change.
 
-Pose bookkeeping is keyframe-relative: every frame pose is
-``world_from_cam = world_from_kf[kf] @ kf_from_cam``. A stripe taken between frames ``f0`` and
-``f1`` is governed by the keyframes of those two frames; correcting a keyframe re-transforms
-exactly the stripes it governs. A frame given only as ``world_from_cam`` anchors itself (its
-own pseudo-keyframe), so an offline trajectory works the same way.
+The frame poses live in an :class:`~loopmodel.mapping.anchored.AnchoredTrajectory` (keyframe-relative
+bookkeeping); the map watches it. A stripe taken between frames ``f0`` and ``f1`` moves exactly when
+one of those two frames moves (for instance with the keyframe it is anchored to).
 
 Units: metres, nanoseconds. Frames: ``points_in_cam`` in the left-camera frame (x right,
 y down, z forward), world points in the run's world frame.
@@ -20,11 +18,12 @@ from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from loopmodel.config import MappingConfig
-from loopmodel.errors import EstimationError, InputError
-from loopmodel.geometry.se3 import interpolate_poses, invert_pose, is_rotation
+from loopmodel.errors import InputError
+from loopmodel.geometry.se3 import interpolate_poses
+from loopmodel.mapping.anchored import AnchoredTrajectory, Rows
 from loopmodel.types import StripeProfile, Trajectory
 
 if TYPE_CHECKING:
@@ -36,228 +35,47 @@ F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 
-class _Rows:
-    """Growable array of rows (amortised O(1) append)."""
-
-    def __init__(self, shape: tuple[int, ...], dtype: type | np.dtype) -> None:  # type: ignore[type-arg]
-        self._buf = np.zeros((16, *shape), dtype=dtype)
-        self.n = 0
-
-    def append(self, rows: NDArray) -> tuple[int, int]:  # type: ignore[type-arg]
-        k = rows.shape[0]
-        if self.n + k > self._buf.shape[0]:
-            cap = max(2 * self._buf.shape[0], self.n + k)
-            grown = np.zeros((cap, *self._buf.shape[1:]), dtype=self._buf.dtype)
-            grown[: self.n] = self._buf[: self.n]
-            self._buf = grown
-        self._buf[self.n : self.n + k] = rows
-        self.n += k
-        return self.n - k, self.n
-
-    @property
-    def a(self) -> NDArray:  # type: ignore[type-arg]
-        """The filled rows (a view; writes go to the buffer)."""
-        return self._buf[: self.n]
-
-
-def _check_pose(T: ArrayLike, what: str) -> F64:
-    M = np.asarray(T, dtype=float)
-    if M.shape != (4, 4) or not np.all(np.isfinite(M)) or not is_rotation(M[:3, :3], 1e-5):
-        raise InputError(None, f"{what} must be a finite 4x4 rigid transform")
-    return M
-
-
 class StripeMap:
-    """Stripes in the sensor frame plus the poses that place them in the world.
+    """Stripes in the sensor frame, placed in the world by the frame poses of an anchored trajectory.
 
-    Typical live use (pipeline): ``add_frame`` for every tracked frame (relative to its
-    keyframe), ``add`` for every stripe, ``update_keyframes`` after the backend corrects
-    keyframes, ``mesh`` / ``update_live_mesh`` for surfaces. Offline: ``from_trajectory``.
+    Typical live use (pipeline): the run's :class:`AnchoredTrajectory` gets every tracked frame
+    and every keyframe correction; the map, built on it, places each stripe (``add``) once frames
+    bracket its time and re-places it when those frames move; ``mesh`` / ``update_live_mesh`` give
+    surfaces. Offline: ``from_trajectory``.
     """
 
-    def __init__(self, config: MappingConfig | None = None) -> None:
+    def __init__(self, config: MappingConfig | None = None, poses: AnchoredTrajectory | None = None) -> None:
         self.config = config or MappingConfig()
-        self._world_from_kf: dict[int, F64] = {}
-        self._frame_t = _Rows((), np.int64)
-        self._frame_kf = _Rows((), np.int64)
-        self._frame_kf_from_cam = _Rows((4, 4), np.float64)
-        self._next_anchor = -1  # pseudo-keyframe ids of self-anchored frames are negative
+        #: the frame poses the stripes are placed with (the map follows its changes)
+        self.poses = poses if poses is not None else AnchoredTrajectory()
+        self.poses.watch(self)
         # stripes
-        self._s_t = _Rows((), np.int64)
-        self._s_start = _Rows((), np.int64)
-        self._s_count = _Rows((), np.int64)
-        self._s_f0 = _Rows((), np.int64)  # -1 while not placed
-        self._s_f1 = _Rows((), np.int64)
-        self._s_alpha = _Rows((), np.float64)
-        self._s_world_from_cam = _Rows((4, 4), np.float64)
+        self._s_t = Rows((), np.int64)
+        self._s_start = Rows((), np.int64)
+        self._s_count = Rows((), np.int64)
+        self._s_f0 = Rows((), np.int64)  # -1 while not placed
+        self._s_f1 = Rows((), np.int64)
+        self._s_alpha = Rows((), np.float64)
+        self._s_world_from_cam = Rows((4, 4), np.float64)
         # points
-        self._p_cam = _Rows((3,), np.float64)
-        self._p_world = _Rows((3,), np.float64)
-        self._p_stripe = _Rows((), np.int64)
+        self._p_cam = Rows((3,), np.float64)
+        self._p_world = Rows((3,), np.float64)
+        self._p_stripe = Rows((), np.int64)
         self._pending: list[int] = []
         # live mesh state
         self._dirty: set[tuple[int, int, int]] = set()
         self._blocks: dict[tuple[int, int, int], o3d.geometry.TriangleMesh] = {}
         self._live = False  # dirty-block tracking starts with the first live mesh
 
-    # ------------------------------------------------------------------ poses
-    @property
-    def frame_count(self) -> int:
-        return self._frame_t.n
-
-    @property
-    def frame_times_ns(self) -> I64:
-        return self._frame_t.a.copy()
-
-    def frame_keyframes(self) -> I64:
-        """Keyframe id of every frame (negative ids: self-anchored frames)."""
-        return self._frame_kf.a.copy()
-
-    def set_keyframe(self, kf_id: int, world_from_kf: ArrayLike) -> None:
-        """Declare keyframe ``kf_id`` (>= 0) with its pose.
-
-        Setting a known keyframe again corrects it like :meth:`update_keyframes` (its stripes are
-        re-transformed).
-        """
-        if kf_id < 0:
-            raise InputError(None, f"keyframe id must be >= 0, got {kf_id}")
-        if int(kf_id) in self._world_from_kf:
-            self.update_keyframes({int(kf_id): world_from_kf})
-            return
-        self._world_from_kf[int(kf_id)] = _check_pose(world_from_kf, f"world_from_kf[{kf_id}]")
-
-    def add_frame(
-        self,
-        timestamp_ns: int,
-        world_from_cam: ArrayLike | None = None,
-        *,
-        kf_id: int | None = None,
-        kf_from_cam: ArrayLike | None = None,
-    ) -> int:
-        """Add a tracked frame (times strictly increasing).
-
-        Give either ``world_from_cam`` (the frame anchors itself) or ``kf_id`` and ``kf_from_cam``
-        (the keyframe must be set). Places every waiting stripe the new frame brackets; returns the
-        frame index.
-        """
-        t = int(timestamp_ns)
-        if self._frame_t.n and t <= int(self._frame_t.a[-1]):
-            raise EstimationError(f"frames must arrive in time order: {t} ns after {int(self._frame_t.a[-1])} ns")
-        if kf_id is None:
-            if world_from_cam is None:
-                raise InputError(None, "add_frame needs world_from_cam or kf_id and kf_from_cam")
-            anchor = self._next_anchor
-            self._next_anchor -= 1
-            self._world_from_kf[anchor] = _check_pose(world_from_cam, "world_from_cam")
-            rel = np.eye(4)
-        else:
-            if int(kf_id) not in self._world_from_kf:
-                raise EstimationError(f"keyframe {kf_id} was not declared with set_keyframe")
-            if kf_from_cam is None:
-                raise InputError(None, "add_frame with kf_id needs kf_from_cam")
-            anchor = int(kf_id)
-            rel = _check_pose(kf_from_cam, "kf_from_cam")
-        self._frame_t.append(np.array([t], dtype=np.int64))
-        self._frame_kf.append(np.array([anchor], dtype=np.int64))
-        self._frame_kf_from_cam.append(rel[None])
+    # ------------------------------------------------------------- pose events
+    def frames_added(self) -> None:
+        """Place the waiting stripes that the new frames bracket."""
         if self._pending:
             self._place_pending()
-        return self._frame_t.n - 1
 
-    def frame_poses(self) -> F64:
-        """``world_from_cam`` of every frame (N x 4 x 4)."""
-        kf = self._frame_kf.a
-        out = np.empty((kf.shape[0], 4, 4))
-        if kf.shape[0] == 0:
-            return out
-        for k in np.unique(kf):
-            sel = kf == k
-            out[sel] = np.einsum("ij,njk->nik", self._world_from_kf[int(k)], self._frame_kf_from_cam.a[sel])
-        return out
-
-    def trajectory(self) -> Trajectory:
-        """Every frame's ``world_from_cam`` recomposed with the current keyframe poses."""
-        return Trajectory(self._frame_t.a.copy(), self.frame_poses())
-
-    def bridged_trajectory(
-        self, keyframe_times_ns: Mapping[int, int], tracked_links: Mapping[int, tuple[int, F64]]
-    ) -> Trajectory:
-        """Like :meth:`trajectory`, with each keyframe interval's tracking drift spread over its frames.
-
-        ``tracked_links[B] = (A, A_from_B_tracked)``: keyframe B was made from a frame tracked
-        against keyframe A at the tracker's pose ``A_from_B_tracked``; the estimated ``A_from_B``
-        (current keyframe poses) disagrees with it by the interval's drift. The least-squares chain
-        with equal noise per step and both ends held at the estimated keyframes gives a frame at
-        time t the fraction ``(t - t_A) / (t_B - t_A)`` of the end correction (on SE(3),
-        right-multiplied in the frame's coordinates). Frames of a keyframe without a linked
-        successor are recomposed as in :meth:`trajectory`.
-        """
-        from loopmodel.geometry.se3 import se3_exp, se3_log
-
-        base = self.trajectory()
-        known = self._world_from_kf.keys() & keyframe_times_ns.keys()
-        successor = {
-            int(a): (int(b), np.asarray(rel, dtype=float).reshape(4, 4))
-            for b, (a, rel) in tracked_links.items()
-            if a in known and b in known
-        }
-        out = base.world_from_cam.copy()
-        correction: dict[int, F64] = {}
-        for i, (t, k) in enumerate(zip(self._frame_t.a, self._frame_kf.a, strict=True)):
-            nxt = successor.get(int(k))
-            if nxt is None:
-                continue
-            b, a_from_b_tracked = nxt
-            t_a, t_b = keyframe_times_ns[int(k)], keyframe_times_ns[b]
-            if not t_a < t < t_b:
-                continue
-            if k not in correction:
-                a_from_b = invert_pose(self._world_from_kf[int(k)]) @ self._world_from_kf[b]
-                correction[int(k)] = se3_log(invert_pose(a_from_b_tracked) @ a_from_b)
-            out[i] = out[i] @ se3_exp((t - t_a) / (t_b - t_a) * correction[int(k)])
-        return Trajectory(base.timestamps_ns, out)
-
-    @property
-    def keyframe_poses(self) -> dict[int, F64]:
-        """Current ``world_from_kf`` of every declared keyframe (copies; ids >= 0)."""
-        return {k: T.copy() for k, T in self._world_from_kf.items() if k >= 0}
-
-    def update_keyframes(self, world_from_kf: Mapping[int, ArrayLike]) -> I64:
-        """Correct keyframe poses.
-
-        Re-transforms only the stripes these keyframes govern. Returns the indices of the
-        re-transformed stripes.
-        """
-        ids = []
-        for k, T in world_from_kf.items():
-            if int(k) not in self._world_from_kf:
-                raise EstimationError(f"keyframe {k} was not declared with set_keyframe")
-            self._world_from_kf[int(k)] = _check_pose(T, f"world_from_kf[{k}]")
-            ids.append(int(k))
-        return self._retransform(self.stripes_governed_by(ids))
-
-    def update_poses(self, trajectory: Trajectory, atol_m: float = 0.0) -> I64:
-        """Replace frame poses by those of ``trajectory`` and re-transform the stripes of the changed frames.
-
-        Frames are matched by exact timestamp; unmatched frames keep theirs.
-        """
-        trajectory.check("update_poses trajectory")
-        idx = np.searchsorted(trajectory.timestamps_ns, self._frame_t.a)
-        idx = np.clip(idx, 0, max(len(trajectory) - 1, 0))
-        hit = trajectory.timestamps_ns[idx] == self._frame_t.a if len(trajectory) else idx < 0
-        frames = np.flatnonzero(hit)
-        if frames.size == 0:
-            return np.zeros(0, dtype=np.int64)
-        old = self.frame_poses()[frames]
-        new = trajectory.world_from_cam[idx[frames]]
-        changed = np.abs(new - old).max(axis=(1, 2)) > atol_m
-        frames = frames[changed]
-        kfs = self._frame_kf.a[frames]
-        for f, k, T in zip(frames, kfs, new[changed], strict=True):
-            self._frame_kf_from_cam.a[f] = invert_pose(self._world_from_kf[int(k)]) @ T
-        if frames.size == 0:
-            return np.zeros(0, dtype=np.int64)
-        return self._retransform(self._stripes_of_frames(frames))
+    def frames_moved(self, frames: I64) -> None:
+        """Re-place the stripes next to these frames."""
+        self._retransform(self.stripes_of_frames(frames))
 
     # ---------------------------------------------------------------- stripes
     @property
@@ -320,16 +138,10 @@ class StripeMap:
     def stripes_governed_by(self, kf_ids: Iterable[int]) -> I64:
         """Indices of placed stripes whose neighbouring frames belong to these keyframes."""
         ids = np.fromiter((int(k) for k in kf_ids), dtype=np.int64)
-        placed = self.placed_mask
-        f0 = np.where(placed, self._s_f0.a, 0)
-        f1 = np.where(placed, self._s_f1.a, 0)
-        if self._frame_kf.n == 0:
-            return np.zeros(0, dtype=np.int64)
-        kf = self._frame_kf.a
-        hit = placed & (np.isin(kf[f0], ids) | np.isin(kf[f1], ids))
-        return np.flatnonzero(hit)
+        return self.stripes_of_frames(np.flatnonzero(np.isin(self.poses.frame_keyframes(), ids)))
 
-    def _stripes_of_frames(self, frames: NDArray[np.int64]) -> I64:
+    def stripes_of_frames(self, frames: I64) -> I64:
+        """Indices of placed stripes next to (bracketed by) any of these frames."""
         placed = self.placed_mask
         hit = placed & (np.isin(self._s_f0.a, frames) | np.isin(self._s_f1.a, frames))
         return np.flatnonzero(hit)
@@ -354,12 +166,12 @@ class StripeMap:
         return self.placed_mask[self._p_stripe.a]
 
     def _place_pending(self) -> None:
-        nf = self._frame_t.n
+        nf = self.poses.frame_count
         if not self._pending or nf == 0:
             return
         pend = np.asarray(self._pending, dtype=np.int64)
         ts = self._s_t.a[pend]
-        ft = self._frame_t.a
+        ft = self.poses.frame_times_ns
         i1 = np.searchsorted(ft, ts, side="left")  # first frame with t >= ts
         exact = (i1 < nf) & (ft[np.minimum(i1, nf - 1)] == ts)
         inside = (i1 > 0) & (i1 < nf)
@@ -391,12 +203,7 @@ class StripeMap:
             return stripes
         f0, f1 = self._s_f0.a[stripes], self._s_f1.a[stripes]
         frames = np.unique(np.concatenate([f0, f1]))
-        poses = np.empty((frames.shape[0], 4, 4))  # world_from_cam of these frames
-        kf = self._frame_kf.a[frames]
-        rel = self._frame_kf_from_cam.a[frames]
-        for k in np.unique(kf):
-            sel = kf == k
-            poses[sel] = np.einsum("ij,njk->nik", self._world_from_kf[int(k)], rel[sel])
+        poses = self.poses.poses_of(frames)  # world_from_cam of these frames
         i0, i1 = np.searchsorted(frames, f0), np.searchsorted(frames, f1)
         T = interpolate_poses(poses[i0], poses[i1], self._s_alpha.a[stripes])
         live = self._live
@@ -431,14 +238,7 @@ class StripeMap:
         Every trajectory pose anchors its own frame; profiles without points (the laser hit nothing)
         are skipped.
         """
-        trajectory.check("trajectory")
-        m = cls(config)
-        for t, T in zip(trajectory.timestamps_ns, trajectory.world_from_cam, strict=True):
-            m._frame_t.append(np.array([int(t)], dtype=np.int64))
-            m._frame_kf.append(np.array([m._next_anchor], dtype=np.int64))
-            m._frame_kf_from_cam.append(np.eye(4)[None])
-            m._world_from_kf[m._next_anchor] = T
-            m._next_anchor -= 1
+        m = cls(config, AnchoredTrajectory.from_trajectory(trajectory))
         m.add_many(s for s in stripes if np.asarray(s.points_in_cam).size)
         return m
 
