@@ -106,3 +106,52 @@ def test_nearest_rigid_repairs_a_drifted_rotation(rng: np.random.Generator) -> N
     np.testing.assert_allclose(fixed[:3, 3], T[:3, 3])
     assert np.degrees(np.linalg.norm(so3_log(fixed[:3, :3].T @ T[:3, :3]))) < 0.2
     np.testing.assert_allclose(nearest_rigid(T), T, atol=1e-12)
+
+
+def test_homogeneous_points_match_euclidean_and_infinity_has_the_right_jacobian(rng: np.random.Generator) -> None:
+    rig = CameraRig.stereo(
+        CAM,
+        CentralCamera(650.0, 660.0, 590.0, 190.0, xi=0.3),
+        make_pose(np.eye(3), [-0.5, 0.01, 0.02]),
+    )
+    P = _scene(rng, 20)
+    uv = rng.normal(300, 50, (20, 2))
+    ci = rng.integers(0, 2, 20)
+    T = se3_exp([0.1, -0.2, 0.3, 0.05, -0.02, 0.03])
+    depth = np.linalg.norm(P, axis=1)
+    euclid = PointTerm(rig, P, uv, ci)
+    homog = PointTerm(rig, P / depth[:, None], uv, ci, inverse_depth_per_m=1.0 / depth)
+    r_e, J_e = euclid.residuals_and_jacobian(T)
+    r_h, J_h = homog.residuals_and_jacobian(T)
+    np.testing.assert_allclose(r_h, r_e, atol=1e-9)
+    np.testing.assert_allclose(J_h, J_e, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(homog.depths(T) > 0, euclid.depths(T) > 0)
+    # points at infinity: the residual ignores the translation, its Jacobian has no v block
+    inf = PointTerm(rig, P / depth[:, None], uv, ci, inverse_depth_per_m=np.zeros(20))
+    r0, J = inf.residuals_and_jacobian(T)
+    np.testing.assert_array_equal(J[:, :, :3], 0.0)
+    eps = 1e-6
+    for k in range(3, 6):
+        d = np.zeros(6)
+        d[k] = eps
+        num = (inf.residuals(se3_exp(d) @ T) - inf.residuals(se3_exp(-d) @ T)) / (2 * eps)
+        np.testing.assert_allclose(J[:, :, k], num, rtol=1e-5, atol=1e-5)
+
+
+def test_far_bearings_fix_the_rotation_with_few_near_points(rng: np.random.Generator) -> None:
+    """A few noisy near points plus bearings at infinity: the rotation comes from the bearings."""
+    rig = CameraRig.single(CAM)
+    T_true = se3_exp([0.05, -0.02, 1.2, 0.004, -0.01, 0.003])  # cam_from_ref
+    near = _scene(rng, 12)
+    uv_near = CAM.project(near @ T_true[:3, :3].T + T_true[:3, 3]) + rng.normal(0, 1.0, (12, 2))
+    rays = np.column_stack([rng.uniform(-0.8, 0.8, 200), rng.uniform(-0.25, 0.25, 200), np.ones(200)])
+    uv_far = CAM.project(rays @ T_true[:3, :3].T) + rng.normal(0, 0.3, (200, 2))
+    opts = PoseOptions(loss="tukey", max_iterations=20)
+    near_only = refine_pose(PointTerm(rig, near, uv_near), np.eye(4), opts)
+    far = PointTerm(rig, rays, uv_far, inverse_depth_per_m=np.zeros(200))
+    both = refine_pose([PointTerm(rig, near, uv_near), far], np.eye(4), opts)
+    _, rot_near = _pose_errors(near_only.rig_from_ref, T_true)
+    _, rot_both = _pose_errors(both.rig_from_ref, T_true)
+    # measured over seeds 0-4: 0.08-0.16 deg from the near points alone, 0.0006-0.006 deg with the bearings
+    assert rot_both < 0.01
+    assert rot_both < rot_near / 3

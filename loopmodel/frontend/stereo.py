@@ -204,7 +204,11 @@ def _search_row(
 
 
 def match_stereo(
-    left: NDArray[np.uint8], right: NDArray[np.uint8], uv_left: F64, cfg: FrontendConfig
+    left: NDArray[np.uint8],
+    right: NDArray[np.uint8],
+    uv_left: F64,
+    cfg: FrontendConfig,
+    min_disparity_px: float | None = None,
 ) -> StereoMatches:
     """Find the left corners in the rectified right image along their row (+-1 row).
 
@@ -213,7 +217,8 @@ def match_stereo(
     its ZNCC exceeds ``min_zncc``, its vertical offset is within ``max_row_error_px`` (the
     reprojection check of a rectified pair), its disparity is within range, and searching
     the right patch back along the left row returns to the corner within
-    ``lr_tolerance_px``.
+    ``lr_tolerance_px``. ``min_disparity_px`` replaces ``cfg.min_disparity_px`` (0: keep far
+    points down to zero disparity).
     """
     h, w = left.shape[:2]
     half = cfg.patch_px // 2
@@ -240,7 +245,8 @@ def match_stereo(
     ur = col + du
     disp = u - ur
     ok = (score >= cfg.min_zncc) & (np.abs(dv) <= cfg.max_row_error_px)
-    ok &= (disp >= cfg.min_disparity_px) & (disp <= cfg.max_disparity_px)
+    d_min = cfg.min_disparity_px if min_disparity_px is None else min_disparity_px
+    ok &= (disp >= d_min) & (disp <= cfg.max_disparity_px)
     # left-right consistency: the right patch (at its integer match) searched in the left row
     vr_int = v + np.asarray((-1, 0, 1))[ri]
     ok &= (vr_int >= half + 1) & (vr_int < h - half - 1)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -46,6 +46,11 @@ class _ActiveSet:
     points: F64  # (M, 3) rectified keyframe frame
     stereo_px: F64  # (M, 3)
     median_depth_m: float
+    # far points (frontend.far_points = "bearing"): rays (x/z, y/z, 1) in the rectified keyframe
+    # frame, inverse depths (1/m, 0 at zero disparity), rectified left pixels
+    far_rays: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    far_inv_depth: F64 = field(default_factory=lambda: np.zeros(0))
+    far_px: F64 = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 def _rotation_deg(T: F64) -> float:
@@ -91,6 +96,8 @@ class FrontEnd:
         # tracking state (rectified frames)
         self._track_idx = np.zeros(0, dtype=np.int64)
         self._track_uv = np.zeros((0, 2))
+        self._far_idx = np.zeros(0, dtype=np.int64)  # tracked far bearings of the active set
+        self._far_uv = np.zeros((0, 2))
         self._outlier_uv = np.zeros((0, 2))  # tracked in the last frame, rejected by the pose
         self._left_rect: NDArray[np.uint8] | None = None  # the last rectified left image
         self._prev_pyr: Pyramid | None = None
@@ -289,10 +296,22 @@ class FrontEnd:
         front = p_pred[:, 2] > 1e-3
         guess = self._track_uv.copy()
         guess[front] = self.left_camera.project(p_pred[front])
+        n_near = idx.size
+        fidx = self._far_idx
+        q_far = np.zeros((0, 3))
+        if fidx.size:
+            # far bearings: homogeneous points R ray + rho t at the predicted pose
+            q_far = active.far_rays[fidx] @ pred_from_kf[:3, :3].T
+            q_far += active.far_inv_depth[fidx, None] * pred_from_kf[:3, 3]
+            f_front = q_far[:, 2] > 1e-6
+            f_guess = self._far_uv.copy()
+            f_guess[f_front] = self.left_camera.project(q_far[f_front])
+            guess = np.vstack([guess, f_guess])
+            front = np.concatenate([front, f_front])
         uv, ok, _fb = track_klt(
             self._prev_pyr,
             cur_pyr,
-            self._track_uv,
+            np.vstack([self._track_uv, self._far_uv]) if fidx.size else self._track_uv,
             guess,
             cfg.klt_window_px,
             cfg.klt_levels,
@@ -301,6 +320,8 @@ class FrontEnd:
             self.calibration.image_size,
         )
         ok &= front
+        uv_far, ok_far = uv[n_near:], ok[n_near:]
+        uv, ok = uv[:n_near], ok[:n_near]
         tracked = int(ok.sum())
         if tracked < cfg.min_inliers:
             return "LOST", f"only {tracked} KLT tracks", tracked, 0, kf_from_pred, False
@@ -319,6 +340,10 @@ class FrontEnd:
                 prior = np.concatenate([np.ones(len(p_all)) if prior is None else prior, w_m])
                 p_all, uv_all = np.vstack([p_all, p_m]), np.vstack([uv_all, m_uv[mono_sel]])
         term = PointTerm(self.rig, p_all, uv_all, prior_weight=prior)
+        far_sel = np.flatnonzero(ok_far)
+        extra: list[PointTerm] = []
+        if far_sel.size >= 3:
+            extra.append(self._far_term(fidx[far_sel], uv_far[far_sel], q_far[far_sel], pred_from_kf))
         try:
             res = estimate_pose(
                 term,
@@ -326,6 +351,7 @@ class FrontEnd:
                 self.pose_options,
                 cfg.ransac_threshold_px,
                 cfg.prediction_gate_px,
+                extra_terms=extra,
             )
         except EstimationError as exc:
             return "LOST", f"pose failed ({exc})", tracked, 0, kf_from_pred, False
@@ -368,7 +394,35 @@ class FrontEnd:
             self._mono.commit(res.rig_from_ref, kf_from_ref, dt_s, m_keep)
             self._good_stamp = self._last_stamp or 0
         self._track_uv = uv[keep]
+        if extra:
+            f_keep = far_sel[res.inliers[1]]
+            self._far_idx, self._far_uv = fidx[f_keep], uv_far[f_keep]
+        else:
+            self._far_idx, self._far_uv = fidx[far_sel], uv_far[far_sel]
         return "OK", "", tracked, n_inl, kf_from_cur, res.used_ransac
+
+    def _far_term(self, sel: NDArray[np.int64], uv: F64, q_pred: F64, cur_from_kf: F64) -> PointTerm:
+        """Pose term of the tracked far bearings ``sel`` of the active set, seen at ``uv`` (pixels).
+
+        Homogeneous points (ray, inverse depth); with ``depth_weighting`` each is weighted by pixel
+        variance over pixel-plus-inverse-depth variance at the predicted pose (``q_pred``: its
+        homogeneous point there), the inverse depth's standard deviation being the disparity
+        noise over focal length times baseline.
+        """
+        cfg = self.config
+        assert self._active is not None
+        active = self._active
+        prior = None
+        if cfg.depth_weighting:
+            fb = self.calibration.fx_px * self.calibration.baseline_m
+            sigma_rho = cfg.disparity_sigma_px / fb
+            q = np.where(q_pred[:, 2:3] > 1e-6, q_pred, active.far_rays[sel])
+            g = np.einsum("nij,j->ni", self.left_camera.project_jacobian(q), cur_from_kf[:3, 3])
+            var_px = cfg.pose_min_scale_px**2
+            prior = var_px / (var_px + np.einsum("ni,ni->n", g, g) * sigma_rho**2)
+        return PointTerm(
+            self.rig, active.far_rays[sel], uv, prior_weight=prior, inverse_depth_per_m=active.far_inv_depth[sel]
+        )
 
     def _mono_frames(self) -> dict[int, F64]:
         """Reference keyframes of the mono-depth tracks -> the active keyframe (rectified)."""
@@ -393,6 +447,20 @@ class FrontEnd:
         g = np.einsum("nij,nj->ni", J, ray @ cur_from_kf[:3, :3].T)
         var_px = cfg.pose_min_scale_px**2
         return var_px / (var_px + np.einsum("ni,ni->n", g, g) * sigma_z**2)
+
+    def _far_mask(self, disparity_px: F64) -> NDArray[np.bool_]:
+        """Stereo matches that enter the pose as bearings (``frontend.far_points = "bearing"``).
+
+        Those the disparity gate drops (below ``min_disparity_px`` or beyond ``max_depth_m``) and,
+        with ``far_depth_baselines`` > 0, those beyond that many baselines (disparity below
+        ``fx / far_depth_baselines``).
+        """
+        cfg = self.config
+        fb = self.calibration.fx_px * self.calibration.baseline_m
+        far = (disparity_px < cfg.min_disparity_px) | (disparity_px * cfg.max_depth_m < fb)
+        if cfg.far_depth_baselines > 0:
+            far |= disparity_px * cfg.far_depth_baselines < self.calibration.fx_px
+        return np.asarray(far)
 
     def _need_keyframe(self, kf_from_cur: F64, inliers: int) -> bool:
         cfg = self.config
@@ -505,11 +573,14 @@ class FrontEnd:
             cfg.border_px,
             cfg.detect_half_resolution,
         )
-        m = match_stereo(left, right, corners, cfg)
-        pts = triangulate_rectified(
-            m.uv_left, m.disparity, self.calibration.K_left, self.calibration.baseline_m
-        )
-        keep = pts[:, 2] < cfg.max_depth_m
+        bearing = cfg.far_points == "bearing"
+        m = match_stereo(left, right, corners, cfg, 0.0 if bearing else None)
+        with np.errstate(divide="ignore", invalid="ignore"):  # zero disparity: at infinity
+            pts = triangulate_rectified(
+                m.uv_left, m.disparity, self.calibration.K_left, self.calibration.baseline_m
+            )
+        far = self._far_mask(m.disparity) if bearing else np.zeros(len(m.disparity), bool)
+        keep = (pts[:, 2] < cfg.max_depth_m) & ~far
         if cfg.max_keyframe_points and int(keep.sum()) > cfg.max_keyframe_points:
             keep &= spread_subset(
                 m.uv_left, m.score, keep, cfg.max_keyframe_points, (cfg.grid_cols, cfg.grid_rows),
@@ -520,6 +591,20 @@ class FrontEnd:
             return None
         pts = pts[keep]
         stereo_px = np.column_stack([m.uv_left[keep, 0], m.u_right[keep], m.uv_left[keep, 1]])
+        if cfg.far_max_points and int(far.sum()) > cfg.far_max_points:
+            far &= spread_subset(
+                m.uv_left, m.score, far, cfg.far_max_points, (cfg.grid_cols, cfg.grid_rows),
+                self.calibration.image_size,
+            )
+        elif not cfg.far_max_points:
+            far[:] = False
+        K = self.calibration.K_left
+        far_px = m.uv_left[far]
+        far_rays = np.column_stack(
+            [(far_px[:, 0] - K[0, 2]) / K[0, 0], (far_px[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(far_px))]
+        )
+        fb = self.calibration.fx_px * self.calibration.baseline_m
+        far_inv_depth = np.maximum(m.disparity[far], 0.0) / fb
 
         prev = self._active
         mono_obs = np.zeros((0, 3))
@@ -620,9 +705,11 @@ class FrontEnd:
             self._older = [prev, *self._older][: cfg.remeasure_older_keyframes]
         else:
             self._older = []
-        self._active = _ActiveSet(kf, world_from_rect, pts, stereo_px, depth)
+        self._active = _ActiveSet(kf, world_from_rect, pts, stereo_px, depth, far_rays, far_inv_depth, far_px)
         self._track_idx = np.arange(pts.shape[0], dtype=np.int64)
         self._track_uv = stereo_px[:, [0, 2]].copy()
+        self._far_idx = np.arange(far_px.shape[0], dtype=np.int64)
+        self._far_uv = far_px.copy()
         self._prev_pyr = (
             cur_pyr
             if cur_pyr is not None

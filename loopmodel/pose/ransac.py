@@ -31,6 +31,8 @@ def ransac_pose(
     n = len(term)
     if n < 4:
         return None
+    if term.inverse_depth_per_m is not None:
+        raise ValueError("RANSAC needs Euclidean points (a term without inverse_depth_per_m)")
     rig = term.rig
     if rig.is_single_pinhole:
         cam = rig.cameras[0]

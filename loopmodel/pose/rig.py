@@ -101,6 +101,11 @@ class PointTerm:
     ``cam_index`` (N,) of the rig. Residual = projection - measurement (pixels). ``prior_weight``
     (optional, N) multiplies the robust weights (e.g. the ratio of pixel variance to
     pixel-plus-depth variance).
+
+    With ``inverse_depth_per_m`` (N,) the points are homogeneous: ``p_in_ref`` holds bearing rays
+    and the point is ``ray / inverse_depth``; an inverse depth of 0 is a point at infinity (a
+    bearing-only observation that constrains the rotation alone). Residuals and Jacobians use
+    ``R ray + inverse_depth t``, which projects like the point for a positive inverse depth.
     """
 
     rig: CameraRig
@@ -109,6 +114,7 @@ class PointTerm:
     cam_index: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     prior_weight: F64 | None = None  # (N,) in (0, 1]: e.g. down-weights points of uncertain depth
     dim: int = 2
+    inverse_depth_per_m: F64 | None = None  # (N,) >= 0: p_in_ref are rays (homogeneous points)
 
     def __post_init__(self) -> None:
         self.p_in_ref = np.asarray(self.p_in_ref, dtype=float).reshape(-1, 3)
@@ -120,6 +126,10 @@ class PointTerm:
         self.cam_index = np.zeros(n, dtype=np.int64) if ci.size == 0 else ci
         if self.cam_index.shape[0] != n:
             raise ValueError("cam_index must have one entry per point")
+        if self.inverse_depth_per_m is not None:
+            self.inverse_depth_per_m = np.asarray(self.inverse_depth_per_m, dtype=float).ravel()
+            if self.inverse_depth_per_m.shape[0] != n:
+                raise ValueError("inverse_depth_per_m must have one entry per point")
         self._groups = [np.flatnonzero(self.cam_index == j) for j in range(len(self.rig))]
         self._single = len(self._groups[0]) == n
 
@@ -129,15 +139,30 @@ class PointTerm:
     def subset(self, mask: NDArray[np.bool_] | NDArray[np.int64]) -> PointTerm:
         """The term restricted to some of its correspondences."""
         pw = None if self.prior_weight is None else self.prior_weight[mask]
-        return PointTerm(self.rig, self.p_in_ref[mask], self.uv_px[mask], self.cam_index[mask], pw)
+        rho = None if self.inverse_depth_per_m is None else self.inverse_depth_per_m[mask]
+        return PointTerm(
+            self.rig, self.p_in_ref[mask], self.uv_px[mask], self.cam_index[mask], pw, inverse_depth_per_m=rho
+        )
+
+    def _rho(self, idx: NDArray[np.int64] | None) -> F64 | None:
+        """(k, 1) inverse depths of the selected points (None: Euclidean points)."""
+        if self.inverse_depth_per_m is None:
+            return None
+        rho = self.inverse_depth_per_m if idx is None else self.inverse_depth_per_m[idx]
+        return rho[:, None]
 
     def _cam_points(
         self, rig_from_ref: F64, j: int, idx: NDArray[np.int64] | None
     ) -> tuple[F64, F64]:
+        """Points in the rig and in camera j (homogeneous points: scaled by their inverse depth)."""
         P = self.p_in_ref if idx is None else self.p_in_ref[idx]
-        p_rig = P @ rig_from_ref[:3, :3].T + rig_from_ref[:3, 3]
+        rho = self._rho(idx)
         T = self.rig.cam_from_rig[j]
-        return p_rig, p_rig @ T[:3, :3].T + T[:3, 3]
+        if rho is None:
+            p_rig = P @ rig_from_ref[:3, :3].T + rig_from_ref[:3, 3]
+            return p_rig, p_rig @ T[:3, :3].T + T[:3, 3]
+        q_rig = P @ rig_from_ref[:3, :3].T + rho * rig_from_ref[:3, 3]
+        return q_rig, q_rig @ T[:3, :3].T + rho * T[:3, 3]
 
     def residuals(self, rig_from_ref: F64) -> F64:
         n = len(self)
@@ -167,7 +192,10 @@ class PointTerm:
             Jp = cam.project_jacobian(p_cam)  # (k, 2, 3)
             A = Jp @ self.rig.cam_from_rig[j][:3, :3]  # d uv / d p_rig
             # d p_rig / d(v, w) = [I, -[p_rig]x];  -A [p]x rows = p x a_row
-            Jj = np.concatenate([A, point_cross_rows(p_rig, A)], axis=2)
+            # (homogeneous points: d q_rig / d(v, w) = [rho I, -[q_rig]x])
+            rho = self._rho(sel)
+            Av = A if rho is None else A * rho[:, :, None]
+            Jj = np.concatenate([Av, point_cross_rows(p_rig, A)], axis=2)
             uv = cam.project(p_cam)
             if self._single:
                 r = uv - self.uv_px
