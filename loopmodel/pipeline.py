@@ -255,6 +255,8 @@ class _Run:
         kf = out.keyframe
         self.anchored.set_keyframe(kf.id, kf.world_from_kf)
         self._correct(out.corrections)
+        if out.resume is not None:  # seed 004 section 5: track the old feature set on
+            self.frontend.resume_features(out.resume)
         tb = time.perf_counter()
         self.backend.add_keyframe(kf)
         self._last_ids = self._add_constraints(out.constraints)

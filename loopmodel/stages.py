@@ -52,6 +52,32 @@ class LoopConstraint:
 
 
 @dataclass
+class ResumeFeatures:
+    """An old keyframe's features found again in the current keyframe, for the front end to track on.
+
+    Seed 004, section 5: after a relocalization or a verified revisit the tracker resumes the
+    original feature set. ``keyframe``: the current keyframe, whose rectified left image the
+    pixels ``uv_px`` (K, 2) refer to; ``match_keyframe``: the old keyframe that owns the
+    landmarks ``landmark_ids`` (K,); ``points_in_match`` (K, 3) metres in the old keyframe's
+    rectified left camera frame; ``match_uv_px`` (K, 2) their pixels in the old keyframe's
+    rectified left image ``match_image`` (the templates); ``kf_from_match`` (4x4, metres) maps
+    the old keyframe's rectified frame into the current keyframe's (the loop's pose).
+    """
+
+    keyframe: int
+    match_keyframe: int
+    landmark_ids: NDArray[np.int64]
+    uv_px: F64
+    points_in_match: F64
+    match_uv_px: F64
+    match_image: NDArray[np.uint8]
+    kf_from_match: F64
+
+    def __len__(self) -> int:
+        return int(np.asarray(self.landmark_ids).size)
+
+
+@dataclass
 class LoopOutcome:
     """What one keyframe caused in loop closing.
 
@@ -59,12 +85,15 @@ class LoopOutcome:
     relocalized pose with the loop's observations of old landmarks appended to
     ``mono_obs``); ``constraints`` for the back end; ``corrections``: keyframe id ->
     corrected ``world_from_kf`` for the tracker and the map (relocalization, a finished
-    global BA); ``events``: the records of the closures and relocalizations it produced."""
+    global BA); ``events``: the records of the closures and relocalizations it produced;
+    ``resume``: the old features found again in this keyframe, for the front end's
+    :meth:`~loopmodel.frontend.FrontEnd.resume_features` (None without a closure)."""
 
     keyframe: Keyframe
     constraints: list[LoopConstraint] = field(default_factory=list)
     corrections: dict[int, F64] = field(default_factory=dict)
     events: list[dict[str, Any]] = field(default_factory=list)
+    resume: ResumeFeatures | None = None
 
 
 class LoopStage(Protocol):

@@ -26,8 +26,11 @@ lens): p95 of the distance (px) of the extracted peaks within 3 px of it;
 iSAM2 without it, so the key is null and ``givens_injected`` 0. ``old_features_retracked``:
 the most old landmarks a closure's KLT stage tracked again into the current keyframe (the
 loop's ``loop_observations``, which join the back end); per loop in
-``old_features_retracked_per_loop``. The front end does not go on tracking the old set after
-the closure (seed 004 section 5 does).
+``old_features_retracked_per_loop``. The front end then goes on tracking that old set (seed 004
+section 5, :meth:`loopmodel.frontend.FrontEnd.resume_features`): ``old_features_tracked_on`` is
+the most old features a keyframe after a closure observed again (the loop records'
+``old_features_tracked_on``, one count per later keyframe), per loop in
+``old_features_tracked_on_per_loop``.
 
 Sequences are generated with the presets when missing (slow: minutes) into
 ``datasets/sample`` (the orbit is ``make demo``'s ``scan.mcap``) and ``~/.cache/loopmodel``
@@ -298,6 +301,9 @@ def _sequence_keys(path: Path, config: Config, stride: int) -> dict[str, Any]:
         # old landmarks the closure's KLT stage found again in the current keyframe (seed 004: 55)
         "old_features_retracked": int(max((e.get("loop_observations", 0) for e in loops), default=0)),
         "old_features_retracked_per_loop": [int(e.get("loop_observations", 0)) for e in loops],
+        # ... and those the front end tracked on into the next keyframes (seed 004 section 5)
+        "old_features_tracked_on": int(max((max(e.get("old_features_tracked_on") or [0]) for e in loops), default=0)),
+        "old_features_tracked_on_per_loop": [list(e.get("old_features_tracked_on") or []) for e in loops],
     }
     res.update(_mesh_errors(out, path.with_suffix(".scene.ply"), config))
     res.update(_stripe_extraction_px(path, config))

@@ -19,6 +19,7 @@ from loopmodel.errors import EstimationError, InputError
 from loopmodel.frontend.hybrid_ba import hybrid_keyframe_ba
 from loopmodel.frontend.keyframe import FrameResult, Keyframe, TrackedFeatures
 from loopmodel.frontend.mono_depth import MonoDepthTracks, kf_from_ref_map
+from loopmodel.frontend.resume import ResumedSet
 from loopmodel.frontend.stereo import (
     detect_corners,
     match_stereo,
@@ -30,6 +31,7 @@ from loopmodel.imaging.klt import Pyramid, build_pyramid, track_klt
 from loopmodel.imaging.rectify import Rectifier
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, estimate_pose
 from loopmodel.pose.robust import robust_scale
+from loopmodel.stages import ResumeFeatures
 from loopmodel.types import StereoCalibration, StereoFrame
 
 logger = logging.getLogger(__name__)
@@ -116,6 +118,8 @@ class FrontEnd:
         self._good_stamp = 0
         # robust per-coordinate scale (px) of each frame's pose residuals since the keyframe
         self._pose_sigma_px: list[float] = []
+        # an old keyframe's features tracked again after a closure (resume_features)
+        self._resumed: ResumedSet | None = None
 
     # ------------------------------------------------------------------ public
     @property
@@ -158,6 +162,23 @@ class FrontEnd:
             kf = self._active.keyframe
             kf.world_from_kf = self._world_from_kf[kf.id]
             self._active.world_from_kfrect = kf.world_from_kf @ self.cam_from_rect
+
+    def resume_features(self, request: ResumeFeatures) -> int:
+        """Go on tracking an old keyframe's features found again in the current keyframe (seed 004, section 5).
+
+        ``request`` comes from the loop stage (:class:`~loopmodel.stages.LoopOutcome.resume`) for the
+        keyframe just made; its features are tracked on beside the current set, and each later
+        keyframe observes them (monocular observations with the old landmark ids, for the back end).
+        Returns how many are taken (0 when the request is not for the active keyframe).
+        """
+        if self._active is None or int(request.keyframe) != self._active.keyframe.id or not len(request):
+            return 0
+        self._resumed = ResumedSet.from_request(request)
+        return len(self._resumed)
+
+    def resumed_features(self) -> ResumedSet | None:
+        """The old feature set being tracked again, if any (read-only use)."""
+        return self._resumed
 
     def process(self, frame: StereoFrame) -> FrameResult:
         """Track one stereo frame; may create a keyframe."""
@@ -234,6 +255,7 @@ class FrontEnd:
         self._velocity = nearest_rigid(step)
         self._velocity_known = True
         self._kf_from_prev = nearest_rigid(kf_from_cur)
+        self._track_resumed(cur_pyr, kf_from_cur)
         self._prev_pyr = cur_pyr
         self._frames_since_ok = 0
 
@@ -423,6 +445,33 @@ class FrontEnd:
         return PointTerm(
             self.rig, active.far_rays[sel], uv, prior_weight=prior, inverse_depth_per_m=active.far_inv_depth[sel]
         )
+    def _track_resumed(self, cur_pyr: Pyramid, kf_from_cur: F64) -> None:
+        """Track the resumed old set into this frame (KLT from the last good frame, gated by the pose)."""
+        if self._resumed is None or self._prev_pyr is None:
+            return
+        cfg = self.config
+        klt = (cfg.klt_window_px, cfg.klt_levels, cfg.fb_threshold_px, cfg.klt_iterations)
+        rs = self._resumed
+        if not rs.track(
+            self.left_camera, self._prev_pyr, cur_pyr, kf_from_cur, cfg.prediction_gate_px, klt,
+            self.calibration.image_size,
+        ):
+            logger.info("old feature set of keyframe %d: no feature left", rs.match_keyframe)
+            self._resumed = None
+
+    def _observe_resumed(self, left: NDArray[np.uint8], kf_from_cur: F64, kf_from_new: F64) -> F64:
+        """Rows (landmark_id, u, v) of the resumed old set found in a new keyframe's image; the set moves to it."""
+        rs = self._resumed
+        if rs is None:
+            return np.zeros((0, 3))
+        cfg = self.config
+        rows = rs.observe_at_keyframe(
+            self.left_camera, left, kf_from_cur, kf_from_new,
+            cfg.remeasure_half_window_px, cfg.remeasure_min_ncc, cfg.remeasure_max_shift_px,
+        )
+        if not len(rs):
+            self._resumed = None
+        return rows
 
     def _mono_frames(self) -> dict[int, F64]:
         """Reference keyframes of the mono-depth tracks -> the active keyframe (rectified)."""
@@ -663,10 +712,20 @@ class FrontEnd:
                 # robust scale (px per coordinate) of the pose residuals over the interval
                 ba_info["pose_residual_sigma_px"] = float(np.median(self._pose_sigma_px))
             world_from_rect = nearest_rigid(prev.world_from_kfrect @ kf_from_new)
+            if self._resumed is not None:
+                match_kf = self._resumed.match_keyframe
+                rows = self._observe_resumed(left, kf_from_cur, kf_from_new)
+                seen = set(mono_obs[:, 0].astype(np.int64).tolist())
+                rows = rows[[int(i) not in seen for i in rows[:, 0]]]
+                mono_obs = np.vstack([mono_obs, rows])
+                ba_info["resumed_features"] = float(rows.shape[0])
+                ba_info["resumed_from_keyframe"] = float(match_kf)
             kf_prev_from_kf = self.cam_from_rect @ kf_from_new @ self.rect_from_cam
             kf_prev_from_kf_tracked = self.cam_from_rect @ kf_from_cur @ self.rect_from_cam
 
         self._pose_sigma_px = []
+        if not (prev is not None and kf_from_cur is not None and connected):
+            self._resumed = None  # a new segment: the old set's relation to it is unknown
         kf_id = self._next_kf_id
         self._next_kf_id += 1
         ids = np.arange(

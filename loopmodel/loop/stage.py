@@ -51,7 +51,7 @@ from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.closer import LoopCloser, LoopClosure
 from loopmodel.loop.closure import LoopEvent
 from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hybrid_ba
-from loopmodel.stages import LoopConstraint, LoopOutcome, LoopStage, MapState, NullLoopStage
+from loopmodel.stages import LoopConstraint, LoopOutcome, LoopStage, MapState, NullLoopStage, ResumeFeatures
 from loopmodel.types import Keyframe, StereoCalibration
 
 __all__ = ["LoopClosingStage", "LoopConstraint", "LoopOutcome", "LoopStage", "MapState", "NullLoopStage"]
@@ -169,6 +169,8 @@ class LoopClosingStage:
         # covisibility: (first, last landmark id, keyframe) per keyframe; direct neighbours
         self._lm_ranges: list[tuple[int, int, int]] = []
         self._covisible_of: dict[int, set[int]] = {}
+        #: the record of the last closure whose old features the front end was asked to resume
+        self._resume_record: dict[str, Any] | None = None
 
     @classmethod
     def from_config(cls, config: LoopConfig, calibration: StereoCalibration) -> LoopClosingStage:
@@ -184,6 +186,7 @@ class LoopClosingStage:
         must hold the new keyframe.
         """
         self._note_backend(state)
+        self._note_resumed(keyframe)
         out = LoopOutcome(keyframe)
         self.keyframes[int(keyframe.id)] = keyframe
         self._collect(self.poll(state), out)
@@ -507,12 +510,58 @@ class LoopClosingStage:
         logger.info("loop %d -> %d rejected by the robust gate", hi, lo)
         return False
 
+    def _note_resumed(self, kf: Keyframe) -> None:
+        """Add to the last resumption's record how many old features the front end observed in ``kf``."""
+        rec = self._resume_record
+        info = kf.ba_info
+        if rec is None or "resumed_features" not in info:
+            return
+        if int(info.get("resumed_from_keyframe", -1)) != rec["match_keyframe"]:
+            return
+        rec.setdefault("old_features_tracked_on", []).append(int(info["resumed_features"]))
+
+    def _resume_request(self, closure: LoopClosure) -> ResumeFeatures | None:
+        """The closure's old features found in its query keyframe, for the front end to track on."""
+        obs = closure.observations
+        old = self.keyframes.get(closure.match_kf)
+        if old is None or not obs.landmark_ids.size or not np.asarray(old.image).size:
+            return None
+        ids = np.asarray(old.landmark_ids, np.int64).reshape(-1)
+        order = np.argsort(ids)
+        pos = np.searchsorted(ids[order], obs.landmark_ids)
+        pos = np.minimum(pos, ids.size - 1)
+        found = ids[order][pos] == obs.landmark_ids
+        idx = order[pos[found]]
+        rect_from_cam = np.asarray(old.rect_from_cam)
+        pts = np.asarray(old.points_in_kf, float).reshape(-1, 3)[idx]
+        return ResumeFeatures(
+            keyframe=closure.query_kf,
+            match_keyframe=closure.match_kf,
+            landmark_ids=ids[idx],
+            uv_px=np.asarray(obs.uv_px, float).reshape(-1, 2)[found],
+            points_in_match=pts @ rect_from_cam[:3, :3].T + rect_from_cam[:3, 3],
+            match_uv_px=np.asarray(old.stereo_px, float).reshape(-1, 3)[idx][:, [0, 2]],
+            match_image=np.asarray(old.image),
+            kf_from_match=np.asarray(closure.query_from_match, float),
+        )
+
     def _to_backend(self, closure: LoopClosure, record: dict[str, Any], out: LoopOutcome) -> None:
         """Append the closure's observations of old landmarks to the keyframe's monocular observations.
 
-        Returns its relative pose (left camera frames) as a constraint.
+        Returns its relative pose (left camera frames) as a constraint, and asks the front end to
+        track the old features on (``out.resume``).
         """
         out.keyframe = _with_observations(out.keyframe, closure.observations)
+        record["old_features_resumed"] = 0
+        if closure.query_kf == int(out.keyframe.id):
+            resume = self._resume_request(closure)
+            # several closures at one keyframe: the front end resumes the largest old set
+            if resume is not None and (out.resume is None or len(resume) > len(out.resume)):
+                if self._resume_record is not None and out.resume is not None:
+                    self._resume_record["old_features_resumed"] = 0
+                out.resume = resume
+                record["old_features_resumed"] = len(resume)
+                self._resume_record = record
         record["pose_before"] = np.asarray(out.keyframe.world_from_kf).copy()
         self._awaiting.append(record)
         q, m = self.keyframes[closure.query_kf], self.keyframes[closure.match_kf]
