@@ -57,6 +57,7 @@ class OutputConfig(_Section):
 
     out_dir: str = "results"
     write_kitti: bool = False
+    write_map: bool = Field(True, description="write the session map map/ (issue 20: localize, extend, merge)")
 
 
 class BackendConfig(_Section):

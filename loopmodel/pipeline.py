@@ -31,7 +31,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -49,6 +49,9 @@ from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
 from loopmodel.stages import LoopConstraint, LoopStage, MapState, NullLoopStage
 from loopmodel.types import StereoCalibration, Trajectory
+
+if TYPE_CHECKING:
+    from loopmodel.loop.session_map import SessionMap
 
 logger = logging.getLogger(__name__)
 
@@ -201,6 +204,9 @@ class _Run:
         self.tracked_links: dict[int, tuple[int, F64]] = {}
         self.backend_ms: list[float] = []
         self.frame_ms: list[float] = []
+        # for the session map (issue 20): keyframes with their images, the loop constraints
+        self.map_keyframes: dict[int, Keyframe] = {}
+        self.loop_constraints: list[LoopConstraint] = []
         self._last_ms = 0.0
         self._last_ids: tuple[int | None, ...] = ()
         self.t_start = time.perf_counter()
@@ -261,6 +267,8 @@ class _Run:
         if kf.connected and kf.prev_keyframe_id is not None and kf.kf_prev_from_kf_tracked is not None:
             self.tracked_links[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf_tracked)
         self.keyframes[kf.id] = kf.timestamp_ns
+        if self.config.output.write_map:
+            self.map_keyframes[kf.id] = kf
         for listener in self.listeners:
             if out.events:
                 listener.on_loop_events(out.events)
@@ -271,6 +279,7 @@ class _Run:
         for c in constraints:
             try:
                 ids.append(int(self.backend.add_loop_constraint(c.kf_a, c.kf_b, c.a_from_b)))
+                self.loop_constraints.append(c)
             except LoopmodelError as exc:  # e.g. a back end without relative-pose factors
                 logger.info("loop %d -> %d: no loop constraint (%s)", c.kf_a, c.kf_b, exc)
                 ids.append(None)
@@ -344,9 +353,46 @@ class _Run:
         )
         result.live_mesh = self.live.mesh()
         result.metrics = self._metrics(result, wall, final_refine_s, mesh_metrics)
+        result.session_map = self._session_map(result)
         for listener in self.listeners:
             listener.on_finish(result)
         return result
+
+    def _session_map(self, result: RunResult) -> SessionMap | None:
+        """The run's map for later sessions (``output.write_map``; None without keyframes or when it fails)."""
+        if not self.config.output.write_map or not self.map_keyframes:
+            return None
+        from loopmodel.config import dump_config, pipeline_sections
+        from loopmodel.loop.session_map import MapInputs, build_session_map
+        from loopmodel.mapping.final import anchor_stripes
+
+        poses = self.anchored.keyframe_poses
+        kfs = [self.map_keyframes[k] for k in sorted(self.map_keyframes)]
+        frames = [f for f in self.frames if f.ok]
+        anchors = anchor_stripes(
+            result.stripes,
+            result.final,
+            np.array([f.timestamp_ns for f in frames], np.int64),
+            np.array([f.keyframe_id for f in frames], np.int64),
+            poses,
+            self.config.mapping,
+        )
+        inputs = MapInputs(
+            self.frontend.calibration,
+            kfs,
+            {k: poses[k] for k in self.map_keyframes if k in poses},
+            result.landmark_ids,
+            result.landmarks_in_world,
+            [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints],
+            anchors,
+            dump_config(self.config, pipeline_sections()),
+            {"sequence": str(self.sequence.path)},
+        )
+        try:
+            return build_session_map(inputs, self.config.loop)
+        except LoopmodelError as exc:
+            logger.error("no session map: %s", exc)
+            return None
 
     def _metrics(
         self, result: RunResult, wall_s: float, final_refine_s: float, mesh_metrics: dict[str, Any]
@@ -555,10 +601,11 @@ def run_frontend(
 
 
 def frontend_only(config: Config) -> Config:
-    """``config`` for a front-end-only run: no back end, no loop closing, no meshes."""
+    """``config`` for a front-end-only run: no back end, no loop closing, no meshes, no session map."""
     fe_config = config.model_copy(deep=True)
     fe_config.backend.kind = "none"
     fe_config.loop.enabled = False
     fe_config.mapping.write_mesh = False
     fe_config.mapping.live_mesh_every_kf = 0
+    fe_config.output.write_map = False
     return fe_config

@@ -139,8 +139,8 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
     ``config.yaml`` (the pipeline's configuration), ``trajectory_online.tum``,
     ``trajectory_final.tum``, ``keyframes.tum`` (KITTI variants of the first two when
     ``output.write_kitti``), ``map.npz``, ``metrics.json``, ``run.log``, then ``stripes.npz`` (when
-    the run has laser profiles), ``mesh.ply`` and ``mesh_live.ply`` (when made). Returns the
-    folder's path.
+    the run has laser profiles), the session map folder ``map/`` (when made), ``mesh.ply`` and
+    ``mesh_live.ply`` (when made). Returns the folder's path.
 
     A staged folder (:class:`ResultsFolder`) replaces the older run's folder once the small
     files through ``run.log`` are written, even when a large file then fails (a full disk:
@@ -165,6 +165,8 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
             from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
 
             save_stripes(folder.file(STRIPES_FILE), run.stripes)
+        if run.session_map is not None:
+            run.session_map.save(folder.file("map"))
         for name, mesh in (("mesh.ply", run.mesh), ("mesh_live.ply", run.live_mesh)):
             if mesh is not None:
                 from loopmodel.io.mesh_io import write_mesh
