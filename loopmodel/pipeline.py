@@ -51,6 +51,7 @@ from loopmodel.stages import LoopConstraint, LoopStage, MapState, NullLoopStage
 from loopmodel.types import StereoCalibration, Trajectory
 
 if TYPE_CHECKING:
+    from loopmodel.loop.localize import MapLocalizationStage
     from loopmodel.loop.session_map import SessionMap
 
 logger = logging.getLogger(__name__)
@@ -180,19 +181,43 @@ def _loop_stage(config: Config, calibration: StereoCalibration) -> LoopStage:
     return LoopClosingStage.from_config(config.loop, calibration)
 
 
+def _localizer(config: Config, calibration: StereoCalibration, base_map: SessionMap | None) -> MapLocalizationStage:
+    """The loop stage of a localization run: every keyframe relocalized in ``base_map``."""
+    from loopmodel.loop.localize import MapLocalizationStage
+
+    assert base_map is not None
+    s = config.session
+    return MapLocalizationStage(base_map, calibration, config.loop, s.max_correction_m, s.max_correction_deg)
+
+
+def localize_config(config: Config) -> Config:
+    """``config`` for localization in a map: the tracker's poses (no back end), no map of its own."""
+    out = config.model_copy(deep=True)
+    out.backend.kind = "none"
+    out.output.write_map = False
+    return out
+
+
 class _Run:
     """The stages of one run and what it has produced so far.
 
     :meth:`step` handles one frame whole, :meth:`finish` turns the state into a :class:`RunResult`.
     """
 
-    def __init__(self, sequence: Sequence, config: Config, listeners: list[RunListener]) -> None:
+    def __init__(
+        self, sequence: Sequence, config: Config, listeners: list[RunListener], base_map: SessionMap | None = None
+    ) -> None:
         self.sequence = sequence
+        # a session in a saved map (issue 20): localize in it, or extend it (merged at the end)
+        self.base_map = base_map
+        self.mode = config.session.mode if base_map is not None else None
+        config = localize_config(config) if self.mode == "localize" else config
         self.config = config
         self.listeners = listeners
         self.frontend = FrontEnd(sequence.calibration, config.frontend)
         self.backend: Backend = create_backend(config.backend, self.frontend.calibration, config.givens)
-        self.loop = _loop_stage(config, self.frontend.calibration)
+        self.localizer = _localizer(config, self.frontend.calibration, base_map) if self.mode == "localize" else None
+        self.loop: LoopStage = self.localizer or _loop_stage(config, self.frontend.calibration)
         # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
         self.anchored = StripeMap(config.mapping)
         every_kf = config.mapping.live_mesh_every_kf
@@ -354,6 +379,10 @@ class _Run:
         result.live_mesh = self.live.mesh()
         result.metrics = self._metrics(result, wall, final_refine_s, mesh_metrics)
         result.session_map = self._session_map(result)
+        if self.localizer is not None:
+            self._localization(result, self.localizer)
+        if self.mode == "extend":
+            self._extend(result)
         for listener in self.listeners:
             listener.on_finish(result)
         return result
@@ -394,6 +423,61 @@ class _Run:
             logger.error("no session map: %s", exc)
             return None
 
+    def _localization(self, result: RunResult, localizer: MapLocalizationStage) -> None:
+        """Per-frame status in the map (``MAP``, ``OWN`` frame, ``LOST``) and the frames localized in it."""
+        status = [
+            "LOST" if not f.ok else ("MAP" if localizer.in_map.get(f.keyframe_id, False) else "OWN")
+            for f in self.frames
+        ]
+        in_map = {f.timestamp_ns for f, st in zip(self.frames, status, strict=True) if st == "MAP"}
+        result.localized = result.final.slice(np.isin(result.final.timestamps_ns, list(in_map)))
+        m = result.metrics
+        m["localization_status"] = status
+        m["localized_frames"] = len(in_map)
+        if not localizer.events:
+            logger.warning("never relocalized in the map: the poses are in this session's own frame")
+        gt = self.sequence.ground_truth
+        m.update({k + "_localized": v for k, v in _ground_truth_errors(result.localized, gt).items()})
+
+    def _extend(self, result: RunResult) -> None:
+        """The session's map merged into the base map; the mesh of both sessions' stripes.
+
+        A session that shares no view with the map says so and keeps its own frame and map.
+        """
+        from loopmodel.errors import InputError
+        from loopmodel.loop.merge import merge_maps
+        from loopmodel.mapping.final import posed_stripes_mesh
+
+        assert self.base_map is not None
+        if result.session_map is None:
+            logger.warning("no map of this session: nothing to merge")
+            return
+        s = self.config.session
+        try:
+            merged, report = merge_maps(
+                self.base_map, result.session_map, self.config.loop, s.merge_agree_m, s.merge_agree_deg
+            )
+        except InputError as exc:
+            logger.warning("session not merged, it keeps its own frame: %s", exc)
+            result.metrics["merged"] = False
+            return
+        result.session_map = merged
+        T = report.world_a_from_world_b
+        result.final = Trajectory(result.final.timestamps_ns, T[None] @ result.final.world_from_cam)
+        result.keyframes = Trajectory(result.keyframes.timestamps_ns, T[None] @ result.keyframes.world_from_cam)
+        stripes, poses = merged.stripes_with_poses()
+        result.mesh = posed_stripes_mesh(stripes, poses, self.config.mapping)
+        result.metrics.update(
+            {
+                "merged": True,
+                "merge_links": report.links,
+                "merge_candidates": report.candidates,
+                "merge_offset_m": report.offset_m,
+                "merge_offset_deg": report.offset_deg,
+                "merged_keyframes": len(merged),
+            }
+        )
+
     def _metrics(
         self, result: RunResult, wall_s: float, final_refine_s: float, mesh_metrics: dict[str, Any]
     ) -> dict[str, Any]:
@@ -429,6 +513,7 @@ def process(
     max_frames: int | None = None,
     listeners: list[RunListener] | None = None,
     stop: StopFlag | None = None,
+    base_map: SessionMap | None = None,
 ) -> RunResult:
     """Reader -> front end -> loop closing -> back end -> mapping, writing nothing.
 
@@ -508,6 +593,7 @@ def run_pipeline(
     max_frames: int | None = None,
     listeners: list[RunListener] | None = None,
     handle_signals: bool = True,
+    base_map: SessionMap | None = None,
 ) -> RunResult:
     """:func:`process` the sequence and write the results folder ``<out_dir>/<name>/``.
 
@@ -521,11 +607,13 @@ def run_pipeline(
     ``metrics.json`` lists each closure under ``loop_events``. With ``handle_signals``
     Ctrl-C or SIGTERM stops the run after the current frame; everything up to it is
     written, then ``KeyboardInterrupt`` is raised (an error ending the run early is raised
-    after the write as well).
+    after the write as well). With ``base_map`` (a loaded
+    :class:`~loopmodel.loop.session_map.SessionMap`) the session localizes in it or extends it
+    (``config.session.mode``).
     """
     folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
     kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
-    result = _process_and_write(folder, sequence, config, handle_signals, **kwargs)
+    result = _process_and_write(folder, sequence, config, handle_signals, base_map=base_map, **kwargs)
     if result.error is not None:
         raise result.error
     if result.interrupted:

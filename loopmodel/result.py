@@ -41,7 +41,8 @@ class RunResult:
     (open3d meshes, world frame, metres; None without); ``metrics`` for ``metrics.json``;
     ``interrupted``: stopped early on request; ``error``: the error that ended it early (the
 result covers the frames before it); ``log``: the run's log lines (``run.log``); ``folder``: where it was written, if it
-    was; ``session_map``: the map a later session can localize in (``output.write_map``).
+    was; ``session_map``: the map a later session can localize in (``output.write_map``; merged with the
+    base map when extending one); ``localized``: the frames localized in a base map (its world).
     Poses are ``world_from_cam`` of the left camera, the world being the first
     keyframe's frame.
     """
@@ -63,6 +64,7 @@ result covers the frames before it); ``log``: the run's log lines (``run.log``);
     log: str = ""
     folder: Path | None = None
     session_map: SessionMap | None = None
+    localized: Trajectory | None = None
 
     def map_arrays(self) -> dict[str, NDArray[Any]]:
         """``map.npz`` content: keyframe ids, times and poses; landmark ids and world points."""

@@ -349,9 +349,17 @@ class SessionMap:
         fa = {n: a[f"features_{n}"] for n in _FEATURE_ARRAYS}
         feats = PackedFeatures(kind=str(m["descriptor"]), vocabulary=voc, **fa)
         kw = {n: a[n] for n in _KF_ARRAYS + _OTHER_ARRAYS}
-        smap = cls(calibration=calibration, features=feats, config_yaml=str(m.get("config_yaml", "")),
-                   info={**dict(m.get("info", {})), "loopmodel_version": m.get("loopmodel_version"),
-                         "version": m.get("version")}, **kw)
+        smap = cls(
+            calibration=calibration,
+            features=feats,
+            config_yaml=str(m.get("config_yaml", "")),
+            info={
+                **dict(m.get("info", {})),
+                "loopmodel_version": m.get("loopmodel_version"),
+                "version": m.get("version"),
+            },
+            **kw,
+        )
         smap.check()
         return smap
 

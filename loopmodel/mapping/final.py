@@ -155,3 +155,25 @@ def anchor_stripes(
     if not out_s:
         return none
     return StripeAnchors(out_s, np.array(out_k, np.int64), np.stack(out_T))
+
+
+def posed_stripes_mesh(stripes: list[StripeProfile], world_from_cam: NDArray[np.float64], config: MappingConfig) -> Any:
+    """The mesh (open3d, world frame) of stripes placed at their own sensor poses (S, 4, 4); None without.
+
+    Stripes of several sessions may share times: each gets its own pose.
+    """
+    from loopmodel.mapping.stripe_map import StripeMap
+
+    keep = [i for i, s in enumerate(stripes) if np.asarray(s.points_in_cam).size]
+    if len(keep) < 2:
+        return None
+    stamps = np.arange(len(keep), dtype=np.int64) * 1000
+    traj = Trajectory(stamps, world_from_cam[keep])
+    retimed = [StripeProfile(int(t), stripes[i].points_in_cam) for t, i in zip(stamps, keep, strict=True)]
+    try:
+        smap = StripeMap.from_trajectory(traj, retimed, config)
+        smap.check_nonempty()
+        return smap.mesh()
+    except LoopmodelError as exc:
+        logger.error("no mesh of the map: %s", exc)
+        return None
