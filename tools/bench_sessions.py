@@ -166,25 +166,6 @@ def _map_load(smap: Any, tmp: Path) -> dict[str, float]:
     copies = int(np.ceil(1000 / len(smap)))
     big = replicate(smap, copies)
     big = select_rows(big, np.arange(1000))
-    keep = np.isin(big.edges, big.keyframe_ids).all(axis=1)
-    skeep = np.isin(big.stripe_kf, big.keyframe_ids)
-    import dataclasses
-
-    from loopmodel.loop.session_map import _offsets
-
-    counts = np.diff(big.stripe_offsets)
-    pts = np.concatenate([np.arange(big.stripe_offsets[s], big.stripe_offsets[s + 1]) for s in np.flatnonzero(skeep)])
-    big = dataclasses.replace(
-        big,
-        edges=big.edges[keep],
-        edge_a_from_b=big.edge_a_from_b[keep],
-        edge_kind=big.edge_kind[keep],
-        stripe_kf=big.stripe_kf[skeep],
-        stripe_kf_from_cam=big.stripe_kf_from_cam[skeep],
-        stripe_timestamps_ns=big.stripe_timestamps_ns[skeep],
-        stripe_offsets=_offsets(counts[skeep].tolist()),
-        stripe_points_in_cam=big.stripe_points_in_cam[pts],
-    )
     path = big.save(tmp / "map1000")
     times = []
     for _ in range(3):

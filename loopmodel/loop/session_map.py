@@ -545,7 +545,8 @@ def replicate(smap: SessionMap, copies: int) -> SessionMap:
     rows = np.tile(np.arange(n), copies)
     step = int(smap.keyframe_ids.max()) + 1 if n else 1
     ids = np.concatenate([smap.keyframe_ids + c * step for c in range(copies)])
-    base = select_rows(smap, rows)
+    lm, im = _ranges(smap.lm_offsets, rows), _ranges(smap.image_offsets, rows)
+    base = dataclasses.replace(smap, **_rows_only(smap, rows, lm, im))
     return dataclasses.replace(
         base,
         keyframe_ids=ids,
@@ -561,11 +562,29 @@ def replicate(smap: SessionMap, copies: int) -> SessionMap:
 
 
 def select_rows(smap: SessionMap, rows: I64) -> SessionMap:
-    """The per-keyframe arrays of ``rows`` (in that order); edges and stripes kept as they are."""
+    """The keyframes of ``rows`` (in that order) with the edges and stripes among them."""
     lm = _ranges(smap.lm_offsets, rows)
     im = _ranges(smap.image_offsets, rows)
+    ids = smap.keyframe_ids[rows]
+    e = np.isin(smap.edges, ids).all(axis=1) if smap.edges.size else np.zeros(0, bool)
+    st = np.flatnonzero(np.isin(smap.stripe_kf, ids))
+    pts = _ranges(smap.stripe_offsets, st)
     return dataclasses.replace(
         smap,
+        edges=smap.edges[e],
+        edge_a_from_b=smap.edge_a_from_b[e],
+        edge_kind=smap.edge_kind[e],
+        stripe_timestamps_ns=smap.stripe_timestamps_ns[st],
+        stripe_offsets=_offsets(np.diff(smap.stripe_offsets)[st].tolist()),
+        stripe_points_in_cam=smap.stripe_points_in_cam[pts],
+        stripe_kf=smap.stripe_kf[st],
+        stripe_kf_from_cam=smap.stripe_kf_from_cam[st],
+        **_rows_only(smap, rows, lm, im),
+    )
+
+
+def _rows_only(smap: SessionMap, rows: I64, lm: I64, im: I64) -> dict[str, Any]:
+    return dict(
         keyframe_ids=smap.keyframe_ids[rows],
         timestamps_ns=smap.timestamps_ns[rows],
         world_from_kf=smap.world_from_kf[rows],
