@@ -521,8 +521,9 @@ def process(
     between frames) or a ``KeyboardInterrupt`` arrives (the last two: ``interrupted``). An
     error while processing a frame ends the run too: the result of the frames before it is
     returned with the error in ``error`` (and ``metrics["stopped_by"]``), for the caller to
-    raise once it has kept what it wants."""
-    run = _Run(sequence, config, listeners or [])
+    raise once it has kept what it wants. With ``base_map`` the session localizes in that map or
+    extends it (``config.session.mode``)."""
+    run = _Run(sequence, config, listeners or [], base_map)
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     stop = stop if stop is not None else StopFlag()
     logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
