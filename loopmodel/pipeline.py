@@ -52,7 +52,7 @@ from loopmodel.types import StereoCalibration, Trajectory
 
 if TYPE_CHECKING:
     from loopmodel.loop.localize import MapLocalizationStage
-    from loopmodel.loop.session_map import SessionMap
+    from loopmodel.loop.session_map import ResumePoint, SessionMap
 
 logger = logging.getLogger(__name__)
 
@@ -198,6 +198,24 @@ def localize_config(config: Config) -> Config:
     return out
 
 
+def _prepend_resumed(result: RunResult, resume: ResumePoint) -> None:
+    """The interrupted run's frames and keyframes before the resumed run's first one, then the new ones."""
+
+    def joined(old: Trajectory, new: Trajectory) -> Trajectory:
+        before = old.slice(old.timestamps_ns < resume.timestamp_ns)
+        return Trajectory(
+            np.concatenate([before.timestamps_ns, new.timestamps_ns]),
+            np.concatenate([before.world_from_cam, new.world_from_cam]),
+        )
+
+    result.online = joined(resume.online, result.online)
+    result.final = joined(resume.final, result.final)
+    result.keyframes = joined(resume.keyframes, result.keyframes)
+    old_ids = resume.map.keyframe_ids[:-1]
+    shift = int(resume.map.keyframe_ids.max()) + 1
+    result.keyframe_ids = np.concatenate([old_ids, result.keyframe_ids + shift])
+
+
 class _Run:
     """The stages of one run and what it has produced so far.
 
@@ -205,9 +223,15 @@ class _Run:
     """
 
     def __init__(
-        self, sequence: Sequence, config: Config, listeners: list[RunListener], base_map: SessionMap | None = None
+        self,
+        sequence: Sequence,
+        config: Config,
+        listeners: list[RunListener],
+        base_map: SessionMap | None = None,
+        resume: ResumePoint | None = None,
     ) -> None:
         self.sequence = sequence
+        self.resume = resume  # continue an interrupted run from its last keyframe
         # a session in a saved map (issue 20): localize in it, or extend it (merged at the end)
         self.base_map = base_map
         self.mode = config.session.mode if base_map is not None else None
@@ -249,8 +273,9 @@ class _Run:
             logger.info("frame %d LOST: %s", frame.index, res.reason)
         kf = res.keyframe
         if kf is not None:
-            self._keyframe_step(kf, res)
-            res = dataclasses.replace(res, keyframe=None)  # do not hold every keyframe image
+            world_from_cam = self._keyframe_step(kf, res) @ res.kf_from_cam
+            # do not hold every keyframe image; a resumed run's first pose is the old keyframe's
+            res = dataclasses.replace(res, keyframe=None, world_from_cam=world_from_cam)
         self.frames.append(res)
         if res.ok:
             self.anchored.add_frame(res.timestamp_ns, kf_id=res.keyframe_id, kf_from_cam=res.kf_from_cam)
@@ -272,12 +297,26 @@ class _Run:
     def _state(self) -> MapState:
         return MapState(self.frontend.world_from_kf, self._last_ms, self._last_ids)
 
-    def _keyframe_step(self, kf: Keyframe, res: FrameResult) -> None:
-        """Loop closing, then the back end.
+    def skips(self, frame: Any) -> bool:
+        """Whether a resumed run skips this frame (before the interrupted run's last keyframe)."""
+        return self.resume is not None and int(frame.timestamp_ns) < self.resume.timestamp_ns
+
+    def _resumed(self, kf: Keyframe) -> Keyframe:
+        """A resumed run's first keyframe at the pose of the interrupted run's last one."""
+        if self.resume is None or self.keyframes:
+            return kf
+        pose = self.resume.world_from_kf
+        self.frontend.apply_correction({kf.id: pose})
+        return dataclasses.replace(kf, world_from_kf=pose.copy())
+
+    def _keyframe_step(self, kf: Keyframe, res: FrameResult) -> F64:
+        """Loop closing, then the back end; returns the keyframe's pose as the frame had it.
 
         The keyframe is recorded last, once the map holds it, so an interruption never leaves it
         half registered.
         """
+        kf = self._resumed(kf)
+        tracked_pose = res.world_from_cam if self.resume is None or self.keyframes else kf.world_from_kf
         out = self.loop.on_keyframe(kf, self._state())
         kf = out.keyframe
         self.anchored.set_keyframe(kf.id, kf.world_from_kf)
@@ -298,6 +337,7 @@ class _Run:
             if out.events:
                 listener.on_loop_events(out.events)
             listener.on_keyframe(kf, res)
+        return np.asarray(tracked_pose)
 
     def _add_constraints(self, constraints: list[LoopConstraint]) -> tuple[int | None, ...]:
         ids: list[int | None] = []
@@ -370,6 +410,8 @@ class _Run:
         )
         if estimate is not None:
             result.landmark_ids, result.landmarks_in_world = estimate.landmark_ids, estimate.landmarks_in_world
+        if self.resume is not None:
+            _prepend_resumed(result, self.resume)
         final_refine_s = time.perf_counter() - t_final
         last_ns = self.frames[-1].timestamp_ns if self.frames else None
         result.stripes = run_stripes(self.sequence, last_ns, self.config.mapping)
@@ -418,10 +460,15 @@ class _Run:
             {"sequence": str(self.sequence.path)},
         )
         try:
-            return build_session_map(inputs, self.config.loop)
+            smap = build_session_map(inputs, self.config.loop)
         except LoopmodelError as exc:
             logger.error("no session map: %s", exc)
             return None
+        if self.resume is not None:
+            from loopmodel.loop.merge import append_session
+
+            smap = append_session(self.resume.map, smap)
+        return smap
 
     def _localization(self, result: RunResult, localizer: MapLocalizationStage) -> None:
         """Per-frame status in the map (``MAP``, ``OWN`` frame, ``LOST``) and the frames localized in it."""
@@ -514,6 +561,7 @@ def process(
     listeners: list[RunListener] | None = None,
     stop: StopFlag | None = None,
     base_map: SessionMap | None = None,
+    resume: ResumePoint | None = None,
 ) -> RunResult:
     """Reader -> front end -> loop closing -> back end -> mapping, writing nothing.
 
@@ -522,8 +570,9 @@ def process(
     error while processing a frame ends the run too: the result of the frames before it is
     returned with the error in ``error`` (and ``metrics["stopped_by"]``), for the caller to
     raise once it has kept what it wants. With ``base_map`` the session localizes in that map or
-    extends it (``config.session.mode``)."""
-    run = _Run(sequence, config, listeners or [], base_map)
+    extends it (``config.session.mode``); with ``resume`` it continues an interrupted run from its
+    last keyframe (frames before it are skipped and keep the interrupted run's poses)."""
+    run = _Run(sequence, config, listeners or [], base_map, resume)
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     stop = stop if stop is not None else StopFlag()
     logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
@@ -557,6 +606,8 @@ def _frame_loop(
                 break
             if stop.is_set():
                 return True, None
+            if run.skips(frame):
+                continue
             run.step(frame)
             if progress is not None:
                 el = time.perf_counter() - run.t_start
@@ -595,6 +646,7 @@ def run_pipeline(
     listeners: list[RunListener] | None = None,
     handle_signals: bool = True,
     base_map: SessionMap | None = None,
+    resume: ResumePoint | None = None,
 ) -> RunResult:
     """:func:`process` the sequence and write the results folder ``<out_dir>/<name>/``.
 
@@ -610,11 +662,13 @@ def run_pipeline(
     written, then ``KeyboardInterrupt`` is raised (an error ending the run early is raised
     after the write as well). With ``base_map`` (a loaded
     :class:`~loopmodel.loop.session_map.SessionMap`) the session localizes in it or extends it
-    (``config.session.mode``).
+    (``config.session.mode``); with ``resume`` (:func:`~loopmodel.loop.session_map.read_resume_point`)
+    it continues an interrupted run from its last keyframe.
     """
     folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
     kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
-    result = _process_and_write(folder, sequence, config, handle_signals, base_map=base_map, **kwargs)
+    kwargs.update(base_map=base_map, resume=resume)
+    result = _process_and_write(folder, sequence, config, handle_signals, **kwargs)
     if result.error is not None:
         raise result.error
     if result.interrupted:

@@ -25,7 +25,9 @@ of both sessions' stripes).
   ``kitti_ate_rmse_m`` of the localized frames against the ground truth (no alignment: the
   map's world is the clip's first camera, as the ground truth's).
 
-``--quick``: shorter sessions (A 120 frames, B 80) and the same KITTI part.
+Full: 640x480 images (the simulator's default camera), A 240 frames, B 160. ``--quick``: 320x240
+images, A 120 frames, B 80, and the same KITTI part. Scans are generated once into
+``~/.cache/loopmodel``.
 """
 
 from __future__ import annotations
@@ -47,16 +49,17 @@ ROOT = Path(__file__).resolve().parents[1]
 CACHE = Path.home() / ".cache" / "loopmodel"
 
 
-def _sim_config(seed: int, azimuth_deg: float, frames: int) -> Any:
-    """Session of the shared object: scene seed 5, path and noise from ``seed``."""
+def _sim_config(seed: int, azimuth_deg: float, frames: int, small: bool) -> Any:
+    """Session of the shared object: scene seed 5, path and noise from ``seed``; ``small``: 320x240 images."""
     from loopmodel.sim.generate import resolve_config
 
+    camera = {"width_px": 320, "height_px": 240, "fx_px": 250.0} if small else {}
     base = config_from_dict(
         {
             "simulation": {
                 "seed": seed,
                 "workers": 1,
-                "camera": {"width_px": 320, "height_px": 240, "fx_px": 250.0},
+                "camera": camera,
                 "scene": {"seed": 5},
                 "trajectory": {"start_azimuth_deg": azimuth_deg},
             }
@@ -65,14 +68,14 @@ def _sim_config(seed: int, azimuth_deg: float, frames: int) -> Any:
     return resolve_config(base, "browse", {"trajectory": {"frames": frames}}, None, "realistic")
 
 
-def _ensure(name: str, seed: int, azimuth_deg: float, frames: int) -> Path:
+def _ensure(name: str, seed: int, azimuth_deg: float, frames: int, small: bool) -> Path:
     from loopmodel.sim.generate import simulate_scan
 
-    path = CACHE / f"sessions_{name}_{frames}.mcap"
+    path = CACHE / f"sessions_{name}_{frames}{'_small' if small else ''}.mcap"
     if not path.is_file():
         CACHE.mkdir(parents=True, exist_ok=True)
         print(f"generating {path} ...")
-        simulate_scan(_sim_config(seed, azimuth_deg, frames), path, Config().sequence.topics, None, "browse")
+        simulate_scan(_sim_config(seed, azimuth_deg, frames, small), path, Config().sequence.topics, None, "browse")
     return path
 
 
@@ -210,8 +213,8 @@ def run(quick: bool = False) -> dict[str, Any]:
     from loopmodel.io.sequence import open_sequence
 
     frames_a, frames_b = (120, 80) if quick else (240, 160)
-    path_a = _ensure("A", 11, 0.0, frames_a)
-    path_b = _ensure("B", 12, 90.0, frames_b)
+    path_a = _ensure("A", 11, 0.0, frames_a, quick)
+    path_b = _ensure("B", 12, 90.0, frames_b, quick)
     config = Config()
     seq_a, seq_b = open_sequence(path_a), open_sequence(path_b)
     out: dict[str, Any] = {"dataset": f"realistic simulator browse sessions {path_a.name}, {path_b.name}; KITTI clip"}

@@ -134,6 +134,9 @@ def run(
     mode: Annotated[
         str | None, typer.Option("--mode", help="With --map: localize (nothing added) or extend (merged map, mesh)")
     ] = None,
+    resume: Annotated[
+        Path | None, typer.Option("--resume", help="Continue the interrupted run RESULTS_DIR from its last keyframe")
+    ] = None,
 ) -> None:
     """Process a sequence (front end, back end).
 
@@ -149,6 +152,14 @@ def run(
 
     if max_frames is not None and max_frames < 1:
         raise InputError("--max-frames", f"must be at least 1, got {max_frames}")
+    resume_point = None
+    if resume is not None:
+        from loopmodel.loop.session_map import read_resume_point
+
+        resume_point = read_resume_point(resume)
+        out, name = resume.parent, name or resume.name
+        if config is None and (resume / "config.yaml").is_file():
+            config = resume / "config.yaml"  # the interrupted run's configuration
     cfg = load_config(config)
     if mode is not None:
         if base_map is None:
@@ -196,6 +207,7 @@ def run(
                 progress=lambda i, n, fps, kf: bar.update(task, completed=i, fps=fps, kf=kf),
                 listeners=rerun_listeners(seq.calibration, rerun, rerun_spawn, rerun_connect),
                 base_map=session_map,
+                resume=resume_point,
             )
         except KeyboardInterrupt:
             err_console.print(f"results up to the last processed frame are in {folder}")

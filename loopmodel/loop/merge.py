@@ -223,3 +223,23 @@ def _joined(
 
 def _stack(mats: list[F64]) -> F64:
     return np.stack(mats) if mats else np.zeros((0, 4, 4))
+
+
+def append_session(old: SessionMap, new: SessionMap) -> SessionMap:
+    """A resumed run's map: ``old`` without its last keyframe, then ``new`` (whose first keyframe re-made it).
+
+    One edge joins the two at their poses; the keyframes keep their poses and the session number.
+    """
+    from loopmodel.loop.session_map import select_rows
+
+    kept = select_rows(old, np.arange(len(old) - 1)) if len(old) > 1 else None
+    if kept is None or len(new) == 0:
+        return new if kept is None else kept
+    off = int(old.keyframe_ids.max()) + 1
+    poses = {int(k): np.asarray(T) for k, T in kept.pose_of().items()}
+    poses.update({int(k) + off: np.asarray(T) for k, T in new.pose_of().items()})
+    a_last, b_first = int(kept.keyframe_ids[-1]), int(new.keyframe_ids[0])
+    rel = invert_pose(poses[a_last]) @ poses[b_first + off]
+    link = MapLink(a_last, b_first, rel, 0, np.eye(4))
+    joined = _joined(kept, new, poses, off, [link], np.eye(4))
+    return dataclasses.replace(joined, session=np.full(len(joined), int(old.session[0]), np.int64), info=old.info)

@@ -33,7 +33,7 @@ from loopmodel.io.map_file import MapFileData, read_map_file, write_map_file
 from loopmodel.loop.database import KeyframeDatabase, PlaceParams
 from loopmodel.loop.features import FeatureSet
 from loopmodel.loop.vocabulary import Vocabulary, shipped_vocabulary
-from loopmodel.types import Keyframe, StereoCalibration, StripeAnchors, StripeProfile
+from loopmodel.types import Keyframe, StereoCalibration, StripeAnchors, StripeProfile, Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -599,3 +599,50 @@ def _rows_only(smap: SessionMap, rows: I64, lm: I64, im: I64) -> dict[str, Any]:
         image_offsets=_offsets(np.diff(smap.image_offsets)[rows].tolist()),
         images_png=smap.images_png[im],
     )
+
+
+# ---------------------------------------------------------------------- resuming a run
+@dataclass
+class ResumePoint:
+    """What an interrupted run left for ``loopmodel run --resume``: its map and trajectories.
+
+    The resumed run starts again at the frame of the map's last keyframe (``frame_index``) with that
+    keyframe's pose; the frames before it keep the interrupted run's poses."""
+
+    map: SessionMap
+    online: Trajectory
+    final: Trajectory
+    keyframes: Trajectory
+
+    @property
+    def frame_index(self) -> int:
+        """Frame of the last keyframe (the resumed run starts there)."""
+        return int(self.map.frame_index[-1])
+
+    @property
+    def timestamp_ns(self) -> int:
+        """Time of the last keyframe."""
+        return int(self.map.timestamps_ns[-1])
+
+    @property
+    def world_from_kf(self) -> F64:
+        """Pose of the last keyframe (left camera, metres)."""
+        return np.asarray(self.map.world_from_kf[-1])
+
+
+def read_resume_point(folder: str | Path) -> ResumePoint:
+    """The map and trajectories of a results folder, for resuming it."""
+    from loopmodel.io.trajectory_io import read_trajectory
+
+    p = Path(folder)
+    if not p.is_dir():
+        raise InputError(p, "results folder to resume does not exist")
+    smap = SessionMap.load(p / "map")
+    if len(smap) == 0:
+        raise InputError(p / "map", "the map holds no keyframe to resume from")
+    trajs = []
+    for name in ("trajectory_online.tum", "trajectory_final.tum", "keyframes.tum"):
+        if not (p / name).is_file():
+            raise InputError(p / name, "missing: cannot resume this run")
+        trajs.append(read_trajectory(p / name))
+    return ResumePoint(smap, *trajs)
