@@ -57,6 +57,7 @@ class OutputConfig(_Section):
 
     out_dir: str = "results"
     write_kitti: bool = False
+    write_map: bool = Field(True, description="write the session map map/ (issue 20: localize, extend, merge)")
 
 
 class BackendConfig(_Section):
@@ -295,6 +296,7 @@ class SimSceneConfig(_Section):
     object_height_m: float = Field(0.5, gt=0.05, le=2.0)
     room: bool = Field(True, description="table legs, floor, walls, shelves around the table")
     texture_size_px: int = Field(2048, ge=64, le=8192, description="side of each procedural texture")
+    seed: int | None = Field(None, description="seed of the object and room (None: the simulation's seed)")
 
 
 class SimRenderConfig(_Section):
@@ -324,6 +326,7 @@ class SimTrajectoryConfig(_Section):
     shake_translation_m: float = Field(0.002, ge=0)
     shake_rotation_deg: float = Field(0.3, ge=0)
     start_time_ns: int = Field(1_000_000_000, ge=0)
+    start_azimuth_deg: float | None = Field(None, description="azimuth of the path's start (None: drawn from the seed)")
 
 
 class SimLaserConfig(_Section):
@@ -569,6 +572,21 @@ class RefineConfig(_Section):
     )
 
 
+class SessionConfig(_Section):
+    """A run in or beside a saved map (``loopmodel run --map MAP --mode ...``, issue 20)."""
+
+    mode: Literal["localize", "extend"] = Field(
+        "localize", description="with a map: localize in it (nothing added) or extend it (merged map and mesh)"
+    )
+    # a relocalization in the map that moves a keyframe already in the map's frame by more than this
+    # is taken for a false match and not applied (the tracker's drift between keyframes is mm)
+    max_correction_m: float = Field(0.05, gt=0, description="largest correction of a localized keyframe")
+    max_correction_deg: float = Field(5.0, gt=0, description="largest correction of a localized keyframe")
+    # links between two maps agree when their worldA_from_worldB differ by less than this
+    merge_agree_m: float = Field(0.02, gt=0, description="agreement of two links between maps (translation)")
+    merge_agree_deg: float = Field(2.0, gt=0, description="agreement of two links between maps (rotation)")
+
+
 class Config(_Section):
     """The whole configuration of loopmodel."""
 
@@ -584,6 +602,7 @@ class Config(_Section):
     givens: GivensConfig = Field(default_factory=GivensConfig)
     backend: BackendConfig = Field(default_factory=BackendConfig)
     refine: RefineConfig = Field(default_factory=RefineConfig)
+    session: SessionConfig = Field(default_factory=SessionConfig)
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

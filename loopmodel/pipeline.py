@@ -32,7 +32,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -51,6 +51,10 @@ from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
 from loopmodel.stages import LoopConstraint, LoopStage, MapState, NullLoopStage
 from loopmodel.types import StereoCalibration, Trajectory
+
+if TYPE_CHECKING:
+    from loopmodel.loop.localize import MapLocalizationStage
+    from loopmodel.loop.session_map import ResumePoint, SessionMap
 
 logger = logging.getLogger(__name__)
 
@@ -179,19 +183,67 @@ def _loop_stage(config: Config, calibration: StereoCalibration) -> LoopStage:
     return LoopClosingStage.from_config(config.loop, calibration)
 
 
+def _localizer(config: Config, calibration: StereoCalibration, base_map: SessionMap | None) -> MapLocalizationStage:
+    """The loop stage of a localization run: every keyframe relocalized in ``base_map``."""
+    from loopmodel.loop.localize import MapLocalizationStage
+
+    assert base_map is not None
+    s = config.session
+    return MapLocalizationStage(base_map, calibration, config.loop, s.max_correction_m, s.max_correction_deg)
+
+
+def localize_config(config: Config) -> Config:
+    """``config`` for localization in a map: the tracker's poses (no back end), no map of its own."""
+    out = config.model_copy(deep=True)
+    out.backend.kind = "none"
+    out.output.write_map = False
+    return out
+
+
+def _prepend_resumed(result: RunResult, resume: ResumePoint) -> None:
+    """The interrupted run's frames and keyframes before the resumed run's first one, then the new ones."""
+
+    def joined(old: Trajectory, new: Trajectory) -> Trajectory:
+        before = old.slice(old.timestamps_ns < resume.timestamp_ns)
+        return Trajectory(
+            np.concatenate([before.timestamps_ns, new.timestamps_ns]),
+            np.concatenate([before.world_from_cam, new.world_from_cam]),
+        )
+
+    result.online = joined(resume.online, result.online)
+    result.final = joined(resume.final, result.final)
+    result.keyframes = joined(resume.keyframes, result.keyframes)
+    old_ids = resume.map.keyframe_ids[:-1]
+    shift = int(resume.map.keyframe_ids.max()) + 1
+    result.keyframe_ids = np.concatenate([old_ids, result.keyframe_ids + shift])
+
+
 class _Run:
     """The stages of one run and what it has produced so far.
 
     :meth:`step` handles one frame whole, :meth:`finish` turns the state into a :class:`RunResult`.
     """
 
-    def __init__(self, sequence: Sequence, config: Config, listeners: list[RunListener]) -> None:
+    def __init__(
+        self,
+        sequence: Sequence,
+        config: Config,
+        listeners: list[RunListener],
+        base_map: SessionMap | None = None,
+        resume: ResumePoint | None = None,
+    ) -> None:
         self.sequence = sequence
+        self.resume = resume  # continue an interrupted run from its last keyframe
+        # a session in a saved map (issue 20): localize in it, or extend it (merged at the end)
+        self.base_map = base_map
+        self.mode = config.session.mode if base_map is not None else None
+        config = localize_config(config) if self.mode == "localize" else config
         self.config = config
         self.listeners = listeners
         self.frontend = FrontEnd(sequence.calibration, config.frontend)
         self.backend: Backend = create_backend(config.backend, self.frontend.calibration, config.givens)
-        self.loop = _loop_stage(config, self.frontend.calibration)
+        self.localizer = _localizer(config, self.frontend.calibration, base_map) if self.mode == "localize" else None
+        self.loop: LoopStage = self.localizer or _loop_stage(config, self.frontend.calibration)
         # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
         # placed with them (the stripe map follows every change of the anchored poses)
         self.anchored = AnchoredTrajectory()
@@ -205,6 +257,9 @@ class _Run:
         self.tracked_links: dict[int, tuple[int, F64]] = {}
         self.backend_ms: list[float] = []
         self.frame_ms: list[float] = []
+        # for the session map (issue 20): keyframes with their images, the loop constraints
+        self.map_keyframes: dict[int, Keyframe] = {}
+        self.loop_constraints: list[LoopConstraint] = []
         self._last_ms = 0.0
         self._last_ids: tuple[int | None, ...] = ()
         self.t_start = time.perf_counter()
@@ -222,8 +277,9 @@ class _Run:
             logger.info("frame %d LOST: %s", frame.index, res.reason)
         kf = res.keyframe
         if kf is not None:
-            self._keyframe_step(kf, res)
-            res = dataclasses.replace(res, keyframe=None)  # do not hold every keyframe image
+            world_from_cam = self._keyframe_step(kf, res) @ res.kf_from_cam
+            # do not hold every keyframe image; a resumed run's first pose is the old keyframe's
+            res = dataclasses.replace(res, keyframe=None, world_from_cam=world_from_cam)
         self.frames.append(res)
         if res.ok:
             self.anchored.add_frame(res.timestamp_ns, kf_id=res.keyframe_id, kf_from_cam=res.kf_from_cam)
@@ -245,12 +301,26 @@ class _Run:
     def _state(self) -> MapState:
         return MapState(self.frontend.world_from_kf, self._last_ms, self._last_ids)
 
-    def _keyframe_step(self, kf: Keyframe, res: FrameResult) -> None:
-        """Loop closing, then the back end.
+    def skips(self, frame: Any) -> bool:
+        """Whether a resumed run skips this frame (before the interrupted run's last keyframe)."""
+        return self.resume is not None and int(frame.timestamp_ns) < self.resume.timestamp_ns
+
+    def _resumed(self, kf: Keyframe) -> Keyframe:
+        """A resumed run's first keyframe at the pose of the interrupted run's last one."""
+        if self.resume is None or self.keyframes:
+            return kf
+        pose = self.resume.world_from_kf
+        self.frontend.apply_correction({kf.id: pose})
+        return dataclasses.replace(kf, world_from_kf=pose.copy())
+
+    def _keyframe_step(self, kf: Keyframe, res: FrameResult) -> F64:
+        """Loop closing, then the back end; returns the keyframe's pose as the frame had it.
 
         The keyframe is recorded last, once the map holds it, so an interruption never leaves it
         half registered.
         """
+        kf = self._resumed(kf)
+        tracked_pose = res.world_from_cam if self.resume is None or self.keyframes else kf.world_from_kf
         out = self.loop.on_keyframe(kf, self._state())
         kf = out.keyframe
         self.anchored.set_keyframe(kf.id, kf.world_from_kf)
@@ -267,16 +337,20 @@ class _Run:
         if kf.connected and kf.prev_keyframe_id is not None and kf.kf_prev_from_kf_tracked is not None:
             self.tracked_links[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf_tracked)
         self.keyframes[kf.id] = kf.timestamp_ns
+        if self.config.output.write_map:
+            self.map_keyframes[kf.id] = kf
         for listener in self.listeners:
             if out.events:
                 listener.on_loop_events(out.events)
             listener.on_keyframe(kf, res)
+        return np.asarray(tracked_pose)
 
     def _add_constraints(self, constraints: list[LoopConstraint]) -> tuple[int | None, ...]:
         ids: list[int | None] = []
         for c in constraints:
             try:
                 ids.append(int(self.backend.add_loop_constraint(c.kf_a, c.kf_b, c.a_from_b)))
+                self.loop_constraints.append(c)
             except LoopmodelError as exc:  # e.g. a back end without relative-pose factors
                 logger.info("loop %d -> %d: no loop constraint (%s)", c.kf_a, c.kf_b, exc)
                 ids.append(None)
@@ -342,6 +416,8 @@ class _Run:
         )
         if estimate is not None:
             result.landmark_ids, result.landmarks_in_world = estimate.landmark_ids, estimate.landmarks_in_world
+        if self.resume is not None:
+            _prepend_resumed(result, self.resume)
         final_refine_s = time.perf_counter() - t_final
         last_ns = self.frames[-1].timestamp_ns if self.frames else None
         result.stripes = run_stripes(self.sequence, last_ns, self.config.mapping)
@@ -350,9 +426,110 @@ class _Run:
         )
         result.live_mesh = self.live.mesh()
         result.metrics = self._metrics(result, wall, final_refine_s, mesh_metrics)
+        result.session_map = self._session_map(result)
+        if self.localizer is not None:
+            self._localization(result, self.localizer)
+        if self.mode == "extend":
+            self._extend(result)
         for listener in self.listeners:
             listener.on_finish(result)
         return result
+
+    def _session_map(self, result: RunResult) -> SessionMap | None:
+        """The run's map for later sessions (``output.write_map``; None without keyframes or when it fails)."""
+        if not self.config.output.write_map or not self.map_keyframes:
+            return None
+        from loopmodel.config import dump_config, pipeline_sections
+        from loopmodel.loop.session_map import MapInputs, build_session_map
+        from loopmodel.mapping.final import anchor_stripes
+
+        poses = self.anchored.keyframe_poses
+        kfs = [self.map_keyframes[k] for k in sorted(self.map_keyframes)]
+        frames = [f for f in self.frames if f.ok]
+        anchors = anchor_stripes(
+            result.stripes,
+            result.final,
+            np.array([f.timestamp_ns for f in frames], np.int64),
+            np.array([f.keyframe_id for f in frames], np.int64),
+            poses,
+            self.config.mapping,
+        )
+        inputs = MapInputs(
+            self.frontend.calibration,
+            kfs,
+            {k: poses[k] for k in self.map_keyframes if k in poses},
+            result.landmark_ids,
+            result.landmarks_in_world,
+            [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints],
+            anchors,
+            dump_config(self.config, pipeline_sections()),
+            {"sequence": str(self.sequence.path)},
+        )
+        try:
+            smap = build_session_map(inputs, self.config.loop)
+        except LoopmodelError as exc:
+            logger.error("no session map: %s", exc)
+            return None
+        if self.resume is not None:
+            from loopmodel.loop.merge import append_session
+
+            smap = append_session(self.resume.map, smap)
+        return smap
+
+    def _localization(self, result: RunResult, localizer: MapLocalizationStage) -> None:
+        """Per-frame status in the map (``MAP``, ``OWN`` frame, ``LOST``) and the frames localized in it."""
+        status = [
+            "LOST" if not f.ok else ("MAP" if localizer.in_map.get(f.keyframe_id, False) else "OWN")
+            for f in self.frames
+        ]
+        in_map = {f.timestamp_ns for f, st in zip(self.frames, status, strict=True) if st == "MAP"}
+        result.localized = result.final.slice(np.isin(result.final.timestamps_ns, list(in_map)))
+        m = result.metrics
+        m["localization_status"] = status
+        m["localized_frames"] = len(in_map)
+        if not localizer.events:
+            logger.warning("never relocalized in the map: the poses are in this session's own frame")
+        gt = self.sequence.ground_truth
+        m.update({k + "_localized": v for k, v in _ground_truth_errors(result.localized, gt).items()})
+
+    def _extend(self, result: RunResult) -> None:
+        """The session's map merged into the base map; the mesh of both sessions' stripes.
+
+        A session that shares no view with the map says so and keeps its own frame and map.
+        """
+        from loopmodel.errors import InputError
+        from loopmodel.loop.merge import merge_maps
+        from loopmodel.mapping.final import posed_stripes_mesh
+
+        assert self.base_map is not None
+        if result.session_map is None:
+            logger.warning("no map of this session: nothing to merge")
+            return
+        s = self.config.session
+        try:
+            merged, report = merge_maps(
+                self.base_map, result.session_map, self.config.loop, s.merge_agree_m, s.merge_agree_deg
+            )
+        except InputError as exc:
+            logger.warning("session not merged, it keeps its own frame: %s", exc)
+            result.metrics["merged"] = False
+            return
+        result.session_map = merged
+        T = report.world_a_from_world_b
+        result.final = Trajectory(result.final.timestamps_ns, T[None] @ result.final.world_from_cam)
+        result.keyframes = Trajectory(result.keyframes.timestamps_ns, T[None] @ result.keyframes.world_from_cam)
+        stripes, poses = merged.stripes_with_poses()
+        result.mesh = posed_stripes_mesh(stripes, poses, self.config.mapping)
+        result.metrics.update(
+            {
+                "merged": True,
+                "merge_links": report.links,
+                "merge_candidates": report.candidates,
+                "merge_offset_m": report.offset_m,
+                "merge_offset_deg": report.offset_deg,
+                "merged_keyframes": len(merged),
+            }
+        )
 
     def _metrics(
         self, result: RunResult, wall_s: float, final_refine_s: float, mesh_metrics: dict[str, Any]
@@ -389,6 +566,8 @@ def process(
     max_frames: int | None = None,
     listeners: list[RunListener] | None = None,
     stop: StopFlag | None = None,
+    base_map: SessionMap | None = None,
+    resume: ResumePoint | None = None,
 ) -> RunResult:
     """Reader -> front end -> loop closing -> back end -> mapping, writing nothing.
 
@@ -396,8 +575,10 @@ def process(
     between frames) or a ``KeyboardInterrupt`` arrives (the last two: ``interrupted``). An
     error while processing a frame ends the run too: the result of the frames before it is
     returned with the error in ``error`` (and ``metrics["stopped_by"]``), for the caller to
-    raise once it has kept what it wants."""
-    run = _Run(sequence, config, listeners or [])
+    raise once it has kept what it wants. With ``base_map`` the session localizes in that map or
+    extends it (``config.session.mode``); with ``resume`` it continues an interrupted run from its
+    last keyframe (frames before it are skipped and keep the interrupted run's poses)."""
+    run = _Run(sequence, config, listeners or [], base_map, resume)
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     stop = stop if stop is not None else StopFlag()
     logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
@@ -431,6 +612,8 @@ def _frame_loop(
                 break
             if stop.is_set():
                 return True, None
+            if run.skips(frame):
+                continue
             run.step(frame)
             if progress is not None:
                 el = time.perf_counter() - run.t_start
@@ -468,6 +651,8 @@ def run_pipeline(
     max_frames: int | None = None,
     listeners: list[RunListener] | None = None,
     handle_signals: bool = True,
+    base_map: SessionMap | None = None,
+    resume: ResumePoint | None = None,
 ) -> RunResult:
     """:func:`process` the sequence and write the results folder ``<out_dir>/<name>/``.
 
@@ -481,10 +666,14 @@ def run_pipeline(
     ``metrics.json`` lists each closure under ``loop_events``. With ``handle_signals``
     Ctrl-C or SIGTERM stops the run after the current frame; everything up to it is
     written, then ``KeyboardInterrupt`` is raised (an error ending the run early is raised
-    after the write as well).
+    after the write as well). With ``base_map`` (a loaded
+    :class:`~loopmodel.loop.session_map.SessionMap`) the session localizes in it or extends it
+    (``config.session.mode``); with ``resume`` (:func:`~loopmodel.loop.session_map.read_resume_point`)
+    it continues an interrupted run from its last keyframe.
     """
     folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
     kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
+    kwargs.update(base_map=base_map, resume=resume)
     result = _process_and_write(folder, sequence, config, handle_signals, **kwargs)
     if result.error is not None:
         raise result.error
@@ -561,10 +750,11 @@ def run_frontend(
 
 
 def frontend_only(config: Config) -> Config:
-    """``config`` for a front-end-only run: no back end, no loop closing, no meshes."""
+    """``config`` for a front-end-only run: no back end, no loop closing, no meshes, no session map."""
     fe_config = config.model_copy(deep=True)
     fe_config.backend.kind = "none"
     fe_config.loop.enabled = False
     fe_config.mapping.write_mesh = False
     fe_config.mapping.live_mesh_every_kf = 0
+    fe_config.output.write_map = False
     return fe_config

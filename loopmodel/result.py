@@ -20,6 +20,8 @@ from loopmodel.types import StripeProfile, Trajectory
 if TYPE_CHECKING:
     import open3d as o3d
 
+    from loopmodel.loop.session_map import SessionMap
+
 
 def _empty_trajectory() -> Trajectory:
     return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
@@ -39,7 +41,9 @@ class RunResult:
     (open3d meshes, world frame, metres; None without); ``metrics`` for ``metrics.json``;
     ``interrupted``: stopped early on request; ``error``: the error that ended it early (the
 result covers the frames before it); ``log``: the run's log lines (``run.log``); ``folder``: where it was written, if it
-    was. Poses are ``world_from_cam`` of the left camera, the world being the first
+    was; ``session_map``: the map a later session can localize in (``output.write_map``; merged with the
+    base map when extending one); ``localized``: the frames localized in a base map (its world).
+    Poses are ``world_from_cam`` of the left camera, the world being the first
     keyframe's frame.
     """
 
@@ -59,6 +63,8 @@ result covers the frames before it); ``log``: the run's log lines (``run.log``);
     error: Exception | None = None
     log: str = ""
     folder: Path | None = None
+    session_map: SessionMap | None = None
+    localized: Trajectory | None = None
 
     def map_arrays(self) -> dict[str, NDArray[Any]]:
         """``map.npz`` content: keyframe ids, times and poses; landmark ids and world points."""

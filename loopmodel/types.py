@@ -118,6 +118,18 @@ class StripeProfile:
     points_in_cam: NDArray[np.float64]
 
 
+@dataclass
+class StripeAnchors:
+    """Stripe profiles anchored to keyframes: their keyframe ids (S,) and ``kf_from_cam`` (S, 4, 4, metres).
+
+    The sensor pose of stripe ``s`` is ``world_from_kf[kf_ids[s]] @ kf_from_cam[s]``.
+    """
+
+    stripes: list[StripeProfile]
+    kf_ids: NDArray[np.int64]
+    kf_from_cam: NDArray[np.float64]
+
+
 TrackingStatus = Literal["OK", "LOST"]
 """A frame's tracking state: ``OK`` (pose measured) or ``LOST`` (only the motion model)."""
 

@@ -109,5 +109,7 @@ vvs_app.command("render")(vvs_render)
 
 vvs_app.command("track")(vvs_track)
 
+from loopmodel.cli.map import map_app  # noqa: E402, F401  (loopmodel map info|merge)
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

@@ -128,11 +128,22 @@ def run(
     rerun_spawn: RerunSpawnOption = False,
     rerun_connect: RerunConnectOption = None,
     calib: CalibOption = None,
+    base_map: Annotated[
+        Path | None, typer.Option("--map", help="Saved map (RESULTS_DIR or RESULTS_DIR/map) to localize in or extend")
+    ] = None,
+    mode: Annotated[
+        str | None, typer.Option("--mode", help="With --map: localize (nothing added) or extend (merged map, mesh)")
+    ] = None,
+    resume: Annotated[
+        Path | None, typer.Option("--resume", help="Continue the interrupted run RESULTS_DIR from its last keyframe")
+    ] = None,
 ) -> None:
     """Process a sequence (front end, back end).
 
     Writes config, trajectories, keyframes, map, metrics and log into <out>/<name>/. Ctrl-C or
-    SIGTERM stops it after writing what it has.
+    SIGTERM stops it after writing what it has. With --map the run localizes in a saved map
+    (trajectory_in_map.tum, per-frame status in metrics.json) or extends it (map/ is the merged map,
+    mesh.ply the mesh of both sessions).
     """
     from rich.progress import TextColumn as _Text
 
@@ -141,7 +152,24 @@ def run(
 
     if max_frames is not None and max_frames < 1:
         raise InputError("--max-frames", f"must be at least 1, got {max_frames}")
+    resume_point = None
+    if resume is not None:
+        from loopmodel.loop.session_map import read_resume_point
+
+        resume_point = read_resume_point(resume)
+        out, name = resume.parent, name or resume.name
+        if config is None and (resume / "config.yaml").is_file():
+            config = resume / "config.yaml"  # the interrupted run's configuration
     cfg = load_config(config)
+    if mode is not None:
+        if base_map is None:
+            raise InputError("--mode", "needs --map")
+        cfg = apply_overrides(cfg, {"session.mode": mode}, {"session.mode": "--mode"})
+    session_map = None
+    if base_map is not None:
+        from loopmodel.loop.session_map import SessionMap
+
+        session_map = SessionMap.load(base_map)
     seq = open_sequence(path, cfg.sequence, left, right, calib)
     if getattr(seq, "choice", None):
         console.print(f"{seq.format_name}: {seq.choice}")  # type: ignore[attr-defined]
@@ -178,6 +206,8 @@ def run(
                 max_frames=max_frames,
                 progress=lambda i, n, fps, kf: bar.update(task, completed=i, fps=fps, kf=kf),
                 listeners=rerun_listeners(seq.calibration, rerun, rerun_spawn, rerun_connect),
+                base_map=session_map,
+                resume=resume_point,
             )
         except KeyboardInterrupt:
             err_console.print(f"results up to the last processed frame are in {folder}")
@@ -202,16 +232,33 @@ def run(
     if "ate_rmse_m" in m:
         rows.append(("ATE online / final", f"{_length(m['ate_rmse_m_online'])} / {_length(m['ate_rmse_m'])}"))
         rows.append(("drift final [%]", m["drift_pct"]))
+    rows += _session_rows(m)
     for k, v in rows:
         table.add_row(k, _fmt(v))
     console.print(table)
     console.print(f"results in {result.folder}")
 
 
+def _session_rows(m: dict[str, Any]) -> list[tuple[str, Any]]:
+    """Rows of a run in a saved map (localize or extend)."""
+    rows: list[tuple[str, Any]] = []
+    if "localized_frames" in m:
+        first = m.get("map_first_localized_frame")
+        rows.append(("localized in the map", f"{m['localized_frames']} frames (first at frame {_fmt(first)})"))
+        if not m.get("map_localized"):
+            rows.append(("map", "never relocalized: poses in this session's own frame"))
+    if "merged" in m:
+        rows.append(
+            ("merged with the map", f"{m.get('merge_links')} links" if m["merged"] else "no shared view: not merged")
+        )
+    return rows
+
+
 @app.command()
 def mesh(
     source: Annotated[
-        Path, typer.Argument(help="Results folder (stripes.npz + trajectory) or a sequence with ground truth")
+        Path,
+        typer.Argument(help="Results folder (stripes.npz + trajectory), session map, or a sequence with ground truth"),
     ],
     fmt: Annotated[str, typer.Option("--format", "-f", help="ply (binary), obj, stl or glb")] = "ply",
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output file (default RESULTS_DIR/mesh.FMT)")] = None,
@@ -228,7 +275,7 @@ def mesh(
     ] = True,
     config: ConfigOption = None,
 ) -> None:
-    """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run)."""
+    """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run), or of a (merged) map."""
     from loopmodel.io.mesh_io import MESH_FORMATS, read_mesh, write_mesh
     from loopmodel.mapping.sources import load_stripes_and_poses
     from loopmodel.mapping.stripe_map import StripeMap
@@ -237,15 +284,28 @@ def mesh(
     if fmt not in MESH_FORMATS:
         raise InputError(None, f"--format must be one of {', '.join(MESH_FORMATS)}, got '{fmt}'")
     cfg = load_config(config)
-    stripes, traj, poses = load_stripes_and_poses(source, trajectory, cfg.sequence, cfg.mapping)
-    smap = StripeMap.from_trajectory(traj, stripes, cfg.mapping)
-    smap.check_nonempty()
-    surface = smap.mesh()
+    if (source / "map.json").is_file():  # a saved (merged) session map: its stripes at their anchors
+        from loopmodel.loop.session_map import SessionMap
+        from loopmodel.mapping.final import posed_stripes_mesh
+
+        session_map = SessionMap.load(source)
+        map_stripes, map_poses = session_map.stripes_with_poses()
+        surface = posed_stripes_mesh(map_stripes, map_poses, cfg.mapping)
+        if surface is None:
+            raise InputError(source, "the map holds no laser stripes to mesh")
+        sessions = len(set(session_map.session.tolist()))
+        placed, poses = f"{len(map_stripes)} stripes", f"map keyframes of {sessions} sessions"
+    else:
+        stripes, traj, poses = load_stripes_and_poses(source, trajectory, cfg.sequence, cfg.mapping)
+        smap = StripeMap.from_trajectory(traj, stripes, cfg.mapping)
+        smap.check_nonempty()
+        surface = smap.mesh()
+        placed = f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes"
     target = out or (source / f"mesh.{fmt}" if source.is_dir() else source.with_name(f"{source.stem}_mesh.{fmt}"))
     write_mesh(target, surface, fmt)
     console.print(
         f"wrote {target} ({len(surface.vertices)} vertices, {len(surface.triangles)} triangles, "
-        f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes, poses: {poses})"
+        f"{placed}, poses: {poses})"
     )
     truth = read_mesh(gt_mesh, gt_attachment) if gt_mesh is not None else None
     if truth is not None:

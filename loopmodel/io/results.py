@@ -137,10 +137,10 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
     """Write a run into ``folder``, the small files first.
 
     ``config.yaml`` (the pipeline's configuration), ``trajectory_online.tum``,
-    ``trajectory_final.tum``, ``keyframes.tum`` (KITTI variants of the first two when
-    ``output.write_kitti``), ``map.npz``, ``metrics.json``, ``run.log``, then ``stripes.npz`` (when
-    the run has laser profiles), ``mesh.ply`` and ``mesh_live.ply`` (when made). Returns the
-    folder's path.
+    ``trajectory_final.tum``, ``keyframes.tum``, ``trajectory_in_map.tum`` (frames localized in a
+    base map), KITTI variants of the first two (when ``output.write_kitti``), ``map.npz``,
+    ``metrics.json``, ``run.log``, then ``stripes.npz`` (when the run has laser profiles), the
+    session map folder ``map/`` (when made), ``mesh.ply`` and ``mesh_live.ply`` (when made). Returns the folder's path.
 
     A staged folder (:class:`ResultsFolder`) replaces the older run's folder once the small
     files through ``run.log`` are written, even when a large file then fails (a full disk:
@@ -151,6 +151,8 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
         folder.write_trajectory("trajectory_online.tum", run.online)
         folder.write_trajectory("trajectory_final.tum", run.final)
         folder.write_trajectory("keyframes.tum", run.keyframes)
+        if run.localized is not None:
+            folder.write_trajectory("trajectory_in_map.tum", run.localized)
         if run.config.output.write_kitti:
             folder.write_trajectory("trajectory_online.kitti", run.online, "kitti")
             folder.write_trajectory("trajectory_final.kitti", run.final, "kitti")
@@ -165,6 +167,8 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
             from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
 
             save_stripes(folder.file(STRIPES_FILE), run.stripes)
+        if run.session_map is not None:
+            run.session_map.save(folder.file("map"))
         for name, mesh in (("mesh.ply", run.mesh), ("mesh_live.ply", run.live_mesh)):
             if mesh is not None:
                 from loopmodel.io.mesh_io import write_mesh

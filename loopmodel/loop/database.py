@@ -166,6 +166,20 @@ class KeyframeDatabase:
             self._matrix = None
         self._maybe_train()
 
+    def add_precomputed(self, kf_id: int, features: FeatureSet, words: I64, bow_ids: I64, bow_w: F64) -> None:
+        """Store a keyframe with its words and bag of words already computed (a saved map's).
+
+        Needs the vocabulary they were computed with; ids must increase; never retrains.
+        """
+        if self.vocabulary is None:
+            raise EstimationError("a keyframe with precomputed words needs the database's vocabulary")
+        if self._entries and kf_id <= self._entries[-1].kf_id:
+            raise EstimationError(f"keyframe ids must increase: {kf_id} after {self._entries[-1].kf_id}")
+        self._trained_on_the_fly = False
+        self._index[kf_id] = len(self._entries)
+        self._entries.append(_Entry(kf_id, features, np.asarray(words, np.int64), bow_ids, bow_w))
+        self._matrix = None
+
     def _csr(self) -> Any:
         if self._matrix is None:
             import scipy.sparse as sp  # about 0.3 s to import: not with the pipeline

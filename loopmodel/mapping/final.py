@@ -7,16 +7,17 @@ the final trajectory, with its accuracy when the sequence carries a ground-truth
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from loopmodel.config import MappingConfig
 from loopmodel.errors import LoopmodelError
 from loopmodel.io.base import Sequence
 from loopmodel.mapping.extraction import sequence_stripe_count, sequence_stripes
-from loopmodel.types import StripeProfile, Trajectory
+from loopmodel.types import StripeAnchors, StripeProfile, Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -108,3 +109,71 @@ def final_mesh(
     except LoopmodelError as exc:
         logger.error("no mesh accuracy: %s", exc)
     return surface, out
+
+
+def anchor_stripes(
+    stripes: list[StripeProfile],
+    final: Trajectory,
+    frame_times_ns: NDArray[np.int64],
+    frame_keyframes: NDArray[np.int64],
+    world_from_kf: Mapping[int, NDArray[np.float64]],
+    config: MappingConfig,
+) -> StripeAnchors:
+    """Each stripe placed with ``final``, anchored to the keyframe of its nearest tracked frame.
+
+    ``frame_times_ns`` / ``frame_keyframes``: the tracked frames and their keyframe ids;
+    ``kf_from_cam`` of a stripe is its sensor pose in that keyframe's frame (metres). Stripes the
+    trajectory does not reach are left out.
+    """
+    from loopmodel.geometry.se3 import invert_pose
+    from loopmodel.mapping.stripe_map import StripeMap
+
+    none = StripeAnchors([], np.zeros(0, np.int64), np.zeros((0, 4, 4)))
+    if not stripes or len(final) < 2 or frame_times_ns.size == 0:
+        return none
+    smap = StripeMap.from_trajectory(final, stripes, config)
+    kept = [s for s in stripes if np.asarray(s.points_in_cam).size]  # as from_trajectory keeps them
+    placed = smap.placed_mask
+    poses = smap.stripe_poses()
+    order = np.argsort(frame_times_ns)
+    times, kfs = frame_times_ns[order], frame_keyframes[order]
+    out_s: list[StripeProfile] = []
+    out_k: list[int] = []
+    out_T: list[NDArray[np.float64]] = []
+    for s, ok, T in zip(kept, placed, poses, strict=True):
+        if not ok:
+            continue
+        j = int(np.clip(np.searchsorted(times, s.timestamp_ns), 1, times.size - 1)) if times.size > 1 else 0
+        if times.size > 1 and abs(times[j - 1] - s.timestamp_ns) < abs(times[j] - s.timestamp_ns):
+            j -= 1
+        k = int(kfs[j])
+        if k not in world_from_kf:
+            continue
+        out_s.append(s)
+        out_k.append(k)
+        out_T.append(invert_pose(np.asarray(world_from_kf[k])) @ T)
+    if not out_s:
+        return none
+    return StripeAnchors(out_s, np.array(out_k, np.int64), np.stack(out_T))
+
+
+def posed_stripes_mesh(stripes: list[StripeProfile], world_from_cam: NDArray[np.float64], config: MappingConfig) -> Any:
+    """The mesh (open3d, world frame) of stripes placed at their own sensor poses (S, 4, 4); None without.
+
+    Stripes of several sessions may share times: each gets its own pose.
+    """
+    from loopmodel.mapping.stripe_map import StripeMap
+
+    keep = [i for i, s in enumerate(stripes) if np.asarray(s.points_in_cam).size]
+    if len(keep) < 2:
+        return None
+    stamps = np.arange(len(keep), dtype=np.int64) * 1000
+    traj = Trajectory(stamps, world_from_cam[keep])
+    retimed = [StripeProfile(int(t), stripes[i].points_in_cam) for t, i in zip(stamps, keep, strict=True)]
+    try:
+        smap = StripeMap.from_trajectory(traj, retimed, config)
+        smap.check_nonempty()
+        return smap.mesh()
+    except LoopmodelError as exc:
+        logger.error("no mesh of the map: %s", exc)
+        return None

@@ -137,7 +137,8 @@ def calibration_of(cfg: SimulationConfig) -> StereoCalibration:
 def scene_of(cfg: SimulationConfig) -> Scene:
     """The scene of the configuration (deterministic in the seed)."""
     s = cfg.scene
-    return build_scene(s.kind, cfg.seed, s.object_height_m, s.room, s.texture_size_px)
+    seed = cfg.seed if s.seed is None else s.seed  # two sessions of one object share it (issue 20)
+    return build_scene(s.kind, seed, s.object_height_m, s.room, s.texture_size_px)
 
 
 def path_of(cfg: SimulationConfig) -> HandheldPath:
@@ -155,6 +156,7 @@ def path_of(cfg: SimulationConfig) -> HandheldPath:
         tr.shake_rotation_deg,
         cfg.realism.pace if realistic(cfg) else "smooth",
         cfg.realism.revisit_offset_m if realistic(cfg) else 0.0,
+        tr.start_azimuth_deg,
     )
 
 

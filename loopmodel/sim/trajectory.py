@@ -62,6 +62,7 @@ class HandheldPath:
         shake_rotation_deg: float = 0.3,
         pace: str = "smooth",
         revisit_offset_m: float = 0.0,
+        start_azimuth_deg: float | None = None,
     ) -> None:
         if kind not in KINDS:
             raise ValueError(f"unknown trajectory kind {kind!r}; expected one of {KINDS}")
@@ -75,6 +76,8 @@ class HandheldPath:
         self.sweeps = int(sweeps)
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), 5]))
         self.phi0 = float(rng.uniform(-np.pi, np.pi))
+        if start_azimuth_deg is not None:  # a chosen start (a second session 90 deg around, issue 20)
+            self.phi0 = float(np.radians(start_azimuth_deg))
         self._wobble = rng.uniform(0, 2 * np.pi, size=6)
         self._shake = _Shake(rng, 6)
         self.shake_translation_m = float(shake_translation_m)

@@ -1,0 +1,69 @@
+"""``loopmodel map``: describe a session map, merge two maps (issue 20)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.table import Table
+
+from loopmodel.cli.common import ConfigOption, _fmt, app, console
+from loopmodel.config import load_config
+
+map_app = typer.Typer(help="Session maps: describe, merge.", no_args_is_help=True)
+
+app.add_typer(map_app, name="map")
+
+MapArgument = Annotated[Path, typer.Argument(help="Map folder (a run's RESULTS_DIR/map, or the results folder)")]
+
+
+@map_app.command("info")
+def map_info(
+    path: MapArgument,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table")] = False,
+) -> None:
+    """Describe a map: keyframes, sessions, features, vocabulary, landmarks, pose graph, stripes, size."""
+    import time
+
+    from loopmodel.io.map_file import map_folder, map_size_bytes
+    from loopmodel.loop.session_map import SessionMap
+
+    t0 = time.perf_counter()
+    smap = SessionMap.load(path)
+    desc = {
+        "map": str(map_folder(path)),
+        **smap.summary(),
+        "size_mib": map_size_bytes(path) / 2**20,
+        "load_s": time.perf_counter() - t0,
+    }
+    if as_json:
+        console.print_json(json.dumps(desc))
+        return
+    table = Table(title=str(path), show_header=False)
+    for k, v in desc.items():
+        table.add_row(k, _fmt(v) if not isinstance(v, dict) else ", ".join(f"{a}: {_fmt(b)}" for a, b in v.items()))
+    console.print(table)
+
+
+@map_app.command("merge")
+def map_merge(
+    first: Annotated[Path, typer.Argument(help="Map A (its world is the merged map's)")],
+    second: Annotated[Path, typer.Argument(help="Map B (moved into A's world)")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Merged map folder to write")],
+    config: ConfigOption = None,
+) -> None:
+    """Merge map B into map A: place recognition finds where they share a view, then a joint optimisation."""
+    from loopmodel.loop.merge import merge_maps
+    from loopmodel.loop.session_map import SessionMap
+
+    cfg = load_config(config)
+    a, b = SessionMap.load(first), SessionMap.load(second)
+    merged, report = merge_maps(a, b, cfg.loop)
+    merged.save(out)
+    console.print(
+        f"wrote {out}: {len(merged)} keyframes ({len(a)} + {len(b)}), "
+        f"{report.links} links between the maps ({report.candidates} candidates), "
+        f"B moved by {report.offset_m:.3f} m / {report.offset_deg:.2f} deg"
+    )

@@ -1,0 +1,648 @@
+"""A session's map: what a later session needs to localize in it, extend it or merge with it (issue 20).
+
+Per keyframe: id, time, pose ``world_from_kf`` (left camera, metres), ``rect_from_cam``, the
+session it came from, its stereo landmarks (ids, points in the keyframe frame, rectified stereo
+pixels), its rectified left image (PNG, decoded only when a stage needs it: re-detection, KLT)
+and its loop-closing feature set (keypoints, descriptors, 3-D points in the rectified keyframe
+frame, landmark ids) of the configured descriptor kind, with the vocabulary and every keyframe's
+bag of words (the rows of the inverted file). The map also holds the landmarks in the world, the
+pose graph (odometry and loop constraints ``kf_a_from_kf_b``), the laser stripes anchored to
+keyframes (``kf_from_cam`` of the stripe's sensor pose), the stereo calibration of the keyframes'
+pixels, and the configuration of the run that made it.
+
+Arrays are stored columnar (offsets per keyframe), so a 1,000-keyframe map loads in a second or
+two; the file is :mod:`loopmodel.io.map_file`'s.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from loopmodel.config import LoopConfig
+from loopmodel.errors import InputError
+from loopmodel.io.map_file import MapFileData, read_map_file, write_map_file
+from loopmodel.loop.database import KeyframeDatabase, PlaceParams
+from loopmodel.loop.features import FeatureSet
+from loopmodel.loop.vocabulary import Vocabulary, shipped_vocabulary
+from loopmodel.types import Keyframe, StereoCalibration, StripeAnchors, StripeProfile, Trajectory
+
+logger = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+#: Pose-graph edge kinds.
+EDGE_ODOMETRY, EDGE_LOOP, EDGE_SESSIONS = 0, 1, 2
+
+
+@dataclass
+class PackedFeatures:
+    """The loop-closing feature sets of every keyframe of one descriptor kind, concatenated.
+
+    ``offsets`` (N+1,) into the feature rows; ``words`` (F,) each feature's vocabulary word;
+    ``bow_offsets`` (N+1,), ``bow_words``, ``bow_weights``: each keyframe's TF-IDF bag of words (the
+    inverted file's rows)."""
+
+    kind: str
+    offsets: I64
+    keypoints_px: F64
+    descriptors: NDArray[Any]
+    points_in_kf: F64
+    ids: I64
+    laplacian: NDArray[np.int8]
+    words: I64
+    bow_offsets: I64
+    bow_words: I64
+    bow_weights: F64
+    vocabulary: Vocabulary
+
+    def feature_set(self, i: int) -> FeatureSet:
+        """Keyframe ``i``'s (row index) feature set (views of the arrays)."""
+        a, b = int(self.offsets[i]), int(self.offsets[i + 1])
+        return FeatureSet(
+            self.keypoints_px[a:b],
+            self.descriptors[a:b],
+            self.kind,
+            self.points_in_kf[a:b],
+            self.ids[a:b],
+            self.laplacian[a:b],
+        )
+
+    @staticmethod
+    def pack(kind: str, sets: Sequence[FeatureSet], vocabulary: Vocabulary) -> PackedFeatures:
+        """Concatenate feature sets (one per keyframe, in row order) with their words and bags."""
+        dim = sets[0].descriptors.shape[1] if sets else (32 if kind == "orb" else 128)
+        dtype = sets[0].descriptors.dtype if sets else (np.uint8 if kind == "orb" else np.float32)
+        words = [vocabulary.transform(s.descriptors) for s in sets]
+        bows = [vocabulary.bow(words=w) for w in words]
+
+        def cat(parts: list[NDArray[Any]], shape: tuple[int, ...], dt: Any) -> NDArray[Any]:
+            return np.concatenate(parts) if parts else np.zeros(shape, dt)
+
+        return PackedFeatures(
+            kind,
+            _offsets([len(s) for s in sets]),
+            cat([s.keypoints_px for s in sets], (0, 2), float),
+            cat([s.descriptors for s in sets], (0, dim), dtype),
+            cat([s.points_in_kf for s in sets], (0, 3), float),
+            cat([s.ids for s in sets], (0,), np.int64),
+            cat([s.laplacian for s in sets], (0,), np.int8),
+            cat(words, (0,), np.int64),
+            _offsets([b[0].size for b in bows]),
+            cat([b[0] for b in bows], (0,), np.int64),
+            cat([b[1] for b in bows], (0,), float),
+            vocabulary,
+        )
+
+    def subset(self, rows: I64) -> PackedFeatures:
+        """The feature sets of keyframe rows ``rows`` (in that order)."""
+        return _concat_packed([self], [rows])
+
+
+def _offsets(counts: Sequence[int]) -> I64:
+    return np.concatenate([[0], np.cumsum(np.asarray(counts, dtype=np.int64))]).astype(np.int64)
+
+
+def _ranges(offsets: I64, rows: I64) -> I64:
+    """Indices of the items of ``rows`` (each row's ``offsets[r]:offsets[r+1]``), in order."""
+    parts = [np.arange(offsets[r], offsets[r + 1]) for r in rows]
+    return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
+
+
+def _concat_packed(packs: Sequence[PackedFeatures], rows: Sequence[I64]) -> PackedFeatures:
+    """The chosen keyframe rows of several packs (same kind and vocabulary), one after the other."""
+    f_idx = [_ranges(p.offsets, r) for p, r in zip(packs, rows, strict=True)]
+    b_idx = [_ranges(p.bow_offsets, r) for p, r in zip(packs, rows, strict=True)]
+
+    def cat(name: str, idx: list[I64]) -> NDArray[Any]:
+        return np.concatenate([getattr(p, name)[i] for p, i in zip(packs, idx, strict=True)])
+
+    counts = np.concatenate([np.diff(p.offsets)[r] for p, r in zip(packs, rows, strict=True)])
+    bcounts = np.concatenate([np.diff(p.bow_offsets)[r] for p, r in zip(packs, rows, strict=True)])
+    return PackedFeatures(
+        packs[0].kind,
+        _offsets(counts.tolist()),
+        cat("keypoints_px", f_idx),
+        cat("descriptors", f_idx),
+        cat("points_in_kf", f_idx),
+        cat("ids", f_idx),
+        cat("laplacian", f_idx),
+        cat("words", f_idx),
+        _offsets(bcounts.tolist()),
+        cat("bow_words", b_idx),
+        cat("bow_weights", b_idx),
+        packs[0].vocabulary,
+    )
+
+
+@dataclass
+class SessionMap:
+    """A saved map (see the module docstring); row ``i`` of every per-keyframe array is one keyframe.
+
+    Poses ``world_from_kf`` (N, 4, 4) of the left camera, metres, in the map's world (the first
+    session's first keyframe). ``stripe_kf`` / ``stripe_kf_from_cam`` anchor stripe ``s`` to a
+    keyframe id; ``edges`` (E, 2) keyframe ids ``(a, b)`` with ``edge_a_from_b`` (E, 4, 4) and
+    ``edge_kind`` (odometry, loop, between sessions)."""
+
+    calibration: StereoCalibration
+    keyframe_ids: I64
+    timestamps_ns: I64
+    world_from_kf: F64
+    rect_from_cam: F64
+    frame_index: I64
+    session: I64
+    lm_offsets: I64
+    lm_ids: I64
+    lm_points_in_kf: F64
+    lm_stereo_px: F64
+    features: PackedFeatures
+    image_offsets: I64
+    images_png: NDArray[np.uint8]
+    landmark_ids: I64
+    landmarks_in_world: F64
+    edges: I64
+    edge_a_from_b: F64
+    edge_kind: NDArray[np.int8]
+    stripe_timestamps_ns: I64
+    stripe_offsets: I64
+    stripe_points_in_cam: F64
+    stripe_kf: I64
+    stripe_kf_from_cam: F64
+    config_yaml: str = ""
+    info: dict[str, Any] = field(default_factory=dict)
+
+    # ------------------------------------------------------------------ access
+    def __len__(self) -> int:
+        return int(self.keyframe_ids.size)
+
+    def row_of(self) -> dict[int, int]:
+        """Keyframe id -> row."""
+        return {int(k): i for i, k in enumerate(self.keyframe_ids.tolist())}
+
+    def pose_of(self) -> dict[int, F64]:
+        """Keyframe id -> ``world_from_kf``."""
+        return {int(k): self.world_from_kf[i] for i, k in enumerate(self.keyframe_ids.tolist())}
+
+    def image(self, i: int) -> NDArray[np.uint8]:
+        """Row ``i``'s rectified left grey image (empty when the map has none)."""
+        a, b = int(self.image_offsets[i]), int(self.image_offsets[i + 1])
+        if b <= a:
+            return np.zeros((0, 0), np.uint8)
+        img = cv2.imdecode(self.images_png[a:b], cv2.IMREAD_UNCHANGED)
+        return np.asarray(img, dtype=np.uint8) if img is not None else np.zeros((0, 0), np.uint8)
+
+    def keyframe(self, i: int, with_image: bool = True) -> Keyframe:
+        """Row ``i`` as a :class:`~loopmodel.types.Keyframe` (stereo landmarks, pose, image)."""
+        a, b = int(self.lm_offsets[i]), int(self.lm_offsets[i + 1])
+        return Keyframe(
+            int(self.keyframe_ids[i]),
+            int(self.timestamps_ns[i]),
+            self.world_from_kf[i].copy(),
+            self.lm_ids[a:b],
+            self.lm_points_in_kf[a:b],
+            self.lm_stereo_px[a:b],
+            image=self.image(i) if with_image else np.zeros((0, 0), np.uint8),
+            frame_index=int(self.frame_index[i]),
+            rect_from_cam=self.rect_from_cam[i].copy(),
+            segment=int(self.session[i]),
+        )
+
+    def database(self, params: PlaceParams | None = None) -> KeyframeDatabase:
+        """A place-recognition database of the map's keyframes (its vocabulary and bags of words)."""
+        db = KeyframeDatabase(self.features.vocabulary, params)
+        f = self.features
+        for i, k in enumerate(self.keyframe_ids.tolist()):
+            a, b = int(f.bow_offsets[i]), int(f.bow_offsets[i + 1])
+            lo, hi = int(f.offsets[i]), int(f.offsets[i + 1])
+            db.add_precomputed(int(k), f.feature_set(i), f.words[lo:hi], f.bow_words[a:b], f.bow_weights[a:b])
+        return db
+
+    def stripes_with_poses(self) -> tuple[list[StripeProfile], F64]:
+        """The stripes and their sensor poses ``world_from_cam`` (S, 4, 4) from their anchors."""
+        pose = self.pose_of()
+        out: list[StripeProfile] = []
+        poses = np.empty((self.stripe_kf.size, 4, 4))
+        for s, k in enumerate(self.stripe_kf.tolist()):
+            a, b = int(self.stripe_offsets[s]), int(self.stripe_offsets[s + 1])
+            out.append(StripeProfile(int(self.stripe_timestamps_ns[s]), self.stripe_points_in_cam[a:b]))
+            poses[s] = pose[int(k)] @ self.stripe_kf_from_cam[s]
+        return out, poses
+
+    def summary(self) -> dict[str, Any]:
+        """Plain numbers for ``loopmodel map info``."""
+        sessions, counts = np.unique(self.session, return_counts=True)
+        pos = self.world_from_kf[:, :3, 3]
+        extent = (pos.max(axis=0) - pos.min(axis=0)).tolist() if len(self) else [0.0, 0.0, 0.0]
+        return {
+            "keyframes": len(self),
+            "sessions": {int(s): int(c) for s, c in zip(sessions, counts, strict=True)},
+            "descriptor": self.features.kind,
+            "features": int(self.features.keypoints_px.shape[0]),
+            "vocabulary_words": self.features.vocabulary.n_words,
+            "keyframe_landmarks": int(self.lm_ids.size),
+            "landmarks": int(self.landmark_ids.size),
+            "pose_graph_edges": {
+                "odometry": int(np.sum(self.edge_kind == EDGE_ODOMETRY)),
+                "loop": int(np.sum(self.edge_kind == EDGE_LOOP)),
+                "between_sessions": int(np.sum(self.edge_kind == EDGE_SESSIONS)),
+            },
+            "stripes": int(self.stripe_kf.size),
+            "stripe_points": int(self.stripe_points_in_cam.shape[0]),
+            "images": int(np.sum(np.diff(self.image_offsets) > 0)),
+            "keyframe_extent_m": extent,
+            "calibration": self.calibration.summary(),
+            **{k: v for k, v in self.info.items() if k in ("loopmodel_version", "version", "sequence")},
+        }
+
+    # ------------------------------------------------------------------ file
+    def to_file_data(self) -> MapFileData:
+        """The arrays and the JSON description of the map file."""
+        c = self.calibration
+        f = self.features
+        v = f.vocabulary
+        arrays: dict[str, NDArray[Any]] = {
+            "calib_K_left": c.K_left,
+            "calib_K_right": c.K_right,
+            "calib_right_from_left": c.right_from_left,
+            "calib_dist_left": c.dist_left,
+            "calib_dist_right": c.dist_right,
+            "vocabulary_centers": v.centers,
+            "vocabulary_children": v.children,
+            "vocabulary_word": v.word,
+            "vocabulary_idf": v.idf,
+        }
+        for name in _KF_ARRAYS + _OTHER_ARRAYS:
+            arrays[name] = getattr(self, name)
+        for name in _FEATURE_ARRAYS:
+            arrays[f"features_{name}"] = getattr(f, name)
+        meta = {
+            "calibration": {
+                "image_size": list(c.image_size),
+                "rectified": c.rectified,
+                "camera_model": c.camera_model,
+            },
+            "descriptor": f.kind,
+            "vocabulary_binary": v.binary,
+            "vocabulary_info": v.info,
+            "config_yaml": self.config_yaml,
+            "info": self.info,
+            "keyframes": len(self),
+        }
+        return MapFileData(meta, arrays)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the map folder (atomic)."""
+        return write_map_file(path, self.to_file_data())
+
+    @classmethod
+    def load(cls, path: str | Path) -> SessionMap:
+        """Read a map folder (or a results folder's ``map/``); damaged or newer maps raise InputError."""
+        required = (
+            *_KF_ARRAYS,
+            *_OTHER_ARRAYS,
+            *(f"features_{n}" for n in _FEATURE_ARRAYS),
+            "calib_K_left",
+            "calib_K_right",
+            "calib_right_from_left",
+            "vocabulary_centers",
+            "vocabulary_children",
+            "vocabulary_word",
+            "vocabulary_idf",
+        )
+        data = read_map_file(path, required)
+        try:
+            return cls._from_file_data(data)
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise InputError(path, f"damaged map ({type(exc).__name__}: {exc})") from None
+
+    @classmethod
+    def _from_file_data(cls, data: MapFileData) -> SessionMap:
+        a, m = data.arrays, data.meta
+        cal = m["calibration"]
+        calibration = StereoCalibration(
+            a["calib_K_left"],
+            a["calib_K_right"],
+            a["calib_right_from_left"],
+            tuple(cal["image_size"]),
+            a.get("calib_dist_left", np.zeros(5)),
+            a.get("calib_dist_right", np.zeros(5)),
+            bool(cal["rectified"]),
+            str(cal["camera_model"]),
+        )
+        voc = Vocabulary(
+            a["vocabulary_centers"],
+            a["vocabulary_children"],
+            a["vocabulary_word"],
+            a["vocabulary_idf"],
+            bool(m["vocabulary_binary"]),
+            dict(m.get("vocabulary_info", {})),
+        )
+        fa = {n: a[f"features_{n}"] for n in _FEATURE_ARRAYS}
+        feats = PackedFeatures(kind=str(m["descriptor"]), vocabulary=voc, **fa)
+        kw = {n: a[n] for n in _KF_ARRAYS + _OTHER_ARRAYS}
+        smap = cls(
+            calibration=calibration,
+            features=feats,
+            config_yaml=str(m.get("config_yaml", "")),
+            info={
+                **dict(m.get("info", {})),
+                "loopmodel_version": m.get("loopmodel_version"),
+                "version": m.get("version"),
+            },
+            **kw,
+        )
+        smap.check()
+        return smap
+
+    def check(self) -> None:
+        """Raise ValueError unless the per-keyframe arrays and offsets agree."""
+        n = len(self)
+        for name in ("timestamps_ns", "frame_index", "session"):
+            if getattr(self, name).shape != (n,):
+                raise ValueError(f"{name} has {getattr(self, name).shape[0]} rows, not {n}")
+        for name in ("world_from_kf", "rect_from_cam"):
+            if getattr(self, name).shape != (n, 4, 4):
+                raise ValueError(f"{name} is not ({n}, 4, 4)")
+        for name, off, rows in (
+            ("lm_offsets", self.lm_offsets, self.lm_ids.shape[0]),
+            ("image_offsets", self.image_offsets, self.images_png.shape[0]),
+            ("features_offsets", self.features.offsets, self.features.keypoints_px.shape[0]),
+            ("features_bow_offsets", self.features.bow_offsets, self.features.bow_words.shape[0]),
+            ("stripe_offsets", self.stripe_offsets, self.stripe_points_in_cam.shape[0]),
+        ):
+            size = n + 1 if name != "stripe_offsets" else self.stripe_kf.size + 1
+            if off.shape != (size,) or off[0] != 0 or off[-1] != rows or np.any(np.diff(off) < 0):
+                raise ValueError(f"{name} do not match their rows")
+        known = set(self.keyframe_ids.tolist())
+        if len(known) != n:
+            raise ValueError("keyframe ids are not unique")
+        if not set(self.stripe_kf.tolist()) <= known or not set(self.edges.ravel().tolist()) <= known:
+            raise ValueError("a stripe or pose-graph edge names an unknown keyframe")
+
+
+_KF_ARRAYS = (
+    "keyframe_ids",
+    "timestamps_ns",
+    "world_from_kf",
+    "rect_from_cam",
+    "frame_index",
+    "session",
+    "lm_offsets",
+    "lm_ids",
+    "lm_points_in_kf",
+    "lm_stereo_px",
+    "image_offsets",
+    "images_png",
+)
+_OTHER_ARRAYS = (
+    "landmark_ids",
+    "landmarks_in_world",
+    "edges",
+    "edge_a_from_b",
+    "edge_kind",
+    "stripe_timestamps_ns",
+    "stripe_offsets",
+    "stripe_points_in_cam",
+    "stripe_kf",
+    "stripe_kf_from_cam",
+)
+_FEATURE_ARRAYS = (
+    "offsets",
+    "keypoints_px",
+    "descriptors",
+    "points_in_kf",
+    "ids",
+    "laplacian",
+    "words",
+    "bow_offsets",
+    "bow_words",
+    "bow_weights",
+)
+
+
+# ---------------------------------------------------------------------- building
+def _png(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    if image.size == 0:
+        return np.zeros(0, np.uint8)
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    return np.asarray(buf, np.uint8).ravel() if ok else np.zeros(0, np.uint8)
+
+
+def map_vocabulary(config: LoopConfig, sets: Sequence[FeatureSet]) -> Vocabulary:
+    """The configured (or shipped) vocabulary of the descriptor kind; else one trained on ``sets``."""
+    if config.vocabulary_path:
+        return Vocabulary.load(config.vocabulary_path)
+    voc = None if config.vocabulary_online else shipped_vocabulary(config.descriptor)
+    if voc is not None:
+        return voc
+    docs = [s.descriptors for s in sets if len(s)]
+    if not docs:
+        raise InputError("loop.descriptor", "no features to train a map vocabulary on")
+    allx = np.concatenate(docs)
+    rng = np.random.default_rng(0)
+    if allx.shape[0] > 60000:
+        allx = allx[rng.choice(allx.shape[0], 60000, replace=False)]
+    return Vocabulary.train(allx, config.vocabulary_branching, config.vocabulary_levels, rng=rng, documents=docs)
+
+
+@dataclass
+class MapInputs:
+    """What a run hands to :func:`build_session_map`.
+
+    ``keyframes`` with their images, in id order; ``world_from_kf`` the final keyframe poses;
+    ``loop_constraints`` as ``(kf_a, kf_b, kf_a_from_kf_b)``."""
+
+    calibration: StereoCalibration
+    keyframes: list[Keyframe]
+    world_from_kf: dict[int, F64]
+    landmark_ids: I64
+    landmarks_in_world: F64
+    loop_constraints: list[tuple[int, int, F64]]
+    stripes: StripeAnchors
+    config_yaml: str = ""
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def build_session_map(inputs: MapInputs, config: LoopConfig) -> SessionMap:
+    """The map of a run: keyframes re-described with the configured descriptor kind, the pose graph, stripes."""
+    from loopmodel.loop.closer import LoopCloser
+
+    kfs = inputs.keyframes
+    closer = LoopCloser(inputs.calibration, config)
+    sets = [closer.keyframe_features(k) if k.image.size else _no_features(config.descriptor) for k in kfs]
+    voc = map_vocabulary(config, sets)
+    edges: list[tuple[int, int]] = []
+    rel: list[F64] = []
+    kinds: list[int] = []
+    for k in kfs:
+        if k.connected and k.prev_keyframe_id is not None and k.kf_prev_from_kf is not None:
+            edges.append((int(k.prev_keyframe_id), int(k.id)))
+            rel.append(np.asarray(k.kf_prev_from_kf, float))
+            kinds.append(EDGE_ODOMETRY)
+    for a, b, a_from_b in inputs.loop_constraints:
+        edges.append((int(a), int(b)))
+        rel.append(np.asarray(a_from_b, float))
+        kinds.append(EDGE_LOOP)
+    pngs = [_png(np.asarray(k.image)) for k in kfs]
+    st = inputs.stripes
+    smap = SessionMap(
+        calibration=inputs.calibration,
+        keyframe_ids=np.array([k.id for k in kfs], np.int64),
+        timestamps_ns=np.array([k.timestamp_ns for k in kfs], np.int64),
+        world_from_kf=_stack([inputs.world_from_kf.get(int(k.id), k.world_from_kf) for k in kfs]),
+        rect_from_cam=_stack([k.rect_from_cam for k in kfs]),
+        frame_index=np.array([k.frame_index for k in kfs], np.int64),
+        session=np.zeros(len(kfs), np.int64),
+        lm_offsets=_offsets([len(k.landmark_ids) for k in kfs]),
+        lm_ids=_cat([np.asarray(k.landmark_ids, np.int64) for k in kfs], (0,)).astype(np.int64),
+        lm_points_in_kf=_cat([np.asarray(k.points_in_kf, float).reshape(-1, 3) for k in kfs], (0, 3)),
+        lm_stereo_px=_cat([np.asarray(k.stereo_px, float).reshape(-1, 3) for k in kfs], (0, 3)),
+        features=PackedFeatures.pack(config.descriptor, sets, voc),
+        image_offsets=_offsets([p.size for p in pngs]),
+        images_png=_cat(pngs, (0,)).astype(np.uint8),
+        landmark_ids=np.asarray(inputs.landmark_ids, np.int64),
+        landmarks_in_world=np.asarray(inputs.landmarks_in_world, float).reshape(-1, 3),
+        edges=np.array(edges, np.int64).reshape(-1, 2),
+        edge_a_from_b=_stack(rel),
+        edge_kind=np.array(kinds, np.int8),
+        stripe_timestamps_ns=np.array([s.timestamp_ns for s in st.stripes], np.int64),
+        stripe_offsets=_offsets([len(s.points_in_cam) for s in st.stripes]),
+        stripe_points_in_cam=_cat([np.asarray(s.points_in_cam, float).reshape(-1, 3) for s in st.stripes], (0, 3)),
+        stripe_kf=np.asarray(st.kf_ids, np.int64),
+        stripe_kf_from_cam=np.asarray(st.kf_from_cam, float).reshape(-1, 4, 4),
+        config_yaml=inputs.config_yaml,
+        info=dict(inputs.info),
+    )
+    smap.check()
+    return smap
+
+
+def _no_features(kind: str) -> FeatureSet:
+    d = np.zeros((0, 32), np.uint8) if kind == "orb" else np.zeros((0, 64 if kind == "surf" else 128), np.float32)
+    return FeatureSet(np.zeros((0, 2)), d, kind)
+
+
+def _stack(mats: Sequence[Any]) -> F64:
+    return np.stack([np.asarray(m, float) for m in mats]) if len(mats) else np.zeros((0, 4, 4))
+
+
+def _cat(parts: Sequence[NDArray[Any]], shape: tuple[int, ...]) -> NDArray[Any]:
+    return np.concatenate(parts) if len(parts) else np.zeros(shape)
+
+
+def replicate(smap: SessionMap, copies: int) -> SessionMap:
+    """``smap``'s keyframes repeated ``copies`` times under new ids (a large map to time loading)."""
+    n = len(smap)
+    rows = np.tile(np.arange(n), copies)
+    step = int(smap.keyframe_ids.max()) + 1 if n else 1
+    ids = np.concatenate([smap.keyframe_ids + c * step for c in range(copies)])
+    lm, im = _ranges(smap.lm_offsets, rows), _ranges(smap.image_offsets, rows)
+    base = dataclasses.replace(smap, **_rows_only(smap, rows, lm, im))
+    return dataclasses.replace(
+        base,
+        keyframe_ids=ids,
+        edges=np.concatenate([smap.edges + c * step for c in range(copies)]),
+        edge_a_from_b=np.concatenate([smap.edge_a_from_b] * copies),
+        edge_kind=np.concatenate([smap.edge_kind] * copies),
+        stripe_kf=np.concatenate([smap.stripe_kf + c * step for c in range(copies)]),
+        stripe_timestamps_ns=np.concatenate([smap.stripe_timestamps_ns] * copies),
+        stripe_offsets=_offsets(np.tile(np.diff(smap.stripe_offsets), copies).tolist()),
+        stripe_points_in_cam=np.concatenate([smap.stripe_points_in_cam] * copies),
+        stripe_kf_from_cam=np.concatenate([smap.stripe_kf_from_cam] * copies),
+    )
+
+
+def select_rows(smap: SessionMap, rows: I64) -> SessionMap:
+    """The keyframes of ``rows`` (in that order) with the edges and stripes among them."""
+    lm = _ranges(smap.lm_offsets, rows)
+    im = _ranges(smap.image_offsets, rows)
+    ids = smap.keyframe_ids[rows]
+    e = np.isin(smap.edges, ids).all(axis=1) if smap.edges.size else np.zeros(0, bool)
+    st = np.flatnonzero(np.isin(smap.stripe_kf, ids))
+    pts = _ranges(smap.stripe_offsets, st)
+    return dataclasses.replace(
+        smap,
+        edges=smap.edges[e],
+        edge_a_from_b=smap.edge_a_from_b[e],
+        edge_kind=smap.edge_kind[e],
+        stripe_timestamps_ns=smap.stripe_timestamps_ns[st],
+        stripe_offsets=_offsets(np.diff(smap.stripe_offsets)[st].tolist()),
+        stripe_points_in_cam=smap.stripe_points_in_cam[pts],
+        stripe_kf=smap.stripe_kf[st],
+        stripe_kf_from_cam=smap.stripe_kf_from_cam[st],
+        **_rows_only(smap, rows, lm, im),
+    )
+
+
+def _rows_only(smap: SessionMap, rows: I64, lm: I64, im: I64) -> dict[str, Any]:
+    return dict(
+        keyframe_ids=smap.keyframe_ids[rows],
+        timestamps_ns=smap.timestamps_ns[rows],
+        world_from_kf=smap.world_from_kf[rows],
+        rect_from_cam=smap.rect_from_cam[rows],
+        frame_index=smap.frame_index[rows],
+        session=smap.session[rows],
+        lm_offsets=_offsets(np.diff(smap.lm_offsets)[rows].tolist()),
+        lm_ids=smap.lm_ids[lm],
+        lm_points_in_kf=smap.lm_points_in_kf[lm],
+        lm_stereo_px=smap.lm_stereo_px[lm],
+        features=smap.features.subset(rows),
+        image_offsets=_offsets(np.diff(smap.image_offsets)[rows].tolist()),
+        images_png=smap.images_png[im],
+    )
+
+
+# ---------------------------------------------------------------------- resuming a run
+@dataclass
+class ResumePoint:
+    """What an interrupted run left for ``loopmodel run --resume``: its map and trajectories.
+
+    The resumed run starts again at the frame of the map's last keyframe (``frame_index``) with that
+    keyframe's pose; the frames before it keep the interrupted run's poses."""
+
+    map: SessionMap
+    online: Trajectory
+    final: Trajectory
+    keyframes: Trajectory
+
+    @property
+    def frame_index(self) -> int:
+        """Frame of the last keyframe (the resumed run starts there)."""
+        return int(self.map.frame_index[-1])
+
+    @property
+    def timestamp_ns(self) -> int:
+        """Time of the last keyframe."""
+        return int(self.map.timestamps_ns[-1])
+
+    @property
+    def world_from_kf(self) -> F64:
+        """Pose of the last keyframe (left camera, metres)."""
+        return np.asarray(self.map.world_from_kf[-1])
+
+
+def read_resume_point(folder: str | Path) -> ResumePoint:
+    """The map and trajectories of a results folder, for resuming it."""
+    from loopmodel.io.trajectory_io import read_trajectory
+
+    p = Path(folder)
+    if not p.is_dir():
+        raise InputError(p, "results folder to resume does not exist")
+    smap = SessionMap.load(p / "map")
+    if len(smap) == 0:
+        raise InputError(p / "map", "the map holds no keyframe to resume from")
+    trajs = []
+    for name in ("trajectory_online.tum", "trajectory_final.tum", "keyframes.tum"):
+        if not (p / name).is_file():
+            raise InputError(p / name, "missing: cannot resume this run")
+        trajs.append(read_trajectory(p / name))
+    return ResumePoint(smap, *trajs)

@@ -1,0 +1,217 @@
+"""Session maps (issue 20): save -> load, damaged or newer maps, localization in a map, merging two maps."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from loopmodel.config import Config, LoopConfig, config_from_dict
+from loopmodel.errors import InputError
+from loopmodel.geometry.se3 import invert_pose, make_pose, so3_log
+from loopmodel.io.map_file import ARRAYS_FILE, META_FILE, read_map_file
+from loopmodel.loop.session_map import MapInputs, SessionMap, build_session_map, select_rows
+from loopmodel.types import Keyframe, StereoCalibration, StripeAnchors, StripeProfile
+
+
+def _rot_z(deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def _small_map(n: int = 4) -> SessionMap:
+    """A map of ``n`` keyframes with textured random images (ORB finds features in them)."""
+    rng = np.random.default_rng(3)
+    K = np.array([[250.0, 0, 159.5], [0, 250.0, 119.5], [0, 0, 1]])
+    cal = StereoCalibration(K, K, make_pose(np.eye(3), np.array([-0.06, 0, 0])), (320, 240))
+    import cv2
+
+    kfs = []
+    for i in range(n):
+        img = cv2.GaussianBlur((rng.random((240, 320)) * 255).astype(np.uint8), (3, 3), 0)
+        m = 30
+        uv = rng.uniform([20, 20], [300, 220], size=(m, 2))
+        z = rng.uniform(0.4, 0.8, m)
+        pts = np.column_stack([(uv[:, 0] - 159.5) * z / 250, (uv[:, 1] - 119.5) * z / 250, z])
+        stereo = np.column_stack([uv[:, 0], uv[:, 0] - 250 * 0.06 / z, uv[:, 1]])
+        kfs.append(
+            Keyframe(
+                i,
+                1000 + i,
+                make_pose(_rot_z(5 * i), np.array([0.01 * i, 0, 0])),
+                np.arange(m) + 100 * i,
+                pts,
+                stereo,
+                image=img,
+                frame_index=3 * i,
+                prev_keyframe_id=i - 1 if i else None,
+                kf_prev_from_kf=make_pose(_rot_z(5), np.array([0.01, 0, 0])) if i else None,
+            )
+        )
+    stripes = [StripeProfile(2000 + s, rng.normal(size=(10 + s, 3))) for s in range(3)]
+    kf_from_cam = np.stack([make_pose(_rot_z(s), np.zeros(3)) for s in range(3)])
+    anchors = StripeAnchors(stripes, np.array([0, 1, 3]), kf_from_cam)
+    inputs = MapInputs(
+        cal,
+        kfs,
+        {k.id: k.world_from_kf for k in kfs},
+        np.arange(7),
+        rng.normal(size=(7, 3)),
+        [(3, 0, make_pose(_rot_z(-15), np.array([-0.03, 0, 0])))],
+        anchors,
+        "loop: {}\n",
+        {"sequence": "synthetic"},
+    )
+    return build_session_map(inputs, LoopConfig())
+
+
+def test_map_save_load_round_trip_every_array(tmp_path: Path) -> None:
+    smap = _small_map()
+    path = smap.save(tmp_path / "m")
+    loaded = SessionMap.load(path)
+    a, b = smap.to_file_data(), loaded.to_file_data()
+    assert set(a.arrays) == set(b.arrays) and len(a.arrays) > 30
+    for k, v in a.arrays.items():
+        assert v.dtype == b.arrays[k].dtype and v.shape == b.arrays[k].shape, k
+        assert np.array_equal(v, b.arrays[k], equal_nan=v.dtype.kind == "f"), k
+    assert {k: v for k, v in b.meta.items() if k != "info"} == {k: v for k, v in a.meta.items() if k != "info"}
+    # what the arrays mean comes back too: features with 3-D points, images, stripe poses
+    assert len(loaded.features.feature_set(1)) > 50 and loaded.features.feature_set(1).has_3d.sum() > 10
+    assert np.array_equal(loaded.image(2), smap.image(2))
+    _, poses = loaded.stripes_with_poses()
+    assert np.allclose(poses[2], smap.world_from_kf[3] @ make_pose(_rot_z(2), np.zeros(3)))
+    assert loaded.summary()["pose_graph_edges"] == {"odometry": 3, "loop": 1, "between_sessions": 0}
+    # no pickle: the arrays load with allow_pickle=False
+    with np.load(path / ARRAYS_FILE, allow_pickle=False) as z:
+        assert z["world_from_kf"].shape == (4, 4, 4)
+    # the database built from the saved bags of words scores a keyframe best against itself
+    db = loaded.database()
+    ids, scores = db.score_all(loaded.features.feature_set(2))
+    assert int(ids[np.argmax(scores)]) == 2
+
+
+def test_damaged_or_newer_map_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from loopmodel.cli import main
+
+    path = _small_map().save(tmp_path / "m")
+    assert main(["map", "info", str(path)]) == 0
+    meta = json.loads((path / META_FILE).read_text())
+    meta["version"] = 99
+    (path / META_FILE).write_text(json.dumps(meta))
+    capsys.readouterr()
+    assert main(["map", "info", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "map.json" in err and "newer" in err
+    meta["version"] = 1
+    (path / META_FILE).write_text(json.dumps(meta))
+    data = (path / ARRAYS_FILE).read_bytes()
+    (path / ARRAYS_FILE).write_bytes(data[: len(data) // 2])
+    assert main(["map", "info", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and ARRAYS_FILE in err and "damaged" in err
+    (path / META_FILE).write_text("{not json")
+    assert main(["map", "info", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "map.json" in err
+    with pytest.raises(InputError, match="does not exist"):
+        read_map_file(tmp_path / "nothing")
+
+
+# ---------------------------------------------------------------------- with a simulated scan
+def _session(tmp: Path, name: str, seed: int, azimuth_deg: float, frames: int) -> Path:
+    from loopmodel.sim import generate as gen
+
+    cfg = config_from_dict(
+        {
+            "simulation": {
+                "seed": seed,
+                "workers": 1,
+                "camera": {"width_px": 320, "height_px": 240, "fx_px": 250.0},
+                "scene": {"seed": 5},
+                "trajectory": {"kind": "browse", "frames": frames, "start_azimuth_deg": azimuth_deg},
+            }
+        }
+    )
+    path = tmp / f"{name}.mcap"
+    gen.simulate_scan(cfg.simulation, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def first_session(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A 60-frame browse of the object and its run's results folder (with its map)."""
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.pipeline import run_pipeline
+
+    tmp = tmp_path_factory.mktemp("sessions")
+    seq = _session(tmp, "a", 11, 0.0, 60)
+    out = run_pipeline(open_sequence(seq), Config(), tmp / "runs", "a", handle_signals=False)
+    return seq, out.folder
+
+
+def _truth_from_run(folder: Path, seq_path: Path) -> np.ndarray:
+    from loopmodel.geometry.align import umeyama_alignment
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.io.trajectory_io import read_trajectory
+
+    est = read_trajectory(folder / "trajectory_final.tum")
+    gt = open_sequence(seq_path).ground_truth
+    _, ia, ib = np.intersect1d(est.timestamps_ns, gt.timestamps_ns, return_indices=True)
+    R, t, _ = umeyama_alignment(est.positions_m[ia], gt.positions_m[ib], with_scale=False)
+    return make_pose(np.asarray(R), np.asarray(t))
+
+
+@pytest.mark.slow
+def test_second_session_localizes_in_the_map(first_session: tuple[Path, Path], tmp_path: Path) -> None:
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.pipeline import run_pipeline
+
+    seq_a, folder_a = first_session
+    smap = SessionMap.load(folder_a)
+    seq_b = _session(tmp_path, "b", 12, 60.0, 30)
+    cfg = Config()
+    cfg.session.mode = "localize"
+    res = run_pipeline(open_sequence(seq_b), cfg, tmp_path / "runs", "b", handle_signals=False, base_map=smap)
+    m = res.metrics
+    assert m["map_localized"] and m["map_first_localized_frame"] <= 10
+    assert (res.folder / "trajectory_in_map.tum").is_file() and not (res.folder / "map").exists()
+    assert m["localization_status"].count("MAP") >= 25
+    truth_from_map = _truth_from_run(folder_a, seq_a)
+    gt = open_sequence(seq_b).ground_truth
+    idx = {int(t): i for i, t in enumerate(gt.timestamps_ns)}
+    rot, pos = [], []
+    for t, T in zip(res.localized.timestamps_ns, res.localized.world_from_cam, strict=True):
+        d = invert_pose(gt.world_from_cam[idx[int(t)]]) @ truth_from_map @ T
+        rot.append(np.degrees(np.linalg.norm(so3_log(d[:3, :3]))))
+        pos.append(np.linalg.norm(d[:3, 3]) * 1e3)
+    # measured: TODO
+    assert np.median(rot) < 0.5 and np.median(pos) < 5.0
+
+
+@pytest.mark.slow
+def test_merge_recovers_known_offset(first_session: tuple[Path, Path]) -> None:
+    from loopmodel.loop.merge import merge_maps
+
+    _, folder_a = first_session
+    full = SessionMap.load(folder_a)
+    n = len(full)
+    a = select_rows(full, np.arange(0, 2 * n // 3))
+    b = select_rows(full, np.arange(n // 3, n))
+    import dataclasses
+
+    # B's world: A's moved by a known offset (30 deg about z, 0.2 m)
+    wb_from_wa = make_pose(_rot_z(30.0), np.array([0.2, -0.1, 0.05]))
+    b = dataclasses.replace(b, world_from_kf=wb_from_wa[None] @ b.world_from_kf)
+    merged, report = merge_maps(a, b, LoopConfig())
+    err = invert_pose(invert_pose(wb_from_wa)) @ report.world_a_from_world_b
+    assert report.links >= 3
+    assert np.linalg.norm(err[:3, 3]) < 0.002 and np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) < 0.2
+    assert len(merged) == len(a) + len(b) and set(merged.session.tolist()) == {0, 1}
+    # the keyframes both maps share land where A has them
+    pose = merged.pose_of()
+    off = int(merged.keyframe_ids[len(a)]) - int(b.keyframe_ids[0])
+    shared = sorted(set(a.keyframe_ids.tolist()) & set(b.keyframe_ids.tolist()))
+    d = [np.linalg.norm(pose[k][:3, 3] - pose[k + off][:3, 3]) for k in shared]
+    assert np.median(d) < 0.002
