@@ -254,3 +254,16 @@ def test_spread_subset_takes_the_best_of_every_cell(rng: np.random.Generator) ->
         members = np.flatnonzero(cand & (cells == c))
         if members.size:  # every occupied cell gives at least its best point
             assert pick[members[np.argmax(score[members])]]
+
+
+def test_parallax_angle_is_small_for_motion_along_the_rays(rng: np.random.Generator) -> None:
+    from loopmodel.frontend.tracker import median_parallax_rad
+
+    pts = np.column_stack([rng.uniform(-3, 3, 200), rng.uniform(-1, 1, 200), rng.uniform(8, 20, 200)])
+    forward = median_parallax_rad(pts, np.array([0.0, 0.0, 2.0]))
+    sideways = median_parallax_rad(pts, np.array([2.0, 0.0, 0.0]))
+    # independent: the angle for sideways motion of points straight ahead is atan(2 / depth)
+    ahead = np.column_stack([np.zeros(5), np.zeros(5), np.array([8.0, 10, 12, 14, 16])])
+    np.testing.assert_allclose(median_parallax_rad(ahead, np.array([2.0, 0.0, 0.0])), np.arctan(2 / 12), rtol=1e-12)
+    assert median_parallax_rad(ahead, np.array([0.0, 0.0, 2.0])) == 0.0
+    assert forward < 0.3 * sideways

@@ -580,3 +580,11 @@ def test_stripes_extracted_from_a_sequences_laser_images(tmp_path: Path) -> None
         world = prof.points_in_cam @ T[:3, :3].T + T[:3, 3]
         d_mm = 1e3 * distances_to_mesh(world, scene)
         assert np.median(d_mm) < 0.3 and np.quantile(d_mm, 0.9) < 1.0, np.quantile(d_mm, [0.5, 0.9])
+
+
+def test_uint8_row_medians_equal_numpy(rng: np.random.Generator) -> None:
+    from loopmodel.mapping.extraction import _row_medians_u8
+
+    for shape in [(7, 8), (5, 9), (1, 1), (48, 64)]:
+        a = rng.integers(0, 256, shape).astype(np.uint8)
+        np.testing.assert_array_equal(_row_medians_u8(a), np.median(a, axis=1))

@@ -55,6 +55,20 @@ class _ActiveSet:
     far_px: F64 = field(default_factory=lambda: np.zeros((0, 2)))
 
 
+def median_parallax_rad(points_m: F64, centre_m: F64) -> float:
+    """Median angle (rad) between the rays to ``points_m`` (N, 3) from the origin and from ``centre_m`` (3,).
+
+    Frames: the keyframe camera (metres); ``centre_m`` is the current camera centre there. Motion
+    along the viewing rays (a car driving towards the scene) changes these angles much less than
+    the translation over the depth; sideways motion (a hand-held orbit) about as much.
+    """
+    if points_m.shape[0] == 0:
+        return 0.0
+    q = points_m - centre_m
+    cos = np.einsum("ij,ij->i", points_m, q) / (np.linalg.norm(points_m, axis=1) * np.linalg.norm(q, axis=1))
+    return float(np.median(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
 def _rotation_deg(T: F64) -> float:
     return float(np.degrees(np.linalg.norm(so3_log(T[:3, :3]))))
 
@@ -517,7 +531,11 @@ class FrontEnd:
         m = self._active.points.shape[0]
         if inliers < max(cfg.min_tracked, cfg.min_tracked_fraction * m):
             return True
-        if (
+        if cfg.keyframe_parallax == "angle":
+            parallax = median_parallax_rad(self._active.points[self._track_idx], kf_from_cur[:3, 3])
+            if parallax > np.arctan(cfg.max_parallax_ratio):
+                return True
+        elif (
             np.linalg.norm(kf_from_cur[:3, 3])
             > cfg.max_parallax_ratio * self._active.median_depth_m
         ):

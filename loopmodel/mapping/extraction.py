@@ -98,6 +98,16 @@ def fit_plane(
     return plane, best
 
 
+def _row_medians_u8(a: NDArray[np.uint8]) -> F64:
+    """``np.median(a, axis=1)`` of a 2-D uint8 array, exactly, from per-row histograms (about 5x faster)."""
+    r, n = a.shape
+    counts = np.bincount((np.arange(r)[:, None] * 256 + a).ravel(), minlength=r * 256).reshape(r, 256)
+    c = np.cumsum(counts, axis=1)
+    lo = np.argmax(c >= (n - 1) // 2 + 1, axis=1)  # order statistics (n-1)//2 and n//2 (0-based)
+    hi = np.argmax(c >= n // 2 + 1, axis=1)
+    return (lo + hi) / 2.0
+
+
 def _grey(image: NDArray) -> F64:  # type: ignore[type-arg]
     img = np.asarray(image)
     if img.ndim == 3:
@@ -191,7 +201,12 @@ def extract_laser_peaks(
         ok = inside[k, cols]
     else:
         k = np.argmax(prof, axis=0)
-        background = np.median(prof, axis=0)
+        src = np.asarray(image)
+        if src.dtype == np.uint8 and prof.shape[0] > 0:
+            u8 = src.max(axis=2) if src.ndim == 3 else src
+            background = _row_medians_u8(u8.T if axis == "columns" else u8)
+        else:
+            background = np.median(prof, axis=0)
         peak = prof[k, cols]
         ok = np.ones(m, dtype=bool)
     ok &= (peak - background) >= max(min_contrast, 1e-9)
