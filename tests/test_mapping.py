@@ -272,6 +272,9 @@ def test_stripe_extraction_recovers_profiles_to_a_tenth_of_a_pixel(
         peak_axis="rows",
         peak_min_contrast=30,
         peak_method=method,
+        peak_window_px=3,
+        peak_smooth_along_px=0.0,
+        peak_local_background=False,
         laser_plane_point_in_cam_m=p0.tolist(),
         laser_plane_normal_in_cam=n.tolist(),
     )

@@ -210,7 +210,10 @@ def _stripe_extraction_px(path: Path, config: Config, every: int = 5) -> dict[st
     for k, (t_ns, img) in enumerate(seq.laser_images()):
         if k % every or t_ns not in truth or truth[t_ns].shape[0] < 2:
             continue
-        uv = extract_laser_peaks(img, m.peak_axis, m.peak_min_contrast, m.peak_window_px, m.peak_method)
+        uv = extract_laser_peaks(
+            img, m.peak_axis, m.peak_min_contrast, m.peak_window_px, m.peak_method,
+            smooth_along_px=m.peak_smooth_along_px, local_background=m.peak_local_background,
+        )
         if uv.shape[0] == 0:
             continue
         pts = truth[t_ns]

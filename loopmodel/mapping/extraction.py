@@ -168,6 +168,8 @@ def extract_laser_peaks(
     method: str = "cog",
     mask: NDArray[np.bool_] | None = None,
     max_width_px: float | None = None,
+    smooth_along_px: float = 0.0,
+    local_background: bool = False,
 ) -> F64:
     """Sub-pixel laser-line positions: M x 2 pixel coordinates (u, v).
 
@@ -176,7 +178,12 @@ def extract_laser_peaks(
 
     ``mask`` (H x W, optional) limits the search to a region (a board, a working volume's
     image); ``max_width_px`` rejects peaks whose half-maximum width exceeds it (blooming,
-    broad reflections).
+    broad reflections). ``smooth_along_px`` > 0: a Gaussian of that standard deviation (px)
+    along the line (across the profiles) first, which averages the laser speckle of
+    neighbouring profiles (independent per pixel) without moving a straight line's centre.
+    ``local_background``: the centre of gravity weighs the samples above the straight line through
+    the two samples just outside the window (the background under a line on a textured surface)
+    instead of above the profile's median.
     """
     if axis not in ("columns", "rows"):
         raise InputError(None, f"laser peak axis must be 'columns' or 'rows', got '{axis}'")
@@ -188,6 +195,15 @@ def extract_laser_peaks(
         if mask.shape != g.shape:
             raise InputError(None, f"peak mask of shape {mask.shape} does not match the image {g.shape}")
     prof = g if axis == "columns" else g.T  # profiles along axis 0, one per column of prof
+    if smooth_along_px > 0:
+        import cv2
+
+        # along axis 1 of ``prof`` = along the line; the kernel reaches 3 sigma
+        half = max(1, int(np.ceil(3.0 * smooth_along_px)))
+        kernel = cv2.getGaussianKernel(2 * half + 1, smooth_along_px).ravel()
+        prof = cv2.sepFilter2D(
+            np.ascontiguousarray(prof), cv2.CV_64F, kernel, np.array([1.0]), borderType=cv2.BORDER_REFLECT
+        )
     n, m = prof.shape
     cols = np.arange(m)
     if mask is not None:
@@ -222,7 +238,14 @@ def extract_laser_peaks(
         offs = np.arange(-window_px, window_px + 1)
         idx = k[None, :] + offs[:, None]
         valid = (idx >= 0) & (idx < n)
-        w = np.where(valid, prof[np.clip(idx, 0, n - 1), cols[None, :]] - background[None, :], 0.0)
+        if local_background:
+            e = window_px + 1
+            lo = prof[np.clip(k - e, 0, n - 1), cols]
+            hi = prof[np.clip(k + e, 0, n - 1), cols]
+            base = lo[None, :] + (hi - lo)[None, :] * ((offs[:, None] + e) / (2.0 * e))
+        else:
+            base = background[None, :]
+        w = np.where(valid, prof[np.clip(idx, 0, n - 1), cols[None, :]] - base, 0.0)
         w = np.maximum(w, 0.0)
         sw = w.sum(axis=0)
         ok &= sw > 0
@@ -298,7 +321,15 @@ def stripe_from_image(
     """
     cfg = config or MappingConfig()
     plane = plane or LightPlane.from_config(cfg)
-    uv = extract_laser_peaks(image, cfg.peak_axis, cfg.peak_min_contrast, cfg.peak_window_px, cfg.peak_method)
+    uv = extract_laser_peaks(
+        image,
+        cfg.peak_axis,
+        cfg.peak_min_contrast,
+        cfg.peak_window_px,
+        cfg.peak_method,
+        smooth_along_px=cfg.peak_smooth_along_px,
+        local_background=cfg.peak_local_background,
+    )
     return StripeProfile(int(timestamp_ns), triangulate_with_plane(uv, K, plane, dist))
 
 
