@@ -49,12 +49,20 @@ def _texture(seed: int, h: int = 480, w: int = 640) -> np.ndarray:
     return np.clip(128 + 45 * img, 0, 255).astype(np.uint8)
 
 
+def _octave_of(s: Surf, scale: float) -> int:
+    """The octave whose detection layers (the middle ones) lie nearest a keypoint's filter side."""
+    side = 9.0 * scale / 1.2
+    mids = [s.filter_sizes(o)[1:-1].mean() for o in range(s.n_octaves)]
+    return int(np.argmin([abs(np.log(side / m)) for m in mids]))
+
+
 def test_blob_positions_and_scales() -> None:
     """Every blob is found.
 
-    The strongest keypoint within 3 px of a blob lies within 0.1 px of its centre (measured: at most
-    0.04 px), and its scale s is a fixed multiple of the blob's sigma (pre-smoothing included):
-    measured 0.70-0.78 over sigma 2-8 px, i.e. the detector is scale-covariant to within +-6 %.
+    The strongest keypoint within 3 px of a blob lies within 0.15 px of its centre (measured: at most
+    0.12 px, sigma 6 px blobs), and its scale s is a fixed multiple of the blob's sigma with the
+    smoothing of its octave (:meth:`Surf.octave_smoothing_px`) added: measured 0.69-0.77 over sigma
+    2-8 px, i.e. the detector is scale-covariant to within +-6 %.
     """
     img, truth = _blobs()
     s = Surf()
@@ -66,11 +74,12 @@ def test_blob_positions_and_scales() -> None:
         assert idx.size, f"blob {b} (sigma {truth[b, 2]}) not detected"
         i = idx[np.argmax(kp.response[idx])]
         pos_err.append(d[i, b])
-        ratio.append(kp.scale[i] / np.hypot(truth[b, 2], s.presmooth_sigma_px))
+        smoothing = s.octave_smoothing_px(_octave_of(s, kp.scale[i]))
+        ratio.append(kp.scale[i] / np.hypot(truth[b, 2], smoothing))
         assert kp.sign[i] == (1 if img[int(truth[b, 1]), int(truth[b, 0])] < 128 else -1)
-    assert max(pos_err) < 0.1
+    assert max(pos_err) < 0.15
     r = np.array(ratio)
-    assert 0.66 < r.min() and r.max() < 0.82
+    assert 0.66 < r.min() and r.max() < 0.8
     assert r.max() / r.min() < 1.13
 
 
@@ -156,7 +165,10 @@ def test_laplacian_sign_restricts_matches() -> None:
     g.laplacian[::2] *= -1  # half the signs flipped: those can no longer match themselves
     pairs = match_descriptors(f, g)
     assert np.all(f.laplacian[pairs[:, 0]] == g.laplacian[pairs[:, 1]])
-    assert np.all(pairs[:, 0] % 2 == 1) and np.all(pairs[:, 0] == pairs[:, 1])
+    odd = pairs[:, 0] % 2 == 1
+    assert np.all(pairs[odd, 0] == pairs[odd, 1]) and odd.sum() >= 0.9 * (len(f) // 2)
+    # a flipped feature may find another one (measured: 1 of 300) but never itself
+    assert not np.any(pairs[~odd, 0] == pairs[~odd, 1]) and (~odd).sum() <= 0.02 * len(f)
 
 
 @pytest.mark.parametrize("extended", [False, True])

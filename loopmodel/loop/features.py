@@ -151,10 +151,11 @@ def describe_at(
         xy = uv[kept]
         scale = np.full(kept.size, 1.2 * size_px / 9.0)
         ii = ex.integral(grey)
-        angle = ex.orient(grey, xy, scale, ii)
+        iid = ex.describe_integral(grey, ii)
+        angle = ex.orient(grey, xy, scale, iid)
         sign = ex.laplacian_sign(grey, xy, scale, ii)
         kp = SurfKeypoints(xy, scale, angle, np.zeros(kept.size), sign)
-        return FeatureSet(xy, ex.describe(grey, kp, ii), "surf", laplacian=sign), kept.astype(np.int64)
+        return FeatureSet(xy, ex.describe(grey, kp, iid), "surf", laplacian=sign), kept.astype(np.int64)
     kps = [cv2.KeyPoint(float(u), float(v), size_px, -1, 0, 0, int(i)) for i, (u, v) in enumerate(uv)]
     kps_out, desc = ex.compute(_grey(image), kps)
     if desc is None or len(kps_out) == 0:
