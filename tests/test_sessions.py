@@ -186,6 +186,7 @@ def test_second_session_localizes_in_the_map(first_session: tuple[Path, Path], t
         d = invert_pose(gt.world_from_cam[idx[int(t)]]) @ truth_from_map @ T
         rot.append(np.degrees(np.linalg.norm(so3_log(d[:3, :3]))))
         pos.append(np.linalg.norm(d[:3, 3]) * 1e3)
+    print("MEASURE localize", m["map_first_localized_frame"], m["localization_status"].count("MAP"), np.median(rot), np.median(pos))
     # measured: TODO
     assert np.median(rot) < 0.5 and np.median(pos) < 5.0
 
@@ -206,6 +207,7 @@ def test_merge_recovers_known_offset(first_session: tuple[Path, Path]) -> None:
     b = dataclasses.replace(b, world_from_kf=wb_from_wa[None] @ b.world_from_kf)
     merged, report = merge_maps(a, b, LoopConfig())
     err = invert_pose(invert_pose(wb_from_wa)) @ report.world_a_from_world_b
+    print("MEASURE merge", report.links, report.candidates, np.linalg.norm(err[:3, 3]), np.degrees(np.linalg.norm(so3_log(err[:3, :3]))))
     assert report.links >= 3
     assert np.linalg.norm(err[:3, 3]) < 0.002 and np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) < 0.2
     assert len(merged) == len(a) + len(b) and set(merged.session.tolist()) == {0, 1}
@@ -214,4 +216,30 @@ def test_merge_recovers_known_offset(first_session: tuple[Path, Path]) -> None:
     off = int(merged.keyframe_ids[len(a)]) - int(b.keyframe_ids[0])
     shared = sorted(set(a.keyframe_ids.tolist()) & set(b.keyframe_ids.tolist()))
     d = [np.linalg.norm(pose[k][:3, 3] - pose[k + off][:3, 3]) for k in shared]
+    print("MEASURE shared", np.median(d))
     assert np.median(d) < 0.002
+
+
+@pytest.mark.slow
+def test_resume_continues_from_the_last_keyframe(first_session: tuple[Path, Path], tmp_path: Path) -> None:
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.io.trajectory_io import read_trajectory
+    from loopmodel.loop.session_map import read_resume_point
+    from loopmodel.pipeline import run_pipeline
+
+    seq_path, folder_full = first_session
+    part = run_pipeline(open_sequence(seq_path), Config(), tmp_path, "part", max_frames=30, handle_signals=False)
+    point = read_resume_point(part.folder)
+    assert 0 < point.frame_index < 30
+    resumed = run_pipeline(open_sequence(seq_path), Config(), tmp_path, "part", handle_signals=False, resume=point)
+    # only the frames from the last keyframe on were processed again
+    assert len(resumed.frames) == 60 - point.frame_index
+    full = read_trajectory(folder_full / "trajectory_final.tum")
+    res = read_trajectory(resumed.folder / "trajectory_final.tum")
+    assert np.array_equal(res.timestamps_ns, full.timestamps_ns)
+    d_mm = np.linalg.norm(res.positions_m - full.positions_m, axis=1) * 1e3
+    print("MEASURE resume", point.frame_index, np.median(d_mm), d_mm.max())
+    # measured: TODO
+    assert np.median(d_mm) < 5.0 and d_mm.max() < 20.0
+    smap = SessionMap.load(resumed.folder)
+    assert len(smap) == len(point.map) - 1 + resumed.metrics["keyframes"]
