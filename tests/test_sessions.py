@@ -12,7 +12,7 @@ from loopmodel.config import Config, LoopConfig, config_from_dict
 from loopmodel.errors import InputError
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_log
 from loopmodel.io.map_file import ARRAYS_FILE, META_FILE, read_map_file
-from loopmodel.loop.session_map import MapInputs, SessionMap, build_session_map, select_rows
+from loopmodel.loop.session_map import MapInputs, SessionMap, build_session_map
 from loopmodel.types import Keyframe, StereoCalibration, StripeAnchors, StripeProfile
 
 
@@ -151,6 +151,18 @@ def first_session(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]
     return seq, out.folder
 
 
+@pytest.fixture(scope="module")
+def second_session(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A 30-frame browse of the same object starting 60 deg further round, and its normal run."""
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.pipeline import run_pipeline
+
+    tmp = tmp_path_factory.mktemp("sessions_b")
+    seq = _session(tmp, "b", 12, 60.0, 30)
+    out = run_pipeline(open_sequence(seq), Config(), tmp / "runs", "b", handle_signals=False)
+    return seq, out.folder
+
+
 def _truth_from_run(folder: Path, seq_path: Path) -> np.ndarray:
     from loopmodel.geometry.align import umeyama_alignment
     from loopmodel.io.sequence import open_sequence
@@ -164,18 +176,20 @@ def _truth_from_run(folder: Path, seq_path: Path) -> np.ndarray:
 
 
 @pytest.mark.slow
-def test_second_session_localizes_in_the_map(first_session: tuple[Path, Path], tmp_path: Path) -> None:
+def test_second_session_localizes_in_the_map(
+    first_session: tuple[Path, Path], second_session: tuple[Path, Path], tmp_path: Path
+) -> None:
     from loopmodel.io.sequence import open_sequence
     from loopmodel.pipeline import run_pipeline
 
     seq_a, folder_a = first_session
     smap = SessionMap.load(folder_a)
-    seq_b = _session(tmp_path, "b", 12, 60.0, 30)
+    seq_b = second_session[0]
     cfg = Config()
     cfg.session.mode = "localize"
     res = run_pipeline(open_sequence(seq_b), cfg, tmp_path / "runs", "b", handle_signals=False, base_map=smap)
     m = res.metrics
-    assert m["map_localized"] and m["map_first_localized_frame"] <= 10
+    assert m["map_localized"] and m["map_first_localized_frame"] <= 5
     assert (res.folder / "trajectory_in_map.tum").is_file() and not (res.folder / "map").exists()
     assert m["localization_status"].count("MAP") >= 25
     truth_from_map = _truth_from_run(folder_a, seq_a)
@@ -186,32 +200,55 @@ def test_second_session_localizes_in_the_map(first_session: tuple[Path, Path], t
         d = invert_pose(gt.world_from_cam[idx[int(t)]]) @ truth_from_map @ T
         rot.append(np.degrees(np.linalg.norm(so3_log(d[:3, :3]))))
         pos.append(np.linalg.norm(d[:3, 3]) * 1e3)
-    # measured: TODO
-    assert np.median(rot) < 0.5 and np.median(pos) < 5.0
+    # measured (clean world, 320x240): first localized frame 2, 30 of 30 frames in the map,
+    # median errors 0.042 deg / 0.55 mm after aligning A's map to the truth by A's trajectory
+    assert np.median(rot) < 0.15 and np.median(pos) < 1.5
 
 
 @pytest.mark.slow
-def test_merge_recovers_known_offset(first_session: tuple[Path, Path]) -> None:
-    from loopmodel.loop.merge import merge_maps
-
-    _, folder_a = first_session
-    full = SessionMap.load(folder_a)
-    n = len(full)
-    a = select_rows(full, np.arange(0, 2 * n // 3))
-    b = select_rows(full, np.arange(n // 3, n))
+def test_merge_recovers_known_offset(first_session: tuple[Path, Path], second_session: tuple[Path, Path]) -> None:
     import dataclasses
 
-    # B's world: A's moved by a known offset (30 deg about z, 0.2 m)
-    wb_from_wa = make_pose(_rot_z(30.0), np.array([0.2, -0.1, 0.05]))
-    b = dataclasses.replace(b, world_from_kf=wb_from_wa[None] @ b.world_from_kf)
+    from loopmodel.loop.merge import merge_maps
+
+    (seq_a, folder_a), (seq_b, folder_b) = first_session, second_session
+    a, b = SessionMap.load(folder_a), SessionMap.load(folder_b)
+    # B's world moved by a known offset on top of where B's own run put it
+    offset = make_pose(_rot_z(30.0), np.array([0.2, -0.1, 0.05]))
+    b = dataclasses.replace(b, world_from_kf=offset[None] @ b.world_from_kf)
     merged, report = merge_maps(a, b, LoopConfig())
-    err = invert_pose(invert_pose(wb_from_wa)) @ report.world_a_from_world_b
-    assert report.links >= 3
-    assert np.linalg.norm(err[:3, 3]) < 0.002 and np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) < 0.2
+    # the truth, independently: each run's own trajectory aligned to its ground truth
+    truth_from_a, truth_from_b = _truth_from_run(folder_a, seq_a), _truth_from_run(folder_b, seq_b)
+    expected = invert_pose(truth_from_a) @ truth_from_b @ invert_pose(offset)
+    err = invert_pose(expected) @ report.world_a_from_world_b
+    # measured: 9 links of 9 relocalized keyframes; 0.77 mm / 0.033 deg off the truth's offset
+    assert report.links >= 5
+    assert np.linalg.norm(err[:3, 3]) < 0.0025 and np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) < 0.15
     assert len(merged) == len(a) + len(b) and set(merged.session.tolist()) == {0, 1}
-    # the keyframes both maps share land where A has them
-    pose = merged.pose_of()
-    off = int(merged.keyframe_ids[len(a)]) - int(b.keyframe_ids[0])
-    shared = sorted(set(a.keyframe_ids.tolist()) & set(b.keyframe_ids.tolist()))
-    d = [np.linalg.norm(pose[k][:3, 3] - pose[k + off][:3, 3]) for k in shared]
-    assert np.median(d) < 0.002
+    assert int(np.sum(merged.edge_kind == 2)) == report.links
+    merged_back = SessionMap.load(merged.save(folder_a.parent / "merged"))
+    assert np.array_equal(merged_back.world_from_kf, merged.world_from_kf)
+
+
+@pytest.mark.slow
+def test_resume_continues_from_the_last_keyframe(first_session: tuple[Path, Path], tmp_path: Path) -> None:
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.io.trajectory_io import read_trajectory
+    from loopmodel.loop.session_map import read_resume_point
+    from loopmodel.pipeline import run_pipeline
+
+    seq_path, folder_full = first_session
+    part = run_pipeline(open_sequence(seq_path), Config(), tmp_path, "part", max_frames=30, handle_signals=False)
+    point = read_resume_point(part.folder)
+    assert 0 < point.frame_index < 30
+    resumed = run_pipeline(open_sequence(seq_path), Config(), tmp_path, "part", handle_signals=False, resume=point)
+    # only the frames from the last keyframe on were processed again
+    assert len(resumed.frames) == 60 - point.frame_index
+    full = read_trajectory(folder_full / "trajectory_final.tum")
+    res = read_trajectory(resumed.folder / "trajectory_final.tum")
+    assert np.array_equal(res.timestamps_ns, full.timestamps_ns)
+    d_mm = np.linalg.norm(res.positions_m - full.positions_m, axis=1) * 1e3
+    # measured: resumed at frame 25; 0.27 mm median, 0.39 mm largest position difference
+    assert np.median(d_mm) < 1.0 and d_mm.max() < 1.5
+    smap = SessionMap.load(resumed.folder)
+    assert len(smap) == len(point.map) - 1 + resumed.metrics["keyframes"]
