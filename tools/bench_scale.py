@@ -85,16 +85,19 @@ def run(quick: bool = False) -> dict[str, Any]:
         backend.add_keyframe = add_keyframe
         return backend
 
+    from loopmodel.listener import RunListener
+
     kf_at_frame: dict[int, int] = {}
 
-    def hook(kf: Any, res: Any) -> None:
-        kf_at_frame[int(res.frame_index)] = kf_count[0]
+    class _KeyframeCount(RunListener):
+        def on_keyframe(self, keyframe: Any, result: Any) -> None:
+            kf_at_frame[int(result.frame_index)] = kf_count[0]
 
     pl.create_backend = timed_backend  # type: ignore[assignment]
     try:
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
-            out = pl.run_pipeline(seq, config, tmp, "scale", keyframe_hooks=[hook])
+            out = pl.run_pipeline(seq, config, tmp, "scale", listeners=[_KeyframeCount()])
             t_end = time.perf_counter()
     finally:
         pl.create_backend = make  # type: ignore[assignment]

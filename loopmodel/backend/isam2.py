@@ -131,6 +131,7 @@ class Isam2Backend:
         self.last_result: gtsam.ISAM2Result | None = None
         #: noise and outcome of the last :meth:`batch_refine` (for metrics.json)
         self.refine_info: dict[str, Any] = {}
+        self._links: list[tuple[int, int]] = []  # (previous keyframe, keyframe) tracked links
         # the front end's robust pose-residual scale per keyframe interval (px)
         self._frontend_sigma_px: list[float] = []
         self.dropped_landmarks = 0
@@ -445,6 +446,9 @@ class Isam2Backend:
             self._frontend_sigma_px.append(float(sig))
         self._kf_seq[kf_id] = len(self._kf_seq)
         self._kf_order.append(kf_id)
+        prev = keyframe.prev_keyframe_id
+        if keyframe.connected and prev is not None and int(prev) in self._kf_seq:
+            self._links.append((int(prev), kf_id))
         self._pose_guess[kf_id] = T
         rect_from_cam = keyframe.rect_from_cam
         if not _is_identity(np.asarray(rect_from_cam, float)):
@@ -875,8 +879,53 @@ class Isam2Backend:
             return self.estimate()
         self.refine()
         if not refine.batch_ba:
-            return self.estimate()
-        return self.batch_refine(refine.pixel_sigma_px, refine.huber_k, refine.max_iterations, refine.min_gain_sd)
+            est = self.estimate()
+        else:
+            est = self.batch_refine(refine.pixel_sigma_px, refine.huber_k, refine.max_iterations, refine.min_gain_sd)
+        return self._distribute_loops(est, refine) if refine.distribute_loops else est
+
+    def loop_constraints(self) -> list[tuple[int, int, F64]]:
+        """The live loop constraints as ``(kf_a, kf_b, kf_a_from_kf_b)`` (4x4, metres)."""
+        out = []
+        for rec in self._factors.values():
+            if rec.kind == "loop":
+                f: Any = rec.factor
+                a, b = (int(gtsam.symbolIndex(k)) for k in f.keys())
+                out.append((a, b, np.asarray(f.measured().matrix(), dtype=np.float64)))
+        return out
+
+    def _distribute_loops(self, est: BackendEstimate, refine: RefineConfig) -> BackendEstimate:
+        """``est`` with each loop's discrepancy spread along its keyframe cycle.
+
+        :func:`~loopmodel.backend.loop_distribution.distribute_loop_errors`; each landmark moves
+        with its first keyframe. :attr:`refine_info` gets the largest keyframe move.
+        """
+        from loopmodel.backend.loop_distribution import distribute_loop_errors
+
+        loops = self.loop_constraints()
+        if not loops:
+            return est
+        cfg = self.config
+        moved = distribute_loop_errors(
+            est.world_from_kf,
+            self._links,
+            loops,
+            refine.loop_odometry_sigma_deg,
+            refine.loop_odometry_sigma_m,
+            float(np.degrees(cfg.loop_sigma_rad)),
+            cfg.loop_sigma_m,
+        )
+        fix = {k: moved[k] @ invert_pose(np.asarray(est.world_from_kf[k], float)) for k in moved}
+        first_kf = {lm.landmark_id: self._kf_order[lm.first_seq] for lm in self._landmarks.values()}
+        pts = np.asarray(est.landmarks_in_world, float).reshape(-1, 3).copy()
+        for i, lid in enumerate(np.asarray(est.landmark_ids).tolist()):
+            F = fix.get(first_kf.get(int(lid), -1))
+            if F is not None:
+                pts[i] = F[:3, :3] @ pts[i] + F[:3, 3]
+        shift = [float(np.linalg.norm(F[:3, 3])) for F in fix.values()]
+        self.refine_info["loops_distributed"] = len(loops)
+        self.refine_info["loop_distribution_max_move_m"] = max(shift, default=0.0)
+        return BackendEstimate(moved, est.landmark_ids, pts, set(moved))
 
     def metrics(self) -> dict[str, Any]:
         """Factor and landmark counts of the graph.

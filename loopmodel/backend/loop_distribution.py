@@ -1,0 +1,87 @@
+"""Spreading a loop's discrepancy along the keyframe chain (a keyframe pose graph).
+
+A bundle adjustment weighs each keyframe link by its image measurements; on a real rig
+(calibration error, rolling shutter, blur) those are precise but biased, so the chain is far
+stiffer than its true drift and a loop constraint barely moves it (measured on the realistic
+simulated orbit: a loop accurate to 4 mm / 0.09 deg stays 37 mm / 3.1 deg off after the batch
+bundle adjustment, at any loop sigma). The remedy of ORB-SLAM's essential graph: a pose graph
+whose odometry edges are the estimate's own relative poses of consecutive connected keyframes,
+each with the same per-step noise, and whose loop edges are the verified loop constraints;
+solved by Levenberg-Marquardt with the first keyframe fixed. The discrepancy of every loop then
+goes to the links of its cycle in proportion to their noise.
+
+Poses are ``world_from_kf`` (4x4, metres); constraints ``kf_a_from_kf_b``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from loopmodel.backend.robust_posegraph import PoseGraph, optimize_lm
+
+F64 = NDArray[np.float64]
+
+
+def _information(sigma_deg: float, sigma_m: float) -> F64:
+    """6x6 information in GTSAM's tangent order (rotation, translation)."""
+    return np.diag(np.r_[np.full(3, 1.0 / math.radians(sigma_deg) ** 2), np.full(3, 1.0 / sigma_m**2)])
+
+
+def distribute_loop_errors(
+    world_from_kf: Mapping[int, F64],
+    links: Sequence[tuple[int, int]],
+    loops: Sequence[tuple[int, int, F64]],
+    odometry_sigma_deg: float,
+    odometry_sigma_m: float,
+    loop_sigma_deg: float,
+    loop_sigma_m: float,
+    max_iterations: int = 100,
+) -> dict[int, F64]:
+    """Keyframe poses with the loops' discrepancies spread along their cycles.
+
+    ``links``: ``(kf_prev, kf)`` pairs of consecutive connected keyframes, whose current relative
+    pose becomes an odometry edge of ``odometry_sigma_*`` per step; ``loops``: ``(kf_a, kf_b,
+    kf_a_from_kf_b)``. The lowest keyframe id of the graph keeps its pose (the gauge). Keyframes
+    in no edge keep theirs; without a loop the poses come back unchanged.
+    """
+    out = {int(k): np.asarray(T, float) for k, T in world_from_kf.items()}
+    loops = [(int(a), int(b), np.asarray(T, float)) for a, b, T in loops if a in out and b in out and a != b]
+    links = [(int(a), int(b)) for a, b in links if a in out and b in out]
+    if not loops:
+        return out
+    ij = list(links) + [(a, b) for a, b, _ in loops]
+    meas = [np.linalg.inv(out[a]) @ out[b] for a, b in links] + [T for *_, T in loops]
+    infos = [_information(odometry_sigma_deg, odometry_sigma_m)] * len(links) + [
+        _information(loop_sigma_deg, loop_sigma_m)
+    ] * len(loops)
+    is_loop = np.r_[np.zeros(len(links), bool), np.ones(len(loops), bool)]
+    # one pose graph per connected component that holds a loop; its lowest keyframe id is fixed
+    parent = {k: k for e in ij for k in e}
+
+    def find(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for a, b in ij:
+        parent[find(a)] = find(b)
+    comp = np.array([find(a) for a, _ in ij])
+    for root in sorted({int(c) for c in comp[is_loop]}):
+        sel = np.flatnonzero(comp == root)
+        used = sorted({k for e in sel for k in ij[e]})
+        graph = PoseGraph(
+            3,
+            {k: out[k] for k in used},
+            np.asarray([ij[e] for e in sel], dtype=np.int64).reshape(-1, 2),
+            [meas[e] for e in sel],
+            [infos[e] for e in sel],
+            ~is_loop[sel],
+            "keyframes",
+        )
+        out.update(optimize_lm(graph, max_iterations=max_iterations).world_from_pose)
+    return out
