@@ -473,12 +473,43 @@ class EvalConfig(_Section):
     plots: bool = True
 
 
+class SurfConfig(_Section):
+    """The SURF detector/descriptor written here (:class:`loopmodel.loop.surf.Surf`, issue 18).
+
+    Measured with ``tools/bench.py surf`` (fountain-P11 views and RTAB-Map corridor images,
+    real, under known homographies), ``reloc`` (fountain) and ``loopdet`` (corridor loop images);
+    the measurements behind each value are in the comments of :class:`~loopmodel.loop.surf.Surf`.
+    """
+
+    # 1.5e-5 keeps max_features even in low-contrast corridor images (5e-5: 185 in image 50,
+    # loop recall 0.77; 1.5e-5: 0.84)
+    threshold: float = Field(1.5e-5, gt=0, description="Hessian-determinant threshold (image in [0, 1])")
+    n_octaves: int = Field(4, ge=1, le=8, description="octaves of box filters")
+    n_layers: int = Field(4, ge=3, le=8, description="filters per octave")
+    step0: int = Field(1, ge=1, le=8, description="sampling step of the first octave (px)")
+    dense_octaves: int = Field(1, ge=1, le=8, description="octaves keeping step0 (then it doubles)")
+    # 1.5 px raised repeatability under rotation and scale on both image sets
+    presmooth_sigma_px: float = Field(1.5, ge=0, description="Gaussian smoothing of the first octave (px)")
+    edge_ratio: float = Field(0.0, ge=0, description="reject maxima above this curvature ratio (0: off)")
+    overlap: bool = Field(True, description="overlapping Gaussian-weighted sub-regions (M-SURF)")
+    extended: bool = Field(False, description="128-element descriptors")
+    upright: bool = Field(False, description="U-SURF: no orientation")
+    # issue 18: rotation 30/45/135 repeatability 0.55/0.57/0.58 -> 0.60/0.62/0.62 on both sets
+    smooth_per_octave: bool = Field(True, description="smoothing grows with the octave's filters")
+    # issue 18: orientation error under a 90-degree rotation 1.25 -> 0.23 deg (median, both sets)
+    subpixel_haar: bool = Field(True, description="orientation: Haar wavelets of real-valued centre and side")
+    subpixel_descriptor: bool = Field(False, description="the same for the descriptor's wavelets (3x slower)")
+    # issue 18: fountain view 10 relocalized (67 of 253 inliers; 1.5: 52 of 255, 0.5: 62 of 254)
+    describe_sigma_px: float = Field(0.8, ge=0, description="smoothing of the image orientation and descriptor use")
+
+
 class LoopConfig(_Section):
     """Appearance-based relocalization and loop closing (``loopmodel.loop``)."""
 
     enabled: bool = True
     descriptor: DescriptorKind = Field("orb", description="orb, sift or surf")
     n_features: int = Field(1500, ge=50, le=100000, description="features per keyframe")
+    surf: SurfConfig = Field(default_factory=SurfConfig, description="SURF settings (descriptor: surf)")
     ratio: float = Field(0.8, gt=0, le=1, description="Lowe ratio of descriptor matching")
     vocabulary_path: str | None = Field(
         None, description="trained vocabulary .npz; None: the one shipped for the descriptor kind"

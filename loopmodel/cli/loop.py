@@ -55,7 +55,7 @@ def loop_detect(
     if vocabulary is not None:
         cfg = apply_overrides(cfg, {"vocabulary_path": str(vocabulary)}, {"vocabulary_path": "--vocabulary"})
     files = _image_files(folder)
-    ex = make_extractor(cfg.descriptor, cfg.n_features)
+    ex = make_extractor(cfg.descriptor, cfg.n_features, cfg.surf)
     det = None
     rows = ["query_index,query_file,match_index,match_file,inliers"]
     with progress_bar() as bar:

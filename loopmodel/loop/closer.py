@@ -85,7 +85,7 @@ class LoopCloser:
         self.calibration = calibration
         self.camera: CentralCamera = calibration.left_camera()
         self.detector = detector_from_config(self.config, self.camera, float(calibration.image_size[0]))
-        self._extractor = make_extractor(self.config.descriptor, self.config.n_features)
+        self._extractor = make_extractor(self.config.descriptor, self.config.n_features, self.config.surf)
         self._kf: dict[int, _KfData] = {}
         self.closures: list[LoopClosure] = []
 
@@ -104,7 +104,7 @@ class LoopCloser:
         corners = cv2.goodFeaturesToTrack(image, 400, 0.01, 8)
         if corners is None:
             return det
-        extra, _ = describe_at(image, corners.reshape(-1, 2), self.config.descriptor)
+        extra, _ = describe_at(image, corners.reshape(-1, 2), self.config.descriptor, extractor=self._extractor)
         return FeatureSet.concat(det, extra) if len(det) else extra
 
     def keyframe_features(self, kf: Keyframe) -> FeatureSet:
@@ -114,7 +114,7 @@ class LoopCloser:
         """
         det = self.image_features(kf.image)
         data = self._kf_data(kf)
-        lm, kept = describe_at(kf.image, data.uv, self.config.descriptor)
+        lm, kept = describe_at(kf.image, data.uv, self.config.descriptor, extractor=self._extractor)
         lm.points_in_kf = data.p_rect[kept]
         lm.ids = data.ids[kept]
         return FeatureSet.concat(det, lm) if len(det) else lm

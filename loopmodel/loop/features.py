@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.config import SurfConfig
 from loopmodel.errors import ConfigError, InputError
 from loopmodel.loop.surf import Surf, SurfKeypoints
 from loopmodel.types import StereoCalibration
@@ -92,15 +93,15 @@ class FeatureSet:
         )
 
 
-def make_extractor(kind: str = "orb", n_features: int = 2000) -> Any:
-    """The OpenCV detector/descriptor for ``kind`` (``orb``, ``sift`` or ``surf``)."""
+def make_extractor(kind: str = "orb", n_features: int = 2000, surf: SurfConfig | None = None) -> Any:
+    """The OpenCV detector/descriptor for ``kind`` (``orb``, ``sift`` or ``surf``); ``surf``: its settings."""
     k = kind.lower()
     if k == "orb":
         return cv2.ORB_create(nfeatures=n_features, scaleFactor=1.2, nlevels=8, fastThreshold=12)  # type: ignore[attr-defined]
     if k == "sift":
         return cv2.SIFT_create(nfeatures=n_features)  # type: ignore[attr-defined]
     if k == "surf":
-        return Surf(max_features=n_features)
+        return Surf.from_config(surf, n_features)
     raise ConfigError("loop.descriptor", f"unknown descriptor '{kind}', expected one of {KINDS}")
 
 
@@ -134,15 +135,16 @@ def detect_and_describe(
 
 
 def describe_at(
-    image: NDArray[Any], keypoints_px: F64, kind: str = "orb", size_px: float = 31.0
+    image: NDArray[Any], keypoints_px: F64, kind: str = "orb", size_px: float = 31.0, extractor: Any = None
 ) -> tuple[FeatureSet, NDArray[np.int64]]:
     """Descriptors at given pixel positions (e.g. a keyframe's tracked features).
 
     Returns the feature set and the indices (into ``keypoints_px``) that OpenCV kept
     (keypoints too close to the border are dropped). For SURF, ``size_px`` is the side
     of the box filter the scale corresponds to (scale ``1.2 size_px / 9``); the
-    orientation and the sign of the Laplacian are computed at that scale."""
-    ex = make_extractor(kind)
+    orientation and the sign of the Laplacian are computed at that scale. ``extractor``: the
+    detector to describe with (default: ``kind``'s with the default settings)."""
+    ex = extractor if extractor is not None else make_extractor(kind)
     uv = np.asarray(keypoints_px, dtype=float).reshape(-1, 2)
     if isinstance(ex, Surf):
         grey = _grey(image)

@@ -13,7 +13,11 @@ point, :meth:`LoopClosingStage.on_keyframe`, and never changes another stage: it
   pose as a :class:`LoopConstraint` for the back end, or (standalone) runs the global
   hybrid BA over the loop — in a worker process by default, so tracking does not wait — and
   returns the corrected keyframe poses when it is done. Keyframes created while the BA ran
-  move rigidly with the loop's current keyframe.
+  move rigidly with the loop's current keyframe;
+* hands the old features a closure found again in the current keyframe to the front end
+  (``LoopOutcome.resume``, seed 004 section 5), which tracks them on; the closure's record
+  says how many (``old_features_resumed``) and how many each later keyframe observed
+  (``old_features_tracked_on``, read from the keyframes' ``ba_info``).
 
 Place recognition and verification run in a worker (``loop.detection_worker``: a process
 by default, which holds the keyframe database; a thread; or inline): a keyframe never waits

@@ -36,8 +36,12 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.config import SurfConfig
+
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
+
+_DEFAULTS = SurfConfig()
 
 #: Weight of the Dxy box response in the Hessian determinant (Bay et al. 2008, eq. 4).
 HESSIAN_DXY_WEIGHT = 0.9
@@ -75,9 +79,7 @@ def integral_image(image: NDArray[np.generic], sigma_px: float = 0.0) -> F64:
     f = img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else img.astype(np.float32)
     if sigma_px > 0:
         f = cv2.GaussianBlur(f, (0, 0), sigma_px)
-    ii = np.zeros((f.shape[0] + 1, f.shape[1] + 1))
-    np.cumsum(np.cumsum(f, axis=0), axis=1, out=ii[1:, 1:])
-    return ii
+    return np.asarray(cv2.integral(np.ascontiguousarray(f, dtype=np.float32), sdepth=cv2.CV_64F), dtype=np.float64)
 
 
 @nb.njit(cache=True)
@@ -291,20 +293,24 @@ def _ii_at(ii: F64, y: float, x: float) -> float:
 
 
 @nb.njit(cache=True)
-def _box_f(ii: F64, y0: float, x0: float, y1: float, x1: float) -> float:
-    """Sum of the image over the real-valued box [x0, x1] x [y0, y1] (pixel coordinates)."""
-    return _ii_at(ii, y1, x1) - _ii_at(ii, y0, x1) - _ii_at(ii, y1, x0) + _ii_at(ii, y0, x0)
-
-
-@nb.njit(cache=True)
 def _haar_f(ii: F64, x: float, y: float, half: float) -> tuple[float, float]:
     """Haar wavelet responses (x, y) of side ``2 half`` (real) centred on the real position (x, y).
 
     Neither the centre nor the side is rounded to whole pixels, so the responses of a rotated
     sampling grid do not depend on where it falls on the pixel grid.
     """
-    dx = _box_f(ii, y - half, x, y + half, x + half) - _box_f(ii, y - half, x - half, y + half, x)
-    dy = _box_f(ii, y, x - half, y + half, x + half) - _box_f(ii, y - half, x - half, y, x + half)
+    # the four boxes share the corners of a 3 x 3 grid: nine lookups
+    a00 = _ii_at(ii, y - half, x - half)
+    a01 = _ii_at(ii, y - half, x)
+    a02 = _ii_at(ii, y - half, x + half)
+    a10 = _ii_at(ii, y, x - half)
+    a12 = _ii_at(ii, y, x + half)
+    a20 = _ii_at(ii, y + half, x - half)
+    a21 = _ii_at(ii, y + half, x)
+    a22 = _ii_at(ii, y + half, x + half)
+    # right minus left half; bottom minus top half
+    dx = (a22 - a02 - a21 + a01) - (a21 - a01 - a20 + a00)
+    dy = (a22 - a12 - a20 + a10) - (a12 - a02 - a10 + a00)
     return dx, dy
 
 
@@ -517,20 +523,27 @@ class Surf:
     # Descriptors computed on the detector's 1.5 px smoothing lose detail at small scales:
     # describe_sigma_px 0.8 lifted the fountain view 10 relocalization from 52 inliers of 255
     # matches (ratio 0.20, failed) to 67 of 253 (0.26; 0.5: 62/254, failed).
-    threshold: float = 1.5e-5
-    n_octaves: int = 4
-    n_layers: int = 4
-    step0: int = 1
-    dense_octaves: int = 1
-    presmooth_sigma_px: float = 1.5
-    edge_ratio: float = 0.0
-    overlap: bool = True
+    # (the defaults are those of loopmodel.config.SurfConfig, the one place they are set)
+    threshold: float = _DEFAULTS.threshold
+    n_octaves: int = _DEFAULTS.n_octaves
+    n_layers: int = _DEFAULTS.n_layers
+    step0: int = _DEFAULTS.step0
+    dense_octaves: int = _DEFAULTS.dense_octaves
+    presmooth_sigma_px: float = _DEFAULTS.presmooth_sigma_px
+    edge_ratio: float = _DEFAULTS.edge_ratio
+    overlap: bool = _DEFAULTS.overlap
     max_features: int = 2000
-    extended: bool = False
-    upright: bool = False
-    smooth_per_octave: bool = True
-    subpixel_haar: bool = True
-    describe_sigma_px: float = 0.8
+    extended: bool = _DEFAULTS.extended
+    upright: bool = _DEFAULTS.upright
+    smooth_per_octave: bool = _DEFAULTS.smooth_per_octave
+    subpixel_haar: bool = _DEFAULTS.subpixel_haar
+    describe_sigma_px: float = _DEFAULTS.describe_sigma_px
+    subpixel_descriptor: bool = _DEFAULTS.subpixel_descriptor
+
+    @classmethod
+    def from_config(cls, config: SurfConfig | None, max_features: int) -> Surf:
+        """The detector of a ``loop.surf`` section, keeping at most ``max_features``."""
+        return cls(max_features=max_features, **(config if config is not None else _DEFAULTS).model_dump())
 
     @property
     def dim(self) -> int:
@@ -632,7 +645,7 @@ class Surf:
                 np.ascontiguousarray(kp.scale, dtype=float),
                 np.ascontiguousarray(kp.angle, dtype=float),
                 self.extended,
-                self.subpixel_haar,
+                self.subpixel_descriptor,
                 out,
             )
         return out
