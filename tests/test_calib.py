@@ -18,6 +18,7 @@ from loopmodel.calibration.stereo import calibrate_stereo, pair_images, write_st
 from loopmodel.cli import main
 from loopmodel.errors import InputError
 from loopmodel.geometry.se3 import make_pose, so3_exp, so3_log
+from loopmodel.io.calib_files import read_stereo_calibration
 from loopmodel.io.camera_yaml import read_camera_info_pair, read_intrinsics
 from loopmodel.io.kitti import calibration_from_projections, parse_kitti_calib
 from tests.calib_scene import board_pose, render_board
@@ -75,6 +76,9 @@ def test_stereo_recovers_rendered_rig(stereo_pairs: Path, tmp_path: Path) -> Non
     back = read_camera_info_pair(tmp_path / "calib_left.yaml", tmp_path / "calib_right.yaml")
     assert np.allclose(back.right_from_left, cal.right_from_left, atol=1e-9)
     assert np.allclose(back.K_left, cal.K_left) and np.allclose(back.dist_right, cal.dist_right)
+    # the summary YAML is accepted where bag readers take a calibration file (--calib)
+    summary = read_stereo_calibration(out, SIZE)
+    assert np.allclose(summary.right_from_left, back.right_from_left) and np.allclose(summary.K_right, back.K_right)
     P0, P1 = parse_kitti_calib(tmp_path / "calib_kitti_calib.txt")
     rect = calibration_from_projections(P0, P1, SIZE, "kitti")
     assert abs(rect.baseline_m - cal.baseline_m) < 1e-9

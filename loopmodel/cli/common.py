@@ -37,7 +37,10 @@ RightTopicOption = Annotated[str | None, typer.Option("--right", help="Right ima
 
 CalibOption = Annotated[
     Path | None,
-    typer.Option("--calib", help="Bag without CameraInfo: EuRoC sensor.yaml folder, camchain.yaml or calib.txt"),
+    typer.Option(
+        "--calib",
+        help="Bag without CameraInfo: EuRoC sensor.yaml folder, camchain.yaml, calibrate-stereo YAML or calib.txt",
+    ),
 ]
 
 

@@ -3,7 +3,8 @@
 EuRoC and TUM-VI ROS 1 bags carry none. Formats: a EuRoC-style folder (``cam0/sensor.yaml`` and
 ``cam1/sensor.yaml``, or under ``mav0/``), a Kalibr ``camchain.yaml`` (``cam0``/``cam1`` with
 ``intrinsics``, ``distortion_model`` radtan or equidistant, ``distortion_coeffs``, ``resolution``,
-and ``cam1.T_cn_cnm1`` = ``cam1_from_cam0``) or a KITTI ``calib.txt``.
+and ``cam1.T_cn_cnm1`` = ``cam1_from_cam0``), the summary YAML of ``loopmodel calibrate stereo``
+(``left``/``right`` ROS ``camera_info``) or a KITTI ``calib.txt``.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ def read_stereo_calibration(path: str | Path, image_size: tuple[int, int] | None
                 )
             return cal
     if p.is_file() and p.suffix.lower() in (".yaml", ".yml"):
-        cal = kalibr_calibration(p)
+        cal = calibrate_stereo_summary(p) or kalibr_calibration(p)
         if image_size is not None and cal.image_size != tuple(image_size):
             raise CalibrationError(p, f"resolution {cal.image_size}, images are {tuple(image_size)}")
         return cal
@@ -50,8 +51,29 @@ def read_stereo_calibration(path: str | Path, image_size: tuple[int, int] | None
         P0, P1 = parse_kitti_calib(calib_txt)
         return calibration_from_projections(P0, P1, image_size, str(calib_txt))
     raise CalibrationError(
-        p, "expected a folder with cam0/sensor.yaml and cam1/sensor.yaml, a Kalibr camchain.yaml or a KITTI calib.txt"
+        p,
+        "expected a folder with cam0/sensor.yaml and cam1/sensor.yaml, a Kalibr camchain.yaml, "
+        "a 'loopmodel calibrate stereo' YAML or a KITTI calib.txt",
     )
+
+
+def calibrate_stereo_summary(path: Path) -> StereoCalibration | None:
+    """The calibration of a ``loopmodel calibrate stereo`` summary YAML, or None for another YAML.
+
+    The summary holds the ROS ``camera_info`` of each camera under ``left`` and ``right``; they are
+    read as the ``calib_left.yaml`` / ``calib_right.yaml`` pair written beside it.
+    """
+    try:
+        data: Any = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+    if not (isinstance(data, dict) and isinstance(data.get("left"), dict) and isinstance(data.get("right"), dict)):
+        return None
+    from loopmodel.io.camera_yaml import camera_info_from_yaml
+    from loopmodel.io.mcap_io import calibration_from_camera_info
+
+    left, right = (camera_info_from_yaml(path, data[side]) for side in ("left", "right"))
+    return calibration_from_camera_info(left, right, str(path))
 
 
 def kalibr_calibration(path: Path) -> StereoCalibration:
