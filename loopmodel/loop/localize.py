@@ -3,8 +3,9 @@
 A :class:`~loopmodel.stages.LoopStage` whose database is the saved map's keyframes (their feature
 sets, vocabulary and bags of words, :meth:`~loopmodel.loop.session_map.SessionMap.database`).
 Every keyframe the front end makes is relocalized against the map (descriptors and the P3P bank,
-then seed 004's KLT stage on the matched map keyframe's image); a success returns the keyframe's
-pose in the map's world as a correction, so the tracker goes on in the map's frame. The first
+then seed 004's KLT stage on the matched map keyframe's image; in a worker process once the
+segment is in the map); a success returns the keyframe's pose in the map's world as a
+correction, so the tracker goes on in the map's frame. The first
 success of a tracking segment (the start, or after a loss) moves the segment's earlier keyframes
 rigidly with it; later ones replace the tracked pose when they agree with it within the gate
 (``max_correction_m`` / ``_deg``), so one false match cannot throw the session away. Nothing is
@@ -15,9 +16,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import multiprocessing as mp
 import time
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -36,6 +38,25 @@ from loopmodel.types import Keyframe, StereoCalibration
 logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
+
+
+#: a relocalization: map keyframe, ``rect_from_map_rect``, inliers, method
+Found = tuple[int, F64, int, str]
+
+#: the worker process's own stage (its map database), made by :func:`_worker_start`
+_WORKER: MapLocalizationStage | None = None
+
+
+def _worker_start(smap: SessionMap, calibration: StereoCalibration, config: LoopConfig) -> None:
+    global _WORKER
+    _WORKER = MapLocalizationStage(smap, calibration, config)
+
+
+def _worker_relocalize(image: NDArray[np.uint8]) -> tuple[Found | None, float]:
+    assert _WORKER is not None
+    t0 = time.perf_counter()
+    found = _WORKER.relocalize(image) if image.size else None
+    return found, (time.perf_counter() - t0) * 1e3
 
 
 def _motion(a: F64, b: F64) -> tuple[float, float]:
@@ -74,8 +95,8 @@ class MapLocalizationStage:
         self.attempt_ms: list[float] = []
         self.gated = 0
         self._keyframes: dict[int, Keyframe] = {}
-        self._executor: ThreadPoolExecutor | None = None
-        self._inflight: deque[tuple[int, Future[tuple[int, F64, int, str] | None]]] = deque()
+        self._executor: ProcessPoolExecutor | None = None
+        self._inflight: deque[tuple[int, Future[tuple[Found | None, float]]]] = deque()
 
     # ------------------------------------------------------------------ relocalization
     def _map_world_from_rect(self, map_kf: int) -> F64:
@@ -115,7 +136,7 @@ class MapLocalizationStage:
         """Relocalize the keyframe in the map; a success is a correction into the map's frame.
 
         A keyframe of a segment not yet in the map is relocalized at once; once the segment is in
-        the map, relocalization runs in a worker thread and its correction (of that keyframe, and
+        the map, relocalization runs in a worker process and its correction (of that keyframe, and
         the later ones rigidly with it) is applied at the next keyframe, so tracking does not wait.
         """
         kf = keyframe
@@ -126,21 +147,31 @@ class MapLocalizationStage:
         self._collect(out, state, wait=False)
         self.in_map[kid] = seg in self._segment_in_map
         if seg in self._segment_in_map:
-            self._inflight.append((kid, self._pool().submit(self._timed_relocalize, kf.image)))
+            self._inflight.append((kid, self._pool().submit(_worker_relocalize, kf.image)))
             return out
         self._apply(kid, self._timed_relocalize(kf.image), out, state)
+        if seg in self._segment_in_map:
+            self._pool()  # start the worker while tracking goes on
         return out
 
-    def _pool(self) -> ThreadPoolExecutor:
+    def _pool(self) -> ProcessPoolExecutor:
+        """The worker process holding its own copy of the map's database (started at the first use)."""
         if self._executor is None:
-            self._executor = ThreadPoolExecutor(1, thread_name_prefix="map-reloc")
+            self._executor = ProcessPoolExecutor(
+                1,
+                mp_context=mp.get_context("spawn"),
+                initializer=_worker_start,
+                initargs=(self.map, self.closer.calibration, self.config),
+            )
         return self._executor
 
     def _collect(self, out: LoopOutcome, state: MapState, wait: bool) -> None:
         """Apply the finished relocalizations of earlier keyframes (``wait``: all of them)."""
         while self._inflight and (wait or self._inflight[0][1].done()):
             kid, fut = self._inflight.popleft()
-            self._apply(kid, fut.result(), out, state)
+            found, ms = fut.result()
+            self.attempt_ms.append(ms)
+            self._apply(kid, found, out, state)
 
     def _apply(
         self, kid: int, found: tuple[int, F64, int, str] | None, out: LoopOutcome, state: MapState
@@ -190,7 +221,7 @@ class MapLocalizationStage:
         out.events.append(record)
 
     def close(self, state: MapState) -> dict[int, F64]:
-        """Apply the relocalizations still running; stop the worker thread."""
+        """Apply the relocalizations still running; stop the worker process."""
         out = LoopOutcome(self._keyframes[max(self._keyframes)]) if self._keyframes else None
         if out is not None:
             self._collect(out, state, wait=True)
