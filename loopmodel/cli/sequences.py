@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.table import Table
@@ -22,8 +22,11 @@ from loopmodel.cli.common import (
     progress_bar,
 )
 from loopmodel.cli.view import RerunConnectOption, RerunFileOption, RerunSpawnOption, rerun_listeners
-from loopmodel.config import apply_overrides, load_config
+from loopmodel.config import Config, apply_overrides, load_config
 from loopmodel.errors import InputError
+
+if TYPE_CHECKING:
+    from loopmodel.loop.session_map import SessionMap
 
 
 @app.command()
@@ -160,16 +163,7 @@ def run(
         out, name = resume.parent, name or resume.name
         if config is None and (resume / "config.yaml").is_file():
             config = resume / "config.yaml"  # the interrupted run's configuration
-    cfg = load_config(config)
-    if mode is not None:
-        if base_map is None:
-            raise InputError("--mode", "needs --map")
-        cfg = apply_overrides(cfg, {"session.mode": mode}, {"session.mode": "--mode"})
-    session_map = None
-    if base_map is not None:
-        from loopmodel.loop.session_map import SessionMap
-
-        session_map = SessionMap.load(base_map)
+    cfg, session_map = _session_config(load_config(config), base_map, mode)
     seq = open_sequence(path, cfg.sequence, left, right, calib)
     if getattr(seq, "choice", None):
         console.print(f"{seq.format_name}: {seq.choice}")  # type: ignore[attr-defined]
@@ -237,6 +231,19 @@ def run(
         table.add_row(k, _fmt(v))
     console.print(table)
     console.print(f"results in {result.folder}")
+
+
+def _session_config(cfg: Config, base_map: Path | None, mode: str | None) -> tuple[Config, SessionMap | None]:
+    """The configuration with ``--mode`` applied, and the loaded ``--map`` (None without)."""
+    if mode is not None:
+        if base_map is None:
+            raise InputError("--mode", "needs --map")
+        cfg = apply_overrides(cfg, {"session.mode": mode}, {"session.mode": "--mode"})
+    if base_map is None:
+        return cfg, None
+    from loopmodel.loop.session_map import SessionMap
+
+    return cfg, SessionMap.load(base_map)
 
 
 def _session_rows(m: dict[str, Any]) -> list[tuple[str, Any]]:

@@ -3,8 +3,9 @@
 A :class:`~loopmodel.stages.LoopStage` whose database is the saved map's keyframes (their feature
 sets, vocabulary and bags of words, :meth:`~loopmodel.loop.session_map.SessionMap.database`).
 Every keyframe the front end makes is relocalized against the map (descriptors and the P3P bank,
-then seed 004's KLT stage on the matched map keyframe's image); a success returns the keyframe's
-pose in the map's world as a correction, so the tracker goes on in the map's frame. The first
+then seed 004's KLT stage on the matched map keyframe's image; in a worker process once the
+segment is in the map); a success returns the keyframe's pose in the map's world as a
+correction, so the tracker goes on in the map's frame. The first
 success of a tracking segment (the start, or after a loss) moves the segment's earlier keyframes
 rigidly with it; later ones replace the tracked pose when they agree with it within the gate
 (``max_correction_m`` / ``_deg``), so one false match cannot throw the session away. Nothing is
@@ -15,7 +16,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import multiprocessing as mp
 import time
+from collections import deque
+from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -34,6 +38,25 @@ from loopmodel.types import Keyframe, StereoCalibration
 logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
+
+
+#: a relocalization: map keyframe, ``rect_from_map_rect``, inliers, method
+Found = tuple[int, F64, int, str]
+
+#: the worker process's own stage (its map database), made by :func:`_worker_start`
+_WORKER: MapLocalizationStage | None = None
+
+
+def _worker_start(smap: SessionMap, calibration: StereoCalibration, config: LoopConfig) -> None:
+    global _WORKER
+    _WORKER = MapLocalizationStage(smap, calibration, config)
+
+
+def _worker_relocalize(image: NDArray[np.uint8]) -> tuple[Found | None, float]:
+    assert _WORKER is not None
+    t0 = time.perf_counter()
+    found = _WORKER.relocalize(image) if image.size else None
+    return found, (time.perf_counter() - t0) * 1e3
 
 
 def _motion(a: F64, b: F64) -> tuple[float, float]:
@@ -71,6 +94,9 @@ class MapLocalizationStage:
         self._segment_in_map: set[int] = set()
         self.attempt_ms: list[float] = []
         self.gated = 0
+        self._keyframes: dict[int, Keyframe] = {}
+        self._executor: ProcessPoolExecutor | None = None
+        self._inflight: deque[tuple[int, Future[tuple[Found | None, float]]]] = deque()
 
     # ------------------------------------------------------------------ relocalization
     def _map_world_from_rect(self, map_kf: int) -> F64:
@@ -100,37 +126,85 @@ class MapLocalizationStage:
         return map_kf, cur_from_map, res.n_inliers, "descriptors"
 
     # ------------------------------------------------------------------ the stage
+    def _timed_relocalize(self, image: NDArray[np.uint8]) -> tuple[int, F64, int, str] | None:
+        t0 = time.perf_counter()
+        found = self.relocalize(image) if image.size else None
+        self.attempt_ms.append((time.perf_counter() - t0) * 1e3)
+        return found
+
     def on_keyframe(self, keyframe: Keyframe, state: MapState) -> LoopOutcome:
-        """Relocalize the keyframe in the map; a success is a correction into the map's frame."""
+        """Relocalize the keyframe in the map; a success is a correction into the map's frame.
+
+        A keyframe of a segment not yet in the map is relocalized at once; once the segment is in
+        the map, relocalization runs in a worker process and its correction (of that keyframe, and
+        the later ones rigidly with it) is applied at the next keyframe, so tracking does not wait.
+        """
         kf = keyframe
         kid, seg = int(kf.id), int(kf.segment)
         self._segment_kfs.setdefault(seg, []).append(kid)
+        self._keyframes[kid] = kf
         out = LoopOutcome(kf)
-        t0 = time.perf_counter()
-        found = self.relocalize(kf.image) if kf.image.size else None
-        self.attempt_ms.append((time.perf_counter() - t0) * 1e3)
+        self._collect(out, state, wait=False)
         self.in_map[kid] = seg in self._segment_in_map
-        if found is None:
+        if seg in self._segment_in_map:
+            self._inflight.append((kid, self._pool().submit(_worker_relocalize, kf.image)))
             return out
+        self._apply(kid, self._timed_relocalize(kf.image), out, state)
+        if seg in self._segment_in_map:
+            self._pool()  # start the worker while tracking goes on
+        return out
+
+    def _pool(self) -> ProcessPoolExecutor:
+        """The worker process holding its own copy of the map's database (started at the first use)."""
+        if self._executor is None:
+            self._executor = ProcessPoolExecutor(
+                1,
+                mp_context=mp.get_context("spawn"),
+                initializer=_worker_start,
+                initargs=(self.map, self.closer.calibration, self.config),
+            )
+        return self._executor
+
+    def _collect(self, out: LoopOutcome, state: MapState, wait: bool) -> None:
+        """Apply the finished relocalizations of earlier keyframes (``wait``: all of them)."""
+        while self._inflight and (wait or self._inflight[0][1].done()):
+            kid, fut = self._inflight.popleft()
+            found, ms = fut.result()
+            self.attempt_ms.append(ms)
+            self._apply(kid, found, out, state)
+
+    def _apply(
+        self, kid: int, found: tuple[int, F64, int, str] | None, out: LoopOutcome, state: MapState
+    ) -> None:
+        """Correct keyframe ``kid`` (and the keyframes after it, rigidly) by a relocalization."""
+        if found is None:
+            return
+        kf = self._keyframes[kid]
+        seg = int(kf.segment)
         map_kf, new_from_map, inliers, method = found
         world_from_new = self._map_world_from_rect(map_kf) @ invert_pose(new_from_map) @ kf.rect_from_cam
-        tracked = np.asarray(state.world_from_kf.get(kid, kf.world_from_kf))
+        world = {**state.world_from_kf, **out.corrections}
+        tracked = np.asarray(world.get(kid, kf.world_from_kf))
         trans, rot = _motion(tracked, world_from_new)
         first = seg not in self._segment_in_map
         if not first and (trans > self.max_correction_m or rot > self.max_correction_deg):
             self.gated += 1
             logger.info("keyframe %d: relocalization %.3f m / %.2f deg off the track: not applied", kid, trans, rot)
-            return out
+            return
+        delta = world_from_new @ invert_pose(tracked)
+        # the segment's earlier keyframes when it enters the map, the later ones always
+        moved = [k for k in self._segment_kfs[seg] if k != kid and (first or k > kid) and k in world]
+        for k in moved:
+            out.corrections[k] = delta @ np.asarray(world[k])
+            self.in_map[k] = True
         if first:
-            delta = world_from_new @ invert_pose(tracked)
-            for k in self._segment_kfs[seg]:
-                if k != kid and k in state.world_from_kf:
-                    out.corrections[k] = delta @ np.asarray(state.world_from_kf[k])
-                    self.in_map[k] = True
             self._segment_in_map.add(seg)
             logger.info("keyframe %d (frame %d) localized in the map at keyframe %d", kid, kf.frame_index, map_kf)
         out.corrections[kid] = world_from_new
-        out.keyframe = dataclasses.replace(kf, world_from_kf=world_from_new)
+        if kid == int(out.keyframe.id):
+            out.keyframe = dataclasses.replace(out.keyframe, world_from_kf=world_from_new)
+        elif int(out.keyframe.id) in out.corrections:
+            out.keyframe = dataclasses.replace(out.keyframe, world_from_kf=out.corrections[int(out.keyframe.id)])
         self.in_map[kid] = True
         record = {
             "type": "map_relocalization",
@@ -145,11 +219,16 @@ class MapLocalizationStage:
         }
         self.events.append(record)
         out.events.append(record)
-        return out
 
     def close(self, state: MapState) -> dict[int, F64]:
-        """Nothing pending."""
-        return {}
+        """Apply the relocalizations still running; stop the worker process."""
+        out = LoopOutcome(self._keyframes[max(self._keyframes)]) if self._keyframes else None
+        if out is not None:
+            self._collect(out, state, wait=True)
+        if self._executor is not None:
+            self._executor.shutdown()
+            self._executor = None
+        return out.corrections if out is not None else {}
 
     def final_constraints(self) -> list[LoopConstraint]:
         """None: nothing is added to the map."""
