@@ -248,6 +248,27 @@ def test_config_size_knobs_are_bounded(tmp_path: Path) -> None:
             load_config(cfg)
 
 
+def test_size_knobs_are_bounded_by_the_image_size_at_run_time(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # 64x48 images: each knob passes the config's own bounds but not the image (item 11)
+    root = _kitti(tmp_path / "k", _names(2), _names(2))
+    for key, value in (
+        ("grid_cols", 20),  # 64 - 2*12 = 40 px: at most 10 cells of 4 px
+        ("grid_rows", 10),
+        ("border_px", 24),
+        ("patch_px", 63),
+        ("klt_window_px", 49),
+        ("remeasure_half_window_px", 24),
+    ):
+        cfg = tmp_path / f"{key}.yaml"
+        cfg.write_text(json.dumps({"frontend": {key: value}}))
+        assert main(["run", str(root), "-c", str(cfg), "--out", str(tmp_path / "o"), "--name", key]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and f"frontend.{key}" in err and ("64x48" in err or "px " in err), err
+        assert "Traceback" not in err and not (tmp_path / "o" / key).exists()
+
+
 def test_corrupt_stripes_npz(tmp_path: Path) -> None:
     (tmp_path / "stripes.npz").write_bytes(b"PK\x03\x04" + b"\x00" * 50)
     with pytest.raises(FormatError, match="stripes.npz: not a readable .npz file"):

@@ -154,6 +154,9 @@ def run(
     run_name = name or (f"{path.stem}_frontend" if frontend_only else path.stem)
     check_results_folder(out if out is not None else cfg.output.out_dir, run_name, overwrite)  # before the work
     seq = open_sequence(path, cfg.sequence, left, right, calib)
+    from loopmodel.frontend.tracker import check_sizes_against_image
+
+    check_sizes_against_image(cfg.frontend, *seq.calibration.image_size)  # before the progress bar
     if getattr(seq, "choice", None):
         console.print(f"{seq.format_name}: {seq.choice}")  # type: ignore[attr-defined]
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
