@@ -138,6 +138,8 @@ class StopFlag:
     def __init__(self) -> None:
         self._event = threading.Event()
         self.reason = ""
+        # what the run does once its frames are done (reliab2, issue 24: said to a second signal)
+        self.finishing = "the results are being written"
 
     def set(self, reason: str = "stop requested") -> None:
         """Ask the run to stop after the current frame."""
@@ -162,7 +164,7 @@ def stop_on_signals(stop: StopFlag) -> Iterator[StopFlag]:
 
     def _request(signum: int, frame: object) -> None:
         if stop.is_set():
-            logger.warning("signal %d: already stopping (the results are being written)", signum)
+            logger.warning("signal %d: already stopping, please wait: %s", signum, stop.finishing)
         stop.set(f"signal {signum}")
 
     previous = {s: signal.signal(s, _request) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -394,6 +396,15 @@ class _Run:
             np.stack([poses[k] for k in ids]) if ids else np.zeros((0, 4, 4)),
         )
 
+    def finishing_note(self) -> str:
+        """What :meth:`finish` and the writes will do, with the mesh time estimated from the live mesher's rate."""
+        n = self.anchored.point_count
+        if not self.config.mapping.write_mesh or n == 0:
+            return "the results are being written (a few seconds)"
+        est = self.live.mesh_seconds_estimate()
+        when = f"about {est:.0f} s at this run's live-mesh rate" if est is not None else "no rate measured yet"
+        return f"the final mesh of {n} stripe points ({when}), then the results files"
+
     def finish(self, interrupted: bool) -> RunResult:
         """Stop the workers, refine, place the stripes, mesh, gather the metrics."""
         wall = time.perf_counter() - self.t_start
@@ -587,6 +598,7 @@ def process(
         logger.warning("interrupted after %d frames", len(run.frames))
     if error is not None:
         logger.error("stopped after %d frames: %s", len(run.frames), error)
+    stop.finishing = run.finishing_note()
     result = run.finish(interrupted)
     if error is not None:
         result.error = error

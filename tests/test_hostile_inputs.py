@@ -248,6 +248,27 @@ def test_config_size_knobs_are_bounded(tmp_path: Path) -> None:
             load_config(cfg)
 
 
+def test_size_knobs_are_bounded_by_the_image_size_at_run_time(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # 64x48 images: each knob passes the config's own bounds but not the image (item 11)
+    root = _kitti(tmp_path / "k", _names(2), _names(2))
+    for key, value in (
+        ("grid_cols", 20),  # 64 - 2*12 = 40 px: at most 10 cells of 4 px
+        ("grid_rows", 10),
+        ("border_px", 24),
+        ("patch_px", 63),
+        ("klt_window_px", 49),
+        ("remeasure_half_window_px", 24),
+    ):
+        cfg = tmp_path / f"{key}.yaml"
+        cfg.write_text(json.dumps({"frontend": {key: value}}))
+        assert main(["run", str(root), "-c", str(cfg), "--out", str(tmp_path / "o"), "--name", key]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and f"frontend.{key}" in err and ("64x48" in err or "px " in err), err
+        assert "Traceback" not in err and not (tmp_path / "o" / key).exists()
+
+
 def test_corrupt_stripes_npz(tmp_path: Path) -> None:
     (tmp_path / "stripes.npz").write_bytes(b"PK\x03\x04" + b"\x00" * 50)
     with pytest.raises(FormatError, match="stripes.npz: not a readable .npz file"):
@@ -342,6 +363,45 @@ def test_results_folder_never_mixes_runs(tmp_path: Path) -> None:
         ResultsFolder(tmp_path, "run", overwrite=False)
 
 
+def test_existing_outputs_are_refused_unless_overwrite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from frontend_scene import write_kitti_folder
+
+    seq = tmp_path / "seq"
+    write_kitti_folder(seq, 3, np.random.default_rng(3))
+    folder = tmp_path / "out" / "r"
+    args = ["run", str(seq), "--out", str(tmp_path / "out"), "--name", "r"]
+
+    def frames() -> int:
+        return int(json.loads((folder / "metrics.json").read_text())["frames"])
+
+    assert main([*args, "--max-frames", "2"]) == 0 and frames() == 2
+    capsys.readouterr()
+    # run: refused before the work, in one line naming the folder; the old run stays whole
+    assert main([*args, "--max-frames", "3"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(folder) in err and "--overwrite" in err
+    assert frames() == 2
+    assert main([*args, "--max-frames", "3", "--frontend-only"]) == 2 and frames() == 2
+    assert main([*args, "--max-frames", "3", "--overwrite"]) == 0 and frames() == 3
+    # convert
+    dst = tmp_path / "c.mcap"
+    assert main(["convert", str(seq), str(dst)]) == 0
+    before = dst.read_bytes()
+    dst.write_bytes(b"older")
+    assert main(["convert", str(seq), str(dst)]) == 2
+    assert "--overwrite" in capsys.readouterr().err and dst.read_bytes() == b"older"
+    assert main(["convert", str(seq), str(dst), "--overwrite"]) == 0 and dst.read_bytes() == before
+    # simulate and mesh: refused before any work
+    sim = tmp_path / "s.mcap"
+    sim.write_text("older")
+    assert main(["simulate", "scan", "--out", str(sim), "--frames", "2"]) == 2
+    assert str(sim) in capsys.readouterr().err and sim.read_text() == "older"
+    (folder / "mesh.ply").write_text("older")
+    assert main(["mesh", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert "mesh.ply" in err and "--overwrite" in err and (folder / "mesh.ply").read_text() == "older"
+
+
 def test_results_folder_out_is_a_file_or_read_only(tmp_path: Path) -> None:
     f = tmp_path / "file"
     f.write_text("x")
@@ -399,7 +459,7 @@ def test_full_disk_keeps_the_old_results_and_says_so(
 
     seq = tmp_path / "seq"
     write_kitti_folder(seq, 3, np.random.default_rng(3))
-    args = ["run", str(seq), "--out", str(tmp_path / "out"), "--name", "r", "--max-frames", "2"]
+    args = ["run", str(seq), "--out", str(tmp_path / "out"), "--name", "r", "--max-frames", "2", "--overwrite"]
     assert main(args) == 0
     before = (tmp_path / "out" / "r" / "metrics.json").read_text()
     real = ResultsFolder.write_text

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import logging
+import os
+import re
+import signal
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 import pytest
 
+from loopmodel import pipeline
 from loopmodel.config import Config, config_from_dict
 from loopmodel.io.sequence import open_sequence
 from loopmodel.pipeline import run_pipeline
@@ -15,7 +20,9 @@ from loopmodel.sim import generate as gen
 
 
 @pytest.mark.slow
-def test_run_writes_mesh_and_mesh_errors(tmp_path: Path) -> None:
+def test_run_writes_mesh_and_mesh_errors(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
     cfg: Config = config_from_dict(
         {
             "simulation": {
@@ -28,7 +35,20 @@ def test_run_writes_mesh_and_mesh_errors(tmp_path: Path) -> None:
     )
     seq_path = tmp_path / "scan.mcap"
     gen.simulate_scan(cfg.simulation, seq_path)
-    out = run_pipeline(open_sequence(seq_path), cfg, tmp_path / "runs", "mesh")
+    # Ctrl-C twice once the frames are done (issue 24, item 3): the second one says what is being
+    # written and how long the mesh takes; neither cuts the writes
+    real_finish = pipeline._Run.finish
+
+    def finish(self: pipeline._Run, interrupted: bool) -> object:
+        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGINT)
+        return real_finish(self, interrupted)
+
+    monkeypatch.setattr(pipeline._Run, "finish", finish)
+    with caplog.at_level(logging.WARNING, logger="loopmodel.pipeline"):
+        out = run_pipeline(open_sequence(seq_path), cfg, tmp_path / "runs", "mesh")
+    said = [r.getMessage() for r in caplog.records if "already stopping" in r.getMessage()]
+    assert len(said) == 1 and re.search(r"final mesh of \d+ stripe points \(about \d+ s at this run's", said[0])
     mesh = o3d.io.read_triangle_mesh(str(out.folder / "mesh.ply"))
     assert len(mesh.vertices) > 1000 and len(mesh.triangles) > 1000
     m = out.metrics

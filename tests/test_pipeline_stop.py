@@ -101,3 +101,26 @@ def test_a_set_stop_flag_ends_the_run_before_the_next_frame(sequence_dir: Path) 
     result = process(open_sequence(sequence_dir), _config(), progress=progress, stop=stop)
     assert result.interrupted and len(result.frames) == 3 and stop.reason == "enough"
     assert len(result.final) == 3 and result.folder is None
+
+
+def test_a_second_signal_during_the_final_writes_says_what_is_written(
+    sequence_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    import logging
+
+    from loopmodel import pipeline
+
+    real_finish = pipeline._Run.finish
+
+    def finish(self: pipeline._Run, interrupted: bool) -> object:
+        os.kill(os.getpid(), signal.SIGINT)  # after the last frame: the run is complete
+        os.kill(os.getpid(), signal.SIGINT)
+        return real_finish(self, interrupted)
+
+    monkeypatch.setattr(pipeline._Run, "finish", finish)
+    with caplog.at_level(logging.WARNING, logger="loopmodel.pipeline"):
+        out = run_pipeline(open_sequence(sequence_dir), _config(), tmp_path, "twice")
+    said = [r.getMessage() for r in caplog.records if "already stopping" in r.getMessage()]
+    # no stripes here (the mesh case with its time estimate: test_pipeline_mesh)
+    assert said == ["signal 2: already stopping, please wait: the results are being written (a few seconds)"]
+    assert out.metrics["frames"] == N_FRAMES and not out.interrupted

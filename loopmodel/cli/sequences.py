@@ -59,6 +59,11 @@ def info(
     console.print(table)
 
 
+OverwriteOption = Annotated[
+    bool, typer.Option("--overwrite", help="Replace an existing output (only once the new one is complete)")
+]
+
+
 @app.command()
 def convert(
     src: Annotated[Path, typer.Argument(help="EuRoC or KITTI folder, MCAP file or ROS bag")],
@@ -75,6 +80,7 @@ def convert(
     left: LeftTopicOption = None,
     right: RightTopicOption = None,
     calib: CalibOption = None,
+    overwrite: OverwriteOption = False,
 ) -> None:
     """Convert a sequence to MCAP with ROS 2 messages (topics of DESIGN.md) or to a ROS bag."""
     from loopmodel.io.convert import OUTPUT_KINDS, convert_sequence, output_kind
@@ -91,8 +97,8 @@ def convert(
     allowed = ("raw", "png", "jpeg") if kind == "mcap" else ENCODINGS
     if image_format not in allowed:
         raise InputError("--image-format", f"must be one of {', '.join(allowed)} for {kind}, got '{image_format}'")
-    if dst.exists() and kind != "mcap":
-        raise InputError(dst, "exists already; choose a new name")
+    if dst.exists() and not overwrite:
+        raise InputError(dst, "exists already; choose a new name or pass --overwrite")
     from loopmodel.cli.signals import sigterm_as_interrupt
     from loopmodel.io.atomic import check_output_file
 
@@ -140,6 +146,7 @@ def run(
     resume: Annotated[
         Path | None, typer.Option("--resume", help="Continue the interrupted run RESULTS_DIR from its last keyframe")
     ] = None,
+    overwrite: OverwriteOption = False,
 ) -> None:
     """Process a sequence (front end, back end).
 
@@ -164,12 +171,19 @@ def run(
         if config is None and (resume / "config.yaml").is_file():
             config = resume / "config.yaml"  # the interrupted run's configuration
     cfg, session_map = _session_config(load_config(config), base_map, mode)
+    from loopmodel.io.results import check_results_folder
+
+    run_name = name or (f"{path.stem}_frontend" if frontend_only else path.stem)
+    # a resumed run replaces the folder it continues
+    check_results_folder(out if out is not None else cfg.output.out_dir, run_name, overwrite or resume is not None)
     seq = open_sequence(path, cfg.sequence, left, right, calib)
+    from loopmodel.frontend.tracker import check_sizes_against_image
+
+    check_sizes_against_image(cfg.frontend, *seq.calibration.image_size)  # before the progress bar
     if getattr(seq, "choice", None):
         console.print(f"{seq.format_name}: {seq.choice}")  # type: ignore[attr-defined]
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
     if frontend_only:
-        run_name = name or f"{path.stem}_frontend"
         with progress_bar(_Text("{task.fields[fps]:.1f} fps")) as bar:
             task = bar.add_task("front end", total=total, fps=0.0)
             result = run_frontend(
@@ -187,7 +201,6 @@ def run(
             + (f", ATE {m['ate_rmse_m']:.3f} m, drift {m['drift_pct']:.2f} %" if "ate_rmse_m" in m else "")
         )
         return
-    run_name = name or path.stem
     folder = Path(out if out is not None else cfg.output.out_dir) / run_name
     with progress_bar(_Text("{task.fields[fps]:.1f} fps"), _Text("{task.fields[kf]} keyframes")) as bar:
         task = bar.add_task("run", total=total, fps=0.0, kf=0)
@@ -281,6 +294,7 @@ def mesh(
         bool, typer.Option("--picture/--no-picture", help="Also write a PNG picture of the mesh beside it")
     ] = True,
     config: ConfigOption = None,
+    overwrite: OverwriteOption = False,
 ) -> None:
     """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run), or of a (merged) map."""
     from loopmodel.io.mesh_io import MESH_FORMATS, read_mesh, write_mesh
@@ -291,6 +305,11 @@ def mesh(
     if fmt not in MESH_FORMATS:
         raise InputError(None, f"--format must be one of {', '.join(MESH_FORMATS)}, got '{fmt}'")
     cfg = load_config(config)
+    from loopmodel.io.atomic import check_output_file
+
+    target = out or (source / f"mesh.{fmt}" if source.is_dir() else source.with_name(f"{source.stem}_mesh.{fmt}"))
+    for p in [target] + ([target.with_suffix(".png")] if picture else []):
+        check_output_file(p, overwrite)  # before the work
     if (source / "map.json").is_file():  # a saved (merged) session map: its stripes at their anchors
         from loopmodel.loop.session_map import SessionMap
         from loopmodel.mapping.final import posed_stripes_mesh
@@ -308,7 +327,6 @@ def mesh(
         smap.check_nonempty()
         surface = smap.mesh()
         placed = f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes"
-    target = out or (source / f"mesh.{fmt}" if source.is_dir() else source.with_name(f"{source.stem}_mesh.{fmt}"))
     write_mesh(target, surface, fmt)
     console.print(
         f"wrote {target} ({len(surface.vertices)} vertices, {len(surface.triangles)} triangles, "
@@ -366,10 +384,13 @@ def simulate_scan_cmd(
     workers: Annotated[int | None, typer.Option("--workers", help="Render processes (0: one per core)")] = None,
     image_format: Annotated[str | None, typer.Option("--image-format", help="png, jpeg or raw")] = None,
     config: ConfigOption = None,
+    overwrite: OverwriteOption = False,
 ) -> None:
     """Generate a synthetic hand-held scan (stereo, laser stripes, ground truth) as MCAP."""
+    from loopmodel.io.atomic import check_output_file
     from loopmodel.sim.generate import resolve_config, simulate_scan
 
+    check_output_file(out, overwrite)  # before the work
     cfg = load_config(config)
     sim = resolve_config(
         cfg.simulation,

@@ -69,6 +69,34 @@ def median_parallax_rad(points_m: F64, centre_m: F64) -> float:
     return float(np.median(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
+#: smallest detection-grid cell (px): a Shi-Tomasi corner needs its 3x3 neighbourhood plus one
+MIN_GRID_CELL_PX = 4
+
+
+def check_sizes_against_image(config: FrontendConfig, width_px: int, height_px: int) -> None:
+    """Size-like front-end knobs must fit the (rectified) image; :class:`InputError` naming the key.
+
+    The detection grid needs cells of at least ``MIN_GRID_CELL_PX`` inside the border, the border
+    must leave an area to detect in, and the matching, KLT and re-measured windows must fit the image.
+    """
+    inner_w, inner_h = width_px - 2 * config.border_px, height_px - 2 * config.border_px
+    checks = (
+        ("border_px", inner_w > 0 and inner_h > 0, f"twice it must be below the image size {width_px}x{height_px}"),
+        ("grid_cols", inner_w >= MIN_GRID_CELL_PX * config.grid_cols,
+         f"at most {max(inner_w // MIN_GRID_CELL_PX, 0)} for {width_px} px wide images ({MIN_GRID_CELL_PX} px cells)"),
+        ("grid_rows", inner_h >= MIN_GRID_CELL_PX * config.grid_rows,
+         f"at most {max(inner_h // MIN_GRID_CELL_PX, 0)} for {height_px} px high images ({MIN_GRID_CELL_PX} px cells)"),
+        ("patch_px", config.patch_px <= min(width_px, height_px), f"at most the image size {width_px}x{height_px}"),
+        ("klt_window_px", config.klt_window_px <= min(width_px, height_px),
+         f"at most the image size {width_px}x{height_px}"),
+        ("remeasure_half_window_px", 2 * config.remeasure_half_window_px + 1 <= min(width_px, height_px),
+         f"the window (2 x it + 1) must fit the image size {width_px}x{height_px}"),
+    )
+    for key, ok, expected in checks:
+        if not ok:
+            raise InputError(f"frontend.{key}", f"{getattr(config, key)} does not fit the images: {expected}")
+
+
 def _rotation_deg(T: F64) -> float:
     return float(np.degrees(np.linalg.norm(so3_log(T[:3, :3]))))
 
@@ -90,6 +118,7 @@ class FrontEnd:
         self.input_calibration = calibration.check("calibration")
         self.rectifier = Rectifier(calibration)
         self.calibration = self.rectifier.calibration  # rectified
+        check_sizes_against_image(self.config, *self.calibration.image_size)
         self.rect_from_cam = self.rectifier.rect_from_cam
         self.cam_from_rect = invert_pose(self.rect_from_cam)
         self.left_camera = self.calibration.left_camera()

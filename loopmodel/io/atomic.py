@@ -61,15 +61,17 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
     return removed
 
 
-def check_output_file(path: str | Path) -> Path:
+def check_output_file(path: str | Path, overwrite: bool = True) -> Path:
     """Before any work.
 
-    ``path`` must not be a folder and its folder must be writable (created when missing). Raises
-    :class:`InputError` naming the path.
+    ``path`` must not be a folder, nor (unless ``overwrite``) exist, and its folder must be
+    writable (created when missing). Raises :class:`InputError` naming the path.
     """
     from loopmodel.errors import InputError
 
     p = Path(path)
+    if not overwrite and p.exists():
+        raise InputError(p, "exists already; choose a new name or pass --overwrite")
     if p.is_dir():
         raise InputError(p, "output is a folder; give a file name")
     if p.exists() and not p.is_file():

@@ -35,14 +35,8 @@ class ResultsFolder:
     the staging folders and locks of dead processes are removed at the next start."""
 
     def __init__(self, out_dir: str | Path, name: str, staged: bool = True, overwrite: bool = True) -> None:
-        if not name or "/" in name or name in (".", "..") or name.startswith("."):
-            raise InputError("--name", f"run name must be a plain folder name, got '{name}'")
         out = Path(out_dir)
-        self.final = out / name
-        if self.final.exists() and not self.final.is_dir():
-            raise InputError(self.final, "results path exists and is not a folder")
-        if not overwrite and self.final.exists():
-            raise InputError(self.final, "results folder exists; choose another --name or pass --overwrite")
+        self.final = check_results_folder(out, name, overwrite)
         try:
             out.mkdir(parents=True, exist_ok=True)
         except FileExistsError:
@@ -177,6 +171,21 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
     finally:
         folder.commit()
     return folder.path
+
+
+def check_results_folder(out_dir: str | Path, name: str, overwrite: bool = True) -> Path:
+    """``<out_dir>/<name>``, checked before any work: a plain name, not a file, and (unless ``overwrite``) new.
+
+    Raises :class:`InputError` naming the folder (or ``--name``).
+    """
+    if not name or "/" in name or name in (".", "..") or name.startswith("."):
+        raise InputError("--name", f"run name must be a plain folder name, got '{name}'")
+    final = Path(out_dir) / name
+    if final.exists() and not final.is_dir():
+        raise InputError(final, "results path exists and is not a folder")
+    if not overwrite and final.exists():
+        raise InputError(final, "results folder exists; choose another --name or pass --overwrite")
+    return final
 
 
 #: lock files held by this process (a lock with our PID but not in here is stale)

@@ -39,6 +39,7 @@ class LiveMapping:
         self._job: Any = None
         self.update_ms: list[float] = []
         self.blocks_remeshed = 0
+        self.points_meshed = 0
 
     @property
     def enabled(self) -> bool:
@@ -95,19 +96,29 @@ class LiveMapping:
 
         t0 = time.perf_counter()
         meshes = mesh_blocks(points_w, sensors_w, blocks, live_mesh_config(self._world.config))
-        return meshes, (time.perf_counter() - t0) * 1e3
+        return meshes, (time.perf_counter() - t0) * 1e3, len(points_w)
 
     def _collect(self) -> None:
         job, self._job = self._job, None
         try:
-            meshes, ms = job.result()
+            meshes, ms, n_points = job.result()
         except Exception as exc:  # the live view is a convenience: log, keep tracking
             logger.error("live mesh update failed: %s", exc)
             return
         self._world.install_blocks(meshes)
         self.blocks_remeshed += len(meshes)
         self.update_ms.append(ms)
+        self.points_meshed += n_points
         logger.info("live mesh: %d block(s) re-meshed in %.0f ms", len(meshes), ms)
+
+    def mesh_seconds_estimate(self) -> float | None:
+        """Seconds to mesh every stripe point of the map at the rate the live updates measured.
+
+        None before the first update (or when the live mesh is off).
+        """
+        if not self.points_meshed:
+            return None
+        return self._world.point_count * sum(self.update_ms) / 1e3 / self.points_meshed
 
     def close(self, wait: bool) -> None:
         """Install the last worker result (``wait``) or abandon it; stop the worker."""
