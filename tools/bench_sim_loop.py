@@ -22,8 +22,10 @@ SE(3)-aligned as ATE (``*_anchored_mm``: anchored at the first ground-truth pose
 against the true stripe (``/ground_truth/laser_stripe`` projected through the true, distorted
 lens): p95 of the distance (px) of the extracted peaks within 3 px of it;
 ``stripe_outlier_fraction``: the share farther away (spurious reflections, background).
-``givens_rejected`` needs the Givens screen (``backend.kind: both``); the default back end is
-iSAM2 without it, so the key is null and ``givens_injected`` 0. ``old_features_retracked``:
+``givens_*``: the orbit once more with the Givens screen (``backend.kind: both``; the default
+back end is iSAM2 without it) and 1 % of the keyframes' re-observations moved by 6 px
+(``givens_injected``): ``givens_rejected`` all the screen rejected, ``givens_injected_rejected``
+the injected among them, ``givens_other_rejected`` the rest. ``old_features_retracked``:
 the most old landmarks a closure's KLT stage tracked again into the current keyframe (the
 loop's ``loop_observations``, which join the back end); per loop in
 ``old_features_retracked_per_loop``. The front end then goes on tracking that old set (seed 004
@@ -152,6 +154,7 @@ def run_sequence(path: Path, config: Config, max_frames: int | None = None, stri
         "status": [f.status for f in out.frames],
         "frame_index": {f.frame_index: j for j, f in enumerate(out.frames)},
         "givens_rejected": out.metrics.get("givens_rejected_observations"),
+        "givens_tested": out.metrics.get("givens_tested_observations"),
     }
 
 
@@ -279,6 +282,80 @@ def _mesh_errors(out: dict[str, Any], scene_ply: Path, config: Config) -> dict[s
     return res
 
 
+def _givens_blunders(
+    path: Path, config: Config, stride: int, rate: float = 0.01, offset_px: float = 6.0, seed: int = 17
+) -> dict[str, Any]:
+    """The pipeline with the Givens screen (``backend.kind: both``) and blunders injected into the keyframes.
+
+    A seeded ``rate`` of every keyframe's re-observations of older landmarks (its monocular KLT
+    observations) is moved by ``offset_px`` in a random direction before the back end sees it. Counts: injected,
+    rejected by the screen (at once or later), injected among the rejected, and the rest (false
+    alarms: observations the realistic images themselves spoil, or honest ones).
+    """
+    import dataclasses
+
+    import loopmodel.pipeline as pl
+    from loopmodel.backend.screened import ScreenedBackend
+
+    cfg = config.model_copy(deep=True)
+    cfg.backend.kind = "both"
+    rng = np.random.default_rng(seed)
+    injected: set[tuple[int, int]] = set()
+    rejected: set[tuple[int, int]] = set()
+    make = pl.create_backend
+
+    def screened(*args: Any, **kwargs: Any) -> Any:
+        backend = make(*args, **kwargs)
+        if not isinstance(backend, ScreenedBackend):
+            return backend
+        screen, add = backend.screen, backend.add_keyframe
+        screen_kf, late = screen.screen_keyframe, screen.late_rejections
+
+        def add_keyframe(kf: Any) -> Any:
+            # the re-observations of older landmarks are the keyframe's monocular (KLT) observations;
+            # a landmark's first, stereo observation defines it (no redundancy to test it with)
+            mono = np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3).copy()
+            pick = rng.random(mono.shape[0]) < rate
+            a = rng.uniform(0, 2 * np.pi, int(pick.sum()))
+            mono[pick, 1] += offset_px * np.cos(a)
+            mono[pick, 2] += offset_px * np.sin(a)
+            injected.update((int(kf.id), int(i)) for i in mono[pick, 0])
+            return add(dataclasses.replace(kf, mono_obs=mono))
+
+        def screen_keyframe(kf: Any) -> Any:
+            keep_st, keep_mono = screen_kf(kf)
+            ids = np.asarray(kf.landmark_ids, dtype=np.int64).ravel()
+            mono = np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3)[:, 0].astype(np.int64)
+            rejected.update((int(kf.id), int(i)) for i in np.r_[ids[~keep_st], mono[~keep_mono]])
+            return keep_st, keep_mono
+
+        def late_rejections() -> Any:
+            out = late()
+            rejected.update((int(f), int(p)) for f, p in out)  # type: ignore[call-overload]
+            return out
+
+        backend.add_keyframe = add_keyframe  # type: ignore[method-assign]
+        screen.screen_keyframe = screen_keyframe  # type: ignore[method-assign]
+        screen.late_rejections = late_rejections  # type: ignore[method-assign]
+        return backend
+
+    pl.create_backend = screened  # type: ignore[assignment]
+    try:
+        out = run_sequence(path, cfg, stride=stride)
+    finally:
+        pl.create_backend = make  # type: ignore[assignment]
+    hit = len(injected & rejected)
+    return {
+        "givens_rejected": len(rejected),
+        "givens_injected": len(injected),
+        "givens_injected_rejected": hit,
+        "givens_other_rejected": len(rejected) - hit,
+        "givens_blunder_px": offset_px,
+        "givens_tested": out.get("givens_tested"),
+        "givens_ate_rmse_after_m": round(_ate(out["after"], out["gt"]), 5),
+    }
+
+
 def _sequence_keys(path: Path, config: Config, stride: int) -> dict[str, Any]:
     out = run_sequence(path, config, stride=stride)
     gt = out["gt"]
@@ -299,8 +376,6 @@ def _sequence_keys(path: Path, config: Config, stride: int) -> dict[str, Any]:
         "relocalizations": len(out["events"]) - len(loops),
         "loop_candidates_rejected": out["rejected"],
         "loop_optimise_ms_median": round(float(np.median([e["optimise_ms"] for e in loops])), 1) if loops else None,
-        "givens_rejected": out.get("givens_rejected"),
-        "givens_injected": 0,
         # old landmarks the closure's KLT stage found again in the current keyframe (seed 004: 55)
         "old_features_retracked": int(max((e.get("loop_observations", 0) for e in loops), default=0)),
         "old_features_retracked_per_loop": [int(e.get("loop_observations", 0)) for e in loops],
@@ -326,6 +401,7 @@ def run(quick: bool = False) -> dict[str, Any]:
         + (": orbit every 2nd, modeler every 3rd frame" if quick else ""),
     }
     result.update(_sequence_keys(orbit, config, 2 if quick else 1))
+    result.update(_givens_blunders(orbit, config, 2 if quick else 1))
     result.update({"modeler_" + k: v for k, v in _sequence_keys(modeler, config, 3 if quick else 1).items()})
     if not quick:
         browse = _ensure(SAMPLE / "browse.mcap", "browse")
