@@ -79,6 +79,8 @@ def test_run_writes_mesh_and_mesh_errors(
         return 1e3 * scene.compute_distance(o3d.core.Tensor(v.astype(np.float32))).numpy()
 
     d_live, d_final = dist_mm(live), dist_mm(mesh)
-    # measured: live 0.49 / 1.41 mm (median / p90), final 0.46 / 1.23 mm
-    assert np.median(d_live) < 1.0 and np.median(d_live) < 1.5 * np.median(d_final)
+    # measured: live 0.49 / 1.41 mm (median / p90), final 0.46 / 1.23 mm at stop 14; since the final
+    # refinement spreads each loop's discrepancy along its cycle (backend/loop_distribution.py), the
+    # final mesh is 0.26 mm and the live one (which never sees the final refinement) 0.43 mm (1.67x)
+    assert np.median(d_live) < 1.0 and np.median(d_live) < 1.8 * np.median(d_final)
     assert np.quantile(d_live, 0.9) < 1.5 * np.quantile(d_final, 0.9)
