@@ -188,3 +188,16 @@ def test_vocabulary_on_surf_descriptors(extended: bool) -> None:
     from loopmodel.loop.vocabulary import bow_score
 
     assert bow_score(voc.bow(a), voc.bow(b)) > 2 * bow_score(voc.bow(c), voc.bow(b))
+
+
+def test_surf_settings_come_from_the_config() -> None:
+    """``loop.surf`` reaches the detector the loop stage makes; the class defaults are the config's."""
+    from loopmodel.config import LoopConfig, SurfConfig
+    from loopmodel.loop.features import make_extractor
+
+    assert Surf.from_config(None, 10).describe_sigma_px == SurfConfig().describe_sigma_px == Surf().describe_sigma_px
+    cfg = LoopConfig(descriptor="surf", surf=SurfConfig(upright=True, describe_sigma_px=1.5))
+    ex = make_extractor(cfg.descriptor, 300, cfg.surf)
+    assert isinstance(ex, Surf) and ex.upright and ex.describe_sigma_px == 1.5 and ex.max_features == 300
+    kp = ex.detect(_texture(2))
+    assert len(kp) and np.all(kp.angle == 0.0)
