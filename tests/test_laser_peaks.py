@@ -26,9 +26,7 @@ def _speckled_line(seed: int, peak: float) -> tuple[np.ndarray, np.ndarray, np.n
     # background texture: smoothed noise, like the scene under a dimmed laser exposure
     tex = cv2.GaussianBlur(rng.uniform(0, 255, (h, w)), (0, 0), 2.0)
     background = np.clip(tex, 0, 255).astype(np.uint8)
-    img = realistic_laser_image(
-        background, uv, points, np.full(v.size, peak / 420.0), rng, spurious_rate=0.0
-    )
+    img = realistic_laser_image(background, uv, points, np.full(v.size, peak / 420.0), rng, spurious_rate=0.0)
     return img, v, u
 
 

@@ -272,9 +272,10 @@ def test_false_loop_gate_fails_a_wrong_1cm_constraint() -> None:
 def test_short_realistic_orbit_closes_its_loop(tmp_path: Path) -> None:
     """A seeded 400-frame realistic orbit (400 x 300) closes the loop and improves on dead reckoning.
 
-    The pipeline closes the loop, the final trajectory's ATE is below the dead-reckoning one and the
-    final mesh error below the uncorrected one (tolerances: strictly better; measured in the closing
-    note).
+    The pipeline closes the loop; the final trajectory's ATE is under 0.3x the dead-reckoning one
+    (issue 17's target; measured 13.8 -> 1.06 mm with the loop spread along the keyframe chain),
+    and the final mesh error under 0.7x the uncorrected one (measured 3.95 -> 2.12 mm) and under
+    1.5x the ground-truth-pose floor (2.04 mm).
     """
     import importlib.util
 
@@ -293,7 +294,9 @@ def test_short_realistic_orbit_closes_its_loop(tmp_path: Path) -> None:
     res = b.run_sequence(out, Config())
     loops = [e for e in res["events"] if e["type"] == "loop"]
     assert loops
-    assert b._ate(res["after"], res["gt"]) < b._ate(res["before"], res["gt"])
+    assert b._ate(res["after"], res["gt"]) < 0.3 * b._ate(res["before"], res["gt"])
     mesh = b._mesh_errors(res, out.with_suffix(".scene.ply"), Config())
     assert mesh["mesh_err_after_mm"] is not None and mesh["mesh_err_before_mm"] is not None
-    assert mesh["mesh_err_after_mm"] < mesh["mesh_err_before_mm"]
+    assert mesh["mesh_err_after_mm"] < 0.7 * mesh["mesh_err_before_mm"]
+    assert mesh["mesh_err_gt_mm"] is not None
+    assert mesh["mesh_err_after_mm"] < 1.5 * mesh["mesh_err_gt_mm"]
