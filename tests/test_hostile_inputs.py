@@ -269,6 +269,42 @@ def test_size_knobs_are_bounded_by_the_image_size_at_run_time(
         assert "Traceback" not in err and not (tmp_path / "o" / key).exists()
 
 
+def test_input_error_mid_run_is_recorded_in_the_results(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from frontend_scene import write_kitti_folder
+
+    seq = tmp_path / "seq"
+    write_kitti_folder(seq, 4, np.random.default_rng(5))
+    bad = sorted((seq / "image_0").iterdir())[2]
+    bad.write_bytes(b"\x89PNG not an image")
+    assert main(["run", str(seq), "--out", str(tmp_path / "o"), "--name", "r"]) == 2
+    assert bad.name in capsys.readouterr().err
+    m = json.loads((tmp_path / "o" / "r" / "metrics.json").read_text())
+    assert m["interrupted"] is False and m["frames"] == 2 and bad.name in m["stopped_by"]
+    log = (tmp_path / "o" / "r" / "run.log").read_text()
+    assert "stopped after 2 frames" in log and bad.name in log
+
+
+def test_peak_rss_on_images_declaring_huge_sizes(tmp_path: Path) -> None:
+    # 60000 x 60000 PNGs (3.4 GiB each when decoded): refused from their headers, so the peak
+    # stays within 1.5 GiB plus the declared-size limit (sequence.max_image_pixels, 1 byte each)
+    root = tmp_path / "k"
+    for d in ("image_0", "image_1"):
+        (root / d).mkdir(parents=True)
+        for n in _names(2):
+            (root / d / f"{n}.png").write_bytes(_png_declaring(60000, 60000))
+    (root / "calib.txt").write_text(CALIB)
+    code = (
+        "import sys\nfrom loopmodel.cli import main\n"
+        f"rc = main(['run', {str(root)!r}, '--out', {str(tmp_path / 'o')!r}])\n"
+        "hwm = [l for l in open('/proc/self/status') if l.startswith('VmHWM')][0].split()[1]\n"
+        "print(rc, int(hwm) / 1024)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    rc, rss_mib = out.stdout.split()[-2:]
+    limit_mib = 1.5 * 1024 + load_config(None).sequence.max_image_pixels / 2**20
+    assert rc == "2" and "60000x60000" in out.stderr and float(rss_mib) < limit_mib, (rss_mib, out.stderr)
+
+
 def test_corrupt_stripes_npz(tmp_path: Path) -> None:
     (tmp_path / "stripes.npz").write_bytes(b"PK\x03\x04" + b"\x00" * 50)
     with pytest.raises(FormatError, match="stripes.npz: not a readable .npz file"):

@@ -53,6 +53,10 @@ def test_gnc_rejects_false_loops_on_csail() -> None:
     assert rms(ours.world_from_pose) < 1e-4  # measured ~1e-9 m
     assert rms(plain.world_from_pose) > 1.0  # plain LM is bent (measured ~10 m)
     assert graph_error(g, ours.world_from_pose) == pytest.approx(clean.error, rel=1e-6)
+    # the clean graph: nothing rejected, and the result is plain LM's (same poses)
+    on_clean = robust_optimize(g)
+    assert on_clean.inlier.all() and rms(on_clean.world_from_pose) < 1e-6
+    assert on_clean.error == pytest.approx(clean.error, rel=1e-9)
 
 
 def test_g2o_bad_line_is_a_format_error(tmp_path: Path) -> None:

@@ -285,14 +285,15 @@ def optimize_lm(
 
 
 #: per stage of the graduated Cauchy solve the squared kernel width k^2 is divided by this
-#: (a factor 2 in k); measured on parking-garage (needs 8 stages from k^2 = chi2 quantile to
-#: its residual scale) and intel at 10 % false loops: 4 reaches the same kept sets as 2 in
-#: half the stages
+#: (a factor 2 in k); not tuned: with it parking-garage (real) takes 8 stages from the chi2
+#: quantile down to its residual scale, intel (real) 3, and both then reject every false loop
+#: at 5 and 10 %
 CAUCHY_SHRINK = 4.0
 #: the kernel never goes below this many times the loops' robust residual scale (the median
-#: chi-square over its expectation): at 1x, MIT, CSAIL and kitti_00 (real, clean) lose 1-11
-#: true loops to local minima; at 10x none, while parking-garage (real; its information says
-#: residuals ~250x larger than they are) and intel still drop every false loop at 10 %
+#: chi-square over its expectation): at 1x, MIT, CSAIL and kitti_00 (real, 10 %) lose 3, 1
+#: and 11 true loops to local minima; at 10x none at 0-10 % (MIT 1 at 25 %), while parking-garage (real; its
+#: information says chi-squares ~60000x larger than they are) and intel still drop every
+#: false loop at 10 %
 KERNEL_SCALE = 10.0
 #: a loop is rejected when its chi-square exceeds the probability's quantile under the stated
 #: information or this many times the quantile under the robust scale (10 robust sigmas):
@@ -304,8 +305,9 @@ SCALE_GATE = 100.0
 #: the keyframe gate of a run has a handful of loops)
 MIN_LOOPS_FOR_SCALE = 20
 #: a loop whose Cauchy weight is below 1 % (chi-square > 99 k^2) is left out of the next
-#: stage: it barely pulls but densifies the factorisation (parking-garage at 10 %: 462 random
-#: long edges made each LM solve ~50x slower)
+#: stage: it barely pulls but densifies the factorisation (parking-garage at 10 %: the first
+#: stage over all edges, 462 random long ones among them, took 106 s against 0.2 s for LM on
+#: the clean graph, at load ~20)
 NEGLIGIBLE_CHI2_OVER_K2 = 99.0
 
 
@@ -345,6 +347,8 @@ def robust_optimize(
         values = gtsam.LevenbergMarquardtOptimizer(gc, values, _lm_params(max_iterations)).optimize()
         world_from_pose = _matrices(graph, values)
         chi2 = _edge_chi2(graph, world_from_pose)
+        # its TLS candidate keeps every loop this stage had (leaving out the negligible ones of
+        # the first stage loses true loops that pull a bent estimate back: CSAIL, seed 3)
         stages.append((active, world_from_pose, chi2))
         scale = float(np.median(chi2[loops])) / median if loops.sum() >= MIN_LOOPS_FOR_SCALE else 1.0
         kernel_floor = min(1.0, KERNEL_SCALE * scale) * thr
