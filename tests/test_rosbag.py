@@ -630,6 +630,23 @@ def test_simulator_fisheye_rays_against_opencv() -> None:
     assert np.abs(uv.reshape(-1, 2) - np.column_stack([u.ravel(), v.ravel()])).max() < 1e-3  # float32 rays
 
 
+def test_simulator_fisheye_needs_the_clean_world() -> None:
+    """The realistic rig renders through its own lens: a fisheye there is refused, not ignored."""
+    from loopmodel.config import SimulationConfig
+    from loopmodel.errors import ConfigError
+    from loopmodel.sim.generate import calibration_of
+
+    cfg = SimulationConfig.model_validate(
+        {
+            "camera": {"fisheye_k": [0.01, -0.002, 0.0005, 0.0]},
+            "laser": {"image": False},
+            "realism": {"level": "realistic"},
+        }
+    )
+    with pytest.raises(ConfigError, match="fisheye_k"):
+        calibration_of(cfg)
+
+
 def test_tf_static_camera_to_body(tmp_path: Path) -> None:
     """``body_from_cam0`` composed along /tf_static from the left image's frame to the root."""
     src = open_sequence(TINY)

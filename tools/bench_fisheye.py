@@ -2,7 +2,8 @@
 
 On the same simulated path (issue 25's target: fisheye drift within 1.5x the pinhole's).
 
-For each seed, ``loopmodel simulate scan --preset orbit`` renders the scan twice, once with a
+For each seed, ``loopmodel simulate scan --preset orbit --realism clean`` renders the scan twice
+(the realistic world has its own lens model and cannot render a fisheye rig), once with a
 pinhole pair and once with raw Kannala-Brandt images (TUM-VI's room-sequence coefficients,
 the same focal length and baseline), and ``loopmodel run --frontend-only -c configs/sim.yaml``
 tracks each; the front end rectifies the fisheye pair with ``cv2.fisheye``. Keys:
@@ -45,7 +46,7 @@ def run(quick: bool = False) -> dict:
                 scan = tmp / f"{rig}_{seed}.mcap"
                 _run(
                     ["simulate", "scan", "--preset", "orbit", "--frames", str(frames), "--seed", str(seed)]
-                    + ["--workers", "1", "-c", str(cfg), "--out", str(scan)]
+                    + ["--realism", "clean", "--workers", "1", "-c", str(cfg), "--out", str(scan)]
                 )
                 _run(
                     ["run", str(scan), "-c", str(ROOT / "configs" / "sim.yaml"), "--frontend-only"]

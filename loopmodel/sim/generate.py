@@ -121,6 +121,10 @@ def calibration_of(cfg: SimulationConfig) -> StereoCalibration:
     rig's recorded (erroneous, unrectified, distorted) calibration otherwise.
     """
     if realistic(cfg):
+        if cfg.camera.fisheye_k is not None:  # the realistic rig renders through its own lens model
+            raise ConfigError(
+                "simulation.camera.fisheye_k", "a fisheye rig is simulated in the clean world only (--realism clean)"
+            )
         return rig_of(cfg).recorded
     K = camera_of(cfg).K
     right_from_left = np.eye(4)
