@@ -81,3 +81,12 @@ def test_import_is_light() -> None:
     code = f"import sys, loopmodel; print(sorted(m for m in {heavy} if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
     assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("module", ["loopmodel", "loopmodel.cli"])
+def test_module_entry_points_run_every_command_group(module: str) -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", module, "vvs", "--help"], capture_output=True, text=True, cwd=ROOT, timeout=120
+    )
+    assert out.returncode == 0, out.stderr
+    assert "track" in out.stdout and "render" in out.stdout
