@@ -15,20 +15,14 @@ Poses are ``world_from_kf`` (4x4, metres); constraints ``kf_a_from_kf_b``.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
-from loopmodel.backend.robust_posegraph import PoseGraph, optimize_lm
+from loopmodel.backend.robust_posegraph import PoseGraph, optimize_lm, pose_information
 
 F64 = NDArray[np.float64]
-
-
-def _information(sigma_deg: float, sigma_m: float) -> F64:
-    """6x6 information in GTSAM's tangent order (rotation, translation)."""
-    return np.diag(np.r_[np.full(3, 1.0 / math.radians(sigma_deg) ** 2), np.full(3, 1.0 / sigma_m**2)])
 
 
 def distribute_loop_errors(
@@ -55,8 +49,8 @@ def distribute_loop_errors(
         return out
     ij = list(links) + [(a, b) for a, b, _ in loops]
     meas = [np.linalg.inv(out[a]) @ out[b] for a, b in links] + [T for *_, T in loops]
-    infos = [_information(odometry_sigma_deg, odometry_sigma_m)] * len(links) + [
-        _information(loop_sigma_deg, loop_sigma_m)
+    infos = [pose_information(odometry_sigma_deg, odometry_sigma_m)] * len(links) + [
+        pose_information(loop_sigma_deg, loop_sigma_m)
     ] * len(loops)
     is_loop = np.r_[np.zeros(len(links), bool), np.ones(len(loops), bool)]
     # one pose graph per connected component that holds a loop; its lowest keyframe id is fixed

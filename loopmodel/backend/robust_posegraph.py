@@ -88,6 +88,11 @@ class PoseGraphResult:
     info: dict[str, float] = field(default_factory=dict)
 
 
+def pose_information(sigma_deg: float, sigma_m: float) -> F64:
+    """6x6 information of a relative pose in GTSAM's tangent order (rotation, translation)."""
+    return np.diag(np.r_[np.full(3, 1.0 / math.radians(sigma_deg) ** 2), np.full(3, 1.0 / sigma_m**2)])
+
+
 def _se2(x: float, y: float, th: float) -> F64:
     c, s = math.cos(th), math.sin(th)
     return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
@@ -516,16 +521,13 @@ def keyframe_loop_inliers(
     Solved on the keyframe pose graph. Returns the per-loop inlier mask and the solve.
     """
 
-    def info(sig_deg: float, sig_m: float) -> F64:
-        return np.diag(np.r_[np.full(3, 1.0 / math.radians(sig_deg) ** 2), np.full(3, 1.0 / sig_m**2)])
-
     ij = [(a, b) for a, b in odometry] + [(a, b) for a, b, _ in loops]
     meas = [np.linalg.inv(world_from_kf[a]) @ world_from_kf[b] for a, b in odometry] + [
         np.asarray(T, float) for *_, T in loops
     ]
-    infos = [info(odometry_sigma_deg, odometry_sigma_m)] * len(odometry) + [info(loop_sigma_deg, loop_sigma_m)] * len(
-        loops
-    )
+    infos = [pose_information(odometry_sigma_deg, odometry_sigma_m)] * len(odometry) + [
+        pose_information(loop_sigma_deg, loop_sigma_m)
+    ] * len(loops)
     used = {k for e in ij for k in e}
     graph = PoseGraph(
         3,
