@@ -441,7 +441,7 @@ class Isam2Backend:
         if not np.all(np.isfinite(T)):
             raise InputError(f"keyframe {kf_id}", "world_from_kf has non-finite values")
         cfg = self.config
-        sig = getattr(keyframe, "ba_info", {}).get("pose_residual_sigma_px")
+        sig = keyframe.ba_info.get("pose_residual_sigma_px")
         if sig is not None and np.isfinite(sig) and sig > 0:
             self._frontend_sigma_px.append(float(sig))
         self._kf_seq[kf_id] = len(self._kf_seq)
