@@ -5,7 +5,9 @@ parking-garage, cubicle, sphere2500: 3-D). Each gets 0/5/10/25 % extra random fa
 edges (count relative to the graph's true loop edges; seeded per graph and rate; see
 :func:`loopmodel.backend.robust_posegraph.add_false_loops`). ``ours`` is
 :func:`robust_optimize` (graduated Cauchy LM + chi-square gate, odometry known inliers) on the corrupted graph,
-``gtsam_lm`` plain LM on it (both at most 100 LM iterations). The reference is the clean
+``gtsam_lm`` plain LM on it, at most ``BASELINE_LM_ITERATIONS`` iterations (``gtsam_lm_iterations``
+says how many it ran): its result is bent either way, and on the dense graphs every iteration is
+expensive (cubicle at 10 %: 33 s per iteration at load 8, against 0.3 s on the clean graph). The reference is the clean
 graph's optimum: the lower-error one of plain LM from the file's poses and ours on the
 clean graph (``clean_reference``). ``final_error_ratio``: the clean graph's error at our
 poses over its error at the reference. ``ate_vs_clean_m``: RMS position difference to the
@@ -33,6 +35,9 @@ from loopmodel.backend.robust_posegraph import (
 DATA = SHARED_DATA / "posegraphs"
 ALL = ["intel", "MIT", "CSAIL", "kitti_00", "parking-garage", "cubicle", "sphere2500"]
 RATES = [0.0, 0.05, 0.10, 0.25]
+#: the plain-LM baseline's iteration budget on the corrupted graphs (the clean reference runs to
+#: convergence, at most 100)
+BASELINE_LM_ITERATIONS = 10
 
 
 def _positions(graph: PoseGraph, world_from_pose: dict[int, np.ndarray], ids: list[int]) -> np.ndarray:
@@ -62,7 +67,7 @@ def run(quick: bool = False) -> dict:
             bad = add_false_loops(g, rate, seed)
             n_false = bad.n_edges - g.n_edges
             ours = robust_optimize(bad)
-            lm = optimize_lm(bad)
+            lm = optimize_lm(bad, max_iterations=BASELINE_LM_ITERATIONS)
             ate = float(np.sqrt(np.mean(np.sum((_positions(g, ours.world_from_pose, ids) - ref) ** 2, axis=1))))
             ate_lm = float(np.sqrt(np.mean(np.sum((_positions(g, lm.world_from_pose, ids) - ref) ** 2, axis=1))))
             true_loops = ~g.odometry
@@ -77,6 +82,7 @@ def run(quick: bool = False) -> dict:
                     "false_edges": n_false,
                     "ours_s": round(ours.solve_s, 3),
                     "gtsam_lm_s": round(lm.solve_s, 3),
+                    "gtsam_lm_iterations": int(lm.info.get("iterations", -1)),
                     "final_error_ratio": round(graph_error(g, ours.world_from_pose) / clean_err, 5),
                     "gtsam_lm_error_ratio": round(graph_error(g, lm.world_from_pose) / clean_err, 3),
                     "clean_reference": ref_kind,
@@ -86,12 +92,17 @@ def run(quick: bool = False) -> dict:
                     "within_1pct": bool(ate <= 0.01 * diag),
                     "false_edges_rejected": int(np.sum(~ours.inlier[g.n_edges :])),
                     "true_edges_rejected": int(np.sum(~ours.inlier[: g.n_edges] & true_loops)),
+                    "odometry_edges": int(g.odometry.sum()),
+                    "information_repaired": g.repaired_information,
+                    "loops_readmitted_in_groups": int(ours.info.get("loops_readmitted_in_groups", 0)),
                 }
             )
     at10 = [r for r in rows if r["outlier_rate"] == 0.10]
     return {
         "dataset": "SE-Sync pose graphs: " + ", ".join(names),
-        "method": "graduated Cauchy LM (gtsam), odometry known inliers, chi2 0.99 gate tightened by the residual scale",
+        "method": "graduated Cauchy LM then GNC-TLS (gtsam), odometry known inliers, chi2 0.99 gate tightened by the"
+        " residual scale, consistent groups of rejected loops re-admitted",
+        "gtsam_lm_max_iterations": BASELINE_LM_ITERATIONS,
         "graphs": rows,
         "goal": "10 % false loops: ATE vs clean <= 1 % of the trajectory extent on every graph",
         "goal_met_10pct": all(r["within_1pct"] for r in at10),
