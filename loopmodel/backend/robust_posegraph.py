@@ -349,13 +349,34 @@ def optimize_lm(
     keep: NDArray[np.bool_] | None = None,
     init: dict[int, F64] | None = None,
     max_iterations: int = 100,
+    time_budget_s: float | None = None,
 ) -> PoseGraphResult:
-    """Plain Levenberg-Marquardt over every (kept) edge, the first pose fixed."""
+    """Plain Levenberg-Marquardt over every (kept) edge, the first pose fixed.
+
+    With ``time_budget_s`` it stops after the first iteration that ends past the budget (GTSAM's
+    convergence tolerances otherwise).
+    """
     g, order = _factor_graph(graph, keep)
     values = _values(graph, init)
     t0 = time.perf_counter()
-    opt = gtsam.LevenbergMarquardtOptimizer(g, values, _lm_params(max_iterations))
-    result = opt.optimize()
+    params = _lm_params(max_iterations)
+    opt = gtsam.LevenbergMarquardtOptimizer(g, values, params)
+    if time_budget_s is None:
+        result = opt.optimize()
+    else:
+        prev = float(g.error(values))
+        for _ in range(max_iterations):
+            try:
+                opt.iterate()
+            except RuntimeError:  # lambda beyond its maximum: no step lowers the error
+                break
+            cur = float(opt.error())
+            if time.perf_counter() - t0 > time_budget_s or cur <= params.getAbsoluteErrorTol():
+                break
+            if prev - cur <= params.getRelativeErrorTol() * prev:
+                break
+            prev = cur
+        result = opt.values()
     solve_s = time.perf_counter() - t0
     inl = np.zeros(graph.n_edges, dtype=bool)
     inl[order] = True
@@ -398,11 +419,6 @@ NEGLIGIBLE_CHI2_OVER_K2 = 99.0
 #: GNC-TLS multiplies its mu by this per outer iteration (GTSAM's default 1.4); the start is
 #: already the graduated Cauchy solution, so a coarse schedule suffices
 GNC_MU_STEP = 4.0
-#: LM iterations of the first (widest-kernel) stage: it holds every false loop, whose random
-#: long edges make each iteration dense (cubicle at 10 %: 33 s per iteration against 0.3 s on
-#: the clean graph, load 8); a few iterations suffice to tell the negligible loops, which the
-#: later stages leave out
-FIRST_STAGE_ITERATIONS = 5
 #: the pre-screen at the initial poses is used when they agree with at least this share of the
 #: loops (at 25 % false loops: intel 100 %, parking-garage 100 %, cubicle 87 %, sphere2500 79 % of
 #: the true loops; odometry-only starts agree with few: CSAIL 40 %, MIT 30 %, kitti_00 0 %)
@@ -427,6 +443,10 @@ def robust_optimize(
     residuals stop after stage 1). A loop is then kept when its chi-square is within the
     quantile and within ``SCALE_GATE * s`` times it; LM over the kept edges, and loops that
     agree with that solution are re-admitted (a clean graph ends as plain LM over all edges).
+    When the initial poses agree with most loops, the others sit out a first round (a
+    pre-screen: random false loops make every factorisation dense); GNC sees only the loops
+    within ``NEGLIGIBLE_CHI2_OVER_K2`` times the gate; rejected loops that agree with each other
+    in groups of ``MIN_GROUP`` are re-admitted at the end.
     """
     if not 0.5 < probability < 1.0:
         raise InputError("loop.robust_probability", f"{probability} is not in (0.5, 1)")
@@ -451,7 +471,7 @@ def robust_optimize(
     stages: list[tuple[NDArray[np.bool_], dict[int, F64], F64]] = []
     while True:
         gc, _ = _factor_graph(graph, keep=active, cauchy_k=math.sqrt(k2))
-        cap = FIRST_STAGE_ITERATIONS if not stages else STAGE_ITERATIONS
+        cap = max_iterations if not stages else STAGE_ITERATIONS
         values = gtsam.LevenbergMarquardtOptimizer(gc, values, _lm_params(min(max_iterations, cap))).optimize()
         world_from_pose = _matrices(graph, values)
         chi2 = _edge_chi2(graph, world_from_pose)
