@@ -15,11 +15,15 @@ from conftest import SHARED_DATA
 from test_loop_closer import BASELINE, CAM, _add_mono, _FakeTracker, _keyframe, _sequence, _texture
 
 from loopmodel.backend.robust_posegraph import (
+    PoseGraph,
     add_false_loops,
+    chain_odometry,
     graph_error,
     optimize_lm,
+    positive_definite_information,
     read_g2o,
     robust_optimize,
+    sequential_edges,
 )
 from loopmodel.config import LoopConfig
 from loopmodel.errors import FormatError
@@ -130,3 +134,27 @@ def test_injected_wrong_loop_is_rejected_without_moving_the_trajectory() -> None
     _, trusting, _ = _run_stage(inject=True, robust="none")
     moved = max(np.linalg.norm(trusting.poses[k][:3, 3] - clean_tracker.poses[k][:3, 3]) for k in clean_tracker.poses)
     assert moved > 0.05  # measured 0.083 m
+
+
+def test_odometry_is_the_sequence_with_its_gaps_bridged() -> None:
+    # 0-1-2 consecutive, 3->2 reversed, no edge 3-4: the gap is bridged by the shortest edge 2-4
+    # (not 0-4); 0-3 is a loop
+    ij = np.array([[0, 1], [1, 2], [3, 2], [0, 4], [2, 4], [0, 3]], dtype=np.int64)
+    assert sequential_edges(ij).tolist() == [True, True, True, False, True, False]
+    step = make_pose(so3_exp([0.0, 0.0, 0.3]), [1.0, 0.0, 0.0])
+    T = [step, step, invert_pose(step), step @ step @ step @ step, step @ step, step @ step @ step]
+    g = PoseGraph(3, {}, ij, T, [np.eye(6)] * 6, sequential_edges(ij))
+    chained = chain_odometry(g)
+    for k in range(5):
+        assert np.allclose(chained[k], np.linalg.matrix_power(step, k), atol=1e-12)
+
+
+def test_impossible_correlations_are_removed_from_information() -> None:
+    good = np.diag([4.0, 9.0, 1.0])
+    assert positive_definite_information(good) is good
+    # cubicle.g2o's pattern: an x-yaw term in a slot whose diagonal entries are small
+    bad = np.diag([100.0, 100.0, 10.0, 10.0, 10.0, 8.7e4])
+    bad[2, 3] = bad[3, 2] = 6.8e4
+    fixed = positive_definite_information(bad)
+    assert np.linalg.eigvalsh(bad).min() < 0 < np.linalg.eigvalsh(fixed).min()
+    assert np.array_equal(np.diag(fixed), np.diag(bad)) and fixed[2, 3] == 0.0

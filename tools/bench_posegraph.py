@@ -5,7 +5,10 @@ parking-garage, cubicle, sphere2500: 3-D). Each gets 0/5/10/25 % extra random fa
 edges (count relative to the graph's true loop edges; seeded per graph and rate; see
 :func:`loopmodel.backend.robust_posegraph.add_false_loops`). ``ours`` is
 :func:`robust_optimize` (graduated Cauchy LM + chi-square gate, odometry known inliers) on the corrupted graph,
-``gtsam_lm`` plain LM on it (both at most 100 LM iterations). The reference is the clean
+``gtsam_lm`` plain LM on it, at most 100 iterations and stopped after the iteration that ends
+past ``BASELINE_LM_BUDGET_S`` (``gtsam_lm_iterations`` says how many it ran): its result is bent
+either way, and on the dense graphs every iteration is expensive (cubicle at 10 %: 33 s per
+iteration at load 8, against 0.3 s on the clean graph). The reference is the clean
 graph's optimum: the lower-error one of plain LM from the file's poses and ours on the
 clean graph (``clean_reference``). ``final_error_ratio``: the clean graph's error at our
 poses over its error at the reference. ``ate_vs_clean_m``: RMS position difference to the
@@ -33,6 +36,9 @@ from loopmodel.backend.robust_posegraph import (
 DATA = SHARED_DATA / "posegraphs"
 ALL = ["intel", "MIT", "CSAIL", "kitti_00", "parking-garage", "cubicle", "sphere2500"]
 RATES = [0.0, 0.05, 0.10, 0.25]
+#: the plain-LM baseline's time budget on the corrupted graphs (the clean reference runs to
+#: convergence, at most 100 iterations)
+BASELINE_LM_BUDGET_S = 30.0
 
 
 def _positions(graph: PoseGraph, world_from_pose: dict[int, np.ndarray], ids: list[int]) -> np.ndarray:
@@ -62,7 +68,7 @@ def run(quick: bool = False) -> dict:
             bad = add_false_loops(g, rate, seed)
             n_false = bad.n_edges - g.n_edges
             ours = robust_optimize(bad)
-            lm = optimize_lm(bad)
+            lm = optimize_lm(bad, time_budget_s=BASELINE_LM_BUDGET_S)
             ate = float(np.sqrt(np.mean(np.sum((_positions(g, ours.world_from_pose, ids) - ref) ** 2, axis=1))))
             ate_lm = float(np.sqrt(np.mean(np.sum((_positions(g, lm.world_from_pose, ids) - ref) ** 2, axis=1))))
             true_loops = ~g.odometry
@@ -77,6 +83,7 @@ def run(quick: bool = False) -> dict:
                     "false_edges": n_false,
                     "ours_s": round(ours.solve_s, 3),
                     "gtsam_lm_s": round(lm.solve_s, 3),
+                    "gtsam_lm_iterations": int(lm.info.get("iterations", -1)),
                     "final_error_ratio": round(graph_error(g, ours.world_from_pose) / clean_err, 5),
                     "gtsam_lm_error_ratio": round(graph_error(g, lm.world_from_pose) / clean_err, 3),
                     "clean_reference": ref_kind,
@@ -86,12 +93,17 @@ def run(quick: bool = False) -> dict:
                     "within_1pct": bool(ate <= 0.01 * diag),
                     "false_edges_rejected": int(np.sum(~ours.inlier[g.n_edges :])),
                     "true_edges_rejected": int(np.sum(~ours.inlier[: g.n_edges] & true_loops)),
+                    "odometry_edges": int(g.odometry.sum()),
+                    "information_repaired": g.repaired_information,
+                    "loops_readmitted_in_groups": int(ours.info.get("loops_readmitted_in_groups", 0)),
                 }
             )
     at10 = [r for r in rows if r["outlier_rate"] == 0.10]
     return {
         "dataset": "SE-Sync pose graphs: " + ", ".join(names),
-        "method": "graduated Cauchy LM (gtsam), odometry known inliers, chi2 0.99 gate tightened by the residual scale",
+        "method": "graduated Cauchy LM then GNC-TLS (gtsam), odometry known inliers, chi2 0.99 gate tightened by the"
+        " residual scale, consistent groups of rejected loops re-admitted",
+        "gtsam_lm_budget_s": BASELINE_LM_BUDGET_S,
         "graphs": rows,
         "goal": "10 % false loops: ATE vs clean <= 1 % of the trajectory extent on every graph",
         "goal_met_10pct": all(r["within_1pct"] for r in at10),

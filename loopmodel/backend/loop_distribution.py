@@ -20,7 +20,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from loopmodel.backend.robust_posegraph import PoseGraph, optimize_lm, pose_information
+from loopmodel.backend.robust_posegraph import keyframe_pose_graph, optimize_lm
 
 F64 = NDArray[np.float64]
 
@@ -47,12 +47,8 @@ def distribute_loop_errors(
     links = [(int(a), int(b)) for a, b in links if a in out and b in out]
     if not loops:
         return out
-    ij = list(links) + [(a, b) for a, b, _ in loops]
-    meas = [np.linalg.inv(out[a]) @ out[b] for a, b in links] + [T for *_, T in loops]
-    infos = [pose_information(odometry_sigma_deg, odometry_sigma_m)] * len(links) + [
-        pose_information(loop_sigma_deg, loop_sigma_m)
-    ] * len(loops)
-    is_loop = np.r_[np.zeros(len(links), bool), np.ones(len(loops), bool)]
+    full = keyframe_pose_graph(out, links, loops, odometry_sigma_deg, odometry_sigma_m, loop_sigma_deg, loop_sigma_m)
+    ij = [(int(a), int(b)) for a, b in full.edges_ij]
     # one pose graph per connected component that holds a loop; its lowest keyframe id is fixed
     parent = {k: k for e in ij for k in e}
 
@@ -65,17 +61,9 @@ def distribute_loop_errors(
     for a, b in ij:
         parent[find(a)] = find(b)
     comp = np.array([find(a) for a, _ in ij])
-    for root in sorted({int(c) for c in comp[is_loop]}):
-        sel = np.flatnonzero(comp == root)
-        used = sorted({k for e in sel for k in ij[e]})
-        graph = PoseGraph(
-            3,
-            {k: out[k] for k in used},
-            np.asarray([ij[e] for e in sel], dtype=np.int64).reshape(-1, 2),
-            [meas[e] for e in sel],
-            [infos[e] for e in sel],
-            ~is_loop[sel],
-            "keyframes",
-        )
-        out.update(optimize_lm(graph, max_iterations=max_iterations).world_from_pose)
+    for root in sorted({int(c) for c in comp[~full.odometry]}):
+        sub = full.subset(comp == root)
+        used = {int(k) for k in np.unique(sub.edges_ij)}
+        sub.world_from_pose = {k: T for k, T in full.world_from_pose.items() if k in used}
+        out.update(optimize_lm(sub, max_iterations=max_iterations).world_from_pose)
     return out
