@@ -20,7 +20,7 @@ import multiprocessing as mp
 import time
 from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,6 +34,9 @@ from loopmodel.loop.reloc import RelocParams
 from loopmodel.loop.session_map import SessionMap
 from loopmodel.stages import LoopConstraint, LoopOutcome, MapState
 from loopmodel.types import Keyframe, StereoCalibration
+
+if TYPE_CHECKING:
+    from loopmodel.frontend.keyframe import FrameResult
 
 logger = logging.getLogger(__name__)
 
@@ -153,6 +156,50 @@ class MapLocalizationStage:
         if seg in self._segment_in_map:
             self._pool()  # start the worker while tracking goes on
         return out
+
+    def wants_frame(self, result: FrameResult) -> bool:
+        """Whether a tracked frame between keyframes should be relocalized (its segment is not in the map yet)."""
+        seg = int(result.segment)
+        return result.ok and seg not in self._segment_in_map and int(result.keyframe_id) in self._keyframes
+
+    def on_frame(self, result: FrameResult, image: NDArray[np.uint8], state: MapState) -> dict[int, F64]:
+        """Relocalize a tracked frame of a segment not yet in the map (at the start and after a loss).
+
+        ``image``: the frame's rectified left image. A success moves the segment's keyframes
+        rigidly into the map's frame (the returned corrections, ``world_from_kf``); the frame's
+        own pose follows them through its keyframe.
+        """
+        found = self._timed_relocalize(image)
+        if found is None:
+            return {}
+        anchor = self._keyframes[int(result.keyframe_id)]
+        seg = int(result.segment)
+        map_kf, new_from_map, inliers, method = found
+        world_from_new = self._map_world_from_rect(map_kf) @ invert_pose(new_from_map) @ anchor.rect_from_cam
+        world = state.world_from_kf
+        tracked = np.asarray(world.get(anchor.id, anchor.world_from_kf)) @ np.asarray(result.kf_from_cam)
+        trans, rot = _motion(tracked, world_from_new)
+        delta = world_from_new @ invert_pose(tracked)
+        corrections = {k: delta @ np.asarray(world[k]) for k in self._segment_kfs[seg] if k in world}
+        for k in corrections:
+            self.in_map[k] = True
+        self._segment_in_map.add(seg)
+        logger.info("frame %d localized in the map at keyframe %d", result.frame_index, map_kf)
+        self.events.append(
+            {
+                "type": "map_relocalization",
+                "keyframe": int(anchor.id),
+                "frame": int(result.frame_index),
+                "match_keyframe": map_kf,
+                "method": method,
+                "inliers": inliers,
+                "correction_m": trans,
+                "correction_deg": rot,
+                "first_of_segment": True,
+                "between_keyframes": True,
+            }
+        )
+        return corrections
 
     def _pool(self) -> ProcessPoolExecutor:
         """The worker process holding its own copy of the map's database (started at the first use)."""
