@@ -2,7 +2,9 @@
 
 A :class:`~loopmodel.stages.LoopStage` whose database is the saved map's keyframes (their feature
 sets, vocabulary and bags of words, :meth:`~loopmodel.loop.session_map.SessionMap.database`).
-Every keyframe the front end makes is relocalized against the map (descriptors and the P3P bank,
+Until a tracking segment is in the map (at the start, and after every loss) every tracked frame
+is relocalized (:meth:`MapLocalizationStage.on_frame`), not only the keyframes. Every keyframe the
+front end makes is relocalized against the map (descriptors and the P3P bank,
 then seed 004's KLT stage on the matched map keyframe's image; in a worker process once the
 segment is in the map); a success returns the keyframe's pose in the map's world as a
 correction, so the tracker goes on in the map's frame. The first
