@@ -21,7 +21,7 @@ import logging
 import multiprocessing as mp
 import time
 from collections import deque
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -101,6 +101,9 @@ class MapLocalizationStage:
         self.gated = 0
         self._keyframes: dict[int, Keyframe] = {}
         self._executor: ProcessPoolExecutor | None = None
+        # submits to the worker process and waits for it: starting the process (its imports, the
+        # map sent through a pipe) takes seconds, and tracking must not wait for it
+        self._dispatch: ThreadPoolExecutor | None = None
         self._inflight: deque[tuple[int, Future[tuple[Found | None, float]]]] = deque()
 
     # ------------------------------------------------------------------ relocalization
@@ -152,11 +155,11 @@ class MapLocalizationStage:
         self._collect(out, state, wait=False)
         self.in_map[kid] = seg in self._segment_in_map
         if seg in self._segment_in_map:
-            self._inflight.append((kid, self._pool().submit(_worker_relocalize, kf.image)))
+            self._inflight.append((kid, self._dispatcher().submit(self._in_worker, kf.image)))
             return out
         self._apply(kid, self._timed_relocalize(kf.image), out, state)
         if seg in self._segment_in_map:
-            self._pool()  # start the worker while tracking goes on
+            self._dispatcher().submit(self._pool)  # start the worker while tracking goes on
         return out
 
     def wants_frame(self, result: FrameResult) -> bool:
@@ -202,6 +205,15 @@ class MapLocalizationStage:
             }
         )
         return corrections
+
+    def _dispatcher(self) -> ThreadPoolExecutor:
+        if self._dispatch is None:
+            self._dispatch = ThreadPoolExecutor(1, thread_name_prefix="map-relocalization")
+        return self._dispatch
+
+    def _in_worker(self, image: NDArray[np.uint8]) -> tuple[Found | None, float]:
+        """One relocalization in the worker process (called on the dispatch thread)."""
+        return self._pool().submit(_worker_relocalize, image).result()
 
     def _pool(self) -> ProcessPoolExecutor:
         """The worker process holding its own copy of the map's database (started at the first use)."""
@@ -274,6 +286,9 @@ class MapLocalizationStage:
         out = LoopOutcome(self._keyframes[max(self._keyframes)]) if self._keyframes else None
         if out is not None:
             self._collect(out, state, wait=True)
+        if self._dispatch is not None:
+            self._dispatch.shutdown()
+            self._dispatch = None
         if self._executor is not None:
             self._executor.shutdown()
             self._executor = None
