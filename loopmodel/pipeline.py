@@ -278,6 +278,9 @@ class _Run:
         if not res.ok:
             logger.info("frame %d LOST: %s", frame.index, res.reason)
         kf = res.keyframe
+        if kf is None and self.localizer is not None and self.localizer.wants_frame(res):
+            # issue 20: every frame is relocalized until its segment is in the map
+            self._correct(self.localizer.on_frame(res, self.frontend.rectifier.left(frame.left), self._state()))
         if kf is not None:
             world_from_cam = self._keyframe_step(kf, res) @ res.kf_from_cam
             # do not hold every keyframe image; a resumed run's first pose is the old keyframe's
@@ -377,7 +380,8 @@ class _Run:
             return None
         try:
             estimate = self.backend.final_estimate(None if interrupted else self.config.refine)
-            self.anchored.update_keyframes(estimate.world_from_kf)
+            if self.localizer is None:  # a localization's poses are the tracker's, corrected into the map
+                self.anchored.update_keyframes(estimate.world_from_kf)
         except Exception as exc:  # keep the front end's keyframes; still write everything
             logger.error("back end failed at the end of the run: %s", exc)
             return None

@@ -10,7 +10,12 @@ of both sessions' stripes).
 * ``localize_first_frame``: frames from B's start to its first relocalization in A's map;
   ``localize_rot_err_deg_median`` / ``localize_pos_err_mm_median``: B's localized frames
   (``trajectory_in_map.tum``) against the truth, after moving A's map into the truth's world
-  once by the SE(3) alignment of A's own final trajectory to its ground truth.
+  once by the SE(3) alignment of A's own final trajectory to its ground truth (the relative rotation
+  angle and the position difference of the left-camera poses ``truth_from_map @ world_from_cam``
+  and the true ``world_from_cam0``). The floor under them: ``map_a_*``, session A's own final poses
+  (and its map's keyframes) after that alignment, with ``map_a_rotation_gain`` (A's summed rotation
+  over 6-frame steps, over the truth's). ``localize_rel_*``: each localized pose relative to its
+  nearest map keyframe against the true relative pose (the localization without the map's error).
 * ``merged_mesh_err_mm``: mean distance of the merged mesh's vertices (moved by the same
   alignment) to the scene; ``merged_mesh_err_gt_mm``: the mesh of both sessions' stripes
   placed with ground-truth poses; ``merged_completeness`` / ``best_single_completeness``: the
@@ -18,8 +23,9 @@ of both sessions' stripes).
   session's mesh (each SE(3)-aligned to the truth by its own trajectory).
 * ``map_load_s`` / ``map_size_mib``: A's map with its keyframes replicated to 1,000 keyframes,
   saved and loaded (median of 3 loads, the keyframe database built too).
-* ``fps`` / ``fps_normal``: frames per second of tracking time in localization mode and in
-  the normal mode on the same session B.
+* ``fps`` / ``fps_normal`` (``fps_ratio``): frames per second of tracking time in localization mode
+  and in the normal mode on the same session B, in the same bench run. ``single_<a|b>_*``: each
+  session's own mesh (aligned by its own trajectory).
 * KITTI (real, ``configs/kitti.yaml``): a map of frames 0-30 of the shared clip, then localization of frames 20-50
   in it: ``kitti_relocalized_20_30`` of the 11 frames 20-30 in the map's frame,
   ``kitti_ate_rmse_m`` of the localized frames against the ground truth (no alignment: the
@@ -45,6 +51,7 @@ import numpy as np
 from loopmodel.config import Config, config_from_dict
 from loopmodel.geometry.align import umeyama_alignment
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_log
+from loopmodel.types import Trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 CACHE = Path.home() / ".cache" / "loopmodel"
@@ -129,6 +136,39 @@ def _pose_errors(est: Any, seq: Any, truth_from_map: np.ndarray) -> tuple[float 
         rot.append(float(np.degrees(np.linalg.norm(so3_log(d[:3, :3])))))
         pos.append(float(np.linalg.norm(d[:3, 3]) * 1e3))
     return statistics.median(rot), statistics.median(pos)
+
+
+def _relative_errors(est: Any, seq: Any, smap: Any, seq_map: Any) -> tuple[float | None, float | None]:
+    """Median error of each localized pose relative to its nearest map keyframe (deg, mm).
+
+    Compares ``map_kf_from_cam`` of the estimate (map keyframe pose, localized pose) with the true one
+    (the keyframe's and the frame's ground truth): the localization alone, without the map's own
+    error against the truth.
+    """
+    if len(est) == 0 or len(smap) == 0:
+        return None, None
+    keep, gt = _gt_at(seq, est.timestamps_ns)
+    keep_m, gt_m = _gt_at(seq_map, smap.timestamps_ns)
+    kf_pos = smap.world_from_kf[keep_m][:, :3, 3]
+    kf_T = smap.world_from_kf[keep_m]
+    rot, pos = [], []
+    for T, G in zip(est.world_from_cam[keep], gt, strict=True):
+        k = int(np.argmin(np.linalg.norm(kf_pos - T[:3, 3], axis=1)))
+        d = invert_pose(invert_pose(gt_m[k]) @ G) @ (invert_pose(kf_T[k]) @ T)
+        rot.append(float(np.degrees(np.linalg.norm(so3_log(d[:3, :3])))))
+        pos.append(float(np.linalg.norm(d[:3, 3]) * 1e3))
+    return statistics.median(rot), statistics.median(pos)
+
+
+def _rotation_gain(est: Any, seq: Any, step: int = 6) -> float:
+    """Summed rotation angle of the estimate over steps of ``step`` frames, over the truth's."""
+    keep, gt = _gt_at(seq, est.timestamps_ns)
+    E = est.world_from_cam[keep]
+    num = den = 0.0
+    for i in range(0, len(E) - step, step):
+        num += float(np.linalg.norm(so3_log((invert_pose(E[i + step]) @ E[i])[:3, :3])))
+        den += float(np.linalg.norm(so3_log((invert_pose(gt[i + step]) @ gt[i])[:3, :3])))
+    return num / den if den > 0 else float("nan")
 
 
 def _mesh_numbers(mesh: Any, truth_from_run: np.ndarray, seq: Any) -> tuple[float, float]:
@@ -237,18 +277,33 @@ def run(quick: bool = False) -> dict[str, Any]:
         rb = _run(seq_b, config, tmp, "B")
         loc = _run(seq_b, config, tmp, "B_localize", map_a, "localize")
         rot, pos = _pose_errors(loc.localized, seq_b, truth_from_a)
+        rel_rot, rel_pos = _relative_errors(loc.localized, seq_b, map_a, seq_a)
+        a_rot, a_pos = _pose_errors(ra.final, seq_a, truth_from_a)
+        a_kf = Trajectory(map_a.timestamps_ns, map_a.world_from_kf)
+        akf_rot, akf_pos = _pose_errors(a_kf, seq_a, truth_from_a)
         first = loc.metrics.get("map_first_localized_frame")
         out.update(
             {
                 "localize_first_frame": first,
                 "localize_rot_err_deg_median": rot,
                 "localize_pos_err_mm_median": pos,
+                # the floor: session A's own poses against the truth after the same alignment
+                "map_a_rot_err_deg_median": a_rot,
+                "map_a_pos_err_mm_median": a_pos,
+                "map_a_keyframe_rot_err_deg_median": akf_rot,
+                "map_a_keyframe_pos_err_mm_median": akf_pos,
+                "map_a_drift_pct": ra.metrics.get("drift_pct"),
+                "map_a_rotation_gain": _rotation_gain(ra.final, seq_a),
+                "localize_rel_rot_err_deg_median": rel_rot,
+                "localize_rel_pos_err_mm_median": rel_pos,
                 "localized_frames": loc.metrics.get("localized_frames"),
                 "frames_b": len(loc.frames),
                 "fps": loc.metrics.get("fps"),
                 "fps_normal": rb.metrics.get("fps"),
             }
         )
+        if out["fps"] and out["fps_normal"]:
+            out["fps_ratio"] = out["fps"] / out["fps_normal"]
         ext = _run(seq_b, config, tmp, "B_extend", map_a, "extend")
         gt_mesh = _gt_merged_mesh([seq_a, seq_b], config)
         out["merged_mesh_err_gt_mm"], out["merged_completeness_gt"] = _mesh_numbers(gt_mesh, np.eye(4), seq_a)
@@ -258,9 +313,11 @@ def run(quick: bool = False) -> dict[str, Any]:
         else:
             out["merged_mesh_err_mm"], out["merged_completeness"] = None, None
         singles = []
-        for r, s in ((ra, seq_a), (rb, seq_b)):
+        for name, r, s in (("a", ra, seq_a), ("b", rb, seq_b)):
             if r.mesh is not None:
-                singles.append(_mesh_numbers(r.mesh, _align(r.final, s), s)[1])
+                err, comp = _mesh_numbers(r.mesh, _align(r.final, s), s)
+                out[f"single_{name}_mesh_err_mm"], out[f"single_{name}_completeness"] = err, comp
+                singles.append(comp)
         out["best_single_completeness"] = max(singles) if singles else None
         out.update(_map_load(map_a, tmp))
         out.update(_kitti(config, tmp))

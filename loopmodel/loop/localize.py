@@ -2,7 +2,9 @@
 
 A :class:`~loopmodel.stages.LoopStage` whose database is the saved map's keyframes (their feature
 sets, vocabulary and bags of words, :meth:`~loopmodel.loop.session_map.SessionMap.database`).
-Every keyframe the front end makes is relocalized against the map (descriptors and the P3P bank,
+Until a tracking segment is in the map (at the start, and after every loss) every tracked frame
+is relocalized (:meth:`MapLocalizationStage.on_frame`), not only the keyframes. Every keyframe the
+front end makes is relocalized against the map (descriptors and the P3P bank,
 then seed 004's KLT stage on the matched map keyframe's image; in a worker process once the
 segment is in the map); a success returns the keyframe's pose in the map's world as a
 correction, so the tracker goes on in the map's frame. The first
@@ -19,8 +21,8 @@ import logging
 import multiprocessing as mp
 import time
 from collections import deque
-from concurrent.futures import Future, ProcessPoolExecutor
-from typing import Any
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,6 +36,9 @@ from loopmodel.loop.reloc import RelocParams
 from loopmodel.loop.session_map import SessionMap
 from loopmodel.stages import LoopConstraint, LoopOutcome, MapState
 from loopmodel.types import Keyframe, StereoCalibration
+
+if TYPE_CHECKING:
+    from loopmodel.frontend.keyframe import FrameResult
 
 logger = logging.getLogger(__name__)
 
@@ -96,7 +101,23 @@ class MapLocalizationStage:
         self.gated = 0
         self._keyframes: dict[int, Keyframe] = {}
         self._executor: ProcessPoolExecutor | None = None
+        # submits to the worker process and waits for it: starting the process (its imports, the
+        # map sent through a pipe) takes seconds, and tracking must not wait for it
+        self._dispatch: ThreadPoolExecutor | None = None
         self._inflight: deque[tuple[int, Future[tuple[Found | None, float]]]] = deque()
+        self.warmup_s = self._warm_up()
+
+    def _warm_up(self) -> float:
+        """Relocalize the map's first keyframe image in the map once, before the first frame (seconds).
+
+        The first relocalization imports its modules and loads the P3P bank's compiled code (about a
+        second); done here, the session's first frames do not wait for it.
+        """
+        t0 = time.perf_counter()
+        image = self.map.image(0) if len(self.map) else np.zeros((0, 0), np.uint8)
+        if image.size:
+            self.relocalize(image)
+        return time.perf_counter() - t0
 
     # ------------------------------------------------------------------ relocalization
     def _map_world_from_rect(self, map_kf: int) -> F64:
@@ -147,12 +168,65 @@ class MapLocalizationStage:
         self._collect(out, state, wait=False)
         self.in_map[kid] = seg in self._segment_in_map
         if seg in self._segment_in_map:
-            self._inflight.append((kid, self._pool().submit(_worker_relocalize, kf.image)))
+            self._inflight.append((kid, self._dispatcher().submit(self._in_worker, kf.image)))
             return out
         self._apply(kid, self._timed_relocalize(kf.image), out, state)
         if seg in self._segment_in_map:
-            self._pool()  # start the worker while tracking goes on
+            self._dispatcher().submit(self._pool)  # start the worker while tracking goes on
         return out
+
+    def wants_frame(self, result: FrameResult) -> bool:
+        """Whether a tracked frame between keyframes should be relocalized (its segment is not in the map yet)."""
+        seg = int(result.segment)
+        return result.ok and seg not in self._segment_in_map and int(result.keyframe_id) in self._keyframes
+
+    def on_frame(self, result: FrameResult, image: NDArray[np.uint8], state: MapState) -> dict[int, F64]:
+        """Relocalize a tracked frame of a segment not yet in the map (at the start and after a loss).
+
+        ``image``: the frame's rectified left image. A success moves the segment's keyframes
+        rigidly into the map's frame (the returned corrections, ``world_from_kf``); the frame's
+        own pose follows them through its keyframe.
+        """
+        found = self._timed_relocalize(image)
+        if found is None:
+            return {}
+        anchor = self._keyframes[int(result.keyframe_id)]
+        seg = int(result.segment)
+        map_kf, new_from_map, inliers, method = found
+        world_from_new = self._map_world_from_rect(map_kf) @ invert_pose(new_from_map) @ anchor.rect_from_cam
+        world = state.world_from_kf
+        tracked = np.asarray(world.get(anchor.id, anchor.world_from_kf)) @ np.asarray(result.kf_from_cam)
+        trans, rot = _motion(tracked, world_from_new)
+        delta = world_from_new @ invert_pose(tracked)
+        corrections = {k: delta @ np.asarray(world[k]) for k in self._segment_kfs[seg] if k in world}
+        for k in corrections:
+            self.in_map[k] = True
+        self._segment_in_map.add(seg)
+        logger.info("frame %d localized in the map at keyframe %d", result.frame_index, map_kf)
+        self.events.append(
+            {
+                "type": "map_relocalization",
+                "keyframe": int(anchor.id),
+                "frame": int(result.frame_index),
+                "match_keyframe": map_kf,
+                "method": method,
+                "inliers": inliers,
+                "correction_m": trans,
+                "correction_deg": rot,
+                "first_of_segment": True,
+                "between_keyframes": True,
+            }
+        )
+        return corrections
+
+    def _dispatcher(self) -> ThreadPoolExecutor:
+        if self._dispatch is None:
+            self._dispatch = ThreadPoolExecutor(1, thread_name_prefix="map-relocalization")
+        return self._dispatch
+
+    def _in_worker(self, image: NDArray[np.uint8]) -> tuple[Found | None, float]:
+        """One relocalization in the worker process (called on the dispatch thread)."""
+        return self._pool().submit(_worker_relocalize, image).result()
 
     def _pool(self) -> ProcessPoolExecutor:
         """The worker process holding its own copy of the map's database (started at the first use)."""
@@ -225,6 +299,9 @@ class MapLocalizationStage:
         out = LoopOutcome(self._keyframes[max(self._keyframes)]) if self._keyframes else None
         if out is not None:
             self._collect(out, state, wait=True)
+        if self._dispatch is not None:
+            self._dispatch.shutdown()
+            self._dispatch = None
         if self._executor is not None:
             self._executor.shutdown()
             self._executor = None
@@ -244,5 +321,6 @@ class MapLocalizationStage:
             "map_first_localized_frame": first[0]["frame"] if first else None,
             "map_localized": bool(first),
             "map_relocalize_ms_median": float(np.median(self.attempt_ms)) if self.attempt_ms else None,
+            "map_warmup_s": self.warmup_s,
             "loop_events": self.events,
         }

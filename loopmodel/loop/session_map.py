@@ -65,6 +65,13 @@ class PackedFeatures:
     bow_weights: F64
     vocabulary: Vocabulary
 
+    def __post_init__(self) -> None:
+        # the values the map file keeps (see ``_STORED``), so a saved map loads back equal
+        for name in ("keypoints_px", "points_in_kf", "bow_weights"):
+            setattr(self, name, _as_stored(getattr(self, name), np.float32))
+        if self.kind == "surf":
+            self.descriptors = _as_stored(self.descriptors, np.float16, np.float32)
+
     def feature_set(self, i: int) -> FeatureSet:
         """Keyframe ``i``'s (row index) feature set (views of the arrays)."""
         a, b = int(self.offsets[i]), int(self.offsets[i + 1])
@@ -180,6 +187,10 @@ class SessionMap:
     config_yaml: str = ""
     info: dict[str, Any] = field(default_factory=dict)
 
+    def __post_init__(self) -> None:
+        for name in ("lm_points_in_kf", "lm_stereo_px", "stripe_points_in_cam"):
+            setattr(self, name, _as_stored(getattr(self, name), np.float32))
+
     # ------------------------------------------------------------------ access
     def __len__(self) -> int:
         return int(self.keyframe_ids.size)
@@ -284,6 +295,8 @@ class SessionMap:
             arrays[name] = getattr(self, name)
         for name in _FEATURE_ARRAYS:
             arrays[f"features_{name}"] = getattr(f, name)
+        for name, dtype in _stored_dtypes(f).items():
+            arrays[name] = _to_storage(arrays[name], dtype, name)
         meta = {
             "calibration": {
                 "image_size": list(c.image_size),
@@ -346,6 +359,7 @@ class SessionMap:
             bool(m["vocabulary_binary"]),
             dict(m.get("vocabulary_info", {})),
         )
+        a = {k: _from_storage(k, v, str(m["descriptor"])) for k, v in a.items()}
         fa = {n: a[f"features_{n}"] for n in _FEATURE_ARRAYS}
         feats = PackedFeatures(kind=str(m["descriptor"]), vocabulary=voc, **fa)
         kw = {n: a[n] for n in _KF_ARRAYS + _OTHER_ARRAYS}
@@ -427,6 +441,61 @@ _FEATURE_ARRAYS = (
     "bow_words",
     "bow_weights",
 )
+
+
+#: How the map file stores arrays that are held wider in memory (issue 20: map size).
+#: float32 (24-bit mantissa, relative 6e-8): keypoints and stereo pixels (under 1e-4 px at 1,280 px),
+#: 3-D points in their keyframe's frame and stripe points (under 0.1 um at 1 m, 3 um at 50 m),
+#: bag-of-words weights. The in-memory arrays are rounded to these values when a map is made
+#: (``__post_init__``), so a saved map loads back equal. Ids and words: int32 (checked). Poses,
+#: calibration and the vocabulary stay float64. Descriptors: ORB as computed (uint8), SIFT as uint8
+#: (OpenCV's SIFT values are whole numbers 0..255; checked, else float32), SURF as float16 (its unit
+#: vectors' components to 5e-4 relative).
+_STORED: dict[str, Any] = {
+    "lm_points_in_kf": np.float32,
+    "lm_stereo_px": np.float32,
+    "stripe_points_in_cam": np.float32,
+    "features_keypoints_px": np.float32,
+    "features_points_in_kf": np.float32,
+    "features_bow_weights": np.float32,
+    "lm_ids": np.int32,
+    "landmark_ids": np.int32,
+    "features_ids": np.int32,
+    "features_words": np.int32,
+    "features_bow_words": np.int32,
+}
+#: the in-memory dtype of each stored array (descriptors: by kind)
+_MEMORY: dict[str, Any] = {k: (np.float64 if np.dtype(v).kind == "f" else np.int64) for k, v in _STORED.items()}
+
+
+def _as_stored(a: NDArray[Any], stored: Any, memory: Any = np.float64) -> NDArray[Any]:
+    """``a`` rounded to the ``stored`` dtype, held as ``memory``."""
+    return np.asarray(a).astype(stored).astype(memory)
+
+
+def _stored_dtypes(f: PackedFeatures) -> dict[str, Any]:
+    out = dict(_STORED)
+    d = f.descriptors
+    if f.kind == "surf":
+        out["features_descriptors"] = np.float16
+    elif d.dtype != np.uint8 and (d.size == 0 or (np.all(d == np.round(d)) and d.min() >= 0 and d.max() <= 255)):
+        out["features_descriptors"] = np.uint8
+    return out
+
+
+def _to_storage(a: NDArray[Any], dtype: Any, name: str) -> NDArray[Any]:
+    out = np.asarray(a).astype(dtype)
+    if np.dtype(dtype).kind == "i" and not np.array_equal(out, a):
+        raise ValueError(f"{name} does not fit {np.dtype(dtype).name}")
+    return out
+
+
+def _from_storage(name: str, a: NDArray[Any], kind: str) -> NDArray[Any]:
+    if name in _MEMORY:
+        return a.astype(_MEMORY[name])
+    if name == "features_descriptors" and kind != "orb":
+        return a.astype(np.float32)
+    return a
 
 
 # ---------------------------------------------------------------------- building
