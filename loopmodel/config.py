@@ -562,6 +562,13 @@ class LoopConfig(_Section):
     max_queued_keyframes: int = Field(
         16, ge=1, le=100000, description="worker backlog above which new keyframes are stored but not queried"
     )
+    # scale (issue 17): at the end of a run the worker's pending detections are waited for, so a loop
+    # found at the last keyframes reaches the final refinement as the inline detection would have it.
+    # A bound against a hung worker, not a tuned value: a full backlog (16 keyframes) at the
+    # detection's median of about 0.1-0.3 s per keyframe (orbit, KITTI clip) drains in a few seconds.
+    drain_timeout_s: float = Field(
+        60.0, ge=0, le=3600, description="longest wait for the loop worker's pending detections at the end of a run"
+    )
 
 
 class AccuracyConfig(_Section):
