@@ -1,8 +1,9 @@
 """The loop worker drained before the final refinement (issue 17).
 
-With ``loop.detection_worker: thread`` a loop whose detection finishes after the last keyframe still
+With ``loop.detection_worker: thread`` the worker's last detections are waited for (at most
+``loop.drain_timeout_s``); with ``loop.late_loop_observations`` a loop found after the last keyframe
 reaches the back end with its observations of the old landmarks, as inline detection
-(``detection_worker: none``) gives them, so the final trajectory is as good.
+(``detection_worker: none``) gives them, and the final trajectory is the inline one.
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ def test_a_loop_found_after_the_last_keyframe_reaches_the_final_refinement(
 
     progress = _late_detections(monkeypatch)
     cfg.loop.detection_worker = "thread"
+    cfg.loop.late_loop_observations = True
     drained = process(open_sequence(tmp_path / "seq"), cfg, max_frames=first + 1, progress=progress)
     m = drained.metrics
     assert m["loop_closures_after_last_keyframe"] == 1 and m["loop_detections_abandoned"] == 0

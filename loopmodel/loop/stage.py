@@ -265,8 +265,8 @@ class LoopClosingStage:
         The old keyframe's features are tracked into the current image from the predicted
         ``current_from_match`` (tracker poses times the loop's pose) and the loop is closed from the
         current keyframe; when too few are found, the loop's own relative pose becomes the
-        constraint, with the query keyframe's observations of the old landmarks (as inline detection
-        would have given them).
+        constraint (with the query keyframe's observations of the old landmarks when
+        ``late_loop_observations``, as inline detection would have given them).
         """
         cur = out.keyframe
         c, q = int(cur.id), closure.query_kf
@@ -296,7 +296,8 @@ class LoopClosingStage:
             return
         if not self._robust_gate(closure, state.world_from_kf):
             return
-        out.constraints.append(self._constraint_only(closure, state, c, observations=True))
+        with_obs = self.config.late_loop_observations
+        out.constraints.append(self._constraint_only(closure, state, c, observations=with_obs))
         out.events.append(self.events[-1])
 
     def _constraint_only(
@@ -593,6 +594,7 @@ class LoopClosingStage:
             "correction_m": 0.0,
             "correction_deg": 0.0,
             "optimise_ms": 0.0,
+            "robust_gate_ms": closure.info.get("robust_gate_ms"),
             "via": "backend",
         }
 
@@ -660,10 +662,11 @@ class LoopClosingStage:
         """Wait for the worker's pending detections (``drain_timeout_s`` in all), then stop it.
 
         Their loops have no later keyframe to be applied at. With the back end each becomes a
-        constraint that carries its query keyframe's observations of the old landmarks
-        (:meth:`final_constraints`): the back end then holds what inline detection would have given
-        it. Without it their global BA runs now; the corrections are returned. Detections still
-        running at the deadline are abandoned (``loop_detections_abandoned``).
+        constraint (:meth:`final_constraints`), which with ``late_loop_observations`` carries its
+        query keyframe's observations of the old landmarks: the back end then holds what inline
+        detection would have given it. Without the back end their global BA runs now; the
+        corrections are returned. Detections still running at the deadline are abandoned
+        (``loop_detections_abandoned``).
         """
         deadline = time.perf_counter() + self.config.drain_timeout_s
         corrected: dict[int, F64] = {}
@@ -690,7 +693,8 @@ class LoopClosingStage:
             self.detections_unapplied += 1
             if self.via_backend:
                 if self._robust_gate(closure, state.world_from_kf):
-                    self._final_constraints.append(self._constraint_only(closure, state, None, observations=True))
+                    with_obs = self.config.late_loop_observations
+                    self._final_constraints.append(self._constraint_only(closure, state, None, observations=with_obs))
             else:
                 last = LoopOutcome(self.keyframes[max(self.keyframes)])
                 self._close(closure, last, state)
