@@ -9,9 +9,11 @@ configuration (iSAM2 back end, loop stage with its worker thread, live and final
 Keys: ``frames``, ``keyframes``; ``frame_ms_last_over_first``: median per-frame time over the last
 N frames divided by that over the first N (N = 500, quick 200; a frame's time is the interval
 between the pipeline's requests for consecutive frames, so it includes reading, the loop stage and
-the back end); ``frame_ms_by_frames``: that median per block of N frames; ``backend_ms_by_keyframes``:
-the back end's time per keyframe (every call the pipeline makes on it: ``add_keyframe``, loop
-constraints, ``estimate``), median per block of 20 keyframes, as [keyframes, ms] pairs;
+the back end); ``frame_ms_by_frames``: that median per block of N frames;
+``frame_cpu_ms_last_over_first`` and ``frame_cpu_ms_by_frames``: the same for the tracking thread's
+CPU time per frame (``time.thread_time``: what the load does not change; worker threads excluded);
+``backend_ms_by_keyframes``: the back end's time per keyframe (every call the pipeline makes on
+it: ``add_keyframe``, loop constraints, ``estimate``), median per block of 20 keyframes, as [keyframes, ms] pairs;
 ``loop_stage_ms_by_keyframes``: the same for the loop stage's ``on_keyframe`` on the tracking
 thread; ``loop_opt_ms_by_keyframes``: each verified loop's optimisation (the back end's update with
 the loop constraint) with the number of keyframes at that moment; ``loop_gate_ms_by_keyframes``: its
@@ -45,6 +47,7 @@ class _Timed:
     def __init__(self, seq: Any, stride: int) -> None:
         self._seq, self._stride = seq, stride
         self.stamps: list[float] = []
+        self.cpu_s: list[float] = []  # the tracking (main) thread's CPU time: independent of the load
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._seq, name)
@@ -56,6 +59,7 @@ class _Timed:
         for i, f in enumerate(self._seq.frames()):
             if i % self._stride == 0:
                 self.stamps.append(time.perf_counter())
+                self.cpu_s.append(time.thread_time())
                 yield f
 
 
@@ -156,8 +160,10 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None) 
         LoopClosingStage.on_keyframe = on_keyframe  # type: ignore[method-assign]
     stamps = np.array(seq.stamps)
     dt = np.diff(stamps) * 1e3
+    cpu = np.diff(np.array(seq.cpu_s)) * 1e3
     n = min(window, dt.size // 2)
     ratio = float(np.median(dt[-n:]) / np.median(dt[:n])) if n > 0 else None
+    cpu_ratio = float(np.median(cpu[-n:]) / np.median(cpu[:n])) if n > 0 else None
     kf_number = {int(k): i + 1 for i, k in enumerate(out.keyframe_ids.tolist())}
     loops = [e for e in out.metrics.get("loop_events", []) if e.get("type") == "loop"]
     finish_s = t_end - stamps[-1] - write_s[0] if stamps.size else 0.0
@@ -170,6 +176,8 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None) 
         "frame_ms_last_median": round(float(np.median(dt[-n:])), 2) if n > 0 else None,
         "frame_ms_last_over_first": round(ratio, 3) if ratio is not None else None,
         "frame_ms_by_frames": _blocks(dt, max(n, 1)),
+        "frame_cpu_ms_last_over_first": round(cpu_ratio, 3) if cpu_ratio is not None else None,
+        "frame_cpu_ms_by_frames": _blocks(cpu, max(n, 1)),
         "backend_ms_by_keyframes": backend_clock.curve(),
         "loop_stage_ms_by_keyframes": loop_clock.curve(),
         "loop_opt_ms_by_keyframes": [
@@ -196,7 +204,10 @@ def plot(result: dict[str, Any], png: Path) -> None:
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
     f = np.array(result["frame_ms_by_frames"], float).reshape(-1, 2)
-    a.plot(f[:, 0], f[:, 1], "o-")
+    a.plot(f[:, 0], f[:, 1], "o-", label="wall")
+    c = np.array(result["frame_cpu_ms_by_frames"], float).reshape(-1, 2)
+    a.plot(c[:, 0], c[:, 1], "s-", label="tracking thread CPU")
+    a.legend()
     a.set(xlabel="frames", ylabel="median frame time (ms)", title=result["dataset"])
     a.set_ylim(bottom=0)
     for key, style in (
