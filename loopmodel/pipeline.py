@@ -354,6 +354,8 @@ class _Run:
         ids: list[int | None] = []
         for c in constraints:
             try:
+                if c.kf_a_mono_obs is not None:  # a loop found after its keyframe reached the back end
+                    self.backend.add_observations(c.kf_a, c.kf_a_mono_obs)
                 ids.append(int(self.backend.add_loop_constraint(c.kf_a, c.kf_b, c.a_from_b)))
                 self.loop_constraints.append(c)
             except LoopmodelError as exc:  # e.g. a back end without relative-pose factors

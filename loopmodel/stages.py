@@ -43,12 +43,16 @@ class MapState:
 class LoopConstraint:
     """A relative-pose measurement ``kf_a_from_kf_b`` (4x4, metres) between two keyframes' left cameras.
 
-    For :meth:`loopmodel.backend.Backend.add_loop_constraint`.
+    For :meth:`loopmodel.backend.Backend.add_loop_constraint`. ``kf_a_mono_obs`` (N, 3: landmark id,
+    u, v rectified px): ``kf_a``'s observations of ``kf_b``'s landmarks, for a loop found after
+    ``kf_a`` reached the back end (:meth:`loopmodel.backend.Backend.add_observations`); None when
+    they went with the keyframe itself.
     """
 
     kf_a: int
     kf_b: int
     a_from_b: F64
+    kf_a_mono_obs: F64 | None = None
 
 
 @dataclass

@@ -63,6 +63,15 @@ class Backend(Protocol):
         """Add a keyframe pose and its stereo and monocular observations; update the solution."""
         ...
 
+    def add_observations(self, keyframe_id: int, mono_obs: F64) -> BackendUpdate:
+        """Add monocular observations to a keyframe already in the back end; update the solution.
+
+        ``mono_obs`` (N, 3): landmark id, u, v (rectified pixels of the keyframe's left image), as
+        ``Keyframe.mono_obs``. For a loop whose observations of old landmarks were found after the
+        keyframe was added (the loop worker's last detections).
+        """
+        ...
+
     def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
         """Add a relative-pose measurement ``kf_a_from_kf_b`` (4x4); returns a constraint id.
 

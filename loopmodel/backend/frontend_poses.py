@@ -32,6 +32,10 @@ class FrontEndPoses:
         self._new.add(int(keyframe.id))
         return BackendUpdate(int(keyframe.id))
 
+    def add_observations(self, keyframe_id: int, mono_obs: F64) -> BackendUpdate:
+        """Nothing is estimated from observations: they are ignored."""
+        return BackendUpdate(int(keyframe_id))
+
     def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
         """Loop constraints need an estimator: configure ``backend.kind`` isam2, givens or both."""
         raise ConfigError("backend.kind", "'none' keeps the front end's poses and cannot close loops")

@@ -487,13 +487,7 @@ class Isam2Backend:
         for lm, p, q in zip(ids[sel].tolist(), px[sel].tolist(), pts[sel], strict=True):
             self._observe(lm, _Obs(kf_id, True, tuple(p), q), graph, candidates)
         seq = self._kf_seq[kf_id]
-        mono = np.asarray(keyframe.mono_obs, dtype=float).reshape(-1, 3)
-        for row in mono.tolist():
-            lm_id = int(row[0])
-            if not all(np.isfinite(row)) or (lm_id not in self._lm_current and lm_id not in self._pending):
-                report.rejected_observations += 1  # its landmark was dropped or never seen
-                continue
-            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates)
+        report.rejected_observations += self._observe_mono(kf_id, keyframe.mono_obs, graph, candidates)
         report.new_landmarks = self._create_landmarks(candidates, graph, values)
         self._prune_pending(seq)
         linked = sum(1 for f in self._batch if (r := self._factors[f]).obs is not None and r.obs[0] == kf_id)
@@ -505,6 +499,46 @@ class Isam2Backend:
         self._theta0.insert(values)
         self._run_update(graph, values, [], X(kf_id))
         if cfg.blunder_sigma > 0:
+            report.removed_blunders = self._screen_new([f for f in new_fids if f in self._factors])
+        report.pending_landmarks = len(self._pending)
+        report.update_ms = (time.perf_counter() - t0) * 1e3
+        return report
+
+    def _observe_mono(self, kf_id: int, mono_obs: F64, graph: gtsam.NonlinearFactorGraph, candidates: list[int]) -> int:
+        """Route monocular observations (landmark id, u, v px) of ``kf_id``; returns how many were rejected.
+
+        Rejected: non-finite, or of a landmark that was dropped or never seen.
+        """
+        rejected = 0
+        for row in np.asarray(mono_obs, dtype=float).reshape(-1, 3).tolist():
+            lm_id = int(row[0])
+            if not all(np.isfinite(row)) or (lm_id not in self._lm_current and lm_id not in self._pending):
+                rejected += 1
+                continue
+            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates)
+        return rejected
+
+    def add_observations(self, keyframe_id: int, mono_obs: F64) -> BackendUpdate:
+        """Add monocular observations (landmark id, u, v rectified px) to keyframe ``keyframe_id``; update.
+
+        Those the keyframe has already are kept as they are (:meth:`_add_obs`). For a loop found
+        after its keyframe was added (the loop worker's last detections, drained at the end of a run).
+        """
+        t0 = time.perf_counter()
+        kf_id = int(keyframe_id)
+        if kf_id not in self._kf_seq:
+            raise EstimationError(f"observations of keyframe {kf_id}, which is not in the back end")
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        report = BackendUpdate(kf_id)
+        candidates: list[int] = []
+        report.rejected_observations = self._observe_mono(kf_id, mono_obs, graph, candidates)
+        report.new_landmarks = self._create_landmarks(candidates, graph, values)
+        report.new_factors = graph.size()
+        new_fids = list(self._batch)
+        self._theta0.insert(values)
+        self._run_update(graph, values, [], None)
+        if self.config.blunder_sigma > 0:
             report.removed_blunders = self._screen_new([f for f in new_fids if f in self._factors])
         report.pending_landmarks = len(self._pending)
         report.update_ms = (time.perf_counter() - t0) * 1e3

@@ -74,6 +74,14 @@ class ScreenedBackend:
             update.removed_blunders += self.inner.remove_observations(pairs)
         return update
 
+    def add_observations(self, keyframe_id: int, mono_obs: F64) -> BackendUpdate:
+        """Passed to the inner back end unscreened.
+
+        A loop's observations, verified by the loop stage; the sequential screen takes a keyframe's
+        observations only when the keyframe is inserted.
+        """
+        return self.inner.add_observations(keyframe_id, mono_obs)
+
     def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
         """Passed to the inner back end."""
         return self.inner.add_loop_constraint(kf_a, kf_b, a_from_b, sigmas)
@@ -123,6 +131,12 @@ class GivensBackend:
             rejected_observations=int((~keep_st).sum() + (~keep_mono).sum()),
             removed_blunders=removed,
             update_ms=(time.perf_counter() - t0) * 1e3,
+        )
+
+    def add_observations(self, keyframe_id: int, mono_obs: F64) -> BackendUpdate:
+        """Not supported: the sequential estimator takes a frame's image points when it is inserted."""
+        raise EstimationError(
+            "the Givens back end takes no observations of an inserted keyframe; use backend.kind 'isam2' or 'both'"
         )
 
     def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:

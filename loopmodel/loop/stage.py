@@ -169,6 +169,7 @@ class LoopClosingStage:
         self.keyframes_not_queried = 0
         self.late_closures = 0
         self.detections_unapplied = 0
+        self.detections_abandoned = 0
         self._final_constraints: list[LoopConstraint] = []
         # covisibility: (first, last landmark id, keyframe) per keyframe; direct neighbours
         self._lm_ranges: list[tuple[int, int, int]] = []
@@ -264,7 +265,8 @@ class LoopClosingStage:
         The old keyframe's features are tracked into the current image from the predicted
         ``current_from_match`` (tracker poses times the loop's pose) and the loop is closed from the
         current keyframe; when too few are found, the loop's own relative pose becomes the
-        constraint (without observations).
+        constraint (with the query keyframe's observations of the old landmarks when
+        ``late_loop_observations``, as inline detection would have given them).
         """
         cur = out.keyframe
         c, q = int(cur.id), closure.query_kf
@@ -294,24 +296,31 @@ class LoopClosingStage:
             return
         if not self._robust_gate(closure, state.world_from_kf):
             return
-        out.constraints.append(self._constraint_only(closure, state, c))
+        with_obs = self.config.late_loop_observations
+        out.constraints.append(self._constraint_only(closure, state, c, observations=with_obs))
         out.events.append(self.events[-1])
 
-    def _constraint_only(self, closure: LoopClosure, state: MapState, at_keyframe: int | None) -> LoopConstraint:
-        """The record and the relative-pose constraint of a loop applied without its observations.
+    def _constraint_only(
+        self, closure: LoopClosure, state: MapState, at_keyframe: int | None, observations: bool = False
+    ) -> LoopConstraint:
+        """The record and the relative-pose constraint of a loop whose query keyframe is already in the back end.
 
-        Its query keyframe is already in the back end.
+        ``observations``: the constraint carries the query keyframe's observations of the old
+        landmarks (``LoopConstraint.kf_a_mono_obs``); otherwise the loop goes without them.
         """
         q = closure.query_kf
         record = self._loop_record(closure)
         record["applied_at_keyframe"] = at_keyframe
-        record["loop_observations"] = 0
+        obs = closure.observations
+        with_obs = observations and obs.kf_id == q and obs.landmark_ids.size > 0
+        record["loop_observations"] = int(obs.landmark_ids.size) if with_obs else 0
         self.events.append(record)
         record["pose_before"] = np.asarray(state.world_from_kf[q]).copy()
         self._awaiting.append(record)
         m = self.keyframes[closure.match_kf]
         q_from_m = invert_pose(self.keyframes[q].rect_from_cam) @ closure.query_from_match @ m.rect_from_cam
-        return LoopConstraint(q, closure.match_kf, q_from_m)
+        rows = np.column_stack([obs.landmark_ids.astype(float), np.asarray(obs.uv_px, float).reshape(-1, 2)])
+        return LoopConstraint(q, closure.match_kf, q_from_m, rows if with_obs else None)
 
     def _temporal_neighbours(self, kf: Keyframe) -> set[int]:
         """Keyframes co-visible with the new keyframe's local map.
@@ -585,6 +594,7 @@ class LoopClosingStage:
             "correction_m": 0.0,
             "correction_deg": 0.0,
             "optimise_ms": 0.0,
+            "robust_gate_ms": closure.info.get("robust_gate_ms"),
             "via": "backend",
         }
 
@@ -636,30 +646,7 @@ class LoopClosingStage:
         Returns the corrections that arrived meanwhile.
         """
         self._note_backend(state)
-        # detections still running: their loops have no later keyframe to be applied at;
-        # with the back end they become constraints (:meth:`final_constraints`), without it
-        # their global BA runs now
-        corrected: dict[int, F64] = {}
-        while self._inflight:
-            kf_id, fut = self._inflight.popleft()
-            try:
-                closure = self._note(fut.result())
-            except LoopmodelError as exc:
-                logger.warning("loop detection of keyframe %d failed (%s)", kf_id, exc)
-                continue
-            if closure is None:
-                continue
-            self.detections_unapplied += 1
-            if self.via_backend:
-                if self._robust_gate(closure, state.world_from_kf):
-                    self._final_constraints.append(self._constraint_only(closure, state, None))
-            else:
-                last = LoopOutcome(self.keyframes[max(self.keyframes)])
-                self._close(closure, last, state)
-                corrected.update(last.corrections)
-        if self._detect_pool is not None:
-            self._detect_pool.shutdown()
-            self._detect_pool = None
+        corrected = self._drain(state)
         world = {**state.world_from_kf, **corrected}
         while self._pending is not None:
             done = self.poll(MapState(world), wait=True)
@@ -669,6 +656,52 @@ class LoopClosingStage:
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
+        return corrected
+
+    def _drain(self, state: MapState) -> dict[int, F64]:
+        """Wait for the worker's pending detections (``drain_timeout_s`` in all), then stop it.
+
+        Their loops have no later keyframe to be applied at. With the back end each becomes a
+        constraint (:meth:`final_constraints`), which with ``late_loop_observations`` carries its
+        query keyframe's observations of the old landmarks: the back end then holds what inline
+        detection would have given it. Without the back end their global BA runs now; the
+        corrections are returned. Detections still running at the deadline are abandoned
+        (``loop_detections_abandoned``).
+        """
+        deadline = time.perf_counter() + self.config.drain_timeout_s
+        corrected: dict[int, F64] = {}
+        while self._inflight:
+            kf_id, fut = self._inflight.popleft()
+            try:
+                closure = self._note(fut.result(timeout=max(deadline - time.perf_counter(), 0.0)))
+            except TimeoutError:
+                self.detections_abandoned = 1 + len(self._inflight)
+                logger.warning(
+                    "loop detection: %d keyframes not done after %.0f s, left out",
+                    self.detections_abandoned,
+                    self.config.drain_timeout_s,
+                )
+                for _, rest in self._inflight:
+                    rest.cancel()
+                self._inflight.clear()
+                break
+            except LoopmodelError as exc:
+                logger.warning("loop detection of keyframe %d failed (%s)", kf_id, exc)
+                continue
+            if closure is None:
+                continue
+            self.detections_unapplied += 1
+            if self.via_backend:
+                if self._robust_gate(closure, state.world_from_kf):
+                    with_obs = self.config.late_loop_observations
+                    self._final_constraints.append(self._constraint_only(closure, state, None, observations=with_obs))
+            else:
+                last = LoopOutcome(self.keyframes[max(self.keyframes)])
+                self._close(closure, last, state)
+                corrected.update(last.corrections)
+        if self._detect_pool is not None:
+            self._detect_pool.shutdown(wait=not self.detections_abandoned, cancel_futures=True)
+            self._detect_pool = None
         return corrected
 
     def final_constraints(self) -> list[LoopConstraint]:
@@ -742,6 +775,7 @@ class LoopClosingStage:
             "loop_keyframes_not_queried": self.keyframes_not_queried,
             "loop_closures_late": self.late_closures,
             "loop_closures_after_last_keyframe": self.detections_unapplied,
+            "loop_detections_abandoned": self.detections_abandoned,
             "loop_detect_ms_median": float(np.median(self.detect_s) * 1e3) if self.detect_s else None,
             "loop_detection_worker": self.config.detection_worker,
         }

@@ -1,0 +1,73 @@
+"""The loop worker drained before the final refinement (issue 17).
+
+With ``loop.detection_worker: thread`` the worker's last detections are waited for (at most
+``loop.drain_timeout_s``); with ``loop.late_loop_observations`` a loop found after the last keyframe
+reaches the back end with its observations of the old landmarks, as inline detection
+(``detection_worker: none``) gives them, and the final trajectory is the inline one.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from test_loop_pipeline import _config, _poses, _write_kitti
+
+from loopmodel.io.sequence import open_sequence
+from loopmodel.loop.closer import LoopCloser
+from loopmodel.pipeline import process
+
+
+def _late_detections(monkeypatch: pytest.MonkeyPatch) -> Any:
+    """The worker thread finishes no detection before the last frame; returns the progress callback that says when."""
+    release = threading.Event()
+    original = LoopCloser.process_keyframe
+
+    def late(self: LoopCloser, kf: Any, *args: Any, **kwargs: Any) -> Any:
+        assert release.wait(timeout=120.0)
+        return original(self, kf, *args, **kwargs)
+
+    def progress(done: int, total: int, fps: float, keyframes: int) -> None:
+        if done == total:
+            release.set()
+
+    monkeypatch.setattr(LoopCloser, "process_keyframe", late)
+    return progress
+
+
+@pytest.mark.slow
+def test_a_loop_found_after_the_last_keyframe_reaches_the_final_refinement(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The revisit cut at the first keyframe that closes a loop: inline, that loop goes into the back end.
+
+    With the worker, its detection ends after the last frame; drained, the final trajectory is the inline one.
+    """
+    poses = _poses(revisit=True)
+    _write_kitti(tmp_path / "seq", poses, np.random.default_rng(4))
+    cfg = _config()
+    cfg.loop.detection_worker = "none"
+    full = process(open_sequence(tmp_path / "seq"), cfg)
+    first = min(e["frame"] for e in full.metrics["loop_events"] if e["type"] == "loop")
+    inline = process(open_sequence(tmp_path / "seq"), cfg, max_frames=first + 1)
+    loops = [e for e in inline.metrics["loop_events"] if e["type"] == "loop"]
+    assert [e["frame"] for e in loops] == [first] and loops[0]["loop_observations"] >= 25
+
+    progress = _late_detections(monkeypatch)
+    cfg.loop.detection_worker = "thread"
+    cfg.loop.late_loop_observations = True
+    drained = process(open_sequence(tmp_path / "seq"), cfg, max_frames=first + 1, progress=progress)
+    m = drained.metrics
+    assert m["loop_closures_after_last_keyframe"] == 1 and m["loop_detections_abandoned"] == 0
+    late = [e for e in m["loop_events"] if e["type"] == "loop"]
+    assert [(e["keyframe"], e["match_keyframe"]) for e in late] == [(e["keyframe"], e["match_keyframe"]) for e in loops]
+    assert late[0]["loop_observations"] == loops[0]["loop_observations"]
+    a, b = inline.final.world_from_cam, drained.final.world_from_cam
+    assert np.array_equal(inline.final.timestamps_ns, drained.final.timestamps_ns)
+    diff_m = float(np.max(np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1)))
+    # measured (seed 4; final ATE 1.09 mm): 4e-8 m with the drain (the back end gets the loop's
+    # observations in a second update); 5.3e-5 m when the drained loop went as a pose constraint alone
+    assert diff_m < 1e-6, diff_m
