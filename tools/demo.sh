@@ -21,7 +21,9 @@ if [ ! -f "$SAMPLE" ]; then
   $LM simulate scan --config configs/sim.yaml --out "$SAMPLE"
 fi
 $LM info "$SAMPLE"
-$LM run "$SAMPLE" --config configs/sim.yaml --out "$OUT" --name "$NAME" --rerun "$OUT/$NAME.rrd"
+# results/demo is the demo's own folder: a second `make demo` replaces it (--overwrite)
+rm -f "$OUT/$NAME.rrd"  # a recording an interrupted demo left behind
+$LM run "$SAMPLE" --config configs/sim.yaml --out "$OUT" --name "$NAME" --rerun "$OUT/$NAME.rrd" --overwrite
 mv -f "$OUT/$NAME.rrd" "$OUT/$NAME/run.rrd"  # open it with: .venv/bin/rerun results/demo/run.rrd
 [ -f "$OUT/$NAME/mesh.ply" ] || $LM mesh "$OUT/$NAME" --out "$OUT/$NAME/mesh.ply"
 $LM eval "$OUT/$NAME" --gt "$SAMPLE"
