@@ -151,6 +151,7 @@ def mesh_error_metrics(
     swept_radius_m: float = 0.005,
     object_samples: int = 200_000,
     meshes: Mapping[str, o3d.geometry.TriangleMesh] | None = None,
+    looser_tols_m: tuple[float, ...] = (),
 ) -> dict[str, float]:
     """Mesh the stripes once per named trajectory and measure each against the ground truth.
 
@@ -158,7 +159,9 @@ def mesh_error_metrics(
     ``mesh_err_<name>_mm`` (mean), ``mesh_err_<name>_mm_p95``, ``mesh_completeness_<name>``.
     ``meshes``: surfaces the caller already reconstructed from these stripes placed with the
     trajectory of the same name (same world frame as that trajectory); they are measured as
-    they are, not meshed again.
+    they are, not meshed again. ``looser_tols_m``: completeness also at these tolerances
+    (``mesh_completeness_<name>_<mm>mm``), which tells a surface that is there but offset (by
+    more than ``completeness_tol_m``, e.g. a scale error) from one that is missing.
 
     Completeness is the share of the ground-truth surface within ``completeness_tol_m`` of
     the mesh: of the whole scene, or with ``object_mesh`` (the scanned object, e.g. the
@@ -188,6 +191,10 @@ def mesh_error_metrics(
         out[f"mesh_err_{name}_mm"] = acc.mean_mm
         out[f"mesh_err_{name}_mm_p95"] = acc.p95_mm
         out[f"mesh_completeness_{name}"] = acc.completeness
+        if looser_tols_m and reference is not None and to_surface is not None:
+            dr = to_surface(reference)
+            for tol in looser_tols_m:
+                out[f"mesh_completeness_{name}_{tol * 1e3:g}mm"] = float(np.mean(dr <= tol))
         if swept is not None and swept.shape[0] and to_surface is not None:
             dg = to_surface(swept)
             out[f"mesh_completeness_swept_{name}"] = float(np.mean(dg <= completeness_tol_m))
