@@ -59,13 +59,23 @@ def mesh_before_after_png(
         if online is not None and online_alignment is not None:
             tracks.insert(0, ("before loop closure (online poses)", online, online_alignment))
         meshes = []
+        run_mesh = _run_mesh(run_path, final_alignment)
         for title, traj, al in tracks:
-            run_mesh = _run_mesh(run_path, al) if traj is final else None
-            if run_mesh is not None:  # the run's own final mesh, moved by the alignment: not meshed twice
+            if run_mesh is not None and traj is final:  # the run's own final mesh, moved by the alignment
                 meshes.append((title, *run_mesh))
                 continue
-            m = StripeMap.from_trajectory(_aligned(traj, al), stripes, mapping).mesh()
-            meshes.append((title, np.asarray(m.vertices), np.asarray(m.triangles)))
+            if run_mesh is None:
+                m = StripeMap.from_trajectory(_aligned(traj, al), stripes, mapping).mesh()
+                meshes.append((title, np.asarray(m.vertices), np.asarray(m.triangles)))
+                continue
+            # made in the run's world like mesh.ply (the Poisson octree follows the frame's axes, and
+            # so does the mesh's resolution), then moved by the final alignment
+            R, t = final_alignment.rotation, final_alignment.translation_m
+            run_from_aligned = np.eye(4)
+            run_from_aligned[:3, :3], run_from_aligned[:3, 3] = R.T, -R.T @ t
+            in_run = Trajectory(traj.timestamps_ns, run_from_aligned[None] @ _aligned(traj, al).world_from_cam)
+            m = StripeMap.from_trajectory(in_run, stripes, mapping).mesh()
+            meshes.append((title, np.asarray(m.vertices) @ R.T + t, np.asarray(m.triangles)))
         panels: list[Panel] = []
         scale_mm = None
         if gt_mesh is not None:

@@ -79,8 +79,8 @@ def _mesh_errors(
     The mesh error with ground-truth, online (before loop closure) and final (after) poses, both
     SE(3)-aligned to the truth by their frame positions, and the completeness of the scanned object
     (``object.ply``) and of its swept part when the sequence has it. ``final_surface``: the run's
-    mesh of ``stripes`` placed with ``final`` (run world frame); "after" measures that mesh, moved
-    by the alignment, instead of meshing the stripes a second time.
+    mesh of ``stripes`` placed with ``final`` (run world frame); "after" measures that mesh instead
+    of meshing the stripes a second time.
     """
     from loopmodel.io.mesh_io import mesh_from_bytes
     from loopmodel.mapping.accuracy import mesh_error_metrics
@@ -89,22 +89,27 @@ def _mesh_errors(
     gt = sequence.ground_truth
     if "scene.ply" not in names or gt is None:
         return {}
-    gt_mesh = mesh_from_bytes(sequence.read_attachment("scene.ply"), "ply", sequence.path)
-    # the run's world is its first keyframe: express both trajectories in the truth's world by
-    # the SE(3) alignment of the frame positions before meshing
-    gt_from_final = reference_from_traj(final, gt)
-    after = Trajectory(final.timestamps_ns, gt_from_final[None] @ final.world_from_cam)
-    trajs = {"gt": gt, "before": aligned_to(online, gt), "after": after}
-    given: dict[str, Any] = {}
-    if final_surface is not None:
-        import open3d as o3d
+    from loopmodel.geometry.se3 import invert_pose
 
-        moved = o3d.geometry.TriangleMesh(final_surface)
-        moved.transform(gt_from_final)
-        given["after"] = moved
+    gt_mesh = mesh_from_bytes(sequence.read_attachment("scene.ply"), "ply", sequence.path)
+    # the run's world is its first keyframe. The online trajectory is SE(3)-aligned to the truth
+    # by the frame positions (as ATE), and so is the final one: every mesh is then made in the
+    # run's world, where the run made its own mesh ("after"), with the truth moved there. open3d's
+    # Poisson octree follows the frame's axes (its depth comes from the bounding box), so meshes
+    # made in different frames would differ in resolution (the demo orbit: 1.85 mm cells in the
+    # run's world, 1.08 mm in the truth's) and not compare like with like.
+    run_from_gt = invert_pose(reference_from_traj(final, gt))
+
+    def in_run(traj: Trajectory) -> Trajectory:
+        return Trajectory(traj.timestamps_ns, run_from_gt[None] @ traj.world_from_cam)
+
+    trajs = {"gt": in_run(gt), "before": in_run(aligned_to(online, gt)), "after": final}
+    gt_mesh.transform(run_from_gt)
+    given: dict[str, Any] = {"after": final_surface} if final_surface is not None else {}
     obj = None
     if "object.ply" in names:
         obj = mesh_from_bytes(sequence.read_attachment("object.ply"), "ply", sequence.path)
+        obj.transform(run_from_gt)
     return mesh_error_metrics(stripes, trajs, gt_mesh, config, object_mesh=obj, meshes=given)
 
 
