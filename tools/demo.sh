@@ -17,7 +17,7 @@ if [ -f "$SAMPLE" ] && [ "$(level "$SAMPLE")" != realistic ]; then
   rm -f "$SAMPLE" "${SAMPLE%.mcap}.scene.ply"
 fi
 if [ ! -f "$SAMPLE" ]; then
-  echo "generating the bundled sample $SAMPLE (orbit preset, realistic world, 600 frames; about two minutes on 2 cores)"
+  echo "generating the bundled sample $SAMPLE (orbit preset, realistic world, 600 frames; a few minutes on 2 cores)"
   $LM simulate scan --config configs/sim.yaml --out "$SAMPLE"
 fi
 $LM info "$SAMPLE"
