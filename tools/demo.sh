@@ -17,11 +17,13 @@ if [ -f "$SAMPLE" ] && [ "$(level "$SAMPLE")" != realistic ]; then
   rm -f "$SAMPLE" "${SAMPLE%.mcap}.scene.ply"
 fi
 if [ ! -f "$SAMPLE" ]; then
-  echo "generating the bundled sample $SAMPLE (orbit preset, realistic world, 600 frames; about two minutes on 2 cores)"
+  echo "generating the bundled sample $SAMPLE (orbit preset, realistic world, 600 frames; a few minutes on 2 cores)"
   $LM simulate scan --config configs/sim.yaml --out "$SAMPLE"
 fi
 $LM info "$SAMPLE"
-$LM run "$SAMPLE" --config configs/sim.yaml --out "$OUT" --name "$NAME" --rerun "$OUT/$NAME.rrd"
+# results/demo is the demo's own folder: a second `make demo` replaces it (--overwrite)
+rm -f "$OUT/$NAME.rrd"  # a recording an interrupted demo left behind
+$LM run "$SAMPLE" --config configs/sim.yaml --out "$OUT" --name "$NAME" --rerun "$OUT/$NAME.rrd" --overwrite
 mv -f "$OUT/$NAME.rrd" "$OUT/$NAME/run.rrd"  # open it with: .venv/bin/rerun results/demo/run.rrd
 [ -f "$OUT/$NAME/mesh.ply" ] || $LM mesh "$OUT/$NAME" --out "$OUT/$NAME/mesh.ply"
 $LM eval "$OUT/$NAME" --gt "$SAMPLE"

@@ -44,7 +44,7 @@ def mesh_before_after_png(
     """
     from loopmodel.config import load_config
     from loopmodel.io.stripes_io import load_stripes
-    from loopmodel.mapping.accuracy import distances_to_mesh
+    from loopmodel.mapping.accuracy import SurfaceDistance
     from loopmodel.mapping.stripe_map import StripeMap
     from loopmodel.viz.mesh_render import before_after_png, distance_colors
 
@@ -59,13 +59,28 @@ def mesh_before_after_png(
         if online is not None and online_alignment is not None:
             tracks.insert(0, ("before loop closure (online poses)", online, online_alignment))
         meshes = []
+        run_mesh = _run_mesh(run_path, final_alignment)
         for title, traj, al in tracks:
-            m = StripeMap.from_trajectory(_aligned(traj, al), stripes, mapping).mesh()
-            meshes.append((title, np.asarray(m.vertices), np.asarray(m.triangles)))
+            if run_mesh is not None and traj is final:  # the run's own final mesh, moved by the alignment
+                meshes.append((title, *run_mesh))
+                continue
+            if run_mesh is None:
+                m = StripeMap.from_trajectory(_aligned(traj, al), stripes, mapping).mesh()
+                meshes.append((title, np.asarray(m.vertices), np.asarray(m.triangles)))
+                continue
+            # made in the run's world like mesh.ply (the Poisson octree follows the frame's axes, and
+            # so does the mesh's resolution), then moved by the final alignment
+            R, t = final_alignment.rotation, final_alignment.translation_m
+            run_from_aligned = np.eye(4)
+            run_from_aligned[:3, :3], run_from_aligned[:3, 3] = R.T, -R.T @ t
+            in_run = Trajectory(traj.timestamps_ns, run_from_aligned[None] @ _aligned(traj, al).world_from_cam)
+            m = StripeMap.from_trajectory(in_run, stripes, mapping).mesh()
+            meshes.append((title, np.asarray(m.vertices) @ R.T + t, np.asarray(m.triangles)))
         panels: list[Panel] = []
         scale_mm = None
         if gt_mesh is not None:
-            dists = [distances_to_mesh(v, gt_mesh) for _, v, _ in meshes]
+            to_gt = SurfaceDistance(gt_mesh)
+            dists = [to_gt(v) for _, v, _ in meshes]
             scale_mm = max(1.0, float(np.percentile(np.concatenate(dists), 95)) * 1e3)
             for (title, v, t), d in zip(meshes, dists, strict=True):
                 panels.append((f"{title}: mean {1e3 * d.mean():.2f} mm", v, t, distance_colors(d, scale_mm * 1e-3)))
@@ -75,6 +90,31 @@ def mesh_before_after_png(
     except LoopmodelError as exc:
         logger.warning("no mesh pictures: %s", exc)
         return None
+
+
+def _run_mesh(run_path: Path, alignment: Alignment) -> tuple[Any, Any] | None:
+    """Vertices (V x 3, aligned world, metres) and triangles of the run's ``mesh.ply``.
+
+    Only when it is the run's final mesh (its vertex count is the one ``metrics.json`` recorded)
+    and the alignment is rigid (a scaled alignment scales the poses, not the stripes: that mesh
+    is made again from the stripes). None otherwise.
+    """
+    import json
+
+    path, metrics = run_path / "mesh.ply", run_path / "metrics.json"
+    if abs(alignment.scale - 1.0) > 1e-12 or not path.is_file() or not metrics.is_file():
+        return None
+    try:
+        recorded = json.loads(metrics.read_text()).get("mesh_vertices")
+        from loopmodel.io.mesh_io import read_mesh
+
+        mesh = read_mesh(path)
+    except (LoopmodelError, ValueError, OSError):
+        return None
+    v = np.asarray(mesh.vertices)
+    if recorded is None or int(recorded) != len(v):
+        return None
+    return v @ alignment.rotation.T + alignment.translation_m, np.asarray(mesh.triangles)
 
 
 def _gt_mesh(gt_source: str | None) -> Any:

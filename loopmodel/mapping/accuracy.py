@@ -9,6 +9,7 @@ object alone, or of the part of it the laser swept).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -42,12 +43,23 @@ def _scene(mesh: o3d.geometry.TriangleMesh) -> o3d.t.geometry.RaycastingScene:
     return scene
 
 
+class SurfaceDistance:
+    """Unsigned distances to one mesh surface; its ray-casting scene (and BVH) is built once and reused."""
+
+    def __init__(self, mesh: o3d.geometry.TriangleMesh) -> None:
+        if len(mesh.triangles) == 0:
+            raise InputError(None, "distance to a mesh without triangles")
+        self._scene = _scene(mesh)
+
+    def __call__(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Distance (metres) from each of the P x 3 points (the mesh's frame) to the surface."""
+        q = o3d.core.Tensor.from_numpy(np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3))
+        return self._scene.compute_distance(q).numpy().astype(np.float64)
+
+
 def distances_to_mesh(points: NDArray[np.float64], mesh: o3d.geometry.TriangleMesh) -> NDArray[np.float64]:
     """Unsigned distance (metres) from each of the P x 3 points to the mesh surface."""
-    if len(mesh.triangles) == 0:
-        raise InputError(None, "distance to a mesh without triangles")
-    q = o3d.core.Tensor.from_numpy(np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3))
-    return _scene(mesh).compute_distance(q).numpy().astype(np.float64)
+    return SurfaceDistance(mesh)(points)
 
 
 def sample_surface(mesh: o3d.geometry.TriangleMesh, count: int, seed: int = 0) -> NDArray[np.float64]:
@@ -93,18 +105,21 @@ def mesh_accuracy(
     region_max: NDArray[np.float64] | None = None,
     seed: int = 0,
     reference_points: NDArray[np.float64] | None = None,
+    to_gt: SurfaceDistance | None = None,
+    to_mesh: SurfaceDistance | None = None,
 ) -> MeshAccuracy:
     """Accuracy of ``mesh`` against ``gt_mesh``.
 
     Completeness counts ground-truth samples inside the optional box [region_min, region_max]
     (world, metres), or, when given, the share of ``reference_points`` (P x 3, e.g. samples of the
-    scanned object) within the tolerance of the mesh.
+    scanned object) within the tolerance of the mesh. ``to_gt`` / ``to_mesh``: the distance
+    functions of ``gt_mesh`` / ``mesh`` when the caller already has them (built once, reused).
     """
     if len(mesh.triangles) == 0 or len(mesh.vertices) == 0:
         raise InputError(None, "reconstructed mesh is empty")
     if len(gt_mesh.triangles) == 0:
         raise InputError(None, "ground-truth mesh is empty")
-    d = distances_to_mesh(np.asarray(mesh.vertices), gt_mesh) * 1e3
+    d = (to_gt or SurfaceDistance(gt_mesh))(np.asarray(mesh.vertices)) * 1e3
     if reference_points is not None:
         samples = np.asarray(reference_points, dtype=float).reshape(-1, 3)
     else:
@@ -114,7 +129,7 @@ def mesh_accuracy(
         samples = samples[inside]
     if samples.shape[0] == 0:
         raise InputError(None, "no ground-truth surface inside the completeness region")
-    dg = distances_to_mesh(samples, mesh)
+    dg = (to_mesh or SurfaceDistance(mesh))(samples)
     return MeshAccuracy(
         mean_mm=float(d.mean()),
         median_mm=float(np.median(d)),
@@ -135,11 +150,18 @@ def mesh_error_metrics(
     object_mesh: o3d.geometry.TriangleMesh | None = None,
     swept_radius_m: float = 0.005,
     object_samples: int = 200_000,
+    meshes: Mapping[str, o3d.geometry.TriangleMesh] | None = None,
+    looser_tols_m: tuple[float, ...] = (),
 ) -> dict[str, float]:
     """Mesh the stripes once per named trajectory and measure each against the ground truth.
 
     Names such as ``gt``, ``before`` = online, ``after`` = final. Keys per name:
     ``mesh_err_<name>_mm`` (mean), ``mesh_err_<name>_mm_p95``, ``mesh_completeness_<name>``.
+    ``meshes``: surfaces the caller already reconstructed from these stripes placed with the
+    trajectory of the same name (same world frame as that trajectory); they are measured as
+    they are, not meshed again. ``looser_tols_m``: completeness also at these tolerances
+    (``mesh_completeness_<name>_<mm>mm``), which tells a surface that is there but offset (by
+    more than ``completeness_tol_m``, e.g. a scale error) from one that is missing.
 
     Completeness is the share of the ground-truth surface within ``completeness_tol_m`` of
     the mesh: of the whole scene, or with ``object_mesh`` (the scanned object, e.g. the
@@ -150,21 +172,30 @@ def mesh_error_metrics(
     """
     from loopmodel.mapping.stripe_map import StripeMap
 
+    given = dict(meshes or {})
     maps = {name: StripeMap.from_trajectory(traj, stripes, config) for name, traj in trajectories.items()}
     reference = swept = None
     if object_mesh is not None:
         reference = sample_surface(object_mesh, object_samples)
         if "gt" in maps:
             swept = swept_samples(reference, maps["gt"].world_points(), swept_radius_m)
+    to_gt = SurfaceDistance(gt_mesh) if len(gt_mesh.triangles) else None
     out: dict[str, float] = {}
     for name, smap in maps.items():
         smap.check_nonempty()
-        surface = smap.mesh()
-        acc = mesh_accuracy(surface, gt_mesh, completeness_tol_m, reference_points=reference)
+        surface = given[name] if name in given else smap.mesh()
+        to_surface = SurfaceDistance(surface) if len(surface.triangles) else None
+        acc = mesh_accuracy(
+            surface, gt_mesh, completeness_tol_m, reference_points=reference, to_gt=to_gt, to_mesh=to_surface
+        )
         out[f"mesh_err_{name}_mm"] = acc.mean_mm
         out[f"mesh_err_{name}_mm_p95"] = acc.p95_mm
         out[f"mesh_completeness_{name}"] = acc.completeness
-        if swept is not None and swept.shape[0]:
-            dg = distances_to_mesh(swept, surface)
+        if looser_tols_m and reference is not None and to_surface is not None:
+            dr = to_surface(reference)
+            for tol in looser_tols_m:
+                out[f"mesh_completeness_{name}_{tol * 1e3:g}mm"] = float(np.mean(dr <= tol))
+        if swept is not None and swept.shape[0] and to_surface is not None:
+            dg = to_surface(swept)
             out[f"mesh_completeness_swept_{name}"] = float(np.mean(dg <= completeness_tol_m))
     return out

@@ -170,6 +170,7 @@ def extract_laser_peaks(
     max_width_px: float | None = None,
     smooth_along_px: float = 0.0,
     local_background: bool = False,
+    across_line: bool = False,
 ) -> F64:
     """Sub-pixel laser-line positions: M x 2 pixel coordinates (u, v).
 
@@ -184,6 +185,10 @@ def extract_laser_peaks(
     ``local_background``: the centre of gravity weighs the samples above the straight line through
     the two samples just outside the window (the background under a line on a textured surface)
     instead of above the profile's median.
+    ``across_line`` (with ``cog``): each position is refined once more by the centre of gravity of
+    the profile *across the line* (along its local normal, from the neighbouring profiles' peaks),
+    averaged *along the line* (the Gaussian of ``smooth_along_px``), then moved along the line back
+    onto its image row (column): see :func:`_refine_across_line`.
     """
     if axis not in ("columns", "rows"):
         raise InputError(None, f"laser peak axis must be 'columns' or 'rows', got '{axis}'")
@@ -265,9 +270,98 @@ def extract_laser_peaks(
         pos = k + delta
     line = cols[ok].astype(np.float64)
     sub = pos[ok]
+    if across_line and method == "cog" and line.size >= 3:
+        sub = _refine_across_line(
+            g if axis == "columns" else g.T, line, sub, window_px, smooth_along_px,
+            None if local_background else background[ok],
+        )
     if axis == "columns":
         return np.column_stack([line, sub])
     return np.column_stack([sub, line])
+
+
+def _refine_across_line(
+    prof: F64,
+    line: F64,
+    sub: F64,
+    window_px: int,
+    smooth_along_px: float,
+    background: F64 | None,
+    fit_px: int = 3,
+    max_slope: float = 1.5,
+) -> F64:
+    """Peak positions refined across the line; ``prof[sub, line]`` is the (unsmoothed) image.
+
+    ``line``: the profiles' indices (image rows or columns), ``sub``: their peaks. Per-profile peaks
+    are biased where the line is oblique to the profiles: a pixel beside the line in a profile lies
+    beside a different point of the line, so brightness changing along the line (range, albedo,
+    incidence) and smoothing across profiles skew the profile. Here the local direction is the
+    least-squares slope d(sub)/d(line) of the peaks of the profiles within ``fit_px``; the image is
+    sampled (bilinear) along the normal through each peak, ``window_px + 1`` samples either side,
+    on parallel normals at whole-pixel steps along the line weighted by a Gaussian of
+    ``smooth_along_px`` (up to 3 sigma, symmetric, no farther than the piece of line reaches on
+    both sides), and the centre of gravity of that profile above its
+    background (the straight line through its two end samples, or ``background`` per profile)
+    moves the peak along the normal. The refined point is moved along the line back onto its
+    profile, so the output keeps one position per profile. Peaks at a piece's end (no neighbour on
+    one side) and where the line runs within 34 deg of the profiles (``max_slope``) keep their
+    per-profile position.
+
+    Measured against the true stripe of the realistic world's laser images (every 5th image, p95
+    of the distance): orbit 0.238 -> 0.175 px, modeler_1200 0.187 -> 0.155 px.
+    """
+    from scipy.ndimage import map_coordinates
+
+    reach = int(np.ceil(3.0 * smooth_along_px)) if smooth_along_px > 0 else 0
+    F = max(fit_px, reach)
+    li = line.astype(np.int64)
+    pos = np.full(prof.shape[1] + 2 * F, np.nan)
+    pos[li + F] = sub
+    offs = np.arange(-F, F + 1)
+    nb = pos[li[:, None] + F + offs[None, :]]
+    # neighbours of the same piece of line: not farther aside than a 63 deg slope would put them,
+    # and no gap between them and the peak
+    near = np.isfinite(nb) & (np.abs(nb - sub[:, None]) <= 2.0 * np.abs(offs)[None, :] + 1.0)
+    near[:, F] = True
+    right = np.cumprod(near[:, F + 1 :], axis=1).sum(axis=1)
+    left = np.cumprod(near[:, F - 1 :: -1], axis=1).sum(axis=1)
+    run = np.minimum(left, right)  # profiles of the piece on both sides
+    ok = near & (np.abs(offs)[None, :] <= np.minimum(run, fit_px)[:, None])
+    cnt = ok.sum(axis=1)
+    x = np.where(ok, offs[None, :], 0.0)
+    y = np.where(ok, nb - sub[:, None], 0.0)
+    mx = x.sum(axis=1) / np.maximum(cnt, 1)
+    my = y.sum(axis=1) / np.maximum(cnt, 1)
+    sxx = np.where(ok, (x - mx[:, None]) ** 2, 0.0).sum(axis=1)
+    sxy = np.where(ok, (x - mx[:, None]) * (y - my[:, None]), 0.0).sum(axis=1)
+    slope = np.where((cnt >= 3) & (sxx > 0), sxy / np.where(sxx > 0, sxx, 1.0), 0.0)
+    norm = np.sqrt(1.0 + slope**2)
+    n_s, n_l = 1.0 / norm, -slope / norm  # unit normal (sub, line); the line runs along (slope, 1)
+    d_s, d_l = slope / norm, 1.0 / norm
+    e = window_px + 1
+    t = np.arange(-e, e + 1, dtype=np.float64)
+    js = np.arange(-reach, reach + 1, dtype=np.float64)
+    # averaged along the line symmetrically, only as far as the piece reaches on both sides
+    wj = np.exp(-0.5 * js[None, :] ** 2 / max(smooth_along_px, 1e-9) ** 2) * (np.abs(js)[None, :] <= run[:, None])
+    wj /= wj.sum(axis=1, keepdims=True)
+    S = sub[:, None, None] + t[None, None, :] * n_s[:, None, None] + js[None, :, None] * d_s[:, None, None]
+    L = line[:, None, None] + t[None, None, :] * n_l[:, None, None] + js[None, :, None] * d_l[:, None, None]
+    vals = map_coordinates(prof, [S.ravel(), L.ravel()], order=1, mode="nearest").reshape(S.shape)
+    p = np.einsum("njt,nj->nt", vals, wj)
+    if background is None:
+        lo, hi = p[:, 0], p[:, -1]
+        base = lo[:, None] + (hi - lo)[:, None] * ((t[None, :] + e) / (2.0 * e))
+    else:
+        base = np.asarray(background, dtype=np.float64)[:, None]
+    w = np.maximum(p - base, 0.0)
+    w[:, [0, -1]] = 0.0  # the background samples
+    sw = w.sum(axis=1)
+    off = (w * t[None, :]).sum(axis=1) / np.where(sw > 0, sw, 1.0)
+    # not at a piece's end (no neighbour on one side) nor where the line runs nearly along the profiles
+    use = (sw > 0) & (np.abs(off) <= window_px) & (run >= 1) & (np.abs(slope) <= max_slope)
+    # the refined point sub + off n_s (on profile line + off n_l), moved along the line onto the profile
+    moved = sub + off * n_s - slope * (off * n_l)
+    return np.where(use, moved, sub)
 
 
 def triangulate_with_plane(
@@ -329,6 +423,7 @@ def stripe_from_image(
         cfg.peak_method,
         smooth_along_px=cfg.peak_smooth_along_px,
         local_background=cfg.peak_local_background,
+        across_line=cfg.peak_across_line,
     )
     return StripeProfile(int(timestamp_ns), triangulate_with_plane(uv, K, plane, dist))
 

@@ -42,29 +42,45 @@ def run_stripes(sequence: Sequence, last_ns: int | None, config: MappingConfig) 
         return []
 
 
-def aligned_to(traj: Trajectory, reference: Trajectory) -> Trajectory:
-    """``traj`` moved by the SE(3) transform that best aligns its positions to ``reference``.
+def reference_from_traj(traj: Trajectory, reference: Trajectory) -> NDArray[np.float64]:
+    """The 4x4 SE(3) transform that best aligns ``traj``'s positions to ``reference`` (identity when it cannot).
 
-    At common timestamps (exact match).
+    At common timestamps (exact match); metres.
     """
     from loopmodel.geometry.align import umeyama_alignment
     from loopmodel.geometry.se3 import make_pose
 
     _, ia, ib = np.intersect1d(traj.timestamps_ns, reference.timestamps_ns, return_indices=True)
     if ia.size < 3:
-        return traj
+        return np.eye(4)
     R, t, _s = umeyama_alignment(traj.positions_m[ia], reference.positions_m[ib])
-    return Trajectory(traj.timestamps_ns, make_pose(R, t)[None] @ traj.world_from_cam)
+    return make_pose(R, t)
+
+
+def aligned_to(traj: Trajectory, reference: Trajectory) -> Trajectory:
+    """``traj`` moved by the SE(3) transform that best aligns its positions to ``reference``.
+
+    At common timestamps (exact match).
+    """
+    T = reference_from_traj(traj, reference)
+    return Trajectory(traj.timestamps_ns, T[None] @ traj.world_from_cam)
 
 
 def _mesh_errors(
-    sequence: Sequence, stripes: list[StripeProfile], online: Trajectory, final: Trajectory, config: MappingConfig
+    sequence: Sequence,
+    stripes: list[StripeProfile],
+    online: Trajectory,
+    final: Trajectory,
+    config: MappingConfig,
+    final_surface: Any = None,
 ) -> dict[str, Any]:
     """With a ground-truth scene (``scene.ply`` attachment) and poses.
 
     The mesh error with ground-truth, online (before loop closure) and final (after) poses, both
     SE(3)-aligned to the truth by their frame positions, and the completeness of the scanned object
-    (``object.ply``) and of its swept part when the sequence has it.
+    (``object.ply``) and of its swept part when the sequence has it. ``final_surface``: the run's
+    mesh of ``stripes`` placed with ``final`` (run world frame); "after" measures that mesh instead
+    of meshing the stripes a second time.
     """
     from loopmodel.io.mesh_io import mesh_from_bytes
     from loopmodel.mapping.accuracy import mesh_error_metrics
@@ -73,14 +89,28 @@ def _mesh_errors(
     gt = sequence.ground_truth
     if "scene.ply" not in names or gt is None:
         return {}
+    from loopmodel.geometry.se3 import invert_pose
+
     gt_mesh = mesh_from_bytes(sequence.read_attachment("scene.ply"), "ply", sequence.path)
-    # the run's world is its first keyframe: express both trajectories in the truth's world by
-    # the SE(3) alignment of the frame positions before meshing
-    trajs = {"gt": gt, "before": aligned_to(online, gt), "after": aligned_to(final, gt)}
+    # the run's world is its first keyframe. The online trajectory is SE(3)-aligned to the truth
+    # by the frame positions (as ATE), and so is the final one: every mesh is then made in the
+    # run's world, where the run made its own mesh ("after"), with the truth moved there. open3d's
+    # Poisson octree follows the frame's axes (its depth comes from the bounding box), so meshes
+    # made in different frames would differ in resolution (the demo orbit: 1.85 mm cells in the
+    # run's world, 1.08 mm in the truth's) and not compare like with like.
+    run_from_gt = invert_pose(reference_from_traj(final, gt))
+
+    def in_run(traj: Trajectory) -> Trajectory:
+        return Trajectory(traj.timestamps_ns, run_from_gt[None] @ traj.world_from_cam)
+
+    trajs = {"gt": in_run(gt), "before": in_run(aligned_to(online, gt)), "after": final}
+    gt_mesh.transform(run_from_gt)
+    given: dict[str, Any] = {"after": final_surface} if final_surface is not None else {}
     obj = None
     if "object.ply" in names:
         obj = mesh_from_bytes(sequence.read_attachment("object.ply"), "ply", sequence.path)
-    return mesh_error_metrics(stripes, trajs, gt_mesh, config, object_mesh=obj)
+        obj.transform(run_from_gt)
+    return mesh_error_metrics(stripes, trajs, gt_mesh, config, object_mesh=obj, meshes=given)
 
 
 def final_mesh(
@@ -105,7 +135,7 @@ def final_mesh(
         return None, {}
     out: dict[str, Any] = {"mesh_vertices": len(surface.vertices)}
     try:
-        out.update(_mesh_errors(sequence, stripes, online, final, config))
+        out.update(_mesh_errors(sequence, stripes, online, final, config, final_surface=surface))
     except LoopmodelError as exc:
         logger.error("no mesh accuracy: %s", exc)
     return surface, out

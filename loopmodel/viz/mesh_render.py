@@ -5,7 +5,8 @@ lacks (here: "Failed to load vulkan library"). :func:`render_mesh` therefore tri
 asked and otherwise rasterises on the CPU: triangles projected with a pinhole camera, drawn far
 to near (painter's order) with OpenCV's polygon fill, flat-shaded by a head light, or coloured
 per vertex (for example by the distance to a ground-truth surface). Large meshes are decimated
-first (open3d quadric decimation) so a picture takes well under a second.
+first (open3d quadric decimation, once per mesh for all its viewpoints) so a picture takes well
+under a second.
 
 Frames: vertices in the mesh's world frame (metres); ``cam_from_world`` maps them into an
 OpenCV camera (x right, y down, z forward); ``K`` in pixels.
@@ -153,7 +154,9 @@ def before_after_png(
     views = fixed_views(panels[0][1], n_views)
     fig = Figure(figsize=(3.2 * n_views, 2.8 * len(panels) + (0.5 if colorbar_mm else 0)), dpi=100)
     FigureCanvasAgg(fig)
-    for r, (title, v, t, c) in enumerate(panels):
+    for r, (title, v_full, t_full, c_full) in enumerate(panels):
+        # decimated once per mesh, the same small mesh drawn from every viewpoint
+        v, t, c = _decimate(np.asarray(v_full, float), np.asarray(t_full, np.int64), c_full)
         for k, view in enumerate(views):
             ax = fig.add_subplot(len(panels), n_views, r * n_views + k + 1)
             img, _ = render_mesh(v, t, view, c)
