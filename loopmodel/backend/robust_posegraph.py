@@ -3,7 +3,8 @@
 A :class:`PoseGraph` holds 2-D (SE(2)) or 3-D (SE(3)) poses and relative-pose edges
 ``i_from_j`` (homogeneous 3x3 or 4x4 matrices, metres and radians) with information
 matrices in GTSAM's tangent order ((x, y, theta) for SE(2); (rotation, translation) for
-SE(3)). Odometry edges (``j == i + 1``, or flagged by the caller) are known inliers.
+SE(3)). Odometry edges (consecutive ids in either direction plus the edges that bridge gaps in
+that chain, :func:`sequential_edges`, or flagged by the caller) are known inliers.
 
 :func:`robust_optimize` runs GTSAM's Levenberg-Marquardt with a Cauchy kernel on the loop
 edges (the odometry edges are known inliers), graduated: the kernel narrows stage by stage
@@ -15,7 +16,8 @@ when the residuals are much smaller than the information says (real graphs often
 pessimistic information). :func:`optimize_lm` is the plain (non-robust) solve.
 
 :func:`read_g2o` reads ``VERTEX_SE2``/``EDGE_SE2`` and ``VERTEX_SE3:QUAT``/``EDGE_SE3:QUAT``
-files; when vertices are missing the initial poses are chained from the odometry edges.
+files; when vertices are missing the initial poses are chained from the odometry edges, and an
+information matrix that is not positive definite is repaired (:func:`positive_definite_information`).
 """
 
 from __future__ import annotations
@@ -548,9 +550,9 @@ def robust_optimize(
 #: of them being neighbours and agreeing is rare
 GROUP_WINDOW_IDS = 10
 #: a group of at least this many mutually consistent rejected loops is re-admitted; measured:
-#: cubicle (real, clean) rejects four such groups of 3, 3, 11 and 21 loops between the same
-#: places (2626-2639 with 3773-3809, 4296-4316 with 5654-5704); at 25 % false loops no group
-#: of false loops forms on intel, MIT, CSAIL, kitti_00, parking-garage or sphere2500
+#: cubicle (real, clean) rejects clusters of loops between the same places (2626-2639 with
+#: 3773-3809, 4296-4316 with 5654-5704); 26 of its 74 rejected loops come back in groups. At
+#: 0-25 % false loops no false loop comes back on any of the seven graphs (full bench)
 MIN_GROUP = 3
 
 
