@@ -25,7 +25,9 @@ of both sessions' stripes).
   saved and loaded (median of 3 loads, the keyframe database built too).
 * ``fps`` / ``fps_normal`` (``fps_ratio``): frames per second of tracking time in localization mode
   and in the normal mode on the same session B, in the same bench run. ``single_<a|b>_*``: each
-  session's own mesh (aligned by its own trajectory).
+  session's own mesh (aligned by its own trajectory). ``cpu_ms_per_frame`` / ``_normal``: the main
+  thread's CPU time per frame (``time.thread_time`` between frames, from the second frame on) in
+  the two modes, which the machine's load does not change as it changes wall time.
 * KITTI (real, ``configs/kitti.yaml``): a map of frames 0-30 of the shared clip, then localization of frames 20-50
   in it: ``kitti_relocalized_20_30`` of the 11 frames 20-30 in the map's frame,
   ``kitti_ate_rmse_m`` of the localized frames against the ground truth (no alignment: the
@@ -51,6 +53,7 @@ import numpy as np
 from loopmodel.config import Config, config_from_dict
 from loopmodel.geometry.align import umeyama_alignment
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_log
+from loopmodel.listener import RunListener
 from loopmodel.types import Trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -103,13 +106,30 @@ class _Window:
         return (f for i, f in enumerate(self._seq.frames()) if self._first <= i <= self._last)
 
 
+class _FrameCpu(RunListener):
+    """Main-thread CPU time (ms) of each frame: ``time.thread_time`` between ``on_frame`` calls."""
+
+    def __init__(self) -> None:
+        self.ms: list[float] = []
+        self._last = time.thread_time()
+
+    def on_frame(self, frame: Any, result: Any, tracks: Any) -> None:
+        now = time.thread_time()
+        self.ms.append((now - self._last) * 1e3)
+        self._last = now
+
+
 def _run(seq: Any, config: Config, out: Path, name: str, base_map: Any = None, mode: str = "localize") -> Any:
     from loopmodel.io.results import ResultsFolder
     from loopmodel.pipeline import _process_and_write
 
     cfg = config.model_copy(deep=True)
     cfg.session.mode = mode  # type: ignore[assignment]
-    return _process_and_write(ResultsFolder(out, name), seq, cfg, False, base_map=base_map)
+    cpu = _FrameCpu()
+    res = _process_and_write(ResultsFolder(out, name), seq, cfg, False, base_map=base_map, listeners=[cpu])
+    # load-independent: the main thread's CPU per frame (the first frame's includes the start-up)
+    res.metrics["bench_cpu_ms_per_frame"] = float(np.mean(cpu.ms[1:])) if len(cpu.ms) > 1 else None
+    return res
 
 
 def _gt_at(seq: Any, stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -304,6 +324,8 @@ def run(quick: bool = False) -> dict[str, Any]:
         )
         if out["fps"] and out["fps_normal"]:
             out["fps_ratio"] = out["fps"] / out["fps_normal"]
+        out["cpu_ms_per_frame"] = loc.metrics.get("bench_cpu_ms_per_frame")
+        out["cpu_ms_per_frame_normal"] = rb.metrics.get("bench_cpu_ms_per_frame")
         ext = _run(seq_b, config, tmp, "B_extend", map_a, "extend")
         gt_mesh = _gt_merged_mesh([seq_a, seq_b], config)
         out["merged_mesh_err_gt_mm"], out["merged_completeness_gt"] = _mesh_numbers(gt_mesh, np.eye(4), seq_a)
