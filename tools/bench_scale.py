@@ -3,7 +3,7 @@
 Full run: a 5,000-frame realistic scan (the ``modeler`` preset stretched to 200 s at 25 Hz: four
 sweeps, a loop closure, a second orbit that revisits both; generated once into
 ``~/.cache/loopmodel``: slow, about 0.35 CPU-s per frame, 36 min at load 6-11); ``--quick``: the 1,200-frame realistic
-modeler scan of ``sim-loop --quick`` at every 2nd frame. The pipeline runs with its own
+modeler scan of ``sim-loop --quick`` at every 3rd frame, as there. The pipeline runs with its own
 configuration (iSAM2 back end, loop stage with its worker thread, live and final meshes, session map).
 
 Keys: ``frames``, ``keyframes``; ``frame_ms_last_over_first``: median per-frame time over the last
@@ -169,7 +169,7 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None) 
     loops = [e for e in out.metrics.get("loop_events", []) if e.get("type") == "loop"]
     finish_s = t_end - stamps[-1] - write_s[0] if stamps.size else 0.0
     return {
-        "dataset": f"realistic modeler scan {path.name}" + (f", every {stride}nd frame" if stride > 1 else ""),
+        "dataset": f"realistic modeler scan {path.name}" + (f", one frame in {stride}" if stride > 1 else ""),
         "frames": len(out.frames),
         "keyframes": int(out.keyframe_ids.size),
         "loops_closed": len(loops),
@@ -239,7 +239,7 @@ def run(quick: bool = False) -> dict[str, Any]:
     import bench_sim_loop as sl
 
     if quick:
-        path, stride, window = sl._ensure(CACHE / "modeler_1200.mcap", "modeler", frames=1200), 2, 200
+        path, stride, window = sl._ensure(CACHE / "modeler_1200.mcap", "modeler", frames=1200), 3, 200
     else:
         path, stride, window = sl._ensure(CACHE / "modeler_5000.mcap", "modeler", frames=5000), 1, 500
     result = measure(path, stride, window)
