@@ -20,6 +20,8 @@ from loopmodel.io.sequence import open_sequence
 from loopmodel.loop.closer import LoopCloser
 from loopmodel.pipeline import process
 
+TINY = Path(__file__).resolve().parents[1] / "datasets" / "tiny_kitti"
+
 
 def _late_detections(monkeypatch: pytest.MonkeyPatch) -> Any:
     """The worker thread finishes no detection before the last frame; returns the progress callback that says when."""
@@ -71,3 +73,30 @@ def test_a_loop_found_after_the_last_keyframe_reaches_the_final_refinement(
     # measured (seed 4; final ATE 1.09 mm): 4e-8 m with the drain (the back end gets the loop's
     # observations in a second update); 5.3e-5 m when the drained loop went as a pose constraint alone
     assert diff_m < 1e-6, diff_m
+
+
+def test_a_hung_detection_is_abandoned_after_the_drain_timeout(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The end of the run waits for the worker at most ``loop.drain_timeout_s``, then goes on without it."""
+    from loopmodel.config import Config
+
+    release = threading.Event()
+    original = LoopCloser.process_keyframe
+
+    def hung(self: LoopCloser, kf: Any, *args: Any, **kwargs: Any) -> Any:
+        assert release.wait(timeout=120.0)
+        return original(self, kf, *args, **kwargs)
+
+    monkeypatch.setattr(LoopCloser, "process_keyframe", hung)
+    cfg = Config()
+    cfg.frontend.max_parallax_ratio = 0.005  # a keyframe every frame or two on this short clip
+    cfg.loop.detection_worker = "thread"
+    cfg.loop.drain_timeout_s = 0.5
+    try:
+        out = process(open_sequence(TINY), cfg)
+    finally:
+        release.set()  # let the worker thread end
+    n_kf = len(out.keyframe_ids)
+    assert n_kf >= 3 and not out.interrupted and len(out.final) == len(out.frames)
+    # every keyframe's detection was still queued or running at the deadline
+    assert out.metrics["loop_detections_abandoned"] == n_kf
+    assert out.metrics["loop_closure_count"] == 0

@@ -2,8 +2,8 @@
 
 Full run: a 5,000-frame realistic scan (the ``modeler`` preset stretched to 200 s at 25 Hz: four
 sweeps, a loop closure, a second orbit that revisits both; generated once into
-``~/.cache/loopmodel``: slow, about 0.35 CPU-s per frame); ``--quick``: the 1,200-frame realistic
-modeler scan of ``sim-loop --quick`` at every 2nd frame. The pipeline runs with its own
+``~/.cache/loopmodel``: slow, about 0.35 CPU-s per frame, 36 min at load 6-11); ``--quick``: the 1,200-frame realistic
+modeler scan of ``sim-loop --quick`` at every 3rd frame, as there. The pipeline runs with its own
 configuration (iSAM2 back end, loop stage with its worker thread, live and final meshes, session map).
 
 Keys: ``frames``, ``keyframes``; ``frame_ms_last_over_first``: median per-frame time over the last
@@ -13,7 +13,8 @@ the back end); ``frame_ms_by_frames``: that median per block of N frames;
 ``frame_cpu_ms_last_over_first`` and ``frame_cpu_ms_by_frames``: the same for the tracking thread's
 CPU time per frame (``time.thread_time``: what the load does not change; worker threads excluded);
 ``backend_ms_by_keyframes``: the back end's time per keyframe (every call the pipeline makes on
-it: ``add_keyframe``, loop constraints, ``estimate``), median per block of 20 keyframes, as [keyframes, ms] pairs;
+it: ``add_keyframe``, loop constraints, ``estimate``), median per block of 5 keyframes (the
+modeler path makes about 35, whatever the frame count), as [keyframes, ms] pairs;
 ``loop_stage_ms_by_keyframes``: the same for the loop stage's ``on_keyframe`` on the tracking
 thread; ``loop_opt_ms_by_keyframes``: each verified loop's optimisation (the back end's update with
 the loop constraint) with the number of keyframes at that moment; ``loop_gate_ms_by_keyframes``: its
@@ -73,7 +74,7 @@ class _Clock:
     def add(self, t0: float) -> None:
         self.ms[self.keyframes] = self.ms.get(self.keyframes, 0.0) + (time.perf_counter() - t0) * 1e3
 
-    def curve(self, block: int = 20) -> list[list[float]]:
+    def curve(self, block: int = 5) -> list[list[float]]:
         """Median ms per keyframe over blocks of ``block`` keyframes, as [keyframes, ms]."""
         if not self.ms:
             return []
@@ -168,7 +169,7 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None) 
     loops = [e for e in out.metrics.get("loop_events", []) if e.get("type") == "loop"]
     finish_s = t_end - stamps[-1] - write_s[0] if stamps.size else 0.0
     return {
-        "dataset": f"realistic modeler scan {path.name}" + (f", every {stride}nd frame" if stride > 1 else ""),
+        "dataset": f"realistic modeler scan {path.name}" + (f", one frame in {stride}" if stride > 1 else ""),
         "frames": len(out.frames),
         "keyframes": int(out.keyframe_ids.size),
         "loops_closed": len(loops),
@@ -219,7 +220,7 @@ def plot(result: dict[str, Any], png: Path) -> None:
         c = np.array(result[key], float).reshape(-1, 2)
         if c.size:
             b.plot(c[:, 0], c[:, 1], style, label=key.replace("_by_keyframes", ""))
-    b.set(xlabel="keyframes", ylabel="ms per keyframe (median of 20) / per loop", title="cost against keyframes")
+    b.set(xlabel="keyframes", ylabel="ms per keyframe (median of 5) / per loop", title="cost against keyframes")
     b.set_ylim(bottom=0)
     b.legend()
     fig.tight_layout()
@@ -238,7 +239,7 @@ def run(quick: bool = False) -> dict[str, Any]:
     import bench_sim_loop as sl
 
     if quick:
-        path, stride, window = sl._ensure(CACHE / "modeler_1200.mcap", "modeler", frames=1200), 2, 200
+        path, stride, window = sl._ensure(CACHE / "modeler_1200.mcap", "modeler", frames=1200), 3, 200
     else:
         path, stride, window = sl._ensure(CACHE / "modeler_5000.mcap", "modeler", frames=5000), 1, 500
     result = measure(path, stride, window)
