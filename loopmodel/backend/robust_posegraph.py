@@ -665,9 +665,9 @@ def _edge_chi2(graph: PoseGraph, world_from_pose: dict[int, F64]) -> F64:
 
 def _chi2_quantile(dim: int, probability: float) -> float:
     """Chi-square quantile for an edge of a ``dim``-D graph (3 or 6 degrees of freedom)."""
-    from scipy.stats import chi2  # about 1 s to import: only when a pose graph is screened
+    from scipy.special import chdtri  # the upper-tail inverse; scipy.stats costs ~1 s to import
 
-    return float(chi2.ppf(probability, 3 if dim == 2 else 6))
+    return float(chdtri(3 if dim == 2 else 6, 1.0 - probability))
 
 
 def _chi2_median(dim: int) -> float:
