@@ -219,7 +219,7 @@ class MappingConfig(_Section):
     """Laser-stripe integration and open3d meshing (lengths in metres, world frame)."""
 
     method: Literal["poisson", "ball_pivoting"] = Field(default="poisson", description="surface method")
-    write_mesh: bool = Field(True, description="the pipeline writes mesh.ply (and mesh errors when truth exists)")
+    write_mesh: bool = Field(True, description="the pipeline writes mesh.ply (its errors: the evaluation after a run)")
     voxel_m: float = Field(default=0.0015, gt=0, description="voxel down-sampling size before meshing")
     normal_radius_m: float = Field(default=0.006, gt=0, description="neighbourhood radius for normals")
     normal_max_nn: int = Field(default=20, ge=3, description="max neighbours for normals")
@@ -470,7 +470,7 @@ class SimulationConfig(_Section):
 
 
 class EvalConfig(_Section):
-    """Trajectory evaluation (``loopmodel eval``)."""
+    """Evaluation against ground truth (``loopmodel eval``, and after ``loopmodel run``)."""
 
     align: AlignMode = Field(default="se3", description="alignment to ground truth")
     first_n: int | None = Field(default=None, ge=3, description="align on the first N poses only")
@@ -483,6 +483,13 @@ class EvalConfig(_Section):
         default_factory=lambda: [100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0]
     )
     plots: bool = True
+    # onepass (issue 32): the evaluation after a run measures the run's final mesh; the two reference
+    # meshes (stripes placed with the ground-truth and with the online poses) cost two more Poisson
+    # reconstructions, so only when asked
+    mesh_references: bool = Field(
+        default=False,
+        description="also mesh the stripes with the ground-truth and online poses (mesh_err_gt_mm, mesh_err_before_mm)",
+    )
 
 
 class SurfConfig(_Section):

@@ -45,14 +45,16 @@ from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder, write_results
 from loopmodel.listener import RunListener
 from loopmodel.mapping.anchored import AnchoredTrajectory
-from loopmodel.mapping.final import final_mesh, live_stripes, run_stripes
+from loopmodel.mapping.extraction import StripeExtractor
+from loopmodel.mapping.final import final_mesh
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
 from loopmodel.stages import LoopConstraint, LoopStage, MapState, NullLoopStage
-from loopmodel.types import StereoCalibration, Trajectory
+from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripeProfile, Trajectory
 
 if TYPE_CHECKING:
+    from loopmodel.eval.of_run import Evaluation
     from loopmodel.loop.localize import MapLocalizationStage
     from loopmodel.loop.session_map import ResumePoint, SessionMap
 
@@ -62,11 +64,23 @@ logger = logging.getLogger(__name__)
 ProgressFn = Callable[[int, int, float], None]
 # progress(frames_done, frames_total, frames_per_second, keyframes)
 PipelineProgressFn = Callable[[int, int, float, int], None]
+# finishing(step, seconds): a finishing step starts (seconds None) or is done (its wall time);
+# steps in order: FINISH_STEPS
+FinishFn = Callable[[str, float | None], None]
+
+#: The steps after the last frame, in order (``metrics.json`` ``finish_s`` keys): the loop and mesh
+#: workers stopped (pending loop detections drained), the back end's final refinement, the final
+#: mesh, the session map (and a localization's or an extension's results), the evaluation against
+#: ground truth (by the callers of :func:`process`, when asked), the results files (not in
+#: ``metrics.json``, which is one of them).
+FINISH_STEPS = ("workers", "final_refinement", "mesh", "map", "evaluation", "write")
 
 #: The result of :func:`run_pipeline` (the name of earlier versions).
 RunOutput = RunResult
 
 __all__ = [
+    "FINISH_STEPS",
+    "FinishFn",
     "RunOutput",
     "RunResult",
     "StopFlag",
@@ -77,6 +91,7 @@ __all__ = [
     "run_frontend",
     "run_pipeline",
     "stop_on_signals",
+    "timed_step",
 ]
 
 F64 = np.ndarray
@@ -88,39 +103,6 @@ def _online_trajectory(frames: list[FrameResult]) -> Trajectory:
     if not ok:
         return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
     return Trajectory(np.array([f.timestamp_ns for f in ok]), np.stack([f.world_from_cam for f in ok]))
-
-
-def _ground_truth_errors(est: Trajectory, gt: Trajectory | None) -> dict[str, float]:
-    """ATE RMSE after SE(3) alignment and drift, computed by :mod:`loopmodel.eval`.
-
-    Drift: end-point error with the first poses aligned, percent of the ground-truth path.
-    """
-    if gt is None or len(est) < 3:
-        return {}
-    from loopmodel.eval.trajectory_metrics import EvalInputError, evaluate_pair
-
-    try:
-        ev = evaluate_pair(
-            gt.timestamps_ns,
-            gt.world_from_cam,
-            est.timestamps_ns,
-            est.world_from_cam,
-            max_dt_ns=1_000_000,
-        )
-    except EvalInputError as exc:
-        logger.warning("no ground-truth evaluation: %s", exc)
-        return {}
-    m = ev.metrics
-    end = m["end_point"]
-    ate = m["ate_m"]
-    assert isinstance(end, dict) and isinstance(ate, dict)
-    return {
-        "ate_rmse_m": float(ate["rmse"]),
-        "final_error_m": float(end["error_origin_aligned_m"]),
-        "path_length_m": float(m["path_length_m"]),  # type: ignore[arg-type]
-        "drift_pct": float(end["error_origin_aligned_pct"]),
-        "gt_frames": int(m["matched"]),  # type: ignore[call-overload]
-    }
 
 
 def _quantiles(values: list[float], prefix: str) -> dict[str, float | None]:
@@ -220,21 +202,38 @@ def _prepend_resumed(result: RunResult, resume: ResumePoint) -> None:
     result.keyframe_ids = np.concatenate([old_ids, result.keyframe_ids + shift])
 
 
+@contextlib.contextmanager
+def timed_step(name: str, seconds: dict[str, float], finishing: FinishFn | None) -> Iterator[None]:
+    """Time one finishing step into ``seconds[name]`` and tell ``finishing`` when it starts and ends."""
+    if finishing is not None:
+        finishing(name, None)
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        seconds[name] = time.perf_counter() - t0
+        if finishing is not None:
+            finishing(name, seconds[name])
+
+
 class _Run:
     """The stages of one run and what it has produced so far.
 
     :meth:`step` handles one frame whole, :meth:`finish` turns the state into a :class:`RunResult`.
+    It never sees the sequence: frames and their laser profiles are handed to it as values.
     """
 
     def __init__(
         self,
-        sequence: Sequence,
+        calibration: StereoCalibration,
         config: Config,
         listeners: list[RunListener],
         base_map: SessionMap | None = None,
         resume: ResumePoint | None = None,
+        source: str = "",
+        finishing: FinishFn | None = None,
     ) -> None:
-        self.sequence = sequence
+        self.source = source  # the sequence's name, for metrics.json and the session map
         self.resume = resume  # continue an interrupted run from its last keyframe
         # a session in a saved map (issue 20): localize in it, or extend it (merged at the end)
         self.base_map = base_map
@@ -242,7 +241,8 @@ class _Run:
         config = localize_config(config) if self.mode == "localize" else config
         self.config = config
         self.listeners = listeners
-        self.frontend = FrontEnd(sequence.calibration, config.frontend)
+        self.finishing = finishing
+        self.frontend = FrontEnd(calibration, config.frontend)
         self.backend: Backend = create_backend(config.backend, self.frontend.calibration, config.givens)
         self.localizer = _localizer(config, self.frontend.calibration, base_map) if self.mode == "localize" else None
         self.loop: LoopStage = self.localizer or _loop_stage(config, self.frontend.calibration)
@@ -250,15 +250,20 @@ class _Run:
         # placed with them (the stripe map follows every change of the anchored poses)
         self.anchored = AnchoredTrajectory()
         self.stripe_map = StripeMap(config.mapping, self.anchored)
-        every_kf = config.mapping.live_mesh_every_kf
-        stripes = live_stripes(sequence, config.mapping) if every_kf > 0 else iter(())
-        self.live = LiveMapping(self.stripe_map, stripes, every_kf)
+        self.live = LiveMapping(self.stripe_map, config.mapping.live_mesh_every_kf)
+        # the laser profiles of the frames read so far (meshed at the end), and those the live map
+        # has not had yet (it takes them at the next tracked frame)
+        self.extractor = StripeExtractor(calibration, config.mapping)
+        self.stripes: list[StripeProfile] = []
+        self._unfed: list[StripeProfile] = []
         self.frames: list[FrameResult] = []
         self.keyframes: dict[int, int] = {}  # keyframe id -> timestamp_ns, in order
         # keyframe -> (previous keyframe, the tracker's pose of it there): drift per interval
         self.tracked_links: dict[int, tuple[int, F64]] = {}
         self.backend_ms: list[float] = []
         self.frame_ms: list[float] = []
+        self.stripe_ms: list[float] = []
+        self.finish_s: dict[str, float] = {}
         # for the session map (issue 20): keyframes with their images, the loop constraints
         self.map_keyframes: dict[int, Keyframe] = {}
         self.loop_constraints: list[LoopConstraint] = []
@@ -267,11 +272,21 @@ class _Run:
         self.t_start = time.perf_counter()
 
     # ------------------------------------------------------------------ per frame
-    def step(self, frame: Any) -> FrameResult:
+    def laser(self, scan: ScanFrame) -> None:
+        """Take a frame's laser data: its profiles join the run's stripes (extracted from laser-line images)."""
+        if not scan.stripes and not scan.laser_images:
+            return
+        t0 = time.perf_counter()
+        profiles = self.extractor.profiles(scan)
+        self.stripes.extend(profiles)
+        self._unfed.extend(profiles)
+        self.stripe_ms.append((time.perf_counter() - t0) * 1e3)
+
+    def step(self, frame: StereoFrame) -> FrameResult:
         """Track one frame.
 
         A keyframe goes through loop closing and the back end; the frame joins the anchored
-        trajectory and the live map.
+        trajectory, and the stripes taken up to it the live map.
         """
         t0 = time.perf_counter()
         res = self.frontend.process(frame)
@@ -288,7 +303,8 @@ class _Run:
         self.frames.append(res)
         if res.ok:
             self.anchored.add_frame(res.timestamp_ns, kf_id=res.keyframe_id, kf_from_cam=res.kf_from_cam)
-            self.live.feed(res.timestamp_ns)
+            self.live.feed(self._unfed)
+            self._unfed = []
         if kf is not None:
             updates = len(self.live.update_ms)
             self.live.on_keyframe()
@@ -306,7 +322,7 @@ class _Run:
     def _state(self) -> MapState:
         return MapState(self.frontend.world_from_kf, self._last_ms, self._last_ids)
 
-    def skips(self, frame: Any) -> bool:
+    def skips(self, frame: StereoFrame) -> bool:
         """Whether a resumed run skips this frame (before the interrupted run's last keyframe)."""
         return self.resume is not None and int(frame.timestamp_ns) < self.resume.timestamp_ns
 
@@ -412,15 +428,43 @@ class _Run:
         return f"the final mesh of {n} stripe points ({when}), then the results files"
 
     def finish(self, interrupted: bool) -> RunResult:
-        """Stop the workers, refine, place the stripes, mesh, gather the metrics."""
-        wall = time.perf_counter() - self.t_start
+        """The steps after the last frame (:data:`FINISH_STEPS`), each timed and told to ``finishing``.
+
+        Stop the workers, refine, mesh, gather the metrics, make the session map.
+        """
+        frames_s = time.perf_counter() - self.t_start
+        with timed_step("workers", self.finish_s, self.finishing):
+            self._stop_workers(interrupted)
+        with timed_step("final_refinement", self.finish_s, self.finishing):
+            result = self._estimate(interrupted)
+        with timed_step("mesh", self.finish_s, self.finishing):
+            result.stripes = self.stripes
+            result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, self.config.mapping)
+            result.live_mesh = self.live.mesh()
+        result.metrics = self._metrics(result, frames_s, mesh_metrics)
+        with timed_step("map", self.finish_s, self.finishing):
+            result.session_map = self._session_map(result)
+            if self.localizer is not None:
+                self._localization(result, self.localizer)
+            if self.mode == "extend":
+                self._extend(result)
+        result.metrics["finish_s"] = dict(self.finish_s)
+        result.metrics["wall_s"] = frames_s + sum(self.finish_s.values())
+        for listener in self.listeners:
+            listener.on_finish(result)
+        return result
+
+    def _stop_workers(self, interrupted: bool) -> None:
+        """Stop the live mesher and the loop worker; loops found after the last keyframe reach the back end."""
         self.live.close(wait=not interrupted)
         self._correct(self.loop.close(self._state()))
         # perf (issue 26): loops whose (background) detection finished after the last keyframe
         if self._add_constraints(self.loop.final_constraints()):
             moved = self.backend.estimate(landmarks=False)
             self._correct({k: moved.world_from_kf[k] for k in moved.changed_keyframes})
-        t_final = time.perf_counter()
+
+    def _estimate(self, interrupted: bool) -> RunResult:
+        """The back end's final estimate (refined unless interrupted): trajectories, keyframes, landmarks."""
         estimate = self._final_estimate(interrupted)
         result = RunResult(
             config=self.config,
@@ -435,21 +479,6 @@ class _Run:
             result.landmark_ids, result.landmarks_in_world = estimate.landmark_ids, estimate.landmarks_in_world
         if self.resume is not None:
             _prepend_resumed(result, self.resume)
-        final_refine_s = time.perf_counter() - t_final
-        last_ns = self.frames[-1].timestamp_ns if self.frames else None
-        result.stripes = run_stripes(self.sequence, last_ns, self.config.mapping)
-        result.mesh, mesh_metrics = final_mesh(
-            self.sequence, result.stripes, result.online, result.final, self.config.mapping
-        )
-        result.live_mesh = self.live.mesh()
-        result.metrics = self._metrics(result, wall, final_refine_s, mesh_metrics)
-        result.session_map = self._session_map(result)
-        if self.localizer is not None:
-            self._localization(result, self.localizer)
-        if self.mode == "extend":
-            self._extend(result)
-        for listener in self.listeners:
-            listener.on_finish(result)
         return result
 
     def _session_map(self, result: RunResult) -> SessionMap | None:
@@ -480,7 +509,7 @@ class _Run:
             [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints],
             anchors,
             dump_config(self.config, pipeline_sections()),
-            {"sequence": str(self.sequence.path)},
+            {"sequence": self.source},
         )
         try:
             smap = build_session_map(inputs, self.config.loop)
@@ -506,8 +535,6 @@ class _Run:
         m["localized_frames"] = len(in_map)
         if not localizer.events:
             logger.warning("never relocalized in the map: the poses are in this session's own frame")
-        gt = self.sequence.ground_truth
-        m.update({k + "_localized": v for k, v in _ground_truth_errors(result.localized, gt).items()})
 
     def _extend(self, result: RunResult) -> None:
         """The session's map merged into the base map; the mesh of both sessions' stripes.
@@ -548,30 +575,27 @@ class _Run:
             }
         )
 
-    def _metrics(
-        self, result: RunResult, wall_s: float, final_refine_s: float, mesh_metrics: dict[str, Any]
-    ) -> dict[str, Any]:
-        """``metrics.json``.
+    def _metrics(self, result: RunResult, frames_s: float, mesh_metrics: dict[str, Any]) -> dict[str, Any]:
+        """``metrics.json``: each stage's own figures and the run's timings (no grading: :mod:`loopmodel.eval`).
 
-        Each stage's own figures, the run's timings, the errors against the ground truth of the
-        online and the final trajectories.
+        ``frames_s``: wall time of the frame loop (from the run's start to the last frame).
         """
         busy_s = sum(self.frame_ms) / 1e3
-        m: dict[str, Any] = {"sequence": str(self.sequence.path), "interrupted": result.interrupted}
+        m: dict[str, Any] = {"sequence": self.source, "interrupted": result.interrupted}
         m.update(mesh_metrics)
-        m.update(frontend_metrics(self.frames, wall_s))
+        m.update(frontend_metrics(self.frames, frames_s))
         m["fps"] = len(self.frames) / busy_s if busy_s > 0 else None
+        m["frames_s"] = frames_s
         m["backend"] = self.config.backend.kind
-        m["final_refine_s"] = final_refine_s
+        m["final_refine_s"] = self.finish_s.get("final_refinement", 0.0)
         m.update(self.loop.metrics())
         m.update(self.live.metrics())
         m.update(self.backend.metrics())
         m["landmarks"] = int(result.landmark_ids.size)
+        m["stripe_profiles"] = len(self.stripes)
         m.update(_quantiles(self.frame_ms, "frame_total_ms"))
+        m.update(_quantiles(self.stripe_ms, "stripe_extraction_ms"))
         m.update(_quantiles(self.backend_ms, "backend_ms"))
-        gt = self.sequence.ground_truth
-        for suffix, traj in (("_online", result.online), ("", result.final)):
-            m.update({k + suffix: v for k, v in _ground_truth_errors(traj, gt).items()})
         return m
 
 
@@ -585,21 +609,25 @@ def process(
     stop: StopFlag | None = None,
     base_map: SessionMap | None = None,
     resume: ResumePoint | None = None,
+    finishing: FinishFn | None = None,
 ) -> RunResult:
-    """Reader -> front end -> loop closing -> back end -> mapping, writing nothing.
+    """Reader -> front end -> loop closing -> back end -> mapping, writing nothing and grading nothing.
 
-    Runs until the sequence ends, ``max_frames`` frames are done, ``stop`` is set (checked
+    Reads the sequence once (:meth:`~loopmodel.io.base.Sequence.scan`: each frame with its laser
+    data). Runs until the sequence ends, ``max_frames`` frames are done, ``stop`` is set (checked
     between frames) or a ``KeyboardInterrupt`` arrives (the last two: ``interrupted``). An
     error while processing a frame ends the run too: the result of the frames before it is
     returned with the error in ``error`` (and ``metrics["stopped_by"]``), for the caller to
     raise once it has kept what it wants. With ``base_map`` the session localizes in that map or
     extends it (``config.session.mode``); with ``resume`` it continues an interrupted run from its
-    last keyframe (frames before it are skipped and keep the interrupted run's poses)."""
-    run = _Run(sequence, config, listeners or [], base_map, resume)
+    last keyframe (frames before it are skipped and keep the interrupted run's poses).
+    ``finishing`` is told each step after the last frame (:data:`FINISH_STEPS`) as it starts and
+    ends. The errors against ground truth are :func:`loopmodel.eval.of_run.evaluate`'s."""
+    run = _Run(sequence.calibration, config, listeners or [], base_map, resume, str(sequence.path), finishing)
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     stop = stop if stop is not None else StopFlag()
     logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
-    interrupted, error = _frame_loop(run, total, stop, progress)
+    interrupted, error = _frame_loop(run, sequence.scan(), total, stop, progress)
     if interrupted:
         logger.warning("interrupted after %d frames", len(run.frames))
     if error is not None:
@@ -617,22 +645,23 @@ def process(
 
 
 def _frame_loop(
-    run: _Run, total: int, stop: StopFlag, progress: PipelineProgressFn | None
+    run: _Run, scans: Iterator[ScanFrame], total: int, stop: StopFlag, progress: PipelineProgressFn | None
 ) -> tuple[bool, Exception | None]:
-    """Feed the frames to ``run`` one whole step at a time.
+    """Feed the frames (with their laser data) to ``run`` one whole step at a time.
 
     Returns whether it was stopped early (stop flag, ``KeyboardInterrupt``) and the error that ended
     it, if any.
     """
     try:
-        for i, frame in enumerate(run.sequence.frames()):
+        for i, scan in enumerate(scans):
             if i >= total:
                 break
             if stop.is_set():
                 return True, None
-            if run.skips(frame):
+            run.laser(scan)
+            if run.skips(scan.frame):
                 continue
-            run.step(frame)
+            run.step(scan.frame)
             if progress is not None:
                 el = time.perf_counter() - run.t_start
                 progress(i + 1, total, (i + 1) / el if el > 0 else 0.0, len(run.keyframes))
@@ -640,23 +669,54 @@ def _frame_loop(
         return True, None
     except Exception as exc:  # the frames before it still give a result
         return False, exc
+    finally:
+        close = getattr(scans, "close", None)
+        if close is not None:
+            close()
     return False, None
 
 
-def _process_and_write(
-    folder: ResultsFolder, sequence: Sequence, config: Config, handle_signals: bool, **kwargs: Any
-) -> RunResult:
-    """Run :func:`process` under a log capture, then write the results into ``folder``.
+def evaluated(result: RunResult, sequence: Sequence, finishing: FinishFn | None = None) -> Evaluation | None:
+    """:func:`loopmodel.eval.of_run.evaluate` of ``result`` merged into its metrics (``finish_s``, ``wall_s``).
 
-    :func:`process` runs under a log capture (and the signal handlers when asked), then
-    :func:`~loopmodel.io.results.write_results` writes into ``folder``.
+    None (and no step) when the sequence has no ground truth.
+    """
+    if sequence.ground_truth is None:
+        return None
+    from loopmodel.eval.of_run import evaluate
+
+    seconds = result.metrics.setdefault("finish_s", {})
+    with timed_step("evaluation", seconds, finishing):
+        evaluation = evaluate(result, sequence)
+    result.metrics.update(evaluation.metrics)
+    result.metrics["wall_s"] = result.metrics.get("wall_s", 0.0) + seconds["evaluation"]
+    return evaluation
+
+
+def _process_and_write(
+    folder: ResultsFolder,
+    sequence: Sequence,
+    config: Config,
+    handle_signals: bool,
+    evaluate: bool = True,
+    finishing: FinishFn | None = None,
+    **kwargs: Any,
+) -> RunResult:
+    """:func:`process` under a log capture (and the signal handlers when asked), evaluate, write ``folder``.
+
+    The evaluation (when ``evaluate`` and the sequence has ground truth) runs after
+    :func:`process`, before :func:`~loopmodel.io.results.write_results` writes the results.
     """
     stop = StopFlag()
     signals = stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop)
     with LogCapture() as log, signals:
-        result = process(sequence, config, stop=stop, **kwargs)
-        result.log = log.text()
-        result.folder = write_results(folder, result)
+        result = process(sequence, config, stop=stop, finishing=finishing, **kwargs)
+        if evaluate:
+            evaluated(result, sequence, finishing)
+        write_s: dict[str, float] = {}
+        with timed_step("write", write_s, finishing):
+            result.log = log.text()
+            result.folder = write_results(folder, result)
     return result
 
 
@@ -671,8 +731,10 @@ def run_pipeline(
     handle_signals: bool = True,
     base_map: SessionMap | None = None,
     resume: ResumePoint | None = None,
+    evaluate: bool = True,
+    finishing: FinishFn | None = None,
 ) -> RunResult:
-    """:func:`process` the sequence and write the results folder ``<out_dir>/<name>/``.
+    """:func:`process` the sequence, evaluate it, and write the results folder ``<out_dir>/<name>/``.
 
     By :func:`loopmodel.io.results.write_results`; ``out_dir`` defaults to ``output.out_dir``.
 
@@ -681,18 +743,20 @@ def run_pipeline(
     monocular observations, plus a relative-pose loop constraint), then to the back end
     (``config.backend.kind``); keyframes it moves are handed back to the front end and to
     the anchored trajectory, in which every frame is stored relative to its keyframe.
-    ``metrics.json`` lists each closure under ``loop_events``. With ``handle_signals``
+    ``metrics.json`` lists each closure under ``loop_events``; with ``evaluate`` and ground truth
+    it also holds the errors of :func:`loopmodel.eval.of_run.evaluate`. With ``handle_signals``
     Ctrl-C or SIGTERM stops the run after the current frame; everything up to it is
     written, then ``KeyboardInterrupt`` is raised (an error ending the run early is raised
     after the write as well). With ``base_map`` (a loaded
     :class:`~loopmodel.loop.session_map.SessionMap`) the session localizes in it or extends it
     (``config.session.mode``); with ``resume`` (:func:`~loopmodel.loop.session_map.read_resume_point`)
-    it continues an interrupted run from its last keyframe.
+    it continues an interrupted run from its last keyframe. ``finishing`` is told each step after
+    the last frame (:data:`FINISH_STEPS`).
     """
     folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
     kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
     kwargs.update(base_map=base_map, resume=resume)
-    result = _process_and_write(folder, sequence, config, handle_signals, **kwargs)
+    result = _process_and_write(folder, sequence, config, handle_signals, evaluate, finishing, **kwargs)
     if result.error is not None:
         raise result.error
     if result.interrupted:
@@ -710,6 +774,8 @@ def run(
     progress: PipelineProgressFn | None = None,
     handle_signals: bool = False,
     listeners: list[RunListener] | None = None,
+    evaluate: bool = True,
+    finishing: FinishFn | None = None,
 ) -> RunResult:
     """Run the whole pipeline over a sequence and return what it produced.
 
@@ -720,7 +786,9 @@ def run(
     ``handle_signals`` (Ctrl-C and SIGTERM then stop it after the current frame); an
     interrupted run returns its result with ``interrupted`` True; an error is raised (after
     the write when ``out_dir`` is given). ``listeners`` are told every event
-    (:class:`~loopmodel.listener.RunListener`: visualisation, recording)."""
+    (:class:`~loopmodel.listener.RunListener`: visualisation, recording). With ``evaluate`` (and
+    ground truth in the sequence) the metrics hold the errors of :func:`loopmodel.evaluate`, run
+    after the pipeline."""
     from loopmodel.config import config_from_dict, load_config
     from loopmodel.io.sequence import open_sequence
 
@@ -731,11 +799,14 @@ def run(
     seq = source if isinstance(source, Sequence) else open_sequence(source, cfg.sequence)
     kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
     if out_dir is not None:
-        result = _process_and_write(ResultsFolder(out_dir, name), seq, cfg, handle_signals, **kwargs)
+        folder = ResultsFolder(out_dir, name)
+        result = _process_and_write(folder, seq, cfg, handle_signals, evaluate, finishing, **kwargs)
     else:
         stop = StopFlag()
         with stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop):
-            result = process(seq, cfg, stop=stop, **kwargs)
+            result = process(seq, cfg, stop=stop, finishing=finishing, **kwargs)
+            if evaluate:
+                evaluated(result, seq, finishing)
     if result.error is not None:
         raise result.error
     return result
@@ -749,6 +820,8 @@ def run_frontend(
     progress: ProgressFn | None = None,
     max_frames: int | None = None,
     listeners: list[RunListener] | None = None,
+    evaluate: bool = True,
+    finishing: FinishFn | None = None,
 ) -> RunResult:
     """The front end alone over ``sequence``.
 
@@ -764,6 +837,8 @@ def run_frontend(
         None if progress is None else (lambda i, n, fps, _kf: progress(i, n, fps)),
         max_frames,
         listeners,
+        evaluate=evaluate,
+        finishing=finishing,
     )
 
 

@@ -119,6 +119,19 @@ class StripeProfile:
 
 
 @dataclass
+class ScanFrame:
+    """A stereo frame with the laser data taken up to its time (after the previous frame's).
+
+    ``stripes``: laser-stripe messages (left-camera frame, metres); ``laser_images``: laser-line
+    images of the left camera, ``(timestamp_ns, image)``. A sequence gives one kind or none.
+    """
+
+    frame: StereoFrame
+    stripes: list[StripeProfile] = field(default_factory=list)
+    laser_images: list[tuple[int, NDArray[np.uint8]]] = field(default_factory=list)
+
+
+@dataclass
 class StripeAnchors:
     """Stripe profiles anchored to keyframes: their keyframe ids (S,) and ``kf_from_cam`` (S, 4, 4, metres).
 

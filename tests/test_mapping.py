@@ -557,9 +557,9 @@ def test_stripes_extracted_from_a_sequences_laser_images(tmp_path: Path) -> None
     simulated surface.
     """
     from loopmodel.config import config_from_dict
+    from loopmodel.io.laser import sequence_stripe_count, sequence_stripes
     from loopmodel.io.mesh_io import mesh_from_bytes
     from loopmodel.io.sequence import open_sequence
-    from loopmodel.mapping.extraction import sequence_stripe_count, sequence_stripes
     from loopmodel.sim import generate as gen
 
     cfg = config_from_dict(

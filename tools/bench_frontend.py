@@ -23,9 +23,10 @@ KITTI = SHARED_DATA / "kitti_clip"
 
 def run(quick: bool = False) -> dict[str, Any]:
     from loopmodel.config import load_config
+    from loopmodel.eval.of_run import trajectory_errors
     from loopmodel.frontend import FrontEnd
     from loopmodel.io.sequence import open_sequence
-    from loopmodel.pipeline import _ground_truth_errors, _online_trajectory, frontend_metrics
+    from loopmodel.pipeline import _online_trajectory, frontend_metrics
 
     seq = open_sequence(KITTI)
     cfg = load_config(ROOT / "configs" / "kitti.yaml").frontend
@@ -60,7 +61,7 @@ def run(quick: bool = False) -> dict[str, Any]:
         best_track = np.minimum(best_track, [r.track_ms for r in rr])
         best_kf = np.minimum(best_kf, [r.keyframe_ms for r in rr])
     m = frontend_metrics(results, wall)
-    err = _ground_truth_errors(_online_trajectory(results), seq.ground_truth)
+    err = trajectory_errors(_online_trajectory(results), seq.ground_truth)
     ba = [
         r.keyframe.ba_info["ba_ms"]
         for r in results

@@ -207,7 +207,7 @@ def _mesh_numbers(mesh: Any, truth_from_run: np.ndarray, seq: Any) -> tuple[floa
 
 
 def _gt_merged_mesh(seqs: list[Any], config: Config) -> Any:
-    from loopmodel.mapping.extraction import sequence_stripes
+    from loopmodel.io.laser import sequence_stripes
     from loopmodel.mapping.final import posed_stripes_mesh
     from loopmodel.mapping.stripe_map import StripeMap
 

@@ -265,7 +265,7 @@ def _mesh_errors(out: dict[str, Any], scene_ply: Path, config: Config) -> dict[s
         A = np.eye(4)
         A[:3, :3], A[:3, 3] = R, t
         trajs[name] = Trajectory(out["stamps_ns"], np.einsum("ij,njk->nik", A, est))
-    from loopmodel.mapping.extraction import sequence_stripes
+    from loopmodel.io.laser import sequence_stripes
 
     seq = out["sequence"]
     stripes = list(sequence_stripes(seq, config.mapping))  # extracted from /laser/image

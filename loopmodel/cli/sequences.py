@@ -147,11 +147,16 @@ def run(
         Path | None, typer.Option("--resume", help="Continue the interrupted run RESULTS_DIR from its last keyframe")
     ] = None,
     overwrite: OverwriteOption = False,
+    no_eval: Annotated[
+        bool, typer.Option("--no-eval", help="Skip the evaluation against the sequence's ground truth")
+    ] = False,
 ) -> None:
     """Process a sequence (front end, back end).
 
     Writes config, trajectories, keyframes, map, metrics and log into <out>/<name>/. Ctrl-C or
-    SIGTERM stops it after writing what it has. With --map the run localizes in a saved map
+    SIGTERM stops it after writing what it has. After the frames, one line per finishing step with
+    its time; when the sequence has ground truth the run is evaluated against it (errors in
+    metrics.json) unless --no-eval. With --map the run localizes in a saved map
     (trajectory_in_map.tum, per-frame status in metrics.json) or extends it (map/ is the merged map,
     mesh.ply the mesh of both sessions).
     """
@@ -184,7 +189,7 @@ def run(
         console.print(f"{seq.format_name}: {seq.choice}")  # type: ignore[attr-defined]
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
     if frontend_only:
-        with progress_bar(_Text("{task.fields[fps]:.1f} fps")) as bar:
+        with progress_bar(_Text("{task.fields[fps]:.1f} fps")) as bar, FinishLines(bar) as finishing:
             task = bar.add_task("front end", total=total, fps=0.0)
             result = run_frontend(
                 seq,
@@ -193,6 +198,8 @@ def run(
                 run_name,
                 max_frames=max_frames,
                 progress=lambda i, n, fps: bar.update(task, completed=i, fps=fps),
+                evaluate=not no_eval,
+                finishing=finishing,
             )
         m = result.metrics
         console.print(
@@ -202,7 +209,8 @@ def run(
         )
         return
     folder = Path(out if out is not None else cfg.output.out_dir) / run_name
-    with progress_bar(_Text("{task.fields[fps]:.1f} fps"), _Text("{task.fields[kf]} keyframes")) as bar:
+    frame_columns = (_Text("{task.fields[fps]:.1f} fps"), _Text("{task.fields[kf]} keyframes"))
+    with progress_bar(*frame_columns) as bar, FinishLines(bar) as finishing:
         task = bar.add_task("run", total=total, fps=0.0, kf=0)
         try:
             result = run_pipeline(
@@ -215,8 +223,11 @@ def run(
                 listeners=rerun_listeners(seq.calibration, rerun, rerun_spawn, rerun_connect),
                 base_map=session_map,
                 resume=resume_point,
+                evaluate=not no_eval,
+                finishing=finishing,
             )
         except KeyboardInterrupt:
+            finishing.close()
             err_console.print(f"results up to the last processed frame are in {folder}")
             raise
     m = result.metrics
@@ -240,10 +251,76 @@ def run(
         rows.append(("ATE online / final", f"{_length(m['ate_rmse_m_online'])} / {_length(m['ate_rmse_m'])}"))
         rows.append(("drift final [%]", m["drift_pct"]))
     rows += _session_rows(m)
+    rows += _mesh_and_time_rows(m, result.folder)
     for k, v in rows:
         table.add_row(k, _fmt(v))
     console.print(table)
     console.print(f"results in {result.folder}")
+
+
+#: What the finishing steps (:data:`loopmodel.pipeline.FINISH_STEPS`) are called on the terminal.
+FINISH_LABELS = {
+    "workers": "loop and live-mesh workers",
+    "final_refinement": "final refinement",
+    "mesh": "final mesh",
+    "map": "session map",
+    "evaluation": "evaluation against ground truth",
+    "write": "results files",
+}
+
+
+class FinishLines:
+    """The finishing steps after the frames' bar: one line each, a spinner and its time while it runs, then its time.
+
+    A :data:`loopmodel.pipeline.FinishFn`; the frames' bar stops at the first step.
+    """
+
+    def __init__(self, frames_bar: Any) -> None:
+        self._frames_bar = frames_bar
+        self._steps: Any = None
+        self._tasks: dict[str, Any] = {}
+
+    def __call__(self, step: str, seconds: float | None) -> None:
+        from rich.progress import Progress, SpinnerColumn, TextColumn
+
+        if self._steps is None:
+            self._frames_bar.stop()
+            self._steps = Progress(
+                SpinnerColumn(finished_text="[green]done"),
+                TextColumn("{task.description}"),
+                TextColumn("{task.fields[time]}"),
+                console=err_console,
+            )
+            self._steps.start()
+        label = FINISH_LABELS.get(step, step)
+        if seconds is None:
+            self._tasks[step] = self._steps.add_task(label, total=1, time="")
+        elif step in self._tasks:
+            self._steps.update(self._tasks[step], completed=1, time=f"{seconds:.1f} s")
+
+    def close(self) -> None:
+        """Leave the lines as they are."""
+        if self._steps is not None:
+            self._steps.stop()
+
+    def __enter__(self) -> FinishLines:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _mesh_and_time_rows(m: dict[str, Any], folder: Path | None) -> list[tuple[str, Any]]:
+    """Rows of the final mesh (path, vertices, error when evaluated) and of the time after the frames."""
+    rows: list[tuple[str, Any]] = []
+    if m.get("mesh_vertices") and folder is not None:
+        err = m.get("mesh_err_after_mm")
+        error = f", error {err:.2f} mm mean" if isinstance(err, float) else ""
+        rows.append(("mesh", f"{folder / 'mesh.ply'} ({m['mesh_vertices']} vertices{error})"))
+    finish = m.get("finish_s") or {}
+    if "frames_s" in m:
+        rows.append(("time", f"frames {m['frames_s']:.1f} s, then {sum(finish.values()):.1f} s (steps above)"))
+    return rows
 
 
 def _session_config(cfg: Config, base_map: Path | None, mode: str | None) -> tuple[Config, SessionMap | None]:
@@ -297,8 +374,8 @@ def mesh(
     overwrite: OverwriteOption = False,
 ) -> None:
     """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run), or of a (merged) map."""
+    from loopmodel.io.laser import load_stripes_and_poses
     from loopmodel.io.mesh_io import MESH_FORMATS, read_mesh, write_mesh
-    from loopmodel.mapping.sources import load_stripes_and_poses
     from loopmodel.mapping.stripe_map import StripeMap
 
     fmt = fmt.lower()

@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import InputError
-from loopmodel.types import StereoCalibration, StereoFrame, StripeProfile, Trajectory
+from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripeProfile, Trajectory
 
 
 class Sequence(abc.ABC):
@@ -38,6 +38,39 @@ class Sequence(abc.ABC):
     @abc.abstractmethod
     def frames(self) -> Iterator[StereoFrame]:
         """Stereo pairs in time order (images loaded one pair at a time)."""
+
+    def scan(self) -> Iterator[ScanFrame]:
+        """Each stereo frame once, in time order, with the laser data taken up to its time.
+
+        The stripe messages when the sequence has them, else its laser-line images (none without
+        either). An item goes with the first frame at or after its time; items after the last frame
+        read are not read. The one pass over a sequence a run makes.
+        """
+        stripes = bool(self.stripe_count())
+        laser: Iterator[tuple[int, object]] = iter(())
+        if stripes:
+            laser = ((s.timestamp_ns, s) for s in self.stripes())
+        elif self.laser_image_count():
+            laser = iter(self.laser_images())
+        pending: tuple[int, object] | None = None
+        try:
+            for frame in self.frames():
+                taken: list[object] = []
+                while True:
+                    if pending is None:
+                        pending = next(laser, None)
+                    if pending is None or pending[0] > frame.timestamp_ns:
+                        break
+                    taken.append(pending[1] if stripes else pending)
+                    pending = None
+                if stripes:
+                    yield ScanFrame(frame, stripes=taken)  # type: ignore[arg-type]
+                else:
+                    yield ScanFrame(frame, laser_images=taken)  # type: ignore[arg-type]
+        finally:
+            close = getattr(laser, "close", None)
+            if close is not None:
+                close()
 
     def stripes(self) -> Iterator[StripeProfile]:
         """Laser-stripe profiles in time order (none for formats without stripes)."""

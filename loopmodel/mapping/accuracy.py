@@ -152,6 +152,7 @@ def mesh_error_metrics(
     object_samples: int = 200_000,
     meshes: Mapping[str, o3d.geometry.TriangleMesh] | None = None,
     looser_tols_m: tuple[float, ...] = (),
+    swept_by: Trajectory | None = None,
 ) -> dict[str, float]:
     """Mesh the stripes once per named trajectory and measure each against the ground truth.
 
@@ -167,8 +168,9 @@ def mesh_error_metrics(
     the mesh: of the whole scene, or with ``object_mesh`` (the scanned object, e.g. the
     simulator's ``object.ply``) of that object's surface; then also
     ``mesh_completeness_swept_<name>``: of the object's surface the laser swept (samples
-    within ``swept_radius_m`` of a stripe point placed with the ``gt`` trajectory; needs a
-    trajectory named ``gt``).
+    within ``swept_radius_m`` of a stripe point placed with the ``gt`` trajectory, or with
+    ``swept_by``, the ground-truth poses in the same world, when given; the stripes are not meshed
+    for it).
     """
     from loopmodel.mapping.stripe_map import StripeMap
 
@@ -177,8 +179,9 @@ def mesh_error_metrics(
     reference = swept = None
     if object_mesh is not None:
         reference = sample_surface(object_mesh, object_samples)
-        if "gt" in maps:
-            swept = swept_samples(reference, maps["gt"].world_points(), swept_radius_m)
+        placed = StripeMap.from_trajectory(swept_by, stripes, config) if swept_by is not None else maps.get("gt")
+        if placed is not None:
+            swept = swept_samples(reference, placed.world_points(), swept_radius_m)
     to_gt = SurfaceDistance(gt_mesh) if len(gt_mesh.triangles) else None
     out: dict[str, float] = {}
     for name, smap in maps.items():

@@ -144,7 +144,7 @@ def _stripes(folder: Path, rec: RerunRecorder, summary: ViewSummary) -> None:
     if not (folder / "stripes.npz").is_file():
         summary.notes.append("no stripes.npz: no laser points")
         return
-    from loopmodel.mapping.sources import load_stripes_and_poses
+    from loopmodel.io.laser import load_stripes_and_poses
     from loopmodel.mapping.stripe_map import StripeMap
 
     stripes, traj, _ = load_stripes_and_poses(folder, "final")
