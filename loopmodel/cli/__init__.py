@@ -37,8 +37,29 @@ def _ignore_further_interrupts() -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point: runs the app, turns loopmodel errors into one line and exit status 2."""
-    args = list(sys.argv[1:] if argv is None else argv)
     _PROGRAM[0] = argv is None
+    try:
+        return _main(list(sys.argv[1:] if argv is None else argv))
+    finally:
+        if _PROGRAM[0]:
+            _ignore_signals_at_exit()
+
+
+def _ignore_signals_at_exit() -> None:
+    """Ignore Ctrl-C and SIGTERM once the command is over and its exit status decided.
+
+    Its files are complete: a signal arriving while the interpreter shuts down must neither kill it
+    by the default action (exit 143) nor print a traceback (issue 34).
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, signal.SIG_IGN)
+
+
+def _main(args: list[str]) -> int:
     debug = "--debug" in args
     if not debug:  # numeric warnings are for developers; the results say what went wrong
         warnings.filterwarnings("ignore", category=RuntimeWarning)

@@ -7,6 +7,7 @@ qz`` (ground-truth files with 17 columns are read too). Poses are ``world_from_c
 
 from __future__ import annotations
 
+import os
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 from typing import Literal
@@ -17,7 +18,7 @@ from numpy.typing import NDArray
 from loopmodel.errors import FormatError, InputError
 from loopmodel.geometry.se3 import quat_wxyz_from_rotation, rotation_from_quat_wxyz
 from loopmodel.io.atomic import write_text_atomic
-from loopmodel.io.text import read_text_file
+from loopmodel.io.text import read_text_file, require_regular_file
 from loopmodel.types import Trajectory
 
 TrajectoryFormat = Literal["tum", "kitti", "euroc"]
@@ -92,8 +93,9 @@ def read_trajectory(
     files) are kept; times going backwards are an error.
     """
     p = Path(path)
-    if not p.is_file():
+    if not os.path.lexists(p):
         raise InputError(p, "trajectory file does not exist")
+    require_regular_file(p, "trajectory file")  # a FIFO, a device, a folder, a link loop: named as such
     fmt = fmt or guess_format(p)
     if fmt == "tum":
         rows = _rows(p, None, (8,))
