@@ -17,12 +17,13 @@ def entry() -> int:
     signal.signal(signal.SIGTERM, _interrupt)
     try:
         from loopmodel.cli import main
-    except KeyboardInterrupt:
+
+        return main()
+    except KeyboardInterrupt:  # while importing, or one arriving as main() returns
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         sys.stderr.write("interrupted\n")
         return 130
-    return main()
 
 
 if __name__ == "__main__":

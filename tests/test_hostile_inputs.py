@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -512,3 +513,264 @@ def test_full_disk_keeps_the_old_results_and_says_so(
     # the older run's folder is untouched, nothing half-written is left beside it
     assert (tmp_path / "out" / "r" / "metrics.json").read_text() == before
     assert [p.name for p in (tmp_path / "out").iterdir()] == ["r"]
+
+
+# ----------------------------------------------------------------------------- round three (issue 34)
+
+
+@pytest.fixture
+def small_run(tmp_path: Path) -> tuple[Path, list[str]]:
+    """A rendered 3-frame KITTI folder and the run arguments writing ``out/r``."""
+    from frontend_scene import write_kitti_folder
+
+    seq = tmp_path / "seq"
+    write_kitti_folder(seq, 3, np.random.default_rng(3))
+    return seq, ["run", str(seq), "--out", str(tmp_path / "out"), "--name", "r"]
+
+
+def _frames(folder: Path) -> int:
+    return int(json.loads((folder / "metrics.json").read_text())["frames"])
+
+
+def test_item1_failure_after_the_last_frame_keeps_the_results(
+    small_run: tuple[Path, list[str]], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import loopmodel.pipeline as pipeline
+
+    seq, args = small_run
+
+    def bad_cloud(*a: object, **k: object) -> None:
+        raise FormatError("s.mcap /laser/points", "a bad value found at the end")
+
+    monkeypatch.setattr(pipeline, "run_stripes", bad_cloud)
+    assert main(args) == 2
+    assert "/laser/points: a bad value" in capsys.readouterr().err
+    out = seq.parent / "out" / "r"
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["frames"] == 3 and "/laser/points" in m["stopped_by"] and m["interrupted"] is False
+    assert len(read_trajectory(out / "trajectory_online.tum")) == 3
+    assert [p.name for p in out.parent.iterdir()] == ["r"]  # no lock, no staging left
+
+
+def test_item1_nan_points_of_a_cloud_are_skipped() -> None:
+    pts = np.array([[0.1, 0.2, 0.3], [np.nan, np.nan, np.nan], [0.4, np.inf, 0.5], [0.6, 0.7, 0.8]], np.float32)
+    fields = [SimpleNamespace(name=a, offset=4 * i, datatype=7) for i, a in enumerate("xyz")]
+    msg = SimpleNamespace(fields=fields, width=4, height=1, point_step=12, data=pts.tobytes(), is_bigendian=0)
+    got = decode_pointcloud_xyz(msg, "/laser/points")
+    assert got.shape == (2, 3) and np.allclose(got, pts[[0, 3]].astype(float))
+
+
+def test_item2_overwrite_keeps_the_complete_run_when_the_new_one_is_interrupted(
+    small_run: tuple[Path, list[str]], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import loopmodel.pipeline as pipeline
+
+    seq, args = small_run
+    out = seq.parent / "out"
+    assert main([*args, "--max-frames", "2"]) == 0 and _frames(out / "r") == 2
+    step, calls = pipeline._Run.step, {"n": 0}
+
+    def interrupted_step(self: object, frame: object) -> object:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return step(self, frame)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(pipeline._Run, "step", interrupted_step)
+    capsys.readouterr()
+    assert main([*args, "--overwrite"]) == 130
+    err = capsys.readouterr().err
+    # the complete 2-frame run stays; the interrupted one is beside it, and the line says where
+    assert _frames(out / "r") == 2 and _frames(out / "r-incomplete") == 1
+    assert str(out / "r-incomplete") in err and "was not replaced" in err
+    # a failed run likewise (a second time: the next free name)
+    monkeypatch.setattr(pipeline._Run, "step", lambda self, frame: (_ for _ in ()).throw(InputError("x.png", "bad")))
+    assert main([*args, "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert str(out / "r-incomplete-2") in err and _frames(out / "r") == 2
+    assert sorted(p.name for p in out.iterdir()) == ["r", "r-incomplete", "r-incomplete-2"]
+    # a complete run replaces it
+    monkeypatch.undo()
+    assert main([*args, "--overwrite"]) == 0 and _frames(out / "r") == 3
+
+
+def _tmpfs(path: Path, size: str) -> bool:
+    path.mkdir()
+    if os.geteuid() != 0:
+        return False
+    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True)
+    return ok.returncode == 0
+
+
+def _fill(folder: Path, leave_bytes: int) -> None:
+    st = os.statvfs(folder)
+    free = st.f_bavail * st.f_frsize
+    if free > leave_bytes:
+        with open(folder / "filler", "wb") as f:
+            f.write(b"\0" * (free - leave_bytes))
+
+
+def test_items2_3_full_disk_never_replaces_or_fakes_a_complete_run(
+    small_run: tuple[Path, list[str]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    seq, _ = small_run
+    disk = seq.parent / "disk"
+    if not _tmpfs(disk, "8m"):
+        pytest.skip("mounting a tmpfs needs root and a mount namespace that allows it")
+    try:
+        args = ["run", str(seq), "--out", str(disk), "--max-frames", "2"]
+        assert main([*args, "--name", "r"]) == 0
+        before = (disk / "r" / "metrics.json").read_text()
+        _fill(disk, 48 * 1024)  # room for the small files, not for map/ and the meshes
+        capsys.readouterr()
+        # --overwrite on a full disk: the complete old run stays, the new one is beside it
+        assert main([*args, "--name", "r", "--overwrite"]) == 1
+        err = capsys.readouterr().err
+        assert "No space left on device" in err and str(disk / "r-incomplete") in err, err
+        assert (disk / "r" / "metrics.json").read_text() == before and (disk / "r" / "map").is_dir()
+        # a new name: the folder that lacks map/ is not moved to it, and the line names where it is
+        shutil.rmtree(disk / "r-incomplete")
+        (disk / "filler").unlink()
+        _fill(disk, 48 * 1024)
+        assert main([*args, "--name", "n"]) == 1
+        err = capsys.readouterr().err
+        assert not (disk / "n").exists() and str(disk / "n-incomplete") in err, err
+        assert "INCOMPLETE" in (disk / "n-incomplete" / "run.log").read_text()
+    finally:
+        subprocess.run(["umount", str(disk)], capture_output=True)
+
+
+def test_item4_map_merge_refuses_to_overwrite(small_run: tuple[Path, list[str]]) -> None:
+    seq, args = small_run
+    assert main(args) == 0
+    run = seq.parent / "out" / "r"
+    before = {p.name: p.stat().st_mtime_ns for p in (run / "map").iterdir()}
+    assert main(["map", "merge", str(run), str(run), "--out", str(run / "map")]) == 2
+    assert {p.name: p.stat().st_mtime_ns for p in (run / "map").iterdir()} == before
+
+
+def _damage_map(src: Path, dst: Path, change: dict[str, object]) -> Path:
+    from loopmodel.io.map_file import read_map_file, write_map_file
+
+    data = read_map_file(src)
+    data.arrays.update(change)  # type: ignore[arg-type]
+    data.meta = {k: v for k, v in data.meta.items() if k not in ("format", "version", "loopmodel_version")}
+    return write_map_file(dst, data)
+
+
+def test_item5_damaged_session_maps_are_refused_when_loaded(
+    small_run: tuple[Path, list[str]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    from loopmodel.io.map_file import read_map_file
+
+    seq, args = small_run
+    assert main(args) == 0
+    src = seq.parent / "out" / "r" / "map"
+    a = read_map_file(src).arrays
+    garbled = a["images_png"].copy()
+    garbled[:] = np.random.default_rng(5).integers(0, 256, garbled.size, dtype=np.uint8)
+    pose_nan = a["world_from_kf"].copy()
+    pose_nan[0, 0, 3] = np.nan
+    cases = {
+        "garbled": ({"images_png": garbled}, "image of keyframe"),
+        "nan_pose": ({"world_from_kf": pose_nan}, "world_from_kf has non-finite"),
+        "complex": ({"landmarks_in_world": a["landmarks_in_world"].astype(complex)}, "complex"),
+    }
+    for name, (change, msg) in cases.items():
+        bad = _damage_map(src, seq.parent / name, change)
+        capsys.readouterr()
+        assert main(["map", "info", str(bad)]) == 2, name
+        err = capsys.readouterr().err
+        assert msg in err and "Traceback" not in err, (name, err)
+    # the run that would spin in KLT on a 0x0 image: refused at once, in one line
+    t0 = time.monotonic()
+    rc = main([*args[:-1], "loc", "--map", str(seq.parent / "garbled"), "--mode", "localize"])
+    assert rc == 2 and time.monotonic() - t0 < 20
+    # a map.json nested past Python's limit
+    (seq.parent / "garbled" / "map.json").write_text("[" * 100000 + "]" * 100000)
+    assert main(["map", "info", str(seq.parent / "garbled")]) == 2
+    assert "nested too deeply" in capsys.readouterr().err
+
+
+def test_item5_no_klt_on_an_empty_image() -> None:
+    from loopmodel.config import LoopConfig
+    from loopmodel.loop.closer import LoopCloser
+
+    closer = LoopCloser(_cal(64, 48), LoopConfig())
+    old = SimpleNamespace(ids=np.arange(10), image=np.zeros((0, 0), np.uint8))
+    closer._kf[7] = old  # type: ignore[assignment]
+    assert closer.track_old_features(7, np.zeros((48, 64), np.uint8), np.eye(4)) is None
+
+
+def _run_cli(args: list[str], timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.run(
+        [sys.executable, "-m", "loopmodel", *args], env=env, capture_output=True, text=True, timeout=timeout
+    )
+
+
+def test_item6_fifo_inside_an_input_folder_is_refused(tmp_path: Path) -> None:
+    root = _kitti(tmp_path / "k", _names(3), _names(3))
+    (root / "image_0" / "000001.png").unlink()
+    os.mkfifo(root / "image_0" / "000001.png")
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  version: 5\n  storage_identifier: sqlite3\n")
+    os.mkfifo(bag / "bag_0.db3")
+    for target, name in ((root, "000001.png"), (bag, "bag_0.db3")):
+        out = _run_cli(["info", str(target)])  # blocked in open() forever before
+        err = out.stderr.strip()
+        assert out.returncode == 2 and name in err and "pipe (FIFO)" in err and len(err.splitlines()) == 1, err
+
+
+def _jpeg_with_app_segments(n_segments: int, w: int, h: int) -> bytes:
+    ok, jpg = cv2.imencode(".jpg", np.zeros((16, 16), np.uint8))
+    b = bytes(jpg.tobytes())
+    app1 = b"\xff\xe1" + (0xFFFF).to_bytes(2, "big") + b"\0" * (0xFFFF - 2)
+    b = b[:2] + app1 * n_segments + b[2:]
+    i = b.find(b"\xff\xc0")
+    return b[: i + 5] + h.to_bytes(2, "big") + w.to_bytes(2, "big") + b[i + 9 :]
+
+
+def test_item7_jpeg_size_past_64_kib_is_checked_everywhere(tmp_path: Path) -> None:
+    big = _jpeg_with_app_segments(2, 30000, 30000)
+    assert len(big) > 131_000
+    f = tmp_path / "a.jpg"
+    f.write_bytes(big)
+    with pytest.raises(InputError, match="declares 30000x30000"):
+        read_image(f)
+    with pytest.raises(InputError, match="declares 30000x30000"):
+        decode_image(SimpleNamespace(data=big, format="jpeg"), "sensor_msgs/msg/CompressedImage", "/j")
+    from loopmodel.io.ros_camera import decode_ros_image
+
+    with pytest.raises(InputError, match="declares 30000x30000"):
+        decode_ros_image(SimpleNamespace(data=big, format="jpeg"), "sensor_msgs/msg/CompressedImage", "/j")
+    # a JPEG whose markers the parser cannot follow to a size is refused, not decoded
+    junk = big[:2] + b"\x00\x01garbage" + big[2:]
+    f.write_bytes(junk)
+    with pytest.raises(InputError, match="damaged image header"):
+        read_image(f)
+    # the commands reading images: loop detect and calibrate stereo
+    d = tmp_path / "imgs"
+    d.mkdir()
+    (d / "0.jpg").write_bytes(big)
+    (d / "1.jpg").write_bytes(big)
+    out = _run_cli(["calibrate", "stereo", str(d), str(d), "--out", str(tmp_path / "c.yaml")])
+    assert out.returncode == 2 and "30000x30000" in out.stderr, out.stderr
+
+
+def test_item8_batch_grid_counted_before_expansion(tmp_path: Path) -> None:
+    from loopmodel.batch.plan import MAX_VARIANTS, load_plan
+
+    seq = _kitti(tmp_path / "k", _names(2), _names(2))
+    grid = {f"frontend.k{i}": list(range(10)) for i in range(10)}
+    plan = tmp_path / "plan.yaml"
+    plan.write_text(json.dumps({"sequences": [str(seq)], "grid": grid}))
+    t0 = time.monotonic()
+    with pytest.raises(InputError, match=f"10000000000 variants .* limit of {MAX_VARIANTS}"):
+        load_plan(plan)
+    assert time.monotonic() - t0 < 2
+    # a missing sequence is refused with the plan, not when its task runs
+    plan.write_text(json.dumps({"sequences": [str(tmp_path / "gone")]}))
+    with pytest.raises(InputError, match="gone does not exist"):
+        load_plan(plan)

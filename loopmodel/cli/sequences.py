@@ -216,8 +216,9 @@ def run(
                 base_map=session_map,
                 resume=resume_point,
             )
-        except KeyboardInterrupt:
-            err_console.print(f"results up to the last processed frame are in {folder}")
+        except KeyboardInterrupt as exc:
+            note = getattr(exc, "note", "")  # kept beside a complete older run (issue 34)
+            err_console.print(note or f"results up to the last processed frame are in {folder}")
             raise
     m = result.metrics
     table = Table(title=f"loopmodel run {path.name}", show_header=False)

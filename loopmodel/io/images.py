@@ -29,6 +29,12 @@ def read_image(path: Path, limit_px: int | None = None) -> NDArray[np.uint8]:
     return image_to_uint8(np.asarray(img), path)
 
 
+def read_grey_image(path: Path, limit_px: int | None = None) -> NDArray[np.uint8]:
+    """:func:`read_image` as 8-bit grey (HxW); the same checks before decoding."""
+    img = read_image(path, limit_px)
+    return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)) if img.ndim == 3 else img
+
+
 def image_to_uint8(img: NDArray[Any], source: str | Path) -> NDArray[np.uint8]:
     """8-bit grey (HxW) or BGR (HxWx3) from a decoded image.
 

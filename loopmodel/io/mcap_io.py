@@ -190,7 +190,9 @@ def decode_pointcloud_xyz(msg: Any, topic: str) -> np.ndarray:
         }
     )
     rec = buf[: n * step].view(dt)
-    return np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
+    pts = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
+    # ROS: a cloud with is_dense false marks invalid points with NaN; they are skipped (issue 34)
+    return pts[np.isfinite(pts).all(axis=1)]
 
 
 # ----------------------------------------------------------------------------- reader
@@ -391,8 +393,9 @@ class McapSequence(Sequence):
                 if abs(tl - tr) <= self.tolerance_ns:
                     lq.popleft()
                     rq.popleft()
-                    left = decode_image(ml, sl, t.left_image, self.max_image_pixels)
-                    right = decode_image(mr, sr, t.right_image, self.max_image_pixels)
+                    # the image errors name the frame too (issue 34)
+                    left = decode_image(ml, sl, f"{t.left_image} frame {index} ({tl} ns)", self.max_image_pixels)
+                    right = decode_image(mr, sr, f"{t.right_image} frame {index} ({tr} ns)", self.max_image_pixels)
                     w, h = self._calibration.image_size
                     for tp, img in ((t.left_image, left), (t.right_image, right)):
                         if img.shape[:2] != (h, w):

@@ -170,6 +170,10 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
         folder.write_npz("map.npz", run.map_arrays())
         folder.write_json("metrics.json", run.metrics)
         folder.write_text("run.log", run.log)
+    except OSError as exc:  # a full disk: nothing kept, the line names the file and the folder
+        folder.abandon()
+        where = exc.filename or folder.requested
+        raise OSError(exc.errno, f"{exc.strerror or exc}; {folder.requested} not written", where) from None
     except BaseException:
         folder.abandon()
         raise

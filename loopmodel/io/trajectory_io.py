@@ -73,11 +73,28 @@ def _rows(path: Path, sep: str | None, expected: tuple[int, ...]) -> list[list[s
     return rows
 
 
+#: the largest position a trajectory file may hold (m): beyond Earth-centred coordinates (6.4e6 m)
+MAX_POSITION_M = 1e8
+
+
 def _floats(path: Path, rows: list[list[str]], cols: slice) -> NDArray[np.float64]:
     try:
         return np.array([[float(v) for v in r[cols]] for r in rows], dtype=float)
     except ValueError as exc:
         raise FormatError(path, f"non-numeric value ({exc})") from None
+
+
+def _check_values(path: Path, position_m: NDArray[np.float64], quat: NDArray[np.float64] | None) -> None:
+    """Positions within ``MAX_POSITION_M``, quaternions of a norm near 1 (issue 34: 1e298, 1e308)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        far = np.flatnonzero(~(np.abs(position_m) <= MAX_POSITION_M).all(axis=1))
+        if far.size:
+            raise FormatError(path, f"row {int(far[0]) + 1}: position beyond {MAX_POSITION_M:g} m")
+        if quat is not None:
+            norm = np.linalg.norm(quat, axis=1)
+            bad = np.flatnonzero(~((norm > 0.5) & (norm < 2.0)))
+            if bad.size:
+                raise FormatError(path, f"row {int(bad[0]) + 1}: quaternion of norm {norm[bad[0]]:g}, not a rotation")
 
 
 def read_trajectory(
@@ -103,13 +120,15 @@ def read_trajectory(
             t = np.array([seconds_text_to_ns(r[0]) for r in rows], dtype=np.int64)
         except (InvalidOperation, ValueError, OverflowError):
             raise FormatError(p, "timestamp column is not a finite number") from None
-        v = _floats(p, rows, slice(1, 8))
+        v = _floats(p, rows, slice(1, 8)).reshape(-1, 7)
+        _check_values(p, v[:, :3], v[:, 3:7])
         T = np.tile(np.eye(4), (len(rows), 1, 1))
         T[:, :3, 3] = v[:, :3]
         T[:, :3, :3] = rotation_from_quat_wxyz(v[:, [6, 3, 4, 5]])
     elif fmt == "kitti":
         rows = _rows(p, None, (12,))
-        v = _floats(p, rows, slice(0, 12))
+        v = _floats(p, rows, slice(0, 12)).reshape(-1, 12)
+        _check_values(p, v[:, [3, 7, 11]], None)
         T = np.tile(np.eye(4), (len(rows), 1, 1))
         T[:, :3, :] = v.reshape(-1, 3, 4)
         if timestamps_ns is None:
@@ -124,7 +143,8 @@ def read_trajectory(
             t = np.array([int(Decimal(r[0])) for r in rows], dtype=np.int64)
         except (InvalidOperation, ValueError, OverflowError):
             raise FormatError(p, "timestamp column is not an integer of nanoseconds") from None
-        v = _floats(p, rows, slice(1, 8))
+        v = _floats(p, rows, slice(1, 8)).reshape(-1, 7)
+        _check_values(p, v[:, :3], v[:, 3:7])
         T = np.tile(np.eye(4), (len(rows), 1, 1))
         T[:, :3, 3] = v[:, :3]
         T[:, :3, :3] = rotation_from_quat_wxyz(v[:, 3:7])
