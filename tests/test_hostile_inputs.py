@@ -1044,3 +1044,13 @@ def test_item17_messages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     next(it), next(it)
     with pytest.raises(InputError, match="frame 2"):
         next(it)
+
+
+def test_item17_no_library_lines_before_the_one_line(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    root = _kitti(tmp_path / "k", _names(3), _names(3))
+    png = bytearray((root / "image_0" / "000000.png").read_bytes())
+    png[60:80] = b"\0" * 20  # the compressed data damaged, the header intact
+    (root / "image_0" / "000000.png").write_bytes(bytes(png))
+    assert main(["run", str(root), "--out", str(tmp_path / "o")]) == 2
+    err = capfd.readouterr().err
+    assert "libpng" not in err and "000000.png" in err, err

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import os
+import sys
+import tempfile
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -23,10 +26,42 @@ def read_image(path: Path, limit_px: int | None = None) -> NDArray[np.uint8]:
     """
     data = read_image_bytes(path)
     check_image_bytes(data, MAX_IMAGE_PIXELS if limit_px is None else limit_px, path)
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+    img = decode_quietly(data) if data else None
     if img is None:
         raise InputError(path, "cannot read image (corrupt or of an unknown format)")
     return image_to_uint8(np.asarray(img), path)
+
+
+_STDERR_LOCK = threading.Lock()
+#: lines the image libraries print on their own (libpng, libjpeg through OpenCV)
+_LIBRARY_NOISE = (b"libpng ", b"Corrupt JPEG", b"Premature end of JPEG", b"Invalid SOS", b"Bogus ")
+
+
+def decode_quietly(data: bytes | NDArray[np.uint8], flags: int = cv2.IMREAD_UNCHANGED) -> NDArray[Any] | None:
+    """``cv2.imdecode`` without libpng's and libjpeg's own lines on stderr (issue 34).
+
+    The process's stderr goes to a temporary file while the image decodes; what others wrote there
+    in the meantime is copied back, the libraries' lines are dropped (the caller's one line says
+    what went wrong).
+    """
+    buf = np.frombuffer(data, np.uint8) if isinstance(data, bytes | bytearray) else data
+    with _STDERR_LOCK, tempfile.TemporaryFile() as capture:
+        try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError, AttributeError):  # no stderr to guard
+            return cv2.imdecode(buf, flags)
+        try:
+            os.dup2(capture.fileno(), 2)
+            img = cv2.imdecode(buf, flags)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        capture.seek(0)
+        others = [ln for ln in capture.read().splitlines(keepends=True) if not ln.startswith(_LIBRARY_NOISE)]
+        if others:
+            os.write(2, b"".join(others))
+    return img
 
 
 def read_grey_image(path: Path, limit_px: int | None = None) -> NDArray[np.uint8]:

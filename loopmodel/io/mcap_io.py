@@ -27,7 +27,13 @@ from loopmodel.errors import CalibrationError, FormatError, InputError
 from loopmodel.geometry.se3 import quat_wxyz_from_rotation, rotation_from_quat_wxyz
 from loopmodel.io.atomic import atomic_path
 from loopmodel.io.base import Sequence
-from loopmodel.io.images import MAX_IMAGE_PIXELS, check_declared_size, check_image_bytes, image_to_uint8
+from loopmodel.io.images import (
+    MAX_IMAGE_PIXELS,
+    check_declared_size,
+    check_image_bytes,
+    decode_quietly,
+    image_to_uint8,
+)
 from loopmodel.io.ros2_msgs import MSGDEFS, POINTFIELD_FLOAT32, header, stamp_ns
 from loopmodel.types import StereoCalibration, StereoFrame, StripeProfile, Trajectory
 
@@ -58,7 +64,7 @@ def decode_image(msg: Any, schema_name: str, topic: str, max_pixels: int = MAX_I
     data = bytes(msg.data)
     if schema_name.endswith("CompressedImage"):
         check_image_bytes(data, max_pixels, topic)
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        img = decode_quietly(data)
         if img is None:
             raise FormatError(topic, f"cannot decode compressed image (format '{msg.format}')")
         return image_to_uint8(np.asarray(img), topic)

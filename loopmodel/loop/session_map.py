@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from loopmodel.config import LoopConfig
 from loopmodel.errors import InputError
-from loopmodel.io.images import declared_image_size
+from loopmodel.io.images import declared_image_size, decode_quietly
 from loopmodel.io.map_file import MapFileData, read_map_file, write_map_file
 from loopmodel.loop.database import KeyframeDatabase, PlaceParams
 from loopmodel.loop.features import FeatureSet
@@ -209,7 +209,7 @@ class SessionMap:
         a, b = int(self.image_offsets[i]), int(self.image_offsets[i + 1])
         if b <= a:
             return np.zeros((0, 0), np.uint8)
-        img = cv2.imdecode(self.images_png[a:b], cv2.IMREAD_UNCHANGED)
+        img = decode_quietly(self.images_png[a:b])
         if img is None or img.dtype != np.uint8 or img.ndim != 2:  # damaged after its header: no image
             return np.zeros((0, 0), np.uint8)
         return np.asarray(img)
