@@ -1054,3 +1054,49 @@ def test_item17_no_library_lines_before_the_one_line(tmp_path: Path, capfd: pyte
     assert main(["run", str(root), "--out", str(tmp_path / "o")]) == 2
     err = capfd.readouterr().err
     assert "libpng" not in err and "000000.png" in err, err
+
+
+def _mcap_with_stripes(seq: Path, dst: Path, fields: list[dict[str, object]], data: bytes, n_pts: int) -> Path:
+    """The rendered KITTI folder as an MCAP, with one PointCloud2 stripe per frame of the given layout."""
+    from loopmodel.io.ros2_msgs import header
+
+    src = open_sequence(seq)
+    step = 12 if len(fields) == 3 and all(f["datatype"] == 7 for f in fields) else len(data) // max(n_pts, 1)
+    with McapSequenceWriter(dst, src.calibration, image_format="png") as w:
+        for frame in src.frames():
+            w.write_frame(frame)
+            msg = {
+                "header": header(frame.timestamp_ns, "cam0"),
+                "height": 1,
+                "width": n_pts,
+                "fields": [{**f, "count": 1} for f in fields],
+                "is_bigendian": False,
+                "point_step": step,
+                "row_step": step * n_pts,
+                "data": data,
+                "is_dense": False,
+            }
+            w._write(w.topics.stripe, "sensor_msgs/msg/PointCloud2", msg, frame.timestamp_ns)
+    return dst
+
+
+def test_items1_15_stripes_with_nan_points_or_other_fields(
+    small_run: tuple[Path, list[str]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    seq, _ = small_run
+    xyz = [{"name": a, "offset": 4 * i, "datatype": 7} for i, a in enumerate("xyz")]
+    pts = np.array([[0.0, -0.01 * i, 0.5] for i in range(20)], np.float32)
+    pts[3] = np.nan  # a ROS cloud with is_dense false: read without the NaN point
+    nan_mcap = _mcap_with_stripes(seq, seq.parent / "nan.mcap", xyz, pts.tobytes(), 20)
+    stripes = list(open_sequence(nan_mcap).stripes())
+    assert len(stripes) == 3 and all(s.points_in_cam.shape == (19, 3) for s in stripes)
+    # z as float64: refused after the frames, the run's trajectories kept, file and topic named
+    out = seq.parent / "out"
+    f64 = [*xyz[:2], {"name": "z", "offset": 8, "datatype": 8}]
+    rows = np.zeros(20, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f8")])
+    bad = _mcap_with_stripes(seq, seq.parent / "f64.mcap", f64, rows.tobytes(), 20)
+    capsys.readouterr()
+    assert main(["run", str(bad), "--out", str(out), "--name", "f64"]) == 2
+    assert "f64.mcap /laser/stripe: PointCloud2 needs float32" in capsys.readouterr().err
+    m = json.loads((out / "f64" / "metrics.json").read_text())
+    assert m["frames"] == 3 and "/laser/stripe" in m["stopped_by"]

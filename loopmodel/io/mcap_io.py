@@ -426,7 +426,7 @@ class McapSequence(Sequence):
         if topic not in self._channels:
             return
         for _t, _s, msg in self._messages([topic]):
-            yield StripeProfile(stamp_ns(msg), decode_pointcloud_xyz(msg, topic))
+            yield StripeProfile(stamp_ns(msg), decode_pointcloud_xyz(msg, f"{self.path} {topic}"))
 
     def laser_images(self) -> Iterator[tuple[int, np.ndarray]]:
         topic = self.topics.laser_image

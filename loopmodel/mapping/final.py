@@ -30,16 +30,13 @@ def live_stripes(sequence: Sequence, config: MappingConfig) -> Iterator[StripePr
 def run_stripes(sequence: Sequence, last_ns: int | None, config: MappingConfig) -> list[StripeProfile]:
     """The sequence's laser profiles up to ``last_ns`` (the last processed frame; sensor frame, metres).
 
-    None without a processed frame or without profiles. A reader error is logged and gives none (the
-    trajectories matter more than the stripes).
+    None without a processed frame or without profiles. A reader error is raised: the run ends with
+    it in ``stopped_by`` and keeps its trajectories (issue 34: it was logged, and the run exited 0
+    without a mesh).
     """
     if last_ns is None or sequence_stripe_count(sequence) == 0:
         return []
-    try:
-        return [s for s in sequence_stripes(sequence, config) if s.timestamp_ns <= last_ns]
-    except LoopmodelError as exc:
-        logger.error("laser stripes not written: %s", exc)
-        return []
+    return [s for s in sequence_stripes(sequence, config) if s.timestamp_ns <= last_ns]
 
 
 def reference_from_traj(traj: Trajectory, reference: Trajectory) -> NDArray[np.float64]:
