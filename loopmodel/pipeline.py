@@ -38,7 +38,7 @@ import numpy as np
 
 from loopmodel.backend import Backend, BackendEstimate, create_backend
 from loopmodel.config import Config
-from loopmodel.errors import LoopmodelError
+from loopmodel.errors import LoopmodelError, RunInterrupted
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
 from loopmodel.frontend.metrics import frontend_metrics, percentile_or_none
 from loopmodel.io.base import Sequence
@@ -481,6 +481,29 @@ class _Run:
             _prepend_resumed(result, self.resume)
         return result
 
+    def partial_result(self, interrupted: bool) -> RunResult:
+        """The frames' trajectories and metrics without the end-of-run steps (after :meth:`finish` failed)."""
+        online = _online_trajectory(self.frames)
+        try:
+            final, keyframes = self._final_trajectory(), self._keyframe_trajectory()
+        except Exception:  # the anchored poses themselves are damaged: the live ones
+            final, keyframes = online, Trajectory(np.zeros(0, np.int64), np.zeros((0, 4, 4)))
+        result = RunResult(
+            config=self.config,
+            frames=self.frames,
+            online=online,
+            final=final,
+            keyframes=keyframes,
+            keyframe_ids=np.array(list(self.keyframes) if len(keyframes) else [], dtype=np.int64),
+            interrupted=interrupted,
+        )
+        busy_s = sum(self.frame_ms) / 1e3
+        result.metrics = {"sequence": str(self.sequence.path), "interrupted": interrupted}
+        result.metrics.update(frontend_metrics(self.frames, time.perf_counter() - self.t_start))
+        result.metrics.update(fps=len(self.frames) / busy_s if busy_s > 0 else None, backend=self.config.backend.kind)
+        result.metrics["landmarks"] = 0
+        return result
+
     def _session_map(self, result: RunResult) -> SessionMap | None:
         """The run's map for later sessions (``output.write_map``; None without keyframes or when it fails)."""
         if not self.config.output.write_map or not self.map_keyframes:
@@ -633,7 +656,14 @@ def process(
     if error is not None:
         logger.error("stopped after %d frames: %s", len(run.frames), error)
     stop.finishing = run.finishing_note()
-    result = run.finish(interrupted)
+    try:
+        result = run.finish(interrupted)
+    except Exception as exc:  # (issue 34) a bad value found after the frames: keep what they gave
+        if not run.frames:
+            raise
+        logger.error("stopped while finishing %d frames: %s", len(run.frames), exc)
+        result = run.partial_result(interrupted)
+        error = error or exc
     if error is not None:
         result.error = error
         result.metrics["stopped_by"] = str(error).splitlines()[0] if str(error) else type(error).__name__
@@ -712,7 +742,11 @@ def _process_and_write(
     with LogCapture() as log, signals:
         result = process(sequence, config, stop=stop, finishing=finishing, **kwargs)
         if evaluate:
-            evaluated(result, sequence, finishing)
+            try:
+                evaluated(result, sequence, finishing)
+            except (LoopmodelError, ValueError, OSError) as exc:  # grading must never lose the run's results
+                logger.error("evaluation failed: %s", exc)
+                result.metrics["evaluation_error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         write_s: dict[str, float] = {}
         with timed_step("write", write_s, finishing):
             result.log = log.text()
@@ -757,11 +791,18 @@ def run_pipeline(
     kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
     kwargs.update(base_map=base_map, resume=resume)
     result = _process_and_write(folder, sequence, config, handle_signals, evaluate, finishing, **kwargs)
+    beside = result.folder is not None and result.folder != folder.requested
     if result.error is not None:
+        if beside:  # (issue 34) the older complete run stays; say where this one is
+            result.error.args = (f"{result.error}; {_kept_beside(result.folder, folder.requested)}",)
         raise result.error
     if result.interrupted:
-        raise KeyboardInterrupt
+        raise RunInterrupted(result.folder, _kept_beside(result.folder, folder.requested) if beside else "")
     return result
+
+
+def _kept_beside(where: Path | None, old: Path) -> str:
+    return f"the results so far are in {where} ({old}, complete, was not replaced)"
 
 
 def run(

@@ -41,6 +41,9 @@ from loopmodel import __version__
 from loopmodel.config import Config, LoopConfig, config_from_dict
 from loopmodel.errors import InputError, LoopmodelError
 
+#: the most configuration variants a plan may have (each one a task per sequence)
+MAX_VARIANTS = 1000
+
 PLAN_KEYS = ("sequences", "base", "grid", "variants", "max_frames", "threads_per_task", "retries", "name")
 
 # loop closing's global BA in a process of its own: off in a batch where tasks already fill
@@ -252,6 +255,16 @@ def _variants(data: dict[str, Any], source: Path) -> list[Variant]:
         for k in keys:
             if not isinstance(grid[k], list) or not grid[k]:
                 raise InputError(source, f"grid key '{k}' must have a non-empty list of values")
+        count = 1
+        for k in keys:  # counted before anything is expanded (issue 34: 10 keys x 10 values)
+            count *= len(grid[k])
+        count += len(data.get("variants") or [])
+        if count > MAX_VARIANTS:
+            raise InputError(
+                source,
+                f"the grid makes {count} variants ({' x '.join(str(len(grid[k])) for k in keys)}), "
+                f"more than the limit of {MAX_VARIANTS}; split the plan",
+            )
         for combo in itertools.product(*(grid[k] for k in keys)):
             ov = dict(zip(keys, combo, strict=True))
             out.append(Variant(_variant_name(ov), ov))
@@ -298,7 +311,7 @@ def _sequences(data: dict[str, Any], base_dir: Path, source: Path) -> list[Seque
                 raise InputError(source, f"sequences[{k}]: the glob '{pattern}' matches nothing")
             paths = [Path(m).resolve() for m in matches]
         else:
-            paths = [Path(full).resolve()]  # a missing path becomes a failed task, not a failed plan
+            paths = [Path(full).resolve()]
         for p in paths:
             seq_name = str(name) if name and len(paths) == 1 else p.stem
             out.append(SequenceEntry(p, seq_name, cfg))
@@ -313,13 +326,17 @@ def _sequences(data: dict[str, Any], base_dir: Path, source: Path) -> list[Seque
 
 def load_plan(path: str | Path) -> Plan:
     """Read and check a plan file (see the module docstring); errors name the file and key."""
+    from loopmodel.io.text import read_text_file
+
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise InputError(p, "plan file does not exist")
     try:
-        data = yaml.safe_load(p.read_text())
+        data = yaml.safe_load(read_text_file(p, "plan file"))
     except yaml.YAMLError as exc:
         raise InputError(p, f"not valid YAML ({str(exc).splitlines()[0]})") from None
+    except RecursionError:
+        raise InputError(p, "not valid YAML (nested too deeply)") from None
     if not isinstance(data, dict):
         raise InputError(p, "a plan is a mapping with 'sequences' and 'grid' or 'variants'")
     unknown = set(data) - set(PLAN_KEYS)
@@ -352,4 +369,7 @@ def load_plan(path: str | Path) -> Plan:
     except LoopmodelError as exc:
         msg = exc.problem if isinstance(exc, InputError) else str(exc)
         raise InputError(p, f"variant '{var.name}' with sequence '{seq.name}': {msg}") from None
+    for seq in plan.sequences:  # refused with the plan, not found only when its task runs (issue 34)
+        if not seq.path.exists():
+            raise InputError(p, f"sequence '{seq.name}': {seq.path} does not exist")
     return plan

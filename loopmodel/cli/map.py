@@ -53,11 +53,15 @@ def map_merge(
     second: Annotated[Path, typer.Argument(help="Map B (moved into A's world)")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Merged map folder to write")],
     config: ConfigOption = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing map folder at --out")] = False,
 ) -> None:
     """Merge map B into map A: place recognition finds where they share a view, then a joint optimisation."""
+    from loopmodel.errors import InputError
     from loopmodel.loop.merge import merge_maps
     from loopmodel.loop.session_map import SessionMap
 
+    if out.exists() and not overwrite:  # checked before the work (an input's own map/ too)
+        raise InputError(out, "exists; choose another --out or pass --overwrite")
     cfg = load_config(config)
     a, b = SessionMap.load(first), SessionMap.load(second)
     merged, report = merge_maps(a, b, cfg.loop)

@@ -226,9 +226,10 @@ def run(
                 evaluate=not no_eval,
                 finishing=finishing,
             )
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:
             finishing.close()
-            err_console.print(f"results up to the last processed frame are in {folder}")
+            note = getattr(exc, "note", "")  # kept beside a complete older run (issue 34)
+            err_console.print(note or f"results up to the last processed frame are in {folder}")
             raise
     m = result.metrics
     table = Table(title=f"loopmodel run {path.name}", show_header=False)

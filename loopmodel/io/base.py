@@ -138,6 +138,16 @@ class FolderSequence(Sequence):
     _pairs: list[tuple[int, Path, Path]]
     _calibration: StereoCalibration
     _gt: Trajectory | None = None
+    #: the declared-size limit of an image (``sequence.max_image_pixels``)
+    max_image_pixels: int = 100_000_000
+
+    def _check_image_files(self) -> None:
+        """Every image of the pairs must be a regular file (a FIFO would block its reading)."""
+        from loopmodel.io.text import require_regular_file
+
+        for _, lp, rp in self._pairs:
+            require_regular_file(lp, "image file")
+            require_regular_file(rp, "image file")
 
     @property
     def calibration(self) -> StereoCalibration:
@@ -156,6 +166,6 @@ class FolderSequence(Sequence):
     def frames(self) -> Iterator[StereoFrame]:
         from loopmodel.io.images import read_image_of_size
 
-        size = self._calibration.image_size
+        size, limit = self._calibration.image_size, self.max_image_pixels
         for i, (t, lp, rp) in enumerate(self._pairs):
-            yield StereoFrame(t, read_image_of_size(lp, size), read_image_of_size(rp, size), i)
+            yield StereoFrame(t, read_image_of_size(lp, size, limit), read_image_of_size(rp, size, limit), i)

@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import InputError
+from loopmodel.io.text import read_text_file
 
 FORMAT_NAME = "loopmodel-map"
 #: Version of the layout written; a reader refuses a map with a higher one.
@@ -86,7 +87,9 @@ def read_map_meta(path: str | Path) -> tuple[Path, dict[str, Any]]:
     if not meta_path.is_file():
         raise InputError(meta_path, "not a loopmodel map (no map.json)")
     try:
-        meta = json.loads(meta_path.read_text())
+        meta = json.loads(read_text_file(meta_path, "map description"))
+    except RecursionError:  # nested past Python's limit
+        raise InputError(meta_path, "damaged map description (nested too deeply)") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(meta_path, f"damaged map description ({exc})") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
@@ -116,6 +119,9 @@ def read_map_file(path: str | Path, required: tuple[str, ...] = ()) -> MapFileDa
             arrays = {k: z[k] for k in z.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
         raise InputError(arrays_path, f"damaged map arrays ({type(exc).__name__}: {exc})") from None
+    odd = [k for k, v in arrays.items() if v.dtype.kind not in "biuf"]
+    if odd:  # complex, structured, text or time arrays are none of a map's
+        raise InputError(arrays_path, f"damaged map arrays ({odd[0]} holds {arrays[odd[0]].dtype} values)")
     missing = [k for k in required if k not in arrays]
     if missing:
         raise InputError(arrays_path, f"damaged map arrays (missing {', '.join(missing[:5])})")

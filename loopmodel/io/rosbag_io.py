@@ -107,6 +107,12 @@ class BagReader:
                 path / "metadata.yaml",
                 f"ROS 2 bag folder without metadata.yaml (storage files: {files}); open the storage file itself",
             )
+        if path.is_dir():  # a FIFO or device among the bag's files would block rosbags' open()
+            from loopmodel.io.text import require_regular_file
+
+            for p in sorted(path.iterdir()):
+                if p.name == "metadata.yaml" or p.suffix.lower() in (".db3", ".mcap", ".zstd"):
+                    require_regular_file(p, "bag file")
         self.is_ros1 = path.is_file() and path.suffix.lower() == ".bag"
         if path.is_file() and not self.is_ros1 and _head(path, 12) == ROS1_MAGIC:
             raise FormatError(path, "a ROS 1 bag whose name does not end in .bag; rename it to *.bag")

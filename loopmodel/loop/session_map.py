@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 
 from loopmodel.config import LoopConfig
 from loopmodel.errors import InputError
+from loopmodel.io.images import declared_image_size, decode_quietly
 from loopmodel.io.map_file import MapFileData, read_map_file, write_map_file
 from loopmodel.loop.database import KeyframeDatabase, PlaceParams
 from loopmodel.loop.features import FeatureSet
@@ -208,8 +209,10 @@ class SessionMap:
         a, b = int(self.image_offsets[i]), int(self.image_offsets[i + 1])
         if b <= a:
             return np.zeros((0, 0), np.uint8)
-        img = cv2.imdecode(self.images_png[a:b], cv2.IMREAD_UNCHANGED)
-        return np.asarray(img, dtype=np.uint8) if img is not None else np.zeros((0, 0), np.uint8)
+        img = decode_quietly(self.images_png[a:b])
+        if img is None or img.dtype != np.uint8 or img.ndim != 2:  # damaged after its header: no image
+            return np.zeros((0, 0), np.uint8)
+        return np.asarray(img)
 
     def keyframe(self, i: int, with_image: bool = True) -> Keyframe:
         """Row ``i`` as a :class:`~loopmodel.types.Keyframe` (stereo landmarks, pose, image)."""
@@ -399,8 +402,34 @@ class SessionMap:
         known = set(self.keyframe_ids.tolist())
         if len(known) != n:
             raise ValueError("keyframe ids are not unique")
+        self._check_values()
         if not set(self.stripe_kf.tolist()) <= known or not set(self.edges.ravel().tolist()) <= known:
             raise ValueError("a stripe or pose-graph edge names an unknown keyframe")
+
+
+    def _check_values(self) -> None:
+        """Raise ValueError on non-finite poses and points, or an image that is no PNG of the camera's size.
+
+        Checked when a map is loaded (issue 34): a damaged image would otherwise reach the KLT of a
+        relocalization as an empty image.
+        """
+        for name in ("world_from_kf", "rect_from_cam", "edge_a_from_b", "stripe_kf_from_cam", "landmarks_in_world"):
+            if not np.all(np.isfinite(getattr(self, name))):
+                raise ValueError(f"{name} has non-finite values")
+        for name in ("lm_points_in_kf", "lm_stereo_px"):
+            if not np.all(np.isfinite(getattr(self, name))):
+                raise ValueError(f"{name} has non-finite values")
+        size = tuple(int(v) for v in self.calibration.image_size)
+        for i in range(len(self)):
+            a, b = int(self.image_offsets[i]), int(self.image_offsets[i + 1])
+            if b <= a:
+                continue  # a keyframe stored without its image
+            found = declared_image_size(self.images_png[a : min(b, a + 64)].tobytes())
+            if self.images_png[a : a + 8].tobytes() != b"\x89PNG\r\n\x1a\n" or found != size:
+                raise ValueError(
+                    f"image of keyframe {int(self.keyframe_ids[i])} is not a {size[0]}x{size[1]} PNG"
+                    + (f" (it declares {found[0]}x{found[1]})" if found else "")
+                )
 
 
 _KF_ARRAYS = (

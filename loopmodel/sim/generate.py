@@ -307,7 +307,8 @@ _STATE: _WorkerState | None = None
 
 def _init_worker(cfg: SimulationConfig, scene: Scene) -> None:
     global _STATE
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # (already ignored from the start; see below)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle (see _iter_rendered)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})  # the pool's terminate() ends it
     cv2.setNumThreads(1)
     _STATE = _make_state(cfg, scene)
     _STATE.caster.threads = 1  # one process per core already
@@ -741,16 +742,27 @@ def _iter_rendered(
             yield render_frame(st, task)
         return
     ctx = mp.get_context("spawn")
-    # workers start with SIGINT ignored (an ignored signal stays ignored across exec, and
-    # Python then installs no KeyboardInterrupt handler): Ctrl-C, which reaches the whole
-    # process group, stops the parent, which terminates the pool; no worker tracebacks
+    # the workers start with SIGINT and SIGTERM blocked (a signal mask survives exec): Ctrl-C,
+    # which reaches the whole process group, stops only the parent, which terminates the pool;
+    # no worker tracebacks. The parent blocks them too while it starts the pool (which waits
+    # for the workers to read their set-up, seconds): a signal then stays pending, it is not
+    # lost, and arrives once the pool exists, so the pool is terminated (issue 34)
     main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
+    both = {signal.SIGINT, signal.SIGTERM}
+    if main_thread:
+        signal.pthread_sigmask(signal.SIG_BLOCK, both)
+    pool = None
     try:
         pool = ctx.Pool(workers, initializer=_init_worker, initargs=(cfg, scene))
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+        if main_thread:
+            try:
+                signal.pthread_sigmask(signal.SIG_UNBLOCK, both)  # blocked only in here
+            except BaseException:  # the pending Ctrl-C
+                if pool is not None:
+                    pool.terminate()
+                raise
+    assert pool is not None
     with pool:
         yield from pool.imap(_worker_render, tasks, chunksize=1)
 

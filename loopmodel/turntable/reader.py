@@ -28,6 +28,7 @@ the printed marker, metres); the scan refines the layout from the rotation itsel
 from __future__ import annotations
 
 import glob
+import math
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -134,6 +135,37 @@ def _get(data: dict[str, Any], key: str, kind: type, source: Path, default: Any 
     return v
 
 
+def _read_layout_yaml(lp: Path) -> dict[str, Any]:
+    """The layout file's mapping; one line naming the file for anything else."""
+    from loopmodel.io.text import read_text_file
+
+    try:
+        data = yaml.safe_load(read_text_file(lp, "turntable layout"))
+    except yaml.YAMLError as exc:
+        raise FormatError(lp, f"cannot parse YAML ({' '.join(str(exc).split())})") from None
+    except RecursionError:
+        raise FormatError(lp, "cannot parse YAML (nested too deeply)") from None
+    if not isinstance(data, dict):
+        raise FormatError(lp, "expected a YAML mapping")
+    return data
+
+
+def _check_layout_values(
+    lp: Path, markers: MarkerLayout, volume: WorkingVolume, step_deg: float, table_radius_m: float
+) -> None:
+    """Physically possible layout values (issue 34: a NaN, zero or negative step; a negative radius)."""
+    if not (math.isfinite(step_deg) and 0 < abs(step_deg) <= 360):
+        raise InputError(lp, f"'step_deg' must be a finite angle in (0, 360] degrees, got {step_deg}")
+    if not (math.isfinite(markers.side_m) and markers.side_m > 0):
+        raise InputError(lp, f"'markers.side_m' must be a positive length, got {markers.side_m}")
+    if not (math.isfinite(table_radius_m) and table_radius_m > 0):
+        raise InputError(lp, f"'table_radius_m' must be a positive length, got {table_radius_m}")
+    if not (math.isfinite(volume.radius_m) and volume.radius_m > 0):
+        raise InputError(lp, f"'volume.radius_m' must be a positive length, got {volume.radius_m}")
+    if not (math.isfinite(volume.z_min_m) and math.isfinite(volume.z_max_m) and volume.z_min_m < volume.z_max_m):
+        raise InputError(lp, f"'volume' needs finite z_min_m < z_max_m, got {volume.z_min_m}, {volume.z_max_m}")
+
+
 def open_turntable(
     folder: str | Path, layout: str | Path | None = None, extra_planes: Sequence[Path] = ()
 ) -> TurntableScan:
@@ -144,12 +176,7 @@ def open_turntable(
     lp = Path(layout) if layout is not None else root / "turntable.yaml"
     if not lp.is_file():
         raise InputError(lp, "turntable layout file not found (pass --layout; see loopmodel.turntable.reader)")
-    try:
-        data = yaml.safe_load(lp.read_text())
-    except yaml.YAMLError as exc:
-        raise FormatError(lp, f"cannot parse YAML ({exc})") from None
-    if not isinstance(data, dict):
-        raise FormatError(lp, "expected a YAML mapping")
+    data = _read_layout_yaml(lp)
     pattern = _get(data, "frames", str, lp)
     frames = sorted((Path(f) for f in glob.glob(str(root / pattern))), key=_number)
     if not frames:
@@ -169,13 +196,18 @@ def open_turntable(
     m = data.get("markers") or {}
     if not isinstance(m, dict) or not m.get("ids"):
         raise InputError(lp, "'markers' needs 'ids' (and dictionary, side_m, centre_in_marker_m)")
-    centres = {int(k): (float(v[0]), float(v[1])) for k, v in (m.get("centre_in_marker_m") or {}).items()}
-    markers = MarkerLayout(
-        str(m.get("dictionary", "DICT_4X4_50")), float(m.get("side_m", 0.03)), [int(i) for i in m["ids"]], centres
-    )
-    vol = data.get("volume") or {}
-    volume = WorkingVolume(**{k: float(v) for k, v in vol.items() if k in ("radius_m", "z_min_m", "z_max_m")})
-    step = float(data.get("step_deg", 360.0 / len(frames)))
+    try:
+        centres = {int(k): (float(v[0]), float(v[1])) for k, v in (m.get("centre_in_marker_m") or {}).items()}
+        markers = MarkerLayout(
+            str(m.get("dictionary", "DICT_4X4_50")), float(m.get("side_m", 0.03)), [int(i) for i in m["ids"]], centres
+        )
+        vol = data.get("volume") or {}
+        volume = WorkingVolume(**{k: float(v) for k, v in vol.items() if k in ("radius_m", "z_min_m", "z_max_m")})
+        step = float(data.get("step_deg", 360.0 / len(frames)))
+        table_radius_m = float(data.get("table_radius_m", 0.125))
+    except (TypeError, ValueError, AttributeError, IndexError, KeyError) as exc:
+        raise FormatError(lp, f"malformed layout value ({type(exc).__name__}: {exc})") from None
+    _check_layout_values(lp, markers, volume, step, table_radius_m)
     scan = TurntableScan(
         root,
         frames,
@@ -186,7 +218,7 @@ def open_turntable(
         step,
         markers,
         str(data.get("laser_colour", "green")),
-        float(data.get("table_radius_m", 0.125)),
+        table_radius_m,
         volume,
         lp,
     )
