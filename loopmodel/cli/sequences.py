@@ -15,18 +15,20 @@ from loopmodel.cli.common import (
     LeftTopicOption,
     RightTopicOption,
     _fmt,
-    _length,
     app,
     console,
     err_console,
     progress_bar,
 )
+from loopmodel.cli.summary import frontend_summary, run_summary_rows
 from loopmodel.cli.view import RerunConnectOption, RerunFileOption, RerunSpawnOption, rerun_listeners
 from loopmodel.config import Config, apply_overrides, load_config
+from loopmodel.display import Formatter
 from loopmodel.errors import InputError
 
 if TYPE_CHECKING:
     from loopmodel.loop.session_map import SessionMap
+    from loopmodel.result import RunResult
 
 
 @app.command()
@@ -194,12 +196,7 @@ def run(
                 max_frames=max_frames,
                 progress=lambda i, n, fps: bar.update(task, completed=i, fps=fps),
             )
-        m = result.metrics
-        console.print(
-            f"wrote {result.folder}: {m['frames']} frames ({m['lost_frames']} lost), "
-            f"{m['keyframes']} keyframes, {_fmt(m['fps'])} fps"
-            + (f", ATE {m['ate_rmse_m']:.3f} m, drift {m['drift_pct']:.2f} %" if "ate_rmse_m" in m else "")
-        )
+        console.print(frontend_summary(result.metrics, result.folder, _run_formatter(result)))
         return
     folder = Path(out if out is not None else cfg.output.out_dir) / run_name
     with progress_bar(_Text("{task.fields[fps]:.1f} fps"), _Text("{task.fields[kf]} keyframes")) as bar:
@@ -219,31 +216,16 @@ def run(
         except KeyboardInterrupt:
             err_console.print(f"results up to the last processed frame are in {folder}")
             raise
-    m = result.metrics
     table = Table(title=f"loopmodel run {path.name}", show_header=False)
-    rows: list[tuple[str, Any]] = [
-        ("frames", f"{m['frames']} ({m['lost_frames']} lost)"),
-        ("keyframes", m["keyframes"]),
-        ("landmarks", m["landmarks"]),
-        ("fps", m["fps"]),
-        ("back end", f"{m['backend']}, {_fmt(m['backend_ms_median'])} ms per keyframe (median)"),
-    ]
-    if "loop_closure_count" in m:
-        rows.append(
-            (
-                "loops / relocalizations",
-                f"{m['loop_closure_count']} / {m['relocalization_count']} "
-                f"({m['loop_candidates_rejected']} candidates rejected)",
-            )
-        )
-    if "ate_rmse_m" in m:
-        rows.append(("ATE online / final", f"{_length(m['ate_rmse_m_online'])} / {_length(m['ate_rmse_m'])}"))
-        rows.append(("drift final [%]", m["drift_pct"]))
-    rows += _session_rows(m)
-    for k, v in rows:
-        table.add_row(k, _fmt(v))
+    for k, v in run_summary_rows(result.metrics, result.folder, _run_formatter(result), rerun):
+        table.add_row(k, v)
     console.print(table)
     console.print(f"results in {result.folder}")
+
+
+def _run_formatter(result: RunResult) -> Formatter:
+    """Lengths of a run in mm or m, from the extent of its path."""
+    return Formatter.for_positions(result.final.world_from_cam[:, :3, 3])
 
 
 def _session_config(cfg: Config, base_map: Path | None, mode: str | None) -> tuple[Config, SessionMap | None]:
@@ -257,21 +239,6 @@ def _session_config(cfg: Config, base_map: Path | None, mode: str | None) -> tup
     from loopmodel.loop.session_map import SessionMap
 
     return cfg, SessionMap.load(base_map)
-
-
-def _session_rows(m: dict[str, Any]) -> list[tuple[str, Any]]:
-    """Rows of a run in a saved map (localize or extend)."""
-    rows: list[tuple[str, Any]] = []
-    if "localized_frames" in m:
-        first = m.get("map_first_localized_frame")
-        rows.append(("localized in the map", f"{m['localized_frames']} frames (first at frame {_fmt(first)})"))
-        if not m.get("map_localized"):
-            rows.append(("map", "never relocalized: poses in this session's own frame"))
-    if "merged" in m:
-        rows.append(
-            ("merged with the map", f"{m.get('merge_links')} links" if m["merged"] else "no shared view: not merged")
-        )
-    return rows
 
 
 @app.command()
