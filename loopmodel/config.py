@@ -483,6 +483,10 @@ class EvalConfig(_Section):
         default_factory=lambda: [100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0]
     )
     plots: bool = True
+    # issue 35: evo's --plot_mode; auto: xz for camera-frame ground truth (KITTI), xy for z-up worlds
+    plot_mode: Literal["auto", "xy", "xz", "yz", "xyz"] = Field(
+        default="auto", description="plane of the path plots: auto, xy, xz, yz or xyz (3-D)"
+    )
 
 
 class SurfConfig(_Section):

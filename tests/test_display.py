@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from loopmodel.cli.summary import run_summary_rows
-from loopmodel.display import MM, M, Formatter, label, length_unit, num, quantity
+from loopmodel.display import MM, Formatter, M, label, length_unit, num, quantity
 
 # metrics.json of a 60-frame simulated orbit scan (loopmodel simulate scan --preset orbit --frames 60)
 ORBIT_METRICS = {

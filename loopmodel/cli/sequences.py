@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from loopmodel.cli.common import (
@@ -218,7 +219,7 @@ def run(
             raise
     table = Table(title=f"loopmodel run {path.name}", show_header=False)
     for k, v in run_summary_rows(result.metrics, result.folder, _run_formatter(result), rerun):
-        table.add_row(k, v)
+        table.add_row(escape(k), escape(v))
     console.print(table)
     console.print(f"results in {result.folder}")
 
