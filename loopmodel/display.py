@@ -164,6 +164,8 @@ _KNOWN: dict[str, tuple[str, str]] = {
     "frames": ("frames", COUNT),
     "matched": ("poses matched", COUNT),
     "keyframe_extent_m": ("keyframe extent", LENGTH_M),
+    "ground_truth_extent_m": ("extent of the ground truth", LENGTH_M),
+    "path_length_m": ("path length", LENGTH_M),
     "size_mib": ("size", MEBIBYTES),
     "load_s": ("load time", SECONDS),
     "baseline_m": ("baseline", LENGTH_M),
@@ -191,11 +193,12 @@ def label(key: str) -> str:
     """A human label for a ``metrics.json`` key, without its unit (see :meth:`Formatter.header`)."""
     if key in _KNOWN:
         return _KNOWN[key][0]
-    words = key.split("_")
     units = {s for s, _ in _SUFFIXES} | {"per", "100m"}
-    kept = [w for w in words if w.lower() not in units] or words
-    text = " ".join(kept)
-    return text.replace("rmse", "RMSE").replace("ate", "ATE") if text.startswith(("ate", "rpe")) else text
+    words = [w for w in key.split("_") if w.lower() not in units] or key.split("_")
+    return " ".join(_WORDS.get(w.lower(), w) for w in words)
+
+
+_WORDS = {"ate": "ATE", "rpe": "RPE", "rmse": "RMSE", "klt": "KLT", "kf": "keyframe", "gt": "vs truth"}
 
 
 @dataclass(frozen=True)
@@ -264,15 +267,39 @@ class Formatter:
         return MISSING if v_m is None else f"{num(self.scaled(LENGTH_M, v_m))} {self.length.symbol}"
 
 
-def key_values(values: Mapping[str, Any], sig: int = 4) -> str:
-    """``name value, name value`` of a small mapping (calibrations, counts); nested values joined."""
+def key_values(values: Mapping[str, Any], fmt: Formatter | None = None) -> str:
+    """``fx 469.4 px, baseline 59.94 mm, image size 640 x 480``: a small mapping in one line.
+
+    Keys are shown by their label, values in their unit (lengths in ``fmt``'s unit); nested
+    mappings in parentheses. The same text wherever a calibration or a count mapping is shown.
+    """
+    f = fmt or Formatter()
     parts = []
     for k, v in values.items():
+        key = str(k)
         if isinstance(v, Mapping):
-            parts.append(f"{k} ({key_values(v, sig)})")
-        else:
-            parts.append(f"{k} {num(v, sig) if not isinstance(v, str) else v}")
+            parts.append(f"{label(key)} ({key_values(v, f)})")
+            continue
+        u = f.unit(quantity(key))
+        text = v if isinstance(v, str) else f.value(key, v)
+        parts.append(f"{label(key)} {text}" + (f" {u}" if u and not isinstance(v, str) else ""))
     return ", ".join(parts)
+
+
+def describe_rows(desc: Mapping[str, Any], fmt: Formatter | None = None) -> list[tuple[str, str]]:
+    """(label with unit, value) rows of a description (``info``, ``map info``): no raw keys, no None."""
+    f = fmt or Formatter()
+    rows = []
+    for k, v in desc.items():
+        if v is None:
+            continue
+        if isinstance(v, Mapping):
+            rows.append((label(k), key_values(v, f)))
+        elif isinstance(v, str):
+            rows.append((label(k), v))
+        else:
+            rows.append((f.header(k), f.value(k, v)))
+    return rows
 
 
 def table_cells(row: Iterable[Any], sig: int = 4) -> list[str]:
@@ -288,6 +315,7 @@ __all__ = [
     "Formatter",
     "LengthUnit",
     "extent_m",
+    "describe_rows",
     "key_values",
     "label",
     "length_unit",

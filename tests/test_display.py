@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from loopmodel.cli.summary import run_summary_rows
 from loopmodel.display import MM, Formatter, M, label, length_unit, num, quantity
@@ -110,3 +111,60 @@ def test_localize_summary_has_no_empty_rows() -> None:
     assert "landmarks" not in text
     assert "0.04" not in text
     assert "localized in the map 0 frames\n" in text
+
+
+def test_batch_summary_per_sequence_in_its_unit() -> None:
+    """Variants compared within each sequence (mm for a scan, m for a drive), mesh columns kept."""
+    from loopmodel.batch.summary import summary_markdown
+
+    head = [
+        "task",
+        "sequence",
+        "variant",
+        "status",
+        "error",
+        "task_s",
+        "run_s",
+        "peak_rss_mib",
+        "ate_rmse_m",
+        "rpe_frames_rmse_m",
+        "ground_truth_extent_m",
+        "mesh_err_after_mm",
+    ]
+    rows = [
+        ["o1", "orbit", "backend.kind=isam2", "done", None, 35.04, 25.6924, 812.3, 0.0023082, 0.00196, 2.04, 2.5488],
+        ["o2", "orbit", "backend.kind=none", "done", None, 30.1, 20.2, 700.0, 0.0122126, 0.00227, 2.04, 5.9412],
+        ["k1", "kitti", "backend.kind=isam2", "done", None, 80.0, 70.0, 900.0, 0.1042, 0.0301, 59.86, None],
+        ["k2", "kitti", "backend.kind=none", "done", None, 60.0, 50.0, 850.0, 0.0998, 0.0352, 59.86, None],
+    ]
+    md = summary_markdown(head, rows, plots=False)
+    orbit = md.split("## orbit (lengths in mm)")[1].split("##")[0]
+    kitti = md.split("## kitti (lengths in m)")[1].split("##")[0]
+    assert "| 1 | backend.kind=isam2 | done | 2.308 | 1.960 |" in orbit
+    assert "mesh error after closing, mean [mm]" in orbit and "| 2.549 |" in orbit
+    assert "mesh error" not in kitti  # no empty mesh column for a drive
+    assert "| 1 | backend.kind=none | done | 0.09980 |" in kitti
+    assert "run time [s]" in orbit and "| 25.69 | 35.04 |" in orbit
+    assert "None" not in md and "median |" not in md
+    across = md.split("## Variants across sequences")[1]
+    assert "| backend.kind=isam2 | 1.500 | 1.022 | 1 | 2 |" in across  # mean rank; median of 1.0 and 1.044
+
+
+def test_info_prints_labels_and_units(shared_data: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from loopmodel.cli import main
+
+    assert main(["info", str(shared_data / "kitti_clip")]) == 0
+    out = capsys.readouterr().out
+    assert "fx 707.1 px" in out and "baseline 0.5372 m" in out and "duration [s]" in out
+    assert "fx_px" not in out and "=" not in out and "True" not in out
+
+
+def test_key_values_one_spelling() -> None:
+    from loopmodel.display import describe_rows, key_values
+
+    cal = {"fx_px": 469.367, "baseline_m": 0.0599392, "image_size": [640, 480], "rectified": True}
+    assert key_values(cal, Formatter(MM)) == "fx 469.4 px, baseline 59.94 mm, image size 640 x 480, rectified yes"
+    rows = dict(
+        describe_rows({"keyframe_extent_m": [1.4324301096263707, 0.414, 1.387], "size_mib": 7.8649}, Formatter(MM))
+    )
+    assert rows == {"keyframe extent [mm]": "1432 x 414.0 x 1387", "size [MiB]": "7.865"}

@@ -239,7 +239,8 @@ def _config_layer(value: Any, base_dir: Path, key: str, source: Path) -> dict[st
 
 
 def _variant_name(overrides: dict[str, Any]) -> str:
-    return ",".join(f"{k.split('.')[-1]}={v}" for k, v in overrides.items()) or "base"
+    """``backend.kind=isam2,frontend.max_features=300``: the whole dotted key, section included."""
+    return ",".join(f"{k}={v}" for k, v in overrides.items()) or "base"
 
 
 def _variants(data: dict[str, Any], source: Path) -> list[Variant]:

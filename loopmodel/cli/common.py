@@ -77,16 +77,19 @@ def progress_bar(*extra: Any) -> Progress:
 
 def _length(v_m: float | None) -> str:
     """A length for people: millimetres below 10 cm (close-range scans), metres above."""
+    from loopmodel.display import MM, Formatter
+
     if v_m is None or not math.isfinite(v_m):
         return "-"
-    return f"{v_m * 1e3:.3g} mm" if abs(v_m) < 0.1 else f"{v_m:.4g} m"
+    return Formatter(MM).length_text(v_m) if abs(v_m) < 0.1 else Formatter().length_text(v_m)
 
 
 def _fmt(v: Any) -> str:
-    if isinstance(v, float):
-        return f"{v:.6g}"
+    """One value of a table (numbers with 4 significant digits, mappings as ``label value unit``)."""
+    from loopmodel.display import key_values, num
+
     if isinstance(v, dict):
-        return ", ".join(f"{k}={_fmt(x)}" for k, x in v.items())
-    if isinstance(v, list):
-        return "x".join(str(x) for x in v) if all(isinstance(x, int) for x in v) else ", ".join(map(str, v))
-    return str(v)
+        return key_values(v)
+    if isinstance(v, list) and not all(isinstance(x, int | float) for x in v):
+        return ", ".join(map(str, v))
+    return num(v)

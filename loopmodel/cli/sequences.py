@@ -15,7 +15,6 @@ from loopmodel.cli.common import (
     ConfigOption,
     LeftTopicOption,
     RightTopicOption,
-    _fmt,
     app,
     console,
     err_console,
@@ -24,7 +23,7 @@ from loopmodel.cli.common import (
 from loopmodel.cli.summary import frontend_summary, run_summary_rows
 from loopmodel.cli.view import RerunConnectOption, RerunFileOption, RerunSpawnOption, rerun_listeners
 from loopmodel.config import Config, apply_overrides, load_config
-from loopmodel.display import Formatter
+from loopmodel.display import Formatter, describe_rows, key_values
 from loopmodel.errors import InputError
 
 if TYPE_CHECKING:
@@ -55,10 +54,17 @@ def info(
     table = Table(title=str(path), show_header=False)
     for k, v in desc.items():
         if k == "topics" and isinstance(v, dict):
-            v = ", ".join(f"{t} [{d['type'].split('/')[-1]}: {d['messages']}]" for t, d in v.items())
+            desc[k] = ", ".join(f"{t} ({d['type'].split('/')[-1]}: {d['messages']})" for t, d in v.items())
         if k == "image_topics" and isinstance(v, dict):
-            v = "; ".join(f"{t} " + ", ".join(f"{a} {_fmt(b)}" for a, b in d.items()) for t, d in v.items())
-        table.add_row(k, _fmt(v))
+            desc[k] = "; ".join(f"{t}: {key_values(d)}" for t, d in v.items())
+        if isinstance(v, list) and v and all(isinstance(x, str) for x in v):
+            desc[k] = ", ".join(v)
+    if desc.get("laser_images") and not desc.get("stripes"):
+        desc.pop("stripes", None)  # measured from the laser images by the run: "stripes 0" would mislead
+    if not desc.get("laser_images"):
+        desc.pop("laser_images", None)
+    for k, text in describe_rows(desc):
+        table.add_row(escape(k), escape(text))
     console.print(table)
 
 
@@ -131,7 +137,7 @@ def run(
     path: Annotated[Path, typer.Argument(help="MCAP file, ROS 1/ROS 2 bag, EuRoC or KITTI folder")],
     config: ConfigOption = None,
     frontend_only: Annotated[bool, typer.Option("--frontend-only", help="Run only the visual front end")] = False,
-    out: Annotated[Path | None, typer.Option("--out", help="Results root (default: output.out_dir)")] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Results root (default: output.out_dir)")] = None,
     name: Annotated[str | None, typer.Option("--name", help="Run name (folder under --out)")] = None,
     max_frames: Annotated[int | None, typer.Option("--max-frames", help="Stop after this many frames")] = None,
     left: LeftTopicOption = None,
@@ -399,7 +405,9 @@ def simulate_scan_cmd(
         raise typer.Exit(130) from None
     console.print(
         f"wrote {res.path} ({res.size_bytes / 2**20:.1f} MiB, {res.frames_written} frames, "
-        f"{res.stripes_written} stripes, {len(res.faults)} faults) in {res.seconds:.1f} s: "
+        + (f"{res.laser_images_written} laser images, " if res.laser_images_written else "")
+        + (f"{res.stripes_written} stripes, " if res.stripes_written or not res.laser_images_written else "")
+        + f"{len(res.faults)} faults) in {res.seconds:.1f} s: "
         f"{res.ms_per_frame:.1f} ms/frame (setup {res.setup_seconds:.1f} s, "
         f"render {res.render_ms_median:.1f} ms/frame per worker)"
     )

@@ -27,6 +27,7 @@ COMPARISON_COLUMNS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("kitti_r_err_deg_per_100m", ("trajectories", "final", "kitti_segments", "r_err_deg_per_100m")),
     ("end_point_origin_m", ("trajectories", "final", "end_point", "error_origin_aligned_m")),
     ("loop_closures", ("loop_closure_count",)),
+    ("ground_truth_extent_m", ("ground_truth_extent_m",)),
 )
 
 
