@@ -47,7 +47,7 @@ def batch_run(
     out: Annotated[
         Path | None, typer.Option("--out", "-o", help="Results folder (default results/<plan name>)")
     ] = None,
-    no_plots: Annotated[bool, typer.Option("--no-plots", help="Summary without pictures")] = False,
+    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Also draw the summary's pictures")] = True,
 ) -> None:
     """Run every (sequence, variant) task of a plan.
 
@@ -103,7 +103,7 @@ def batch_run(
         except KeyboardInterrupt:
             err_console.print(f"interrupted; finished results are kept in {out_dir}; run the same command to continue")
             raise
-    paths = write_summary(load_manifest(out_dir.resolve()), out_dir, plots=not no_plots)
+    paths = write_summary(load_manifest(out_dir.resolve()), out_dir, plots=plots)
     done = sum(r.get("status") == "done" for r in outcome.records)
     failed = [r for r in outcome.records if r.get("status") != "done"]
     for r in failed:

@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from loopmodel import __version__
+from loopmodel.cli.help import FlowGroup
 
 console = Console()
 
@@ -19,7 +20,10 @@ err_console = Console(stderr=True)
 
 app = typer.Typer(
     name="loopmodel",
+    cls=FlowGroup,
     help="Close-range 3-D modelling with a hand-held stereo camera and a laser-stripe profiler.",
+    epilog="Start with: loopmodel simulate scan --preset orbit -o scan.mcap; loopmodel run scan.mcap -o results; "
+    "loopmodel eval results/scan",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
     add_completion=False,
@@ -29,7 +33,15 @@ config_app = typer.Typer(help="Configuration.", no_args_is_help=True)
 
 app.add_typer(config_app, name="config")
 
-ConfigOption = Annotated[Path | None, typer.Option("--config", "-c", help="YAML file overriding defaults")]
+ConfigOption = Annotated[
+    list[Path] | None,
+    typer.Option(
+        "--config",
+        "-c",
+        metavar="FILE",
+        help="YAML file overriding the defaults; give it again to layer files (later ones override earlier ones)",
+    ),
+]
 
 LeftTopicOption = Annotated[str | None, typer.Option("--left", help="Left image topic of a bag (default: guessed)")]
 

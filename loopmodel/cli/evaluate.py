@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import typer
 from rich.table import Table
@@ -14,22 +13,12 @@ from loopmodel.cli.common import (
     app,
     console,
 )
-from loopmodel.config import apply_overrides, load_config
+from loopmodel.config import AlignMode, apply_overrides, load_config
 from loopmodel.errors import InputError
 
 if TYPE_CHECKING:
     from loopmodel.display import Formatter
     from loopmodel.eval.evaluation import RunEvaluation
-
-
-class PlotMode(StrEnum):
-    """evo's plot modes: a plane of the ground-truth frame, or 3-D."""
-
-    auto = "auto"
-    xy = "xy"
-    xz = "xz"
-    yz = "yz"
-    xyz = "xyz"
 
 
 @app.command("eval")
@@ -38,14 +27,14 @@ def eval_command(
     gt: Annotated[Path | None, typer.Option("--gt", help="Ground truth file or sequence")] = None,
     ref: Annotated[Path | None, typer.Option("--ref", help="Reference trajectory")] = None,
     est: Annotated[Path | None, typer.Option("--est", help="Estimated trajectory")] = None,
-    align: Annotated[str | None, typer.Option("--align", help="se3, sim3, origin, none")] = None,
+    align: Annotated[AlignMode | None, typer.Option("--align", help="Alignment to the ground truth")] = None,
     first_n: Annotated[int | None, typer.Option("--first-n", help="Align on N poses")] = None,
     max_dt_ms: Annotated[float | None, typer.Option("--max-dt-ms", help="Max time gap")] = None,
     rpe_delta_m: Annotated[float | None, typer.Option("--rpe-delta-m", help="RPE metres")] = None,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder")] = None,
-    no_plots: Annotated[bool, typer.Option("--no-plots", help="Skip the pictures")] = False,
+    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Also draw the pictures")] = True,
     plot_mode: Annotated[
-        PlotMode | None,
+        Literal["auto", "xy", "xz", "yz", "xyz"] | None,
         typer.Option(
             "--plot-mode",
             help="Plane of the path plots, as evo's --plot_mode (default auto: xz for camera-frame ground truth "
@@ -63,10 +52,10 @@ def eval_command(
         "first_n": first_n,
         "max_dt_ms": max_dt_ms,
         "rpe_delta_m": rpe_delta_m,
-        "plot_mode": plot_mode.value if plot_mode is not None else None,
+        "plot_mode": plot_mode,
     }
     ecfg = apply_overrides(cfg.eval, overrides, {k: "--" + k.replace("_", "-") for k in overrides})
-    if no_plots:
+    if not plots:
         ecfg.plots = False
     runs = list(runs or [])
     if (ref is None) != (est is None):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import typer
 from rich.markup import escape
@@ -79,11 +79,12 @@ def convert(
     dst: Annotated[Path, typer.Argument(help="Output: .mcap, .bag (ROS 1) or a ROS 2 bag folder")],
     config: ConfigOption = None,
     image_format: Annotated[
-        str,
-        typer.Option("--image-format", help="raw, png, jpeg; bags also mono8, mono16, bgr8, rgb8, bgra8, bayer_rggb8"),
+        Literal["raw", "png", "jpeg", "mono8", "mono16", "bgr8", "rgb8", "bgra8", "bayer_rggb8"],
+        typer.Option("--image-format", help="Image encoding; mono8 ... bayer_rggb8 only in bags"),
     ] = "png",
     to: Annotated[
-        str | None, typer.Option("--to", help="mcap, ros2-sqlite3, ros2-mcap or ros1 (default: from the name)")
+        Literal["mcap", "ros2-sqlite3", "ros2-mcap", "ros1"] | None,
+        typer.Option("--to", help="Output kind (default: from the name)"),
     ] = None,
     keep_topics: Annotated[bool, typer.Option("--keep-topics", help="Keep the source's topic names")] = False,
     left: LeftTopicOption = None,
@@ -150,14 +151,15 @@ def run(
         Path | None, typer.Option("--map", help="Saved map (RESULTS_DIR or RESULTS_DIR/map) to localize in or extend")
     ] = None,
     mode: Annotated[
-        str | None, typer.Option("--mode", help="With --map: localize (nothing added) or extend (merged map, mesh)")
+        Literal["localize", "extend"] | None,
+        typer.Option("--mode", help="With --map: localize (nothing added) or extend (merged map, mesh)"),
     ] = None,
     resume: Annotated[
         Path | None, typer.Option("--resume", help="Continue the interrupted run RESULTS_DIR from its last keyframe")
     ] = None,
     overwrite: OverwriteOption = False,
 ) -> None:
-    """Process a sequence (front end, back end).
+    """Process a sequence: track, close loops, optimise, mesh the laser stripes.
 
     Writes config, trajectories, keyframes, map, metrics and log into <out>/<name>/. Ctrl-C or
     SIGTERM stops it after writing what it has. With --map the run localizes in a saved map
@@ -178,7 +180,7 @@ def run(
         resume_point = read_resume_point(resume)
         out, name = resume.parent, name or resume.name
         if config is None and (resume / "config.yaml").is_file():
-            config = resume / "config.yaml"  # the interrupted run's configuration
+            config = [resume / "config.yaml"]  # the interrupted run's configuration
     cfg, session_map = _session_config(load_config(config), base_map, mode)
     from loopmodel.io.results import check_results_folder
 
@@ -254,9 +256,11 @@ def mesh(
         Path,
         typer.Argument(help="Results folder (stripes.npz + trajectory), session map, or a sequence with ground truth"),
     ],
-    fmt: Annotated[str, typer.Option("--format", "-f", help="ply (binary), obj, stl or glb")] = "ply",
+    fmt: Annotated[Literal["ply", "obj", "stl", "glb"], typer.Option("--format", "-f", help="ply is binary")] = "ply",
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output file (default RESULTS_DIR/mesh.FMT)")] = None,
-    trajectory: Annotated[str, typer.Option("--trajectory", help="final or online poses of a run")] = "final",
+    trajectory: Annotated[
+        Literal["final", "online"], typer.Option("--trajectory", help="Poses of a run to place the stripes with")
+    ] = "final",
     gt_mesh: Annotated[
         Path | None,
         typer.Option("--gt-mesh", help="Ground-truth mesh (.ply, or .mcap with scene.ply): print accuracy"),
@@ -264,9 +268,10 @@ def mesh(
     gt_attachment: Annotated[
         str, typer.Option("--gt-attachment", help="Attachment of an .mcap --gt-mesh (e.g. object.ply)")
     ] = "scene.ply",
-    picture: Annotated[
-        bool, typer.Option("--picture/--no-picture", help="Also write a PNG picture of the mesh beside it")
+    plots: Annotated[
+        bool, typer.Option("--plots/--no-plots", help="Also write a PNG picture of the mesh beside it")
     ] = True,
+    picture: Annotated[bool | None, typer.Option("--picture/--no-picture", hidden=True)] = None,  # old spelling
     config: ConfigOption = None,
     overwrite: OverwriteOption = False,
 ) -> None:
@@ -275,7 +280,7 @@ def mesh(
     from loopmodel.mapping.sources import load_stripes_and_poses
     from loopmodel.mapping.stripe_map import StripeMap
 
-    fmt = fmt.lower()
+    picture = plots if picture is None else picture
     if fmt not in MESH_FORMATS:
         raise InputError(None, f"--format must be one of {', '.join(MESH_FORMATS)}, got '{fmt}'")
     cfg = load_config(config)
@@ -332,14 +337,16 @@ app.add_typer(simulate_app, name="simulate")
 @simulate_app.command("scan")
 def simulate_scan_cmd(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output .mcap file")],
-    preset: Annotated[str | None, typer.Option("--preset", help="orbit, sweeps, browse or modeler")] = None,
+    preset: Annotated[
+        Literal["orbit", "sweeps", "browse", "modeler"] | None, typer.Option("--preset", help="Camera motion")
+    ] = None,
     realism: Annotated[
-        str | None,
-        typer.Option("--realism", help="clean or realistic (default: realistic with a preset, else the config's)"),
+        Literal["clean", "realistic"] | None,
+        typer.Option("--realism", help="Image model (default: realistic with a preset, else the config's)"),
     ] = None,
     frames: Annotated[int | None, typer.Option("--frames", help="Number of frames")] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="Random seed")] = None,
-    scene: Annotated[str | None, typer.Option("--scene", help="bust, box or mix")] = None,
+    scene: Annotated[Literal["bust", "box", "mix"] | None, typer.Option("--scene", help="Scanned object")] = None,
     width: Annotated[int | None, typer.Option("--width", help="Image width (px)")] = None,
     height: Annotated[int | None, typer.Option("--height", help="Image height (px)")] = None,
     baseline: Annotated[float | None, typer.Option("--baseline", help="Stereo baseline (m)")] = None,
@@ -356,7 +363,9 @@ def simulate_scan_cmd(
         bool | None, typer.Option("--laser-image/--no-laser-image", help="Also write /laser/image")
     ] = None,
     workers: Annotated[int | None, typer.Option("--workers", help="Render processes (0: one per core)")] = None,
-    image_format: Annotated[str | None, typer.Option("--image-format", help="png, jpeg or raw")] = None,
+    image_format: Annotated[
+        Literal["png", "jpeg", "raw"] | None, typer.Option("--image-format", help="Image encoding in the MCAP")
+    ] = None,
     config: ConfigOption = None,
     overwrite: OverwriteOption = False,
 ) -> None:
