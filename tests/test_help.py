@@ -99,3 +99,24 @@ def test_config_given_twice_is_layered(tmp_path: Path, capsys: pytest.CaptureFix
     bad.write_text("frontend:\n  no_such_key: 1\n")
     assert main(["config", "dump", "-c", str(a), "-c", str(bad)]) == 2
     assert "bad.yaml" in capsys.readouterr().err
+
+
+def test_scene_seed_keeps_the_object(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--scene-seed`` fixes the object; ``--seed`` then changes only the scan (issue 35 item 9)."""
+    import numpy as np
+
+    from loopmodel.sim import generate
+
+    seen = []
+
+    def fake_simulate(sim: object, out: Path, *args: object) -> object:
+        seen.append(sim)
+        raise KeyboardInterrupt  # stop before rendering
+
+    monkeypatch.setattr(generate, "simulate_scan", fake_simulate)
+    out = ["-o", str(tmp_path / "s.mcap")]
+    for seed in ("7", "8"):
+        assert main(["simulate", "scan", "--seed", seed, "--scene-seed", "3", *out]) == 130
+    a, b = (generate.scene_of(s) for s in seen)  # type: ignore[arg-type]
+    assert seen[0].seed == 7 and seen[1].seed == 8  # type: ignore[attr-defined]
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.textures[0], b.textures[0])

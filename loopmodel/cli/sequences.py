@@ -79,9 +79,21 @@ def convert(
     dst: Annotated[Path, typer.Argument(help="Output: .mcap, .bag (ROS 1) or a ROS 2 bag folder")],
     config: ConfigOption = None,
     image_format: Annotated[
-        Literal["raw", "png", "jpeg", "mono8", "mono16", "bgr8", "rgb8", "bgra8", "bayer_rggb8"],
-        typer.Option("--image-format", help="Image encoding; mono8 ... bayer_rggb8 only in bags"),
-    ] = "png",
+        Literal["raw", "png", "jpeg", "mono8", "mono16", "bgr8", "rgb8", "bgra8", "bayer_rggb8"] | None,
+        typer.Option(
+            "--image-format",
+            help="Image encoding (default: raw sensor_msgs/Image in bags, png in MCAP); png and jpeg go to "
+            "<image topic>/compressed in bags; mono8 ... bayer_rggb8 only in bags",
+        ),
+    ] = None,
+    epoch: Annotated[
+        str | None,
+        typer.Option(
+            "--epoch",
+            help="Bags: add this date (ISO 8601 UTC, or seconds) to every stamp, for sources with relative "
+            "times such as KITTI (else ROS tools read them as 1970)",
+        ),
+    ] = None,
     to: Annotated[
         Literal["mcap", "ros2-sqlite3", "ros2-mcap", "ros1"] | None,
         typer.Option("--to", help="Output kind (default: from the name)"),
@@ -93,7 +105,7 @@ def convert(
     overwrite: OverwriteOption = False,
 ) -> None:
     """Convert a sequence to MCAP with ROS 2 messages (topics of DESIGN.md) or to a ROS bag."""
-    from loopmodel.io.convert import OUTPUT_KINDS, convert_sequence, output_kind
+    from loopmodel.io.convert import OUTPUT_KINDS, convert_sequence, output_kind, parse_epoch_ns, relative_times
     from loopmodel.io.rosbag_writer import ENCODINGS
     from loopmodel.io.sequence import open_sequence
 
@@ -105,7 +117,7 @@ def convert(
     if kind == "ros1" and dst.suffix.lower() != ".bag":
         raise InputError(dst, "a ROS 1 bag must end in .bag")
     allowed = ("raw", "png", "jpeg") if kind == "mcap" else ENCODINGS
-    if image_format not in allowed:
+    if image_format is not None and image_format not in allowed:
         raise InputError("--image-format", f"must be one of {', '.join(allowed)} for {kind}, got '{image_format}'")
     if dst.exists() and not overwrite:
         raise InputError(dst, "exists already; choose a new name or pass --overwrite")
@@ -114,6 +126,16 @@ def convert(
 
     if kind == "mcap":
         check_output_file(dst)  # before the work, not after it
+    epoch_ns = None
+    if epoch is not None:
+        if kind == "mcap":
+            raise InputError("--epoch", "applies to bags only (the project's MCAP keeps the source's stamps)")
+        try:
+            epoch_ns = parse_epoch_ns(epoch)
+        except ValueError:
+            raise InputError(
+                "--epoch", f"expected an ISO 8601 date such as 2011-10-03T12:55:00Z or seconds, got '{epoch}'"
+            ) from None
     cfg = load_config(config)
     seq = open_sequence(src, cfg.sequence, left, right, calib)
     done = [0]
@@ -125,12 +147,19 @@ def convert(
     try:
         with sigterm_as_interrupt(), progress_bar() as bar:
             task = bar.add_task("convert", total=len(seq))
-            convert_sequence(seq, dst, kind, cfg.sequence, image_format, keep_topics, progress=step)
+            convert_sequence(seq, dst, kind, cfg.sequence, image_format, keep_topics, progress=step, epoch_ns=epoch_ns)
     except KeyboardInterrupt:
         err_console.print(f"interrupted after {done[0]} frames; {dst} not written")
         raise typer.Exit(130) from None
     size = sum(p.stat().st_size for p in dst.rglob("*")) if dst.is_dir() else dst.stat().st_size
     console.print(f"wrote {dst} ({kind}, {size / 2**20:.1f} MiB, {len(seq)} frames)")
+    if kind != "mcap" and epoch_ns is None and relative_times(seq):
+        err_console.print(
+            f"note: the stamps of {src} are relative (from 0 s), so ROS tools read them as 1970; "
+            "--epoch DATE places them at a stated date",
+            highlight=False,
+            soft_wrap=True,
+        )
 
 
 @app.command()
@@ -345,7 +374,14 @@ def simulate_scan_cmd(
         typer.Option("--realism", help="Image model (default: realistic with a preset, else the config's)"),
     ] = None,
     frames: Annotated[int | None, typer.Option("--frames", help="Number of frames")] = None,
-    seed: Annotated[int | None, typer.Option("--seed", help="Random seed")] = None,
+    seed: Annotated[
+        int | None,
+        typer.Option("--seed", help="Random seed of the scan (motion, noise; the object too unless --scene-seed)"),
+    ] = None,
+    scene_seed: Annotated[
+        int | None,
+        typer.Option("--scene-seed", help="Seed of the object and room alone: keep it, change --seed: a rescan"),
+    ] = None,
     scene: Annotated[Literal["bust", "box", "mix"] | None, typer.Option("--scene", help="Scanned object")] = None,
     width: Annotated[int | None, typer.Option("--width", help="Image width (px)")] = None,
     height: Annotated[int | None, typer.Option("--height", help="Image height (px)")] = None,
@@ -380,7 +416,7 @@ def simulate_scan_cmd(
         preset,
         {
             "trajectory": {"frames": frames, "rate_hz": rate},
-            "scene": {"kind": scene},
+            "scene": {"kind": scene, "seed": scene_seed},
             "camera": {"width_px": width, "height_px": height, "baseline_m": baseline},
             "render": {"noise_sigma": noise},
             "laser": {"image": laser_image},
