@@ -23,7 +23,7 @@ from loopmodel.cli.common import (
 from loopmodel.cli.summary import frontend_summary, run_summary_rows
 from loopmodel.cli.view import RerunConnectOption, RerunFileOption, RerunSpawnOption, rerun_listeners
 from loopmodel.config import Config, apply_overrides, load_config
-from loopmodel.display import Formatter, describe_rows, key_values
+from loopmodel.display import Formatter, describe_rows, key_values, num
 from loopmodel.errors import InputError
 
 if TYPE_CHECKING:
@@ -44,17 +44,21 @@ def info(
 
     For a bag its image and camera_info topics with rates and sizes, and the stereo pair chosen.
     """
+    from loopmodel.io.rosbag_io import NoImageTopicsError, describe_recording
     from loopmodel.io.sequence import open_sequence
 
     cfg = load_config(config)
-    desc = open_sequence(path, cfg.sequence, left, right, calib).describe()
+    try:
+        desc = open_sequence(path, cfg.sequence, left, right, calib).describe()
+    except NoImageTopicsError:  # not a sequence to run, still a recording to describe (as ros2 bag info)
+        desc = describe_recording(path)
     if as_json:
         console.print_json(json.dumps(desc))
         return
     table = Table(title=str(path), show_header=False)
     for k, v in desc.items():
         if k == "topics" and isinstance(v, dict):
-            desc[k] = ", ".join(f"{t} ({d['type'].split('/')[-1]}: {d['messages']})" for t, d in v.items())
+            desc[k] = ", ".join(f"{t} ({_topic_text(d)})" for t, d in v.items())
         if k == "image_topics" and isinstance(v, dict):
             desc[k] = "; ".join(f"{t}: {key_values(d)}" for t, d in v.items())
         if isinstance(v, list) and v and all(isinstance(x, str) for x in v):
@@ -66,6 +70,12 @@ def info(
     for k, text in describe_rows(desc):
         table.add_row(escape(k), escape(text))
     console.print(table)
+
+
+def _topic_text(d: dict[str, Any]) -> str:
+    """``PoseStamped: 120 messages, 10.00 Hz`` of a topic row."""
+    text = f"{str(d['type']).split('/')[-1]}: {d['messages']}"
+    return text + (f", {num(d['rate_hz'])} Hz" if d.get("rate_hz") else "")
 
 
 OverwriteOption = Annotated[
