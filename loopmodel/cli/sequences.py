@@ -326,8 +326,15 @@ def mesh(
     from loopmodel.io.atomic import check_output_file
 
     target = out or (source / f"mesh.{fmt}" if source.is_dir() else source.with_name(f"{source.stem}_mesh.{fmt}"))
-    for p in [target] + ([target.with_suffix(".png")] if picture else []):
-        check_output_file(p, overwrite)  # before the work
+    check_output_file(target, overwrite)  # before the work
+    run_mesh = source / "mesh.ply"
+    if trajectory == "final" and run_mesh.is_file() and run_mesh.resolve() != target.resolve() and gt_mesh is None:
+        # the run's own product (its final trajectory): converted, not re-meshed
+        surface = read_mesh(run_mesh)
+        write_mesh(target, surface, fmt)
+        console.print(f"wrote {target} ({num(len(surface.vertices))} vertices, converted from {run_mesh})")
+        _mesh_picture(target, surface, None, picture, overwrite)
+        return
     if (source / "map.json").is_file():  # a saved (merged) session map: its stripes at their anchors
         from loopmodel.loop.session_map import SessionMap
         from loopmodel.mapping.final import posed_stripes_mesh
@@ -359,13 +366,22 @@ def mesh(
             f"accuracy: mean {acc.mean_mm:.3f} mm, p95 {acc.p95_mm:.3f} mm, "
             f"completeness {100 * acc.completeness:.1f} % within {acc.completeness_tol_mm:g} mm"
         )
-    if picture:
-        from loopmodel.io.atomic import write_bytes_atomic
-        from loopmodel.viz.mesh_render import mesh_picture_png
+    _mesh_picture(target, surface, truth, picture, overwrite)
 
-        png = target.with_suffix(".png")
-        write_bytes_atomic(png, mesh_picture_png(surface, target.name, truth))
-        console.print(f"wrote {png} (the mesh from three viewpoints)")
+
+def _mesh_picture(target: Path, surface: Any, truth: Any, picture: bool, overwrite: bool) -> None:
+    """The PNG beside an exported mesh; an existing one (of the same mesh, another format) is kept."""
+    if not picture:
+        return
+    from loopmodel.io.atomic import write_bytes_atomic
+    from loopmodel.viz.mesh_render import mesh_picture_png
+
+    png = target.with_suffix(".png")
+    if png.exists() and not overwrite:
+        console.print(f"kept {png} (exists; --overwrite redraws it)")
+        return
+    write_bytes_atomic(png, mesh_picture_png(surface, target.name, truth))
+    console.print(f"wrote {png} (the mesh from three viewpoints)")
 
 
 simulate_app = typer.Typer(help="Synthetic data.", no_args_is_help=True)
