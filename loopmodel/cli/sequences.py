@@ -257,7 +257,7 @@ def run(
                 run_name,
                 max_frames=max_frames,
                 progress=lambda i, n, fps, kf: bar.update(task, completed=i, fps=fps, kf=kf),
-                listeners=rerun_listeners(seq.calibration, rerun, rerun_spawn, rerun_connect),
+                listeners=rerun_listeners(seq.calibration, rerun, rerun_spawn, rerun_connect, seq.ground_truth),
                 base_map=session_map,
                 resume=resume_point,
             )
