@@ -149,3 +149,18 @@ def test_headless_screenshot_of_a_recording_is_not_blank(tiny_run: Path, tmp_pat
     # the 3-D view shows the scene (keyframes, paths: many colours), the side panel the camera image
     assert len(np.unique(view3d.reshape(-1, 3) // 32, axis=0)) > 20
     assert float(side.std()) > 20
+
+
+@pytest.mark.parametrize("up", [(0.0, 0.0, 1.0), (0.0, -1.0, 0.0)])
+def test_mesh_views_stand_upright_about_the_given_up(up: tuple[float, float, float]) -> None:
+    """A run's mesh (world: first camera, y down) is drawn with -y up, not on its side (issue 35)."""
+    from loopmodel.viz.mesh_render import fixed_views
+
+    rng = np.random.default_rng(3)
+    verts = rng.normal(size=(200, 3)) * [0.1, 0.2, 0.15]
+    u = np.asarray(up)
+    for view in fixed_views(verts, 3, up=up):
+        R, t = view.cam_from_world[:3, :3], view.cam_from_world[:3, 3]
+        assert (R @ u)[1] < -0.8  # world up points up in the image (image y is down)
+        eye = -R.T @ t
+        assert float((eye - verts.mean(axis=0)) @ u) > 0  # seen from above

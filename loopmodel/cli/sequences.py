@@ -315,9 +315,12 @@ def mesh(
     overwrite: OverwriteOption = False,
 ) -> None:
     """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run), or of a (merged) map."""
+    import numpy as np
+
     from loopmodel.io.mesh_io import MESH_FORMATS, read_mesh, write_mesh
     from loopmodel.mapping.sources import load_stripes_and_poses
     from loopmodel.mapping.stripe_map import StripeMap
+    from loopmodel.viz.mesh_render import CAMERA_UP
 
     picture = plots if picture is None else picture
     if fmt not in MESH_FORMATS:
@@ -333,7 +336,7 @@ def mesh(
         surface = read_mesh(run_mesh)
         write_mesh(target, surface, fmt)
         console.print(f"wrote {target} ({num(len(surface.vertices))} vertices, converted from {run_mesh})")
-        _mesh_picture(target, surface, None, picture, overwrite)
+        _mesh_picture(target, surface, None, picture, overwrite, CAMERA_UP)
         return
     if (source / "map.json").is_file():  # a saved (merged) session map: its stripes at their anchors
         from loopmodel.loop.session_map import SessionMap
@@ -346,12 +349,14 @@ def mesh(
             raise InputError(source, "the map holds no laser stripes to mesh")
         sessions = len(set(session_map.session.tolist()))
         placed, poses = f"{len(map_stripes)} stripes", f"map keyframes of {sessions} sessions"
+        camera_world = True
     else:
         stripes, traj, poses = load_stripes_and_poses(source, trajectory, cfg.sequence, cfg.mapping)
         smap = StripeMap.from_trajectory(traj, stripes, cfg.mapping)
         smap.check_nonempty()
         surface = smap.mesh()
         placed = f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes"
+        camera_world = poses != "ground truth" or bool(np.allclose(traj.world_from_cam[0], np.eye(4), atol=1e-6))
     write_mesh(target, surface, fmt)
     console.print(
         f"wrote {target} ({len(surface.vertices)} vertices, {len(surface.triangles)} triangles, "
@@ -366,10 +371,15 @@ def mesh(
             f"accuracy: mean {acc.mean_mm:.3f} mm, p95 {acc.p95_mm:.3f} mm, "
             f"completeness {100 * acc.completeness:.1f} % within {acc.completeness_tol_mm:g} mm"
         )
-    _mesh_picture(target, surface, truth, picture, overwrite)
+    # a run or a map is in its first camera's world (y down), as is ground truth starting at the
+    # identity (KITTI); other ground truth (simulator, motion capture) is z up
+    up = CAMERA_UP if camera_world else (0.0, 0.0, 1.0)
+    _mesh_picture(target, surface, truth, picture, overwrite, up)
 
 
-def _mesh_picture(target: Path, surface: Any, truth: Any, picture: bool, overwrite: bool) -> None:
+def _mesh_picture(
+    target: Path, surface: Any, truth: Any, picture: bool, overwrite: bool, up: tuple[float, float, float]
+) -> None:
     """The PNG beside an exported mesh; an existing one (of the same mesh, another format) is kept."""
     if not picture:
         return
@@ -380,7 +390,7 @@ def _mesh_picture(target: Path, surface: Any, truth: Any, picture: bool, overwri
     if png.exists() and not overwrite:
         console.print(f"kept {png} (exists; --overwrite redraws it)")
         return
-    write_bytes_atomic(png, mesh_picture_png(surface, target.name, truth))
+    write_bytes_atomic(png, mesh_picture_png(surface, target.name, truth, up=up))
     console.print(f"wrote {png} (the mesh from three viewpoints)")
 
 

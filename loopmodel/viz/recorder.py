@@ -71,6 +71,7 @@ def blueprint() -> Any:
             rrb.Vertical(rrb.Spatial2DView(origin="world/camera/image", name="left camera"), *plots),
             column_shares=[3, 1],
         ),
+        rrb.TimePanel(timeline="frame", play_state="following", state="collapsed"),  # opens at the end of the run
         collapse_panels=True,
     )
 
