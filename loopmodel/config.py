@@ -6,7 +6,7 @@ Every run writes the effective configuration into its results folder.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
@@ -494,6 +494,10 @@ class EvalConfig(_Section):
         default=False,
         description="also mesh the stripes with the ground-truth and online poses (mesh_err_gt_mm, mesh_err_before_mm)",
     )
+    # issue 35: evo's --plot_mode; auto: xz for camera-frame ground truth (KITTI), xy for z-up worlds
+    plot_mode: Literal["auto", "xy", "xz", "yz", "xyz"] = Field(
+        default="auto", description="plane of the path plots: auto, xy, xz, yz or xyz (3-D)"
+    )
 
 
 class SurfConfig(_Section):
@@ -774,11 +778,36 @@ def apply_overrides(
         raise ConfigError(names.get(key, key), f"{err['msg']}, got {value!r}") from None
 
 
-def load_config(path: str | Path | None = None) -> Config:
-    """Defaults overridden by the YAML file at ``path`` (when given)."""
+def load_config(path: str | Path | Sequence[str | Path] | None = None) -> Config:
+    """Defaults overridden by the YAML file at ``path`` (when given).
+
+    A list of files is layered in order: each overrides the ones before it (``-c a.yaml -c b.yaml``).
+    """
     if path is None:
         return Config()
+    if not isinstance(path, str | Path):
+        files = list(path)
+        if not files:
+            return Config()
+        merged: dict[str, Any] = {}
+        for f in files:
+            load_config(f)  # each file valid on its own: errors name it
+            merged = merge_nested(merged, _read_yaml_mapping(Path(f)))
+        return config_from_dict(merged, Path(files[-1]))
     p = Path(path)
+    return config_from_dict(_read_yaml_mapping(p), p)
+
+
+def merge_nested(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """``over`` on top of ``base``, mappings merged key by key (issue 35: layered config files)."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = merge_nested(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _read_yaml_mapping(p: Path) -> dict[str, Any]:
+    """The top-level mapping of a configuration file (errors name the file)."""
     if not p.is_file():
         raise ConfigError(p, "configuration file does not exist")
     try:
@@ -791,7 +820,7 @@ def load_config(path: str | Path | None = None) -> Config:
         raise ConfigError(p, f"cannot read the configuration: {exc.strerror}") from None
     if not isinstance(data, dict):
         raise ConfigError(p, "expected a mapping of sections at the top level")
-    return config_from_dict(data, p)
+    return data
 
 
 #: Top-level sections that configure other commands than the pipeline (``eval``, ``bound``,

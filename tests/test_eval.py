@@ -211,8 +211,8 @@ def test_report_without_loop_closure(tmp_path: Path, rng: np.random.Generator) -
     assert "No loop closure was recorded in this run" in md
     html = (out / "report.html").read_text()
     assert "No loop closure was recorded in this run" in html
-    assert html.count("data:image/png;base64,") == 3 and "src='error_" not in html
-    for name in (rep.PLOT_TOP, rep.PLOT_ERROR_TIME, rep.PLOT_ERROR_COLORED):
+    assert html.count("data:image/png;base64,") == 5 and 'src="error_' not in html
+    for name in (rep.PLOT_TOP, rep.PLOT_ERROR_TIME, rep.PLOT_ERROR_COLORED, rep.PLOT_XYZ_RPY, rep.PLOT_RPE_TIME):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     m = json.loads((out / "metrics.json").read_text())
     # independent ATE: Kabsch by hand on the (identical-time) positions

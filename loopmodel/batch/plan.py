@@ -38,7 +38,7 @@ from typing import Any
 import yaml
 
 from loopmodel import __version__
-from loopmodel.config import Config, LoopConfig, config_from_dict
+from loopmodel.config import Config, LoopConfig, config_from_dict, merge_nested
 from loopmodel.errors import InputError, LoopmodelError
 
 #: the most configuration variants a plan may have (each one a task per sequence)
@@ -144,16 +144,6 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9._=-]+", "-", text).strip("-")[:60] or "x"
 
 
-def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for key, value in override.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _deep_merge(out[key], value)
-        else:
-            out[key] = value
-    return out
-
-
 def nested_from_dotted(overrides: dict[str, Any], source: str | Path | None = None) -> dict[str, Any]:
     """``{"frontend.max_features": 500}`` -> ``{"frontend": {"max_features": 500}}``."""
     nested: dict[str, Any] = {}
@@ -175,7 +165,7 @@ def effective_config(layers: list[dict[str, Any]], source: str | Path | None = N
     """The code defaults overridden by each nested layer in turn (validated; errors name the key)."""
     merged: dict[str, Any] = {}
     for layer in layers:
-        merged = _deep_merge(merged, layer)
+        merged = merge_nested(merged, layer)
     return config_from_dict(merged, source)
 
 
@@ -237,12 +227,13 @@ def _config_layer(value: Any, base_dir: Path, key: str, source: Path) -> dict[st
     if isinstance(value, dict):
         flat = {k: v for k, v in value.items() if "." in str(k)}
         nested = {k: v for k, v in value.items() if "." not in str(k)}
-        return _deep_merge(nested, nested_from_dotted(flat, source))
+        return merge_nested(nested, nested_from_dotted(flat, source))
     raise InputError(source, f"'{key}' must be a config file path or a mapping, got {type(value).__name__}")
 
 
 def _variant_name(overrides: dict[str, Any]) -> str:
-    return ",".join(f"{k.split('.')[-1]}={v}" for k, v in overrides.items()) or "base"
+    """``backend.kind=isam2,frontend.max_features=300``: the whole dotted key, section included."""
+    return ",".join(f"{k}={v}" for k, v in overrides.items()) or "base"
 
 
 def _variants(data: dict[str, Any], source: Path) -> list[Variant]:

@@ -102,7 +102,12 @@ def _main(args: list[str]) -> int:
         return 130
     except typer.exceptions.TyperException as exc:  # usage errors (click's, vendored by typer)
         show = getattr(exc, "show", None)
-        if callable(show):
+        message, ctx = getattr(exc, "format_message", None), getattr(exc, "ctx", None)
+        if callable(message) and ctx is not None:  # bad usage: one line, and where to read more
+            err_console.print(
+                f"error: {message()} (see: {ctx.command_path} --help)", highlight=False, soft_wrap=True, markup=False
+            )
+        elif callable(show):
             show()
         else:
             err_console.print(f"error: {exc}")
@@ -146,7 +151,10 @@ vvs_app.command("render")(vvs_render)
 
 vvs_app.command("track")(vvs_track)
 
+from loopmodel.cli.help import document  # noqa: E402
 from loopmodel.cli.map import map_app  # noqa: E402, F401  (loopmodel map info|merge)
+
+document(app)  # help panels, the flow's order and one example per command (issue 35)
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

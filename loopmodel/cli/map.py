@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from loopmodel.cli.common import ConfigOption, _fmt, app, console
+from loopmodel.cli.common import ConfigOption, app, console
 from loopmodel.config import load_config
 
 map_app = typer.Typer(help="Session maps: describe, merge.", no_args_is_help=True)
@@ -27,6 +27,10 @@ def map_info(
     """Describe a map: keyframes, sessions, features, vocabulary, landmarks, pose graph, stripes, size."""
     import time
 
+    import numpy as np
+    from rich.markup import escape
+
+    from loopmodel.display import Formatter, describe_rows
     from loopmodel.io.map_file import map_folder, map_size_bytes
     from loopmodel.loop.session_map import SessionMap
 
@@ -42,8 +46,9 @@ def map_info(
         console.print_json(json.dumps(desc))
         return
     table = Table(title=str(path), show_header=False)
-    for k, v in desc.items():
-        table.add_row(k, _fmt(v) if not isinstance(v, dict) else ", ".join(f"{a}: {_fmt(b)}" for a, b in v.items()))
+    fmt = Formatter.for_scale(float(np.linalg.norm(desc["keyframe_extent_m"])) if len(smap) else None)
+    for k, v in describe_rows(desc, fmt):
+        table.add_row(escape(k), escape(v))
     console.print(table)
 
 

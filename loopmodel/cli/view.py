@@ -9,7 +9,7 @@ import typer
 
 from loopmodel.errors import InputError
 from loopmodel.listener import RunListener
-from loopmodel.types import StereoCalibration
+from loopmodel.types import StereoCalibration, Trajectory
 
 
 def view(
@@ -69,7 +69,11 @@ def check_writable_file(path: Path, what: str) -> None:
 
 
 def rerun_listeners(
-    calibration: StereoCalibration, rrd: Path | None, spawn: bool, connect: str | None
+    calibration: StereoCalibration,
+    rrd: Path | None,
+    spawn: bool,
+    connect: str | None,
+    ground_truth: Trajectory | None = None,
 ) -> list[RunListener]:
     """The run's rerun listener when any rerun option is given (none otherwise)."""
     from loopmodel.viz.recorder import RerunSink
@@ -86,4 +90,4 @@ def rerun_listeners(
     from loopmodel.viz.recorder import RerunListener, RerunRecorder
 
     rect = Rectifier(calibration).calibration
-    return [RerunListener(RerunRecorder(sink), rect.K_left, rect.image_size)]
+    return [RerunListener(RerunRecorder(sink), rect.K_left, rect.image_size, ground_truth=ground_truth)]

@@ -126,6 +126,7 @@ class Sequence(abc.ABC):
             "ground_truth": self.ground_truth is not None,
             "ground_truth_poses": len(self.ground_truth) if self.ground_truth is not None else 0,
             "stripes": self.stripe_count(),
+            "laser_images": self.laser_image_count(),
         }
 
 

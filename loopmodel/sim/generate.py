@@ -572,6 +572,7 @@ class SimulationResult:
     size_bytes: int
     faults: list[dict[str, int | str]] = field(default_factory=list)
     scene_ply: Path | None = None
+    laser_images_written: int = 0
 
 
 def plan_frames(
@@ -797,7 +798,7 @@ def simulate_scan(
     dup = {f.first for f in plan.faults if f.kind == "duplicate_timestamp"}
     dropped = {f.first for f in plan.faults if f.kind == "dropped"}
     black = {i for f in plan.faults if f.kind == "blackout" for i in f.frames()}
-    frames_written = stripes_written = 0
+    frames_written = stripes_written = laser_images_written = 0
     render_s: list[float] = []
     state = _make_state(cfg, scene) if cfg.workers == 1 else None
     with McapSequenceWriter(out, calib, topics, cfg.image_format) as writer:
@@ -823,6 +824,7 @@ def simulate_scan(
                     stripes_written += 1
                 if img.laser is not None:
                     writer.write_image((topics or TopicsConfig()).laser_image, t_ns, img.laser, "cam0")
+                    laser_images_written += 1
             if progress is not None:
                 progress(k + 1, n)
         scene_ply = scene.ply_bytes()
@@ -859,6 +861,7 @@ def simulate_scan(
         frames=n,
         frames_written=frames_written,
         stripes_written=stripes_written,
+        laser_images_written=laser_images_written,
         seconds=seconds,
         setup_seconds=setup_s,
         ms_per_frame=1000.0 * seconds / n,
