@@ -117,6 +117,10 @@ class BackendConfig(_Section):
     change_tolerance_m: float = Field(
         1e-4, ge=0, description="estimate(): a keyframe counts as changed above this"
     )
+    # issue 33: where the back end runs; process: beside the tracker, which never waits for it
+    worker: Literal["process", "thread", "inline"] = Field(
+        "process", description="process (beside the tracker), thread, or inline (the tracker waits)"
+    )
 
 
 class FrontendConfig(_Section):

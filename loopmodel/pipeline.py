@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import logging
 import signal
 import threading
@@ -37,6 +38,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from loopmodel.backend import Backend, BackendEstimate, create_backend
+from loopmodel.backend.worker import settle, start_backend
 from loopmodel.config import Config
 from loopmodel.errors import LoopmodelError, RunInterrupted
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
@@ -243,7 +245,9 @@ class _Run:
         self.listeners = listeners
         self.finishing = finishing
         self.frontend = FrontEnd(calibration, config.frontend)
-        self.backend: Backend = create_backend(config.backend, self.frontend.calibration, config.givens)
+        # issue 33: in a worker beside the tracker (config.backend.worker)
+        make = functools.partial(create_backend, config.backend, self.frontend.calibration, config.givens)
+        self.backend: Backend = start_backend(config.backend, make)
         self.localizer = _localizer(config, self.frontend.calibration, base_map) if self.mode == "localize" else None
         self.loop: LoopStage = self.localizer or _loop_stage(config, self.frontend.calibration)
         # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
@@ -457,6 +461,7 @@ class _Run:
     def _stop_workers(self, interrupted: bool) -> None:
         """Stop the live mesher and the loop worker; loops found after the last keyframe reach the back end."""
         self.live.close(wait=not interrupted)
+        self._correct(settle(self.backend))  # issue 33: the back-end worker's last corrections
         self._correct(self.loop.close(self._state()))
         # perf (issue 26): loops whose (background) detection finished after the last keyframe
         if self._add_constraints(self.loop.final_constraints()):

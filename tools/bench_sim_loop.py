@@ -302,6 +302,7 @@ def _givens_blunders(
 
     cfg = config.model_copy(deep=True)
     cfg.backend.kind = "both"
+    cfg.backend.worker = "inline"  # the screen is wrapped below, in this process
     rng = np.random.default_rng(seed)
     injected: set[tuple[int, int]] = set()
     rejected: set[tuple[int, int]] = set()
