@@ -213,6 +213,13 @@ class FrontendConfig(_Section):
     keyframe_parallax: Literal["translation", "angle"] = Field(
         "translation", description="parallax test of the keyframe policy"
     )
+    # robust stereo matching (issue 36, item 3; frontend/stereo.py)
+    stereo_subpixel: Literal["parabola", "gradient"] = Field(
+        "parabola", description="sub-pixel disparity: parabola through 3 ZNCC scores, or 1-D Lucas-Kanade"
+    )
+    stereo_uniqueness: float = Field(
+        0.0, ge=0, le=2, description="ZNCC margin of the best over the second-best peak along the row; 0: off"
+    )
 
 
 class MappingConfig(_Section):

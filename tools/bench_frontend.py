@@ -78,6 +78,7 @@ def run(quick: bool = False) -> dict[str, Any]:
         "fps_with_io": round(m["fps_with_io"], 2),
         "ate_rmse_m": round(err.get("ate_rmse_m", float("nan")), 4),
         "drift_pct": round(err.get("drift_pct", float("nan")), 3),
+        **_scale_keys(results, seq.ground_truth),
         "lost_frames": m["lost_frames"],
         "keyframes": m["keyframes"],
         "local_ba_ms_median": round(float(np.median(ba)), 2) if ba else None,
@@ -99,6 +100,18 @@ def run(quick: bool = False) -> dict[str, Any]:
     else:
         out["sim_note"] = "no synthetic sample (datasets/sample/scan.mcap or $LOOPMODEL_SIM_SAMPLE)"
     return out
+
+
+def _scale_keys(results: list[Any], gt: Any, prefix: str = "") -> dict[str, float]:
+    """``sim3_scale`` and ``step_scale_last_over_first`` of the frames reported OK (issue 36)."""
+    from loopmodel.eval.trajectory_metrics import scale_figures
+
+    ok = [r for r in results if r.ok]
+    if gt is None or len(ok) < 3:
+        return {}
+    fig = scale_figures(gt.timestamps_ns, gt.world_from_cam, np.array([r.timestamp_ns for r in ok]),
+                        np.stack([r.world_from_cam for r in ok]))
+    return {prefix + k: round(v, 4) for k, v in fig.items()}
 
 
 def _synthetic_sample() -> Path | None:
