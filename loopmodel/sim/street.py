@@ -71,6 +71,9 @@ class StreetConfig:
     fence: bool = True
     hedge_m: float = 5.5  # lateral distance of the hedges (0: none)
     trees_m: tuple[float, float] = (6.5, 11.0)  # lateral distance range of the trees
+    open_from_m: float = 0.0  # > 0: beyond this distance no hedges, trees at ``trees_open_m`` (the view opens)
+    trees_open_m: tuple[float, float] = (14.0, 45.0)
+    right_cx_error_px: float = 0.0  # the right image rendered with its principal point off (calibration error)
     texture_size_px: int = 1024
     noise_dn: float = 1.5  # read noise (grey levels)
 
@@ -134,18 +137,20 @@ class StreetScene:
         rng = np.random.default_rng([cfg.seed, 36])
         g = CAMERA_HEIGHT_M
         length = cfg.frames * cfg.speed_m_per_frame + 200.0
-        half_w = max(cfg.hedge_m, cfg.trees_m[1]) + 2.0  # road and verge
+        half_w = max(cfg.hedge_m, cfg.trees_m[1], cfg.trees_open_m[1] if cfg.open_from_m > 0 else 0.0) + 2.0
         r: list[_Rect] = [_rect((-half_w, g, -20.0), (1, 0, 0), (0, 0, 1), 2 * half_w, length + 20, 0)]
         for z in np.arange(-10.0, length, 9.0):  # dashed centre line, 3 m dashes every 9 m
             r.append(_rect((-1.95, g - 0.002, z), (1, 0, 0), (0, 0, 1), 0.15, 3.0, 1))
         for side in (-1.0, 1.0):  # continuous hedges, then trees of irregular width behind them
+            hedge_end = cfg.open_from_m if cfg.open_from_m > 0 else length
             if cfg.hedge_m > 0:
-                r.append(_rect((side * cfg.hedge_m, g - 2.4, -20.0), (0, 0, 1), (0, 1, 0), length + 20, 2.4, 2))
+                r.append(_rect((side * cfg.hedge_m, g - 2.4, -20.0), (0, 0, 1), (0, 1, 0), hedge_end + 20, 2.4, 2))
             z = -15.0
             while z < length:
                 w = float(rng.uniform(3.0, 9.0))
                 h = float(rng.uniform(5.0, 11.0))
-                xt = side * float(rng.uniform(*cfg.trees_m))
+                lateral = cfg.trees_open_m if 0 < cfg.open_from_m < z else cfg.trees_m
+                xt = side * float(rng.uniform(*lateral))
                 r.append(_rect((xt, g - h, z), (0, 0, 1), (0, 1, 0), w, h, 2))
                 # a clump facing the road: its face is oblique to the rows
                 r.append(_rect((xt, g - h * 0.8, z + w / 2), (-side * 0.7, 0, 0.7), (0, 1, 0), 2.5, h * 0.8, 2))
@@ -305,7 +310,9 @@ class StreetScene:
         for side, gain in ((0, 1.0), (1, 1.03)):
             world_from_view = world_from_cam.copy()
             world_from_view[:3, 3] += world_from_cam[:3, 0] * c.baseline_m * side
-            cast = self._cast(i, world_from_view, Ks, c.width_px * ss, c.height_px * ss)
+            Kv = Ks.copy()
+            Kv[0, 2] += side * c.right_cx_error_px * ss
+            cast = self._cast(i, world_from_view, Kv, c.width_px * ss, c.height_px * ss)
             rad = self._radiance(i, cast, (c.height_px * ss, c.width_px * ss))
             rad = cv2.resize(rad, (c.width_px, c.height_px), interpolation=cv2.INTER_AREA)
             rad = cv2.GaussianBlur(rad, (0, 0), 0.5)
