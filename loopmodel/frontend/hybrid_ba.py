@@ -152,10 +152,13 @@ def hybrid_keyframe_ba(
     nrm = norms(ev)
     valid_all = np.stack([b.valid for b in blocks]) > 0
     init_rms = float(np.sqrt(np.mean(nrm[valid_all] ** 2)))
-    # the prior in the cost's units (pixels^2): scaled by the residual variance per coordinate
+    # the prior in the cost's units (pixels^2): scaled by the residual variance per coordinate, from
+    # the starting residuals (conservative: they carry the tracked pose's error too); the posterior
+    # variance uses the same scale
     prior_mean, prior_info = offset_prior
-    sigma2_0 = max(float(np.median(nrm[valid_all] ** 2)) / 1.39, 0.01)  # chi-square(2) median: 1.39
-    prior_w = prior_info * sigma2_0 if n_par == 7 else 0.0
+    dof = max(int(valid_all.sum()) * 2 - 3 * M - n_par, 1)
+    sigma2 = max(float(np.sum(nrm**2)) / dof, 0.01)
+    prior_w = prior_info * sigma2 if n_par == 7 else 0.0
 
     def prior_cost(dc: float) -> float:
         return 0.5 * prior_w * (dc - prior_mean) ** 2
@@ -239,8 +242,6 @@ def hybrid_keyframe_ba(
         Hpp[6, 6] += prior_w
         HpxHi = np.matmul(Hpx, np.linalg.inv(Hxx + 1e-9 * np.eye(3)))
         S = Hpp - np.einsum("mij,mkj->ik", HpxHi, Hpx)
-        dof = max(int(valid_all.sum()) * 2 - 3 * M - n_par, 1)
-        sigma2 = float(np.sum(w * nrm**2)) / dof
         try:
             var = float(np.linalg.inv(S)[6, 6]) * sigma2
         except np.linalg.LinAlgError:

@@ -492,16 +492,15 @@ class FrontEnd:
         """Take a local BA's posterior disparity offset (px, total: the applied correction plus the BA's rest).
 
         Each BA starts from the previous posterior as its prior (a scalar Kalman filter without
-        process noise); the offset is applied to new matches once its standard deviation is below
-        0.05 px after three BAs or more, clipped to 2 px (a larger one is a wrong calibration).
+        process noise, starting from 0 +- ``OFFSET_PRIOR_SIGMA_PX``); the posterior mean corrects the
+        next keyframe's matches, clipped to 2 px (a larger one is a wrong calibration).
         """
         if not (np.isfinite(offset_px) and np.isfinite(var_px2) and var_px2 > 0):
             return
         self._offset_mean_px = offset_px
         self._offset_info = 1.0 / var_px2
         self._offset_count += 1
-        if self._offset_count >= 3 and self._offset_info >= 1.0 / 0.05**2:
-            self._offset_px = float(np.clip(offset_px, -2.0, 2.0))
+        self._offset_px = float(np.clip(offset_px, -2.0, 2.0))
 
     def _drop_moving(
         self, idx: NDArray[np.int64], keep: NDArray[np.int64], uv: F64, cur_from_kf: F64
