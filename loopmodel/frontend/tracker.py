@@ -735,9 +735,10 @@ class FrontEnd:
         )
         bearing = cfg.far_points == "bearing"
         m = match_stereo(left, right, corners, cfg, 0.0 if bearing else None)
-        if self._offset_px != 0.0:  # the estimated disparity offset (frontend.disparity_offset)
-            m.u_right = m.u_right - self._offset_px
-            m.disparity = m.disparity + self._offset_px
+        applied_offset_px = self._offset_px  # the estimated disparity offset (frontend.disparity_offset)
+        if applied_offset_px != 0.0:
+            m.u_right = m.u_right - applied_offset_px
+            m.disparity = m.disparity + applied_offset_px
         with np.errstate(divide="ignore", invalid="ignore"):  # zero disparity: at infinity
             pts = triangulate_rectified(
                 m.uv_left, m.disparity, self.calibration.K_left, self.calibration.baseline_m
@@ -841,7 +842,7 @@ class FrontEnd:
                 if cfg.disparity_offset == "estimate":
                     ba_info["disparity_offset_px"] = ba.disparity_offset_px
                     ba_info["disparity_offset_sigma_px"] = float(np.sqrt(ba.disparity_offset_var_px2))
-                    ba_info["disparity_offset_applied_px"] = self._offset_px
+                    ba_info["disparity_offset_applied_px"] = applied_offset_px  # to this keyframe's matches
             if self._pose_sigma_px:
                 # robust scale (px per coordinate) of the pose residuals over the interval
                 ba_info["pose_residual_sigma_px"] = float(np.median(self._pose_sigma_px))
@@ -899,7 +900,7 @@ class FrontEnd:
         else:
             self._older = []
         self._active = _ActiveSet(kf, world_from_rect, pts, stereo_px, depth, far_rays, far_inv_depth, far_px,
-                                  disparity_sigma, disparity_offset_px=self._offset_px)
+                                  disparity_sigma, disparity_offset_px=applied_offset_px)
         self._moving_uv = np.zeros((0, 2))
         self._track_idx = np.arange(pts.shape[0], dtype=np.int64)
         self._track_uv = stereo_px[:, [0, 2]].copy()
