@@ -1,4 +1,4 @@
-"""The per-step scale holds on a seeded street scene with repetitive texture, moving cars and a calibration error (issue 36).
+"""The per-step scale holds on a seeded street scene: repetitive texture, moving cars, a calibration error (issue 36).
 
 The scene (``loopmodel.sim.street``): foliage and a fence over much of the view, facades and hills
 in the far field, a car ahead and an oncoming one; the view opens half-way (hedges end, trees
