@@ -69,7 +69,7 @@ def test_blocked_worker_does_not_stall_tracking(kind: str, sequence_dir: Path, m
     """
     monkeypatch.setattr(pl, "create_backend", _blocked_backend)  # built in the worker
     seq = open_sequence(sequence_dir)
-    run = pl._Run(seq, _config(kind), [])
+    run = pl._Run(seq.calibration, _config(kind), [])
     for frame in seq.frames():
         run.step(frame)
     backend = run.backend
