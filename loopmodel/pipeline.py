@@ -503,7 +503,7 @@ class _Run:
             interrupted=interrupted,
         )
         busy_s = sum(self.frame_ms) / 1e3
-        result.metrics = {"sequence": str(self.sequence.path), "interrupted": interrupted}
+        result.metrics = {"sequence": self.source, "interrupted": interrupted}
         result.metrics.update(frontend_metrics(self.frames, time.perf_counter() - self.t_start))
         result.metrics.update(fps=len(self.frames) / busy_s if busy_s > 0 else None, backend=self.config.backend.kind)
         result.metrics["landmarks"] = 0
