@@ -542,7 +542,8 @@ def test_item1_failure_after_the_last_frame_keeps_the_results(
     def bad_cloud(*a: object, **k: object) -> None:
         raise FormatError("s.mcap /laser/points", "a bad value found at the end")
 
-    monkeypatch.setattr(pipeline, "run_stripes", bad_cloud)
+    # a value found bad only while finishing (the final mesh of the stripes; issue 32 reads them in the frames)
+    monkeypatch.setattr(pipeline, "final_mesh", bad_cloud)
     assert main(args) == 2
     assert "/laser/points: a bad value" in capsys.readouterr().err
     out = seq.parent / "out" / "r"
@@ -1090,7 +1091,8 @@ def test_items1_15_stripes_with_nan_points_or_other_fields(
     nan_mcap = _mcap_with_stripes(seq, seq.parent / "nan.mcap", xyz, pts.tobytes(), 20)
     stripes = list(open_sequence(nan_mcap).stripes())
     assert len(stripes) == 3 and all(s.points_in_cam.shape == (19, 3) for s in stripes)
-    # z as float64: refused after the frames, the run's trajectories kept, file and topic named
+    # z as float64: refused at the frame whose cloud it is (issue 32: stripes are read with their frame),
+    # with what came before kept, file and topic named
     out = seq.parent / "out"
     f64 = [*xyz[:2], {"name": "z", "offset": 8, "datatype": 8}]
     rows = np.zeros(20, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f8")])
@@ -1099,4 +1101,4 @@ def test_items1_15_stripes_with_nan_points_or_other_fields(
     assert main(["run", str(bad), "--out", str(out), "--name", "f64"]) == 2
     assert "f64.mcap /laser/stripe: PointCloud2 needs float32" in capsys.readouterr().err
     m = json.loads((out / "f64" / "metrics.json").read_text())
-    assert m["frames"] == 3 and "/laser/stripe" in m["stopped_by"]
+    assert m["frames"] < 3 and "/laser/stripe" in m["stopped_by"]

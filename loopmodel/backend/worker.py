@@ -52,7 +52,12 @@ def start_backend(config: BackendConfig, factory: Callable[[], Backend]) -> Back
     """
     if config.kind == "none" or config.worker == "inline":
         return factory()
-    return BackgroundBackend(factory, config.worker)
+    worker = config.worker
+    if worker == "process" and mp.current_process().daemon:
+        # a daemonic process (a Dask or pool worker running this run) may not start children
+        logger.info("back end in a thread: this process is a daemon and cannot start a worker process")
+        worker = "thread"
+    return BackgroundBackend(factory, worker)
 
 
 # --------------------------------------------------------------------------- the worker's side

@@ -51,6 +51,9 @@ PLAN_KEYS = ("sequences", "base", "grid", "variants", "max_frames", "threads_per
 BATCH_DEFAULTS: dict[str, Any] = (
     {"loop": {"background_ba": False}} if "background_ba" in LoopConfig.model_fields else {}
 )
+# issue 33: a batch already keeps every core busy with one task each, so a task's back end runs
+# inline (no worker beside the tracker): the same frames then give the same numbers, run after run
+BATCH_DEFAULTS["backend"] = {"worker": "inline"}
 
 _HASH_CHUNK_BYTES = 1 << 16
 
