@@ -216,11 +216,12 @@ class FrontendConfig(_Section):
     # robust stereo matching (issue 36, items 1 and 3; frontend/stereo.py, frontend/tracker.py).
     # Measured, front end alone, these five defaults against all off (SE(3) / Sim(3) ATE): KITTI
     # clip (configs/kitti.yaml) 0.100 / 0.021 -> 0.036 / 0.023 m, Sim(3) scale 0.9945 -> 0.9984 (a
-    # disparity offset of about 0.09 px estimated), rotation error after the ground truth's
+    # disparity offset of about 0.07 px estimated), rotation error after the ground truth's
     # constant-rate segment 0.166 -> 0.280 deg (worse); simulated street scans of sim/street.py
-    # (configs/kitti.yaml): near street 0.034 / 0.017 -> 0.070 / 0.019 m (worse: offset estimated
-    # about -0.1 px where it is 0), open highway 0.167 / 0.154 -> 0.150 / 0.082 m, the view opening
-    # 0.083 / 0.083 -> 0.081 / 0.072 m, the same with a 0.5 px right-camera principal-point error
+    # (configs/kitti.yaml): near street 0.034 / 0.017 -> 0.070 / 0.019 m (worse; Sim(3) scale
+    # 0.998 -> 0.996, offset estimated -0.015 px where it is 0), open highway 0.167 / 0.154 ->
+    # 0.150 / 0.082 m, the view opening 0.083 / 0.083 -> 0.081 / 0.072 m, the same with a 0.5 px
+    # right-camera principal-point error
     # 2.72 / 0.58 -> 0.055 / 0.037 m (per-step scale growth 1.061 -> 0.998); realistic orbit sample,
     # first 300 frames (configs/sim.yaml): drift 0.85 -> 0.29 %, rotation error 1.83 -> 0.68 deg,
     # Sim(3) ATE 2.8 -> 1.6 mm (offset 0.39 px estimated: its recorded calibration is off)
