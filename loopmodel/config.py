@@ -223,8 +223,10 @@ class FrontendConfig(_Section):
     # 0.150 / 0.082 m, the view opening 0.083 / 0.083 -> 0.081 / 0.072 m, the same with a 0.5 px
     # right-camera principal-point error
     # 2.72 / 0.58 -> 0.055 / 0.037 m (per-step scale growth 1.061 -> 0.998); realistic orbit sample,
-    # first 300 frames (configs/sim.yaml): drift 0.85 -> 0.29 %, rotation error 1.83 -> 0.68 deg,
-    # Sim(3) ATE 2.8 -> 1.6 mm (offset 0.39 px estimated: its recorded calibration is off)
+    # 600 frames (configs/sim.yaml): SE(3) ATE 13.0 -> 4.3 mm, drift 0.94 -> 0.34 %, rotation error
+    # 3.54 -> 1.24 deg (offset 0.40 px estimated: its recorded calibration is off); a realistic
+    # 150-frame scan (onepass's scan150): SE(3) ATE 11.7 -> 6.7 mm, drift 0.88 -> 0.57 %, rotation
+    # error 3.37 -> 2.15 deg
     stereo_subpixel: Literal["parabola", "gradient"] = Field(
         "gradient", description="sub-pixel disparity: parabola through 3 ZNCC scores, or 1-D Lucas-Kanade"
     )
