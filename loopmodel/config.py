@@ -222,14 +222,19 @@ class FrontendConfig(_Section):
         "translation", description="parallax test of the keyframe policy"
     )
     # robust stereo matching (issue 36, items 1 and 3; frontend/stereo.py, frontend/tracker.py).
-    # Measured, front end alone, all five on against all off (SE(3) / Sim(3) ATE): KITTI clip
-    # (configs/kitti.yaml) 0.100 / 0.021 -> 0.052 / 0.028 m, Sim(3) scale 0.9945 -> 0.9975 (estimated
-    # disparity offset 0.09 px); simulated street scans of sim/street.py (configs/kitti.yaml): near
-    # street 0.034 / 0.017 -> 0.056 / 0.019 m, open highway 0.167 / 0.154 -> 0.187 / 0.089 m, the view
-    # opening with a 0.5 px right-camera principal-point error 2.72 / 0.58 -> 0.41 / 0.13 m
-    # (per-step scale growth 1.061 -> 0.997); realistic orbit sample, first 300 frames
-    # (configs/sim.yaml): drift 0.85 -> 0.23 %, rotation error 1.83 -> 0.50 deg, Sim(3) ATE
-    # 2.8 -> 1.4 mm (estimated offset 0.63 px: its recorded calibration is off)
+    # Measured, front end alone, these five defaults against all off (SE(3) / Sim(3) ATE): KITTI
+    # clip (configs/kitti.yaml) 0.100 / 0.021 -> 0.036 / 0.023 m, Sim(3) scale 0.9945 -> 0.9984 (a
+    # disparity offset of about 0.07 px estimated), rotation error after the ground truth's
+    # constant-rate segment 0.166 -> 0.280 deg (worse); simulated street scans of sim/street.py
+    # (configs/kitti.yaml): near street 0.034 / 0.017 -> 0.070 / 0.019 m (worse; Sim(3) scale
+    # 0.998 -> 0.996, offset estimated -0.015 px where it is 0), open highway 0.167 / 0.154 ->
+    # 0.150 / 0.082 m, the view opening 0.083 / 0.083 -> 0.081 / 0.072 m, the same with a 0.5 px
+    # right-camera principal-point error
+    # 2.72 / 0.58 -> 0.055 / 0.037 m (per-step scale growth 1.061 -> 0.998); realistic orbit sample,
+    # 600 frames (configs/sim.yaml): SE(3) ATE 13.0 -> 4.3 mm, drift 0.94 -> 0.34 %, rotation error
+    # 3.54 -> 1.24 deg (offset 0.40 px estimated: its recorded calibration is off); a realistic
+    # 150-frame scan (onepass's scan150): SE(3) ATE 11.7 -> 6.7 mm, drift 0.88 -> 0.57 %, rotation
+    # error 3.37 -> 2.15 deg
     stereo_subpixel: Literal["parabola", "gradient"] = Field(
         "gradient", description="sub-pixel disparity: parabola through 3 ZNCC scores, or 1-D Lucas-Kanade"
     )

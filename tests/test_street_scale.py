@@ -29,6 +29,10 @@ KITTI_LIKE = {  # configs/kitti.yaml's front-end values that matter at ~1 m per 
 }
 
 
+# rendering the 40 frames is most of the cost: about 10 s of CPU, 27 s wall at load 11 (slow)
+pytestmark = pytest.mark.slow
+
+
 @pytest.fixture(scope="module")
 def street() -> tuple[StreetScene, list]:
     scene = StreetScene.build(SCENE)

@@ -4,7 +4,10 @@ Keys (BENCHMARKS.md): frames, track_ms_median, track_ms_p95 (per-frame tracking:
 robust pose, keyframe decision), keyframe_ms_median (keyframe creation: detection, stereo
 row search, triangulation, local hybrid BA), fps (frames / time spent in
 ``FrontEnd.process``; image decoding excluded, ``fps_with_io`` includes it), ate_rmse_m
-(SE(3)-aligned), drift_pct (final position error / path length x 100), peak_rss_mib.
+(SE(3)-aligned), drift_pct (final position error / path length x 100), peak_rss_mib,
+sim3_scale (truth / estimate, Umeyama) and step_scale_last_over_first (the per-step scale of the
+last quarter of the steps over the first's, :mod:`loopmodel.eval.trajectory_metrics`; issue 36), and
+``street_*``: the same figures on the simulated street scan of issue 36 (:func:`_run_street`).
 """
 
 from __future__ import annotations

@@ -13,6 +13,8 @@ ground-truth path length), ``kitti_rot_err_final_deg`` (rotation error of the on
 trajectory's last pose with the first poses aligned; ``kitti_rot_err_final_deg_after_gt_segment``
 and ``kitti_online_drift_pct_after_gt_segment`` align at the first frame after the ground truth's
 constant-rate first ``kitti_gt_constant_rate_steps`` steps, see ``bench kitti-rotation``),
+``kitti_sim3_scale`` (truth / estimate) and ``kitti_step_scale_last_over_first`` (per-step scale,
+last quarter over first, of the online trajectory; issue 36; ``sim_`` likewise),
 ``sim_fps``, ``sim_frame_ms_p95`` (the orbit scan with ``configs/sim.yaml``: live mesh every 5
 keyframes; the final mesh is not written), ``import_s`` (a fresh interpreter importing
 ``loopmodel.pipeline``, median of 3).

@@ -115,17 +115,17 @@ def refine_row_gradient(
     stride = dst.shape[1]
     ar = np.arange(-half, half + 1)
     tpl = np.take(src, ((v + pad) * stride + (u + pad))[:, None] + (ar[:, None] * stride + ar[None, :]).ravel())
-    t = tpl.astype(np.float64).reshape(n, p, p)
+    t = tpl.astype(np.float32).reshape(n, p, p)
     t -= t.mean(axis=(1, 2), keepdims=True)
-    tt = np.einsum("nij,nij->n", t, t) + 1e-9
+    tt = np.einsum("nij,nij->n", t, t) + np.float32(1e-9)
     x = np.asarray(x0, dtype=float).copy()
     cols = np.arange(-half - 1, half + 3)  # p + 3 columns around floor(x)
     sigma = np.full(n, np.inf)
     for _ in range(iterations):
         xi = np.floor(x).astype(np.int64)
-        a = (x - xi)[:, None, None]
+        a = (x - xi).astype(np.float32)[:, None, None]
         base = (v_dst + pad) * stride + (xi + pad)
-        S = np.take(dst, base[:, None, None] + ar[None, :, None] * stride + cols[None, None, :]).astype(np.float64)
+        S = np.take(dst, base[:, None, None] + ar[None, :, None] * stride + cols[None, None, :]).astype(np.float32)
         W = (1 - a) * S[:, :, 1 : p + 1] + a * S[:, :, 2 : p + 2]
         Wp = (1 - a) * S[:, :, 2 : p + 2] + a * S[:, :, 3 : p + 3]
         Wm = (1 - a) * S[:, :, 0:p] + a * S[:, :, 1 : p + 1]
@@ -134,11 +134,11 @@ def refine_row_gradient(
         g -= g.mean(axis=(1, 2), keepdims=True)
         gain = np.einsum("nij,nij->n", w, t) / tt
         r = w - gain[:, None, None] * t
-        gg = np.einsum("nij,nij->n", g, g) + 1e-9
+        gg = np.einsum("nij,nij->n", g, g) + np.float32(1e-9)
         step = -np.einsum("nij,nij->n", g, r) / gg
         x += np.clip(step, -0.5, 0.5)
         sigma = np.sqrt(np.einsum("nij,nij->n", r, r) / max(p * p - 3, 1) / gg)
-    return x, np.maximum(sigma, MIN_DISPARITY_SIGMA_PX)
+    return x, np.maximum(sigma, MIN_DISPARITY_SIGMA_PX).astype(np.float64)
 
 
 def _zncc_scan(
@@ -312,14 +312,16 @@ def match_stereo(
     vr_int = v + np.asarray((-1, 0, 1))[ri]
     inside_r = (vr_int >= half + 1) & (vr_int < h - half - 1)
     sigma = np.full(u.shape[0], cfg.disparity_sigma_px)
-    if cfg.stereo_subpixel == "gradient":
-        ur_g, sigma = refine_row_gradient(lf, rf, pad_f, u, v, ur, np.where(inside_r, vr_int, v), half)
-        moved = np.abs(ur_g - ur) <= 1.0  # a step beyond the bracketing pixels: no clear optimum
-        ur = np.where(moved, ur_g, ur)
-        inside_r &= moved
-    disp = u - ur
-    ok = (score >= cfg.min_zncc) & (np.abs(dv) <= cfg.max_row_error_px)
+    ok = (score >= cfg.min_zncc) & (np.abs(dv) <= cfg.max_row_error_px) & inside_r
     d_min = cfg.min_disparity_px if min_disparity_px is None else min_disparity_px
+    ok &= (u - ur >= d_min - 1.0) & (u - ur <= cfg.max_disparity_px + 1.0)
+    if cfg.stereo_subpixel == "gradient":  # only the candidates that passed the checks so far
+        r = np.flatnonzero(ok)
+        ur_g, sigma[r] = refine_row_gradient(lf, rf, pad_f, u[r], v[r], ur[r], vr_int[r], half, iterations=3)
+        moved = np.abs(ur_g - ur[r]) <= 1.0  # a step beyond the bracketing pixels: no clear optimum
+        ur[r] = np.where(moved, ur_g, ur[r])
+        inside_r[r] &= moved
+    disp = u - ur
     ok &= (disp >= d_min) & (disp <= cfg.max_disparity_px)
     if cfg.stereo_uniqueness > 0:  # best and second-best peaks along the row too close: ambiguous
         ok &= margin >= cfg.stereo_uniqueness
