@@ -56,7 +56,7 @@ from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripePro
 if TYPE_CHECKING:
     from loopmodel.eval.of_run import Evaluation
     from loopmodel.loop.localize import MapLocalizationStage
-    from loopmodel.loop.session_map import ResumePoint, SessionMap
+    from loopmodel.loop.session_map import KeyframeArchiver, ResumePoint, SessionMap
 
 logger = logging.getLogger(__name__)
 
@@ -266,6 +266,11 @@ class _Run:
         self.finish_s: dict[str, float] = {}
         # for the session map (issue 20): keyframes with their images, the loop constraints
         self.map_keyframes: dict[int, Keyframe] = {}
+        self.archiver: KeyframeArchiver | None = None  # their map content, prepared off the tracking thread
+        if config.output.write_map:
+            from loopmodel.loop.session_map import KeyframeArchiver
+
+            self.archiver = KeyframeArchiver(self.frontend.calibration, config.loop)
         self.loop_constraints: list[LoopConstraint] = []
         self._last_ms = 0.0
         self._last_ids: tuple[int | None, ...] = ()
@@ -358,8 +363,9 @@ class _Run:
         if kf.connected and kf.prev_keyframe_id is not None and kf.kf_prev_from_kf_tracked is not None:
             self.tracked_links[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf_tracked)
         self.keyframes[kf.id] = kf.timestamp_ns
-        if self.config.output.write_map:
+        if self.archiver is not None:
             self.map_keyframes[kf.id] = kf
+            self.archiver.add(kf)
         for listener in self.listeners:
             if out.events:
                 listener.on_loop_events(out.events)
@@ -483,7 +489,10 @@ class _Run:
 
     def _session_map(self, result: RunResult) -> SessionMap | None:
         """The run's map for later sessions (``output.write_map``; None without keyframes or when it fails)."""
-        if not self.config.output.write_map or not self.map_keyframes:
+        if self.archiver is None:
+            return None
+        prepared = self.archiver.take()
+        if not self.map_keyframes:
             return None
         from loopmodel.config import dump_config, pipeline_sections
         from loopmodel.loop.session_map import MapInputs, build_session_map
@@ -512,7 +521,7 @@ class _Run:
             {"sequence": self.source},
         )
         try:
-            smap = build_session_map(inputs, self.config.loop)
+            smap = build_session_map(inputs, self.config.loop, prepared)
         except LoopmodelError as exc:
             logger.error("no session map: %s", exc)
             return None
