@@ -758,7 +758,7 @@ def run_pipeline(
     written, then ``KeyboardInterrupt`` is raised (an error ending the run early is raised
     after the write as well). With ``base_map`` (a loaded
     :class:`~loopmodel.loop.session_map.SessionMap`) the session localizes in it or extends it
-    (``config.session.mode``); with ``resume`` (:func:`~loopmodel.loop.session_map.read_resume_point`)
+    (``config.session.mode``); with ``resume`` (:func:`~loopmodel.io.map_file.read_resume_point`)
     it continues an interrupted run from its last keyframe. ``finishing`` is told each step after
     the last frame (:data:`FINISH_STEPS`).
     """

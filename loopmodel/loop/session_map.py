@@ -20,7 +20,6 @@ import dataclasses
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -29,11 +28,10 @@ from numpy.typing import NDArray
 
 from loopmodel.config import LoopConfig
 from loopmodel.errors import InputError
-from loopmodel.io.map_file import MapFileData, read_map_file, write_map_file
 from loopmodel.loop.database import KeyframeDatabase, PlaceParams
 from loopmodel.loop.features import FeatureSet
 from loopmodel.loop.vocabulary import Vocabulary, shipped_vocabulary
-from loopmodel.types import Keyframe, StereoCalibration, StripeAnchors, StripeProfile, Trajectory
+from loopmodel.types import Keyframe, MapFileData, StereoCalibration, StripeAnchors, StripeProfile, Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -312,33 +310,9 @@ class SessionMap:
         }
         return MapFileData(meta, arrays)
 
-    def save(self, path: str | Path) -> Path:
-        """Write the map folder (atomic)."""
-        return write_map_file(path, self.to_file_data())
-
     @classmethod
-    def load(cls, path: str | Path) -> SessionMap:
-        """Read a map folder (or a results folder's ``map/``); damaged or newer maps raise InputError."""
-        required = (
-            *_KF_ARRAYS,
-            *_OTHER_ARRAYS,
-            *(f"features_{n}" for n in _FEATURE_ARRAYS),
-            "calib_K_left",
-            "calib_K_right",
-            "calib_right_from_left",
-            "vocabulary_centers",
-            "vocabulary_children",
-            "vocabulary_word",
-            "vocabulary_idf",
-        )
-        data = read_map_file(path, required)
-        try:
-            return cls._from_file_data(data)
-        except (KeyError, TypeError, ValueError, IndexError) as exc:
-            raise InputError(path, f"damaged map ({type(exc).__name__}: {exc})") from None
-
-    @classmethod
-    def _from_file_data(cls, data: MapFileData) -> SessionMap:
+    def from_file_data(cls, data: MapFileData) -> SessionMap:
+        """The map of a map file's content (:func:`loopmodel.io.map_file.load_session_map` reads it)."""
         a, m = data.arrays, data.meta
         cal = m["calibration"]
         calibration = StereoCalibration(
@@ -440,6 +414,19 @@ _FEATURE_ARRAYS = (
     "bow_offsets",
     "bow_words",
     "bow_weights",
+)
+#: The arrays a map file must hold (checked when it is read).
+REQUIRED_ARRAYS = (
+    *_KF_ARRAYS,
+    *_OTHER_ARRAYS,
+    *(f"features_{n}" for n in _FEATURE_ARRAYS),
+    "calib_K_left",
+    "calib_K_right",
+    "calib_right_from_left",
+    "vocabulary_centers",
+    "vocabulary_children",
+    "vocabulary_word",
+    "vocabulary_idf",
 )
 
 
@@ -768,21 +755,3 @@ class ResumePoint:
     def world_from_kf(self) -> F64:
         """Pose of the last keyframe (left camera, metres)."""
         return np.asarray(self.map.world_from_kf[-1])
-
-
-def read_resume_point(folder: str | Path) -> ResumePoint:
-    """The map and trajectories of a results folder, for resuming it."""
-    from loopmodel.io.trajectory_io import read_trajectory
-
-    p = Path(folder)
-    if not p.is_dir():
-        raise InputError(p, "results folder to resume does not exist")
-    smap = SessionMap.load(p / "map")
-    if len(smap) == 0:
-        raise InputError(p / "map", "the map holds no keyframe to resume from")
-    trajs = []
-    for name in ("trajectory_online.tum", "trajectory_final.tum", "keyframes.tum"):
-        if not (p / name).is_file():
-            raise InputError(p / name, "missing: cannot resume this run")
-        trajs.append(read_trajectory(p / name))
-    return ResumePoint(smap, *trajs)
