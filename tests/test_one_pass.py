@@ -19,7 +19,7 @@ from loopmodel.config import Config, config_from_dict
 from loopmodel.io.sequence import open_sequence
 from loopmodel.sim import generate as gen
 
-N_FRAMES = 8
+N_FRAMES = 6
 
 
 @pytest.fixture(scope="module")
