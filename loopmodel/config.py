@@ -594,6 +594,23 @@ class LoopConfig(_Section):
     min_epipolar_inliers: int = Field(40, ge=8, le=100000, description="monocular verification")
     max_cycle_rot_deg: float = Field(2.0, gt=0, description="forward/reverse pose agreement")
     max_cycle_trans_m: float = Field(0.05, gt=0)
+    # onepass (issue 32): the knobs the parameter classes (PlaceParams, RelocParams, LoopParams) had
+    # as their own defaults, now read from here; values unchanged
+    relative_score: float = Field(0.5, ge=0, le=1, description="place candidates: score share of the best")
+    island_gap: int = Field(2, ge=0, le=1000, description="keyframe gap that splits candidate islands")
+    consistency_tol: int = Field(3, ge=0, le=1000, description="keyframe tolerance of consistent queries")
+    max_islands: int = Field(4, ge=1, le=1000, description="candidate islands verified per query")
+    retrain_growth: float = Field(1.5, gt=1, description="on-the-fly vocabulary retrained when keyframes grow so")
+    max_train_keyframes: int = Field(400, ge=2, description="keyframes sampled to train a vocabulary on the fly")
+    max_train_descriptors: int = Field(60000, ge=100, description="descriptors to train a vocabulary on the fly")
+    confidence: float = Field(0.999, gt=0, lt=1, description="RANSAC confidence of relocalization")
+    min_inlier_spread_frac: float = Field(
+        0.03, ge=0, le=1, description="inliers' smaller principal spread, fraction of the image width"
+    )
+    epipolar_threshold_px: float = Field(2.0, gt=0, description="monocular verification: epipolar bound")
+    min_epipolar_inlier_ratio: float = Field(0.3, gt=0, le=1, description="monocular verification")
+    min_epipolar_spread_frac: float = Field(0.05, ge=0, le=1, description="monocular verification: inlier spread")
+    max_members_verified: int = Field(3, ge=1, le=1000, description="keyframes of an island verified")
     # robust gate on verified loops (loopmodel.backend.robust_posegraph): a keyframe pose
     # graph of odometry (known inliers) and loops solved by GNC-TLS; a loop it rejects is
     # never applied. Sigmas per keyframe step / per loop constraint: the loop sigmas are of

@@ -52,13 +52,13 @@ from loopmodel.mapping.final import final_mesh
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
+from loopmodel.sessions import Resumed, map_session
 from loopmodel.stages import LoopConstraint, LoopStage, MapState, NullLoopStage
 from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripeProfile, Trajectory
 
 if TYPE_CHECKING:
     from loopmodel.eval.of_run import Evaluation
-    from loopmodel.loop.localize import MapLocalizationStage
-    from loopmodel.loop.session_map import ResumePoint, SessionMap
+    from loopmodel.loop.session_map import KeyframeArchiver, ResumePoint, SessionMap
 
 logger = logging.getLogger(__name__)
 
@@ -169,41 +169,6 @@ def _loop_stage(config: Config, calibration: StereoCalibration) -> LoopStage:
     return LoopClosingStage.from_config(config.loop, calibration)
 
 
-def _localizer(config: Config, calibration: StereoCalibration, base_map: SessionMap | None) -> MapLocalizationStage:
-    """The loop stage of a localization run: every keyframe relocalized in ``base_map``."""
-    from loopmodel.loop.localize import MapLocalizationStage
-
-    assert base_map is not None
-    s = config.session
-    return MapLocalizationStage(base_map, calibration, config.loop, s.max_correction_m, s.max_correction_deg)
-
-
-def localize_config(config: Config) -> Config:
-    """``config`` for localization in a map: the tracker's poses (no back end), no map of its own."""
-    out = config.model_copy(deep=True)
-    out.backend.kind = "none"
-    out.output.write_map = False
-    return out
-
-
-def _prepend_resumed(result: RunResult, resume: ResumePoint) -> None:
-    """The interrupted run's frames and keyframes before the resumed run's first one, then the new ones."""
-
-    def joined(old: Trajectory, new: Trajectory) -> Trajectory:
-        before = old.slice(old.timestamps_ns < resume.timestamp_ns)
-        return Trajectory(
-            np.concatenate([before.timestamps_ns, new.timestamps_ns]),
-            np.concatenate([before.world_from_cam, new.world_from_cam]),
-        )
-
-    result.online = joined(resume.online, result.online)
-    result.final = joined(resume.final, result.final)
-    result.keyframes = joined(resume.keyframes, result.keyframes)
-    old_ids = resume.map.keyframe_ids[:-1]
-    shift = int(resume.map.keyframe_ids.max()) + 1
-    result.keyframe_ids = np.concatenate([old_ids, result.keyframe_ids + shift])
-
-
 @contextlib.contextmanager
 def timed_step(name: str, seconds: dict[str, float], finishing: FinishFn | None) -> Iterator[None]:
     """Time one finishing step into ``seconds[name]`` and tell ``finishing`` when it starts and ends."""
@@ -236,11 +201,11 @@ class _Run:
         finishing: FinishFn | None = None,
     ) -> None:
         self.source = source  # the sequence's name, for metrics.json and the session map
-        self.resume = resume  # continue an interrupted run from its last keyframe
+        # continue an interrupted run from its last keyframe
+        self.resume = Resumed(resume) if resume is not None else None
         # a session in a saved map (issue 20): localize in it, or extend it (merged at the end)
-        self.base_map = base_map
-        self.mode = config.session.mode if base_map is not None else None
-        config = localize_config(config) if self.mode == "localize" else config
+        self.session = map_session(config, base_map)
+        config = self.session.run_config(config)
         self.config = config
         self.listeners = listeners
         self.finishing = finishing
@@ -248,7 +213,8 @@ class _Run:
         # issue 33: in a worker beside the tracker (config.backend.worker)
         make = functools.partial(create_backend, config.backend, self.frontend.calibration, config.givens)
         self.backend: Backend = start_backend(config.backend, make)
-        self.localizer = _localizer(config, self.frontend.calibration, base_map) if self.mode == "localize" else None
+        self.session.setup(config, self.frontend.calibration)
+        self.localizer = self.session.localizer
         self.loop: LoopStage = self.localizer or _loop_stage(config, self.frontend.calibration)
         # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
         # placed with them (the stripe map follows every change of the anchored poses)
@@ -270,6 +236,11 @@ class _Run:
         self.finish_s: dict[str, float] = {}
         # for the session map (issue 20): keyframes with their images, the loop constraints
         self.map_keyframes: dict[int, Keyframe] = {}
+        self.archiver: KeyframeArchiver | None = None  # their map content, prepared off the tracking thread
+        if config.output.write_map:
+            from loopmodel.loop.session_map import KeyframeArchiver
+
+            self.archiver = KeyframeArchiver(self.frontend.calibration, config.loop)
         self.loop_constraints: list[LoopConstraint] = []
         self._last_ms = 0.0
         self._last_ids: tuple[int | None, ...] = ()
@@ -328,13 +299,13 @@ class _Run:
 
     def skips(self, frame: StereoFrame) -> bool:
         """Whether a resumed run skips this frame (before the interrupted run's last keyframe)."""
-        return self.resume is not None and int(frame.timestamp_ns) < self.resume.timestamp_ns
+        return self.resume is not None and self.resume.skips(frame)
 
     def _resumed(self, kf: Keyframe) -> Keyframe:
         """A resumed run's first keyframe at the pose of the interrupted run's last one."""
         if self.resume is None or self.keyframes:
             return kf
-        pose = self.resume.world_from_kf
+        pose = self.resume.world_from_first_kf
         self.frontend.apply_correction({kf.id: pose})
         return dataclasses.replace(kf, world_from_kf=pose.copy())
 
@@ -362,8 +333,9 @@ class _Run:
         if kf.connected and kf.prev_keyframe_id is not None and kf.kf_prev_from_kf_tracked is not None:
             self.tracked_links[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf_tracked)
         self.keyframes[kf.id] = kf.timestamp_ns
-        if self.config.output.write_map:
+        if self.archiver is not None:
             self.map_keyframes[kf.id] = kf
+            self.archiver.add(kf)
         for listener in self.listeners:
             if out.events:
                 listener.on_loop_events(out.events)
@@ -448,10 +420,7 @@ class _Run:
         result.metrics = self._metrics(result, frames_s, mesh_metrics)
         with timed_step("map", self.finish_s, self.finishing):
             result.session_map = self._session_map(result)
-            if self.localizer is not None:
-                self._localization(result, self.localizer)
-            if self.mode == "extend":
-                self._extend(result)
+            self.session.finish(result, self.frames, self.config)
         result.metrics["finish_s"] = dict(self.finish_s)
         result.metrics["wall_s"] = frames_s + sum(self.finish_s.values())
         for listener in self.listeners:
@@ -483,7 +452,7 @@ class _Run:
         if estimate is not None:
             result.landmark_ids, result.landmarks_in_world = estimate.landmark_ids, estimate.landmarks_in_world
         if self.resume is not None:
-            _prepend_resumed(result, self.resume)
+            self.resume.join_result(result)
         return result
 
     def partial_result(self, interrupted: bool) -> RunResult:
@@ -511,7 +480,10 @@ class _Run:
 
     def _session_map(self, result: RunResult) -> SessionMap | None:
         """The run's map for later sessions (``output.write_map``; None without keyframes or when it fails)."""
-        if not self.config.output.write_map or not self.map_keyframes:
+        if self.archiver is None:
+            return None
+        prepared = self.archiver.take()
+        if not self.map_keyframes:
             return None
         from loopmodel.config import dump_config, pipeline_sections
         from loopmodel.loop.session_map import MapInputs, build_session_map
@@ -540,68 +512,13 @@ class _Run:
             {"sequence": self.source},
         )
         try:
-            smap = build_session_map(inputs, self.config.loop)
+            smap = build_session_map(inputs, self.config.loop, prepared)
         except LoopmodelError as exc:
             logger.error("no session map: %s", exc)
             return None
         if self.resume is not None:
-            from loopmodel.loop.merge import append_session
-
-            smap = append_session(self.resume.map, smap)
+            smap = self.resume.join_map(smap)
         return smap
-
-    def _localization(self, result: RunResult, localizer: MapLocalizationStage) -> None:
-        """Per-frame status in the map (``MAP``, ``OWN`` frame, ``LOST``) and the frames localized in it."""
-        status = [
-            "LOST" if not f.ok else ("MAP" if localizer.in_map.get(f.keyframe_id, False) else "OWN")
-            for f in self.frames
-        ]
-        in_map = {f.timestamp_ns for f, st in zip(self.frames, status, strict=True) if st == "MAP"}
-        result.localized = result.final.slice(np.isin(result.final.timestamps_ns, list(in_map)))
-        m = result.metrics
-        m["localization_status"] = status
-        m["localized_frames"] = len(in_map)
-        if not localizer.events:
-            logger.warning("never relocalized in the map: the poses are in this session's own frame")
-
-    def _extend(self, result: RunResult) -> None:
-        """The session's map merged into the base map; the mesh of both sessions' stripes.
-
-        A session that shares no view with the map says so and keeps its own frame and map.
-        """
-        from loopmodel.errors import InputError
-        from loopmodel.loop.merge import merge_maps
-        from loopmodel.mapping.final import posed_stripes_mesh
-
-        assert self.base_map is not None
-        if result.session_map is None:
-            logger.warning("no map of this session: nothing to merge")
-            return
-        s = self.config.session
-        try:
-            merged, report = merge_maps(
-                self.base_map, result.session_map, self.config.loop, s.merge_agree_m, s.merge_agree_deg
-            )
-        except InputError as exc:
-            logger.warning("session not merged, it keeps its own frame: %s", exc)
-            result.metrics["merged"] = False
-            return
-        result.session_map = merged
-        T = report.world_a_from_world_b
-        result.final = Trajectory(result.final.timestamps_ns, T[None] @ result.final.world_from_cam)
-        result.keyframes = Trajectory(result.keyframes.timestamps_ns, T[None] @ result.keyframes.world_from_cam)
-        stripes, poses = merged.stripes_with_poses()
-        result.mesh = posed_stripes_mesh(stripes, poses, self.config.mapping)
-        result.metrics.update(
-            {
-                "merged": True,
-                "merge_links": report.links,
-                "merge_candidates": report.candidates,
-                "merge_offset_m": report.offset_m,
-                "merge_offset_deg": report.offset_deg,
-                "merged_keyframes": len(merged),
-            }
-        )
 
     def _metrics(self, result: RunResult, frames_s: float, mesh_metrics: dict[str, Any]) -> dict[str, Any]:
         """``metrics.json``: each stage's own figures and the run's timings (no grading: :mod:`loopmodel.eval`).
@@ -788,7 +705,7 @@ def run_pipeline(
     written, then ``KeyboardInterrupt`` is raised (an error ending the run early is raised
     after the write as well). With ``base_map`` (a loaded
     :class:`~loopmodel.loop.session_map.SessionMap`) the session localizes in it or extends it
-    (``config.session.mode``); with ``resume`` (:func:`~loopmodel.loop.session_map.read_resume_point`)
+    (``config.session.mode``); with ``resume`` (:func:`~loopmodel.io.map_file.read_resume_point`)
     it continues an interrupted run from its last keyframe. ``finishing`` is told each step after
     the last frame (:data:`FINISH_STEPS`).
     """

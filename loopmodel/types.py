@@ -7,7 +7,7 @@ camera frame is x right, y down, z forward.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -147,6 +147,14 @@ class StripeProfile:
 
     timestamp_ns: int
     points_in_cam: NDArray[np.float64]
+
+
+@dataclass
+class MapFileData:
+    """The content of a map file: ``meta`` (JSON-able dict) and named numpy ``arrays``."""
+
+    meta: dict[str, Any] = field(default_factory=dict)
+    arrays: dict[str, NDArray[Any]] = field(default_factory=dict)
 
 
 @dataclass

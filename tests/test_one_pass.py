@@ -19,7 +19,7 @@ from loopmodel.config import Config, config_from_dict
 from loopmodel.io.sequence import open_sequence
 from loopmodel.sim import generate as gen
 
-N_FRAMES = 8
+N_FRAMES = 6
 
 
 @pytest.fixture(scope="module")
@@ -58,6 +58,7 @@ def _counted(seq: Any, calls: Counter[str], items: Counter[str]) -> None:
         setattr(seq, name, wrap(name, getattr(seq, name)))
 
 
+@pytest.mark.slow  # the scan's generation: 18-23 s at load 10
 def test_a_run_reads_each_frame_and_laser_image_once(laser_scan: tuple[Path, Config]) -> None:
     from loopmodel.mapping.extraction import LightPlane, stripe_from_image
     from loopmodel.pipeline import process
@@ -93,6 +94,7 @@ def test_a_run_reads_each_frame_and_laser_image_once(laser_scan: tuple[Path, Con
     )
 
 
+@pytest.mark.slow
 def test_evaluation_after_the_run_against_an_independent_computation(laser_scan: tuple[Path, Config]) -> None:
     """:func:`loopmodel.evaluate` of a result placed with known poses: the truth moved by 2 mm of noise."""
     import open3d as o3d

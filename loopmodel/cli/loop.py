@@ -112,5 +112,7 @@ def loop_vocabulary(
         seed,
         source=source or folder.name,
     )
-    voc.save(out)
+    from loopmodel.io.vocabulary_file import save_vocabulary
+
+    save_vocabulary(out, voc)
     console.print(f"{voc.n_words} {cfg.descriptor} words from {voc.info['images']} images written to {out}")

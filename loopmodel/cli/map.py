@@ -31,11 +31,10 @@ def map_info(
     from rich.markup import escape
 
     from loopmodel.display import Formatter, describe_rows
-    from loopmodel.io.map_file import map_folder, map_size_bytes
-    from loopmodel.loop.session_map import SessionMap
+    from loopmodel.io.map_file import load_session_map, map_folder, map_size_bytes
 
     t0 = time.perf_counter()
-    smap = SessionMap.load(path)
+    smap = load_session_map(path)
     desc = {
         "map": str(map_folder(path)),
         **smap.summary(),
@@ -62,15 +61,15 @@ def map_merge(
 ) -> None:
     """Merge map B into map A: place recognition finds where they share a view, then a joint optimisation."""
     from loopmodel.errors import InputError
+    from loopmodel.io.map_file import load_session_map, save_session_map
     from loopmodel.loop.merge import merge_maps
-    from loopmodel.loop.session_map import SessionMap
 
     if out.exists() and not overwrite:  # checked before the work (an input's own map/ too)
         raise InputError(out, "exists; choose another --out or pass --overwrite")
     cfg = load_config(config)
-    a, b = SessionMap.load(first), SessionMap.load(second)
+    a, b = load_session_map(first), load_session_map(second)
     merged, report = merge_maps(a, b, cfg.loop)
-    merged.save(out)
+    save_session_map(out, merged)
     console.print(
         f"wrote {out}: {len(merged)} keyframes ({len(a)} + {len(b)}), "
         f"{report.links} links between the maps ({report.candidates} candidates), "

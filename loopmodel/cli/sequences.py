@@ -219,7 +219,7 @@ def run(
         raise InputError("--max-frames", f"must be at least 1, got {max_frames}")
     resume_point = None
     if resume is not None:
-        from loopmodel.loop.session_map import read_resume_point
+        from loopmodel.io.map_file import read_resume_point
 
         resume_point = read_resume_point(resume)
         out, name = resume.parent, name or resume.name
@@ -348,9 +348,9 @@ def _session_config(cfg: Config, base_map: Path | None, mode: str | None) -> tup
         cfg = apply_overrides(cfg, {"session.mode": mode}, {"session.mode": "--mode"})
     if base_map is None:
         return cfg, None
-    from loopmodel.loop.session_map import SessionMap
+    from loopmodel.io.map_file import load_session_map
 
-    return cfg, SessionMap.load(base_map)
+    return cfg, load_session_map(base_map)
 
 
 @app.command()
@@ -403,10 +403,10 @@ def mesh(
         _mesh_picture(target, surface, None, picture, overwrite, CAMERA_UP)
         return
     if (source / "map.json").is_file():  # a saved (merged) session map: its stripes at their anchors
-        from loopmodel.loop.session_map import SessionMap
+        from loopmodel.io.map_file import load_session_map
         from loopmodel.mapping.final import posed_stripes_mesh
 
-        session_map = SessionMap.load(source)
+        session_map = load_session_map(source)
         map_stripes, map_poses = session_map.stripes_with_poses()
         surface = posed_stripes_mesh(map_stripes, map_poses, cfg.mapping)
         if surface is None:

@@ -3,8 +3,8 @@
 ``map.json`` holds the format name and version, the loopmodel version that wrote it, the run's
 configuration (YAML text) and small descriptive fields; ``arrays.npz`` (uncompressed, read with
 ``allow_pickle=False``) holds every array by name. This module knows nothing of what the arrays
-mean (:mod:`loopmodel.loop.session_map` does); it writes atomically (a staging folder renamed
-into place) and reads back with a clear :class:`~loopmodel.errors.InputError` naming the file on
+mean (:mod:`loopmodel.loop.session_map` turns a map into them and back); it writes atomically (a
+staging folder renamed into place) and reads back with a clear :class:`~loopmodel.errors.InputError` naming the file on
 a foreign, damaged or newer-version map.
 """
 
@@ -14,29 +14,37 @@ import json
 import os
 import shutil
 import zipfile
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from loopmodel.errors import InputError
 from loopmodel.io.text import read_text_file
+from loopmodel.types import MapFileData, Trajectory
+
+if TYPE_CHECKING:
+    from loopmodel.loop.session_map import ResumePoint, SessionMap
+
+__all__ = [
+    "ARRAYS_FILE",
+    "META_FILE",
+    "MapFileData",
+    "load_session_map",
+    "map_folder",
+    "map_size_bytes",
+    "read_map_file",
+    "read_map_meta",
+    "read_resume_point",
+    "save_session_map",
+    "write_map_file",
+]
 
 FORMAT_NAME = "loopmodel-map"
 #: Version of the layout written; a reader refuses a map with a higher one.
 FORMAT_VERSION = 1
 META_FILE = "map.json"
 ARRAYS_FILE = "arrays.npz"
-
-
-@dataclass
-class MapFileData:
-    """The content of a map file: ``meta`` (JSON-able dict) and named numpy ``arrays``."""
-
-    meta: dict[str, Any] = field(default_factory=dict)
-    arrays: dict[str, NDArray[Any]] = field(default_factory=dict)
 
 
 def write_map_file(path: str | Path, data: MapFileData) -> Path:
@@ -132,3 +140,38 @@ def map_size_bytes(path: str | Path) -> int:
     """Bytes of a map folder's files."""
     folder = map_folder(path)
     return sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
+
+
+def save_session_map(path: str | Path, smap: SessionMap) -> Path:
+    """Write a session map as the map folder ``path`` (atomic)."""
+    return write_map_file(path, smap.to_file_data())
+
+
+def load_session_map(path: str | Path) -> SessionMap:
+    """Read a map folder (or a results folder's ``map/``); damaged or newer maps raise InputError."""
+    from loopmodel.loop.session_map import REQUIRED_ARRAYS, SessionMap
+
+    data = read_map_file(path, REQUIRED_ARRAYS)
+    try:
+        return SessionMap.from_file_data(data)
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise InputError(path, f"damaged map ({type(exc).__name__}: {exc})") from None
+
+
+def read_resume_point(folder: str | Path) -> ResumePoint:
+    """The map and trajectories of a results folder, for resuming it (``loopmodel run --resume``)."""
+    from loopmodel.io.trajectory_io import read_trajectory
+    from loopmodel.loop.session_map import ResumePoint
+
+    p = Path(folder)
+    if not p.is_dir():
+        raise InputError(p, "results folder to resume does not exist")
+    smap = load_session_map(p / "map")
+    if len(smap) == 0:
+        raise InputError(p / "map", "the map holds no keyframe to resume from")
+    trajs: list[Trajectory] = []
+    for name in ("trajectory_online.tum", "trajectory_final.tum", "keyframes.tum"):
+        if not (p / name).is_file():
+            raise InputError(p / name, "missing: cannot resume this run")
+        trajs.append(read_trajectory(p / name))
+    return ResumePoint(smap, *trajs)

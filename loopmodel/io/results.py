@@ -184,7 +184,9 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
 
             save_stripes(folder.file(STRIPES_FILE), run.stripes)
         if run.session_map is not None:
-            run.session_map.save(folder.file("map"))
+            from loopmodel.io.map_file import save_session_map
+
+            save_session_map(folder.file("map"), run.session_map)
         for name, mesh in (("mesh.ply", run.mesh), ("mesh_live.ply", run.live_mesh)):
             if mesh is not None:
                 from loopmodel.io.mesh_io import write_mesh
