@@ -170,7 +170,9 @@ def _children(pid: int) -> list[str]:
 def test_ctrl_c_during_simulate_start_up_is_not_lost(tmp_path: Path) -> None:
     """Ctrl-C while the render workers start (the parent waits for them to read their set-up)."""
     out = tmp_path / "s.mcap"
-    proc = _cli(["simulate", "scan", "--out", str(out), "--frames", "40", "--workers", "2"])
+    proc = _cli(
+        ["simulate", "scan", "--out", str(out), "--frames", "40", "--workers", "2", "--width", "160", "--height", "120"]
+    )
     deadline = time.monotonic() + 120
     while not _children(proc.pid) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.005)
