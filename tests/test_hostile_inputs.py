@@ -1015,6 +1015,16 @@ def test_item16_paths_in_data_files_stay_in_the_dataset(tmp_path: Path) -> None:
             (euroc / cam / "data.csv").write_text(f"#t,f\n1000,{name}\n")
         with pytest.raises(FormatError, match="must be a file name inside data/"):
             open_sequence(tmp_path / "e")
+    # a turntable layout's paths
+    from loopmodel.turntable.reader import open_turntable
+
+    (tmp_path / "tt").mkdir()
+    cv2.imwrite(str(tmp_path / "tt" / "0.png"), np.zeros((48, 64), np.uint8))
+    for key, value in (("frames", "../*.png"), ("camera", str(secret))):
+        layout = {"frames": "*.png", "camera": "cam.yaml", key: value}
+        (tmp_path / "tt" / "turntable.yaml").write_text(json.dumps(layout))
+        with pytest.raises(InputError, match=f"'{key}' must be a path inside the scan folder"):
+            open_turntable(tmp_path / "tt")
 
 
 def test_item17_messages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
