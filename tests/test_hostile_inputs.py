@@ -1040,6 +1040,12 @@ def test_item17_messages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     with pytest.raises(FormatError) as info:
         open_turntable(tmp_path / "tt")
     assert "\n" not in str(info.value)
+    from loopmodel.io.camera_yaml import read_intrinsics
+
+    (tmp_path / "cam.yaml").write_text("camera_matrix: [a\nb: {\n")
+    with pytest.raises(FormatError) as info:
+        read_intrinsics(tmp_path / "cam.yaml")
+    assert "\n" not in str(info.value) and "cam.yaml" in str(info.value)
     # MCAP image errors name the frame
     path = tmp_path / "m.mcap"
     img = np.zeros((48, 64), np.uint8)

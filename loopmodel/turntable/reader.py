@@ -114,10 +114,12 @@ def _planes(path: Path) -> dict[str, LightPlane]:
         from loopmodel.calibration.laser import read_laser_planes_json
 
         return read_laser_planes_json(path)
+    from loopmodel.io.text import one_line, read_text_file
+
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise FormatError(path, f"cannot read plane YAML ({exc})") from None
+        data = yaml.safe_load(read_text_file(path, "plane YAML"))
+    except (OSError, yaml.YAMLError, RecursionError) as exc:
+        raise FormatError(path, f"cannot read plane YAML ({one_line(exc)})") from None
     abcd = data.get("plane_abcd") if isinstance(data, dict) else None
     if not isinstance(abcd, list) or len(abcd) != 4:
         raise FormatError(path, "expected 'plane_abcd: [a, b, c, d]' (a plane of `loopmodel calibrate laser`)")
@@ -144,12 +146,12 @@ def _inside(relative: str, key: str, lp: Path) -> str:
 
 def _read_layout_yaml(lp: Path) -> dict[str, Any]:
     """The layout file's mapping; one line naming the file for anything else."""
-    from loopmodel.io.text import read_text_file
+    from loopmodel.io.text import one_line, read_text_file
 
     try:
         data = yaml.safe_load(read_text_file(lp, "turntable layout"))
     except yaml.YAMLError as exc:
-        raise FormatError(lp, f"cannot parse YAML ({' '.join(str(exc).split())})") from None
+        raise FormatError(lp, f"cannot parse YAML ({one_line(exc)})") from None
     except RecursionError:
         raise FormatError(lp, "cannot parse YAML (nested too deeply)") from None
     if not isinstance(data, dict):
