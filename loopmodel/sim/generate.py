@@ -14,6 +14,7 @@ frame, so the content does not depend on the number of worker processes.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import multiprocessing as mp
@@ -26,7 +27,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -756,7 +757,7 @@ def _runs(executable: str) -> bool:
 
 def _iter_rendered(
     cfg: SimulationConfig, scene: Scene, tasks: list[FrameTask], state: _WorkerState | None
-) -> Iterator[FrameImages]:
+) -> Generator[FrameImages, None, None]:
     workers = cfg.workers if cfg.workers > 0 else (mp.cpu_count() or 1)
     workers = min(workers, max(len(tasks), 1))
     if workers <= 1:
@@ -773,6 +774,16 @@ def _iter_rendered(
     # to read it). While the pool starts, Ctrl-C and SIGTERM are noted and raised once it exists
     # (issue 34: the parent used to ignore SIGINT then, and a Ctrl-C in the first seconds was lost).
     tmp = tempfile.mkdtemp(prefix="loopmodel-sim-")
+    try:  # the set-up files removed however it ends
+        yield from _render_in_pool(ctx, workers, cfg, scene, tasks, tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _render_in_pool(
+    ctx: Any, workers: int, cfg: SimulationConfig, scene: Scene, tasks: list[FrameTask], tmp: str
+) -> Generator[FrameImages, None, None]:
+    """The frames rendered by a pool of ``workers`` processes whose set-up files go in ``tmp``."""
     setup, launcher = os.path.join(tmp, "setup.pickle"), os.path.join(tmp, "python")
     with open(setup, "wb") as f:
         pickle.dump((cfg, scene), f, protocol=pickle.HIGHEST_PROTOCOL)
@@ -792,21 +803,15 @@ def _iter_rendered(
     try:
         ctx.set_executable(launcher)
         pool = ctx.Pool(workers, initializer=_init_worker_from_file, initargs=(setup,))
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     finally:
         ctx.set_executable(sys.executable)
         for sig_restored, handler in previous.items():
             signal.signal(sig_restored, handler)
-    try:
-        if caught:
-            pool.terminate()
-            raise KeyboardInterrupt(f"signal {caught[0]}")
-        with pool:
-            yield from pool.imap(_worker_render, tasks, chunksize=1)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    if caught:
+        pool.terminate()
+        raise KeyboardInterrupt(f"signal {caught[0]}")
+    with pool:
+        yield from pool.imap(_worker_render, tasks, chunksize=1)
 
 
 def simulate_scan(
@@ -842,8 +847,10 @@ def simulate_scan(
     frames_written = stripes_written = 0
     render_s: list[float] = []
     state = _make_state(cfg, scene) if cfg.workers == 1 else None
-    with McapSequenceWriter(out, calib, topics, cfg.image_format) as writer:
-        for k, img in enumerate(_iter_rendered(cfg, scene, tasks, state)):
+    rendered = _iter_rendered(cfg, scene, tasks, state)
+    # closed on any exit (Ctrl-C while writing too): the pool ends, its set-up files are removed
+    with McapSequenceWriter(out, calib, topics, cfg.image_format) as writer, contextlib.closing(rendered):
+        for k, img in enumerate(rendered):
             i = img.index
             render_s.append(img.render_s)
             t_ns = frame_time_ns(cfg, i)
