@@ -4,6 +4,7 @@ The signals are set up before the (slow) import of the command line, so that a C
 SIGTERM while it loads exits 130 with one line, not a traceback or the default action's 143.
 """
 
+import os
 import signal
 import sys
 
@@ -23,7 +24,12 @@ def entry() -> int:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         sys.stderr.write("interrupted\n")
-        return 130
+        sys.stderr.flush()
+        sys.stdout.flush()
+        # nothing was started yet; a plain exit could still die by SIGINT: an extension module
+        # that ran Python code while the Ctrl-C landed leaves the interpreter's "unhandled
+        # KeyboardInterrupt" mark set although it was handled here
+        os._exit(130)
 
 
 if __name__ == "__main__":

@@ -724,7 +724,7 @@ def run_pipeline(
 
 
 def _kept_beside(where: Path | None, old: Path) -> str:
-    return f"the results so far are in {where} ({old}, complete, was not replaced)"
+    return f"the results so far are in {where} ({old} was not replaced)"
 
 
 def run(

@@ -286,24 +286,29 @@ def test_input_error_mid_run_is_recorded_in_the_results(tmp_path: Path, capsys: 
 
 
 def test_peak_rss_on_images_declaring_huge_sizes(tmp_path: Path) -> None:
-    # 60000 x 60000 PNGs (3.4 GiB each when decoded): refused from their headers, so the peak
-    # stays within 1.5 GiB plus the declared-size limit (sequence.max_image_pixels, 1 byte each)
-    root = tmp_path / "k"
-    for d in ("image_0", "image_1"):
-        (root / d).mkdir(parents=True)
-        for n in _names(2):
-            (root / d / f"{n}.png").write_bytes(_png_declaring(60000, 60000))
-    (root / "calib.txt").write_text(CALIB)
-    code = (
-        "import sys\nfrom loopmodel.cli import main\n"
-        f"rc = main(['run', {str(root)!r}, '--out', {str(tmp_path / 'o')!r}])\n"
-        "hwm = [l for l in open('/proc/self/status') if l.startswith('VmHWM')][0].split()[1]\n"
-        "print(rc, int(hwm) / 1024)\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
-    rc, rss_mib = out.stdout.split()[-2:]
-    limit_mib = 1.5 * 1024 + load_config(None).sequence.max_image_pixels / 2**20
-    assert rc == "2" and "60000x60000" in out.stderr and float(rss_mib) < limit_mib, (rss_mib, out.stderr)
+    # 60000 x 60000 PNGs (3.4 GiB each when decoded), and 30000 x 30000 JPEGs whose size marker
+    # sits past the first 64 KiB (issue 34 item 7: 5.5 GiB before): refused from their headers, so
+    # the peak stays within 1.5 GiB plus the declared-size limit (sequence.max_image_pixels, 1 byte each)
+    for ext, data, size in (
+        ("png", _png_declaring(60000, 60000), "60000x60000"),
+        ("jpg", _jpeg_with_app_segments(2, 30000, 30000), "30000x30000"),
+    ):
+        root = tmp_path / ext
+        for d in ("image_0", "image_1"):
+            (root / d).mkdir(parents=True)
+            for n in _names(2):
+                (root / d / f"{n}.{ext}").write_bytes(data)
+        (root / "calib.txt").write_text(CALIB)
+        code = (
+            "import sys\nfrom loopmodel.cli import main\n"
+            f"rc = main(['run', {str(root)!r}, '--out', {str(tmp_path / 'o')!r}])\n"
+            "hwm = [l for l in open('/proc/self/status') if l.startswith('VmHWM')][0].split()[1]\n"
+            "print(rc, int(hwm) / 1024)\n"
+        )
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+        rc, rss_mib = out.stdout.split()[-2:]
+        limit_mib = 1.5 * 1024 + load_config(None).sequence.max_image_pixels / 2**20
+        assert rc == "2" and size in out.stderr and float(rss_mib) < limit_mib, (ext, rss_mib, out.stderr)
 
 
 def test_corrupt_stripes_npz(tmp_path: Path) -> None:
@@ -1016,6 +1021,16 @@ def test_item16_paths_in_data_files_stay_in_the_dataset(tmp_path: Path) -> None:
             (euroc / cam / "data.csv").write_text(f"#t,f\n1000,{name}\n")
         with pytest.raises(FormatError, match="must be a file name inside data/"):
             open_sequence(tmp_path / "e")
+    # a turntable layout's paths
+    from loopmodel.turntable.reader import open_turntable
+
+    (tmp_path / "tt").mkdir()
+    cv2.imwrite(str(tmp_path / "tt" / "0.png"), np.zeros((48, 64), np.uint8))
+    for key, value in (("frames", "../*.png"), ("camera", str(secret))):
+        layout = {"frames": "*.png", "camera": "cam.yaml", key: value}
+        (tmp_path / "tt" / "turntable.yaml").write_text(json.dumps(layout))
+        with pytest.raises(InputError, match=f"'{key}' must be a path inside the scan folder"):
+            open_turntable(tmp_path / "tt")
 
 
 def test_item17_messages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -1031,6 +1046,12 @@ def test_item17_messages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     with pytest.raises(FormatError) as info:
         open_turntable(tmp_path / "tt")
     assert "\n" not in str(info.value)
+    from loopmodel.io.camera_yaml import read_intrinsics
+
+    (tmp_path / "cam.yaml").write_text("camera_matrix: [a\nb: {\n")
+    with pytest.raises(FormatError) as info:
+        read_intrinsics(tmp_path / "cam.yaml")
+    assert "\n" not in str(info.value) and "cam.yaml" in str(info.value)
     # MCAP image errors name the frame
     path = tmp_path / "m.mcap"
     img = np.zeros((48, 64), np.uint8)

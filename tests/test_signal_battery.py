@@ -167,15 +167,25 @@ def _children(pid: int) -> list[str]:
 
 
 @pytest.mark.slow
-def test_ctrl_c_during_simulate_start_up_is_not_lost(tmp_path: Path) -> None:
-    """Ctrl-C while the render workers start (the parent waits for them to read their set-up)."""
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_signal_during_simulate_start_up_is_not_lost(tmp_path: Path, signum: int) -> None:
+    """Ctrl-C (to the process group) or SIGTERM (to the command) while the render workers start.
+
+    The parent waits for them to read their set-up then; the signal was lost (Ctrl-C: the scan
+    written, exit 0) or left worker tracebacks (SIGTERM).
+    """
     out = tmp_path / "s.mcap"
-    proc = _cli(["simulate", "scan", "--out", str(out), "--frames", "40", "--workers", "2"])
+    args = ["simulate", "scan", "--out", str(out), "--frames", "40", "--workers", "2"]
+    proc = _cli([*args, "--width", "160", "--height", "120"])
     deadline = time.monotonic() + 120
     while not _children(proc.pid) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.005)
     assert proc.poll() is None, "simulate finished before its workers started"
-    os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C reaches the whole process group
+    if signum == signal.SIGINT:
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C reaches the whole process group
+    else:
+        time.sleep(0.5)  # the workers reading their set-up
+        proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "interrupted" in err

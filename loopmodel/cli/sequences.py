@@ -274,7 +274,8 @@ def run(
         except KeyboardInterrupt as exc:
             finishing.close()
             note = getattr(exc, "note", "")  # kept beside a complete older run (issue 34)
-            err_console.print(note or f"results up to the last processed frame are in {folder}")
+            where = note or f"results up to the last processed frame are in {folder}"
+            err_console.print(where, highlight=False, soft_wrap=True)  # one line, paths unbroken
             raise
     table = Table(title=f"loopmodel run {path.name}", show_header=False)
     for k, v in run_summary_rows(result.metrics, result.folder, _run_formatter(result), rerun):

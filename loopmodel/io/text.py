@@ -51,3 +51,8 @@ def require_regular_file(path: Path, what: str = "file") -> os.stat_result:
         )
         raise InputError(path, f"{kind}, not a regular {what}")
     return st
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's message on one line (a YAML error spans four: the context and a caret)."""
+    return " ".join(str(exc).split())

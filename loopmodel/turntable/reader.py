@@ -114,10 +114,12 @@ def _planes(path: Path) -> dict[str, LightPlane]:
         from loopmodel.calibration.laser import read_laser_planes_json
 
         return read_laser_planes_json(path)
+    from loopmodel.io.text import one_line, read_text_file
+
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise FormatError(path, f"cannot read plane YAML ({exc})") from None
+        data = yaml.safe_load(read_text_file(path, "plane YAML"))
+    except (OSError, yaml.YAMLError, RecursionError) as exc:
+        raise FormatError(path, f"cannot read plane YAML ({one_line(exc)})") from None
     abcd = data.get("plane_abcd") if isinstance(data, dict) else None
     if not isinstance(abcd, list) or len(abcd) != 4:
         raise FormatError(path, "expected 'plane_abcd: [a, b, c, d]' (a plane of `loopmodel calibrate laser`)")
@@ -135,14 +137,21 @@ def _get(data: dict[str, Any], key: str, kind: type, source: Path, default: Any 
     return v
 
 
+def _inside(relative: str, key: str, lp: Path) -> str:
+    """A path the layout names, confined to the scan folder: relative, without '..' (issue 34)."""
+    if Path(relative).is_absolute() or ".." in Path(relative).parts or "\0" in relative:
+        raise InputError(lp, f"'{key}' must be a path inside the scan folder, got '{relative}'")
+    return relative
+
+
 def _read_layout_yaml(lp: Path) -> dict[str, Any]:
     """The layout file's mapping; one line naming the file for anything else."""
-    from loopmodel.io.text import read_text_file
+    from loopmodel.io.text import one_line, read_text_file
 
     try:
         data = yaml.safe_load(read_text_file(lp, "turntable layout"))
     except yaml.YAMLError as exc:
-        raise FormatError(lp, f"cannot parse YAML ({' '.join(str(exc).split())})") from None
+        raise FormatError(lp, f"cannot parse YAML ({one_line(exc)})") from None
     except RecursionError:
         raise FormatError(lp, "cannot parse YAML (nested too deeply)") from None
     if not isinstance(data, dict):
@@ -177,18 +186,18 @@ def open_turntable(
     if not lp.is_file():
         raise InputError(lp, "turntable layout file not found (pass --layout; see loopmodel.turntable.reader)")
     data = _read_layout_yaml(lp)
-    pattern = _get(data, "frames", str, lp)
+    pattern = _inside(_get(data, "frames", str, lp), "frames", lp)
     frames = sorted((Path(f) for f in glob.glob(str(root / pattern))), key=_number)
     if not frames:
         raise InputError(root / pattern, "no frames match")
-    K, dist, size = read_intrinsics(root / _get(data, "camera", str, lp))
+    K, dist, size = read_intrinsics(root / _inside(_get(data, "camera", str, lp), "camera", lp))
     if size is None:
         img = read_image(frames[0])
         size = (int(img.shape[1]), int(img.shape[0]))
     planes: dict[str, LightPlane] = {}
     for key in ("laser_planes", "laser_plane"):
         if key in data:
-            planes.update(_planes(root / _get(data, key, str, lp)))
+            planes.update(_planes(root / _inside(_get(data, key, str, lp), key, lp)))
     for p in extra_planes:
         planes.update(_planes(Path(p)))
     if not planes:
