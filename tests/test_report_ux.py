@@ -83,11 +83,14 @@ def _scan_run(folder: Path, rng: np.random.Generator, camera_frame: bool) -> Tra
     return gt
 
 
-def test_report_html_is_rendered_markdown(tmp_path: Path, rng: np.random.Generator) -> None:
+def test_report_html_is_rendered_markdown(
+    tmp_path: Path, rng: np.random.Generator, capsys: pytest.CaptureFixture[str]
+) -> None:
     gt = _scan_run(tmp_path / "scan", rng, camera_frame=True)
     write_trajectory(tmp_path / "gt.tum", gt)
     out = tmp_path / "eval"
     assert main(["eval", str(tmp_path / "scan"), "--gt", str(tmp_path / "gt.tum"), "-o", str(out)]) == 0
+    assert f"report: {out / 'report.html'}" in capsys.readouterr().out  # the table points at the HTML
     page = _Text()
     page.feed((out / "report.html").read_text())
     text = "".join(page.text)
