@@ -29,8 +29,8 @@ skip() { printf 'skipped %-28s      %s\n' "$1" "$2"; }
 
 step "--help" "$lm" --help
 step "--version" "$lm" --version
-step "simulate scan" "$lm" simulate scan --preset orbit --frames 24 --width 320 --height 240 -o scan.mcap
-step "simulate (same object)" "$lm" simulate scan --preset orbit --frames 24 --width 320 --height 240 \
+step "simulate scan" "$lm" simulate scan --preset orbit --frames 30 -o scan.mcap
+step "simulate (same object)" "$lm" simulate scan --preset orbit --frames 30 \
   --scene-seed 0 --seed 1 -o scan2.mcap
 step "info" "$lm" info scan.mcap
 step "info --json" "$lm" info scan.mcap --json
