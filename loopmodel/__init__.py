@@ -7,7 +7,8 @@ The Python API (imported on first use, so ``import loopmodel`` stays light)::
     result.final.positions_m, result.metrics["ate_rmse_m"]
 
 ``run(source, config=None, out_dir=None) -> RunResult``, ``open_sequence(path, config=None)``,
-``load_config(path=None) -> Config``.
+``load_config(path=None) -> Config``; trajectory files (TUM, KITTI, EuRoC; as evo's
+``file_interface``): ``read_trajectory(path)``, ``write_trajectory(path, result.final)``.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from loopmodel._version import __version__
 if TYPE_CHECKING:
     from loopmodel.config import Config, load_config
     from loopmodel.io.sequence import open_sequence
+    from loopmodel.io.trajectory_io import read_trajectory, write_trajectory
     from loopmodel.pipeline import run
     from loopmodel.result import RunResult
     from loopmodel.types import Keyframe, StereoCalibration, StereoFrame, StripeProfile, Trajectory
@@ -38,6 +40,8 @@ _LAZY = {
     "StereoFrame": "loopmodel.types",
     "StripeProfile": "loopmodel.types",
     "Trajectory": "loopmodel.types",
+    "read_trajectory": "loopmodel.io.trajectory_io",
+    "write_trajectory": "loopmodel.io.trajectory_io",
 }
 
 __all__ = [
@@ -52,6 +56,8 @@ __all__ = [
     "load_config",
     "open_sequence",
     "run",
+    "read_trajectory",
+    "write_trajectory",
 ]
 
 
