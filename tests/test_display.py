@@ -183,3 +183,21 @@ def test_trajectory_files_write_the_origin_as_zero(tmp_path: Path) -> None:
     assert first[1:4] == ["0.0", "0.0", "0.0"] and "e-2" not in " ".join(first)
     back = read_trajectory(tmp_path / "t.tum")
     assert back.world_from_cam[1, 0, 3] == 0.123456789012345 and back.world_from_cam[1, 1, 3] == 1e-9  # full precision
+
+
+def test_map_info_in_units_with_labels(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``map info``: extent in the map's unit, labels not keys, no 16-digit floats (issue 35 item 1)."""
+    import re
+
+    import loopmodel
+    from loopmodel.cli import main
+
+    root = Path(__file__).resolve().parents[1]
+    loopmodel.run(root / "datasets" / "tiny_kitti", {"backend": {"kind": "none"}}, tmp_path, name="m")
+    capsys.readouterr()
+    assert main(["map", "info", str(tmp_path / "m")]) == 0
+    out = capsys.readouterr().out
+    assert "keyframe extent [mm]" in out and "session 0: " in out and "size [MiB]" in out
+    assert "keyframe_extent_m" not in out and "fx_px" not in out
+    for x in re.findall(r"(?<![\w/.-])\d+\.\d+(?![\w/])", out):  # numbers, not parts of paths
+        assert len(x.replace(".", "").lstrip("0")) <= 4, x  # 4 significant digits at most
