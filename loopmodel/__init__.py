@@ -7,8 +7,10 @@ The Python API (imported on first use, so ``import loopmodel`` stays light)::
     result.final.positions_m, result.metrics["ate_rmse_m"]
 
 ``run(source, config=None, out_dir=None) -> RunResult``, ``open_sequence(path, config=None)``,
-``load_config(path=None) -> Config``; trajectory files (TUM, KITTI, EuRoC; as evo's
-``file_interface``): ``read_trajectory(path)``, ``write_trajectory(path, result.final)``.
+``load_config(path=None) -> Config``.
+
+Trajectory files (TUM, KITTI, EuRoC; as evo's ``file_interface``): ``read_trajectory(path)``,
+``write_trajectory(path, result.final)``.
 """
 
 from __future__ import annotations
@@ -22,7 +24,6 @@ from loopmodel._version import __version__
 if TYPE_CHECKING:
     from loopmodel.config import Config, load_config
     from loopmodel.io.sequence import open_sequence
-    from loopmodel.io.trajectory_io import read_trajectory, write_trajectory
     from loopmodel.pipeline import run
     from loopmodel.result import RunResult
     from loopmodel.types import Keyframe, StereoCalibration, StereoFrame, StripeProfile, Trajectory
