@@ -10,6 +10,9 @@ The Python API (imported on first use, so ``import loopmodel`` stays light)::
 unless ``evaluate=False``), ``process(sequence, config) -> RunResult`` (the run alone: writes and
 grades nothing), ``evaluate(result, sequence) -> Evaluation``, ``open_sequence(path, config=None)``,
 ``load_config(path=None) -> Config``.
+
+Trajectory files (TUM, KITTI, EuRoC; as evo's ``file_interface``): ``read_trajectory(path)``,
+``write_trajectory(path, result.final)``.
 """
 
 from __future__ import annotations
@@ -44,6 +47,8 @@ _LAZY = {
     "StereoFrame": "loopmodel.types",
     "StripeProfile": "loopmodel.types",
     "Trajectory": "loopmodel.types",
+    "read_trajectory": "loopmodel.io.trajectory_io",
+    "write_trajectory": "loopmodel.io.trajectory_io",
 }
 
 __all__ = [
@@ -61,6 +66,8 @@ __all__ = [
     "open_sequence",
     "process",
     "run",
+    "read_trajectory",
+    "write_trajectory",
 ]
 
 

@@ -121,7 +121,7 @@ _SUFFIXES: tuple[tuple[str, str], ...] = (
     ("hz", HERTZ),
 )
 
-_STAT_SUFFIXES = ("rmse", "mean", "median", "max", "min", "std", "p95", "p99", "online", "before", "after")
+_STAT_SUFFIXES = ("rmse", "rms", "mean", "median", "max", "min", "std", "p95", "p99", "online", "before", "after")
 
 _KNOWN: dict[str, tuple[str, str]] = {
     "ate_rmse_m": ("ATE RMSE", LENGTH_M),

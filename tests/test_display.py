@@ -168,3 +168,36 @@ def test_key_values_one_spelling() -> None:
         describe_rows({"keyframe_extent_m": [1.4324301096263707, 0.414, 1.387], "size_mib": 7.8649}, Formatter(MM))
     )
     assert rows == {"keyframe extent [mm]": "1432 x 414.0 x 1387", "size [MiB]": "7.865"}
+
+
+def test_trajectory_files_write_the_origin_as_zero(tmp_path: Path) -> None:
+    """The run's first pose (the world's origin) reads 0.0, not 2.11e-23 (issue 35 item 12)."""
+    from loopmodel.io.trajectory_io import read_trajectory, write_trajectory
+    from loopmodel.types import Trajectory
+
+    T = np.repeat(np.eye(4)[None], 2, axis=0)
+    T[0, :3, 3] = [2.11e-23, -3.6e-24, 6.2e-23]
+    T[1, :3, 3] = [0.123456789012345, 1e-9, 0.0]
+    write_trajectory(tmp_path / "t.tum", Trajectory(np.array([0, 10**8], dtype=np.int64), T))
+    first = (tmp_path / "t.tum").read_text().splitlines()[1].split()
+    assert first[1:4] == ["0.0", "0.0", "0.0"] and "e-2" not in " ".join(first)
+    back = read_trajectory(tmp_path / "t.tum")
+    assert back.world_from_cam[1, 0, 3] == 0.123456789012345 and back.world_from_cam[1, 1, 3] == 1e-9  # full precision
+
+
+def test_map_info_in_units_with_labels(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``map info``: extent in the map's unit, labels not keys, no 16-digit floats (issue 35 item 1)."""
+    import re
+
+    import loopmodel
+    from loopmodel.cli import main
+
+    root = Path(__file__).resolve().parents[1]
+    loopmodel.run(root / "datasets" / "tiny_kitti", {"backend": {"kind": "none"}}, tmp_path, name="m")
+    capsys.readouterr()
+    assert main(["map", "info", str(tmp_path / "m")]) == 0
+    out = capsys.readouterr().out
+    assert "keyframe extent [mm]" in out and "session 0: " in out and "size [MiB]" in out
+    assert "keyframe_extent_m" not in out and "fx_px" not in out
+    for x in re.findall(r"(?<![\w/.-])\d+\.\d+(?![\w/])", out):  # numbers, not parts of paths
+        assert len(x.replace(".", "").lstrip("0")) <= 4, x  # 4 significant digits at most

@@ -114,7 +114,9 @@ def test_scene_seed_keeps_the_object(tmp_path: Path, monkeypatch: pytest.MonkeyP
         raise KeyboardInterrupt  # stop before rendering
 
     monkeypatch.setattr(generate, "simulate_scan", fake_simulate)
-    out = ["-o", str(tmp_path / "s.mcap")]
+    small = tmp_path / "small.yaml"  # small textures: the scene builds in a fraction of a second
+    small.write_text("simulation:\n  scene:\n    texture_size_px: 128\n")
+    out = ["-o", str(tmp_path / "s.mcap"), "-c", str(small)]
     for seed in ("7", "8"):
         assert main(["simulate", "scan", "--seed", seed, "--scene-seed", "3", *out]) == 130
     a, b = (generate.scene_of(s) for s in seen)  # type: ignore[arg-type]

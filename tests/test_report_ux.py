@@ -83,11 +83,14 @@ def _scan_run(folder: Path, rng: np.random.Generator, camera_frame: bool) -> Tra
     return gt
 
 
-def test_report_html_is_rendered_markdown(tmp_path: Path, rng: np.random.Generator) -> None:
+def test_report_html_is_rendered_markdown(
+    tmp_path: Path, rng: np.random.Generator, capsys: pytest.CaptureFixture[str]
+) -> None:
     gt = _scan_run(tmp_path / "scan", rng, camera_frame=True)
     write_trajectory(tmp_path / "gt.tum", gt)
     out = tmp_path / "eval"
     assert main(["eval", str(tmp_path / "scan"), "--gt", str(tmp_path / "gt.tum"), "-o", str(out)]) == 0
+    assert f"report: {out / 'report.html'}" in capsys.readouterr().out  # the table points at the HTML
     page = _Text()
     page.feed((out / "report.html").read_text())
     text = "".join(page.text)
@@ -136,7 +139,56 @@ def test_plot_mode_option(tmp_path: Path, rng: np.random.Generator) -> None:
     gt = _scan_run(tmp_path / "scan", rng, camera_frame=True)
     write_trajectory(tmp_path / "gt.tum", gt)
     out = tmp_path / "e"
-    args = ["eval", str(tmp_path / "scan"), "--gt", str(tmp_path / "gt.tum"), "-o", str(out), "--plot-mode", "xyz"]
-    assert main(args) == 0
-    assert "in 3-D" in (out / "report.md").read_text()
-    assert main([*args[:-1], "top"]) == 2
+    args = ["eval", str(tmp_path / "scan"), "--gt", str(tmp_path / "gt.tum"), "-o", str(out), "--no-plots"]
+    assert main([*args, "--plot-mode", "xyz"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["options"]["plot_mode"] == "xyz"
+    ev = rep.evaluate_run(
+        rep.load_run(tmp_path / "scan"),
+        rep.load_ground_truth(tmp_path / "gt.tum"),
+        EvalConfig(plots=False, plot_mode="xyz"),
+    )
+    assert "in 3-D" in captions(ev)[PLOT_TOP]
+    assert main([*args, "--plot-mode", "top"]) == 2
+
+
+def _not_blank(png: Path) -> np.ndarray:
+    import cv2
+
+    img = cv2.imread(str(png))
+    assert img is not None, png
+    assert (
+        float(img.std()) > 20 and len(np.unique((img.reshape(-1, 3) // 32).astype(np.int32) @ np.array([64, 8, 1]))) > 3
+    ), png
+    return img
+
+
+def test_readme_shows_the_report_and_the_rerun_view() -> None:
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    for name in ("docs/img/eval_report.png", "docs/img/rerun_view.png"):
+        assert f"]({name})" in readme
+        png = root / name
+        assert png.stat().st_size < 300_000  # small, committed
+        assert _not_blank(png).shape[1] >= 800
+
+
+@pytest.mark.slow  # chromium's start-up: about 10 s
+def test_screenshot_report_draws_the_page(tmp_path: Path, rng: np.random.Generator) -> None:
+    import shutil
+    import subprocess
+
+    if shutil.which("chromium") is None:
+        pytest.skip("tools/screenshot_report.sh needs Debian's chromium")
+    gt = _scan_run(tmp_path / "scan", rng, camera_frame=True)
+    write_trajectory(tmp_path / "gt.tum", gt)
+    assert main(["eval", str(tmp_path / "scan"), "--gt", str(tmp_path / "gt.tum"), "-o", str(tmp_path / "e")]) == 0
+    root = Path(__file__).resolve().parents[1]
+    png = tmp_path / "page.png"
+    subprocess.run(
+        ["bash", str(root / "tools" / "screenshot_report.sh"), str(tmp_path / "e" / "report.html"), str(png)],
+        check=True,
+        capture_output=True,
+        timeout=120,
+        env={**__import__("os").environ, "HEIGHT": "1600"},
+    )
+    assert _not_blank(png).shape[:2] == (1600, 1200)

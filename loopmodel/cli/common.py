@@ -1,9 +1,8 @@
-"""Shared pieces of the command line: the typer app, consoles, progress bar, formatting, common options."""
+"""Shared pieces of the command line: the typer app, consoles, progress bar, common options."""
 
 from __future__ import annotations
 
 import logging
-import math
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -85,23 +84,3 @@ def progress_bar(*extra: Any) -> Progress:
         console=err_console,
         transient=False,
     )
-
-
-def _length(v_m: float | None) -> str:
-    """A length for people: millimetres below 10 cm (close-range scans), metres above."""
-    from loopmodel.display import MM, Formatter
-
-    if v_m is None or not math.isfinite(v_m):
-        return "-"
-    return Formatter(MM).length_text(v_m) if abs(v_m) < 0.1 else Formatter().length_text(v_m)
-
-
-def _fmt(v: Any) -> str:
-    """One value of a table (numbers with 4 significant digits, mappings as ``label value unit``)."""
-    from loopmodel.display import key_values, num
-
-    if isinstance(v, dict):
-        return key_values(v)
-    if isinstance(v, list) and not all(isinstance(x, int | float) for x in v):
-        return ", ".join(map(str, v))
-    return num(v)

@@ -87,6 +87,9 @@ def eval_command(
             rep.write_outputs(ev, target)
             evals.append((ev, target))
     console.print(eval_table(evals))
+    for ev, target in evals:  # below the table: a path never wraps inside a column
+        line = f"report: {target / 'report.html'}" + (f" ({ev.metrics['run']})" if len(evals) > 1 else "")
+        console.print(line, soft_wrap=True, highlight=False)
     if len(evals) > 1:
         cmp_dir = out or Path("eval_comparison")
         csv_path, md_path = rep.write_comparison([e for e, _ in evals], cmp_dir)
@@ -94,7 +97,10 @@ def eval_command(
 
 
 def eval_table(evals: list[tuple[RunEvaluation, Path]]) -> Table:
-    """The table printed by ``loopmodel eval``: one row per run, lengths in the unit of its sequence."""
+    """The table printed by ``loopmodel eval``: one row per run, lengths in the unit of its sequence.
+
+    The reports' paths are printed below it.
+    """
     from rich.markup import escape
 
     from loopmodel.display import num
@@ -107,8 +113,7 @@ def eval_table(evals: list[tuple[RunEvaluation, Path]]) -> Table:
     table = Table(title="loopmodel eval")
     for col in ("run", "matched", f"ATE RMSE final{u}", f"ATE RMSE online{u}", f"RPE per frame{u}", "closures"):
         table.add_column(escape(col), justify="left" if col == "run" else "right")
-    table.add_column("report", overflow="fold")
-    for (ev, target), fmt in zip(evals, fmts, strict=True):
+    for (ev, _target), fmt in zip(evals, fmts, strict=True):
         m = ev.metrics
         tr = m["trajectories"]
 
@@ -122,6 +127,5 @@ def eval_table(evals: list[tuple[RunEvaluation, Path]]) -> Table:
             length(_get(tr, "online", "ate_m", "rmse")),
             length(_get(tr, "final", "rpe_frames", "trans_m", "rmse")),
             num(m["loop_closure_count"]),
-            str(target / "report.html"),
         )
     return table

@@ -45,8 +45,10 @@ def map_info(
         console.print_json(json.dumps(desc))
         return
     table = Table(title=str(path), show_header=False)
+    rows = dict(desc)
+    rows["sessions"] = ", ".join(f"session {k}: {n} keyframes" for k, n in desc["sessions"].items())
     fmt = Formatter.for_scale(float(np.linalg.norm(desc["keyframe_extent_m"])) if len(smap) else None)
-    for k, v in describe_rows(desc, fmt):
+    for k, v in describe_rows(rows, fmt):
         table.add_row(escape(k), escape(v))
     console.print(table)
 

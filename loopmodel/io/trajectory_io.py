@@ -36,8 +36,13 @@ def ns_to_seconds_text(t_ns: int) -> str:
     return f"{sign}{a // 1_000_000_000}.{a % 1_000_000_000:09d}"
 
 
+#: Below this a pose value is rounding noise (a femtometre; a quaternion component of 1e-15): the
+#: first pose of a run, the world's origin, reads 0.0 instead of 2.11e-23 (issue 35).
+NOISE_FLOOR = 1e-15
+
+
 def _fmt(x: float) -> str:
-    return repr(float(x))
+    return "0.0" if abs(x) < NOISE_FLOOR else repr(float(x))
 
 
 def guess_format(path: str | Path) -> TrajectoryFormat:

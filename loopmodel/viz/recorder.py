@@ -268,6 +268,17 @@ class RerunRecorder:
         self.rec.disconnect()
 
 
+def ground_truth_in_run_world(gt: Trajectory, first_ns: int) -> F64:
+    """Ground-truth positions (N x 3, metres) in a run's world.
+
+    Its pose at the run's first frame (time ``first_ns``) becomes the origin, as the run's world is
+    its first camera (origin alignment).
+    """
+    k = int(np.argmin(np.abs(gt.timestamps_ns.astype(np.int64) - int(first_ns))))
+    cam0_from_gtworld = np.linalg.inv(gt.world_from_cam[k])
+    return np.asarray(gt.world_from_cam[:, :3, 3] @ cam0_from_gtworld[:3, :3].T + cam0_from_gtworld[:3, 3])
+
+
 class RerunListener(RunListener):
     """Records a run as it happens (:class:`~loopmodel.listener.RunListener` for the pipeline).
 
@@ -355,11 +366,7 @@ class RerunListener(RunListener):
             self.rec.mesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
 
     def _log_ground_truth(self, gt: Trajectory, first_ns: int) -> None:
-        """The ground truth in the run's world: its pose at the first frame is the run's origin."""
-        k = int(np.argmin(np.abs(gt.timestamps_ns.astype(np.int64) - first_ns)))
-        cam0_from_gtworld = np.linalg.inv(gt.world_from_cam[k])
-        p = gt.world_from_cam[:, :3, 3] @ cam0_from_gtworld[:3, :3].T + cam0_from_gtworld[:3, 3]
-        self.rec.ground_truth(p)
+        self.rec.ground_truth(ground_truth_in_run_world(gt, first_ns))
 
     def on_loop_events(self, events: list[dict[str, Any]]) -> None:
         """Each loop closure or relocalization as text and a line between its keyframes."""
