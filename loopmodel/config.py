@@ -213,6 +213,11 @@ class FrontendConfig(_Section):
     keyframe_parallax: Literal["translation", "angle"] = Field(
         "translation", description="parallax test of the keyframe policy"
     )
+    # local-map tracking (issue 36, item 2): the points of this many earlier keyframes' sets stay
+    # tracked (KLT from frame to frame, started at their projection with the predicted pose) and
+    # in each frame's robust pose, carried through the keyframe poses, with the depths the local BA
+    # refined and their own depth weights; each new keyframe observes them (back end). 0: off.
+    local_map_keyframes: int = Field(0, ge=0, le=100, description="earlier keyframes whose points the pose keeps using")
 
 
 class MappingConfig(_Section):

@@ -53,6 +53,38 @@ class _ActiveSet:
     far_rays: F64 = field(default_factory=lambda: np.zeros((0, 3)))
     far_inv_depth: F64 = field(default_factory=lambda: np.zeros(0))
     far_px: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    # depth standard deviation (m) of each point: stereo at first, smaller once the local BA has
+    # refined the point over the keyframe interval (local-map tracking weighs the points by it)
+    sigma_z_m: F64 = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass
+class _LocalPrediction:
+    """The local map's points for one frame.
+
+    In the active keyframe's frame (L, 3, m), last and predicted pixels (L, 2), in front of the
+    predicted camera, depth weights, points per set.
+    """
+
+    points_kf: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    prev_uv: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    guess: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    front: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    prior: F64 | None = None
+    sizes: list[int] = field(default_factory=list)
+
+
+@dataclass
+class _LocalSet:
+    """An earlier keyframe's set whose points are still tracked and kept in the pose (local map).
+
+    ``idx``: the tracked points (indices into ``kf_set.points``), ``uv``: where they were seen in the
+    last good frame (rectified left pixels).
+    """
+
+    kf_set: _ActiveSet
+    idx: NDArray[np.int64]
+    uv: F64
 
 
 def median_parallax_rad(points_m: F64, centre_m: F64) -> float:
@@ -135,6 +167,8 @@ class FrontEnd:
         self._world_from_kf: dict[int, F64] = {}
         self._active: _ActiveSet | None = None
         self._older: list[_ActiveSet] = []  # keyframes before the active one (re-measured)
+        self._local: list[_LocalSet] = []  # earlier keyframes' sets still tracked (local map)
+        self._local_inliers: list[int] = []  # local-map points each frame's pose kept, since the keyframe
         self._next_kf_id = 0
         self._next_landmark_id = 0
         self._segment = 0
@@ -373,10 +407,17 @@ class FrontEnd:
             f_guess[f_front] = self.left_camera.project(q_far[f_front])
             guess = np.vstack([guess, f_guess])
             front = np.concatenate([front, f_front])
+        n_far = fidx.size
+        start = np.vstack([self._track_uv, self._far_uv]) if n_far else self._track_uv
+        loc = self._local_prediction(pred_from_kf)
+        if loc.sizes:
+            start = np.vstack([start, loc.prev_uv])
+            guess = np.vstack([guess, loc.guess])
+            front = np.concatenate([front, loc.front])
         uv, ok, _fb = track_klt(
             self._prev_pyr,
             cur_pyr,
-            np.vstack([self._track_uv, self._far_uv]) if fidx.size else self._track_uv,
+            start,
             guess,
             cfg.klt_window_px,
             cfg.klt_levels,
@@ -385,7 +426,8 @@ class FrontEnd:
             self.calibration.image_size,
         )
         ok &= front
-        uv_far, ok_far = uv[n_near:], ok[n_near:]
+        uv_far, ok_far = uv[n_near : n_near + n_far], ok[n_near : n_near + n_far]
+        uv_loc, ok_loc = uv[n_near + n_far :], ok[n_near + n_far :]
         uv, ok = uv[:n_near], ok[:n_near]
         tracked = int(ok.sum())
         if tracked < cfg.min_inliers:
@@ -394,6 +436,12 @@ class FrontEnd:
         if cfg.depth_weighting:
             prior = self._depth_weights(pts[ok], pred_from_kf)
         p_all, uv_all, mono_sel, kf_from_ref = pts[ok], uv[ok], np.zeros(0, np.int64), {}
+        loc_sel = np.flatnonzero(ok_loc)
+        if loc_sel.size:  # the local map's points (earlier keyframes), in the active keyframe's frame
+            p_all, uv_all = np.vstack([p_all, loc.points_kf[loc_sel]]), np.vstack([uv_all, uv_loc[loc_sel]])
+            if prior is not None and loc.prior is not None:
+                prior = np.concatenate([prior, loc.prior[loc_sel]])
+        n_sl = tracked + loc_sel.size  # stereo points first (active set, local map), then mono-depth ones
         m_ok: NDArray[np.bool_] | None = None
         if self._mono is not None and len(self._mono):
             kf_from_ref = self._mono_frames()
@@ -453,18 +501,68 @@ class FrontEnd:
         self._mono_used = 0
         if self._mono is not None and m_ok is not None:
             m_keep = m_ok.copy()
-            m_keep[mono_sel[~inl_all[tracked:]]] = False  # converged points the pose rejected
-            self._mono_used = int(inl_all[tracked:].sum())
+            m_keep[mono_sel[~inl_all[n_sl:]]] = False  # converged points the pose rejected
+            self._mono_used = int(inl_all[n_sl:].sum())
             dt_s = max((self._last_stamp or 0) - self._good_stamp, 1) * 1e-9
             self._mono.commit(res.rig_from_ref, kf_from_ref, dt_s, m_keep)
             self._good_stamp = self._last_stamp or 0
         self._track_uv = uv[keep]
+        if loc.sizes:
+            self._keep_local(loc, loc_sel[inl_all[tracked:n_sl]], uv_loc)
         if extra:
             f_keep = far_sel[res.inliers[1]]
             self._far_idx, self._far_uv = fidx[f_keep], uv_far[f_keep]
         else:
             self._far_idx, self._far_uv = fidx[far_sel], uv_far[far_sel]
         return "OK", "", tracked, n_inl, kf_from_cur, res.used_ransac
+
+    def _local_prediction(self, pred_from_kf: F64) -> _LocalPrediction:
+        """The local map's tracked points (earlier keyframes' sets) for this frame, at the predicted pose.
+
+        ``pred_from_kf``: predicted current camera from the active keyframe (rectified). Each set's
+        points are carried into the active keyframe's frame through the current keyframe poses
+        (corrected by the back end); with ``depth_weighting`` each is weighted by its own depth
+        uncertainty, in its own keyframe's frame.
+        """
+        assert self._active is not None
+        kf_from_world = invert_pose(self._active.world_from_kfrect)
+        out = _LocalPrediction()
+        parts: list[tuple[F64, F64, F64, NDArray[np.bool_], F64 | None]] = []
+        for ls in self._local:
+            kf = ls.kf_set.keyframe
+            kf_from_old = kf_from_world @ self._world_from_kf.get(kf.id, kf.world_from_kf) @ self.cam_from_rect
+            pred_from_old = pred_from_kf @ kf_from_old
+            p_old = ls.kf_set.points[ls.idx]
+            q = p_old @ pred_from_old[:3, :3].T + pred_from_old[:3, 3]
+            front = q[:, 2] > 1e-3
+            guess = ls.uv.copy()
+            guess[front] = self.left_camera.project(q[front])
+            prior = (
+                self._depth_weights(p_old, pred_from_old, ls.kf_set.sigma_z_m[ls.idx])
+                if self.config.depth_weighting
+                else None
+            )
+            parts.append((p_old @ kf_from_old[:3, :3].T + kf_from_old[:3, 3], ls.uv, guess, front, prior))
+            out.sizes.append(ls.idx.size)
+        if parts:
+            out.points_kf = np.vstack([p[0] for p in parts])
+            out.prev_uv = np.vstack([p[1] for p in parts])
+            out.guess = np.vstack([p[2] for p in parts])
+            out.front = np.concatenate([p[3] for p in parts])
+            priors = [p[4] for p in parts]
+            out.prior = None if any(w is None for w in priors) else np.concatenate(priors)  # type: ignore[arg-type]
+        return out
+
+    def _keep_local(self, loc: _LocalPrediction, kept: NDArray[np.int64], uv: F64) -> None:
+        """Keep the local map's points the pose kept (``kept``: indices into ``loc``) at ``uv`` (px)."""
+        offsets = np.concatenate([[0], np.cumsum(loc.sizes)])
+        self._local_inliers.append(int(kept.size))
+        local = []
+        for ls, a, b in zip(self._local, offsets[:-1], offsets[1:], strict=True):
+            sel = kept[(kept >= a) & (kept < b)]
+            if sel.size >= 3:
+                local.append(_LocalSet(ls.kf_set, ls.idx[sel - a], uv[sel]))
+        self._local = local
 
     def _far_term(self, sel: NDArray[np.int64], uv: F64, q_pred: F64, cur_from_kf: F64) -> PointTerm:
         """Pose term of the tracked far bearings ``sel`` of the active set, seen at ``uv`` (pixels).
@@ -598,6 +696,54 @@ class FrontEnd:
         if int(match.ok.sum()) >= max(6, cfg.min_inliers):
             self._track_idx = idx[match.ok]
             self._track_uv = match.uv_px[match.ok]
+
+    def _refine_points(self, kf_set: _ActiveSet, points_m: F64, inliers: NDArray[np.bool_], kf_from_end: F64) -> None:
+        """Keep the local BA's refined points (``points_m``, keyframe frame) of the set's tracked points.
+
+        Their depth standard deviation combines stereo with the triangulation over the keyframe
+        interval (``kf_from_end``: the final frame's pose in the keyframe): the baseline across each
+        ray, the same pixel noise.
+        """
+        sel = self._track_idx[inliers]
+        p = points_m[inliers]
+        if sel.size == 0:
+            return
+        kf_set.points[sel] = p
+        ray = p / np.linalg.norm(p, axis=1, keepdims=True)
+        t = kf_from_end[:3, 3]
+        across_m = np.linalg.norm(t - (ray @ t)[:, None] * ray, axis=1)
+        z2 = p[:, 2] ** 2
+        fx, sd = self.calibration.fx_px, self.config.disparity_sigma_px
+        inv_var = (fx * self.calibration.baseline_m / (z2 * sd)) ** 2 + (fx * across_m / (z2 * sd)) ** 2
+        kf_set.sigma_z_m[sel] = 1.0 / np.sqrt(inv_var)
+
+    def _observe_local(self, mono_obs: F64) -> F64:
+        """``mono_obs`` plus the local map's tracked points in the new keyframe (landmark_id, u, v rows).
+
+        Points that :meth:`_observe_older` found again (rows already in ``mono_obs``) rejoin their set
+        at the measured position; the others are added at their tracked position. The sets are the
+        earlier keyframes' (the outgoing active set's tracks are in ``mono_obs`` already).
+        """
+        rows = [mono_obs]
+        local = []
+        obs_ids = mono_obs[:, 0].astype(np.int64)
+        for ls in self._local:
+            ids = ls.kf_set.keyframe.landmark_ids
+            if ids.size == 0 or ids[-1] - ids[0] != ids.size - 1:  # ids not one run: no re-seeding
+                rows.append(np.column_stack([ids[ls.idx].astype(float), ls.uv]))
+                local.append(ls)
+                continue
+            uv = np.full((ids.size, 2), np.nan)
+            uv[ls.idx] = ls.uv
+            found = (obs_ids >= ids[0]) & (obs_ids < ids[0] + ids.size)
+            j = obs_ids[found] - ids[0]
+            tracked_only = np.setdiff1d(ls.idx, j)
+            rows.append(np.column_stack([ids[tracked_only].astype(float), uv[tracked_only]]))
+            uv[j] = mono_obs[found, 1:3]
+            idx = np.flatnonzero(np.isfinite(uv[:, 0]))
+            local.append(_LocalSet(ls.kf_set, idx, uv[idx]))
+        self._local = local
+        return np.vstack(rows)
 
     def _observe_older(self, left: NDArray[np.uint8], world_from_rect: F64) -> F64:
         """Rows (landmark_id, u, v) of older keyframes' points found in the new keyframe image ``left``.
@@ -748,6 +894,8 @@ class FrontEnd:
                     and _rotation_deg(step) < cfg.max_jump_deg
                 ):
                     kf_from_new = invert_pose(ba.f_from_kf)
+                    if cfg.local_map_keyframes > 0:  # the local map keeps the refined points
+                        self._refine_points(prev, ba.points_in_kf, ba.inliers, kf_from_new)
                 ba_info = {
                     "ba_ms": (time.perf_counter() - tb) * 1e3,
                     "ba_iterations": float(ba.iterations),
@@ -755,6 +903,10 @@ class FrontEnd:
                     "ba_rms_after_px": ba.final_rms_px,
                     "ba_points": float(self._track_idx.size),
                 }
+            if self._local:
+                mono_obs = self._observe_local(mono_obs)
+            if self._local_inliers:
+                ba_info["local_map_inliers"] = float(np.median(self._local_inliers))
             if self._pose_sigma_px:
                 # robust scale (px per coordinate) of the pose residuals over the interval
                 ba_info["pose_residual_sigma_px"] = float(np.median(self._pose_sigma_px))
@@ -771,6 +923,12 @@ class FrontEnd:
             kf_prev_from_kf_tracked = self.cam_from_rect @ kf_from_cur @ self.rect_from_cam
 
         self._pose_sigma_px = []
+        self._local_inliers = []
+        if prev is not None and connected and kf_from_cur is not None and cfg.local_map_keyframes > 0:
+            local = [_LocalSet(prev, self._track_idx.copy(), self._track_uv.copy()), *self._local]
+            self._local = [ls for ls in local if ls.idx.size >= 3][: cfg.local_map_keyframes]
+        else:
+            self._local = []
         if not (prev is not None and kf_from_cur is not None and connected):
             self._resumed = None  # a new segment: the old set's relation to it is unknown
         kf_id = self._next_kf_id
@@ -811,7 +969,10 @@ class FrontEnd:
             self._older = [prev, *self._older][: cfg.remeasure_older_keyframes]
         else:
             self._older = []
-        self._active = _ActiveSet(kf, world_from_rect, pts, stereo_px, depth, far_rays, far_inv_depth, far_px)
+        sigma_z = pts[:, 2] ** 2 / fb * cfg.disparity_sigma_px  # stereo depth standard deviation (m)
+        self._active = _ActiveSet(
+            kf, world_from_rect, pts, stereo_px, depth, far_rays, far_inv_depth, far_px, sigma_z
+        )
         self._track_idx = np.arange(pts.shape[0], dtype=np.int64)
         self._track_uv = stereo_px[:, [0, 2]].copy()
         self._far_idx = np.arange(far_px.shape[0], dtype=np.int64)
