@@ -717,17 +717,38 @@ class FrontEnd:
         inv_var = (fx * self.calibration.baseline_m / (z2 * sd)) ** 2 + (fx * across_m / (z2 * sd)) ** 2
         kf_set.sigma_z_m[sel] = 1.0 / np.sqrt(inv_var)
 
-    def _observe_local(self, mono_obs: F64) -> F64:
+    def _observe_local(self, mono_obs: F64, left: NDArray[np.uint8], world_from_rect: F64) -> F64:
         """``mono_obs`` plus the local map's tracked points in the new keyframe (landmark_id, u, v rows).
 
         Points that :meth:`_observe_older` found again (rows already in ``mono_obs``) rejoin their set
-        at the measured position; the others are added at their tracked position. The sets are the
-        earlier keyframes' (the outgoing active set's tracks are in ``mono_obs`` already).
+        at the measured position; the others are added at their tracked position, with
+        ``local_map_remeasure`` first measured again against their own keyframe's patch (affine, as
+        :meth:`_remeasure_tracks`; those that fail leave the set). ``left``: the new keyframe's
+        rectified left image, ``world_from_rect`` its pose. The sets are the earlier keyframes' (the
+        outgoing active set's tracks are in ``mono_obs`` already).
         """
+        from loopmodel.frontend.affine_klt import predicted_affine, refine_affine
+
+        cfg = self.config
         rows = [mono_obs]
         local = []
         obs_ids = mono_obs[:, 0].astype(np.int64)
         for ls in self._local:
+            if cfg.local_map_remeasure and ls.idx.size:
+                kf = ls.kf_set.keyframe
+                cur_from_old = invert_pose(world_from_rect) @ self._world_from_kf.get(kf.id, kf.world_from_kf)
+                cur_from_old = cur_from_old @ self.cam_from_rect
+                match = refine_affine(
+                    kf.image,
+                    left,
+                    ls.kf_set.stereo_px[ls.idx][:, [0, 2]],
+                    ls.uv,
+                    predicted_affine(self.left_camera, ls.kf_set.points[ls.idx], cur_from_old),
+                    cfg.remeasure_half_window_px,
+                    min_ncc=cfg.remeasure_min_ncc,
+                    max_shift_px=cfg.remeasure_max_shift_px,
+                )
+                ls = _LocalSet(ls.kf_set, ls.idx[match.ok], match.uv_px[match.ok])
             ids = ls.kf_set.keyframe.landmark_ids
             if ids.size == 0 or ids[-1] - ids[0] != ids.size - 1:  # ids not one run: no re-seeding
                 rows.append(np.column_stack([ids[ls.idx].astype(float), ls.uv]))
@@ -904,7 +925,7 @@ class FrontEnd:
                     "ba_points": float(self._track_idx.size),
                 }
             if self._local:
-                mono_obs = self._observe_local(mono_obs)
+                mono_obs = self._observe_local(mono_obs, left, prev.world_from_kfrect @ kf_from_cur)
             if self._local_inliers:
                 ba_info["local_map_inliers"] = float(np.median(self._local_inliers))
             if self._pose_sigma_px:
