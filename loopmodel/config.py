@@ -231,6 +231,10 @@ class FrontendConfig(_Section):
     local_map_remeasure: bool = Field(
         True, description="measure the local map's points in a new keyframe against their own keyframe's patch"
     )
+    # a wider local BA (issue 36, item 4): the hybrid BA closing a keyframe set also takes the
+    # points of this many local-map sets seen in the new keyframe, with their stereo observations
+    # in their own (fixed) keyframes. 0: the two-keyframe BA of seed 004.
+    local_ba_keyframes: int = Field(0, ge=0, le=100, description="local-map sets added to the keyframe BA")
 
 
 class MappingConfig(_Section):

@@ -75,6 +75,19 @@ class _LocalPrediction:
 
 
 @dataclass
+class _WideRows:
+    """The local map's points for the wider local BA: keyframe-i frame, own stereo pixels, final pixels."""
+
+    points_kf: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    uv_left: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    uv_right: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    uv_final: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    owner: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    own_from_kf: F64 = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    sizes: list[int] = field(default_factory=list)
+
+
+@dataclass
 class _LocalSet:
     """An earlier keyframe's set whose points are still tracked and kept in the pose (local map).
 
@@ -697,14 +710,46 @@ class FrontEnd:
             self._track_idx = idx[match.ok]
             self._track_uv = match.uv_px[match.ok]
 
-    def _refine_points(self, kf_set: _ActiveSet, points_m: F64, inliers: NDArray[np.bool_], kf_from_end: F64) -> None:
-        """Keep the local BA's refined points (``points_m``, keyframe frame) of the set's tracked points.
+    def _wide_ba_rows(self, prev: _ActiveSet) -> _WideRows:
+        """The local map's points for a wider local BA (``frontend.local_ba_keyframes`` earlier sets).
+
+        Each set's tracked points, carried into ``prev``'s keyframe frame through the keyframe poses,
+        with their stereo pixels in their own keyframe (held fixed in the BA: ``own_from_kf``, owner
+        1, 2, ...) and where they are seen now.
+        """
+        out = _WideRows()
+        k = self.config.local_ba_keyframes
+        if k <= 0 or not self._local:
+            return out
+        kf_from_world = invert_pose(prev.world_from_kfrect)
+        pts, ul, ur, uf, own, frames = [], [], [], [], [], []
+        for j, ls in enumerate(self._local[:k]):
+            kf = ls.kf_set.keyframe
+            kf_from_own = kf_from_world @ self._world_from_kf.get(kf.id, kf.world_from_kf) @ self.cam_from_rect
+            p = ls.kf_set.points[ls.idx]
+            sp = ls.kf_set.stereo_px[ls.idx]
+            pts.append(p @ kf_from_own[:3, :3].T + kf_from_own[:3, 3])
+            ul.append(sp[:, [0, 2]])
+            ur.append(sp[:, [1, 2]])
+            uf.append(ls.uv)
+            own.append(np.full(ls.idx.size, j + 1, np.int64))
+            frames.append(invert_pose(kf_from_own))
+            out.sizes.append(int(ls.idx.size))
+        out.points_kf, out.uv_left, out.uv_right = np.vstack(pts), np.vstack(ul), np.vstack(ur)
+        out.uv_final, out.owner, out.own_from_kf = np.vstack(uf), np.concatenate(own), np.stack(frames)
+        return out
+
+    def _refine_points(
+        self, kf_set: _ActiveSet, sel_all: NDArray[np.int64], points_m: F64, inliers: NDArray[np.bool_],
+        kf_from_end: F64,
+    ) -> None:
+        """Keep the local BA's refined points (``points_m``, keyframe frame) of the set's points ``sel_all``.
 
         Their depth standard deviation combines stereo with the triangulation over the keyframe
         interval (``kf_from_end``: the final frame's pose in the keyframe): the baseline across each
         ray, the same pixel noise.
         """
-        sel = self._track_idx[inliers]
+        sel = sel_all[inliers]
         p = points_m[inliers]
         if sel.size == 0:
             return
@@ -882,6 +927,8 @@ class FrontEnd:
             if cfg.keyframe_remeasure and self._older:
                 older = self._observe_older(left, prev.world_from_kfrect @ kf_from_cur)
                 mono_obs = np.vstack([mono_obs, older])
+            if self._local:
+                mono_obs = self._observe_local(mono_obs, left, prev.world_from_kfrect @ kf_from_cur)
             kf_from_new = kf_from_cur
             if cfg.local_ba and self._track_idx.size >= 6:
                 tb = time.perf_counter()
@@ -895,11 +942,15 @@ class FrontEnd:
                     frac = self._track_uv[fm.index] - fm.uv_left  # sub-pixel part of the corner
                     final_right[fm.index, 0] = fm.u_right + frac[:, 0]
                     final_right[fm.index, 1] = fm.v_right + frac[:, 1]
+                wide = self._wide_ba_rows(prev)
+                n_own = self._track_idx.size
+                if final_right is not None and wide.sizes:
+                    final_right = np.vstack([final_right, np.full((int(sum(wide.sizes)), 2), np.nan)])
                 ba = hybrid_keyframe_ba(
-                    prev.points[self._track_idx],
-                    sp[:, [0, 2]],
-                    sp[:, [1, 2]],
-                    self._track_uv,
+                    np.vstack([prev.points[self._track_idx], wide.points_kf]),
+                    np.vstack([sp[:, [0, 2]], wide.uv_left]),
+                    np.vstack([sp[:, [1, 2]], wide.uv_right]),
+                    np.vstack([self._track_uv, wide.uv_final]),
                     invert_pose(kf_from_cur),
                     self.left_camera,
                     self.right_camera,
@@ -907,6 +958,8 @@ class FrontEnd:
                     cfg.ba_iterations,
                     cfg.ba_huber_px,
                     uv_final_right=final_right,
+                    owner=np.concatenate([np.zeros(n_own, np.int64), wide.owner]),
+                    own_from_kf=np.concatenate([np.eye(4)[None], wide.own_from_kf]),
                 )
                 step = invert_pose(kf_from_cur) @ invert_pose(ba.f_from_kf)
                 # accept the BA only when it stays near the robust pose (guards against a bad set)
@@ -916,16 +969,25 @@ class FrontEnd:
                 ):
                     kf_from_new = invert_pose(ba.f_from_kf)
                     if cfg.local_map_keyframes > 0:  # the local map keeps the refined points
-                        self._refine_points(prev, ba.points_in_kf, ba.inliers, kf_from_new)
+                        self._refine_points(
+                            prev, self._track_idx, ba.points_in_kf[:n_own], ba.inliers[:n_own], kf_from_new
+                        )
+                        off = n_own
+                        for k, (ls, n) in enumerate(zip(self._local, wide.sizes, strict=False)):
+                            own_from_kf = wide.own_from_kf[k]
+                            p_own = ba.points_in_kf[off : off + n] @ own_from_kf[:3, :3].T + own_from_kf[:3, 3]
+                            self._refine_points(
+                                ls.kf_set, ls.idx, p_own, ba.inliers[off : off + n], own_from_kf @ kf_from_new
+                            )
+                            off += n
                 ba_info = {
                     "ba_ms": (time.perf_counter() - tb) * 1e3,
                     "ba_iterations": float(ba.iterations),
                     "ba_rms_before_px": ba.initial_rms_px,
                     "ba_rms_after_px": ba.final_rms_px,
                     "ba_points": float(self._track_idx.size),
+                    "ba_window_points": float(sum(wide.sizes)),
                 }
-            if self._local:
-                mono_obs = self._observe_local(mono_obs, left, prev.world_from_kfrect @ kf_from_cur)
             if self._local_inliers:
                 ba_info["local_map_inliers"] = float(np.median(self._local_inliers))
             if self._pose_sigma_px:
