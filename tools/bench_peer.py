@@ -19,7 +19,9 @@ One object per sequence with ``ours_<k>`` and ``peer_<k>`` (medians over the rou
 on the KITTI clip also the drift and rotation error after the ground truth's constant-rate first
 steps (``*_after_gt_segment``, as ``bench pipeline``) and our front end alone
 (``ours_frontend_cpu_ms_per_frame``, ``ours_frontend_frame_ms_mean``). ``--quick``: one round and
-the first 150 frames of the scans. Skips with one line when the peer is not set up.
+the first 150 frames of the scans. ``$LOOPMODEL_BENCH_PEER_ROUNDS`` sets the rounds,
+``$LOOPMODEL_BENCH_PEER_ONLY`` (comma-separated names) the sequences. Skips with one line when the
+peer is not set up.
 """
 
 from __future__ import annotations
@@ -178,17 +180,20 @@ def _median(rows: list[dict[str, Any]], key: str) -> float | None:
     return round(float(np.median(vals)), 5) if vals else None
 
 
-def _sequences(peer: Path, quick: bool) -> list[_Sequence]:
+def _sequences(peer: Path, quick: bool, only: list[str]) -> list[_Sequence]:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from bench_sim_loop import SAMPLE, _ensure
 
     clip = SHARED_DATA / "kitti_clip"
     n = QUICK_FRAMES if quick else None
     seqs = [_Sequence("kitti_clip", clip, clip, clip / "poses.txt", ROOT / "configs" / "kitti.yaml", None, False)]
-    for name, path in (
-        ("orbit", _ensure(SAMPLE / "scan.mcap", "orbit")),
-        ("modeler", _ensure(CACHE / "modeler_1200.mcap", "modeler", frames=1200)),
+    for name, make in (
+        ("orbit", lambda: _ensure(SAMPLE / "scan.mcap", "orbit")),
+        ("modeler", lambda: _ensure(CACHE / "modeler_1200.mcap", "modeler", frames=1200)),
     ):
+        if only and name not in only:
+            continue
+        path = make()
         rect = _export(peer, path, name)
         seqs.append(_Sequence(name, path, rect, rect / "poses.txt", None, n, True))
     return seqs
@@ -203,8 +208,9 @@ def run(quick: bool = False) -> dict[str, Any]:
     from bench_kitti_rotation import constant_rate_steps
     from bench_pipeline import read_kitti_poses
 
-    rounds = 1 if quick else 3
-    seqs = _sequences(peer, quick)
+    rounds = int(os.environ.get("LOOPMODEL_BENCH_PEER_ROUNDS", 1 if quick else 3))
+    only = [n for n in os.environ.get("LOOPMODEL_BENCH_PEER_ONLY", "").split(",") if n]
+    seqs = [s for s in _sequences(peer, quick, only) if not only or s.name in only]
     seg = constant_rate_steps(read_kitti_poses(SHARED_DATA / "kitti_clip" / "poses.txt"))
     rows: dict[str, dict[str, list[dict[str, Any]]]] = {s.name: {"ours": [], "peer": [], "fe": []} for s in seqs}
     loads: dict[str, list[float]] = {s.name: [] for s in seqs}

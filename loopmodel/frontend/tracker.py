@@ -182,6 +182,8 @@ class FrontEnd:
         self._older: list[_ActiveSet] = []  # keyframes before the active one (re-measured)
         self._local: list[_LocalSet] = []  # earlier keyframes' sets still tracked (local map)
         self._local_inliers: list[int] = []  # local-map points each frame's pose kept, since the keyframe
+        # (image, d/du, d/dv): the last image's gradients for the affine re-measurements in it
+        self._gradients: tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.float32]] | None = None
         self._next_kf_id = 0
         self._next_landmark_id = 0
         self._segment = 0
@@ -682,6 +684,14 @@ class FrontEnd:
             return True
         return _rotation_deg(kf_from_cur) > cfg.max_rotation_deg
 
+    def _left_gradients(self, left: NDArray[np.uint8]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Gradients of the rectified left image ``left``, computed once for all re-measurements in it."""
+        from loopmodel.frontend.affine_klt import image_gradients
+
+        if self._gradients is None or self._gradients[0] is not left:
+            self._gradients = (left, *image_gradients(left))
+        return self._gradients[1], self._gradients[2]
+
     def _remeasure_tracks(self, prev: _ActiveSet, left: NDArray[np.uint8], kf_from_cur: F64) -> None:
         """Measure the tracked features again against the keyframe's own patches and keep those that match.
 
@@ -705,6 +715,7 @@ class FrontEnd:
             cfg.remeasure_half_window_px,
             min_ncc=cfg.remeasure_min_ncc,
             max_shift_px=cfg.remeasure_max_shift_px,
+            cur_gradients=self._left_gradients(left),
         )
         if int(match.ok.sum()) >= max(6, cfg.min_inliers):
             self._track_idx = idx[match.ok]
@@ -792,6 +803,7 @@ class FrontEnd:
                     cfg.remeasure_half_window_px,
                     min_ncc=cfg.remeasure_min_ncc,
                     max_shift_px=cfg.remeasure_max_shift_px,
+                    cur_gradients=self._left_gradients(left),
                 )
                 ls = _LocalSet(ls.kf_set, ls.idx[match.ok], match.uv_px[match.ok])
             ids = ls.kf_set.keyframe.landmark_ids
@@ -847,6 +859,7 @@ class FrontEnd:
                 cfg.remeasure_half_window_px,
                 min_ncc=cfg.remeasure_min_ncc,
                 max_shift_px=cfg.remeasure_max_shift_px,
+                cur_gradients=self._left_gradients(left),
             )
             ok = match.ok
             ids = old.keyframe.landmark_ids[sel[ok]].astype(float)
