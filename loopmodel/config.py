@@ -226,7 +226,9 @@ class FrontendConfig(_Section):
     # the segment); realistic modeler scan (first 400 frames) drift 0.27 -> 0.11 %, rotation error
     # 1.20 -> 0.55 deg, SE(3) ATE 3.2 -> 2.7 mm; realistic orbit sample (first 300 frames) rotation
     # error 1.81 -> 1.54 deg, drift 0.85 -> 0.88 %, SE(3) ATE 2.8 -> 3.4 mm. 8 keyframes: about the
-    # same (KITTI 0.143 deg, modeler 0.51 deg, orbit identical). CPU per frame +2 to +4 ms. 0: off.
+    # same (KITTI 0.143 deg, modeler 0.51 deg, orbit identical). The cost: KITTI CPU per frame
+    # +20 % in alternated full runs (35.6/40.8/36.3 -> 42.8/50.0 ms), front end alone 16.3 -> 22.6
+    # ms; `bench peer` has the ratios to ORB-SLAM3 (issue 36: they miss the 0.5x target). 0: off.
     local_map_keyframes: int = Field(4, ge=0, le=100, description="earlier keyframes whose points the pose keeps using")
     local_map_remeasure: bool = Field(
         True, description="measure the local map's points in a new keyframe against their own keyframe's patch"
