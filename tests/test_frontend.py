@@ -302,3 +302,18 @@ def test_local_map_points_stay_in_the_pose_and_are_observed_later(rng: np.random
             errs.append(np.hypot(uv[0] - u, uv[1] - v))
     assert len(errs) >= 20  # older keyframes' landmarks observed again
     assert np.median(errs) < 1.0
+
+
+def test_wider_keyframe_ba_takes_the_local_map_and_keeps_the_poses(rng: np.random.Generator) -> None:
+    """``local_ba_keyframes`` (issue 36): the keyframe BA takes earlier sets' points; poses stay on the truth."""
+    planes = default_scene(rng)
+    cal = stereo_rig()
+    poses = trajectory(24)
+    poses = invert_pose(poses[0]) @ poses
+    cfg = CFG.model_copy(update={"local_map_keyframes": 3, "local_ba_keyframes": 2, "max_parallax_ratio": 0.05})
+    fe = FrontEnd(cal, cfg)
+    results = [fe.process(f) for f in _stereo_frames(planes, cal, poses)]
+    assert all(r.status == "OK" for r in results)
+    _check_ok_poses(results, poses, 0.02, 0.2)
+    kfs = [r.keyframe for r in results if r.keyframe is not None]
+    assert max(kf.ba_info.get("ba_window_points", 0.0) for kf in kfs) >= 20
