@@ -13,6 +13,8 @@ ground-truth path length), ``kitti_rot_err_final_deg`` (rotation error of the on
 trajectory's last pose with the first poses aligned; ``kitti_rot_err_final_deg_after_gt_segment``
 and ``kitti_online_drift_pct_after_gt_segment`` align at the first frame after the ground truth's
 constant-rate first ``kitti_gt_constant_rate_steps`` steps, see ``bench kitti-rotation``),
+``kitti_sim3_scale`` (truth / estimate) and ``kitti_step_scale_last_over_first`` (per-step scale,
+last quarter over first, of the online trajectory; issue 36; ``sim_`` likewise),
 ``sim_fps``, ``sim_frame_ms_p95`` (the orbit scan with ``configs/sim.yaml``: live mesh every 5
 keyframes; the final mesh is not written), ``import_s`` (a fresh interpreter importing
 ``loopmodel.pipeline``, median of 3).
@@ -120,6 +122,24 @@ def _match(
     return T_est[ok], T_gt[j[ok]]
 
 
+def _scale_keys(est: np.ndarray, gt: np.ndarray, prefix: str) -> dict[str, float]:
+    """``<prefix>sim3_scale`` (truth / estimate) and ``<prefix>step_scale_last_over_first`` of matched poses.
+
+    The Sim(3) scale is computed here in plain numpy; the per-step scale by the one helper of
+    :mod:`loopmodel.eval.trajectory_metrics` (tested against a hand computation).
+    """
+    from loopmodel.eval.trajectory_metrics import step_scale_last_over_first
+
+    if len(est) < 3:
+        return {}
+    src, dst = est[:, :3, 3], gt[:, :3, 3]
+    R, _t = umeyama_se3(src, dst)
+    sc = src - src.mean(0)
+    scale = float(np.sum((dst - dst.mean(0)) * (sc @ R.T)) / np.sum(sc * sc))
+    return {f"{prefix}sim3_scale": round(scale, 4),
+            f"{prefix}step_scale_last_over_first": round(step_scale_last_over_first(gt, est), 4)}
+
+
 # ----------------------------------------------------------------- runs
 def import_seconds(repeats: int = 3) -> float:
     """Median wall time of a fresh interpreter importing ``loopmodel.pipeline``."""
@@ -199,6 +219,8 @@ def kitti(out: Path) -> dict[str, Any]:
             res["kitti_online_drift_pct_after_gt_segment"] = round(e2["drift_pct"], 3)
         res[f"kitti_{which}_ate_rmse_m"] = round(e["ate_rmse_m"], 4)
         res[f"kitti_{which}_drift_pct"] = round(e["drift_pct"], 3)
+        if which == "online":  # issue 36: the Sim(3) scale (truth / estimate) and how the per-step scale grows
+            res.update(_scale_keys(est, gt, "kitti_"))
         # kitti_rot_err_final_deg (the issue's key): last-pose rotation error of the ONLINE
         # trajectory; the final trajectory's beside it
         key = "kitti_rot_err_final_deg" if which == "online" else "kitti_final_traj_rot_err_deg"
@@ -249,6 +271,8 @@ def sim(out: Path, quick: bool) -> dict[str, Any]:
                 e = errors(est, g)
                 res[f"sim_{which}_ate_rmse_m"] = round(e["ate_rmse_m"], 5)
                 res[f"sim_{which}_drift_pct"] = round(e["drift_pct"], 3)
+                if which == "online":
+                    res.update(_scale_keys(est, g, "sim_"))
     for k in ("pixel_sigma_px", "refine_applied", "refine_chi2_drop", "refine_chi2_sd"):
         if k in m:
             res[f"sim_{k}"] = m[k]

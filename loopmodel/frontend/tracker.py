@@ -53,6 +53,12 @@ class _ActiveSet:
     far_rays: F64 = field(default_factory=lambda: np.zeros((0, 3)))
     far_inv_depth: F64 = field(default_factory=lambda: np.zeros(0))
     far_px: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    # issue 36: each point's disparity standard deviation (px) from its stereo match
+    disparity_sigma_px: F64 = field(default_factory=lambda: np.zeros(0))
+    # issue 36: per point, a running mean of its signed pose residual (px) and how many frames it has
+    residual_mean_px: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    residual_frames: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    disparity_offset_px: float = 0.0  # the correction applied to this set's matches (issue 36)
     # depth standard deviation (m) of each point: stereo at first, smaller once the local BA has
     # refined the point over the keyframe interval (local-map tracking weighs the points by it)
     sigma_z_m: F64 = field(default_factory=lambda: np.zeros(0))
@@ -142,6 +148,10 @@ def check_sizes_against_image(config: FrontendConfig, width_px: int, height_px: 
             raise InputError(f"frontend.{key}", f"{getattr(config, key)} does not fit the images: {expected}")
 
 
+#: prior standard deviation of the disparity offset (px): a good stereo calibration (frontend.disparity_offset)
+OFFSET_PRIOR_SIGMA_PX = 0.3
+
+
 def _rotation_deg(T: F64) -> float:
     return float(np.degrees(np.linalg.norm(so3_log(T[:3, :3]))))
 
@@ -193,6 +203,12 @@ class FrontEnd:
         self._far_idx = np.zeros(0, dtype=np.int64)  # tracked far bearings of the active set
         self._far_uv = np.zeros((0, 2))
         self._outlier_uv = np.zeros((0, 2))  # tracked in the last frame, rejected by the pose
+        self._moving_uv = np.zeros((0, 2))  # last positions of tracks dropped as moving (issue 36)
+        # frontend.disparity_offset (issue 36): the local BAs' offsets fused by their information
+        self._offset_mean_px = 0.0  # posterior mean of the offset (px)
+        self._offset_info = 1.0 / OFFSET_PRIOR_SIGMA_PX**2  # its information (1/px^2)
+        self._offset_count = 0
+        self._offset_px = 0.0  # applied to new matches (measured right column - offset)
         self._left_rect: NDArray[np.uint8] | None = None  # the last rectified left image
         self._prev_pyr: Pyramid | None = None
         self._kf_from_prev: F64 = np.eye(4)
@@ -449,7 +465,11 @@ class FrontEnd:
             return "LOST", f"only {tracked} KLT tracks", tracked, 0, kf_from_pred, False
         prior = None
         if cfg.depth_weighting:
-            prior = self._depth_weights(pts[ok], pred_from_kf)
+            sigma_z = None
+            if cfg.disparity_sigma_source == "match" and active.disparity_sigma_px.size:
+                fb = self.calibration.fx_px * self.calibration.baseline_m
+                sigma_z = pts[ok, 2] ** 2 / fb * active.disparity_sigma_px[idx[ok]]
+            prior = self._depth_weights(pts[ok], pred_from_kf, sigma_z)
         p_all, uv_all, mono_sel, kf_from_ref = pts[ok], uv[ok], np.zeros(0, np.int64), {}
         loc_sel = np.flatnonzero(ok_loc)
         if loc_sel.size:  # the local map's points (earlier keyframes), in the active keyframe's frame
@@ -509,6 +529,8 @@ class FrontEnd:
                 res.used_ransac,
             )
         keep = np.flatnonzero(ok)[inl]
+        if cfg.moving_gate > 0:
+            keep = self._drop_moving(idx, keep, uv, res.rig_from_ref)
         self._outlier_uv = uv[np.flatnonzero(ok)[~inl]]
         if n_inl >= 6:  # the run's own KLT/stereo noise (for the back end's final refinement)
             self._pose_sigma_px.append(robust_scale(res.residual_norms[0][:tracked][inl], 2, 0.0))
@@ -578,6 +600,48 @@ class FrontEnd:
             if sel.size >= 3:
                 local.append(_LocalSet(ls.kf_set, ls.idx[sel - a], uv[sel]))
         self._local = local
+
+    def _fuse_offset(self, offset_px: float, var_px2: float) -> None:
+        """Take a local BA's posterior disparity offset (px, total: the applied correction plus the BA's rest).
+
+        Each BA starts from the previous posterior as its prior (a scalar Kalman filter without
+        process noise, starting from 0 +- ``OFFSET_PRIOR_SIGMA_PX``); the posterior mean corrects the
+        next keyframe's matches, clipped to 2 px (a larger one is a wrong calibration).
+        """
+        if not (np.isfinite(offset_px) and np.isfinite(var_px2) and var_px2 > 0):
+            return
+        self._offset_mean_px = offset_px
+        self._offset_info = 1.0 / var_px2
+        self._offset_count += 1
+        self._offset_px = float(np.clip(offset_px, -2.0, 2.0))
+
+    def _drop_moving(
+        self, idx: NDArray[np.int64], keep: NDArray[np.int64], uv: F64, cur_from_kf: F64
+    ) -> NDArray[np.int64]:
+        """Pose inliers ``keep`` (indices into the tracks ``idx``, seen at ``uv``) minus the points that move.
+
+        Each point's signed residual at the solved pose ``cur_from_kf`` goes into a running mean
+        (halved each frame); a point whose mean, after two frames or more, exceeds ``moving_gate``
+        times the frame's robust residual scale drifts consistently, as a point on a moving object
+        does, even when each frame's residual passes the per-frame gate. Its position is kept in
+        ``_moving_uv``: the next keyframe takes no new point near it.
+        """
+        cfg = self.config
+        assert self._active is not None
+        a = self._active
+        if a.residual_mean_px.shape[0] != a.points.shape[0]:
+            a.residual_mean_px = np.zeros((a.points.shape[0], 2))
+            a.residual_frames = np.zeros(a.points.shape[0], np.int64)
+        pi = idx[keep]
+        p = a.points[pi] @ cur_from_kf[:3, :3].T + cur_from_kf[:3, 3]
+        r = self.left_camera.project(p) - uv[keep]
+        a.residual_mean_px[pi] = 0.5 * a.residual_mean_px[pi] + 0.5 * r
+        a.residual_frames[pi] += 1
+        scale = max(robust_scale(np.linalg.norm(r, axis=1), 2, 0.0), cfg.pose_min_scale_px)
+        drift_px = np.linalg.norm(a.residual_mean_px[pi], axis=1)
+        moving = (a.residual_frames[pi] >= 2) & (drift_px > cfg.moving_gate * scale)
+        self._moving_uv = uv[keep[moving]]
+        return keep[~moving]
 
     def _far_term(self, sel: NDArray[np.int64], uv: F64, q_pred: F64, cur_from_kf: F64) -> PointTerm:
         """Pose term of the tracked far bearings ``sel`` of the active set, seen at ``uv`` (pixels).
@@ -896,12 +960,22 @@ class FrontEnd:
         )
         bearing = cfg.far_points == "bearing"
         m = match_stereo(left, right, corners, cfg, 0.0 if bearing else None)
+        applied_offset_px = self._offset_px  # the estimated disparity offset (frontend.disparity_offset)
+        if applied_offset_px != 0.0:
+            m.u_right = m.u_right - applied_offset_px
+            m.disparity = m.disparity + applied_offset_px
         with np.errstate(divide="ignore", invalid="ignore"):  # zero disparity: at infinity
             pts = triangulate_rectified(
                 m.uv_left, m.disparity, self.calibration.K_left, self.calibration.baseline_m
             )
         far = self._far_mask(m.disparity) if bearing else np.zeros(len(m.disparity), bool)
         keep = (pts[:, 2] < cfg.max_depth_m) & ~far
+        if cfg.moving_gate > 0 and self._moving_uv.shape[0] and connected:
+            # no new point where tracks were just dropped as moving (issue 36)
+            d2 = np.sum((m.uv_left[:, None, :] - self._moving_uv[None, :, :]) ** 2, axis=2)
+            near_moving = np.min(d2, axis=1) < cfg.moving_radius_px**2
+            keep &= ~near_moving
+            far &= ~near_moving
         if cfg.max_keyframe_points and int(keep.sum()) > cfg.max_keyframe_points:
             keep &= spread_subset(
                 m.uv_left, m.score, keep, cfg.max_keyframe_points, (cfg.grid_cols, cfg.grid_rows),
@@ -912,6 +986,7 @@ class FrontEnd:
             return None
         pts = pts[keep]
         stereo_px = np.column_stack([m.uv_left[keep, 0], m.u_right[keep], m.uv_left[keep, 1]])
+        disparity_sigma = m.sigma_px[keep]
         if cfg.far_max_points and int(far.sum()) > cfg.far_max_points:
             far &= spread_subset(
                 m.uv_left, m.score, far, cfg.far_max_points, (cfg.grid_cols, cfg.grid_rows),
@@ -951,12 +1026,20 @@ class FrontEnd:
                     # the set's tracked points in this keyframe's right image (both ends
                     # of the set then carry a stereo observation)
                     fm = match_stereo(left, right, self._track_uv, cfg)
+                    fm.u_right = fm.u_right - self._offset_px
                     final_right = np.full((self._track_idx.size, 2), np.nan)
                     frac = self._track_uv[fm.index] - fm.uv_left  # sub-pixel part of the corner
                     final_right[fm.index, 0] = fm.u_right + frac[:, 0]
                     final_right[fm.index, 1] = fm.v_right + frac[:, 1]
                 wide = self._wide_ba_rows(prev)
                 n_own = self._track_idx.size
+                right_sigma = None  # per-point disparity standard deviations (px), own set then the window's
+                if cfg.disparity_sigma_source == "match" and prev.disparity_sigma_px.size:
+                    sig = [prev.disparity_sigma_px[self._track_idx]]
+                    for ls, n in zip(self._local, wide.sizes, strict=False):
+                        ds = ls.kf_set.disparity_sigma_px
+                        sig.append(ds[ls.idx] if ds.size else np.full(n, cfg.disparity_sigma_px))
+                    right_sigma = np.concatenate(sig)
                 if final_right is not None and wide.sizes:
                     final_right = np.vstack([final_right, np.full((int(sum(wide.sizes)), 2), np.nan)])
                 ba = hybrid_keyframe_ba(
@@ -971,6 +1054,9 @@ class FrontEnd:
                     cfg.ba_iterations,
                     cfg.ba_huber_px,
                     uv_final_right=final_right,
+                    right_sigma_px=right_sigma,
+                    estimate_disparity_offset=cfg.disparity_offset == "estimate",
+                    offset_prior=(self._offset_mean_px - prev.disparity_offset_px, self._offset_info),
                     owner=np.concatenate([np.zeros(n_own, np.int64), wide.owner]),
                     own_from_kf=np.concatenate([np.eye(4)[None], wide.own_from_kf]),
                 )
@@ -993,6 +1079,9 @@ class FrontEnd:
                                 ls.kf_set, ls.idx, p_own, ba.inliers[off : off + n], own_from_kf @ kf_from_new
                             )
                             off += n
+                    if cfg.disparity_offset == "estimate":
+                        self._fuse_offset(prev.disparity_offset_px + ba.disparity_offset_px,
+                                          ba.disparity_offset_var_px2)
                 ba_info = {
                     "ba_ms": (time.perf_counter() - tb) * 1e3,
                     "ba_iterations": float(ba.iterations),
@@ -1001,6 +1090,10 @@ class FrontEnd:
                     "ba_points": float(self._track_idx.size),
                     "ba_window_points": float(sum(wide.sizes)),
                 }
+                if cfg.disparity_offset == "estimate":
+                    ba_info["disparity_offset_px"] = ba.disparity_offset_px
+                    ba_info["disparity_offset_sigma_px"] = float(np.sqrt(ba.disparity_offset_var_px2))
+                    ba_info["disparity_offset_applied_px"] = applied_offset_px  # to this keyframe's matches
             if self._local_inliers:
                 ba_info["local_map_inliers"] = float(np.median(self._local_inliers))
             if self._pose_sigma_px:
@@ -1066,9 +1159,11 @@ class FrontEnd:
         else:
             self._older = []
         sigma_z = pts[:, 2] ** 2 / fb * cfg.disparity_sigma_px  # stereo depth standard deviation (m)
-        self._active = _ActiveSet(
-            kf, world_from_rect, pts, stereo_px, depth, far_rays, far_inv_depth, far_px, sigma_z
-        )
+        if cfg.disparity_sigma_source == "match" and len(disparity_sigma) == len(pts):
+            sigma_z = pts[:, 2] ** 2 / fb * disparity_sigma
+        self._active = _ActiveSet(kf, world_from_rect, pts, stereo_px, depth, far_rays, far_inv_depth, far_px,
+                                  disparity_sigma, disparity_offset_px=applied_offset_px, sigma_z_m=sigma_z)
+        self._moving_uv = np.zeros((0, 2))
         self._track_idx = np.arange(pts.shape[0], dtype=np.int64)
         self._track_uv = stereo_px[:, [0, 2]].copy()
         self._far_idx = np.arange(far_px.shape[0], dtype=np.int64)
