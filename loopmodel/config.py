@@ -221,6 +221,30 @@ class FrontendConfig(_Section):
     keyframe_parallax: Literal["translation", "angle"] = Field(
         "translation", description="parallax test of the keyframe policy"
     )
+    # local-map tracking (issue 36, item 2): the points of this many earlier keyframes' sets stay
+    # tracked (KLT from frame to frame, started at their projection with the predicted pose) and
+    # in each frame's robust pose, carried through the keyframe poses, with the depths the local BA
+    # refined and their own depth weights; each new keyframe observes them (the back end's
+    # landmarks then span up to that many more keyframes), measured again against their own
+    # keyframe's patch with local_map_remeasure (without it the KLT-chained positions bent the
+    # rotation: KITTI clip rotation error after the ground truth's constant-rate segment 0.178 ->
+    # 0.233 deg). Measured, full pipeline, peer.py eval of trajectory_final, 0 -> 4 with remeasure:
+    # KITTI clip (configs/kitti.yaml) rotation error after the segment 0.178 -> 0.144 deg, Sim(3)
+    # ATE 20.7 -> 17.5 mm, SE(3) ATE 0.102 -> 0.105 m, drift 1.02 -> 1.05 % (0.754 -> 0.755 % after
+    # the segment); realistic modeler scan (first 400 frames) drift 0.27 -> 0.11 %, rotation error
+    # 1.20 -> 0.55 deg, SE(3) ATE 3.2 -> 2.7 mm; realistic orbit sample (first 300 frames) rotation
+    # error 1.81 -> 1.54 deg, drift 0.85 -> 0.88 %, SE(3) ATE 2.8 -> 3.4 mm. 8 keyframes: about the
+    # same (KITTI 0.143 deg, modeler 0.51 deg, orbit identical). The cost: KITTI CPU per frame
+    # +20 % in alternated full runs (35.6/40.8/36.3 -> 42.8/50.0 ms), front end alone 16.3 -> 22.6
+    # ms; `bench peer` has the ratios to ORB-SLAM3 (issue 36: they miss the 0.5x target). 0: off.
+    local_map_keyframes: int = Field(4, ge=0, le=100, description="earlier keyframes whose points the pose keeps using")
+    local_map_remeasure: bool = Field(
+        True, description="measure the local map's points in a new keyframe against their own keyframe's patch"
+    )
+    # a wider local BA (issue 36, item 4): the hybrid BA closing a keyframe set also takes the
+    # points of this many local-map sets seen in the new keyframe, with their stereo observations
+    # in their own (fixed) keyframes. 0: the two-keyframe BA of seed 004.
+    local_ba_keyframes: int = Field(0, ge=0, le=100, description="local-map sets added to the keyframe BA")
     # robust stereo matching (issue 36, items 1 and 3; frontend/stereo.py, frontend/tracker.py).
     # Measured, front end alone, these five defaults against all off (SE(3) / Sim(3) ATE): KITTI
     # clip (configs/kitti.yaml) 0.100 / 0.021 -> 0.036 / 0.023 m, Sim(3) scale 0.9945 -> 0.9984 (a

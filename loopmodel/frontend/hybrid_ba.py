@@ -85,6 +85,8 @@ def hybrid_keyframe_ba(
     right_sigma_px: F64 | None = None,
     estimate_disparity_offset: bool = False,
     offset_prior: tuple[float, float] = (0.0, 0.0),
+    owner: NDArray[np.int64] | None = None,
+    own_from_kf: F64 | None = None,
 ) -> HybridBAResult:
     """Minimise eq. (1) of seed 004 over the points and ``f_from_kf``.
 
@@ -96,18 +98,27 @@ def hybrid_keyframe_ba(
     disparity offset, e.g. from an error in the right camera's principal point), observable from
     the motion parallax of points at different depths (issue 36); ``offset_prior`` = (mean px,
     information 1/px^2) is a Gaussian prior on it, and the result's variance is the posterior's.
+    A wider window (issue 36, item 4): ``owner`` (M,) names the keyframe whose stereo pair
+    measured each point's ``uv_left``/``uv_right``, and ``own_from_kf`` (K, 4, 4) those keyframes'
+    left cameras from keyframe i's (held fixed; owner 0 is keyframe i itself, identity);
+    ``uv_final`` may then have NaN rows (not seen at the end).
     """
     X = np.asarray(points_in_kf, dtype=float).copy()
     T = np.asarray(f_from_kf, dtype=float).copy()
     M = X.shape[0]
-    one = np.ones(M)
-    eye = np.eye(4)
     rfl = np.asarray(right_from_left, dtype=float)
-    blocks = [
-        _Block(left, eye, False, False, np.asarray(uv_left, float), one),
-        _Block(right, rfl, False, True, np.asarray(uv_right, float), one, _relative_weights(right_sigma_px)),
-        _Block(left, eye, True, False, np.asarray(uv_final, float), one),
-    ]
+    own = np.zeros(M, np.int64) if owner is None else np.asarray(owner, np.int64)
+    frames = np.eye(4)[None] if own_from_kf is None else np.asarray(own_from_kf, float).reshape(-1, 4, 4)
+    uv_f = np.asarray(uv_final, float)
+    right_w = _relative_weights(right_sigma_px)
+    blocks = []
+    for k, own_from in enumerate(frames):
+        valid = (own == k).astype(float)
+        if valid.any():
+            blocks.append(_Block(left, own_from, False, False, np.asarray(uv_left, float), valid))
+            blocks.append(_Block(right, rfl @ own_from, False, True, np.asarray(uv_right, float), valid, right_w))
+    f_valid = np.all(np.isfinite(uv_f), axis=1).astype(float)
+    blocks.append(_Block(left, np.eye(4), True, False, np.where(np.isfinite(uv_f), uv_f, 0.0), f_valid))
     if uv_final_right is not None:
         fr = np.asarray(uv_final_right, dtype=float)
         valid = np.all(np.isfinite(fr), axis=1).astype(float)
@@ -123,6 +134,8 @@ def hybrid_keyframe_ba(
         for b in blocks:
             base = pf if b.moving else Xc
             p = base @ b.fixed[:3, :3].T + b.fixed[:3, 3]
+            # rows a block does not measure are projected from a harmless point (no inf, no NaN)
+            p = np.where(b.valid[:, None] > 0, p, np.array([0.0, 0.0, 1.0]))
             pr = b.camera.project(p)
             if b.is_right and dc != 0.0:
                 pr[:, 0] += dc
