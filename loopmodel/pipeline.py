@@ -256,7 +256,7 @@ class _Run:
         self.stripe_map = StripeMap(config.mapping, self.anchored)
         every_kf = config.mapping.live_mesh_every_kf
         stripes = live_stripes(sequence, config.mapping) if every_kf > 0 else iter(())
-        self.live = LiveMapping(self.stripe_map, stripes, every_kf)
+        self.live = LiveMapping(self.stripe_map, stripes, every_kf, config.mapping.live_mesh_worker)
         self.frames: list[FrameResult] = []
         self.keyframes: dict[int, int] = {}  # keyframe id -> timestamp_ns, in order
         # keyframe -> (previous keyframe, the tracker's pose of it there): drift per interval

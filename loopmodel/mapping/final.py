@@ -22,9 +22,24 @@ from loopmodel.types import StripeAnchors, StripeProfile, Trajectory
 logger = logging.getLogger(__name__)
 
 
-def live_stripes(sequence: Sequence, config: MappingConfig) -> Iterator[StripeProfile]:
-    """The sequence's laser profiles in time order, for the live mapping (none without)."""
-    return sequence_stripes(sequence, config) if sequence_stripe_count(sequence) else iter(())
+def live_stripes(sequence: Sequence, config: MappingConfig, worker: bool = True) -> Iterator[StripeProfile]:
+    """The sequence's laser profiles in time order, for the live mapping (none without).
+
+    ``worker``: read and extracted in a worker process (:class:`~loopmodel.mapping.stripe_feed.StripeFeed`,
+    whose ``next()`` never waits), unless the sequence cannot be sent there; else here, as asked.
+    """
+    if not sequence_stripe_count(sequence):
+        return iter(())
+    if worker:
+        from functools import partial
+
+        from loopmodel.mapping.stripe_feed import StripeFeed
+
+        try:
+            return StripeFeed(partial(sequence_stripes, sequence, config))
+        except Exception as exc:  # noqa: BLE001 - e.g. a reader holding an open handle: extract here
+            logger.info("laser stripes extracted on the tracking thread (%s)", exc)
+    return sequence_stripes(sequence, config)
 
 
 def run_stripes(sequence: Sequence, last_ns: int | None, config: MappingConfig) -> list[StripeProfile]:
