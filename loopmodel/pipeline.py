@@ -573,6 +573,11 @@ class _Run:
         m.update(self.backend.metrics())
         m["landmarks"] = int(result.landmark_ids.size)
         m.update(_quantiles(self.frame_ms, "frame_total_ms"))
+        # issue 33: the worst frames (frame 0 makes the first keyframe; the first 10 warm up)
+        fm = self.frame_ms
+        m["frame_total_ms_first"] = fm[0] if fm else None
+        m["frame_total_ms_max_after_first"] = max(fm[1:]) if len(fm) > 1 else None
+        m["frame_total_ms_max_after_warmup"] = max(fm[10:]) if len(fm) > 10 else None
         m.update(_quantiles(self.backend_ms, "backend_ms"))
         gt = self.sequence.ground_truth
         for suffix, traj in (("_online", result.online), ("", result.final)):

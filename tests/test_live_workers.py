@@ -104,6 +104,7 @@ def test_live_mesh_worker_meshes_the_same_blocks(worker: str) -> None:
         gaps.append(now - last)
         last = now
     live.close(wait=True)
+    assert live.mesh() is not None  # installs the updated blocks
     assert live.update_ms and live.blocks_remeshed == len(reference)
     for key, ref in reference.items():
         got = smap._blocks.get(key)

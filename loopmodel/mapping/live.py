@@ -91,6 +91,7 @@ class LiveMapping:
         self._pool: Any = None
         self._job: Any = None
         self._worker_kind = worker
+        self._arrays: dict[BlockKey, MeshArrays | None] = {}  # updated blocks not yet installed
         self.update_ms: list[float] = []
         self.blocks_remeshed = 0
         self.points_meshed = 0
@@ -164,7 +165,9 @@ class LiveMapping:
         except Exception as exc:  # the live view is a convenience: log, keep tracking
             logger.error("live mesh update failed: %s", exc)
             return
-        self._world.install_blocks({k: _mesh_of(m) for k, m in meshes.items()})
+        # installed as open3d meshes only when the mesh is asked for: open3d's first import alone
+        # stalled the tracking thread 2.4 s at load 16 (issue 33)
+        self._arrays.update(meshes)
         self.blocks_remeshed += len(meshes)
         self.update_ms.append(ms)
         self.points_meshed += n_points
@@ -198,6 +201,9 @@ class LiveMapping:
         """
         if self._every <= 0 or not self.update_ms:
             return None
+        if self._arrays:
+            self._world.install_blocks({k: _mesh_of(m) for k, m in self._arrays.items()})
+            self._arrays = {}
         mesh = self._world.live_mesh()
         return mesh if len(mesh.triangles) else None
 

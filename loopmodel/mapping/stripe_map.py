@@ -246,7 +246,16 @@ class StripeMap:
     def _mark_dirty(self, pts: F64) -> None:
         if pts.size == 0:
             return
-        keys = np.unique(np.floor(pts / self.config.chunk_m).astype(np.int64), axis=0)
+        keys = np.floor(pts / self.config.chunk_m).astype(np.int64)
+        # one int64 per block (21 bits a coordinate): a 1-D unique, 10x cheaper than unique(axis=0)
+        # on the tracking thread (issue 33); blocks beyond +-2^20 chunks fall back to the 2-D unique
+        if np.abs(keys).max() < (1 << 20):
+            off = keys + (1 << 20)
+            code = np.unique((off[:, 0] << 42) | (off[:, 1] << 21) | off[:, 2])
+            mask = (1 << 21) - 1
+            keys = np.column_stack([code >> 42, (code >> 21) & mask, code & mask]) - (1 << 20)
+        else:
+            keys = np.unique(keys, axis=0)
         self._dirty.update(map(tuple, keys.tolist()))
 
     def mesh(self) -> o3d.geometry.TriangleMesh:
