@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.ma  # noqa: F401 - np.median's lazy import, else 126 ms of frame 0 (KITTI clip, issue 33)
 
 from loopmodel.backend import Backend, BackendEstimate, create_backend
 from loopmodel.backend.worker import settle, start_backend
