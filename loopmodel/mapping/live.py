@@ -91,6 +91,10 @@ class LiveMapping:
         self._pool: Any = None
         self._job: Any = None
         self._worker_kind = worker
+        if every_kf > 0:
+            # placing stripes interpolates poses with scipy's rotations: its import (~0.3 s) here,
+            # before the frames, not in the frame that places the first stripe (issue 33)
+            import scipy.spatial.transform  # noqa: F401
         self._arrays: dict[BlockKey, MeshArrays | None] = {}  # updated blocks not yet installed
         self.update_ms: list[float] = []
         self.blocks_remeshed = 0
