@@ -272,11 +272,7 @@ def extract_laser_peaks(
     sub = pos[ok]
     if across_line and method == "cog" and line.size >= 3:
         sub = _refine_across_line(
-            g if axis == "columns" else g.T,
-            line,
-            sub,
-            window_px,
-            smooth_along_px,
+            g if axis == "columns" else g.T, line, sub, window_px, smooth_along_px,
             None if local_background else background[ok],
         )
     if axis == "columns":
