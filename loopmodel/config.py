@@ -307,6 +307,10 @@ class MappingConfig(_Section):
     live_mesh_every_kf: int = Field(
         default=0, ge=0, description="during a run, re-mesh the live mesh's changed blocks every N keyframes; 0 = off"
     )
+    # issue 33: open3d's reconstruction holds the interpreter lock, so a thread stalls tracking
+    live_mesh_worker: Literal["process", "thread"] = Field(
+        default="process", description="where live-mesh updates run: process (tracking never stalls) or thread"
+    )
     live_voxel_m: float = Field(
         default=0.003, gt=0, description="voxel size of the live mesh (coarser than voxel_m: faster updates)"
     )

@@ -28,6 +28,7 @@ import contextlib
 import dataclasses
 import functools
 import logging
+import multiprocessing as mp
 import signal
 import threading
 import time
@@ -36,6 +37,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.ma  # noqa: F401 - np.median's lazy import, else 126 ms of frame 0 (KITTI clip, issue 33)
 
 from loopmodel.backend import Backend, BackendEstimate, create_backend
 from loopmodel.backend.worker import settle, start_backend
@@ -59,6 +61,7 @@ from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripePro
 if TYPE_CHECKING:
     from loopmodel.eval.of_run import Evaluation
     from loopmodel.loop.session_map import KeyframeArchiver, ResumePoint, SessionMap
+    from loopmodel.mapping.stripe_feed import ExtractionWorker
 
 logger = logging.getLogger(__name__)
 
@@ -220,12 +223,15 @@ class _Run:
         # placed with them (the stripe map follows every change of the anchored poses)
         self.anchored = AnchoredTrajectory()
         self.stripe_map = StripeMap(config.mapping, self.anchored)
-        self.live = LiveMapping(self.stripe_map, config.mapping.live_mesh_every_kf)
+        self.live = LiveMapping(self.stripe_map, config.mapping.live_mesh_every_kf, config.mapping.live_mesh_worker)
         # the laser profiles of the frames read so far (meshed at the end), and those the live map
         # has not had yet (it takes them at the next tracked frame)
         self.extractor = StripeExtractor(calibration, config.mapping)
+        # the left camera the laser-line images are taken with (K, distortion; None when rectified)
+        self._laser_camera = (calibration.K_left, None if calibration.rectified else calibration.dist_left)
         self.stripes: list[StripeProfile] = []
         self._unfed: list[StripeProfile] = []
+        self._extraction: ExtractionWorker | None = None  # made at the first laser-line image
         self.frames: list[FrameResult] = []
         self.keyframes: dict[int, int] = {}  # keyframe id -> timestamp_ns, in order
         # keyframe -> (previous keyframe, the tracker's pose of it there): drift per interval
@@ -252,7 +258,19 @@ class _Run:
         if not scan.stripes and not scan.laser_images:
             return
         t0 = time.perf_counter()
-        profiles = self.extractor.profiles(scan)
+        if scan.laser_images and self._extraction is None and not mp.current_process().daemon:
+            # issue 33: laser-line images extracted in a worker process (40-50 ms per image here);
+            # a daemonic process (a batch task) may not start one and extracts them itself
+            from loopmodel.mapping.stripe_feed import ExtractionWorker
+
+            self._extraction = ExtractionWorker(*self._laser_camera, self.config.mapping)
+        if self._extraction is not None:
+            profiles = list(scan.stripes)
+            for t_ns, image in scan.laser_images:
+                self._extraction.submit(t_ns, image)
+            profiles += self._extraction.ready()
+        else:
+            profiles = self.extractor.profiles(scan)
         self.stripes.extend(profiles)
         self._unfed.extend(profiles)
         self.stripe_ms.append((time.perf_counter() - t0) * 1e3)
@@ -428,7 +446,10 @@ class _Run:
         return result
 
     def _stop_workers(self, interrupted: bool) -> None:
-        """Stop the live mesher and the loop worker; loops found after the last keyframe reach the back end."""
+        """Stop the workers: the last laser profiles join the stripes, late loops reach the back end."""
+        if self._extraction is not None:  # the profiles of the last laser images (waited for)
+            self.stripes.extend(self._extraction.wait())
+            self._extraction = None
         self.live.close(wait=not interrupted)
         self._correct(settle(self.backend))  # issue 33: the back-end worker's last corrections
         self._correct(self.loop.close(self._state()))
@@ -540,6 +561,11 @@ class _Run:
         m["stripe_profiles"] = len(self.stripes)
         m.update(_quantiles(self.frame_ms, "frame_total_ms"))
         m.update(_quantiles(self.stripe_ms, "stripe_extraction_ms"))
+        # issue 33: the worst frames (frame 0 makes the first keyframe; the first 10 warm up)
+        fm = self.frame_ms
+        m["frame_total_ms_first"] = fm[0] if fm else None
+        m["frame_total_ms_max_after_first"] = max(fm[1:]) if len(fm) > 1 else None
+        m["frame_total_ms_max_after_warmup"] = max(fm[10:]) if len(fm) > 10 else None
         m.update(_quantiles(self.backend_ms, "backend_ms"))
         return m
 

@@ -111,3 +111,27 @@ def test_worker_matches_the_waiting_back_end(sequence_dir: Path) -> None:
     assert diff.max() < 5e-4
     assert abs(ate_m["inline"] - ate_m["process"]) < 2e-4
     assert b.metrics["backend_worker"] == "process" and b.metrics["backend_worker_errors"] == 0
+
+
+def _dying_backend(config: BackendConfig, calibration: StereoCalibration, givens: Any = None) -> Backend:
+    """A back end whose worker process dies at its third keyframe (as on a crash)."""
+    import os
+
+    inner = create_backend(config, calibration, givens)
+
+    class Dying(_Blocked):
+        def add_keyframe(self, keyframe: Keyframe) -> BackendUpdate:
+            self.added += 1
+            if self.added == 3:
+                os._exit(3)
+            return self.inner.add_keyframe(keyframe)
+
+    return Dying(inner)  # type: ignore[return-value]
+
+
+def test_a_dead_worker_leaves_the_front_ends_result(sequence_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(pl, "create_backend", _dying_backend)
+    res = pl.process(open_sequence(sequence_dir), _config("process"))
+    assert len(res.frames) == N_FRAMES and len(res.final) == N_FRAMES
+    assert res.metrics["backend_worker"] == "process"
+    assert res.metrics["ate_rmse_m"] < 0.01  # the tracker's keyframes, kept

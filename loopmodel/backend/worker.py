@@ -185,7 +185,7 @@ class BackgroundBackend:
                     msg = self._outbox.get_nowait()
                 else:
                     left = None if deadline is None else max(deadline - time.perf_counter(), 0.0)
-                    msg = self._outbox.get(timeout=left if left is not None else 1.0)
+                    msg = self._outbox.get(timeout=min(left, 1.0) if left is not None else 1.0)
             except queue.Empty:
                 if block_for is None:
                     return None
@@ -306,9 +306,12 @@ class BackgroundBackend:
         """The back end's own figures plus the worker's update times (ms) and lag (keyframes)."""
         inner = getattr(self, "_final_metrics", None)
         if inner is None and not self._closed:
-            self._send("metrics")
-            msg = self._receive("metrics", timeout_s=60.0)
-            inner = msg[1] if msg is not None else {}
+            try:
+                self._send("metrics")
+                msg = self._receive("metrics", timeout_s=60.0)
+                inner = msg[1] if msg is not None else {}
+            except EstimationError as exc:  # a dead worker still leaves the run's other figures
+                logger.error("back-end metrics: %s", exc)
         a = np.asarray(self.update_ms, float)
         lag = np.asarray(self.lag_kf, float)
         return {
@@ -341,6 +344,10 @@ def settle(backend: Backend) -> dict[int, F64]:
     """
     if not isinstance(backend, BackgroundBackend) or backend._closed:
         return {}
-    backend.wait_idle()
+    try:
+        backend.wait_idle()
+    except EstimationError as exc:  # the run keeps what it has; final_estimate says so again
+        logger.error("back-end worker: %s", exc)
+        return {}
     est = backend.estimate(landmarks=False)
     return {k: est.world_from_kf[k] for k in est.changed_keyframes}

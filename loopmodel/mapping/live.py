@@ -9,10 +9,11 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
+from loopmodel.config import MappingConfig
 from loopmodel.errors import LoopmodelError
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.types import StripeProfile
@@ -20,22 +21,72 @@ from loopmodel.types import StripeProfile
 logger = logging.getLogger(__name__)
 
 
+BlockKey = tuple[int, int, int]
+#: a block's mesh as arrays: vertices (V, 3) m, triangles (T, 3) int, vertex normals (V, 3)
+MeshArrays = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def _worker_start() -> None:
+    """The meshing process: Ctrl-C is the run's (it stops between frames); open3d loaded up front."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    import loopmodel.mapping.meshing  # noqa: F401 - open3d's import, before the first update
+
+
+def remesh_blocks(
+    points_w: np.ndarray, sensors_w: np.ndarray, blocks: set[BlockKey], config: MappingConfig
+) -> tuple[dict[BlockKey, MeshArrays | None], float, int]:
+    """:func:`~loopmodel.mapping.meshing.mesh_blocks` at the live settings, as arrays (for a worker process).
+
+    Returns the blocks' meshes, the meshing time (ms) and the number of points given.
+    """
+    from loopmodel.mapping.meshing import live_mesh_config, mesh_blocks
+
+    t0 = time.perf_counter()
+    meshes = mesh_blocks(points_w, sensors_w, blocks, live_mesh_config(config))
+    out: dict[BlockKey, MeshArrays | None] = {
+        k: None if m is None else (np.asarray(m.vertices), np.asarray(m.triangles), np.asarray(m.vertex_normals))
+        for k, m in meshes.items()
+    }
+    return out, (time.perf_counter() - t0) * 1e3, len(points_w)
+
+
+def _mesh_of(arrays: MeshArrays | None) -> Any:
+    if arrays is None:
+        return None
+    import open3d as o3d
+
+    v, t, n = arrays
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t.astype(np.int32)))
+    mesh.vertex_normals = o3d.utility.Vector3dVector(n)
+    return mesh
+
+
 class LiveMapping:
     """The run's laser stripes handed to the pipeline's :class:`StripeMap`, and the chunked live mesh.
 
-    The stripes of each frame are handed over (:meth:`feed`) as frames arrive. Every
-    ``live_mesh_every_kf`` keyframes the blocks that new stripes entered or that pose corrections
-    moved are re-meshed in a worker thread (open3d releases the GIL), so tracking does not wait
-    for it.
+    The stripes of each frame are handed over (:meth:`feed`) as frames arrive.
+    Every ``live_mesh_every_kf`` keyframes the blocks that new stripes entered or that pose
+    corrections moved are re-meshed in a worker (``worker``): a process by default — open3d's
+    surface reconstruction holds the interpreter lock (issue 33: a 7.7 s stall of the tracking thread
+    while a thread meshed 60,000 points) — which gets the points as values and returns the block
+    meshes as arrays; or a thread. Tracking never waits for it.
     """
 
-    def __init__(self, world: StripeMap, every_kf: int) -> None:
+    def __init__(self, world: StripeMap, every_kf: int, worker: Literal["process", "thread"] = "process") -> None:
         self._world = world
         self._every = every_kf
         self._feeding = every_kf > 0
         self._keyframes = 0
         self._pool: Any = None
         self._job: Any = None
+        self._worker_kind = worker
+        if every_kf > 0:
+            # placing stripes interpolates poses with scipy's rotations: its import (~0.3 s) here,
+            # before the frames, not in the frame that places the first stripe (issue 33)
+            import scipy.spatial.transform  # noqa: F401
+        self._arrays: dict[BlockKey, MeshArrays | None] = {}  # updated blocks not yet installed
         self.update_ms: list[float] = []
         self.blocks_remeshed = 0
         self.points_meshed = 0
@@ -56,6 +107,8 @@ class LiveMapping:
         try:
             if batch:
                 self._world.add_many(batch)
+                if self._pool is None:  # the worker's imports overlap the frames before the first update
+                    self._workers().submit(int, 0)
         except LoopmodelError as exc:
             logger.error("live mesh: laser stripes no longer fed: %s", exc)
             self._feeding = False
@@ -76,18 +129,26 @@ class LiveMapping:
         snap = self._world.take_dirty_blocks()
         if snap is None:
             return
+        self._job = self._workers().submit(remesh_blocks, *snap, self._world.config)
+
+    def _workers(self) -> Any:
         if self._pool is None:
-            from concurrent.futures import ThreadPoolExecutor
+            import multiprocessing as mp
 
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="live-mesh")
-        self._job = self._pool.submit(self._remesh, *snap)
+            if self._worker_kind == "process" and mp.current_process().daemon:
+                # a daemonic process (a Dask or pool worker running this run) may not start children
+                logger.info("live mesh in a thread: this process is a daemon and cannot start a worker process")
+                self._worker_kind = "thread"
+            if self._worker_kind == "process":
+                from concurrent.futures import ProcessPoolExecutor
 
-    def _remesh(self, points_w: np.ndarray, sensors_w: np.ndarray, blocks: set[tuple[int, int, int]]) -> Any:
-        from loopmodel.mapping.meshing import live_mesh_config, mesh_blocks
+                ctx = mp.get_context("spawn")
+                self._pool = ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_start)
+            else:
+                from concurrent.futures import ThreadPoolExecutor
 
-        t0 = time.perf_counter()
-        meshes = mesh_blocks(points_w, sensors_w, blocks, live_mesh_config(self._world.config))
-        return meshes, (time.perf_counter() - t0) * 1e3, len(points_w)
+                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="live-mesh")
+        return self._pool
 
     def _collect(self) -> None:
         job, self._job = self._job, None
@@ -96,7 +157,9 @@ class LiveMapping:
         except Exception as exc:  # the live view is a convenience: log, keep tracking
             logger.error("live mesh update failed: %s", exc)
             return
-        self._world.install_blocks(meshes)
+        # installed as open3d meshes only when the mesh is asked for: open3d's first import alone
+        # stalled the tracking thread 2.4 s at load 16 (issue 33)
+        self._arrays.update(meshes)
         self.blocks_remeshed += len(meshes)
         self.update_ms.append(ms)
         self.points_meshed += n_points
@@ -105,8 +168,10 @@ class LiveMapping:
     def mesh_seconds_estimate(self) -> float | None:
         """Seconds to mesh every stripe point of the map at the rate the live updates measured.
 
-        None before the first update (or when the live mesh is off).
+        None before the first update (or when the live mesh is off). A finished update is taken in first.
         """
+        if self._job is not None and self._job.done():
+            self._collect()
         if not self.points_meshed:
             return None
         return self._world.point_count * sum(self.update_ms) / 1e3 / self.points_meshed
@@ -125,6 +190,9 @@ class LiveMapping:
         """
         if self._every <= 0 or not self.update_ms:
             return None
+        if self._arrays:
+            self._world.install_blocks({k: _mesh_of(m) for k, m in self._arrays.items()})
+            self._arrays = {}
         mesh = self._world.live_mesh()
         return mesh if len(mesh.triangles) else None
 
