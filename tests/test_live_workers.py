@@ -44,7 +44,7 @@ def test_live_mesh_worker_meshes_the_same_blocks(worker: str) -> None:
     assert snap is not None
     reference = mesh_blocks(*snap, live_mesh_config(cfg))
     smap = _sphere_map(cfg)
-    live = LiveMapping(smap, iter(()), 1, worker)  # type: ignore[arg-type]
+    live = LiveMapping(smap, 1, worker)  # type: ignore[arg-type]
     live.on_keyframe()
     gaps = []
     last = time.perf_counter()
