@@ -190,9 +190,8 @@ class LoopClosingStage:
         self.detections_unapplied = 0
         self.detections_abandoned = 0
         self._final_constraints: list[LoopConstraint] = []
-        # covisibility: (first, last landmark id, keyframe) per keyframe; direct neighbours
+        # covisibility: (first, last landmark id, keyframe) per keyframe
         self._lm_ranges: list[tuple[int, int, int]] = []
-        self._covisible_of: dict[int, set[int]] = {}
         #: the record of the last closure whose old features the front end was asked to resume
         self._resume_record: dict[str, Any] | None = None
 
@@ -342,11 +341,14 @@ class LoopClosingStage:
         return LoopConstraint(q, closure.match_kf, q_from_m, rows if with_obs else None)
 
     def _temporal_neighbours(self, kf: Keyframe) -> set[int]:
-        """Keyframes co-visible with the new keyframe's local map.
+        """Keyframes co-visible with the new keyframe: those whose landmarks it observes.
 
-        ORB-SLAM's covisibility graph, two levels: those whose landmarks it observes (its stereo and
-        monocular observations), and theirs. The front end and the back end link these already; a
-        loop with them adds nothing. Landmarks are found by each keyframe's id range.
+        Its stereo and monocular observations, as ORB-SLAM's loop detection excludes the current
+        keyframe's covisible ones: the front end and the back end link these already, and a loop with
+        them adds nothing (``min_gap_keyframes`` keeps the recent ones out as well). One level only:
+        with local-map tracking (issue 36) a keyframe observes the last ``frontend.local_map_keyframes``
+        keyframes' landmarks, and a second level (theirs) excluded true revisits 8 keyframes back on
+        the rendered revisit sequences of the loop tests. Landmarks are found by each keyframe's id range.
         """
         q = int(kf.id)
         ids = np.asarray(kf.landmark_ids, dtype=np.int64).ravel()
@@ -362,11 +364,7 @@ class LoopClosingStage:
             direct = set(owners[j[ok]].tolist()) - {q}
         if ids.size and (not self._lm_ranges or ids.min() > self._lm_ranges[-1][1]):
             self._lm_ranges.append((int(ids.min()), int(ids.max()), q))
-        self._covisible_of[q] = direct
-        out = set(direct)
-        for k in direct:
-            out |= self._covisible_of.get(k, set())
-        return out - {q}
+        return direct
 
     @staticmethod
     def _collect(done: tuple[dict[str, Any], dict[int, F64]] | None, out: LoopOutcome) -> None:
