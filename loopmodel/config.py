@@ -688,6 +688,37 @@ class SessionConfig(_Section):
     merge_agree_deg: float = Field(2.0, gt=0, description="agreement of two links between maps (rotation)")
 
 
+class SelfCalibrationConfig(_Section):
+    """Self-calibration of the stereo rig and the light plane from the scan itself (issue 31).
+
+    Priors: the recorded calibration with these standard deviations (a good chessboard calibration;
+    the simulator's realistic world draws its recorded-calibration error with the same values).
+    """
+
+    refine: Literal["none", "final"] = Field(
+        "none", description="none: the recorded calibration as given; final: refined in the final bundle adjustment"
+    )
+    sigma_focal_px: float = Field(0.3, gt=0, description="prior std. dev. of fx, fy of each camera")
+    sigma_principal_px: float = Field(0.3, gt=0, description="prior std. dev. of cx, cy of each camera")
+    sigma_k1: float = Field(0.002, gt=0, description="prior std. dev. of the first radial term of each camera")
+    sigma_k2: float = Field(0.002, gt=0, description="prior std. dev. of the second radial term (when refine_k2)")
+    refine_k2: bool = Field(False, description="also refine k2 of each camera")
+    sigma_rotation_deg: float = Field(0.02, gt=0, description="prior std. dev. of the stereo rotation, per axis")
+    sigma_baseline_m: float = Field(5e-5, gt=0, description="prior std. dev. of the stereo baseline")
+    sigma_plane_offset_m: float = Field(1e-4, gt=0, description="prior std. dev. of the light plane's offset")
+    # a parameter whose posterior std. dev. is above this share of its prior's is hardly constrained
+    # by the data: reported as unobservable (one not informed at all, above 0.99, is held at its
+    # recorded value). Set on the synthetic scans of tests/test_selfcal.py
+    observable_ratio: float = Field(
+        0.9, gt=0, lt=1, description="posterior/prior sigma above which a parameter is unobservable"
+    )
+    huber_k: float = Field(1.345, ge=0, description="Huber threshold in sigmas (0: Gaussian)")
+    max_iterations: int = Field(15, ge=1, le=200, description="Levenberg-Marquardt iterations")
+    laser_match_px: float = Field(
+        1.5, gt=0, description="laser-stereo: a landmark this close to the stripe in the image"
+    )
+
+
 class Config(_Section):
     """The whole configuration of loopmodel."""
 
@@ -704,6 +735,7 @@ class Config(_Section):
     backend: BackendConfig = Field(default_factory=BackendConfig)
     refine: RefineConfig = Field(default_factory=RefineConfig)
     session: SessionConfig = Field(default_factory=SessionConfig)
+    calibration: SelfCalibrationConfig = Field(default_factory=SelfCalibrationConfig)
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

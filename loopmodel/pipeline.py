@@ -261,6 +261,8 @@ class _Run:
         self.frame_ms: list[float] = []
         # for the session map (issue 20): keyframes with their images, the loop constraints
         self.map_keyframes: dict[int, Keyframe] = {}
+        # issue 31: the keyframes' measurements (no images) for the final self-calibration
+        self.selfcal_keyframes: dict[int, Keyframe] = {}
         self.loop_constraints: list[LoopConstraint] = []
         self._last_ms = 0.0
         self._last_ids: tuple[int | None, ...] = ()
@@ -344,6 +346,8 @@ class _Run:
         self.keyframes[kf.id] = kf.timestamp_ns
         if self.config.output.write_map:
             self.map_keyframes[kf.id] = kf
+        if self.config.calibration.refine != "none":
+            self.selfcal_keyframes[kf.id] = kf.without_image()
         for listener in self.listeners:
             if out.events:
                 listener.on_loop_events(out.events)
@@ -389,6 +393,38 @@ class _Run:
             return None
         return estimate
 
+    def _self_calibration(
+        self, estimate: BackendEstimate | None, interrupted: bool, last_ns: int | None
+    ) -> tuple[BackendEstimate | None, list[Any] | None, Any]:
+        """``calibration.refine: final`` (issue 31): the calibrating bundle adjustment.
+
+        Then the stripes extracted with the refined left camera and the laser-stereo scale; the
+        anchored frames follow the refined keyframes.
+
+        Returns the refined estimate, the stripes and the :class:`SelfCalibration` (the inputs, None
+        and None when off, interrupted, localizing or failing: logged).
+        """
+        if self.config.calibration.refine == "none" or estimate is None or interrupted or self.localizer is not None:
+            return estimate, None, None
+        from loopmodel.calibration.selfcal import apply_laser_scale, refine_final
+        from loopmodel.mapping.extraction import LightPlane
+
+        plane = LightPlane.from_config(self.config.mapping)
+        kfs = list(self.selfcal_keyframes.values())
+        try:
+            sc = refine_final(
+                kfs, estimate.world_from_kf, estimate.landmark_ids, estimate.landmarks_in_world,
+                self.sequence.calibration, self.config.calibration, plane.normal_in_cam, plane.d_m,
+            )
+        except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:
+            logger.warning("self-calibration not done: %s", exc)
+            return estimate, None, None
+        stripes = run_stripes(self.sequence, last_ns, self.config.mapping, sc.calibration)
+        stripes = apply_laser_scale(sc, kfs, stripes)
+        self.anchored.update_keyframes(sc.world_from_kf)
+        moved = BackendEstimate(dict(sc.world_from_kf), sc.landmark_ids, sc.landmarks_in_world, set(sc.world_from_kf))
+        return moved, stripes, sc
+
     def _final_trajectory(self) -> Trajectory:
         if self.config.refine.bridge_frames:
             return self.anchored.bridged_trajectory(self.keyframes, self.tracked_links)
@@ -422,6 +458,8 @@ class _Run:
             self._correct({k: moved.world_from_kf[k] for k in moved.changed_keyframes})
         t_final = time.perf_counter()
         estimate = self._final_estimate(interrupted)
+        last_ns = self.frames[-1].timestamp_ns if self.frames else None
+        estimate, stripes, selfcal = self._self_calibration(estimate, interrupted, last_ns)
         result = RunResult(
             config=self.config,
             frames=self.frames,
@@ -436,13 +474,16 @@ class _Run:
         if self.resume is not None:
             _prepend_resumed(result, self.resume)
         final_refine_s = time.perf_counter() - t_final
-        last_ns = self.frames[-1].timestamp_ns if self.frames else None
-        result.stripes = run_stripes(self.sequence, last_ns, self.config.mapping)
+        result.stripes = stripes if stripes is not None else run_stripes(self.sequence, last_ns, self.config.mapping)
         result.mesh, mesh_metrics = final_mesh(
             self.sequence, result.stripes, result.online, result.final, self.config.mapping
         )
         result.live_mesh = self.live.mesh()
         result.metrics = self._metrics(result, wall, final_refine_s, mesh_metrics)
+        if selfcal is not None:
+            result.metrics.update(selfcal.metrics())
+            result.calibration_refined = selfcal.calibration
+            result.calibration_report = selfcal.report()
         result.session_map = self._session_map(result)
         if self.localizer is not None:
             self._localization(result, self.localizer)

@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from loopmodel.config import MappingConfig
 from loopmodel.errors import CalibrationError, InputError
-from loopmodel.types import StripeProfile
+from loopmodel.types import StereoCalibration, StripeProfile
 
 if TYPE_CHECKING:
     from loopmodel.io.base import Sequence
@@ -433,11 +433,14 @@ def sequence_stripe_count(sequence: Sequence) -> int:
     return int(sequence.stripe_count() or 0) or sequence.laser_image_count()
 
 
-def sequence_stripes(sequence: Sequence, config: MappingConfig | None = None) -> Iterator[StripeProfile]:
+def sequence_stripes(
+    sequence: Sequence, config: MappingConfig | None = None, calibration: StereoCalibration | None = None
+) -> Iterator[StripeProfile]:
     """The laser profiles of a sequence in time order (left-camera frame, metres).
 
     Its stripe messages when it has them, else profiles extracted from its laser-line images with
-    the configured light plane and the left camera's calibration (empty profiles dropped).
+    the configured light plane and the left camera's calibration (``calibration``'s when given,
+    else the sequence's; empty profiles dropped).
     """
     if sequence.stripe_count():
         yield from sequence.stripes()
@@ -446,7 +449,7 @@ def sequence_stripes(sequence: Sequence, config: MappingConfig | None = None) ->
         return
     cfg = config or MappingConfig()
     plane = LightPlane.from_config(cfg)
-    calib = sequence.calibration
+    calib = calibration if calibration is not None else sequence.calibration
     dist = None if calib.rectified else calib.dist_left
     for t_ns, image in sequence.laser_images():
         profile = stripe_from_image(image, t_ns, calib.K_left, plane, cfg, dist)

@@ -17,7 +17,7 @@ from loopmodel.config import MappingConfig
 from loopmodel.errors import LoopmodelError
 from loopmodel.io.base import Sequence
 from loopmodel.mapping.extraction import sequence_stripe_count, sequence_stripes
-from loopmodel.types import StripeAnchors, StripeProfile, Trajectory
+from loopmodel.types import StereoCalibration, StripeAnchors, StripeProfile, Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -27,8 +27,13 @@ def live_stripes(sequence: Sequence, config: MappingConfig) -> Iterator[StripePr
     return sequence_stripes(sequence, config) if sequence_stripe_count(sequence) else iter(())
 
 
-def run_stripes(sequence: Sequence, last_ns: int | None, config: MappingConfig) -> list[StripeProfile]:
+def run_stripes(
+    sequence: Sequence, last_ns: int | None, config: MappingConfig, calibration: StereoCalibration | None = None
+) -> list[StripeProfile]:
     """The sequence's laser profiles up to ``last_ns`` (the last processed frame; sensor frame, metres).
+
+    Laser images are triangulated with ``calibration``'s left camera when given (a refined one,
+    issue 31), else the sequence's.
 
     None without a processed frame or without profiles. A reader error is logged and gives none (the
     trajectories matter more than the stripes).
@@ -36,7 +41,7 @@ def run_stripes(sequence: Sequence, last_ns: int | None, config: MappingConfig) 
     if last_ns is None or sequence_stripe_count(sequence) == 0:
         return []
     try:
-        return [s for s in sequence_stripes(sequence, config) if s.timestamp_ns <= last_ns]
+        return [s for s in sequence_stripes(sequence, config, calibration) if s.timestamp_ns <= last_ns]
     except LoopmodelError as exc:
         logger.error("laser stripes not written: %s", exc)
         return []
