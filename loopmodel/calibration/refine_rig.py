@@ -673,7 +673,7 @@ def refine_rig(
     recorded: StereoCalibration,
     prior_sigma: F64,
     estimate: NDArray[np.bool_] | None = None,
-    observable_ratio: float = 0.5,
+    observable_ratio: float = 0.9,
     huber_k: float = 1.345,
     max_iterations: int = 15,
 ) -> tuple[F64, F64, RigRefinement]:
