@@ -234,3 +234,39 @@ def test_refined_calibration_file_is_read_by_calib(tmp_path: Path) -> None:
 
     data = yaml.safe_load(path.read_text())
     assert data["cam1"]["sigma"]["cx_px"] == pytest.approx(rep.sigma_named()["cx_right_px"])
+
+
+# ----------------------------------------------------------------------------- the run
+
+
+def test_run_writes_the_refined_calibration(tmp_path: Path) -> None:
+    """``calibration.refine: final`` in a run: the file, the metrics, and a trajectory no worse."""
+    from frontend_scene import write_kitti_folder
+
+    from loopmodel.config import Config
+    from loopmodel.io.calib_files import read_stereo_calibration
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.pipeline import run_pipeline
+
+    folder = tmp_path / "seq"
+    write_kitti_folder(folder, 14, np.random.default_rng(7))
+    out = {}
+    for refine in ("none", "final"):
+        cfg = Config()
+        cfg.frontend.max_disparity_px = 64
+        cfg.frontend.max_features = 400
+        cfg.frontend.min_tracked_fraction = 0.95
+        cfg.calibration.refine = refine  # type: ignore[assignment]
+        out[refine] = run_pipeline(open_sequence(folder), cfg, tmp_path, refine)
+    res = out["final"]
+    m = res.metrics
+    assert m["calibration_refine"] == "final" and "baseline_m" in m["calibration_unobservable"]
+    # a perfectly calibrated (rendered) rig: nothing moves beyond its sigma
+    assert m["calibration_moved_max_sigma"] < 1.0, m["calibration_moved_sigma"]
+    assert m["ate_rmse_m"] <= 1.1 * out["none"].metrics["ate_rmse_m"] + 5e-5
+    assert res.folder is not None
+    cal = read_stereo_calibration(res.folder / "calibration_refined.yaml")
+    seq_cal = open_sequence(folder).calibration
+    assert abs(cal.baseline_m - seq_cal.baseline_m) < 1e-9
+    assert np.allclose(cal.K_left, res.calibration_refined.K_left)
+    assert not (out["none"].folder / "calibration_refined.yaml").exists()
