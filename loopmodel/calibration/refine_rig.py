@@ -661,6 +661,27 @@ def robust_sigma_px(r: F64, unknowns: int, obs: RigObservations | None = None) -
     return mad * float(np.sqrt(n / red)) if red > 0 else mad
 
 
+def huber_sigma_px(r: F64, unknowns: int, obs: RigObservations, huber_k: float, start_px: float) -> float:
+    """Pixel noise as the Huber-weighted residuals give it: ``sigma^2 = sum w r^2 / (n - u)``.
+
+    ``w`` the Huber weights at ``huber_k`` sigmas, iterated from ``start_px`` (the MAD's value). Real
+    image residuals have heavier tails than a Gaussian, which the MAD alone leaves out: the
+    posterior would be too confident.
+    """
+    rn2 = np.sum(r**2, axis=1)
+    red = obs.residual_count - unknowns
+    if red <= 0:
+        return start_px
+    sigma = start_px
+    for _ in range(10):
+        w = _huber_weights(np.sqrt(rn2) / sigma, huber_k)
+        new = float(np.sqrt(np.sum(w * rn2) / red))
+        if abs(new - sigma) < 1e-4 * sigma:
+            return new
+        sigma = new
+    return sigma
+
+
 def _rms(r: F64, obs: RigObservations) -> float:
     n = obs.residual_count
     return float(np.sqrt(np.sum(r**2) / n)) if n else float("nan")
@@ -703,7 +724,8 @@ def refine_rig(
         st, it = _solve(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k, max_iterations)
         iterations += it
         r, *_ = residuals_and_jacobians(obs, st.R, st.t, st.pts, rig, st.theta)
-        sigma = max(robust_sigma_px(r, unknowns + int(active.sum()), obs), 1e-3)
+        u = unknowns + int(active.sum())
+        sigma = max(huber_sigma_px(r, u, obs, huber_k, max(robust_sigma_px(r, u, obs), 1e-3)), 1e-3)
     post = np.array(prior_sigma, float).copy()
     post[active] = _posterior_sigma(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k)
     weak = active & (post > observable_ratio * prior_sigma)
