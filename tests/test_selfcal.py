@@ -30,11 +30,14 @@ from loopmodel.calibration.refine_rig import (  # noqa: E402
     refine_rig,
     residuals_and_jacobians,
 )
+from loopmodel.calibration.selfcal import estimated_parameters  # noqa: E402
+from loopmodel.config import SelfCalibrationConfig  # noqa: E402
 from loopmodel.geometry.align import umeyama_alignment  # noqa: E402
 from loopmodel.geometry.se3 import so3_exp, so3_log  # noqa: E402
 from loopmodel.types import StripeProfile  # noqa: E402
 
 PRIOR = prior_sigmas(0.3, 0.3, 0.002, 0.002, 0.02, 5e-5)
+EST = estimated_parameters(SelfCalibrationConfig())  # the pipeline's unknowns
 N_KF, N_PT = 30, 1200
 
 
@@ -136,7 +139,7 @@ def test_injected_calibration_error_is_recovered() -> None:
     """
     seed = 2
     sc, obs, pts0 = _problem(recorded_rig(true_rig(), seed), seed)
-    poses, _pts, rep = refine_rig(obs, sc.world_from_kf.copy(), pts0, sc.recorded, PRIOR)
+    poses, _pts, rep = refine_rig(obs, sc.world_from_kf.copy(), pts0, sc.recorded, PRIOR, EST)
     truth = _true_values(sc)
     est = rep.estimated
     z_after = (rep.values - truth)[est] / rep.posterior_sigma[est]
@@ -168,7 +171,7 @@ def test_injected_calibration_error_is_recovered() -> None:
 
 def test_well_calibrated_rig_moves_nothing_beyond_its_sigma() -> None:
     sc, obs, pts0 = _problem(None, seed=6)  # recorded == true
-    _poses, _pts, rep = refine_rig(obs, sc.world_from_kf.copy(), pts0, sc.recorded, PRIOR)
+    _poses, _pts, rep = refine_rig(obs, sc.world_from_kf.copy(), pts0, sc.recorded, PRIOR, EST)
     moved = rep.moved_sigma()
     assert max(abs(v) for v in moved.values()) < 1.0, moved
 
@@ -217,7 +220,7 @@ def test_refined_calibration_file_is_read_by_calib(tmp_path: Path) -> None:
     from loopmodel.io.calib_files import read_stereo_calibration, refined_calibration_yaml
 
     sc, obs, pts0 = _problem(recorded_rig(true_rig(), 2), 2, 12, 400)
-    _poses, _pts, rep = refine_rig(obs, sc.world_from_kf.copy(), pts0, sc.recorded, PRIOR)
+    _poses, _pts, rep = refine_rig(obs, sc.world_from_kf.copy(), pts0, sc.recorded, PRIOR, EST)
     cal = rep.calibration
     params = {
         n: {"sigma": s, "refined": v}

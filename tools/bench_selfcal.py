@@ -239,6 +239,7 @@ def _chessboard() -> dict[str, Any]:
 
     from loopmodel.calibration.chessboard import board_points
     from loopmodel.calibration.refine_rig import PARAM_NAMES, observations_from_keyframes, prior_sigmas, refine_rig
+    from loopmodel.calibration.selfcal import estimated_parameters
     from loopmodel.calibration.stereo import calibrate_stereo, pair_images
     from loopmodel.geometry.se3 import make_pose
     from loopmodel.types import Keyframe
@@ -285,7 +286,7 @@ def _chessboard() -> dict[str, Any]:
     for side in (0, 1):
         own[6 * side : 6 * side + 6] = std[side][[0, 1, 2, 3, 4, 5]]
     for name, prior in (("default", base), ("own", own)):
-        _p, _pts, rep = refine_rig(obs, np.array(poses), obj[lm], cal, prior)
+        _p, _pts, rep = refine_rig(obs, np.array(poses), obj[lm], cal, prior, estimated_parameters(c))
         moved = rep.moved_sigma()
         out[f"chess_moved_max_sigma_{name}"] = round(max(abs(v) for v in moved.values()), 3)
         out[f"chess_moved_sigma_{name}"] = {k: round(v, 2) for k, v in moved.items()}

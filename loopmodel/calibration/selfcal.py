@@ -34,6 +34,9 @@ from loopmodel.types import Keyframe, StereoCalibration, StripeProfile
 
 logger = logging.getLogger(__name__)
 
+#: Parameters that move right-image points along the columns only (not measured by the front end).
+RIGHT_ROW_PARAMS = ("fy_right_px", "cy_right_px", "rot_x_deg")
+
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
@@ -145,6 +148,16 @@ class SelfCalibration:
         return m
 
 
+def estimated_parameters(config: SelfCalibrationConfig) -> NDArray[np.bool_]:
+    """Which of :data:`PARAM_NAMES` the configuration makes unknowns (k2 and the right rows optional)."""
+    estimate = np.ones(len(PARAM_NAMES), bool)
+    if not config.refine_k2:
+        estimate[[PARAM_NAMES.index("k2_left"), PARAM_NAMES.index("k2_right")]] = False
+    if not config.refine_right_rows:
+        estimate[[PARAM_NAMES.index(n) for n in RIGHT_ROW_PARAMS]] = False
+    return estimate
+
+
 def rectifying_rotations(cal: StereoCalibration) -> tuple[F64, F64, F64, F64]:
     """``R1, R2, K1, K2``: rectifying rotations and rectified camera matrices (identity/K for rectified input)."""
     if cal.rectified:
@@ -225,9 +238,7 @@ def refine_final(
         config.sigma_rotation_deg,
         config.sigma_baseline_m,
     )
-    estimate = np.ones(len(PARAM_NAMES), bool)
-    if not config.refine_k2:
-        estimate[[PARAM_NAMES.index("k2_left"), PARAM_NAMES.index("k2_right")]] = False
+    estimate = estimated_parameters(config)
     poses_out, pts_out, rep = refine_rig(
         obs, poses, pts, calibration, sig, estimate, config.observable_ratio, config.huber_k, config.max_iterations
     )
