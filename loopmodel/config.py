@@ -712,6 +712,7 @@ class SelfCalibrationConfig(_Section):
     sigma_rotation_deg: float = Field(0.02, gt=0, description="prior std. dev. of the stereo rotation, per axis")
     sigma_baseline_m: float = Field(5e-5, gt=0, description="prior std. dev. of the stereo baseline")
     sigma_plane_offset_m: float = Field(1e-4, gt=0, description="prior std. dev. of the light plane's offset")
+    sigma_plane_tilt_deg: float = Field(0.02, gt=0, description="prior std. dev. of the light plane's tilt, per axis")
     # a parameter whose posterior std. dev. is above this share of its prior's is hardly constrained
     # by the data: reported as unobservable (one not informed at all, above 0.99, is held at its
     # recorded value). Set on the synthetic scans of tests/test_selfcal.py

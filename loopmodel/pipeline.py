@@ -420,7 +420,7 @@ class _Run:
             logger.warning("self-calibration not done: %s", exc)
             return estimate, None, None
         stripes = run_stripes(self.sequence, last_ns, self.config.mapping, sc.calibration)
-        stripes = apply_laser_scale(sc, kfs, stripes)
+        stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
         self.anchored.update_keyframes(sc.world_from_kf)
         moved = BackendEstimate(dict(sc.world_from_kf), sc.landmark_ids, sc.landmarks_in_world, set(sc.world_from_kf))
         return moved, stripes, sc

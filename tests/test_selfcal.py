@@ -180,37 +180,46 @@ def test_well_calibrated_rig_moves_nothing_beyond_its_sigma() -> None:
 
 
 def test_laser_stereo_scale_finds_a_plane_offset_error() -> None:
-    """A stripe on a plane triangulated 0.3 % too far.
+    """Stripes triangulated with a plane offset 0.3 % too large, on a wall the landmarks see.
 
-    The discrepancy is measured and shared between baseline and plane offset by their priors.
+    The discrepancy is measured, and the baseline and plane offset share it by their priors (no tilt
+    is found where there is none).
     """
     rng = np.random.default_rng(3)
+    n = np.array([0.977, 0.0, 0.213])
+    n /= np.linalg.norm(n)
+    d_plane = -float(n @ np.array([0.12, 0.0, 0.0]))
     kfs, lms, stripes, poses = {}, {}, [], {}
     pts_w = []
     for k in range(8):
         T = np.eye(4)
         T[:3, 3] = [0.01 * k, 0.0, 0.0]
         poses[k] = T
-        # landmarks on the plane z = 0.5 (camera k), the stripe along a column, 0.3 % too deep
+        z = 0.45 + 0.02 * k  # a wall facing the camera at depth z; landmarks on it
         xy = rng.uniform(-0.15, 0.15, (300, 2))
-        p = np.column_stack([xy, np.full(300, 0.5)])
-        ids = np.arange(300) + 1000 * k
+        p = np.column_stack([xy, np.full(300, z)])
         pts_w.append(p + T[:3, 3])
-        lms[k] = ids
+        lms[k] = np.arange(300) + 1000 * k
+        # the stripe: the light plane on the wall, triangulated with an offset 0.3 % too large
         y = np.linspace(-0.1, 0.1, 80)
-        s = np.column_stack([np.full(80, 0.02), y, np.full(80, 0.5)]) * 1.003
-        stripes.append(StripeProfile(k * 100, s))
+        x = (-d_plane - n[2] * z) / n[0]
+        stripes.append(StripeProfile(k * 100, np.column_stack([np.full(80, x), y, np.full(80, z)]) * 1.003))
         kfs[k] = k * 100
     ids_all = np.concatenate([lms[k] for k in range(8)])
     P = np.concatenate(pts_w)
-    d = keyframe_discrepancies(stripes[0].points_in_cam, P[:300], 500.0)
-    assert d.size > 5 and abs(float(np.median(d)) - np.log(1.003)) < 2e-4
-    est = laser_stereo_scale(stripes, kfs, poses, lms, ids_all, P, true_rig(), 8.3e-4, 8.5e-4)
+    d, used = keyframe_discrepancies(stripes[0].points_in_cam, P[:300], 500.0)
+    assert d.size > 5 and used.shape == (d.size, 3) and abs(float(np.median(d)) - np.log(1.003)) < 2e-4
+    est = laser_stereo_scale(
+        stripes, kfs, poses, lms, ids_all, P, true_rig(), 8.3e-4, 8.5e-4, n, d_plane * 1.003, np.radians(0.02)
+    )
     assert est is not None and est.keyframes == 8
     assert abs(est.discrepancy_log - np.log(1.003)) < 2e-4
-    # x_b - x_d is the measured discrepancy; the priors (near equal) share it out
+    # the constant part of the model takes the discrepancy; the priors (near equal) share it out
     assert abs((est.log_baseline - est.log_plane_offset) - est.discrepancy_log) < 0.2 * est.discrepancy_log
     assert est.log_baseline > 0 > est.log_plane_offset
+    assert np.all(np.abs(est.tilt_rad) < 3 * est.sigma_tilt_rad)
+    n_new, d_new = est.refined_plane(n, d_plane * 1.003)
+    assert abs(float(n_new @ n) - 1.0) < 1e-6 and abs(d_new / (d_plane * 1.003) - est.plane_offset_factor) < 1e-12
 
 
 # ----------------------------------------------------------------------------- (d) the file

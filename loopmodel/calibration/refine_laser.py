@@ -9,13 +9,19 @@ within ``radius_px`` (inverse depth is affine in normalised image coordinates on
 the median ``m`` with its robust standard error.
 
 Unknowns ``x_b = log(b' / b)`` and ``x_d = log(d' / d)`` (relative corrections of the baseline and
-of the plane offset), Gaussian priors from their recorded standard deviations, and the one
-observation ``x_b - x_d = m``: the data fix the ratio of the two scales, the priors share it out.
+of the plane offset) and the plane's tilt ``t`` (radians, about two axes in the plane: the normal
+becomes ``n + t1 e1 + t2 e2``), with Gaussian priors from their recorded standard deviations. A
+stripe point ``p`` moves by ``x_d + (t1 e1 . p + t2 e2 . p) / d`` in log depth, a landmark by
+``x_b``, so each pair gives ``x_b - x_d - (t . E p) / d = log(z_stripe / z_stereo)``: a tilt shows
+as a gradient along the stripe and is told apart; the constant part fixes only the ratio of the two
+scales, and the priors share it out. Pairs of one keyframe share its errors (its landmark fit, its
+pose): their information is divided by the mean number of pairs per keyframe (as if each keyframe
+gave one), so the posterior is not over-confident.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,6 +49,9 @@ class LaserStereoScale:
     discrepancy_sigma: float
     pairs: int
     keyframes: int
+    tilt_rad: F64 = field(default_factory=lambda: np.zeros(2))
+    sigma_tilt_rad: F64 = field(default_factory=lambda: np.zeros(2))
+    tilt_axes: F64 = field(default_factory=lambda: np.zeros((2, 3)))
 
     @property
     def baseline_factor(self) -> float:
@@ -53,6 +62,11 @@ class LaserStereoScale:
     def plane_offset_factor(self) -> float:
         """Refined over current plane offset."""
         return float(np.exp(self.log_plane_offset))
+
+    def refined_plane(self, normal_in_cam: F64, d_m: float) -> tuple[F64, float]:
+        """The refined plane ``(n, d)`` of the current one (unit normal, ``n . p + d = 0``)."""
+        n = np.asarray(normal_in_cam, float) + self.tilt_rad @ self.tilt_axes
+        return n / np.linalg.norm(n), float(d_m * self.plane_offset_factor)
 
 
 def _normalised(p_cam: F64) -> F64:
@@ -67,8 +81,8 @@ def keyframe_discrepancies(
     every: int = 4,
     min_landmarks: int = 5,
     max_fit_rel: float = 0.003,
-) -> F64:
-    """``log(z_stripe / z_stereo)`` at the stripe points of one keyframe (camera frame, metres).
+) -> tuple[F64, F64]:
+    """``log(z_stripe / z_stereo)`` at the stripe points of one keyframe (camera frame, metres), and those points.
 
     At every ``every``-th stripe point, the landmarks within ``radius_px`` in the (normalised,
     times ``fx_px``) image give an affine fit of inverse depth; a fit with fewer than
@@ -79,12 +93,13 @@ def keyframe_discrepancies(
     S = S[S[:, 2] > 1e-3]
     L = L[L[:, 2] > 1e-3]
     if S.shape[0] == 0 or L.shape[0] < min_landmarks:
-        return np.zeros(0)
+        return np.zeros(0), np.zeros((0, 3))
     s_xy, l_xy = _normalised(S), _normalised(L)
     l_inv = 1.0 / L[:, 2]
     r = radius_px / fx_px
     d2 = np.sum((s_xy[:, None, :] - l_xy[None, :, :]) ** 2, axis=2)
     out = []
+    used = []
     for i in range(S.shape[0]):
         near = np.flatnonzero(d2[i] < r * r)
         if near.size < min_landmarks:
@@ -95,7 +110,8 @@ def keyframe_discrepancies(
         if np.sqrt(np.mean((fit - l_inv[near]) ** 2)) > max_fit_rel * abs(coef[2]) or coef[2] <= 0:
             continue
         out.append(np.log(S[i, 2] * coef[2]))  # z_stripe / z_stereo = z_stripe * (1 / z_stereo)
-    return np.asarray(out, float)
+        used.append(S[i])
+    return np.asarray(out, float), np.asarray(used, float).reshape(-1, 3)
 
 
 def laser_stereo_scale(
@@ -108,6 +124,9 @@ def laser_stereo_scale(
     calibration: StereoCalibration,
     sigma_log_baseline: float,
     sigma_log_plane_offset: float,
+    plane_normal_in_cam: F64,
+    plane_d_m: float,
+    sigma_tilt_rad: float,
     radius_px: float = 25.0,
 ) -> LaserStereoScale | None:
     """The joint estimate of the module docstring; None when no keyframe has a stripe on seen surfaces.
@@ -118,8 +137,13 @@ def laser_stereo_scale(
     by_stamp = {s.timestamp_ns: s for s in stripes}
     pos = {int(i): k for k, i in enumerate(np.asarray(landmark_ids).tolist())}
     pts = np.asarray(landmarks_in_world, float).reshape(-1, 3)
+    n = np.asarray(plane_normal_in_cam, float) / np.linalg.norm(plane_normal_in_cam)
+    e1 = np.cross(n, [0.0, 1.0, 0.0] if abs(n[1]) < 0.9 else [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
     per_kf: list[float] = []
-    pairs = 0
+    rows: list[F64] = []
+    vals: list[F64] = []
     for kf, stamp in keyframe_stamps_ns.items():
         stripe = by_stamp.get(stamp)
         if stripe is None or kf not in world_from_kf or stripe.points_in_cam.shape[0] < 3:
@@ -129,26 +153,35 @@ def laser_stereo_scale(
             continue
         kf_from_world = invert_pose(world_from_kf[kf])
         L = pts[idx] @ kf_from_world[:3, :3].T + kf_from_world[:3, 3]
-        d = keyframe_discrepancies(stripe.points_in_cam, L, calibration.fx_px, radius_px)
+        d, P = keyframe_discrepancies(stripe.points_in_cam, L, calibration.fx_px, radius_px)
         if d.size >= 3:
             per_kf.append(float(np.median(d)))
-            pairs += int(d.size)
+            vals.append(d)
+            tilt = -np.column_stack([P @ e1, P @ e2]) / plane_d_m
+            rows.append(np.column_stack([np.ones(d.size), -np.ones(d.size), tilt]))
     if len(per_kf) < 3:
         return None
     v = np.asarray(per_kf)
     m = float(np.median(v))
-    # robust standard error of the median of the keyframes' medians
     sm = max(1.4826 * float(np.median(np.abs(v - m))) * 1.2533 / np.sqrt(v.size), 1e-6)
-    A = np.array(
-        [
-            [1 / sigma_log_baseline**2 + 1 / sm**2, -1 / sm**2],
-            [-1 / sm**2, 1 / sigma_log_plane_offset**2 + 1 / sm**2],
-        ]
-    )
-    rhs = np.array([m / sm**2, -m / sm**2])
-    cov = np.linalg.inv(A)
-    x = cov @ rhs
+    A = np.vstack(rows)
+    y = np.concatenate(vals)
+    per_kf_pairs = A.shape[0] / len(rows)
+    prior_sd = np.array([sigma_log_baseline, sigma_log_plane_offset, sigma_tilt_rad, sigma_tilt_rad])
+    prior_info = np.diag(1.0 / prior_sd**2)
+    x = np.zeros(4)
+    w = np.ones(y.size)
+    sigma = 1.4826 * float(np.median(np.abs(y - np.median(y)))) + 1e-9
+    for _ in range(5):  # Huber re-weighting, the pair noise from the residuals' MAD
+        scale = 1.0 / (sigma**2 * per_kf_pairs)  # a keyframe's pairs count as one
+        H = prior_info + scale * (A.T * w) @ A
+        x = np.linalg.solve(H, scale * (A.T * w) @ y)
+        r = y - A @ x
+        sigma = max(1.4826 * float(np.median(np.abs(r))), 1e-6)
+        w = np.minimum(1.0, 1.345 * sigma / np.maximum(np.abs(r), 1e-12))
+    cov = np.linalg.inv(H)
     s = np.sqrt(np.diag(cov))
     return LaserStereoScale(
-        float(x[0]), float(x[1]), float(s[0]), float(s[1]), float(cov[0, 1] / (s[0] * s[1])), m, sm, pairs, v.size
+        float(x[0]), float(x[1]), float(s[0]), float(s[1]), float(cov[0, 1] / (s[0] * s[1])), m, sm,
+        int(y.size), int(v.size), x[2:].copy(), s[2:].copy(), np.vstack([e1, e2]),
     )

@@ -62,6 +62,7 @@ class SelfCalibration:
     plane_d_recorded_m: float
     sigma_plane_offset_m: float
     laser: LaserStereoScale | None = None
+    sigma_plane_tilt_rad: float = 0.0
     seconds: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -107,6 +108,19 @@ class SelfCalibration:
             "estimated": self.laser is not None,
             "observable": self.laser is not None and sd < 0.9 * self.sigma_plane_offset_m,
         }
+        if self.laser is not None:
+            prior_tilt = float(np.degrees(self.sigma_plane_tilt_rad))
+            for i in (0, 1):
+                t, st = float(np.degrees(self.laser.tilt_rad[i])), float(np.degrees(self.laser.sigma_tilt_rad[i]))
+                out[f"plane_tilt_{i + 1}_deg"] = {
+                    "recorded": 0.0,
+                    "refined": t,
+                    "sigma_prior": prior_tilt,
+                    "sigma": st,
+                    "moved_sigma": t / prior_tilt,
+                    "estimated": True,
+                    "observable": st < 0.9 * prior_tilt,
+                }
         return out
 
     def report(self) -> dict[str, Any]:
@@ -144,6 +158,8 @@ class SelfCalibration:
             m["calibration_laser_keyframes"] = self.laser.keyframes
             m["calibration_laser_discrepancy_pct"] = 100.0 * self.laser.discrepancy_log
             m["calibration_laser_discrepancy_sigma_pct"] = 100.0 * self.laser.discrepancy_sigma
+            m["calibration_plane_tilt_deg"] = [float(v) for v in np.degrees(self.laser.tilt_rad)]
+            m["calibration_plane_tilt_sigma_deg"] = [float(v) for v in np.degrees(self.laser.sigma_tilt_rad)]
         m.update(self.extra)
         return m
 
@@ -277,6 +293,7 @@ def apply_laser_scale(
     sc: SelfCalibration,
     keyframes: list[Keyframe],
     stripes: list[StripeProfile],
+    sigma_plane_tilt_deg: float,
 ) -> list[StripeProfile]:
     """The laser-stereo estimate applied to ``sc`` and the stripes.
 
@@ -297,11 +314,15 @@ def apply_laser_scale(
         cal,
         sc.rig.prior_sigma[-1] / b,
         sc.sigma_plane_offset_m / max(abs(sc.plane_d_m), 1e-9),
+        sc.plane_normal_in_cam,
+        sc.plane_d_m,
+        np.radians(sigma_plane_tilt_deg),
     )
     if laser is None:
         logger.info("laser-stereo consistency: no stripe on surfaces the landmarks see")
         return stripes
     sc.laser = laser
+    sc.sigma_plane_tilt_rad = float(np.radians(sigma_plane_tilt_deg))
     s_b, s_d = laser.baseline_factor, laser.plane_offset_factor
     T = cal.right_from_left.copy()
     T[:3, 3] *= s_b
@@ -313,9 +334,15 @@ def apply_laser_scale(
         Q[:3, 3] *= s_b
         sc.world_from_kf[k] = Q
     sc.landmarks_in_world = sc.landmarks_in_world * s_b
-    sc.plane_d_m *= s_d
+    n_new, d_new = laser.refined_plane(sc.plane_normal_in_cam, sc.plane_d_m)
+    sc.plane_normal_in_cam, sc.plane_d_m = n_new, d_new
     logger.info(
-        "laser-stereo consistency: stripe/stereo depth %+.3f %% (%d keyframes); baseline x%.5f, plane offset x%.5f",
-        100 * laser.discrepancy_log, laser.keyframes, s_b, s_d,
+        "laser-stereo consistency: stripe/stereo depth %+.3f %% (%d keyframes); baseline x%.5f, plane offset x%.5f,"
+        " tilt %s deg",
+        100 * laser.discrepancy_log, laser.keyframes, s_b, s_d, np.round(np.degrees(laser.tilt_rad), 4),
     )
-    return [StripeProfile(s.timestamp_ns, s.points_in_cam * s_d) for s in stripes]
+    out = []
+    for s in stripes:  # each stripe point's ray met with the refined plane
+        p = s.points_in_cam
+        out.append(StripeProfile(s.timestamp_ns, p * (-d_new / (p @ n_new))[:, None]))
+    return out
