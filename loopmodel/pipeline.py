@@ -360,12 +360,21 @@ class _Run:
             try:
                 if c.kf_a_mono_obs is not None:  # a loop found after its keyframe reached the back end
                     self.backend.add_observations(c.kf_a, c.kf_a_mono_obs)
+                    self._selfcal_observations(c.kf_a, c.kf_a_mono_obs)
                 ids.append(int(self.backend.add_loop_constraint(c.kf_a, c.kf_b, c.a_from_b)))
                 self.loop_constraints.append(c)
             except LoopmodelError as exc:  # e.g. a back end without relative-pose factors
                 logger.info("loop %d -> %d: no loop constraint (%s)", c.kf_a, c.kf_b, exc)
                 ids.append(None)
         return tuple(ids)
+
+    def _selfcal_observations(self, kf_id: int, mono_obs: F64) -> None:
+        """A late loop's observations of old landmarks join the keyframe kept for the self-calibration."""
+        kf = self.selfcal_keyframes.get(kf_id)
+        if kf is not None:
+            old = np.asarray(kf.mono_obs, float).reshape(-1, 3)
+            rows = np.vstack([old, np.asarray(mono_obs, float).reshape(-1, 3)])
+            self.selfcal_keyframes[kf_id] = dataclasses.replace(kf, mono_obs=rows)
 
     def _correct(self, world_from_kf: Mapping[int, F64]) -> None:
         """The one way corrections flow back: to the tracker and to the anchored frames."""
@@ -406,7 +415,7 @@ class _Run:
         """
         if self.config.calibration.refine == "none" or estimate is None or interrupted or self.localizer is not None:
             return estimate, None, None
-        from loopmodel.calibration.selfcal import apply_laser_scale, refine_final
+        from loopmodel.calibration.selfcal import apply_laser_scale, close_loops, refine_final
         from loopmodel.mapping.extraction import LightPlane
 
         plane = LightPlane.from_config(self.config.mapping)
@@ -415,10 +424,18 @@ class _Run:
             sc = refine_final(
                 kfs, estimate.world_from_kf, estimate.landmark_ids, estimate.landmarks_in_world,
                 self.sequence.calibration, self.config.calibration, plane.normal_in_cam, plane.d_m,
+                [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints],
+                np.array([self.config.backend.loop_sigma_rad] * 3 + [self.config.backend.loop_sigma_m] * 3),
             )
         except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:
             logger.warning("self-calibration not done: %s", exc)
             return estimate, None, None
+        if self.config.calibration.close_loops:  # as the back end's final estimate
+            r, b = self.config.refine, self.config.backend
+            close_loops(
+                sc, kfs, [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints],
+                r.loop_odometry_sigma_deg, r.loop_odometry_sigma_m, float(np.degrees(b.loop_sigma_rad)), b.loop_sigma_m,
+            )
         stripes = run_stripes(self.sequence, last_ns, self.config.mapping, sc.calibration)
         stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
         self.anchored.update_keyframes(sc.world_from_kf)

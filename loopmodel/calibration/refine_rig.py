@@ -32,7 +32,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from loopmodel.errors import CalibrationError
-from loopmodel.geometry.se3 import so3_exp
+from loopmodel.geometry.se3 import so3_exp, so3_log
 from loopmodel.types import Keyframe, StereoCalibration
 
 logger = logging.getLogger(__name__)
@@ -218,6 +218,10 @@ class RigObservations:
     cam: I64
     uv_px: F64
     measure: F64
+    # relative-pose (loop) constraints between keyframes: (pose index a, pose index b, a_from_b 4x4),
+    # standard deviations (rad x3, m x3)
+    loops: list[tuple[int, int, F64]] = field(default_factory=list)
+    loop_sigmas: F64 = field(default_factory=lambda: np.array([0.01] * 3 + [0.01] * 3))
 
     def __len__(self) -> int:
         return int(self.pose_idx.size)
@@ -389,6 +393,47 @@ def residuals_and_jacobians(
     return res, J_pose, J_pt, J_th
 
 
+def _loop_residual(Ra: F64, ta: F64, Rb: F64, tb: F64, a_from_b: F64) -> F64:
+    """``(log R, t)`` of ``a_from_b^-1 a_from_world b`` (rad, m): zero when the poses agree with the loop."""
+    R = a_from_b[:3, :3].T @ Ra.T @ Rb
+    t = a_from_b[:3, :3].T @ (Ra.T @ (tb - ta) - a_from_b[:3, 3])
+    return np.concatenate([so3_log(R), t])
+
+
+def loop_terms(st_R: F64, st_t: F64, obs: RigObservations) -> tuple[F64, F64, float]:
+    """The loop constraints' whitened normal-equation block over all poses (6P x 6P), gradient, cost.
+
+    Jacobians by central differences of the pose increments (a few loops: cheap and exact enough).
+    """
+    n = st_R.shape[0]
+    H = np.zeros((6 * n, 6 * n))
+    g = np.zeros(6 * n)
+    cost = 0.0
+    w = 1.0 / np.asarray(obs.loop_sigmas, float)
+    h = 1e-7
+    for a, b, T in obs.loops:
+        e = _loop_residual(st_R[a], st_t[a], st_R[b], st_t[b], T) * w
+        J = np.zeros((6, 12))
+        for k in range(12):
+            which, j = divmod(k, 6)
+            Rs = [st_R[a].copy(), st_R[b].copy()]
+            ts = [st_t[a].copy(), st_t[b].copy()]
+            res = []
+            for sgn in (1.0, -1.0):
+                d = np.zeros(6)
+                d[j] = sgn * h
+                R2, t2 = list(Rs), list(ts)
+                t2[which] = ts[which] + Rs[which] @ d[3:]
+                R2[which] = Rs[which] @ so3_exp(d[:3])
+                res.append(_loop_residual(R2[0], t2[0], R2[1], t2[1], T) * w)
+            J[:, k] = (res[0] - res[1]) / (2 * h)
+        idx = np.r_[6 * a : 6 * a + 6, 6 * b : 6 * b + 6]
+        H[np.ix_(idx, idx)] += J.T @ J
+        g[idx] += J.T @ e
+        cost += float(e @ e)
+    return H, g, cost
+
+
 def hat_batch(v: F64) -> F64:
     """Skew matrices (N x 3 x 3) of N x 3 vectors."""
     out = np.zeros((v.shape[0], 3, 3))
@@ -520,13 +565,19 @@ def _normal_equations(
     dth = (st.theta - prior_theta)[active]
     H[npz:, npz:] += np.diag(1.0 / ps**2)
     b[npz:] -= dth / ps**2
+    if obs.loops and npz:
+        HL, gL, cL = loop_terms(st.R, st.t, obs)
+        H[:npz, :npz] += HL[6:, 6:]  # the first pose is fixed
+        b[:npz] -= gL[6:]
+    else:
+        cL = 0.0
     Hpl = (Jp_sp.T @ Jl_sp).tocsr() if npz else sp.csr_matrix((0, 3 * n_pt))
     Hzl = (Hpl, np.asarray((Jl_sp.T @ Jt2).T))
     V = np.zeros((n_pt, 3, 3))
     np.add.at(V, obs.point_idx, np.einsum("nki,nkj->nij", Jl, Jl))
     bl = np.zeros((n_pt, 3))
     np.add.at(bl, obs.point_idx, -np.einsum("nki,nk->ni", Jl, rw))
-    cost = _huber_cost(rn, huber_k) + float(np.sum((dth / ps) ** 2))
+    cost = _huber_cost(rn, huber_k) + float(np.sum((dth / ps) ** 2)) + cL
     return H, b, Hzl, V, bl.ravel(), r, cost, rn
 
 

@@ -199,8 +199,15 @@ def refine_final(
     config: SelfCalibrationConfig,
     plane_normal_in_cam: F64,
     plane_d_m: float,
+    loops: list[tuple[int, int, F64]] | None = None,
+    loop_sigmas: F64 | None = None,
 ) -> SelfCalibration:
     """The calibrating bundle adjustment over the run's keyframes; see the module docstring.
+
+    ``loops``: the run's loop constraints ``(kf_a, kf_b, kf_a_from_kf_b)`` with ``loop_sigmas``
+    (rad x3, m x3), as the back end holds them (without them a loop held only by its landmark
+    observations opens: on the realistic orbit, seed 1, end-point drift 0.03 -> 1.3 % with the
+    calibration held).
 
     ``calibration`` is the recorded (input) calibration; ``world_from_kf`` and the landmarks the back
     end's final estimate (landmarks it does not hold start from their keyframe's triangulation).
@@ -226,6 +233,10 @@ def refine_final(
     sel = keep_pt[obs.point_idx]
     obs.pose_idx, obs.cam, obs.uv_px, obs.measure = obs.pose_idx[sel], obs.cam[sel], obs.uv_px[sel], obs.measure[sel]
     obs.point_idx = new_index[obs.point_idx[sel]]
+    index = {k: i for i, k in enumerate(kf_ids)}
+    obs.loops = [(index[a], index[b], np.asarray(T, float)) for a, b, T in (loops or []) if a in index and b in index]
+    if loop_sigmas is not None:
+        obs.loop_sigmas = np.asarray(loop_sigmas, float)
     lm_ids = lm_ids[keep_pt]
     # start values: the back end's landmarks, else the first keyframe's stereo triangulation
     start = {int(i): p for i, p in zip(np.asarray(landmark_ids).tolist(), np.asarray(landmarks_in_world), strict=True)}
@@ -346,3 +357,39 @@ def apply_laser_scale(
         p = s.points_in_cam
         out.append(StripeProfile(s.timestamp_ns, p * (-d_new / (p @ n_new))[:, None]))
     return out
+
+
+def close_loops(
+    sc: SelfCalibration,
+    keyframes: list[Keyframe],
+    loops: list[tuple[int, int, F64]],
+    odometry_sigma_deg: float,
+    odometry_sigma_m: float,
+    loop_sigma_deg: float,
+    loop_sigma_m: float,
+) -> None:
+    """Each loop's remaining discrepancy spread along its keyframe cycle, as the back end's final estimate does.
+
+    :func:`loopmodel.backend.loop_distribution.distribute_loop_errors` on the refined poses (links:
+    consecutive connected keyframes); each landmark moves with the first keyframe that observed it.
+    """
+    from loopmodel.backend.loop_distribution import distribute_loop_errors
+
+    if not loops:
+        return
+    links = [(int(k.prev_keyframe_id), int(k.id)) for k in keyframes if k.connected and k.prev_keyframe_id is not None]
+    moved = distribute_loop_errors(
+        sc.world_from_kf, links, loops, odometry_sigma_deg, odometry_sigma_m, loop_sigma_deg, loop_sigma_m
+    )
+    fix = {k: moved[k] @ invert_pose(sc.world_from_kf[k]) for k in moved}
+    first: dict[int, int] = {}
+    for kf in keyframes:
+        for i in np.asarray(kf.landmark_ids, np.int64).tolist():
+            first.setdefault(int(i), int(kf.id))
+    pts = sc.landmarks_in_world.copy()
+    for j, lid in enumerate(sc.landmark_ids.tolist()):
+        F = fix.get(first.get(int(lid), -1))
+        if F is not None:
+            pts[j] = F[:3, :3] @ pts[j] + F[:3, 3]
+    sc.world_from_kf = dict(moved)
+    sc.landmarks_in_world = pts
