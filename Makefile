@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SHARED ?= ../shared
 
-.PHONY: demo test test-fast setup syslibs lint bench clean
+.PHONY: demo test test-fast setup syslibs viewer-libs lint bench clean
 
 setup: syslibs $(STAMP)
 
@@ -23,6 +23,18 @@ syslibs:
 	  fi; \
 	fi
 
+# Headless rerun screenshots (tools/screenshot_rerun.sh, tests/test_viz.py): a virtual X server
+# and Mesa's CPU Vulkan driver. Optional: the test is skipped without them.
+viewer-libs:
+	@if ! command -v xvfb-run >/dev/null || ! ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1; then \
+	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	    (apt-get install -y -q xvfb mesa-vulkan-drivers >/dev/null 2>&1 || \
+	     (apt-get update -q >/dev/null && apt-get install -y -q xvfb mesa-vulkan-drivers >/dev/null)); \
+	  else \
+	    echo "note: headless rerun screenshots need: sudo apt-get install xvfb mesa-vulkan-drivers"; \
+	  fi; \
+	fi
+
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
@@ -32,7 +44,7 @@ $(STAMP): pyproject.toml
 demo: setup
 	@bash tools/demo.sh
 
-test: setup
+test: setup viewer-libs
 	$(PY) -m pytest -q -x --durations=15
 
 # Development tier: everything not marked slow (CI still runs the whole suite).

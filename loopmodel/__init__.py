@@ -6,8 +6,13 @@ The Python API (imported on first use, so ``import loopmodel`` stays light)::
     result = loopmodel.run("datasets/tiny_kitti")          # writes nothing
     result.final.positions_m, result.metrics["ate_rmse_m"]
 
-``run(source, config=None, out_dir=None) -> RunResult``, ``open_sequence(path, config=None)``,
+``run(source, config=None, out_dir=None) -> RunResult`` (graded against the sequence's ground truth
+unless ``evaluate=False``), ``process(sequence, config) -> RunResult`` (the run alone: writes and
+grades nothing), ``evaluate(result, sequence) -> Evaluation``, ``open_sequence(path, config=None)``,
 ``load_config(path=None) -> Config``.
+
+Trajectory files (TUM, KITTI, EuRoC; as evo's ``file_interface``): ``read_trajectory(path)``,
+``write_trajectory(path, result.final)``.
 """
 
 from __future__ import annotations
@@ -20,8 +25,9 @@ from loopmodel._version import __version__
 
 if TYPE_CHECKING:
     from loopmodel.config import Config, load_config
+    from loopmodel.eval.of_run import Evaluation, evaluate
     from loopmodel.io.sequence import open_sequence
-    from loopmodel.pipeline import run
+    from loopmodel.pipeline import process, run
     from loopmodel.result import RunResult
     from loopmodel.types import Keyframe, StereoCalibration, StereoFrame, StripeProfile, Trajectory
 
@@ -29,6 +35,9 @@ logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 _LAZY = {
     "run": "loopmodel.pipeline",
+    "process": "loopmodel.pipeline",
+    "evaluate": "loopmodel.eval.of_run",
+    "Evaluation": "loopmodel.eval.of_run",
     "RunResult": "loopmodel.result",
     "open_sequence": "loopmodel.io.sequence",
     "load_config": "loopmodel.config",
@@ -38,10 +47,13 @@ _LAZY = {
     "StereoFrame": "loopmodel.types",
     "StripeProfile": "loopmodel.types",
     "Trajectory": "loopmodel.types",
+    "read_trajectory": "loopmodel.io.trajectory_io",
+    "write_trajectory": "loopmodel.io.trajectory_io",
 }
 
 __all__ = [
     "Config",
+    "Evaluation",
     "Keyframe",
     "RunResult",
     "StereoCalibration",
@@ -49,9 +61,13 @@ __all__ = [
     "StripeProfile",
     "Trajectory",
     "__version__",
+    "evaluate",
     "load_config",
     "open_sequence",
+    "process",
     "run",
+    "read_trajectory",
+    "write_trajectory",
 ]
 
 

@@ -6,7 +6,7 @@ Every run writes the effective configuration into its results folder.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
@@ -73,11 +73,15 @@ class BackendConfig(_Section):
     )
     prior_sigma_rad: float = Field(1e-6, gt=0, description="gauge prior, first keyframe")
     prior_sigma_m: float = Field(1e-6, gt=0, description="gauge prior, first keyframe")
+    # the gauge of a new segment (issue 34): 10 m / 1 rad left the island of `simulate scan --preset
+    # orbit --realism clean` (2 keyframes, 21 landmarks) indeterminate to GTSAM's Cholesky (stopped
+    # at frame 18); 0.1 m / 0.1 rad: no rebuild, final ATE 1.88 mm; KITTI clip and the sweeps
+    # preset unchanged (CHANGELOG); a loop (0.01 m / 0.01 rad) still outweighs it 100 times
     segment_prior_sigma_rad: float = Field(
-        1.0, gt=0, description="prior on a keyframe not linked to the previous one"
+        0.1, gt=0, description="prior on a keyframe not linked to the previous one"
     )
     segment_prior_sigma_m: float = Field(
-        10.0, gt=0, description="prior on a keyframe not linked to the previous one"
+        0.1, gt=0, description="prior on a keyframe not linked to the previous one"
     )
     loop_sigma_rad: float = Field(0.01, gt=0, description="default loop-constraint sigma")
     loop_sigma_m: float = Field(0.01, gt=0, description="default loop-constraint sigma")
@@ -112,6 +116,10 @@ class BackendConfig(_Section):
     )
     change_tolerance_m: float = Field(
         1e-4, ge=0, description="estimate(): a keyframe counts as changed above this"
+    )
+    # issue 33: where the back end runs; process: beside the tracker, which never waits for it
+    worker: Literal["process", "thread", "inline"] = Field(
+        "process", description="process (beside the tracker), thread, or inline (the tracker waits)"
     )
 
 
@@ -213,13 +221,67 @@ class FrontendConfig(_Section):
     keyframe_parallax: Literal["translation", "angle"] = Field(
         "translation", description="parallax test of the keyframe policy"
     )
+    # local-map tracking (issue 36, item 2): the points of this many earlier keyframes' sets stay
+    # tracked (KLT from frame to frame, started at their projection with the predicted pose) and
+    # in each frame's robust pose, carried through the keyframe poses, with the depths the local BA
+    # refined and their own depth weights; each new keyframe observes them (the back end's
+    # landmarks then span up to that many more keyframes), measured again against their own
+    # keyframe's patch with local_map_remeasure (without it the KLT-chained positions bent the
+    # rotation: KITTI clip rotation error after the ground truth's constant-rate segment 0.178 ->
+    # 0.233 deg). Measured, full pipeline, peer.py eval of trajectory_final, 0 -> 4 with remeasure:
+    # KITTI clip (configs/kitti.yaml) rotation error after the segment 0.178 -> 0.144 deg, Sim(3)
+    # ATE 20.7 -> 17.5 mm, SE(3) ATE 0.102 -> 0.105 m, drift 1.02 -> 1.05 % (0.754 -> 0.755 % after
+    # the segment); realistic modeler scan (first 400 frames) drift 0.27 -> 0.11 %, rotation error
+    # 1.20 -> 0.55 deg, SE(3) ATE 3.2 -> 2.7 mm; realistic orbit sample (first 300 frames) rotation
+    # error 1.81 -> 1.54 deg, drift 0.85 -> 0.88 %, SE(3) ATE 2.8 -> 3.4 mm. 8 keyframes: about the
+    # same (KITTI 0.143 deg, modeler 0.51 deg, orbit identical). The cost: KITTI CPU per frame
+    # +20 % in alternated full runs (35.6/40.8/36.3 -> 42.8/50.0 ms), front end alone 16.3 -> 22.6
+    # ms; `bench peer` has the ratios to ORB-SLAM3 (issue 36: they miss the 0.5x target). 0: off.
+    local_map_keyframes: int = Field(4, ge=0, le=100, description="earlier keyframes whose points the pose keeps using")
+    local_map_remeasure: bool = Field(
+        True, description="measure the local map's points in a new keyframe against their own keyframe's patch"
+    )
+    # a wider local BA (issue 36, item 4): the hybrid BA closing a keyframe set also takes the
+    # points of this many local-map sets seen in the new keyframe, with their stereo observations
+    # in their own (fixed) keyframes. 0: the two-keyframe BA of seed 004.
+    local_ba_keyframes: int = Field(0, ge=0, le=100, description="local-map sets added to the keyframe BA")
+    # robust stereo matching (issue 36, items 1 and 3; frontend/stereo.py, frontend/tracker.py).
+    # Measured, front end alone, these five defaults against all off (SE(3) / Sim(3) ATE): KITTI
+    # clip (configs/kitti.yaml) 0.100 / 0.021 -> 0.036 / 0.023 m, Sim(3) scale 0.9945 -> 0.9984 (a
+    # disparity offset of about 0.07 px estimated), rotation error after the ground truth's
+    # constant-rate segment 0.166 -> 0.280 deg (worse); simulated street scans of sim/street.py
+    # (configs/kitti.yaml): near street 0.034 / 0.017 -> 0.070 / 0.019 m (worse; Sim(3) scale
+    # 0.998 -> 0.996, offset estimated -0.015 px where it is 0), open highway 0.167 / 0.154 ->
+    # 0.150 / 0.082 m, the view opening 0.083 / 0.083 -> 0.081 / 0.072 m, the same with a 0.5 px
+    # right-camera principal-point error
+    # 2.72 / 0.58 -> 0.055 / 0.037 m (per-step scale growth 1.061 -> 0.998); realistic orbit sample,
+    # 600 frames (configs/sim.yaml): SE(3) ATE 13.0 -> 4.3 mm, drift 0.94 -> 0.34 %, rotation error
+    # 3.54 -> 1.24 deg (offset 0.40 px estimated: its recorded calibration is off); a realistic
+    # 150-frame scan (onepass's scan150): SE(3) ATE 11.7 -> 6.7 mm, drift 0.88 -> 0.57 %, rotation
+    # error 3.37 -> 2.15 deg
+    stereo_subpixel: Literal["parabola", "gradient"] = Field(
+        "gradient", description="sub-pixel disparity: parabola through 3 ZNCC scores, or 1-D Lucas-Kanade"
+    )
+    stereo_uniqueness: float = Field(
+        0.05, ge=0, le=2, description="ZNCC margin of the best over the second-best peak along the row; 0: off"
+    )
+    disparity_sigma_source: Literal["constant", "match"] = Field(
+        "match", description="disparity std in the pose weights and the local BA: disparity_sigma_px, or per match"
+    )
+    moving_gate: float = Field(
+        3.0, ge=0, description="drop a track whose running mean residual exceeds this x the frame's scale; 0: off"
+    )
+    moving_radius_px: float = Field(12.0, gt=0, description="a new keyframe takes no point this near a moving track")
+    disparity_offset: Literal["none", "estimate"] = Field(
+        "estimate", description="estimate a constant disparity offset in the local BA and correct new matches by it"
+    )
 
 
 class MappingConfig(_Section):
     """Laser-stripe integration and open3d meshing (lengths in metres, world frame)."""
 
     method: Literal["poisson", "ball_pivoting"] = Field(default="poisson", description="surface method")
-    write_mesh: bool = Field(True, description="the pipeline writes mesh.ply (and mesh errors when truth exists)")
+    write_mesh: bool = Field(True, description="the pipeline writes mesh.ply (its errors: the evaluation after a run)")
     voxel_m: float = Field(default=0.0015, gt=0, description="voxel down-sampling size before meshing")
     normal_radius_m: float = Field(default=0.006, gt=0, description="neighbourhood radius for normals")
     normal_max_nn: int = Field(default=20, ge=3, description="max neighbours for normals")
@@ -470,7 +532,7 @@ class SimulationConfig(_Section):
 
 
 class EvalConfig(_Section):
-    """Trajectory evaluation (``loopmodel eval``)."""
+    """Evaluation against ground truth (``loopmodel eval``, and after ``loopmodel run``)."""
 
     align: AlignMode = Field(default="se3", description="alignment to ground truth")
     first_n: int | None = Field(default=None, ge=3, description="align on the first N poses only")
@@ -483,6 +545,17 @@ class EvalConfig(_Section):
         default_factory=lambda: [100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0]
     )
     plots: bool = True
+    # onepass (issue 32): the evaluation after a run measures the run's final mesh; the two reference
+    # meshes (stripes placed with the ground-truth and with the online poses) cost two more Poisson
+    # reconstructions, so only when asked
+    mesh_references: bool = Field(
+        default=False,
+        description="also mesh the stripes with the ground-truth and online poses (mesh_err_gt_mm, mesh_err_before_mm)",
+    )
+    # issue 35: evo's --plot_mode; auto: xz for camera-frame ground truth (KITTI), xy for z-up worlds
+    plot_mode: Literal["auto", "xy", "xz", "yz", "xyz"] = Field(
+        default="auto", description="plane of the path plots: auto, xy, xz, yz or xyz (3-D)"
+    )
 
 
 class SurfConfig(_Section):
@@ -545,6 +618,23 @@ class LoopConfig(_Section):
     min_epipolar_inliers: int = Field(40, ge=8, le=100000, description="monocular verification")
     max_cycle_rot_deg: float = Field(2.0, gt=0, description="forward/reverse pose agreement")
     max_cycle_trans_m: float = Field(0.05, gt=0)
+    # onepass (issue 32): the knobs the parameter classes (PlaceParams, RelocParams, LoopParams) had
+    # as their own defaults, now read from here; values unchanged
+    relative_score: float = Field(0.5, ge=0, le=1, description="place candidates: score share of the best")
+    island_gap: int = Field(2, ge=0, le=1000, description="keyframe gap that splits candidate islands")
+    consistency_tol: int = Field(3, ge=0, le=1000, description="keyframe tolerance of consistent queries")
+    max_islands: int = Field(4, ge=1, le=1000, description="candidate islands verified per query")
+    retrain_growth: float = Field(1.5, gt=1, description="on-the-fly vocabulary retrained when keyframes grow so")
+    max_train_keyframes: int = Field(400, ge=2, description="keyframes sampled to train a vocabulary on the fly")
+    max_train_descriptors: int = Field(60000, ge=100, description="descriptors to train a vocabulary on the fly")
+    confidence: float = Field(0.999, gt=0, lt=1, description="RANSAC confidence of relocalization")
+    min_inlier_spread_frac: float = Field(
+        0.03, ge=0, le=1, description="inliers' smaller principal spread, fraction of the image width"
+    )
+    epipolar_threshold_px: float = Field(2.0, gt=0, description="monocular verification: epipolar bound")
+    min_epipolar_inlier_ratio: float = Field(0.3, gt=0, le=1, description="monocular verification")
+    min_epipolar_spread_frac: float = Field(0.05, ge=0, le=1, description="monocular verification: inlier spread")
+    max_members_verified: int = Field(3, ge=1, le=1000, description="keyframes of an island verified")
     # robust gate on verified loops (loopmodel.backend.robust_posegraph): a keyframe pose
     # graph of odometry (known inliers) and loops solved by GNC-TLS; a loop it rejects is
     # never applied. Sigmas per keyframe step / per loop constraint: the loop sigmas are of
@@ -812,11 +902,36 @@ def apply_overrides(
         raise ConfigError(names.get(key, key), f"{err['msg']}, got {value!r}") from None
 
 
-def load_config(path: str | Path | None = None) -> Config:
-    """Defaults overridden by the YAML file at ``path`` (when given)."""
+def load_config(path: str | Path | Sequence[str | Path] | None = None) -> Config:
+    """Defaults overridden by the YAML file at ``path`` (when given).
+
+    A list of files is layered in order: each overrides the ones before it (``-c a.yaml -c b.yaml``).
+    """
     if path is None:
         return Config()
+    if not isinstance(path, str | Path):
+        files = list(path)
+        if not files:
+            return Config()
+        merged: dict[str, Any] = {}
+        for f in files:
+            load_config(f)  # each file valid on its own: errors name it
+            merged = merge_nested(merged, _read_yaml_mapping(Path(f)))
+        return config_from_dict(merged, Path(files[-1]))
     p = Path(path)
+    return config_from_dict(_read_yaml_mapping(p), p)
+
+
+def merge_nested(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """``over`` on top of ``base``, mappings merged key by key (issue 35: layered config files)."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = merge_nested(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _read_yaml_mapping(p: Path) -> dict[str, Any]:
+    """The top-level mapping of a configuration file (errors name the file)."""
     if not p.is_file():
         raise ConfigError(p, "configuration file does not exist")
     try:
@@ -829,7 +944,7 @@ def load_config(path: str | Path | None = None) -> Config:
         raise ConfigError(p, f"cannot read the configuration: {exc.strerror}") from None
     if not isinstance(data, dict):
         raise ConfigError(p, "expected a mapping of sections at the top level")
-    return config_from_dict(data, p)
+    return data
 
 
 #: Top-level sections that configure other commands than the pipeline (``eval``, ``bound``,

@@ -37,3 +37,15 @@ class ConfigError(InputError):
 
 class EstimationError(LoopmodelError):
     """An estimator was used in a way that would corrupt its state."""
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """A run stopped by Ctrl-C or SIGTERM after writing its results into ``folder``.
+
+    ``note``: where they are when that is not the requested folder (kept beside an older run).
+    """
+
+    def __init__(self, folder: Path | None, note: str = "") -> None:
+        super().__init__(note or "interrupted")
+        self.folder = folder
+        self.note = note

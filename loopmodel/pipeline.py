@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import logging
 import signal
 import threading
@@ -37,24 +38,27 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from loopmodel.backend import Backend, BackendEstimate, create_backend
+from loopmodel.backend.worker import settle, start_backend
 from loopmodel.config import Config
-from loopmodel.errors import LoopmodelError
+from loopmodel.errors import LoopmodelError, RunInterrupted
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
 from loopmodel.frontend.metrics import frontend_metrics, percentile_or_none
 from loopmodel.io.base import Sequence
 from loopmodel.io.results import LogCapture, ResultsFolder, write_results
 from loopmodel.listener import RunListener
 from loopmodel.mapping.anchored import AnchoredTrajectory
-from loopmodel.mapping.final import final_mesh, live_stripes, run_stripes
+from loopmodel.mapping.extraction import StripeExtractor
+from loopmodel.mapping.final import final_mesh
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
+from loopmodel.sessions import Resumed, map_session
 from loopmodel.stages import LoopConstraint, LoopStage, MapState, NullLoopStage
-from loopmodel.types import StereoCalibration, Trajectory
+from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripeProfile, Trajectory
 
 if TYPE_CHECKING:
-    from loopmodel.loop.localize import MapLocalizationStage
-    from loopmodel.loop.session_map import ResumePoint, SessionMap
+    from loopmodel.eval.of_run import Evaluation
+    from loopmodel.loop.session_map import KeyframeArchiver, ResumePoint, SessionMap
 
 logger = logging.getLogger(__name__)
 
@@ -62,11 +66,23 @@ logger = logging.getLogger(__name__)
 ProgressFn = Callable[[int, int, float], None]
 # progress(frames_done, frames_total, frames_per_second, keyframes)
 PipelineProgressFn = Callable[[int, int, float, int], None]
+# finishing(step, seconds): a finishing step starts (seconds None) or is done (its wall time);
+# steps in order: FINISH_STEPS
+FinishFn = Callable[[str, float | None], None]
+
+#: The steps after the last frame, in order (``metrics.json`` ``finish_s`` keys): the loop and mesh
+#: workers stopped (pending loop detections drained), the back end's final refinement, the final
+#: mesh, the session map (and a localization's or an extension's results), the evaluation against
+#: ground truth (by the callers of :func:`process`, when asked), the results files (not in
+#: ``metrics.json``, which is one of them).
+FINISH_STEPS = ("workers", "final_refinement", "mesh", "map", "evaluation", "write")
 
 #: The result of :func:`run_pipeline` (the name of earlier versions).
 RunOutput = RunResult
 
 __all__ = [
+    "FINISH_STEPS",
+    "FinishFn",
     "RunOutput",
     "RunResult",
     "StopFlag",
@@ -77,6 +93,7 @@ __all__ = [
     "run_frontend",
     "run_pipeline",
     "stop_on_signals",
+    "timed_step",
 ]
 
 F64 = np.ndarray
@@ -88,39 +105,6 @@ def _online_trajectory(frames: list[FrameResult]) -> Trajectory:
     if not ok:
         return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
     return Trajectory(np.array([f.timestamp_ns for f in ok]), np.stack([f.world_from_cam for f in ok]))
-
-
-def _ground_truth_errors(est: Trajectory, gt: Trajectory | None) -> dict[str, float]:
-    """ATE RMSE after SE(3) alignment and drift, computed by :mod:`loopmodel.eval`.
-
-    Drift: end-point error with the first poses aligned, percent of the ground-truth path.
-    """
-    if gt is None or len(est) < 3:
-        return {}
-    from loopmodel.eval.trajectory_metrics import EvalInputError, evaluate_pair
-
-    try:
-        ev = evaluate_pair(
-            gt.timestamps_ns,
-            gt.world_from_cam,
-            est.timestamps_ns,
-            est.world_from_cam,
-            max_dt_ns=1_000_000,
-        )
-    except EvalInputError as exc:
-        logger.warning("no ground-truth evaluation: %s", exc)
-        return {}
-    m = ev.metrics
-    end = m["end_point"]
-    ate = m["ate_m"]
-    assert isinstance(end, dict) and isinstance(ate, dict)
-    return {
-        "ate_rmse_m": float(ate["rmse"]),
-        "final_error_m": float(end["error_origin_aligned_m"]),
-        "path_length_m": float(m["path_length_m"]),  # type: ignore[arg-type]
-        "drift_pct": float(end["error_origin_aligned_pct"]),
-        "gt_frames": int(m["matched"]),  # type: ignore[call-overload]
-    }
 
 
 def _quantiles(values: list[float], prefix: str) -> dict[str, float | None]:
@@ -185,95 +169,102 @@ def _loop_stage(config: Config, calibration: StereoCalibration) -> LoopStage:
     return LoopClosingStage.from_config(config.loop, calibration)
 
 
-def _localizer(config: Config, calibration: StereoCalibration, base_map: SessionMap | None) -> MapLocalizationStage:
-    """The loop stage of a localization run: every keyframe relocalized in ``base_map``."""
-    from loopmodel.loop.localize import MapLocalizationStage
-
-    assert base_map is not None
-    s = config.session
-    return MapLocalizationStage(base_map, calibration, config.loop, s.max_correction_m, s.max_correction_deg)
-
-
-def localize_config(config: Config) -> Config:
-    """``config`` for localization in a map: the tracker's poses (no back end), no map of its own."""
-    out = config.model_copy(deep=True)
-    out.backend.kind = "none"
-    out.output.write_map = False
-    return out
-
-
-def _prepend_resumed(result: RunResult, resume: ResumePoint) -> None:
-    """The interrupted run's frames and keyframes before the resumed run's first one, then the new ones."""
-
-    def joined(old: Trajectory, new: Trajectory) -> Trajectory:
-        before = old.slice(old.timestamps_ns < resume.timestamp_ns)
-        return Trajectory(
-            np.concatenate([before.timestamps_ns, new.timestamps_ns]),
-            np.concatenate([before.world_from_cam, new.world_from_cam]),
-        )
-
-    result.online = joined(resume.online, result.online)
-    result.final = joined(resume.final, result.final)
-    result.keyframes = joined(resume.keyframes, result.keyframes)
-    old_ids = resume.map.keyframe_ids[:-1]
-    shift = int(resume.map.keyframe_ids.max()) + 1
-    result.keyframe_ids = np.concatenate([old_ids, result.keyframe_ids + shift])
+@contextlib.contextmanager
+def timed_step(name: str, seconds: dict[str, float], finishing: FinishFn | None) -> Iterator[None]:
+    """Time one finishing step into ``seconds[name]`` and tell ``finishing`` when it starts and ends."""
+    if finishing is not None:
+        finishing(name, None)
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        seconds[name] = time.perf_counter() - t0
+        if finishing is not None:
+            finishing(name, seconds[name])
 
 
 class _Run:
     """The stages of one run and what it has produced so far.
 
     :meth:`step` handles one frame whole, :meth:`finish` turns the state into a :class:`RunResult`.
+    It never sees the sequence: frames and their laser profiles are handed to it as values.
     """
 
     def __init__(
         self,
-        sequence: Sequence,
+        calibration: StereoCalibration,
         config: Config,
         listeners: list[RunListener],
         base_map: SessionMap | None = None,
         resume: ResumePoint | None = None,
+        source: str = "",
+        finishing: FinishFn | None = None,
     ) -> None:
-        self.sequence = sequence
-        self.resume = resume  # continue an interrupted run from its last keyframe
+        self.source = source  # the sequence's name, for metrics.json and the session map
+        # continue an interrupted run from its last keyframe
+        self.resume = Resumed(resume) if resume is not None else None
         # a session in a saved map (issue 20): localize in it, or extend it (merged at the end)
-        self.base_map = base_map
-        self.mode = config.session.mode if base_map is not None else None
-        config = localize_config(config) if self.mode == "localize" else config
+        self.session = map_session(config, base_map)
+        config = self.session.run_config(config)
         self.config = config
         self.listeners = listeners
-        self.frontend = FrontEnd(sequence.calibration, config.frontend)
-        self.backend: Backend = create_backend(config.backend, self.frontend.calibration, config.givens)
-        self.localizer = _localizer(config, self.frontend.calibration, base_map) if self.mode == "localize" else None
+        self.finishing = finishing
+        self.frontend = FrontEnd(calibration, config.frontend)
+        # issue 33: in a worker beside the tracker (config.backend.worker)
+        make = functools.partial(create_backend, config.backend, self.frontend.calibration, config.givens)
+        self.backend: Backend = start_backend(config.backend, make)
+        self.session.setup(config, self.frontend.calibration)
+        self.localizer = self.session.localizer
         self.loop: LoopStage = self.localizer or _loop_stage(config, self.frontend.calibration)
         # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
         # placed with them (the stripe map follows every change of the anchored poses)
         self.anchored = AnchoredTrajectory()
         self.stripe_map = StripeMap(config.mapping, self.anchored)
-        every_kf = config.mapping.live_mesh_every_kf
-        stripes = live_stripes(sequence, config.mapping) if every_kf > 0 else iter(())
-        self.live = LiveMapping(self.stripe_map, stripes, every_kf)
+        self.live = LiveMapping(self.stripe_map, config.mapping.live_mesh_every_kf)
+        # the laser profiles of the frames read so far (meshed at the end), and those the live map
+        # has not had yet (it takes them at the next tracked frame)
+        self.extractor = StripeExtractor(calibration, config.mapping)
+        self.stripes: list[StripeProfile] = []
+        self._unfed: list[StripeProfile] = []
         self.frames: list[FrameResult] = []
         self.keyframes: dict[int, int] = {}  # keyframe id -> timestamp_ns, in order
         # keyframe -> (previous keyframe, the tracker's pose of it there): drift per interval
         self.tracked_links: dict[int, tuple[int, F64]] = {}
         self.backend_ms: list[float] = []
         self.frame_ms: list[float] = []
+        self.stripe_ms: list[float] = []
+        self.finish_s: dict[str, float] = {}
         # for the session map (issue 20): keyframes with their images, the loop constraints
         self.map_keyframes: dict[int, Keyframe] = {}
         # issue 31: the keyframes' measurements (no images) for the final self-calibration
         self.selfcal_keyframes: dict[int, Keyframe] = {}
+        self.selfcal: Any = None
+        self.archiver: KeyframeArchiver | None = None  # their map content, prepared off the tracking thread
+        if config.output.write_map:
+            from loopmodel.loop.session_map import KeyframeArchiver
+
+            self.archiver = KeyframeArchiver(self.frontend.calibration, config.loop)
         self.loop_constraints: list[LoopConstraint] = []
         self._last_ms = 0.0
         self._last_ids: tuple[int | None, ...] = ()
         self.t_start = time.perf_counter()
 
     # ------------------------------------------------------------------ per frame
-    def step(self, frame: Any) -> FrameResult:
+    def laser(self, scan: ScanFrame) -> None:
+        """Take a frame's laser data: its profiles join the run's stripes (extracted from laser-line images)."""
+        if not scan.stripes and not scan.laser_images:
+            return
+        t0 = time.perf_counter()
+        profiles = self.extractor.profiles(scan)
+        self.stripes.extend(profiles)
+        self._unfed.extend(profiles)
+        self.stripe_ms.append((time.perf_counter() - t0) * 1e3)
+
+    def step(self, frame: StereoFrame) -> FrameResult:
         """Track one frame.
 
         A keyframe goes through loop closing and the back end; the frame joins the anchored
-        trajectory and the live map.
+        trajectory, and the stripes taken up to it the live map.
         """
         t0 = time.perf_counter()
         res = self.frontend.process(frame)
@@ -290,7 +281,8 @@ class _Run:
         self.frames.append(res)
         if res.ok:
             self.anchored.add_frame(res.timestamp_ns, kf_id=res.keyframe_id, kf_from_cam=res.kf_from_cam)
-            self.live.feed(res.timestamp_ns)
+            self.live.feed(self._unfed)
+            self._unfed = []
         if kf is not None:
             updates = len(self.live.update_ms)
             self.live.on_keyframe()
@@ -308,15 +300,15 @@ class _Run:
     def _state(self) -> MapState:
         return MapState(self.frontend.world_from_kf, self._last_ms, self._last_ids)
 
-    def skips(self, frame: Any) -> bool:
+    def skips(self, frame: StereoFrame) -> bool:
         """Whether a resumed run skips this frame (before the interrupted run's last keyframe)."""
-        return self.resume is not None and int(frame.timestamp_ns) < self.resume.timestamp_ns
+        return self.resume is not None and self.resume.skips(frame)
 
     def _resumed(self, kf: Keyframe) -> Keyframe:
         """A resumed run's first keyframe at the pose of the interrupted run's last one."""
         if self.resume is None or self.keyframes:
             return kf
-        pose = self.resume.world_from_kf
+        pose = self.resume.world_from_first_kf
         self.frontend.apply_correction({kf.id: pose})
         return dataclasses.replace(kf, world_from_kf=pose.copy())
 
@@ -344,8 +336,9 @@ class _Run:
         if kf.connected and kf.prev_keyframe_id is not None and kf.kf_prev_from_kf_tracked is not None:
             self.tracked_links[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf_tracked)
         self.keyframes[kf.id] = kf.timestamp_ns
-        if self.config.output.write_map:
+        if self.archiver is not None:
             self.map_keyframes[kf.id] = kf
+            self.archiver.add(kf)
         if self.config.calibration.refine != "none":
             self.selfcal_keyframes[kf.id] = kf.without_image()
         for listener in self.listeners:
@@ -376,6 +369,44 @@ class _Run:
             rows = np.vstack([old, np.asarray(mono_obs, float).reshape(-1, 3)])
             self.selfcal_keyframes[kf_id] = dataclasses.replace(kf, mono_obs=rows)
 
+    def _self_calibration(self, estimate: BackendEstimate | None, interrupted: bool) -> BackendEstimate | None:
+        """``calibration.refine: final`` (issue 31): the calibrating bundle adjustment.
+
+        Then the stripes moved to the refined left camera and light plane (laser-stereo scale); the
+        anchored frames follow the refined keyframes. Returns the refined estimate (the input when
+        off, interrupted, localizing or failing: logged); :attr:`selfcal` keeps the report.
+        """
+        if self.config.calibration.refine == "none" or estimate is None or interrupted or self.localizer is not None:
+            return estimate
+        from loopmodel.calibration.selfcal import apply_laser_scale, close_loops, refine_final, restripe
+        from loopmodel.mapping.extraction import LightPlane
+
+        plane = LightPlane.from_config(self.config.mapping)
+        kfs = list(self.selfcal_keyframes.values())
+        loops = [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints]
+        b = self.config.backend
+        try:
+            sc = refine_final(
+                kfs, estimate.world_from_kf, estimate.landmark_ids, estimate.landmarks_in_world,
+                self.frontend.rectifier.input_calibration, self.config.calibration, plane.normal_in_cam, plane.d_m,
+                loops, np.array([b.loop_sigma_rad] * 3 + [b.loop_sigma_m] * 3),
+            )
+        except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:
+            logger.warning("self-calibration not done: %s", exc)
+            return estimate
+        if self.config.calibration.close_loops:  # as the back end's final estimate
+            r = self.config.refine
+            close_loops(
+                sc, kfs, loops, r.loop_odometry_sigma_deg, r.loop_odometry_sigma_m,
+                float(np.degrees(b.loop_sigma_rad)), b.loop_sigma_m,
+            )
+        recorded = self.frontend.rectifier.input_calibration
+        stripes = restripe(self.stripes, recorded, sc.calibration, plane.normal_in_cam, plane.d_m)
+        self.stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
+        self.anchored.update_keyframes(sc.world_from_kf)
+        self.selfcal = sc
+        return BackendEstimate(dict(sc.world_from_kf), sc.landmark_ids, sc.landmarks_in_world, set(sc.world_from_kf))
+
     def _correct(self, world_from_kf: Mapping[int, F64]) -> None:
         """The one way corrections flow back: to the tracker and to the anchored frames."""
         if world_from_kf:
@@ -402,46 +433,6 @@ class _Run:
             return None
         return estimate
 
-    def _self_calibration(
-        self, estimate: BackendEstimate | None, interrupted: bool, last_ns: int | None
-    ) -> tuple[BackendEstimate | None, list[Any] | None, Any]:
-        """``calibration.refine: final`` (issue 31): the calibrating bundle adjustment.
-
-        Then the stripes extracted with the refined left camera and the laser-stereo scale; the
-        anchored frames follow the refined keyframes.
-
-        Returns the refined estimate, the stripes and the :class:`SelfCalibration` (the inputs, None
-        and None when off, interrupted, localizing or failing: logged).
-        """
-        if self.config.calibration.refine == "none" or estimate is None or interrupted or self.localizer is not None:
-            return estimate, None, None
-        from loopmodel.calibration.selfcal import apply_laser_scale, close_loops, refine_final
-        from loopmodel.mapping.extraction import LightPlane
-
-        plane = LightPlane.from_config(self.config.mapping)
-        kfs = list(self.selfcal_keyframes.values())
-        try:
-            sc = refine_final(
-                kfs, estimate.world_from_kf, estimate.landmark_ids, estimate.landmarks_in_world,
-                self.sequence.calibration, self.config.calibration, plane.normal_in_cam, plane.d_m,
-                [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints],
-                np.array([self.config.backend.loop_sigma_rad] * 3 + [self.config.backend.loop_sigma_m] * 3),
-            )
-        except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:
-            logger.warning("self-calibration not done: %s", exc)
-            return estimate, None, None
-        if self.config.calibration.close_loops:  # as the back end's final estimate
-            r, b = self.config.refine, self.config.backend
-            close_loops(
-                sc, kfs, [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints],
-                r.loop_odometry_sigma_deg, r.loop_odometry_sigma_m, float(np.degrees(b.loop_sigma_rad)), b.loop_sigma_m,
-            )
-        stripes = run_stripes(self.sequence, last_ns, self.config.mapping, sc.calibration)
-        stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
-        self.anchored.update_keyframes(sc.world_from_kf)
-        moved = BackendEstimate(dict(sc.world_from_kf), sc.landmark_ids, sc.landmarks_in_world, set(sc.world_from_kf))
-        return moved, stripes, sc
-
     def _final_trajectory(self) -> Trajectory:
         if self.config.refine.bridge_frames:
             return self.anchored.bridged_trajectory(self.keyframes, self.tracked_links)
@@ -465,18 +456,46 @@ class _Run:
         return f"the final mesh of {n} stripe points ({when}), then the results files"
 
     def finish(self, interrupted: bool) -> RunResult:
-        """Stop the workers, refine, place the stripes, mesh, gather the metrics."""
-        wall = time.perf_counter() - self.t_start
+        """The steps after the last frame (:data:`FINISH_STEPS`), each timed and told to ``finishing``.
+
+        Stop the workers, refine, mesh, gather the metrics, make the session map.
+        """
+        frames_s = time.perf_counter() - self.t_start
+        with timed_step("workers", self.finish_s, self.finishing):
+            self._stop_workers(interrupted)
+        with timed_step("final_refinement", self.finish_s, self.finishing):
+            result = self._estimate(interrupted)
+        with timed_step("mesh", self.finish_s, self.finishing):
+            result.stripes = self.stripes
+            result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, self.config.mapping)
+            result.live_mesh = self.live.mesh()
+        result.metrics = self._metrics(result, frames_s, mesh_metrics)
+        if self.selfcal is not None:  # issue 31
+            result.metrics.update(self.selfcal.metrics())
+            result.calibration_refined = self.selfcal.calibration
+            result.calibration_report = self.selfcal.report()
+        with timed_step("map", self.finish_s, self.finishing):
+            result.session_map = self._session_map(result)
+            self.session.finish(result, self.frames, self.config)
+        result.metrics["finish_s"] = dict(self.finish_s)
+        result.metrics["wall_s"] = frames_s + sum(self.finish_s.values())
+        for listener in self.listeners:
+            listener.on_finish(result)
+        return result
+
+    def _stop_workers(self, interrupted: bool) -> None:
+        """Stop the live mesher and the loop worker; loops found after the last keyframe reach the back end."""
         self.live.close(wait=not interrupted)
+        self._correct(settle(self.backend))  # issue 33: the back-end worker's last corrections
         self._correct(self.loop.close(self._state()))
         # perf (issue 26): loops whose (background) detection finished after the last keyframe
         if self._add_constraints(self.loop.final_constraints()):
             moved = self.backend.estimate(landmarks=False)
             self._correct({k: moved.world_from_kf[k] for k in moved.changed_keyframes})
-        t_final = time.perf_counter()
-        estimate = self._final_estimate(interrupted)
-        last_ns = self.frames[-1].timestamp_ns if self.frames else None
-        estimate, stripes, selfcal = self._self_calibration(estimate, interrupted, last_ns)
+
+    def _estimate(self, interrupted: bool) -> RunResult:
+        """The back end's final estimate (refined unless interrupted): trajectories, keyframes, landmarks."""
+        estimate = self._self_calibration(self._final_estimate(interrupted), interrupted)
         result = RunResult(
             config=self.config,
             frames=self.frames,
@@ -489,30 +508,38 @@ class _Run:
         if estimate is not None:
             result.landmark_ids, result.landmarks_in_world = estimate.landmark_ids, estimate.landmarks_in_world
         if self.resume is not None:
-            _prepend_resumed(result, self.resume)
-        final_refine_s = time.perf_counter() - t_final
-        result.stripes = stripes if stripes is not None else run_stripes(self.sequence, last_ns, self.config.mapping)
-        result.mesh, mesh_metrics = final_mesh(
-            self.sequence, result.stripes, result.online, result.final, self.config.mapping
+            self.resume.join_result(result)
+        return result
+
+    def partial_result(self, interrupted: bool) -> RunResult:
+        """The frames' trajectories and metrics without the end-of-run steps (after :meth:`finish` failed)."""
+        online = _online_trajectory(self.frames)
+        try:
+            final, keyframes = self._final_trajectory(), self._keyframe_trajectory()
+        except Exception:  # the anchored poses themselves are damaged: the live ones
+            final, keyframes = online, Trajectory(np.zeros(0, np.int64), np.zeros((0, 4, 4)))
+        result = RunResult(
+            config=self.config,
+            frames=self.frames,
+            online=online,
+            final=final,
+            keyframes=keyframes,
+            keyframe_ids=np.array(list(self.keyframes) if len(keyframes) else [], dtype=np.int64),
+            interrupted=interrupted,
         )
-        result.live_mesh = self.live.mesh()
-        result.metrics = self._metrics(result, wall, final_refine_s, mesh_metrics)
-        if selfcal is not None:
-            result.metrics.update(selfcal.metrics())
-            result.calibration_refined = selfcal.calibration
-            result.calibration_report = selfcal.report()
-        result.session_map = self._session_map(result)
-        if self.localizer is not None:
-            self._localization(result, self.localizer)
-        if self.mode == "extend":
-            self._extend(result)
-        for listener in self.listeners:
-            listener.on_finish(result)
+        busy_s = sum(self.frame_ms) / 1e3
+        result.metrics = {"sequence": self.source, "interrupted": interrupted}
+        result.metrics.update(frontend_metrics(self.frames, time.perf_counter() - self.t_start))
+        result.metrics.update(fps=len(self.frames) / busy_s if busy_s > 0 else None, backend=self.config.backend.kind)
+        result.metrics["landmarks"] = 0
         return result
 
     def _session_map(self, result: RunResult) -> SessionMap | None:
         """The run's map for later sessions (``output.write_map``; None without keyframes or when it fails)."""
-        if not self.config.output.write_map or not self.map_keyframes:
+        if self.archiver is None:
+            return None
+        prepared = self.archiver.take()
+        if not self.map_keyframes:
             return None
         from loopmodel.config import dump_config, pipeline_sections
         from loopmodel.loop.session_map import MapInputs, build_session_map
@@ -538,98 +565,38 @@ class _Run:
             [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints],
             anchors,
             dump_config(self.config, pipeline_sections()),
-            {"sequence": str(self.sequence.path)},
+            {"sequence": self.source},
         )
         try:
-            smap = build_session_map(inputs, self.config.loop)
+            smap = build_session_map(inputs, self.config.loop, prepared)
         except LoopmodelError as exc:
             logger.error("no session map: %s", exc)
             return None
         if self.resume is not None:
-            from loopmodel.loop.merge import append_session
-
-            smap = append_session(self.resume.map, smap)
+            smap = self.resume.join_map(smap)
         return smap
 
-    def _localization(self, result: RunResult, localizer: MapLocalizationStage) -> None:
-        """Per-frame status in the map (``MAP``, ``OWN`` frame, ``LOST``) and the frames localized in it."""
-        status = [
-            "LOST" if not f.ok else ("MAP" if localizer.in_map.get(f.keyframe_id, False) else "OWN")
-            for f in self.frames
-        ]
-        in_map = {f.timestamp_ns for f, st in zip(self.frames, status, strict=True) if st == "MAP"}
-        result.localized = result.final.slice(np.isin(result.final.timestamps_ns, list(in_map)))
-        m = result.metrics
-        m["localization_status"] = status
-        m["localized_frames"] = len(in_map)
-        if not localizer.events:
-            logger.warning("never relocalized in the map: the poses are in this session's own frame")
-        gt = self.sequence.ground_truth
-        m.update({k + "_localized": v for k, v in _ground_truth_errors(result.localized, gt).items()})
+    def _metrics(self, result: RunResult, frames_s: float, mesh_metrics: dict[str, Any]) -> dict[str, Any]:
+        """``metrics.json``: each stage's own figures and the run's timings (no grading: :mod:`loopmodel.eval`).
 
-    def _extend(self, result: RunResult) -> None:
-        """The session's map merged into the base map; the mesh of both sessions' stripes.
-
-        A session that shares no view with the map says so and keeps its own frame and map.
-        """
-        from loopmodel.errors import InputError
-        from loopmodel.loop.merge import merge_maps
-        from loopmodel.mapping.final import posed_stripes_mesh
-
-        assert self.base_map is not None
-        if result.session_map is None:
-            logger.warning("no map of this session: nothing to merge")
-            return
-        s = self.config.session
-        try:
-            merged, report = merge_maps(
-                self.base_map, result.session_map, self.config.loop, s.merge_agree_m, s.merge_agree_deg
-            )
-        except InputError as exc:
-            logger.warning("session not merged, it keeps its own frame: %s", exc)
-            result.metrics["merged"] = False
-            return
-        result.session_map = merged
-        T = report.world_a_from_world_b
-        result.final = Trajectory(result.final.timestamps_ns, T[None] @ result.final.world_from_cam)
-        result.keyframes = Trajectory(result.keyframes.timestamps_ns, T[None] @ result.keyframes.world_from_cam)
-        stripes, poses = merged.stripes_with_poses()
-        result.mesh = posed_stripes_mesh(stripes, poses, self.config.mapping)
-        result.metrics.update(
-            {
-                "merged": True,
-                "merge_links": report.links,
-                "merge_candidates": report.candidates,
-                "merge_offset_m": report.offset_m,
-                "merge_offset_deg": report.offset_deg,
-                "merged_keyframes": len(merged),
-            }
-        )
-
-    def _metrics(
-        self, result: RunResult, wall_s: float, final_refine_s: float, mesh_metrics: dict[str, Any]
-    ) -> dict[str, Any]:
-        """``metrics.json``.
-
-        Each stage's own figures, the run's timings, the errors against the ground truth of the
-        online and the final trajectories.
+        ``frames_s``: wall time of the frame loop (from the run's start to the last frame).
         """
         busy_s = sum(self.frame_ms) / 1e3
-        m: dict[str, Any] = {"sequence": str(self.sequence.path), "interrupted": result.interrupted}
+        m: dict[str, Any] = {"sequence": self.source, "interrupted": result.interrupted}
         m.update(mesh_metrics)
-        m.update(frontend_metrics(self.frames, wall_s))
+        m.update(frontend_metrics(self.frames, frames_s))
         m["fps"] = len(self.frames) / busy_s if busy_s > 0 else None
+        m["frames_s"] = frames_s
         m["backend"] = self.config.backend.kind
-        m["final_refine_s"] = final_refine_s
+        m["final_refine_s"] = self.finish_s.get("final_refinement", 0.0)
         m.update(self.loop.metrics())
         m.update(self.live.metrics())
         m.update(self.backend.metrics())
         m["landmarks"] = int(result.landmark_ids.size)
+        m["stripe_profiles"] = len(self.stripes)
         m.update(_quantiles(self.frame_ms, "frame_total_ms"))
+        m.update(_quantiles(self.stripe_ms, "stripe_extraction_ms"))
         m.update(_quantiles(self.backend_ms, "backend_ms"))
-        gt = self.sequence.ground_truth
-        for suffix, traj in (("_online", result.online), ("", result.final)):
-            m.update({k + suffix: v for k, v in _ground_truth_errors(traj, gt).items()})
         return m
 
 
@@ -643,27 +610,38 @@ def process(
     stop: StopFlag | None = None,
     base_map: SessionMap | None = None,
     resume: ResumePoint | None = None,
+    finishing: FinishFn | None = None,
 ) -> RunResult:
-    """Reader -> front end -> loop closing -> back end -> mapping, writing nothing.
+    """Reader -> front end -> loop closing -> back end -> mapping, writing nothing and grading nothing.
 
-    Runs until the sequence ends, ``max_frames`` frames are done, ``stop`` is set (checked
+    Reads the sequence once (:meth:`~loopmodel.io.base.Sequence.scan`: each frame with its laser
+    data). Runs until the sequence ends, ``max_frames`` frames are done, ``stop`` is set (checked
     between frames) or a ``KeyboardInterrupt`` arrives (the last two: ``interrupted``). An
     error while processing a frame ends the run too: the result of the frames before it is
     returned with the error in ``error`` (and ``metrics["stopped_by"]``), for the caller to
     raise once it has kept what it wants. With ``base_map`` the session localizes in that map or
     extends it (``config.session.mode``); with ``resume`` it continues an interrupted run from its
-    last keyframe (frames before it are skipped and keep the interrupted run's poses)."""
-    run = _Run(sequence, config, listeners or [], base_map, resume)
+    last keyframe (frames before it are skipped and keep the interrupted run's poses).
+    ``finishing`` is told each step after the last frame (:data:`FINISH_STEPS`) as it starts and
+    ends. The errors against ground truth are :func:`loopmodel.eval.of_run.evaluate`'s."""
+    run = _Run(sequence.calibration, config, listeners or [], base_map, resume, str(sequence.path), finishing)
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     stop = stop if stop is not None else StopFlag()
     logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
-    interrupted, error = _frame_loop(run, total, stop, progress)
+    interrupted, error = _frame_loop(run, sequence.scan(), total, stop, progress)
     if interrupted:
         logger.warning("interrupted after %d frames", len(run.frames))
     if error is not None:
         logger.error("stopped after %d frames: %s", len(run.frames), error)
     stop.finishing = run.finishing_note()
-    result = run.finish(interrupted)
+    try:
+        result = run.finish(interrupted)
+    except Exception as exc:  # (issue 34) a bad value found after the frames: keep what they gave
+        if not run.frames:
+            raise
+        logger.error("stopped while finishing %d frames: %s", len(run.frames), exc)
+        result = run.partial_result(interrupted)
+        error = error or exc
     if error is not None:
         result.error = error
         result.metrics["stopped_by"] = str(error).splitlines()[0] if str(error) else type(error).__name__
@@ -675,22 +653,23 @@ def process(
 
 
 def _frame_loop(
-    run: _Run, total: int, stop: StopFlag, progress: PipelineProgressFn | None
+    run: _Run, scans: Iterator[ScanFrame], total: int, stop: StopFlag, progress: PipelineProgressFn | None
 ) -> tuple[bool, Exception | None]:
-    """Feed the frames to ``run`` one whole step at a time.
+    """Feed the frames (with their laser data) to ``run`` one whole step at a time.
 
     Returns whether it was stopped early (stop flag, ``KeyboardInterrupt``) and the error that ended
     it, if any.
     """
     try:
-        for i, frame in enumerate(run.sequence.frames()):
+        for i, scan in enumerate(scans):
             if i >= total:
                 break
             if stop.is_set():
                 return True, None
-            if run.skips(frame):
+            run.laser(scan)
+            if run.skips(scan.frame):
                 continue
-            run.step(frame)
+            run.step(scan.frame)
             if progress is not None:
                 el = time.perf_counter() - run.t_start
                 progress(i + 1, total, (i + 1) / el if el > 0 else 0.0, len(run.keyframes))
@@ -698,23 +677,58 @@ def _frame_loop(
         return True, None
     except Exception as exc:  # the frames before it still give a result
         return False, exc
+    finally:
+        close = getattr(scans, "close", None)
+        if close is not None:
+            close()
     return False, None
 
 
-def _process_and_write(
-    folder: ResultsFolder, sequence: Sequence, config: Config, handle_signals: bool, **kwargs: Any
-) -> RunResult:
-    """Run :func:`process` under a log capture, then write the results into ``folder``.
+def evaluated(result: RunResult, sequence: Sequence, finishing: FinishFn | None = None) -> Evaluation | None:
+    """:func:`loopmodel.eval.of_run.evaluate` of ``result`` merged into its metrics (``finish_s``, ``wall_s``).
 
-    :func:`process` runs under a log capture (and the signal handlers when asked), then
-    :func:`~loopmodel.io.results.write_results` writes into ``folder``.
+    None (and no step) when the sequence has no ground truth.
+    """
+    if sequence.ground_truth is None:
+        return None
+    from loopmodel.eval.of_run import evaluate
+
+    seconds = result.metrics.setdefault("finish_s", {})
+    with timed_step("evaluation", seconds, finishing):
+        evaluation = evaluate(result, sequence)
+    result.metrics.update(evaluation.metrics)
+    result.metrics["wall_s"] = result.metrics.get("wall_s", 0.0) + seconds["evaluation"]
+    return evaluation
+
+
+def _process_and_write(
+    folder: ResultsFolder,
+    sequence: Sequence,
+    config: Config,
+    handle_signals: bool,
+    evaluate: bool = True,
+    finishing: FinishFn | None = None,
+    **kwargs: Any,
+) -> RunResult:
+    """:func:`process` under a log capture (and the signal handlers when asked), evaluate, write ``folder``.
+
+    The evaluation (when ``evaluate`` and the sequence has ground truth) runs after
+    :func:`process`, before :func:`~loopmodel.io.results.write_results` writes the results.
     """
     stop = StopFlag()
     signals = stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop)
     with LogCapture() as log, signals:
-        result = process(sequence, config, stop=stop, **kwargs)
-        result.log = log.text()
-        result.folder = write_results(folder, result)
+        result = process(sequence, config, stop=stop, finishing=finishing, **kwargs)
+        if evaluate:
+            try:
+                evaluated(result, sequence, finishing)
+            except (LoopmodelError, ValueError, OSError) as exc:  # grading must never lose the run's results
+                logger.error("evaluation failed: %s", exc)
+                result.metrics["evaluation_error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        write_s: dict[str, float] = {}
+        with timed_step("write", write_s, finishing):
+            result.log = log.text()
+            result.folder = write_results(folder, result)
     return result
 
 
@@ -729,8 +743,10 @@ def run_pipeline(
     handle_signals: bool = True,
     base_map: SessionMap | None = None,
     resume: ResumePoint | None = None,
+    evaluate: bool = True,
+    finishing: FinishFn | None = None,
 ) -> RunResult:
-    """:func:`process` the sequence and write the results folder ``<out_dir>/<name>/``.
+    """:func:`process` the sequence, evaluate it, and write the results folder ``<out_dir>/<name>/``.
 
     By :func:`loopmodel.io.results.write_results`; ``out_dir`` defaults to ``output.out_dir``.
 
@@ -739,23 +755,32 @@ def run_pipeline(
     monocular observations, plus a relative-pose loop constraint), then to the back end
     (``config.backend.kind``); keyframes it moves are handed back to the front end and to
     the anchored trajectory, in which every frame is stored relative to its keyframe.
-    ``metrics.json`` lists each closure under ``loop_events``. With ``handle_signals``
+    ``metrics.json`` lists each closure under ``loop_events``; with ``evaluate`` and ground truth
+    it also holds the errors of :func:`loopmodel.eval.of_run.evaluate`. With ``handle_signals``
     Ctrl-C or SIGTERM stops the run after the current frame; everything up to it is
     written, then ``KeyboardInterrupt`` is raised (an error ending the run early is raised
     after the write as well). With ``base_map`` (a loaded
     :class:`~loopmodel.loop.session_map.SessionMap`) the session localizes in it or extends it
-    (``config.session.mode``); with ``resume`` (:func:`~loopmodel.loop.session_map.read_resume_point`)
-    it continues an interrupted run from its last keyframe.
+    (``config.session.mode``); with ``resume`` (:func:`~loopmodel.io.map_file.read_resume_point`)
+    it continues an interrupted run from its last keyframe. ``finishing`` is told each step after
+    the last frame (:data:`FINISH_STEPS`).
     """
     folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
     kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
     kwargs.update(base_map=base_map, resume=resume)
-    result = _process_and_write(folder, sequence, config, handle_signals, **kwargs)
+    result = _process_and_write(folder, sequence, config, handle_signals, evaluate, finishing, **kwargs)
+    beside = result.folder is not None and result.folder != folder.requested
     if result.error is not None:
+        if beside:  # (issue 34) the older complete run stays; say where this one is
+            result.error.args = (f"{result.error}; {_kept_beside(result.folder, folder.requested)}",)
         raise result.error
     if result.interrupted:
-        raise KeyboardInterrupt
+        raise RunInterrupted(result.folder, _kept_beside(result.folder, folder.requested) if beside else "")
     return result
+
+
+def _kept_beside(where: Path | None, old: Path) -> str:
+    return f"the results so far are in {where} ({old} was not replaced)"
 
 
 def run(
@@ -768,6 +793,8 @@ def run(
     progress: PipelineProgressFn | None = None,
     handle_signals: bool = False,
     listeners: list[RunListener] | None = None,
+    evaluate: bool = True,
+    finishing: FinishFn | None = None,
 ) -> RunResult:
     """Run the whole pipeline over a sequence and return what it produced.
 
@@ -778,7 +805,9 @@ def run(
     ``handle_signals`` (Ctrl-C and SIGTERM then stop it after the current frame); an
     interrupted run returns its result with ``interrupted`` True; an error is raised (after
     the write when ``out_dir`` is given). ``listeners`` are told every event
-    (:class:`~loopmodel.listener.RunListener`: visualisation, recording)."""
+    (:class:`~loopmodel.listener.RunListener`: visualisation, recording). With ``evaluate`` (and
+    ground truth in the sequence) the metrics hold the errors of :func:`loopmodel.evaluate`, run
+    after the pipeline."""
     from loopmodel.config import config_from_dict, load_config
     from loopmodel.io.sequence import open_sequence
 
@@ -789,11 +818,14 @@ def run(
     seq = source if isinstance(source, Sequence) else open_sequence(source, cfg.sequence)
     kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
     if out_dir is not None:
-        result = _process_and_write(ResultsFolder(out_dir, name), seq, cfg, handle_signals, **kwargs)
+        folder = ResultsFolder(out_dir, name)
+        result = _process_and_write(folder, seq, cfg, handle_signals, evaluate, finishing, **kwargs)
     else:
         stop = StopFlag()
         with stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop):
-            result = process(seq, cfg, stop=stop, **kwargs)
+            result = process(seq, cfg, stop=stop, finishing=finishing, **kwargs)
+            if evaluate:
+                evaluated(result, seq, finishing)
     if result.error is not None:
         raise result.error
     return result
@@ -807,6 +839,8 @@ def run_frontend(
     progress: ProgressFn | None = None,
     max_frames: int | None = None,
     listeners: list[RunListener] | None = None,
+    evaluate: bool = True,
+    finishing: FinishFn | None = None,
 ) -> RunResult:
     """The front end alone over ``sequence``.
 
@@ -822,6 +856,8 @@ def run_frontend(
         None if progress is None else (lambda i, n, fps, _kf: progress(i, n, fps)),
         max_frames,
         listeners,
+        evaluate=evaluate,
+        finishing=finishing,
     )
 
 

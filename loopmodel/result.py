@@ -70,6 +70,24 @@ result covers the frames before it); ``log``: the run's log lines (``run.log``);
     calibration_refined: StereoCalibration | None = None
     calibration_report: dict[str, Any] = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        """One line: what the run did and where it went (not the whole configuration)."""
+        from loopmodel.display import Formatter, num
+
+        m = self.metrics
+        fmt = Formatter.for_positions(self.final.world_from_cam[:, :3, 3])
+        parts = [f"frames={len(self.frames)}", f"keyframes={len(self.keyframes)}"]
+        if m.get("ate_rmse_m") is not None:
+            parts.append(f"ate_rmse={fmt.length_text(m['ate_rmse_m'])}")
+        if m.get("loop_closure_count") is not None:
+            parts.append(f"loop_closures={m['loop_closure_count']}")
+        if self.mesh is not None:
+            parts.append(f"mesh_vertices={num(len(self.mesh.vertices))}")
+        parts.append(f"folder={str(self.folder) if self.folder is not None else None!r}")
+        if self.interrupted or self.error is not None:
+            parts.append(f"interrupted={self.interrupted}, error={self.error!r}")
+        return f"RunResult({', '.join(parts)})"
+
     def map_arrays(self) -> dict[str, NDArray[Any]]:
         """``map.npz`` content: keyframe ids, times and poses; landmark ids and world points."""
         return {

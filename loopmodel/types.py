@@ -7,7 +7,7 @@ camera frame is x right, y down, z forward.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -66,7 +66,38 @@ class StereoCalibration:
             raise CalibrationError(source, f"stereo baseline must be > 0 m, got {self.baseline_m}")
         if self.image_size[0] <= 0 or self.image_size[1] <= 0:
             raise CalibrationError(source, f"image size must be positive, got {self.image_size}")
+        self._check_against_image(source)
         return self
+
+    #: a focal length (px) between these multiples of the image's larger side: a 170-degree fisheye
+    #: (about 0.1) to a 0.3-degree telephoto (about 200)
+    FOCAL_FACTOR_RANGE = (0.02, 500.0)
+    #: the largest magnitude of a distortion coefficient (radial-tangential fits stay within a few
+    #: units; rational ones reach tens)
+    MAX_DISTORTION = 1e3
+
+    def _check_against_image(self, source: str | None) -> None:
+        """Bound the intrinsics by the image (issue 34): a physically possible camera."""
+        w, h = self.image_size
+        lo, hi = (f * max(w, h) for f in self.FOCAL_FACTOR_RANGE)
+        for name, K in (("left", self.K_left), ("right", self.K_right)):
+            fx, fy, skew, cx, cy = K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]
+            if not (lo <= fx <= hi and lo <= fy <= hi):
+                raise CalibrationError(
+                    source, f"{name} focal length fx={fx:g}, fy={fy:g} px is impossible for a {w}x{h} image"
+                )
+            if not (0 <= cx <= w and 0 <= cy <= h):
+                raise CalibrationError(
+                    source, f"{name} principal point ({cx:g}, {cy:g}) px lies outside the {w}x{h} image"
+                )
+            if abs(skew) > 1e-3 * fx:
+                raise CalibrationError(source, f"{name} camera matrix has a skew of {skew:g} px (must be 0)")
+            if np.any(K[1, :1] != 0) or np.any(K[2] != (0, 0, 1)):
+                raise CalibrationError(source, f"{name} camera matrix rows are not [fx s cx; 0 fy cy; 0 0 1]")
+        for name, d in (("left", self.dist_left), ("right", self.dist_right)):
+            worst = float(np.max(np.abs(d))) if d.size else 0.0
+            if worst > self.MAX_DISTORTION:
+                raise CalibrationError(source, f"{name} distortion coefficient {worst:g} above {self.MAX_DISTORTION:g}")
 
     @property
     def baseline_m(self) -> float:
@@ -116,6 +147,27 @@ class StripeProfile:
 
     timestamp_ns: int
     points_in_cam: NDArray[np.float64]
+
+
+@dataclass
+class MapFileData:
+    """The content of a map file: ``meta`` (JSON-able dict) and named numpy ``arrays``."""
+
+    meta: dict[str, Any] = field(default_factory=dict)
+    arrays: dict[str, NDArray[Any]] = field(default_factory=dict)
+
+
+@dataclass
+class ScanFrame:
+    """A stereo frame with the laser data taken up to its time (after the previous frame's).
+
+    ``stripes``: laser-stripe messages (left-camera frame, metres); ``laser_images``: laser-line
+    images of the left camera, ``(timestamp_ns, image)``. A sequence gives one kind or none.
+    """
+
+    frame: StereoFrame
+    stripes: list[StripeProfile] = field(default_factory=list)
+    laser_images: list[tuple[int, NDArray[np.uint8]]] = field(default_factory=list)
 
 
 @dataclass

@@ -73,6 +73,12 @@ def test_run_with_out_dir_writes_the_results_folder(tmp_path: Path) -> None:
     names = {p.name for p in result.folder.iterdir()}
     assert {"config.yaml", "trajectory_online.tum", "trajectory_final.tum", "keyframes.tum", "map.npz"} <= names
     assert {"metrics.json", "run.log"} <= names
+    text = repr(result)  # one line saying where it went, not the 51,000-character config (issue 35)
+    assert len(text) < 300 and "\n" not in text and f"folder='{tmp_path / 'api'}'" in text and "frames=" in text
+    # trajectory files from the API, as evo's file_interface (issue 35)
+    loopmodel.write_trajectory(tmp_path / "final.kitti", result.final)
+    back = loopmodel.read_trajectory(tmp_path / "final.kitti")
+    np.testing.assert_allclose(back.world_from_cam, result.final.world_from_cam, atol=1e-15)
 
 
 def test_import_is_light() -> None:

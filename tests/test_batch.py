@@ -111,7 +111,7 @@ def test_batch_one_folder_per_task_and_metrics_equal_single_runs(first_batch, tm
 def test_failing_task_recorded_others_finish(first_batch):
     _, out, outcome, _ = first_batch
     failed = [r for r in outcome.records if r["status"] == "failed"]
-    assert {r["variant"] for r in failed} == {"kind=isam2", "kind=none"}
+    assert {r["variant"] for r in failed} == {"backend.kind=isam2", "backend.kind=none"}
     for r in failed:
         assert r["sequence"] == "bad"
         assert "bad.mcap" in r["error"] and "\n" not in r["error"]

@@ -40,7 +40,7 @@ def test_grid_and_variants_expand_to_tasks_with_effective_configs(tmp_path):
     assert len(tasks) == 2 * 5
     assert len({t.task_id for t in tasks}) == 10
     by = {(t.sequence_name, t.variant): t for t in tasks}
-    t = by[("t2", "max_features=500,kind=both")]
+    t = by[("t2", "frontend.max_features=500,backend.kind=both")]  # the section is part of the label
     assert t.config["frontend"]["max_features"] == 500 and t.config["backend"]["kind"] == "both"
     assert t.config["frontend"]["grid_cols"] == 6  # the sequence's layer
     assert by[("tiny_kitti", "fast")].config["frontend"]["grid_cols"] == 8  # the default

@@ -208,3 +208,21 @@ def test_real_laser_plane(shared_data: Path) -> None:
     assert res.line_to_plane_deg_max < 0.3  # measured 0.08 deg
     best = res.compare(read_laser_planes_json(d / "laser_planes.json"))[0]
     assert best["rms_mm"] > 50  # none of the saved planes is this one (measured 114 mm at best)
+
+
+def test_stereo_cli_prints_units_and_four_digits(
+    stereo_pairs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 35: ``baseline 0.1000 m`` and ``fx 700.1 px``, not ``baseline 3.33062`` or ``fx_px: 469.367``."""
+    import re
+
+    from loopmodel.cli import main
+
+    args = ["calibrate", "stereo", str(stereo_pairs / "left*.png"), str(stereo_pairs / "right*.png")]
+    board = f"{BOARD[0]}x{BOARD[1]}"
+    assert main([*args, "--board", board, "--square-m", str(SQUARE), "-o", str(tmp_path / "c.yaml")]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert re.search(r"baseline 0\.\d{4} m \(square", out), out
+    assert re.search(r"fx \d{3}\.\d px", out) and "fx_px" not in out
+    for x in re.findall(r"(?<![\w/.-])\d+\.\d+(?![\w/])", out):  # numbers, not parts of paths
+        assert len(x.replace(".", "").lstrip("0")) <= 4, x  # 4 significant digits at most

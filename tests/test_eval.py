@@ -211,8 +211,8 @@ def test_report_without_loop_closure(tmp_path: Path, rng: np.random.Generator) -
     assert "No loop closure was recorded in this run" in md
     html = (out / "report.html").read_text()
     assert "No loop closure was recorded in this run" in html
-    assert html.count("data:image/png;base64,") == 3 and "src='error_" not in html
-    for name in (rep.PLOT_TOP, rep.PLOT_ERROR_TIME, rep.PLOT_ERROR_COLORED):
+    assert html.count("data:image/png;base64,") == 5 and 'src="error_' not in html
+    for name in (rep.PLOT_TOP, rep.PLOT_ERROR_TIME, rep.PLOT_ERROR_COLORED, rep.PLOT_XYZ_RPY, rep.PLOT_RPE_TIME):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     m = json.loads((out / "metrics.json").read_text())
     # independent ATE: Kabsch by hand on the (identical-time) positions
@@ -442,3 +442,31 @@ def test_pipeline_loop_events_are_read_as_closures(tmp_path: Path) -> None:
     (tmp_path / "metrics.json").write_text(json.dumps({"loop_events": events}))
     run = load_run(tmp_path)
     assert run.loop_closures_recorded and len(run.loop_closures) == 1
+
+
+def test_step_scale_helpers_against_a_hand_computation() -> None:
+    """Per-step scale and its growth on a 5-pose path whose steps are known by hand."""
+    from loopmodel.eval.trajectory_metrics import scale_figures, step_scale_last_over_first, step_scales
+
+    ref = np.tile(np.eye(4), (5, 1, 1))
+    ref[:, 0, 3] = [0.0, 1.0, 2.0, 3.0, 4.0]  # four 1 m steps along x
+    est = np.tile(np.eye(4), (5, 1, 1))
+    # steps of 1.0, 1.1 (along y: direction does not matter), 1.2 and 1.5 m
+    est[:, :3, 3] = [[0, 0, 0], [1.0, 0, 0], [1.0, 1.1, 0], [2.2, 1.1, 0], [2.2, 1.1, 1.5]]
+    np.testing.assert_allclose(step_scales(ref, est), [1.0, 1.1, 1.2, 1.5])
+    # quarter of 4 steps = 1 step: 1.5 / 1.0; half (2 steps each): (1.2 + 1.5) / 2 / ((1.0 + 1.1) / 2)
+    assert step_scale_last_over_first(ref, est) == pytest.approx(1.5)
+    assert step_scale_last_over_first(ref, est, 0.5) == pytest.approx(2.7 / 2.1)
+    # a similarity of the estimate (scale 3, any rotation) leaves the growth unchanged
+    est3 = est.copy()
+    est3[:, :3, 3] = 3.0 * est[:, :3, 3] @ np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1.0]]).T
+    assert step_scale_last_over_first(ref, est3) == pytest.approx(1.5)
+    # a uniformly scaled estimate: Sim(3) scale (truth / estimate) 1 / 2, no growth
+    t = np.arange(5, dtype=np.int64) * 100_000_000
+    curve = np.tile(np.eye(4), (5, 1, 1))
+    curve[:, :3, 3] = [[0, 0, 0], [1, 0.2, 0], [2, 0.1, 0.3], [3, 0.5, 0.1], [4, 0.0, 0.4]]
+    half = curve.copy()
+    half[:, :3, 3] *= 2.0
+    fig = scale_figures(t, curve, t, half)
+    assert fig["sim3_scale"] == pytest.approx(0.5)
+    assert fig["step_scale_last_over_first"] == pytest.approx(1.0)

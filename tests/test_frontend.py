@@ -267,3 +267,53 @@ def test_parallax_angle_is_small_for_motion_along_the_rays(rng: np.random.Genera
     np.testing.assert_allclose(median_parallax_rad(ahead, np.array([2.0, 0.0, 0.0])), np.arctan(2 / 12), rtol=1e-12)
     assert median_parallax_rad(ahead, np.array([0.0, 0.0, 2.0])) == 0.0
     assert forward < 0.3 * sideways
+
+
+def test_local_map_points_stay_in_the_pose_and_are_observed_later(rng: np.random.Generator) -> None:
+    """Local-map tracking (issue 36): earlier keyframes' points stay in the pose and reach later keyframes.
+
+    Checked against the rendering's ground truth: the poses, and every observation a keyframe
+    carries of a landmark two or more keyframes old lies where that landmark's point (its own
+    keyframe's stereo/BA estimate) projects with the true poses.
+    """
+    planes = default_scene(rng)
+    cal = stereo_rig()
+    poses = trajectory(24)
+    poses = invert_pose(poses[0]) @ poses
+    fe = FrontEnd(cal, CFG.model_copy(update={"local_map_keyframes": 3, "max_parallax_ratio": 0.05}))
+    results = [fe.process(f) for f in _stereo_frames(planes, cal, poses)]
+    assert all(r.status == "OK" for r in results)
+    _check_ok_poses(results, poses, 0.02, 0.2)
+    kfs = [r.keyframe for r in results if r.keyframe is not None]
+    assert len(kfs) >= 4
+    assert max(kf.ba_info.get("local_map_inliers", 0.0) for kf in kfs) >= 20
+    true_of = {kf.id: poses[kf.frame_index] for kf in kfs}
+    first_id = {int(kf.landmark_ids[0]): kf for kf in kfs}
+    starts = np.array(sorted(first_id))
+    errs = []
+    for kf, prev in zip(kfs[2:], kfs[1:], strict=False):
+        old = kf.mono_obs[kf.mono_obs[:, 0] < prev.landmark_ids[0]]
+        for lid, u, v in old:
+            owner = first_id[int(starts[np.searchsorted(starts, lid, side="right") - 1])]
+            p = owner.points_in_kf[int(lid) - int(owner.landmark_ids[0])]
+            cur_from_owner = invert_pose(true_of[kf.id]) @ true_of[owner.id]
+            q = cur_from_owner[:3, :3] @ p + cur_from_owner[:3, 3]
+            uv = cal.K_left[:2, :2] @ (q[:2] / q[2]) + cal.K_left[:2, 2]
+            errs.append(np.hypot(uv[0] - u, uv[1] - v))
+    assert len(errs) >= 20  # older keyframes' landmarks observed again
+    assert np.median(errs) < 1.0
+
+
+def test_wider_keyframe_ba_takes_the_local_map_and_keeps_the_poses(rng: np.random.Generator) -> None:
+    """``local_ba_keyframes`` (issue 36): the keyframe BA takes earlier sets' points; poses stay on the truth."""
+    planes = default_scene(rng)
+    cal = stereo_rig()
+    poses = trajectory(24)
+    poses = invert_pose(poses[0]) @ poses
+    cfg = CFG.model_copy(update={"local_map_keyframes": 3, "local_ba_keyframes": 2, "max_parallax_ratio": 0.05})
+    fe = FrontEnd(cal, cfg)
+    results = [fe.process(f) for f in _stereo_frames(planes, cal, poses)]
+    assert all(r.status == "OK" for r in results)
+    _check_ok_poses(results, poses, 0.02, 0.2)
+    kfs = [r.keyframe for r in results if r.keyframe is not None]
+    assert max(kf.ba_info.get("ba_window_points", 0.0) for kf in kfs) >= 20

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -285,24 +286,29 @@ def test_input_error_mid_run_is_recorded_in_the_results(tmp_path: Path, capsys: 
 
 
 def test_peak_rss_on_images_declaring_huge_sizes(tmp_path: Path) -> None:
-    # 60000 x 60000 PNGs (3.4 GiB each when decoded): refused from their headers, so the peak
-    # stays within 1.5 GiB plus the declared-size limit (sequence.max_image_pixels, 1 byte each)
-    root = tmp_path / "k"
-    for d in ("image_0", "image_1"):
-        (root / d).mkdir(parents=True)
-        for n in _names(2):
-            (root / d / f"{n}.png").write_bytes(_png_declaring(60000, 60000))
-    (root / "calib.txt").write_text(CALIB)
-    code = (
-        "import sys\nfrom loopmodel.cli import main\n"
-        f"rc = main(['run', {str(root)!r}, '--out', {str(tmp_path / 'o')!r}])\n"
-        "hwm = [l for l in open('/proc/self/status') if l.startswith('VmHWM')][0].split()[1]\n"
-        "print(rc, int(hwm) / 1024)\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
-    rc, rss_mib = out.stdout.split()[-2:]
-    limit_mib = 1.5 * 1024 + load_config(None).sequence.max_image_pixels / 2**20
-    assert rc == "2" and "60000x60000" in out.stderr and float(rss_mib) < limit_mib, (rss_mib, out.stderr)
+    # 60000 x 60000 PNGs (3.4 GiB each when decoded), and 30000 x 30000 JPEGs whose size marker
+    # sits past the first 64 KiB (issue 34 item 7: 5.5 GiB before): refused from their headers, so
+    # the peak stays within 1.5 GiB plus the declared-size limit (sequence.max_image_pixels, 1 byte each)
+    for ext, data, size in (
+        ("png", _png_declaring(60000, 60000), "60000x60000"),
+        ("jpg", _jpeg_with_app_segments(2, 30000, 30000), "30000x30000"),
+    ):
+        root = tmp_path / ext
+        for d in ("image_0", "image_1"):
+            (root / d).mkdir(parents=True)
+            for n in _names(2):
+                (root / d / f"{n}.{ext}").write_bytes(data)
+        (root / "calib.txt").write_text(CALIB)
+        code = (
+            "import sys\nfrom loopmodel.cli import main\n"
+            f"rc = main(['run', {str(root)!r}, '--out', {str(tmp_path / 'o')!r}])\n"
+            "hwm = [l for l in open('/proc/self/status') if l.startswith('VmHWM')][0].split()[1]\n"
+            "print(rc, int(hwm) / 1024)\n"
+        )
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+        rc, rss_mib = out.stdout.split()[-2:]
+        limit_mib = 1.5 * 1024 + load_config(None).sequence.max_image_pixels / 2**20
+        assert rc == "2" and size in out.stderr and float(rss_mib) < limit_mib, (ext, rss_mib, out.stderr)
 
 
 def test_corrupt_stripes_npz(tmp_path: Path) -> None:
@@ -512,3 +518,608 @@ def test_full_disk_keeps_the_old_results_and_says_so(
     # the older run's folder is untouched, nothing half-written is left beside it
     assert (tmp_path / "out" / "r" / "metrics.json").read_text() == before
     assert [p.name for p in (tmp_path / "out").iterdir()] == ["r"]
+
+
+# ----------------------------------------------------------------------------- round three (issue 34)
+
+
+@pytest.fixture
+def small_run(tmp_path: Path) -> tuple[Path, list[str]]:
+    """A rendered 3-frame KITTI folder and the run arguments writing ``out/r``."""
+    from frontend_scene import write_kitti_folder
+
+    seq = tmp_path / "seq"
+    write_kitti_folder(seq, 3, np.random.default_rng(3))
+    return seq, ["run", str(seq), "--out", str(tmp_path / "out"), "--name", "r"]
+
+
+def _frames(folder: Path) -> int:
+    return int(json.loads((folder / "metrics.json").read_text())["frames"])
+
+
+def test_item1_failure_after_the_last_frame_keeps_the_results(
+    small_run: tuple[Path, list[str]], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import loopmodel.pipeline as pipeline
+
+    seq, args = small_run
+
+    def bad_cloud(*a: object, **k: object) -> None:
+        raise FormatError("s.mcap /laser/points", "a bad value found at the end")
+
+    # a value found bad only while finishing (the final mesh of the stripes; issue 32 reads them in the frames)
+    monkeypatch.setattr(pipeline, "final_mesh", bad_cloud)
+    assert main(args) == 2
+    assert "/laser/points: a bad value" in capsys.readouterr().err
+    out = seq.parent / "out" / "r"
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["frames"] == 3 and "/laser/points" in m["stopped_by"] and m["interrupted"] is False
+    assert len(read_trajectory(out / "trajectory_online.tum")) == 3
+    assert [p.name for p in out.parent.iterdir()] == ["r"]  # no lock, no staging left
+
+
+def test_item1_nan_points_of_a_cloud_are_skipped() -> None:
+    pts = np.array([[0.1, 0.2, 0.3], [np.nan, np.nan, np.nan], [0.4, np.inf, 0.5], [0.6, 0.7, 0.8]], np.float32)
+    fields = [SimpleNamespace(name=a, offset=4 * i, datatype=7) for i, a in enumerate("xyz")]
+    msg = SimpleNamespace(fields=fields, width=4, height=1, point_step=12, data=pts.tobytes(), is_bigendian=0)
+    got = decode_pointcloud_xyz(msg, "/laser/points")
+    assert got.shape == (2, 3) and np.allclose(got, pts[[0, 3]].astype(float))
+
+
+def test_item2_overwrite_keeps_the_complete_run_when_the_new_one_is_interrupted(
+    small_run: tuple[Path, list[str]], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import loopmodel.pipeline as pipeline
+
+    seq, args = small_run
+    out = seq.parent / "out"
+    assert main([*args, "--max-frames", "2"]) == 0 and _frames(out / "r") == 2
+    step, calls = pipeline._Run.step, {"n": 0}
+
+    def interrupted_step(self: object, frame: object) -> object:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return step(self, frame)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(pipeline._Run, "step", interrupted_step)
+    capsys.readouterr()
+    assert main([*args, "--overwrite"]) == 130
+    err = capsys.readouterr().err
+    # the complete 2-frame run stays; the interrupted one is beside it, and the line says where
+    assert _frames(out / "r") == 2 and _frames(out / "r-incomplete") == 1
+    assert str(out / "r-incomplete") in err and "was not replaced" in err
+    # a failed run likewise (a second time: the next free name)
+    monkeypatch.setattr(pipeline._Run, "step", lambda self, frame: (_ for _ in ()).throw(InputError("x.png", "bad")))
+    assert main([*args, "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert str(out / "r-incomplete-2") in err and _frames(out / "r") == 2
+    assert sorted(p.name for p in out.iterdir()) == ["r", "r-incomplete", "r-incomplete-2"]
+    # a complete run replaces it
+    monkeypatch.undo()
+    assert main([*args, "--overwrite"]) == 0 and _frames(out / "r") == 3
+
+
+def _tmpfs(path: Path, size: str) -> bool:
+    path.mkdir()
+    if os.geteuid() != 0:
+        return False
+    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True)
+    return ok.returncode == 0
+
+
+def _fill(folder: Path, leave_bytes: int) -> None:
+    st = os.statvfs(folder)
+    free = st.f_bavail * st.f_frsize
+    if free > leave_bytes:
+        with open(folder / "filler", "wb") as f:
+            f.write(b"\0" * (free - leave_bytes))
+
+
+def test_items2_3_full_disk_never_replaces_or_fakes_a_complete_run(
+    small_run: tuple[Path, list[str]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    seq, _ = small_run
+    disk = seq.parent / "disk"
+    if not _tmpfs(disk, "8m"):
+        pytest.skip("mounting a tmpfs needs root and a mount namespace that allows it")
+    try:
+        args = ["run", str(seq), "--out", str(disk), "--max-frames", "2"]
+        assert main([*args, "--name", "r"]) == 0
+        before = (disk / "r" / "metrics.json").read_text()
+        _fill(disk, 48 * 1024)  # room for the small files, not for map/ and the meshes
+        capsys.readouterr()
+        # --overwrite on a full disk: the complete old run stays, the new one is beside it
+        assert main([*args, "--name", "r", "--overwrite"]) == 1
+        err = capsys.readouterr().err
+        assert "No space left on device" in err and str(disk / "r-incomplete") in err, err
+        assert (disk / "r" / "metrics.json").read_text() == before and (disk / "r" / "map").is_dir()
+        # a new name: the folder that lacks map/ is not moved to it, and the line names where it is
+        shutil.rmtree(disk / "r-incomplete")
+        (disk / "filler").unlink()
+        _fill(disk, 48 * 1024)
+        assert main([*args, "--name", "n"]) == 1
+        err = capsys.readouterr().err
+        assert not (disk / "n").exists() and str(disk / "n-incomplete") in err, err
+        assert "INCOMPLETE" in (disk / "n-incomplete" / "run.log").read_text()
+    finally:
+        subprocess.run(["umount", str(disk)], capture_output=True)
+
+
+def test_item4_map_merge_refuses_to_overwrite(small_run: tuple[Path, list[str]]) -> None:
+    seq, args = small_run
+    assert main(args) == 0
+    run = seq.parent / "out" / "r"
+    before = {p.name: p.stat().st_mtime_ns for p in (run / "map").iterdir()}
+    assert main(["map", "merge", str(run), str(run), "--out", str(run / "map")]) == 2
+    assert {p.name: p.stat().st_mtime_ns for p in (run / "map").iterdir()} == before
+
+
+def _damage_map(src: Path, dst: Path, change: dict[str, object]) -> Path:
+    from loopmodel.io.map_file import read_map_file, write_map_file
+
+    data = read_map_file(src)
+    data.arrays.update(change)  # type: ignore[arg-type]
+    data.meta = {k: v for k, v in data.meta.items() if k not in ("format", "version", "loopmodel_version")}
+    return write_map_file(dst, data)
+
+
+def test_item5_damaged_session_maps_are_refused_when_loaded(
+    small_run: tuple[Path, list[str]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    from loopmodel.io.map_file import read_map_file
+
+    seq, args = small_run
+    assert main(args) == 0
+    src = seq.parent / "out" / "r" / "map"
+    a = read_map_file(src).arrays
+    garbled = a["images_png"].copy()
+    garbled[:] = np.random.default_rng(5).integers(0, 256, garbled.size, dtype=np.uint8)
+    pose_nan = a["world_from_kf"].copy()
+    pose_nan[0, 0, 3] = np.nan
+    cases = {
+        "garbled": ({"images_png": garbled}, "image of keyframe"),
+        "nan_pose": ({"world_from_kf": pose_nan}, "world_from_kf has non-finite"),
+        "complex": ({"landmarks_in_world": a["landmarks_in_world"].astype(complex)}, "complex"),
+    }
+    for name, (change, msg) in cases.items():
+        bad = _damage_map(src, seq.parent / name, change)
+        capsys.readouterr()
+        assert main(["map", "info", str(bad)]) == 2, name
+        err = capsys.readouterr().err
+        assert msg in err and "Traceback" not in err, (name, err)
+    # the run that would spin in KLT on a 0x0 image: refused at once, in one line
+    t0 = time.monotonic()
+    rc = main([*args[:-1], "loc", "--map", str(seq.parent / "garbled"), "--mode", "localize"])
+    assert rc == 2 and time.monotonic() - t0 < 20
+    # a map.json nested past Python's limit
+    (seq.parent / "garbled" / "map.json").write_text("[" * 100000 + "]" * 100000)
+    assert main(["map", "info", str(seq.parent / "garbled")]) == 2
+    assert "nested too deeply" in capsys.readouterr().err
+
+
+def test_item5_no_klt_on_an_empty_image() -> None:
+    from loopmodel.config import LoopConfig
+    from loopmodel.loop.closer import LoopCloser
+
+    closer = LoopCloser(_cal(64, 48), LoopConfig())
+    old = SimpleNamespace(ids=np.arange(10), image=np.zeros((0, 0), np.uint8))
+    closer._kf[7] = old  # type: ignore[assignment]
+    assert closer.track_old_features(7, np.zeros((48, 64), np.uint8), np.eye(4)) is None
+
+
+def _run_cli(args: list[str], timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.run(
+        [sys.executable, "-m", "loopmodel", *args], env=env, capture_output=True, text=True, timeout=timeout
+    )
+
+
+def test_item6_fifo_inside_an_input_folder_is_refused(tmp_path: Path) -> None:
+    root = _kitti(tmp_path / "k", _names(3), _names(3))
+    (root / "image_0" / "000001.png").unlink()
+    os.mkfifo(root / "image_0" / "000001.png")
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  version: 5\n  storage_identifier: sqlite3\n")
+    os.mkfifo(bag / "bag_0.db3")
+    for target, name in ((root, "000001.png"), (bag, "bag_0.db3")):
+        out = _run_cli(["info", str(target)])  # blocked in open() forever before
+        err = out.stderr.strip()
+        assert out.returncode == 2 and name in err and "pipe (FIFO)" in err and len(err.splitlines()) == 1, err
+
+
+def _jpeg_with_app_segments(n_segments: int, w: int, h: int) -> bytes:
+    ok, jpg = cv2.imencode(".jpg", np.zeros((16, 16), np.uint8))
+    b = bytes(jpg.tobytes())
+    app1 = b"\xff\xe1" + (0xFFFF).to_bytes(2, "big") + b"\0" * (0xFFFF - 2)
+    b = b[:2] + app1 * n_segments + b[2:]
+    i = b.find(b"\xff\xc0")
+    return b[: i + 5] + h.to_bytes(2, "big") + w.to_bytes(2, "big") + b[i + 9 :]
+
+
+def test_item7_jpeg_size_past_64_kib_is_checked_everywhere(tmp_path: Path) -> None:
+    big = _jpeg_with_app_segments(2, 30000, 30000)
+    assert len(big) > 131_000
+    f = tmp_path / "a.jpg"
+    f.write_bytes(big)
+    with pytest.raises(InputError, match="declares 30000x30000"):
+        read_image(f)
+    with pytest.raises(InputError, match="declares 30000x30000"):
+        decode_image(SimpleNamespace(data=big, format="jpeg"), "sensor_msgs/msg/CompressedImage", "/j")
+    from loopmodel.io.ros_camera import decode_ros_image
+
+    with pytest.raises(InputError, match="declares 30000x30000"):
+        decode_ros_image(SimpleNamespace(data=big, format="jpeg"), "sensor_msgs/msg/CompressedImage", "/j")
+    # a JPEG whose markers the parser cannot follow to a size is refused, not decoded
+    junk = big[:2] + b"\x00\x01garbage" + big[2:]
+    f.write_bytes(junk)
+    with pytest.raises(InputError, match="damaged image header"):
+        read_image(f)
+    # the commands reading images: loop detect and calibrate stereo
+    d = tmp_path / "imgs"
+    d.mkdir()
+    (d / "0.jpg").write_bytes(big)
+    (d / "1.jpg").write_bytes(big)
+    out = _run_cli(["calibrate", "stereo", str(d), str(d), "--out", str(tmp_path / "c.yaml")])
+    assert out.returncode == 2 and "30000x30000" in out.stderr, out.stderr
+
+
+def test_item8_batch_grid_counted_before_expansion(tmp_path: Path) -> None:
+    from loopmodel.batch.plan import MAX_VARIANTS, load_plan
+
+    seq = _kitti(tmp_path / "k", _names(2), _names(2))
+    grid = {f"frontend.k{i}": list(range(10)) for i in range(10)}
+    plan = tmp_path / "plan.yaml"
+    plan.write_text(json.dumps({"sequences": [str(seq)], "grid": grid}))
+    t0 = time.monotonic()
+    with pytest.raises(InputError, match=f"10000000000 variants .* limit of {MAX_VARIANTS}"):
+        load_plan(plan)
+    assert time.monotonic() - t0 < 2
+    # a missing sequence is refused with the plan, not when its task runs
+    plan.write_text(json.dumps({"sequences": [str(tmp_path / "gone")]}))
+    with pytest.raises(InputError, match="gone does not exist"):
+        load_plan(plan)
+
+
+def _island_backend(segment_sigma_m: float | None = None, segment_sigma_rad: float | None = None) -> object:
+    """Two keyframes, then tracking lost: the island of the orbit preset's frame 18 (issue 34 item 9).
+
+    A disconnected keyframe sees 21 new landmarks in stereo, the next one sees them only
+    monocularly. Returns the back end and the island's true poses.
+    """
+    from loopmodel.backend.isam2 import Isam2Backend
+    from loopmodel.config import BackendConfig
+    from loopmodel.geometry.se3 import invert_pose, se3_exp
+    from loopmodel.types import Keyframe
+
+    fx, base = 500.0, 0.1
+    K = np.array([[fx, 0, 320], [0, fx, 240], [0, 0, 1.0]])
+    cal = StereoCalibration(K, K, make_pose(np.eye(3), [-base, 0, 0]), (640, 480))
+    rng = np.random.default_rng(0)
+
+    def stereo(world_from_cam: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = (invert_pose(world_from_cam) @ np.c_[pts, np.ones(len(pts))].T).T[:, :3]
+        u, v, ur = (fx * p[:, 0] / p[:, 2] + 320, fx * p[:, 1] / p[:, 2] + 240, fx * (p[:, 0] - base) / p[:, 2] + 320)
+        return p, np.c_[u, ur, v]
+
+    kw = {}
+    if segment_sigma_m is not None:
+        kw = {"segment_prior_sigma_m": segment_sigma_m, "segment_prior_sigma_rad": segment_sigma_rad}
+    be = Isam2Backend(cal, BackendConfig(**kw))
+    pts0 = rng.uniform([-1, -1, 2.5], [1, 1, 3.5], (40, 3))
+    for k, T in enumerate((np.eye(4), se3_exp([0.05, 0, 0, 0, 0.01, 0]))):
+        p, px = stereo(T, pts0)
+        be.add_keyframe(Keyframe(k, k, T, np.arange(40), p, px, prev_keyframe_id=k - 1 if k else None))
+    pts1 = rng.uniform([-1, -1, 2.5], [1, 1, 3.5], (21, 3)) + [5, 0, 0]
+    T2 = se3_exp([5.0, 0, 0, 0, 0.02, 0])
+    T3 = T2 @ se3_exp([0.05, 0, 0, 0, 0.01, 0])
+    p, px = stereo(T2, pts1)
+    be.add_keyframe(Keyframe(2, 2, T2, np.arange(100, 121), p, px, prev_keyframe_id=1, connected=False))
+    _, px = stereo(T3, pts1)
+    mono = np.c_[np.arange(100, 121), px[:, 0], px[:, 2]]
+    empty = np.zeros((0, 3))
+    be.add_keyframe(Keyframe(3, 3, T3 @ se3_exp([0.01, 0, 0, 0, 0, 0]), np.zeros(0, np.int64), empty, empty, mono))
+    return be, {2: T2, 3: T3}
+
+
+def test_item9_a_new_segment_is_not_left_indeterminate(caplog: pytest.LogCaptureFixture) -> None:
+    # the cause: the prior holding a new segment's gauge was so loose (10 m, 1 rad) that the
+    # island's information spanned 11 orders of magnitude and GTSAM's Cholesky declared it
+    # indeterminate; landmark after landmark was dropped (20: the run stopped)
+    old, _ = _island_backend(10.0, 1.0)
+    assert old.rebuilds > 0 and old.dropped_landmarks > 0  # type: ignore[attr-defined]
+    caplog.clear()
+    be, truth = _island_backend()
+    assert be.rebuilds == 0 and be.dropped_landmarks == 0 and "indeterminate" not in caplog.text  # type: ignore[attr-defined]
+    est = be.estimate()  # type: ignore[attr-defined]
+    for k, T in truth.items():  # the monocular keyframe, started 1 cm off, found within 0.2 mm (0.13 measured)
+        assert np.linalg.norm(est.world_from_kf[k][:3, 3] - T[:3, 3]) < 2e-4
+
+
+def test_item10_internal_errors_become_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from loopmodel.turntable.reader import open_turntable
+
+    # a 16-bit PNG in a KITTI folder: read as 8 bits (the bag readers' convention), the run goes on
+    root = _kitti(tmp_path / "k16", _names(2), _names(2))
+    for f in (root / "image_0").iterdir():
+        cv2.imwrite(str(f), (cv2.imread(str(f), cv2.IMREAD_UNCHANGED).astype(np.uint16) << 8))
+    frame = next(iter(open_sequence(root).frames()))
+    assert frame.left.dtype == np.uint8 and frame.left.shape == (48, 64)
+    # mono16 in an MCAP
+    img16 = (np.arange(48 * 64, dtype=np.uint16).reshape(48, 64) * 20).astype(np.uint16)
+    raw = SimpleNamespace(data=img16.tobytes(), height=48, width=64, step=128, encoding="mono16", is_bigendian=0)
+    got = decode_image(raw, "sensor_msgs/msg/Image", "/cam0/image_raw")
+    assert got.dtype == np.uint8 and np.array_equal(got, (img16 >> 8).astype(np.uint8))
+    # an empty sensor.yaml of a EuRoC folder
+    euroc = tmp_path / "e" / "mav0"
+    for cam in ("cam0", "cam1"):
+        (euroc / cam / "data").mkdir(parents=True)
+        cv2.imwrite(str(euroc / cam / "data" / "1000.png"), np.zeros((48, 64), np.uint8))
+        (euroc / cam / "data.csv").write_text("#t,f\n1000,1000.png\n")
+        (euroc / cam / "sensor.yaml").write_text("")
+    with pytest.raises(CalibrationError, match="sensor.yaml is empty"):
+        open_sequence(tmp_path / "e")
+    # random bytes in a batch plan, a turntable layout, a run's metrics.json
+    junk = bytes(np.random.default_rng(7).integers(128, 256, 400, dtype=np.uint8))
+    (tmp_path / "plan.yaml").write_bytes(junk)
+    assert main(["batch", str(tmp_path / "plan.yaml")]) == 2
+    (tmp_path / "tt").mkdir()
+    (tmp_path / "tt" / "turntable.yaml").write_bytes(junk)
+    with pytest.raises(FormatError, match="not a UTF-8"):
+        open_turntable(tmp_path / "tt")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "trajectory_online.tum").write_text("".join(f"{i}.0 {i} 0 0 0 0 0 1\n" for i in range(5)))
+    (run / "metrics.json").write_bytes(junk)
+    assert main(["eval", str(run), "--gt", str(run / "trajectory_online.tum"), "--out", str(tmp_path / "ev")]) == 2
+    (run / "metrics.json").write_text("[" * 100000 + "]" * 100000)
+    assert main(["eval", str(run), "--gt", str(run / "trajectory_online.tum"), "--out", str(tmp_path / "ev")]) == 2
+    err = capsys.readouterr().err
+    assert "internal error" not in err and "Traceback" not in err, err
+    assert "not a UTF-8" in err and "nested too deeply" in err
+
+
+def test_item10_rerun_to_an_unwritable_place_is_refused_before_the_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import loopmodel.pipeline as pipeline
+
+    root = _kitti(tmp_path / "k", _names(2), _names(2))
+    (tmp_path / "afile").write_text("x")
+
+    def no_run(*a: object, **k: object) -> None:
+        raise AssertionError("ran before checking --rerun")
+
+    monkeypatch.setattr(pipeline._Run, "step", no_run)
+    args = ["run", str(root), "--out", str(tmp_path / "o"), "--rerun"]
+    assert main([*args, str(tmp_path / "afile" / "x.rrd")]) == 2
+    assert "--rerun" in capsys.readouterr().err
+    ro = tmp_path / "ro"
+    if _tmpfs(ro, "1m") and subprocess.run(["mount", "-o", "remount,ro", str(ro)]).returncode == 0:
+        try:
+            assert main([*args, str(ro / "x.rrd")]) == 2
+            assert "Read-only file system" in capsys.readouterr().err
+        finally:
+            subprocess.run(["umount", str(ro)], capture_output=True)
+
+
+def test_item12_impossible_calibrations_are_refused(tmp_path: Path) -> None:
+    good = "P0: 400 0 32 0 0 400 24 0 0 0 1 0\nP1: 400 0 32 -48 0 400 24 0 0 0 1 0\n"
+    cases = {
+        "focal": (good.replace("400 0 32 0 0 400", "1e300 0 32 0 0 1e300"), "focal length"),
+        "centre": (good.replace("P0: 400 0 32", "P0: 400 0 1e12"), "principal point"),
+        "skew": (good.replace("P0: 400 0 32", "P0: 400 5 32"), "skew"),
+        "third_row": (good.replace("24 0 0 0 1 0\nP1", "24 0 0 0.5 1 0\nP1"), "third row"),
+    }
+    for name, (calib, msg) in cases.items():
+        root = _kitti(tmp_path / name, _names(2), _names(2))
+        (root / "calib.txt").write_text(calib)
+        with pytest.raises(CalibrationError, match=msg):
+            open_sequence(root)
+    for name, change, msg in (
+        ("dist", {"distortion_coefficients": [1e30, 0, 0, 0]}, "distortion coefficient"),
+        ("model", {"distortion_model": "omni-radtan"}, "distortion_model 'omni-radtan'"),
+    ):
+        euroc = tmp_path / name / "mav0"
+        for cam in ("cam0", "cam1"):
+            (euroc / cam / "data").mkdir(parents=True)
+            cv2.imwrite(str(euroc / cam / "data" / "1000.png"), np.zeros((48, 64), np.uint8))
+            (euroc / cam / "data.csv").write_text("#t,f\n1000,1000.png\n")
+            T = np.eye(4)
+            T[0, 3] = 0.1 if cam == "cam1" else 0.0
+            data = {"T_BS": {"data": T.ravel().tolist()}, "intrinsics": [40.0, 40.0, 32.0, 24.0]}
+            data.update({"resolution": [64, 48], "distortion_coefficients": [0.0, 0.0, 0.0, 0.0], **change})
+            (euroc / cam / "sensor.yaml").write_text(json.dumps(data))
+        with pytest.raises(CalibrationError, match=msg):
+            open_sequence(tmp_path / name)
+
+
+def test_item13_max_image_pixels_applies_to_kitti_folders(tmp_path: Path) -> None:
+    from loopmodel.config import SequenceConfig
+
+    root = _kitti(tmp_path / "k", _names(2), _names(2))
+    with pytest.raises(InputError, match=r"64x48 = 3072 pixels, above the limit of 1000"):
+        open_sequence(root, SequenceConfig(max_image_pixels=1000))
+
+
+def test_item14_odd_files_are_not_taken_for_absent(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    from loopmodel.calibration.stereo import pair_images
+
+    for kind in ("fifo", "folder", "loop"):
+        for name in ("poses.txt", "times.txt"):
+            root = _kitti(tmp_path / f"{kind}_{name}", _names(2), _names(2))
+            p = root / name
+            if kind == "fifo":
+                os.mkfifo(p)
+            elif kind == "folder":
+                p.mkdir()
+            else:
+                p.symlink_to(p)
+            with pytest.raises(InputError, match=name):
+                open_sequence(root)
+    # EuRoC rows naming a missing image: skipped with a warning; a negative stamp: refused
+    euroc = tmp_path / "e" / "mav0"
+    for cam in ("cam0", "cam1"):
+        (euroc / cam / "data").mkdir(parents=True)
+        for t in (1000, 2000, 3000):
+            cv2.imwrite(str(euroc / cam / "data" / f"{t}.png"), np.zeros((48, 64), np.uint8))
+        (euroc / cam / "data.csv").write_text("#t,f\n1000,1000.png\n2000,2000.png\n2500,gone.png\n3000,3000.png\n")
+        T = np.eye(4)
+        T[0, 3] = 0.1 if cam == "cam1" else 0.0
+        data = {"T_BS": {"data": T.ravel().tolist()}, "intrinsics": [40.0, 40.0, 32.0, 24.0], "resolution": [64, 48]}
+        (euroc / cam / "sensor.yaml").write_text(json.dumps(data))
+    with caplog.at_level(logging.WARNING, logger="loopmodel"):
+        assert len(open_sequence(tmp_path / "e")) == 3
+    assert "1 of 4 rows name a missing image, skipped (gone.png)" in caplog.text
+    (euroc / "cam0" / "data.csv").write_text("#t,f\n-5,1000.png\n2000,2000.png\n")
+    with pytest.raises(FormatError, match="negative timestamp"):
+        open_sequence(tmp_path / "e")
+    # unmatched chessboard images: said
+    left = [tmp_path / f"left{i}.png" for i in range(6)]
+    right = [tmp_path / f"right{i}.png" for i in range(4)]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="loopmodel"):
+        assert len(pair_images(left, right)) == 4
+    assert "2 images without a partner" in caplog.text and "left5.png" in caplog.text
+
+
+def test_item15_other_values_accepted_silently(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from loopmodel.turntable.reader import MarkerLayout, WorkingVolume, _check_layout_values
+
+    # PointCloud2 whose z is float64, or without z
+    f64 = [SimpleNamespace(name="x", offset=0, datatype=7), SimpleNamespace(name="y", offset=4, datatype=7)]
+    for fields in (f64 + [SimpleNamespace(name="z", offset=8, datatype=8)], f64):
+        msg = SimpleNamespace(fields=fields, width=1, height=1, point_step=16, data=b"\0" * 16, is_bigendian=0)
+        with pytest.raises(FormatError, match="/laser/points: PointCloud2 needs float32"):
+            decode_pointcloud_xyz(msg, "/laser/points")
+    # turntable layout values
+    lp = tmp_path / "turntable.yaml"
+    for step, radius, msg in ((float("nan"), 0.08, "step_deg"), (0.0, 0.08, "step_deg"), (-1e308, 0.08, "step_deg")):
+        with pytest.raises(InputError, match=msg):
+            _check_layout_values(lp, MarkerLayout(ids=[1]), WorkingVolume(radius_m=radius), step, 0.125)
+    with pytest.raises(InputError, match="volume.radius_m"):
+        _check_layout_values(lp, MarkerLayout(ids=[1]), WorkingVolume(radius_m=-0.1), 10.0, 0.125)
+    # eval: positions of 1e298 and quaternion components of 1e308
+    ref = tmp_path / "ref.tum"
+    ref.write_text("".join(f"{i}.0 {i} 0 0 0 0 0 1\n" for i in range(5)))
+    for row, msg in (("2.0 1e298 0 0 0 0 0 1", "position beyond"), ("2.0 2 0 0 1e308 0 0 1", "quaternion of norm")):
+        est = tmp_path / "est.tum"
+        est.write_text("0.0 0 0 0 0 0 0 1\n1.0 1 0 0 0 0 0 1\n" + row + "\n3.0 3 0 0 0 0 0 1\n")
+        assert main(["eval", "--ref", str(ref), "--est", str(est)]) == 2
+        assert msg in capsys.readouterr().err
+
+
+def test_item16_paths_in_data_files_stay_in_the_dataset(tmp_path: Path) -> None:
+    secret = tmp_path / "secret.png"
+    cv2.imwrite(str(secret), np.zeros((48, 64), np.uint8))
+    for name in (str(secret), "../../../secret.png"):
+        euroc = tmp_path / "e" / "mav0"
+        shutil.rmtree(tmp_path / "e", ignore_errors=True)
+        for cam in ("cam0", "cam1"):
+            (euroc / cam / "data").mkdir(parents=True)
+            (euroc / cam / "data.csv").write_text(f"#t,f\n1000,{name}\n")
+        with pytest.raises(FormatError, match="must be a file name inside data/"):
+            open_sequence(tmp_path / "e")
+    # a turntable layout's paths
+    from loopmodel.turntable.reader import open_turntable
+
+    (tmp_path / "tt").mkdir()
+    cv2.imwrite(str(tmp_path / "tt" / "0.png"), np.zeros((48, 64), np.uint8))
+    for key, value in (("frames", "../*.png"), ("camera", str(secret))):
+        layout = {"frames": "*.png", "camera": "cam.yaml", key: value}
+        (tmp_path / "tt" / "turntable.yaml").write_text(json.dumps(layout))
+        with pytest.raises(InputError, match=f"'{key}' must be a path inside the scan folder"):
+            open_turntable(tmp_path / "tt")
+
+
+def test_item17_messages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    fifo = tmp_path / "t.tum"
+    os.mkfifo(fifo)
+    with pytest.raises(InputError, match="pipe \\(FIFO\\), not a regular trajectory file"):
+        read_trajectory(fifo)
+    # a YAML error of a layout in one line
+    (tmp_path / "tt").mkdir()
+    (tmp_path / "tt" / "turntable.yaml").write_text("frames: [a\nb: {\n")
+    from loopmodel.turntable.reader import open_turntable
+
+    with pytest.raises(FormatError) as info:
+        open_turntable(tmp_path / "tt")
+    assert "\n" not in str(info.value)
+    from loopmodel.io.camera_yaml import read_intrinsics
+
+    (tmp_path / "cam.yaml").write_text("camera_matrix: [a\nb: {\n")
+    with pytest.raises(FormatError) as info:
+        read_intrinsics(tmp_path / "cam.yaml")
+    assert "\n" not in str(info.value) and "cam.yaml" in str(info.value)
+    # MCAP image errors name the frame
+    path = tmp_path / "m.mcap"
+    img = np.zeros((48, 64), np.uint8)
+    with McapSequenceWriter(path, _cal(64, 48), image_format="png") as w:
+        for k in range(2):
+            w.write_frame(StereoFrame((k + 1) * 100_000_000, img, img))
+        for topic, fid in (("/cam0/image_raw", "cam0"), ("/cam1/image_raw", "cam1")):
+            typ, m = w._image_msg(img, 300_000_000, fid)
+            m["data"] = _png_declaring(0, 48)  # frame 2's images declare a width of 0
+            w._write(topic, typ, m, 300_000_000)
+    it = McapSequence(path).frames()
+    next(it), next(it)
+    with pytest.raises(InputError, match="frame 2"):
+        next(it)
+
+
+def test_item17_no_library_lines_before_the_one_line(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    root = _kitti(tmp_path / "k", _names(3), _names(3))
+    png = bytearray((root / "image_0" / "000000.png").read_bytes())
+    png[60:80] = b"\0" * 20  # the compressed data damaged, the header intact
+    (root / "image_0" / "000000.png").write_bytes(bytes(png))
+    assert main(["run", str(root), "--out", str(tmp_path / "o")]) == 2
+    err = capfd.readouterr().err
+    assert "libpng" not in err and "000000.png" in err, err
+
+
+def _mcap_with_stripes(seq: Path, dst: Path, fields: list[dict[str, object]], data: bytes, n_pts: int) -> Path:
+    """The rendered KITTI folder as an MCAP, with one PointCloud2 stripe per frame of the given layout."""
+    from loopmodel.io.ros2_msgs import header
+
+    src = open_sequence(seq)
+    step = 12 if len(fields) == 3 and all(f["datatype"] == 7 for f in fields) else len(data) // max(n_pts, 1)
+    with McapSequenceWriter(dst, src.calibration, image_format="png") as w:
+        for frame in src.frames():
+            w.write_frame(frame)
+            msg = {
+                "header": header(frame.timestamp_ns, "cam0"),
+                "height": 1,
+                "width": n_pts,
+                "fields": [{**f, "count": 1} for f in fields],
+                "is_bigendian": False,
+                "point_step": step,
+                "row_step": step * n_pts,
+                "data": data,
+                "is_dense": False,
+            }
+            w._write(w.topics.stripe, "sensor_msgs/msg/PointCloud2", msg, frame.timestamp_ns)
+    return dst
+
+
+def test_items1_15_stripes_with_nan_points_or_other_fields(
+    small_run: tuple[Path, list[str]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    seq, _ = small_run
+    xyz = [{"name": a, "offset": 4 * i, "datatype": 7} for i, a in enumerate("xyz")]
+    pts = np.array([[0.0, -0.01 * i, 0.5] for i in range(20)], np.float32)
+    pts[3] = np.nan  # a ROS cloud with is_dense false: read without the NaN point
+    nan_mcap = _mcap_with_stripes(seq, seq.parent / "nan.mcap", xyz, pts.tobytes(), 20)
+    stripes = list(open_sequence(nan_mcap).stripes())
+    assert len(stripes) == 3 and all(s.points_in_cam.shape == (19, 3) for s in stripes)
+    # z as float64: refused at the frame whose cloud it is (issue 32: stripes are read with their frame),
+    # with what came before kept, file and topic named
+    out = seq.parent / "out"
+    f64 = [*xyz[:2], {"name": "z", "offset": 8, "datatype": 8}]
+    rows = np.zeros(20, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f8")])
+    bad = _mcap_with_stripes(seq, seq.parent / "f64.mcap", f64, rows.tobytes(), 20)
+    capsys.readouterr()
+    assert main(["run", str(bad), "--out", str(out), "--name", "f64"]) == 2
+    assert "f64.mcap /laser/stripe: PointCloud2 needs float32" in capsys.readouterr().err
+    m = json.loads((out / "f64" / "metrics.json").read_text())
+    assert m["frames"] < 3 and "/laser/stripe" in m["stopped_by"]

@@ -61,3 +61,73 @@ def test_hybrid_ba_with_final_stereo_and_missing_matches(rng: np.random.Generato
     assert np.linalg.norm(d[:3, 3]) < 0.01
     assert np.degrees(np.linalg.norm(so3_log(d[:3, :3]))) < 0.02
     assert np.isfinite(res.final_rms_px) and res.final_rms_px < 1.5 * sig
+
+
+def test_wider_window_matches_an_independent_least_squares(rng: np.random.Generator) -> None:
+    """Points of an earlier (fixed) keyframe in the BA (issue 36): the same optimum as scipy's solver.
+
+    Small noise and a wide Huber threshold make the cost plain least squares, which
+    ``scipy.optimize.least_squares`` minimises independently over the same unknowns.
+    """
+    from scipy.optimize import least_squares
+
+    cam = CentralCamera(700.0, 700.0, 600.0, 180.0)
+    right_from_left = np.eye(4)
+    right_from_left[0, 3] = -0.5
+    M0, M1 = 80, 60
+    X = np.column_stack([rng.uniform(-5, 5, M0 + M1), rng.uniform(-2, 2, M0 + M1), rng.uniform(5, 25, M0 + M1)])
+    F_true = se3_exp([0.05, -0.02, -1.0, 0.01, 0.03, -0.005])  # f_from_kf
+    own_true = se3_exp([0.02, 0.0, 1.2, 0.0, -0.01, 0.0])  # earlier keyframe from keyframe i (fixed)
+    owner = np.r_[np.zeros(M0, np.int64), np.ones(M1, np.int64)]
+    frames = np.stack([np.eye(4), own_true])
+    sig = 0.2
+
+    def obs(T: np.ndarray, P: np.ndarray) -> np.ndarray:
+        return cam.project(P @ T[:3, :3].T + T[:3, 3])
+
+    uvl = np.vstack([obs(frames[k], X[owner == k]) for k in (0, 1)]) + rng.normal(0, sig, (M0 + M1, 2))
+    uvr = np.vstack([obs(right_from_left @ frames[k], X[owner == k]) for k in (0, 1)])
+    uvr += rng.normal(0, sig, uvr.shape)
+    uvf = obs(F_true, X) + rng.normal(0, sig, (M0 + M1, 2))
+    uvf[M0::4] = np.nan  # some earlier points not seen at the end
+    X0 = X * rng.uniform(0.95, 1.05, (M0 + M1, 1))
+    F0 = se3_exp([0.03, 0.02, 0.05, 0.004, -0.004, 0.003]) @ F_true
+    res = hybrid_keyframe_ba(
+        X0, uvl, uvr, uvf, F0, cam, cam, right_from_left, iterations=50, huber_px=50.0,
+        owner=owner, own_from_kf=frames,
+    )
+    seen = np.all(np.isfinite(uvf), axis=1)
+
+    def residuals(z: np.ndarray) -> np.ndarray:
+        T = se3_exp(z[:6]) @ F0
+        P = z[6:].reshape(-1, 3)
+        r = [obs(frames[k], P[owner == k]) - uvl[owner == k] for k in (0, 1)]
+        r += [obs(right_from_left @ frames[k], P[owner == k]) - uvr[owner == k] for k in (0, 1)]
+        r.append(obs(T, P[seen]) - uvf[seen])
+        return np.concatenate([a.ravel() for a in r])
+
+    # which unknowns each residual depends on (the finite differences then take few evaluations)
+    from scipy.sparse import lil_matrix
+
+    n = M0 + M1
+    rows = [np.flatnonzero(owner == k) for k in (0, 1)] * 2 + [np.flatnonzero(seen)]
+    pattern = lil_matrix((2 * sum(r.size for r in rows), 6 + 3 * n), dtype=int)
+    i = 0
+    for blk, pts in enumerate(rows):
+        for j in pts:
+            for _ in range(2):
+                pattern[i, 6 + 3 * j : 9 + 3 * j] = 1
+                if blk == 4:
+                    pattern[i, :6] = 1
+                i += 1
+    ref = least_squares(
+        residuals, np.r_[np.zeros(6), X0.ravel()], jac_sparsity=pattern, x_scale="jac", xtol=1e-12, ftol=1e-12
+    )
+    F_ref = se3_exp(ref.x[:6]) @ F0
+    d = invert_pose(F_ref) @ res.f_from_kf
+    assert np.linalg.norm(d[:3, 3]) < 2e-4
+    assert np.degrees(np.linalg.norm(so3_log(d[:3, :3]))) < 2e-3
+    np.testing.assert_allclose(res.points_in_kf, ref.x[6:].reshape(-1, 3), atol=2e-3)
+    # and near the truth
+    dt = invert_pose(F_true) @ res.f_from_kf
+    assert np.linalg.norm(dt[:3, 3]) < 0.01

@@ -8,7 +8,7 @@ import pytest
 from loopmodel.errors import InputError
 from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.global_ba import global_hybrid_ba
-from loopmodel.loop.synthetic import orbit_problem
+from loopmodel.sim.loop_problem import orbit_problem
 
 
 def _errors(T_est: dict[int, np.ndarray], T_true: list[np.ndarray]) -> tuple[float, float]:

@@ -96,7 +96,8 @@ def test_front_end_tracks_the_old_feature_set_after_a_revisit(tmp_path: Path) ->
     seq = open_sequence(tmp_path / "seq")
     cfg = _config()
     cfg.loop.detection_worker = "none"  # loops found at their own keyframe, whatever the load
-    run = _Run(seq, cfg, [])
+    cfg.backend.worker = "inline"  # the back end's factors are read below
+    run = _Run(seq.calibration, cfg, [])
     kept: dict[int, object] = {}
     for frame in seq.frames():
         res = run.step(frame)

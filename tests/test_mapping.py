@@ -557,9 +557,9 @@ def test_stripes_extracted_from_a_sequences_laser_images(tmp_path: Path) -> None
     simulated surface.
     """
     from loopmodel.config import config_from_dict
+    from loopmodel.io.laser import sequence_stripe_count, sequence_stripes
     from loopmodel.io.mesh_io import mesh_from_bytes
     from loopmodel.io.sequence import open_sequence
-    from loopmodel.mapping.extraction import sequence_stripe_count, sequence_stripes
     from loopmodel.sim import generate as gen
 
     cfg = config_from_dict(
@@ -599,3 +599,25 @@ def test_uint8_row_medians_equal_numpy(rng: np.random.Generator) -> None:
     for shape in [(7, 8), (5, 9), (1, 1), (48, 64)]:
         a = rng.integers(0, 256, shape).astype(np.uint8)
         np.testing.assert_array_equal(_row_medians_u8(a), np.median(a, axis=1))
+
+
+def test_cli_mesh_exports_convert_the_runs_mesh(
+    tmp_path: Path, sphere_scan: tuple[Trajectory, list[StripeProfile]], capfd: pytest.CaptureFixture[str]
+) -> None:
+    """GLB then OBJ of a run: its mesh.ply converted (same triangles), the picture kept, no open3d warning."""
+    from loopmodel.cli import main
+
+    traj, stripes = sphere_scan
+    d = _results_dir(tmp_path, traj, stripes[::3])
+    assert main(["mesh", str(d)]) == 0  # the run's mesh.ply
+    ply = read_mesh(d / "mesh.ply")
+    capfd.readouterr()
+    assert main(["mesh", str(d), "--format", "glb"]) == 0
+    assert main(["mesh", str(d), "--format", "obj"]) == 0  # failed: mesh.png of the GLB export existed
+    out = capfd.readouterr().out
+    assert "converted from" in out and "kept" in out and "can not include triangle normals" not in out
+    for fmt in ("glb", "obj"):
+        m = read_mesh(d / f"mesh.{fmt}")
+        assert len(m.triangles) == len(ply.triangles)
+        got, want = np.sort(np.asarray(m.vertices), axis=0), np.sort(np.asarray(ply.vertices), axis=0)
+        assert np.allclose(got, want, atol=1e-6)

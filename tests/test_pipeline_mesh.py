@@ -31,6 +31,7 @@ def test_run_writes_mesh_and_mesh_errors(
                 "trajectory": {"frames": 40},
             },
             "mapping": {"live_mesh_every_kf": 1},
+            "eval": {"mesh_references": True},  # the ground-truth and online meshes beside the final one
         }
     )
     seq_path = tmp_path / "scan.mcap"

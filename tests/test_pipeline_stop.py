@@ -83,8 +83,10 @@ def test_an_interrupt_inside_a_keyframe_step_leaves_a_consistent_folder(
         return add(self, keyframe)  # type: ignore[arg-type]
 
     monkeypatch.setattr(Isam2Backend, "add_keyframe", interrupted_add)
+    cfg = _config()
+    cfg.backend.worker = "inline"  # the back end's update on the tracking thread (issue 33: else a worker's)
     with pytest.raises(KeyboardInterrupt):
-        run_pipeline(open_sequence(sequence_dir), _config(), tmp_path, "half", handle_signals=False)
+        run_pipeline(open_sequence(sequence_dir), cfg, tmp_path, "half", handle_signals=False)
     m = _check_folder(tmp_path / "half")
     # the frame that made the third keyframe is not recorded, nor is the keyframe
     assert m["interrupted"] is True and m["keyframes"] == 2 and m["frames"] < N_FRAMES

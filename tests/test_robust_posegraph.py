@@ -21,13 +21,13 @@ from loopmodel.backend.robust_posegraph import (
     graph_error,
     optimize_lm,
     positive_definite_information,
-    read_g2o,
     robust_optimize,
     sequential_edges,
 )
 from loopmodel.config import LoopConfig
 from loopmodel.errors import FormatError
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_exp
+from loopmodel.io.g2o import read_g2o
 from loopmodel.loop.closer import LoopCloser, LoopClosure
 from loopmodel.loop.global_ba import LoopObservations
 from loopmodel.loop.stage import LoopClosingStage, MapState

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _calibration(rectified: bool = True) -> StereoCalibration:
-    K = np.array([[500.0, 0, 320.5], [0, 501.0, 240.25], [0, 0, 1]])
+    K = np.array([[50.0, 0, 32.5], [0, 50.1, 24.25], [0, 0, 1]])  # of the 64x48 images (issue 34)
     right_from_left = np.eye(4)
     right_from_left[0, 3] = -0.06
     if not rectified:
@@ -151,7 +151,7 @@ def _write_euroc(
                     "T_BS": {"cols": 4, "rows": 4, "data": [float(x) for x in T.ravel()]},
                     "resolution": list(size),
                     "camera_model": "pinhole",
-                    "intrinsics": [458.654, 457.296, 367.215, 248.375],
+                    "intrinsics": [45.8654, 45.7296, 36.7215, 24.8375],  # MH_01's, of 64x48 images
                     "distortion_model": "radial-tangential",
                     "distortion_coefficients": [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05],
                 }
@@ -218,19 +218,19 @@ def test_kitti_bad_layouts(tmp_path: Path, rng: np.random.Generator, caplog: pyt
             (root / "times.txt").write_text(times)
         return root
 
-    good = "P0: 700 0 600 0 0 700 180 0 0 0 1 0\nP1: 700 0 600 -380 0 700 180 0 0 0 1 0\n"
+    good = "P0: 7 0 6 0 0 7 5 0 0 0 1 0\nP1: 7 0 6 -3.8 0 7 5 0 0 0 1 0\n"  # of 12x10 images
     # images pair by file name: the left image without a right one is skipped and reported
     with caplog.at_level(logging.WARNING, logger="loopmodel"):
         assert len(open_sequence(make("counts", 3, 2, good))) == 2
     assert "1 unpaired images skipped (left only: 000002.png" in caplog.text
     with pytest.raises(CalibrationError, match="focal length"):
-        open_sequence(make("neg", 2, 2, good.replace("P0: 700", "P0: -700").replace("P1: 700", "P1: -700")))
+        open_sequence(make("neg", 2, 2, good.replace("P0: 7 ", "P0: -7 ").replace("P1: 7 ", "P1: -7 ")))
     with pytest.raises(CalibrationError, match="non-finite|non-numeric"):
-        open_sequence(make("nan", 2, 2, good.replace("P0: 700", "P0: nan")))
+        open_sequence(make("nan", 2, 2, good.replace("P0: 7 ", "P0: nan ")))
     with pytest.raises(FormatError, match="backwards"):
         open_sequence(make("back", 3, 3, good, "0.0\n0.2\n0.1\n"))
     seq = open_sequence(make("ok", 3, 3, good))
-    assert seq.calibration.baseline_m == pytest.approx(380 / 700)
+    assert seq.calibration.baseline_m == pytest.approx(3.8 / 7)
 
 
 def test_mcap_backwards_timestamps(tmp_path: Path, rng: np.random.Generator) -> None:

@@ -11,7 +11,7 @@ import pytest
 from loopmodel.config import Config, LoopConfig, config_from_dict
 from loopmodel.errors import InputError
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_log
-from loopmodel.io.map_file import ARRAYS_FILE, META_FILE, read_map_file
+from loopmodel.io.map_file import ARRAYS_FILE, META_FILE, load_session_map, read_map_file, save_session_map
 from loopmodel.loop.session_map import MapInputs, SessionMap, build_session_map
 from loopmodel.types import Keyframe, StereoCalibration, StripeAnchors, StripeProfile
 
@@ -69,8 +69,8 @@ def _small_map(n: int = 4) -> SessionMap:
 
 def test_map_save_load_round_trip_every_array(tmp_path: Path) -> None:
     smap = _small_map()
-    path = smap.save(tmp_path / "m")
-    loaded = SessionMap.load(path)
+    path = save_session_map(tmp_path / "m", smap)
+    loaded = load_session_map(path)
     a, b = smap.to_file_data(), loaded.to_file_data()
     assert set(a.arrays) == set(b.arrays) and len(a.arrays) > 30
     for k, v in a.arrays.items():
@@ -95,7 +95,7 @@ def test_map_save_load_round_trip_every_array(tmp_path: Path) -> None:
 def test_damaged_or_newer_map_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from loopmodel.cli import main
 
-    path = _small_map().save(tmp_path / "m")
+    path = save_session_map(tmp_path / "m", _small_map())
     assert main(["map", "info", str(path)]) == 0
     meta = json.loads((path / META_FILE).read_text())
     meta["version"] = 99
@@ -183,7 +183,7 @@ def test_second_session_localizes_in_the_map(
     from loopmodel.pipeline import run_pipeline
 
     seq_a, folder_a = first_session
-    smap = SessionMap.load(folder_a)
+    smap = load_session_map(folder_a)
     seq_b = second_session[0]
     cfg = Config()
     cfg.session.mode = "localize"
@@ -215,7 +215,7 @@ def test_merge_recovers_known_offset(first_session: tuple[Path, Path], second_se
     from loopmodel.loop.merge import merge_maps
 
     (seq_a, folder_a), (seq_b, folder_b) = first_session, second_session
-    a, b = SessionMap.load(folder_a), SessionMap.load(folder_b)
+    a, b = load_session_map(folder_a), load_session_map(folder_b)
     # B's world moved by a known offset on top of where B's own run put it
     offset = make_pose(_rot_z(30.0), np.array([0.2, -0.1, 0.05]))
     b = dataclasses.replace(b, world_from_kf=offset[None] @ b.world_from_kf)
@@ -229,15 +229,15 @@ def test_merge_recovers_known_offset(first_session: tuple[Path, Path], second_se
     assert np.linalg.norm(err[:3, 3]) < 0.0025 and np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) < 0.15
     assert len(merged) == len(a) + len(b) and set(merged.session.tolist()) == {0, 1}
     assert int(np.sum(merged.edge_kind == 2)) == report.links
-    merged_back = SessionMap.load(merged.save(folder_a.parent / "merged"))
+    merged_back = load_session_map(save_session_map(folder_a.parent / "merged", merged))
     assert np.array_equal(merged_back.world_from_kf, merged.world_from_kf)
 
 
 @pytest.mark.slow
 def test_resume_continues_from_the_last_keyframe(first_session: tuple[Path, Path], tmp_path: Path) -> None:
+    from loopmodel.io.map_file import read_resume_point
     from loopmodel.io.sequence import open_sequence
     from loopmodel.io.trajectory_io import read_trajectory
-    from loopmodel.loop.session_map import read_resume_point
     from loopmodel.pipeline import run_pipeline
 
     seq_path, folder_full = first_session
@@ -253,5 +253,5 @@ def test_resume_continues_from_the_last_keyframe(first_session: tuple[Path, Path
     d_mm = np.linalg.norm(res.positions_m - full.positions_m, axis=1) * 1e3
     # measured: resumed at frame 25; 0.27 mm median, 0.39 mm largest position difference
     assert np.median(d_mm) < 1.0 and d_mm.max() < 1.5
-    smap = SessionMap.load(resumed.folder)
+    smap = load_session_map(resumed.folder)
     assert len(smap) == len(point.map) - 1 + resumed.metrics["keyframes"]

@@ -11,6 +11,8 @@ from __future__ import annotations
 import json
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -112,3 +114,92 @@ def test_signals_at_seeded_times_leave_complete_results(tmp_path: Path, monkeypa
         else:
             assert frames == N_FRAMES, outcomes
     assert sum(rc == 130 and frames < N_FRAMES for _, frames, rc in outcomes) >= 10, outcomes
+
+
+# ----------------------------------------------------------------------------- issue 34 item 11
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _cli(args: list[str]) -> subprocess.Popen[str]:
+    env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1")
+    return subprocess.Popen(
+        [sys.executable, "-m", "loopmodel", *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+
+
+@pytest.mark.slow
+def test_sigterm_at_the_final_writes_never_kills_by_default(tmp_path: Path) -> None:
+    """SIGTERM while the results are written, and just after they are: exit 0 or 130, never 143."""
+    seq = tmp_path / "seq"
+    write_kitti_folder(seq, 4, np.random.default_rng(11))
+    for k, moment in enumerate(("writing", "written")):
+        out = tmp_path / "out"
+        proc = _cli(["run", str(seq), "--out", str(out), "--name", f"r{k}"])
+        staged = out / f".r{k}.tmp-{proc.pid}"
+        deadline = time.monotonic() + 120
+        if moment == "writing":
+            while proc.poll() is None and not (staged / "metrics.json").exists() and time.monotonic() < deadline:
+                time.sleep(0.002)
+        else:  # the command's last line printed: the interpreter is shutting down
+            assert proc.stdout is not None
+            for line in proc.stdout:
+                if "results in" in line:
+                    break
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+        assert proc.returncode in (0, 130), (moment, proc.returncode, err)
+        assert "Traceback" not in err
+        m = _check(out / f"r{k}")
+        assert m["frames"] == 4 or m["interrupted"]
+
+
+def _children(pid: int) -> list[str]:
+    try:
+        return Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    except OSError:
+        return []
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_signal_during_simulate_start_up_is_not_lost(tmp_path: Path, signum: int) -> None:
+    """Ctrl-C (to the process group) or SIGTERM (to the command) while the render workers start.
+
+    The parent waits for them to read their set-up then; the signal was lost (Ctrl-C: the scan
+    written, exit 0) or left worker tracebacks (SIGTERM).
+    """
+    out = tmp_path / "s.mcap"
+    args = ["simulate", "scan", "--out", str(out), "--frames", "40", "--workers", "2"]
+    proc = _cli([*args, "--width", "160", "--height", "120"])
+    deadline = time.monotonic() + 120
+    while not _children(proc.pid) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert proc.poll() is None, "simulate finished before its workers started"
+    if signum == signal.SIGINT:
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C reaches the whole process group
+    else:
+        time.sleep(0.5)  # the workers reading their set-up
+        proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "interrupted" in err
+    assert not out.exists() and not list(tmp_path.glob(".s.mcap.tmp-*"))
+
+
+def test_ctrl_c_while_the_cli_imports(tmp_path: Path) -> None:
+    """A Ctrl-C in the first moments (the command line still importing): one line, exit 130."""
+    codes = []
+    for delay in (0.25, 0.5, 0.8):  # after the interpreter started, while loopmodel.cli imports
+        proc = _cli(["info", str(tmp_path / "nothing")])
+        time.sleep(delay)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+        assert "Traceback" not in err and proc.returncode in (130, 2), (delay, proc.returncode, err)
+        codes.append(proc.returncode)
+    assert 130 in codes, codes

@@ -17,8 +17,8 @@ from loopmodel.config import Config, MappingConfig, SimulationConfig, config_fro
 from loopmodel.eval.trajectory_metrics import false_loop_mask
 from loopmodel.geometry.align import umeyama_alignment
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_exp
+from loopmodel.io.laser import sequence_stripes
 from loopmodel.io.sequence import open_sequence
-from loopmodel.mapping.extraction import sequence_stripes
 from loopmodel.sim import generate as gen
 from loopmodel.sim.sensor import (
     EUROC_DIST_LEFT,

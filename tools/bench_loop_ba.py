@@ -15,7 +15,7 @@ import statistics
 import numpy as np
 
 from loopmodel.loop.global_ba import global_hybrid_ba
-from loopmodel.loop.synthetic import orbit_problem
+from loopmodel.sim.loop_problem import orbit_problem
 
 
 def run(quick: bool = False) -> dict:

@@ -38,9 +38,10 @@ def masked(frame: Any, fraction: float) -> Any:
 
 
 def run_condition(frames: list, calibration: Any, gt: Any, cfg: Any, fraction: float) -> dict[str, Any]:
+    from loopmodel.eval.of_run import trajectory_errors
     from loopmodel.frontend import FrontEnd
     from loopmodel.frontend.stereo import match_stereo
-    from loopmodel.pipeline import _ground_truth_errors, _online_trajectory
+    from loopmodel.pipeline import _online_trajectory
 
     fe = FrontEnd(calibration, cfg)
     t0 = time.perf_counter()
@@ -54,7 +55,7 @@ def run_condition(frames: list, calibration: Any, gt: Any, cfg: Any, fraction: f
         "mono_points_mean": round(float(np.mean([r.mono_points for r in ok])), 1) if ok else 0.0,
         "wall_s": round(wall, 2),
     }
-    err = _ground_truth_errors(_online_trajectory(res), gt)
+    err = trajectory_errors(_online_trajectory(res), gt)
     out["drift_pct"] = round(err.get("drift_pct", float("nan")), 3)
     out["ate_rmse_m"] = round(err.get("ate_rmse_m", float("nan")), 4)
     # observer depths (converged tracks) against stereo on the unmasked right image

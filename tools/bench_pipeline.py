@@ -13,8 +13,12 @@ ground-truth path length), ``kitti_rot_err_final_deg`` (rotation error of the on
 trajectory's last pose with the first poses aligned; ``kitti_rot_err_final_deg_after_gt_segment``
 and ``kitti_online_drift_pct_after_gt_segment`` align at the first frame after the ground truth's
 constant-rate first ``kitti_gt_constant_rate_steps`` steps, see ``bench kitti-rotation``),
+``kitti_sim3_scale`` (truth / estimate) and ``kitti_step_scale_last_over_first`` (per-step scale,
+last quarter over first, of the online trajectory; issue 36; ``sim_`` likewise),
 ``sim_fps``, ``sim_frame_ms_p95`` (the orbit scan with ``configs/sim.yaml``: live mesh every 5
-keyframes; the final mesh is not written), ``import_s`` (a fresh interpreter importing
+keyframes), ``wall_over_frames_kitti`` / ``wall_over_frames_sim`` (``run_pipeline``'s wall time, the
+final mesh, evaluation and writes included, over the frame loop's, issue 32), ``finish_s_<step>_<kitti|sim>``
+(each step after the last frame), ``import_s`` (a fresh interpreter importing
 ``loopmodel.pipeline``, median of 3).
 
 The trajectory errors are computed here in plain numpy from the written TUM files and the
@@ -120,6 +124,24 @@ def _match(
     return T_est[ok], T_gt[j[ok]]
 
 
+def _scale_keys(est: np.ndarray, gt: np.ndarray, prefix: str) -> dict[str, float]:
+    """``<prefix>sim3_scale`` (truth / estimate) and ``<prefix>step_scale_last_over_first`` of matched poses.
+
+    The Sim(3) scale is computed here in plain numpy; the per-step scale by the one helper of
+    :mod:`loopmodel.eval.trajectory_metrics` (tested against a hand computation).
+    """
+    from loopmodel.eval.trajectory_metrics import step_scale_last_over_first
+
+    if len(est) < 3:
+        return {}
+    src, dst = est[:, :3, 3], gt[:, :3, 3]
+    R, _t = umeyama_se3(src, dst)
+    sc = src - src.mean(0)
+    scale = float(np.sum((dst - dst.mean(0)) * (sc @ R.T)) / np.sum(sc * sc))
+    return {f"{prefix}sim3_scale": round(scale, 4),
+            f"{prefix}step_scale_last_over_first": round(step_scale_last_over_first(gt, est), 4)}
+
+
 # ----------------------------------------------------------------- runs
 def import_seconds(repeats: int = 3) -> float:
     """Median wall time of a fresh interpreter importing ``loopmodel.pipeline``."""
@@ -141,8 +163,34 @@ def _run(
     cfg = load_config(config_path)
     cfg.output.out_dir = str(out)
     cfg.mapping.write_mesh = final_mesh
-    res = run_pipeline(seq, cfg, out, name, max_frames=max_frames)
-    return {"metrics": res.metrics, "folder": res.folder, "frames": res.frames}
+    last = [0.0]
+
+    def progress(i: int, n: int, fps: float, kf: int) -> None:
+        last[0] = time.perf_counter()
+
+    t0 = time.perf_counter()
+    res = run_pipeline(seq, cfg, out, name, progress=progress, max_frames=max_frames)
+    wall_s = time.perf_counter() - t0
+    # the frame loop as `loopmodel run` shows it: from the call to the progress bar's last frame
+    # (the set-up before the first frame included, as in issue 32's figures)
+    loop_s = last[0] - t0
+    return {"metrics": res.metrics, "folder": res.folder, "frames": res.frames, "wall_s": wall_s, "loop_s": loop_s}
+
+
+def finish_keys(prefix: str, r: dict[str, Any]) -> dict[str, Any]:
+    """The keys of the time after the last frame.
+
+    ``wall_over_frames_<prefix>`` (run_pipeline's wall time, writes included, over the frame loop's:
+    from the call to the last frame) and ``finish_s_<step>_<prefix>`` (each step after the last frame,
+    seconds).
+    """
+    m = r["metrics"]
+    out: dict[str, Any] = {f"wall_over_frames_{prefix}": round(r["wall_s"] / r["loop_s"], 3)}
+    out[f"frames_s_{prefix}"] = round(r["loop_s"], 2)
+    out[f"wall_s_{prefix}"] = round(r["wall_s"], 2)
+    for step, sec in (m.get("finish_s") or {}).items():
+        out[f"finish_s_{step}_{prefix}"] = round(sec, 2)
+    return out
 
 
 def frontend_fps(seq: Any, config_path: Path, max_frames: int | None = None) -> float:
@@ -199,6 +247,8 @@ def kitti(out: Path) -> dict[str, Any]:
             res["kitti_online_drift_pct_after_gt_segment"] = round(e2["drift_pct"], 3)
         res[f"kitti_{which}_ate_rmse_m"] = round(e["ate_rmse_m"], 4)
         res[f"kitti_{which}_drift_pct"] = round(e["drift_pct"], 3)
+        if which == "online":  # issue 36: the Sim(3) scale (truth / estimate) and how the per-step scale grows
+            res.update(_scale_keys(est, gt, "kitti_"))
         # kitti_rot_err_final_deg (the issue's key): last-pose rotation error of the ONLINE
         # trajectory; the final trajectory's beside it
         key = "kitti_rot_err_final_deg" if which == "online" else "kitti_final_traj_rot_err_deg"
@@ -207,6 +257,7 @@ def kitti(out: Path) -> dict[str, Any]:
         if k in m:
             res[f"kitti_{k}"] = m[k]
     res["kitti_final_refine_s"] = round(m.get("final_refine_s", 0.0), 2)
+    res.update(finish_keys("kitti", r))
     return res
 
 
@@ -225,9 +276,9 @@ def sim(out: Path, quick: bool) -> dict[str, Any]:
     seq = open_sequence(path)
     cfg = ROOT / "configs" / "sim.yaml"
     n = 200 if quick else None
-    # the final mesh and its accuracy (minutes of Poisson meshing after the last frame) are
-    # not part of the per-frame rate: left out here (bench sim-loop measures them)
-    r = _run(seq, cfg, out, "sim", max_frames=n, final_mesh=False)
+    # as `loopmodel run`: the final mesh and the evaluation after the frames (wall_over_frames_sim);
+    # they are not in the per-frame rate
+    r = _run(seq, cfg, out, "sim", max_frames=n)
     m = r["metrics"]
     res: dict[str, Any] = {
         "sim_sequence": path.name + (" first 200 frames" if quick else ""),
@@ -238,7 +289,9 @@ def sim(out: Path, quick: bool) -> dict[str, Any]:
         "sim_frame_ms_p95": round(m["frame_total_ms_p95"], 1),
         "sim_frontend_fps": round(frontend_fps(seq, cfg, n), 2),
         "sim_loops": m.get("loop_closure_count"),
+        "sim_mesh_err_after_mm": m.get("mesh_err_after_mm"),
     }
+    res.update(finish_keys("sim", r))
     gt = seq.ground_truth
     if gt is not None:
         t_gt = np.asarray(gt.timestamps_ns) * 1e-9
@@ -249,6 +302,8 @@ def sim(out: Path, quick: bool) -> dict[str, Any]:
                 e = errors(est, g)
                 res[f"sim_{which}_ate_rmse_m"] = round(e["ate_rmse_m"], 5)
                 res[f"sim_{which}_drift_pct"] = round(e["drift_pct"], 3)
+                if which == "online":
+                    res.update(_scale_keys(est, g, "sim_"))
     for k in ("pixel_sigma_px", "refine_applied", "refine_chi2_drop", "refine_chi2_sd"):
         if k in m:
             res[f"sim_{k}"] = m[k]

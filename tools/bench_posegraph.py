@@ -29,9 +29,9 @@ from loopmodel.backend.robust_posegraph import (
     add_false_loops,
     graph_error,
     optimize_lm,
-    read_g2o,
     robust_optimize,
 )
+from loopmodel.io.g2o import read_g2o
 
 DATA = SHARED_DATA / "posegraphs"
 ALL = ["intel", "MIT", "CSAIL", "kitti_00", "parking-garage", "cubicle", "sphere2500"]

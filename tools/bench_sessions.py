@@ -207,7 +207,7 @@ def _mesh_numbers(mesh: Any, truth_from_run: np.ndarray, seq: Any) -> tuple[floa
 
 
 def _gt_merged_mesh(seqs: list[Any], config: Config) -> Any:
-    from loopmodel.mapping.extraction import sequence_stripes
+    from loopmodel.io.laser import sequence_stripes
     from loopmodel.mapping.final import posed_stripes_mesh
     from loopmodel.mapping.stripe_map import StripeMap
 
@@ -223,18 +223,18 @@ def _gt_merged_mesh(seqs: list[Any], config: Config) -> Any:
 
 
 def _map_load(smap: Any, tmp: Path) -> dict[str, float]:
-    from loopmodel.io.map_file import map_size_bytes
+    from loopmodel.io.map_file import load_session_map, map_size_bytes, save_session_map
     from loopmodel.loop.database import PlaceParams
-    from loopmodel.loop.session_map import SessionMap, replicate, select_rows
+    from loopmodel.loop.session_map import replicate, select_rows
 
     copies = int(np.ceil(1000 / len(smap)))
     big = replicate(smap, copies)
     big = select_rows(big, np.arange(1000))
-    path = big.save(tmp / "map1000")
+    path = save_session_map(tmp / "map1000", big)
     times = []
     for _ in range(3):
         t0 = time.perf_counter()
-        loaded = SessionMap.load(path)
+        loaded = load_session_map(path)
         loaded.database(PlaceParams())
         times.append(time.perf_counter() - t0)
     return {"map_load_s": statistics.median(times), "map_size_mib": map_size_bytes(path) / 2**20}
@@ -246,8 +246,8 @@ def _kitti(config: Config, tmp: Path) -> dict[str, Any]:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from shared_data import SHARED_DATA
 
+    from loopmodel.io.map_file import load_session_map
     from loopmodel.io.sequence import open_sequence
-    from loopmodel.loop.session_map import SessionMap
 
     clip = SHARED_DATA / "kitti_clip"
     if not clip.is_dir():
@@ -257,7 +257,7 @@ def _kitti(config: Config, tmp: Path) -> dict[str, Any]:
     config = load_config(ROOT / "configs" / "kitti.yaml")
     seq = open_sequence(clip, config.sequence)
     a = _run(_Window(seq, 0, 30), config, tmp, "kitti_map")
-    smap = SessionMap.load(a.folder / "map")
+    smap = load_session_map(a.folder / "map")
     b = _run(_Window(seq, 20, 50), config, tmp, "kitti_loc", smap, "localize")
     status = b.metrics["localization_status"]
     loc = b.localized
@@ -290,9 +290,9 @@ def run(quick: bool = False) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmpd:
         tmp = Path(tmpd)
         ra = _run(seq_a, config, tmp, "A")
-        from loopmodel.loop.session_map import SessionMap
+        from loopmodel.io.map_file import load_session_map
 
-        map_a = SessionMap.load(ra.folder / "map")
+        map_a = load_session_map(ra.folder / "map")
         truth_from_a = _align(ra.final, seq_a)
         rb = _run(seq_b, config, tmp, "B")
         loc = _run(seq_b, config, tmp, "B_localize", map_a, "localize")

@@ -265,7 +265,7 @@ def _mesh_errors(out: dict[str, Any], scene_ply: Path, config: Config) -> dict[s
         A = np.eye(4)
         A[:3, :3], A[:3, 3] = R, t
         trajs[name] = Trajectory(out["stamps_ns"], np.einsum("ij,njk->nik", A, est))
-    from loopmodel.mapping.extraction import sequence_stripes
+    from loopmodel.io.laser import sequence_stripes
 
     seq = out["sequence"]
     stripes = list(sequence_stripes(seq, config.mapping))  # extracted from /laser/image
@@ -302,6 +302,7 @@ def _givens_blunders(
 
     cfg = config.model_copy(deep=True)
     cfg.backend.kind = "both"
+    cfg.backend.worker = "inline"  # the screen is wrapped below, in this process
     rng = np.random.default_rng(seed)
     injected: set[tuple[int, int]] = set()
     rejected: set[tuple[int, int]] = set()

@@ -15,7 +15,7 @@ correct edge is chi-square distributed when the information matrices are right),
 when the residuals are much smaller than the information says (real graphs often state
 pessimistic information). :func:`optimize_lm` is the plain (non-robust) solve.
 
-:func:`read_g2o` reads ``VERTEX_SE2``/``EDGE_SE2`` and ``VERTEX_SE3:QUAT``/``EDGE_SE3:QUAT``
+:func:`parse_g2o` reads ``VERTEX_SE2``/``EDGE_SE2`` and ``VERTEX_SE3:QUAT``/``EDGE_SE3:QUAT``
 files; when vertices are missing the initial poses are chained from the odometry edges, and an
 information matrix that is not positive definite is repaired (:func:`positive_definite_information`).
 """
@@ -123,15 +123,12 @@ def _se3_info_to_gtsam(info_g2o: F64) -> F64:
     return P @ info_g2o @ P.T
 
 
-def read_g2o(path: str | Path) -> PoseGraph:
-    """Read a 2-D or 3-D g2o pose graph (raises :class:`FormatError` on a bad line)."""
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise FormatError(p, "not a text g2o pose graph (undecodable bytes)") from None
-    except OSError as exc:
-        raise InputError(p, f"cannot read a g2o pose graph ({exc.strerror or exc.__class__.__name__})") from None
+def parse_g2o(text: str, source: str | Path) -> PoseGraph:
+    """The 2-D or 3-D pose graph of a g2o file's text (:func:`loopmodel.io.g2o.read_g2o` reads the file).
+
+    ``source`` names it in errors (:class:`FormatError` on a bad line) and gives the graph's name.
+    """
+    p = Path(source)
     poses: dict[int, F64] = {}
     edges: list[tuple[int, int]] = []
     meas: list[F64] = []

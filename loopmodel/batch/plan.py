@@ -38,8 +38,11 @@ from typing import Any
 import yaml
 
 from loopmodel import __version__
-from loopmodel.config import Config, LoopConfig, config_from_dict
+from loopmodel.config import Config, LoopConfig, config_from_dict, merge_nested
 from loopmodel.errors import InputError, LoopmodelError
+
+#: the most configuration variants a plan may have (each one a task per sequence)
+MAX_VARIANTS = 1000
 
 PLAN_KEYS = ("sequences", "base", "grid", "variants", "max_frames", "threads_per_task", "retries", "name")
 
@@ -48,6 +51,9 @@ PLAN_KEYS = ("sequences", "base", "grid", "variants", "max_frames", "threads_per
 BATCH_DEFAULTS: dict[str, Any] = (
     {"loop": {"background_ba": False}} if "background_ba" in LoopConfig.model_fields else {}
 )
+# issue 33: a batch already keeps every core busy with one task each, so a task's back end runs
+# inline (no worker beside the tracker): the same frames then give the same numbers, run after run
+BATCH_DEFAULTS["backend"] = {"worker": "inline"}
 
 _HASH_CHUNK_BYTES = 1 << 16
 
@@ -141,16 +147,6 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9._=-]+", "-", text).strip("-")[:60] or "x"
 
 
-def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for key, value in override.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _deep_merge(out[key], value)
-        else:
-            out[key] = value
-    return out
-
-
 def nested_from_dotted(overrides: dict[str, Any], source: str | Path | None = None) -> dict[str, Any]:
     """``{"frontend.max_features": 500}`` -> ``{"frontend": {"max_features": 500}}``."""
     nested: dict[str, Any] = {}
@@ -172,7 +168,7 @@ def effective_config(layers: list[dict[str, Any]], source: str | Path | None = N
     """The code defaults overridden by each nested layer in turn (validated; errors name the key)."""
     merged: dict[str, Any] = {}
     for layer in layers:
-        merged = _deep_merge(merged, layer)
+        merged = merge_nested(merged, layer)
     return config_from_dict(merged, source)
 
 
@@ -234,12 +230,13 @@ def _config_layer(value: Any, base_dir: Path, key: str, source: Path) -> dict[st
     if isinstance(value, dict):
         flat = {k: v for k, v in value.items() if "." in str(k)}
         nested = {k: v for k, v in value.items() if "." not in str(k)}
-        return _deep_merge(nested, nested_from_dotted(flat, source))
+        return merge_nested(nested, nested_from_dotted(flat, source))
     raise InputError(source, f"'{key}' must be a config file path or a mapping, got {type(value).__name__}")
 
 
 def _variant_name(overrides: dict[str, Any]) -> str:
-    return ",".join(f"{k.split('.')[-1]}={v}" for k, v in overrides.items()) or "base"
+    """``backend.kind=isam2,frontend.max_features=300``: the whole dotted key, section included."""
+    return ",".join(f"{k}={v}" for k, v in overrides.items()) or "base"
 
 
 def _variants(data: dict[str, Any], source: Path) -> list[Variant]:
@@ -252,6 +249,16 @@ def _variants(data: dict[str, Any], source: Path) -> list[Variant]:
         for k in keys:
             if not isinstance(grid[k], list) or not grid[k]:
                 raise InputError(source, f"grid key '{k}' must have a non-empty list of values")
+        count = 1
+        for k in keys:  # counted before anything is expanded (issue 34: 10 keys x 10 values)
+            count *= len(grid[k])
+        count += len(data.get("variants") or [])
+        if count > MAX_VARIANTS:
+            raise InputError(
+                source,
+                f"the grid makes {count} variants ({' x '.join(str(len(grid[k])) for k in keys)}), "
+                f"more than the limit of {MAX_VARIANTS}; split the plan",
+            )
         for combo in itertools.product(*(grid[k] for k in keys)):
             ov = dict(zip(keys, combo, strict=True))
             out.append(Variant(_variant_name(ov), ov))
@@ -298,7 +305,7 @@ def _sequences(data: dict[str, Any], base_dir: Path, source: Path) -> list[Seque
                 raise InputError(source, f"sequences[{k}]: the glob '{pattern}' matches nothing")
             paths = [Path(m).resolve() for m in matches]
         else:
-            paths = [Path(full).resolve()]  # a missing path becomes a failed task, not a failed plan
+            paths = [Path(full).resolve()]
         for p in paths:
             seq_name = str(name) if name and len(paths) == 1 else p.stem
             out.append(SequenceEntry(p, seq_name, cfg))
@@ -313,13 +320,17 @@ def _sequences(data: dict[str, Any], base_dir: Path, source: Path) -> list[Seque
 
 def load_plan(path: str | Path) -> Plan:
     """Read and check a plan file (see the module docstring); errors name the file and key."""
+    from loopmodel.io.text import read_text_file
+
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise InputError(p, "plan file does not exist")
     try:
-        data = yaml.safe_load(p.read_text())
+        data = yaml.safe_load(read_text_file(p, "plan file"))
     except yaml.YAMLError as exc:
         raise InputError(p, f"not valid YAML ({str(exc).splitlines()[0]})") from None
+    except RecursionError:
+        raise InputError(p, "not valid YAML (nested too deeply)") from None
     if not isinstance(data, dict):
         raise InputError(p, "a plan is a mapping with 'sequences' and 'grid' or 'variants'")
     unknown = set(data) - set(PLAN_KEYS)
@@ -352,4 +363,7 @@ def load_plan(path: str | Path) -> Plan:
     except LoopmodelError as exc:
         msg = exc.problem if isinstance(exc, InputError) else str(exc)
         raise InputError(p, f"variant '{var.name}' with sequence '{seq.name}': {msg}") from None
+    for seq in plan.sequences:  # refused with the plan, not found only when its task runs (issue 34)
+        if not seq.path.exists():
+            raise InputError(p, f"sequence '{seq.name}': {seq.path} does not exist")
     return plan

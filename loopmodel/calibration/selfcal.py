@@ -393,3 +393,39 @@ def close_loops(
             pts[j] = F[:3, :3] @ pts[j] + F[:3, 3]
     sc.world_from_kf = dict(moved)
     sc.landmarks_in_world = pts
+
+
+def restripe(
+    stripes: list[StripeProfile],
+    recorded: StereoCalibration,
+    refined: StereoCalibration,
+    plane_normal_in_cam: F64,
+    plane_d_m: float,
+) -> list[StripeProfile]:
+    """Stripes triangulated with the recorded left camera, moved to the refined one.
+
+    Each point goes back to its raw laser-image pixel through the recorded model (exactly the pixel
+    it was triangulated from), then out along the refined camera's ray to the light plane
+    (``n . p + d = 0``, left camera, metres).
+    """
+    import cv2
+
+    n = np.asarray(plane_normal_in_cam, float)
+    d_rec = np.zeros(5) if recorded.rectified else recorded.dist_left
+    out = []
+    for s in stripes:
+        p = np.asarray(s.points_in_cam, float).reshape(-1, 3)
+        if p.shape[0] == 0:
+            out.append(s)
+            continue
+        uv, _ = cv2.projectPoints(p.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), recorded.K_left, d_rec)
+        xy = cv2.undistortPointsIter(
+            uv, refined.K_left, refined.dist_left, None, None,
+            (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12),
+        ).reshape(-1, 2) if hasattr(cv2, "undistortPointsIter") else cv2.undistortPoints(
+            uv, refined.K_left, refined.dist_left,
+            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12),
+        ).reshape(-1, 2)
+        ray = np.column_stack([xy, np.ones(xy.shape[0])])
+        out.append(StripeProfile(s.timestamp_ns, ray * (-plane_d_m / (ray @ n))[:, None]))
+    return out

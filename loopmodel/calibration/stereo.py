@@ -16,6 +16,7 @@ Units: pixels, metres (the board's square size sets the scale).
 
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +30,8 @@ from loopmodel.errors import InputError
 from loopmodel.io.images import image_size
 from loopmodel.io.mcap_io import camera_info_dicts
 from loopmodel.types import StereoCalibration
+
+logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 
@@ -111,6 +114,12 @@ def pair_images(left: list[Path], right: list[Path]) -> list[tuple[Path, Path]]:
         common = sorted(set(nl) & set(nr))  # type: ignore[type-var]
         if not common:
             raise InputError(str(left[0].parent), "no left and right images share a number in their names")
+        alone = sorted((nl.keys() | nr.keys()) - set(common))  # type: ignore[type-var]
+        if alone:  # said, as the KITTI reader does (issue 34)
+            names = [(nl.get(k) or nr[k]).name for k in alone]
+            logger.warning(
+                "%d images without a partner of the same number skipped: %s", len(names), ", ".join(names[:5])
+            )
         return [(nl[k], nr[k]) for k in common]
     if len(left) != len(right):
         raise InputError(str(right[0].parent), f"{len(left)} left but {len(right)} right images")

@@ -37,8 +37,41 @@ def _ignore_further_interrupts() -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point: runs the app, turns loopmodel errors into one line and exit status 2."""
-    args = list(sys.argv[1:] if argv is None else argv)
     _PROGRAM[0] = argv is None
+    try:
+        return _main(list(sys.argv[1:] if argv is None else argv))
+    finally:
+        if _PROGRAM[0]:
+            _ignore_signals_at_exit()
+
+
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` comes from a Ctrl-C (an ImportError "initialization failed" wraps one)."""
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, KeyboardInterrupt):
+            return True
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
+    return False
+
+
+def _ignore_signals_at_exit() -> None:
+    """Ignore Ctrl-C and SIGTERM once the command is over and its exit status decided.
+
+    Its files are complete: a signal arriving while the interpreter shuts down must neither kill it
+    by the default action (exit 143) nor print a traceback (issue 34).
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, signal.SIG_IGN)
+
+
+def _main(args: list[str]) -> int:
     debug = "--debug" in args
     if not debug:  # numeric warnings are for developers; the results say what went wrong
         warnings.filterwarnings("ignore", category=RuntimeWarning)
@@ -69,7 +102,12 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except typer.exceptions.TyperException as exc:  # usage errors (click's, vendored by typer)
         show = getattr(exc, "show", None)
-        if callable(show):
+        message, ctx = getattr(exc, "format_message", None), getattr(exc, "ctx", None)
+        if callable(message) and ctx is not None:  # bad usage: one line, and where to read more
+            err_console.print(
+                f"error: {message()} (see: {ctx.command_path} --help)", highlight=False, soft_wrap=True, markup=False
+            )
+        elif callable(show):
             show()
         else:
             err_console.print(f"error: {exc}")
@@ -81,6 +119,10 @@ def main(argv: list[str] | None = None) -> int:
         err_console.print(f"[red]I/O error:[/red] {where}{exc.strerror or exc}", highlight=False, soft_wrap=True)
         return 1
     except Exception as exc:  # a bug, not bad input: say so in one line unless --debug
+        if _caused_by_interrupt(exc):  # a Ctrl-C inside an extension module's import
+            _ignore_further_interrupts()
+            err_console.print("interrupted")
+            return 130
         if debug:
             raise
         err_console.print(
@@ -109,7 +151,10 @@ vvs_app.command("render")(vvs_render)
 
 vvs_app.command("track")(vvs_track)
 
+from loopmodel.cli.help import document  # noqa: E402
 from loopmodel.cli.map import map_app  # noqa: E402, F401  (loopmodel map info|merge)
+
+document(app)  # help panels, the flow's order and one example per command (issue 35)
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

@@ -44,8 +44,10 @@ def batch_run(
         int | None,
         typer.Option("--workers", min=1, help="local: worker processes (default one per core); tcp: wait for N"),
     ] = None,
-    out: Annotated[Path | None, typer.Option("--out", help="Results folder (default results/<plan name>)")] = None,
-    no_plots: Annotated[bool, typer.Option("--no-plots", help="Summary without pictures")] = False,
+    out: Annotated[
+        Path | None, typer.Option("--out", "-o", help="Results folder (default results/<plan name>)")
+    ] = None,
+    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Also draw the summary's pictures")] = True,
 ) -> None:
     """Run every (sequence, variant) task of a plan.
 
@@ -101,7 +103,7 @@ def batch_run(
         except KeyboardInterrupt:
             err_console.print(f"interrupted; finished results are kept in {out_dir}; run the same command to continue")
             raise
-    paths = write_summary(load_manifest(out_dir.resolve()), out_dir, plots=not no_plots)
+    paths = write_summary(load_manifest(out_dir.resolve()), out_dir, plots=plots)
     done = sum(r.get("status") == "done" for r in outcome.records)
     failed = [r for r in outcome.records if r.get("status") != "done"]
     for r in failed:
@@ -152,11 +154,16 @@ def batch_status_cmd(
     table = Table(title=f"batch {folder}: {state}")
     for col in ("task", "sequence", "variant", "status", "detail"):
         table.add_column(col)
+    from loopmodel.batch.summary import eval_metrics
+    from loopmodel.display import Formatter, num
+
+    every = show_all or all(s == "done" for _, s, _ in states)  # a finished batch: list its tasks
     for t, s, rec in states:
-        if show_all or s != "done":
+        if every or s != "done":
             detail = (rec or {}).get("error") or ""
             if s == "done" and rec is not None and rec.get("ate_rmse_m") is not None:
-                detail = f"ATE {rec['ate_rmse_m']:.4g} m, {rec.get('task_s', 0):.1f} s"
+                fmt = Formatter.for_scale((eval_metrics(t) or {}).get("ground_truth_extent_m"))
+                detail = f"ATE RMSE {fmt.length_text(rec['ate_rmse_m'])}, task {num(rec.get('task_s'))} s (run + eval)"
             table.add_row(t.task_id, t.sequence_name, t.variant, s, str(detail))
     console.print(table)
     console.print(", ".join(f"{counts.get(s, 0)} {s}" for s in ("done", "running", "failed", "pending")))

@@ -7,9 +7,11 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from loopmodel.cli.common import console, err_console
+from loopmodel.display import MM, Formatter, key_values, num
 from loopmodel.errors import InputError
 
 calibrate_app = typer.Typer(help="Calibrate a real rig: stereo cameras, the laser plane.", no_args_is_help=True)
@@ -49,9 +51,9 @@ def stereo(
     res = calibrate_stereo(pairs, parse_board(board), square_m)
     for r in res.rejected:
         err_console.print(f"rejected {r.path}: {r.reason}", highlight=False)
-    table = Table("view", "left RMS (px)", "right RMS (px)")
+    table = Table("view", "left RMS [px]", "right RMS [px]")
     for v in res.views:
-        table.add_row(Path(v.left_path).name, f"{v.rms_left_px:.3f}", f"{v.rms_right_px:.3f}")
+        table.add_row(Path(v.left_path).name, num(v.rms_left_px), num(v.rms_right_px))
     console.print(table)
     c = res.calibration
     console.print(
@@ -59,9 +61,11 @@ def stereo(
         f"stereo {res.rms_stereo_px:.3f} px (plain OpenCV on the same corners: {res.reference_rms_left_px:.3f} / "
         f"{res.reference_rms_right_px:.3f} / {res.reference_rms_stereo_px:.3f} px)"
     )
+    unit = "board squares" if square_m == 1.0 else "m"  # --square-m 1: lengths in squares
     console.print(
-        f"baseline {c.baseline_m:.6g} (square = {square_m:g}); epipolar error after rectification "
-        f"RMS {res.epipolar_err_px_rms:.3f} px, max {res.epipolar_err_px_max:.3f} px"
+        f"baseline {num(c.baseline_m)} {unit} (square {num(square_m)} m); "
+        f"{key_values({k: v for k, v in c.summary().items() if k.endswith('_px')})}; epipolar error after "
+        f"rectification RMS {num(res.epipolar_err_px_rms)} px, max {num(res.epipolar_err_px_max)} px"
     )
     for p in write_stereo_outputs(res, out):
         console.print(f"wrote {p}")
@@ -90,13 +94,13 @@ def laser(
     res = calibrate_laser_plane(files, K, dist, parse_board(board), square_m, size, colour)
     for p, why in res.rejected:
         err_console.print(f"rejected {p}: {why}", highlight=False)
-    table = Table("image", "corners", "board RMS (px)", "distance (m)", "laser points")
+    table = Table("image", "corners", "board RMS [px]", "distance [m]", "laser points")
     for v in res.views:
         table.add_row(
             Path(v.path).name + (" (partial)" if v.partial else ""),
             str(v.corners),
-            f"{v.board_rms_px:.3f}",
-            f"{float((v.cam_from_board[:3, 3] ** 2).sum()) ** 0.5:.3f}",
+            num(v.board_rms_px),
+            num(float((v.cam_from_board[:3, 3] ** 2).sum()) ** 0.5),
             str(len(v.points_in_cam_m)),
         )
     console.print(table)
@@ -110,11 +114,9 @@ def laser(
     comparison = None
     if compare is not None:
         comparison = res.compare(read_laser_planes_json(compare))
-        ctab = Table("candidate", "RMS to our points (mm)", "normal angle (deg)", "|d| difference (mm)")
+        ctab = Table("candidate", "RMS to our points [mm]", "normal angle [°]", "|d| difference [mm]")
         for c in comparison:
-            ctab.add_row(
-                str(c["name"]), f"{c['rms_mm']:.2f}", f"{c['normal_angle_deg']:.2f}", f"{c['offset_diff_mm']:.1f}"
-            )
+            ctab.add_row(str(c["name"]), num(c["rms_mm"]), num(c["normal_angle_deg"]), num(c["offset_diff_mm"]))
         console.print(ctab)
     write_text_atomic(out, dump_yaml(plane_summary(res, comparison)))
     console.print(f"wrote {out}")
@@ -153,6 +155,7 @@ def turntable_scan(
         res = scan_turntable(scan, progress=progress)
     f = res.figures
     table = Table("figure", "value")
+    fmt = Formatter(MM)  # a turntable scan is close range
     for k in (
         "step_angle_err_deg_rms_before",
         "step_angle_err_deg_rms_after",
@@ -165,11 +168,11 @@ def turntable_scan(
         "marker_angle_scatter_deg_rms",
     ):
         v = f[k]
-        table.add_row(k, f"{v:.4g}" if isinstance(v, float) else str(v))
+        table.add_row(escape(fmt.header(k)), fmt.value(k, v) if not isinstance(v, str) else v)
     console.print(table)
     for name, c in f["plane_candidates"].items():
         console.print(
-            f"plane {name}: table residual {c['table_residual_mm']:.3g} mm (median {c['table_median_mm']:.3g} mm)"
+            f"plane {name}: table residual {num(c['table_residual_mm'])} mm (median {num(c['table_median_mm'])} mm)"
         )
     paths = write_outputs(res, scan.step_deg, out, str(folder))
     console.print(f"wrote {len(paths)} files to {out} (report: {out / 'report.md'})")

@@ -1,9 +1,8 @@
-"""Shared pieces of the command line: the typer app, consoles, progress bar, formatting, common options."""
+"""Shared pieces of the command line: the typer app, consoles, progress bar, common options."""
 
 from __future__ import annotations
 
 import logging
-import math
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -12,6 +11,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from loopmodel import __version__
+from loopmodel.cli.help import FlowGroup
 
 console = Console()
 
@@ -19,7 +19,10 @@ err_console = Console(stderr=True)
 
 app = typer.Typer(
     name="loopmodel",
+    cls=FlowGroup,
     help="Close-range 3-D modelling with a hand-held stereo camera and a laser-stripe profiler.",
+    epilog="Start with: loopmodel simulate scan --preset orbit -o scan.mcap; loopmodel run scan.mcap -o results; "
+    "loopmodel eval results/scan",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
     add_completion=False,
@@ -29,7 +32,15 @@ config_app = typer.Typer(help="Configuration.", no_args_is_help=True)
 
 app.add_typer(config_app, name="config")
 
-ConfigOption = Annotated[Path | None, typer.Option("--config", "-c", help="YAML file overriding defaults")]
+ConfigOption = Annotated[
+    list[Path] | None,
+    typer.Option(
+        "--config",
+        "-c",
+        metavar="FILE",
+        help="YAML file overriding the defaults; give it again to layer files (later ones override earlier ones)",
+    ),
+]
 
 LeftTopicOption = Annotated[str | None, typer.Option("--left", help="Left image topic of a bag (default: guessed)")]
 
@@ -73,20 +84,3 @@ def progress_bar(*extra: Any) -> Progress:
         console=err_console,
         transient=False,
     )
-
-
-def _length(v_m: float | None) -> str:
-    """A length for people: millimetres below 10 cm (close-range scans), metres above."""
-    if v_m is None or not math.isfinite(v_m):
-        return "-"
-    return f"{v_m * 1e3:.3g} mm" if abs(v_m) < 0.1 else f"{v_m:.4g} m"
-
-
-def _fmt(v: Any) -> str:
-    if isinstance(v, float):
-        return f"{v:.6g}"
-    if isinstance(v, dict):
-        return ", ".join(f"{k}={_fmt(x)}" for k, x in v.items())
-    if isinstance(v, list):
-        return "x".join(str(x) for x in v) if all(isinstance(x, int) for x in v) else ", ".join(map(str, v))
-    return str(v)

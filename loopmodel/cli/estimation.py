@@ -24,7 +24,7 @@ _NOISE_HELP = "N0/2 [contrast^2 px^2]: noise variance of a 1 px x 1 px cell (def
 
 @app.command()
 def bound(
-    out: Annotated[Path, typer.Option("--out", help="Output folder")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder")],
     marker: Annotated[list[str] | None, typer.Option("--marker", help=_MARKER_HELP)] = None,
     distance_m: Annotated[float | None, typer.Option("--distance-m", help="Distance R [m]")] = None,
     focal_mm: Annotated[float | None, typer.Option("--focal-mm", help="Focal length [mm]")] = None,
@@ -152,7 +152,7 @@ app.add_typer(depth_app, name="depth")
 
 @depth_app.command("simulate")
 def depth_simulate(
-    out: Annotated[Path, typer.Option("--out", help="Output folder")] = Path("results/depth_sim"),
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder")] = Path("results/depth_sim"),
     duration_s: Annotated[float, typer.Option("--duration-s", min=0.1)] = 10.0,
     rate_hz: Annotated[float, typer.Option("--rate-hz", min=1.0, help="measurement rate")] = 1000.0,
     seed: Annotated[int, typer.Option("--seed")] = 3,
@@ -188,7 +188,7 @@ def depth_simulate(
 @depth_app.command("track")
 def depth_track(
     seq_path: Annotated[Path, typer.Argument(help="Rectified stereo sequence (KITTI, MCAP)")],
-    out: Annotated[Path, typer.Option("--out", help="Output folder")] = Path("results/depth_track"),
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder")] = Path("results/depth_track"),
     window: Annotated[int, typer.Option("--window", min=3, help="frames per reference view")] = 6,
     stride: Annotated[int, typer.Option("--stride", min=3, help="frames between reference views")] = 10,
     config: ConfigOption = None,

@@ -3,19 +3,22 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import typer
 from rich.table import Table
 
 from loopmodel.cli.common import (
     ConfigOption,
-    _length,
     app,
     console,
 )
-from loopmodel.config import apply_overrides, load_config
+from loopmodel.config import AlignMode, apply_overrides, load_config
 from loopmodel.errors import InputError
+
+if TYPE_CHECKING:
+    from loopmodel.display import Formatter
+    from loopmodel.eval.evaluation import RunEvaluation
 
 
 @app.command("eval")
@@ -24,21 +27,35 @@ def eval_command(
     gt: Annotated[Path | None, typer.Option("--gt", help="Ground truth file or sequence")] = None,
     ref: Annotated[Path | None, typer.Option("--ref", help="Reference trajectory")] = None,
     est: Annotated[Path | None, typer.Option("--est", help="Estimated trajectory")] = None,
-    align: Annotated[str | None, typer.Option("--align", help="se3, sim3, origin, none")] = None,
+    align: Annotated[AlignMode | None, typer.Option("--align", help="Alignment to the ground truth")] = None,
     first_n: Annotated[int | None, typer.Option("--first-n", help="Align on N poses")] = None,
     max_dt_ms: Annotated[float | None, typer.Option("--max-dt-ms", help="Max time gap")] = None,
     rpe_delta_m: Annotated[float | None, typer.Option("--rpe-delta-m", help="RPE metres")] = None,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder")] = None,
-    no_plots: Annotated[bool, typer.Option("--no-plots", help="Skip the pictures")] = False,
+    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Also draw the pictures")] = True,
+    plot_mode: Annotated[
+        Literal["auto", "xy", "xz", "yz", "xyz"] | None,
+        typer.Option(
+            "--plot-mode",
+            help="Plane of the path plots, as evo's --plot_mode (default auto: xz for camera-frame ground truth "
+            "such as KITTI, xy for z-up worlds)",
+        ),
+    ] = None,
     config: ConfigOption = None,
 ) -> None:
     """Evaluate trajectories against ground truth: ATE, RPE, drift, loop-closure effect, report."""
     from loopmodel.eval import report as rep
 
     cfg = load_config(config)
-    overrides = {"align": align, "first_n": first_n, "max_dt_ms": max_dt_ms, "rpe_delta_m": rpe_delta_m}
+    overrides = {
+        "align": align,
+        "first_n": first_n,
+        "max_dt_ms": max_dt_ms,
+        "rpe_delta_m": rpe_delta_m,
+        "plot_mode": plot_mode,
+    }
     ecfg = apply_overrides(cfg.eval, overrides, {k: "--" + k.replace("_", "-") for k in overrides})
-    if no_plots:
+    if not plots:
         ecfg.plots = False
     runs = list(runs or [])
     if (ref is None) != (est is None):
@@ -69,25 +86,46 @@ def eval_command(
                 target = out / run.name if len(runs) > 1 else out
             rep.write_outputs(ev, target)
             evals.append((ev, target))
-    table = Table(title="loopmodel eval")
-    cols = ("run", "matched", "ATE final", "ATE online", "RPE/frame", "closures")
-    for col in (*cols, "report"):
-        table.add_column(col)
-    for ev, target in evals:
-        m = ev.metrics
-        tr = m["trajectories"]
-        online = tr.get("online", {}).get("ate_m", {}).get("rmse")
-        table.add_row(
-            m["run"],
-            str(tr["final"]["matched"]),
-            _length(m["ate_rmse_m"]),
-            _length(online),
-            _length(tr["final"].get("rpe_frames", {}).get("trans_m", {}).get("rmse")),
-            str(m["loop_closure_count"]),
-            str(target / "report.md"),
-        )
-    console.print(table)
+    console.print(eval_table(evals))
+    for ev, target in evals:  # below the table: a path never wraps inside a column
+        line = f"report: {target / 'report.html'}" + (f" ({ev.metrics['run']})" if len(evals) > 1 else "")
+        console.print(line, soft_wrap=True, highlight=False)
     if len(evals) > 1:
         cmp_dir = out or Path("eval_comparison")
         csv_path, md_path = rep.write_comparison([e for e, _ in evals], cmp_dir)
         console.print(f"comparison: {csv_path} {md_path}")
+
+
+def eval_table(evals: list[tuple[RunEvaluation, Path]]) -> Table:
+    """The table printed by ``loopmodel eval``: one row per run, lengths in the unit of its sequence.
+
+    The reports' paths are printed below it.
+    """
+    from rich.markup import escape
+
+    from loopmodel.display import num
+    from loopmodel.eval.evaluation import _get
+    from loopmodel.eval.render import report_formatter
+
+    fmts = [report_formatter(ev) for ev, _ in evals]
+    same = len({f.length.symbol for f in fmts}) == 1
+    u = f" [{fmts[0].length.symbol}]" if same and fmts else ""
+    table = Table(title="loopmodel eval")
+    for col in ("run", "matched", f"ATE RMSE final{u}", f"ATE RMSE online{u}", f"RPE per frame{u}", "closures"):
+        table.add_column(escape(col), justify="left" if col == "run" else "right")
+    for (ev, _target), fmt in zip(evals, fmts, strict=True):
+        m = ev.metrics
+        tr = m["trajectories"]
+
+        def length(v: float | None, f: Formatter = fmt) -> str:
+            return f.value("ate_m", v) if same else f.length_text(v)
+
+        table.add_row(
+            m["run"],
+            num(tr["final"]["matched"]),
+            length(m["ate_rmse_m"]),
+            length(_get(tr, "online", "ate_m", "rmse")),
+            length(_get(tr, "final", "rpe_frames", "trans_m", "rmse")),
+            num(m["loop_closure_count"]),
+        )
+    return table

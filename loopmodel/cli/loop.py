@@ -45,9 +45,8 @@ def loop_detect(
     config: ConfigOption = None,
 ) -> None:
     """Loop detection on an image sequence (monocular: fundamental-matrix verification)."""
-    import cv2
-
     from loopmodel.io.atomic import write_text_atomic
+    from loopmodel.io.images import read_grey_image
     from loopmodel.loop.closure import detector_from_config
     from loopmodel.loop.features import detect_and_describe, make_extractor
 
@@ -61,9 +60,7 @@ def loop_detect(
     with progress_bar() as bar:
         task = bar.add_task("images", total=len(files))
         for i, f in enumerate(files):
-            img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
-            if img is None:
-                raise InputError(f, "cannot be read as an image")
+            img = read_grey_image(f)  # the declared size checked before decoding
             if det is None:
                 det = detector_from_config(cfg, None, image_width_px=float(img.shape[1]))
             ev = det.process(i, detect_and_describe(img, cfg.descriptor, cfg.n_features, ex))
@@ -95,8 +92,7 @@ def loop_vocabulary(
     """
     from collections.abc import Iterator
 
-    import cv2
-
+    from loopmodel.io.images import read_grey_image
     from loopmodel.loop.vocabulary import train_from_images
 
     cfg = load_config(config).loop
@@ -104,9 +100,7 @@ def loop_vocabulary(
 
     def images() -> Iterator[Any]:
         for f in files:
-            img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
-            if img is None:
-                raise InputError(f, "cannot be read as an image")
+            img = read_grey_image(f)  # the declared size checked before decoding
             yield img
 
     voc = train_from_images(
@@ -118,5 +112,7 @@ def loop_vocabulary(
         seed,
         source=source or folder.name,
     )
-    voc.save(out)
+    from loopmodel.io.vocabulary_file import save_vocabulary
+
+    save_vocabulary(out, voc)
     console.print(f"{voc.n_words} {cfg.descriptor} words from {voc.info['images']} images written to {out}")

@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from loopmodel.cli.common import ConfigOption, _fmt, app, console
+from loopmodel.cli.common import ConfigOption, app, console
 from loopmodel.config import load_config
 
 map_app = typer.Typer(help="Session maps: describe, merge.", no_args_is_help=True)
@@ -27,11 +27,14 @@ def map_info(
     """Describe a map: keyframes, sessions, features, vocabulary, landmarks, pose graph, stripes, size."""
     import time
 
-    from loopmodel.io.map_file import map_folder, map_size_bytes
-    from loopmodel.loop.session_map import SessionMap
+    import numpy as np
+    from rich.markup import escape
+
+    from loopmodel.display import Formatter, describe_rows
+    from loopmodel.io.map_file import load_session_map, map_folder, map_size_bytes
 
     t0 = time.perf_counter()
-    smap = SessionMap.load(path)
+    smap = load_session_map(path)
     desc = {
         "map": str(map_folder(path)),
         **smap.summary(),
@@ -42,8 +45,11 @@ def map_info(
         console.print_json(json.dumps(desc))
         return
     table = Table(title=str(path), show_header=False)
-    for k, v in desc.items():
-        table.add_row(k, _fmt(v) if not isinstance(v, dict) else ", ".join(f"{a}: {_fmt(b)}" for a, b in v.items()))
+    rows = dict(desc)
+    rows["sessions"] = ", ".join(f"session {k}: {n} keyframes" for k, n in desc["sessions"].items())
+    fmt = Formatter.for_scale(float(np.linalg.norm(desc["keyframe_extent_m"])) if len(smap) else None)
+    for k, v in describe_rows(rows, fmt):
+        table.add_row(escape(k), escape(v))
     console.print(table)
 
 
@@ -53,15 +59,19 @@ def map_merge(
     second: Annotated[Path, typer.Argument(help="Map B (moved into A's world)")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Merged map folder to write")],
     config: ConfigOption = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing map folder at --out")] = False,
 ) -> None:
     """Merge map B into map A: place recognition finds where they share a view, then a joint optimisation."""
+    from loopmodel.errors import InputError
+    from loopmodel.io.map_file import load_session_map, save_session_map
     from loopmodel.loop.merge import merge_maps
-    from loopmodel.loop.session_map import SessionMap
 
+    if out.exists() and not overwrite:  # checked before the work (an input's own map/ too)
+        raise InputError(out, "exists; choose another --out or pass --overwrite")
     cfg = load_config(config)
-    a, b = SessionMap.load(first), SessionMap.load(second)
+    a, b = load_session_map(first), load_session_map(second)
     merged, report = merge_maps(a, b, cfg.loop)
-    merged.save(out)
+    save_session_map(out, merged)
     console.print(
         f"wrote {out}: {len(merged)} keyframes ({len(a)} + {len(b)}), "
         f"{report.links} links between the maps ({report.candidates} candidates), "

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from loopmodel.cli.common import (
@@ -14,19 +15,20 @@ from loopmodel.cli.common import (
     ConfigOption,
     LeftTopicOption,
     RightTopicOption,
-    _fmt,
-    _length,
     app,
     console,
     err_console,
     progress_bar,
 )
+from loopmodel.cli.summary import frontend_summary, run_summary_rows
 from loopmodel.cli.view import RerunConnectOption, RerunFileOption, RerunSpawnOption, rerun_listeners
 from loopmodel.config import Config, apply_overrides, load_config
+from loopmodel.display import Formatter, describe_rows, key_values, num
 from loopmodel.errors import InputError
 
 if TYPE_CHECKING:
     from loopmodel.loop.session_map import SessionMap
+    from loopmodel.result import RunResult
 
 
 @app.command()
@@ -42,21 +44,38 @@ def info(
 
     For a bag its image and camera_info topics with rates and sizes, and the stereo pair chosen.
     """
+    from loopmodel.io.rosbag_io import NoImageTopicsError, describe_recording
     from loopmodel.io.sequence import open_sequence
 
     cfg = load_config(config)
-    desc = open_sequence(path, cfg.sequence, left, right, calib).describe()
+    try:
+        desc = open_sequence(path, cfg.sequence, left, right, calib).describe()
+    except NoImageTopicsError:  # not a sequence to run, still a recording to describe (as ros2 bag info)
+        desc = describe_recording(path)
     if as_json:
         console.print_json(json.dumps(desc))
         return
     table = Table(title=str(path), show_header=False)
     for k, v in desc.items():
         if k == "topics" and isinstance(v, dict):
-            v = ", ".join(f"{t} [{d['type'].split('/')[-1]}: {d['messages']}]" for t, d in v.items())
+            desc[k] = ", ".join(f"{t} ({_topic_text(d)})" for t, d in v.items())
         if k == "image_topics" and isinstance(v, dict):
-            v = "; ".join(f"{t} " + ", ".join(f"{a} {_fmt(b)}" for a, b in d.items()) for t, d in v.items())
-        table.add_row(k, _fmt(v))
+            desc[k] = "; ".join(f"{t}: {key_values(d)}" for t, d in v.items())
+        if isinstance(v, list) and v and all(isinstance(x, str) for x in v):
+            desc[k] = ", ".join(v)
+    if desc.get("laser_images") and not desc.get("stripes"):
+        desc.pop("stripes", None)  # measured from the laser images by the run: "stripes 0" would mislead
+    if not desc.get("laser_images"):
+        desc.pop("laser_images", None)
+    for k, text in describe_rows(desc):
+        table.add_row(escape(k), escape(text))
     console.print(table)
+
+
+def _topic_text(d: dict[str, Any]) -> str:
+    """``PoseStamped: 120 messages, 10.00 Hz`` of a topic row."""
+    text = f"{str(d['type']).split('/')[-1]}: {d['messages']}"
+    return text + (f", {num(d['rate_hz'])} Hz" if d.get("rate_hz") else "")
 
 
 OverwriteOption = Annotated[
@@ -70,11 +89,24 @@ def convert(
     dst: Annotated[Path, typer.Argument(help="Output: .mcap, .bag (ROS 1) or a ROS 2 bag folder")],
     config: ConfigOption = None,
     image_format: Annotated[
-        str,
-        typer.Option("--image-format", help="raw, png, jpeg; bags also mono8, mono16, bgr8, rgb8, bgra8, bayer_rggb8"),
-    ] = "png",
+        Literal["raw", "png", "jpeg", "mono8", "mono16", "bgr8", "rgb8", "bgra8", "bayer_rggb8"] | None,
+        typer.Option(
+            "--image-format",
+            help="Image encoding (default: raw sensor_msgs/Image in bags, png in MCAP); png and jpeg go to "
+            "<image topic>/compressed in bags; mono8 ... bayer_rggb8 only in bags",
+        ),
+    ] = None,
+    epoch: Annotated[
+        str | None,
+        typer.Option(
+            "--epoch",
+            help="Bags: add this date (ISO 8601 UTC, or seconds) to every stamp, for sources with relative "
+            "times such as KITTI (else ROS tools read them as 1970)",
+        ),
+    ] = None,
     to: Annotated[
-        str | None, typer.Option("--to", help="mcap, ros2-sqlite3, ros2-mcap or ros1 (default: from the name)")
+        Literal["mcap", "ros2-sqlite3", "ros2-mcap", "ros1"] | None,
+        typer.Option("--to", help="Output kind (default: from the name)"),
     ] = None,
     keep_topics: Annotated[bool, typer.Option("--keep-topics", help="Keep the source's topic names")] = False,
     left: LeftTopicOption = None,
@@ -83,7 +115,7 @@ def convert(
     overwrite: OverwriteOption = False,
 ) -> None:
     """Convert a sequence to MCAP with ROS 2 messages (topics of DESIGN.md) or to a ROS bag."""
-    from loopmodel.io.convert import OUTPUT_KINDS, convert_sequence, output_kind
+    from loopmodel.io.convert import OUTPUT_KINDS, convert_sequence, output_kind, parse_epoch_ns, relative_times
     from loopmodel.io.rosbag_writer import ENCODINGS
     from loopmodel.io.sequence import open_sequence
 
@@ -95,7 +127,7 @@ def convert(
     if kind == "ros1" and dst.suffix.lower() != ".bag":
         raise InputError(dst, "a ROS 1 bag must end in .bag")
     allowed = ("raw", "png", "jpeg") if kind == "mcap" else ENCODINGS
-    if image_format not in allowed:
+    if image_format is not None and image_format not in allowed:
         raise InputError("--image-format", f"must be one of {', '.join(allowed)} for {kind}, got '{image_format}'")
     if dst.exists() and not overwrite:
         raise InputError(dst, "exists already; choose a new name or pass --overwrite")
@@ -104,6 +136,16 @@ def convert(
 
     if kind == "mcap":
         check_output_file(dst)  # before the work, not after it
+    epoch_ns = None
+    if epoch is not None:
+        if kind == "mcap":
+            raise InputError("--epoch", "applies to bags only (the project's MCAP keeps the source's stamps)")
+        try:
+            epoch_ns = parse_epoch_ns(epoch)
+        except ValueError:
+            raise InputError(
+                "--epoch", f"expected an ISO 8601 date such as 2011-10-03T12:55:00Z or seconds, got '{epoch}'"
+            ) from None
     cfg = load_config(config)
     seq = open_sequence(src, cfg.sequence, left, right, calib)
     done = [0]
@@ -115,12 +157,19 @@ def convert(
     try:
         with sigterm_as_interrupt(), progress_bar() as bar:
             task = bar.add_task("convert", total=len(seq))
-            convert_sequence(seq, dst, kind, cfg.sequence, image_format, keep_topics, progress=step)
+            convert_sequence(seq, dst, kind, cfg.sequence, image_format, keep_topics, progress=step, epoch_ns=epoch_ns)
     except KeyboardInterrupt:
         err_console.print(f"interrupted after {done[0]} frames; {dst} not written")
         raise typer.Exit(130) from None
     size = sum(p.stat().st_size for p in dst.rglob("*")) if dst.is_dir() else dst.stat().st_size
     console.print(f"wrote {dst} ({kind}, {size / 2**20:.1f} MiB, {len(seq)} frames)")
+    if kind != "mcap" and epoch_ns is None and relative_times(seq):
+        err_console.print(
+            f"note: the stamps of {src} are relative (from 0 s), so ROS tools read them as 1970; "
+            "--epoch DATE places them at a stated date",
+            highlight=False,
+            soft_wrap=True,
+        )
 
 
 @app.command()
@@ -128,7 +177,7 @@ def run(
     path: Annotated[Path, typer.Argument(help="MCAP file, ROS 1/ROS 2 bag, EuRoC or KITTI folder")],
     config: ConfigOption = None,
     frontend_only: Annotated[bool, typer.Option("--frontend-only", help="Run only the visual front end")] = False,
-    out: Annotated[Path | None, typer.Option("--out", help="Results root (default: output.out_dir)")] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Results root (default: output.out_dir)")] = None,
     name: Annotated[str | None, typer.Option("--name", help="Run name (folder under --out)")] = None,
     max_frames: Annotated[int | None, typer.Option("--max-frames", help="Stop after this many frames")] = None,
     left: LeftTopicOption = None,
@@ -141,17 +190,23 @@ def run(
         Path | None, typer.Option("--map", help="Saved map (RESULTS_DIR or RESULTS_DIR/map) to localize in or extend")
     ] = None,
     mode: Annotated[
-        str | None, typer.Option("--mode", help="With --map: localize (nothing added) or extend (merged map, mesh)")
+        Literal["localize", "extend"] | None,
+        typer.Option("--mode", help="With --map: localize (nothing added) or extend (merged map, mesh)"),
     ] = None,
     resume: Annotated[
         Path | None, typer.Option("--resume", help="Continue the interrupted run RESULTS_DIR from its last keyframe")
     ] = None,
     overwrite: OverwriteOption = False,
+    no_eval: Annotated[
+        bool, typer.Option("--no-eval", help="Skip the evaluation against the sequence's ground truth")
+    ] = False,
 ) -> None:
-    """Process a sequence (front end, back end).
+    """Process a sequence: track, close loops, optimise, mesh the laser stripes.
 
     Writes config, trajectories, keyframes, map, metrics and log into <out>/<name>/. Ctrl-C or
-    SIGTERM stops it after writing what it has. With --map the run localizes in a saved map
+    SIGTERM stops it after writing what it has. After the frames, one line per finishing step with
+    its time; when the sequence has ground truth the run is evaluated against it (errors in
+    metrics.json) unless --no-eval. With --map the run localizes in a saved map
     (trajectory_in_map.tum, per-frame status in metrics.json) or extends it (map/ is the merged map,
     mesh.ply the mesh of both sessions).
     """
@@ -164,12 +219,12 @@ def run(
         raise InputError("--max-frames", f"must be at least 1, got {max_frames}")
     resume_point = None
     if resume is not None:
-        from loopmodel.loop.session_map import read_resume_point
+        from loopmodel.io.map_file import read_resume_point
 
         resume_point = read_resume_point(resume)
         out, name = resume.parent, name or resume.name
         if config is None and (resume / "config.yaml").is_file():
-            config = resume / "config.yaml"  # the interrupted run's configuration
+            config = [resume / "config.yaml"]  # the interrupted run's configuration
     cfg, session_map = _session_config(load_config(config), base_map, mode)
     from loopmodel.io.results import check_results_folder
 
@@ -184,7 +239,7 @@ def run(
         console.print(f"{seq.format_name}: {seq.choice}")  # type: ignore[attr-defined]
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
     if frontend_only:
-        with progress_bar(_Text("{task.fields[fps]:.1f} fps")) as bar:
+        with progress_bar(_Text("{task.fields[fps]:.1f} fps")) as bar, FinishLines(bar) as finishing:
             task = bar.add_task("front end", total=total, fps=0.0)
             result = run_frontend(
                 seq,
@@ -193,16 +248,14 @@ def run(
                 run_name,
                 max_frames=max_frames,
                 progress=lambda i, n, fps: bar.update(task, completed=i, fps=fps),
+                evaluate=not no_eval,
+                finishing=finishing,
             )
-        m = result.metrics
-        console.print(
-            f"wrote {result.folder}: {m['frames']} frames ({m['lost_frames']} lost), "
-            f"{m['keyframes']} keyframes, {_fmt(m['fps'])} fps"
-            + (f", ATE {m['ate_rmse_m']:.3f} m, drift {m['drift_pct']:.2f} %" if "ate_rmse_m" in m else "")
-        )
+        console.print(frontend_summary(result.metrics, result.folder, _run_formatter(result)))
         return
     folder = Path(out if out is not None else cfg.output.out_dir) / run_name
-    with progress_bar(_Text("{task.fields[fps]:.1f} fps"), _Text("{task.fields[kf]} keyframes")) as bar:
+    frame_columns = (_Text("{task.fields[fps]:.1f} fps"), _Text("{task.fields[kf]} keyframes"))
+    with progress_bar(*frame_columns) as bar, FinishLines(bar) as finishing:
         task = bar.add_task("run", total=total, fps=0.0, kf=0)
         try:
             result = run_pipeline(
@@ -212,38 +265,80 @@ def run(
                 run_name,
                 max_frames=max_frames,
                 progress=lambda i, n, fps, kf: bar.update(task, completed=i, fps=fps, kf=kf),
-                listeners=rerun_listeners(seq.calibration, rerun, rerun_spawn, rerun_connect),
+                listeners=rerun_listeners(seq.calibration, rerun, rerun_spawn, rerun_connect, seq.ground_truth),
                 base_map=session_map,
                 resume=resume_point,
+                evaluate=not no_eval,
+                finishing=finishing,
             )
-        except KeyboardInterrupt:
-            err_console.print(f"results up to the last processed frame are in {folder}")
+        except KeyboardInterrupt as exc:
+            finishing.close()
+            note = getattr(exc, "note", "")  # kept beside a complete older run (issue 34)
+            where = note or f"results up to the last processed frame are in {folder}"
+            err_console.print(where, highlight=False, soft_wrap=True)  # one line, paths unbroken
             raise
-    m = result.metrics
     table = Table(title=f"loopmodel run {path.name}", show_header=False)
-    rows: list[tuple[str, Any]] = [
-        ("frames", f"{m['frames']} ({m['lost_frames']} lost)"),
-        ("keyframes", m["keyframes"]),
-        ("landmarks", m["landmarks"]),
-        ("fps", m["fps"]),
-        ("back end", f"{m['backend']}, {_fmt(m['backend_ms_median'])} ms per keyframe (median)"),
-    ]
-    if "loop_closure_count" in m:
-        rows.append(
-            (
-                "loops / relocalizations",
-                f"{m['loop_closure_count']} / {m['relocalization_count']} "
-                f"({m['loop_candidates_rejected']} candidates rejected)",
-            )
-        )
-    if "ate_rmse_m" in m:
-        rows.append(("ATE online / final", f"{_length(m['ate_rmse_m_online'])} / {_length(m['ate_rmse_m'])}"))
-        rows.append(("drift final [%]", m["drift_pct"]))
-    rows += _session_rows(m)
-    for k, v in rows:
-        table.add_row(k, _fmt(v))
+    for k, v in run_summary_rows(result.metrics, result.folder, _run_formatter(result), rerun):
+        table.add_row(escape(k), escape(v))
     console.print(table)
     console.print(f"results in {result.folder}")
+
+
+#: What the finishing steps (:data:`loopmodel.pipeline.FINISH_STEPS`) are called on the terminal.
+FINISH_LABELS = {
+    "workers": "loop and live-mesh workers",
+    "final_refinement": "final refinement",
+    "mesh": "final mesh",
+    "map": "session map",
+    "evaluation": "evaluation against ground truth",
+    "write": "results files",
+}
+
+
+class FinishLines:
+    """The finishing steps after the frames' bar: one line each, a spinner and its time while it runs, then its time.
+
+    A :data:`loopmodel.pipeline.FinishFn`; the frames' bar stops at the first step.
+    """
+
+    def __init__(self, frames_bar: Any) -> None:
+        self._frames_bar = frames_bar
+        self._steps: Any = None
+        self._tasks: dict[str, Any] = {}
+
+    def __call__(self, step: str, seconds: float | None) -> None:
+        from rich.progress import Progress, SpinnerColumn, TextColumn
+
+        if self._steps is None:
+            self._frames_bar.stop()
+            self._steps = Progress(
+                SpinnerColumn(finished_text="[green]done"),
+                TextColumn("{task.description}"),
+                TextColumn("{task.fields[time]}"),
+                console=err_console,
+            )
+            self._steps.start()
+        label = FINISH_LABELS.get(step, step)
+        if seconds is None:
+            self._tasks[step] = self._steps.add_task(label, total=1, time="")
+        elif step in self._tasks:
+            self._steps.update(self._tasks[step], completed=1, time=f"{seconds:.1f} s")
+
+    def close(self) -> None:
+        """Leave the lines as they are."""
+        if self._steps is not None:
+            self._steps.stop()
+
+    def __enter__(self) -> FinishLines:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _run_formatter(result: RunResult) -> Formatter:
+    """Lengths of a run in mm or m, from the extent of its path."""
+    return Formatter.for_positions(result.final.world_from_cam[:, :3, 3])
 
 
 def _session_config(cfg: Config, base_map: Path | None, mode: str | None) -> tuple[Config, SessionMap | None]:
@@ -254,24 +349,9 @@ def _session_config(cfg: Config, base_map: Path | None, mode: str | None) -> tup
         cfg = apply_overrides(cfg, {"session.mode": mode}, {"session.mode": "--mode"})
     if base_map is None:
         return cfg, None
-    from loopmodel.loop.session_map import SessionMap
+    from loopmodel.io.map_file import load_session_map
 
-    return cfg, SessionMap.load(base_map)
-
-
-def _session_rows(m: dict[str, Any]) -> list[tuple[str, Any]]:
-    """Rows of a run in a saved map (localize or extend)."""
-    rows: list[tuple[str, Any]] = []
-    if "localized_frames" in m:
-        first = m.get("map_first_localized_frame")
-        rows.append(("localized in the map", f"{m['localized_frames']} frames (first at frame {_fmt(first)})"))
-        if not m.get("map_localized"):
-            rows.append(("map", "never relocalized: poses in this session's own frame"))
-    if "merged" in m:
-        rows.append(
-            ("merged with the map", f"{m.get('merge_links')} links" if m["merged"] else "no shared view: not merged")
-        )
-    return rows
+    return cfg, load_session_map(base_map)
 
 
 @app.command()
@@ -280,9 +360,11 @@ def mesh(
         Path,
         typer.Argument(help="Results folder (stripes.npz + trajectory), session map, or a sequence with ground truth"),
     ],
-    fmt: Annotated[str, typer.Option("--format", "-f", help="ply (binary), obj, stl or glb")] = "ply",
+    fmt: Annotated[Literal["ply", "obj", "stl", "glb"], typer.Option("--format", "-f", help="ply is binary")] = "ply",
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output file (default RESULTS_DIR/mesh.FMT)")] = None,
-    trajectory: Annotated[str, typer.Option("--trajectory", help="final or online poses of a run")] = "final",
+    trajectory: Annotated[
+        Literal["final", "online"], typer.Option("--trajectory", help="Poses of a run to place the stripes with")
+    ] = "final",
     gt_mesh: Annotated[
         Path | None,
         typer.Option("--gt-mesh", help="Ground-truth mesh (.ply, or .mcap with scene.ply): print accuracy"),
@@ -290,43 +372,56 @@ def mesh(
     gt_attachment: Annotated[
         str, typer.Option("--gt-attachment", help="Attachment of an .mcap --gt-mesh (e.g. object.ply)")
     ] = "scene.ply",
-    picture: Annotated[
-        bool, typer.Option("--picture/--no-picture", help="Also write a PNG picture of the mesh beside it")
+    plots: Annotated[
+        bool, typer.Option("--plots/--no-plots", help="Also write a PNG picture of the mesh beside it")
     ] = True,
+    picture: Annotated[bool | None, typer.Option("--picture/--no-picture", hidden=True)] = None,  # old spelling
     config: ConfigOption = None,
     overwrite: OverwriteOption = False,
 ) -> None:
     """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run), or of a (merged) map."""
-    from loopmodel.io.mesh_io import MESH_FORMATS, read_mesh, write_mesh
-    from loopmodel.mapping.sources import load_stripes_and_poses
-    from loopmodel.mapping.stripe_map import StripeMap
+    import numpy as np
 
-    fmt = fmt.lower()
+    from loopmodel.io.laser import load_stripes_and_poses
+    from loopmodel.io.mesh_io import MESH_FORMATS, read_mesh, write_mesh
+    from loopmodel.mapping.stripe_map import StripeMap
+    from loopmodel.viz.mesh_render import CAMERA_UP
+
+    picture = plots if picture is None else picture
     if fmt not in MESH_FORMATS:
         raise InputError(None, f"--format must be one of {', '.join(MESH_FORMATS)}, got '{fmt}'")
     cfg = load_config(config)
     from loopmodel.io.atomic import check_output_file
 
     target = out or (source / f"mesh.{fmt}" if source.is_dir() else source.with_name(f"{source.stem}_mesh.{fmt}"))
-    for p in [target] + ([target.with_suffix(".png")] if picture else []):
-        check_output_file(p, overwrite)  # before the work
+    check_output_file(target, overwrite)  # before the work
+    run_mesh = source / "mesh.ply"
+    if trajectory == "final" and run_mesh.is_file() and run_mesh.resolve() != target.resolve() and gt_mesh is None:
+        # the run's own product (its final trajectory): converted, not re-meshed
+        surface = read_mesh(run_mesh)
+        write_mesh(target, surface, fmt)
+        console.print(f"wrote {target} ({num(len(surface.vertices))} vertices, converted from {run_mesh})")
+        _mesh_picture(target, surface, None, picture, overwrite, CAMERA_UP)
+        return
     if (source / "map.json").is_file():  # a saved (merged) session map: its stripes at their anchors
-        from loopmodel.loop.session_map import SessionMap
+        from loopmodel.io.map_file import load_session_map
         from loopmodel.mapping.final import posed_stripes_mesh
 
-        session_map = SessionMap.load(source)
+        session_map = load_session_map(source)
         map_stripes, map_poses = session_map.stripes_with_poses()
         surface = posed_stripes_mesh(map_stripes, map_poses, cfg.mapping)
         if surface is None:
             raise InputError(source, "the map holds no laser stripes to mesh")
         sessions = len(set(session_map.session.tolist()))
         placed, poses = f"{len(map_stripes)} stripes", f"map keyframes of {sessions} sessions"
+        camera_world = True
     else:
         stripes, traj, poses = load_stripes_and_poses(source, trajectory, cfg.sequence, cfg.mapping)
         smap = StripeMap.from_trajectory(traj, stripes, cfg.mapping)
         smap.check_nonempty()
         surface = smap.mesh()
         placed = f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes"
+        camera_world = poses != "ground truth" or bool(np.allclose(traj.world_from_cam[0], np.eye(4), atol=1e-6))
     write_mesh(target, surface, fmt)
     console.print(
         f"wrote {target} ({len(surface.vertices)} vertices, {len(surface.triangles)} triangles, "
@@ -341,13 +436,27 @@ def mesh(
             f"accuracy: mean {acc.mean_mm:.3f} mm, p95 {acc.p95_mm:.3f} mm, "
             f"completeness {100 * acc.completeness:.1f} % within {acc.completeness_tol_mm:g} mm"
         )
-    if picture:
-        from loopmodel.io.atomic import write_bytes_atomic
-        from loopmodel.viz.mesh_render import mesh_picture_png
+    # a run or a map is in its first camera's world (y down), as is ground truth starting at the
+    # identity (KITTI); other ground truth (simulator, motion capture) is z up
+    up = CAMERA_UP if camera_world else (0.0, 0.0, 1.0)
+    _mesh_picture(target, surface, truth, picture, overwrite, up)
 
-        png = target.with_suffix(".png")
-        write_bytes_atomic(png, mesh_picture_png(surface, target.name, truth))
-        console.print(f"wrote {png} (the mesh from three viewpoints)")
+
+def _mesh_picture(
+    target: Path, surface: Any, truth: Any, picture: bool, overwrite: bool, up: tuple[float, float, float]
+) -> None:
+    """The PNG beside an exported mesh; an existing one (of the same mesh, another format) is kept."""
+    if not picture:
+        return
+    from loopmodel.io.atomic import write_bytes_atomic
+    from loopmodel.viz.mesh_render import mesh_picture_png
+
+    png = target.with_suffix(".png")
+    if png.exists() and not overwrite:
+        console.print(f"kept {png} (exists; --overwrite redraws it)")
+        return
+    write_bytes_atomic(png, mesh_picture_png(surface, target.name, truth, up=up))
+    console.print(f"wrote {png} (the mesh from three viewpoints)")
 
 
 simulate_app = typer.Typer(help="Synthetic data.", no_args_is_help=True)
@@ -358,14 +467,23 @@ app.add_typer(simulate_app, name="simulate")
 @simulate_app.command("scan")
 def simulate_scan_cmd(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output .mcap file")],
-    preset: Annotated[str | None, typer.Option("--preset", help="orbit, sweeps, browse or modeler")] = None,
+    preset: Annotated[
+        Literal["orbit", "sweeps", "browse", "modeler"] | None, typer.Option("--preset", help="Camera motion")
+    ] = None,
     realism: Annotated[
-        str | None,
-        typer.Option("--realism", help="clean or realistic (default: realistic with a preset, else the config's)"),
+        Literal["clean", "realistic"] | None,
+        typer.Option("--realism", help="Image model (default: realistic with a preset, else the config's)"),
     ] = None,
     frames: Annotated[int | None, typer.Option("--frames", help="Number of frames")] = None,
-    seed: Annotated[int | None, typer.Option("--seed", help="Random seed")] = None,
-    scene: Annotated[str | None, typer.Option("--scene", help="bust, box or mix")] = None,
+    seed: Annotated[
+        int | None,
+        typer.Option("--seed", help="Random seed of the scan (motion, noise; the object too unless --scene-seed)"),
+    ] = None,
+    scene_seed: Annotated[
+        int | None,
+        typer.Option("--scene-seed", help="Seed of the object and room alone: keep it, change --seed: a rescan"),
+    ] = None,
+    scene: Annotated[Literal["bust", "box", "mix"] | None, typer.Option("--scene", help="Scanned object")] = None,
     width: Annotated[int | None, typer.Option("--width", help="Image width (px)")] = None,
     height: Annotated[int | None, typer.Option("--height", help="Image height (px)")] = None,
     baseline: Annotated[float | None, typer.Option("--baseline", help="Stereo baseline (m)")] = None,
@@ -382,7 +500,9 @@ def simulate_scan_cmd(
         bool | None, typer.Option("--laser-image/--no-laser-image", help="Also write /laser/image")
     ] = None,
     workers: Annotated[int | None, typer.Option("--workers", help="Render processes (0: one per core)")] = None,
-    image_format: Annotated[str | None, typer.Option("--image-format", help="png, jpeg or raw")] = None,
+    image_format: Annotated[
+        Literal["png", "jpeg", "raw"] | None, typer.Option("--image-format", help="Image encoding in the MCAP")
+    ] = None,
     config: ConfigOption = None,
     overwrite: OverwriteOption = False,
 ) -> None:
@@ -397,7 +517,7 @@ def simulate_scan_cmd(
         preset,
         {
             "trajectory": {"frames": frames, "rate_hz": rate},
-            "scene": {"kind": scene},
+            "scene": {"kind": scene, "seed": scene_seed},
             "camera": {"width_px": width, "height_px": height, "baseline_m": baseline},
             "render": {"noise_sigma": noise},
             "laser": {"image": laser_image},
@@ -431,7 +551,9 @@ def simulate_scan_cmd(
         raise typer.Exit(130) from None
     console.print(
         f"wrote {res.path} ({res.size_bytes / 2**20:.1f} MiB, {res.frames_written} frames, "
-        f"{res.stripes_written} stripes, {len(res.faults)} faults) in {res.seconds:.1f} s: "
+        + (f"{res.laser_images_written} laser images, " if res.laser_images_written else "")
+        + (f"{res.stripes_written} stripes, " if res.stripes_written or not res.laser_images_written else "")
+        + f"{len(res.faults)} faults) in {res.seconds:.1f} s: "
         f"{res.ms_per_frame:.1f} ms/frame (setup {res.setup_seconds:.1f} s, "
         f"render {res.render_ms_median:.1f} ms/frame per worker)"
     )

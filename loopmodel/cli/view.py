@@ -9,7 +9,7 @@ import typer
 
 from loopmodel.errors import InputError
 from loopmodel.listener import RunListener
-from loopmodel.types import StereoCalibration
+from loopmodel.types import StereoCalibration, Trajectory
 
 
 def view(
@@ -48,11 +48,38 @@ RerunConnectOption = Annotated[
 ]
 
 
+def check_writable_file(path: Path, what: str) -> None:
+    """Refuse, before any work, a file that cannot be created at ``path`` (read-only place, no folder).
+
+    A probe file beside it is created and removed (permission bits alone say nothing to root).
+    """
+    import os
+
+    parent = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise InputError(path, f"{what} names a folder, not a file")
+    if not parent.is_dir():
+        raise InputError(path, f"{what}: {parent} is not an existing folder")
+    probe = parent / f".{path.name}.probe-{os.getpid()}"
+    try:
+        probe.open("wb").close()
+        probe.unlink()
+    except OSError as exc:
+        raise InputError(path, f"{what}: cannot write in {parent} ({exc.strerror or type(exc).__name__})") from None
+
+
 def rerun_listeners(
-    calibration: StereoCalibration, rrd: Path | None, spawn: bool, connect: str | None
+    calibration: StereoCalibration,
+    rrd: Path | None,
+    spawn: bool,
+    connect: str | None,
+    ground_truth: Trajectory | None = None,
 ) -> list[RunListener]:
     """The run's rerun listener when any rerun option is given (none otherwise)."""
     from loopmodel.viz.recorder import RerunSink
+
+    if rrd is not None:
+        check_writable_file(rrd, "--rerun")
 
     sink = RerunSink(path=rrd, spawn=spawn, connect=connect)
     if not sink.enabled:
@@ -63,4 +90,4 @@ def rerun_listeners(
     from loopmodel.viz.recorder import RerunListener, RerunRecorder
 
     rect = Rectifier(calibration).calibration
-    return [RerunListener(RerunRecorder(sink), rect.K_left, rect.image_size)]
+    return [RerunListener(RerunRecorder(sink), rect.K_left, rect.image_size, ground_truth=ground_truth)]

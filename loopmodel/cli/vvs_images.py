@@ -67,12 +67,12 @@ def vvs_track(
 
     Writes poses.tum (rig_from_model per frame) and track.csv.
     """
-    import cv2
     import numpy as np
 
     from loopmodel.cli.common import console, progress_bar
     from loopmodel.geometry.se3 import so3_log
     from loopmodel.io.atomic import write_text_atomic
+    from loopmodel.io.images import read_grey_image
     from loopmodel.io.rig_yaml import parse_pose, read_model, read_rig
     from loopmodel.io.trajectory_io import read_trajectory, write_trajectory
     from loopmodel.pose.image_tracking import ImageTracker, ImageTrackingOptions, mask_valid
@@ -86,9 +86,7 @@ def vvs_track(
     the_rig, mask = read_rig(rig)
     the_model = read_model(model)
     start = parse_pose(init)
-    first = cv2.imread(str(files[0]), cv2.IMREAD_GRAYSCALE)
-    if first is None:
-        raise InputError(files[0], "cannot be read as an image")
+    first = read_grey_image(files[0])  # the declared size checked before decoding
     if mask is not None and mask.shape != first.shape:
         raise InputError(
             rig, f"mask is {mask.shape[1]}x{mask.shape[0]} but the images are {first.shape[1]}x{first.shape[0]}"
@@ -101,8 +99,8 @@ def vvs_track(
     with progress_bar() as bar:
         task = bar.add_task("track", total=len(files))
         for k, f in enumerate(files):
-            img = first if k == 0 else cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
-            if img is None or img.shape != first.shape:
+            img = first if k == 0 else read_grey_image(f)
+            if img.shape != first.shape:
                 raise InputError(f, f"expected a {first.shape[1]}x{first.shape[0]} image like {files[0].name}")
             ft = tracker.track(img)
             poses.append(ft.rig_from_ref)

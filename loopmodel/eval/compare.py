@@ -7,14 +7,12 @@ import io
 from pathlib import Path
 from typing import Any
 
+from loopmodel.display import Formatter, num
 from loopmodel.eval.evaluation import (
     RunEvaluation,
     _get,
 )
-from loopmodel.eval.render import (
-    _md_table,
-    _num,
-)
+from loopmodel.eval.render import _md_table, report_formatter
 from loopmodel.io.atomic import write_text_atomic
 
 COMPARISON_COLUMNS: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -29,6 +27,7 @@ COMPARISON_COLUMNS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("kitti_r_err_deg_per_100m", ("trajectories", "final", "kitti_segments", "r_err_deg_per_100m")),
     ("end_point_origin_m", ("trajectories", "final", "end_point", "error_origin_aligned_m")),
     ("loop_closures", ("loop_closure_count",)),
+    ("ground_truth_extent_m", ("ground_truth_extent_m",)),
 )
 
 
@@ -64,21 +63,29 @@ def write_comparison(evals: list[RunEvaluation], out_dir: str | Path) -> tuple[P
     out = Path(out_dir)
     head, rows = comparison_rows(evals)
     csv_path = write_text_atomic(out / "comparison.csv", csv_text(head, rows))
+    fmt = report_formatter(evals[0])
     md = [
         "# Comparison of runs",
         "",
-        f"Alignment {evals[0].config.align}; `ate_rmse_m` is the SE(3)-aligned ATE RMSE of the "
-        "final trajectory; ate_change_pct compares final with online ATE RMSE.",
+        f"Alignment {evals[0].config.align}; ATE RMSE of the final trajectory; the ATE change compares "
+        f"final with online ATE RMSE; lengths in {fmt.length.symbol} (`comparison.csv`: metres).",
         "",
-        markdown_table(head, rows),
+        markdown_table(head, rows, fmt),
     ]
     md_path = write_text_atomic(out / "comparison.md", "\n".join(md))
     return csv_path, md_path
 
 
-def markdown_table(head: list[str], rows: list[list[Any]]) -> str:
-    """A Markdown table of values, numbers formatted as in the reports (None as a dash)."""
-    return _md_table(head, [[_num(v) if not isinstance(v, str) else v for v in r] for r in rows])
+def markdown_table(head: list[str], rows: list[list[Any]], fmt: Formatter | None = None) -> str:
+    """A Markdown table of values, numbers formatted as in the reports (None as a dash).
+
+    With ``fmt`` the header names are ``metrics.json`` keys: shown as human labels with their
+    unit, and each column's values converted to it (lengths in mm or m).
+    """
+    if fmt is None:
+        return _md_table(head, [[num(v) if not isinstance(v, str) else v for v in r] for r in rows])
+    cells = [[v if isinstance(v, str) else fmt.value(k, v) for k, v in zip(head, r, strict=True)] for r in rows]
+    return _md_table([fmt.header(k) for k in head], cells)
 
 
 def csv_text(head: list[str], rows: list[list[Any]]) -> str:

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.config import EvalConfig
+from loopmodel.display import extent_m
 from loopmodel.errors import InputError
 from loopmodel.eval.inputs import (
     RunData,
@@ -225,6 +226,8 @@ def evaluate_run(run: RunData, gt: TimedTrajectory, cfg: EvalConfig | None = Non
         "loop_closures": _closure_numbers(run, pairs, cfg),
         "before_after": _before_after(pairs) if "online" in pairs else None,
         "mesh": _mesh_numbers(run.run_metrics),
+        # the scale of the sequence: reports show lengths in mm below 10 m, else m (loopmodel.display)
+        "ground_truth_extent_m": extent_m(gt.traj.positions_m),
     }
     if metrics["before_after"] is not None:
         metrics["before_after"] += _mesh_before_after(metrics["mesh"])

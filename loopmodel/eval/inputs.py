@@ -215,10 +215,14 @@ def load_run(path: str | Path, rate_hz: float = 10.0) -> RunData:
     run = RunData(p.resolve().name, p, tt["final"] or tt["online"], tt["online"], tt["keyframes"])
     mpath = p / RUN_METRICS_FILE
     if mpath.is_file():
+        from loopmodel.io.text import read_text_file
+
         try:
-            data = json.loads(mpath.read_text())
+            data = json.loads(read_text_file(mpath, "metrics file"))
         except json.JSONDecodeError as exc:
             raise FormatError(mpath, f"not valid JSON ({exc.msg} at line {exc.lineno})") from None
+        except RecursionError:
+            raise FormatError(mpath, "not valid JSON (nested too deeply)") from None
         if not isinstance(data, dict):
             raise FormatError(mpath, "expected a JSON object")
         run.run_metrics = data

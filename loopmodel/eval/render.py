@@ -6,11 +6,14 @@ import base64
 import html
 import json
 import math
+import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from loopmodel.display import MISSING, Formatter, extent_m, label, num, quantity
 from loopmodel.eval.evaluation import (
     RunEvaluation,
     _get,
@@ -32,6 +35,10 @@ PLOT_ERROR_TIME = "error_over_time.png"
 
 PLOT_ERROR_COLORED = "error_colored.png"
 
+PLOT_XYZ_RPY = "xyz_rpy_over_time.png"
+
+PLOT_RPE_TIME = "rpe_over_time.png"
+
 TRACK_LABELS = {
     "online": "online (before closing)",
     "final": "final (after closing)",
@@ -39,16 +46,32 @@ TRACK_LABELS = {
 }
 
 
+def report_formatter(ev: RunEvaluation) -> Formatter:
+    """The report's formatter: lengths in mm or m from the extent of the ground truth."""
+    return Formatter.for_positions(ev.gt.traj.positions_m)
+
+
+def _plot_mode(ev: RunEvaluation) -> str:
+    from loopmodel.eval.plots import resolve_plot_mode
+
+    return resolve_plot_mode(getattr(ev.config, "plot_mode", "auto"), ev.gt.traj.world_from_cam)
+
+
 def make_plots(ev: RunEvaluation) -> dict[str, bytes]:
-    """The three pictures of a run evaluation, as PNG bytes by file name."""
+    """The pictures of a run evaluation, as PNG bytes by file name (captions: :func:`captions`)."""
     from loopmodel.eval.plots import (
         PlotClosure,
         PlotTrack,
         plot_error_colored,
         plot_error_over_time,
-        plot_top_view,
+        plot_paths,
+        plot_rpe_over_time,
+        plot_xyz_rpy,
     )
+    from loopmodel.eval.trajectory_metrics import pairs_by_frames, rpe
 
+    unit = report_formatter(ev).length
+    mode = _plot_mode(ev)
     gt = ev.gt.traj
     ref = ev.pairs["final"].ref_poses[:, :3, 3]
     ref_full = gt.positions_m
@@ -64,16 +87,10 @@ def make_plots(ev: RunEvaluation) -> dict[str, bytes]:
             continue
         st, col = styles[key]
         label = TRACK_LABELS[key] if "online" in ev.pairs else "estimate"
-        tracks.append(
-            PlotTrack(
-                label,
-                pe.est_aligned[:, :3, 3],
-                (pe.times_ns - t0).astype(np.float64) * 1e-9,
-                pe.ate_m,
-                st,
-                col,
-            )
-        )
+        times_s = (pe.times_ns - t0).astype(np.float64) * 1e-9
+        i, j = pairs_by_frames(len(pe.times_ns), 1)
+        rpe_m, rpe_deg = rpe(pe.ref_poses, pe.est_aligned, i, j)
+        tracks.append(PlotTrack(label, pe.est_aligned, times_s, pe.ate_m, st, col, times_s[j], rpe_m, rpe_deg))
     closures: list[PlotClosure] = []
     final = ev.pairs["final"]
     max_dt_ns = int(round(ev.config.max_dt_ms * 1e6))
@@ -89,13 +106,19 @@ def make_plots(ev: RunEvaluation) -> dict[str, bytes]:
             m = final.est_aligned[km, :3, 3] if km is not None else None
         closures.append(PlotClosure((lc.time_ns - t0) * 1e-9, final.est_aligned[k, :3, 3], m))
     align = ev.config.align
-    title = f"{ev.run.name}: top view ({align} aligned)"
+    span = slice(lo, hi + 1) if hi > lo else slice(None)
+    reference = PlotTrack(
+        "ground truth", gt.world_from_cam[span], (gt.timestamps_ns[span] - t0).astype(np.float64) * 1e-9
+    )
+    view = "3-D view" if mode == "xyz" else f"{mode} plane"
     out = {
-        PLOT_TOP: plot_top_view(ref_span, tracks, closures, title),
-        PLOT_ERROR_TIME: plot_error_over_time(tracks, closures, f"{ev.run.name}: ATE over time ({align})"),
+        PLOT_TOP: plot_paths(ref_span, tracks, closures, f"{ev.run.name}: {view} ({align} aligned)", mode, unit),
+        PLOT_ERROR_TIME: plot_error_over_time(tracks, closures, f"{ev.run.name}: ATE over time ({align})", unit),
         PLOT_ERROR_COLORED: plot_error_colored(
-            ref_span, tracks[-1], f"{ev.run.name}: {tracks[-1].label}, coloured by ATE ({align})"
+            ref_span, tracks[-1], f"{ev.run.name}: {tracks[-1].label}, coloured by ATE ({align})", mode, unit
         ),
+        PLOT_XYZ_RPY: plot_xyz_rpy(reference, tracks, closures, f"{ev.run.name}: position and attitude", unit),
+        PLOT_RPE_TIME: plot_rpe_over_time(tracks, closures, f"{ev.run.name}: RPE between consecutive poses", unit),
     }
     if ev.run.path is not None and ev.run.final is not None:
         from loopmodel.eval.mesh_pictures import PLOT_MESH, mesh_before_after_png
@@ -114,20 +137,31 @@ def make_plots(ev: RunEvaluation) -> dict[str, bytes]:
     return out
 
 
-def _num(v: Any, digits: int = 4) -> str:
-    if v is None:
-        return "–"
-    if isinstance(v, bool):
-        return str(v)
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if not math.isfinite(v):
-            return str(v)
-        if v != 0 and (abs(v) < 1e-3 or abs(v) >= 1e5):
-            return f"{v:.{digits}g}"
-        return f"{v:.{digits}f}"
-    return str(v)
+def captions(ev: RunEvaluation) -> dict[str, str]:
+    """The caption under each picture of the report."""
+    from loopmodel.eval.mesh_pictures import PLOT_MESH
+
+    mode = _plot_mode(ev)
+    unit = report_formatter(ev).length.symbol
+    plane = (
+        "in 3-D"
+        if mode == "xyz"
+        else f"in the {mode} plane"
+        + (" (camera-frame ground truth: y points down, the ground is xz)" if mode == "xz" else "")
+    )
+    return {
+        PLOT_TOP: f"The ground truth (black) and the estimated paths after {ev.config.align} alignment, {plane}; "
+        "red stars: loop closures, a red line to the place recognised.",
+        PLOT_ERROR_TIME: f"Absolute trajectory error (translation, {unit}) over time; red lines: loop closures.",
+        PLOT_ERROR_COLORED: f"The {'final' if 'online' in ev.pairs else 'estimated'} path {plane}, "
+        f"coloured by its absolute error ({unit}); dashed grey: the ground truth.",
+        PLOT_XYZ_RPY: f"Position x, y, z ({unit}) and attitude roll, pitch, yaw (degrees, static x-y-z "
+        "Euler angles) over time, ground truth in black.",
+        PLOT_RPE_TIME: f"Relative pose error between consecutive poses over time: translation ({unit}, top) "
+        "and rotation (degrees, bottom).",
+        PLOT_MESH: "The mesh of the laser stripes placed with the online (before) and the final (after) "
+        "trajectory, coloured by the distance to the ground-truth surface.",
+    }
 
 
 def _json_clean(x: Any) -> Any:
@@ -142,24 +176,59 @@ def _json_clean(x: Any) -> Any:
     return x
 
 
+def _unit_of_path(path: str) -> str:
+    """The ``metrics.json`` key in a dotted path that carries the unit (``rpe_frames.trans_m.rmse``: trans_m)."""
+    from loopmodel.display import PLAIN, quantity
+
+    parts = path.split(".")
+    for part in reversed(parts):
+        if quantity(part) != PLAIN:
+            return part
+    return parts[-1]
+
+
+def _strip_unit(text: str) -> str:
+    """A label without its ``[unit]`` (the unit goes into the header)."""
+    return re.sub(r"\s*\[[^\]]*\]", "", text).strip()
+
+
+def _human_metric(row: dict[str, Any]) -> str:
+    key = str(row.get("key", ""))
+    if key.startswith("mesh."):
+        from loopmodel.display import label
+
+        return label(key[5:].replace("_before", "")) + " (recorded by the run)"
+    return _strip_unit(str(row["metric"]))
+
+
+def _kitti_rows_empty(m: dict[str, Any]) -> bool:
+    return all(_get(tm, "kitti_segments", "t_err_pct") is None for tm in m["trajectories"].values())
+
+
 def _tables(ev: RunEvaluation) -> list[tuple[str, list[str], list[list[str]], str]]:
-    """(heading, header, rows, note) of every table of the report."""
+    """(heading, header, rows, note) of every table of the report, numbers in the report's units."""
+    fmt = report_formatter(ev)
     m = ev.metrics
     tables: list[tuple[str, list[str], list[list[str]], str]] = []
     if m["before_after"] is not None:
-        rows = [
-            [
-                r["metric"],
-                _num(r["before"]),
-                _num(r["after"]),
-                _num(r["change_pct"], 1) if r["change_pct"] is not None else "–",
-            ]
-            for r in m["before_after"]
-        ]
+        rows = []
+        for r in m["before_after"]:
+            if str(r.get("key", "")).startswith("kitti_segments") and r["before"] is None and r["after"] is None:
+                continue
+            unit_key = _unit_of_path(str(r.get("key", "")))
+            u = fmt.unit(quantity(unit_key))
+            rows.append(
+                [
+                    _human_metric(r) + (f" [{u}]" if u else ""),
+                    fmt.value(unit_key, r["before"]),
+                    fmt.value(unit_key, r["after"]),
+                    num(r["change_pct"], 3),
+                ]
+            )
         if m["loop_closure_count"] == 0:
             note = (
                 "No loop closure was recorded in this run"
-                + ("" if m["loop_closures_recorded"] else " (metrics.json has no 'loop_closures')")
+                + ("" if m["loop_closures_recorded"] else " (metrics.json has no `loop_closures`)")
                 + ": the final trajectory differs from the online one only by the optimiser's "
                 "smoothing, so before and after show no loop-closure effect."
             )
@@ -168,7 +237,7 @@ def _tables(ev: RunEvaluation) -> list[tuple[str, list[str], list[list[str]], st
         tables.append(
             (
                 "Before / after loop closing",
-                ["metric", "online (before)", "final (after)", "change %"],
+                ["metric", "online (before)", "final (after)", "change [%]"],
                 rows,
                 note,
             )
@@ -184,64 +253,63 @@ def _tables(ev: RunEvaluation) -> list[tuple[str, list[str], list[list[str]], st
             )
         )
     # per trajectory summary
-    head = [
-        "trajectory",
-        "poses",
-        "matched",
-        "align",
-        "scale",
-        "ATE RMSE [m]",
-        "ATE mean",
-        "ATE median",
-        "ATE max",
-        "RPE frames RMSE [m]",
-        "RPE dist RMSE [m]",
-        "KITTI t [%]",
-        "KITTI r [deg/100m]",
-        "end-point (origin) [m]",
+    deltas = {_get(tm, "rpe_distance", "delta_m") for tm in m["trajectories"].values()}
+    delta = next(iter(deltas)) if len(deltas) == 1 else None
+    kitti = not _kitti_rows_empty(m)
+    cols: list[tuple[str, tuple[str, ...], str]] = [
+        ("ATE RMSE", ("ate_m", "rmse"), "ate_m"),
+        ("ATE mean", ("ate_m", "mean"), "ate_m"),
+        ("ATE median", ("ate_m", "median"), "ate_m"),
+        ("ATE max", ("ate_m", "max"), "ate_m"),
+        ("RPE per frame, RMSE", ("rpe_frames", "trans_m", "rmse"), "trans_m"),
+        (
+            "RPE per " + (fmt.length_text(delta) if delta is not None else "distance") + ", RMSE",
+            ("rpe_distance", "trans_m", "rmse"),
+            "trans_m",
+        ),
     ]
+    if kitti:
+        cols += [
+            ("KITTI t error", ("kitti_segments", "t_err_pct"), "t_err_pct"),
+            ("KITTI r error", ("kitti_segments", "r_err_deg_per_100m"), "r_err_deg_per_100m"),
+        ]
+    cols.append(("end-point error, origin aligned", ("end_point", "error_origin_aligned_m"), "error_m"))
+    head = ["trajectory", "poses", "matched", "alignment", "scale"] + [fmt.header(u, t) for t, _, u in cols]
     rows = []
     for key, tm in m["trajectories"].items():
         rows.append(
             [
-                key,
-                str(tm["poses_estimate"]),
-                str(tm["matched"]),
+                TRACK_LABELS.get(key, key),
+                num(tm["poses_estimate"]),
+                num(tm["matched"]),
                 tm["alignment"]["mode"],
-                _num(tm["alignment"]["scale"], 6),
-                _num(_get(tm, "ate_m", "rmse")),
-                _num(_get(tm, "ate_m", "mean")),
-                _num(_get(tm, "ate_m", "median")),
-                _num(_get(tm, "ate_m", "max")),
-                _num(_get(tm, "rpe_frames", "trans_m", "rmse")),
-                _num(_get(tm, "rpe_distance", "trans_m", "rmse"))
-                + f" (Δ={_num(_get(tm, 'rpe_distance', 'delta_m'), 2)} m)",
-                _num(_get(tm, "kitti_segments", "t_err_pct")),
-                _num(_get(tm, "kitti_segments", "r_err_deg_per_100m")),
-                _num(_get(tm, "end_point", "error_origin_aligned_m")),
+                num(tm["alignment"]["scale"]),
+                *(fmt.value(u, _get(tm, *path)) for _, path, u in cols),
             ]
         )
-    tables.append(
-        (
-            "Trajectories",
-            head,
-            rows,
-            "SE(3)-aligned ATE RMSE of the final trajectory (`ate_rmse_m`): "
-            f"{_num(m['ate_rmse_m'], 6)} m. "
-            "KITTI errors need a path longer than the shortest segment (100 m).",
+    notes = [
+        f"**ATE RMSE of the final trajectory ({ev.config.align} aligned): "
+        f"{fmt.length_text(m['ate_rmse_m'])}** (`ate_rmse_m` in `metrics.json`, in metres)."
+    ]
+    if not kitti:
+        shortest = min(ev.config.kitti_segment_lengths_m) if ev.config.kitti_segment_lengths_m else 100.0
+        notes.append(
+            f"KITTI segment errors are left out: the path is shorter than the shortest segment ({shortest:g} m)."
         )
-    )
+    tables.append(("Trajectories", head, rows, " ".join(notes)))
     ks = _get(m["trajectories"].get("final", {}), "kitti_segments", "per_length_m")
     if ks:
         tables.append(
             (
                 "KITTI segment errors (final)",
-                ["length [m]", "t_err [%]", "r_err [deg/100 m]", "segments"],
-                [[k, _num(v["t_err_pct"]), _num(v["r_err_deg_per_100m"]), str(v["segments"])] for k, v in ks.items()],
+                ["segment length [m]", "t error [%]", "r error [°/100 m]", "segments"],
+                [[k, num(v["t_err_pct"]), num(v["r_err_deg_per_100m"]), num(v["segments"])] for k, v in ks.items()],
                 "",
             )
         )
     if m["loop_closures"]:
+        # the recorded correction is the pipeline's own view of it; the report shows the measured one
+        dropped = {"correction_m", "correction_deg"}
         extra = sorted(
             {
                 k
@@ -250,29 +318,30 @@ def _tables(ev: RunEvaluation) -> list[tuple[str, list[str], list[list[str]], st
                 if isinstance(v, int | float) and not isinstance(v, bool)
             }
             - set(_ALL_TIME_KEYS)
+            - dropped
         )[:6]
         head = [
             "#",
             "time [s]",
-            "correction [m]",
-            "correction [deg]",
-            "ATE before [m]",
-            "ATE after [m]",
-            *extra,
+            fmt.header("correction_m", "correction"),
+            "correction [°]",
+            fmt.header("ate_m", "ATE before"),
+            fmt.header("ate_m", "ATE after"),
+            *(fmt.header(k) for k in extra),
         ]
         t0 = int(ev.pairs["final"].times_ns[0])
         rows = []
         for c in m["loop_closures"]:
-            ts = _num((c["time_ns"] - t0) * 1e-9, 3) if c["time_ns"] is not None else "–"
+            ts = num((c["time_ns"] - t0) * 1e-9) if c["time_ns"] is not None else MISSING
             rows.append(
                 [
                     str(c["index"]),
                     ts,
-                    _num(c.get("correction_m")),
-                    _num(c.get("correction_deg")),
-                    _num(c.get("ate_before_m")),
-                    _num(c.get("ate_after_m")),
-                    *[_num(c["recorded"].get(k)) for k in extra],
+                    fmt.value("correction_m", c.get("correction_m")),
+                    num(c.get("correction_deg")),
+                    fmt.value("ate_m", c.get("ate_before_m")),
+                    fmt.value("ate_m", c.get("ate_after_m")),
+                    *[fmt.value(k, c["recorded"].get(k)) for k in extra],
                 ]
             )
         tables.append(
@@ -280,19 +349,16 @@ def _tables(ev: RunEvaluation) -> list[tuple[str, list[str], list[list[str]], st
                 "Loop closures",
                 head,
                 rows,
-                "Correction: distance between the online and the final pose at the closure time "
-                "(same run, same world frame); ATE before/after: aligned error there.",
+                "Correction: distance and angle between the online and the final pose at the closure "
+                "time (same run, same world frame); ATE before/after: the aligned error there.",
             )
         )
     if m["mesh"]:
-        tables.append(
-            (
-                "Mesh error (recorded by the pipeline)",
-                ["key", "value"],
-                [[k, _num(v)] for k, v in m["mesh"].items()],
-                "",
-            )
-        )
+        rows = []
+        for k, v in m["mesh"].items():
+            u = fmt.unit(quantity(k))
+            rows.append([label(k) + (f" [{u}]" if u else ""), fmt.value(k, v)])
+        tables.append(("Mesh (recorded by the run)", ["quantity", "value"], rows, ""))
     return tables
 
 
@@ -301,28 +367,36 @@ _ALL_TIME_KEYS = tuple(
 ) + ("index",)
 
 
+def _md_cell(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
 def _md_table(head: list[str], rows: list[list[str]]) -> str:
     if not head:
         return ""
-    lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    lines = ["| " + " | ".join(map(_md_cell, head)) + " |", "|" + "|".join("---" for _ in head) + "|"]
+    lines += ["| " + " | ".join(map(_md_cell, r)) + " |" for r in rows]
     return "\n".join(lines) + "\n"
 
 
 def _intro(ev: RunEvaluation) -> list[str]:
     m = ev.metrics
+    fmt = report_formatter(ev)
+    span = extent_m(ev.gt.traj.positions_m)
     return [
         f"- run: `{m['run_path'] or m['estimate']}`",
         f"- ground truth: `{m['ground_truth']}` ({len(ev.gt.traj)} poses)",
         f"- alignment: {ev.config.align}"
         + (f" on the first {ev.config.first_n} poses" if ev.config.first_n else "")
         + f"; association max Δt {ev.config.max_dt_ms:g} ms",
-        f"- **ATE RMSE (final, SE(3) aligned): {_num(m['ate_rmse_m'], 6)} m**",
+        f"- lengths in {fmt.length.symbol} (the ground truth spans {num(span)} m)",
+        f"- **ATE RMSE (final, {ev.config.align} aligned): {fmt.length_text(m['ate_rmse_m'])}**",
     ]
 
 
-def render_markdown(ev: RunEvaluation) -> str:
-    """``report.md`` text (pictures referenced as PNG files beside it)."""
+def render_markdown(ev: RunEvaluation, image_src: Callable[[str], str] | None = None) -> str:
+    """``report.md`` text; pictures referenced as PNG files beside it (or by ``image_src(name)``)."""
+    src = image_src or (lambda name: name)
     out = [f"# Evaluation: {ev.run.name}", "", *_intro(ev), ""]
     for heading, head, rows, note in _tables(ev):
         out += [f"## {heading}", ""]
@@ -331,45 +405,35 @@ def render_markdown(ev: RunEvaluation) -> str:
         if head:
             out += [_md_table(head, rows)]
     if ev.plots:
+        caps = captions(ev)
         out += ["## Pictures", ""]
         for name in ev.plots:
-            out += [f"![{name}]({name})", ""]
+            out += [f"![{name}]({src(name)})", "", f"*{caps.get(name, name)}*", ""]
     return "\n".join(out)
 
 
+_CSS = (
+    "body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
+    "table{border-collapse:collapse;margin:0.5em 0 1.5em;display:block;overflow-x:auto;max-width:100%}"
+    "td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}th{background:#eee}"
+    "td:first-child,th:first-child{text-align:left}img{max-width:100%}"
+    "code{background:#f3f3f3;padding:0 3px}p em{color:#555}"
+)
+
+
 def render_html(ev: RunEvaluation) -> str:
-    """Self-contained ``report.html`` (pictures embedded as base64 PNG)."""
-    esc = html.escape
-    parts = [
-        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
-        f"<title>Evaluation: {esc(ev.run.name)}</title><style>"
-        "body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
-        "table{border-collapse:collapse;margin:0.5em 0 1.5em;display:block;overflow-x:auto;max-width:100%}"
-        "td,th{border:1px solid #bbb;padding:3px 8px;"
-        "text-align:right}th{background:#eee}td:first-child{text-align:left}img{max-width:100%}"
-        "</style></head><body>",
-        f"<h1>Evaluation: {esc(ev.run.name)}</h1><ul>",
-    ]
-    for line in _intro(ev):
-        text = esc(line[2:]).replace("**", "")
-        parts.append(f"<li>{text}</li>")
-    parts.append("</ul>")
-    for heading, head, rows, note in _tables(ev):
-        parts.append(f"<h2>{esc(heading)}</h2>")
-        if note:
-            parts.append(f"<p>{esc(note)}</p>")
-        if head:
-            parts.append("<table><tr>" + "".join(f"<th>{esc(h)}</th>" for h in head) + "</tr>")
-            for r in rows:
-                parts.append("<tr>" + "".join(f"<td>{esc(c)}</td>" for c in r) + "</tr>")
-            parts.append("</table>")
-    if ev.plots:
-        parts.append("<h2>Pictures</h2>")
-        for name, png in ev.plots.items():
-            b64 = base64.b64encode(png).decode("ascii")
-            parts.append(f"<p><img alt='{esc(name)}' src='data:image/png;base64,{b64}'></p>")
-    parts.append("</body></html>")
-    return "\n".join(parts)
+    """Self-contained ``report.html``: ``report.md`` rendered by markdown-it, pictures embedded as base64 PNG."""
+    from markdown_it import MarkdownIt
+
+    def data_uri(name: str) -> str:
+        return "data:image/png;base64," + base64.b64encode(ev.plots[name]).decode("ascii")
+
+    body = MarkdownIt("commonmark").enable("table").render(render_markdown(ev, data_uri))
+    return (
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>"
+        f"<title>Evaluation: {html.escape(ev.run.name)}</title><style>{_CSS}</style></head><body>\n"
+        f"{body}</body></html>\n"
+    )
 
 
 def write_outputs(ev: RunEvaluation, out_dir: str | Path) -> Path:

@@ -31,7 +31,9 @@ from loopmodel.eval.inputs import parse_loop_closures as parse_loop_closures
 from loopmodel.eval.inputs import plain_run as plain_run
 from loopmodel.eval.render import PLOT_ERROR_COLORED as PLOT_ERROR_COLORED
 from loopmodel.eval.render import PLOT_ERROR_TIME as PLOT_ERROR_TIME
+from loopmodel.eval.render import PLOT_RPE_TIME as PLOT_RPE_TIME
 from loopmodel.eval.render import PLOT_TOP as PLOT_TOP
+from loopmodel.eval.render import PLOT_XYZ_RPY as PLOT_XYZ_RPY
 from loopmodel.eval.render import TRACK_LABELS as TRACK_LABELS
 from loopmodel.eval.render import make_plots as make_plots
 from loopmodel.eval.render import render_html as render_html

@@ -427,3 +427,52 @@ def false_loop_mask(
     est = relative_poses(final_world_from_cam, j, i)
     ref = relative_poses(gt_world_from_cam, j, i)
     return np.linalg.norm(inv_mul(ref, est)[:, :3, 3], axis=1) > gate
+
+
+def step_scales(ref_poses: F64, est_poses: F64) -> F64:
+    """Per-step scale of associated pose stacks (N x 4 x 4): estimated step length / true step length.
+
+    Step ``k`` goes from pose ``k`` to pose ``k + 1`` (positions, metres); NaN where the true step is
+    shorter than 1 mm. Alignment-free: a rigid or similarity transform of either trajectory changes
+    a step's length only by the similarity's scale.
+    """
+    ref = np.linalg.norm(np.diff(np.asarray(ref_poses)[:, :3, 3], axis=0), axis=1)
+    est = np.linalg.norm(np.diff(np.asarray(est_poses)[:, :3, 3], axis=0), axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(ref >= 1e-3, est / ref, np.nan)
+
+
+def step_scale_last_over_first(ref_poses: F64, est_poses: F64, fraction: float = 0.25) -> float:
+    """How the per-step scale grows along a run: scale of the last ``fraction`` of the steps / of the first.
+
+    Each part's scale is its summed estimated step length over its summed true step length
+    (steps as in :func:`step_scales`); 1 when the scale holds, 1.2 when the last quarter's steps are
+    20 % longer (relative to the truth) than the first quarter's. NaN with fewer than 2 steps.
+    """
+    ref = np.linalg.norm(np.diff(np.asarray(ref_poses)[:, :3, 3], axis=0), axis=1)
+    est = np.linalg.norm(np.diff(np.asarray(est_poses)[:, :3, 3], axis=0), axis=1)
+    n = ref.size
+    if n < 2:
+        return float("nan")
+    k = min(max(1, int(round(fraction * n))), n // 2)
+    first = est[:k].sum() / max(ref[:k].sum(), 1e-12)
+    last = est[-k:].sum() / max(ref[-k:].sum(), 1e-12)
+    return float(last / first) if first > 0 else float("nan")
+
+
+def scale_figures(
+    ref_times_ns: I64, ref_poses: F64, est_times_ns: I64, est_poses: F64, max_dt_ns: int = 10_000_000
+) -> dict[str, float]:
+    """``sim3_scale`` (ground truth / estimate, Umeyama) and ``step_scale_last_over_first`` of associated poses.
+
+    Empty when fewer than 3 poses associate or the estimate is degenerate (collinear positions).
+    """
+    i_ref, i_est = associate(ref_times_ns, est_times_ns, max_dt_ns)
+    if i_ref.size < 3:
+        return {}
+    ref, est = np.asarray(ref_poses)[i_ref], np.asarray(est_poses)[i_est]
+    try:
+        a = align(ref, est, "sim3")
+    except EvalInputError:
+        return {}
+    return {"sim3_scale": float(a.scale), "step_scale_last_over_first": step_scale_last_over_first(ref, est)}

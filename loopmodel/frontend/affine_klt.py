@@ -80,6 +80,15 @@ def _sample(img: NDArray[np.float32], x: F64, y: F64) -> F64:
     ).astype(np.float64)
 
 
+def image_gradients(img: NDArray) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Horizontal and vertical intensity gradients (grey levels per pixel; 3x3 Sobel / 8) of ``img``."""
+    cur = np.asarray(img, dtype=np.float32)
+    return (
+        cv2.Sobel(cur, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
+        cv2.Sobel(cur, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8),
+    )
+
+
 def refine_affine(
     img_ref: NDArray[np.uint8],
     img_cur: NDArray[np.uint8],
@@ -90,6 +99,7 @@ def refine_affine(
     iterations: int = 10,
     min_ncc: float = 0.8,
     max_shift_px: float = 2.0,
+    cur_gradients: tuple[NDArray[np.float32], NDArray[np.float32]] | None = None,
 ) -> AffineMatch:
     """Positions in ``img_cur`` of the features at ``uv_ref_px`` (N, 2) of ``img_ref``.
 
@@ -98,6 +108,8 @@ def refine_affine(
     and offset of brightness, starting at ``uv_guess_px`` and ``affine_guess`` (N, 2, 2;
     identity when None). ``ok`` is False where the solution moved more than
     ``max_shift_px`` from the guess, left the image, or correlates below ``min_ncc``.
+    ``cur_gradients``: :func:`image_gradients` of ``img_cur`` when already computed (several
+    calls on one image).
     """
     uv_ref = np.asarray(uv_ref_px, dtype=float).reshape(-1, 2)
     c = np.asarray(uv_guess_px, dtype=float).reshape(-1, 2).copy()
@@ -108,8 +120,7 @@ def refine_affine(
     A = np.tile(np.eye(2), (n, 1, 1)) if affine_guess is None else np.asarray(affine_guess, float).copy()
     ref = np.asarray(img_ref, dtype=np.float32)
     cur = np.asarray(img_cur, dtype=np.float32)
-    gx = cv2.Sobel(cur, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
-    gy = cv2.Sobel(cur, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+    gx, gy = image_gradients(cur) if cur_gradients is None else cur_gradients
     s = np.arange(-half_window_px, half_window_px + 1, dtype=float)
     sx2, sy2 = np.meshgrid(s, s)
     sx, sy = sx2.ravel()[None], sy2.ravel()[None]  # (1, P)

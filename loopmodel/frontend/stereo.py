@@ -7,7 +7,7 @@ and triangulation in the left camera frame.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -66,7 +66,8 @@ class StereoMatches:
     """Matched features.
 
     Left pixel (u, v, rounded to integers), right u and v (sub-pixel), disparity (pixels), ZNCC
-    score, and the index of each match in the input corners.
+    score, the index of each match in the input corners, and each disparity's standard deviation
+    (pixels; from the residual and the row gradient of the sub-pixel fit, see :func:`refine_row_gradient`).
     """
 
     uv_left: F64
@@ -75,6 +76,7 @@ class StereoMatches:
     disparity: F64
     score: F64
     index: NDArray[np.int64]
+    sigma_px: F64 = field(default_factory=lambda: np.zeros(0))  # disparity standard deviation (px)
 
 
 def _parabola_offsets(a: F64, b: F64, c: F64) -> F64:
@@ -82,6 +84,61 @@ def _parabola_offsets(a: F64, b: F64, c: F64) -> F64:
     den = a - 2.0 * b + c
     off = np.where(den < 0, 0.5 * (a - c) / np.where(den < 0, den, -1.0), 0.0)
     return np.clip(off, -0.5, 0.5)
+
+
+#: floor of a match's disparity standard deviation (px): interpolation and rectification errors
+MIN_DISPARITY_SIGMA_PX = 0.05
+
+
+def refine_row_gradient(
+    src: NDArray[np.uint8],
+    dst: NDArray[np.uint8],
+    pad: int,
+    u: NDArray[np.int64],
+    v: NDArray[np.int64],
+    x0: F64,
+    v_dst: NDArray[np.int64],
+    half: int,
+    iterations: int = 4,
+) -> tuple[F64, F64]:
+    """Sub-pixel column of the ``src`` template at integer (u, v) in row ``v_dst`` of ``dst``, from ``x0``.
+
+    Gauss-Newton on the column shift (one-dimensional Lucas-Kanade) with a gain and an offset
+    (the template's zero-mean copy scaled to the window): the window is interpolated linearly at
+    each step, so the estimate is not drawn towards whole pixels as a parabola through three
+    correlation scores is. Images are padded by ``pad`` pixels. Returns the column (pixels) and
+    its standard deviation (pixels): the fit's residual RMS over the root of the summed squared
+    row gradient, at least :data:`MIN_DISPARITY_SIGMA_PX`.
+    """
+    p = 2 * half + 1
+    n = u.shape[0]
+    stride = dst.shape[1]
+    ar = np.arange(-half, half + 1)
+    tpl = np.take(src, ((v + pad) * stride + (u + pad))[:, None] + (ar[:, None] * stride + ar[None, :]).ravel())
+    t = tpl.astype(np.float32).reshape(n, p, p)
+    t -= t.mean(axis=(1, 2), keepdims=True)
+    tt = np.einsum("nij,nij->n", t, t) + np.float32(1e-9)
+    x = np.asarray(x0, dtype=float).copy()
+    cols = np.arange(-half - 1, half + 3)  # p + 3 columns around floor(x)
+    sigma = np.full(n, np.inf)
+    for _ in range(iterations):
+        xi = np.floor(x).astype(np.int64)
+        a = (x - xi).astype(np.float32)[:, None, None]
+        base = (v_dst + pad) * stride + (xi + pad)
+        S = np.take(dst, base[:, None, None] + ar[None, :, None] * stride + cols[None, None, :]).astype(np.float32)
+        W = (1 - a) * S[:, :, 1 : p + 1] + a * S[:, :, 2 : p + 2]
+        Wp = (1 - a) * S[:, :, 2 : p + 2] + a * S[:, :, 3 : p + 3]
+        Wm = (1 - a) * S[:, :, 0:p] + a * S[:, :, 1 : p + 1]
+        w = W - W.mean(axis=(1, 2), keepdims=True)
+        g = 0.5 * (Wp - Wm)
+        g -= g.mean(axis=(1, 2), keepdims=True)
+        gain = np.einsum("nij,nij->n", w, t) / tt
+        r = w - gain[:, None, None] * t
+        gg = np.einsum("nij,nij->n", g, g) + np.float32(1e-9)
+        step = -np.einsum("nij,nij->n", g, r) / gg
+        x += np.clip(step, -0.5, 0.5)
+        sigma = np.sqrt(np.einsum("nij,nij->n", r, r) / max(p * p - 3, 1) / gg)
+    return x, np.maximum(sigma, MIN_DISPARITY_SIGMA_PX).astype(np.float64)
 
 
 def _zncc_scan(
@@ -163,12 +220,14 @@ def _search_row(
     half_f: int,
     width: int,
     rows: tuple[int, ...],
-) -> tuple[NDArray[np.int64], NDArray[np.int64], F64, F64, F64]:
+) -> tuple[NDArray[np.int64], NDArray[np.int64], F64, F64, F64, F64]:
     """Coarse-to-fine search over disparities 0..dmax along the row.
 
     Coarse (half resolution, 7x7) search in the direction ``sign`` (-1: right image, +1: left
     image), then a fine (full resolution) search of +-2 pixels and ``rows``. Returns integer column,
-    row offset index, sub-pixel column and row offsets, and the best score.
+    row offset index, sub-pixel column and row offsets, the best score, and the coarse margin: the
+    best coarse score minus the best coarse score more than 2 coarse columns (4 px) away from it
+    (small where the row repeats: a fence, foliage).
     """
     half_c = 3
     uh, vh = (u + 1) // 2, (v + 1) // 2
@@ -178,7 +237,12 @@ def _search_row(
     col_c = start_c[:, None] + np.arange(Dh + 1)
     wc = width // 2
     sc[(col_c < half_c) | (col_c > wc - 1 - half_c)] = -2.0
-    best_c = start_c + np.argmax(sc, axis=1)
+    k_c = np.argmax(sc, axis=1)
+    best_c = start_c + k_c
+    idx_n = np.arange(len(u))
+    far_from_best = np.abs(np.arange(Dh + 1)[None, :] - k_c[:, None]) > 2
+    second = np.max(np.where(far_from_best, sc, -2.0), axis=1)
+    margin = (sc[idx_n, k_c] - second).astype(float)
     start_f = 2 * best_c - 3
     L = 7
     sf = _zncc_scan(src_f, dst_f, pad_f, u, v, start_f, L, half_f, rows)
@@ -200,7 +264,7 @@ def _search_row(
         dv = np.where(ri == 1, dv, np.asarray(rows)[ri].astype(float))
     else:
         dv = np.zeros(len(u))
-    return start_f + k, ri, du, dv, best.astype(float)
+    return start_f + k, ri, du, dv, best.astype(float), margin
 
 
 def match_stereo(
@@ -213,8 +277,10 @@ def match_stereo(
     """Find the left corners in the rectified right image along their row (+-1 row).
 
     Normalised cross-correlation, coarse to fine (half resolution over the whole disparity
-    range, then full resolution), sub-pixel parabola fits in u and v. A match is kept when
-    its ZNCC exceeds ``min_zncc``, its vertical offset is within ``max_row_error_px`` (the
+    range, then full resolution), sub-pixel parabola fits in u and v, then (``stereo_subpixel:
+    gradient``) the column refined by :func:`refine_row_gradient`. A match is kept when
+    its ZNCC exceeds ``min_zncc``, its best coarse peak beats every other one along the row by
+    ``stereo_uniqueness``, its vertical offset is within ``max_row_error_px`` (the
     reprojection check of a rectified pair), its disparity is within range, and searching
     the right patch back along the left row returns to the corner within
     ``lr_tolerance_px``. ``min_disparity_px`` replaces ``cfg.min_disparity_px`` (0: keep far
@@ -230,7 +296,7 @@ def match_stereo(
     index = np.flatnonzero(inside)
     u, v = uv[:, 0], uv[:, 1]
     empty = StereoMatches(
-        np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, np.int64)
+        np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, np.int64), np.zeros(0)
     )
     if u.size == 0:
         return empty
@@ -240,25 +306,36 @@ def match_stereo(
     rf = cv2.copyMakeBorder(right, pad_f, pad_f, pad_f, pad_f, cv2.BORDER_REPLICATE)
     lc = cv2.copyMakeBorder(cv2.pyrDown(left), pad_c, pad_c, pad_c, pad_c, cv2.BORDER_REPLICATE)
     rc = cv2.copyMakeBorder(cv2.pyrDown(right), pad_c, pad_c, pad_c, pad_c, cv2.BORDER_REPLICATE)
-    col, ri, du, dv, score = _search_row(lc, rc, lf, rf, pad_c, pad_f, u, v, -1, dmax, half, w,
+    col, ri, du, dv, score, margin = _search_row(lc, rc, lf, rf, pad_c, pad_f, u, v, -1, dmax, half, w,
                                          (-1, 0, 1))
     ur = col + du
-    disp = u - ur
-    ok = (score >= cfg.min_zncc) & (np.abs(dv) <= cfg.max_row_error_px)
-    d_min = cfg.min_disparity_px if min_disparity_px is None else min_disparity_px
-    ok &= (disp >= d_min) & (disp <= cfg.max_disparity_px)
-    # left-right consistency: the right patch (at its integer match) searched in the left row
     vr_int = v + np.asarray((-1, 0, 1))[ri]
-    ok &= (vr_int >= half + 1) & (vr_int < h - half - 1)
+    inside_r = (vr_int >= half + 1) & (vr_int < h - half - 1)
+    sigma = np.full(u.shape[0], cfg.disparity_sigma_px)
+    ok = (score >= cfg.min_zncc) & (np.abs(dv) <= cfg.max_row_error_px) & inside_r
+    d_min = cfg.min_disparity_px if min_disparity_px is None else min_disparity_px
+    ok &= (u - ur >= d_min - 1.0) & (u - ur <= cfg.max_disparity_px + 1.0)
+    if cfg.stereo_subpixel == "gradient":  # only the candidates that passed the checks so far
+        r = np.flatnonzero(ok)
+        ur_g, sigma[r] = refine_row_gradient(lf, rf, pad_f, u[r], v[r], ur[r], vr_int[r], half, iterations=3)
+        moved = np.abs(ur_g - ur[r]) <= 1.0  # a step beyond the bracketing pixels: no clear optimum
+        ur[r] = np.where(moved, ur_g, ur[r])
+        inside_r[r] &= moved
+    disp = u - ur
+    ok &= (disp >= d_min) & (disp <= cfg.max_disparity_px)
+    if cfg.stereo_uniqueness > 0:  # best and second-best peaks along the row too close: ambiguous
+        ok &= margin >= cfg.stereo_uniqueness
+    # left-right consistency: the right patch (at its integer match) searched in the left row
+    ok &= inside_r
     sel = np.flatnonzero(ok)
     if sel.size:
-        bcol, _bri, bdu, _bdv, bscore = _search_row(
+        bcol, _bri, bdu, _bdv, bscore, _bm = _search_row(
             rc, lc, rf, lf, pad_c, pad_f, col[sel], vr_int[sel], +1, dmax, half, w, (0,)
         )
         back_ok = (np.abs(bcol + bdu - u[sel]) <= cfg.lr_tolerance_px) & (bscore >= cfg.min_zncc)
         ok[sel] = back_ok
     return StereoMatches(
-        uv[ok].astype(float), ur[ok], (v + dv)[ok], disp[ok], score[ok], index[ok]
+        uv[ok].astype(float), ur[ok], (v + dv)[ok], disp[ok], score[ok], index[ok], sigma[ok]
     )
 
 

@@ -53,6 +53,57 @@ class _ActiveSet:
     far_rays: F64 = field(default_factory=lambda: np.zeros((0, 3)))
     far_inv_depth: F64 = field(default_factory=lambda: np.zeros(0))
     far_px: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    # issue 36: each point's disparity standard deviation (px) from its stereo match
+    disparity_sigma_px: F64 = field(default_factory=lambda: np.zeros(0))
+    # issue 36: per point, a running mean of its signed pose residual (px) and how many frames it has
+    residual_mean_px: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    residual_frames: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    disparity_offset_px: float = 0.0  # the correction applied to this set's matches (issue 36)
+    # depth standard deviation (m) of each point: stereo at first, smaller once the local BA has
+    # refined the point over the keyframe interval (local-map tracking weighs the points by it)
+    sigma_z_m: F64 = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass
+class _LocalPrediction:
+    """The local map's points for one frame.
+
+    In the active keyframe's frame (L, 3, m), last and predicted pixels (L, 2), in front of the
+    predicted camera, depth weights, points per set.
+    """
+
+    points_kf: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    prev_uv: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    guess: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    front: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    prior: F64 | None = None
+    sizes: list[int] = field(default_factory=list)
+
+
+@dataclass
+class _WideRows:
+    """The local map's points for the wider local BA: keyframe-i frame, own stereo pixels, final pixels."""
+
+    points_kf: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    uv_left: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    uv_right: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    uv_final: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    owner: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    own_from_kf: F64 = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    sizes: list[int] = field(default_factory=list)
+
+
+@dataclass
+class _LocalSet:
+    """An earlier keyframe's set whose points are still tracked and kept in the pose (local map).
+
+    ``idx``: the tracked points (indices into ``kf_set.points``), ``uv``: where they were seen in the
+    last good frame (rectified left pixels).
+    """
+
+    kf_set: _ActiveSet
+    idx: NDArray[np.int64]
+    uv: F64
 
 
 def median_parallax_rad(points_m: F64, centre_m: F64) -> float:
@@ -97,6 +148,10 @@ def check_sizes_against_image(config: FrontendConfig, width_px: int, height_px: 
             raise InputError(f"frontend.{key}", f"{getattr(config, key)} does not fit the images: {expected}")
 
 
+#: prior standard deviation of the disparity offset (px): a good stereo calibration (frontend.disparity_offset)
+OFFSET_PRIOR_SIGMA_PX = 0.3
+
+
 def _rotation_deg(T: F64) -> float:
     return float(np.degrees(np.linalg.norm(so3_log(T[:3, :3]))))
 
@@ -135,6 +190,10 @@ class FrontEnd:
         self._world_from_kf: dict[int, F64] = {}
         self._active: _ActiveSet | None = None
         self._older: list[_ActiveSet] = []  # keyframes before the active one (re-measured)
+        self._local: list[_LocalSet] = []  # earlier keyframes' sets still tracked (local map)
+        self._local_inliers: list[int] = []  # local-map points each frame's pose kept, since the keyframe
+        # (image, d/du, d/dv): the last image's gradients for the affine re-measurements in it
+        self._gradients: tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.float32]] | None = None
         self._next_kf_id = 0
         self._next_landmark_id = 0
         self._segment = 0
@@ -144,6 +203,12 @@ class FrontEnd:
         self._far_idx = np.zeros(0, dtype=np.int64)  # tracked far bearings of the active set
         self._far_uv = np.zeros((0, 2))
         self._outlier_uv = np.zeros((0, 2))  # tracked in the last frame, rejected by the pose
+        self._moving_uv = np.zeros((0, 2))  # last positions of tracks dropped as moving (issue 36)
+        # frontend.disparity_offset (issue 36): the local BAs' offsets fused by their information
+        self._offset_mean_px = 0.0  # posterior mean of the offset (px)
+        self._offset_info = 1.0 / OFFSET_PRIOR_SIGMA_PX**2  # its information (1/px^2)
+        self._offset_count = 0
+        self._offset_px = 0.0  # applied to new matches (measured right column - offset)
         self._left_rect: NDArray[np.uint8] | None = None  # the last rectified left image
         self._prev_pyr: Pyramid | None = None
         self._kf_from_prev: F64 = np.eye(4)
@@ -373,10 +438,17 @@ class FrontEnd:
             f_guess[f_front] = self.left_camera.project(q_far[f_front])
             guess = np.vstack([guess, f_guess])
             front = np.concatenate([front, f_front])
+        n_far = fidx.size
+        start = np.vstack([self._track_uv, self._far_uv]) if n_far else self._track_uv
+        loc = self._local_prediction(pred_from_kf)
+        if loc.sizes:
+            start = np.vstack([start, loc.prev_uv])
+            guess = np.vstack([guess, loc.guess])
+            front = np.concatenate([front, loc.front])
         uv, ok, _fb = track_klt(
             self._prev_pyr,
             cur_pyr,
-            np.vstack([self._track_uv, self._far_uv]) if fidx.size else self._track_uv,
+            start,
             guess,
             cfg.klt_window_px,
             cfg.klt_levels,
@@ -385,15 +457,26 @@ class FrontEnd:
             self.calibration.image_size,
         )
         ok &= front
-        uv_far, ok_far = uv[n_near:], ok[n_near:]
+        uv_far, ok_far = uv[n_near : n_near + n_far], ok[n_near : n_near + n_far]
+        uv_loc, ok_loc = uv[n_near + n_far :], ok[n_near + n_far :]
         uv, ok = uv[:n_near], ok[:n_near]
         tracked = int(ok.sum())
         if tracked < cfg.min_inliers:
             return "LOST", f"only {tracked} KLT tracks", tracked, 0, kf_from_pred, False
         prior = None
         if cfg.depth_weighting:
-            prior = self._depth_weights(pts[ok], pred_from_kf)
+            sigma_z = None
+            if cfg.disparity_sigma_source == "match" and active.disparity_sigma_px.size:
+                fb = self.calibration.fx_px * self.calibration.baseline_m
+                sigma_z = pts[ok, 2] ** 2 / fb * active.disparity_sigma_px[idx[ok]]
+            prior = self._depth_weights(pts[ok], pred_from_kf, sigma_z)
         p_all, uv_all, mono_sel, kf_from_ref = pts[ok], uv[ok], np.zeros(0, np.int64), {}
+        loc_sel = np.flatnonzero(ok_loc)
+        if loc_sel.size:  # the local map's points (earlier keyframes), in the active keyframe's frame
+            p_all, uv_all = np.vstack([p_all, loc.points_kf[loc_sel]]), np.vstack([uv_all, uv_loc[loc_sel]])
+            if prior is not None and loc.prior is not None:
+                prior = np.concatenate([prior, loc.prior[loc_sel]])
+        n_sl = tracked + loc_sel.size  # stereo points first (active set, local map), then mono-depth ones
         m_ok: NDArray[np.bool_] | None = None
         if self._mono is not None and len(self._mono):
             kf_from_ref = self._mono_frames()
@@ -446,6 +529,8 @@ class FrontEnd:
                 res.used_ransac,
             )
         keep = np.flatnonzero(ok)[inl]
+        if cfg.moving_gate > 0:
+            keep = self._drop_moving(idx, keep, uv, res.rig_from_ref)
         self._outlier_uv = uv[np.flatnonzero(ok)[~inl]]
         if n_inl >= 6:  # the run's own KLT/stereo noise (for the back end's final refinement)
             self._pose_sigma_px.append(robust_scale(res.residual_norms[0][:tracked][inl], 2, 0.0))
@@ -453,18 +538,110 @@ class FrontEnd:
         self._mono_used = 0
         if self._mono is not None and m_ok is not None:
             m_keep = m_ok.copy()
-            m_keep[mono_sel[~inl_all[tracked:]]] = False  # converged points the pose rejected
-            self._mono_used = int(inl_all[tracked:].sum())
+            m_keep[mono_sel[~inl_all[n_sl:]]] = False  # converged points the pose rejected
+            self._mono_used = int(inl_all[n_sl:].sum())
             dt_s = max((self._last_stamp or 0) - self._good_stamp, 1) * 1e-9
             self._mono.commit(res.rig_from_ref, kf_from_ref, dt_s, m_keep)
             self._good_stamp = self._last_stamp or 0
         self._track_uv = uv[keep]
+        if loc.sizes:
+            self._keep_local(loc, loc_sel[inl_all[tracked:n_sl]], uv_loc)
         if extra:
             f_keep = far_sel[res.inliers[1]]
             self._far_idx, self._far_uv = fidx[f_keep], uv_far[f_keep]
         else:
             self._far_idx, self._far_uv = fidx[far_sel], uv_far[far_sel]
         return "OK", "", tracked, n_inl, kf_from_cur, res.used_ransac
+
+    def _local_prediction(self, pred_from_kf: F64) -> _LocalPrediction:
+        """The local map's tracked points (earlier keyframes' sets) for this frame, at the predicted pose.
+
+        ``pred_from_kf``: predicted current camera from the active keyframe (rectified). Each set's
+        points are carried into the active keyframe's frame through the current keyframe poses
+        (corrected by the back end); with ``depth_weighting`` each is weighted by its own depth
+        uncertainty, in its own keyframe's frame.
+        """
+        assert self._active is not None
+        kf_from_world = invert_pose(self._active.world_from_kfrect)
+        out = _LocalPrediction()
+        parts: list[tuple[F64, F64, F64, NDArray[np.bool_], F64 | None]] = []
+        for ls in self._local:
+            kf = ls.kf_set.keyframe
+            kf_from_old = kf_from_world @ self._world_from_kf.get(kf.id, kf.world_from_kf) @ self.cam_from_rect
+            pred_from_old = pred_from_kf @ kf_from_old
+            p_old = ls.kf_set.points[ls.idx]
+            q = p_old @ pred_from_old[:3, :3].T + pred_from_old[:3, 3]
+            front = q[:, 2] > 1e-3
+            guess = ls.uv.copy()
+            guess[front] = self.left_camera.project(q[front])
+            prior = (
+                self._depth_weights(p_old, pred_from_old, ls.kf_set.sigma_z_m[ls.idx])
+                if self.config.depth_weighting
+                else None
+            )
+            parts.append((p_old @ kf_from_old[:3, :3].T + kf_from_old[:3, 3], ls.uv, guess, front, prior))
+            out.sizes.append(ls.idx.size)
+        if parts:
+            out.points_kf = np.vstack([p[0] for p in parts])
+            out.prev_uv = np.vstack([p[1] for p in parts])
+            out.guess = np.vstack([p[2] for p in parts])
+            out.front = np.concatenate([p[3] for p in parts])
+            priors = [p[4] for p in parts]
+            out.prior = None if any(w is None for w in priors) else np.concatenate(priors)  # type: ignore[arg-type]
+        return out
+
+    def _keep_local(self, loc: _LocalPrediction, kept: NDArray[np.int64], uv: F64) -> None:
+        """Keep the local map's points the pose kept (``kept``: indices into ``loc``) at ``uv`` (px)."""
+        offsets = np.concatenate([[0], np.cumsum(loc.sizes)])
+        self._local_inliers.append(int(kept.size))
+        local = []
+        for ls, a, b in zip(self._local, offsets[:-1], offsets[1:], strict=True):
+            sel = kept[(kept >= a) & (kept < b)]
+            if sel.size >= 3:
+                local.append(_LocalSet(ls.kf_set, ls.idx[sel - a], uv[sel]))
+        self._local = local
+
+    def _fuse_offset(self, offset_px: float, var_px2: float) -> None:
+        """Take a local BA's posterior disparity offset (px, total: the applied correction plus the BA's rest).
+
+        Each BA starts from the previous posterior as its prior (a scalar Kalman filter without
+        process noise, starting from 0 +- ``OFFSET_PRIOR_SIGMA_PX``); the posterior mean corrects the
+        next keyframe's matches, clipped to 2 px (a larger one is a wrong calibration).
+        """
+        if not (np.isfinite(offset_px) and np.isfinite(var_px2) and var_px2 > 0):
+            return
+        self._offset_mean_px = offset_px
+        self._offset_info = 1.0 / var_px2
+        self._offset_count += 1
+        self._offset_px = float(np.clip(offset_px, -2.0, 2.0))
+
+    def _drop_moving(
+        self, idx: NDArray[np.int64], keep: NDArray[np.int64], uv: F64, cur_from_kf: F64
+    ) -> NDArray[np.int64]:
+        """Pose inliers ``keep`` (indices into the tracks ``idx``, seen at ``uv``) minus the points that move.
+
+        Each point's signed residual at the solved pose ``cur_from_kf`` goes into a running mean
+        (halved each frame); a point whose mean, after two frames or more, exceeds ``moving_gate``
+        times the frame's robust residual scale drifts consistently, as a point on a moving object
+        does, even when each frame's residual passes the per-frame gate. Its position is kept in
+        ``_moving_uv``: the next keyframe takes no new point near it.
+        """
+        cfg = self.config
+        assert self._active is not None
+        a = self._active
+        if a.residual_mean_px.shape[0] != a.points.shape[0]:
+            a.residual_mean_px = np.zeros((a.points.shape[0], 2))
+            a.residual_frames = np.zeros(a.points.shape[0], np.int64)
+        pi = idx[keep]
+        p = a.points[pi] @ cur_from_kf[:3, :3].T + cur_from_kf[:3, 3]
+        r = self.left_camera.project(p) - uv[keep]
+        a.residual_mean_px[pi] = 0.5 * a.residual_mean_px[pi] + 0.5 * r
+        a.residual_frames[pi] += 1
+        scale = max(robust_scale(np.linalg.norm(r, axis=1), 2, 0.0), cfg.pose_min_scale_px)
+        drift_px = np.linalg.norm(a.residual_mean_px[pi], axis=1)
+        moving = (a.residual_frames[pi] >= 2) & (drift_px > cfg.moving_gate * scale)
+        self._moving_uv = uv[keep[moving]]
+        return keep[~moving]
 
     def _far_term(self, sel: NDArray[np.int64], uv: F64, q_pred: F64, cur_from_kf: F64) -> PointTerm:
         """Pose term of the tracked far bearings ``sel`` of the active set, seen at ``uv`` (pixels).
@@ -571,6 +748,14 @@ class FrontEnd:
             return True
         return _rotation_deg(kf_from_cur) > cfg.max_rotation_deg
 
+    def _left_gradients(self, left: NDArray[np.uint8]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Gradients of the rectified left image ``left``, computed once for all re-measurements in it."""
+        from loopmodel.frontend.affine_klt import image_gradients
+
+        if self._gradients is None or self._gradients[0] is not left:
+            self._gradients = (left, *image_gradients(left))
+        return self._gradients[1], self._gradients[2]
+
     def _remeasure_tracks(self, prev: _ActiveSet, left: NDArray[np.uint8], kf_from_cur: F64) -> None:
         """Measure the tracked features again against the keyframe's own patches and keep those that match.
 
@@ -594,10 +779,113 @@ class FrontEnd:
             cfg.remeasure_half_window_px,
             min_ncc=cfg.remeasure_min_ncc,
             max_shift_px=cfg.remeasure_max_shift_px,
+            cur_gradients=self._left_gradients(left),
         )
         if int(match.ok.sum()) >= max(6, cfg.min_inliers):
             self._track_idx = idx[match.ok]
             self._track_uv = match.uv_px[match.ok]
+
+    def _wide_ba_rows(self, prev: _ActiveSet) -> _WideRows:
+        """The local map's points for a wider local BA (``frontend.local_ba_keyframes`` earlier sets).
+
+        Each set's tracked points, carried into ``prev``'s keyframe frame through the keyframe poses,
+        with their stereo pixels in their own keyframe (held fixed in the BA: ``own_from_kf``, owner
+        1, 2, ...) and where they are seen now.
+        """
+        out = _WideRows()
+        k = self.config.local_ba_keyframes
+        if k <= 0 or not self._local:
+            return out
+        kf_from_world = invert_pose(prev.world_from_kfrect)
+        pts, ul, ur, uf, own, frames = [], [], [], [], [], []
+        for j, ls in enumerate(self._local[:k]):
+            kf = ls.kf_set.keyframe
+            kf_from_own = kf_from_world @ self._world_from_kf.get(kf.id, kf.world_from_kf) @ self.cam_from_rect
+            p = ls.kf_set.points[ls.idx]
+            sp = ls.kf_set.stereo_px[ls.idx]
+            pts.append(p @ kf_from_own[:3, :3].T + kf_from_own[:3, 3])
+            ul.append(sp[:, [0, 2]])
+            ur.append(sp[:, [1, 2]])
+            uf.append(ls.uv)
+            own.append(np.full(ls.idx.size, j + 1, np.int64))
+            frames.append(invert_pose(kf_from_own))
+            out.sizes.append(int(ls.idx.size))
+        out.points_kf, out.uv_left, out.uv_right = np.vstack(pts), np.vstack(ul), np.vstack(ur)
+        out.uv_final, out.owner, out.own_from_kf = np.vstack(uf), np.concatenate(own), np.stack(frames)
+        return out
+
+    def _refine_points(
+        self, kf_set: _ActiveSet, sel_all: NDArray[np.int64], points_m: F64, inliers: NDArray[np.bool_],
+        kf_from_end: F64,
+    ) -> None:
+        """Keep the local BA's refined points (``points_m``, keyframe frame) of the set's points ``sel_all``.
+
+        Their depth standard deviation combines stereo with the triangulation over the keyframe
+        interval (``kf_from_end``: the final frame's pose in the keyframe): the baseline across each
+        ray, the same pixel noise.
+        """
+        sel = sel_all[inliers]
+        p = points_m[inliers]
+        if sel.size == 0:
+            return
+        kf_set.points[sel] = p
+        ray = p / np.linalg.norm(p, axis=1, keepdims=True)
+        t = kf_from_end[:3, 3]
+        across_m = np.linalg.norm(t - (ray @ t)[:, None] * ray, axis=1)
+        z2 = p[:, 2] ** 2
+        fx, sd = self.calibration.fx_px, self.config.disparity_sigma_px
+        inv_var = (fx * self.calibration.baseline_m / (z2 * sd)) ** 2 + (fx * across_m / (z2 * sd)) ** 2
+        kf_set.sigma_z_m[sel] = 1.0 / np.sqrt(inv_var)
+
+    def _observe_local(self, mono_obs: F64, left: NDArray[np.uint8], world_from_rect: F64) -> F64:
+        """``mono_obs`` plus the local map's tracked points in the new keyframe (landmark_id, u, v rows).
+
+        Points that :meth:`_observe_older` found again (rows already in ``mono_obs``) rejoin their set
+        at the measured position; the others are added at their tracked position, with
+        ``local_map_remeasure`` first measured again against their own keyframe's patch (affine, as
+        :meth:`_remeasure_tracks`; those that fail leave the set). ``left``: the new keyframe's
+        rectified left image, ``world_from_rect`` its pose. The sets are the earlier keyframes' (the
+        outgoing active set's tracks are in ``mono_obs`` already).
+        """
+        from loopmodel.frontend.affine_klt import predicted_affine, refine_affine
+
+        cfg = self.config
+        rows = [mono_obs]
+        local = []
+        obs_ids = mono_obs[:, 0].astype(np.int64)
+        for ls in self._local:
+            if cfg.local_map_remeasure and ls.idx.size:
+                kf = ls.kf_set.keyframe
+                cur_from_old = invert_pose(world_from_rect) @ self._world_from_kf.get(kf.id, kf.world_from_kf)
+                cur_from_old = cur_from_old @ self.cam_from_rect
+                match = refine_affine(
+                    kf.image,
+                    left,
+                    ls.kf_set.stereo_px[ls.idx][:, [0, 2]],
+                    ls.uv,
+                    predicted_affine(self.left_camera, ls.kf_set.points[ls.idx], cur_from_old),
+                    cfg.remeasure_half_window_px,
+                    min_ncc=cfg.remeasure_min_ncc,
+                    max_shift_px=cfg.remeasure_max_shift_px,
+                    cur_gradients=self._left_gradients(left),
+                )
+                ls = _LocalSet(ls.kf_set, ls.idx[match.ok], match.uv_px[match.ok])
+            ids = ls.kf_set.keyframe.landmark_ids
+            if ids.size == 0 or ids[-1] - ids[0] != ids.size - 1:  # ids not one run: no re-seeding
+                rows.append(np.column_stack([ids[ls.idx].astype(float), ls.uv]))
+                local.append(ls)
+                continue
+            uv = np.full((ids.size, 2), np.nan)
+            uv[ls.idx] = ls.uv
+            found = (obs_ids >= ids[0]) & (obs_ids < ids[0] + ids.size)
+            j = obs_ids[found] - ids[0]
+            tracked_only = np.setdiff1d(ls.idx, j)
+            rows.append(np.column_stack([ids[tracked_only].astype(float), uv[tracked_only]]))
+            uv[j] = mono_obs[found, 1:3]
+            idx = np.flatnonzero(np.isfinite(uv[:, 0]))
+            local.append(_LocalSet(ls.kf_set, idx, uv[idx]))
+        self._local = local
+        return np.vstack(rows)
 
     def _observe_older(self, left: NDArray[np.uint8], world_from_rect: F64) -> F64:
         """Rows (landmark_id, u, v) of older keyframes' points found in the new keyframe image ``left``.
@@ -635,6 +923,7 @@ class FrontEnd:
                 cfg.remeasure_half_window_px,
                 min_ncc=cfg.remeasure_min_ncc,
                 max_shift_px=cfg.remeasure_max_shift_px,
+                cur_gradients=self._left_gradients(left),
             )
             ok = match.ok
             ids = old.keyframe.landmark_ids[sel[ok]].astype(float)
@@ -671,12 +960,22 @@ class FrontEnd:
         )
         bearing = cfg.far_points == "bearing"
         m = match_stereo(left, right, corners, cfg, 0.0 if bearing else None)
+        applied_offset_px = self._offset_px  # the estimated disparity offset (frontend.disparity_offset)
+        if applied_offset_px != 0.0:
+            m.u_right = m.u_right - applied_offset_px
+            m.disparity = m.disparity + applied_offset_px
         with np.errstate(divide="ignore", invalid="ignore"):  # zero disparity: at infinity
             pts = triangulate_rectified(
                 m.uv_left, m.disparity, self.calibration.K_left, self.calibration.baseline_m
             )
         far = self._far_mask(m.disparity) if bearing else np.zeros(len(m.disparity), bool)
         keep = (pts[:, 2] < cfg.max_depth_m) & ~far
+        if cfg.moving_gate > 0 and self._moving_uv.shape[0] and connected:
+            # no new point where tracks were just dropped as moving (issue 36)
+            d2 = np.sum((m.uv_left[:, None, :] - self._moving_uv[None, :, :]) ** 2, axis=2)
+            near_moving = np.min(d2, axis=1) < cfg.moving_radius_px**2
+            keep &= ~near_moving
+            far &= ~near_moving
         if cfg.max_keyframe_points and int(keep.sum()) > cfg.max_keyframe_points:
             keep &= spread_subset(
                 m.uv_left, m.score, keep, cfg.max_keyframe_points, (cfg.grid_cols, cfg.grid_rows),
@@ -687,6 +986,7 @@ class FrontEnd:
             return None
         pts = pts[keep]
         stereo_px = np.column_stack([m.uv_left[keep, 0], m.u_right[keep], m.uv_left[keep, 1]])
+        disparity_sigma = m.sigma_px[keep]
         if cfg.far_max_points and int(far.sum()) > cfg.far_max_points:
             far &= spread_subset(
                 m.uv_left, m.score, far, cfg.far_max_points, (cfg.grid_cols, cfg.grid_rows),
@@ -715,6 +1015,8 @@ class FrontEnd:
             if cfg.keyframe_remeasure and self._older:
                 older = self._observe_older(left, prev.world_from_kfrect @ kf_from_cur)
                 mono_obs = np.vstack([mono_obs, older])
+            if self._local:
+                mono_obs = self._observe_local(mono_obs, left, prev.world_from_kfrect @ kf_from_cur)
             kf_from_new = kf_from_cur
             if cfg.local_ba and self._track_idx.size >= 6:
                 tb = time.perf_counter()
@@ -724,15 +1026,27 @@ class FrontEnd:
                     # the set's tracked points in this keyframe's right image (both ends
                     # of the set then carry a stereo observation)
                     fm = match_stereo(left, right, self._track_uv, cfg)
+                    fm.u_right = fm.u_right - self._offset_px
                     final_right = np.full((self._track_idx.size, 2), np.nan)
                     frac = self._track_uv[fm.index] - fm.uv_left  # sub-pixel part of the corner
                     final_right[fm.index, 0] = fm.u_right + frac[:, 0]
                     final_right[fm.index, 1] = fm.v_right + frac[:, 1]
+                wide = self._wide_ba_rows(prev)
+                n_own = self._track_idx.size
+                right_sigma = None  # per-point disparity standard deviations (px), own set then the window's
+                if cfg.disparity_sigma_source == "match" and prev.disparity_sigma_px.size:
+                    sig = [prev.disparity_sigma_px[self._track_idx]]
+                    for ls, n in zip(self._local, wide.sizes, strict=False):
+                        ds = ls.kf_set.disparity_sigma_px
+                        sig.append(ds[ls.idx] if ds.size else np.full(n, cfg.disparity_sigma_px))
+                    right_sigma = np.concatenate(sig)
+                if final_right is not None and wide.sizes:
+                    final_right = np.vstack([final_right, np.full((int(sum(wide.sizes)), 2), np.nan)])
                 ba = hybrid_keyframe_ba(
-                    prev.points[self._track_idx],
-                    sp[:, [0, 2]],
-                    sp[:, [1, 2]],
-                    self._track_uv,
+                    np.vstack([prev.points[self._track_idx], wide.points_kf]),
+                    np.vstack([sp[:, [0, 2]], wide.uv_left]),
+                    np.vstack([sp[:, [1, 2]], wide.uv_right]),
+                    np.vstack([self._track_uv, wide.uv_final]),
                     invert_pose(kf_from_cur),
                     self.left_camera,
                     self.right_camera,
@@ -740,6 +1054,11 @@ class FrontEnd:
                     cfg.ba_iterations,
                     cfg.ba_huber_px,
                     uv_final_right=final_right,
+                    right_sigma_px=right_sigma,
+                    estimate_disparity_offset=cfg.disparity_offset == "estimate",
+                    offset_prior=(self._offset_mean_px - prev.disparity_offset_px, self._offset_info),
+                    owner=np.concatenate([np.zeros(n_own, np.int64), wide.owner]),
+                    own_from_kf=np.concatenate([np.eye(4)[None], wide.own_from_kf]),
                 )
                 step = invert_pose(kf_from_cur) @ invert_pose(ba.f_from_kf)
                 # accept the BA only when it stays near the robust pose (guards against a bad set)
@@ -748,13 +1067,35 @@ class FrontEnd:
                     and _rotation_deg(step) < cfg.max_jump_deg
                 ):
                     kf_from_new = invert_pose(ba.f_from_kf)
+                    if cfg.local_map_keyframes > 0:  # the local map keeps the refined points
+                        self._refine_points(
+                            prev, self._track_idx, ba.points_in_kf[:n_own], ba.inliers[:n_own], kf_from_new
+                        )
+                        off = n_own
+                        for k, (ls, n) in enumerate(zip(self._local, wide.sizes, strict=False)):
+                            own_from_kf = wide.own_from_kf[k]
+                            p_own = ba.points_in_kf[off : off + n] @ own_from_kf[:3, :3].T + own_from_kf[:3, 3]
+                            self._refine_points(
+                                ls.kf_set, ls.idx, p_own, ba.inliers[off : off + n], own_from_kf @ kf_from_new
+                            )
+                            off += n
+                    if cfg.disparity_offset == "estimate":
+                        self._fuse_offset(prev.disparity_offset_px + ba.disparity_offset_px,
+                                          ba.disparity_offset_var_px2)
                 ba_info = {
                     "ba_ms": (time.perf_counter() - tb) * 1e3,
                     "ba_iterations": float(ba.iterations),
                     "ba_rms_before_px": ba.initial_rms_px,
                     "ba_rms_after_px": ba.final_rms_px,
                     "ba_points": float(self._track_idx.size),
+                    "ba_window_points": float(sum(wide.sizes)),
                 }
+                if cfg.disparity_offset == "estimate":
+                    ba_info["disparity_offset_px"] = ba.disparity_offset_px
+                    ba_info["disparity_offset_sigma_px"] = float(np.sqrt(ba.disparity_offset_var_px2))
+                    ba_info["disparity_offset_applied_px"] = applied_offset_px  # to this keyframe's matches
+            if self._local_inliers:
+                ba_info["local_map_inliers"] = float(np.median(self._local_inliers))
             if self._pose_sigma_px:
                 # robust scale (px per coordinate) of the pose residuals over the interval
                 ba_info["pose_residual_sigma_px"] = float(np.median(self._pose_sigma_px))
@@ -771,6 +1112,12 @@ class FrontEnd:
             kf_prev_from_kf_tracked = self.cam_from_rect @ kf_from_cur @ self.rect_from_cam
 
         self._pose_sigma_px = []
+        self._local_inliers = []
+        if prev is not None and connected and kf_from_cur is not None and cfg.local_map_keyframes > 0:
+            local = [_LocalSet(prev, self._track_idx.copy(), self._track_uv.copy()), *self._local]
+            self._local = [ls for ls in local if ls.idx.size >= 3][: cfg.local_map_keyframes]
+        else:
+            self._local = []
         if not (prev is not None and kf_from_cur is not None and connected):
             self._resumed = None  # a new segment: the old set's relation to it is unknown
         kf_id = self._next_kf_id
@@ -811,7 +1158,12 @@ class FrontEnd:
             self._older = [prev, *self._older][: cfg.remeasure_older_keyframes]
         else:
             self._older = []
-        self._active = _ActiveSet(kf, world_from_rect, pts, stereo_px, depth, far_rays, far_inv_depth, far_px)
+        sigma_z = pts[:, 2] ** 2 / fb * cfg.disparity_sigma_px  # stereo depth standard deviation (m)
+        if cfg.disparity_sigma_source == "match" and len(disparity_sigma) == len(pts):
+            sigma_z = pts[:, 2] ** 2 / fb * disparity_sigma
+        self._active = _ActiveSet(kf, world_from_rect, pts, stereo_px, depth, far_rays, far_inv_depth, far_px,
+                                  disparity_sigma, disparity_offset_px=applied_offset_px, sigma_z_m=sigma_z)
+        self._moving_uv = np.zeros((0, 2))
         self._track_idx = np.arange(pts.shape[0], dtype=np.int64)
         self._track_uv = stereo_px[:, [0, 2]].copy()
         self._far_idx = np.arange(far_px.shape[0], dtype=np.int64)

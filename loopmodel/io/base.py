@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import InputError
-from loopmodel.types import StereoCalibration, StereoFrame, StripeProfile, Trajectory
+from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripeProfile, Trajectory
 
 
 class Sequence(abc.ABC):
@@ -38,6 +38,39 @@ class Sequence(abc.ABC):
     @abc.abstractmethod
     def frames(self) -> Iterator[StereoFrame]:
         """Stereo pairs in time order (images loaded one pair at a time)."""
+
+    def scan(self) -> Iterator[ScanFrame]:
+        """Each stereo frame once, in time order, with the laser data taken up to its time.
+
+        The stripe messages when the sequence has them, else its laser-line images (none without
+        either). An item goes with the first frame at or after its time; items after the last frame
+        read are not read. The one pass over a sequence a run makes.
+        """
+        stripes = bool(self.stripe_count())
+        laser: Iterator[tuple[int, object]] = iter(())
+        if stripes:
+            laser = ((s.timestamp_ns, s) for s in self.stripes())
+        elif self.laser_image_count():
+            laser = iter(self.laser_images())
+        pending: tuple[int, object] | None = None
+        try:
+            for frame in self.frames():
+                taken: list[object] = []
+                while True:
+                    if pending is None:
+                        pending = next(laser, None)
+                    if pending is None or pending[0] > frame.timestamp_ns:
+                        break
+                    taken.append(pending[1] if stripes else pending)
+                    pending = None
+                if stripes:
+                    yield ScanFrame(frame, stripes=taken)  # type: ignore[arg-type]
+                else:
+                    yield ScanFrame(frame, laser_images=taken)  # type: ignore[arg-type]
+        finally:
+            close = getattr(laser, "close", None)
+            if close is not None:
+                close()
 
     def stripes(self) -> Iterator[StripeProfile]:
         """Laser-stripe profiles in time order (none for formats without stripes)."""
@@ -93,6 +126,7 @@ class Sequence(abc.ABC):
             "ground_truth": self.ground_truth is not None,
             "ground_truth_poses": len(self.ground_truth) if self.ground_truth is not None else 0,
             "stripes": self.stripe_count(),
+            "laser_images": self.laser_image_count(),
         }
 
 
@@ -105,6 +139,16 @@ class FolderSequence(Sequence):
     _pairs: list[tuple[int, Path, Path]]
     _calibration: StereoCalibration
     _gt: Trajectory | None = None
+    #: the declared-size limit of an image (``sequence.max_image_pixels``)
+    max_image_pixels: int = 100_000_000
+
+    def _check_image_files(self) -> None:
+        """Every image of the pairs must be a regular file (a FIFO would block its reading)."""
+        from loopmodel.io.text import require_regular_file
+
+        for _, lp, rp in self._pairs:
+            require_regular_file(lp, "image file")
+            require_regular_file(rp, "image file")
 
     @property
     def calibration(self) -> StereoCalibration:
@@ -123,6 +167,6 @@ class FolderSequence(Sequence):
     def frames(self) -> Iterator[StereoFrame]:
         from loopmodel.io.images import read_image_of_size
 
-        size = self._calibration.image_size
+        size, limit = self._calibration.image_size, self.max_image_pixels
         for i, (t, lp, rp) in enumerate(self._pairs):
-            yield StereoFrame(t, read_image_of_size(lp, size), read_image_of_size(rp, size), i)
+            yield StereoFrame(t, read_image_of_size(lp, size, limit), read_image_of_size(rp, size, limit), i)

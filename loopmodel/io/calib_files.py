@@ -97,7 +97,7 @@ def kalibr_calibration(path: Path) -> StereoCalibration:
         right_from_left = np.array(cams[1]["T_cn_cnm1"], dtype=float).reshape(4, 4)
     except (yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
         raise CalibrationError(
-            path, f"not a Kalibr camchain with cam0 and cam1 ({type(exc).__name__}: {exc})"
+            path, f"not a Kalibr camchain with cam0 and cam1 ({type(exc).__name__}: {' '.join(str(exc).split())})"
         ) from None
     if models[0] != models[1] or sizes[0] != sizes[1]:
         raise CalibrationError(path, "cam0 and cam1 differ in distortion model or resolution")

@@ -67,10 +67,12 @@ def write_camera_info_yaml(path: str | Path, info: dict[str, Any], name: str) ->
 
 
 def _load(path: Path) -> dict[str, Any]:
+    from loopmodel.io.text import one_line, read_text_file
+
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise FormatError(path, f"cannot read YAML ({exc})") from None
+        data = yaml.safe_load(read_text_file(path, "camera YAML"))
+    except (OSError, yaml.YAMLError, RecursionError) as exc:
+        raise FormatError(path, f"cannot read YAML ({one_line(exc)})") from None
     if not isinstance(data, dict):
         raise FormatError(path, "expected a YAML mapping")
     return data

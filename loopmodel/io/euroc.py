@@ -7,6 +7,8 @@ the front end rectifies.
 
 from __future__ import annotations
 
+import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +20,8 @@ from loopmodel.io.base import FolderSequence
 from loopmodel.io.text import read_text_file
 from loopmodel.io.trajectory_io import read_trajectory
 from loopmodel.types import StereoCalibration, Trajectory
+
+logger = logging.getLogger(__name__)
 
 
 def euroc_root(path: Path) -> Path | None:
@@ -36,6 +40,8 @@ def _read_sensor_yaml(path: Path) -> dict:
         data = yaml.safe_load(text)
     except yaml.YAMLError:
         raise CalibrationError(path, "sensor.yaml is not valid YAML") from None
+    if not isinstance(data, dict):
+        raise CalibrationError(path, "sensor.yaml is empty or not a mapping of keys")
     for key in ("T_BS", "intrinsics", "resolution"):
         if key not in data:
             raise CalibrationError(path, f"sensor.yaml lacks key '{key}'")
@@ -51,18 +57,25 @@ def _camera_from_yaml(data: dict, path: Path) -> tuple[np.ndarray, np.ndarray, n
     except (KeyError, TypeError, ValueError):
         raise CalibrationError(path, "sensor.yaml: T_BS, intrinsics or resolution malformed") from None
     K = np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1.0]])
-    if dist.size == 4 and camera_model_of(data) == "pinhole":
+    if dist.size == 4 and camera_model_of(data, path) == "pinhole":
         dist = np.append(dist, 0.0)
     return K, dist, body_from_cam, (w, h)
 
 
-def camera_model_of(data: dict) -> str:
+def camera_model_of(data: dict, source: Path | None = None) -> str:
     """Camera model of a sensor.yaml: ``equidistant`` or ``pinhole``.
 
     ``equidistant`` for a sensor.yaml ``distortion_model: equidistant`` (Kannala-Brandt, k1..k4),
     else ``pinhole`` (radial-tangential).
     """
-    return "equidistant" if str(data.get("distortion_model", "")).lower() in ("equidistant", "fisheye") else "pinhole"
+    model = str(data.get("distortion_model", "")).lower()
+    if model in ("equidistant", "fisheye"):
+        return "equidistant"
+    if model in ("", "none", "radial-tangential", "radtan", "plumb_bob", "pinhole"):
+        return "pinhole"
+    raise CalibrationError(
+        source, f"distortion_model '{model}' is not one this reader knows (radial-tangential, equidistant)"
+    )
 
 
 def stereo_calibration_of(root: Path, source: Path | None = None) -> tuple[StereoCalibration, np.ndarray]:
@@ -85,6 +98,23 @@ def stereo_calibration_of(root: Path, source: Path | None = None) -> tuple[Stere
     return cal.check(str(root / "cam0" / "sensor.yaml")), body_from_cam0
 
 
+def _existing(cam: Path, times: list[int], names: list[str]) -> tuple[list[int], list[str]]:
+    """The rows of ``cam/data.csv`` whose image is in ``cam/data``; the others skipped with a warning."""
+    missing = [n for n in names if not os.path.lexists(cam / "data" / n)]
+    if not missing:
+        return times, names
+    logger.warning(
+        "%s: %d of %d rows name a missing image, skipped (%s)",
+        cam / "data.csv",
+        len(missing),
+        len(names),
+        ", ".join(missing[:5]),
+    )
+    gone = set(missing)
+    kept = [(t, n) for t, n in zip(times, names, strict=True) if n not in gone]
+    return [t for t, _ in kept], [n for _, n in kept]
+
+
 def _read_index(csv: Path) -> tuple[list[int], list[str]]:
     times: list[int] = []
     names: list[str] = []
@@ -99,10 +129,16 @@ def _read_index(csv: Path) -> tuple[list[int], list[str]]:
             t = int(parts[0])
         except ValueError:
             raise FormatError(csv, f"line {lineno}: timestamp is not an integer") from None
+        if t < 0:
+            raise FormatError(csv, f"line {lineno}: negative timestamp {t}")
+        name = parts[1]
+        # confined to the camera's data/ folder: a plain file name, no absolute path, no '..'
+        if not name or name in (".", "..") or "/" in name or "\\" in name or "\0" in name:
+            raise FormatError(csv, f"line {lineno}: image '{name}' must be a file name inside data/")
         if times and t <= times[-1]:
             raise FormatError(csv, f"line {lineno}: timestamps go backwards ({t} after {times[-1]})")
         times.append(t)
-        names.append(parts[1])
+        names.append(name)
     return times, names
 
 
@@ -111,14 +147,15 @@ class EurocSequence(FolderSequence):
 
     format_name = "euroc"
 
-    def __init__(self, path: Path, tolerance_ns: int = 1_000_000) -> None:
+    def __init__(self, path: Path, tolerance_ns: int = 1_000_000, max_image_pixels: int = 100_000_000) -> None:
         super().__init__(path)
+        self.max_image_pixels = max_image_pixels
         root = euroc_root(path)
         if root is None:
             raise FormatError(path, "not a EuRoC folder (mav0/cam0/data.csv and mav0/cam1/data.csv)")
         self._root = root
-        tl, nl = _read_index(root / "cam0" / "data.csv")
-        tr, nr = _read_index(root / "cam1" / "data.csv")
+        tl, nl = _existing(root / "cam0", *_read_index(root / "cam0" / "data.csv"))
+        tr, nr = _existing(root / "cam1", *_read_index(root / "cam1" / "data.csv"))
         self._pairs: list[tuple[int, Path, Path]] = []
         j = 0
         for t, name in zip(tl, nl, strict=True):
@@ -129,6 +166,7 @@ class EurocSequence(FolderSequence):
                 j += 1
         if not self._pairs:
             raise InputError(path, "no left/right image pairs with matching timestamps")
+        self._check_image_files()
         self._calibration, self._body_from_cam0 = stereo_calibration_of(root, path)
         self._gt = self._read_ground_truth(root)
 

@@ -2,36 +2,88 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import InputError
+from loopmodel.imaging.codec import declared_image_size, decode_quietly
+from loopmodel.io.text import require_regular_file
+
+__all__ = ["declared_image_size", "decode_quietly"]  # re-exported: the readers' callers use them from here
 
 
-def read_image(path: Path) -> NDArray[np.uint8]:
-    """Read an image file unchanged (grey stays HxW).
+def read_image(path: Path, limit_px: int | None = None) -> NDArray[np.uint8]:
+    """Read an image file as 8 bits (grey stays HxW, colour BGR HxWx3; 16-bit scaled by 1/256).
 
-    A clear error when unreadable or when its header declares more than ``MAX_IMAGE_PIXELS``.
+    A clear error when it is not a regular file (a FIFO would block), unreadable, or when its
+    header declares more than ``limit_px`` (default ``MAX_IMAGE_PIXELS``) pixels; nothing is
+    decoded before that check.
     """
-    check_image_file_header(path)
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    data = read_image_bytes(path)
+    check_image_bytes(data, MAX_IMAGE_PIXELS if limit_px is None else limit_px, path)
+    img = decode_quietly(data) if data else None
     if img is None:
-        raise InputError(path, "cannot read image (missing or corrupt)")
+        raise InputError(path, "cannot read image (corrupt or of an unknown format)")
+    return image_to_uint8(np.asarray(img), path)
+
+
+def read_grey_image(path: Path, limit_px: int | None = None) -> NDArray[np.uint8]:
+    """:func:`read_image` as 8-bit grey (HxW); the same checks before decoding."""
+    img = read_image(path, limit_px)
+    return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)) if img.ndim == 3 else img
+
+
+def image_to_uint8(img: NDArray[Any], source: str | Path) -> NDArray[np.uint8]:
+    """8-bit grey (HxW) or BGR (HxWx3) from a decoded image.
+
+    16-bit: the high byte (the ROS readers' convention); BGRA: alpha dropped; anything else
+    (floating point, 2 channels) refused with a line naming ``source``.
+    """
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    if img.dtype != np.uint8:
+        raise InputError(source, f"image of {img.dtype} pixels; expected 8 or 16 bits")
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
+        raise InputError(source, f"image of shape {img.shape}; expected grey or 3-channel colour")
     return np.asarray(img)
 
 
-def image_size(path: Path) -> tuple[int, int]:
+#: Image files larger than this are refused before reading (a 10^8 px BGR PNG is ~300 MB at most).
+MAX_IMAGE_FILE_BYTES = 1 << 30
+
+
+def read_image_bytes(path: Path) -> bytes:
+    """The bytes of an image file: a regular file only, at most ``MAX_IMAGE_FILE_BYTES``."""
+    st = require_regular_file(path, "image file")
+    if st.st_size > MAX_IMAGE_FILE_BYTES:
+        raise InputError(path, f"image file of {st.st_size} bytes is larger than {MAX_IMAGE_FILE_BYTES}")
+    try:
+        # O_NONBLOCK: were it replaced by a FIFO since the check, open() must not block
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+        with os.fdopen(fd, "rb") as f:
+            return f.read(MAX_IMAGE_FILE_BYTES + 1)
+    except OSError as exc:
+        raise InputError(path, f"cannot read image: {exc.strerror or type(exc).__name__}") from None
+
+
+def image_size(path: Path, limit_px: int | None = None) -> tuple[int, int]:
     """(width, height) of an image file."""
-    img = read_image(path)
+    img = read_image(path, limit_px)
     return int(img.shape[1]), int(img.shape[0])
 
 
-def read_image_of_size(path: Path, size: tuple[int, int]) -> NDArray[np.uint8]:
+def read_image_of_size(path: Path, size: tuple[int, int], limit_px: int | None = None) -> NDArray[np.uint8]:
     """Read an image and check it is ``size`` = (width, height) pixels."""
-    img = read_image(path)
+    img = read_image(path, limit_px)
     if (img.shape[1], img.shape[0]) != size:
         raise InputError(path, f"image size {img.shape[1]}x{img.shape[0]}, expected {size[0]}x{size[1]}")
     return img
@@ -40,32 +92,6 @@ def read_image_of_size(path: Path, size: tuple[int, int]) -> NDArray[np.uint8]:
 #: Default limit of an image's declared pixel count (width * height) before it is decoded:
 #: 10^8 px (e.g. 12000 x 8000), about 300 MB decoded in colour. ``sequence.max_image_pixels``.
 MAX_IMAGE_PIXELS = 100_000_000
-
-
-def declared_image_size(header: bytes) -> tuple[int, int] | None:
-    """(width, height) a PNG or JPEG stream declares in its header.
-
-    None: another format, or no size found in ``header``. Reads only the bytes given (PNG: 24; JPEG:
-    up to the first start-of-frame marker).
-    """
-    if header[:8] == b"\x89PNG\r\n\x1a\n" and len(header) >= 24 and header[12:16] == b"IHDR":
-        return int.from_bytes(header[16:20], "big"), int.from_bytes(header[20:24], "big")
-    if header[:2] == b"\xff\xd8":
-        i = 2
-        while i + 9 <= len(header):
-            if header[i] != 0xFF:
-                return None
-            marker = header[i + 1]
-            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:  # no length field
-                i += 2
-                continue
-            seg_len = int.from_bytes(header[i + 2 : i + 4], "big")
-            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # SOFn
-                h = int.from_bytes(header[i + 5 : i + 7], "big")
-                w = int.from_bytes(header[i + 7 : i + 9], "big")
-                return w, h
-            i += 2 + seg_len
-    return None
 
 
 def check_declared_size(width: int, height: int, limit_px: int, source: str | Path) -> None:
@@ -80,13 +106,22 @@ def check_declared_size(width: int, height: int, limit_px: int, source: str | Pa
         )
 
 
+def check_image_bytes(data: bytes | NDArray[np.uint8], limit_px: int, source: str | Path) -> None:
+    """Refuse an encoded image before decoding.
+
+    A declared size above ``limit_px``, or a PNG/JPEG whose header names no size (a decoder
+    skipping damaged bytes could still find a huge one).
+    """
+    raw = data.tobytes() if isinstance(data, np.ndarray) else bytes(data)
+    size = declared_image_size(raw)
+    if size is not None:
+        check_declared_size(size[0], size[1], limit_px, source)
+    elif raw[:2] == b"\xff\xd8" or raw[:8] == b"\x89PNG\r\n\x1a\n":
+        raise InputError(source, "damaged image header (no image size before the image data)")
+
+
 def check_image_file_header(path: Path, limit_px: int = MAX_IMAGE_PIXELS) -> None:
     """Check the size a PNG/JPEG file declares before it is decoded."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(1 << 16)
-    except OSError as exc:
-        raise InputError(path, f"cannot read image: {exc.strerror}") from None
-    size = declared_image_size(head)
+    size = declared_image_size(read_image_bytes(path))
     if size is not None:
         check_declared_size(size[0], size[1], limit_px, path)

@@ -7,13 +7,14 @@ form), optional ``times.txt`` and ``poses.txt``.
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
 
 from loopmodel.errors import CalibrationError, FormatError, InputError
 from loopmodel.io.base import FolderSequence
-from loopmodel.io.images import image_size
+from loopmodel.io.images import MAX_IMAGE_PIXELS, image_size
 from loopmodel.io.text import read_text_file
 from loopmodel.io.trajectory_io import read_trajectory, seconds_text_to_ns
 from loopmodel.types import StereoCalibration, Trajectory
@@ -70,6 +71,9 @@ def calibration_from_projections(
         raise CalibrationError(source, "projection matrix has non-finite values")
     if K0[0, 0] <= 0 or K1[0, 0] <= 0:
         raise CalibrationError(source, f"focal length must be positive, got {K0[0, 0]}, {K1[0, 0]}")
+    for name, P in (("P0", P0), ("P1", P1)):
+        if not np.array_equal(P[2], [0.0, 0.0, 1.0, 0.0]):
+            raise CalibrationError(source, f"{name}: the third row of a rectified projection must be 0 0 1 0")
     right_from_left = np.eye(4)
     right_from_left[0, 3] = (P1[0, 3] - P0[0, 3]) / K1[0, 0]
     right_from_left[1, 3] = (P1[1, 3] - P0[1, 3]) / K1[1, 1]
@@ -82,8 +86,9 @@ class KittiSequence(FolderSequence):
 
     format_name = "kitti"
 
-    def __init__(self, path: Path, rate_hz: float = 10.0) -> None:
+    def __init__(self, path: Path, rate_hz: float = 10.0, max_image_pixels: int = MAX_IMAGE_PIXELS) -> None:
         super().__init__(path)
+        self.max_image_pixels = max_image_pixels
         left_dir = right_dir = None
         for a, b in IMAGE_DIRS:
             if (path / a).is_dir() and (path / b).is_dir():
@@ -117,20 +122,22 @@ class KittiSequence(FolderSequence):
                 ", ".join(only_right[:5]) or "none",
             )
         self.unpaired = only_left + only_right
-        size_l, size_r = image_size(self._left[0]), image_size(self._right[0])
+        size_l = image_size(self._left[0], max_image_pixels)
+        size_r = image_size(self._right[0], max_image_pixels)
         if size_l != size_r:
             raise InputError(path, f"left and right image sizes differ: {size_l} vs {size_r}")
         P0, P1 = parse_kitti_calib(path / "calib.txt")
         self._calibration = calibration_from_projections(P0, P1, size_l, str(path / "calib.txt"))
         self._times = self._read_times(path, rate_hz)
         self._pairs = list(zip(self._times, self._left, self._right, strict=True))
+        self._check_image_files()
         self._gt = self._read_poses(path)
 
     def _read_times(self, path: Path, rate_hz: float) -> list[int]:
         """Timestamps of the paired frames (``times.txt`` has one line per left image)."""
         times_file = path / "times.txt"
         n = self._n_left_files
-        if not times_file.is_file():
+        if not os.path.lexists(times_file):  # a FIFO, folder or link loop is read (and refused)
             return [round(i * 1e9 / rate_hz) for i in self._left_index]
         lines = [s.strip() for s in read_text_file(times_file).splitlines() if s.strip()]
         if len(lines) != n:
@@ -152,7 +159,7 @@ class KittiSequence(FolderSequence):
         """
         for name in ("poses.txt", "groundtruth.txt"):
             p = path / name
-            if p.is_file():
+            if os.path.lexists(p):  # a FIFO, folder or link loop is read (and refused), not skipped
                 traj = read_trajectory(p, "kitti", check=False)
                 n_img = self._n_left_files
                 if len(traj) < 0.9 * n_img or len(traj) > n_img:

@@ -27,7 +27,13 @@ from loopmodel.errors import CalibrationError, FormatError, InputError
 from loopmodel.geometry.se3 import quat_wxyz_from_rotation, rotation_from_quat_wxyz
 from loopmodel.io.atomic import atomic_path
 from loopmodel.io.base import Sequence
-from loopmodel.io.images import MAX_IMAGE_PIXELS, check_declared_size, declared_image_size
+from loopmodel.io.images import (
+    MAX_IMAGE_PIXELS,
+    check_declared_size,
+    check_image_bytes,
+    decode_quietly,
+    image_to_uint8,
+)
 from loopmodel.io.ros2_msgs import MSGDEFS, POINTFIELD_FLOAT32, header, stamp_ns
 from loopmodel.types import StereoCalibration, StereoFrame, StripeProfile, Trajectory
 
@@ -57,13 +63,11 @@ def decode_image(msg: Any, schema_name: str, topic: str, max_pixels: int = MAX_I
     """
     data = bytes(msg.data)
     if schema_name.endswith("CompressedImage"):
-        declared = declared_image_size(data[: 1 << 16])
-        if declared is not None:
-            check_declared_size(declared[0], declared[1], max_pixels, topic)
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        check_image_bytes(data, max_pixels, topic)
+        img = decode_quietly(data)
         if img is None:
             raise FormatError(topic, f"cannot decode compressed image (format '{msg.format}')")
-        return np.asarray(img)
+        return image_to_uint8(np.asarray(img), topic)
     enc = str(msg.encoding).lower()
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     channels = {"mono8": 1, "8uc1": 1, "bgr8": 3, "rgb8": 3, "8uc3": 3, "mono16": 1, "16uc1": 1}
@@ -84,7 +88,7 @@ def decode_image(msg: Any, schema_name: str, topic: str, max_pixels: int = MAX_I
     img = img.reshape(h, w, c) if c == 3 else img.reshape(h, w)
     if enc == "rgb8":
         img = img[:, :, ::-1].copy()
-    return img
+    return image_to_uint8(img, topic)  # mono16: the high byte, as the bag readers
 
 
 def calibration_from_camera_info(
@@ -107,6 +111,8 @@ def calibration_from_camera_info(
         raise CalibrationError(source, "CameraInfo P has non-finite values")
     if P1[0, 0] <= 0 or P0[0, 0] <= 0 or K0[0, 0] <= 0 or K1[0, 0] <= 0:
         raise CalibrationError(source, "CameraInfo focal length must be positive")
+    if not (np.array_equal(P0[2], [0.0, 0.0, 1.0, 0.0]) and np.array_equal(P1[2], [0.0, 0.0, 1.0, 0.0])):
+        raise CalibrationError(source, "CameraInfo P: the third row must be 0 0 1 0")
     t_rect = np.array([(P1[0, 3] - P0[0, 3]) / P1[0, 0], (P1[1, 3] - P0[1, 3]) / P1[1, 1], 0.0])
     rectified = bool(np.allclose(R0, np.eye(3)) and np.allclose(R1, np.eye(3)) and not d0.any() and not d1.any())
     right_from_left = np.eye(4)
@@ -190,7 +196,9 @@ def decode_pointcloud_xyz(msg: Any, topic: str) -> np.ndarray:
         }
     )
     rec = buf[: n * step].view(dt)
-    return np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
+    pts = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
+    # ROS: a cloud with is_dense false marks invalid points with NaN; they are skipped (issue 34)
+    return pts[np.isfinite(pts).all(axis=1)]
 
 
 # ----------------------------------------------------------------------------- reader
@@ -391,8 +399,9 @@ class McapSequence(Sequence):
                 if abs(tl - tr) <= self.tolerance_ns:
                     lq.popleft()
                     rq.popleft()
-                    left = decode_image(ml, sl, t.left_image, self.max_image_pixels)
-                    right = decode_image(mr, sr, t.right_image, self.max_image_pixels)
+                    # the image errors name the frame too (issue 34)
+                    left = decode_image(ml, sl, f"{t.left_image} frame {index} ({tl} ns)", self.max_image_pixels)
+                    right = decode_image(mr, sr, f"{t.right_image} frame {index} ({tr} ns)", self.max_image_pixels)
                     w, h = self._calibration.image_size
                     for tp, img in ((t.left_image, left), (t.right_image, right)):
                         if img.shape[:2] != (h, w):
@@ -417,7 +426,7 @@ class McapSequence(Sequence):
         if topic not in self._channels:
             return
         for _t, _s, msg in self._messages([topic]):
-            yield StripeProfile(stamp_ns(msg), decode_pointcloud_xyz(msg, topic))
+            yield StripeProfile(stamp_ns(msg), decode_pointcloud_xyz(msg, f"{self.path} {topic}"))
 
     def laser_images(self) -> Iterator[tuple[int, np.ndarray]]:
         topic = self.topics.laser_image

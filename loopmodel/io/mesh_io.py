@@ -91,6 +91,9 @@ def write_mesh(path: str | Path, mesh: o3d.geometry.TriangleMesh, fmt: str | Non
     if fmt == "stl" and not mesh.has_triangle_normals():
         mesh = o3d.geometry.TriangleMesh(mesh)
         mesh.compute_triangle_normals()
+    if fmt == "obj" and mesh.has_triangle_normals():  # OBJ has vertex normals only (open3d warns, issue 35)
+        mesh = o3d.geometry.TriangleMesh(mesh)
+        mesh.triangle_normals = o3d.utility.Vector3dVector()
     # open3d picks the format from the extension: let it write into a scratch folder, then
     # post-process the bytes and move them into place atomically
     with tempfile.TemporaryDirectory(prefix="loopmodel-mesh-") as d:

@@ -37,6 +37,8 @@ class ResultsFolder:
     def __init__(self, out_dir: str | Path, name: str, staged: bool = True, overwrite: bool = True) -> None:
         out = Path(out_dir)
         self.final = check_results_folder(out, name, overwrite)
+        #: the folder asked for; ``final`` differs from it when an incomplete run is kept beside
+        self.requested = self.final
         try:
             out.mkdir(parents=True, exist_ok=True)
         except FileExistsError:
@@ -59,13 +61,19 @@ class ResultsFolder:
             self.path = self.final
             self.path.mkdir(parents=True, exist_ok=True)
 
-    def commit(self) -> Path:
+    def commit(self, complete: bool = True, looks_complete: bool = True) -> Path:
         """Move the staged folder to ``<out>/<name>/`` (replacing an older one) and release the lock.
 
-        Returns the final path. Without staging: nothing to do.
+        Returns the final path. Without staging: nothing to do. An incomplete run (``complete``
+        False: interrupted, stopped by an error, a file not written) never replaces an older
+        folder: it goes beside it as ``<name>-incomplete`` (``-incomplete-2``, ...); so does a
+        folder whose files were not all written (``looks_complete`` False), older folder or not,
+        so that its name says so.
         """
         if not self.staged or self.committed:
             return self.final
+        if (not complete and self.final.exists()) or not looks_complete:
+            self.final = _free_name(self.final.with_name(f"{self.final.name}-incomplete"))
         old = None
         if self.final.exists():
             old = self.final.with_name(f".{self.final.name}.old-{os.getpid()}")
@@ -127,6 +135,15 @@ class ResultsFolder:
         return self.write_text("config.yaml", dump_config(config, pipeline_sections()))
 
 
+def _free_name(path: Path) -> Path:
+    """``path``, or ``path-2``, ``path-3``, ... whichever does not exist yet."""
+    k, candidate = 1, path
+    while candidate.exists() or candidate.is_symlink():
+        k += 1
+        candidate = path.with_name(f"{path.name}-{k}")
+    return candidate
+
+
 def write_results(folder: ResultsFolder, run: RunResult) -> Path:
     """Write a run into ``folder``, the small files first.
 
@@ -160,23 +177,41 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
             )
         folder.write_json("metrics.json", run.metrics)
         folder.write_text("run.log", run.log)
+    except OSError as exc:  # a full disk: nothing kept, the line names the file and the folder
+        folder.abandon()
+        where = exc.filename or folder.requested
+        raise OSError(exc.errno, f"{exc.strerror or exc}; {folder.requested} not written", where) from None
     except BaseException:
         folder.abandon()
         raise
+    complete = not run.interrupted and run.error is None
     try:
         if run.stripes:
             from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
 
             save_stripes(folder.file(STRIPES_FILE), run.stripes)
         if run.session_map is not None:
-            run.session_map.save(folder.file("map"))
+            from loopmodel.io.map_file import save_session_map
+
+            save_session_map(folder.file("map"), run.session_map)
         for name, mesh in (("mesh.ply", run.mesh), ("mesh_live.ply", run.live_mesh)):
             if mesh is not None:
                 from loopmodel.io.mesh_io import write_mesh
 
                 write_mesh(folder.file(name), mesh, "ply")
-    finally:
-        folder.commit()
+    except OSError as exc:  # a full disk: the folder is kept under a name that says it is incomplete
+        with contextlib.suppress(OSError):
+            with open(folder.file("run.log"), "a") as log:
+                log.write(f"INCOMPLETE: writing the results failed: {exc}\n")
+        where = folder.commit(complete=False, looks_complete=False)
+        note = f"the results so far are in {where}" + (
+            f" ({folder.requested} was not replaced)" if folder.requested.exists() else ""
+        )
+        raise OSError(exc.errno, f"{exc.strerror or exc}; {note}", exc.filename) from None
+    except BaseException:
+        folder.commit(complete=False, looks_complete=False)
+        raise
+    folder.commit(complete=complete)
     return folder.path
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import CalibrationError, FormatError
-from loopmodel.io.images import MAX_IMAGE_PIXELS, check_declared_size, declared_image_size
+from loopmodel.io.images import MAX_IMAGE_PIXELS, check_declared_size, check_image_bytes, decode_quietly
 from loopmodel.io.mcap_io import calibration_from_camera_info
 from loopmodel.types import StereoCalibration
 
@@ -94,10 +94,8 @@ def decode_ros_image(msg: Any, msgtype: str, topic: str, max_pixels: int = MAX_I
     """
     if msgtype.endswith("CompressedImage"):
         data = msg.data if isinstance(msg.data, np.ndarray) else np.frombuffer(bytes(msg.data), np.uint8)
-        declared = declared_image_size(data[: 1 << 16].tobytes())
-        if declared is not None:
-            check_declared_size(declared[0], declared[1], max_pixels, topic)
-        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+        check_image_bytes(data, max_pixels, topic)
+        img = decode_quietly(data)
         if img is None:
             raise FormatError(topic, f"cannot decode compressed image (format '{msg.format}')")
         return to_uint8(np.asarray(img), "bgra8" if img.ndim == 3 and img.shape[2] == 4 else "")

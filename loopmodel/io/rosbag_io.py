@@ -107,6 +107,12 @@ class BagReader:
                 path / "metadata.yaml",
                 f"ROS 2 bag folder without metadata.yaml (storage files: {files}); open the storage file itself",
             )
+        if path.is_dir():  # a FIFO or device among the bag's files would block rosbags' open()
+            from loopmodel.io.text import require_regular_file
+
+            for p in sorted(path.iterdir()):
+                if p.name == "metadata.yaml" or p.suffix.lower() in (".db3", ".mcap", ".zstd"):
+                    require_regular_file(p, "bag file")
         self.is_ros1 = path.is_file() and path.suffix.lower() == ".bag"
         if path.is_file() and not self.is_ros1 and _head(path, 12) == ROS1_MAGIC:
             raise FormatError(path, "a ROS 1 bag whose name does not end in .bag; rename it to *.bag")
@@ -169,6 +175,41 @@ class BagReader:
     def topic_table(self) -> dict[str, dict[str, object]]:
         """Every topic with its type and message count."""
         return {t: {"type": self.msgtype(t), "messages": self.count(t)} for t in sorted(self.connections)}
+
+    def recording_summary(self) -> dict[str, object]:
+        """What ``ros2 bag info`` says: duration, start, message count, and per topic type, count, rate.
+
+        The rate of a topic is its messages over its own span of receive times (one pass over the
+        raw messages, nothing decoded); None for a topic with fewer than two messages.
+        """
+        from datetime import UTC, datetime
+
+        first: dict[str, int] = {}
+        last: dict[str, int] = {}
+        for conn, t_ns, _raw in self._reader.messages():
+            first.setdefault(conn.topic, t_ns)
+            last[conn.topic] = t_ns
+        topics: dict[str, dict[str, object]] = {}
+        for t, row in self.topic_table().items():
+            n, span_s = int(row["messages"]), (last.get(t, 0) - first.get(t, 0)) * 1e-9  # type: ignore[call-overload]
+            topics[t] = {**row, "rate_hz": (n - 1) / span_s if n > 1 and span_s > 0 else None}
+        start = self._reader.start_time if self.connections else None
+        return {
+            "duration_s": self.duration_s,
+            "start": None if start is None else datetime.fromtimestamp(start * 1e-9, UTC).isoformat(),
+            "messages": sum(int(r["messages"]) for r in topics.values()),  # type: ignore[call-overload]
+            "topics": topics,
+        }
+
+
+class NoImageTopicsError(InputError):
+    """A bag without image topics: not a sequence to run, but ``loopmodel info`` still describes it."""
+
+
+def describe_recording(path: Path) -> dict[str, object]:
+    """``loopmodel info`` of any bag or ROS 2 MCAP, images or not (topics, types, counts, rates, duration)."""
+    with open_bag(path) as bag:
+        return {"path": str(path), "format": BagSequence._format_of(bag), **bag.recording_summary()}
 
 
 @contextmanager
@@ -339,7 +380,9 @@ class BagSequence(Sequence):
             self._how = "configured"
             return by_name[cfg.left_image], by_name[cfg.right_image]
         if not images:
-            raise InputError(self.path, f"no image topics (sensor_msgs Image/CompressedImage); topics found: {listing}")
+            raise NoImageTopicsError(
+                self.path, f"no image topics (sensor_msgs Image/CompressedImage); topics found: {listing}"
+            )
         try:
             pair = guess_stereo_pair(images)
         except LookupError as exc:

@@ -2,12 +2,13 @@
 
 ROS 2 folders (``metadata.yaml`` + sqlite3 ``.db3`` or ``.mcap`` storage) and ROS 1 ``.bag`` files.
 
-Images are ``sensor_msgs/Image`` (``raw``: mono8 or bgr8 as the image is; ``mono8``,
-``mono16``, ``bgr8``, ``rgb8``, ``bgra8``, ``bayer_rggb8``) or ``sensor_msgs/CompressedImage``
-(``png``, ``jpeg``); each camera has a
-``CameraInfo`` (once, before its first image); ground truth is ``PoseStamped``; ``/tf_static``
-may carry camera-to-body transforms. The bag appears under its final name only when
-:meth:`BagSequenceWriter.close` succeeds.
+ROS conventions (image_transport, ``stereo_image_proc``, RViz): images are ``sensor_msgs/Image`` on
+the image topic (``raw``: mono8 or bgr8 as the image is; ``mono8``, ``mono16``, ``bgr8``, ``rgb8``,
+``bgra8``, ``bayer_rggb8``), or ``sensor_msgs/CompressedImage`` (``png``, ``jpeg``) on
+``<image topic>/compressed``; every image has its ``CameraInfo`` with the same stamp; stamps are
+the sequence's (shifted by ``time_offset_ns`` when the source's times are relative and an epoch is
+given); ground truth is ``PoseStamped``; ``/tf_static`` may carry camera-to-body transforms.
+The bag appears under its final name only when :meth:`BagSequenceWriter.close` succeeds.
 """
 
 from __future__ import annotations
@@ -128,6 +129,7 @@ class BagSequenceWriter:
         encoding: str = "mono8",
         frame_ids: tuple[str, str] = ("cam0", "cam1"),
         camera_info: tuple[dict[str, Any], dict[str, Any]] | None = None,
+        time_offset_ns: int = 0,
     ) -> None:
         from rosbags.typesys import Stores, get_typestore
 
@@ -139,6 +141,7 @@ class BagSequenceWriter:
         self.kind, self.encoding, self.frame_ids = kind, encoding, frame_ids
         self.topics = topics or TopicsConfig()
         self.calibration = calibration
+        self.time_offset_ns = int(time_offset_ns)
         self._infos = camera_info or camera_info_values(calibration)
         self._ros1 = kind == "ros1"
         self._ts = get_typestore(Stores.ROS1_NOETIC if self._ros1 else Stores.ROS2_HUMBLE)
@@ -157,7 +160,6 @@ class BagSequenceWriter:
             self._writer = Writer2(self._tmp, version=9, storage_plugin=plugin)
         self._writer.open()
         self._conns: dict[tuple[str, str], Any] = {}
-        self._info_done: set[str] = set()
         self._closed = False
 
     def __enter__(self) -> BagSequenceWriter:
@@ -178,19 +180,22 @@ class BagSequenceWriter:
         raw = self._ts.serialize_ros1(msg, msgtype) if self._ros1 else self._ts.serialize_cdr(msg, msgtype)
         self._writer.write(self._conns[key], int(log_ns), raw)
 
+    def image_topic(self, side: int) -> str:
+        """The topic of the left (0) or right (1) images: ``.../compressed`` for PNG and JPEG."""
+        topic = (self.topics.left_image, self.topics.right_image)[side].rstrip("/").removesuffix("/compressed")
+        return f"{topic}/compressed" if self.encoding in ("png", "jpeg") else topic
+
     def write_image(self, side: int, t_ns: int, img: np.ndarray, log_ns: int | None = None) -> None:
-        """Write an image of the left (0) or right (1) camera, its CameraInfo first."""
-        image_topic = (self.topics.left_image, self.topics.right_image)[side]
+        """Write an image of the left (0) or right (1) camera after its CameraInfo of the same stamp."""
         info_topic = (self.topics.left_info, self.topics.right_info)[side]
         fid = self.frame_ids[side]
-        log = t_ns if log_ns is None else log_ns
-        if info_topic not in self._info_done:
-            info = dict(self._infos[side])
-            info["header"] = _header(t_ns, fid)
-            self.write_message(info_topic, "sensor_msgs/msg/CameraInfo", info, log)
-            self._info_done.add(info_topic)
+        t_ns = int(t_ns) + self.time_offset_ns
+        log = t_ns if log_ns is None else int(log_ns) + self.time_offset_ns
+        info = dict(self._infos[side])
+        info["header"] = _header(t_ns, fid)
+        self.write_message(info_topic, "sensor_msgs/msg/CameraInfo", info, log)
         msgtype, values = image_message_values(img, t_ns, fid, self.encoding)
-        self.write_message(image_topic, msgtype, values, log)
+        self.write_message(self.image_topic(side), msgtype, values, log)
 
     def write_frame(self, frame: StereoFrame, right_offset_ns: int = 0, right: bool = True) -> None:
         """Write a stereo pair.
@@ -204,6 +209,7 @@ class BagSequenceWriter:
 
     def write_pose(self, t_ns: int, world_from_cam: np.ndarray, frame_id: str = "world") -> None:
         """Write a ground-truth ``PoseStamped`` (``world_from_cam0``)."""
+        t_ns = int(t_ns) + self.time_offset_ns
         q = quat_wxyz_from_rotation(world_from_cam[:3, :3])
         p = world_from_cam[:3, 3]
         values = {

@@ -73,9 +73,9 @@ def open_sequence(
     if folder and (left is not None or right is not None or calib is not None):
         raise InputError("--left/--right/--calib", f"apply to bags; {p} is a EuRoC/KITTI folder")
     if euroc_root(p) is not None:
-        return EurocSequence(p, cfg.stereo_pair_tolerance_ns)
+        return EurocSequence(p, cfg.stereo_pair_tolerance_ns, cfg.max_image_pixels)
     if is_kitti_folder(p):
-        return KittiSequence(p, cfg.kitti_rate_hz)
+        return KittiSequence(p, cfg.kitti_rate_hz, cfg.max_image_pixels)
     if is_bag(p):
         return BagSequence(p, *bag_args)
     found = ", ".join(sorted(x.name for x in p.iterdir())[:8]) or "empty folder"

@@ -7,6 +7,7 @@ qz`` (ground-truth files with 17 columns are read too). Poses are ``world_from_c
 
 from __future__ import annotations
 
+import os
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 from typing import Literal
@@ -17,7 +18,7 @@ from numpy.typing import NDArray
 from loopmodel.errors import FormatError, InputError
 from loopmodel.geometry.se3 import quat_wxyz_from_rotation, rotation_from_quat_wxyz
 from loopmodel.io.atomic import write_text_atomic
-from loopmodel.io.text import read_text_file
+from loopmodel.io.text import read_text_file, require_regular_file
 from loopmodel.types import Trajectory
 
 TrajectoryFormat = Literal["tum", "kitti", "euroc"]
@@ -35,8 +36,13 @@ def ns_to_seconds_text(t_ns: int) -> str:
     return f"{sign}{a // 1_000_000_000}.{a % 1_000_000_000:09d}"
 
 
+#: Below this a pose value is rounding noise (a femtometre; a quaternion component of 1e-15): the
+#: first pose of a run, the world's origin, reads 0.0 instead of 2.11e-23 (issue 35).
+NOISE_FLOOR = 1e-15
+
+
 def _fmt(x: float) -> str:
-    return repr(float(x))
+    return "0.0" if abs(x) < NOISE_FLOOR else repr(float(x))
 
 
 def guess_format(path: str | Path) -> TrajectoryFormat:
@@ -72,11 +78,28 @@ def _rows(path: Path, sep: str | None, expected: tuple[int, ...]) -> list[list[s
     return rows
 
 
+#: the largest position a trajectory file may hold (m): beyond Earth-centred coordinates (6.4e6 m)
+MAX_POSITION_M = 1e8
+
+
 def _floats(path: Path, rows: list[list[str]], cols: slice) -> NDArray[np.float64]:
     try:
         return np.array([[float(v) for v in r[cols]] for r in rows], dtype=float)
     except ValueError as exc:
         raise FormatError(path, f"non-numeric value ({exc})") from None
+
+
+def _check_values(path: Path, position_m: NDArray[np.float64], quat: NDArray[np.float64] | None) -> None:
+    """Positions within ``MAX_POSITION_M``, quaternions of a norm near 1 (issue 34: 1e298, 1e308)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        far = np.flatnonzero(~(np.abs(position_m) <= MAX_POSITION_M).all(axis=1))
+        if far.size:
+            raise FormatError(path, f"row {int(far[0]) + 1}: position beyond {MAX_POSITION_M:g} m")
+        if quat is not None:
+            norm = np.linalg.norm(quat, axis=1)
+            bad = np.flatnonzero(~((norm > 0.5) & (norm < 2.0)))
+            if bad.size:
+                raise FormatError(path, f"row {int(bad[0]) + 1}: quaternion of norm {norm[bad[0]]:g}, not a rotation")
 
 
 def read_trajectory(
@@ -92,8 +115,9 @@ def read_trajectory(
     files) are kept; times going backwards are an error.
     """
     p = Path(path)
-    if not p.is_file():
+    if not os.path.lexists(p):
         raise InputError(p, "trajectory file does not exist")
+    require_regular_file(p, "trajectory file")  # a FIFO, a device, a folder, a link loop: named as such
     fmt = fmt or guess_format(p)
     if fmt == "tum":
         rows = _rows(p, None, (8,))
@@ -101,13 +125,15 @@ def read_trajectory(
             t = np.array([seconds_text_to_ns(r[0]) for r in rows], dtype=np.int64)
         except (InvalidOperation, ValueError, OverflowError):
             raise FormatError(p, "timestamp column is not a finite number") from None
-        v = _floats(p, rows, slice(1, 8))
+        v = _floats(p, rows, slice(1, 8)).reshape(-1, 7)
+        _check_values(p, v[:, :3], v[:, 3:7])
         T = np.tile(np.eye(4), (len(rows), 1, 1))
         T[:, :3, 3] = v[:, :3]
         T[:, :3, :3] = rotation_from_quat_wxyz(v[:, [6, 3, 4, 5]])
     elif fmt == "kitti":
         rows = _rows(p, None, (12,))
-        v = _floats(p, rows, slice(0, 12))
+        v = _floats(p, rows, slice(0, 12)).reshape(-1, 12)
+        _check_values(p, v[:, [3, 7, 11]], None)
         T = np.tile(np.eye(4), (len(rows), 1, 1))
         T[:, :3, :] = v.reshape(-1, 3, 4)
         if timestamps_ns is None:
@@ -122,7 +148,8 @@ def read_trajectory(
             t = np.array([int(Decimal(r[0])) for r in rows], dtype=np.int64)
         except (InvalidOperation, ValueError, OverflowError):
             raise FormatError(p, "timestamp column is not an integer of nanoseconds") from None
-        v = _floats(p, rows, slice(1, 8))
+        v = _floats(p, rows, slice(1, 8)).reshape(-1, 7)
+        _check_values(p, v[:, :3], v[:, 3:7])
         T = np.tile(np.eye(4), (len(rows), 1, 1))
         T[:, :3, 3] = v[:, :3]
         T[:, :3, :3] = rotation_from_quat_wxyz(v[:, 3:7])

@@ -200,6 +200,8 @@ class LoopCloser:
         old = self._kf.get(match_id)
         if old is None or old.ids.size < 6:
             return None
+        if old.image.size == 0 or image.size == 0 or old.image.shape != image.shape:
+            return None  # no image to track in (OpenCV's pyramidal KLT would spin on a 0x0 one)
         best: tuple[F64, NDArray[np.int64], F64] | None = None
         for uv, idx in (self._warped_old(old, image, query_from_match), self._klt_old(old, image, query_from_match)):
             if idx.size < 6:

@@ -38,20 +38,23 @@ logger = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
 
 
+_LOOP = LoopConfig.model_fields
+
+
 @dataclass
 class LoopParams:
-    """Loop detection and verification parameters."""
+    """Loop detection and verification parameters (defaults: those of :class:`loopmodel.config.LoopConfig`)."""
 
     place: PlaceParams = field(default_factory=PlaceParams)
     reloc: RelocParams = field(default_factory=RelocParams)
-    ratio: float = 0.8
-    epipolar_threshold_px: float = 2.0
-    min_epipolar_inliers: int = 40
-    min_epipolar_inlier_ratio: float = 0.3
-    min_epipolar_spread_frac: float = 0.05
-    max_cycle_rot_deg: float = 2.0
-    max_cycle_trans_m: float = 0.05
-    max_members_verified: int = 3
+    ratio: float = _LOOP["ratio"].default
+    epipolar_threshold_px: float = _LOOP["epipolar_threshold_px"].default
+    min_epipolar_inliers: int = _LOOP["min_epipolar_inliers"].default
+    min_epipolar_inlier_ratio: float = _LOOP["min_epipolar_inlier_ratio"].default
+    min_epipolar_spread_frac: float = _LOOP["min_epipolar_spread_frac"].default
+    max_cycle_rot_deg: float = _LOOP["max_cycle_rot_deg"].default
+    max_cycle_trans_m: float = _LOOP["max_cycle_trans_m"].default
+    max_members_verified: int = _LOOP["max_members_verified"].default
 
 
 @dataclass
@@ -285,9 +288,13 @@ def params_from_config(cfg: LoopConfig) -> LoopParams:
         place=place,
         reloc=reloc,
         ratio=cfg.ratio,
+        epipolar_threshold_px=cfg.epipolar_threshold_px,
         min_epipolar_inliers=cfg.min_epipolar_inliers,
+        min_epipolar_inlier_ratio=cfg.min_epipolar_inlier_ratio,
+        min_epipolar_spread_frac=cfg.min_epipolar_spread_frac,
         max_cycle_rot_deg=cfg.max_cycle_rot_deg,
         max_cycle_trans_m=cfg.max_cycle_trans_m,
+        max_members_verified=cfg.max_members_verified,
     )
 
 

@@ -38,23 +38,22 @@ _LOOP = LoopConfig.model_fields
 class PlaceParams:
     """Place-recognition parameters.
 
-    Ids are keyframe or frame indices; defaults: those of :class:`loopmodel.config.LoopConfig` where
-    it has the knob.
+    Ids are keyframe or frame indices; defaults: those of :class:`loopmodel.config.LoopConfig`.
     """
 
     min_gap: int = _LOOP["min_gap_keyframes"].default
     min_score: float = _LOOP["min_score"].default
-    relative_score: float = 0.5
-    island_gap: int = 2
+    relative_score: float = _LOOP["relative_score"].default
+    island_gap: int = _LOOP["island_gap"].default
     consistency: int = _LOOP["consistency"].default
-    consistency_tol: int = 3
-    max_islands: int = 4
+    consistency_tol: int = _LOOP["consistency_tol"].default
+    max_islands: int = _LOOP["max_islands"].default
     branching: int = _LOOP["vocabulary_branching"].default
     levels: int = _LOOP["vocabulary_levels"].default
     train_after: int = _LOOP["vocabulary_train_after"].default
-    retrain_growth: float = 1.5
-    max_train_keyframes: int = 400
-    max_train_descriptors: int = 60000
+    retrain_growth: float = _LOOP["retrain_growth"].default
+    max_train_keyframes: int = _LOOP["max_train_keyframes"].default
+    max_train_descriptors: int = _LOOP["max_train_descriptors"].default
     seed: int = 0
 
     @classmethod
@@ -63,10 +62,17 @@ class PlaceParams:
         return cls(
             min_gap=cfg.min_gap_keyframes,
             min_score=cfg.min_score,
+            relative_score=cfg.relative_score,
+            island_gap=cfg.island_gap,
             consistency=cfg.consistency,
+            consistency_tol=cfg.consistency_tol,
+            max_islands=cfg.max_islands,
             branching=cfg.vocabulary_branching,
             levels=cfg.vocabulary_levels,
             train_after=cfg.vocabulary_train_after,
+            retrain_growth=cfg.retrain_growth,
+            max_train_keyframes=cfg.max_train_keyframes,
+            max_train_descriptors=cfg.max_train_descriptors,
         )
 
 

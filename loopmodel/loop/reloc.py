@@ -30,7 +30,7 @@ _LOOP = LoopConfig.model_fields
 class RelocParams:
     """Thresholds of relocalization and geometric verification.
 
-    Defaults: those of :class:`loopmodel.config.LoopConfig` where it has the knob.
+    Defaults: those of :class:`loopmodel.config.LoopConfig`.
     """
 
     ratio: float = _LOOP["ratio"].default
@@ -38,10 +38,10 @@ class RelocParams:
     min_inliers: int = _LOOP["min_inliers"].default
     min_inlier_ratio: float = _LOOP["min_inlier_ratio"].default
     max_samples: int = _LOOP["max_samples"].default
-    confidence: float = 0.999
+    confidence: float = _LOOP["confidence"].default
     #: The inliers' smaller principal standard deviation in the image must reach this
     #: fraction of the image width (rejects poses supported by one small patch).
-    min_inlier_spread_frac: float = 0.03
+    min_inlier_spread_frac: float = _LOOP["min_inlier_spread_frac"].default
     seed: int = 0
 
     @classmethod
@@ -53,6 +53,8 @@ class RelocParams:
             min_inliers=cfg.min_inliers,
             min_inlier_ratio=cfg.min_inlier_ratio,
             max_samples=cfg.max_samples,
+            confidence=cfg.confidence,
+            min_inlier_spread_frac=cfg.min_inlier_spread_frac,
         )
 
 

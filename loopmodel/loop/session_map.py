@@ -20,7 +20,6 @@ import dataclasses
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -29,11 +28,11 @@ from numpy.typing import NDArray
 
 from loopmodel.config import LoopConfig
 from loopmodel.errors import InputError
-from loopmodel.io.map_file import MapFileData, read_map_file, write_map_file
+from loopmodel.imaging.codec import declared_image_size, decode_quietly
 from loopmodel.loop.database import KeyframeDatabase, PlaceParams
 from loopmodel.loop.features import FeatureSet
 from loopmodel.loop.vocabulary import Vocabulary, shipped_vocabulary
-from loopmodel.types import Keyframe, StereoCalibration, StripeAnchors, StripeProfile, Trajectory
+from loopmodel.types import Keyframe, MapFileData, StereoCalibration, StripeAnchors, StripeProfile, Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -208,8 +207,10 @@ class SessionMap:
         a, b = int(self.image_offsets[i]), int(self.image_offsets[i + 1])
         if b <= a:
             return np.zeros((0, 0), np.uint8)
-        img = cv2.imdecode(self.images_png[a:b], cv2.IMREAD_UNCHANGED)
-        return np.asarray(img, dtype=np.uint8) if img is not None else np.zeros((0, 0), np.uint8)
+        img = decode_quietly(self.images_png[a:b])
+        if img is None or img.dtype != np.uint8 or img.ndim != 2:  # damaged after its header: no image
+            return np.zeros((0, 0), np.uint8)
+        return np.asarray(img)
 
     def keyframe(self, i: int, with_image: bool = True) -> Keyframe:
         """Row ``i`` as a :class:`~loopmodel.types.Keyframe` (stereo landmarks, pose, image)."""
@@ -312,33 +313,9 @@ class SessionMap:
         }
         return MapFileData(meta, arrays)
 
-    def save(self, path: str | Path) -> Path:
-        """Write the map folder (atomic)."""
-        return write_map_file(path, self.to_file_data())
-
     @classmethod
-    def load(cls, path: str | Path) -> SessionMap:
-        """Read a map folder (or a results folder's ``map/``); damaged or newer maps raise InputError."""
-        required = (
-            *_KF_ARRAYS,
-            *_OTHER_ARRAYS,
-            *(f"features_{n}" for n in _FEATURE_ARRAYS),
-            "calib_K_left",
-            "calib_K_right",
-            "calib_right_from_left",
-            "vocabulary_centers",
-            "vocabulary_children",
-            "vocabulary_word",
-            "vocabulary_idf",
-        )
-        data = read_map_file(path, required)
-        try:
-            return cls._from_file_data(data)
-        except (KeyError, TypeError, ValueError, IndexError) as exc:
-            raise InputError(path, f"damaged map ({type(exc).__name__}: {exc})") from None
-
-    @classmethod
-    def _from_file_data(cls, data: MapFileData) -> SessionMap:
+    def from_file_data(cls, data: MapFileData) -> SessionMap:
+        """The map of a map file's content (:func:`loopmodel.io.map_file.load_session_map` reads it)."""
         a, m = data.arrays, data.meta
         cal = m["calibration"]
         calibration = StereoCalibration(
@@ -399,8 +376,34 @@ class SessionMap:
         known = set(self.keyframe_ids.tolist())
         if len(known) != n:
             raise ValueError("keyframe ids are not unique")
+        self._check_values()
         if not set(self.stripe_kf.tolist()) <= known or not set(self.edges.ravel().tolist()) <= known:
             raise ValueError("a stripe or pose-graph edge names an unknown keyframe")
+
+
+    def _check_values(self) -> None:
+        """Raise ValueError on non-finite poses and points, or an image that is no PNG of the camera's size.
+
+        Checked when a map is loaded (issue 34): a damaged image would otherwise reach the KLT of a
+        relocalization as an empty image.
+        """
+        for name in ("world_from_kf", "rect_from_cam", "edge_a_from_b", "stripe_kf_from_cam", "landmarks_in_world"):
+            if not np.all(np.isfinite(getattr(self, name))):
+                raise ValueError(f"{name} has non-finite values")
+        for name in ("lm_points_in_kf", "lm_stereo_px"):
+            if not np.all(np.isfinite(getattr(self, name))):
+                raise ValueError(f"{name} has non-finite values")
+        size = tuple(int(v) for v in self.calibration.image_size)
+        for i in range(len(self)):
+            a, b = int(self.image_offsets[i]), int(self.image_offsets[i + 1])
+            if b <= a:
+                continue  # a keyframe stored without its image
+            found = declared_image_size(self.images_png[a : min(b, a + 64)].tobytes())
+            if self.images_png[a : a + 8].tobytes() != b"\x89PNG\r\n\x1a\n" or found != size:
+                raise ValueError(
+                    f"image of keyframe {int(self.keyframe_ids[i])} is not a {size[0]}x{size[1]} PNG"
+                    + (f" (it declares {found[0]}x{found[1]})" if found else "")
+                )
 
 
 _KF_ARRAYS = (
@@ -440,6 +443,19 @@ _FEATURE_ARRAYS = (
     "bow_offsets",
     "bow_words",
     "bow_weights",
+)
+#: The arrays a map file must hold (checked when it is read).
+REQUIRED_ARRAYS = (
+    *_KF_ARRAYS,
+    *_OTHER_ARRAYS,
+    *(f"features_{n}" for n in _FEATURE_ARRAYS),
+    "calib_K_left",
+    "calib_K_right",
+    "calib_right_from_left",
+    "vocabulary_centers",
+    "vocabulary_children",
+    "vocabulary_word",
+    "vocabulary_idf",
 )
 
 
@@ -541,13 +557,84 @@ class MapInputs:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-def build_session_map(inputs: MapInputs, config: LoopConfig) -> SessionMap:
-    """The map of a run: keyframes re-described with the configured descriptor kind, the pose graph, stripes."""
+@dataclass
+class KeyframeContent:
+    """What the map keeps of a keyframe's image: its loop features (configured kind) and its PNG bytes."""
+
+    features: FeatureSet
+    png: NDArray[np.uint8]
+
+
+class KeyframeArchiver:
+    """Each keyframe's map content (:class:`KeyframeContent`), prepared in a worker thread as keyframes arrive.
+
+    OpenCV's feature detection and PNG encoding release the GIL, so tracking does not wait for them,
+    and the session map at the end of a run (:func:`build_session_map`) takes them instead of
+    preparing every keyframe after the last frame (onepass, issue 32: on the KITTI clip that was
+    1.4 s of the 1.6 s of the map step).
+    """
+
+    def __init__(self, calibration: StereoCalibration, config: LoopConfig) -> None:
+        from concurrent.futures import Future, ThreadPoolExecutor
+
+        self._calibration = calibration
+        self._config = config
+        self._closer: Any = None
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-keyframes")
+        self._jobs: dict[int, Future[KeyframeContent]] = {}
+
+    def add(self, kf: Keyframe) -> None:
+        """Prepare this keyframe's content in the worker."""
+        self._jobs[int(kf.id)] = self._pool.submit(self._prepare, kf)
+
+    def _prepare(self, kf: Keyframe) -> KeyframeContent:
+        if self._closer is None:
+            from loopmodel.loop.closer import LoopCloser
+
+            self._closer = LoopCloser(self._calibration, self._config)
+        return keyframe_content(self._closer, kf, self._config.descriptor)
+
+    def take(self) -> dict[int, KeyframeContent]:
+        """Every finished keyframe's content (waits for the pending ones; a failed one is left out, logged)."""
+        out: dict[int, KeyframeContent] = {}
+        for k, job in self._jobs.items():
+            try:
+                out[k] = job.result()
+            except Exception as exc:  # the map step prepares it again
+                logger.warning("map content of keyframe %d: %s", k, exc)
+        self.close()
+        return out
+
+    def close(self) -> None:
+        """Stop the worker (pending work is dropped)."""
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._jobs = {}
+
+
+def keyframe_content(closer: Any, kf: Keyframe, descriptor: str) -> KeyframeContent:
+    """A keyframe's loop features (by ``closer``, a :class:`~loopmodel.loop.closer.LoopCloser`) and PNG image."""
+    image = np.asarray(kf.image)
+    features = closer.keyframe_features(kf) if image.size else _no_features(descriptor)
+    return KeyframeContent(features, _png(image))
+
+
+def build_session_map(
+    inputs: MapInputs, config: LoopConfig, prepared: dict[int, KeyframeContent] | None = None
+) -> SessionMap:
+    """The map of a run: keyframes re-described with the configured descriptor kind, the pose graph, stripes.
+
+    ``prepared``: keyframes' content made during the run (:class:`KeyframeArchiver`); the others are
+    prepared here.
+    """
     from loopmodel.loop.closer import LoopCloser
 
     kfs = inputs.keyframes
-    closer = LoopCloser(inputs.calibration, config)
-    sets = [closer.keyframe_features(k) if k.image.size else _no_features(config.descriptor) for k in kfs]
+    content = dict(prepared or {})
+    missing = [k for k in kfs if int(k.id) not in content]
+    if missing:
+        closer = LoopCloser(inputs.calibration, config)
+        content.update({int(k.id): keyframe_content(closer, k, config.descriptor) for k in missing})
+    sets = [content[int(k.id)].features for k in kfs]
     voc = map_vocabulary(config, sets)
     edges: list[tuple[int, int]] = []
     rel: list[F64] = []
@@ -561,7 +648,7 @@ def build_session_map(inputs: MapInputs, config: LoopConfig) -> SessionMap:
         edges.append((int(a), int(b)))
         rel.append(np.asarray(a_from_b, float))
         kinds.append(EDGE_LOOP)
-    pngs = [_png(np.asarray(k.image)) for k in kfs]
+    pngs = [content[int(k.id)].png for k in kfs]
     st = inputs.stripes
     smap = SessionMap(
         calibration=inputs.calibration,
@@ -697,21 +784,3 @@ class ResumePoint:
     def world_from_kf(self) -> F64:
         """Pose of the last keyframe (left camera, metres)."""
         return np.asarray(self.map.world_from_kf[-1])
-
-
-def read_resume_point(folder: str | Path) -> ResumePoint:
-    """The map and trajectories of a results folder, for resuming it."""
-    from loopmodel.io.trajectory_io import read_trajectory
-
-    p = Path(folder)
-    if not p.is_dir():
-        raise InputError(p, "results folder to resume does not exist")
-    smap = SessionMap.load(p / "map")
-    if len(smap) == 0:
-        raise InputError(p / "map", "the map holds no keyframe to resume from")
-    trajs = []
-    for name in ("trajectory_online.tum", "trajectory_final.tum", "keyframes.tum"):
-        if not (p / name).is_file():
-            raise InputError(p / name, "missing: cannot resume this run")
-        trajs.append(read_trajectory(p / name))
-    return ResumePoint(smap, *trajs)

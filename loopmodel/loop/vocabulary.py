@@ -239,25 +239,21 @@ class Vocabulary:
             return ids, np.full(ids.size, 1.0 / ids.size)
         return ids, val / s
 
-    def save(self, path: str | Path) -> None:
-        """Write the vocabulary as ``.npz`` (atomic)."""
-        from loopmodel.io.atomic import atomic_path
-
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            np.savez_compressed(
-                fh,
-                centers=self.centers,
-                children=self.children,
-                word=self.word,
-                idf=self.idf,
-                binary=np.array(self.binary),
-                info_keys=np.array(list(self.info), dtype=str),
-                info_values=np.array(list(self.info.values()), dtype=str),
-            )
+    def arrays(self) -> dict[str, NDArray[Any]]:
+        """The arrays of a vocabulary file (:func:`loopmodel.io.vocabulary_file.save_vocabulary` writes them)."""
+        return {
+            "centers": self.centers,
+            "children": self.children,
+            "word": self.word,
+            "idf": self.idf,
+            "binary": np.array(self.binary),
+            "info_keys": np.array(list(self.info), dtype=str),
+            "info_values": np.array(list(self.info.values()), dtype=str),
+        }
 
     @classmethod
     def load(cls, path: str | Path) -> Vocabulary:
-        """Read a vocabulary written by :meth:`save`."""
+        """Read a vocabulary file (written by :func:`loopmodel.io.vocabulary_file.save_vocabulary`)."""
         p = Path(path)
         if not p.is_file():
             raise InputError(p, "vocabulary file does not exist")

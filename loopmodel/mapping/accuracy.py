@@ -80,6 +80,16 @@ def sample_surface(mesh: o3d.geometry.TriangleMesh, count: int, seed: int = 0) -
     return (1 - s1)[:, None] * a[tri] + (s1 * (1 - r2))[:, None] * b[tri] + (s1 * r2)[:, None] * c[tri]
 
 
+def swept_mask(samples: NDArray[np.float64], stripe_points: NDArray[np.float64], radius_m: float) -> NDArray[np.bool_]:
+    """Which surface samples (P x 3) lie within ``radius_m`` of any laser-stripe point (Q x 3)."""
+    from scipy.spatial import cKDTree
+
+    if stripe_points.shape[0] == 0:
+        return np.zeros(samples.shape[0], dtype=bool)
+    d, _ = cKDTree(stripe_points).query(samples, k=1, distance_upper_bound=radius_m)
+    return np.isfinite(d)
+
+
 def swept_samples(
     samples: NDArray[np.float64], stripe_points: NDArray[np.float64], radius_m: float
 ) -> NDArray[np.float64]:
@@ -88,12 +98,7 @@ def swept_samples(
     Stripe points: Q x 3, placed with ground-truth poses. The result is the part of the surface the
     laser swept.
     """
-    from scipy.spatial import cKDTree
-
-    if stripe_points.shape[0] == 0:
-        return samples[:0]
-    d, _ = cKDTree(stripe_points).query(samples, k=1, distance_upper_bound=radius_m)
-    return samples[np.isfinite(d)]
+    return samples[swept_mask(samples, stripe_points, radius_m)]
 
 
 def mesh_accuracy(
@@ -107,13 +112,16 @@ def mesh_accuracy(
     reference_points: NDArray[np.float64] | None = None,
     to_gt: SurfaceDistance | None = None,
     to_mesh: SurfaceDistance | None = None,
+    reference_distances_m: NDArray[np.float64] | None = None,
 ) -> MeshAccuracy:
     """Accuracy of ``mesh`` against ``gt_mesh``.
 
     Completeness counts ground-truth samples inside the optional box [region_min, region_max]
     (world, metres), or, when given, the share of ``reference_points`` (P x 3, e.g. samples of the
     scanned object) within the tolerance of the mesh. ``to_gt`` / ``to_mesh``: the distance
-    functions of ``gt_mesh`` / ``mesh`` when the caller already has them (built once, reused).
+    functions of ``gt_mesh`` / ``mesh`` when the caller already has them (built once, reused);
+    ``reference_distances_m``: the distances of ``reference_points`` to ``mesh`` when the caller
+    already has them (without a region).
     """
     if len(mesh.triangles) == 0 or len(mesh.vertices) == 0:
         raise InputError(None, "reconstructed mesh is empty")
@@ -129,7 +137,8 @@ def mesh_accuracy(
         samples = samples[inside]
     if samples.shape[0] == 0:
         raise InputError(None, "no ground-truth surface inside the completeness region")
-    dg = (to_mesh or SurfaceDistance(mesh))(samples)
+    given = reference_points is not None and reference_distances_m is not None and region_min is None
+    dg = np.asarray(reference_distances_m) if given else (to_mesh or SurfaceDistance(mesh))(samples)
     return MeshAccuracy(
         mean_mm=float(d.mean()),
         median_mm=float(np.median(d)),
@@ -152,6 +161,7 @@ def mesh_error_metrics(
     object_samples: int = 200_000,
     meshes: Mapping[str, o3d.geometry.TriangleMesh] | None = None,
     looser_tols_m: tuple[float, ...] = (),
+    swept_by: Trajectory | None = None,
 ) -> dict[str, float]:
     """Mesh the stripes once per named trajectory and measure each against the ground truth.
 
@@ -167,8 +177,9 @@ def mesh_error_metrics(
     the mesh: of the whole scene, or with ``object_mesh`` (the scanned object, e.g. the
     simulator's ``object.ply``) of that object's surface; then also
     ``mesh_completeness_swept_<name>``: of the object's surface the laser swept (samples
-    within ``swept_radius_m`` of a stripe point placed with the ``gt`` trajectory; needs a
-    trajectory named ``gt``).
+    within ``swept_radius_m`` of a stripe point placed with the ``gt`` trajectory, or with
+    ``swept_by``, the ground-truth poses in the same world, when given; the stripes are not meshed
+    for it).
     """
     from loopmodel.mapping.stripe_map import StripeMap
 
@@ -177,25 +188,32 @@ def mesh_error_metrics(
     reference = swept = None
     if object_mesh is not None:
         reference = sample_surface(object_mesh, object_samples)
-        if "gt" in maps:
-            swept = swept_samples(reference, maps["gt"].world_points(), swept_radius_m)
+        placed = StripeMap.from_trajectory(swept_by, stripes, config) if swept_by is not None else maps.get("gt")
+        if placed is not None:
+            swept = swept_mask(reference, placed.world_points(), swept_radius_m)
     to_gt = SurfaceDistance(gt_mesh) if len(gt_mesh.triangles) else None
     out: dict[str, float] = {}
     for name, smap in maps.items():
         smap.check_nonempty()
         surface = given[name] if name in given else smap.mesh()
         to_surface = SurfaceDistance(surface) if len(surface.triangles) else None
+        # the object's samples' distances to the surface, once: completeness, looser tolerances, swept part
+        dr = to_surface(reference) if reference is not None and to_surface is not None else None
         acc = mesh_accuracy(
-            surface, gt_mesh, completeness_tol_m, reference_points=reference, to_gt=to_gt, to_mesh=to_surface
+            surface,
+            gt_mesh,
+            completeness_tol_m,
+            reference_points=reference,
+            to_gt=to_gt,
+            to_mesh=to_surface,
+            reference_distances_m=dr,
         )
         out[f"mesh_err_{name}_mm"] = acc.mean_mm
         out[f"mesh_err_{name}_mm_p95"] = acc.p95_mm
         out[f"mesh_completeness_{name}"] = acc.completeness
-        if looser_tols_m and reference is not None and to_surface is not None:
-            dr = to_surface(reference)
+        if looser_tols_m and dr is not None:
             for tol in looser_tols_m:
                 out[f"mesh_completeness_{name}_{tol * 1e3:g}mm"] = float(np.mean(dr <= tol))
-        if swept is not None and swept.shape[0] and to_surface is not None:
-            dg = to_surface(swept)
-            out[f"mesh_completeness_swept_{name}"] = float(np.mean(dg <= completeness_tol_m))
+        if swept is not None and swept.any() and dr is not None:
+            out[f"mesh_completeness_swept_{name}"] = float(np.mean(dr[swept] <= completeness_tol_m))
     return out

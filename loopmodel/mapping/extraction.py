@@ -12,19 +12,14 @@ The light plane is given in the left-camera frame: ``normal_in_cam · p + d_m = 
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from loopmodel.config import MappingConfig
 from loopmodel.errors import CalibrationError, InputError
-from loopmodel.types import StereoCalibration, StripeProfile
-
-if TYPE_CHECKING:
-    from loopmodel.io.base import Sequence
+from loopmodel.types import ScanFrame, StereoCalibration, StripeProfile
 
 F64 = NDArray[np.float64]
 
@@ -428,30 +423,31 @@ def stripe_from_image(
     return StripeProfile(int(timestamp_ns), triangulate_with_plane(uv, K, plane, dist))
 
 
-def sequence_stripe_count(sequence: Sequence) -> int:
-    """Number of laser profiles a sequence gives: its stripe messages, else its laser images."""
-    return int(sequence.stripe_count() or 0) or sequence.laser_image_count()
+class StripeExtractor:
+    """The laser profiles of a frame's laser data (left-camera frame, metres).
 
-
-def sequence_stripes(
-    sequence: Sequence, config: MappingConfig | None = None, calibration: StereoCalibration | None = None
-) -> Iterator[StripeProfile]:
-    """The laser profiles of a sequence in time order (left-camera frame, metres).
-
-    Its stripe messages when it has them, else profiles extracted from its laser-line images with
-    the configured light plane and the left camera's calibration (``calibration``'s when given,
-    else the sequence's; empty profiles dropped).
+    Stripe messages pass as they are; laser-line images of the left camera (intrinsics and, when
+    unrectified, distortion of ``calibration``) are triangulated with the configured light plane,
+    and profiles without points dropped.
     """
-    if sequence.stripe_count():
-        yield from sequence.stripes()
-        return
-    if sequence.laser_image_count() == 0:
-        return
-    cfg = config or MappingConfig()
-    plane = LightPlane.from_config(cfg)
-    calib = calibration if calibration is not None else sequence.calibration
-    dist = None if calib.rectified else calib.dist_left
-    for t_ns, image in sequence.laser_images():
-        profile = stripe_from_image(image, t_ns, calib.K_left, plane, cfg, dist)
-        if profile.points_in_cam.shape[0]:
-            yield profile
+
+    def __init__(self, calibration: StereoCalibration, config: MappingConfig | None = None) -> None:
+        self.config = config or MappingConfig()
+        self._K = calibration.K_left
+        self._dist = None if calibration.rectified else calibration.dist_left
+        self._plane: LightPlane | None = None
+
+    def from_image(self, timestamp_ns: int, image: NDArray[np.uint8]) -> StripeProfile:
+        """The profile of one laser-line image (possibly without points)."""
+        if self._plane is None:
+            self._plane = LightPlane.from_config(self.config)
+        return stripe_from_image(image, timestamp_ns, self._K, self._plane, self.config, self._dist)
+
+    def profiles(self, scan: ScanFrame) -> list[StripeProfile]:
+        """The frame's stripe messages, or the profiles of its laser-line images that have points."""
+        out = list(scan.stripes)
+        for t_ns, image in scan.laser_images:
+            profile = self.from_image(t_ns, image)
+            if profile.points_in_cam.shape[0]:
+                out.append(profile)
+        return out

@@ -1,13 +1,14 @@
-"""The mapping steps that read the sequence.
+"""The mapping steps at the end of a run.
 
-Its laser stripes for the live mapping and at the end of the run, and the mesh of them placed with
-the final trajectory, with its accuracy when the sequence carries a ground-truth scene.
+The mesh of the run's laser stripes placed with the final trajectory, the stripes anchored to
+keyframes for the session map, the mesh of stripes at their own poses (a merged map), and the
+alignment of a trajectory to a reference (used by the evaluation).
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -15,36 +16,9 @@ from numpy.typing import NDArray
 
 from loopmodel.config import MappingConfig
 from loopmodel.errors import LoopmodelError
-from loopmodel.io.base import Sequence
-from loopmodel.mapping.extraction import sequence_stripe_count, sequence_stripes
-from loopmodel.types import StereoCalibration, StripeAnchors, StripeProfile, Trajectory
+from loopmodel.types import StripeAnchors, StripeProfile, Trajectory
 
 logger = logging.getLogger(__name__)
-
-
-def live_stripes(sequence: Sequence, config: MappingConfig) -> Iterator[StripeProfile]:
-    """The sequence's laser profiles in time order, for the live mapping (none without)."""
-    return sequence_stripes(sequence, config) if sequence_stripe_count(sequence) else iter(())
-
-
-def run_stripes(
-    sequence: Sequence, last_ns: int | None, config: MappingConfig, calibration: StereoCalibration | None = None
-) -> list[StripeProfile]:
-    """The sequence's laser profiles up to ``last_ns`` (the last processed frame; sensor frame, metres).
-
-    Laser images are triangulated with ``calibration``'s left camera when given (a refined one,
-    issue 31), else the sequence's.
-
-    None without a processed frame or without profiles. A reader error is logged and gives none (the
-    trajectories matter more than the stripes).
-    """
-    if last_ns is None or sequence_stripe_count(sequence) == 0:
-        return []
-    try:
-        return [s for s in sequence_stripes(sequence, config, calibration) if s.timestamp_ns <= last_ns]
-    except LoopmodelError as exc:
-        logger.error("laser stripes not written: %s", exc)
-        return []
 
 
 def reference_from_traj(traj: Trajectory, reference: Trajectory) -> NDArray[np.float64]:
@@ -71,61 +45,11 @@ def aligned_to(traj: Trajectory, reference: Trajectory) -> Trajectory:
     return Trajectory(traj.timestamps_ns, T[None] @ traj.world_from_cam)
 
 
-def _mesh_errors(
-    sequence: Sequence,
-    stripes: list[StripeProfile],
-    online: Trajectory,
-    final: Trajectory,
-    config: MappingConfig,
-    final_surface: Any = None,
-) -> dict[str, Any]:
-    """With a ground-truth scene (``scene.ply`` attachment) and poses.
+def final_mesh(stripes: list[StripeProfile], final: Trajectory, config: MappingConfig) -> tuple[Any, dict[str, Any]]:
+    """The mesh of ``stripes`` placed with ``final`` (open3d, world frame) and its metrics (vertex count).
 
-    The mesh error with ground-truth, online (before loop closure) and final (after) poses, both
-    SE(3)-aligned to the truth by their frame positions, and the completeness of the scanned object
-    (``object.ply``) and of its swept part when the sequence has it. ``final_surface``: the run's
-    mesh of ``stripes`` placed with ``final`` (run world frame); "after" measures that mesh instead
-    of meshing the stripes a second time.
-    """
-    from loopmodel.io.mesh_io import mesh_from_bytes
-    from loopmodel.mapping.accuracy import mesh_error_metrics
-
-    names = sequence.attachment_names
-    gt = sequence.ground_truth
-    if "scene.ply" not in names or gt is None:
-        return {}
-    from loopmodel.geometry.se3 import invert_pose
-
-    gt_mesh = mesh_from_bytes(sequence.read_attachment("scene.ply"), "ply", sequence.path)
-    # the run's world is its first keyframe. The online trajectory is SE(3)-aligned to the truth
-    # by the frame positions (as ATE), and so is the final one: every mesh is then made in the
-    # run's world, where the run made its own mesh ("after"), with the truth moved there. open3d's
-    # Poisson octree follows the frame's axes (its depth comes from the bounding box), so meshes
-    # made in different frames would differ in resolution (the demo orbit: 1.85 mm cells in the
-    # run's world, 1.08 mm in the truth's) and not compare like with like.
-    run_from_gt = invert_pose(reference_from_traj(final, gt))
-
-    def in_run(traj: Trajectory) -> Trajectory:
-        return Trajectory(traj.timestamps_ns, run_from_gt[None] @ traj.world_from_cam)
-
-    trajs = {"gt": in_run(gt), "before": in_run(aligned_to(online, gt)), "after": final}
-    gt_mesh.transform(run_from_gt)
-    given: dict[str, Any] = {"after": final_surface} if final_surface is not None else {}
-    obj = None
-    if "object.ply" in names:
-        obj = mesh_from_bytes(sequence.read_attachment("object.ply"), "ply", sequence.path)
-        obj.transform(run_from_gt)
-    return mesh_error_metrics(stripes, trajs, gt_mesh, config, object_mesh=obj, meshes=given)
-
-
-def final_mesh(
-    sequence: Sequence, stripes: list[StripeProfile], online: Trajectory, final: Trajectory, config: MappingConfig
-) -> tuple[Any, dict[str, Any]]:
-    """The mesh of ``stripes`` placed with ``final`` (open3d, world frame) and its metrics.
-
-    Metrics: vertex count, accuracy against the sequence's ground truth. (None, {}) when meshing is
-    off, there is nothing to mesh, or it fails (logged: a run without a mesh still has its
-    trajectories).
+    (None, {}) when meshing is off, there is nothing to mesh, or it fails (logged: a run without a
+    mesh still has its trajectories).
     """
     if not stripes or not config.write_mesh or len(final) < 2:
         return None, {}
@@ -138,12 +62,7 @@ def final_mesh(
     except LoopmodelError as exc:
         logger.error("mesh not written: %s", exc)
         return None, {}
-    out: dict[str, Any] = {"mesh_vertices": len(surface.vertices)}
-    try:
-        out.update(_mesh_errors(sequence, stripes, online, final, config, final_surface=surface))
-    except LoopmodelError as exc:
-        logger.error("no mesh accuracy: %s", exc)
-    return surface, out
+    return surface, {"mesh_vertices": len(surface.vertices)}
 
 
 def anchor_stripes(

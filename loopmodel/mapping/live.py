@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -23,17 +23,16 @@ logger = logging.getLogger(__name__)
 class LiveMapping:
     """The run's laser stripes handed to the pipeline's :class:`StripeMap`, and the chunked live mesh.
 
-    The stripes (``stripes``, in time order, e.g. the reader's) are handed over as frames arrive.
-    Every ``live_mesh_every_kf`` keyframes the blocks that new stripes entered or that pose
-    corrections moved are re-meshed in a worker thread (open3d releases the GIL), so tracking does
-    not wait for it.
+    The stripes of each frame are handed over (:meth:`feed`) as frames arrive. Every
+    ``live_mesh_every_kf`` keyframes the blocks that new stripes entered or that pose corrections
+    moved are re-meshed in a worker thread (open3d releases the GIL), so tracking does not wait
+    for it.
     """
 
-    def __init__(self, world: StripeMap, stripes: Iterator[StripeProfile], every_kf: int) -> None:
+    def __init__(self, world: StripeMap, every_kf: int) -> None:
         self._world = world
         self._every = every_kf
-        self._stripes = stripes if every_kf > 0 else iter(())
-        self._next: StripeProfile | None = None
+        self._feeding = every_kf > 0
         self._keyframes = 0
         self._pool: Any = None
         self._job: Any = None
@@ -46,28 +45,20 @@ class LiveMapping:
         """Whether the live mesh is updated (``every_kf`` > 0)."""
         return self._every > 0
 
-    def feed(self, t_ns: int) -> None:
-        """Add every stripe taken up to ``t_ns``.
+    def feed(self, stripes: Sequence[StripeProfile]) -> None:
+        """Add a frame's stripes (time order; those without points are skipped).
 
         A bad stripe stops the live feed (logged); the run and its final mesh go on.
         """
-        batch: list[StripeProfile] = []
+        if not self._feeding:
+            return
+        batch = [s for s in stripes if np.asarray(s.points_in_cam).size]
         try:
-            while True:
-                if self._next is None:
-                    self._next = next(self._stripes, None)
-                    if self._next is None:
-                        break
-                if self._next.timestamp_ns > t_ns:
-                    break
-                if np.asarray(self._next.points_in_cam).size:
-                    batch.append(self._next)
-                self._next = None
             if batch:
                 self._world.add_many(batch)
         except LoopmodelError as exc:
             logger.error("live mesh: laser stripes no longer fed: %s", exc)
-            self._stripes, self._next = iter(()), None
+            self._feeding = False
 
     def on_keyframe(self) -> None:
         """Count a keyframe.

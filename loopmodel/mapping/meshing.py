@@ -69,13 +69,16 @@ def poisson_depth(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> int:
 
 
 def _poisson(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.TriangleMesh:
-    mesh, dens_vec = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-        cloud,
-        depth=poisson_depth(cloud, config),
-        scale=config.poisson_scale,
-        linear_fit=config.poisson_linear_fit,
-        n_threads=config.poisson_threads or -1,
-    )
+    # PoissonRecon's warnings ("Extract bad average roots", with open3d's build paths) say nothing
+    # a user can act on: errors only while it runs (issue 35)
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        mesh, dens_vec = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+            cloud,
+            depth=poisson_depth(cloud, config),
+            scale=config.poisson_scale,
+            linear_fit=config.poisson_linear_fit,
+            n_threads=config.poisson_threads or -1,
+        )
     if len(mesh.vertices) == 0:
         return mesh
     dens = np.asarray(dens_vec, dtype=np.float64)

@@ -14,15 +14,23 @@ frame, so the content does not depend on the number of worker processes.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import multiprocessing as mp
+import os
+import pickle
+import shlex
+import shutil
 import signal
+import sys
+import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -305,9 +313,16 @@ class _RealState:
 _STATE: _WorkerState | None = None
 
 
+def _init_worker_from_file(setup: str) -> None:
+    """A render worker's set-up from the file the parent wrote (see :func:`_iter_rendered`)."""
+    with open(setup, "rb") as f:
+        cfg, scene = pickle.load(f)  # written by this package's parent process just before
+    _init_worker(cfg, scene)
+
+
 def _init_worker(cfg: SimulationConfig, scene: Scene) -> None:
     global _STATE
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # (already ignored from the start; see below)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # (already ignored from the start; see _iter_rendered)
     cv2.setNumThreads(1)
     _STATE = _make_state(cfg, scene)
     _STATE.caster.threads = 1  # one process per core already
@@ -571,6 +586,7 @@ class SimulationResult:
     size_bytes: int
     faults: list[dict[str, int | str]] = field(default_factory=list)
     scene_ply: Path | None = None
+    laser_images_written: int = 0
 
 
 def plan_frames(
@@ -730,9 +746,19 @@ def _plan_realistic(
         task.laser_reflectance = stripe_reflectance(caster, plane, T_l, pts, w_occ)
 
 
+def _runs(executable: str) -> bool:
+    """Whether ``executable`` starts Python here (``-S -c ''``)."""
+    import subprocess
+
+    try:
+        return subprocess.run([executable, "-S", "-c", ""], capture_output=True, timeout=60).returncode == 0
+    except (OSError, subprocess.SubprocessError):
+        return False
+
+
 def _iter_rendered(
     cfg: SimulationConfig, scene: Scene, tasks: list[FrameTask], state: _WorkerState | None
-) -> Iterator[FrameImages]:
+) -> Generator[FrameImages, None, None]:
     workers = cfg.workers if cfg.workers > 0 else (mp.cpu_count() or 1)
     workers = min(workers, max(len(tasks), 1))
     if workers <= 1:
@@ -741,16 +767,50 @@ def _iter_rendered(
             yield render_frame(st, task)
         return
     ctx = mp.get_context("spawn")
-    # workers start with SIGINT ignored (an ignored signal stays ignored across exec, and
-    # Python then installs no KeyboardInterrupt handler): Ctrl-C, which reaches the whole
-    # process group, stops the parent, which terminates the pool; no worker tracebacks
-    main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
-    try:
-        pool = ctx.Pool(workers, initializer=_init_worker, initargs=(cfg, scene))
+    # The workers start through a launcher that ignores SIGINT before it runs Python (an ignored
+    # signal stays ignored across exec, and Python then installs no KeyboardInterrupt handler):
+    # Ctrl-C, which reaches the whole process group, stops only the parent, which terminates the
+    # pool; no worker tracebacks. Their set-up (configuration and scene, megabytes) goes through a
+    # file, not the pipe that starts each worker (starting the pool waited seconds for the workers
+    # to read it). While the pool starts, Ctrl-C and SIGTERM are noted and raised once it exists
+    # (issue 34: the parent used to ignore SIGINT then, and a Ctrl-C in the first seconds was lost).
+    tmp = tempfile.mkdtemp(prefix="loopmodel-sim-")
+    try:  # the set-up files removed however it ends
+        yield from _render_in_pool(ctx, workers, cfg, scene, tasks, tmp)
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _render_in_pool(
+    ctx: Any, workers: int, cfg: SimulationConfig, scene: Scene, tasks: list[FrameTask], tmp: str
+) -> Generator[FrameImages, None, None]:
+    """The frames rendered by a pool of ``workers`` processes whose set-up files go in ``tmp``."""
+    setup, launcher = os.path.join(tmp, "setup.pickle"), os.path.join(tmp, "python")
+    with open(setup, "wb") as f:
+        pickle.dump((cfg, scene), f, protocol=pickle.HIGHEST_PROTOCOL)
+    with open(launcher, "w") as f:
+        f.write(f"#!/bin/sh\ntrap '' INT\nexec {shlex.quote(sys.executable)} \"$@\"\n")
+    os.chmod(launcher, 0o700)
+    if not _runs(launcher):  # a temporary folder mounted noexec: Python itself, SIGINT ignored in the parent
+        launcher = sys.executable
+    main_thread = threading.current_thread() is threading.main_thread()
+    caught: list[int] = []
+    previous: dict[int, Any] = {}
+    if main_thread:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            previous[signum] = signal.signal(signum, lambda sig, frame: caught.append(sig))
+        if launcher == sys.executable:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        ctx.set_executable(launcher)
+        pool = ctx.Pool(workers, initializer=_init_worker_from_file, initargs=(setup,))
+    finally:
+        ctx.set_executable(sys.executable)
+        for sig_restored, handler in previous.items():
+            signal.signal(sig_restored, handler)
+    if caught:
+        pool.terminate()
+        raise KeyboardInterrupt(f"signal {caught[0]}")
     with pool:
         yield from pool.imap(_worker_render, tasks, chunksize=1)
 
@@ -785,11 +845,13 @@ def simulate_scan(
     dup = {f.first for f in plan.faults if f.kind == "duplicate_timestamp"}
     dropped = {f.first for f in plan.faults if f.kind == "dropped"}
     black = {i for f in plan.faults if f.kind == "blackout" for i in f.frames()}
-    frames_written = stripes_written = 0
+    frames_written = stripes_written = laser_images_written = 0
     render_s: list[float] = []
     state = _make_state(cfg, scene) if cfg.workers == 1 else None
-    with McapSequenceWriter(out, calib, topics, cfg.image_format) as writer:
-        for k, img in enumerate(_iter_rendered(cfg, scene, tasks, state)):
+    rendered = _iter_rendered(cfg, scene, tasks, state)
+    # closed on any exit (Ctrl-C while writing too): the pool ends, its set-up files are removed
+    with McapSequenceWriter(out, calib, topics, cfg.image_format) as writer, contextlib.closing(rendered):
+        for k, img in enumerate(rendered):
             i = img.index
             render_s.append(img.render_s)
             t_ns = frame_time_ns(cfg, i)
@@ -811,6 +873,7 @@ def simulate_scan(
                     stripes_written += 1
                 if img.laser is not None:
                     writer.write_image((topics or TopicsConfig()).laser_image, t_ns, img.laser, "cam0")
+                    laser_images_written += 1
             if progress is not None:
                 progress(k + 1, n)
         scene_ply = scene.ply_bytes()
@@ -847,6 +910,7 @@ def simulate_scan(
         frames=n,
         frames_written=frames_written,
         stripes_written=stripes_written,
+        laser_images_written=laser_images_written,
         seconds=seconds,
         setup_seconds=setup_s,
         ms_per_frame=1000.0 * seconds / n,

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 F32 = NDArray[np.float32]
 
-STYLES = ("stone", "wood", "poster")
+STYLES = ("stone", "wood", "poster", "foliage", "fence", "facade")
 
 
 def _fractal_noise(rng: np.random.Generator, n: int, beta: float, fmin: float, fmax: float) -> F32:
@@ -78,7 +78,10 @@ def make_texture(seed: int | np.random.SeedSequence, size: int = 2048, style: st
     """Seamless size x size albedo texture (float32 in about [0.08, 0.92]).
 
     ``style``: ``stone`` (granite-like speckles and blobs), ``wood`` (warped ridges),
-    ``poster`` (large flat patches with fine print, for walls)."""
+    ``poster`` (large flat patches with fine print, for walls); for the street scene (issue 36):
+    ``foliage`` (dense leaves of a few sizes: stochastic and self-similar), ``fence`` (vertical bars
+    with a 16-texel period and rails: periodic along the row), ``facade`` (a grid of windows, 64 x 128
+    texels: periodic in both directions)."""
     if style not in STYLES:
         raise ValueError(f"unknown texture style {style!r}; expected one of {STYLES}")
     rng = np.random.default_rng(seed)
@@ -96,6 +99,23 @@ def make_texture(seed: int | np.random.SeedSequence, size: int = 2048, style: st
         grain = _fractal_noise(rng, n, 1.0, 0.005, 0.2)
         knots = _blobs(rng, n, int(400 * k * k) + 20, 3.0 * k + 1.0, 30.0 * k + 2.0)
         img = 0.6 * rings + 0.5 * grain + 1.2 * knots
+    elif style == "foliage":
+        # leaves: band-pass noise squashed into dark and lit patches, at two sizes
+        big = np.tanh(3.0 * _fractal_noise(rng, n, 0.0, 0.03 / k, 0.08 / k))
+        small = np.tanh(3.0 * _fractal_noise(rng, n, 0.0, 0.08 / k, 0.2))
+        shade = _fractal_noise(rng, n, 1.3, 1.0 / n, 0.03)
+        img = big + 0.6 * small + 0.5 * shade
+    elif style in ("fence", "facade"):
+        xx = np.arange(n, dtype=np.float32)[None, :] * np.ones((n, 1), np.float32)
+        yy = xx.T
+        if style == "fence":  # bars 6 of 16 texels wide, two rails
+            bars = ((xx % 16) < 6).astype(np.float32)
+            rails = (((yy % 128) < 10) | (((yy + 64) % 128) < 6)).astype(np.float32)
+            img = np.maximum(bars, rails) - 0.5 + 0.15 * _fractal_noise(rng, n, 1.0, 0.01, 0.2)
+        else:  # windows 36 x 72 texels on a 64 x 128 grid, frames and a little dirt
+            win = ((xx % 64) > 14) & ((xx % 64) < 50) & ((yy % 128) > 28) & ((yy % 128) < 100)
+            frame = ((xx % 64) > 30) & ((xx % 64) < 34) & win
+            img = -0.8 * win.astype(np.float32) + 0.6 * frame + 0.2 * _fractal_noise(rng, n, 1.2, 2.0 / n, 0.2)
     else:  # poster
         patches = _blobs(rng, n, int(260 * k * k) + 30, 20.0 * k + 2.0, 220.0 * k + 4.0)
         print_ = _fractal_noise(rng, n, 0.3, 0.03, 0.25)

@@ -28,6 +28,7 @@ the printed marker, metres); the scan refines the layout from the rotation itsel
 from __future__ import annotations
 
 import glob
+import math
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -113,10 +114,12 @@ def _planes(path: Path) -> dict[str, LightPlane]:
         from loopmodel.calibration.laser import read_laser_planes_json
 
         return read_laser_planes_json(path)
+    from loopmodel.io.text import one_line, read_text_file
+
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise FormatError(path, f"cannot read plane YAML ({exc})") from None
+        data = yaml.safe_load(read_text_file(path, "plane YAML"))
+    except (OSError, yaml.YAMLError, RecursionError) as exc:
+        raise FormatError(path, f"cannot read plane YAML ({one_line(exc)})") from None
     abcd = data.get("plane_abcd") if isinstance(data, dict) else None
     if not isinstance(abcd, list) or len(abcd) != 4:
         raise FormatError(path, "expected 'plane_abcd: [a, b, c, d]' (a plane of `loopmodel calibrate laser`)")
@@ -134,6 +137,44 @@ def _get(data: dict[str, Any], key: str, kind: type, source: Path, default: Any 
     return v
 
 
+def _inside(relative: str, key: str, lp: Path) -> str:
+    """A path the layout names, confined to the scan folder: relative, without '..' (issue 34)."""
+    if Path(relative).is_absolute() or ".." in Path(relative).parts or "\0" in relative:
+        raise InputError(lp, f"'{key}' must be a path inside the scan folder, got '{relative}'")
+    return relative
+
+
+def _read_layout_yaml(lp: Path) -> dict[str, Any]:
+    """The layout file's mapping; one line naming the file for anything else."""
+    from loopmodel.io.text import one_line, read_text_file
+
+    try:
+        data = yaml.safe_load(read_text_file(lp, "turntable layout"))
+    except yaml.YAMLError as exc:
+        raise FormatError(lp, f"cannot parse YAML ({one_line(exc)})") from None
+    except RecursionError:
+        raise FormatError(lp, "cannot parse YAML (nested too deeply)") from None
+    if not isinstance(data, dict):
+        raise FormatError(lp, "expected a YAML mapping")
+    return data
+
+
+def _check_layout_values(
+    lp: Path, markers: MarkerLayout, volume: WorkingVolume, step_deg: float, table_radius_m: float
+) -> None:
+    """Physically possible layout values (issue 34: a NaN, zero or negative step; a negative radius)."""
+    if not (math.isfinite(step_deg) and 0 < abs(step_deg) <= 360):
+        raise InputError(lp, f"'step_deg' must be a finite angle in (0, 360] degrees, got {step_deg}")
+    if not (math.isfinite(markers.side_m) and markers.side_m > 0):
+        raise InputError(lp, f"'markers.side_m' must be a positive length, got {markers.side_m}")
+    if not (math.isfinite(table_radius_m) and table_radius_m > 0):
+        raise InputError(lp, f"'table_radius_m' must be a positive length, got {table_radius_m}")
+    if not (math.isfinite(volume.radius_m) and volume.radius_m > 0):
+        raise InputError(lp, f"'volume.radius_m' must be a positive length, got {volume.radius_m}")
+    if not (math.isfinite(volume.z_min_m) and math.isfinite(volume.z_max_m) and volume.z_min_m < volume.z_max_m):
+        raise InputError(lp, f"'volume' needs finite z_min_m < z_max_m, got {volume.z_min_m}, {volume.z_max_m}")
+
+
 def open_turntable(
     folder: str | Path, layout: str | Path | None = None, extra_planes: Sequence[Path] = ()
 ) -> TurntableScan:
@@ -144,24 +185,19 @@ def open_turntable(
     lp = Path(layout) if layout is not None else root / "turntable.yaml"
     if not lp.is_file():
         raise InputError(lp, "turntable layout file not found (pass --layout; see loopmodel.turntable.reader)")
-    try:
-        data = yaml.safe_load(lp.read_text())
-    except yaml.YAMLError as exc:
-        raise FormatError(lp, f"cannot parse YAML ({exc})") from None
-    if not isinstance(data, dict):
-        raise FormatError(lp, "expected a YAML mapping")
-    pattern = _get(data, "frames", str, lp)
+    data = _read_layout_yaml(lp)
+    pattern = _inside(_get(data, "frames", str, lp), "frames", lp)
     frames = sorted((Path(f) for f in glob.glob(str(root / pattern))), key=_number)
     if not frames:
         raise InputError(root / pattern, "no frames match")
-    K, dist, size = read_intrinsics(root / _get(data, "camera", str, lp))
+    K, dist, size = read_intrinsics(root / _inside(_get(data, "camera", str, lp), "camera", lp))
     if size is None:
         img = read_image(frames[0])
         size = (int(img.shape[1]), int(img.shape[0]))
     planes: dict[str, LightPlane] = {}
     for key in ("laser_planes", "laser_plane"):
         if key in data:
-            planes.update(_planes(root / _get(data, key, str, lp)))
+            planes.update(_planes(root / _inside(_get(data, key, str, lp), key, lp)))
     for p in extra_planes:
         planes.update(_planes(Path(p)))
     if not planes:
@@ -169,13 +205,18 @@ def open_turntable(
     m = data.get("markers") or {}
     if not isinstance(m, dict) or not m.get("ids"):
         raise InputError(lp, "'markers' needs 'ids' (and dictionary, side_m, centre_in_marker_m)")
-    centres = {int(k): (float(v[0]), float(v[1])) for k, v in (m.get("centre_in_marker_m") or {}).items()}
-    markers = MarkerLayout(
-        str(m.get("dictionary", "DICT_4X4_50")), float(m.get("side_m", 0.03)), [int(i) for i in m["ids"]], centres
-    )
-    vol = data.get("volume") or {}
-    volume = WorkingVolume(**{k: float(v) for k, v in vol.items() if k in ("radius_m", "z_min_m", "z_max_m")})
-    step = float(data.get("step_deg", 360.0 / len(frames)))
+    try:
+        centres = {int(k): (float(v[0]), float(v[1])) for k, v in (m.get("centre_in_marker_m") or {}).items()}
+        markers = MarkerLayout(
+            str(m.get("dictionary", "DICT_4X4_50")), float(m.get("side_m", 0.03)), [int(i) for i in m["ids"]], centres
+        )
+        vol = data.get("volume") or {}
+        volume = WorkingVolume(**{k: float(v) for k, v in vol.items() if k in ("radius_m", "z_min_m", "z_max_m")})
+        step = float(data.get("step_deg", 360.0 / len(frames)))
+        table_radius_m = float(data.get("table_radius_m", 0.125))
+    except (TypeError, ValueError, AttributeError, IndexError, KeyError) as exc:
+        raise FormatError(lp, f"malformed layout value ({type(exc).__name__}: {exc})") from None
+    _check_layout_values(lp, markers, volume, step, table_radius_m)
     scan = TurntableScan(
         root,
         frames,
@@ -186,7 +227,7 @@ def open_turntable(
         step,
         markers,
         str(data.get("laser_colour", "green")),
-        float(data.get("table_radius_m", 0.125)),
+        table_radius_m,
         volume,
         lp,
     )

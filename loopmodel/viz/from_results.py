@@ -62,10 +62,14 @@ def record_results(results_dir: Path, out: Path, with_images: bool = True, image
     try:
         frames_by_time: dict[int, Any] = {}
         seq = _open_sequence(folder, metrics, summary) if with_images else None
+        times = online.timestamps_ns
         if seq is not None:
             cal = seq.calibration
             rec.camera_model(cal.K_left, cal.image_size[0], cal.image_size[1])
-        times = online.timestamps_ns
+            if seq.ground_truth is not None and len(seq.ground_truth) and len(times):
+                from loopmodel.viz.recorder import ground_truth_in_run_world
+
+                rec.ground_truth(ground_truth_in_run_world(seq.ground_truth, int(times[0])))
         idx = {int(t): i for i, t in enumerate(times)}
         if seq is not None:
             for fr in seq.frames():
@@ -144,7 +148,7 @@ def _stripes(folder: Path, rec: RerunRecorder, summary: ViewSummary) -> None:
     if not (folder / "stripes.npz").is_file():
         summary.notes.append("no stripes.npz: no laser points")
         return
-    from loopmodel.mapping.sources import load_stripes_and_poses
+    from loopmodel.io.laser import load_stripes_and_poses
     from loopmodel.mapping.stripe_map import StripeMap
 
     stripes, traj, _ = load_stripes_and_poses(folder, "final")

@@ -42,13 +42,28 @@ class View:
     height_px: int
 
 
+#: "Up" in a run's world, its first left camera (x right, y down, z forward): a hand-held scan
+#: starts roughly level, so -y is up there (the mesh no longer lies on its side; issue 35).
+CAMERA_UP = (0.0, -1.0, 0.0)
+
+
 def fixed_views(
-    vertices: F64, n_views: int = 3, elevation_deg: float = 30.0, width_px: int = 480, height_px: int = 400
+    vertices: F64,
+    n_views: int = 3,
+    elevation_deg: float = 30.0,
+    width_px: int = 480,
+    height_px: int = 400,
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0),
 ) -> list[View]:
     """``n_views`` cameras around the mesh's bounding sphere, the whole mesh in view.
 
-    At equal azimuth steps, looking at its centre from ``elevation_deg`` above the x-y plane.
+    At equal azimuth steps about ``up`` (world frame; z for a z-up world, :data:`CAMERA_UP` for a
+    run's world), looking at its centre from ``elevation_deg`` above the plane normal to ``up``.
     """
+    u = np.asarray(up, float) / np.linalg.norm(up)
+    a = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(u, a)  # (a, b, u) right-handed: a, b span the ground plane
     v = np.asarray(vertices, float)
     lo, hi = v.min(axis=0), v.max(axis=0)
     centre = (lo + hi) / 2
@@ -60,8 +75,8 @@ def fixed_views(
     el = np.radians(elevation_deg)
     for k in range(n_views):
         az = 2 * np.pi * k / n_views - np.pi / 2
-        eye = centre + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-        views.append(View(K, invert_pose(look_at(eye, centre)), width_px, height_px))
+        eye = centre + dist * (np.cos(el) * np.cos(az) * a + np.cos(el) * np.sin(az) * b + np.sin(el) * u)
+        views.append(View(K, invert_pose(look_at(eye, centre, u)), width_px, height_px))
     return views
 
 
@@ -142,6 +157,7 @@ def before_after_png(
     panels: list[Panel],
     n_views: int = 3,
     colorbar_mm: float | None = None,
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0),
 ) -> bytes:
     """One PNG.
 
@@ -151,7 +167,7 @@ def before_after_png(
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    views = fixed_views(panels[0][1], n_views)
+    views = fixed_views(panels[0][1], n_views, up=up)
     fig = Figure(figsize=(3.2 * n_views, 2.8 * len(panels) + (0.5 if colorbar_mm else 0)), dpi=100)
     FigureCanvasAgg(fig)
     for r, (title, v_full, t_full, c_full) in enumerate(panels):
@@ -178,18 +194,24 @@ def before_after_png(
     return buf.getvalue()
 
 
-def mesh_picture_png(mesh: object, title: str, gt_mesh: object | None = None, n_views: int = 3) -> bytes:
-    """A picture of one open3d mesh from ``n_views`` fixed viewpoints.
+def mesh_picture_png(
+    mesh: object,
+    title: str,
+    gt_mesh: object | None = None,
+    n_views: int = 3,
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0),
+) -> bytes:
+    """A picture of one open3d mesh from ``n_views`` fixed viewpoints around ``up`` (world frame).
 
     Coloured by the distance to ``gt_mesh`` (same world frame) when given, shaded grey otherwise.
     """
     v = np.asarray(mesh.vertices)  # type: ignore[attr-defined]
     t = np.asarray(mesh.triangles)  # type: ignore[attr-defined]
     if gt_mesh is None:
-        return before_after_png([(title, v, t, None)], n_views)
+        return before_after_png([(title, v, t, None)], n_views, up=up)
     from loopmodel.mapping.accuracy import distances_to_mesh
 
     d = distances_to_mesh(v, gt_mesh)  # type: ignore[arg-type]
     scale_mm = max(1.0, float(np.percentile(d, 95)) * 1e3)
     label = f"{title}: mean {1e3 * d.mean():.2f} mm to the true surface"
-    return before_after_png([(label, v, t, distance_colors(d, scale_mm * 1e-3))], n_views, colorbar_mm=scale_mm)
+    return before_after_png([(label, v, t, distance_colors(d, scale_mm * 1e-3))], n_views, colorbar_mm=scale_mm, up=up)

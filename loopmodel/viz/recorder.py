@@ -10,11 +10,14 @@
 * ``world/keyframes`` — keyframe positions; ``world/landmarks`` — landmark points;
 * ``world/stripes`` — laser points in the world; ``world/mesh`` — the (live) mesh;
 * ``world/events`` — a line between the two keyframes of each loop or relocalization, and
-  ``events`` (text log);
+  ``events`` (text log), also for loops found after the last keyframe (logged at the end);
+* ``world/ground_truth`` — the sequence's ground-truth path when it has one, placed in the run's
+  world by its pose at the first frame (origin alignment);
 * ``metrics/<name>`` — per-frame scalars (track ms, inliers, keyframes, back-end ms).
 
 Images are logged at most every ``image_every`` frames and downscaled by ``image_scale``;
-point clouds are capped at ``max_points`` (every k-th point), so logging stays cheap.
+point clouds are capped at ``max_points`` (every k-th point), so logging stays cheap. A blueprint
+(:func:`blueprint`) lays the viewer out: the 3-D view large, the camera image and three plots beside it.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from loopmodel.listener import RunListener
 if TYPE_CHECKING:
     from loopmodel.frontend import FrameResult, Keyframe, TrackedFeatures
     from loopmodel.result import RunResult
-    from loopmodel.types import StereoFrame
+    from loopmodel.types import StereoFrame, Trajectory
 
 F64 = NDArray[np.float64]
 
@@ -49,8 +52,28 @@ ENTITY_PATHS = (
     "world/stripes",
     "world/mesh",
     "world/events",
+    "world/ground_truth",
     "events",
 )
+
+#: The plots of the blueprint (the other metrics stay in the recording, one click away).
+BLUEPRINT_PLOTS = ("track_ms", "inliers", "keyframes")
+
+
+def blueprint() -> Any:
+    """The viewer layout: the 3-D world large on the left; the camera image and three plots on the right."""
+    import rerun.blueprint as rrb
+
+    plots = [rrb.TimeSeriesView(origin=f"metrics/{name}", name=name) for name in BLUEPRINT_PLOTS]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="world", name="3-D: paths, keyframes, stripes, mesh"),
+            rrb.Vertical(rrb.Spatial2DView(origin="world/camera/image", name="left camera"), *plots),
+            column_shares=[3, 1],
+        ),
+        rrb.TimePanel(timeline="frame", play_state="following", state="collapsed"),  # opens at the end of the run
+        collapse_panels=True,
+    )
 
 
 @dataclass(frozen=True)
@@ -104,21 +127,23 @@ class RerunRecorder:
         rr = _import_rerun()
         self._rr = rr
         self.rec = rr.RecordingStream(application_id)
+        layout = blueprint()
         if sink.path is not None:
             sink.path.parent.mkdir(parents=True, exist_ok=True)
-            self.rec.save(str(sink.path))
+            self.rec.save(str(sink.path), default_blueprint=layout)
         elif sink.spawn:
-            self.rec.spawn()
+            self.rec.spawn(default_blueprint=layout)
         elif sink.connect is not None:
             addr = sink.connect if "://" in sink.connect else f"rerun+http://{sink.connect}/proxy"
-            self.rec.connect_grpc(addr)
+            self.rec.connect_grpc(addr, default_blueprint=layout)
         self.image_every = max(1, int(image_every))
         self.image_scale = float(image_scale)
         self.max_points = int(max_points)
         self._online: list[F64] = []
         self._K: F64 | None = None
         self._size: tuple[int, int] = (0, 0)
-        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        # the run's world is its first left camera: x right, y down, z forward (issue 35: not z up)
+        self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
 
     # -- time ---------------------------------------------------------------------------------
     def set_frame(self, index: int, timestamp_ns: int) -> None:
@@ -222,6 +247,14 @@ class RerunRecorder:
         if len(T):
             self.rec.log("world/path/final", self._rr.LineStrips3D([T[:, :3, 3]], colors=[(60, 140, 255)]))
 
+    def ground_truth(self, positions_world: F64) -> None:
+        """The ground-truth path (N x 3, metres, the run's world), logged once."""
+        p = np.asarray(positions_world, float).reshape(-1, 3)
+        if len(p) >= 2:
+            self.rec.log(
+                "world/ground_truth", self._rr.LineStrips3D([p], colors=[(230, 230, 230)], radii=0.001), static=True
+            )
+
     def event(self, text: str, a_world: F64 | None = None, b_world: F64 | None = None) -> None:
         """A loop or relocalization: a text line and a line between the matched positions."""
         self.rec.log("events", self._rr.TextLog(text, level="INFO"))
@@ -235,6 +268,17 @@ class RerunRecorder:
         self.rec.disconnect()
 
 
+def ground_truth_in_run_world(gt: Trajectory, first_ns: int) -> F64:
+    """Ground-truth positions (N x 3, metres) in a run's world.
+
+    Its pose at the run's first frame (time ``first_ns``) becomes the origin, as the run's world is
+    its first camera (origin alignment).
+    """
+    k = int(np.argmin(np.abs(gt.timestamps_ns.astype(np.int64) - int(first_ns))))
+    cam0_from_gtworld = np.linalg.inv(gt.world_from_cam[k])
+    return np.asarray(gt.world_from_cam[:, :3, 3] @ cam0_from_gtworld[:3, :3].T + cam0_from_gtworld[:3, 3])
+
+
 class RerunListener(RunListener):
     """Records a run as it happens (:class:`~loopmodel.listener.RunListener` for the pipeline).
 
@@ -246,8 +290,17 @@ class RerunListener(RunListener):
     the live mesh when it changes; at the end the final path, landmarks, stripes and mesh.
     """
 
-    def __init__(self, recorder: RerunRecorder, K_rect: F64, image_size: tuple[int, int], path_every: int = 10) -> None:
+    def __init__(
+        self,
+        recorder: RerunRecorder,
+        K_rect: F64,
+        image_size: tuple[int, int],
+        path_every: int = 10,
+        ground_truth: Trajectory | None = None,
+    ) -> None:
         self.rec = recorder
+        self.ground_truth = ground_truth
+        self._events_logged = 0
         self.rec.camera_model(K_rect, image_size[0], image_size[1])
         self.path_every = max(1, int(path_every))
         self._world_from_kf: dict[int, F64] = {}
@@ -260,6 +313,9 @@ class RerunListener(RunListener):
     def on_frame(self, frame: StereoFrame, result: FrameResult, tracks: TrackedFeatures) -> None:
         """Pose, image, features and scalars of one frame."""
         self._n, self._t_ns = int(frame.index), int(result.timestamp_ns)
+        if self.ground_truth is not None and len(self.ground_truth):
+            self._log_ground_truth(self.ground_truth, self._t_ns)
+            self.ground_truth = None  # once
         if result.is_keyframe:
             self._kf_frame[result.keyframe_id] = self._n
         if result.ok:
@@ -309,9 +365,17 @@ class RerunListener(RunListener):
         if mesh is not None and len(mesh.triangles):
             self.rec.mesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
 
+    def _log_ground_truth(self, gt: Trajectory, first_ns: int) -> None:
+        self.rec.ground_truth(ground_truth_in_run_world(gt, first_ns))
+
     def on_loop_events(self, events: list[dict[str, Any]]) -> None:
         """Each loop closure or relocalization as text and a line between its keyframes."""
+        self._log_events(events)
+        self._log_corrected_path()
+
+    def _log_events(self, events: list[dict[str, Any]]) -> None:
         for ev in events:
+            self._events_logged += 1
             a = self._world_from_kf.get(int(ev.get("keyframe", -1)))
             b = self._world_from_kf.get(int(ev.get("match_keyframe", -1)))
             text = (
@@ -319,7 +383,6 @@ class RerunListener(RunListener):
                 f"{ev.get('inliers', '?')} inliers, correction {1e3 * float(ev.get('correction_m') or 0.0):.2f} mm"
             )
             self.rec.event(text, None if a is None else a[:3, 3], None if b is None else b[:3, 3])
-        self._log_corrected_path()
 
     def on_finish(self, result: RunResult) -> None:
         """The final path, landmarks, stripes and mesh; then the recording is closed."""
@@ -328,6 +391,10 @@ class RerunListener(RunListener):
             self.rec.final_path(result.final.world_from_cam)
             if len(result.keyframes):
                 self.rec.keyframes(result.keyframes.world_from_cam)
+                for kid, T in zip(result.keyframe_ids.tolist(), result.keyframes.world_from_cam, strict=True):
+                    self._world_from_kf[int(kid)] = np.asarray(T, float)
+            events = [e for e in result.metrics.get("loop_events") or [] if isinstance(e, dict)]
+            self._log_events(events[self._events_logged :])  # loops found after the last keyframe
             if result.landmarks_in_world is not None and len(result.landmarks_in_world):
                 self.rec.landmarks(result.landmarks_in_world)
             if result.stripes:

@@ -1,18 +1,47 @@
-"""Where the stripes of a mesh come from, and the poses that place them.
+"""The laser profiles of a sequence or a results folder, and the poses that place them.
 
-A results folder (its ``stripes.npz`` and trajectory) or a recorded sequence with ground truth
-(stripes, or laser-line images extracted with the light plane). The reading itself is
-:mod:`loopmodel.io`'s; this module only decides what to read.
+A sequence's stripe messages, or profiles extracted from its laser-line images with the light plane
+(:class:`~loopmodel.mapping.extraction.StripeExtractor`); a results folder's ``stripes.npz`` and
+trajectory. A run does not use these (it takes the laser data of each frame as it reads it,
+:meth:`~loopmodel.io.base.Sequence.scan`): they serve the commands that mesh or show stripes after
+a run, and the tools.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 from loopmodel.config import MappingConfig, SequenceConfig
 from loopmodel.errors import InputError
+from loopmodel.io.base import Sequence
 from loopmodel.io.stripes_io import STRIPES_FILE, load_stripes
 from loopmodel.types import StripeProfile, Trajectory
+
+
+def sequence_stripe_count(sequence: Sequence) -> int:
+    """Number of laser profiles a sequence gives: its stripe messages, else its laser images."""
+    return int(sequence.stripe_count() or 0) or sequence.laser_image_count()
+
+
+def sequence_stripes(sequence: Sequence, config: MappingConfig | None = None) -> Iterator[StripeProfile]:
+    """The laser profiles of a sequence in time order (left-camera frame, metres).
+
+    Its stripe messages when it has them, else profiles extracted from its laser-line images with
+    the configured light plane and the left camera's calibration (empty profiles dropped).
+    """
+    if sequence.stripe_count():
+        yield from sequence.stripes()
+        return
+    if sequence.laser_image_count() == 0:
+        return
+    from loopmodel.mapping.extraction import StripeExtractor
+
+    extractor = StripeExtractor(sequence.calibration, config)
+    for t_ns, image in sequence.laser_images():
+        profile = extractor.from_image(t_ns, image)
+        if profile.points_in_cam.shape[0]:
+            yield profile
 
 
 def load_stripes_and_poses(
@@ -57,8 +86,6 @@ def load_stripes_and_poses(
     gt = seq.ground_truth
     if gt is None:
         raise InputError(p, "sequence has no ground-truth poses to place its stripes with")
-    from loopmodel.mapping.extraction import sequence_stripes
-
     stripes = list(sequence_stripes(seq, mapping_config))
     if not stripes:
         raise InputError(p, "no laser stripes in this sequence")

@@ -1,0 +1,346 @@
+"""A back end run beside the tracker: keyframes in, corrections out, never waited for (issue 33).
+
+:class:`BackgroundBackend` implements :class:`~loopmodel.backend.base.Backend` by sending every call
+to a worker (a process by default: GTSAM holds the interpreter lock while it optimises, so a thread
+would stall tracking; or a thread) that owns the real back end. ``add_keyframe``,
+``add_observations`` and ``add_loop_constraint`` only queue a message; ``estimate(landmarks=False)``
+returns what the worker has finished so far without waiting. The worker takes every message waiting
+for it, then estimates once, so a worker that falls behind catches up in one update.
+
+Keyframes the worker has not seen yet when a correction of the last one it has seen arrives move
+rigidly with that keyframe (their poses were chained from its old pose by the tracker), and a
+keyframe reaches the worker's back end re-based on the worker's current estimate of its previous
+keyframe: the back end starts from the pose a waiting pipeline would have given it.
+
+``estimate(landmarks=True)``, ``final_estimate`` and ``metrics`` wait for the worker (end of run).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import multiprocessing as mp
+import queue
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterable
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from loopmodel.backend.base import Backend, BackendEstimate, BackendUpdate, Observation
+from loopmodel.config import BackendConfig, RefineConfig
+from loopmodel.errors import EstimationError
+from loopmodel.geometry.se3 import invert_pose
+from loopmodel.types import Keyframe
+
+logger = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+WorkerKind = Literal["process", "thread"]
+
+__all__ = ["BackgroundBackend", "settle", "start_backend"]
+
+
+def start_backend(config: BackendConfig, factory: Callable[[], Backend]) -> Backend:
+    """The back end ``factory`` makes, run where ``config.worker`` says.
+
+    ``process`` or ``thread``: behind a :class:`BackgroundBackend`; ``inline`` (or ``kind: none``,
+    the front end's poses, which cost nothing): ``factory()`` itself.
+    """
+    if config.kind == "none" or config.worker == "inline":
+        return factory()
+    worker = config.worker
+    if worker == "process" and mp.current_process().daemon:
+        # a daemonic process (a Dask or pool worker running this run) may not start children
+        logger.info("back end in a thread: this process is a daemon and cannot start a worker process")
+        worker = "thread"
+    return BackgroundBackend(factory, worker)
+
+
+# --------------------------------------------------------------------------- the worker's side
+def _serve_process(factory: Callable[[], Backend], inbox: Any, outbox: Any) -> None:
+    """:func:`_serve` in a worker process, which leaves Ctrl-C to the run (it stops between frames)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _serve(factory, inbox, outbox)
+
+
+def _serve(factory: Callable[[], Backend], inbox: Any, outbox: Any) -> None:
+    """The worker's loop: build the back end, apply messages in order, estimate after each batch."""
+    try:
+        backend = factory()
+    except Exception as exc:  # noqa: BLE001 - reported to the caller, which logs it
+        outbox.put(("error", "start", f"{type(exc).__name__}: {exc}"))
+        return
+    outbox.put(("ready",))
+    estimate: dict[int, F64] = {}
+    while True:
+        batch = [inbox.get()]
+        while True:
+            try:
+                batch.append(inbox.get_nowait())
+            except queue.Empty:
+                break
+        dirty = False
+        update_ms: list[float] = []
+        t0 = time.perf_counter()
+        for msg in batch:
+            kind = msg[0]
+            if kind == "stop":
+                return
+            try:
+                if kind == "kf":
+                    kf, prev_pose = msg[1], msg[2]
+                    prev = kf.prev_keyframe_id
+                    if prev_pose is not None and prev in estimate:
+                        # the tracker chained this pose from its pose of the previous keyframe
+                        rebase = estimate[prev] @ invert_pose(prev_pose)
+                        kf = dataclasses.replace(kf, world_from_kf=rebase @ np.asarray(kf.world_from_kf))
+                    tk = time.perf_counter()
+                    backend.add_keyframe(kf)
+                    update_ms.append((time.perf_counter() - tk) * 1e3)
+                    dirty = True
+                elif kind == "obs":
+                    backend.add_observations(msg[1], msg[2])
+                    dirty = True
+                elif kind == "loop":
+                    backend.add_loop_constraint(msg[1], msg[2], msg[3], msg[4])
+                    dirty = True
+                elif kind == "remove":
+                    backend.remove_observations(msg[1])
+                    dirty = True
+                elif kind == "landmarks":
+                    outbox.put(("landmarks", backend.estimate(landmarks=True)))
+                elif kind == "final":
+                    outbox.put(("final", backend.final_estimate(msg[1]), backend.metrics()))
+                elif kind == "metrics":
+                    outbox.put(("metrics", backend.metrics()))
+                elif kind == "ping":
+                    if dirty:
+                        est = backend.estimate(landmarks=False)
+                        estimate.update(est.world_from_kf)
+                        outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, update_ms, 0.0))
+                        dirty, update_ms = False, []
+                    outbox.put(("pong", msg[1]))
+            except Exception as exc:  # noqa: BLE001 - one failed call is reported, the worker goes on
+                outbox.put(("error", kind, f"{type(exc).__name__}: {exc}"))
+        if dirty:
+            est = backend.estimate(landmarks=False)
+            estimate.update(est.world_from_kf)
+            batch_ms = (time.perf_counter() - t0) * 1e3
+            outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, update_ms, batch_ms))
+
+
+# --------------------------------------------------------------------------- the tracker's side
+class BackgroundBackend:
+    """A :class:`Backend` whose work runs in a worker ``kind`` (process or thread); see the module.
+
+    ``factory`` builds the real back end in the worker (picklable for a process, e.g. a
+    ``functools.partial`` of :func:`loopmodel.backend.create_backend`).
+    """
+
+    def __init__(self, factory: Callable[[], Backend], kind: WorkerKind = "process") -> None:
+        self.kind = kind
+        if kind == "process":
+            ctx = mp.get_context("spawn")
+            self._inbox: Any = ctx.Queue()
+            self._outbox: Any = ctx.Queue()
+            self._worker: Any = ctx.Process(
+                target=_serve_process, args=(factory, self._inbox, self._outbox), name="loopmodel-backend", daemon=True
+            )
+        else:
+            self._inbox, self._outbox = queue.Queue(), queue.Queue()
+            self._worker = threading.Thread(
+                target=_serve, args=(factory, self._inbox, self._outbox), name="loopmodel-backend", daemon=True
+            )
+        self._worker.start()
+        #: the pose the pipeline holds of every keyframe sent (as sent, then as corrected by us)
+        self._known: dict[int, F64] = {}
+        self._order: list[int] = []  # keyframes in the order sent
+        self._latest: dict[int, F64] = {}  # the worker's latest estimate
+        self._changed: set[int] = set()
+        self._done_kf: int | None = None  # the newest keyframe in the worker's estimate
+        self._next_constraint = 0
+        self._closed = False
+        self._pongs = 0
+        self.update_ms: list[float] = []  # the worker's add_keyframe times
+        self.batch_ms: list[float] = []  # the worker's time per batch (updates and estimate)
+        self.errors: list[str] = []
+        self.lag_kf: list[int] = []  # keyframes sent but not yet in the estimate, per estimate() call
+
+    # ------------------------------------------------------------------ messages
+    def _send(self, *msg: Any) -> None:
+        if self._closed:
+            raise EstimationError("the back-end worker was stopped")
+        self._inbox.put(msg)
+
+    def _receive(self, block_for: str | None = None, timeout_s: float | None = None) -> tuple[Any, ...] | None:
+        """Take every message the worker sent; with ``block_for``, wait for (and return) the first of that kind."""
+        deadline = None if timeout_s is None else time.perf_counter() + timeout_s
+        while True:
+            try:
+                if block_for is None:
+                    msg = self._outbox.get_nowait()
+                else:
+                    left = None if deadline is None else max(deadline - time.perf_counter(), 0.0)
+                    msg = self._outbox.get(timeout=left if left is not None else 1.0)
+            except queue.Empty:
+                if block_for is None:
+                    return None
+                if not self._worker.is_alive():
+                    raise EstimationError("the back-end worker stopped unexpectedly") from None
+                if deadline is not None and time.perf_counter() >= deadline:
+                    raise EstimationError(f"the back-end worker did not answer within {timeout_s:.0f} s") from None
+                continue
+            kind = msg[0]
+            if kind == "estimate":
+                _, poses, changed, update_ms, batch_ms = msg
+                self._latest.update(poses)
+                self._changed |= set(changed)
+                self._done_kf = max(poses) if poses else self._done_kf
+                self.update_ms.extend(update_ms)
+                if batch_ms:
+                    self.batch_ms.append(batch_ms)
+            elif kind == "error":
+                text = f"back end ({msg[1]}): {msg[2]}"
+                self.errors.append(text)
+                logger.warning("%s", text)
+                if msg[1] in ("start", "final", "landmarks", "metrics") and block_for is not None:
+                    raise EstimationError(text)
+            elif kind == "pong":
+                self._pongs = max(self._pongs, int(msg[1]))
+            if block_for is not None and kind == block_for:
+                return msg
+
+    def wait_idle(self, timeout_s: float | None = None) -> None:
+        """Wait until the worker has handled everything sent so far (its estimate included)."""
+        ticket = self._pongs + 1
+        self._send("ping", ticket)
+        while self._pongs < ticket:
+            self._receive("pong", timeout_s)
+
+    # ------------------------------------------------------------------ Backend
+    def add_keyframe(self, keyframe: Keyframe) -> BackendUpdate:
+        """Queue the keyframe (without its image); returns at once with an empty report."""
+        kf_id = int(keyframe.id)
+        prev = keyframe.prev_keyframe_id
+        prev_pose = self._known.get(int(prev)) if prev is not None and keyframe.connected else None
+        light = dataclasses.replace(keyframe, image=np.zeros((0, 0), np.uint8))
+        self._send("kf", light, prev_pose)
+        self._known[kf_id] = np.asarray(keyframe.world_from_kf, float).copy()
+        self._order.append(kf_id)
+        return BackendUpdate(kf_id)
+
+    def add_observations(self, keyframe_id: int, mono_obs: F64) -> BackendUpdate:
+        """Queue a keyframe's late monocular observations."""
+        self._send("obs", int(keyframe_id), np.asarray(mono_obs, float))
+        return BackendUpdate(int(keyframe_id))
+
+    def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
+        """Queue a loop constraint; returns this proxy's id for it (the worker's id is not waited for)."""
+        if kf_a not in self._known or kf_b not in self._known:
+            raise EstimationError(f"loop constraint {kf_a} -> {kf_b} names a keyframe not sent to the back end")
+        self._send("loop", int(kf_a), int(kf_b), np.asarray(a_from_b, float), sigmas)
+        self._next_constraint += 1
+        return self._next_constraint - 1
+
+    def remove_observations(self, observations: Iterable[Observation]) -> int:
+        """Queue the removal; returns how many were asked for (the worker's count is not waited for)."""
+        obs = list(observations)
+        self._send("remove", obs)
+        return len(obs)
+
+    def estimate(self, landmarks: bool = True) -> BackendEstimate:
+        """The worker's finished estimate; ``landmarks`` waits for the worker and includes them.
+
+        Without landmarks nothing waits: the keyframes that moved since the last call (newer keyframes
+        moved rigidly with the last one the worker has seen, when it moved).
+        """
+        if landmarks:
+            self.wait_idle()
+            self._send("landmarks")
+            full = self._receive("landmarks")
+            assert full is not None
+            est: BackendEstimate = full[1]
+            self._latest.update(est.world_from_kf)
+        else:
+            self._receive()
+        moved = {k: self._latest[k] for k in self._changed if k in self._latest}
+        self._changed = set()
+        self._move_unseen(moved)
+        self._known.update(moved)
+        self.lag_kf.append(self._unseen())
+        world = {k: moved.get(k, self._latest.get(k, self._known[k])) for k in self._order}
+        if landmarks:
+            return BackendEstimate(world, est.landmark_ids, est.landmarks_in_world, set(moved))
+        return BackendEstimate(world, changed_keyframes=set(moved))
+
+    def _unseen(self) -> int:
+        """How many keyframes were sent after the newest one in the worker's estimate."""
+        done = self._done_kf
+        return len(self._order) - (self._order.index(done) + 1) if done in self._order else len(self._order)
+
+    def _move_unseen(self, moved: dict[int, F64]) -> None:
+        """Keyframes sent after the worker's newest one move rigidly with it (added to ``moved``)."""
+        done = self._done_kf
+        if done is None or done not in moved or done not in self._known:
+            return
+        delta = moved[done] @ invert_pose(self._known[done])
+        for k in self._order[self._order.index(done) + 1 :]:
+            if k not in self._latest:
+                moved[k] = delta @ self._known[k]
+
+    def final_estimate(self, refine: RefineConfig | None) -> BackendEstimate:
+        """Wait for the worker, then its end-of-run solution; the worker stops afterwards."""
+        self._send("final", refine)
+        msg = self._receive("final")
+        assert msg is not None
+        self._final_metrics: dict[str, Any] = msg[2]
+        self.close()
+        est: BackendEstimate = msg[1]
+        return est
+
+    def metrics(self) -> dict[str, Any]:
+        """The back end's own figures plus the worker's update times (ms) and lag (keyframes)."""
+        inner = getattr(self, "_final_metrics", None)
+        if inner is None and not self._closed:
+            self._send("metrics")
+            msg = self._receive("metrics", timeout_s=60.0)
+            inner = msg[1] if msg is not None else {}
+        a = np.asarray(self.update_ms, float)
+        lag = np.asarray(self.lag_kf, float)
+        return {
+            **(inner or {}),
+            "backend_worker": self.kind,
+            "backend_worker_update_ms_median": float(np.median(a)) if a.size else None,
+            "backend_worker_update_ms_p95": float(np.percentile(a, 95)) if a.size else None,
+            "backend_worker_lag_kf_max": int(lag.max()) if lag.size else 0,
+            "backend_worker_errors": len(self.errors),
+        }
+
+    def close(self) -> None:
+        """Stop the worker (it finishes the message it is on)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._inbox.put(("stop",))
+        self._worker.join(timeout=30.0)
+        if self.kind == "process":
+            if self._worker.is_alive():
+                self._worker.terminate()
+            self._inbox.close()
+            self._outbox.close()
+
+
+def settle(backend: Backend) -> dict[int, F64]:
+    """Wait for a :class:`BackgroundBackend` to finish what it was sent; the keyframes it moved.
+
+    Any other back end has nothing to wait for (its estimate is already applied): empty.
+    """
+    if not isinstance(backend, BackgroundBackend) or backend._closed:
+        return {}
+    backend.wait_idle()
+    est = backend.estimate(landmarks=False)
+    return {k: est.world_from_kf[k] for k in est.changed_keyframes}

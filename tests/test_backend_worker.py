@@ -1,0 +1,113 @@
+"""The back end beside the tracker (issue 33): a blocked back-end worker never stalls tracking."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from frontend_scene import write_kitti_folder
+
+import loopmodel.pipeline as pl
+from loopmodel.backend import Backend, BackendUpdate, create_backend
+from loopmodel.backend.worker import BackgroundBackend
+from loopmodel.config import BackendConfig, Config
+from loopmodel.io.sequence import open_sequence
+from loopmodel.types import Keyframe, StereoCalibration
+
+N_FRAMES = 14
+BLOCK_S = 2.0
+
+
+@pytest.fixture(scope="module")
+def sequence_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("worker") / "seq"
+    write_kitti_folder(folder, N_FRAMES, np.random.default_rng(7))
+    return folder
+
+
+def _config(worker: str) -> Config:
+    cfg = Config()
+    cfg.frontend.max_disparity_px = 64
+    cfg.frontend.max_features = 400
+    cfg.frontend.min_tracked_fraction = 0.95  # several keyframes in a short sequence
+    cfg.backend.worker = worker  # type: ignore[assignment]
+    cfg.loop.enabled = False
+    cfg.mapping.write_mesh = False
+    cfg.output.write_map = False
+    return cfg
+
+
+class _Blocked:
+    """The real back end, whose first keyframe blocks the worker for ``BLOCK_S``."""
+
+    def __init__(self, inner: Backend) -> None:
+        self.inner = inner
+        self.added = 0
+
+    def add_keyframe(self, keyframe: Keyframe) -> BackendUpdate:
+        self.added += 1
+        if self.added == 1:
+            time.sleep(BLOCK_S)
+        return self.inner.add_keyframe(keyframe)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+
+def _blocked_backend(config: BackendConfig, calibration: StereoCalibration, givens: Any = None) -> Backend:
+    return _Blocked(create_backend(config, calibration, givens))  # type: ignore[return-value]
+
+
+@pytest.mark.parametrize("kind", ["process", "thread"])
+def test_blocked_worker_does_not_stall_tracking(kind: str, sequence_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The worker sleeps 2 s inside its first keyframe; every frame still takes < 100 ms.
+
+    The final estimate waits for the worker and matches the ground truth as a waiting back end does.
+    """
+    monkeypatch.setattr(pl, "create_backend", _blocked_backend)  # built in the worker
+    seq = open_sequence(sequence_dir)
+    run = pl._Run(seq.calibration, _config(kind), [])
+    for frame in seq.frames():
+        run.step(frame)
+    backend = run.backend
+    assert isinstance(backend, BackgroundBackend)
+    lag = max(backend.lag_kf)  # keyframes sent but not yet in an estimate when a frame asked
+    result = run.finish(False)
+    kfs = result.metrics["keyframes"]
+    assert kfs >= 3
+    # no frame waited for the worker: beyond the front end's own time (which a loaded machine
+    # stretches: 330 ms keyframes at load 19) each frame spent < 100 ms; measured < 10 ms at load 19
+    frontend_ms = np.array([f.track_ms + (f.keyframe_ms or 0.0) for f in run.frames])
+    beyond_ms = np.asarray(run.frame_ms) - frontend_ms
+    assert beyond_ms.max() < 100.0, beyond_ms
+    if max(run.frame_ms[1:]) >= 100.0:  # the absolute target needs a machine that is not overloaded
+        assert frontend_ms[1:].max() >= 50.0
+    assert beyond_ms.sum() < 0.5 * BLOCK_S * 1e3  # the 2 s block was never waited for, not even in pieces
+    assert lag >= 2
+    assert max(backend.update_ms) >= BLOCK_S * 1e3
+    # every keyframe reached the back end: the final estimate holds them all, at the ground truth
+    assert result.landmark_ids.size > 0
+    from loopmodel.eval.of_run import evaluate
+
+    assert evaluate(result, seq).metrics["ate_rmse_m"] < 0.005
+
+
+def test_worker_matches_the_waiting_back_end(sequence_dir: Path) -> None:
+    """Process worker vs inline back end on the same frames: the final trajectories agree."""
+    from loopmodel.eval.of_run import evaluate
+
+    out, ate_m = {}, {}
+    for worker in ("inline", "process"):
+        seq = open_sequence(sequence_dir)
+        res = pl.process(seq, _config(worker))
+        out[worker], ate_m[worker] = res, evaluate(res, seq).metrics["ate_rmse_m"]
+    a, b = out["inline"], out["process"]
+    assert np.array_equal(a.final.timestamps_ns, b.final.timestamps_ns)
+    # measured: 0.02 mm apart (the worker's keyframes start from re-based initial poses)
+    diff = np.linalg.norm(a.final.world_from_cam[:, :3, 3] - b.final.world_from_cam[:, :3, 3], axis=1)
+    assert diff.max() < 5e-4
+    assert abs(ate_m["inline"] - ate_m["process"]) < 2e-4
+    assert b.metrics["backend_worker"] == "process" and b.metrics["backend_worker_errors"] == 0
