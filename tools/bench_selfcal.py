@@ -89,6 +89,11 @@ class _View:
         n = len(self._seq) if self._frames is None else self._frames
         return (f for i, f in enumerate(self._seq.frames()) if i < n and i % self._stride == 0)
 
+    def scan(self) -> Any:
+        from loopmodel.io.base import Sequence
+
+        return Sequence.scan(self)  # type: ignore[arg-type]  # the one pass, over this view's frames
+
 
 def _rotation_gain(est: Any, gt: Any, step: int = 6) -> float:
     """Summed rotation angle of the estimate over steps of ``step`` frames, over the truth's."""
@@ -130,9 +135,12 @@ def _run(seq: Any, refine: str, plane: Any = None) -> tuple[dict[str, Any], Any]
     if plane is not None:
         cfg.mapping.laser_plane_point_in_cam_m = [float(v) for v in plane.origin_in_cam_m]
         cfg.mapping.laser_plane_normal_in_cam = [float(v) for v in plane.normal_in_cam]
+    from loopmodel.eval.of_run import evaluate
+
     t0 = time.perf_counter()
     res = process(seq, cfg)
     res.metrics["wall_s"] = time.perf_counter() - t0
+    res.metrics.update(evaluate(res, seq, mesh_references=True).metrics)  # ATE, drift, mesh errors vs the truth
     return res.metrics, res
 
 
