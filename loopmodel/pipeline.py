@@ -242,6 +242,9 @@ class _Run:
         self.finish_s: dict[str, float] = {}
         # for the session map (issue 20): keyframes with their images, the loop constraints
         self.map_keyframes: dict[int, Keyframe] = {}
+        # issue 31: the keyframes' measurements (no images) for the final self-calibration
+        self.selfcal_keyframes: dict[int, Keyframe] = {}
+        self.selfcal: Any = None
         self.archiver: KeyframeArchiver | None = None  # their map content, prepared off the tracking thread
         if config.output.write_map:
             from loopmodel.loop.session_map import KeyframeArchiver
@@ -354,6 +357,8 @@ class _Run:
         if self.archiver is not None:
             self.map_keyframes[kf.id] = kf
             self.archiver.add(kf)
+        if self.config.calibration.refine != "none":
+            self.selfcal_keyframes[kf.id] = kf.without_image()
         for listener in self.listeners:
             if out.events:
                 listener.on_loop_events(out.events)
@@ -366,12 +371,59 @@ class _Run:
             try:
                 if c.kf_a_mono_obs is not None:  # a loop found after its keyframe reached the back end
                     self.backend.add_observations(c.kf_a, c.kf_a_mono_obs)
+                    self._selfcal_observations(c.kf_a, c.kf_a_mono_obs)
                 ids.append(int(self.backend.add_loop_constraint(c.kf_a, c.kf_b, c.a_from_b)))
                 self.loop_constraints.append(c)
             except LoopmodelError as exc:  # e.g. a back end without relative-pose factors
                 logger.info("loop %d -> %d: no loop constraint (%s)", c.kf_a, c.kf_b, exc)
                 ids.append(None)
         return tuple(ids)
+
+    def _selfcal_observations(self, kf_id: int, mono_obs: F64) -> None:
+        """A late loop's observations of old landmarks join the keyframe kept for the self-calibration."""
+        kf = self.selfcal_keyframes.get(kf_id)
+        if kf is not None:
+            old = np.asarray(kf.mono_obs, float).reshape(-1, 3)
+            rows = np.vstack([old, np.asarray(mono_obs, float).reshape(-1, 3)])
+            self.selfcal_keyframes[kf_id] = dataclasses.replace(kf, mono_obs=rows)
+
+    def _self_calibration(self, estimate: BackendEstimate | None, interrupted: bool) -> BackendEstimate | None:
+        """``calibration.refine: final`` (issue 31): the calibrating bundle adjustment.
+
+        Then the stripes moved to the refined left camera and light plane (laser-stereo scale); the
+        anchored frames follow the refined keyframes. Returns the refined estimate (the input when
+        off, interrupted, localizing or failing: logged); :attr:`selfcal` keeps the report.
+        """
+        if self.config.calibration.refine == "none" or estimate is None or interrupted or self.localizer is not None:
+            return estimate
+        from loopmodel.calibration.selfcal import apply_laser_scale, close_loops, refine_final, restripe
+        from loopmodel.mapping.extraction import LightPlane
+
+        plane = LightPlane.from_config(self.config.mapping)
+        kfs = list(self.selfcal_keyframes.values())
+        loops = [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints]
+        b = self.config.backend
+        try:
+            sc = refine_final(
+                kfs, estimate.world_from_kf, estimate.landmark_ids, estimate.landmarks_in_world,
+                self.frontend.rectifier.input_calibration, self.config.calibration, plane.normal_in_cam, plane.d_m,
+                loops, np.array([b.loop_sigma_rad] * 3 + [b.loop_sigma_m] * 3),
+            )
+        except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:
+            logger.warning("self-calibration not done: %s", exc)
+            return estimate
+        if self.config.calibration.close_loops:  # as the back end's final estimate
+            r = self.config.refine
+            close_loops(
+                sc, kfs, loops, r.loop_odometry_sigma_deg, r.loop_odometry_sigma_m,
+                float(np.degrees(b.loop_sigma_rad)), b.loop_sigma_m,
+            )
+        recorded = self.frontend.rectifier.input_calibration
+        stripes = restripe(self.stripes, recorded, sc.calibration, plane.normal_in_cam, plane.d_m)
+        self.stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
+        self.anchored.update_keyframes(sc.world_from_kf)
+        self.selfcal = sc
+        return BackendEstimate(dict(sc.world_from_kf), sc.landmark_ids, sc.landmarks_in_world, set(sc.world_from_kf))
 
     def _correct(self, world_from_kf: Mapping[int, F64]) -> None:
         """The one way corrections flow back: to the tracker and to the anchored frames."""
@@ -436,6 +488,10 @@ class _Run:
             result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, self.config.mapping)
             result.live_mesh = self.live.mesh()
         result.metrics = self._metrics(result, frames_s, mesh_metrics)
+        if self.selfcal is not None:  # issue 31
+            result.metrics.update(self.selfcal.metrics())
+            result.calibration_refined = self.selfcal.calibration
+            result.calibration_report = self.selfcal.report()
         with timed_step("map", self.finish_s, self.finishing):
             result.session_map = self._session_map(result)
             self.session.finish(result, self.frames, self.config)
@@ -460,7 +516,7 @@ class _Run:
 
     def _estimate(self, interrupted: bool) -> RunResult:
         """The back end's final estimate (refined unless interrupted): trajectories, keyframes, landmarks."""
-        estimate = self._final_estimate(interrupted)
+        estimate = self._self_calibration(self._final_estimate(interrupted), interrupted)
         result = RunResult(
             config=self.config,
             frames=self.frames,

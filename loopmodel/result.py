@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from loopmodel.config import Config
 from loopmodel.frontend.keyframe import FrameResult
-from loopmodel.types import StripeProfile, Trajectory
+from loopmodel.types import StereoCalibration, StripeProfile, Trajectory
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -65,6 +65,10 @@ result covers the frames before it); ``log``: the run's log lines (``run.log``);
     folder: Path | None = None
     session_map: SessionMap | None = None
     localized: Trajectory | None = None
+    # issue 31 (calibration.refine: final): the refined raw calibration and its report
+    # (per-parameter values and sigmas, the light plane) for calibration_refined.yaml
+    calibration_refined: StereoCalibration | None = None
+    calibration_report: dict[str, Any] = field(default_factory=dict)
 
     def __repr__(self) -> str:
         """One line: what the run did and where it went (not the whole configuration)."""

@@ -41,7 +41,9 @@ def test_bad_overrides_name_the_flag(overrides: dict[str, object], named: str) -
 def test_run_config_holds_only_pipeline_sections(tmp_path) -> None:
     text = dump_config(Config(), pipeline_sections())
     data = yaml.safe_load(text)
-    assert set(data) == {"sequence", "output", "frontend", "mapping", "loop", "givens", "backend", "refine", "session"}
+    assert set(data) == {
+        "sequence", "output", "frontend", "mapping", "loop", "givens", "backend", "refine", "session", "calibration"
+    }
     path = tmp_path / "config.yaml"
     path.write_text(text)
     assert load_config(path) == Config()  # the other sections come back as defaults

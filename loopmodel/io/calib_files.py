@@ -103,3 +103,51 @@ def kalibr_calibration(path: Path) -> StereoCalibration:
         raise CalibrationError(path, "cam0 and cam1 differ in distortion model or resolution")
     cal = StereoCalibration(K[0], K[1], right_from_left, sizes[0], D[0], D[1], False, models[0])
     return cal.check(str(path))
+
+
+CAMERA_PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2")
+
+
+def refined_calibration_yaml(cal: StereoCalibration, report: dict[str, Any]) -> str:
+    """``calibration_refined.yaml`` (issue 31): a Kalibr camchain that ``--calib`` reads, with sigmas.
+
+    ``cam0``/``cam1`` as Kalibr writes them (``intrinsics`` fu fv cu cv, ``distortion_coeffs`` k1 k2
+    p1 p2 k3, ``cam1.T_cn_cnm1`` = ``right_from_left``), each camera's posterior standard deviations
+    under ``sigma``; ``loopmodel_selfcal`` holds every parameter's recorded and refined value, prior
+    and posterior sigma, move in sigmas and observability, and the refined light plane.
+    """
+    import json
+
+    report = json.loads(json.dumps(report, default=float))  # plain floats for YAML
+    params: dict[str, Any] = dict(report.get("parameters", {}))
+    cams: dict[str, Any] = {}
+    for i, (side, K, d) in enumerate((("left", cal.K_left, cal.dist_left), ("right", cal.K_right, cal.dist_right))):
+        sig = {
+            f"{p}{'_px' if p[0] in 'fc' else ''}": params.get(f"{p}_{side}{'_px' if p[0] in 'fc' else ''}", {}).get(
+                "sigma"
+            )
+            for p in CAMERA_PARAMS
+        }
+        cam: dict[str, Any] = {
+            "camera_model": "pinhole",
+            "intrinsics": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])],
+            "distortion_model": "radtan",
+            "distortion_coeffs": [float(v) for v in np.asarray(d, float).ravel()],
+            "resolution": [int(cal.image_size[0]), int(cal.image_size[1])],
+            "sigma": {k: (None if v is None else float(v)) for k, v in sig.items()},
+        }
+        if i == 1:
+            cam["T_cn_cnm1"] = [[float(v) for v in row] for row in cal.right_from_left]
+            cam["sigma"].update(
+                {
+                    k: (None if params.get(k) is None else float(params[k]["sigma"]))
+                    for k in ("rot_x_deg", "rot_y_deg", "rot_z_deg", "baseline_m")
+                }
+            )
+        cams[f"cam{i}"] = cam
+    cams["loopmodel_selfcal"] = {
+        "parameters": params,
+        "light_plane": report.get("light_plane"),
+        "note": "posterior sigma per parameter; rot_*_deg: correction of the recorded stereo rotation",
+    }
+    return yaml.safe_dump(cams, sort_keys=False)

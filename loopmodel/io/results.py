@@ -150,6 +150,7 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
     ``config.yaml`` (the pipeline's configuration), ``trajectory_online.tum``,
     ``trajectory_final.tum``, ``keyframes.tum``, ``trajectory_in_map.tum`` (frames localized in a
     base map), KITTI variants of the first two (when ``output.write_kitti``), ``map.npz``,
+    ``calibration_refined.yaml`` (with ``calibration.refine``),
     ``metrics.json``, ``run.log``, then ``stripes.npz`` (when the run has laser profiles), the
     session map folder ``map/`` (when made), ``mesh.ply`` and ``mesh_live.ply`` (when made). Returns the folder's path.
 
@@ -168,6 +169,12 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
             folder.write_trajectory("trajectory_online.kitti", run.online, "kitti")
             folder.write_trajectory("trajectory_final.kitti", run.final, "kitti")
         folder.write_npz("map.npz", run.map_arrays())
+        if run.calibration_refined is not None:  # issue 31: calibration.refine
+            from loopmodel.io.calib_files import refined_calibration_yaml
+
+            folder.write_text(
+                "calibration_refined.yaml", refined_calibration_yaml(run.calibration_refined, run.calibration_report)
+            )
         folder.write_json("metrics.json", run.metrics)
         folder.write_text("run.log", run.log)
     except OSError as exc:  # a full disk: nothing kept, the line names the file and the folder

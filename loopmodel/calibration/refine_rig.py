@@ -1,0 +1,830 @@
+"""Self-calibration of a stereo rig in the final bundle adjustment (issue 31).
+
+The front end measures in images rectified with the *recorded* calibration. Each measurement is
+mapped back to the raw (distorted) pixel it came from with that recorded model, and a bundle
+adjustment then estimates keyframe poses (``world_from_cam`` of the left camera), landmarks
+(world, metres) and the raw calibration together: fx, fy, cx, cy, k1 (and k2 when asked) of each
+camera, the stereo rotation and the baseline, each with a Gaussian prior at its recorded value.
+
+Model of one observation of world point ``p_w`` by keyframe ``(R, t)`` (``world_from_cam``):
+left camera ``p_l = R^T (p_w - t)``, right camera ``p_r = exp(phi) R_rl p_l + b t_dir`` (``R_rl``,
+``t_dir``: the recorded ``right_from_left`` rotation and unit baseline direction, ``phi`` the
+rotation correction in radians, ``b`` the baseline in metres), pixels through OpenCV's plumb-bob
+distortion (k1, k2, p1, p2, k3; p1, p2, k3 stay at their recorded values). Pose increments are
+``R <- R exp(w)``, ``t <- t + R v``.
+
+The solver is Levenberg-Marquardt with a Huber loss; the landmarks are eliminated by their Schur
+complement (block-diagonal 3x3), so each step solves a dense system in the poses and the
+calibration. The first keyframe is held fixed (the gauge); the scale comes from the baseline
+prior. The posterior covariance of the calibration is the inverse of that reduced system; a
+parameter whose posterior standard deviation is not well below its prior's (``observable_ratio``)
+is put back at its recorded value, held there, and reported as unobservable.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from loopmodel.errors import CalibrationError
+from loopmodel.geometry.se3 import so3_exp, so3_log
+from loopmodel.types import Keyframe, StereoCalibration
+
+logger = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+#: The calibration parameters, in the order of the parameter vector (units in the names; the
+#: stereo rotation correction is stored in radians and reported in degrees).
+PARAM_NAMES: tuple[str, ...] = (
+    "fx_left_px",
+    "fy_left_px",
+    "cx_left_px",
+    "cy_left_px",
+    "k1_left",
+    "k2_left",
+    "fx_right_px",
+    "fy_right_px",
+    "cx_right_px",
+    "cy_right_px",
+    "k1_right",
+    "k2_right",
+    "rot_x_deg",
+    "rot_y_deg",
+    "rot_z_deg",
+    "baseline_m",
+)
+N_PARAMS = len(PARAM_NAMES)
+_ROT = slice(12, 15)
+#: posterior over prior sigma above which a parameter is not informed by the data at all (held)
+HOLD_RATIO = 0.99
+_BASE = 15
+
+
+# ----------------------------------------------------------------------------- the camera model
+
+
+def distortion5(dist: F64) -> F64:
+    """k1, k2, p1, p2, k3 of an OpenCV plumb-bob distortion vector (4, 5 or 8 coefficients).
+
+    Raises :class:`CalibrationError` for a rational model whose k4..k6 are not zero.
+    """
+    d = np.asarray(dist, float).ravel()
+    if d.size > 5 and np.any(np.abs(d[5:]) > 0):
+        raise CalibrationError(None, "self-calibration supports the plumb-bob model (k1, k2, p1, p2, k3) only")
+    out = np.zeros(5)
+    out[: min(d.size, 5)] = d[:5]
+    return out
+
+
+def project_with_jacobians(p_cam: F64, intr: F64, dist: F64) -> tuple[F64, F64, F64]:
+    """Pixels (N x 2) of camera-frame points (N x 3) and their Jacobians.
+
+    ``intr`` = fx, fy, cx, cy (pixels), ``dist`` = k1, k2, p1, p2, k3. Returns ``uv``,
+    ``d uv / d p_cam`` (N x 2 x 3) and ``d uv / d (fx, fy, cx, cy, k1, k2)`` (N x 2 x 6).
+    """
+    fx, fy, cx, cy = (float(v) for v in intr)
+    k1, k2, p1, p2, k3 = (float(v) for v in dist)
+    X, Y, Z = p_cam[:, 0], p_cam[:, 1], p_cam[:, 2]
+    iz = 1.0 / np.where(np.abs(Z) > 1e-9, Z, 1e-9)
+    x, y = X * iz, Y * iz
+    r2 = x * x + y * y
+    rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d rad / d r2
+    xd = x * rad + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * rad + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    uv = np.column_stack([fx * xd + cx, fy * yd + cy])
+    dxd_dx = rad + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
+    dxd_dy = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+    dyd_dx = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+    dyd_dy = rad + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
+    n = p_cam.shape[0]
+    # d(x, y) / d(X, Y, Z)
+    dn = np.zeros((n, 2, 3))
+    dn[:, 0, 0] = iz
+    dn[:, 0, 2] = -x * iz
+    dn[:, 1, 1] = iz
+    dn[:, 1, 2] = -y * iz
+    dd = np.empty((n, 2, 2))
+    dd[:, 0, 0], dd[:, 0, 1] = fx * dxd_dx, fx * dxd_dy
+    dd[:, 1, 0], dd[:, 1, 1] = fy * dyd_dx, fy * dyd_dy
+    J_p = dd @ dn
+    J_i = np.zeros((n, 2, 6))
+    J_i[:, 0, 0] = xd
+    J_i[:, 1, 1] = yd
+    J_i[:, 0, 2] = 1.0
+    J_i[:, 1, 3] = 1.0
+    J_i[:, 0, 4] = fx * x * r2
+    J_i[:, 1, 4] = fy * y * r2
+    J_i[:, 0, 5] = fx * x * r2 * r2
+    J_i[:, 1, 5] = fy * y * r2 * r2
+    return uv, J_p, J_i
+
+
+def _project(p_cam: F64, K: F64, dist: F64) -> F64:
+    uv, _, _ = project_with_jacobians(p_cam, np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]), distortion5(dist))
+    return uv
+
+
+@dataclass
+class RigParameters:
+    """The recorded calibration as a parameter vector, and back.
+
+    ``values`` follow :data:`PARAM_NAMES` (rotation correction in radians).
+    """
+
+    recorded: StereoCalibration
+    values: F64
+    dist_left: F64 = field(repr=False)
+    dist_right: F64 = field(repr=False)
+    rot_right_from_left: F64 = field(repr=False)
+    baseline_dir: F64 = field(repr=False)
+
+    @classmethod
+    def of(cls, cal: StereoCalibration) -> RigParameters:
+        """The parameters of a (rectified or raw, plumb-bob) calibration."""
+        if cal.camera_model != "pinhole":
+            raise CalibrationError(None, f"self-calibration needs the pinhole model, not {cal.camera_model}")
+        dl, dr = distortion5(cal.dist_left), distortion5(cal.dist_right)
+        KL, KR = cal.K_left, cal.K_right
+        b = cal.baseline_m
+        v = np.array(
+            [KL[0, 0], KL[1, 1], KL[0, 2], KL[1, 2], dl[0], dl[1],
+             KR[0, 0], KR[1, 1], KR[0, 2], KR[1, 2], dr[0], dr[1], 0.0, 0.0, 0.0, b]
+        )
+        return cls(cal, v, dl, dr, cal.right_from_left[:3, :3].copy(), cal.right_from_left[:3, 3] / b)
+
+    def intrinsics(self, theta: F64, side: int) -> tuple[F64, F64]:
+        """``(fx, fy, cx, cy)`` and the 5 distortion terms of camera ``side`` (0 left, 1 right)."""
+        o = 6 * side
+        d = (self.dist_left if side == 0 else self.dist_right).copy()
+        d[0], d[1] = theta[o + 4], theta[o + 5]
+        return theta[o : o + 4].copy(), d
+
+    def right_from_left(self, theta: F64) -> F64:
+        """4x4 ``right_from_left`` (metres) of a parameter vector."""
+        T = np.eye(4)
+        T[:3, :3] = so3_exp(theta[_ROT]) @ self.rot_right_from_left
+        T[:3, 3] = theta[_BASE] * self.baseline_dir
+        return T
+
+    def calibration(self, theta: F64) -> StereoCalibration:
+        """The raw (unrectified) calibration of a parameter vector."""
+        Ks, ds = [], []
+        for side in (0, 1):
+            i, d = self.intrinsics(theta, side)
+            Ks.append(np.array([[i[0], 0.0, i[2]], [0.0, i[1], i[3]], [0.0, 0.0, 1.0]]))
+            ds.append(d)
+        rec = self.recorded
+        return StereoCalibration(
+            Ks[0], Ks[1], self.right_from_left(theta), rec.image_size, ds[0], ds[1], rectified=False
+        )
+
+
+def prior_sigmas(
+    sigma_focal_px: float,
+    sigma_principal_px: float,
+    sigma_k1: float,
+    sigma_k2: float,
+    sigma_rotation_deg: float,
+    sigma_baseline_m: float,
+) -> F64:
+    """Prior standard deviations in the order of :data:`PARAM_NAMES` (rotation in radians)."""
+    cam = [sigma_focal_px, sigma_focal_px, sigma_principal_px, sigma_principal_px, sigma_k1, sigma_k2]
+    return np.array(cam + cam + [np.radians(sigma_rotation_deg)] * 3 + [sigma_baseline_m], dtype=float)
+
+
+# ----------------------------------------------------------------------------- observations
+
+
+@dataclass
+class RigObservations:
+    """Raw-pixel observations: keyframe index, landmark index, camera (0 left, 1 right), pixel (N x 2).
+
+    ``measure`` (N x 2 x 2) maps a raw-pixel difference to what was measured: the identity for a
+    left-image point (u and v measured); for the right image only the rectified u is measured (the
+    front end matches along the left point's row), so its first row is the gradient of the
+    rectified u with respect to the raw pixel (the recorded model) and its second row is zero.
+    """
+
+    pose_idx: I64
+    point_idx: I64
+    cam: I64
+    uv_px: F64
+    measure: F64
+    # relative-pose (loop) constraints between keyframes: (pose index a, pose index b, a_from_b 4x4),
+    # standard deviations (rad x3, m x3)
+    loops: list[tuple[int, int, F64]] = field(default_factory=list)
+    loop_sigmas: F64 = field(default_factory=lambda: np.array([0.01] * 3 + [0.01] * 3))
+
+    def __len__(self) -> int:
+        return int(self.pose_idx.size)
+
+    @property
+    def residual_count(self) -> int:
+        """Scalar measurements (2 per left point, 1 per right point)."""
+        return int(2 * np.sum(self.cam == 0) + np.sum(self.cam == 1))
+
+
+def raw_from_rectified_px(uv_rect_px: F64, K_rect: F64, rect_from_cam_rot: F64, K: F64, dist: F64) -> F64:
+    """Raw (distorted) pixels of rectified pixels, through the model they were rectified with.
+
+    ``K_rect`` the rectified camera matrix, ``rect_from_cam_rot`` (3x3) the rectifying rotation of
+    that camera, ``K``/``dist`` its raw intrinsics (OpenCV).
+    """
+    return _raw_and_gradient(uv_rect_px, K_rect, rect_from_cam_rot, K, dist)[0]
+
+
+def _raw_and_gradient(
+    uv_rect_px: F64, K_rect: F64, rect_from_cam_rot: F64, K: F64, dist: F64
+) -> tuple[F64, F64]:
+    """Raw pixels of rectified pixels and ``d rectified / d raw`` (N x 2 x 2) there."""
+    uv = np.asarray(uv_rect_px, float).reshape(-1, 2)
+    rays = np.column_stack([uv, np.ones(uv.shape[0])]) @ np.linalg.inv(K_rect).T
+    p_cam = rays @ rect_from_cam_rot  # (R^T ray)^T = ray^T R
+    raw, A, _ = project_with_jacobians(
+        p_cam, np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]), distortion5(dist)
+    )
+    _, B, _ = project_with_jacobians(p_cam @ rect_from_cam_rot.T, np.array(
+        [K_rect[0, 0], K_rect[1, 1], K_rect[0, 2], K_rect[1, 2]]), np.zeros(5))
+    B = B @ rect_from_cam_rot  # d rect / d p_cam
+    # both are blind along the ray: restrict to two directions across it
+    n = p_cam / np.linalg.norm(p_cam, axis=1, keepdims=True)
+    a = np.cross(n, np.array([0.0, 1.0, 0.0]))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    c = np.cross(n, a)
+    T = np.stack([a, c], axis=2)  # N x 3 x 2
+    grad = (B @ T) @ np.linalg.inv(A @ T)
+    return raw, grad
+
+
+def observations_from_keyframes(
+    keyframes: list[Keyframe],
+    cal_input: StereoCalibration,
+    K_rect_left: F64,
+    K_rect_right: F64,
+    R_rect_left: F64,
+    R_rect_right: F64,
+) -> tuple[RigObservations, list[int], I64]:
+    """The keyframes' stereo and monocular measurements as raw pixels of the recorded model.
+
+    Returns the observations, the keyframe ids in pose order and the landmark ids in point order.
+    A keyframe's monocular observation of a landmark it also measures in stereo is dropped (one
+    measurement of one feature).
+    """
+    kf_ids = [int(k.id) for k in keyframes]
+    pose_of = {k: i for i, k in enumerate(kf_ids)}
+    lm_rows: list[I64] = []
+    pose_rows: list[I64] = []
+    cam_rows: list[I64] = []
+    uv_rect: list[F64] = []
+    for kf in keyframes:
+        i = pose_of[int(kf.id)]
+        ids = np.asarray(kf.landmark_ids, np.int64).ravel()
+        st = np.asarray(kf.stereo_px, float).reshape(-1, 3)
+        if ids.size:
+            for side, col in ((0, 0), (1, 1)):
+                lm_rows.append(ids)
+                pose_rows.append(np.full(ids.size, i, np.int64))
+                cam_rows.append(np.full(ids.size, side, np.int64))
+                uv_rect.append(np.column_stack([st[:, col], st[:, 2]]))
+        mono = np.asarray(kf.mono_obs, float).reshape(-1, 3)
+        if mono.shape[0]:
+            mids = mono[:, 0].astype(np.int64)
+            keep = ~np.isin(mids, ids)
+            lm_rows.append(mids[keep])
+            pose_rows.append(np.full(int(keep.sum()), i, np.int64))
+            cam_rows.append(np.zeros(int(keep.sum()), np.int64))
+            uv_rect.append(mono[keep, 1:3])
+    if not lm_rows:
+        empty = np.zeros(0, np.int64)
+        return RigObservations(empty, empty, empty, np.zeros((0, 2)), np.zeros((0, 2, 2))), kf_ids, empty
+    lm = np.concatenate(lm_rows)
+    pose = np.concatenate(pose_rows)
+    cam = np.concatenate(cam_rows)
+    uvr = np.concatenate(uv_rect)
+    # one observation per (keyframe, landmark, camera): the first
+    key = (pose * (lm.max() + 1) + lm) * 2 + cam
+    _, first = np.unique(key, return_index=True)
+    first = np.sort(first)
+    lm, pose, cam, uvr = lm[first], pose[first], cam[first], uvr[first]
+    lm_ids, point = np.unique(lm, return_inverse=True)
+    uv = np.zeros_like(uvr)
+    measure = np.zeros((uv.shape[0], 2, 2))
+    measure[:, 0, 0] = measure[:, 1, 1] = 1.0
+    for side, K_rect, R_rect in ((0, K_rect_left, R_rect_left), (1, K_rect_right, R_rect_right)):
+        sel = cam == side
+        K = cal_input.K_left if side == 0 else cal_input.K_right
+        d = cal_input.dist_left if side == 0 else cal_input.dist_right
+        uv[sel], grad = _raw_and_gradient(uvr[sel], K_rect, R_rect, K, d)
+        if side == 1:
+            m = np.zeros((int(sel.sum()), 2, 2))
+            m[:, 0, :] = grad[:, 0, :]
+            measure[sel] = m
+    obs = RigObservations(pose, point.astype(np.int64), cam, uv, measure)
+    return obs, kf_ids, lm_ids.astype(np.int64)
+
+
+# ----------------------------------------------------------------------------- residuals
+
+
+def residuals_and_jacobians(
+    obs: RigObservations,
+    rot_world_from_cam: F64,
+    t_world_from_cam: F64,
+    points_w: F64,
+    rig: RigParameters,
+    theta: F64,
+) -> tuple[F64, F64, F64, F64]:
+    """Predicted minus measured pixels (N x 2, through ``obs.measure``) and the Jacobians of every observation.
+
+    ``d r / d (w, v)`` of its pose (N x 2 x 6), ``d r / d p_w`` (N x 2 x 3) and
+    ``d r / d theta`` (N x 2 x 16, all calibration parameters).
+    """
+    n = len(obs)
+    R = rot_world_from_cam[obs.pose_idx]
+    t = t_world_from_cam[obs.pose_idx]
+    pw = points_w[obs.point_idx]
+    Rt = np.transpose(R, (0, 2, 1))
+    p_l = np.einsum("nij,nj->ni", Rt, pw - t)  # R^T (p_w - t)
+    R_rl = so3_exp(theta[_ROT]) @ rig.rot_right_from_left
+    t_rl = theta[_BASE] * rig.baseline_dir
+    res = np.zeros((n, 2))
+    J_pose = np.zeros((n, 2, 6))
+    J_pt = np.zeros((n, 2, 3))
+    J_th = np.zeros((n, 2, N_PARAMS))
+    for side in (0, 1):
+        sel = np.flatnonzero(obs.cam == side)
+        if sel.size == 0:
+            continue
+        intr, dist = rig.intrinsics(theta, side)
+        pc = p_l[sel]
+        q = pc @ R_rl.T + t_rl if side == 1 else pc
+        uv, Jq, Ji = project_with_jacobians(q, intr, dist)
+        d_uv = uv - obs.uv_px[sel]
+        o = 6 * side
+        if side == 1:
+            # only the rectified u is measured: one row, the gradient m of u_rect by the raw pixel
+            m = obs.measure[sel, 0, :]
+            res[sel, 0] = np.sum(m * d_uv, axis=1)
+            jq = np.einsum("nk,nkj->nj", m, Jq)  # N x 3
+            J_th[sel, 0, o : o + 6] = np.einsum("nk,nkj->nj", m, Ji)
+            J_th[sel, 0, _ROT] = np.cross(q - t_rl, jq)  # the row jq (-[q - t]x)
+            J_th[sel, 0, _BASE] = jq @ rig.baseline_dir
+            jl = jq @ R_rl  # by p_l
+            J_pose[sel, 0, :3] = np.cross(jl, pc)  # the row jl [p_l]x
+            J_pose[sel, 0, 3:] = -jl
+            J_pt[sel, 0] = np.einsum("nj,nkj->nk", jl, R[sel])
+        else:
+            res[sel] = d_uv
+            J_th[sel, :, o : o + 6] = Ji
+            # d p_l / d w = [p_l]x, d p_l / d v = -I, d p_l / d p_w = R^T
+            for row in (0, 1):
+                jl = Jq[:, row, :]
+                J_pose[sel, row, :3] = np.cross(jl, pc)
+                J_pose[sel, row, 3:] = -jl
+                J_pt[sel, row] = np.einsum("nj,nkj->nk", jl, R[sel])
+    return res, J_pose, J_pt, J_th
+
+
+def _loop_residual(Ra: F64, ta: F64, Rb: F64, tb: F64, a_from_b: F64) -> F64:
+    """``(log R, t)`` of ``a_from_b^-1 a_from_world b`` (rad, m): zero when the poses agree with the loop."""
+    R = a_from_b[:3, :3].T @ Ra.T @ Rb
+    t = a_from_b[:3, :3].T @ (Ra.T @ (tb - ta) - a_from_b[:3, 3])
+    return np.concatenate([so3_log(R), t])
+
+
+def loop_terms(st_R: F64, st_t: F64, obs: RigObservations) -> tuple[F64, F64, float]:
+    """The loop constraints' whitened normal-equation block over all poses (6P x 6P), gradient, cost.
+
+    Jacobians by central differences of the pose increments (a few loops: cheap and exact enough).
+    """
+    n = st_R.shape[0]
+    H = np.zeros((6 * n, 6 * n))
+    g = np.zeros(6 * n)
+    cost = 0.0
+    w = 1.0 / np.asarray(obs.loop_sigmas, float)
+    h = 1e-7
+    for a, b, T in obs.loops:
+        e = _loop_residual(st_R[a], st_t[a], st_R[b], st_t[b], T) * w
+        J = np.zeros((6, 12))
+        for k in range(12):
+            which, j = divmod(k, 6)
+            Rs = [st_R[a].copy(), st_R[b].copy()]
+            ts = [st_t[a].copy(), st_t[b].copy()]
+            res = []
+            for sgn in (1.0, -1.0):
+                d = np.zeros(6)
+                d[j] = sgn * h
+                R2, t2 = list(Rs), list(ts)
+                t2[which] = ts[which] + Rs[which] @ d[3:]
+                R2[which] = Rs[which] @ so3_exp(d[:3])
+                res.append(_loop_residual(R2[0], t2[0], R2[1], t2[1], T) * w)
+            J[:, k] = (res[0] - res[1]) / (2 * h)
+        idx = np.r_[6 * a : 6 * a + 6, 6 * b : 6 * b + 6]
+        H[np.ix_(idx, idx)] += J.T @ J
+        g[idx] += J.T @ e
+        cost += float(e @ e)
+    return H, g, cost
+
+
+def hat_batch(v: F64) -> F64:
+    """Skew matrices (N x 3 x 3) of N x 3 vectors."""
+    out = np.zeros((v.shape[0], 3, 3))
+    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
+    return out
+
+
+def _huber_weights(r_norm: F64, k: float) -> F64:
+    if k <= 0:
+        return np.ones_like(r_norm)
+    return np.where(r_norm <= k, 1.0, k / np.maximum(r_norm, 1e-12))
+
+
+def _huber_cost(r_norm: F64, k: float) -> float:
+    if k <= 0:
+        return float(np.sum(r_norm**2))
+    return float(np.sum(np.where(r_norm <= k, r_norm**2, 2.0 * k * r_norm - k * k)))
+
+
+# ----------------------------------------------------------------------------- the solver
+
+
+@dataclass
+class RigRefinement:
+    """The outcome of :func:`refine_rig`.
+
+    ``world_from_kf`` (keyframe id -> 4x4), landmarks (ids and world points, metres), the refined
+    raw calibration and its parameter vector, per-parameter prior and posterior standard deviations
+    (the order of :data:`PARAM_NAMES`, rotation in radians), which parameters were estimated and
+    which the data could not constrain, the image noise and fit statistics.
+    """
+
+    world_from_kf: dict[int, F64]
+    landmark_ids: I64
+    landmarks_in_world: F64
+    calibration: StereoCalibration
+    recorded_values: F64
+    values: F64
+    prior_sigma: F64
+    posterior_sigma: F64
+    estimated: NDArray[np.bool_]
+    unobservable: list[str]
+    pixel_sigma_px: float
+    observations: int
+    iterations: int
+    rms_px_before: float
+    rms_px_after: float
+
+    def moved_sigma(self) -> dict[str, float]:
+        """How far each parameter moved from its recorded value, in units of its prior sigma."""
+        d = (self.values - self.recorded_values) / self.prior_sigma
+        return {name: float(v) for name, v in zip(PARAM_NAMES, d, strict=True)}
+
+    def values_named(self, theta: F64 | None = None) -> dict[str, float]:
+        """Parameter values by name (rotation in degrees)."""
+        v = (self.values if theta is None else theta).copy()
+        v[_ROT] = np.degrees(v[_ROT])
+        return {name: float(x) for name, x in zip(PARAM_NAMES, v, strict=True)}
+
+    def sigma_named(self) -> dict[str, float]:
+        """Posterior standard deviations by name (rotation in degrees); the prior's when not estimated."""
+        s = np.where(self.estimated, self.posterior_sigma, self.prior_sigma)
+        s = s.copy()
+        s[_ROT] = np.degrees(s[_ROT])
+        return {name: float(x) for name, x in zip(PARAM_NAMES, s, strict=True)}
+
+
+@dataclass
+class _State:
+    R: F64
+    t: F64
+    pts: F64
+    theta: F64
+
+
+def _normal_equations(
+    obs: RigObservations,
+    st: _State,
+    rig: RigParameters,
+    prior_theta: F64,
+    prior_sigma: F64,
+    active: NDArray[np.bool_],
+    sigma_px: float,
+    huber_k: float,
+) -> tuple[F64, F64, tuple[sp.csr_matrix, F64], F64, F64, F64, float, F64]:
+    """Whitened normal equations of the Huber-weighted problem.
+
+    ``H_zz`` (poses but the first, then active parameters), ``b_z``, ``H_zl`` (sparse pose rows,
+    dense parameter rows), ``V`` (landmark 3x3 blocks), ``b_l``, the raw residuals, the robust cost
+    and the normalised residual norms.
+    """
+    r, Jp, Jl, Jt = residuals_and_jacobians(obs, st.R, st.t, st.pts, rig, st.theta)
+    rn = np.linalg.norm(r, axis=1) / sigma_px
+    w = np.sqrt(_huber_weights(rn, huber_k)) / sigma_px
+    rw = r * w[:, None]
+    Jp = Jp * w[:, None, None]
+    Jl = Jl * w[:, None, None]
+    Jt = Jt[:, :, active] * w[:, None, None]
+    n = len(obs)
+    n_pose = st.R.shape[0]
+    n_pt = st.pts.shape[0]
+    nc = int(active.sum())
+    npz = 6 * (n_pose - 1)
+    N = npz + nc
+    rows = np.repeat(np.arange(2 * n), 1).reshape(n, 2)
+    # pose columns (the first pose is fixed)
+    pm = obs.pose_idx > 0
+    pr = np.repeat(rows[pm][:, :, None], 6, axis=2)
+    pc = np.repeat((6 * (obs.pose_idx[pm] - 1))[:, None, None] + np.arange(6)[None, None, :], 2, axis=1)
+    Jp_sp = sp.csr_matrix((Jp[pm].ravel(), (pr.ravel(), pc.ravel())), shape=(2 * n, max(npz, 1)))
+    lr = np.repeat(rows[:, :, None], 3, axis=2)
+    lc = np.repeat((3 * obs.point_idx)[:, None, None] + np.arange(3)[None, None, :], 2, axis=1)
+    Jl_sp = sp.csr_matrix((Jl.ravel(), (lr.ravel(), lc.ravel())), shape=(2 * n, 3 * n_pt))
+    Jt2 = Jt.reshape(2 * n, nc)
+    r2 = rw.ravel()
+    H = np.zeros((N, N))
+    b = np.zeros(N)
+    if npz:
+        H[:npz, :npz] = (Jp_sp.T @ Jp_sp).toarray()
+        H[:npz, npz:] = Jp_sp.T @ Jt2
+        H[npz:, :npz] = H[:npz, npz:].T
+        b[:npz] = -(Jp_sp.T @ r2)
+    H[npz:, npz:] = Jt2.T @ Jt2
+    b[npz:] = -(Jt2.T @ r2)
+    # priors on the active parameters
+    ps = prior_sigma[active]
+    dth = (st.theta - prior_theta)[active]
+    H[npz:, npz:] += np.diag(1.0 / ps**2)
+    b[npz:] -= dth / ps**2
+    if obs.loops and npz:
+        HL, gL, cL = loop_terms(st.R, st.t, obs)
+        H[:npz, :npz] += HL[6:, 6:]  # the first pose is fixed
+        b[:npz] -= gL[6:]
+    else:
+        cL = 0.0
+    Hpl = (Jp_sp.T @ Jl_sp).tocsr() if npz else sp.csr_matrix((0, 3 * n_pt))
+    Hzl = (Hpl, np.asarray((Jl_sp.T @ Jt2).T))
+    V = np.zeros((n_pt, 3, 3))
+    np.add.at(V, obs.point_idx, np.einsum("nki,nkj->nij", Jl, Jl))
+    bl = np.zeros((n_pt, 3))
+    np.add.at(bl, obs.point_idx, -np.einsum("nki,nk->ni", Jl, rw))
+    cost = _huber_cost(rn, huber_k) + float(np.sum((dth / ps) ** 2)) + cL
+    return H, b, Hzl, V, bl.ravel(), r, cost, rn
+
+
+def _schur(H: F64, Hzl: tuple[sp.csr_matrix, F64], V: F64, damping: float) -> tuple[F64, F64]:
+    """The reduced system ``H - Hzl V^-1 Hlz`` and ``V^-1`` (both with LM damping on the diagonals).
+
+    ``Hzl`` is given as its sparse pose rows and its dense calibration rows.
+    """
+    Vd = V.copy()
+    idx = np.arange(3)
+    Vd[:, idx, idx] *= 1.0 + damping
+    Vd[:, idx, idx] += 1e-12
+    Vinv = np.linalg.inv(Vd)
+    n_pt = V.shape[0]
+    P, C = Hzl
+    npz = P.shape[0] if P.shape[1] else 0
+    S = H.copy()
+    d = np.arange(S.shape[0])
+    S[d, d] *= 1.0 + damping
+    CV = np.einsum("cli,lij->clj", C.reshape(C.shape[0], n_pt, 3), Vinv).reshape(C.shape[0], 3 * n_pt)
+    S[npz:, npz:] -= CV @ C.T
+    if npz:
+        Vsp = sp.bsr_matrix((Vinv, np.arange(n_pt), np.arange(n_pt + 1)), shape=(3 * n_pt, 3 * n_pt)).tocsr()
+        S[:npz, :npz] -= (P @ Vsp @ P.T).toarray()
+        S[:npz, npz:] -= np.asarray(P @ CV.T)
+        S[npz:, :npz] = S[:npz, npz:].T
+    return S, np.asarray(Vinv, dtype=np.float64)
+
+
+def _hzl_dot(Hzl: tuple[sp.csr_matrix, F64], x: F64) -> F64:
+    P, C = Hzl
+    top = P @ x if P.shape[0] and P.shape[1] else np.zeros(0)
+    return np.concatenate([top, C @ x])
+
+
+def _hlz_dot(Hzl: tuple[sp.csr_matrix, F64], y: F64) -> F64:
+    P, C = Hzl
+    npz = P.shape[0] if P.shape[1] else 0
+    out = C.T @ y[npz:]
+    if npz:
+        out = out + P.T @ y[:npz]
+    return np.asarray(out)
+
+
+def _apply(st: _State, dz: F64, dl: F64, active: NDArray[np.bool_]) -> _State:
+    n_pose = st.R.shape[0]
+    npz = 6 * (n_pose - 1)
+    d = dz[:npz].reshape(-1, 6)
+    R = st.R.copy()
+    t = st.t.copy()
+    for i in range(1, n_pose):
+        w, v = d[i - 1, :3], d[i - 1, 3:]
+        t[i] = t[i] + st.R[i] @ v
+        R[i] = st.R[i] @ so3_exp(w)
+    theta = st.theta.copy()
+    theta[active] += dz[npz:]
+    return _State(R, t, st.pts + dl.reshape(-1, 3), theta)
+
+
+def _solve(
+    obs: RigObservations,
+    st: _State,
+    rig: RigParameters,
+    prior_theta: F64,
+    prior_sigma: F64,
+    active: NDArray[np.bool_],
+    sigma_px: float,
+    huber_k: float,
+    max_iterations: int,
+) -> tuple[_State, int]:
+    """Levenberg-Marquardt from ``st``; returns the solution and the iterations taken."""
+    lam = 1e-4
+    H, b, Hzl, V, bl, _r, cost, _ = _normal_equations(obs, st, rig, prior_theta, prior_sigma, active, sigma_px, huber_k)
+    it = 0
+    for _ in range(max_iterations):
+        it += 1
+        improved = False
+        for _ in range(8):
+            S, Vinv = _schur(H, Hzl, V, lam)
+            rhs = b - _hzl_dot(Hzl, np.einsum("nij,nj->ni", Vinv, bl.reshape(-1, 3)).ravel())
+            try:
+                dz = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), rhs)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            dl = np.einsum("nij,nj->ni", Vinv, (bl - _hlz_dot(Hzl, dz)).reshape(-1, 3)).ravel()
+            cand = _apply(st, dz, dl, active)
+            H2, b2, Hzl2, V2, bl2, _r2, cost2, _ = _normal_equations(
+                obs, cand, rig, prior_theta, prior_sigma, active, sigma_px, huber_k
+            )
+            if cost2 < cost:
+                rel = (cost - cost2) / max(cost, 1e-300)
+                st, H, b, Hzl, V, bl, cost = cand, H2, b2, Hzl2, V2, bl2, cost2
+                lam = max(lam / 10.0, 1e-9)
+                improved = True
+                break
+            lam *= 10.0
+        if not improved or rel < 1e-6:
+            break
+    return st, it
+
+
+def _posterior_sigma(
+    obs: RigObservations,
+    st: _State,
+    rig: RigParameters,
+    prior_theta: F64,
+    prior_sigma: F64,
+    active: NDArray[np.bool_],
+    sigma_px: float,
+    huber_k: float,
+) -> F64:
+    """Posterior standard deviations of the active parameters (the reduced system's inverse)."""
+    H, _b, Hzl, V, _bl, _r, _c, _ = _normal_equations(obs, st, rig, prior_theta, prior_sigma, active, sigma_px, huber_k)
+    S, _ = _schur(H, Hzl, V, 0.0)
+    nc = int(active.sum())
+    N = S.shape[0]
+    E = np.zeros((N, nc))
+    E[N - nc :, :] = np.eye(nc)
+    cov = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), E)[N - nc :, :]
+    return np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+
+def robust_sigma_px(r: F64, unknowns: int, obs: RigObservations | None = None) -> float:
+    """Pixel noise of residuals (N x 2): 1.4826 MAD of the measured components, corrected for the redundancy."""
+    comp = np.abs(r).ravel()
+    if obs is not None:
+        comp = np.concatenate([np.abs(r[:, 0]), np.abs(r[obs.cam == 0, 1])])
+    n = comp.size
+    mad = 1.4826 * float(np.median(comp)) if n else float("nan")
+    red = n - unknowns
+    return mad * float(np.sqrt(n / red)) if red > 0 else mad
+
+
+def huber_sigma_px(r: F64, unknowns: int, obs: RigObservations, huber_k: float, start_px: float) -> float:
+    """Pixel noise as the Huber-weighted residuals give it: ``sigma^2 = sum w r^2 / (n - u)``.
+
+    ``w`` the Huber weights at ``huber_k`` sigmas, iterated from ``start_px`` (the MAD's value). Real
+    image residuals have heavier tails than a Gaussian, which the MAD alone leaves out: the
+    posterior would be too confident.
+    """
+    rn2 = np.sum(r**2, axis=1)
+    red = obs.residual_count - unknowns
+    if red <= 0:
+        return start_px
+    sigma = start_px
+    for _ in range(10):
+        w = _huber_weights(np.sqrt(rn2) / sigma, huber_k)
+        new = float(np.sqrt(np.sum(w * rn2) / red))
+        if abs(new - sigma) < 1e-4 * sigma:
+            return new
+        sigma = new
+    return sigma
+
+
+def _rms(r: F64, obs: RigObservations) -> float:
+    n = obs.residual_count
+    return float(np.sqrt(np.sum(r**2) / n)) if n else float("nan")
+
+
+def refine_rig(
+    obs: RigObservations,
+    world_from_cam: F64,
+    points_w: F64,
+    recorded: StereoCalibration,
+    prior_sigma: F64,
+    estimate: NDArray[np.bool_] | None = None,
+    observable_ratio: float = 0.9,
+    huber_k: float = 1.345,
+    max_iterations: int = 15,
+) -> tuple[F64, F64, RigRefinement]:
+    """Bundle adjustment of poses, landmarks and the rig calibration; see the module docstring.
+
+    ``world_from_cam`` (P x 4 x 4, the first held fixed), ``points_w`` (L x 3) start values;
+    ``prior_sigma`` in the order of :data:`PARAM_NAMES`; ``estimate`` which parameters are
+    unknowns (default: all but k2). Returns the refined poses, points and the report (its
+    ``world_from_kf`` and ``landmark_ids`` are left empty for the caller to fill).
+    """
+    rig = RigParameters.of(recorded)
+    prior_theta = rig.values.copy()
+    active = np.ones(N_PARAMS, bool) if estimate is None else np.asarray(estimate, bool).copy()
+    if estimate is None:
+        active[[5, 11]] = False
+    st = _State(
+        world_from_cam[:, :3, :3].copy(), world_from_cam[:, :3, 3].copy(), np.asarray(points_w, float).copy(),
+        prior_theta.copy(),
+    )
+    unknowns = 6 * (st.R.shape[0] - 1) + 3 * st.pts.shape[0]
+    r0, *_ = residuals_and_jacobians(obs, st.R, st.t, st.pts, rig, st.theta)
+    rms0 = _rms(r0, obs)
+    sigma = max(robust_sigma_px(r0, unknowns, obs), 1e-3)
+    iterations = 0
+    # two rounds: the noise is re-estimated from the first solution's residuals
+    for _round in range(2):
+        st, it = _solve(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k, max_iterations)
+        iterations += it
+        r, *_ = residuals_and_jacobians(obs, st.R, st.t, st.pts, rig, st.theta)
+        u = unknowns + int(active.sum())
+        sigma = max(huber_sigma_px(r, u, obs, huber_k, max(robust_sigma_px(r, u, obs), 1e-3)), 1e-3)
+    post = np.array(prior_sigma, float).copy()
+    post[active] = _posterior_sigma(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k)
+    weak = active & (post > observable_ratio * prior_sigma)
+    blind = active & (post > HOLD_RATIO * prior_sigma)
+    if np.any(blind):
+        # not informed at all (the baseline without the laser): back to the recorded value, held
+        # there, the rest solved again. Weakly informed ones stay in the joint estimate: held at a
+        # wrong recorded value, their error would go into the parameters the data do constrain
+        # (a 20-keyframe synthetic scan: k1_right 24 sigma off)
+        st.theta[blind] = prior_theta[blind]
+        active = active & ~blind
+        st, it = _solve(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k, max_iterations)
+        iterations += it
+        post = np.array(prior_sigma, float).copy()
+        if np.any(active):
+            post[active] = _posterior_sigma(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k)
+    r, *_ = residuals_and_jacobians(obs, st.R, st.t, st.pts, rig, st.theta)
+    poses = np.tile(np.eye(4), (st.R.shape[0], 1, 1))
+    poses[:, :3, :3], poses[:, :3, 3] = st.R, st.t
+    report = RigRefinement(
+        world_from_kf={},
+        landmark_ids=np.zeros(0, np.int64),
+        landmarks_in_world=st.pts,
+        calibration=rig.calibration(st.theta),
+        recorded_values=prior_theta,
+        values=st.theta.copy(),
+        prior_sigma=np.asarray(prior_sigma, float),
+        posterior_sigma=post,
+        estimated=active,
+        unobservable=[PARAM_NAMES[i] for i in np.flatnonzero(weak)],
+        pixel_sigma_px=float(sigma),
+        observations=len(obs),
+        iterations=iterations,
+        rms_px_before=rms0,
+        rms_px_after=_rms(r, obs),
+    )
+    return poses, st.pts, report
+
+
+__all__ = [
+    "PARAM_NAMES",
+    "RigObservations",
+    "RigParameters",
+    "RigRefinement",
+    "observations_from_keyframes",
+    "prior_sigmas",
+    "project_with_jacobians",
+    "raw_from_rectified_px",
+    "refine_rig",
+    "residuals_and_jacobians",
+]
