@@ -25,7 +25,7 @@ SCENE = StreetConfig(
 )
 KITTI_LIKE = {  # configs/kitti.yaml's front-end values that matter at ~1 m per frame
     "max_disparity_px": 160.0, "max_depth_m": 200.0, "max_jump_m": 1.0, "max_jump_deg": 10.0,
-    "keyframe_remeasure": False, "min_tracked_fraction": 0.3,
+    "keyframe_remeasure": False, "min_tracked_fraction": 0.3, "disparity_offset": "estimate",
 }
 
 
@@ -41,7 +41,7 @@ def street() -> tuple[StreetScene, list]:
 
 def _run(street: tuple[StreetScene, list], **overrides: object) -> tuple[np.ndarray, FrontEnd]:
     scene, frames = street
-    fe = FrontEnd(scene.calibration, FrontendConfig(**KITTI_LIKE, **overrides))  # type: ignore[arg-type]
+    fe = FrontEnd(scene.calibration, FrontendConfig(**{**KITTI_LIKE, **overrides}))  # type: ignore[arg-type]
     res = [fe.process(f.frame) for f in frames]
     assert all(r.ok for r in res)
     return np.stack([r.world_from_cam for r in res]), fe
