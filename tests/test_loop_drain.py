@@ -71,8 +71,10 @@ def test_a_loop_found_after_the_last_keyframe_reaches_the_final_refinement(
     assert np.array_equal(inline.final.timestamps_ns, drained.final.timestamps_ns)
     diff_m = float(np.max(np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1)))
     # measured (seed 4; final ATE 1.09 mm): 4e-8 m with the drain (the back end gets the loop's
-    # observations in a second update); 5.3e-5 m when the drained loop went as a pose constraint alone
-    assert diff_m < 1e-6, diff_m
+    # observations in a second update) or 4.45e-6 m (1 run in 3 here, and in CI: the same value each
+    # time, so a second ordering of the back end's updates, not noise); 5.3e-5 m when the drained loop
+    # went as a pose constraint alone, which this bound still catches
+    assert diff_m < 1.5e-5, diff_m
 
 
 def test_a_hung_detection_is_abandoned_after_the_drain_timeout(monkeypatch: pytest.MonkeyPatch) -> None:
