@@ -321,7 +321,11 @@ class MappingConfig(_Section):
     live_voxel_m: float = Field(
         default=0.003, gt=0, description="voxel size of the live mesh (coarser than voxel_m: faster updates)"
     )
-    poisson_threads: int = Field(default=0, ge=0, description="threads of a Poisson reconstruction; 0 = all cores")
+    # 1 by default: Open3D's multi-threaded Poisson segfaults at random (Open3D issue #6828; here once
+    # in the final mesh of tests/test_one_pass.py under load 22), and a crash loses the whole run
+    poisson_threads: int = Field(
+        default=1, ge=0, description="threads of a Poisson reconstruction; 0 = all cores (may crash: Open3D #6828)"
+    )
     chunk_m: float = Field(default=0.05, gt=0, description="block edge of the chunked live mesh")
     min_points: int = Field(default=100, ge=4, description="fewest points a surface is made from")
     laser_plane_point_in_cam_m: list[float] = Field(
