@@ -227,8 +227,6 @@ class _Run:
         # the laser profiles of the frames read so far (meshed at the end), and those the live map
         # has not had yet (it takes them at the next tracked frame)
         self.extractor = StripeExtractor(calibration, config.mapping)
-        # the left camera the laser-line images are taken with (K, distortion; None when rectified)
-        self._laser_camera = (calibration.K_left, None if calibration.rectified else calibration.dist_left)
         self.stripes: list[StripeProfile] = []
         self._unfed: list[StripeProfile] = []
         self._extraction: ExtractionWorker | None = None  # made at the first laser-line image
@@ -266,7 +264,7 @@ class _Run:
             # a daemonic process (a batch task) may not start one and extracts them itself
             from loopmodel.mapping.stripe_feed import ExtractionWorker
 
-            self._extraction = ExtractionWorker(*self._laser_camera, self.config.mapping)
+            self._extraction = ExtractionWorker(self.extractor)
         if self._extraction is not None:
             profiles = list(scan.stripes)
             for t_ns, image in scan.laser_images:
