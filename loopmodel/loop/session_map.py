@@ -31,7 +31,7 @@ from loopmodel.errors import InputError
 from loopmodel.imaging.codec import declared_image_size, decode_quietly
 from loopmodel.loop.database import KeyframeDatabase, PlaceParams
 from loopmodel.loop.features import FeatureSet
-from loopmodel.loop.vocabulary import Vocabulary, shipped_vocabulary
+from loopmodel.loop.vocabulary import Vocabulary
 from loopmodel.types import Keyframe, MapFileData, StereoCalibration, StripeAnchors, StripeProfile, Trajectory
 
 logger = logging.getLogger(__name__)
@@ -522,13 +522,10 @@ def _png(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return np.asarray(buf, np.uint8).ravel() if ok else np.zeros(0, np.uint8)
 
 
-def map_vocabulary(config: LoopConfig, sets: Sequence[FeatureSet]) -> Vocabulary:
-    """The configured (or shipped) vocabulary of the descriptor kind; else one trained on ``sets``."""
-    if config.vocabulary_path:
-        return Vocabulary.load(config.vocabulary_path)
-    voc = None if config.vocabulary_online else shipped_vocabulary(config.descriptor)
-    if voc is not None:
-        return voc
+def map_vocabulary(config: LoopConfig, sets: Sequence[FeatureSet], vocabulary: Vocabulary | None = None) -> Vocabulary:
+    """``vocabulary`` (the run's, by :mod:`loopmodel.io.vocabulary_file`), else one trained on ``sets``."""
+    if vocabulary is not None:
+        return vocabulary
     docs = [s.descriptors for s in sets if len(s)]
     if not docs:
         raise InputError("loop.descriptor", "no features to train a map vocabulary on")
@@ -619,12 +616,15 @@ def keyframe_content(closer: Any, kf: Keyframe, descriptor: str) -> KeyframeCont
 
 
 def build_session_map(
-    inputs: MapInputs, config: LoopConfig, prepared: dict[int, KeyframeContent] | None = None
+    inputs: MapInputs,
+    config: LoopConfig,
+    prepared: dict[int, KeyframeContent] | None = None,
+    vocabulary: Vocabulary | None = None,
 ) -> SessionMap:
     """The map of a run: keyframes re-described with the configured descriptor kind, the pose graph, stripes.
 
     ``prepared``: keyframes' content made during the run (:class:`KeyframeArchiver`); the others are
-    prepared here.
+    prepared here. ``vocabulary``: the run's (its kind); None: one trained on the map's keyframes.
     """
     from loopmodel.loop.closer import LoopCloser
 
@@ -635,7 +635,7 @@ def build_session_map(
         closer = LoopCloser(inputs.calibration, config)
         content.update({int(k.id): keyframe_content(closer, k, config.descriptor) for k in missing})
     sets = [content[int(k.id)].features for k in kfs]
-    voc = map_vocabulary(config, sets)
+    voc = map_vocabulary(config, sets, vocabulary)
     edges: list[tuple[int, int]] = []
     rel: list[F64] = []
     kinds: list[int] = []
