@@ -621,3 +621,24 @@ def test_cli_mesh_exports_convert_the_runs_mesh(
         assert len(m.triangles) == len(ply.triangles)
         got, want = np.sort(np.asarray(m.vertices), axis=0), np.sort(np.asarray(ply.vertices), axis=0)
         assert np.allclose(got, want, atol=1e-6)
+
+
+def test_poisson_cells_are_about_the_configured_number_of_voxels() -> None:
+    """The derived octree depth makes the finest cell closest to ``poisson_cell_voxels`` x ``voxel_m``.
+
+    Checked against the cell edge computed here (box edge x scale / 2^depth, within a factor of
+    sqrt 2 in log scale); the live mesh keeps cells of one live voxel (issue 32).
+    """
+    from loopmodel.mapping.meshing import live_mesh_config, poisson_depth
+
+    pts = np.random.default_rng(2).uniform(0.0, 0.55, (2000, 3))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    ext = float(np.max(pts.max(axis=0) - pts.min(axis=0)))
+    for factor in (1.0, 2.0, 4.0):
+        cfg = MappingConfig(poisson_cell_voxels=factor)
+        depth = poisson_depth(cloud, cfg)
+        cell_m = ext * cfg.poisson_scale / 2**depth
+        assert abs(np.log2(cell_m / (factor * cfg.voxel_m))) <= 0.5
+    assert poisson_depth(cloud, MappingConfig(poisson_cell_voxels=1.0)) == 9  # 0.55 m box, 1.5 mm voxels
+    assert poisson_depth(cloud, MappingConfig()) == 8  # the default: cells of about 3 mm
+    assert live_mesh_config(MappingConfig()).poisson_cell_voxels == 1.0
