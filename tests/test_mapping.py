@@ -363,6 +363,29 @@ def test_cli_mesh_writes_each_format(tmp_path: Path, sphere_scan: tuple[Trajecto
     assert len(read_mesh(tmp_path / "x.obj").vertices) == len(ply.vertices)
 
 
+def test_export_mesh_api_meshes_the_stripes_with_the_runs_poses(
+    tmp_path: Path, sphere: o3d.geometry.TriangleMesh, sphere_scan: tuple[Trajectory, list[StripeProfile]]
+) -> None:
+    """``loopmodel.export_mesh`` (what ``loopmodel mesh`` calls): the stripes placed with the run's trajectory.
+
+    The written surface lies on the true sphere (mean vertex distance 0.05 mm); a second export
+    converts the run's own mesh.ply, not re-meshing it.
+    """
+    import loopmodel
+
+    traj, stripes = sphere_scan
+    d = _results_dir(tmp_path, traj, stripes[::3])
+    made = loopmodel.export_mesh(d, d / "mesh.ply")
+    assert made.converted_from is None and made.poses == "trajectory_final.tum" and made.placed.endswith("stripes")
+    assert len(read_mesh(d / "mesh.ply").vertices) == len(made.surface.vertices) > 100
+    err_m = distances_to_mesh(np.asarray(made.surface.vertices), sphere)
+    assert err_m.mean() < 2e-4  # measured 0.050 mm
+    again = loopmodel.export_mesh(d, tmp_path / "x.stl", "stl")
+    assert again.converted_from == d / "mesh.ply" and len(again.surface.vertices) == len(made.surface.vertices)
+    with pytest.raises(InputError, match="--format"):
+        loopmodel.export_mesh(d, tmp_path / "x.xyz", "xyz")
+
+
 def test_bad_input_gives_clear_errors_and_no_mesh_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from loopmodel.cli import main
 
