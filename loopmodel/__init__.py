@@ -9,7 +9,8 @@ The Python API (imported on first use, so ``import loopmodel`` stays light)::
 ``run(source, config=None, out_dir=None) -> RunResult`` (graded against the sequence's ground truth
 unless ``evaluate=False``), ``process(sequence, config) -> RunResult`` (the run alone: writes and
 grades nothing), ``evaluate(result, sequence) -> Evaluation``, ``open_sequence(path, config=None)``,
-``load_config(path=None) -> Config``.
+``load_config(path=None) -> Config``, ``export_mesh(source, target, fmt="ply") -> MeshExport`` (the
+mesh of a results folder or a saved map, as ``loopmodel mesh`` writes it).
 
 Trajectory files (TUM, KITTI, EuRoC; as evo's ``file_interface``): ``read_trajectory(path)``,
 ``write_trajectory(path, result.final)``.
@@ -27,6 +28,7 @@ if TYPE_CHECKING:
     from loopmodel.config import Config, load_config
     from loopmodel.eval.of_run import Evaluation, evaluate
     from loopmodel.io.sequence import open_sequence
+    from loopmodel.meshes import export_mesh
     from loopmodel.pipeline import process, run
     from loopmodel.result import RunResult
     from loopmodel.types import Keyframe, StereoCalibration, StereoFrame, StripeProfile, Trajectory
@@ -37,6 +39,7 @@ _LAZY = {
     "run": "loopmodel.pipeline",
     "process": "loopmodel.pipeline",
     "evaluate": "loopmodel.eval.of_run",
+    "export_mesh": "loopmodel.meshes",
     "Evaluation": "loopmodel.eval.of_run",
     "RunResult": "loopmodel.result",
     "open_sequence": "loopmodel.io.sequence",
@@ -62,6 +65,7 @@ __all__ = [
     "Trajectory",
     "__version__",
     "evaluate",
+    "export_mesh",
     "load_config",
     "open_sequence",
     "process",

@@ -61,6 +61,7 @@ from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripePro
 if TYPE_CHECKING:
     from loopmodel.eval.of_run import Evaluation
     from loopmodel.loop.session_map import KeyframeArchiver, ResumePoint, SessionMap
+    from loopmodel.loop.vocabulary import Vocabulary
     from loopmodel.mapping.stripe_feed import ExtractionWorker
 
 logger = logging.getLogger(__name__)
@@ -163,13 +164,18 @@ def stop_on_signals(stop: StopFlag) -> Iterator[StopFlag]:
 
 
 # --------------------------------------------------------------------------- the run
-def _loop_stage(config: Config, calibration: StereoCalibration) -> LoopStage:
-    """Loop closing when it is on and the back end can take constraints; else the null stage."""
-    if not config.loop.enabled or config.backend.kind == "none":
+def _loop_on(config: Config) -> bool:
+    """Whether the run closes loops (loop closing on and a back end that takes constraints)."""
+    return config.loop.enabled and config.backend.kind != "none"
+
+
+def _loop_stage(config: Config, calibration: StereoCalibration, vocabulary: Vocabulary | None) -> LoopStage:
+    """Loop closing when it is on (with ``vocabulary``, None: trained on the fly); else the null stage."""
+    if not _loop_on(config):
         return NullLoopStage()
     from loopmodel.loop.stage import LoopClosingStage
 
-    return LoopClosingStage.from_config(config.loop, calibration)
+    return LoopClosingStage.from_config(config.loop, calibration, vocabulary)
 
 
 @contextlib.contextmanager
@@ -218,7 +224,13 @@ class _Run:
         self.backend: Backend = start_backend(config.backend, make)
         self.session.setup(config, self.frontend.calibration)
         self.localizer = self.session.localizer
-        self.loop: LoopStage = self.localizer or _loop_stage(config, self.frontend.calibration)
+        # the place-recognition vocabulary of the loop stage and the session map, read here (issue 32)
+        self.vocabulary: Vocabulary | None = None
+        if self.localizer is None and (_loop_on(config) or config.output.write_map):
+            from loopmodel.io.vocabulary_file import loop_vocabulary
+
+            self.vocabulary = loop_vocabulary(config.loop)
+        self.loop: LoopStage = self.localizer or _loop_stage(config, self.frontend.calibration, self.vocabulary)
         # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
         # placed with them (the stripe map follows every change of the anchored poses)
         self.anchored = AnchoredTrajectory()
@@ -227,8 +239,6 @@ class _Run:
         # the laser profiles of the frames read so far (meshed at the end), and those the live map
         # has not had yet (it takes them at the next tracked frame)
         self.extractor = StripeExtractor(calibration, config.mapping)
-        # the left camera the laser-line images are taken with (K, distortion; None when rectified)
-        self._laser_camera = (calibration.K_left, None if calibration.rectified else calibration.dist_left)
         self.stripes: list[StripeProfile] = []
         self._unfed: list[StripeProfile] = []
         self._extraction: ExtractionWorker | None = None  # made at the first laser-line image
@@ -266,7 +276,7 @@ class _Run:
             # a daemonic process (a batch task) may not start one and extracts them itself
             from loopmodel.mapping.stripe_feed import ExtractionWorker
 
-            self._extraction = ExtractionWorker(*self._laser_camera, self.config.mapping)
+            self._extraction = ExtractionWorker(self.extractor)
         if self._extraction is not None:
             profiles = list(scan.stripes)
             for t_ns, image in scan.laser_images:
@@ -589,7 +599,7 @@ class _Run:
             {"sequence": self.source},
         )
         try:
-            smap = build_session_map(inputs, self.config.loop, prepared)
+            smap = build_session_map(inputs, self.config.loop, prepared, self.vocabulary)
         except LoopmodelError as exc:
             logger.error("no session map: %s", exc)
             return None

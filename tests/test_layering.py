@@ -1,8 +1,9 @@
 """The package layout's rules, by a walk over the source's imports (AST; nothing is imported).
 
 Stages never read or write files (issue 32): no module of ``frontend``, ``backend``, ``loop``,
-``mapping`` or ``pose`` imports ``loopmodel.io``; and no two packages import each other, directly
-or round a cycle. Every import counts, also inside functions and under ``TYPE_CHECKING``.
+``mapping`` or ``pose`` imports ``loopmodel.io`` or calls a file function itself (``open``,
+``Path.read_text``, ``np.load``, ``cv2.imread``, ...); and no two packages import each other,
+directly or round a cycle. Every import counts, also inside functions and under ``TYPE_CHECKING``.
 """
 
 from __future__ import annotations
@@ -31,6 +32,29 @@ def _imports(path: Path) -> list[tuple[str, int]]:
             else:
                 out.append((node.module, node.lineno))
     return [(m, n) for m, n in out if m.startswith("loopmodel.")]
+
+
+#: Calls that read or write files: plain names and attribute names (``x.read_text()``, ``np.load``).
+FILE_CALLS = {"open"}
+FILE_ATTRS = {
+    "read_text", "read_bytes", "write_text", "write_bytes", "open", "unlink", "mkdir",
+    "load", "save", "savez", "savez_compressed", "loadtxt", "savetxt", "fromfile", "tofile",
+    "imread", "imwrite", "read_point_cloud", "write_point_cloud", "read_triangle_mesh", "write_triangle_mesh",
+}  # fmt: skip
+
+
+def _file_calls(path: Path) -> list[str]:
+    """The calls of a file that read or write files (``name:line``)."""
+    out: list[str] = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if not isinstance(node, ast.Call):
+            continue
+        f = node.func
+        if isinstance(f, ast.Name) and f.id in FILE_CALLS:
+            out.append(f"{f.id}:{node.lineno}")
+        elif isinstance(f, ast.Attribute) and f.attr in FILE_ATTRS:
+            out.append(f"{f.attr}:{node.lineno}")
+    return out
 
 
 def _graph() -> tuple[dict[str, set[str]], list[str]]:
@@ -70,6 +94,16 @@ def test_no_stage_imports_io() -> None:
     assert not io_imports, "stages read or write files through loopmodel.io:\n" + "\n".join(io_imports)
 
 
+def test_no_stage_opens_files() -> None:
+    found = [
+        f"{path.relative_to(PACKAGE.parent)} {call}"
+        for path in sorted(PACKAGE.rglob("*.py"))
+        if _unit(path) in STAGES
+        for call in _file_calls(path)
+    ]
+    assert not found, "stages read or write files themselves:\n" + "\n".join(found)
+
+
 def test_no_import_cycle_between_packages() -> None:
     edges, _ = _graph()
     assert {"pipeline", "io", "loop", "mapping"} <= set(edges)  # the walk sees the layout
@@ -86,3 +120,6 @@ def test_the_walk_finds_what_it_looks_for(tmp_path: Path) -> None:
     cycles = _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}})
     assert cycles == [["a", "b", "c", "a"], ["b", "c", "a", "b"], ["c", "a", "b", "c"]]
     assert _cycles({"a": {"b"}, "b": {"c"}}) == []
+    text = "import numpy as np\nwith open('x') as f:\n    pass\nv = np.load(p)\nt = p.read_text()\nnp.sum(v)\n"
+    src.write_text(text)
+    assert sorted(_file_calls(src)) == ["load:4", "open:2", "read_text:5"]

@@ -82,13 +82,17 @@ def _laser_image(shift_px: float) -> np.ndarray:
 
 
 def test_extraction_worker_gives_the_profiles_of_inline_extraction_in_order() -> None:
-    from loopmodel.mapping.extraction import LightPlane, stripe_from_image
+    from loopmodel.mapping.extraction import LightPlane, StripeExtractor, stripe_from_image
     from loopmodel.mapping.stripe_feed import ExtractionWorker
+    from loopmodel.types import StereoCalibration
 
     cfg = MappingConfig()
     K = np.array([[250.0, 0, 160], [0, 250.0, 120], [0, 0, 1]])
+    right_from_left = np.eye(4)
+    right_from_left[0, 3] = -0.06
     images = [(1_000 * i, _laser_image(3.0 * i)) for i in range(6)]
-    worker = ExtractionWorker(K, None, cfg)
+    # the run's extractor, handed to the worker as it is (issue 32: no second light plane from K)
+    worker = ExtractionWorker(StripeExtractor(StereoCalibration(K, K, right_from_left, (320, 240)), cfg))
     t0 = time.perf_counter()
     for t_ns, image in images:
         worker.submit(t_ns, image)

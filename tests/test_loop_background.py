@@ -14,6 +14,7 @@ import pytest
 
 from loopmodel.config import Config
 from loopmodel.io.sequence import open_sequence
+from loopmodel.io.vocabulary_file import loop_vocabulary
 from loopmodel.loop.closer import LoopCloser
 from loopmodel.pipeline import run_pipeline
 
@@ -117,7 +118,7 @@ def test_process_worker_finds_the_loops_the_inline_detection_finds() -> None:
         _add_mono(kfs, true, rng)
         # keyframes arrive at once here: no backlog limit, so every keyframe is queried
         cfg = LoopConfig(min_gap_keyframes=8, n_features=800, detection_worker=mode, max_queued_keyframes=100)
-        stage = LoopClosingStage(calib, cfg, via_backend=False)
+        stage = LoopClosingStage(calib, cfg, vocabulary=loop_vocabulary(cfg), via_backend=False)
         poses = {}
         for kf in kfs:
             poses[kf.id] = kf.world_from_kf.copy()

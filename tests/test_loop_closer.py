@@ -12,6 +12,7 @@ import numpy as np
 from loopmodel.config import LoopConfig
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose, make_pose, se3_exp, so3_exp, so3_log
+from loopmodel.io.vocabulary_file import loop_vocabulary, shipped_vocabulary
 from loopmodel.loop.closer import LoopCloser
 from loopmodel.loop.stage import LoopClosingStage, MapState
 from loopmodel.types import Keyframe, StereoCalibration
@@ -91,7 +92,7 @@ def test_relocalize_lost_view() -> None:
     tex = _texture(rng)
     true, _ = _sequence(rng)
     calib = StereoCalibration(CAM.K, CAM.K, make_pose(np.eye(3), [-BASELINE, 0, 0]), (640, 480))
-    closer = LoopCloser(calib, LoopConfig(min_gap_keyframes=8, n_features=800))
+    closer = LoopCloser(calib, LoopConfig(min_gap_keyframes=8, n_features=800), shipped_vocabulary("orb"))
     lid = 0
     for i in range(9):
         kf = _keyframe(i, tex, true[i], true[i], lid, rng)
@@ -132,7 +133,9 @@ def test_stage_feeds_corrections_back_and_records_events() -> None:
         lid += len(kfs[-1].landmark_ids)
     _add_mono(kfs, true, rng)
     tracker = _FakeTracker()
-    stage = LoopClosingStage(calib, LoopConfig(min_gap_keyframes=8, n_features=800), via_backend=False)
+    stage = LoopClosingStage(
+        calib, LoopConfig(min_gap_keyframes=8, n_features=800), vocabulary=shipped_vocabulary("orb"), via_backend=False
+    )
     for kf in kfs:
         tracker.poses[kf.id] = kf.world_from_kf.copy()
         out = stage.on_keyframe(kf, MapState(tracker.world_from_kf))
@@ -178,7 +181,7 @@ def test_stage_via_backend_returns_constraints_and_changes_no_keyframe() -> None
     # inline detection: each loop comes back with its own keyframe (a worker would hand it
     # to a later one; tests/test_loop_background.py)
     cfg = LoopConfig(min_gap_keyframes=8, n_features=800, detection_worker="none")
-    stage = LoopClosingStage.from_config(cfg, calib)
+    stage = LoopClosingStage.from_config(cfg, calib, loop_vocabulary(cfg))
     poses: dict[int, np.ndarray] = {}
     constraints = []
     for kf in kfs:

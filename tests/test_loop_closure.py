@@ -41,10 +41,10 @@ def test_vocabulary_tree_separates_prototypes(rng: np.random.Generator, tmp_path
     for p in range(27):
         assert np.unique(words[labels == p]).size == 1
     assert np.unique(words).size == 27
-    from loopmodel.io.vocabulary_file import save_vocabulary
+    from loopmodel.io.vocabulary_file import read_vocabulary, save_vocabulary
 
     save_vocabulary(tmp_path / "voc.npz", voc)
-    again = Vocabulary.load(tmp_path / "voc.npz")
+    again = read_vocabulary(tmp_path / "voc.npz")
     assert np.array_equal(again.transform(desc), words)
     a = voc.bow(desc[labels < 10])
     b = voc.bow(desc[labels >= 10])

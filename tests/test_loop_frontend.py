@@ -12,6 +12,7 @@ from frontend_scene import default_scene, render, stereo_rig  # noqa: E402
 from loopmodel.config import FrontendConfig, LoopConfig  # noqa: E402
 from loopmodel.frontend import FrontEnd  # noqa: E402
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_exp  # noqa: E402
+from loopmodel.io.vocabulary_file import loop_vocabulary
 from loopmodel.loop.stage import LoopClosingStage, MapState  # noqa: E402
 from loopmodel.types import StereoFrame  # noqa: E402
 
@@ -32,7 +33,7 @@ def test_corrected_keyframes_reach_the_tracker() -> None:
     K = calib.K_left
     fe = FrontEnd(calib, FrontendConfig(max_parallax_ratio=0.04))  # a keyframe every ~6 frames
     cfg = LoopConfig(min_gap_keyframes=3, consistency=1, vocabulary_train_after=4, n_features=800)
-    stage = LoopClosingStage(fe.calibration, cfg, via_backend=False, background=False)
+    stage = LoopClosingStage(fe.calibration, cfg, vocabulary=loop_vocabulary(cfg), via_backend=False, background=False)
     right_from_left = calib.right_from_left
     checked = False
     for i, world_from_cam in enumerate(_path()):

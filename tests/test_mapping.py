@@ -363,6 +363,29 @@ def test_cli_mesh_writes_each_format(tmp_path: Path, sphere_scan: tuple[Trajecto
     assert len(read_mesh(tmp_path / "x.obj").vertices) == len(ply.vertices)
 
 
+def test_export_mesh_api_meshes_the_stripes_with_the_runs_poses(
+    tmp_path: Path, sphere: o3d.geometry.TriangleMesh, sphere_scan: tuple[Trajectory, list[StripeProfile]]
+) -> None:
+    """``loopmodel.export_mesh`` (what ``loopmodel mesh`` calls): the stripes placed with the run's trajectory.
+
+    The written surface lies on the true sphere (mean vertex distance 0.05 mm); a second export
+    converts the run's own mesh.ply, not re-meshing it.
+    """
+    import loopmodel
+
+    traj, stripes = sphere_scan
+    d = _results_dir(tmp_path, traj, stripes[::3])
+    made = loopmodel.export_mesh(d, d / "mesh.ply")
+    assert made.converted_from is None and made.poses == "trajectory_final.tum" and made.placed.endswith("stripes")
+    assert len(read_mesh(d / "mesh.ply").vertices) == len(made.surface.vertices) > 100
+    err_m = distances_to_mesh(np.asarray(made.surface.vertices), sphere)
+    assert err_m.mean() < 2e-4  # measured 0.050 mm
+    again = loopmodel.export_mesh(d, tmp_path / "x.stl", "stl")
+    assert again.converted_from == d / "mesh.ply" and len(again.surface.vertices) == len(made.surface.vertices)
+    with pytest.raises(InputError, match="--format"):
+        loopmodel.export_mesh(d, tmp_path / "x.xyz", "xyz")
+
+
 def test_bad_input_gives_clear_errors_and_no_mesh_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from loopmodel.cli import main
 
@@ -621,3 +644,24 @@ def test_cli_mesh_exports_convert_the_runs_mesh(
         assert len(m.triangles) == len(ply.triangles)
         got, want = np.sort(np.asarray(m.vertices), axis=0), np.sort(np.asarray(ply.vertices), axis=0)
         assert np.allclose(got, want, atol=1e-6)
+
+
+def test_poisson_cells_are_about_the_configured_number_of_voxels() -> None:
+    """The derived octree depth makes the finest cell closest to ``poisson_cell_voxels`` x ``voxel_m``.
+
+    Checked against the cell edge computed here (box edge x scale / 2^depth, within a factor of
+    sqrt 2 in log scale); the live mesh keeps cells of one live voxel (issue 32).
+    """
+    from loopmodel.mapping.meshing import live_mesh_config, poisson_depth
+
+    pts = np.random.default_rng(2).uniform(0.0, 0.55, (2000, 3))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    ext = float(np.max(pts.max(axis=0) - pts.min(axis=0)))
+    for factor in (1.0, 2.0, 4.0):
+        cfg = MappingConfig(poisson_cell_voxels=factor)
+        depth = poisson_depth(cloud, cfg)
+        cell_m = ext * cfg.poisson_scale / 2**depth
+        assert abs(np.log2(cell_m / (factor * cfg.voxel_m))) <= 0.5
+    assert poisson_depth(cloud, MappingConfig(poisson_cell_voxels=1.0)) == 9  # 0.55 m box, 1.5 mm voxels
+    assert poisson_depth(cloud, MappingConfig()) == 8  # the default: cells of about 3 mm
+    assert live_mesh_config(MappingConfig()).poisson_cell_voxels == 1.0

@@ -28,6 +28,7 @@ from loopmodel.config import LoopConfig
 from loopmodel.errors import FormatError
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_exp
 from loopmodel.io.g2o import read_g2o
+from loopmodel.io.vocabulary_file import loop_vocabulary
 from loopmodel.loop.closer import LoopCloser, LoopClosure
 from loopmodel.loop.global_ba import LoopObservations
 from loopmodel.loop.stage import LoopClosingStage, MapState
@@ -85,7 +86,7 @@ def _run_stage(inject: bool, robust: str) -> tuple[LoopClosingStage, _FakeTracke
     _add_mono(kfs, true, rng)
     tracker = _FakeTracker()
     cfg = LoopConfig(min_gap_keyframes=8, n_features=800, robust=robust, detection_worker="none")
-    stage = LoopClosingStage(calib, cfg, via_backend=False, background=False)
+    stage = LoopClosingStage(calib, cfg, vocabulary=loop_vocabulary(cfg), via_backend=False, background=False)
     real = LoopCloser.process_keyframe
 
     def process(self: LoopCloser, kf: Keyframe, *args: object, **kwargs: object) -> LoopClosure | None:

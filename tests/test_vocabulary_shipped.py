@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 
 from loopmodel.config import LoopConfig
+from loopmodel.io.vocabulary_file import loop_vocabulary, read_vocabulary, shipped_path, shipped_vocabulary
 from loopmodel.loop.closure import detector_from_config
 from loopmodel.loop.database import KeyframeDatabase
 from loopmodel.loop.features import detect_and_describe, make_extractor
-from loopmodel.loop.vocabulary import Vocabulary, shipped_path, shipped_vocabulary
 
 
 @pytest.mark.parametrize("kind", ["orb", "sift", "surf"])
 def test_shipped_vocabulary_loads_with_provenance(kind: str) -> None:
-    voc = Vocabulary.load(shipped_path(kind))
+    voc = read_vocabulary(shipped_path(kind))
     assert voc.info["kind"] == kind
     assert "stereo_calib" in voc.info["source"]  # not the loop_images test set
     assert voc.binary == (kind == "orb")
@@ -29,10 +29,11 @@ def test_shipped_vocabulary_loads_with_provenance(kind: str) -> None:
 
 
 def test_detector_uses_shipped_vocabulary_unless_online() -> None:
-    det = detector_from_config(LoopConfig(), None, 640.0)
+    det = detector_from_config(LoopConfig(), None, 640.0, loop_vocabulary(LoopConfig()))
     assert det.database.vocabulary is shipped_vocabulary("orb")
+    assert loop_vocabulary(LoopConfig(vocabulary_online=True)) is None  # trained from the keyframes
     online = detector_from_config(LoopConfig(vocabulary_online=True), None, 640.0)
-    assert online.database.vocabulary is None  # trained from the keyframes
+    assert online.database.vocabulary is None
 
 
 @pytest.mark.parametrize("kind", ["orb", pytest.param("sift", marks=pytest.mark.slow)])

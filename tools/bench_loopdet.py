@@ -22,10 +22,10 @@ import cv2
 import numpy as np
 from shared_data import SHARED_DATA
 
+from loopmodel.io.vocabulary_file import shipped_vocabulary
 from loopmodel.loop.closure import LoopDetector, LoopParams
 from loopmodel.loop.database import PlaceParams
 from loopmodel.loop.features import detect_and_describe, make_extractor
-from loopmodel.loop.vocabulary import shipped_vocabulary
 
 DATA = SHARED_DATA / "loop_images"
 EXCLUDE = 5

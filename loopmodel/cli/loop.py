@@ -47,6 +47,7 @@ def loop_detect(
     """Loop detection on an image sequence (monocular: fundamental-matrix verification)."""
     from loopmodel.io.atomic import write_text_atomic
     from loopmodel.io.images import read_grey_image
+    from loopmodel.io.vocabulary_file import loop_vocabulary
     from loopmodel.loop.closure import detector_from_config
     from loopmodel.loop.features import detect_and_describe, make_extractor
 
@@ -54,6 +55,7 @@ def loop_detect(
     if vocabulary is not None:
         cfg = apply_overrides(cfg, {"vocabulary_path": str(vocabulary)}, {"vocabulary_path": "--vocabulary"})
     files = _image_files(folder)
+    voc = loop_vocabulary(cfg)
     ex = make_extractor(cfg.descriptor, cfg.n_features, cfg.surf)
     det = None
     rows = ["query_index,query_file,match_index,match_file,inliers"]
@@ -62,7 +64,7 @@ def loop_detect(
         for i, f in enumerate(files):
             img = read_grey_image(f)  # the declared size checked before decoding
             if det is None:
-                det = detector_from_config(cfg, None, image_width_px=float(img.shape[1]))
+                det = detector_from_config(cfg, None, float(img.shape[1]), voc)
             ev = det.process(i, detect_and_describe(img, cfg.descriptor, cfg.n_features, ex))
             if ev is not None:
                 rows.append(f"{i},{f.name},{ev.match_id},{files[ev.match_id].name},{ev.n_inliers}")

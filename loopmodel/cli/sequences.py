@@ -380,52 +380,24 @@ def mesh(
     overwrite: OverwriteOption = False,
 ) -> None:
     """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run), or of a (merged) map."""
-    import numpy as np
-
-    from loopmodel.io.laser import load_stripes_and_poses
-    from loopmodel.io.mesh_io import MESH_FORMATS, read_mesh, write_mesh
-    from loopmodel.mapping.stripe_map import StripeMap
+    from loopmodel.io.atomic import check_output_file
+    from loopmodel.io.mesh_io import read_mesh
+    from loopmodel.meshes import export_mesh
     from loopmodel.viz.mesh_render import CAMERA_UP
 
     picture = plots if picture is None else picture
-    if fmt not in MESH_FORMATS:
-        raise InputError(None, f"--format must be one of {', '.join(MESH_FORMATS)}, got '{fmt}'")
     cfg = load_config(config)
-    from loopmodel.io.atomic import check_output_file
-
     target = out or (source / f"mesh.{fmt}" if source.is_dir() else source.with_name(f"{source.stem}_mesh.{fmt}"))
     check_output_file(target, overwrite)  # before the work
-    run_mesh = source / "mesh.ply"
-    if trajectory == "final" and run_mesh.is_file() and run_mesh.resolve() != target.resolve() and gt_mesh is None:
-        # the run's own product (its final trajectory): converted, not re-meshed
-        surface = read_mesh(run_mesh)
-        write_mesh(target, surface, fmt)
-        console.print(f"wrote {target} ({num(len(surface.vertices))} vertices, converted from {run_mesh})")
+    made = export_mesh(source, target, fmt, trajectory, cfg, remesh=gt_mesh is not None)
+    surface = made.surface
+    if made.converted_from is not None:
+        console.print(f"wrote {target} ({num(len(surface.vertices))} vertices, converted from {made.converted_from})")
         _mesh_picture(target, surface, None, picture, overwrite, CAMERA_UP)
         return
-    if (source / "map.json").is_file():  # a saved (merged) session map: its stripes at their anchors
-        from loopmodel.io.map_file import load_session_map
-        from loopmodel.mapping.final import posed_stripes_mesh
-
-        session_map = load_session_map(source)
-        map_stripes, map_poses = session_map.stripes_with_poses()
-        surface = posed_stripes_mesh(map_stripes, map_poses, cfg.mapping)
-        if surface is None:
-            raise InputError(source, "the map holds no laser stripes to mesh")
-        sessions = len(set(session_map.session.tolist()))
-        placed, poses = f"{len(map_stripes)} stripes", f"map keyframes of {sessions} sessions"
-        camera_world = True
-    else:
-        stripes, traj, poses = load_stripes_and_poses(source, trajectory, cfg.sequence, cfg.mapping)
-        smap = StripeMap.from_trajectory(traj, stripes, cfg.mapping)
-        smap.check_nonempty()
-        surface = smap.mesh()
-        placed = f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes"
-        camera_world = poses != "ground truth" or bool(np.allclose(traj.world_from_cam[0], np.eye(4), atol=1e-6))
-    write_mesh(target, surface, fmt)
     console.print(
         f"wrote {target} ({len(surface.vertices)} vertices, {len(surface.triangles)} triangles, "
-        f"{placed}, poses: {poses})"
+        f"{made.placed}, poses: {made.poses})"
     )
     truth = read_mesh(gt_mesh, gt_attachment) if gt_mesh is not None else None
     if truth is not None:
@@ -438,7 +410,7 @@ def mesh(
         )
     # a run or a map is in its first camera's world (y down), as is ground truth starting at the
     # identity (KITTI); other ground truth (simulator, motion capture) is z up
-    up = CAMERA_UP if camera_world else (0.0, 0.0, 1.0)
+    up = CAMERA_UP if made.camera_world else (0.0, 0.0, 1.0)
     _mesh_picture(target, surface, truth, picture, overwrite, up)
 
 

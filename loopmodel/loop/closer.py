@@ -39,6 +39,7 @@ from loopmodel.loop.pnp import solve_pnp_bank
 from loopmodel.loop.refine import project_refiner
 from loopmodel.loop.reloc import RelocParams, RelocResult
 from loopmodel.loop.resume import retrack_keyframe_features
+from loopmodel.loop.vocabulary import Vocabulary
 from loopmodel.types import Keyframe, StereoCalibration
 
 logger = logging.getLogger(__name__)
@@ -78,13 +79,16 @@ class _KfData:
 class LoopCloser:
     """Relocalization and loop detection over the front end's keyframes.
 
-    ``calibration`` is the rectified calibration the keyframes' pixels refer to."""
+    ``calibration`` is the rectified calibration the keyframes' pixels refer to; ``vocabulary`` the
+    place recognition's (None: trained on the fly from the keyframes)."""
 
-    def __init__(self, calibration: StereoCalibration, config: LoopConfig | None = None) -> None:
+    def __init__(
+        self, calibration: StereoCalibration, config: LoopConfig | None = None, vocabulary: Vocabulary | None = None
+    ) -> None:
         self.config = config if config is not None else LoopConfig()
         self.calibration = calibration
         self.camera: CentralCamera = calibration.left_camera()
-        self.detector = detector_from_config(self.config, self.camera, float(calibration.image_size[0]))
+        self.detector = detector_from_config(self.config, self.camera, float(calibration.image_size[0]), vocabulary)
         self._extractor = make_extractor(self.config.descriptor, self.config.n_features, self.config.surf)
         self._kf: dict[int, _KfData] = {}
         self.closures: list[LoopClosure] = []

@@ -31,7 +31,7 @@ from loopmodel.loop.database import KeyframeDatabase, PlaceCandidate, PlaceParam
 from loopmodel.loop.features import FeatureSet, match_descriptors
 from loopmodel.loop.refine import PoseRefiner
 from loopmodel.loop.reloc import RelocParams, RelocResult, inlier_spread_px, localize
-from loopmodel.loop.vocabulary import Vocabulary, shipped_vocabulary
+from loopmodel.loop.vocabulary import Vocabulary
 
 logger = logging.getLogger(__name__)
 
@@ -299,18 +299,14 @@ def params_from_config(cfg: LoopConfig) -> LoopParams:
 
 
 def detector_from_config(
-    cfg: LoopConfig, camera: CentralCamera | None, image_width_px: float | None = None
+    cfg: LoopConfig,
+    camera: CentralCamera | None,
+    image_width_px: float | None = None,
+    vocabulary: Vocabulary | None = None,
 ) -> LoopDetector:
     """A :class:`LoopDetector` set up from the ``loop`` configuration section.
 
-    The configured vocabulary file, else the one shipped for the descriptor kind, else (or with
-    ``vocabulary_online``) one trained on the fly from the keyframes.
+    ``vocabulary``: the caller's (:func:`loopmodel.io.vocabulary_file.loop_vocabulary` reads the
+    configured or shipped one); None: one trained on the fly from the keyframes.
     """
-    voc: Vocabulary | None = None
-    if cfg.vocabulary_path:
-        voc = Vocabulary.load(cfg.vocabulary_path)
-    elif not cfg.vocabulary_online:
-        voc = shipped_vocabulary(cfg.descriptor)
-        if voc is None:
-            logger.warning("no vocabulary shipped for %s descriptors: training one on the fly", cfg.descriptor)
-    return LoopDetector(camera, params_from_config(cfg), voc, image_width_px=image_width_px)
+    return LoopDetector(camera, params_from_config(cfg), vocabulary, image_width_px=image_width_px)

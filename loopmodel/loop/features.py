@@ -1,11 +1,10 @@
-"""Appearance features for relocalization and loop closing: ORB (default), SIFT, SURF.
+"""Appearance features for relocalization and loop closing, of any kind of :mod:`loopmodel.loop.descriptors`.
 
 A :class:`FeatureSet` holds keypoints (pixels), descriptors and, for stereo keyframes, the
 3-D position of each feature in the keyframe's left-camera frame (seed 004, eq. 5;
-``NaN`` where a feature has no stereo match). ORB and SIFT come from OpenCV; SURF is
-:mod:`loopmodel.loop.surf` (written here; OpenCV wheels lack the non-free module). SURF
-features also carry the sign of the Laplacian, and only features of the same sign are
-matched.
+``NaN`` where a feature has no stereo match). The kinds (ORB, SIFT, SURF) are one module each
+behind the registry :data:`~loopmodel.loop.descriptors.DESCRIPTORS`. SURF features also carry the
+sign of the Laplacian, and only features of the same sign are matched.
 """
 
 from __future__ import annotations
@@ -18,13 +17,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.config import SurfConfig
-from loopmodel.errors import ConfigError, InputError
-from loopmodel.loop.surf import Surf, SurfKeypoints
+from loopmodel.errors import InputError
+from loopmodel.loop.descriptors import DESCRIPTORS, Described, descriptor
 from loopmodel.types import StereoCalibration
 
 F64 = NDArray[np.float64]
 
-KINDS = ("orb", "sift", "surf")
+#: The descriptor kinds (the registry's names).
+KINDS = tuple(DESCRIPTORS)
 
 
 @dataclass
@@ -94,15 +94,8 @@ class FeatureSet:
 
 
 def make_extractor(kind: str = "orb", n_features: int = 2000, surf: SurfConfig | None = None) -> Any:
-    """The OpenCV detector/descriptor for ``kind`` (``orb``, ``sift`` or ``surf``); ``surf``: its settings."""
-    k = kind.lower()
-    if k == "orb":
-        return cv2.ORB_create(nfeatures=n_features, scaleFactor=1.2, nlevels=8, fastThreshold=12)  # type: ignore[attr-defined]
-    if k == "sift":
-        return cv2.SIFT_create(nfeatures=n_features)  # type: ignore[attr-defined]
-    if k == "surf":
-        return Surf.from_config(surf, n_features)
-    raise ConfigError("loop.descriptor", f"unknown descriptor '{kind}', expected one of {KINDS}")
+    """The extractor of ``kind`` (:data:`~loopmodel.loop.descriptors.DESCRIPTORS`); ``surf``: SURF settings."""
+    return descriptor(kind).extractor(n_features, surf)
 
 
 def _grey(image: NDArray[Any]) -> NDArray[np.uint8]:
@@ -114,24 +107,26 @@ def _grey(image: NDArray[Any]) -> NDArray[np.uint8]:
     return img
 
 
-def _empty(kind: str, dim: int = 128) -> FeatureSet:
-    d = np.zeros((0, 32), np.uint8) if kind == "orb" else np.zeros((0, dim), np.float32)
-    return FeatureSet(np.zeros((0, 2)), d, kind)
+def _feature_set(kind: str, described: Described) -> FeatureSet:
+    uv, desc, laplacian = described
+    if laplacian is None:
+        return FeatureSet(uv, desc, kind)
+    return FeatureSet(uv, desc, kind, laplacian=laplacian)
+
+
+def empty_features(kind: str) -> FeatureSet:
+    """No features of descriptor ``kind`` (descriptors shaped (0, its length))."""
+    d = descriptor(kind)
+    return FeatureSet(np.zeros((0, 2)), d.empty(), d.name)
 
 
 def detect_and_describe(
     image: NDArray[Any], kind: str = "orb", n_features: int = 2000, extractor: Any = None
 ) -> FeatureSet:
     """Detect keypoints and compute descriptors in one image (uint8 grey or BGR)."""
-    ex = extractor if extractor is not None else make_extractor(kind, n_features)
-    if isinstance(ex, Surf):
-        kp, d = ex.detect_and_describe(_grey(image))
-        return FeatureSet(kp.xy, d, "surf", laplacian=kp.sign)
-    kps, desc = ex.detectAndCompute(_grey(image), None)
-    if desc is None or len(kps) == 0:
-        return _empty(kind.lower())
-    uv = np.array([kp.pt for kp in kps], dtype=float)
-    return FeatureSet(uv, desc, kind.lower())
+    d = descriptor(kind)
+    ex = extractor if extractor is not None else d.extractor(n_features)
+    return _feature_set(d.name, d.detect(ex, _grey(image)))
 
 
 def describe_at(
@@ -139,31 +134,16 @@ def describe_at(
 ) -> tuple[FeatureSet, NDArray[np.int64]]:
     """Descriptors at given pixel positions (e.g. a keyframe's tracked features).
 
-    Returns the feature set and the indices (into ``keypoints_px``) that OpenCV kept
-    (keypoints too close to the border are dropped). For SURF, ``size_px`` is the side
-    of the box filter the scale corresponds to (scale ``1.2 size_px / 9``); the
-    orientation and the sign of the Laplacian are computed at that scale. ``extractor``: the
-    detector to describe with (default: ``kind``'s with the default settings)."""
-    ex = extractor if extractor is not None else make_extractor(kind)
+    Returns the feature set and the indices (into ``keypoints_px``) that were kept (OpenCV drops
+    keypoints too close to the border). For SURF, ``size_px`` is the side of the box filter the
+    scale corresponds to (scale ``1.2 size_px / 9``); the orientation and the sign of the Laplacian
+    are computed at that scale. ``extractor``: the detector to describe with (default: ``kind``'s
+    with the default settings)."""
+    d = descriptor(kind)
+    ex = extractor if extractor is not None else d.extractor(2000)
     uv = np.asarray(keypoints_px, dtype=float).reshape(-1, 2)
-    if isinstance(ex, Surf):
-        grey = _grey(image)
-        h, w = grey.shape
-        kept = np.flatnonzero((uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1))
-        xy = uv[kept]
-        scale = np.full(kept.size, 1.2 * size_px / 9.0)
-        ii = ex.integral(grey)
-        iid = ex.describe_integral(grey, ii)
-        angle = ex.orient(grey, xy, scale, iid)
-        sign = ex.laplacian_sign(grey, xy, scale, ii)
-        kp = SurfKeypoints(xy, scale, angle, np.zeros(kept.size), sign)
-        return FeatureSet(xy, ex.describe(grey, kp, iid), "surf", laplacian=sign), kept.astype(np.int64)
-    kps = [cv2.KeyPoint(float(u), float(v), size_px, -1, 0, 0, int(i)) for i, (u, v) in enumerate(uv)]
-    kps_out, desc = ex.compute(_grey(image), kps)
-    if desc is None or len(kps_out) == 0:
-        return _empty(kind.lower()), np.zeros(0, np.int64)
-    kept = np.array([kp.class_id for kp in kps_out], dtype=np.int64)
-    return FeatureSet(uv[kept], desc, kind.lower()), kept
+    described, kept = d.describe_at(ex, _grey(image), uv, size_px)
+    return _feature_set(d.name, described), kept
 
 
 def match_descriptors(

@@ -30,8 +30,9 @@ from loopmodel.config import LoopConfig
 from loopmodel.errors import InputError
 from loopmodel.imaging.codec import declared_image_size, decode_quietly
 from loopmodel.loop.database import KeyframeDatabase, PlaceParams
-from loopmodel.loop.features import FeatureSet
-from loopmodel.loop.vocabulary import Vocabulary, shipped_vocabulary
+from loopmodel.loop.descriptors import descriptor
+from loopmodel.loop.features import FeatureSet, empty_features
+from loopmodel.loop.vocabulary import Vocabulary
 from loopmodel.types import Keyframe, MapFileData, StereoCalibration, StripeAnchors, StripeProfile, Trajectory
 
 logger = logging.getLogger(__name__)
@@ -68,8 +69,9 @@ class PackedFeatures:
         # the values the map file keeps (see ``_STORED``), so a saved map loads back equal
         for name in ("keypoints_px", "points_in_kf", "bow_weights"):
             setattr(self, name, _as_stored(getattr(self, name), np.float32))
-        if self.kind == "surf":
-            self.descriptors = _as_stored(self.descriptors, np.float16, np.float32)
+        stored = descriptor(self.kind).stored_dtype
+        if stored is not None and not descriptor(self.kind).binary:  # rounded as the map file keeps them
+            self.descriptors = _as_stored(self.descriptors, stored, np.float32)
 
     def feature_set(self, i: int) -> FeatureSet:
         """Keyframe ``i``'s (row index) feature set (views of the arrays)."""
@@ -86,8 +88,8 @@ class PackedFeatures:
     @staticmethod
     def pack(kind: str, sets: Sequence[FeatureSet], vocabulary: Vocabulary) -> PackedFeatures:
         """Concatenate feature sets (one per keyframe, in row order) with their words and bags."""
-        dim = sets[0].descriptors.shape[1] if sets else (32 if kind == "orb" else 128)
-        dtype = sets[0].descriptors.dtype if sets else (np.uint8 if kind == "orb" else np.float32)
+        dim = sets[0].descriptors.shape[1] if sets else descriptor(kind).dim
+        dtype = sets[0].descriptors.dtype if sets else descriptor(kind).dtype
         words = [vocabulary.transform(s.descriptors) for s in sets]
         bows = [vocabulary.bow(words=w) for w in words]
 
@@ -492,8 +494,9 @@ def _as_stored(a: NDArray[Any], stored: Any, memory: Any = np.float64) -> NDArra
 def _stored_dtypes(f: PackedFeatures) -> dict[str, Any]:
     out = dict(_STORED)
     d = f.descriptors
-    if f.kind == "surf":
-        out["features_descriptors"] = np.float16
+    stored = descriptor(f.kind).stored_dtype
+    if stored is not None:
+        out["features_descriptors"] = stored
     elif d.dtype != np.uint8 and (d.size == 0 or (np.all(d == np.round(d)) and d.min() >= 0 and d.max() <= 255)):
         out["features_descriptors"] = np.uint8
     return out
@@ -509,8 +512,8 @@ def _to_storage(a: NDArray[Any], dtype: Any, name: str) -> NDArray[Any]:
 def _from_storage(name: str, a: NDArray[Any], kind: str) -> NDArray[Any]:
     if name in _MEMORY:
         return a.astype(_MEMORY[name])
-    if name == "features_descriptors" and kind != "orb":
-        return a.astype(np.float32)
+    if name == "features_descriptors":
+        return a.astype(descriptor(kind).dtype)
     return a
 
 
@@ -522,13 +525,10 @@ def _png(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return np.asarray(buf, np.uint8).ravel() if ok else np.zeros(0, np.uint8)
 
 
-def map_vocabulary(config: LoopConfig, sets: Sequence[FeatureSet]) -> Vocabulary:
-    """The configured (or shipped) vocabulary of the descriptor kind; else one trained on ``sets``."""
-    if config.vocabulary_path:
-        return Vocabulary.load(config.vocabulary_path)
-    voc = None if config.vocabulary_online else shipped_vocabulary(config.descriptor)
-    if voc is not None:
-        return voc
+def map_vocabulary(config: LoopConfig, sets: Sequence[FeatureSet], vocabulary: Vocabulary | None = None) -> Vocabulary:
+    """``vocabulary`` (the run's, by :mod:`loopmodel.io.vocabulary_file`), else one trained on ``sets``."""
+    if vocabulary is not None:
+        return vocabulary
     docs = [s.descriptors for s in sets if len(s)]
     if not docs:
         raise InputError("loop.descriptor", "no features to train a map vocabulary on")
@@ -611,20 +611,23 @@ class KeyframeArchiver:
         self._jobs = {}
 
 
-def keyframe_content(closer: Any, kf: Keyframe, descriptor: str) -> KeyframeContent:
+def keyframe_content(closer: Any, kf: Keyframe, kind: str) -> KeyframeContent:
     """A keyframe's loop features (by ``closer``, a :class:`~loopmodel.loop.closer.LoopCloser`) and PNG image."""
     image = np.asarray(kf.image)
-    features = closer.keyframe_features(kf) if image.size else _no_features(descriptor)
+    features = closer.keyframe_features(kf) if image.size else empty_features(kind)
     return KeyframeContent(features, _png(image))
 
 
 def build_session_map(
-    inputs: MapInputs, config: LoopConfig, prepared: dict[int, KeyframeContent] | None = None
+    inputs: MapInputs,
+    config: LoopConfig,
+    prepared: dict[int, KeyframeContent] | None = None,
+    vocabulary: Vocabulary | None = None,
 ) -> SessionMap:
     """The map of a run: keyframes re-described with the configured descriptor kind, the pose graph, stripes.
 
     ``prepared``: keyframes' content made during the run (:class:`KeyframeArchiver`); the others are
-    prepared here.
+    prepared here. ``vocabulary``: the run's (its kind); None: one trained on the map's keyframes.
     """
     from loopmodel.loop.closer import LoopCloser
 
@@ -635,7 +638,7 @@ def build_session_map(
         closer = LoopCloser(inputs.calibration, config)
         content.update({int(k.id): keyframe_content(closer, k, config.descriptor) for k in missing})
     sets = [content[int(k.id)].features for k in kfs]
-    voc = map_vocabulary(config, sets)
+    voc = map_vocabulary(config, sets, vocabulary)
     edges: list[tuple[int, int]] = []
     rel: list[F64] = []
     kinds: list[int] = []
@@ -682,9 +685,7 @@ def build_session_map(
     return smap
 
 
-def _no_features(kind: str) -> FeatureSet:
-    d = np.zeros((0, 32), np.uint8) if kind == "orb" else np.zeros((0, 64 if kind == "surf" else 128), np.float32)
-    return FeatureSet(np.zeros((0, 2)), d, kind)
+
 
 
 def _stack(mats: Sequence[Any]) -> F64:

@@ -56,6 +56,7 @@ from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.closer import LoopCloser, LoopClosure
 from loopmodel.loop.closure import LoopEvent
 from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hybrid_ba
+from loopmodel.loop.vocabulary import Vocabulary
 from loopmodel.stages import LoopConstraint, LoopOutcome, LoopStage, MapState, NullLoopStage, ResumeFeatures
 from loopmodel.types import Keyframe, StereoCalibration
 
@@ -93,9 +94,9 @@ def detect_keyframe(closer: LoopCloser, kf: Keyframe, neighbours: set[int], quer
 _WORKER_CLOSER: LoopCloser | None = None
 
 
-def _worker_start(calibration: StereoCalibration, config: LoopConfig) -> None:
+def _worker_start(calibration: StereoCalibration, config: LoopConfig, vocabulary: Vocabulary | None) -> None:
     global _WORKER_CLOSER
-    _WORKER_CLOSER = LoopCloser(calibration, config)
+    _WORKER_CLOSER = LoopCloser(calibration, config, vocabulary)
 
 
 def _worker_detect(kf: Keyframe, neighbours: set[int], query: bool) -> Detection:
@@ -148,18 +149,22 @@ class LoopClosingStage:
 
     ``calibration`` is the rectified calibration of the keyframes' pixels. ``via_backend``
     (the pipeline): loops become back-end constraints; otherwise the stage corrects them
-    itself by the global hybrid BA, in a worker process when ``background``."""
+    itself by the global hybrid BA, in a worker process when ``background``. ``vocabulary``: place
+    recognition's (:func:`loopmodel.io.vocabulary_file.loop_vocabulary` reads the configured one;
+    None: trained on the fly from the keyframes)."""
 
     def __init__(
         self,
         calibration: StereoCalibration,
         config: LoopConfig | None = None,
         *,
+        vocabulary: Vocabulary | None = None,
         via_backend: bool = True,
         background: bool = True,
     ) -> None:
         self.config = config if config is not None else LoopConfig()
-        self.closer = LoopCloser(calibration, self.config)
+        self.closer = LoopCloser(calibration, self.config, vocabulary)
+        self._vocabulary = vocabulary  # the detection worker's too
         self.keyframes: dict[int, Keyframe] = {}
         self.events: list[dict[str, Any]] = []
         self.rejected: list[dict[str, Any]] = []
@@ -196,9 +201,11 @@ class LoopClosingStage:
         self._resume_record: dict[str, Any] | None = None
 
     @classmethod
-    def from_config(cls, config: LoopConfig, calibration: StereoCalibration) -> LoopClosingStage:
+    def from_config(
+        cls, config: LoopConfig, calibration: StereoCalibration, vocabulary: Vocabulary | None = None
+    ) -> LoopClosingStage:
         """The pipeline's stage: loops go to the back end as constraints."""
-        return cls(calibration, config, via_backend=True)
+        return cls(calibration, config, vocabulary=vocabulary, via_backend=True)
 
     # ------------------------------------------------------------------ keyframes
     def on_keyframe(self, keyframe: Keyframe, state: MapState) -> LoopOutcome:
@@ -242,7 +249,7 @@ class LoopClosingStage:
                     1,
                     mp_context=mp.get_context("spawn"),
                     initializer=_worker_start,
-                    initargs=(self.closer.calibration, self.config),
+                    initargs=(self.closer.calibration, self.config, self._vocabulary),
                 )
             else:
                 self._detect_pool = ThreadPoolExecutor(1, thread_name_prefix="loop-detect")

@@ -8,33 +8,28 @@ words. A descriptor is quantised by descending from the root to the nearest chil
 level (Hamming distance for binary descriptors, Euclidean for float ones). A bag of words
 is the L1-normalised vector of term frequency times inverse document frequency; two bags
 are compared with the L1 score ``1 - |v1 - v2|_1 / 2`` (the sum of element-wise minima).
-The vocabulary is loaded from ``.npz``: a pre-trained one per descriptor kind ships as
-package data (``loopmodel/data/vocabulary_<kind>.npz``, written by
-``loopmodel loop vocabulary``, :func:`train_from_images`); training on the fly from the
+A vocabulary is a value: :mod:`loopmodel.io.vocabulary_file` reads and writes its ``.npz`` (a
+pre-trained one per descriptor kind ships as package data, ``loopmodel/data/vocabulary_<kind>.npz``,
+written by ``loopmodel loop vocabulary``, :func:`train_from_images`); training on the fly from the
 descriptors at hand is an option.
 """
 
 from __future__ import annotations
 
-import functools
 import logging
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from loopmodel.errors import FormatError, InputError
+from loopmodel.errors import InputError
 
 logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
-
-#: Package data folder holding the shipped vocabularies (``vocabulary_<kind>.npz``).
-DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 
 
 def hamming_to(desc: NDArray[np.uint8], centers: NDArray[np.uint8]) -> NDArray[np.int64]:
@@ -252,21 +247,17 @@ class Vocabulary:
         }
 
     @classmethod
-    def load(cls, path: str | Path) -> Vocabulary:
-        """Read a vocabulary file (written by :func:`loopmodel.io.vocabulary_file.save_vocabulary`)."""
-        p = Path(path)
-        if not p.is_file():
-            raise InputError(p, "vocabulary file does not exist")
-        try:
-            z = np.load(p)
-            info = (
-                dict(zip(z["info_keys"].tolist(), z["info_values"].tolist(), strict=True))
-                if "info_keys" in z.files
-                else {}
-            )
-            return cls(z["centers"], z["children"], z["word"], z["idf"], bool(z["binary"]), info)
-        except (KeyError, ValueError, OSError) as exc:
-            raise FormatError(p, f"not a loopmodel vocabulary ({exc})") from None
+    def from_arrays(cls, arrays: Mapping[str, NDArray[Any]]) -> Vocabulary:
+        """The vocabulary of :meth:`arrays`' output (read by :func:`loopmodel.io.vocabulary_file.read_vocabulary`).
+
+        Raises ``KeyError`` / ``ValueError`` when an array is missing or malformed.
+        """
+        info = (
+            dict(zip(arrays["info_keys"].tolist(), arrays["info_values"].tolist(), strict=True))
+            if "info_keys" in arrays
+            else {}
+        )
+        return cls(arrays["centers"], arrays["children"], arrays["word"], arrays["idf"], bool(arrays["binary"]), info)
 
 
 def bow_score(a: tuple[I64, F64], b: tuple[I64, F64]) -> float:
@@ -275,27 +266,6 @@ def bow_score(a: tuple[I64, F64], b: tuple[I64, F64]) -> float:
     if common.size == 0:
         return 0.0
     return float(np.minimum(a[1][ia], b[1][ib]).sum())
-
-
-def shipped_path(kind: str) -> Path:
-    """Path of the vocabulary shipped for a descriptor kind (may not exist)."""
-    return DATA_DIR / f"vocabulary_{kind.lower()}.npz"
-
-
-@functools.lru_cache(maxsize=8)
-def _load_cached(path: str, mtime_ns: int) -> Vocabulary:
-    return Vocabulary.load(path)
-
-
-def shipped_vocabulary(kind: str) -> Vocabulary | None:
-    """The pre-trained vocabulary shipped for ``kind`` (``orb``, ``sift``, ``surf``).
-
-    None when the package has none for it (cached; do not modify the result).
-    """
-    p = shipped_path(kind)
-    if not p.is_file():
-        return None
-    return _load_cached(str(p), p.stat().st_mtime_ns)
 
 
 def train_from_images(

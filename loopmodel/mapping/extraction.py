@@ -428,19 +428,18 @@ class StripeExtractor:
 
     Stripe messages pass as they are; laser-line images of the left camera (intrinsics and, when
     unrectified, distortion of ``calibration``) are triangulated with the configured light plane,
-    and profiles without points dropped.
+    and profiles without points dropped. A value (pickled whole into the extraction worker process,
+    :class:`~loopmodel.mapping.stripe_feed.ExtractionWorker`).
     """
 
     def __init__(self, calibration: StereoCalibration, config: MappingConfig | None = None) -> None:
         self.config = config or MappingConfig()
         self._K = calibration.K_left
         self._dist = None if calibration.rectified else calibration.dist_left
-        self._plane: LightPlane | None = None
+        self._plane = LightPlane.from_config(self.config)
 
     def from_image(self, timestamp_ns: int, image: NDArray[np.uint8]) -> StripeProfile:
         """The profile of one laser-line image (possibly without points)."""
-        if self._plane is None:
-            self._plane = LightPlane.from_config(self.config)
         return stripe_from_image(image, timestamp_ns, self._K, self._plane, self.config, self._dist)
 
     def profiles(self, scan: ScanFrame) -> list[StripeProfile]:

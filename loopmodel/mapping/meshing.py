@@ -60,11 +60,12 @@ def oriented_cloud(points_w: F64, sensors_w: F64, config: MappingConfig) -> o3d.
 
 
 def poisson_depth(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> int:
-    """Octree depth whose finest cell is closest to ``voxel_m`` (or the configured depth)."""
+    """Octree depth whose finest cell is closest to ``poisson_cell_voxels`` x ``voxel_m`` (or the configured depth)."""
     if config.poisson_depth > 0:
         return config.poisson_depth
     ext = float(np.max(cloud.get_max_bound() - cloud.get_min_bound()))
-    depth = round(math.log2(max(ext * config.poisson_scale / config.voxel_m, 2.0)))
+    cell_m = config.poisson_cell_voxels * config.voxel_m
+    depth = round(math.log2(max(ext * config.poisson_scale / cell_m, 2.0)))
     return int(min(max(depth, 5), config.poisson_max_depth))
 
 
@@ -145,9 +146,12 @@ BlockKey = tuple[int, int, int]
 def live_mesh_config(config: MappingConfig) -> MappingConfig:
     """The settings of live-mesh updates.
 
-    ``live_voxel_m`` resolution, one Poisson thread (the other core keeps tracking).
+    ``live_voxel_m`` resolution with octree cells of that size (``poisson_cell_voxels`` 1: the
+    final mesh's coarser cells are not the live mesh's), one Poisson thread (the other core keeps
+    tracking).
     """
-    return config.model_copy(update={"voxel_m": config.live_voxel_m, "poisson_threads": 1})
+    update = {"voxel_m": config.live_voxel_m, "poisson_threads": 1, "poisson_cell_voxels": 1.0}
+    return config.model_copy(update=update)
 
 
 def mesh_blocks(

@@ -12,32 +12,27 @@ import multiprocessing as mp
 import signal
 from typing import Any
 
-from loopmodel.config import MappingConfig
+from loopmodel.mapping.extraction import StripeExtractor
 from loopmodel.types import StripeProfile
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["ExtractionWorker"]
 
-# images in, profiles out
-_EXTRACT: tuple[Any, ...] | None = None
+# the worker process's extractor (the run's, a copy): images in, profiles out
+_EXTRACTOR: StripeExtractor | None = None
 
 
-def _extract_start(K: Any, dist: Any, config: MappingConfig) -> None:
-    """The extraction process: its light plane and camera, Ctrl-C left to the run."""
-    global _EXTRACT
+def _extract_start(extractor: StripeExtractor) -> None:
+    """The extraction process: the run's extractor (camera, light plane), Ctrl-C left to the run."""
+    global _EXTRACTOR
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    from loopmodel.mapping.extraction import LightPlane
-
-    _EXTRACT = (K, dist, LightPlane.from_config(config), config)
+    _EXTRACTOR = extractor
 
 
 def _extract(timestamp_ns: int, image: Any) -> StripeProfile:
-    from loopmodel.mapping.extraction import stripe_from_image
-
-    assert _EXTRACT is not None
-    K, dist, plane, config = _EXTRACT
-    return stripe_from_image(image, timestamp_ns, K, plane, config, dist)
+    assert _EXTRACTOR is not None
+    return _EXTRACTOR.from_image(timestamp_ns, image)
 
 
 class ExtractionWorker:
@@ -45,15 +40,15 @@ class ExtractionWorker:
 
     For a run whose reader delivers each frame's laser images: :meth:`submit` never waits,
     :meth:`ready` returns the profiles finished so far in submission order (empty profiles dropped),
-    :meth:`wait` all of them (the end of a run). The left camera's ``K`` and distortion ``dist``
-    (None when rectified) and ``config``'s light plane are the worker's.
+    :meth:`wait` all of them (the end of a run). ``extractor`` (the run's: left camera, light plane)
+    is copied into the worker.
     """
 
-    def __init__(self, K: Any, dist: Any, config: MappingConfig) -> None:
+    def __init__(self, extractor: StripeExtractor) -> None:
         from concurrent.futures import ProcessPoolExecutor
 
         self._pool = ProcessPoolExecutor(
-            1, mp_context=mp.get_context("spawn"), initializer=_extract_start, initargs=(K, dist, config)
+            1, mp_context=mp.get_context("spawn"), initializer=_extract_start, initargs=(extractor,)
         )
         self._pool.submit(int, 0)  # start it now: its imports overlap the first frames
         self._jobs: list[Any] = []

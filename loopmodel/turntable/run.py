@@ -81,7 +81,8 @@ def scan_turntable(
     A candidate laser plane is taken when its table-plane residual is within ``plane_gate_mm`` (else
     the plane is self-calibrated).
     """
-    cfg = config or MappingConfig()
+    # octree cells of one voxel, as before issue 32 (the coarser default was measured on hand-held scans only)
+    cfg = config or MappingConfig(poisson_cell_voxels=1.0)
     detector = make_detector(scan.markers.dictionary)
     n = len(scan)
     dets = []
