@@ -24,7 +24,7 @@ from loopmodel.cli.summary import frontend_summary, run_summary_rows
 from loopmodel.cli.view import RerunConnectOption, RerunFileOption, RerunSpawnOption, rerun_listeners
 from loopmodel.config import Config, apply_overrides, load_config
 from loopmodel.display import Formatter, describe_rows, key_values, num
-from loopmodel.errors import InputError
+from loopmodel.errors import InputError, LoopmodelError
 
 if TYPE_CHECKING:
     from loopmodel.loop.session_map import SessionMap
@@ -382,10 +382,10 @@ def mesh(
     """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run), or of a (merged) map."""
     import numpy as np
 
+    from loopmodel.geometry.se3 import up_from_poses
     from loopmodel.io.laser import load_stripes_and_poses
     from loopmodel.io.mesh_io import MESH_FORMATS, read_mesh, write_mesh
     from loopmodel.mapping.stripe_map import StripeMap
-    from loopmodel.viz.mesh_render import CAMERA_UP
 
     picture = plots if picture is None else picture
     if fmt not in MESH_FORMATS:
@@ -401,7 +401,7 @@ def mesh(
         surface = read_mesh(run_mesh)
         write_mesh(target, surface, fmt)
         console.print(f"wrote {target} ({num(len(surface.vertices))} vertices, converted from {run_mesh})")
-        _mesh_picture(target, surface, None, picture, overwrite, CAMERA_UP)
+        _mesh_picture(target, surface, None, picture, overwrite, _run_up(source))
         return
     if (source / "map.json").is_file():  # a saved (merged) session map: its stripes at their anchors
         from loopmodel.io.map_file import load_session_map
@@ -414,7 +414,7 @@ def mesh(
             raise InputError(source, "the map holds no laser stripes to mesh")
         sessions = len(set(session_map.session.tolist()))
         placed, poses = f"{len(map_stripes)} stripes", f"map keyframes of {sessions} sessions"
-        camera_world = True
+        camera_world, path_poses = True, map_poses
     else:
         stripes, traj, poses = load_stripes_and_poses(source, trajectory, cfg.sequence, cfg.mapping)
         smap = StripeMap.from_trajectory(traj, stripes, cfg.mapping)
@@ -422,6 +422,7 @@ def mesh(
         surface = smap.mesh()
         placed = f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes"
         camera_world = poses != "ground truth" or bool(np.allclose(traj.world_from_cam[0], np.eye(4), atol=1e-6))
+        path_poses = traj.world_from_cam
     write_mesh(target, surface, fmt)
     console.print(
         f"wrote {target} ({len(surface.vertices)} vertices, {len(surface.triangles)} triangles, "
@@ -436,15 +437,28 @@ def mesh(
             f"accuracy: mean {acc.mean_mm:.3f} mm, p95 {acc.p95_mm:.3f} mm, "
             f"completeness {100 * acc.completeness:.1f} % within {acc.completeness_tol_mm:g} mm"
         )
-    # a run or a map is in its first camera's world (y down), as is ground truth starting at the
-    # identity (KITTI); other ground truth (simulator, motion capture) is z up
-    up = CAMERA_UP if camera_world else (0.0, 0.0, 1.0)
+    # a run or a map is in its first camera's world (y down, no gravity: up from the path's principal
+    # axes), as is ground truth starting at the identity (KITTI); other ground truth (simulator,
+    # motion capture) is z up
+    up = up_from_poses(path_poses) if camera_world else np.array([0.0, 0.0, 1.0])
     _mesh_picture(target, surface, truth, picture, overwrite, up)
 
 
-def _mesh_picture(
-    target: Path, surface: Any, truth: Any, picture: bool, overwrite: bool, up: tuple[float, float, float]
-) -> None:
+def _run_up(run_path: Path) -> Any:
+    """Up in a run's world (its first camera's) from its path's principal axes; the first camera's -y without one."""
+    from loopmodel.geometry.se3 import Y_DOWN_UP, up_from_poses
+    from loopmodel.io.trajectory_io import read_trajectory
+
+    for name in ("trajectory_final.tum", "trajectory_online.tum"):
+        if (run_path / name).is_file():
+            try:
+                return up_from_poses(read_trajectory(run_path / name).world_from_cam)
+            except LoopmodelError:  # the mesh is the product; its picture is upright or not
+                break
+    return Y_DOWN_UP
+
+
+def _mesh_picture(target: Path, surface: Any, truth: Any, picture: bool, overwrite: bool, up: Any) -> None:
     """The PNG beside an exported mesh; an existing one (of the same mesh, another format) is kept."""
     if not picture:
         return
