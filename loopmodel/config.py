@@ -56,7 +56,10 @@ class OutputConfig(_Section):
     """Where and what a run writes."""
 
     out_dir: str = "results"
-    write_kitti: bool = False
+    write_kitti: bool | None = Field(
+        None,
+        description="also write trajectory_*.kitti (KITTI poses.txt rows); null: when the input is a KITTI folder",
+    )
     write_map: bool = Field(True, description="write the session map map/ (issue 20: localize, extend, merge)")
 
 

@@ -26,7 +26,8 @@ class MeshExport:
     ``placed``: what was meshed (``"S/T stripes"``; empty when converted), ``poses``: which poses
     placed them (``"final"``, ``"ground truth"``, ``"map keyframes of N sessions"``, ...),
     ``converted_from``: the run's own mesh file when it was converted, not re-meshed;
-    ``camera_world``: whether the world is a first camera's (y down) rather than z up.
+    ``camera_world``: whether the world is a first camera's (y down) rather than z up;
+    ``path_poses``: the ``world_from_cam`` (N, 4, 4) that placed the stripes (None when converted).
     """
 
     surface: Any
@@ -35,6 +36,7 @@ class MeshExport:
     poses: str = ""
     converted_from: Path | None = None
     camera_world: bool = True
+    path_poses: np.ndarray | None = None
 
 
 def export_mesh(
@@ -77,7 +79,8 @@ def export_mesh(
             raise InputError(src, "the map holds no laser stripes to mesh")
         sessions = len(set(session_map.session.tolist()))
         write_mesh(out, surface, fmt)
-        return MeshExport(surface, out, f"{len(map_stripes)} stripes", f"map keyframes of {sessions} sessions")
+        placed = f"{len(map_stripes)} stripes"
+        return MeshExport(surface, out, placed, f"map keyframes of {sessions} sessions", path_poses=map_poses)
     stripes, traj, poses = load_stripes_and_poses(src, trajectory, cfg.sequence, cfg.mapping)
     smap = StripeMap.from_trajectory(traj, stripes, cfg.mapping)
     smap.check_nonempty()
@@ -85,5 +88,11 @@ def export_mesh(
     write_mesh(out, surface, fmt)
     camera_world = poses != "ground truth" or bool(np.allclose(traj.world_from_cam[0], np.eye(4), atol=1e-6))
     return MeshExport(
-        surface, out, f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes", poses, None, camera_world
+        surface,
+        out,
+        f"{int(smap.placed_mask.sum())}/{smap.stripe_count} stripes",
+        poses,
+        None,
+        camera_world,
+        traj.world_from_cam,
     )

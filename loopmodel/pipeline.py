@@ -764,7 +764,7 @@ def _process_and_write(
         write_s: dict[str, float] = {}
         with timed_step("write", write_s, finishing):
             result.log = log.text()
-            result.folder = write_results(folder, result)
+            result.folder = write_results(folder, result, kitti_input=sequence.format_name == "kitti")
     return result
 
 

@@ -118,6 +118,24 @@ def test_failing_task_recorded_others_finish(first_batch):
         assert json.loads((out / "failed" / f"{r['task']}.json").read_text())["error"] == r["error"]
 
 
+def test_status_of_a_finished_batch_lists_its_tasks(first_batch, capsys):
+    """``batch status`` on a finished batch: a row per task and the counts (it printed an empty table; issue 35)."""
+    import re
+
+    from loopmodel.cli import main
+
+    _, out, _, _ = first_batch
+    capsys.readouterr()
+    assert main(["batch", "status", str(out)]) == 0  # the failed tasks (to run again) and the counts
+    text = capsys.readouterr().out
+    assert "4 done, 0 running, 2 failed, 0 pending" in text
+    assert len(re.findall(r"\bfailed\b", text)) == 3 and "bad" in text  # two rows and the counts
+    assert main(["batch", "status", str(out), "--all"]) == 0  # every task
+    text = capsys.readouterr().out
+    assert len(re.findall(r"\bdone\b", text)) == 5 and len(re.findall(r"\bfailed\b", text)) == 3
+    assert "tiny6" in text
+
+
 def test_rerun_skips_every_finished_task(first_batch):
     plan, out, outcome, _ = first_batch
     stamps = {p.name: (p / "task.json").stat().st_mtime_ns for p in (out / "tasks").iterdir()}

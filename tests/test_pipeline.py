@@ -94,6 +94,16 @@ def test_results_folder_complete_and_readable(sequence_dir: Path, tmp_path: Path
     # the final trajectory is the online one with keyframes moved by the back end:
     # frame poses relative to their keyframe are unchanged
     assert "pipeline on" in (out / "run.log").read_text()
+    # a KITTI folder's run writes KITTI poses (poses.txt rows) beside the TUM files without being
+    # asked (issue 35 item 12): one 3x4 row per image, the TUM poses, the first exactly the identity
+    for which, tum in (("final", final), ("online", online)):
+        rows = (out / f"trajectory_{which}.kitti").read_text().splitlines()
+        assert len(rows) == N_FRAMES and all(len(r.split()) == 12 for r in rows)
+        assert rows[0] == "1.0 0.0 0.0 0.0 0.0 1.0 0.0 0.0 0.0 0.0 1.0 0.0"
+        back = np.loadtxt(out / f"trajectory_{which}.kitti").reshape(-1, 3, 4)
+        assert np.allclose(back, tum.world_from_cam[:, :3, :], atol=1e-12)  # TUM's quaternions: 1e-16 apart
+    first = (out / "trajectory_final.tum").read_text().splitlines()[1].split()
+    assert first[1:] == ["0.0"] * 6 + ["1.0"]  # the world's origin, not 2.11e-23
 
 
 def test_interrupted_by_signal_still_writes_everything(sequence_dir: Path, tmp_path: Path) -> None:

@@ -166,6 +166,48 @@ def test_mesh_views_stand_upright_about_the_given_up(up: tuple[float, float, flo
         assert float((eye - verts.mean(axis=0)) @ u) > 0  # seen from above
 
 
+def test_picture_of_a_scanned_cone_stands_upright_in_the_runs_world() -> None:
+    """A known mesh in a run's world is pictured upright (issue 35 item 7).
+
+    A cone (apex up) scanned by an orbit looking 30 degrees down; the run's world is the first
+    camera's. The picture's up comes from the orbit's principal axes: the cone's axis points up in
+    every view and its pixels lie mostly in the lower half of its outline.
+    """
+    import open3d as o3d
+
+    from loopmodel.geometry.se3 import invert_pose, look_at, up_from_poses
+    from loopmodel.viz.mesh_render import View, fixed_views, render_mesh
+
+    el = np.radians(30.0)
+    az = np.radians(np.arange(0, 360, 15))
+    eyes = 0.5 * np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.full(len(az), np.sin(el))])
+    orbit = np.array([look_at(eye, [0.0, 0.0, 0.08], [0.0, 0.0, 1.0]) for eye in eyes])
+    run_from_world = invert_pose(orbit[0])  # the run's world is its first camera
+    cone = o3d.geometry.TriangleMesh.create_cone(radius=0.08, height=0.16, resolution=48)  # base z=0, apex z=0.16
+    v = np.asarray(cone.vertices) @ run_from_world[:3, :3].T + run_from_world[:3, 3]
+    t = np.asarray(cone.triangles)
+    apex, base = v[np.argmax(np.asarray(cone.vertices)[:, 2])], run_from_world[:3, 3]
+
+    def axis_tilt_deg(view: View) -> float:  # the cone's axis (base to apex) in the picture, from the image's up
+        uv = [view.K @ (view.cam_from_world[:3, :3] @ p + view.cam_from_world[:3, 3]) for p in (apex, base)]
+        d = uv[0][:2] / uv[0][2] - uv[1][:2] / uv[1][2]
+        return float(np.degrees(np.arctan2(abs(d[0]), -d[1])))
+
+    up = up_from_poses(run_from_world[None] @ orbit)
+    # the first camera's -y, the former up: the cone leans by 11-26 degrees (measured)
+    assert max(axis_tilt_deg(old) for old in fixed_views(v, 3, up=(0.0, -1.0, 0.0))) > 20
+    for view in fixed_views(v, 3, up=up):
+        # measured 2.1 in each view: perspective (the axis is off the view's centre), 0.0 at its centre
+        assert axis_tilt_deg(view) < 3.0
+        _, mask = render_mesh(v, t, view)
+        ys, xs = np.nonzero(mask)
+        top, bottom = ys.min(), ys.max()
+        # a cone seen from above its base: most of its pixels in the lower half of its outline
+        assert (ys < (top + bottom) / 2).mean() < 0.35  # measured 0.28-0.29
+        # the apex is the topmost pixel, above the silhouette's centre (measured 0.7-1.5 % of the width)
+        assert abs(xs[ys == top].mean() - xs.mean()) < 0.025 * mask.shape[1]
+
+
 def test_ground_truth_in_the_runs_world_follows_the_run(tiny_run: Path, tmp_path: Path) -> None:
     """The logged ground truth starts at the run's origin and lies along its final path (and in ``view``)."""
     from loopmodel.io.sequence import open_sequence

@@ -24,7 +24,7 @@ from loopmodel.cli.summary import frontend_summary, run_summary_rows
 from loopmodel.cli.view import RerunConnectOption, RerunFileOption, RerunSpawnOption, rerun_listeners
 from loopmodel.config import Config, apply_overrides, load_config
 from loopmodel.display import Formatter, describe_rows, key_values, num
-from loopmodel.errors import InputError
+from loopmodel.errors import InputError, LoopmodelError
 
 if TYPE_CHECKING:
     from loopmodel.loop.session_map import SessionMap
@@ -380,10 +380,12 @@ def mesh(
     overwrite: OverwriteOption = False,
 ) -> None:
     """Mesh the laser stripes of a run with its trajectory (metres, world frame of the run), or of a (merged) map."""
+    import numpy as np
+
+    from loopmodel.geometry.se3 import up_from_poses
     from loopmodel.io.atomic import check_output_file
     from loopmodel.io.mesh_io import read_mesh
     from loopmodel.meshes import export_mesh
-    from loopmodel.viz.mesh_render import CAMERA_UP
 
     picture = plots if picture is None else picture
     cfg = load_config(config)
@@ -393,7 +395,7 @@ def mesh(
     surface = made.surface
     if made.converted_from is not None:
         console.print(f"wrote {target} ({num(len(surface.vertices))} vertices, converted from {made.converted_from})")
-        _mesh_picture(target, surface, None, picture, overwrite, CAMERA_UP)
+        _mesh_picture(target, surface, None, picture, overwrite, _run_up(source))
         return
     console.print(
         f"wrote {target} ({len(surface.vertices)} vertices, {len(surface.triangles)} triangles, "
@@ -408,15 +410,32 @@ def mesh(
             f"accuracy: mean {acc.mean_mm:.3f} mm, p95 {acc.p95_mm:.3f} mm, "
             f"completeness {100 * acc.completeness:.1f} % within {acc.completeness_tol_mm:g} mm"
         )
-    # a run or a map is in its first camera's world (y down), as is ground truth starting at the
-    # identity (KITTI); other ground truth (simulator, motion capture) is z up
-    up = CAMERA_UP if made.camera_world else (0.0, 0.0, 1.0)
+    # a run or a map is in its first camera's world (y down, no gravity: up from the path's principal
+    # axes), as is ground truth starting at the identity (KITTI); other ground truth (simulator,
+    # motion capture) is z up
+    up = (
+        up_from_poses(made.path_poses)
+        if made.camera_world and made.path_poses is not None
+        else np.array([0.0, 0.0, 1.0])
+    )
     _mesh_picture(target, surface, truth, picture, overwrite, up)
 
 
-def _mesh_picture(
-    target: Path, surface: Any, truth: Any, picture: bool, overwrite: bool, up: tuple[float, float, float]
-) -> None:
+def _run_up(run_path: Path) -> Any:
+    """Up in a run's world (its first camera's) from its path's principal axes; the first camera's -y without one."""
+    from loopmodel.geometry.se3 import Y_DOWN_UP, up_from_poses
+    from loopmodel.io.trajectory_io import read_trajectory
+
+    for name in ("trajectory_final.tum", "trajectory_online.tum"):
+        if (run_path / name).is_file():
+            try:
+                return up_from_poses(read_trajectory(run_path / name).world_from_cam)
+            except LoopmodelError:  # the mesh is the product; its picture is upright or not
+                break
+    return Y_DOWN_UP
+
+
+def _mesh_picture(target: Path, surface: Any, truth: Any, picture: bool, overwrite: bool, up: Any) -> None:
     """The PNG beside an exported mesh; an existing one (of the same mesh, another format) is kept."""
     if not picture:
         return

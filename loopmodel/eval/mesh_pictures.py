@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from loopmodel.errors import LoopmodelError
 from loopmodel.eval.trajectory_metrics import Alignment
@@ -37,11 +38,15 @@ def mesh_before_after_png(
     final: Trajectory,
     final_alignment: Alignment,
     gt_source: str | None,
+    up: ArrayLike = (0.0, 0.0, 1.0),
 ) -> bytes | None:
-    """The before/after mesh picture of the run at ``run_path``.
+    """The before/after mesh picture of the run at ``run_path``, seen from around ``up`` (truth's world).
 
-    None when it has no stripes (or they do not mesh).
+    ``up``: :func:`~loopmodel.geometry.se3.world_up` of the truth (z for a simulator's, the principal
+    axes of a camera-frame truth such as KITTI's). None when the run has no stripes (or they do
+    not mesh).
     """
+
     from loopmodel.config import load_config
     from loopmodel.io.stripes_io import load_stripes
     from loopmodel.mapping.accuracy import SurfaceDistance
@@ -86,7 +91,7 @@ def mesh_before_after_png(
                 panels.append((f"{title}: mean {1e3 * d.mean():.2f} mm", v, t, distance_colors(d, scale_mm * 1e-3)))
         else:
             panels = [(title, v, t, None) for title, v, t in meshes]  # shaded grey
-        return before_after_png(panels, colorbar_mm=scale_mm)
+        return before_after_png(panels, colorbar_mm=scale_mm, up=up)
     except LoopmodelError as exc:
         logger.warning("no mesh pictures: %s", exc)
         return None

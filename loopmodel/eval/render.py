@@ -122,6 +122,7 @@ def make_plots(ev: RunEvaluation) -> dict[str, bytes]:
     }
     if ev.run.path is not None and ev.run.final is not None:
         from loopmodel.eval.mesh_pictures import PLOT_MESH, mesh_before_after_png
+        from loopmodel.geometry.se3 import world_up
 
         on = ev.pairs.get("online")
         png = mesh_before_after_png(
@@ -131,6 +132,7 @@ def make_plots(ev: RunEvaluation) -> dict[str, bytes]:
             ev.run.final.traj,
             ev.pairs["final"].alignment,
             ev.gt.source,
+            world_up(gt.world_from_cam),
         )
         if png is not None:
             out[PLOT_MESH] = png

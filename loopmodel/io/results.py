@@ -144,12 +144,13 @@ def _free_name(path: Path) -> Path:
     return candidate
 
 
-def write_results(folder: ResultsFolder, run: RunResult) -> Path:
+def write_results(folder: ResultsFolder, run: RunResult, kitti_input: bool = False) -> Path:
     """Write a run into ``folder``, the small files first.
 
     ``config.yaml`` (the pipeline's configuration), ``trajectory_online.tum``,
     ``trajectory_final.tum``, ``keyframes.tum``, ``trajectory_in_map.tum`` (frames localized in a
-    base map), KITTI variants of the first two (when ``output.write_kitti``), ``map.npz``,
+    base map), KITTI variants of the first two (``poses.txt`` rows: when ``output.write_kitti``,
+    or when it is unset and ``kitti_input``: the sequence is a KITTI folder), ``map.npz``,
     ``calibration_refined.yaml`` (with ``calibration.refine``),
     ``metrics.json``, ``run.log``, then ``stripes.npz`` (when the run has laser profiles), the
     session map folder ``map/`` (when made), ``mesh.ply`` and ``mesh_live.ply`` (when made). Returns the folder's path.
@@ -165,9 +166,15 @@ def write_results(folder: ResultsFolder, run: RunResult) -> Path:
         folder.write_trajectory("keyframes.tum", run.keyframes)
         if run.localized is not None:
             folder.write_trajectory("trajectory_in_map.tum", run.localized)
-        if run.config.output.write_kitti:
+        write_kitti = run.config.output.write_kitti
+        if write_kitti or (write_kitti is None and kitti_input):
             folder.write_trajectory("trajectory_online.kitti", run.online, "kitti")
             folder.write_trajectory("trajectory_final.kitti", run.final, "kitti")
+            if len(run.final) != len(run.frames):  # KITTI rows carry no times: say they are not one per image
+                logging.getLogger(__name__).warning(
+                    "trajectory_final.kitti: %d rows for %d frames (untracked frames have none; "
+                    "trajectory_final.tum has the times)", len(run.final), len(run.frames)
+                )
         folder.write_npz("map.npz", run.map_arrays())
         if run.calibration_refined is not None:  # issue 31: calibration.refine
             from loopmodel.io.calib_files import refined_calibration_yaml

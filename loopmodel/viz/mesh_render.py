@@ -18,7 +18,7 @@ import io
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from loopmodel.geometry.se3 import invert_pose, look_at
 
@@ -42,23 +42,19 @@ class View:
     height_px: int
 
 
-#: "Up" in a run's world, its first left camera (x right, y down, z forward): a hand-held scan
-#: starts roughly level, so -y is up there (the mesh no longer lies on its side; issue 35).
-CAMERA_UP = (0.0, -1.0, 0.0)
-
-
 def fixed_views(
     vertices: F64,
     n_views: int = 3,
     elevation_deg: float = 30.0,
     width_px: int = 480,
     height_px: int = 400,
-    up: tuple[float, float, float] = (0.0, 0.0, 1.0),
+    up: ArrayLike = (0.0, 0.0, 1.0),
 ) -> list[View]:
     """``n_views`` cameras around the mesh's bounding sphere, the whole mesh in view.
 
-    At equal azimuth steps about ``up`` (world frame; z for a z-up world, :data:`CAMERA_UP` for a
-    run's world), looking at its centre from ``elevation_deg`` above the plane normal to ``up``.
+    At equal azimuth steps about ``up`` (world frame; z for a z-up world, from the camera path's
+    principal axes for a run's world: :func:`loopmodel.geometry.se3.world_up`), looking at its
+    centre from ``elevation_deg`` above the plane normal to ``up``.
     """
     u = np.asarray(up, float) / np.linalg.norm(up)
     a = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -157,7 +153,7 @@ def before_after_png(
     panels: list[Panel],
     n_views: int = 3,
     colorbar_mm: float | None = None,
-    up: tuple[float, float, float] = (0.0, 0.0, 1.0),
+    up: ArrayLike = (0.0, 0.0, 1.0),
 ) -> bytes:
     """One PNG.
 
@@ -199,7 +195,7 @@ def mesh_picture_png(
     title: str,
     gt_mesh: object | None = None,
     n_views: int = 3,
-    up: tuple[float, float, float] = (0.0, 0.0, 1.0),
+    up: ArrayLike = (0.0, 0.0, 1.0),
 ) -> bytes:
     """A picture of one open3d mesh from ``n_views`` fixed viewpoints around ``up`` (world frame).
 
