@@ -483,10 +483,17 @@ class RigRefinement:
     iterations: int
     rms_px_before: float
     rms_px_after: float
+    #: the model's posterior (independent pixel errors), the track-robust (sandwich) one and the
+    #: share of the held parameters (consider); with ``track_robust`` ``posterior_sigma`` is
+    #: ``sqrt(max(model, robust)^2 + consider^2)``, else the model's
+    posterior_sigma_model: F64 = field(default_factory=lambda: np.zeros(0))
+    posterior_sigma_robust: F64 = field(default_factory=lambda: np.zeros(0))
+    posterior_sigma_consider: F64 = field(default_factory=lambda: np.zeros(0))
 
-    def moved_sigma(self) -> dict[str, float]:
-        """How far each parameter moved from its recorded value, in units of its prior sigma."""
-        d = (self.values - self.recorded_values) / self.prior_sigma
+    def moved_sigma(self, posterior: bool = False) -> dict[str, float]:
+        """How far each parameter moved from its recorded value, in units of its prior (or posterior) sigma."""
+        s = np.where(self.estimated, self.posterior_sigma, self.prior_sigma) if posterior else self.prior_sigma
+        d = (self.values - self.recorded_values) / s
         return {name: float(v) for name, v in zip(PARAM_NAMES, d, strict=True)}
 
     def values_named(self, theta: F64 | None = None) -> dict[str, float]:
@@ -689,16 +696,63 @@ def _posterior_sigma(
     active: NDArray[np.bool_],
     sigma_px: float,
     huber_k: float,
-) -> F64:
-    """Posterior standard deviations of the active parameters (the reduced system's inverse)."""
-    H, _b, Hzl, V, _bl, _r, _c, _ = _normal_equations(obs, st, rig, prior_theta, prior_sigma, active, sigma_px, huber_k)
-    S, _ = _schur(H, Hzl, V, 0.0)
+    consider: NDArray[np.bool_] | None = None,
+) -> tuple[F64, F64, F64]:
+    """Posterior std. devs. of the active parameters: the model's, track-robust, and the held ones' variance.
+
+    The model's: the inverse of the reduced system (independent pixel errors of ``sigma_px``). The
+    track-robust one: the sandwich ``S^-1 (sum_l g_l g_l^T + prior + loops) S^-1`` with one cluster
+    per landmark (``g_l`` the whitened gradient of the poses and parameters from the landmark's
+    observations), which admits any correlation of a track's errors (KLT follows a feature from
+    frame to frame: its errors in successive keyframes are not independent), scaled by the
+    redundancy ``n / (n - unknowns)``. The variance the held (``consider``) parameters add
+    (Schmidt's consider covariance): held at a wrong recorded value, their error goes into the
+    estimated ones by ``-S^-1 S_h``, so ``(X^T S_h) diag(sigma_h^2) (X^T S_h)^T`` joins.
+    """
     nc = int(active.sum())
+    if nc == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0)
+    held = np.zeros_like(active) if consider is None else (np.asarray(consider, bool) & ~active)
+    both = active | held
+    H, _b, Hzl, V, _bl, _r, _c, _ = _normal_equations(obs, st, rig, prior_theta, prior_sigma, both, sigma_px, huber_k)
+    S_all, _ = _schur(H, Hzl, V, 0.0)
+    npz0 = S_all.shape[0] - int(both.sum())
+    keep = np.concatenate([np.ones(npz0, bool), active[both]])
+    S = S_all[np.ix_(keep, keep)]
+    S_h = S_all[np.ix_(keep, ~keep)]
     N = S.shape[0]
     E = np.zeros((N, nc))
     E[N - nc :, :] = np.eye(nc)
-    cov = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), E)[N - nc :, :]
-    return np.sqrt(np.maximum(np.diag(cov), 0.0))
+    X = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), E)  # S^-1 E: N x nc
+    model = np.sqrt(np.maximum(np.diag(X[N - nc :, :]), 0.0))
+    # per-observation whitened gradients, projected on X, summed per landmark
+    r, Jp, _Jl, Jt = residuals_and_jacobians(obs, st.R, st.t, st.pts, rig, st.theta)
+    w = _huber_weights(np.linalg.norm(r, axis=1) / sigma_px, huber_k) / sigma_px**2
+    npz = N - nc
+    proj = np.einsum("nkc,cj->nkj", Jt[:, :, active], X[npz:, :])  # N_obs x 2 x nc
+    pm = obs.pose_idx > 0
+    if npz:
+        Xp = X[:npz, :].reshape(-1, 6, nc)
+        proj[pm] += np.einsum("nki,nij->nkj", Jp[pm], Xp[obs.pose_idx[pm] - 1])
+    score = np.einsum("nkj,nk->nj", proj, w[:, None] * r)  # each observation's share of X^T g
+    per_lm = np.zeros((st.pts.shape[0], nc))
+    np.add.at(per_lm, obs.point_idx, score)
+    meat = per_lm.T @ per_lm
+    Xc = X[npz:, :]
+    ps = prior_sigma[active]
+    meat += Xc.T @ (Xc / ps[:, None] ** 2)  # the prior, a measurement of its own
+    if obs.loops and npz:
+        HL, _g, _cL = loop_terms(st.R, st.t, obs)
+        Xp2 = X[:npz, :]
+        meat += Xp2.T @ HL[6:, 6:] @ Xp2
+    n_res = obs.residual_count
+    unknowns = npz + 3 * st.pts.shape[0] + nc
+    if n_res > unknowns:
+        meat *= n_res / (n_res - unknowns)
+    robust = np.sqrt(np.maximum(np.diag(meat), 0.0))
+    Mh = X.T @ S_h  # nc x held
+    consider_var = np.sum(Mh**2 * (prior_sigma[held] ** 2)[None, :], axis=1)
+    return model, robust, consider_var
 
 
 def robust_sigma_px(r: F64, unknowns: int, obs: RigObservations | None = None) -> float:
@@ -748,6 +802,8 @@ def refine_rig(
     observable_ratio: float = 0.9,
     huber_k: float = 1.345,
     max_iterations: int = 15,
+    track_robust: bool = True,
+    consider: NDArray[np.bool_] | None = None,
 ) -> tuple[F64, F64, RigRefinement]:
     """Bundle adjustment of poses, landmarks and the rig calibration; see the module docstring.
 
@@ -778,7 +834,7 @@ def refine_rig(
         u = unknowns + int(active.sum())
         sigma = max(huber_sigma_px(r, u, obs, huber_k, max(robust_sigma_px(r, u, obs), 1e-3)), 1e-3)
     post = np.array(prior_sigma, float).copy()
-    post[active] = _posterior_sigma(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k)
+    post[active], _, _ = _posterior_sigma(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k)
     weak = active & (post > observable_ratio * prior_sigma)
     blind = active & (post > HOLD_RATIO * prior_sigma)
     if np.any(blind):
@@ -790,9 +846,15 @@ def refine_rig(
         active = active & ~blind
         st, it = _solve(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k, max_iterations)
         iterations += it
-        post = np.array(prior_sigma, float).copy()
-        if np.any(active):
-            post[active] = _posterior_sigma(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k)
+    post = np.array(prior_sigma, float).copy()
+    robust = post.copy()
+    consider_var = np.zeros_like(post)
+    if np.any(active):
+        held = ~active if consider is None else np.asarray(consider, bool)  # default: every held parameter
+        post[active], robust[active], consider_var[active] = _posterior_sigma(
+            obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k, held if track_robust else None
+        )
+    honest = np.where(active, np.sqrt(np.maximum(post, robust) ** 2 + consider_var), post)
     r, *_ = residuals_and_jacobians(obs, st.R, st.t, st.pts, rig, st.theta)
     poses = np.tile(np.eye(4), (st.R.shape[0], 1, 1))
     poses[:, :3, :3], poses[:, :3, 3] = st.R, st.t
@@ -804,7 +866,10 @@ def refine_rig(
         recorded_values=prior_theta,
         values=st.theta.copy(),
         prior_sigma=np.asarray(prior_sigma, float),
-        posterior_sigma=post,
+        posterior_sigma=honest if track_robust else post,
+        posterior_sigma_model=post,
+        posterior_sigma_robust=robust,
+        posterior_sigma_consider=np.sqrt(consider_var),
         estimated=active,
         unobservable=[PARAM_NAMES[i] for i in np.flatnonzero(weak)],
         pixel_sigma_px=float(sigma),

@@ -144,6 +144,10 @@ class SelfCalibration:
             "calibration_refine": "final",
             "calibration_moved_sigma": moved,
             "calibration_moved_max_sigma": max(abs(v) for v in moved.values()),
+            # the move in units of the refined value's own (honest) posterior sigma
+            "calibration_moved_max_post_sigma": max(
+                abs(v["refined"] - v["recorded"]) / v["sigma"] for v in params.values() if v["sigma"] > 0
+            ),
             "calibration_unobservable": [k for k, v in params.items() if not v["observable"]],
             "calibration_parameters": params,
             "calibration_pixel_sigma_px": self.rig.pixel_sigma_px,
