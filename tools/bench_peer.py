@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -123,15 +124,19 @@ class _Sequence:
 
 
 def _run_ours(seq: _Sequence, peer: Path, tmp: Path, tag: str, frontend_only: bool = False) -> dict[str, Any]:
-    cmd = [sys.executable, str(peer / "ours_timing.py"), "run", str(seq.ours_input), "--out", str(tmp),
-           "--name", tag, "--overwrite"]
+    # through tools/peer_ours.py: the harness's script has no __main__ guard, and our spawned
+    # workers re-ran it and died
+    cmd = [sys.executable, str(ROOT / "tools" / "peer_ours.py"), str(peer), "run", str(seq.ours_input),
+           "--out", str(tmp), "--name", tag, "--overwrite"]
     if seq.config is not None:
         cmd += ["-c", str(seq.config)]
     if seq.max_frames:
         cmd += ["--max-frames", str(seq.max_frames)]
     if frontend_only:
         cmd.append("--frontend-only")
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     _check(cmd, f"ours on {seq.name}")
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     folder = tmp / tag
     m = json.loads((folder / "metrics.json").read_text())
     ms = np.asarray(m.get("frame_total_ms_all", []), dtype=float)
@@ -139,6 +144,11 @@ def _run_ours(seq: _Sequence, peer: Path, tmp: Path, tag: str, frontend_only: bo
         "frame_ms_mean": float(ms.mean()) if ms.size else None,
         "frame_ms_p95": float(np.percentile(ms, 95)) if ms.size else None,
         "cpu_ms_per_frame": m.get("cpu_ms_per_frame"),
+        # the harness counts the main process during the frames; this is every process of the run
+        # (back end, live mesh and extraction workers), start-up and finishing included
+        "cpu_ms_per_frame_all_processes": 1e3
+        * ((after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime))
+        / max(int(m.get("frames") or ms.size or 1), 1),
         "keyframes": m.get("keyframes"),
         "tum": folder / "trajectory_final.tum",
     }
@@ -239,6 +249,7 @@ def run(quick: bool = False) -> dict[str, Any]:
         for who in ("ours", "peer"):
             for k in KEYS + extra:
                 obj[f"{who}_{k}"] = _median(rows[s.name][who], k)
+        obj["ours_cpu_ms_per_frame_all_processes"] = _median(rows[s.name]["ours"], "cpu_ms_per_frame_all_processes")
         if rows[s.name]["fe"]:
             obj["ours_frontend_cpu_ms_per_frame"] = _median(rows[s.name]["fe"], "cpu_ms_per_frame")
             obj["ours_frontend_frame_ms_mean"] = _median(rows[s.name]["fe"], "frame_ms_mean")
