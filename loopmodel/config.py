@@ -282,6 +282,12 @@ class FrontendConfig(_Section):
     disparity_offset: Literal["none", "estimate"] = Field(
         "none", description="estimate a constant disparity offset in the local BA and correct new matches by it"
     )
+    # issue 33: at a keyframe the new set's detection and stereo matching (GIL-releasing numpy and
+    # OpenCV calls) run on a thread beside the outgoing set's closing (re-measurements, local BA) on
+    # the tracking thread; the same results either way (measured in CHANGELOG.md, issue 33)
+    keyframe_stereo: Literal["thread", "inline"] = Field(
+        "thread", description="a new keyframe's stereo matching: on a thread beside the local BA, or inline"
+    )
 
 
 class MappingConfig(_Section):
