@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.config import FrontendConfig
+from loopmodel.frontend.beside import Beside
 
 F64 = NDArray[np.float64]
 
@@ -339,6 +340,36 @@ def match_stereo(
     )
 
 
+def match_stereo_split(
+    left: NDArray[np.uint8],
+    right: NDArray[np.uint8],
+    uv_left: F64,
+    cfg: FrontendConfig,
+    min_disparity_px: float | None = None,
+    threads: int = 1,
+) -> StereoMatches:
+    """:func:`match_stereo` with the corners ``uv_left`` (N, 2) split over ``threads`` threads.
+
+    Every corner is matched on its own, so the matches are the same; the numpy and OpenCV calls
+    release the GIL on their large arrays, so the parts run on both cores (issue 33).
+    """
+    uv = np.asarray(uv_left, dtype=float).reshape(-1, 2)
+    parts = [p for p in np.array_split(np.arange(uv.shape[0]), max(threads, 1)) if p.size]
+    if len(parts) <= 1:
+        return match_stereo(left, right, uv, cfg, min_disparity_px)
+    beside = [Beside(True, match_stereo, left, right, uv[p], cfg, min_disparity_px) for p in parts[1:]]
+    done = [match_stereo(left, right, uv[parts[0]], cfg, min_disparity_px)] + [b.result() for b in beside]
+    return StereoMatches(
+        np.vstack([m.uv_left for m in done]),
+        np.concatenate([m.u_right for m in done]),
+        np.concatenate([m.v_right for m in done]),
+        np.concatenate([m.disparity for m in done]),
+        np.concatenate([m.score for m in done]),
+        np.concatenate([p[m.index] for p, m in zip(parts, done, strict=True)]),
+        np.concatenate([m.sigma_px for m in done]),
+    )
+
+
 def spread_subset(
     uv: F64,
     score: F64,
@@ -424,6 +455,7 @@ def keyframe_stereo_set(
     cfg: FrontendConfig,
     offset_px: float = 0.0,
     avoid_px: F64 | None = None,
+    threads: int = 1,
 ) -> StereoSet | None:
     """Detect, match and triangulate a keyframe's features in a rectified pair (``K_left``, ``baseline_m``).
 
@@ -432,14 +464,15 @@ def keyframe_stereo_set(
     ``max_keyframe_points``, spread over the grid), far matches as bearings (``far_points``); with
     ``moving_gate``, no point within ``moving_radius_px`` of ``avoid_px`` (N, 2) (where tracks were
     just dropped as moving). None when fewer than ``min_stereo_points`` points. Reads no tracker
-    state: it runs beside the tracking thread (:class:`~loopmodel.frontend.FrontEnd`).
+    state: it runs beside the tracking thread (:class:`~loopmodel.frontend.FrontEnd`); ``threads``
+    > 1 splits the matching (:func:`match_stereo_split`).
     """
     corners = detect_corners(
         left, cfg.max_features, (cfg.grid_cols, cfg.grid_rows), cfg.gftt_quality, cfg.min_distance_px,
         cfg.border_px, cfg.detect_half_resolution,
     )
     bearing = cfg.far_points == "bearing"
-    m = match_stereo(left, right, corners, cfg, 0.0 if bearing else None)
+    m = match_stereo_split(left, right, corners, cfg, 0.0 if bearing else None, threads)
     if offset_px != 0.0:
         m.u_right = m.u_right - offset_px
         m.disparity = m.disparity + offset_px

@@ -7,11 +7,8 @@ keyframe policy, local hybrid keyframe BA, and LOST/recovery handling.
 from __future__ import annotations
 
 import logging
-import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
 
 import cv2
 import numpy as np
@@ -19,6 +16,7 @@ from numpy.typing import NDArray
 
 from loopmodel.config import FrontendConfig
 from loopmodel.errors import EstimationError, InputError
+from loopmodel.frontend.beside import Beside
 from loopmodel.frontend.hybrid_ba import hybrid_keyframe_ba
 from loopmodel.frontend.keyframe import FrameResult, Keyframe, TrackedFeatures
 from loopmodel.frontend.mono_depth import MonoDepthTracks, kf_from_ref_map
@@ -125,38 +123,6 @@ class _ClosedInterval:
     ba_info: dict[str, float] = field(default_factory=dict)
 
 
-T = TypeVar("T")
-
-
-class _Beside(Generic[T]):
-    """``fn(*args)`` on a thread beside the caller (at once on the caller's when not ``threaded``).
-
-    :meth:`result` waits for it and returns its value (or raises its exception).
-    """
-
-    def __init__(self, threaded: bool, fn: Callable[..., T], *args: Any) -> None:
-        self._value: T | None = None
-        self._error: BaseException | None = None
-        self._thread: threading.Thread | None = None
-        if threaded:
-            self._thread = threading.Thread(target=self._run, args=(fn, args), name="keyframe-stereo", daemon=True)
-            self._thread.start()
-        else:
-            self._run(fn, args)
-
-    def _run(self, fn: Callable[..., T], args: tuple[Any, ...]) -> None:
-        try:
-            self._value = fn(*args)
-        except BaseException as exc:  # re-raised on the caller's thread
-            self._error = exc
-
-    def result(self) -> T:
-        """The value of ``fn(*args)`` once it is done."""
-        if self._thread is not None:
-            self._thread.join()
-        if self._error is not None:
-            raise self._error
-        return self._value  # type: ignore[return-value]
 
 
 def median_parallax_rad(points_m: F64, centre_m: F64) -> float:
@@ -1001,9 +967,13 @@ class FrontEnd:
         t_kf = time.perf_counter()
         prev = self._active if connected and kf_from_cur is not None else None
         right = self.rectifier.right(frame.right)
-        stereo = _Beside(
-            self.config.keyframe_stereo == "thread", keyframe_stereo_set, left, right, self.calibration.K_left,
+        # beside the interval's closing on this thread; without one (the first keyframe, a new
+        # segment) the matching itself is split between the two threads
+        threaded = self.config.keyframe_stereo == "thread"
+        stereo = Beside(
+            threaded and prev is not None, keyframe_stereo_set, left, right, self.calibration.K_left,
             self.calibration.baseline_m, self.config, self._offset_px, self._moving_uv if connected else None,
+            2 if threaded and prev is None else 1,
         )
         closed = None
         if prev is not None and kf_from_cur is not None:
