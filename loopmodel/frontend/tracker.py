@@ -852,42 +852,51 @@ class FrontEnd:
         inv_var = (fx * self.calibration.baseline_m / (z2 * sd)) ** 2 + (fx * across_m / (z2 * sd)) ** 2
         kf_set.sigma_z_m[sel] = 1.0 / np.sqrt(inv_var)
 
-    def _observe_local(
-        self, mono_obs: F64, left: NDArray[np.uint8], world_from_rect: F64
-    ) -> tuple[F64, list[_LocalSet]]:
-        """``mono_obs`` plus the local map's tracked points in the new keyframe (landmark_id, u, v rows), and the sets.
+    def _remeasure_local(
+        self, ls: _LocalSet, left: NDArray[np.uint8], world_from_rect: F64,
+        gradients: tuple[NDArray[np.float32], NDArray[np.float32]],
+    ) -> _LocalSet:
+        """A local-map set's points measured again in a new keyframe against their own keyframe's patch.
 
-        Points that :meth:`_observe_older` found again (rows already in ``mono_obs``) rejoin their set
-        at the measured position; the others are added at their tracked position, with
-        ``local_map_remeasure`` first measured again against their own keyframe's patch (affine, as
-        :meth:`_remeasure_tracks`; those that fail leave the set). ``left``: the new keyframe's
-        rectified left image, ``world_from_rect`` its pose. The sets are the earlier keyframes'
-        (the outgoing active set's tracks are in ``mono_obs`` already); the returned sets replace
-        them when the keyframe is made.
+        Affine, as :meth:`_remeasure_tracks`; those that fail leave the set. ``left``: the new
+        keyframe's rectified left image (``gradients``: its :meth:`_left_gradients`),
+        ``world_from_rect`` its pose. Reads no state that the tracking thread changes meanwhile.
         """
         from loopmodel.frontend.affine_klt import predicted_affine, refine_affine
 
         cfg = self.config
+        if not ls.idx.size:
+            return ls
+        kf = ls.kf_set.keyframe
+        cur_from_old = invert_pose(world_from_rect) @ self._world_from_kf.get(kf.id, kf.world_from_kf)
+        cur_from_old = cur_from_old @ self.cam_from_rect
+        match = refine_affine(
+            kf.image,
+            left,
+            ls.kf_set.stereo_px[ls.idx][:, [0, 2]],
+            ls.uv,
+            predicted_affine(self.left_camera, ls.kf_set.points[ls.idx], cur_from_old),
+            cfg.remeasure_half_window_px,
+            min_ncc=cfg.remeasure_min_ncc,
+            max_shift_px=cfg.remeasure_max_shift_px,
+            cur_gradients=gradients,
+        )
+        return _LocalSet(ls.kf_set, ls.idx[match.ok], match.uv_px[match.ok])
+
+    @staticmethod
+    def _observe_local(mono_obs: F64, sets: list[_LocalSet]) -> tuple[F64, list[_LocalSet]]:
+        """``mono_obs`` plus the local map's ``sets`` in the new keyframe (landmark_id, u, v rows), and the sets.
+
+        ``sets``: the earlier keyframes' sets as tracked into the new keyframe (re-measured with
+        ``local_map_remeasure``, :meth:`_remeasure_local`; the outgoing active set's tracks are in
+        ``mono_obs`` already). Points that :meth:`_observe_older` found again (rows already in
+        ``mono_obs``) rejoin their set at the measured position; the others are added at their
+        tracked position. The returned sets replace the local map's when the keyframe is made.
+        """
         rows = [mono_obs]
         local = []
         obs_ids = mono_obs[:, 0].astype(np.int64)
-        for ls in self._local:
-            if cfg.local_map_remeasure and ls.idx.size:
-                kf = ls.kf_set.keyframe
-                cur_from_old = invert_pose(world_from_rect) @ self._world_from_kf.get(kf.id, kf.world_from_kf)
-                cur_from_old = cur_from_old @ self.cam_from_rect
-                match = refine_affine(
-                    kf.image,
-                    left,
-                    ls.kf_set.stereo_px[ls.idx][:, [0, 2]],
-                    ls.uv,
-                    predicted_affine(self.left_camera, ls.kf_set.points[ls.idx], cur_from_old),
-                    cfg.remeasure_half_window_px,
-                    min_ncc=cfg.remeasure_min_ncc,
-                    max_shift_px=cfg.remeasure_max_shift_px,
-                    cur_gradients=self._left_gradients(left),
-                )
-                ls = _LocalSet(ls.kf_set, ls.idx[match.ok], match.uv_px[match.ok])
+        for ls in sets:
             ids = ls.kf_set.keyframe.landmark_ids
             if ids.size == 0 or ids[-1] - ids[0] != ids.size - 1:  # ids not one run: no re-seeding
                 rows.append(np.column_stack([ids[ls.idx].astype(float), ls.uv]))
@@ -1015,18 +1024,29 @@ class FrontEnd:
         applies it.
         """
         cfg = self.config
+        world_from_rect = prev.world_from_kfrect @ kf_from_cur
+        # the local map's sets re-measured on threads of their own (GIL-releasing remap and batched
+        # solves), beside this thread's work
+        gradients = self._left_gradients(left)
+        threaded = cfg.keyframe_stereo == "thread"
+        remeasured = [
+            Beside(threaded, self._remeasure_local, ls, left, world_from_rect, gradients)
+            for ls in (self._local if cfg.local_map_remeasure else [])
+        ]
         idx, uv = self._track_idx, self._track_uv
         if cfg.keyframe_remeasure:
             idx, uv = self._remeasure_tracks(prev, left, kf_from_cur)
-        world_from_rect = prev.world_from_kfrect @ kf_from_cur
         mono_obs = np.column_stack([prev.keyframe.landmark_ids[idx].astype(float), uv])
         if cfg.keyframe_remeasure and self._older:
             mono_obs = np.vstack([mono_obs, self._observe_older(left, world_from_rect)])
-        local = self._local
-        if local:
-            mono_obs, local = self._observe_local(mono_obs, left, world_from_rect)
-        closed = _ClosedInterval(mono_obs, kf_from_cur, idx, uv, local)
-        if cfg.local_ba and idx.size >= 6:
+        closed = _ClosedInterval(mono_obs, kf_from_cur, idx, uv, self._local)
+        ba = cfg.local_ba and idx.size >= 6
+        if ba and cfg.local_ba_keyframes == 0:  # the two-keyframe BA does not take the local map
+            self._local_ba(closed, prev, left, right, kf_from_cur)
+        if self._local:
+            sets = [job.result() for job in remeasured] if remeasured else self._local
+            closed.mono_obs, closed.local = self._observe_local(closed.mono_obs, sets)
+        if ba and cfg.local_ba_keyframes > 0:
             self._local_ba(closed, prev, left, right, kf_from_cur)
         if self._local_inliers:
             closed.ba_info["local_map_inliers"] = float(np.median(self._local_inliers))
