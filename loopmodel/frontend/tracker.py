@@ -973,16 +973,17 @@ class FrontEnd:
         in the new keyframe, the local hybrid BA), on this thread while the new set's detection and
         stereo matching run beside it (``frontend.keyframe_stereo``). None when too few points.
         """
+        cfg = self.config
         t_kf = time.perf_counter()
         prev = self._active if connected and kf_from_cur is not None else None
-        right = self.rectifier.right(frame.right)
+        # the right image is rectified with the matching unless the local BA needs it here too
+        right = self.rectifier.right(frame.right) if prev is not None and cfg.ba_final_stereo else None
         # beside the interval's closing on this thread; without one (the first keyframe, a new
         # segment) the matching itself is split between the two threads
-        threaded = self.config.keyframe_stereo == "thread"
+        threaded = cfg.keyframe_stereo == "thread"
         stereo = Beside(
-            threaded and prev is not None, keyframe_stereo_set, left, right, self.calibration.K_left,
-            self.calibration.baseline_m, self.config, self._offset_px, self._moving_uv if connected else None,
-            2 if threaded and prev is None else 1,
+            threaded and prev is not None, self._stereo_set, left, frame.right if right is None else right,
+            right is not None, self._moving_uv if connected else None, 2 if threaded and prev is None else 1,
         )
         closed = None
         if prev is not None and kf_from_cur is not None:
@@ -1013,8 +1014,23 @@ class FrontEnd:
             keyframe_ms=(time.perf_counter() - t_kf) * 1e3,
         )
 
+    def _stereo_set(
+        self, left: NDArray[np.uint8], right: NDArray[np.uint8], rectified: bool, avoid_px: F64 | None,
+        threads: int,
+    ) -> StereoSet | None:
+        """:func:`~loopmodel.frontend.stereo.keyframe_stereo_set` of the rectified ``left`` and ``right``.
+
+        ``right`` rectified here unless ``rectified``; the disparity offset is the current one.
+        """
+        if not rectified:
+            right = self.rectifier.right(right)
+        return keyframe_stereo_set(
+            left, right, self.calibration.K_left, self.calibration.baseline_m, self.config, self._offset_px,
+            avoid_px, threads,
+        )
+
     def _close_interval(
-        self, prev: _ActiveSet, left: NDArray[np.uint8], right: NDArray[np.uint8], kf_from_cur: F64
+        self, prev: _ActiveSet, left: NDArray[np.uint8], right: NDArray[np.uint8] | None, kf_from_cur: F64
     ) -> _ClosedInterval:
         """The outgoing set ``prev``'s interval closed at a new keyframe (``left``/``right``, at ``kf_from_cur``).
 
@@ -1069,7 +1085,7 @@ class FrontEnd:
         return out
 
     def _local_ba(
-        self, closed: _ClosedInterval, prev: _ActiveSet, left: NDArray[np.uint8], right: NDArray[np.uint8],
+        self, closed: _ClosedInterval, prev: _ActiveSet, left: NDArray[np.uint8], right: NDArray[np.uint8] | None,
         kf_from_cur: F64,
     ) -> None:
         """The local hybrid BA over ``closed``'s interval: its pose, refined points, offset and ``ba_info``.
@@ -1084,7 +1100,9 @@ class FrontEnd:
         sp = prev.stereo_px[idx]
         wide = self._wide_ba_rows(prev, closed.local)
         n_own = idx.size
-        final_right = self._final_right(left, right, uv, int(sum(wide.sizes))) if cfg.ba_final_stereo else None
+        final_right = None
+        if cfg.ba_final_stereo and right is not None:
+            final_right = self._final_right(left, right, uv, int(sum(wide.sizes)))
         right_sigma = None  # per-point disparity standard deviations (px), own set then the window's
         if cfg.disparity_sigma_source == "match" and prev.disparity_sigma_px.size:
             sig = [prev.disparity_sigma_px[idx]]
