@@ -913,48 +913,48 @@ class FrontEnd:
             local.append(_LocalSet(ls.kf_set, idx, uv[idx]))
         return np.vstack(rows), local
 
-    def _observe_older(self, left: NDArray[np.uint8], world_from_rect: F64) -> F64:
-        """Rows (landmark_id, u, v) of older keyframes' points found in the new keyframe image ``left``.
+    def _observe_older(
+        self, old: _ActiveSet, left: NDArray[np.uint8], world_from_rect: F64,
+        gradients: tuple[NDArray[np.float32], NDArray[np.float32]],
+    ) -> F64:
+        """Rows (landmark_id, u, v) of an older keyframe's points found in the new keyframe image ``left``.
 
-        ``left`` has the rectified pose ``world_from_rect``. Points are projected with the current
-        poses, then matched against their own keyframe's patch (affine); links keyframes two or more
-        intervals apart.
+        ``left`` has the rectified pose ``world_from_rect`` (``gradients``: its
+        :meth:`_left_gradients`). Points are projected with the current poses, then matched against
+        their own keyframe's patch (affine); links keyframes two or more intervals apart.
         """
         from loopmodel.frontend.affine_klt import predicted_affine, refine_affine
 
         cfg = self.config
         w, h = self.calibration.image_size
-        rows = [np.zeros((0, 3))]
-        for old in self._older:
-            # the old keyframe as the back end has corrected it since
-            world_from_old = self._world_from_kf.get(old.keyframe.id, old.keyframe.world_from_kf) @ self.cam_from_rect
-            cur_from_old = invert_pose(world_from_rect) @ world_from_old
-            p = old.points @ cur_from_old[:3, :3].T + cur_from_old[:3, 3]
-            front = p[:, 2] > 1e-3
-            uv = np.full((p.shape[0], 2), -1.0)
-            uv[front] = self.left_camera.project(p[front])
-            margin = cfg.remeasure_half_window_px + cfg.remeasure_max_shift_px + 2
-            sel = np.flatnonzero(
-                front & (uv[:, 0] > margin) & (uv[:, 0] < w - 1 - margin)
-                & (uv[:, 1] > margin) & (uv[:, 1] < h - 1 - margin)
-            )
-            if sel.size == 0:
-                continue
-            match = refine_affine(
-                old.keyframe.image,
-                left,
-                old.stereo_px[sel][:, [0, 2]],
-                uv[sel],
-                predicted_affine(self.left_camera, old.points[sel], cur_from_old),
-                cfg.remeasure_half_window_px,
-                min_ncc=cfg.remeasure_min_ncc,
-                max_shift_px=cfg.remeasure_max_shift_px,
-                cur_gradients=self._left_gradients(left),
-            )
-            ok = match.ok
-            ids = old.keyframe.landmark_ids[sel[ok]].astype(float)
-            rows.append(np.column_stack([ids, match.uv_px[ok]]))
-        return np.vstack(rows)
+        # the old keyframe as the back end has corrected it since
+        world_from_old = self._world_from_kf.get(old.keyframe.id, old.keyframe.world_from_kf) @ self.cam_from_rect
+        cur_from_old = invert_pose(world_from_rect) @ world_from_old
+        p = old.points @ cur_from_old[:3, :3].T + cur_from_old[:3, 3]
+        front = p[:, 2] > 1e-3
+        uv = np.full((p.shape[0], 2), -1.0)
+        uv[front] = self.left_camera.project(p[front])
+        margin = cfg.remeasure_half_window_px + cfg.remeasure_max_shift_px + 2
+        sel = np.flatnonzero(
+            front & (uv[:, 0] > margin) & (uv[:, 0] < w - 1 - margin)
+            & (uv[:, 1] > margin) & (uv[:, 1] < h - 1 - margin)
+        )
+        if sel.size == 0:
+            return np.zeros((0, 3))
+        match = refine_affine(
+            old.keyframe.image,
+            left,
+            old.stereo_px[sel][:, [0, 2]],
+            uv[sel],
+            predicted_affine(self.left_camera, old.points[sel], cur_from_old),
+            cfg.remeasure_half_window_px,
+            min_ncc=cfg.remeasure_min_ncc,
+            max_shift_px=cfg.remeasure_max_shift_px,
+            cur_gradients=gradients,
+        )
+        ok = match.ok
+        ids = old.keyframe.landmark_ids[sel[ok]].astype(float)
+        return np.column_stack([ids, match.uv_px[ok]])
 
     # ------------------------------------------------------------------ keyframes
     def _start_keyframe(
@@ -1041,10 +1041,14 @@ class FrontEnd:
         """
         cfg = self.config
         world_from_rect = prev.world_from_kfrect @ kf_from_cur
-        # the local map's sets re-measured on threads of their own (GIL-releasing remap and batched
-        # solves), beside this thread's work
+        # older keyframes' points and the local map's sets measured in the new image on threads of
+        # their own (GIL-releasing remaps and batched solves), beside this thread's work
         gradients = self._left_gradients(left)
         threaded = cfg.keyframe_stereo == "thread"
+        older = [
+            Beside(threaded, self._observe_older, old, left, world_from_rect, gradients)
+            for old in (self._older if cfg.keyframe_remeasure else [])
+        ]
         remeasured = [
             Beside(threaded, self._remeasure_local, ls, left, world_from_rect, gradients)
             for ls in (self._local if cfg.local_map_remeasure else [])
@@ -1053,12 +1057,12 @@ class FrontEnd:
         if cfg.keyframe_remeasure:
             idx, uv = self._remeasure_tracks(prev, left, kf_from_cur)
         mono_obs = np.column_stack([prev.keyframe.landmark_ids[idx].astype(float), uv])
-        if cfg.keyframe_remeasure and self._older:
-            mono_obs = np.vstack([mono_obs, self._observe_older(left, world_from_rect)])
         closed = _ClosedInterval(mono_obs, kf_from_cur, idx, uv, self._local)
         ba = cfg.local_ba and idx.size >= 6
         if ba and cfg.local_ba_keyframes == 0:  # the two-keyframe BA does not take the local map
             self._local_ba(closed, prev, left, right, kf_from_cur)
+        if older:
+            closed.mono_obs = np.vstack([mono_obs, *[job.result() for job in older]])
         if self._local:
             sets = [job.result() for job in remeasured] if remeasured else self._local
             closed.mono_obs, closed.local = self._observe_local(closed.mono_obs, sets)
