@@ -285,6 +285,15 @@ class FrontendConfig(_Section):
     disparity_offset: Literal["none", "estimate"] = Field(
         "none", description="estimate a constant disparity offset in the local BA and correct new matches by it"
     )
+    # issue 33: at a keyframe the new set's detection and stereo matching and the local map's and
+    # older keyframes' re-measurements (GIL-releasing numpy and OpenCV calls) run on threads beside
+    # the outgoing set's closing and local BA on the tracking thread. The same poses either way
+    # (bit-identical: KITTI clip, orbit sample); the tracking thread's CPU in a keyframe frame, front
+    # end alone: KITTI clip (configs/kitti.yaml) 140 -> 40 ms, orbit sample (configs/sim.yaml) 236 ->
+    # 80 ms; all threads' CPU about the same (CHANGELOG.md, issue 33)
+    keyframe_stereo: Literal["thread", "inline"] = Field(
+        "thread", description="a new keyframe's stereo matching: on a thread beside the local BA, or inline"
+    )
 
 
 class MappingConfig(_Section):

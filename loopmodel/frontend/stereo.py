@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.config import FrontendConfig
+from loopmodel.frontend.beside import Beside
 
 F64 = NDArray[np.float64]
 
@@ -339,6 +340,36 @@ def match_stereo(
     )
 
 
+def match_stereo_split(
+    left: NDArray[np.uint8],
+    right: NDArray[np.uint8],
+    uv_left: F64,
+    cfg: FrontendConfig,
+    min_disparity_px: float | None = None,
+    threads: int = 1,
+) -> StereoMatches:
+    """:func:`match_stereo` with the corners ``uv_left`` (N, 2) split over ``threads`` threads.
+
+    Every corner is matched on its own, so the matches are the same; the numpy and OpenCV calls
+    release the GIL on their large arrays, so the parts run on both cores (issue 33).
+    """
+    uv = np.asarray(uv_left, dtype=float).reshape(-1, 2)
+    parts = [p for p in np.array_split(np.arange(uv.shape[0]), max(threads, 1)) if p.size]
+    if len(parts) <= 1:
+        return match_stereo(left, right, uv, cfg, min_disparity_px)
+    beside = [Beside(True, match_stereo, left, right, uv[p], cfg, min_disparity_px) for p in parts[1:]]
+    done = [match_stereo(left, right, uv[parts[0]], cfg, min_disparity_px)] + [b.result() for b in beside]
+    return StereoMatches(
+        np.vstack([m.uv_left for m in done]),
+        np.concatenate([m.u_right for m in done]),
+        np.concatenate([m.v_right for m in done]),
+        np.concatenate([m.disparity for m in done]),
+        np.concatenate([m.score for m in done]),
+        np.concatenate([p[m.index] for p, m in zip(parts, done, strict=True)]),
+        np.concatenate([m.sigma_px for m in done]),
+    )
+
+
 def spread_subset(
     uv: F64,
     score: F64,
@@ -379,3 +410,105 @@ def triangulate_rectified(uv_left: F64, disparity: F64, K: F64, baseline_m: floa
     X = (uv_left[:, 0] - cx) * Z / fx
     Y = (uv_left[:, 1] - cy) * Z / fy
     return np.column_stack([X, Y, Z])
+
+
+@dataclass
+class StereoSet:
+    """A new keyframe's stereo feature set, in its rectified left camera frame (metres, pixels).
+
+    ``points`` (M, 3) triangulated near points with ``stereo_px`` (M, 3) = (u_left, u_right, v) and
+    each match's disparity standard deviation ``disparity_sigma_px`` (M,); far matches as bearings:
+    ``far_rays`` (F, 3) = (x/z, y/z, 1), ``far_inv_depth`` (F,) 1/m (0 at zero disparity) and
+    ``far_px`` (F, 2) left pixels; ``unmatched_px`` (U, 2) the corners without a stereo match;
+    ``offset_px`` the disparity offset taken out of the matches (``frontend.disparity_offset``).
+    """
+
+    points: F64
+    stereo_px: F64
+    disparity_sigma_px: F64
+    far_rays: F64
+    far_inv_depth: F64
+    far_px: F64
+    unmatched_px: F64
+    offset_px: float
+
+
+def far_match_mask(disparity_px: F64, cfg: FrontendConfig, fx_px: float, baseline_m: float) -> NDArray[np.bool_]:
+    """Stereo matches that enter the pose as bearings (``frontend.far_points = "bearing"``).
+
+    Those the disparity gate drops (below ``min_disparity_px`` or beyond ``max_depth_m``) and,
+    with ``far_depth_baselines`` > 0, those beyond that many baselines (disparity below
+    ``fx / far_depth_baselines``).
+    """
+    fb = fx_px * baseline_m
+    far = (disparity_px < cfg.min_disparity_px) | (disparity_px * cfg.max_depth_m < fb)
+    if cfg.far_depth_baselines > 0:
+        far |= disparity_px * cfg.far_depth_baselines < fx_px
+    return np.asarray(far)
+
+
+def keyframe_stereo_set(
+    left: NDArray[np.uint8],
+    right: NDArray[np.uint8],
+    K_left: F64,
+    baseline_m: float,
+    cfg: FrontendConfig,
+    offset_px: float = 0.0,
+    avoid_px: F64 | None = None,
+    threads: int = 1,
+) -> StereoSet | None:
+    """Detect, match and triangulate a keyframe's features in a rectified pair (``K_left``, ``baseline_m``).
+
+    Corners (:func:`detect_corners`), their row matches (:func:`match_stereo`) with the disparity
+    offset ``offset_px`` taken out, points nearer than ``max_depth_m`` (at most
+    ``max_keyframe_points``, spread over the grid), far matches as bearings (``far_points``); with
+    ``moving_gate``, no point within ``moving_radius_px`` of ``avoid_px`` (N, 2) (where tracks were
+    just dropped as moving). None when fewer than ``min_stereo_points`` points. Reads no tracker
+    state: it runs beside the tracking thread (:class:`~loopmodel.frontend.FrontEnd`); ``threads``
+    > 1 splits the matching (:func:`match_stereo_split`).
+    """
+    corners = detect_corners(
+        left, cfg.max_features, (cfg.grid_cols, cfg.grid_rows), cfg.gftt_quality, cfg.min_distance_px,
+        cfg.border_px, cfg.detect_half_resolution,
+    )
+    bearing = cfg.far_points == "bearing"
+    m = match_stereo_split(left, right, corners, cfg, 0.0 if bearing else None, threads)
+    if offset_px != 0.0:
+        m.u_right = m.u_right - offset_px
+        m.disparity = m.disparity + offset_px
+    with np.errstate(divide="ignore", invalid="ignore"):  # zero disparity: at infinity
+        pts = triangulate_rectified(m.uv_left, m.disparity, K_left, baseline_m)
+    far = far_match_mask(m.disparity, cfg, K_left[0, 0], baseline_m) if bearing else np.zeros(len(m.disparity), bool)
+    keep = (pts[:, 2] < cfg.max_depth_m) & ~far
+    if cfg.moving_gate > 0 and avoid_px is not None and avoid_px.shape[0]:
+        d2 = np.sum((m.uv_left[:, None, :] - avoid_px[None, :, :]) ** 2, axis=2)
+        near_moving = np.min(d2, axis=1) < cfg.moving_radius_px**2
+        keep &= ~near_moving
+        far &= ~near_moving
+    h, w = left.shape[:2]
+    grid = (cfg.grid_cols, cfg.grid_rows)
+    if cfg.max_keyframe_points and int(keep.sum()) > cfg.max_keyframe_points:
+        keep &= spread_subset(m.uv_left, m.score, keep, cfg.max_keyframe_points, grid, (w, h))
+    if int(keep.sum()) < cfg.min_stereo_points:
+        return None
+    if cfg.far_max_points and int(far.sum()) > cfg.far_max_points:
+        far &= spread_subset(m.uv_left, m.score, far, cfg.far_max_points, grid, (w, h))
+    elif not cfg.far_max_points:
+        far[:] = False
+    far_px = m.uv_left[far]
+    far_rays = np.column_stack(
+        [(far_px[:, 0] - K_left[0, 2]) / K_left[0, 0], (far_px[:, 1] - K_left[1, 2]) / K_left[1, 1],
+         np.ones(len(far_px))]
+    )
+    unmatched = np.ones(len(corners), bool)
+    unmatched[m.index] = False
+    return StereoSet(
+        points=pts[keep],
+        stereo_px=np.column_stack([m.uv_left[keep, 0], m.u_right[keep], m.uv_left[keep, 1]]),
+        disparity_sigma_px=m.sigma_px[keep],
+        far_rays=far_rays,
+        far_inv_depth=np.maximum(m.disparity[far], 0.0) / (K_left[0, 0] * baseline_m),
+        far_px=far_px,
+        unmatched_px=corners[unmatched],
+        offset_px=offset_px,
+    )

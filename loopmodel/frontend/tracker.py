@@ -16,16 +16,12 @@ from numpy.typing import NDArray
 
 from loopmodel.config import FrontendConfig
 from loopmodel.errors import EstimationError, InputError
+from loopmodel.frontend.beside import Beside
 from loopmodel.frontend.hybrid_ba import hybrid_keyframe_ba
 from loopmodel.frontend.keyframe import FrameResult, Keyframe, TrackedFeatures
 from loopmodel.frontend.mono_depth import MonoDepthTracks, kf_from_ref_map
 from loopmodel.frontend.resume import ResumedSet
-from loopmodel.frontend.stereo import (
-    detect_corners,
-    match_stereo,
-    spread_subset,
-    triangulate_rectified,
-)
+from loopmodel.frontend.stereo import StereoSet, keyframe_stereo_set, match_stereo
 from loopmodel.geometry.se3 import invert_pose, nearest_rigid, se3_exp, se3_log, so3_log
 from loopmodel.imaging.klt import Pyramid, build_pyramid, track_klt
 from loopmodel.imaging.rectify import Rectifier
@@ -104,6 +100,29 @@ class _LocalSet:
     kf_set: _ActiveSet
     idx: NDArray[np.int64]
     uv: F64
+
+
+@dataclass
+class _ClosedInterval:
+    """The outgoing set's keyframe interval closed at a new keyframe, not yet applied to the tracker.
+
+    ``mono_obs``: rows (landmark_id, u, v) of earlier landmarks in the new keyframe; ``kf_from_new``:
+    the new keyframe in the outgoing one (rectified; the local BA's when accepted); the outgoing
+    set's tracks there (``track_idx``, ``track_uv`` px); the local map's sets after their
+    re-measurement; the BA's refined points (set, indices, points in its keyframe, inliers, its
+    keyframe from the interval's end) and disparity offset (px, variance px^2); ``ba_info``.
+    """
+
+    mono_obs: F64
+    kf_from_new: F64
+    track_idx: NDArray[np.int64]
+    track_uv: F64
+    local: list[_LocalSet]
+    refined: list[tuple[_ActiveSet, NDArray[np.int64], F64, NDArray[np.bool_], F64]] = field(default_factory=list)
+    offset: tuple[float, float] | None = None
+    ba_info: dict[str, float] = field(default_factory=dict)
+
+
 
 
 def median_parallax_rad(points_m: F64, centre_m: F64) -> float:
@@ -679,19 +698,27 @@ class FrontEnd:
             logger.info("old feature set of keyframe %d: no feature left", rs.match_keyframe)
             self._resumed = None
 
-    def _observe_resumed(self, left: NDArray[np.uint8], kf_from_cur: F64, kf_from_new: F64) -> F64:
-        """Rows (landmark_id, u, v) of the resumed old set found in a new keyframe's image; the set moves to it."""
+    def _observe_resumed(self, closed: _ClosedInterval, left: NDArray[np.uint8], kf_from_cur: F64) -> F64:
+        """``closed``'s observations plus the resumed old set's features found in the new keyframe ``left``.
+
+        Rows (landmark_id, u, v); the resumed set moves to the new keyframe.
+        """
         rs = self._resumed
         if rs is None:
-            return np.zeros((0, 3))
+            return closed.mono_obs
         cfg = self.config
+        match_kf = rs.match_keyframe
         rows = rs.observe_at_keyframe(
-            self.left_camera, left, kf_from_cur, kf_from_new,
+            self.left_camera, left, kf_from_cur, closed.kf_from_new,
             cfg.remeasure_half_window_px, cfg.remeasure_min_ncc, cfg.remeasure_max_shift_px,
         )
         if not len(rs):
             self._resumed = None
-        return rows
+        seen = set(closed.mono_obs[:, 0].astype(np.int64).tolist())
+        rows = rows[[int(i) not in seen for i in rows[:, 0]]]
+        closed.ba_info["resumed_features"] = float(rows.shape[0])
+        closed.ba_info["resumed_from_keyframe"] = float(match_kf)
+        return np.vstack([closed.mono_obs, rows])
 
     def _mono_frames(self) -> dict[int, F64]:
         """Reference keyframes of the mono-depth tracks -> the active keyframe (rectified)."""
@@ -716,20 +743,6 @@ class FrontEnd:
         g = np.einsum("nij,nj->ni", J, ray @ cur_from_kf[:3, :3].T)
         var_px = cfg.pose_min_scale_px**2
         return var_px / (var_px + np.einsum("ni,ni->n", g, g) * sigma_z**2)
-
-    def _far_mask(self, disparity_px: F64) -> NDArray[np.bool_]:
-        """Stereo matches that enter the pose as bearings (``frontend.far_points = "bearing"``).
-
-        Those the disparity gate drops (below ``min_disparity_px`` or beyond ``max_depth_m``) and,
-        with ``far_depth_baselines`` > 0, those beyond that many baselines (disparity below
-        ``fx / far_depth_baselines``).
-        """
-        cfg = self.config
-        fb = self.calibration.fx_px * self.calibration.baseline_m
-        far = (disparity_px < cfg.min_disparity_px) | (disparity_px * cfg.max_depth_m < fb)
-        if cfg.far_depth_baselines > 0:
-            far |= disparity_px * cfg.far_depth_baselines < self.calibration.fx_px
-        return np.asarray(far)
 
     def _need_keyframe(self, kf_from_cur: F64, inliers: int) -> bool:
         cfg = self.config
@@ -756,19 +769,21 @@ class FrontEnd:
             self._gradients = (left, *image_gradients(left))
         return self._gradients[1], self._gradients[2]
 
-    def _remeasure_tracks(self, prev: _ActiveSet, left: NDArray[np.uint8], kf_from_cur: F64) -> None:
-        """Measure the tracked features again against the keyframe's own patches and keep those that match.
+    def _remeasure_tracks(
+        self, prev: _ActiveSet, left: NDArray[np.uint8], kf_from_cur: F64
+    ) -> tuple[NDArray[np.int64], F64]:
+        """The tracked features measured again against the keyframe's own patches: (indices, pixels) kept.
 
         Affine warp predicted by the pose, :mod:`loopmodel.frontend.affine_klt`. Frame-to-frame KLT
         slides over a keyframe interval, and these positions link the keyframes (mono observations,
-        local BA).
+        local BA). The tracks unchanged when fewer than ``max(6, min_inliers)`` match.
         """
         from loopmodel.frontend.affine_klt import predicted_affine, refine_affine
 
         cfg = self.config
         idx = self._track_idx
         if idx.size == 0:
-            return
+            return idx, self._track_uv
         cur_from_kf = invert_pose(kf_from_cur)
         match = refine_affine(
             prev.keyframe.image,
@@ -782,11 +797,11 @@ class FrontEnd:
             cur_gradients=self._left_gradients(left),
         )
         if int(match.ok.sum()) >= max(6, cfg.min_inliers):
-            self._track_idx = idx[match.ok]
-            self._track_uv = match.uv_px[match.ok]
+            return idx[match.ok], match.uv_px[match.ok]
+        return idx, self._track_uv
 
-    def _wide_ba_rows(self, prev: _ActiveSet) -> _WideRows:
-        """The local map's points for a wider local BA (``frontend.local_ba_keyframes`` earlier sets).
+    def _wide_ba_rows(self, prev: _ActiveSet, local: list[_LocalSet]) -> _WideRows:
+        """The local map's points for a wider local BA (``frontend.local_ba_keyframes`` earlier sets of ``local``).
 
         Each set's tracked points, carried into ``prev``'s keyframe frame through the keyframe poses,
         with their stereo pixels in their own keyframe (held fixed in the BA: ``own_from_kf``, owner
@@ -794,11 +809,11 @@ class FrontEnd:
         """
         out = _WideRows()
         k = self.config.local_ba_keyframes
-        if k <= 0 or not self._local:
+        if k <= 0 or not local:
             return out
         kf_from_world = invert_pose(prev.world_from_kfrect)
         pts, ul, ur, uf, own, frames = [], [], [], [], [], []
-        for j, ls in enumerate(self._local[:k]):
+        for j, ls in enumerate(local[:k]):
             kf = ls.kf_set.keyframe
             kf_from_own = kf_from_world @ self._world_from_kf.get(kf.id, kf.world_from_kf) @ self.cam_from_rect
             p = ls.kf_set.points[ls.idx]
@@ -837,39 +852,51 @@ class FrontEnd:
         inv_var = (fx * self.calibration.baseline_m / (z2 * sd)) ** 2 + (fx * across_m / (z2 * sd)) ** 2
         kf_set.sigma_z_m[sel] = 1.0 / np.sqrt(inv_var)
 
-    def _observe_local(self, mono_obs: F64, left: NDArray[np.uint8], world_from_rect: F64) -> F64:
-        """``mono_obs`` plus the local map's tracked points in the new keyframe (landmark_id, u, v rows).
+    def _remeasure_local(
+        self, ls: _LocalSet, left: NDArray[np.uint8], world_from_rect: F64,
+        gradients: tuple[NDArray[np.float32], NDArray[np.float32]],
+    ) -> _LocalSet:
+        """A local-map set's points measured again in a new keyframe against their own keyframe's patch.
 
-        Points that :meth:`_observe_older` found again (rows already in ``mono_obs``) rejoin their set
-        at the measured position; the others are added at their tracked position, with
-        ``local_map_remeasure`` first measured again against their own keyframe's patch (affine, as
-        :meth:`_remeasure_tracks`; those that fail leave the set). ``left``: the new keyframe's
-        rectified left image, ``world_from_rect`` its pose. The sets are the earlier keyframes' (the
-        outgoing active set's tracks are in ``mono_obs`` already).
+        Affine, as :meth:`_remeasure_tracks`; those that fail leave the set. ``left``: the new
+        keyframe's rectified left image (``gradients``: its :meth:`_left_gradients`),
+        ``world_from_rect`` its pose. Reads no state that the tracking thread changes meanwhile.
         """
         from loopmodel.frontend.affine_klt import predicted_affine, refine_affine
 
         cfg = self.config
+        if not ls.idx.size:
+            return ls
+        kf = ls.kf_set.keyframe
+        cur_from_old = invert_pose(world_from_rect) @ self._world_from_kf.get(kf.id, kf.world_from_kf)
+        cur_from_old = cur_from_old @ self.cam_from_rect
+        match = refine_affine(
+            kf.image,
+            left,
+            ls.kf_set.stereo_px[ls.idx][:, [0, 2]],
+            ls.uv,
+            predicted_affine(self.left_camera, ls.kf_set.points[ls.idx], cur_from_old),
+            cfg.remeasure_half_window_px,
+            min_ncc=cfg.remeasure_min_ncc,
+            max_shift_px=cfg.remeasure_max_shift_px,
+            cur_gradients=gradients,
+        )
+        return _LocalSet(ls.kf_set, ls.idx[match.ok], match.uv_px[match.ok])
+
+    @staticmethod
+    def _observe_local(mono_obs: F64, sets: list[_LocalSet]) -> tuple[F64, list[_LocalSet]]:
+        """``mono_obs`` plus the local map's ``sets`` in the new keyframe (landmark_id, u, v rows), and the sets.
+
+        ``sets``: the earlier keyframes' sets as tracked into the new keyframe (re-measured with
+        ``local_map_remeasure``, :meth:`_remeasure_local`; the outgoing active set's tracks are in
+        ``mono_obs`` already). Points that :meth:`_observe_older` found again (rows already in
+        ``mono_obs``) rejoin their set at the measured position; the others are added at their
+        tracked position. The returned sets replace the local map's when the keyframe is made.
+        """
         rows = [mono_obs]
         local = []
         obs_ids = mono_obs[:, 0].astype(np.int64)
-        for ls in self._local:
-            if cfg.local_map_remeasure and ls.idx.size:
-                kf = ls.kf_set.keyframe
-                cur_from_old = invert_pose(world_from_rect) @ self._world_from_kf.get(kf.id, kf.world_from_kf)
-                cur_from_old = cur_from_old @ self.cam_from_rect
-                match = refine_affine(
-                    kf.image,
-                    left,
-                    ls.kf_set.stereo_px[ls.idx][:, [0, 2]],
-                    ls.uv,
-                    predicted_affine(self.left_camera, ls.kf_set.points[ls.idx], cur_from_old),
-                    cfg.remeasure_half_window_px,
-                    min_ncc=cfg.remeasure_min_ncc,
-                    max_shift_px=cfg.remeasure_max_shift_px,
-                    cur_gradients=self._left_gradients(left),
-                )
-                ls = _LocalSet(ls.kf_set, ls.idx[match.ok], match.uv_px[match.ok])
+        for ls in sets:
             ids = ls.kf_set.keyframe.landmark_ids
             if ids.size == 0 or ids[-1] - ids[0] != ids.size - 1:  # ids not one run: no re-seeding
                 rows.append(np.column_stack([ids[ls.idx].astype(float), ls.uv]))
@@ -884,51 +911,50 @@ class FrontEnd:
             uv[j] = mono_obs[found, 1:3]
             idx = np.flatnonzero(np.isfinite(uv[:, 0]))
             local.append(_LocalSet(ls.kf_set, idx, uv[idx]))
-        self._local = local
-        return np.vstack(rows)
+        return np.vstack(rows), local
 
-    def _observe_older(self, left: NDArray[np.uint8], world_from_rect: F64) -> F64:
-        """Rows (landmark_id, u, v) of older keyframes' points found in the new keyframe image ``left``.
+    def _observe_older(
+        self, old: _ActiveSet, left: NDArray[np.uint8], world_from_rect: F64,
+        gradients: tuple[NDArray[np.float32], NDArray[np.float32]],
+    ) -> F64:
+        """Rows (landmark_id, u, v) of an older keyframe's points found in the new keyframe image ``left``.
 
-        ``left`` has the rectified pose ``world_from_rect``. Points are projected with the current
-        poses, then matched against their own keyframe's patch (affine); links keyframes two or more
-        intervals apart.
+        ``left`` has the rectified pose ``world_from_rect`` (``gradients``: its
+        :meth:`_left_gradients`). Points are projected with the current poses, then matched against
+        their own keyframe's patch (affine); links keyframes two or more intervals apart.
         """
         from loopmodel.frontend.affine_klt import predicted_affine, refine_affine
 
         cfg = self.config
         w, h = self.calibration.image_size
-        rows = [np.zeros((0, 3))]
-        for old in self._older:
-            # the old keyframe as the back end has corrected it since
-            world_from_old = self._world_from_kf.get(old.keyframe.id, old.keyframe.world_from_kf) @ self.cam_from_rect
-            cur_from_old = invert_pose(world_from_rect) @ world_from_old
-            p = old.points @ cur_from_old[:3, :3].T + cur_from_old[:3, 3]
-            front = p[:, 2] > 1e-3
-            uv = np.full((p.shape[0], 2), -1.0)
-            uv[front] = self.left_camera.project(p[front])
-            margin = cfg.remeasure_half_window_px + cfg.remeasure_max_shift_px + 2
-            sel = np.flatnonzero(
-                front & (uv[:, 0] > margin) & (uv[:, 0] < w - 1 - margin)
-                & (uv[:, 1] > margin) & (uv[:, 1] < h - 1 - margin)
-            )
-            if sel.size == 0:
-                continue
-            match = refine_affine(
-                old.keyframe.image,
-                left,
-                old.stereo_px[sel][:, [0, 2]],
-                uv[sel],
-                predicted_affine(self.left_camera, old.points[sel], cur_from_old),
-                cfg.remeasure_half_window_px,
-                min_ncc=cfg.remeasure_min_ncc,
-                max_shift_px=cfg.remeasure_max_shift_px,
-                cur_gradients=self._left_gradients(left),
-            )
-            ok = match.ok
-            ids = old.keyframe.landmark_ids[sel[ok]].astype(float)
-            rows.append(np.column_stack([ids, match.uv_px[ok]]))
-        return np.vstack(rows)
+        # the old keyframe as the back end has corrected it since
+        world_from_old = self._world_from_kf.get(old.keyframe.id, old.keyframe.world_from_kf) @ self.cam_from_rect
+        cur_from_old = invert_pose(world_from_rect) @ world_from_old
+        p = old.points @ cur_from_old[:3, :3].T + cur_from_old[:3, 3]
+        front = p[:, 2] > 1e-3
+        uv = np.full((p.shape[0], 2), -1.0)
+        uv[front] = self.left_camera.project(p[front])
+        margin = cfg.remeasure_half_window_px + cfg.remeasure_max_shift_px + 2
+        sel = np.flatnonzero(
+            front & (uv[:, 0] > margin) & (uv[:, 0] < w - 1 - margin)
+            & (uv[:, 1] > margin) & (uv[:, 1] < h - 1 - margin)
+        )
+        if sel.size == 0:
+            return np.zeros((0, 3))
+        match = refine_affine(
+            old.keyframe.image,
+            left,
+            old.stereo_px[sel][:, [0, 2]],
+            uv[sel],
+            predicted_affine(self.left_camera, old.points[sel], cur_from_old),
+            cfg.remeasure_half_window_px,
+            min_ncc=cfg.remeasure_min_ncc,
+            max_shift_px=cfg.remeasure_max_shift_px,
+            cur_gradients=gradients,
+        )
+        ok = match.ok
+        ids = old.keyframe.landmark_ids[sel[ok]].astype(float)
+        return np.column_stack([ids, match.uv_px[ok]])
 
     # ------------------------------------------------------------------ keyframes
     def _start_keyframe(
@@ -943,245 +969,41 @@ class FrontEnd:
     ) -> FrameResult | None:
         """Stereo-initialise a feature set at this frame.
 
-        With ``kf_from_cur`` (tracked) the previous set is closed by the local hybrid BA first. None
-        when too few points.
+        With ``kf_from_cur`` (tracked) the previous set's interval is closed first (its observations
+        in the new keyframe, the local hybrid BA), on this thread while the new set's detection and
+        stereo matching run beside it (``frontend.keyframe_stereo``). None when too few points.
         """
         cfg = self.config
         t_kf = time.perf_counter()
-        right = self.rectifier.right(frame.right)
-        corners = detect_corners(
-            left,
-            cfg.max_features,
-            (cfg.grid_cols, cfg.grid_rows),
-            cfg.gftt_quality,
-            cfg.min_distance_px,
-            cfg.border_px,
-            cfg.detect_half_resolution,
+        prev = self._active if connected and kf_from_cur is not None else None
+        # the right image is rectified with the matching unless the local BA needs it here too
+        right = self.rectifier.right(frame.right) if prev is not None and cfg.ba_final_stereo else None
+        # beside the interval's closing on this thread; without one (the first keyframe, a new
+        # segment) the matching itself is split between the two threads
+        threaded = cfg.keyframe_stereo == "thread"
+        stereo = Beside(
+            threaded and prev is not None, self._stereo_set, left, frame.right if right is None else right,
+            right is not None, self._moving_uv if connected else None, 2 if threaded and prev is None else 1,
         )
-        bearing = cfg.far_points == "bearing"
-        m = match_stereo(left, right, corners, cfg, 0.0 if bearing else None)
-        applied_offset_px = self._offset_px  # the estimated disparity offset (frontend.disparity_offset)
-        if applied_offset_px != 0.0:
-            m.u_right = m.u_right - applied_offset_px
-            m.disparity = m.disparity + applied_offset_px
-        with np.errstate(divide="ignore", invalid="ignore"):  # zero disparity: at infinity
-            pts = triangulate_rectified(
-                m.uv_left, m.disparity, self.calibration.K_left, self.calibration.baseline_m
-            )
-        far = self._far_mask(m.disparity) if bearing else np.zeros(len(m.disparity), bool)
-        keep = (pts[:, 2] < cfg.max_depth_m) & ~far
-        if cfg.moving_gate > 0 and self._moving_uv.shape[0] and connected:
-            # no new point where tracks were just dropped as moving (issue 36)
-            d2 = np.sum((m.uv_left[:, None, :] - self._moving_uv[None, :, :]) ** 2, axis=2)
-            near_moving = np.min(d2, axis=1) < cfg.moving_radius_px**2
-            keep &= ~near_moving
-            far &= ~near_moving
-        if cfg.max_keyframe_points and int(keep.sum()) > cfg.max_keyframe_points:
-            keep &= spread_subset(
-                m.uv_left, m.score, keep, cfg.max_keyframe_points, (cfg.grid_cols, cfg.grid_rows),
-                self.calibration.image_size,
-            )
-        if int(keep.sum()) < cfg.min_stereo_points:
-            logger.debug("frame %d: %d stereo points, no keyframe", frame.index, int(keep.sum()))
+        closed = None
+        if prev is not None and kf_from_cur is not None:
+            closed = self._close_interval(prev, left, right, kf_from_cur)
+        new = stereo.result()
+        if new is None:
+            logger.debug("frame %d: too few stereo points, no keyframe", frame.index)
             return None
-        pts = pts[keep]
-        stereo_px = np.column_stack([m.uv_left[keep, 0], m.u_right[keep], m.uv_left[keep, 1]])
-        disparity_sigma = m.sigma_px[keep]
-        if cfg.far_max_points and int(far.sum()) > cfg.far_max_points:
-            far &= spread_subset(
-                m.uv_left, m.score, far, cfg.far_max_points, (cfg.grid_cols, cfg.grid_rows),
-                self.calibration.image_size,
-            )
-        elif not cfg.far_max_points:
-            far[:] = False
-        K = self.calibration.K_left
-        far_px = m.uv_left[far]
-        far_rays = np.column_stack(
-            [(far_px[:, 0] - K[0, 2]) / K[0, 0], (far_px[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(far_px))]
-        )
-        fb = self.calibration.fx_px * self.calibration.baseline_m
-        far_inv_depth = np.maximum(m.disparity[far], 0.0) / fb
-
-        prev = self._active
-        mono_obs = np.zeros((0, 3))
-        kf_prev_from_kf = None
-        kf_prev_from_kf_tracked = None
-        ba_info: dict[str, float] = {}
-        if prev is not None and kf_from_cur is not None and connected:
-            if cfg.keyframe_remeasure:
-                self._remeasure_tracks(prev, left, kf_from_cur)
-            ids = prev.keyframe.landmark_ids[self._track_idx]
-            mono_obs = np.column_stack([ids.astype(float), self._track_uv])
-            if cfg.keyframe_remeasure and self._older:
-                older = self._observe_older(left, prev.world_from_kfrect @ kf_from_cur)
-                mono_obs = np.vstack([mono_obs, older])
-            if self._local:
-                mono_obs = self._observe_local(mono_obs, left, prev.world_from_kfrect @ kf_from_cur)
-            kf_from_new = kf_from_cur
-            if cfg.local_ba and self._track_idx.size >= 6:
-                tb = time.perf_counter()
-                sp = prev.stereo_px[self._track_idx]
-                final_right = None
-                if cfg.ba_final_stereo:
-                    # the set's tracked points in this keyframe's right image (both ends
-                    # of the set then carry a stereo observation)
-                    fm = match_stereo(left, right, self._track_uv, cfg)
-                    fm.u_right = fm.u_right - self._offset_px
-                    final_right = np.full((self._track_idx.size, 2), np.nan)
-                    frac = self._track_uv[fm.index] - fm.uv_left  # sub-pixel part of the corner
-                    final_right[fm.index, 0] = fm.u_right + frac[:, 0]
-                    final_right[fm.index, 1] = fm.v_right + frac[:, 1]
-                wide = self._wide_ba_rows(prev)
-                n_own = self._track_idx.size
-                right_sigma = None  # per-point disparity standard deviations (px), own set then the window's
-                if cfg.disparity_sigma_source == "match" and prev.disparity_sigma_px.size:
-                    sig = [prev.disparity_sigma_px[self._track_idx]]
-                    for ls, n in zip(self._local, wide.sizes, strict=False):
-                        ds = ls.kf_set.disparity_sigma_px
-                        sig.append(ds[ls.idx] if ds.size else np.full(n, cfg.disparity_sigma_px))
-                    right_sigma = np.concatenate(sig)
-                if final_right is not None and wide.sizes:
-                    final_right = np.vstack([final_right, np.full((int(sum(wide.sizes)), 2), np.nan)])
-                ba = hybrid_keyframe_ba(
-                    np.vstack([prev.points[self._track_idx], wide.points_kf]),
-                    np.vstack([sp[:, [0, 2]], wide.uv_left]),
-                    np.vstack([sp[:, [1, 2]], wide.uv_right]),
-                    np.vstack([self._track_uv, wide.uv_final]),
-                    invert_pose(kf_from_cur),
-                    self.left_camera,
-                    self.right_camera,
-                    self.calibration.right_from_left,
-                    cfg.ba_iterations,
-                    cfg.ba_huber_px,
-                    uv_final_right=final_right,
-                    right_sigma_px=right_sigma,
-                    estimate_disparity_offset=cfg.disparity_offset == "estimate",
-                    offset_prior=(self._offset_mean_px - prev.disparity_offset_px, self._offset_info),
-                    owner=np.concatenate([np.zeros(n_own, np.int64), wide.owner]),
-                    own_from_kf=np.concatenate([np.eye(4)[None], wide.own_from_kf]),
-                )
-                step = invert_pose(kf_from_cur) @ invert_pose(ba.f_from_kf)
-                # accept the BA only when it stays near the robust pose (guards against a bad set)
-                if (
-                    np.linalg.norm(step[:3, 3]) < cfg.max_jump_m
-                    and _rotation_deg(step) < cfg.max_jump_deg
-                ):
-                    kf_from_new = invert_pose(ba.f_from_kf)
-                    if cfg.local_map_keyframes > 0:  # the local map keeps the refined points
-                        self._refine_points(
-                            prev, self._track_idx, ba.points_in_kf[:n_own], ba.inliers[:n_own], kf_from_new
-                        )
-                        off = n_own
-                        for k, (ls, n) in enumerate(zip(self._local, wide.sizes, strict=False)):
-                            own_from_kf = wide.own_from_kf[k]
-                            p_own = ba.points_in_kf[off : off + n] @ own_from_kf[:3, :3].T + own_from_kf[:3, 3]
-                            self._refine_points(
-                                ls.kf_set, ls.idx, p_own, ba.inliers[off : off + n], own_from_kf @ kf_from_new
-                            )
-                            off += n
-                    if cfg.disparity_offset == "estimate":
-                        self._fuse_offset(prev.disparity_offset_px + ba.disparity_offset_px,
-                                          ba.disparity_offset_var_px2)
-                ba_info = {
-                    "ba_ms": (time.perf_counter() - tb) * 1e3,
-                    "ba_iterations": float(ba.iterations),
-                    "ba_rms_before_px": ba.initial_rms_px,
-                    "ba_rms_after_px": ba.final_rms_px,
-                    "ba_points": float(self._track_idx.size),
-                    "ba_window_points": float(sum(wide.sizes)),
-                }
-                if cfg.disparity_offset == "estimate":
-                    ba_info["disparity_offset_px"] = ba.disparity_offset_px
-                    ba_info["disparity_offset_sigma_px"] = float(np.sqrt(ba.disparity_offset_var_px2))
-                    ba_info["disparity_offset_applied_px"] = applied_offset_px  # to this keyframe's matches
-            if self._local_inliers:
-                ba_info["local_map_inliers"] = float(np.median(self._local_inliers))
-            if self._pose_sigma_px:
-                # robust scale (px per coordinate) of the pose residuals over the interval
-                ba_info["pose_residual_sigma_px"] = float(np.median(self._pose_sigma_px))
-            world_from_rect = nearest_rigid(prev.world_from_kfrect @ kf_from_new)
-            if self._resumed is not None:
-                match_kf = self._resumed.match_keyframe
-                rows = self._observe_resumed(left, kf_from_cur, kf_from_new)
-                seen = set(mono_obs[:, 0].astype(np.int64).tolist())
-                rows = rows[[int(i) not in seen for i in rows[:, 0]]]
-                mono_obs = np.vstack([mono_obs, rows])
-                ba_info["resumed_features"] = float(rows.shape[0])
-                ba_info["resumed_from_keyframe"] = float(match_kf)
-            kf_prev_from_kf = self.cam_from_rect @ kf_from_new @ self.rect_from_cam
-            kf_prev_from_kf_tracked = self.cam_from_rect @ kf_from_cur @ self.rect_from_cam
-
-        self._pose_sigma_px = []
-        self._local_inliers = []
-        if prev is not None and connected and kf_from_cur is not None and cfg.local_map_keyframes > 0:
-            local = [_LocalSet(prev, self._track_idx.copy(), self._track_uv.copy()), *self._local]
-            self._local = [ls for ls in local if ls.idx.size >= 3][: cfg.local_map_keyframes]
-        else:
-            self._local = []
-        if not (prev is not None and kf_from_cur is not None and connected):
-            self._resumed = None  # a new segment: the old set's relation to it is unknown
-        kf_id = self._next_kf_id
-        self._next_kf_id += 1
-        ids = np.arange(
-            self._next_landmark_id, self._next_landmark_id + pts.shape[0], dtype=np.int64
-        )
-        self._next_landmark_id += pts.shape[0]
-        world_from_kf = world_from_rect @ self.rect_from_cam
-        kf = Keyframe(
-            id=kf_id,
-            timestamp_ns=frame.timestamp_ns,
-            world_from_kf=world_from_kf,
-            landmark_ids=ids,
-            points_in_kf=pts @ self.cam_from_rect[:3, :3].T,
-            stereo_px=stereo_px,
-            mono_obs=mono_obs,
-            image=left,
-            frame_index=frame.index,
-            prev_keyframe_id=prev.keyframe.id if prev is not None else None,
-            connected=connected and prev is not None,
-            kf_prev_from_kf=kf_prev_from_kf,
-            kf_prev_from_kf_tracked=kf_prev_from_kf_tracked,
-            rect_from_cam=self.rect_from_cam.copy(),
-            segment=self._segment,
-            ba_info=ba_info,
-        )
-        self._world_from_kf[kf_id] = world_from_kf
-        depth = float(np.median(pts[:, 2]))
-        if self._mono is not None:
-            if not kf.connected:
-                self._mono.reset()
-            unmatched = np.ones(len(corners), bool)
-            unmatched[m.index] = False
-            self._mono.spawn(kf_id, corners[unmatched], depth, stereo_px[:, [0, 2]])
-            self._good_stamp = frame.timestamp_ns
-        if prev is not None and connected and cfg.remeasure_older_keyframes > 0:
-            self._older = [prev, *self._older][: cfg.remeasure_older_keyframes]
-        else:
-            self._older = []
-        sigma_z = pts[:, 2] ** 2 / fb * cfg.disparity_sigma_px  # stereo depth standard deviation (m)
-        if cfg.disparity_sigma_source == "match" and len(disparity_sigma) == len(pts):
-            sigma_z = pts[:, 2] ** 2 / fb * disparity_sigma
-        self._active = _ActiveSet(kf, world_from_rect, pts, stereo_px, depth, far_rays, far_inv_depth, far_px,
-                                  disparity_sigma, disparity_offset_px=applied_offset_px, sigma_z_m=sigma_z)
-        self._moving_uv = np.zeros((0, 2))
-        self._track_idx = np.arange(pts.shape[0], dtype=np.int64)
-        self._track_uv = stereo_px[:, [0, 2]].copy()
-        self._far_idx = np.arange(far_px.shape[0], dtype=np.int64)
-        self._far_uv = far_px.copy()
-        self._prev_pyr = (
-            cur_pyr
-            if cur_pyr is not None
-            else build_pyramid(left, cfg.klt_window_px, cfg.klt_levels)
-        )
-        self._kf_from_prev = np.eye(4)
-        self._frames_since_ok = 0
-        t1 = time.perf_counter()
+        if prev is not None and closed is not None and kf_from_cur is not None:
+            self._apply_closed(closed)
+            world_from_rect = nearest_rigid(prev.world_from_kfrect @ closed.kf_from_new)
+            closed.mono_obs = self._observe_resumed(closed, left, kf_from_cur)
+        kf = self._new_keyframe(frame, left, new, world_from_rect, closed, kf_from_cur)
+        self._activate(kf, new, world_from_rect, cur_pyr)
         return FrameResult(
             frame.timestamp_ns,
-            world_from_kf,
+            kf.world_from_kf,
             "OK",
             True,
-            kf_id,
+            kf.id,
             np.eye(4),
             0,
             0,
@@ -1189,8 +1011,244 @@ class FrontEnd:
             frame_index=frame.index,
             segment=self._segment,
             track_ms=(t_kf - t0) * 1e3,
-            keyframe_ms=(t1 - t_kf) * 1e3,
+            keyframe_ms=(time.perf_counter() - t_kf) * 1e3,
         )
+
+    def _stereo_set(
+        self, left: NDArray[np.uint8], right: NDArray[np.uint8], rectified: bool, avoid_px: F64 | None,
+        threads: int,
+    ) -> StereoSet | None:
+        """:func:`~loopmodel.frontend.stereo.keyframe_stereo_set` of the rectified ``left`` and ``right``.
+
+        ``right`` rectified here unless ``rectified``; the disparity offset is the current one.
+        """
+        if not rectified:
+            right = self.rectifier.right(right)
+        return keyframe_stereo_set(
+            left, right, self.calibration.K_left, self.calibration.baseline_m, self.config, self._offset_px,
+            avoid_px, threads,
+        )
+
+    def _close_interval(
+        self, prev: _ActiveSet, left: NDArray[np.uint8], right: NDArray[np.uint8] | None, kf_from_cur: F64
+    ) -> _ClosedInterval:
+        """The outgoing set ``prev``'s interval closed at a new keyframe (``left``/``right``, at ``kf_from_cur``).
+
+        Rectified images and pose. The set's tracks there (re-measured with ``keyframe_remeasure``),
+        older keyframes' and the local map's points found in the new image, then the local hybrid BA.
+        Changes nothing in the tracker (it runs beside the new set's matching): :meth:`_apply_closed`
+        applies it.
+        """
+        cfg = self.config
+        world_from_rect = prev.world_from_kfrect @ kf_from_cur
+        # older keyframes' points and the local map's sets measured in the new image on threads of
+        # their own (GIL-releasing remaps and batched solves), beside this thread's work
+        gradients = self._left_gradients(left)
+        threaded = cfg.keyframe_stereo == "thread"
+        older = [
+            Beside(threaded, self._observe_older, old, left, world_from_rect, gradients)
+            for old in (self._older if cfg.keyframe_remeasure else [])
+        ]
+        remeasured = [
+            Beside(threaded, self._remeasure_local, ls, left, world_from_rect, gradients)
+            for ls in (self._local if cfg.local_map_remeasure else [])
+        ]
+        idx, uv = self._track_idx, self._track_uv
+        if cfg.keyframe_remeasure:
+            idx, uv = self._remeasure_tracks(prev, left, kf_from_cur)
+        mono_obs = np.column_stack([prev.keyframe.landmark_ids[idx].astype(float), uv])
+        closed = _ClosedInterval(mono_obs, kf_from_cur, idx, uv, self._local)
+        ba = cfg.local_ba and idx.size >= 6
+        if ba and cfg.local_ba_keyframes == 0:  # the two-keyframe BA does not take the local map
+            self._local_ba(closed, prev, left, right, kf_from_cur)
+        if older:
+            closed.mono_obs = np.vstack([mono_obs, *[job.result() for job in older]])
+        if self._local:
+            sets = [job.result() for job in remeasured] if remeasured else self._local
+            closed.mono_obs, closed.local = self._observe_local(closed.mono_obs, sets)
+        if ba and cfg.local_ba_keyframes > 0:
+            self._local_ba(closed, prev, left, right, kf_from_cur)
+        if self._local_inliers:
+            closed.ba_info["local_map_inliers"] = float(np.median(self._local_inliers))
+        if self._pose_sigma_px:
+            # robust scale (px per coordinate) of the pose residuals over the interval
+            closed.ba_info["pose_residual_sigma_px"] = float(np.median(self._pose_sigma_px))
+        return closed
+
+    def _final_right(self, left: NDArray[np.uint8], right: NDArray[np.uint8], uv: F64, n_window: int) -> F64:
+        """The tracked points ``uv`` (N, 2) found in the new keyframe's right image: (N + ``n_window``, 2) pixels.
+
+        Both ends of the set then carry a stereo observation (``frontend.ba_final_stereo``); NaN rows
+        where unmatched and for the wider BA's ``n_window`` points.
+        """
+        fm = match_stereo(left, right, uv, self.config)
+        out = np.full((uv.shape[0] + n_window, 2), np.nan)
+        frac = uv[fm.index] - fm.uv_left  # sub-pixel part of the corner
+        out[fm.index, 0] = fm.u_right - self._offset_px + frac[:, 0]
+        out[fm.index, 1] = fm.v_right + frac[:, 1]
+        return out
+
+    def _local_ba(
+        self, closed: _ClosedInterval, prev: _ActiveSet, left: NDArray[np.uint8], right: NDArray[np.uint8] | None,
+        kf_from_cur: F64,
+    ) -> None:
+        """The local hybrid BA over ``closed``'s interval: its pose, refined points, offset and ``ba_info``.
+
+        The outgoing set's tracked points (stereo in ``prev``, seen in the new keyframe), with
+        ``local_ba_keyframes`` the local map's sets too. Accepted only within ``max_jump_m`` /
+        ``max_jump_deg`` of the robust pose ``kf_from_cur`` (guards against a bad set).
+        """
+        cfg = self.config
+        tb = time.perf_counter()
+        idx, uv = closed.track_idx, closed.track_uv
+        sp = prev.stereo_px[idx]
+        wide = self._wide_ba_rows(prev, closed.local)
+        n_own = idx.size
+        final_right = None
+        if cfg.ba_final_stereo and right is not None:
+            final_right = self._final_right(left, right, uv, int(sum(wide.sizes)))
+        right_sigma = None  # per-point disparity standard deviations (px), own set then the window's
+        if cfg.disparity_sigma_source == "match" and prev.disparity_sigma_px.size:
+            sig = [prev.disparity_sigma_px[idx]]
+            for ls, n in zip(closed.local, wide.sizes, strict=False):
+                ds = ls.kf_set.disparity_sigma_px
+                sig.append(ds[ls.idx] if ds.size else np.full(n, cfg.disparity_sigma_px))
+            right_sigma = np.concatenate(sig)
+        ba = hybrid_keyframe_ba(
+            np.vstack([prev.points[idx], wide.points_kf]),
+            np.vstack([sp[:, [0, 2]], wide.uv_left]),
+            np.vstack([sp[:, [1, 2]], wide.uv_right]),
+            np.vstack([uv, wide.uv_final]),
+            invert_pose(kf_from_cur),
+            self.left_camera,
+            self.right_camera,
+            self.calibration.right_from_left,
+            cfg.ba_iterations,
+            cfg.ba_huber_px,
+            uv_final_right=final_right,
+            right_sigma_px=right_sigma,
+            estimate_disparity_offset=cfg.disparity_offset == "estimate",
+            offset_prior=(self._offset_mean_px - prev.disparity_offset_px, self._offset_info),
+            owner=np.concatenate([np.zeros(n_own, np.int64), wide.owner]),
+            own_from_kf=np.concatenate([np.eye(4)[None], wide.own_from_kf]),
+        )
+        step = invert_pose(kf_from_cur) @ invert_pose(ba.f_from_kf)
+        if np.linalg.norm(step[:3, 3]) < cfg.max_jump_m and _rotation_deg(step) < cfg.max_jump_deg:
+            closed.kf_from_new = kf_from_new = invert_pose(ba.f_from_kf)
+            if cfg.local_map_keyframes > 0:  # the local map keeps the refined points
+                closed.refined.append((prev, idx, ba.points_in_kf[:n_own], ba.inliers[:n_own], kf_from_new))
+                off = n_own
+                for k, (ls, n) in enumerate(zip(closed.local, wide.sizes, strict=False)):
+                    own_from_kf = wide.own_from_kf[k]
+                    p_own = ba.points_in_kf[off : off + n] @ own_from_kf[:3, :3].T + own_from_kf[:3, 3]
+                    kf_from_end = own_from_kf @ kf_from_new
+                    closed.refined.append((ls.kf_set, ls.idx, p_own, ba.inliers[off : off + n], kf_from_end))
+                    off += n
+            if cfg.disparity_offset == "estimate":
+                closed.offset = (prev.disparity_offset_px + ba.disparity_offset_px, ba.disparity_offset_var_px2)
+        closed.ba_info.update({
+            "ba_ms": (time.perf_counter() - tb) * 1e3,
+            "ba_iterations": float(ba.iterations),
+            "ba_rms_before_px": ba.initial_rms_px,
+            "ba_rms_after_px": ba.final_rms_px,
+            "ba_points": float(n_own),
+            "ba_window_points": float(sum(wide.sizes)),
+        })
+        if cfg.disparity_offset == "estimate":
+            closed.ba_info["disparity_offset_px"] = ba.disparity_offset_px
+            closed.ba_info["disparity_offset_sigma_px"] = float(np.sqrt(ba.disparity_offset_var_px2))
+            closed.ba_info["disparity_offset_applied_px"] = self._offset_px  # to the new keyframe's matches
+
+    def _apply_closed(self, closed: _ClosedInterval) -> None:
+        """Take a closed interval: the outgoing set's final tracks, the local map's sets, the BA's points and offset."""
+        self._track_idx, self._track_uv = closed.track_idx, closed.track_uv
+        self._local = closed.local
+        for kf_set, sel, points_m, inliers, kf_from_end in closed.refined:
+            self._refine_points(kf_set, sel, points_m, inliers, kf_from_end)
+        if closed.offset is not None:
+            self._fuse_offset(*closed.offset)
+
+    def _new_keyframe(
+        self, frame: StereoFrame, left: NDArray[np.uint8], new: StereoSet, world_from_rect: F64,
+        closed: _ClosedInterval | None, kf_from_cur: F64 | None,
+    ) -> Keyframe:
+        """The keyframe of the set ``new`` at ``world_from_rect`` (rectified), with fresh ids; registered.
+
+        Connected to the active set when its interval was ``closed`` (tracked pose ``kf_from_cur``).
+        """
+        prev = self._active
+        kf_id = self._next_kf_id
+        self._next_kf_id += 1
+        n = new.points.shape[0]
+        ids = np.arange(self._next_landmark_id, self._next_landmark_id + n, dtype=np.int64)
+        self._next_landmark_id += n
+        world_from_kf = world_from_rect @ self.rect_from_cam
+        self._world_from_kf[kf_id] = world_from_kf
+        linked = closed is not None and kf_from_cur is not None
+        return Keyframe(
+            id=kf_id,
+            timestamp_ns=frame.timestamp_ns,
+            world_from_kf=world_from_kf,
+            landmark_ids=ids,
+            points_in_kf=new.points @ self.cam_from_rect[:3, :3].T,
+            stereo_px=new.stereo_px,
+            mono_obs=closed.mono_obs if closed is not None else np.zeros((0, 3)),
+            image=left,
+            frame_index=frame.index,
+            prev_keyframe_id=prev.keyframe.id if prev is not None else None,
+            connected=linked,
+            kf_prev_from_kf=(self.cam_from_rect @ closed.kf_from_new @ self.rect_from_cam) if closed else None,
+            kf_prev_from_kf_tracked=(
+                self.cam_from_rect @ kf_from_cur @ self.rect_from_cam if closed is not None and kf_from_cur is not None
+                else None
+            ),
+            rect_from_cam=self.rect_from_cam.copy(),
+            segment=self._segment,
+            ba_info=closed.ba_info if closed is not None else {},
+        )
+
+    def _activate(self, kf: Keyframe, new: StereoSet, world_from_rect: F64, cur_pyr: Pyramid | None) -> None:
+        """Make ``new`` (keyframe ``kf`` at ``world_from_rect``) the active set; the outgoing joins the local map."""
+        cfg = self.config
+        prev = self._active
+        self._pose_sigma_px = []
+        self._local_inliers = []
+        if prev is not None and kf.connected and cfg.local_map_keyframes > 0:
+            local = [_LocalSet(prev, self._track_idx.copy(), self._track_uv.copy()), *self._local]
+            self._local = [ls for ls in local if ls.idx.size >= 3][: cfg.local_map_keyframes]
+        else:
+            self._local = []
+        if not kf.connected:
+            self._resumed = None  # a new segment: the old set's relation to it is unknown
+        pts = new.points
+        depth = float(np.median(pts[:, 2]))
+        if self._mono is not None:
+            if not kf.connected:
+                self._mono.reset()
+            self._mono.spawn(kf.id, new.unmatched_px, depth, new.stereo_px[:, [0, 2]])
+            self._good_stamp = kf.timestamp_ns
+        if prev is not None and kf.connected and cfg.remeasure_older_keyframes > 0:
+            self._older = [prev, *self._older][: cfg.remeasure_older_keyframes]
+        else:
+            self._older = []
+        fb = self.calibration.fx_px * self.calibration.baseline_m
+        sigma_z = pts[:, 2] ** 2 / fb * cfg.disparity_sigma_px  # stereo depth standard deviation (m)
+        if cfg.disparity_sigma_source == "match" and len(new.disparity_sigma_px) == len(pts):
+            sigma_z = pts[:, 2] ** 2 / fb * new.disparity_sigma_px
+        self._active = _ActiveSet(
+            kf, world_from_rect, pts, new.stereo_px, depth, new.far_rays, new.far_inv_depth, new.far_px,
+            new.disparity_sigma_px, disparity_offset_px=new.offset_px, sigma_z_m=sigma_z,
+        )
+        self._moving_uv = np.zeros((0, 2))
+        self._track_idx = np.arange(pts.shape[0], dtype=np.int64)
+        self._track_uv = new.stereo_px[:, [0, 2]].copy()
+        self._far_idx = np.arange(new.far_px.shape[0], dtype=np.int64)
+        self._far_uv = new.far_px.copy()
+        self._prev_pyr = (
+            cur_pyr if cur_pyr is not None else build_pyramid(kf.image, cfg.klt_window_px, cfg.klt_levels)
+        )
+        self._kf_from_prev = np.eye(4)
+        self._frames_since_ok = 0
 
     def _lost(
         self,
