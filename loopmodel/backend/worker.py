@@ -76,6 +76,7 @@ def _serve(factory: Callable[[], Backend], inbox: Any, outbox: Any) -> None:
         return
     outbox.put(("ready",))
     estimate: dict[int, F64] = {}
+    n_kf = 0  # keyframes handed to the back end
     while True:
         batch = [inbox.get()]
         while True:
@@ -85,11 +86,15 @@ def _serve(factory: Callable[[], Backend], inbox: Any, outbox: Any) -> None:
                 break
         dirty = False
         update_ms: list[float] = []
+        # (message kind, keyframes handed to the back end, CPU ms of this thread: the load does not
+        # change it, and GTSAM here runs in the calling thread) (issue 33)
+        calls: list[tuple[str, int, float]] = []
         t0 = time.perf_counter()
         for msg in batch:
             kind = msg[0]
             if kind == "stop":
                 return
+            tc = time.thread_time()
             try:
                 if kind == "kf":
                     kf, prev_pose = msg[1], msg[2]
@@ -119,18 +124,26 @@ def _serve(factory: Callable[[], Backend], inbox: Any, outbox: Any) -> None:
                     outbox.put(("metrics", backend.metrics()))
                 elif kind == "ping":
                     if dirty:
+                        te = time.thread_time()
                         est = backend.estimate(landmarks=False)
                         estimate.update(est.world_from_kf)
-                        outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, update_ms, 0.0))
+                        calls.append(("estimate", n_kf, (time.thread_time() - te) * 1e3))
+                        outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, update_ms, 0.0, calls))
+                        calls = []
                         dirty, update_ms = False, []
                     outbox.put(("pong", msg[1]))
             except Exception as exc:  # noqa: BLE001 - one failed call is reported, the worker goes on
                 outbox.put(("error", kind, f"{type(exc).__name__}: {exc}"))
+            if kind in ("kf", "obs", "loop", "remove"):
+                n_kf += kind == "kf"
+                calls.append((kind, n_kf, (time.thread_time() - tc) * 1e3))
         if dirty:
+            te = time.thread_time()
             est = backend.estimate(landmarks=False)
             estimate.update(est.world_from_kf)
+            calls.append(("estimate", n_kf, (time.thread_time() - te) * 1e3))
             batch_ms = (time.perf_counter() - t0) * 1e3
-            outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, update_ms, batch_ms))
+            outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, update_ms, batch_ms, calls))
 
 
 # --------------------------------------------------------------------------- the tracker's side
@@ -167,6 +180,9 @@ class BackgroundBackend:
         self._pongs = 0
         self.update_ms: list[float] = []  # the worker's add_keyframe times
         self.batch_ms: list[float] = []  # the worker's time per batch (updates and estimate)
+        #: the worker's calls on the back end: (message kind "kf", "obs", "loop", "remove" or "estimate",
+        #: keyframes handed to it so far, the worker thread's CPU ms), in order (issue 33: the scale bench)
+        self.call_ms: list[tuple[str, int, float]] = []
         self.errors: list[str] = []
         self.lag_kf: list[int] = []  # keyframes sent but not yet in the estimate, per estimate() call
 
@@ -196,7 +212,8 @@ class BackgroundBackend:
                 continue
             kind = msg[0]
             if kind == "estimate":
-                _, poses, changed, update_ms, batch_ms = msg
+                _, poses, changed, update_ms, batch_ms, calls = msg
+                self.call_ms.extend(calls)
                 self._latest.update(poses)
                 self._changed |= set(changed)
                 self._done_kf = max(poses) if poses else self._done_kf
