@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from loopmodel.backend.base import Backend, BackendEstimate, BackendUpdate, Observation
 from loopmodel.config import BackendConfig, RefineConfig
 from loopmodel.errors import EstimationError
-from loopmodel.geometry.se3 import invert_pose
+from loopmodel.geometry.se3 import invert_pose, nearest_rigid
 from loopmodel.types import Keyframe
 
 logger = logging.getLogger(__name__)
@@ -99,10 +99,13 @@ def _serve(factory: Callable[[], Backend], inbox: Any, outbox: Any) -> None:
                 if kind == "kf":
                     kf, prev_pose = msg[1], msg[2]
                     prev = kf.prev_keyframe_id
+                    pose = np.asarray(kf.world_from_kf, float)
                     if prev_pose is not None and prev in estimate:
                         # the tracker chained this pose from its pose of the previous keyframe
-                        rebase = estimate[prev] @ invert_pose(prev_pose)
-                        kf = dataclasses.replace(kf, world_from_kf=rebase @ np.asarray(kf.world_from_kf))
+                        pose = estimate[prev] @ invert_pose(prev_pose) @ pose
+                    # projected on SE(3): products of products drift off it (issue 33: 1.0e-5 after
+                    # 34 keyframes of the scale bench's rounds scan, past the anchored map's bound)
+                    kf = dataclasses.replace(kf, world_from_kf=nearest_rigid(pose))
                     tk = time.perf_counter()
                     backend.add_keyframe(kf)
                     update_ms.append((time.perf_counter() - tk) * 1e3)
@@ -246,7 +249,7 @@ class BackgroundBackend:
         prev_pose = self._known.get(int(prev)) if prev is not None and keyframe.connected else None
         light = dataclasses.replace(keyframe, image=np.zeros((0, 0), np.uint8))
         self._send("kf", light, prev_pose)
-        self._known[kf_id] = np.asarray(keyframe.world_from_kf, float).copy()
+        self._known[kf_id] = nearest_rigid(np.asarray(keyframe.world_from_kf, float))
         self._order.append(kf_id)
         return BackendUpdate(kf_id)
 
@@ -307,7 +310,7 @@ class BackgroundBackend:
         delta = moved[done] @ invert_pose(self._known[done])
         for k in self._order[self._order.index(done) + 1 :]:
             if k not in self._latest:
-                moved[k] = delta @ self._known[k]
+                moved[k] = nearest_rigid(delta @ self._known[k])  # products stay on SE(3) (see _serve)
 
     def final_estimate(self, refine: RefineConfig | None) -> BackendEstimate:
         """Wait for the worker, then its end-of-run solution; the worker stops afterwards."""

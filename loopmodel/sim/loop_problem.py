@@ -200,12 +200,12 @@ def rounds_problem(
             uv = q[ok, :2] + rng.normal(0, noise_px, (int(ok.sum()), 2))
             mono.append(np.column_stack([pid[ok].astype(float), uv]))
         sets.append((ids, P))
-        rel = invert_pose(est_T[i - 1]) @ est_T[i] if i else None
+        prev_from_kf = invert_pose(est_T[i - 1]) @ est_T[i] if i else None
         kfs.append(
             Keyframe(
                 i, i * 100_000_000, est_T[i], ids, p_kf, np.column_stack([uL, uR, v]),
                 np.vstack(mono) if mono else np.zeros((0, 3)), frame_index=i,
-                prev_keyframe_id=i - 1 if i else None, kf_prev_from_kf=rel,
+                prev_keyframe_id=i - 1 if i else None, kf_prev_from_kf=prev_from_kf,
             )
         )
     loops: list[tuple[int, int, F64]] = []
