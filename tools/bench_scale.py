@@ -1,11 +1,11 @@
 """Benchmark ``scale``: cost growth of the pipeline over a long realistic multi-loop scan (issues 17, 33).
 
-Full run: the 10,000-frame realistic ``rounds`` scan (400 s at 25 Hz: 12 rounds around the object,
+Full run: the 10,000-frame realistic ``rounds`` scan (400 s at 25 Hz: 16 rounds around the object,
 each at its own height and distance, each running past its own start; every round passes the
-views of the earlier ones from another height, so the path keeps finding new views: about 25
+views of the earlier ones from another height, so the path keeps finding new views: about 20
 keyframes a round); generated once into ``~/.cache/loopmodel`` (slow: about 0.35-0.5 CPU-s per
-frame, hours on a loaded 2-core machine). ``--quick``: the same kind of scan with 4 rounds in 1,200
-frames (faster motion, 100+ keyframes). The pipeline runs with its own configuration (iSAM2 back
+frame, hours on a loaded 2-core machine). ``--quick``: the same kind of scan with 6 rounds in 1,800
+frames (faster motion, about 120 keyframes). The pipeline runs with its own configuration (iSAM2 back
 end in its worker, loop stage with its worker, live and final meshes, session map).
 
 Keys: ``frames``, ``keyframes``, ``loops``; ``frame_ms_last_over_first``: median per-frame time over
@@ -68,6 +68,14 @@ class _Timed:
                 self.stamps.append(time.perf_counter())
                 self.cpu_s.append(time.thread_time())
                 yield f
+
+    def scan(self) -> Any:
+        """The pipeline's one pass (frames with what rides along): stamped like :meth:`frames`."""
+        for i, item in enumerate(self._seq.scan()):
+            if i % self._stride == 0:
+                self.stamps.append(time.perf_counter())
+                self.cpu_s.append(time.thread_time())
+                yield item
 
 
 class _Clock:
@@ -300,9 +308,9 @@ def run(quick: bool = False) -> dict[str, Any]:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import bench_sim_loop as sl
 
-    if quick:  # 4 rounds in 1,200 frames
-        path, window = sl._ensure(CACHE / "rounds_1200.mcap", "rounds", frames=1200, sweeps=4), 200
-    else:  # the preset: 12 rounds in 10,000 frames
+    if quick:  # 6 rounds in 1,800 frames (4 rounds in 1,200 made 79 keyframes)
+        path, window = sl._ensure(CACHE / "rounds_1800.mcap", "rounds", frames=1800, sweeps=6), 200
+    else:  # the preset: 16 rounds in 10,000 frames
         path, window = sl._ensure(CACHE / "rounds_10000.mcap", "rounds"), 500
     result = measure(path, 1, window)
     name = "scale_quick" if quick else "scale"
