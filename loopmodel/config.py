@@ -448,12 +448,12 @@ class SimRenderConfig(_Section):
 class SimTrajectoryConfig(_Section):
     """Hand-held path around the object (world z up, object on the table at the origin)."""
 
-    kind: Literal["orbit", "sweeps", "browse", "modeler"] = "orbit"
+    kind: Literal["orbit", "sweeps", "browse", "modeler", "rounds"] = "orbit"
     frames: int = Field(600, gt=0, le=1000000)
     rate_hz: float = Field(25.0, gt=0)
     radius_m: float = Field(0.65, gt=0, description="camera distance from the object axis")
     height_m: float = Field(0.35, description="camera height above the table")
-    sweeps: int = Field(3, ge=1, le=1000, description="'sweeps': number of back-and-forth sweeps")
+    sweeps: int = Field(3, ge=1, le=1000, description="'sweeps': back-and-forth sweeps; 'rounds': rounds")
     shake_translation_m: float = Field(0.002, ge=0)
     shake_rotation_deg: float = Field(0.3, ge=0)
     start_time_ns: int = Field(1_000_000_000, ge=0)

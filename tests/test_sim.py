@@ -295,6 +295,30 @@ def test_paths_close_range_loops_and_no_revisit(kind: str) -> None:
         assert abs(az[-1] - az[0]) > np.radians(200)
 
 
+def test_rounds_keep_finding_new_views() -> None:
+    """Issue 33: every round turns once around the object at its own height and distance, then revisits its start."""
+    n, frames = 4, 1200
+    cfg = small_cfg(trajectory={"kind": "rounds", "frames": frames, "sweeps": n})
+    path = gen.path_of(cfg)
+    poses = np.array([path.pose(t) for t in np.arange(frames) / cfg.trajectory.rate_hz])
+    scene = gen.scene_of(cfg)
+    rs = o3d.t.geometry.RaycastingScene()
+    rs.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(scene.legacy_mesh(object_only=True)))
+    dist = rs.compute_distance(o3d.core.Tensor(poses[:, :3, 3].astype(np.float32))).numpy()
+    assert 0.3 <= dist.min() and dist.max() <= 1.0
+    az = np.unwrap(np.arctan2(poses[:, 1, 3], poses[:, 0, 3]))
+    assert abs(abs(az[-1] - az[0]) - n * np.radians(400)) < 0.2  # a turn and 40 deg more per round
+    per = frames // n  # the middle of each round's turn: its own height and distance
+    mid = poses[per // 3 :: per][:n, :3, 3]
+    heights, radii = mid[:, 2], np.linalg.norm(mid[:, :2], axis=1)
+    assert np.min(np.abs(np.diff(heights))) > 0.04 and np.min(np.abs(np.diff(radii))) > 0.03
+    # each round's end passes its own start again (the revisit) from about the same place
+    for i in range(n):
+        start = poses[i * per + 5, :3, 3]
+        seen = poses[i * per + int(0.85 * per) : (i + 1) * per, :3, 3]
+        assert np.min(np.linalg.norm(seen - start, axis=1)) < 0.05
+
+
 def test_impossible_parameters_raise_clear_errors(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="baseline_m"):
         small_cfg(camera={"baseline_m": -0.06})

@@ -1,26 +1,32 @@
-"""Benchmark ``scale``: cost growth of the pipeline over a long realistic multi-loop scan (issue 17).
+"""Benchmark ``scale``: cost growth of the pipeline over a long realistic multi-loop scan (issues 17, 33).
 
-Full run: a 5,000-frame realistic scan (the ``modeler`` preset stretched to 200 s at 25 Hz: four
-sweeps, a loop closure, a second orbit that revisits both; generated once into
-``~/.cache/loopmodel``: slow, about 0.35 CPU-s per frame, 36 min at load 6-11); ``--quick``: the 1,200-frame realistic
-modeler scan of ``sim-loop --quick`` at every 3rd frame, as there. The pipeline runs with its own
-configuration (iSAM2 back end, loop stage with its worker thread, live and final meshes, session map).
+Full run: the 10,000-frame realistic ``rounds`` scan (400 s at 25 Hz: 16 rounds around the object,
+each at its own height and distance, each running past its own start; every round passes the
+views of the earlier ones from another height, so the path keeps finding new views: about 20
+keyframes a round); generated once into ``~/.cache/loopmodel`` (slow: about 0.35-0.5 CPU-s per
+frame, hours on a loaded 2-core machine). ``--quick``: the same kind of scan with 6 rounds in 1,800
+frames (faster motion, about 120 keyframes). The pipeline runs with its own configuration (iSAM2 back
+end in its worker, loop stage with its worker, live and final meshes, session map).
 
-Keys: ``frames``, ``keyframes``; ``frame_ms_last_over_first``: median per-frame time over the last
-N frames divided by that over the first N (N = 500, quick 200; a frame's time is the interval
-between the pipeline's requests for consecutive frames, so it includes reading, the loop stage and
-the back end); ``frame_ms_by_frames``: that median per block of N frames;
+Keys: ``frames``, ``keyframes``, ``loops``; ``frame_ms_last_over_first``: median per-frame time over
+the last N frames divided by that over the first N (N = 500, quick 200; a frame's time is the
+interval between the pipeline's requests for consecutive frames, so it includes reading, the loop
+stage and the back end's queueing); ``frame_ms_by_frames``: that median per block of N frames;
 ``frame_cpu_ms_last_over_first`` and ``frame_cpu_ms_by_frames``: the same for the tracking thread's
 CPU time per frame (``time.thread_time``: what the load does not change; worker threads excluded);
-``backend_ms_by_keyframes``: the back end's time per keyframe (every call the pipeline makes on
-it: ``add_keyframe``, loop constraints, ``estimate``), median per block of 5 keyframes (the
-modeler path makes about 35, whatever the frame count), as [keyframes, ms] pairs;
-``loop_stage_ms_by_keyframes``: the same for the loop stage's ``on_keyframe`` on the tracking
-thread; ``loop_opt_ms_by_keyframes``: each verified loop's optimisation (the back end's update with
-the loop constraint) with the number of keyframes at that moment; ``loop_gate_ms_by_keyframes``: its
-robust-gate solve; ``peak_rss_mib``; ``write_s``: writing the results folder
-(``write_results``); ``finish_s``: the end of the run before it (drain, final refinement, final mesh,
-session map). The curves are also drawn in ``results/bench_scale/scale.png`` (with ``scale.json``).
+``backend_ms_by_keyframes``: the back end's CPU time per keyframe (every call the pipeline makes
+on it, as its worker thread measures it: ``add_keyframe``, late observations, loop constraints,
+``estimate``, charged to the number of keyframes it holds), median per block of B keyframes (B = 20),
+as [keyframes, ms] pairs; ``backend_ms_last_over_first``: the last block's median over the first's;
+``loop_stage_ms_by_keyframes``: the loop stage's ``on_keyframe`` on the tracking thread, the same
+way; ``loop_opt_ms_by_keyframes``: each loop constraint's optimisation in the back end (its
+``add_loop_constraint``: the update and the relinearisation after it) with the keyframes at that
+moment; ``loop_gate_ms_by_keyframes``: each verified loop's robust-gate solve; ``ate_rmse_before_m``
+and ``ate_rmse_after_m``: every tracked frame's position (dead reckoning through the keyframes'
+measured links, and the final trajectory) against the ground truth after a rigid alignment;
+``peak_rss_mib``; ``write_s``: writing the results folder (``write_results``); ``finish_s``: the end
+of the run before it (drain, final refinement, final mesh, session map). The curves are also drawn
+in ``results/bench_scale/scale.png`` (with ``scale.json``).
 """
 
 from __future__ import annotations
@@ -63,6 +69,14 @@ class _Timed:
                 self.cpu_s.append(time.thread_time())
                 yield f
 
+    def scan(self) -> Any:
+        """The pipeline's one pass (frames with what rides along): stamped like :meth:`frames`."""
+        for i, item in enumerate(self._seq.scan()):
+            if i % self._stride == 0:
+                self.stamps.append(time.perf_counter())
+                self.cpu_s.append(time.thread_time())
+                yield item
+
 
 class _Clock:
     """Time spent in an object's methods, charged to the keyframe count at the call."""
@@ -76,37 +90,46 @@ class _Clock:
 
     def curve(self, block: int = 5) -> list[list[float]]:
         """Median ms per keyframe over blocks of ``block`` keyframes, as [keyframes, ms]."""
-        if not self.ms:
-            return []
-        k = np.array(sorted(self.ms))
-        v = np.array([self.ms[i] for i in k])
-        out = []
-        for start in range(0, int(k.max()), block):
-            sel = (k > start) & (k <= start + block)
-            if np.any(sel):
-                out.append([start + block, round(float(np.median(v[sel])), 2)])
-        return out
+        return _curve(self.ms, block)
+
+
+def _curve(ms: dict[int, float], block: int) -> list[list[float]]:
+    """Median of ``ms`` (keyframes -> ms) per block of ``block`` keyframes, as [keyframes, ms]."""
+    if not ms:
+        return []
+    k = np.array(sorted(ms))
+    v = np.array([ms[i] for i in k])
+    out = []
+    for start in range(0, int(k.max()), block):
+        sel = (k > start) & (k <= start + block)
+        if np.any(sel):
+            out.append([start + block, round(float(np.median(v[sel])), 2)])
+    return out
 
 
 class _TimedBackend:
-    """A back end whose every method call is timed by ``clock`` (the pipeline's calls, nothing else)."""
+    """An inline back end whose every call is recorded as the worker records them: (kind, keyframes, CPU ms)."""
 
-    def __init__(self, inner: Any, clock: _Clock) -> None:
-        self._inner, self._clock = inner, clock
+    KINDS = {"add_keyframe": "kf", "add_observations": "obs", "add_loop_constraint": "loop",
+             "remove_observations": "remove", "estimate": "estimate"}
+
+    def __init__(self, inner: Any) -> None:
+        self._inner = inner
+        self.call_ms: list[tuple[str, int, float]] = []
+        self._n_kf = 0
 
     def __getattr__(self, name: str) -> Any:
         attr = getattr(self._inner, name)
-        if not callable(attr):
+        if name not in self.KINDS:
             return attr
 
         def timed(*args: Any, **kwargs: Any) -> Any:
-            if name == "add_keyframe":
-                self._clock.keyframes += 1
-            t0 = time.perf_counter()
+            t0 = time.thread_time()
             try:
                 return attr(*args, **kwargs)
             finally:
-                self._clock.add(t0)
+                self._n_kf += name == "add_keyframe"
+                self.call_ms.append((self.KINDS[name], self._n_kf, (time.thread_time() - t0) * 1e3))
 
         return timed
 
@@ -118,20 +141,42 @@ def _blocks(dt_ms: np.ndarray, n: int) -> list[list[float]]:
     ]
 
 
-def measure(path: Path, stride: int, window: int, config: Config | None = None) -> dict[str, Any]:
+def _ate_m(est: np.ndarray, gt: np.ndarray) -> float:
+    """RMS position error (m) of ``est`` against ``gt`` (N x 4 x 4) after a rigid alignment."""
+    from loopmodel.geometry.align import umeyama_alignment
+
+    R, t, _ = umeyama_alignment(est[:, :3, 3], gt[:, :3, 3], with_scale=False)
+    p = est[:, :3, 3] @ np.asarray(R).T + t
+    return float(np.sqrt(np.mean(np.sum((p - gt[:, :3, 3]) ** 2, axis=1))))
+
+
+def measure(path: Path, stride: int, window: int, config: Config | None = None, block: int = 20) -> dict[str, Any]:
     """The pipeline over ``path`` (every ``stride``-th frame) with its cost recorded as above."""
     import loopmodel.pipeline as pl
+    from loopmodel.backend.worker import BackgroundBackend
     from loopmodel.io.sequence import open_sequence
+    from loopmodel.io.trajectory_io import read_trajectory
+    from loopmodel.listener import RunListener
     from loopmodel.loop.stage import LoopClosingStage
 
     config = config if config is not None else Config()
     seq = _Timed(open_sequence(path, config.sequence), stride)
-    backend_clock, loop_clock = _Clock(), _Clock()
-    make, write, on_keyframe = pl.create_backend, pl.write_results, LoopClosingStage.on_keyframe
+    loop_clock = _Clock()
+    backends: list[Any] = []
+    start, write, on_keyframe = pl.start_backend, pl.write_results, LoopClosingStage.on_keyframe
     write_s = [0.0]
+    chain: dict[int, tuple[int | None, np.ndarray | None, bool, np.ndarray]] = {}
 
-    def timed_backend(*args: Any, **kwargs: Any) -> Any:
-        return _TimedBackend(make(*args, **kwargs), backend_clock)
+    class _Chain(RunListener):
+        def on_keyframe(self, keyframe: Any, result: Any) -> None:
+            kf = keyframe
+            chain[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf, kf.connected, kf.world_from_kf.copy())
+            loop_clock.keyframes = len(chain)
+
+    def recorded_backend(*args: Any, **kwargs: Any) -> Any:
+        backend = start(*args, **kwargs)
+        backends.append(backend if isinstance(backend, BackgroundBackend) else _TimedBackend(backend))
+        return backends[-1]
 
     def timed_write(*args: Any, **kwargs: Any) -> Any:
         t0 = time.perf_counter()
@@ -141,23 +186,24 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None) 
             write_s[0] = time.perf_counter() - t0
 
     def timed_on_keyframe(self: Any, keyframe: Any, state: Any) -> Any:
-        loop_clock.keyframes = backend_clock.keyframes + 1
+        loop_clock.keyframes = len(chain) + 1
         t0 = time.perf_counter()
         try:
             return on_keyframe(self, keyframe, state)
         finally:
             loop_clock.add(t0)
 
-    pl.create_backend = timed_backend  # type: ignore[assignment]
+    pl.start_backend = recorded_backend  # type: ignore[assignment]
     pl.write_results = timed_write  # type: ignore[assignment]
     LoopClosingStage.on_keyframe = timed_on_keyframe  # type: ignore[method-assign]
     try:
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
-            out = pl.run_pipeline(seq, config, tmp, "scale")
+            out = pl.run_pipeline(seq, config, tmp, "scale", listeners=[_Chain()])
             t_end = time.perf_counter()
+            final = read_trajectory(out.folder / "trajectory_final.tum")
     finally:
-        pl.create_backend, pl.write_results = make, write  # type: ignore[assignment]
+        pl.start_backend, pl.write_results = start, write  # type: ignore[assignment]
         LoopClosingStage.on_keyframe = on_keyframe  # type: ignore[method-assign]
     stamps = np.array(seq.stamps)
     dt = np.diff(stamps) * 1e3
@@ -165,28 +211,52 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None) 
     n = min(window, dt.size // 2)
     ratio = float(np.median(dt[-n:]) / np.median(dt[:n])) if n > 0 else None
     cpu_ratio = float(np.median(cpu[-n:]) / np.median(cpu[:n])) if n > 0 else None
-    kf_number = {int(k): i + 1 for i, k in enumerate(out.keyframe_ids.tolist())}
     loops = [e for e in out.metrics.get("loop_events", []) if e.get("type") == "loop"]
+    kf_number = {int(k): i + 1 for i, k in enumerate(out.keyframe_ids.tolist())}
     finish_s = t_end - stamps[-1] - write_s[0] if stamps.size else 0.0
+    # the back end's CPU ms per keyframe (every call charged to the keyframes it held then)
+    calls = list(backends[0].call_ms) if backends else []
+    per_kf: dict[int, float] = {}
+    for _, k, ms in calls:
+        per_kf[k] = per_kf.get(k, 0.0) + ms
+    curve = _curve(per_kf, block)
+    # accuracy: dead reckoning through the measured keyframe links, and the final trajectory
+    dr: dict[int, np.ndarray] = {}
+    for k in sorted(chain):
+        prev, rel, connected, live = chain[k]
+        dr[k] = dr[prev] @ rel if connected and prev in dr and rel is not None else live
+    by_time = dict(zip(final.timestamps_ns.tolist(), final.world_from_cam, strict=True))
+    gt = seq.ground_truth
+    ate_before = ate_after = None
+    if gt is not None:
+        gt_index = {t: i for i, t in enumerate(gt.timestamps_ns.tolist())}
+        ok = [f for f in out.frames if f.ok and f.timestamp_ns in by_time and f.timestamp_ns in gt_index
+              and f.keyframe_id in dr]
+        if len(ok) >= 3:
+            g = gt.world_from_cam[np.array([gt_index[f.timestamp_ns] for f in ok])]
+            ate_before = _ate_m(np.array([dr[f.keyframe_id] @ f.kf_from_cam for f in ok]), g)
+            ate_after = _ate_m(np.array([by_time[f.timestamp_ns] for f in ok]), g)
     return {
-        "dataset": f"realistic modeler scan {path.name}" + (f", one frame in {stride}" if stride > 1 else ""),
+        "dataset": f"realistic {path.stem} scan" + (f", one frame in {stride}" if stride > 1 else ""),
         "frames": len(out.frames),
         "keyframes": int(out.keyframe_ids.size),
-        "loops_closed": len(loops),
+        "loops": len(loops),
         "frame_ms_first_median": round(float(np.median(dt[:n])), 2) if n > 0 else None,
         "frame_ms_last_median": round(float(np.median(dt[-n:])), 2) if n > 0 else None,
         "frame_ms_last_over_first": round(ratio, 3) if ratio is not None else None,
         "frame_ms_by_frames": _blocks(dt, max(n, 1)),
         "frame_cpu_ms_last_over_first": round(cpu_ratio, 3) if cpu_ratio is not None else None,
         "frame_cpu_ms_by_frames": _blocks(cpu, max(n, 1)),
-        "backend_ms_by_keyframes": backend_clock.curve(),
-        "loop_stage_ms_by_keyframes": loop_clock.curve(),
-        "loop_opt_ms_by_keyframes": [
-            [kf_number.get(int(e["keyframe"]), 0), round(float(e.get("optimise_ms") or 0.0), 1)] for e in loops
-        ],
+        "backend_ms_by_keyframes": curve,
+        "backend_ms_last_over_first": round(curve[-1][1] / curve[0][1], 3) if len(curve) > 1 and curve[0][1] else None,
+        "backend_block_keyframes": block,
+        "loop_stage_ms_by_keyframes": loop_clock.curve(block),
+        "loop_opt_ms_by_keyframes": [[k, round(ms, 1)] for kind, k, ms in calls if kind == "loop"],
         "loop_gate_ms_by_keyframes": [
             [kf_number.get(int(e["keyframe"]), 0), round(float(e.get("robust_gate_ms") or 0.0), 1)] for e in loops
         ],
+        "ate_rmse_before_m": round(ate_before, 5) if ate_before is not None else None,
+        "ate_rmse_after_m": round(ate_after, 5) if ate_after is not None else None,
         "peak_rss_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         "write_s": round(write_s[0], 2),
         "finish_s": round(finish_s, 2),
@@ -220,7 +290,7 @@ def plot(result: dict[str, Any], png: Path) -> None:
         c = np.array(result[key], float).reshape(-1, 2)
         if c.size:
             b.plot(c[:, 0], c[:, 1], style, label=key.replace("_by_keyframes", ""))
-    b.set(xlabel="keyframes", ylabel="ms per keyframe (median of 5) / per loop", title="cost against keyframes")
+    b.set(xlabel="keyframes", ylabel="ms per keyframe (block median) / per loop", title="cost against keyframes")
     b.set_ylim(bottom=0)
     b.legend()
     fig.tight_layout()
@@ -238,11 +308,11 @@ def run(quick: bool = False) -> dict[str, Any]:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import bench_sim_loop as sl
 
-    if quick:
-        path, stride, window = sl._ensure(CACHE / "modeler_1200.mcap", "modeler", frames=1200), 3, 200
-    else:
-        path, stride, window = sl._ensure(CACHE / "modeler_5000.mcap", "modeler", frames=5000), 1, 500
-    result = measure(path, stride, window)
+    if quick:  # 6 rounds in 1,800 frames (4 rounds in 1,200 made 79 keyframes)
+        path, window = sl._ensure(CACHE / "rounds_1800.mcap", "rounds", frames=1800, sweeps=6), 200
+    else:  # the preset: 16 rounds in 10,000 frames
+        path, window = sl._ensure(CACHE / "rounds_10000.mcap", "rounds"), 500
+    result = measure(path, 1, window)
     name = "scale_quick" if quick else "scale"
     plot(result, OUT / f"{name}.png")
     (OUT / f"{name}.json").write_text(json.dumps(result, indent=1))

@@ -74,13 +74,15 @@ def _level(path: Path) -> str | None:
         return None
 
 
-def _ensure(path: Path, preset: str, frames: int | None = None, realism: str = "realistic") -> Path:
+def _ensure(
+    path: Path, preset: str, frames: int | None = None, realism: str = "realistic", sweeps: int | None = None
+) -> Path:
     if path.is_file() and _level(path) == realism:
         return path
     from loopmodel.sim.generate import resolve_config, simulate_scan
 
     cfg = Config()
-    sim = resolve_config(cfg.simulation, preset, {"trajectory": {"frames": frames}}, None, realism)
+    sim = resolve_config(cfg.simulation, preset, {"trajectory": {"frames": frames, "sweeps": sweeps}}, None, realism)
     path.parent.mkdir(parents=True, exist_ok=True)
     print(f"generating {path} ({preset}, {realism}) ...")
     simulate_scan(sim, path, cfg.sequence.topics, None, preset)

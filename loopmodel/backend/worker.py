@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from loopmodel.backend.base import Backend, BackendEstimate, BackendUpdate, Observation
 from loopmodel.config import BackendConfig, RefineConfig
 from loopmodel.errors import EstimationError
-from loopmodel.geometry.se3 import invert_pose
+from loopmodel.geometry.se3 import invert_pose, nearest_rigid
 from loopmodel.types import Keyframe
 
 logger = logging.getLogger(__name__)
@@ -76,6 +76,7 @@ def _serve(factory: Callable[[], Backend], inbox: Any, outbox: Any) -> None:
         return
     outbox.put(("ready",))
     estimate: dict[int, F64] = {}
+    n_kf = 0  # keyframes handed to the back end
     while True:
         batch = [inbox.get()]
         while True:
@@ -85,19 +86,26 @@ def _serve(factory: Callable[[], Backend], inbox: Any, outbox: Any) -> None:
                 break
         dirty = False
         update_ms: list[float] = []
+        # (message kind, keyframes handed to the back end, CPU ms of this thread: the load does not
+        # change it, and GTSAM here runs in the calling thread) (issue 33)
+        calls: list[tuple[str, int, float]] = []
         t0 = time.perf_counter()
         for msg in batch:
             kind = msg[0]
             if kind == "stop":
                 return
+            tc = time.thread_time()
             try:
                 if kind == "kf":
                     kf, prev_pose = msg[1], msg[2]
                     prev = kf.prev_keyframe_id
+                    pose = np.asarray(kf.world_from_kf, float)
                     if prev_pose is not None and prev in estimate:
                         # the tracker chained this pose from its pose of the previous keyframe
-                        rebase = estimate[prev] @ invert_pose(prev_pose)
-                        kf = dataclasses.replace(kf, world_from_kf=rebase @ np.asarray(kf.world_from_kf))
+                        pose = estimate[prev] @ invert_pose(prev_pose) @ pose
+                    # projected on SE(3): products of products drift off it (issue 33: 1.0e-5 after
+                    # 34 keyframes of the scale bench's rounds scan, past the anchored map's bound)
+                    kf = dataclasses.replace(kf, world_from_kf=nearest_rigid(pose))
                     tk = time.perf_counter()
                     backend.add_keyframe(kf)
                     update_ms.append((time.perf_counter() - tk) * 1e3)
@@ -119,18 +127,26 @@ def _serve(factory: Callable[[], Backend], inbox: Any, outbox: Any) -> None:
                     outbox.put(("metrics", backend.metrics()))
                 elif kind == "ping":
                     if dirty:
+                        te = time.thread_time()
                         est = backend.estimate(landmarks=False)
                         estimate.update(est.world_from_kf)
-                        outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, update_ms, 0.0))
+                        calls.append(("estimate", n_kf, (time.thread_time() - te) * 1e3))
+                        outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, update_ms, 0.0, calls))
+                        calls = []
                         dirty, update_ms = False, []
                     outbox.put(("pong", msg[1]))
             except Exception as exc:  # noqa: BLE001 - one failed call is reported, the worker goes on
                 outbox.put(("error", kind, f"{type(exc).__name__}: {exc}"))
+            if kind in ("kf", "obs", "loop", "remove"):
+                n_kf += kind == "kf"
+                calls.append((kind, n_kf, (time.thread_time() - tc) * 1e3))
         if dirty:
+            te = time.thread_time()
             est = backend.estimate(landmarks=False)
             estimate.update(est.world_from_kf)
+            calls.append(("estimate", n_kf, (time.thread_time() - te) * 1e3))
             batch_ms = (time.perf_counter() - t0) * 1e3
-            outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, update_ms, batch_ms))
+            outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, update_ms, batch_ms, calls))
 
 
 # --------------------------------------------------------------------------- the tracker's side
@@ -167,6 +183,9 @@ class BackgroundBackend:
         self._pongs = 0
         self.update_ms: list[float] = []  # the worker's add_keyframe times
         self.batch_ms: list[float] = []  # the worker's time per batch (updates and estimate)
+        #: the worker's calls on the back end: (message kind "kf", "obs", "loop", "remove" or "estimate",
+        #: keyframes handed to it so far, the worker thread's CPU ms), in order (issue 33: the scale bench)
+        self.call_ms: list[tuple[str, int, float]] = []
         self.errors: list[str] = []
         self.lag_kf: list[int] = []  # keyframes sent but not yet in the estimate, per estimate() call
 
@@ -196,7 +215,8 @@ class BackgroundBackend:
                 continue
             kind = msg[0]
             if kind == "estimate":
-                _, poses, changed, update_ms, batch_ms = msg
+                _, poses, changed, update_ms, batch_ms, calls = msg
+                self.call_ms.extend(calls)
                 self._latest.update(poses)
                 self._changed |= set(changed)
                 self._done_kf = max(poses) if poses else self._done_kf
@@ -229,7 +249,7 @@ class BackgroundBackend:
         prev_pose = self._known.get(int(prev)) if prev is not None and keyframe.connected else None
         light = dataclasses.replace(keyframe, image=np.zeros((0, 0), np.uint8))
         self._send("kf", light, prev_pose)
-        self._known[kf_id] = np.asarray(keyframe.world_from_kf, float).copy()
+        self._known[kf_id] = nearest_rigid(np.asarray(keyframe.world_from_kf, float))
         self._order.append(kf_id)
         return BackendUpdate(kf_id)
 
@@ -290,7 +310,7 @@ class BackgroundBackend:
         delta = moved[done] @ invert_pose(self._known[done])
         for k in self._order[self._order.index(done) + 1 :]:
             if k not in self._latest:
-                moved[k] = delta @ self._known[k]
+                moved[k] = nearest_rigid(delta @ self._known[k])  # products stay on SE(3) (see _serve)
 
     def final_estimate(self, refine: RefineConfig | None) -> BackendEstimate:
         """Wait for the worker, then its end-of-run solution; the worker stops afterwards."""

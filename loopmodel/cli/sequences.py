@@ -459,7 +459,7 @@ app.add_typer(simulate_app, name="simulate")
 def simulate_scan_cmd(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output .mcap file")],
     preset: Annotated[
-        Literal["orbit", "sweeps", "browse", "modeler"] | None, typer.Option("--preset", help="Camera motion")
+        Literal["orbit", "sweeps", "browse", "modeler", "rounds"] | None, typer.Option("--preset", help="Camera motion")
     ] = None,
     realism: Annotated[
         Literal["clean", "realistic"] | None,

@@ -76,6 +76,8 @@ PRESETS: dict[str, dict[str, dict[str, object]]] = {
     "browse": {"trajectory": {"kind": "browse", "frames": 450}, "realism": _REAL},
     # seed 004's scan: 4 sweeps over 90 deg, a loop closure, a second orbit (120 s at 25 Hz)
     "modeler": {"trajectory": {"kind": "modeler", "frames": 3000}, "realism": _REAL},
+    # the scale bench's long scan (issue 33): 16 rounds at other heights and distances, 400 s at 25 Hz
+    "rounds": {"trajectory": {"kind": "rounds", "frames": 10000, "sweeps": 16}, "realism": _REAL},
 }
 REALISM_LEVELS = ("clean", "realistic")
 

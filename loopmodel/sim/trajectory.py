@@ -9,7 +9,10 @@ sweeps over 90 degrees of yaw at rising then falling height, ending at the start
 ``browse`` (a monotone 240-degree arc with a height change: no view is revisited),
 ``modeler`` (in the spirit of seed 004's scan of a 50 cm sculpture: four sweeps over about
 90 degrees of yaw, a return that closes the loop on the start view, then a full orbit at
-another height that revisits the swept side).
+another height that revisits the swept side), ``rounds`` (a long scan that keeps finding new views,
+issue 33: ``sweeps`` full turns, each at its own height and distance, each running 40 degrees past
+its own start, which it revisits, while it moves to the next round's height and distance; every
+round passes the views of the earlier ones from another height).
 
 Pace ``handheld`` (realistic world) replaces the even progress along the path by a hand's:
 pauses (0.4-1.2 s at a tenth of the speed) and saccades (0.25-0.5 s at 2.5x) drawn from the
@@ -29,7 +32,7 @@ from loopmodel.geometry.se3 import look_at, so3_exp
 
 F64 = NDArray[np.float64]
 
-KINDS = ("orbit", "sweeps", "browse", "modeler")
+KINDS = ("orbit", "sweeps", "browse", "modeler", "rounds")
 TARGET_HEIGHT_FRACTION = 0.45  # look-at point on the object axis, fraction of its height
 
 
@@ -122,6 +125,8 @@ class HandheldPath:
             target = target + 0.02 * np.array([np.sin(two_pi * s + w[2]) - np.sin(w[2]), 0.0, 0.0])
         elif self.kind == "modeler":
             phi, r, h, target = self._modeler(s)
+        elif self.kind == "rounds":
+            phi, r, h, target = self._rounds(s)
         else:  # browse: monotone arc, no revisit
             u = s - 0.1 * np.sin(two_pi * s) / two_pi
             phi = self.phi0 + np.radians(240.0) * u
@@ -159,6 +164,38 @@ class HandheldPath:
             e = u - 0.1 * np.sin(two_pi * u) / two_pi
             phi = self.phi0 - two_pi * e
             h = self.height_m + 0.15 * np.sin(np.pi * min(4 * u, 1.0) / 2) ** 2 * (1 - np.clip((u - 0.85) / 0.15, 0, 1))
+        return float(phi), float(r), float(h), target
+
+    def _rounds(self, s: float) -> tuple[float, float, float, F64]:
+        """``sweeps`` rounds; round i: a full turn at its own height and radius, then 40 deg more.
+
+        The first 85 % of a round turns once around the object; the rest runs 40 deg past the
+        round's start (a revisit) while height, radius and aim ease to the next round's. Heights
+        and radii follow fixed cycles (7 and 5 values) so that later rounds repeat earlier
+        heights at other distances.
+        """
+        two_pi = 2 * np.pi
+        n = max(self.sweeps, 1)
+        x = min(s, 1.0 - 1e-12) * n
+        i, u = int(x), x - int(x)
+        dh = (0.0, 0.14, -0.1, 0.07, -0.05, 0.18, 0.03)
+        fr = (1.0, 1.2, 0.9, 1.35, 1.1)
+        dz = (0.0, 0.04, -0.03, 0.02, -0.01, 0.05, -0.02)
+
+        def level(k: int) -> tuple[float, float, float]:
+            return self.height_m + dh[k % 7], self.radius_m * fr[k % 5], dz[k % 7] * self.object_height_m
+
+        extra = np.radians(40.0)
+        if u < 0.85:
+            phi = self.phi0 + i * extra + two_pi * u / 0.85
+            h, r, z = level(i)
+        else:
+            v = (u - 0.85) / 0.15
+            w = v * v * (3 - 2 * v)  # smoothstep to the next round's level
+            phi = self.phi0 + i * extra + two_pi + extra * v
+            (h0, r0, z0), (h1, r1, z1) = level(i), level(i + 1)
+            h, r, z = h0 + w * (h1 - h0), r0 + w * (r1 - r0), z0 + w * (z1 - z0)
+        target = np.array([0.0, 0.0, TARGET_HEIGHT_FRACTION * self.object_height_m + z])
         return float(phi), float(r), float(h), target
 
     def nominal_pose(self, t_s: float) -> F64:
