@@ -138,3 +138,34 @@ def test_a_dead_worker_leaves_the_front_ends_result(sequence_dir: Path, monkeypa
     assert len(res.frames) == N_FRAMES and len(res.final) == N_FRAMES
     assert res.metrics["backend_worker"] == "process"
     assert evaluate(res, seq).metrics["ate_rmse_m"] < 0.01  # the tracker's keyframes, kept
+
+
+_KILLED_WORKER_SCRIPT = """
+import functools, os, signal, time
+import numpy as np
+from loopmodel.backend import create_backend
+from loopmodel.backend.worker import BackgroundBackend
+from loopmodel.config import BackendConfig
+
+if __name__ == "__main__":
+    bb = BackgroundBackend(functools.partial(create_backend, BackendConfig()), "process")
+    os.kill(bb._worker.pid, signal.SIGKILL)
+    bb._worker.join(10.0)
+    bb._inbox.put(("pad", np.zeros(4_000_000)))  # 32 MB: more than a pipe holds, so the feeder blocks
+    time.sleep(0.5)
+    bb.close()
+    print("closed")
+"""
+
+
+def test_a_killed_worker_with_unsent_data_does_not_hang_the_exit(tmp_path: Path) -> None:
+    """The tracker's side exits although its inbox holds data the dead worker never read."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "killed.py"
+    script.write_text(_KILLED_WORKER_SCRIPT)
+    # without cancel_join_thread the interpreter waits for the queue's feeder thread for ever
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "closed" in done.stdout

@@ -16,4 +16,6 @@ from pathlib import Path
 if __name__ == "__main__":
     harness = Path(sys.argv[1]) / "ours_timing.py"
     sys.argv = [str(harness), *sys.argv[2:]]
-    runpy.run_path(str(harness), run_name="__main__")
+    # not run_name="__main__": runpy would then stand the harness in for __main__, and spawned
+    # children would import (and run) it again; it runs on import under any name
+    runpy.run_path(str(harness), run_name="ours_timing")

@@ -353,6 +353,10 @@ class BackgroundBackend:
         if self.kind == "process":
             if self._worker.is_alive():
                 self._worker.terminate()
+            # the worker is gone: what its inbox still buffers has no reader, and joining the
+            # queue's feeder thread at exit would wait for ever (a worker killed mid-run hung the
+            # process at exit for 11 minutes)
+            self._inbox.cancel_join_thread()
             self._inbox.close()
             self._outbox.close()
 
