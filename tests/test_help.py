@@ -70,7 +70,7 @@ def test_choices_units_and_flags_in_help(capsys: pytest.CaptureFixture[str]) -> 
     assert "<localize|extend>" in run and "close loops" in run and "-o" in run
     assert "<list[Path]>" not in run and "FILE" in run
     sim = _help(capsys, "simulate", "scan")
-    for choices in ("<orbit|sweeps|browse|modeler>", "<clean|realistic>", "<bust|box|mix>"):
+    for choices in ("<orbit|sweeps|browse|modeler|rounds>", "<clean|realistic>", "<bust|box|mix>"):
         assert choices in sim
     ev = _help(capsys, "eval")
     assert "<se3|sim3|origin|none>" in ev and "<auto|xy|xz|yz|xyz>" in ev and "--no-plots" in ev
