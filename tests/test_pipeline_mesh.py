@@ -88,5 +88,7 @@ def test_run_writes_mesh_and_mesh_errors(
     # Third wave: the final mesh 0.21 mm, the live one 0.45 mm (2.19x; the back end's corrections
     # reach the live mesh from its worker process a few frames later, issue 33)
     assert np.median(d_live) < 1.0 and np.median(d_live) < 2.5 * np.median(d_final)
-    # p90: live 1.41, final 1.23 mm at stop 14; third wave live 1.63, final 1.03 mm (1.58x)
-    assert np.quantile(d_live, 0.9) < 1.8 * np.quantile(d_final, 0.9)
+    # p90: live 1.41, final 1.23 mm at stop 14; third wave live 1.63, final 1.03 mm (1.58x); with the
+    # final mesh's 2-voxel Poisson cells (mapping.poisson_cell_voxels) live 1.63, final 0.75 mm (2.17x):
+    # the smoother final surface gained, the live mesh (1-voxel cells) did not change
+    assert np.quantile(d_live, 0.9) < 2.0 and np.quantile(d_live, 0.9) < 2.6 * np.quantile(d_final, 0.9)

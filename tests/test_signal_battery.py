@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -85,10 +86,10 @@ def test_signals_at_seeded_times_leave_complete_results(tmp_path: Path, monkeypa
             calls["n"] += 1
             return step(self, frame)  # type: ignore[arg-type]
 
-        def armed_write(folder: object, result: object, at: int = at_frame) -> object:
+        def armed_write(folder: object, result: object, at: int = at_frame, **kwargs: Any) -> object:
             if at < 0:
                 arm()
-            return write(folder, result)  # type: ignore[arg-type]
+            return write(folder, result, **kwargs)  # type: ignore[arg-type]
 
         monkeypatch.setattr(pipeline._Run, "step", counted_step)
         monkeypatch.setattr(pipeline, "write_results", armed_write)
