@@ -221,10 +221,9 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None, 
         per_kf[k] = per_kf.get(k, 0.0) + ms
     curve = _curve(per_kf, block)
     # accuracy: dead reckoning through the measured keyframe links, and the final trajectory
-    dr: dict[int, np.ndarray] = {}
-    for k in sorted(chain):
-        prev, rel, connected, live = chain[k]
-        dr[k] = dr[prev] @ rel if connected and prev in dr and rel is not None else live
+    from bench_sim_loop import dead_reckoning  # tools/ is on sys.path (run() puts it there)
+
+    dr = dead_reckoning(chain)
     by_time = dict(zip(final.timestamps_ns.tolist(), final.world_from_cam, strict=True))
     gt = seq.ground_truth
     ate_before = ate_after = None

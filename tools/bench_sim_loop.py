@@ -105,6 +105,23 @@ class _Strided:
         return (f for i, f in enumerate(self._seq.frames()) if i % self._stride == 0)
 
 
+KeyframeChain = dict[int, tuple[int | None, np.ndarray | None, bool, np.ndarray]]
+
+
+def dead_reckoning(chain: KeyframeChain) -> dict[int, np.ndarray]:
+    """world_from_kf (4x4, m) of every keyframe chained through its measured link to the previous one.
+
+    ``chain[id] = (prev_id, kf_prev_from_kf, connected, live world_from_kf)``; a keyframe that starts a
+    segment (not connected, or its predecessor unknown) takes its live pose.
+    """
+    world_from_kf: dict[int, np.ndarray] = {}
+    for k in sorted(chain):
+        prev, rel, connected, live = chain[k]
+        linked = connected and prev is not None and prev in world_from_kf and rel is not None
+        world_from_kf[k] = world_from_kf[prev] @ rel if linked else live  # type: ignore[index,operator]
+    return world_from_kf
+
+
 def run_sequence(path: Path, config: Config, max_frames: int | None = None, stride: int = 1) -> dict[str, Any]:
     """The pipeline (front end, loop stage, iSAM2 back end) over one sequence (every ``stride``-th frame).
 
@@ -119,7 +136,7 @@ def run_sequence(path: Path, config: Config, max_frames: int | None = None, stri
 
     seq = open_sequence(path, config.sequence)
     view: Any = _Strided(seq, stride) if stride > 1 else seq
-    chain: dict[int, tuple[int | None, np.ndarray | None, bool, np.ndarray]] = {}
+    chain: KeyframeChain = {}
 
     class _Chain(RunListener):
         def on_keyframe(self, keyframe: Any, result: Any) -> None:
@@ -131,10 +148,7 @@ def run_sequence(path: Path, config: Config, max_frames: int | None = None, stri
         out = run_pipeline(view, config, tmp, "sim_loop", max_frames=max_frames, listeners=[_Chain()])
         final = read_trajectory(out.folder / "trajectory_final.tum")
     wall = time.perf_counter() - t0
-    dr: dict[int, np.ndarray] = {}
-    for k in sorted(chain):
-        prev, rel, connected, live = chain[k]
-        dr[k] = dr[prev] @ rel if connected and prev in dr and rel is not None else live
+    dr = dead_reckoning(chain)
     by_time = dict(zip(final.timestamps_ns.tolist(), final.world_from_cam, strict=True))
     gt = seq.ground_truth
     gt_index = {t: i for i, t in enumerate(gt.timestamps_ns.tolist())} if gt is not None else {}
