@@ -1101,6 +1101,18 @@ def test_item17_messages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     os.mkfifo(fifo)
     with pytest.raises(InputError, match="pipe \\(FIFO\\), not a regular trajectory file"):
         read_trajectory(fifo)
+    # beyond the listed ones: a device or FIFO where eval, -c and a map expect a file ("does not exist" before)
+    from loopmodel.eval.inputs import load_trajectory_file
+    from loopmodel.io.map_file import read_map_meta
+
+    with pytest.raises(InputError, match="a device or socket, not a regular trajectory file"):
+        load_trajectory_file("/dev/zero")
+    with pytest.raises(ConfigError, match="not a regular file"):
+        load_config(fifo)
+    (tmp_path / "m").mkdir()
+    os.mkfifo(tmp_path / "m" / "map.json")
+    with pytest.raises(InputError, match="map.json: a pipe \\(FIFO\\)"):
+        read_map_meta(tmp_path / "m")
     # a YAML error of a layout in one line
     (tmp_path / "tt").mkdir()
     (tmp_path / "tt" / "turntable.yaml").write_text("frames: [a\nb: {\n")
