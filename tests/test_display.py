@@ -160,6 +160,16 @@ def test_info_prints_labels_and_units(shared_data: Path, capsys: pytest.CaptureF
     assert "fx_px" not in out and "=" not in out and "True" not in out
 
 
+def test_info_of_a_close_range_sequence_in_mm(capsys: pytest.CaptureFixture[str]) -> None:
+    """The unit from the sequence's scale (its ground truth spans 0.14 m): the baseline in mm, as in a run's summary."""
+    from loopmodel.cli import main
+
+    root = Path(__file__).resolve().parents[1]
+    assert main(["info", str(root / "datasets" / "tiny_kitti")]) == 0
+    out = capsys.readouterr().out
+    assert "baseline 60.00 mm" in out and "0.06" not in out  # was "baseline 0.06000 m"
+
+
 def test_key_values_one_spelling() -> None:
     from loopmodel.display import describe_rows, key_values
 
