@@ -118,7 +118,7 @@ def convert(
     calib: CalibOption = None,
     overwrite: OverwriteOption = False,
 ) -> None:
-    """Convert a sequence to MCAP with ROS 2 messages (topics of DESIGN.md) or to a ROS bag."""
+    """Convert a sequence to MCAP with ROS 2 messages or to a ROS 1/ROS 2 bag (topics: README, Input formats)."""
     from loopmodel.io.convert import OUTPUT_KINDS, convert_sequence, output_kind, parse_epoch_ns, relative_times
     from loopmodel.io.rosbag_writer import ENCODINGS
     from loopmodel.io.sequence import open_sequence
