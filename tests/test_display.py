@@ -61,7 +61,7 @@ def test_unit_chosen_from_the_scale() -> None:
     assert far.header("ate_rmse_m") == "ATE RMSE [m]"
     assert far.value("mesh_err_gt_mm", 1.9753) == "0.001975"
     assert far.value("mesh_completeness_gt", 0.290345) == "29.03"
-    assert far.header("mesh_completeness_gt") == "mesh completeness vs truth [%]"
+    assert far.header("mesh_completeness_gt") == "mesh completeness with true poses [%]"  # the reference mesh
 
 
 def test_labels_and_quantities_from_the_key() -> None:
