@@ -1004,6 +1004,18 @@ def test_item13_max_image_pixels_applies_to_kitti_folders(tmp_path: Path) -> Non
     root = _kitti(tmp_path / "k", _names(2), _names(2))
     with pytest.raises(InputError, match=r"64x48 = 3072 pixels, above the limit of 1000"):
         open_sequence(root, SequenceConfig(max_image_pixels=1000))
+    # a EuRoC folder likewise (beyond the listed case)
+    euroc = tmp_path / "e" / "mav0"
+    for cam in ("cam0", "cam1"):
+        (euroc / cam / "data").mkdir(parents=True)
+        cv2.imwrite(str(euroc / cam / "data" / "1000.png"), np.zeros((48, 64), np.uint8))
+        (euroc / cam / "data.csv").write_text("#t,f\n1000,1000.png\n")
+        T = np.eye(4)
+        T[0, 3] = 0.1 if cam == "cam1" else 0.0
+        data = {"T_BS": {"data": T.ravel().tolist()}, "intrinsics": [40.0, 40.0, 32.0, 24.0], "resolution": [64, 48]}
+        (euroc / cam / "sensor.yaml").write_text(json.dumps(data))
+    with pytest.raises(InputError, match=r"64x48 = 3072 pixels, above the limit of 1000"):
+        next(iter(open_sequence(tmp_path / "e", SequenceConfig(max_image_pixels=1000)).frames()))
 
 
 def test_item14_odd_files_are_not_taken_for_absent(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
