@@ -968,8 +968,9 @@ def merge_nested(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 def _read_yaml_mapping(p: Path) -> dict[str, Any]:
     """The top-level mapping of a configuration file (errors name the file)."""
-    if not p.is_file():
-        raise ConfigError(p, "configuration file does not exist")
+    if not p.is_file():  # an existing FIFO or device was "does not exist" (issue 34)
+        there = p.exists() or p.is_symlink()
+        raise ConfigError(p, "not a regular file" if there else "configuration file does not exist")
     try:
         data = yaml.safe_load(p.read_text()) or {}
     except yaml.YAMLError as exc:

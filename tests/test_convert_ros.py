@@ -52,6 +52,9 @@ def test_bag_has_raw_images_camera_info_per_image_and_stated_stamps(
     assert {t for t, _, _ in cm["/cam0/image_raw/compressed"]} == {"sensor_msgs/msg/CompressedImage"}
     assert "/cam0/image_raw" not in cm
     assert len(list(open_sequence(comp).frames())) == n
+    capsys.readouterr()
+    assert main(["info", str(comp)]) == 0
+    assert capsys.readouterr().out.count("stereo topics") == 1  # the row's label, not repeated in its value
 
 
 def test_bad_epoch_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -26,9 +26,10 @@ ORBIT_METRICS = {
     "ate_rmse_m": 0.0023082181861411497,
     "drift_pct": 0.03371082728975339,
     "mesh_vertices": 48469,
-    "mesh_err_gt_mm": 1.9752982689234637,
-    "mesh_err_gt_mm_p95": 3.458851494360715,
-    "mesh_completeness_gt": 0.290345,
+    "mesh_err_after_mm": 1.9752982689234637,  # the run's mesh (keys of the evaluation after the run, issue 32)
+    "mesh_err_after_mm_p95": 3.458851494360715,
+    "mesh_completeness_after": 0.290345,
+    "mesh_err_gt_mm": 0.61,  # the reference mesh (stripes on ground-truth poses): not the product's error
 }
 
 
@@ -60,7 +61,7 @@ def test_unit_chosen_from_the_scale() -> None:
     assert far.header("ate_rmse_m") == "ATE RMSE [m]"
     assert far.value("mesh_err_gt_mm", 1.9753) == "0.001975"
     assert far.value("mesh_completeness_gt", 0.290345) == "29.03"
-    assert far.header("mesh_completeness_gt") == "mesh completeness vs truth [%]"
+    assert far.header("mesh_completeness_gt") == "mesh completeness with true poses [%]"  # the reference mesh
 
 
 def test_labels_and_quantities_from_the_key() -> None:
@@ -157,6 +158,16 @@ def test_info_prints_labels_and_units(shared_data: Path, capsys: pytest.CaptureF
     out = capsys.readouterr().out
     assert "fx 707.1 px" in out and "baseline 0.5372 m" in out and "duration [s]" in out
     assert "fx_px" not in out and "=" not in out and "True" not in out
+
+
+def test_info_of_a_close_range_sequence_in_mm(capsys: pytest.CaptureFixture[str]) -> None:
+    """The unit from the sequence's scale (its ground truth spans 0.14 m): the baseline in mm, as in a run's summary."""
+    from loopmodel.cli import main
+
+    root = Path(__file__).resolve().parents[1]
+    assert main(["info", str(root / "datasets" / "tiny_kitti")]) == 0
+    out = capsys.readouterr().out
+    assert "baseline 60.00 mm" in out and "0.06" not in out  # was "baseline 0.06000 m"
 
 
 def test_key_values_one_spelling() -> None:

@@ -285,6 +285,65 @@ def test_input_error_mid_run_is_recorded_in_the_results(tmp_path: Path, capsys: 
     assert "stopped after 2 frames" in log and bad.name in log
 
 
+def _rle_bmp_declaring(w: int, h: int) -> bytes:
+    """A 1,080-byte 8-bit RLE BMP of w x h pixels (its data ends at once; OpenCV fills the rest)."""
+    import struct
+
+    palette = b"".join(bytes([i, i, i, 0]) for i in range(256))
+    data = b"\x00\x01"  # end of bitmap
+    offset = 54 + len(palette)
+    head = b"BM" + struct.pack("<IHHI", offset + len(data), 0, 0, offset)
+    dib = struct.pack("<IiiHHIIiiII", 40, w, h, 1, 8, 1, len(data), 2835, 2835, 256, 0)  # compression 1: RLE8
+    return head + dib + palette + data
+
+
+def test_declared_sizes_of_every_format_read(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """The size each readable format declares, against OpenCV's own encoders (issue 34, beyond item 7)."""
+    from loopmodel.imaging.codec import declared_image_size
+
+    rng, encoded = np.random.default_rng(2), set()
+    for ext in (".png", ".jpg", ".bmp", ".pgm", ".ppm", ".pbm", ".pnm", ".tif", ".pfm", ".pam"):
+        for w, h in ((64, 48), (7, 300)):
+            grey = rng.integers(0, 256, (h, w), dtype=np.uint8)
+            for img in (grey, cv2.merge([grey] * 3)):
+                try:
+                    ok, buf = cv2.imencode(ext, img)
+                except cv2.error:
+                    ok = False
+                if not ok:  # this encoder takes grey only
+                    continue
+                encoded.add(ext)
+                assert declared_image_size(buf.tobytes()) == (w, h), ext
+                if ext != ".pfm":  # (floating-point pixels are refused by the readers)
+                    assert read_image_bytes_size(tmp_path / f"a{ext}", buf.tobytes()) == (h, w), ext
+    assert len(encoded) == 10, encoded
+    # a top-down BMP (negative height), a PGM with a comment, a big-endian TIFF
+    bmp = bytearray(cv2.imencode(".bmp", np.zeros((5, 9), np.uint8))[1].tobytes())
+    bmp[22:26] = (-5).to_bytes(4, "little", signed=True)
+    assert declared_image_size(bytes(bmp)) == (9, 5)
+    assert declared_image_size(b"P5\n# made by hand\n30000 # wide\n30000\n255\n") == (30000, 30000)
+    tiff = b"MM\0*" + (8).to_bytes(4, "big") + (2).to_bytes(2, "big")
+    tiff += bytes.fromhex("0100 0003 00000001 75300000") + bytes.fromhex("0101 0004 00000001 00007530")
+    assert declared_image_size(tiff) == (30000, 30000)
+    # another format is refused before decoding (a decoder would allocate what it declares)
+    f = tmp_path / "a.png"
+    f.write_bytes(cv2.imencode(".webp", np.zeros((8, 8), np.uint8))[1].tobytes())
+    with pytest.raises(InputError, match="unknown format; PNG, JPEG, BMP, PNM, TIFF are read"):
+        read_image(f)
+    # a truncated PGM: one line, without OpenCV's own "[ERROR:0@...] ... can't read data" before it
+    capfd.readouterr()
+    f.write_bytes(b"P5\n64 48\n255\n" + b"\0" * 100)
+    with pytest.raises(InputError, match="cannot read image"):
+        read_image(f)
+    assert capfd.readouterr().err == ""
+
+
+def read_image_bytes_size(path: Path, data: bytes) -> tuple[int, ...]:
+    """Shape of ``data`` written to ``path`` and read back through the project's reader."""
+    path.write_bytes(data)
+    return read_image(path).shape[:2]
+
+
 def test_peak_rss_on_images_declaring_huge_sizes(tmp_path: Path) -> None:
     # 60000 x 60000 PNGs (3.4 GiB each when decoded), and 30000 x 30000 JPEGs whose size marker
     # sits past the first 64 KiB (issue 34 item 7: 5.5 GiB before): refused from their headers, so
@@ -292,6 +351,7 @@ def test_peak_rss_on_images_declaring_huge_sizes(tmp_path: Path) -> None:
     for ext, data, size in (
         ("png", _png_declaring(60000, 60000), "60000x60000"),
         ("jpg", _jpeg_with_app_segments(2, 30000, 30000), "30000x30000"),
+        ("bmp", _rle_bmp_declaring(30000, 30000), "30000x30000"),  # 1 KiB; decoded, it peaked at 1.78 GiB
     ):
         root = tmp_path / ext
         for d in ("image_0", "image_1"):
@@ -738,7 +798,7 @@ def _jpeg_with_app_segments(n_segments: int, w: int, h: int) -> bytes:
     return b[: i + 5] + h.to_bytes(2, "big") + w.to_bytes(2, "big") + b[i + 9 :]
 
 
-def test_item7_jpeg_size_past_64_kib_is_checked_everywhere(tmp_path: Path) -> None:
+def test_item7_jpeg_size_past_64_kib_is_checked_everywhere(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     big = _jpeg_with_app_segments(2, 30000, 30000)
     assert len(big) > 131_000
     f = tmp_path / "a.jpg"
@@ -763,6 +823,9 @@ def test_item7_jpeg_size_past_64_kib_is_checked_everywhere(tmp_path: Path) -> No
     (d / "1.jpg").write_bytes(big)
     out = _run_cli(["calibrate", "stereo", str(d), str(d), "--out", str(tmp_path / "c.yaml")])
     assert out.returncode == 2 and "30000x30000" in out.stderr, out.stderr
+    capsys.readouterr()
+    assert main(["loop", "detect", str(d)]) == 2  # decoded 30000x30000 and exited 0 before
+    assert "declares 30000x30000" in capsys.readouterr().err
 
 
 def test_item8_batch_grid_counted_before_expansion(tmp_path: Path) -> None:
@@ -941,6 +1004,18 @@ def test_item13_max_image_pixels_applies_to_kitti_folders(tmp_path: Path) -> Non
     root = _kitti(tmp_path / "k", _names(2), _names(2))
     with pytest.raises(InputError, match=r"64x48 = 3072 pixels, above the limit of 1000"):
         open_sequence(root, SequenceConfig(max_image_pixels=1000))
+    # a EuRoC folder likewise (beyond the listed case)
+    euroc = tmp_path / "e" / "mav0"
+    for cam in ("cam0", "cam1"):
+        (euroc / cam / "data").mkdir(parents=True)
+        cv2.imwrite(str(euroc / cam / "data" / "1000.png"), np.zeros((48, 64), np.uint8))
+        (euroc / cam / "data.csv").write_text("#t,f\n1000,1000.png\n")
+        T = np.eye(4)
+        T[0, 3] = 0.1 if cam == "cam1" else 0.0
+        data = {"T_BS": {"data": T.ravel().tolist()}, "intrinsics": [40.0, 40.0, 32.0, 24.0], "resolution": [64, 48]}
+        (euroc / cam / "sensor.yaml").write_text(json.dumps(data))
+    with pytest.raises(InputError, match=r"64x48 = 3072 pixels, above the limit of 1000"):
+        next(iter(open_sequence(tmp_path / "e", SequenceConfig(max_image_pixels=1000)).frames()))
 
 
 def test_item14_odd_files_are_not_taken_for_absent(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
@@ -1038,6 +1113,18 @@ def test_item17_messages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     os.mkfifo(fifo)
     with pytest.raises(InputError, match="pipe \\(FIFO\\), not a regular trajectory file"):
         read_trajectory(fifo)
+    # beyond the listed ones: a device or FIFO where eval, -c and a map expect a file ("does not exist" before)
+    from loopmodel.eval.inputs import load_trajectory_file
+    from loopmodel.io.map_file import read_map_meta
+
+    with pytest.raises(InputError, match="a device or socket, not a regular trajectory file"):
+        load_trajectory_file("/dev/zero")
+    with pytest.raises(ConfigError, match="not a regular file"):
+        load_config(fifo)
+    (tmp_path / "m").mkdir()
+    os.mkfifo(tmp_path / "m" / "map.json")
+    with pytest.raises(InputError, match="map.json: a pipe \\(FIFO\\)"):
+        read_map_meta(tmp_path / "m")
     # a YAML error of a layout in one line
     (tmp_path / "tt").mkdir()
     (tmp_path / "tt" / "turntable.yaml").write_text("frames: [a\nb: {\n")
@@ -1123,3 +1210,24 @@ def test_items1_15_stripes_with_nan_points_or_other_fields(
     assert "f64.mcap /laser/stripe: PointCloud2 needs float32" in capsys.readouterr().err
     m = json.loads((out / "f64" / "metrics.json").read_text())
     assert m["frames"] < 3 and "/laser/stripe" in m["stopped_by"]
+
+
+def test_rig_mask_is_a_regular_file_inside_the_rig_folder(tmp_path: Path) -> None:
+    """``vvs track --rig``: the mask a rig.yaml names (beyond items 6, 7 and 16: cv2.imread waited on a FIFO)."""
+    from loopmodel.io.rig_yaml import read_rig
+
+    cam = {"xi": 0.9, "px": 300.0, "py": 300.0, "u0": 32.0, "v0": 24.0}
+    rig = tmp_path / "rig.yaml"
+    labels = np.zeros((48, 64), np.uint8)
+    labels[:, 32:] = 1
+    cv2.imwrite(str(tmp_path / "mask.png"), labels)
+    rig.write_text(json.dumps({"cameras": [cam], "mask": "mask.png"}))
+    assert np.array_equal(read_rig(rig)[1], labels)
+    for name, msg in (("../outside.png", "must be a path inside"), ("fifo.png", "pipe"), ("big.bmp", "declares")):
+        if name == "fifo.png":
+            os.mkfifo(tmp_path / name)
+        if name == "big.bmp":
+            (tmp_path / name).write_bytes(_rle_bmp_declaring(30000, 30000))
+        rig.write_text(json.dumps({"cameras": [cam], "mask": name}))
+        with pytest.raises(InputError, match=msg):
+            read_rig(rig)

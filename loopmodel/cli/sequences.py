@@ -48,8 +48,12 @@ def info(
     from loopmodel.io.sequence import open_sequence
 
     cfg = load_config(config)
+    fmt = Formatter()
     try:
-        desc = open_sequence(path, cfg.sequence, left, right, calib).describe()
+        seq = open_sequence(path, cfg.sequence, left, right, calib)
+        desc = seq.describe()
+        if seq.ground_truth is not None and len(seq.ground_truth):  # mm for a close-range scan (issue 35)
+            fmt = Formatter.for_positions(seq.ground_truth.world_from_cam[:, :3, 3])
     except NoImageTopicsError:  # not a sequence to run, still a recording to describe (as ros2 bag info)
         desc = describe_recording(path)
     if as_json:
@@ -60,14 +64,14 @@ def info(
         if k == "topics" and isinstance(v, dict):
             desc[k] = ", ".join(f"{t} ({_topic_text(d)})" for t, d in v.items())
         if k == "image_topics" and isinstance(v, dict):
-            desc[k] = "; ".join(f"{t}: {key_values(d)}" for t, d in v.items())
+            desc[k] = "; ".join(f"{t}: {key_values(d, fmt)}" for t, d in v.items())
         if isinstance(v, list) and v and all(isinstance(x, str) for x in v):
             desc[k] = ", ".join(v)
     if desc.get("laser_images") and not desc.get("stripes"):
         desc.pop("stripes", None)  # measured from the laser images by the run: "stripes 0" would mislead
     if not desc.get("laser_images"):
         desc.pop("laser_images", None)
-    for k, text in describe_rows(desc):
+    for k, text in describe_rows(desc, fmt):
         table.add_row(escape(k), escape(text))
     console.print(table)
 
@@ -114,7 +118,7 @@ def convert(
     calib: CalibOption = None,
     overwrite: OverwriteOption = False,
 ) -> None:
-    """Convert a sequence to MCAP with ROS 2 messages (topics of DESIGN.md) or to a ROS bag."""
+    """Convert a sequence to MCAP with ROS 2 messages or to a ROS 1/ROS 2 bag (topics: README, Input formats)."""
     from loopmodel.io.convert import OUTPUT_KINDS, convert_sequence, output_kind, parse_epoch_ns, relative_times
     from loopmodel.io.rosbag_writer import ENCODINGS
     from loopmodel.io.sequence import open_sequence

@@ -19,6 +19,7 @@ from typing import Any
 
 from loopmodel.config import SequenceConfig
 from loopmodel.errors import FormatError, InputError
+from loopmodel.io.text import require_existing_file
 from loopmodel.io.trajectory_io import guess_format, read_trajectory
 from loopmodel.types import Trajectory
 
@@ -62,8 +63,7 @@ def load_trajectory_file(path: str | Path, rate_hz: float = 10.0) -> TimedTrajec
     if bag is not None:
         return bag
     p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "trajectory file does not exist")
+    require_existing_file(p, "trajectory file")  # a device or FIFO was "does not exist" (issue 34)
     fmt = guess_format(p)
     traj = read_trajectory(p, fmt, rate_hz=rate_hz)  # repeated times allowed, no going back
     if len(traj) < 2:

@@ -9,15 +9,16 @@ import os
 import sys
 import tempfile
 import threading
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 _STDERR_LOCK = threading.Lock()
-#: lines the image libraries print on their own (libpng, libjpeg through OpenCV)
-_LIBRARY_NOISE = (b"libpng ", b"Corrupt JPEG", b"Premature end of JPEG", b"Invalid SOS", b"Bogus ")
+#: lines the image libraries print on their own (libpng, libjpeg, OpenCV's log: a truncated BMP or
+#: PGM gave "[ERROR:0@0.3] global loadsave.cpp ... can't read data" and an empty line)
+_LIBRARY_NOISE = (b"libpng ", b"Corrupt JPEG", b"Premature end of JPEG", b"Invalid SOS", b"Bogus ", b"[ERROR:")
 
 
 def decode_quietly(data: bytes | NDArray[np.uint8], flags: int = cv2.IMREAD_UNCHANGED) -> NDArray[Any] | None:
@@ -41,18 +42,19 @@ def decode_quietly(data: bytes | NDArray[np.uint8], flags: int = cv2.IMREAD_UNCH
             os.dup2(saved, 2)
             os.close(saved)
         capture.seek(0)
-        others = [ln for ln in capture.read().splitlines(keepends=True) if not ln.startswith(_LIBRARY_NOISE)]
+        lines = capture.read().splitlines(keepends=True)
+        others = [ln for ln in lines if ln.strip() and not ln.startswith(_LIBRARY_NOISE)]
         if others:
             os.write(2, b"".join(others))
     return img
 
 
 def declared_image_size(header: bytes) -> tuple[int, int] | None:
-    """(width, height) a PNG or JPEG stream declares in its header.
+    """(width, height) a PNG, JPEG, BMP, PNM or TIFF stream declares in its header.
 
     None: another format, or no size found in ``header``. Reads only the bytes given (PNG: 24; JPEG:
     up to the first start-of-frame marker, however far in: give the whole stream, APP segments
-    of 64 KiB each may come before it).
+    of 64 KiB each may come before it; TIFF: its first image file directory).
     """
     if header[:8] == b"\x89PNG\r\n\x1a\n" and len(header) >= 24 and header[12:16] == b"IHDR":
         return int.from_bytes(header[16:20], "big"), int.from_bytes(header[20:24], "big")
@@ -74,4 +76,61 @@ def declared_image_size(header: bytes) -> tuple[int, int] | None:
                 w = int.from_bytes(header[i + 7 : i + 9], "big")
                 return w, h
             i += 2 + seg_len
+        return None
+    if header[:2] == b"BM" and len(header) >= 26:  # BMP: a 1 KiB RLE file can declare 30000 x 30000 (issue 34)
+        if int.from_bytes(header[14:18], "little") == 12:  # OS/2 core header: 16-bit sizes
+            return int.from_bytes(header[18:20], "little"), int.from_bytes(header[20:22], "little")
+        w = int.from_bytes(header[18:22], "little", signed=True)
+        return w, abs(int.from_bytes(header[22:26], "little", signed=True))  # negative height: top-down
+    if header[:1] == b"P" and header[1:2] in (b"1", b"2", b"3", b"4", b"5", b"6", b"7", b"F", b"f"):
+        return _pnm_size(header[:4096])
+    if header[:4] in (b"II*\0", b"MM\0*"):
+        return _tiff_size(header)
     return None
+
+
+#: formats whose declared size :func:`declared_image_size` reads (the others are not decoded)
+SIZED_FORMATS = "PNG, JPEG, BMP, PNM, TIFF"
+
+
+def is_sized_format(header: bytes) -> bool:
+    """Whether ``header`` starts like a format of :data:`SIZED_FORMATS`."""
+    return (
+        header[:8] == b"\x89PNG\r\n\x1a\n"
+        or header[:2] in (b"\xff\xd8", b"BM")
+        or (header[:1] == b"P" and header[1:2] in (b"1", b"2", b"3", b"4", b"5", b"6", b"7", b"F", b"f"))
+        or header[:4] in (b"II*\0", b"MM\0*")
+    )
+
+
+def _pnm_size(header: bytes) -> tuple[int, int] | None:
+    """Netpbm (P1-P6, PFM): the first two numbers after the magic; PAM (P7): WIDTH and HEIGHT lines."""
+    text = header.decode("latin-1")
+    if text[1] == "7":
+        fields = dict(ln.split(None, 1) for ln in text.splitlines()[1:] if len(ln.split(None, 1)) == 2)
+        try:
+            return int(fields["WIDTH"]), int(fields["HEIGHT"])
+        except (KeyError, ValueError):
+            return None
+    tokens = [t for ln in text[2:].splitlines() for t in ln.split("#", 1)[0].split()][:2]
+    if len(tokens) < 2 or not all(t.isdigit() for t in tokens):
+        return None
+    return int(tokens[0]), int(tokens[1])
+
+
+def _tiff_size(data: bytes) -> tuple[int, int] | None:
+    """ImageWidth (256) and ImageLength (257) of a TIFF's first image file directory."""
+    order: Literal["little", "big"] = "little" if data[:2] == b"II" else "big"
+    at = int.from_bytes(data[4:8], order)
+    if at + 2 > len(data):
+        return None
+    n = int.from_bytes(data[at : at + 2], order)
+    size: dict[int, int] = {}
+    for k in range(n):
+        e = data[at + 2 + 12 * k : at + 14 + 12 * k]
+        if len(e) < 12:
+            return None
+        tag, typ = int.from_bytes(e[0:2], order), int.from_bytes(e[2:4], order)
+        if tag in (256, 257):
+            size[tag] = int.from_bytes(e[8:10], order) if typ == 3 else int.from_bytes(e[8:12], order)
+    return (size[256], size[257]) if len(size) == 2 else None

@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.errors import InputError
-from loopmodel.imaging.codec import declared_image_size, decode_quietly
+from loopmodel.imaging.codec import SIZED_FORMATS, declared_image_size, decode_quietly, is_sized_format
 from loopmodel.io.text import require_regular_file
 
 __all__ = ["declared_image_size", "decode_quietly"]  # re-exported: the readers' callers use them from here
@@ -109,15 +109,18 @@ def check_declared_size(width: int, height: int, limit_px: int, source: str | Pa
 def check_image_bytes(data: bytes | NDArray[np.uint8], limit_px: int, source: str | Path) -> None:
     """Refuse an encoded image before decoding.
 
-    A declared size above ``limit_px``, or a PNG/JPEG whose header names no size (a decoder
-    skipping damaged bytes could still find a huge one).
+    A declared size above ``limit_px``, a PNG/JPEG/BMP/PNM/TIFF whose header names no size (a
+    decoder skipping damaged bytes could still find a huge one), or another format (its size is
+    not read here).
     """
     raw = data.tobytes() if isinstance(data, np.ndarray) else bytes(data)
     size = declared_image_size(raw)
     if size is not None:
         check_declared_size(size[0], size[1], limit_px, source)
-    elif raw[:2] == b"\xff\xd8" or raw[:8] == b"\x89PNG\r\n\x1a\n":
+    elif is_sized_format(raw):
         raise InputError(source, "damaged image header (no image size before the image data)")
+    elif raw:  # WebP, GIF, JPEG 2000, ...: a decoder would allocate what they declare, unchecked
+        raise InputError(source, f"cannot read image (corrupt or of an unknown format; {SIZED_FORMATS} are read)")
 
 
 def check_image_file_header(path: Path, limit_px: int = MAX_IMAGE_PIXELS) -> None:

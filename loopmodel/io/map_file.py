@@ -92,7 +92,7 @@ def read_map_meta(path: str | Path) -> tuple[Path, dict[str, Any]]:
     meta_path = folder / META_FILE
     if not folder.is_dir():
         raise InputError(folder, "map folder does not exist")
-    if not meta_path.is_file():
+    if not os.path.lexists(meta_path):
         raise InputError(meta_path, "not a loopmodel map (no map.json)")
     try:
         meta = json.loads(read_text_file(meta_path, "map description"))

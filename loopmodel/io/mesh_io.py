@@ -16,6 +16,7 @@ import open3d as o3d
 
 from loopmodel.errors import InputError
 from loopmodel.io.atomic import write_bytes_atomic
+from loopmodel.io.text import require_existing_file
 
 MESH_FORMATS = ("ply", "obj", "stl", "glb")
 UNITS_NOTE = "loopmodel mesh: units metres, world frame of the run"
@@ -137,8 +138,7 @@ def read_mesh(path: str | Path, attachment: str = "scene.ply") -> o3d.geometry.T
     :class:`InputError` if missing or empty.
     """
     p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "mesh file does not exist")
+    require_existing_file(p, "mesh file")  # a device or FIFO was "does not exist" (issue 34)
     if p.suffix.lower() == ".mcap":
         data = _mcap_attachment(p, attachment)
         return mesh_from_bytes(data, Path(attachment).suffix.lstrip(".") or "ply", f"{p}:{attachment}")

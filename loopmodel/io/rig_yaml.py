@@ -79,8 +79,15 @@ def read_rig(path: str | Path) -> tuple[CameraRig, NDArray[np.uint8] | None]:
         poses.append(_matrix(p, f"{key}.cam_from_rig", c.get("cam_from_rig", np.eye(4).tolist())))
     mask = None
     if data.get("mask"):
+        from loopmodel.io.images import MAX_IMAGE_PIXELS, check_image_bytes, decode_quietly, read_image_bytes
+
         mp = (p.parent / str(data["mask"])).resolve()
-        mask = cv2.imread(str(mp), cv2.IMREAD_UNCHANGED)
+        if not mp.is_relative_to(p.parent.resolve()):  # issue 34: paths a data file names stay in its folder
+            raise InputError(p, f"mask: {data['mask']!r} must be a path inside {p.parent}")
+        # a regular file, its declared size checked before decoding (cv2.imread waited on a FIFO)
+        raw = read_image_bytes(mp)
+        check_image_bytes(raw, MAX_IMAGE_PIXELS, mp)
+        mask = decode_quietly(raw, cv2.IMREAD_UNCHANGED) if raw else None
         if mask is None or mask.ndim != 2:
             raise InputError(mp, "mask: expected a one-channel label image (value j+1 = camera j)")
     return CameraRig(tuple(cams), tuple(poses)), mask

@@ -441,7 +441,7 @@ class BagSequence(Sequence):
     def describe(self) -> dict[str, object]:
         out = super().describe()
         out["duration_s"] = self._duration_s
-        out["stereo_topics"] = self.choice
+        out["stereo_topics"] = self.choice.removeprefix("stereo topics ")  # the row label says it (issue 35)
         out["camera_model"] = self._calibration.camera_model
         if self.stamp_offset_ns is not None:
             out["left_right_stamp_offset_ms"] = self.stamp_offset_ns * 1e-6

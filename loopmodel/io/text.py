@@ -20,9 +20,7 @@ def read_text_file(path: str | Path, what: str = "text file") -> str:
     """
     p = Path(path)
     try:
-        if not os.path.lexists(p):
-            raise InputError(p, f"{what} does not exist")
-        require_regular_file(p, what)
+        require_existing_file(p, what)
         if p.stat().st_size > MAX_TEXT_BYTES:
             raise InputError(p, f"{what} of {p.stat().st_size} bytes is larger than {MAX_TEXT_BYTES}")
         return p.read_bytes().decode("utf-8")
@@ -51,6 +49,16 @@ def require_regular_file(path: Path, what: str = "file") -> os.stat_result:
         )
         raise InputError(path, f"{kind}, not a regular {what}")
     return st
+
+
+def require_existing_file(path: Path, what: str = "file") -> os.stat_result:
+    """:func:`require_regular_file`, with "does not exist" only when nothing is there.
+
+    An existing FIFO or device was reported as absent where callers tested ``Path.is_file()``.
+    """
+    if not os.path.lexists(path):
+        raise InputError(path, f"{what} does not exist")
+    return require_regular_file(path, what)
 
 
 def one_line(exc: BaseException) -> str:
