@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import importlib
 import logging
 import multiprocessing as mp
 import signal
@@ -60,7 +61,7 @@ from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripePro
 
 if TYPE_CHECKING:
     from loopmodel.eval.of_run import Evaluation
-    from loopmodel.loop.session_map import KeyframeArchiver, ResumePoint, SessionMap
+    from loopmodel.loop.session_map import ResumePoint, SessionMap
     from loopmodel.loop.vocabulary import Vocabulary
     from loopmodel.mapping.stripe_feed import ExtractionWorker
 
@@ -192,6 +193,146 @@ def timed_step(name: str, seconds: dict[str, float], finishing: FinishFn | None)
             finishing(name, seconds[name])
 
 
+@dataclasses.dataclass
+class _Times:
+    """A run's timings: from its start, each frame's and each back-end call's (ms), each finishing step's (s)."""
+
+    t_start: float = dataclasses.field(default_factory=time.perf_counter)
+    frame_ms: list[float] = dataclasses.field(default_factory=list)
+    backend_ms: list[float] = dataclasses.field(default_factory=list)
+    finish_s: dict[str, float] = dataclasses.field(default_factory=dict)
+
+    def since_start_s(self) -> float:
+        """Seconds since the run started."""
+        return time.perf_counter() - self.t_start
+
+
+class _LaserFeed:
+    """A run's laser profiles, from the frames' stripes or laser-line images, in the order they arrive.
+
+    Laser-line images are extracted in a worker process (issue 33: 40-50 ms per image); a daemonic
+    process (a batch task) may not start one and extracts them itself. :attr:`stripes` holds every
+    profile so far (meshed at the end), :meth:`new_profiles` those not yet handed on (the live map).
+    """
+
+    def __init__(self, extractor: StripeExtractor) -> None:
+        self.extractor = extractor
+        self.stripes: list[StripeProfile] = []
+        self.ms: list[float] = []  # per frame with laser data: the time it took here
+        self._unfed: list[StripeProfile] = []
+        self._worker: ExtractionWorker | None = None  # made at the first laser-line image
+
+    def take(self, scan: ScanFrame) -> None:
+        """A frame's laser data: its profiles join :attr:`stripes` (those of images when extracted)."""
+        if not scan.stripes and not scan.laser_images:
+            return
+        t0 = time.perf_counter()
+        if scan.laser_images and self._worker is None and not mp.current_process().daemon:
+            from loopmodel.mapping.stripe_feed import ExtractionWorker
+
+            self._worker = ExtractionWorker(self.extractor)
+        if self._worker is not None:
+            profiles = list(scan.stripes)
+            for t_ns, image in scan.laser_images:
+                self._worker.submit(t_ns, image)
+            profiles += self._worker.ready()
+        else:
+            profiles = self.extractor.profiles(scan)
+        self.stripes.extend(profiles)
+        self._unfed.extend(profiles)
+        self.ms.append((time.perf_counter() - t0) * 1e3)
+
+    def new_profiles(self) -> list[StripeProfile]:
+        """The profiles taken since the last call."""
+        out, self._unfed = self._unfed, []
+        return out
+
+    def wait(self) -> None:
+        """The profiles of the last laser images join :attr:`stripes` (waited for); the worker stops."""
+        if self._worker is not None:
+            self.stripes.extend(self._worker.wait())
+            self._worker = None
+
+
+class _MapRecord:
+    """What a run keeps for its session map (``output.write_map``; issue 20).
+
+    Each keyframe with its image; its map content (loop features, PNG) is prepared off the
+    tracking thread as it arrives (:class:`~loopmodel.loop.session_map.KeyframeArchiver`).
+    """
+
+    def __init__(
+        self, calibration: StereoCalibration, config: Config, vocabulary: Vocabulary | None, source: str
+    ) -> None:
+        from loopmodel.loop.session_map import KeyframeArchiver
+
+        self.calibration, self.config, self.vocabulary, self.source = calibration, config, vocabulary, source
+        self.keyframes: dict[int, Keyframe] = {}
+        self.archiver = KeyframeArchiver(calibration, config.loop)
+
+    def add(self, kf: Keyframe) -> None:
+        """A keyframe (with its image) for the map."""
+        self.keyframes[kf.id] = kf
+        self.archiver.add(kf)
+
+    def build(
+        self,
+        result: RunResult,
+        frames: list[FrameResult],
+        world_from_kf: Mapping[int, F64],
+        constraints: list[LoopConstraint],
+    ) -> SessionMap | None:
+        """The session map of the run (None without keyframes or when it fails: logged).
+
+        ``world_from_kf``: the final keyframe poses; ``constraints``: the loops the back end took.
+        """
+        prepared = self.archiver.take()
+        if not self.keyframes:
+            return None
+        from loopmodel.config import dump_config, pipeline_sections
+        from loopmodel.loop.session_map import MapInputs, build_session_map
+        from loopmodel.mapping.final import anchor_stripes
+
+        config = self.config
+        kfs = [self.keyframes[k] for k in sorted(self.keyframes)]
+        tracked = [f for f in frames if f.ok]
+        anchors = anchor_stripes(
+            result.stripes,
+            result.final,
+            np.array([f.timestamp_ns for f in tracked], np.int64),
+            np.array([f.keyframe_id for f in tracked], np.int64),
+            world_from_kf,
+            config.mapping,
+        )
+        map_inputs = MapInputs(
+            self.calibration,
+            kfs,
+            {k: world_from_kf[k] for k in self.keyframes if k in world_from_kf},
+            result.landmark_ids,
+            result.landmarks_in_world,
+            [(c.kf_a, c.kf_b, c.a_from_b) for c in constraints],
+            anchors,
+            dump_config(config, pipeline_sections()),
+            {"sequence": self.source},
+        )
+        try:
+            return build_session_map(map_inputs, config.loop, prepared, self.vocabulary)
+        except LoopmodelError as exc:
+            logger.error("no session map: %s", exc)
+            return None
+
+
+def _import_beside(module: str) -> None:
+    """Import ``module`` in a thread (issue 32: open3d for the final mesh while the back end refines).
+
+    Importing open3d took 4.8 s of the 17 s final-mesh step (150-frame realistic orbit, load 15);
+    the final refinement runs in the back-end worker meanwhile, the tracking thread only waits.
+    Not before the loop drain: the loop worker thread needs the interpreter then (drain 0.3-0.6 s ->
+    4.5-5 s with the import beside it).
+    """
+    threading.Thread(target=importlib.import_module, args=(module,), name="loopmodel-import", daemon=True).start()
+
+
 class _Run:
     """The stages of one run and what it has produced so far.
 
@@ -225,69 +366,37 @@ class _Run:
         self.session.setup(config, self.frontend.calibration)
         self.localizer = self.session.localizer
         # the place-recognition vocabulary of the loop stage and the session map, read here (issue 32)
-        self.vocabulary: Vocabulary | None = None
+        vocabulary: Vocabulary | None = None
         if self.localizer is None and (_loop_on(config) or config.output.write_map):
             from loopmodel.io.vocabulary_file import loop_vocabulary
 
-            self.vocabulary = loop_vocabulary(config.loop)
-        self.loop: LoopStage = self.localizer or _loop_stage(config, self.frontend.calibration, self.vocabulary)
+            vocabulary = loop_vocabulary(config.loop)
+        self.loop: LoopStage = self.localizer or _loop_stage(config, self.frontend.calibration, vocabulary)
         # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
         # placed with them (the stripe map follows every change of the anchored poses)
         self.anchored = AnchoredTrajectory()
         self.stripe_map = StripeMap(config.mapping, self.anchored)
         self.live = LiveMapping(self.stripe_map, config.mapping.live_mesh_every_kf, config.mapping.live_mesh_worker)
-        # the laser profiles of the frames read so far (meshed at the end), and those the live map
-        # has not had yet (it takes them at the next tracked frame)
-        self.extractor = StripeExtractor(calibration, config.mapping)
-        self.stripes: list[StripeProfile] = []
-        self._unfed: list[StripeProfile] = []
-        self._extraction: ExtractionWorker | None = None  # made at the first laser-line image
+        # the laser profiles of the frames read so far (meshed at the end; the live map takes the new
+        # ones at the next tracked frame)
+        self.laser = _LaserFeed(StripeExtractor(calibration, config.mapping))
         self.frames: list[FrameResult] = []
         self.keyframes: dict[int, int] = {}  # keyframe id -> timestamp_ns, in order
         # keyframe -> (previous keyframe, the tracker's pose of it there): drift per interval
         self.tracked_links: dict[int, tuple[int, F64]] = {}
-        self.backend_ms: list[float] = []
-        self.frame_ms: list[float] = []
-        self.stripe_ms: list[float] = []
-        self.finish_s: dict[str, float] = {}
-        # for the session map (issue 20): keyframes with their images, the loop constraints
-        self.map_keyframes: dict[int, Keyframe] = {}
+        self.times = _Times()
+        # for the session map (issue 20): keyframes with their images
+        self.map_record: _MapRecord | None = None
+        if config.output.write_map:
+            self.map_record = _MapRecord(self.frontend.calibration, config, vocabulary, source)
         # issue 31: the keyframes' measurements (no images) for the final self-calibration
         self.selfcal_keyframes: dict[int, Keyframe] = {}
         self.selfcal: Any = None
-        self.archiver: KeyframeArchiver | None = None  # their map content, prepared off the tracking thread
-        if config.output.write_map:
-            from loopmodel.loop.session_map import KeyframeArchiver
-
-            self.archiver = KeyframeArchiver(self.frontend.calibration, config.loop)
         self.loop_constraints: list[LoopConstraint] = []
-        self._last_ms = 0.0
-        self._last_ids: tuple[int | None, ...] = ()
-        self.t_start = time.perf_counter()
+        # the back end's last call (ms) and the ids of the loop constraints it was given (MapState)
+        self._last: tuple[float, tuple[int | None, ...]] = (0.0, ())
 
     # ------------------------------------------------------------------ per frame
-    def laser(self, scan: ScanFrame) -> None:
-        """Take a frame's laser data: its profiles join the run's stripes (extracted from laser-line images)."""
-        if not scan.stripes and not scan.laser_images:
-            return
-        t0 = time.perf_counter()
-        if scan.laser_images and self._extraction is None and not mp.current_process().daemon:
-            # issue 33: laser-line images extracted in a worker process (40-50 ms per image here);
-            # a daemonic process (a batch task) may not start one and extracts them itself
-            from loopmodel.mapping.stripe_feed import ExtractionWorker
-
-            self._extraction = ExtractionWorker(self.extractor)
-        if self._extraction is not None:
-            profiles = list(scan.stripes)
-            for t_ns, image in scan.laser_images:
-                self._extraction.submit(t_ns, image)
-            profiles += self._extraction.ready()
-        else:
-            profiles = self.extractor.profiles(scan)
-        self.stripes.extend(profiles)
-        self._unfed.extend(profiles)
-        self.stripe_ms.append((time.perf_counter() - t0) * 1e3)
-
     def step(self, frame: StereoFrame) -> FrameResult:
         """Track one frame.
 
@@ -309,8 +418,7 @@ class _Run:
         self.frames.append(res)
         if res.ok:
             self.anchored.add_frame(res.timestamp_ns, kf_id=res.keyframe_id, kf_from_cam=res.kf_from_cam)
-            self.live.feed(self._unfed)
-            self._unfed = []
+            self.live.feed(self.laser.new_profiles())
         if kf is not None:
             updates = len(self.live.update_ms)
             self.live.on_keyframe()
@@ -318,7 +426,7 @@ class _Run:
                 mesh = self.live.mesh()
                 for listener in self.listeners:
                     listener.on_live_mesh(mesh)
-        self.frame_ms.append((time.perf_counter() - t0) * 1e3)
+        self.times.frame_ms.append((time.perf_counter() - t0) * 1e3)
         if self.listeners:
             tracks = self.frontend.tracked_features()
             for listener in self.listeners:
@@ -326,7 +434,7 @@ class _Run:
         return res
 
     def _state(self) -> MapState:
-        return MapState(self.frontend.world_from_kf, self._last_ms, self._last_ids)
+        return MapState(self.frontend.world_from_kf, *self._last)
 
     def skips(self, frame: StereoFrame) -> bool:
         """Whether a resumed run skips this frame (before the interrupted run's last keyframe)."""
@@ -356,17 +464,16 @@ class _Run:
             self.frontend.resume_features(out.resume)
         tb = time.perf_counter()
         self.backend.add_keyframe(kf)
-        self._last_ids = self._add_constraints(out.constraints)
+        ids = self._add_constraints(out.constraints)
         estimate = self.backend.estimate(landmarks=False)
-        self._last_ms = (time.perf_counter() - tb) * 1e3
-        self.backend_ms.append(self._last_ms)
+        self._last = ((time.perf_counter() - tb) * 1e3, ids)
+        self.times.backend_ms.append(self._last[0])
         self._correct({k: estimate.world_from_kf[k] for k in estimate.changed_keyframes if k in estimate.world_from_kf})
         if kf.connected and kf.prev_keyframe_id is not None and kf.kf_prev_from_kf_tracked is not None:
             self.tracked_links[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf_tracked)
         self.keyframes[kf.id] = kf.timestamp_ns
-        if self.archiver is not None:
-            self.map_keyframes[kf.id] = kf
-            self.archiver.add(kf)
+        if self.map_record is not None:
+            self.map_record.add(kf)
         if self.config.calibration.refine != "none":
             self.selfcal_keyframes[kf.id] = kf.without_image()
         for listener in self.listeners:
@@ -429,8 +536,8 @@ class _Run:
                 float(np.degrees(b.loop_sigma_rad)), b.loop_sigma_m,
             )
         recorded = self.frontend.rectifier.input_calibration
-        stripes = restripe(self.stripes, recorded, sc.calibration, plane.normal_in_cam, plane.d_m)
-        self.stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
+        stripes = restripe(self.laser.stripes, recorded, sc.calibration, plane.normal_in_cam, plane.d_m)
+        self.laser.stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
         self.anchored.update_keyframes(sc.world_from_kf)
         self.selfcal = sc
         return BackendEstimate(dict(sc.world_from_kf), sc.landmark_ids, sc.landmarks_in_world, set(sc.world_from_kf))
@@ -488,41 +595,55 @@ class _Run:
 
         Stop the workers, refine, mesh, gather the metrics, make the session map.
         """
-        frames_s = time.perf_counter() - self.t_start
-        with timed_step("workers", self.finish_s, self.finishing):
+        frames_s = self.times.since_start_s()
+        steps = self.times.finish_s
+        with timed_step("workers", steps, self.finishing):
             self._stop_workers(interrupted)
-        with timed_step("final_refinement", self.finish_s, self.finishing):
+        if self.config.mapping.write_mesh and self.laser.stripes:
+            _import_beside("loopmodel.mapping.meshing")
+        with timed_step("final_refinement", steps, self.finishing):
             result = self._estimate(interrupted)
-        with timed_step("mesh", self.finish_s, self.finishing):
-            result.stripes = self.stripes
-            result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, self.config.mapping)
-            result.live_mesh = self.live.mesh()
+        with timed_step("mesh", steps, self.finishing):
+            mesh_metrics = self._mesh(result)
         result.metrics = self._metrics(result, frames_s, mesh_metrics)
         if self.selfcal is not None:  # issue 31
             result.metrics.update(self.selfcal.metrics())
             result.calibration_refined = self.selfcal.calibration
             result.calibration_report = self.selfcal.report()
-        with timed_step("map", self.finish_s, self.finishing):
+        with timed_step("map", steps, self.finishing):
             result.session_map = self._session_map(result)
             self.session.finish(result, self.frames, self.config)
-        result.metrics["finish_s"] = dict(self.finish_s)
-        result.metrics["wall_s"] = frames_s + sum(self.finish_s.values())
+        result.metrics["finish_s"] = dict(steps)
+        result.metrics["wall_s"] = frames_s + sum(steps.values())
         for listener in self.listeners:
             listener.on_finish(result)
         return result
 
     def _stop_workers(self, interrupted: bool) -> None:
         """Stop the workers: the last laser profiles join the stripes, late loops reach the back end."""
-        if self._extraction is not None:  # the profiles of the last laser images (waited for)
-            self.stripes.extend(self._extraction.wait())
-            self._extraction = None
-        self.live.close(wait=not interrupted)
+        self.laser.wait()
+        if interrupted:  # the live mesh's last update abandoned; else taken in the mesh step (_mesh)
+            self.live.close(wait=False)
         self._correct(settle(self.backend))  # issue 33: the back-end worker's last corrections
         self._correct(self.loop.close(self._state()))
         # perf (issue 26): loops whose (background) detection finished after the last keyframe
         if self._add_constraints(self.loop.final_constraints()):
             moved = self.backend.estimate(landmarks=False)
             self._correct({k: moved.world_from_kf[k] for k in moved.changed_keyframes})
+
+    def _mesh(self, result: RunResult) -> dict[str, Any]:
+        """The final mesh of the run's stripes placed with ``result.final``, and the live mesh; the mesh's metrics.
+
+        The live mesh's last update (issue 32: 33 s of the workers step on the 150-frame orbit with
+        ``configs/sim.yaml`` at load 25) is waited for here: its worker process goes on meshing
+        beside the final refinement and the final mesh.
+        """
+        result.stripes = self.laser.stripes
+        result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, self.config.mapping)
+        if not result.interrupted:
+            self.live.close(wait=True)
+        result.live_mesh = self.live.mesh()
+        return mesh_metrics
 
     def _estimate(self, interrupted: bool) -> RunResult:
         """The back end's final estimate (refined unless interrupted): trajectories, keyframes, landmarks."""
@@ -544,6 +665,7 @@ class _Run:
 
     def partial_result(self, interrupted: bool) -> RunResult:
         """The frames' trajectories and metrics without the end-of-run steps (after :meth:`finish` failed)."""
+        self.live.close(wait=False)
         online = _online_trajectory(self.frames)
         try:
             final, keyframes = self._final_trajectory(), self._keyframe_trajectory()
@@ -558,52 +680,19 @@ class _Run:
             keyframe_ids=np.array(list(self.keyframes) if len(keyframes) else [], dtype=np.int64),
             interrupted=interrupted,
         )
-        busy_s = sum(self.frame_ms) / 1e3
+        busy_s = sum(self.times.frame_ms) / 1e3
         result.metrics = {"sequence": self.source, "interrupted": interrupted}
-        result.metrics.update(frontend_metrics(self.frames, time.perf_counter() - self.t_start))
+        result.metrics.update(frontend_metrics(self.frames, self.times.since_start_s()))
         result.metrics.update(fps=len(self.frames) / busy_s if busy_s > 0 else None, backend=self.config.backend.kind)
         result.metrics["landmarks"] = 0
         return result
 
     def _session_map(self, result: RunResult) -> SessionMap | None:
         """The run's map for later sessions (``output.write_map``; None without keyframes or when it fails)."""
-        if self.archiver is None:
+        if self.map_record is None:
             return None
-        prepared = self.archiver.take()
-        if not self.map_keyframes:
-            return None
-        from loopmodel.config import dump_config, pipeline_sections
-        from loopmodel.loop.session_map import MapInputs, build_session_map
-        from loopmodel.mapping.final import anchor_stripes
-
-        poses = self.anchored.keyframe_poses
-        kfs = [self.map_keyframes[k] for k in sorted(self.map_keyframes)]
-        frames = [f for f in self.frames if f.ok]
-        anchors = anchor_stripes(
-            result.stripes,
-            result.final,
-            np.array([f.timestamp_ns for f in frames], np.int64),
-            np.array([f.keyframe_id for f in frames], np.int64),
-            poses,
-            self.config.mapping,
-        )
-        inputs = MapInputs(
-            self.frontend.calibration,
-            kfs,
-            {k: poses[k] for k in self.map_keyframes if k in poses},
-            result.landmark_ids,
-            result.landmarks_in_world,
-            [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints],
-            anchors,
-            dump_config(self.config, pipeline_sections()),
-            {"sequence": self.source},
-        )
-        try:
-            smap = build_session_map(inputs, self.config.loop, prepared, self.vocabulary)
-        except LoopmodelError as exc:
-            logger.error("no session map: %s", exc)
-            return None
-        if self.resume is not None:
+        smap = self.map_record.build(result, self.frames, self.anchored.keyframe_poses, self.loop_constraints)
+        if smap is not None and self.resume is not None:
             smap = self.resume.join_map(smap)
         return smap
 
@@ -612,27 +701,28 @@ class _Run:
 
         ``frames_s``: wall time of the frame loop (from the run's start to the last frame).
         """
-        busy_s = sum(self.frame_ms) / 1e3
+        t = self.times
+        busy_s = sum(t.frame_ms) / 1e3
         m: dict[str, Any] = {"sequence": self.source, "interrupted": result.interrupted}
         m.update(mesh_metrics)
         m.update(frontend_metrics(self.frames, frames_s))
         m["fps"] = len(self.frames) / busy_s if busy_s > 0 else None
         m["frames_s"] = frames_s
         m["backend"] = self.config.backend.kind
-        m["final_refine_s"] = self.finish_s.get("final_refinement", 0.0)
+        m["final_refine_s"] = t.finish_s.get("final_refinement", 0.0)
         m.update(self.loop.metrics())
         m.update(self.live.metrics())
         m.update(self.backend.metrics())
         m["landmarks"] = int(result.landmark_ids.size)
-        m["stripe_profiles"] = len(self.stripes)
-        m.update(_quantiles(self.frame_ms, "frame_total_ms"))
-        m.update(_quantiles(self.stripe_ms, "stripe_extraction_ms"))
+        m["stripe_profiles"] = len(self.laser.stripes)
+        m.update(_quantiles(t.frame_ms, "frame_total_ms"))
+        m.update(_quantiles(self.laser.ms, "stripe_extraction_ms"))
         # issue 33: the worst frames (frame 0 makes the first keyframe; the first 10 warm up)
-        fm = self.frame_ms
+        fm = t.frame_ms
         m["frame_total_ms_first"] = fm[0] if fm else None
         m["frame_total_ms_max_after_first"] = max(fm[1:]) if len(fm) > 1 else None
         m["frame_total_ms_max_after_warmup"] = max(fm[10:]) if len(fm) > 10 else None
-        m.update(_quantiles(self.backend_ms, "backend_ms"))
+        m.update(_quantiles(t.backend_ms, "backend_ms"))
         return m
 
 
@@ -702,12 +792,12 @@ def _frame_loop(
                 break
             if stop.is_set():
                 return True, None
-            run.laser(scan)
+            run.laser.take(scan)
             if run.skips(scan.frame):
                 continue
             run.step(scan.frame)
             if progress is not None:
-                el = time.perf_counter() - run.t_start
+                el = run.times.since_start_s()
                 progress(i + 1, total, (i + 1) / el if el > 0 else 0.0, len(run.keyframes))
     except KeyboardInterrupt:
         return True, None

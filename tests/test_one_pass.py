@@ -7,6 +7,7 @@ grades nothing itself (the evaluation is a separate step after it), and shows ea
 from __future__ import annotations
 
 import json
+import sys
 from collections import Counter
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -162,3 +163,43 @@ def test_run_shows_each_finishing_step_and_no_eval_skips_the_evaluation(
     assert "evaluation" not in capsys.readouterr().err
     m = json.loads((tmp_path / "plain" / "metrics.json").read_text())
     assert "ate_rmse_m" not in m and "evaluation" not in m["finish_s"]
+
+
+class _Watched:
+    """A sequence that records which functions read it: (module, function) of each attribute access."""
+
+    def __init__(self, seq: Any, readers: set[tuple[str, str]]) -> None:
+        self._seq = seq
+        self._readers = readers
+
+    def _note(self) -> None:
+        caller = sys._getframe(2)
+        self._readers.add((str(caller.f_globals.get("__name__")), caller.f_code.co_name))
+
+    def __getattr__(self, name: str) -> Any:  # only names the proxy does not have itself
+        self._note()
+        return getattr(self._seq, name)
+
+    def __len__(self) -> int:
+        self._note()
+        return len(self._seq)
+
+
+def test_the_sequence_is_read_by_a_few_functions_and_by_no_stage(tmp_path: Path) -> None:
+    """Issue 32: the walk of the sequence from ``run_pipeline`` climbs back up at most 6 times.
+
+    The functions that read it below ``run_pipeline``: the run (its one pass and the calibration),
+    the results' format and the evaluation after the run; no stage package sees it.
+    """
+    from loopmodel.pipeline import run_pipeline
+
+    tiny = Path(__file__).resolve().parents[1] / "datasets" / "tiny_kitti"
+    readers: set[tuple[str, str]] = set()
+    seq = _Watched(open_sequence(tiny), readers)
+    result = run_pipeline(seq, Config(), tmp_path, "watched", handle_signals=False)  # type: ignore[arg-type]
+    assert result.metrics["ate_rmse_m"] < 0.01  # evaluated: the ground truth was read
+    stages = {"frontend", "backend", "loop", "mapping", "pose"}
+    assert not [r for r in readers if r[0].split(".")[1] in stages], readers
+    # measured: process, _process_and_write, evaluated (loopmodel.pipeline), evaluate, mesh_errors
+    assert len(readers) <= 6, sorted(readers)
+    assert ("loopmodel.pipeline", "process") in readers

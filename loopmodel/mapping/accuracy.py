@@ -86,7 +86,8 @@ def swept_mask(samples: NDArray[np.float64], stripe_points: NDArray[np.float64],
 
     if stripe_points.shape[0] == 0:
         return np.zeros(samples.shape[0], dtype=bool)
-    d, _ = cKDTree(stripe_points).query(samples, k=1, distance_upper_bound=radius_m)
+    # workers=-1: the queries on every core, the interpreter released (0.85 s on one core, load 15)
+    d, _ = cKDTree(stripe_points).query(samples, k=1, distance_upper_bound=radius_m, workers=-1)
     return np.isfinite(d)
 
 
