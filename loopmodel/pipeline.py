@@ -366,7 +366,8 @@ class _Run:
         self.keyframes[kf.id] = kf.timestamp_ns
         if self.archiver is not None:
             self.map_keyframes[kf.id] = kf
-            self.archiver.add(kf)
+            detection = getattr(self.loop, "detection", None)  # its loop features, not detected twice
+            self.archiver.add(kf, detection(kf.id) if detection is not None else None)
         if self.config.calibration.refine != "none":
             self.selfcal_keyframes[kf.id] = kf.without_image()
         for listener in self.listeners:
