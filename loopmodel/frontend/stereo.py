@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.config import FrontendConfig
-from loopmodel.frontend._stereo_kernels import zncc_scan
+from loopmodel.frontend._stereo_kernels import row_gradient, zncc_scan
 from loopmodel.frontend.beside import Beside
 
 F64 = NDArray[np.float64]
@@ -110,37 +110,25 @@ def refine_row_gradient(
     each step, so the estimate is not drawn towards whole pixels as a parabola through three
     correlation scores is. Images are padded by ``pad`` pixels. Returns the column (pixels) and
     its standard deviation (pixels): the fit's residual RMS over the root of the summed squared
-    row gradient, at least :data:`MIN_DISPARITY_SIGMA_PX`.
+    row gradient, at least :data:`MIN_DISPARITY_SIGMA_PX`. Compiled, in float32
+    (:mod:`loopmodel.frontend._stereo_kernels`).
     """
-    p = 2 * half + 1
-    n = u.shape[0]
-    stride = dst.shape[1]
-    ar = np.arange(-half, half + 1)
-    tpl = np.take(src, ((v + pad) * stride + (u + pad))[:, None] + (ar[:, None] * stride + ar[None, :]).ravel())
-    t = tpl.astype(np.float32).reshape(n, p, p)
-    t -= t.mean(axis=(1, 2), keepdims=True)
-    tt = np.einsum("nij,nij->n", t, t) + np.float32(1e-9)
-    x = np.asarray(x0, dtype=float).copy()
-    cols = np.arange(-half - 1, half + 3)  # p + 3 columns around floor(x)
-    sigma = np.full(n, np.inf)
-    for _ in range(iterations):
-        xi = np.floor(x).astype(np.int64)
-        a = (x - xi).astype(np.float32)[:, None, None]
-        base = (v_dst + pad) * stride + (xi + pad)
-        S = np.take(dst, base[:, None, None] + ar[None, :, None] * stride + cols[None, None, :]).astype(np.float32)
-        W = (1 - a) * S[:, :, 1 : p + 1] + a * S[:, :, 2 : p + 2]
-        Wp = (1 - a) * S[:, :, 2 : p + 2] + a * S[:, :, 3 : p + 3]
-        Wm = (1 - a) * S[:, :, 0:p] + a * S[:, :, 1 : p + 1]
-        w = W - W.mean(axis=(1, 2), keepdims=True)
-        g = 0.5 * (Wp - Wm)
-        g -= g.mean(axis=(1, 2), keepdims=True)
-        gain = np.einsum("nij,nij->n", w, t) / tt
-        r = w - gain[:, None, None] * t
-        gg = np.einsum("nij,nij->n", g, g) + np.float32(1e-9)
-        step = -np.einsum("nij,nij->n", g, r) / gg
-        x += np.clip(step, -0.5, 0.5)
-        sigma = np.sqrt(np.einsum("nij,nij->n", r, r) / max(p * p - 3, 1) / gg)
-    return x, np.maximum(sigma, MIN_DISPARITY_SIGMA_PX).astype(np.float64)
+    if u.size:  # every window (and its +-1 columns, moving by at most 0.5 px a step) inside the padded images
+        reach = half + 3 + iterations
+        hs, ws = src.shape[:2]
+        hd, wd = dst.shape[:2]
+        x0a = np.asarray(x0, dtype=float)
+        ok = (v.min() + pad - half >= 0) and (v.max() + pad + half < hs) and (u.min() + pad - half >= 0)
+        ok = ok and (u.max() + pad + half < ws) and (v_dst.min() + pad - half >= 0) and (v_dst.max() + pad + half < hd)
+        ok = ok and bool(np.all(np.isfinite(x0a))) and (x0a.min() + pad - reach >= 0) and (x0a.max() + pad + reach < wd)
+        if not ok:
+            raise ValueError("stereo refinement: a window reaches beyond the padded image")
+    x, sigma = row_gradient(
+        np.ascontiguousarray(src), np.ascontiguousarray(dst), pad, np.ascontiguousarray(u, dtype=np.int64),
+        np.ascontiguousarray(v, dtype=np.int64), np.array(x0, dtype=float), np.ascontiguousarray(v_dst, dtype=np.int64),
+        half, iterations, float(np.float32(MIN_DISPARITY_SIGMA_PX)),
+    )
+    return x, sigma
 
 
 def _zncc_scan(
