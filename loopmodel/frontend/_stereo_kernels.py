@@ -130,7 +130,8 @@ def _row_gradient_py(src, dst, pad, u, v, x0, v_dst, half, iterations, min_sigma
             gg = np.float32(gg + np.float32(1e-9))
             step = np.float32(-gr / gg)
             x[i] += np.float64(min(max(step, np.float32(-0.5)), np.float32(0.5)))
-            sigma[i] = np.float64(np.float32(math.sqrt(np.float32(np.float32(rr / np.float32(max(p * p - 3, 1))) / gg))))
+            per_px = np.float32(rr / np.float32(max(p * p - 3, 1)))
+            sigma[i] = np.float64(np.float32(math.sqrt(np.float32(per_px / gg))))
         sigma[i] = max(sigma[i], min_sigma)
     return x, sigma
 
