@@ -123,3 +123,20 @@ def test_compiled_column_fit_recovers_a_sub_pixel_shift() -> None:
     assert np.all(sigma >= MIN_DISPARITY_SIGMA_PX) and np.all(sigma < 0.1)
     # the scan on the same unpadded pair: windows inside the image are allowed
     assert zncc_scan(src, dst, 0, u, v, u - 2, 5, 3, np.zeros(1, np.int64)).shape == (u.size, 1, 5)
+
+
+def test_compiled_vocabulary_descent_gives_the_nearest_child_words(rng: np.random.Generator) -> None:
+    from loopmodel.io.vocabulary_file import shipped_vocabulary
+    from loopmodel.loop.vocabulary import hamming_to
+
+    voc = shipped_vocabulary("orb")
+    assert voc is not None and voc.binary
+    desc = rng.integers(0, 256, (300, voc.centers.shape[1]), dtype=np.uint8)
+    want = np.empty(len(desc), np.int64)
+    for i, d in enumerate(desc):  # one descriptor at a time, numpy's Hamming distances, first on a tie
+        node = 0
+        while (voc.children[node] >= 0).any():
+            ch = voc.children[node][voc.children[node] >= 0]
+            node = int(ch[np.argmin(hamming_to(d[None], voc.centers[ch])[0])])
+        want[i] = voc.word[node]
+    assert np.array_equal(voc.transform(desc), want)

@@ -102,7 +102,7 @@ _WORKER_CLOSER: LoopCloser | None = None
 def _worker_start(calibration: StereoCalibration, config: LoopConfig, vocabulary: Vocabulary | None) -> None:
     global _WORKER_CLOSER
     _WORKER_CLOSER = LoopCloser(calibration, config, vocabulary)
-    warm_up_pnp()
+    _warm_up_kernels()
 
 
 def _worker_detect(kf: Keyframe, neighbours: set[int], query: bool) -> Detection:
@@ -113,6 +113,14 @@ def _worker_detect(kf: Keyframe, neighbours: set[int], query: bool) -> Detection
 def _worker_relocalize(image: NDArray[np.uint8], exclude_after: int) -> tuple[int | None, Any]:
     assert _WORKER_CLOSER is not None
     return _WORKER_CLOSER.relocalize(image, exclude_after=exclude_after)
+
+
+def _warm_up_kernels() -> None:
+    """Load the compiled kernels of detection and verification (vocabulary descent, P3P bank)."""
+    from loopmodel.loop._vocabulary_kernels import warm_up as warm_up_vocabulary
+
+    warm_up_vocabulary()
+    warm_up_pnp()
 
 
 def _warm_up_gate() -> None:
@@ -201,8 +209,8 @@ class LoopClosingStage:
         self.detect_s: list[float] = []
         if self.config.detection_worker == "process":
             self._workers().submit(int, 0)  # start the worker now, while tracking starts
-        else:  # issue 33: the verification's compiled kernels loaded before the first frame, not in one
-            warm_up_pnp()
+        else:  # issue 33: the detection's compiled kernels loaded before the first frame, not in one
+            _warm_up_kernels()
         if self.config.robust != "none":  # the gate runs on the tracking thread: warmed before the first frame
             _warm_up_gate()  # (issue 33: 0.25 s of CPU; beside the tracker it held the interpreter lock in frame 0)
         self.keyframes_not_queried = 0
