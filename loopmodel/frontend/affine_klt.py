@@ -21,12 +21,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from loopmodel.frontend._affine_kernels import refine_features, warm_up
 from loopmodel.geometry.camera import CentralCamera
 
 F64 = NDArray[np.float64]
 
-__all__ = ["AffineMatch", "image_gradients", "predicted_affine", "refine_affine", "warm_up"]
 
 
 @dataclass
@@ -122,10 +120,19 @@ def refine_affine(
     guess = c.copy()
     A = np.tile(np.eye(2), (n, 1, 1)) if affine_guess is None else np.array(affine_guess, dtype=float, order="C")
     gx, gy = image_gradients(img_cur) if cur_gradients is None else cur_gradients
-    # per feature, compiled (issue 36's cost: the numpy form took 15 ms a call on the KITTI clip)
+    # per feature, compiled (issue 33's cost: the numpy form took 15 ms a call on the KITTI clip)
+    from loopmodel.frontend._affine_kernels import refine_features  # numba: imported when first needed
+
     ncc, finite = refine_features(np.asarray(img_ref), np.asarray(img_cur), gx, gy, np.ascontiguousarray(uv_ref),
                                   c, A, half_window_px, iterations, max_shift_px)
     h, w = np.shape(img_cur)[:2]
     inside = (c[:, 0] >= 0) & (c[:, 0] <= w - 1) & (c[:, 1] >= 0) & (c[:, 1] <= h - 1)
     ok = finite & inside & (ncc >= min_ncc) & (np.linalg.norm(c - guess, axis=1) <= max_shift_px)
     return AffineMatch(c, ok, ncc)
+
+
+def warm_up() -> None:
+    """Load (or compile) :func:`refine_affine`'s kernel now (numba's cache: 0.3-0.8 s of CPU), not in a frame."""
+    from loopmodel.frontend._affine_kernels import warm_up as load
+
+    load()

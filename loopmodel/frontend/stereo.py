@@ -14,7 +14,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.config import FrontendConfig
-from loopmodel.frontend._stereo_kernels import row_gradient, zncc_scan
 from loopmodel.frontend.beside import Beside
 
 F64 = NDArray[np.float64]
@@ -123,6 +122,8 @@ def refine_row_gradient(
         ok = ok and bool(np.all(np.isfinite(x0a))) and (x0a.min() + pad - reach >= 0) and (x0a.max() + pad + reach < wd)
         if not ok:
             raise ValueError("stereo refinement: a window reaches beyond the padded image")
+    from loopmodel.frontend._stereo_kernels import row_gradient  # numba: imported when first needed
+
     x, sigma = row_gradient(
         np.ascontiguousarray(src), np.ascontiguousarray(dst), pad, np.ascontiguousarray(u, dtype=np.int64),
         np.ascontiguousarray(v, dtype=np.int64), np.array(x0, dtype=float), np.ascontiguousarray(v_dst, dtype=np.int64),
@@ -160,6 +161,8 @@ def _zncc_scan(
         )
         if not inside:
             raise ValueError("stereo scan: a window reaches beyond the padded image")
+    from loopmodel.frontend._stereo_kernels import zncc_scan  # numba: imported when first needed
+
     def c64(a: NDArray[np.int64]) -> NDArray[np.int64]:
         return np.ascontiguousarray(a, dtype=np.int64)
 

@@ -56,7 +56,6 @@ from loopmodel.loop.closer import LoopCloser, LoopClosure
 from loopmodel.loop.closure import LoopEvent
 from loopmodel.loop.features import FeatureSet
 from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hybrid_ba
-from loopmodel.loop.pnp import warm_up as warm_up_pnp
 from loopmodel.loop.vocabulary import Vocabulary
 from loopmodel.stages import LoopConstraint, LoopOutcome, LoopStage, MapState, NullLoopStage, ResumeFeatures
 from loopmodel.types import Keyframe, StereoCalibration
@@ -118,6 +117,7 @@ def _worker_relocalize(image: NDArray[np.uint8], exclude_after: int) -> tuple[in
 def _warm_up_kernels() -> None:
     """Load the compiled kernels of detection and verification (vocabulary descent, P3P bank)."""
     from loopmodel.loop._vocabulary_kernels import warm_up as warm_up_vocabulary
+    from loopmodel.loop.pnp import warm_up as warm_up_pnp
 
     warm_up_vocabulary()
     warm_up_pnp()
