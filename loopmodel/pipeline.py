@@ -34,6 +34,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import Future
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -270,10 +271,10 @@ class _MapRecord:
         self.keyframes: dict[int, Keyframe] = {}
         self.archiver = KeyframeArchiver(calibration, config.loop)
 
-    def add(self, kf: Keyframe) -> None:
-        """A keyframe (with its image) for the map."""
+    def add(self, kf: Keyframe, detection: Future[Any] | None = None) -> None:
+        """A keyframe (with its image) for the map; ``detection``: the loop stage's of it, if any."""
         self.keyframes[kf.id] = kf
-        self.archiver.add(kf)
+        self.archiver.add(kf, detection)
 
     def build(
         self,
@@ -472,8 +473,8 @@ class _Run:
         if kf.connected and kf.prev_keyframe_id is not None and kf.kf_prev_from_kf_tracked is not None:
             self.tracked_links[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf_tracked)
         self.keyframes[kf.id] = kf.timestamp_ns
-        if self.map_record is not None:
-            self.map_record.add(kf)
+        if self.map_record is not None:  # its loop features are the loop stage's, not detected twice
+            self.map_record.add(kf, self.loop.detection(kf.id))
         if self.config.calibration.refine != "none":
             self.selfcal_keyframes[kf.id] = kf.without_image()
         for listener in self.listeners:

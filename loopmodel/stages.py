@@ -13,6 +13,7 @@ for the front end and the map. No stage changes another one.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -115,6 +116,10 @@ class LoopStage(Protocol):
         """Constraints of loops found after the last keyframe (read after :meth:`close`)."""
         ...
 
+    def detection(self, kf_id: int) -> Future[Any] | None:
+        """The running detection of keyframe ``kf_id`` if it was the last one given (its loop features)."""
+        ...
+
     def metrics(self) -> dict[str, Any]:
         """Summary for ``metrics.json``."""
         ...
@@ -134,6 +139,10 @@ class NullLoopStage:
     def final_constraints(self) -> list[LoopConstraint]:
         """None."""
         return []
+
+    def detection(self, kf_id: int) -> Future[Any] | None:
+        """No detection."""
+        return None
 
     def metrics(self) -> dict[str, Any]:
         """No loop-closing figures."""

@@ -67,10 +67,10 @@ def test_backlog_stores_keyframes_without_querying(monkeypatch: pytest.MonkeyPat
     queried: list[bool] = []
     original = LoopCloser.process_keyframe
 
-    def slow(self: LoopCloser, kf: Any, neighbours: Any = None, query: bool = True) -> Any:
+    def slow(self: LoopCloser, kf: Any, neighbours: Any = None, query: bool = True, **kwargs: Any) -> Any:
         assert release.wait(timeout=60.0)
         queried.append(query)
-        return original(self, kf, neighbours, query)
+        return original(self, kf, neighbours, query, **kwargs)
 
     monkeypatch.setattr(LoopCloser, "process_keyframe", slow)
     cfg = Config()

@@ -26,6 +26,7 @@ from loopmodel.geometry.camera import CentralCamera
 F64 = NDArray[np.float64]
 
 
+
 @dataclass
 class AffineMatch:
     """Re-measured positions ``uv_px`` (N, 2) in the current image, ``ok`` flags and ``ncc`` per feature.
@@ -117,67 +118,21 @@ def refine_affine(
     if n == 0:
         return AffineMatch(np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0))
     guess = c.copy()
-    A = np.tile(np.eye(2), (n, 1, 1)) if affine_guess is None else np.asarray(affine_guess, float).copy()
-    ref = np.asarray(img_ref, dtype=np.float32)
-    cur = np.asarray(img_cur, dtype=np.float32)
-    gx, gy = image_gradients(cur) if cur_gradients is None else cur_gradients
-    s = np.arange(-half_window_px, half_window_px + 1, dtype=float)
-    sx2, sy2 = np.meshgrid(s, s)
-    sx, sy = sx2.ravel()[None], sy2.ravel()[None]  # (1, P)
-    T = _sample(ref, uv_ref[:, :1] + sx, uv_ref[:, 1:] + sy)  # (n, P) template
-    gain = np.ones(n)
-    offset = np.zeros(n)
-    active = np.ones(n, dtype=bool)
+    A = np.tile(np.eye(2), (n, 1, 1)) if affine_guess is None else np.array(affine_guess, dtype=float, order="C")
+    gx, gy = image_gradients(img_cur) if cur_gradients is None else cur_gradients
+    # per feature, compiled (issue 33's cost: the numpy form took 15 ms a call on the KITTI clip)
+    from loopmodel.frontend._affine_kernels import refine_features  # numba: imported when first needed
 
-    def warp(idx: NDArray[np.int64]) -> tuple[F64, F64]:
-        a = A[idx]
-        x = c[idx, :1] + a[:, 0, :1] * sx + a[:, 0, 1:] * sy
-        y = c[idx, 1:] + a[:, 1, :1] * sx + a[:, 1, 1:] * sy
-        return x, y
-
-    for _ in range(iterations):
-        idx = np.flatnonzero(active)
-        if idx.size == 0:
-            break
-        x, y = warp(idx)
-        Ic, Gx, Gy = _sample(cur, x, y), _sample(gx, x, y), _sample(gy, x, y)
-        Ti = T[idx]
-        r = Ic - (gain[idx, None] * Ti + offset[idx, None])
-        Jt = np.empty((idx.size, 8, Ti.shape[1]))  # Jacobian rows per parameter (batched BLAS)
-        Jt[:, 0], Jt[:, 1] = Gx, Gy
-        Jt[:, 2], Jt[:, 3], Jt[:, 4], Jt[:, 5] = Gx * sx, Gx * sy, Gy * sx, Gy * sy
-        Jt[:, 6], Jt[:, 7] = -Ti, -1.0
-        H = Jt @ Jt.transpose(0, 2, 1)
-        H[:, np.arange(8), np.arange(8)] += 1e-6 * (1.0 + H[:, np.arange(8), np.arange(8)])
-        g = (Jt @ r[:, :, None])[:, :, 0]
-        try:
-            dp = -np.linalg.solve(H, g[:, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:
-            dp = np.zeros((idx.size, 8))
-            for j in range(idx.size):  # a singular patch (flat): leave it where it is
-                try:
-                    dp[j] = -np.linalg.solve(H[j], g[j])
-                except np.linalg.LinAlgError:
-                    active[idx[j]] = False
-        c[idx] += dp[:, :2]
-        A[idx, 0, 0] += dp[:, 2]
-        A[idx, 0, 1] += dp[:, 3]
-        A[idx, 1, 0] += dp[:, 4]
-        A[idx, 1, 1] += dp[:, 5]
-        gain[idx] += dp[:, 6]
-        offset[idx] += dp[:, 7]
-        bad = ~np.isfinite(c[idx]).all(axis=1) | (np.linalg.norm(c[idx] - guess[idx], axis=1) > 2 * max_shift_px + 1)
-        active[idx[bad]] = False
-        active[idx[np.abs(dp[:, :2]).max(axis=1) < 1e-3]] = False  # converged
-    finite = np.isfinite(c).all(axis=1) & np.isfinite(A).all(axis=(1, 2))
-    c[~finite] = guess[~finite]
-    A[~finite] = np.eye(2)
-    x, y = warp(np.arange(n))
-    Ic = _sample(cur, x, y)
-    tc = T - T.mean(axis=1, keepdims=True)
-    ic = Ic - Ic.mean(axis=1, keepdims=True)
-    ncc = np.sum(tc * ic, axis=1) / np.sqrt(np.sum(tc * tc, axis=1) * np.sum(ic * ic, axis=1) + 1e-9)
-    h, w = cur.shape[:2]
+    ncc, finite = refine_features(np.asarray(img_ref), np.asarray(img_cur), gx, gy, np.ascontiguousarray(uv_ref),
+                                  c, A, half_window_px, iterations, max_shift_px)
+    h, w = np.shape(img_cur)[:2]
     inside = (c[:, 0] >= 0) & (c[:, 0] <= w - 1) & (c[:, 1] >= 0) & (c[:, 1] <= h - 1)
     ok = finite & inside & (ncc >= min_ncc) & (np.linalg.norm(c - guess, axis=1) <= max_shift_px)
     return AffineMatch(c, ok, ncc)
+
+
+def warm_up() -> None:
+    """Load (or compile) :func:`refine_affine`'s kernel now (numba's cache: 0.3-0.8 s of CPU), not in a frame."""
+    from loopmodel.frontend._affine_kernels import warm_up as load
+
+    load()

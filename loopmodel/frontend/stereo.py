@@ -109,37 +109,27 @@ def refine_row_gradient(
     each step, so the estimate is not drawn towards whole pixels as a parabola through three
     correlation scores is. Images are padded by ``pad`` pixels. Returns the column (pixels) and
     its standard deviation (pixels): the fit's residual RMS over the root of the summed squared
-    row gradient, at least :data:`MIN_DISPARITY_SIGMA_PX`.
+    row gradient, at least :data:`MIN_DISPARITY_SIGMA_PX`. Compiled, in float32
+    (:mod:`loopmodel.frontend._stereo_kernels`).
     """
-    p = 2 * half + 1
-    n = u.shape[0]
-    stride = dst.shape[1]
-    ar = np.arange(-half, half + 1)
-    tpl = np.take(src, ((v + pad) * stride + (u + pad))[:, None] + (ar[:, None] * stride + ar[None, :]).ravel())
-    t = tpl.astype(np.float32).reshape(n, p, p)
-    t -= t.mean(axis=(1, 2), keepdims=True)
-    tt = np.einsum("nij,nij->n", t, t) + np.float32(1e-9)
-    x = np.asarray(x0, dtype=float).copy()
-    cols = np.arange(-half - 1, half + 3)  # p + 3 columns around floor(x)
-    sigma = np.full(n, np.inf)
-    for _ in range(iterations):
-        xi = np.floor(x).astype(np.int64)
-        a = (x - xi).astype(np.float32)[:, None, None]
-        base = (v_dst + pad) * stride + (xi + pad)
-        S = np.take(dst, base[:, None, None] + ar[None, :, None] * stride + cols[None, None, :]).astype(np.float32)
-        W = (1 - a) * S[:, :, 1 : p + 1] + a * S[:, :, 2 : p + 2]
-        Wp = (1 - a) * S[:, :, 2 : p + 2] + a * S[:, :, 3 : p + 3]
-        Wm = (1 - a) * S[:, :, 0:p] + a * S[:, :, 1 : p + 1]
-        w = W - W.mean(axis=(1, 2), keepdims=True)
-        g = 0.5 * (Wp - Wm)
-        g -= g.mean(axis=(1, 2), keepdims=True)
-        gain = np.einsum("nij,nij->n", w, t) / tt
-        r = w - gain[:, None, None] * t
-        gg = np.einsum("nij,nij->n", g, g) + np.float32(1e-9)
-        step = -np.einsum("nij,nij->n", g, r) / gg
-        x += np.clip(step, -0.5, 0.5)
-        sigma = np.sqrt(np.einsum("nij,nij->n", r, r) / max(p * p - 3, 1) / gg)
-    return x, np.maximum(sigma, MIN_DISPARITY_SIGMA_PX).astype(np.float64)
+    if u.size:  # every window (and its +-1 columns, moving by at most 0.5 px a step) inside the padded images
+        reach = half + 3 + iterations
+        hs, ws = src.shape[:2]
+        hd, wd = dst.shape[:2]
+        x0a = np.asarray(x0, dtype=float)
+        ok = (v.min() + pad - half >= 0) and (v.max() + pad + half < hs) and (u.min() + pad - half >= 0)
+        ok = ok and (u.max() + pad + half < ws) and (v_dst.min() + pad - half >= 0) and (v_dst.max() + pad + half < hd)
+        ok = ok and bool(np.all(np.isfinite(x0a))) and (x0a.min() + pad - reach >= 0) and (x0a.max() + pad + reach < wd)
+        if not ok:
+            raise ValueError("stereo refinement: a window reaches beyond the padded image")
+    from loopmodel.frontend._stereo_kernels import row_gradient  # numba: imported when first needed
+
+    x, sigma = row_gradient(
+        np.ascontiguousarray(src), np.ascontiguousarray(dst), pad, np.ascontiguousarray(u, dtype=np.int64),
+        np.ascontiguousarray(v, dtype=np.int64), np.array(x0, dtype=float), np.ascontiguousarray(v_dst, dtype=np.int64),
+        half, iterations, float(np.float32(MIN_DISPARITY_SIGMA_PX)),
+    )
+    return x, sigma
 
 
 def _zncc_scan(
@@ -156,55 +146,28 @@ def _zncc_scan(
     """ZNCC of the (2*half+1)^2 template of ``src`` at integer (u, v) with windows of ``dst``.
 
     The windows of ``dst`` are centred at columns ``start + k`` (k < length) and rows ``v + r``.
-    Images are padded by ``pad`` pixels. Returns (N, len(row_offsets), length).
+    Images are padded by ``pad`` pixels. Returns (N, len(row_offsets), length). Compiled
+    (:mod:`loopmodel.frontend._stereo_kernels`); every window must lie inside the padded images.
     """
-    p = 2 * half + 1
-    n = u.shape[0]
-    stride = dst.shape[1]
-    ar = np.arange(-half, half + 1)
-    patch_off = (ar[:, None] * stride + ar[None, :]).ravel()  # (p*p,)
-    base_t = (v + pad) * stride + (u + pad)
-    tpl = np.take(src, base_t[:, None] + patch_off).astype(np.float32)  # (N, p*p)
-    tz = tpl - tpl.mean(axis=1, keepdims=True)
-    tn = np.sqrt(np.einsum("nk,nk->n", tz, tz)) + 1e-6
-    tz = tz.reshape(n, p, p)
-    if length <= 16:
-        # short scans (fine stage): explicit windows, one batched product per row offset
-        r0, r1 = min(row_offsets), max(row_offsets)
-        rows = np.arange(r0 - half, r1 + half + 1)
-        strip_off = rows[:, None] * stride + np.arange(-half, length + half)[None, :]
-        base = (v + pad) * stride + (start + pad)
-        strip = np.take(dst, base[:, None, None] + strip_off).astype(np.float32)
-        tzf = tz.reshape(n, p * p, 1)
-        out = np.empty((n, len(row_offsets), length), np.float32)
-        for ri, r in enumerate(row_offsets):
-            sub = strip[:, r - r0 : r - r0 + p, :]
-            win = np.lib.stride_tricks.sliding_window_view(sub, p, axis=2)  # (N, p, L, p)
-            W = np.ascontiguousarray(win.transpose(0, 2, 1, 3)).reshape(n, length, p * p)
-            cross = np.matmul(W, tzf)[:, :, 0]
-            s1 = W.sum(axis=2)
-            s2 = np.einsum("nlk,nlk->nl", W, W)
-            var = np.maximum(s2 - s1 * s1 / (p * p), 1e-3)
-            out[:, ri] = cross / (tn[:, None] * np.sqrt(var))
-        return out
-    strip_off = ar[:, None] * stride + np.arange(-half, length + half)[None, :]  # (p, L+p-1)
-    out = np.empty((n, len(row_offsets), length), np.float32)
-    for ri, r in enumerate(row_offsets):
-        base = (v + r + pad) * stride + (start + pad)
-        strip = np.take(dst, base[:, None, None] + strip_off).astype(np.float32)  # (N, p, L+p-1)
-        cross = np.zeros((n, length), np.float32)
-        for j in range(p):  # accumulate over template columns: tz[:, :, j] against shifted strips
-            cross += np.einsum("ni,nik->nk", tz[:, :, j], strip[:, :, j : j + length])
-        c1 = np.cumsum(strip.sum(axis=1), axis=1)
-        c2 = np.cumsum((strip * strip).sum(axis=1), axis=1)
-        z = np.zeros((n, 1), np.float32)
-        c1 = np.concatenate([z, c1], axis=1)
-        c2 = np.concatenate([z, c2], axis=1)
-        s1 = c1[:, p:] - c1[:, :-p]
-        s2 = c2[:, p:] - c2[:, :-p]
-        var = np.maximum(s2 - s1 * s1 / (p * p), 1e-3)
-        out[:, ri] = cross / (tn[:, None] * np.sqrt(var))
-    return out
+    rows = np.asarray(row_offsets, dtype=np.int64)
+    if u.size:
+        hs, ws = src.shape[:2]
+        hd, wd = dst.shape[:2]
+        inside = (
+            (v.min() + pad - half >= 0) and (v.max() + pad + half < hs) and (u.min() + pad - half >= 0)
+            and (u.max() + pad + half < ws) and (v.min() + rows.min() + pad - half >= 0)
+            and (v.max() + rows.max() + pad + half < hd) and (start.min() + pad - half >= 0)
+            and (start.max() + length - 1 + pad + half < wd)
+        )
+        if not inside:
+            raise ValueError("stereo scan: a window reaches beyond the padded image")
+    from loopmodel.frontend._stereo_kernels import zncc_scan  # numba: imported when first needed
+
+    def c64(a: NDArray[np.int64]) -> NDArray[np.int64]:
+        return np.ascontiguousarray(a, dtype=np.int64)
+
+    return zncc_scan(np.ascontiguousarray(src), np.ascontiguousarray(dst), pad, c64(u), c64(v), c64(start), length,
+                     half, rows)
 
 
 def _search_row(

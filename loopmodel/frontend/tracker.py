@@ -247,6 +247,12 @@ class FrontEnd:
         self._pose_sigma_px: list[float] = []
         # an old keyframe's features tracked again after a closure (resume_features)
         self._resumed: ResumedSet | None = None
+        # the compiled stereo scan and affine re-measurement loaded (or compiled) now, not in a frame (issue 33)
+        from loopmodel.frontend._stereo_kernels import warm_up as warm_up_stereo
+        from loopmodel.frontend.affine_klt import warm_up
+
+        warm_up_stereo()
+        warm_up()
 
     # ------------------------------------------------------------------ public
     @property

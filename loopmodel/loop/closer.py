@@ -141,14 +141,16 @@ class LoopCloser:
 
     # ---------------------------------------------------------------- loops
     def process_keyframe(
-        self, kf: Keyframe, neighbours: set[int] | None = None, query: bool = True
+        self, kf: Keyframe, neighbours: set[int] | None = None, query: bool = True,
+        features: FeatureSet | None = None,
     ) -> LoopClosure | None:
         """Store a new keyframe and check it for a verified revisit.
 
-        ``neighbours``: temporal neighbours, never verified; ``query`` False: store only.
+        ``neighbours``: temporal neighbours, never verified; ``query`` False: store only;
+        ``features``: its :meth:`keyframe_features` when already computed.
         """
         t0 = time.perf_counter()
-        fs = self.keyframe_features(kf)
+        fs = self.keyframe_features(kf) if features is None else features
         self.remember(kf)
         ev = self.detector.process(int(kf.id), fs, query=query, neighbours=neighbours)
         t1 = time.perf_counter()

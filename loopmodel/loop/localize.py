@@ -311,6 +311,10 @@ class MapLocalizationStage:
         """None: nothing is added to the map."""
         return []
 
+    def detection(self, kf_id: int) -> Future[Any] | None:
+        """None: a localizing run detects no loops."""
+        return None
+
     def metrics(self) -> dict[str, Any]:
         """Relocalizations in the map for ``metrics.json``."""
         first = [e for e in self.events if e["first_of_segment"]]

@@ -38,7 +38,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import multiprocessing as mp
-import threading
 import time
 from collections import deque
 from collections.abc import Mapping
@@ -55,6 +54,7 @@ from loopmodel.errors import LoopmodelError
 from loopmodel.geometry.se3 import invert_pose, so3_log
 from loopmodel.loop.closer import LoopCloser, LoopClosure
 from loopmodel.loop.closure import LoopEvent
+from loopmodel.loop.features import FeatureSet
 from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hybrid_ba
 from loopmodel.loop.vocabulary import Vocabulary
 from loopmodel.stages import LoopConstraint, LoopOutcome, LoopStage, MapState, NullLoopStage, ResumeFeatures
@@ -79,6 +79,8 @@ class Detection:
     rejected: list[LoopEvent]
     neighbours_skipped: int
     detect_s: float
+    #: the keyframe's loop features (the session map's archiver takes them instead of detecting again)
+    features: FeatureSet | None = None
 
 
 def detect_keyframe(closer: LoopCloser, kf: Keyframe, neighbours: set[int], query: bool) -> Detection:
@@ -86,8 +88,10 @@ def detect_keyframe(closer: LoopCloser, kf: Keyframe, neighbours: set[int], quer
     det = closer.detector
     n_rej, n_skip = len(det.rejected), det.neighbours_skipped
     t0 = time.perf_counter()
-    closure = closer.process_keyframe(kf, neighbours=neighbours, query=query)
-    return Detection(closure, det.rejected[n_rej:], det.neighbours_skipped - n_skip, time.perf_counter() - t0)
+    features = closer.keyframe_features(kf)
+    closure = closer.process_keyframe(kf, neighbours=neighbours, query=query, features=features)
+    return Detection(closure, det.rejected[n_rej:], det.neighbours_skipped - n_skip, time.perf_counter() - t0,
+                     features)
 
 
 #: The worker process's own loop closer (its keyframe database), made by :func:`_worker_start`.
@@ -97,16 +101,26 @@ _WORKER_CLOSER: LoopCloser | None = None
 def _worker_start(calibration: StereoCalibration, config: LoopConfig, vocabulary: Vocabulary | None) -> None:
     global _WORKER_CLOSER
     _WORKER_CLOSER = LoopCloser(calibration, config, vocabulary)
+    _warm_up_kernels()
 
 
 def _worker_detect(kf: Keyframe, neighbours: set[int], query: bool) -> Detection:
     assert _WORKER_CLOSER is not None
-    return detect_keyframe(_WORKER_CLOSER, kf, neighbours, query)
+    return dataclasses.replace(detect_keyframe(_WORKER_CLOSER, kf, neighbours, query), features=None)
 
 
 def _worker_relocalize(image: NDArray[np.uint8], exclude_after: int) -> tuple[int | None, Any]:
     assert _WORKER_CLOSER is not None
     return _WORKER_CLOSER.relocalize(image, exclude_after=exclude_after)
+
+
+def _warm_up_kernels() -> None:
+    """Load the compiled kernels of detection and verification (vocabulary descent, P3P bank)."""
+    from loopmodel.loop._vocabulary_kernels import warm_up as warm_up_vocabulary
+    from loopmodel.loop.pnp import warm_up as warm_up_pnp
+
+    warm_up_vocabulary()
+    warm_up_pnp()
 
 
 def _warm_up_gate() -> None:
@@ -123,6 +137,12 @@ def _warm_up_gate() -> None:
         keyframe_loop_inliers(poses, [(0, 1), (1, 2)], [loop], 1.0, 0.02, 1.0, 0.03, 0.99)
     except Exception:  # noqa: BLE001 - a warm-up only; the real gate reports its own errors
         logger.debug("loop gate warm-up failed", exc_info=True)
+
+
+def _done(d: Detection) -> Future[Detection]:
+    f: Future[Detection] = Future()
+    f.set_result(d)
+    return f
 
 
 def _motion(a: F64, b: F64) -> tuple[float, float]:
@@ -184,12 +204,15 @@ class LoopClosingStage:
         #: keyframes' images and landmarks (KLT stage, corrections)
         self._detect_pool: ThreadPoolExecutor | ProcessPoolExecutor | None = None
         self._inflight: deque[tuple[int, Future[Detection]]] = deque()
+        self._detections: list[tuple[int, Future[Detection]]] = []  # the last keyframe's (detection())
         self.neighbours_skipped = 0
         self.detect_s: list[float] = []
         if self.config.detection_worker == "process":
             self._workers().submit(int, 0)  # start the worker now, while tracking starts
-        if self.config.robust != "none":  # the gate runs on the tracking thread: warm it up beside it
-            threading.Thread(target=_warm_up_gate, name="loop-gate-warm-up", daemon=True).start()
+        else:  # issue 33: the detection's compiled kernels loaded before the first frame, not in one
+            _warm_up_kernels()
+        if self.config.robust != "none":  # the gate runs on the tracking thread: warmed before the first frame
+            _warm_up_gate()  # (issue 33: 0.25 s of CPU; beside the tracker it held the interpreter lock in frame 0)
         self.keyframes_not_queried = 0
         self.late_closures = 0
         self.detections_unapplied = 0
@@ -227,7 +250,9 @@ class LoopClosingStage:
             self._relocalize_segment(out, state)
         mode = self.config.detection_worker
         if mode == "none":
-            closure = self._note(detect_keyframe(self.closer, out.keyframe, neighbours, True))
+            d = detect_keyframe(self.closer, out.keyframe, neighbours, True)
+            self._detections = [(int(keyframe.id), _done(d))]
+            closure = self._note(d)
             if closure is not None:
                 self._close(closure, out, state)
         else:
@@ -239,8 +264,16 @@ class LoopClosingStage:
             else:
                 fut = self._workers().submit(detect_keyframe, self.closer, out.keyframe, neighbours, query)
             self._inflight.append((int(keyframe.id), fut))
+            self._detections = [(int(keyframe.id), fut)]
         self.keyframes[int(keyframe.id)] = out.keyframe
         return out
+
+    def detection(self, kf_id: int) -> Future[Detection] | None:
+        """The detection of the last keyframe given to :meth:`on_keyframe` when it is ``kf_id``.
+
+        Its ``features`` are the keyframe's loop features (None from a detection process).
+        """
+        return next((f for k, f in self._detections if k == kf_id), None)
 
     def _workers(self) -> ThreadPoolExecutor | ProcessPoolExecutor:
         if self._detect_pool is None:

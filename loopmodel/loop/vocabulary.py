@@ -176,6 +176,13 @@ class Vocabulary:
                 "vocabulary",
                 f"descriptor length {desc.shape[1]} != vocabulary's {self.centers.shape[1]}",
             )
+        if self.binary and desc.shape[1] % 8 == 0:  # compiled, the same words (issue 33)
+            from loopmodel.loop._vocabulary_kernels import descend
+
+            words = descend(np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64),
+                            np.ascontiguousarray(self.centers, dtype=np.uint8).view(np.uint64),
+                            np.ascontiguousarray(self.children), np.ascontiguousarray(self.word))
+            return np.asarray(words, dtype=np.int64)
         if not self.binary:
             desc = desc.astype(np.float32)
         if desc.shape[0] > 4096:
