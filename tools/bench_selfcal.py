@@ -7,8 +7,11 @@ run three times by :func:`loopmodel.pipeline.process`: with the recorded calibra
 (``calibration.refine: none``), refined (``final``), and with the true calibration and light plane
 (the simulator's own rig, the floor). Per seed:
 
-* ``drift_pct_recorded`` / ``_refined`` / ``_true``: end-point drift of the final trajectory, % of
-  the path (``metrics.json`` ``drift_pct``); ``ate_mm_*`` the ATE after SE(3) alignment;
+* ``drift_pct_recorded`` / ``_refined`` / ``_true``: drift over the run, KITTI's segment error of
+  the final trajectory with segments of 10-80 % of the path (:func:`segment_drift_pct`);
+  ``end_drift_pct_*`` the end-point drift (``metrics.json`` ``drift_pct``: the orbit closes, so it
+  sees a rotation bias but hardly a scale error, and a closed loop pins it);
+  ``ate_mm_*`` the ATE after SE(3) alignment; ``loops_*`` the loops closed (detection inline);
 * ``rot_gain_refined`` (and ``_recorded``): the estimate's summed rotation over 6-frame steps over
   the truth's (1: no rotation bias);
 * ``param_err_before_sigma`` / ``param_err_after_sigma``: the largest error against the true rig
