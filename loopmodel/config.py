@@ -262,8 +262,9 @@ class FrontendConfig(_Section):
     # 3.54 -> 1.24 deg (offset 0.40 px estimated: its recorded calibration is off); a realistic
     # 150-frame scan (onepass's scan150): SE(3) ATE 11.7 -> 6.7 mm, drift 0.88 -> 0.57 %, rotation
     # error 3.37 -> 2.15 deg
-    stereo_subpixel: Literal["parabola", "gradient"] = Field(
-        "gradient", description="sub-pixel disparity: parabola through 3 ZNCC scores, or 1-D Lucas-Kanade"
+    stereo_subpixel: Literal["parabola", "gradient", "gradient_2d"] = Field(
+        "gradient",
+        description="sub-pixel disparity: parabola through 3 ZNCC scores, 1-D Lucas-Kanade, or 2-D (the row too)",
     )
     stereo_uniqueness: float = Field(
         0.05, ge=0, le=2, description="ZNCC margin of the best over the second-best peak along the row; 0: off"

@@ -111,6 +111,11 @@ def refine_row_gradient(
     its standard deviation (pixels): the fit's residual RMS over the root of the summed squared
     row gradient, at least :data:`MIN_DISPARITY_SIGMA_PX`. Compiled, in float32
     (:mod:`loopmodel.frontend._stereo_kernels`).
+
+    A match off its row by a fraction of a pixel (a rectification from an imperfect calibration)
+    is measured here at the nearest whole row: its column takes a bias of the row offset times the
+    patch's shear (the gradients' product over the squared column gradient);
+    :func:`refine_2d_gradient` refines the row too.
     """
     if u.size:  # every window (and its +-1 columns, moving by at most 0.5 px a step) inside the padded images
         reach = half + 3 + iterations
@@ -130,6 +135,72 @@ def refine_row_gradient(
         half, iterations, float(np.float32(MIN_DISPARITY_SIGMA_PX)),
     )
     return x, sigma
+
+
+def refine_2d_gradient(
+    src: NDArray[np.uint8],
+    dst: NDArray[np.uint8],
+    pad: int,
+    u: NDArray[np.int64],
+    v: NDArray[np.int64],
+    x0: F64,
+    y0: F64,
+    half: int,
+    iterations: int = 4,
+) -> tuple[F64, F64, F64]:
+    """Sub-pixel column and row of the ``src`` template at integer (u, v) in ``dst``, from ``(x0, y0)``.
+
+    :func:`refine_row_gradient` in both directions: Gauss-Newton on the column and row shift with a
+    gain and an offset, the window interpolated bilinearly. Returns the column, the row (pixels) and
+    the column's standard deviation (pixels, at least :data:`MIN_DISPARITY_SIGMA_PX`).
+    """
+    p = 2 * half + 1
+    n = u.shape[0]
+    stride = dst.shape[1]
+    ar = np.arange(-half, half + 1)
+    tpl = np.take(src, ((v + pad) * stride + (u + pad))[:, None] + (ar[:, None] * stride + ar[None, :]).ravel())
+    t = tpl.astype(np.float32).reshape(n, p, p)
+    t -= t.mean(axis=(1, 2), keepdims=True)
+    tt = np.einsum("nij,nij->n", t, t) + np.float32(1e-9)
+    x = np.asarray(x0, dtype=float).copy()
+    y = np.asarray(y0, dtype=float).copy()
+    off = np.arange(-half - 1, half + 3)  # p + 3 rows / columns around floor(y) / floor(x)
+    sigma = np.full(n, np.inf)
+
+    def lerp(A: NDArray[np.float32], a: NDArray[np.float32], k: int, axis: int) -> NDArray[np.float32]:
+        lo = np.take(A, np.arange(k, k + p), axis=axis)
+        hi = np.take(A, np.arange(k + 1, k + p + 1), axis=axis)
+        return (1 - a) * lo + a * hi
+
+    for _ in range(iterations):
+        xi, yi = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+        ax = (x - xi).astype(np.float32)[:, None, None]
+        ay = (y - yi).astype(np.float32)[:, None, None]
+        base = (yi + pad) * stride + (xi + pad)
+        S = np.take(dst, base[:, None, None] + off[None, :, None] * stride + off[None, None, :]).astype(np.float32)
+        rows = [lerp(S, ay, k, 1) for k in (0, 1, 2)]  # at y - 1, y, y + 1 (p rows, p + 3 columns)
+        W = lerp(rows[1], ax, 1, 2)
+        gx = 0.5 * (lerp(rows[1], ax, 2, 2) - lerp(rows[1], ax, 0, 2))
+        gy = 0.5 * (lerp(rows[2], ax, 1, 2) - lerp(rows[0], ax, 1, 2))
+        w = W - W.mean(axis=(1, 2), keepdims=True)
+        gx -= gx.mean(axis=(1, 2), keepdims=True)
+        gy -= gy.mean(axis=(1, 2), keepdims=True)
+        gain = np.einsum("nij,nij->n", w, t) / tt
+        r = w - gain[:, None, None] * t
+        hxx = np.einsum("nij,nij->n", gx, gx) + np.float32(1e-9)
+        hyy = np.einsum("nij,nij->n", gy, gy) + np.float32(1e-9)
+        hxy = np.einsum("nij,nij->n", gx, gy)
+        bx, by = -np.einsum("nij,nij->n", gx, r), -np.einsum("nij,nij->n", gy, r)
+        det = hxx * hyy - hxy * hxy
+        ok = det > 1e-6 * hxx * hyy
+        det = np.where(ok, det, 1.0)
+        sx = np.where(ok, (hyy * bx - hxy * by) / det, bx / hxx)
+        sy = np.where(ok, (hxx * by - hxy * bx) / det, 0.0)
+        x += np.clip(sx, -0.5, 0.5)
+        y += np.clip(sy, -0.5, 0.5)
+        var_x = np.where(ok, hyy / det, 1.0 / hxx)  # (H^-1)_xx
+        sigma = np.sqrt(np.einsum("nij,nij->n", r, r) / max(p * p - 4, 1) * var_x)
+    return x, y, np.maximum(sigma, MIN_DISPARITY_SIGMA_PX).astype(np.float64)
 
 
 def _zncc_scan(
@@ -285,6 +356,16 @@ def match_stereo(
         moved = np.abs(ur_g - ur[r]) <= 1.0  # a step beyond the bracketing pixels: no clear optimum
         ur[r] = np.where(moved, ur_g, ur[r])
         inside_r[r] &= moved
+    elif cfg.stereo_subpixel == "gradient_2d":  # the row refined too: the column measured at its own row
+        r = np.flatnonzero(ok)
+        y0 = (v + dv)[r].astype(float)
+        ur_g, vr_g, sigma[r] = refine_2d_gradient(lf, rf, pad_f, u[r], v[r], ur[r], y0, half, iterations=3)
+        moved = (np.abs(ur_g - ur[r]) <= 1.0) & (np.abs(vr_g - y0) <= 1.0)
+        ur[r] = np.where(moved, ur_g, ur[r])
+        dv = dv.astype(float).copy()
+        dv[r] = np.where(moved, vr_g - v[r], dv[r])
+        inside_r[r] &= moved
+        ok &= np.abs(dv) <= cfg.max_row_error_px
     disp = u - ur
     ok &= (disp >= d_min) & (disp <= cfg.max_disparity_px)
     if cfg.stereo_uniqueness > 0:  # best and second-best peaks along the row too close: ambiguous
