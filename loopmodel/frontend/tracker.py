@@ -1185,6 +1185,11 @@ class FrontEnd:
         world_from_kf = world_from_rect @ self.rect_from_cam
         self._world_from_kf[kf_id] = world_from_kf
         linked = closed is not None and kf_from_cur is not None
+        info = closed.ba_info if closed is not None else {}
+        if self.config.disparity_offset == "estimate":  # the offset in these matches, and the latest estimate
+            # (the back end's final refinement re-expresses every keyframe with the latest)
+            info = {**info, "disparity_offset_applied_px": new.offset_px,
+                    "disparity_offset_estimate_px": self._offset_px}
         return Keyframe(
             id=kf_id,
             timestamp_ns=frame.timestamp_ns,
@@ -1204,7 +1209,7 @@ class FrontEnd:
             ),
             rect_from_cam=self.rect_from_cam.copy(),
             segment=self._segment,
-            ba_info=closed.ba_info if closed is not None else {},
+            ba_info=info,
         )
 
     def _activate(self, kf: Keyframe, new: StereoSet, world_from_rect: F64, cur_pyr: Pyramid | None) -> None:
