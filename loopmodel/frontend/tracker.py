@@ -657,7 +657,16 @@ class FrontEnd:
         a.residual_mean_px[pi] = 0.5 * a.residual_mean_px[pi] + 0.5 * r
         a.residual_frames[pi] += 1
         scale = max(robust_scale(np.linalg.norm(r, axis=1), 2, 0.0), cfg.pose_min_scale_px)
-        drift_px = np.linalg.norm(a.residual_mean_px[pi], axis=1)
+        mean = a.residual_mean_px[pi]
+        if a.sigma_z_m.shape[0] == a.points.shape[0]:
+            # a static point whose stereo depth is off drifts too, along its epipolar line: take out
+            # what a depth error within moving_gate depth sigmas explains (g: px per metre of depth)
+            ray = a.points[pi] / a.points[pi, 2:3]
+            g = np.einsum("nij,nj->ni", self.left_camera.project_jacobian(p), ray @ cur_from_kf[:3, :3].T)
+            dz = np.einsum("ni,ni->n", mean, g) / np.maximum(np.einsum("ni,ni->n", g, g), 1e-12)
+            lim = cfg.moving_gate * a.sigma_z_m[pi]
+            mean = mean - g * np.clip(dz, -lim, lim)[:, None]
+        drift_px = np.linalg.norm(mean, axis=1)
         moving = (a.residual_frames[pi] >= 2) & (drift_px > cfg.moving_gate * scale)
         self._moving_uv = uv[keep[moving]]
         return keep[~moving]
