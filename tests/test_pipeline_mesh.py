@@ -94,7 +94,9 @@ def test_run_writes_mesh_and_mesh_errors(
     # final mesh is 0.26 mm and the live one (which never sees the final refinement) 0.43 mm (1.67x).
     # Third wave: the final mesh 0.21 mm, the live one 0.45 mm (2.19x; the back end's corrections
     # reach the live mesh from its worker process a few frames later, issue 33)
-    assert np.median(d_live) < 1.0 and np.median(d_live) < 2.5 * np.median(d_final)
+    # Third session: the final mesh 0.183 mm, the live one unchanged at 0.465 mm (2.54x): the bound is
+    # on the live mesh itself (measured 0.43-0.47 mm over the wave), the ratio only against a broken final
+    assert np.median(d_live) < 0.6 and np.median(d_live) < 3.0 * np.median(d_final)
     # p90: live 1.41, final 1.23 mm at stop 14; third wave live 1.63, final 1.03 mm (1.58x); with the
     # final mesh's 2-voxel Poisson cells (mapping.poisson_cell_voxels) live 1.63, final 0.75 mm (2.17x):
     # the smoother final surface gained, the live mesh (1-voxel cells) did not change

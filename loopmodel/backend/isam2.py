@@ -135,6 +135,10 @@ class Isam2Backend:
         # the front end's robust pose-residual scale per keyframe interval (px)
         self._frontend_sigma_px: list[float] = []
         self.dropped_landmarks = 0
+        # issue 36: the disparity offset the front end took out of each keyframe's right columns
+        # (px, kf id -> offset) and its latest estimate (frontend.disparity_offset: estimate)
+        self._kf_offset_px: dict[int, float] = {}
+        self._offset_estimate_px: float | None = None
 
     # ------------------------------------------------------------------ set-up
     @staticmethod
@@ -444,6 +448,11 @@ class Isam2Backend:
         sig = keyframe.ba_info.get("pose_residual_sigma_px")
         if sig is not None and np.isfinite(sig) and sig > 0:
             self._frontend_sigma_px.append(float(sig))
+        applied = keyframe.ba_info.get("disparity_offset_applied_px")
+        estimate = keyframe.ba_info.get("disparity_offset_estimate_px")
+        if applied is not None and estimate is not None and np.isfinite(applied) and np.isfinite(estimate):
+            self._kf_offset_px[kf_id] = float(applied)
+            self._offset_estimate_px = float(estimate)
         self._kf_seq[kf_id] = len(self._kf_seq)
         self._kf_order.append(kf_id)
         prev = keyframe.prev_keyframe_id
@@ -827,7 +836,10 @@ class Isam2Backend:
         chi-square drops by more than ``min_gain_sd`` standard deviations sqrt(2 n) of a chi-square
         of n residuals; otherwise the incremental solution is returned. :attr:`refine_info` says
         which, with the noise. The incremental solution keeps its own weights; this one is not fed
-        back to iSAM2.
+        back to iSAM2. With the front end's disparity offset estimated (``ba_info``
+        ``disparity_offset_applied_px`` / ``_estimate_px``), every keyframe's right columns are first
+        re-expressed with the latest estimate instead of the one taken out when it was matched, so that
+        all keyframes share one offset (the robust errors before and after are both of those).
         """
         if not self._kf_seq:
             raise EstimationError("batch refinement of an empty back end")
@@ -856,6 +868,8 @@ class Isam2Backend:
             base3 = gtsam.noiseModel.Robust.Create(huber, base3)
             base2 = gtsam.noiseModel.Robust.Create(huber, base2)
         graph = gtsam.NonlinearFactorGraph()
+        shift = self._offset_shifts_px()
+        observed: list[Any] = []  # the observation factors as refined (re-expressed right columns)
         for fid in sorted(self._factors):
             rec = self._factors[fid]
             f: Any = rec.factor
@@ -864,17 +878,27 @@ class Isam2Backend:
                 extra = () if body is None else (gtsam.Pose3(invert_pose(body)),)
                 keys = f.keys()
                 if rec.kind == "stereo":
-                    f = gtsam.GenericStereoFactor3D(f.measured(), base3, keys[0], keys[1], self._cal_stereo, *extra)
+                    m, d = f.measured(), shift.get(rec.obs[0], 0.0)
+                    m = gtsam.StereoPoint2(m.uL(), m.uR() + d, m.v()) if d else m
+                    f = gtsam.GenericStereoFactor3D(m, base3, keys[0], keys[1], self._cal_stereo, *extra)
                 else:
                     f = gtsam.GenericProjectionFactorCal3_S2(
                         np.asarray(f.measured(), float).ravel(), base2, keys[0], keys[1], self._cal_mono, *extra
                     )
+                observed.append(f)
             graph.add(f)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
         values = gtsam.LevenbergMarquardtOptimizer(graph, start, params).optimize()
-        before = self.robust_error_px(r0, sigma, huber_k)
-        after = self.robust_error_px(self.reprojection_residuals_px(values), sigma, huber_k)
+
+        def residuals(vals: gtsam.Values) -> F64:
+            if not shift:
+                return self.reprojection_residuals_px(vals)
+            out = [np.asarray(f.unwhitenedError(vals), dtype=np.float64).ravel() for f in observed]
+            return np.concatenate(out) if out else np.zeros(0)
+
+        before = self.robust_error_px(residuals(start), sigma, huber_k)
+        after = self.robust_error_px(residuals(values), sigma, huber_k)
         # the robust chi-square (sum of 2 rho(r / sigma)) must drop by more than min_gain_sd
         # of its standard deviations sqrt(2 n): a smaller drop is not told apart from noise
         n_res = int(np.isfinite(r0).sum())
@@ -902,6 +926,19 @@ class Isam2Backend:
         pts = np.array([values.atPoint3(L(k)) for k in lkeys], dtype=float).reshape(-1, 3)
         ids = np.array([self._landmarks[k].landmark_id for k in lkeys], dtype=np.int64)
         return BackendEstimate(world_from_kf, ids, pts, set(world_from_kf))
+
+    def _offset_shifts_px(self) -> dict[int, float]:
+        """Per keyframe, what re-expresses its right columns with the latest disparity offset estimate (px).
+
+        The front end took ``applied`` out of a keyframe's right columns (measured - applied); with
+        the latest estimate it is measured - estimate, so the shift is applied - estimate. Empty
+        without an estimate or when nothing moves.
+        """
+        est = self._offset_estimate_px
+        if est is None:
+            return {}
+        out = {k: a - est for k, a in self._kf_offset_px.items() if abs(a - est) > 1e-9}
+        return out
 
     def final_estimate(self, refine: RefineConfig | None) -> BackendEstimate:
         """Extra iSAM2 iterations, then the batch bundle adjustment when ``refine.batch_ba``.

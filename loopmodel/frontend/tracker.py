@@ -663,7 +663,16 @@ class FrontEnd:
         a.residual_mean_px[pi] = 0.5 * a.residual_mean_px[pi] + 0.5 * r
         a.residual_frames[pi] += 1
         scale = max(robust_scale(np.linalg.norm(r, axis=1), 2, 0.0), cfg.pose_min_scale_px)
-        drift_px = np.linalg.norm(a.residual_mean_px[pi], axis=1)
+        mean = a.residual_mean_px[pi]
+        if a.sigma_z_m.shape[0] == a.points.shape[0]:
+            # a static point whose stereo depth is off drifts too, along its epipolar line: take out
+            # what a depth error within moving_gate depth sigmas explains (g: px per metre of depth)
+            ray = a.points[pi] / a.points[pi, 2:3]
+            g = np.einsum("nij,nj->ni", self.left_camera.project_jacobian(p), ray @ cur_from_kf[:3, :3].T)
+            dz = np.einsum("ni,ni->n", mean, g) / np.maximum(np.einsum("ni,ni->n", g, g), 1e-12)
+            lim = cfg.moving_gate * a.sigma_z_m[pi]
+            mean = mean - g * np.clip(dz, -lim, lim)[:, None]
+        drift_px = np.linalg.norm(mean, axis=1)
         moving = (a.residual_frames[pi] >= 2) & (drift_px > cfg.moving_gate * scale)
         self._moving_uv = uv[keep[moving]]
         return keep[~moving]
@@ -1191,6 +1200,11 @@ class FrontEnd:
         world_from_kf = world_from_rect @ self.rect_from_cam
         self._world_from_kf[kf_id] = world_from_kf
         linked = closed is not None and kf_from_cur is not None
+        info = closed.ba_info if closed is not None else {}
+        if self.config.disparity_offset == "estimate":  # the offset in these matches, and the latest estimate
+            # (the back end's final refinement re-expresses every keyframe with the latest)
+            info = {**info, "disparity_offset_applied_px": new.offset_px,
+                    "disparity_offset_estimate_px": self._offset_px}
         return Keyframe(
             id=kf_id,
             timestamp_ns=frame.timestamp_ns,
@@ -1210,7 +1224,7 @@ class FrontEnd:
             ),
             rect_from_cam=self.rect_from_cam.copy(),
             segment=self._segment,
-            ba_info=closed.ba_info if closed is not None else {},
+            ba_info=info,
         )
 
     def _activate(self, kf: Keyframe, new: StereoSet, world_from_rect: F64, cur_pyr: Pyramid | None) -> None:
