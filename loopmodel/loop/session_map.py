@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 from collections.abc import Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -583,6 +584,7 @@ class KeyframeArchiver:
         self._closer: Any = None
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-keyframes")
         self._jobs: dict[int, Future[KeyframeContent]] = {}
+        self._taking = threading.Event()  # set by take(): detections are no longer waited for
 
     def add(self, kf: Keyframe, detection: Future[Any] | None = None) -> None:
         """Prepare this keyframe's content in the worker.
@@ -595,7 +597,11 @@ class KeyframeArchiver:
 
     def _prepare(self, kf: Keyframe, detection: Future[Any] | None = None) -> KeyframeContent:
         features = None
-        if detection is not None:
+        # a detection still running when the map is taken (abandoned at the loop stage's drain) is not
+        # waited for: its features are detected here
+        while detection is not None and not detection.done() and not self._taking.is_set():
+            self._taking.wait(0.05)
+        if detection is not None and detection.done():
             try:
                 features = detection.result().features
             except Exception:  # noqa: BLE001 - a failed detection: the features are detected here
@@ -611,6 +617,7 @@ class KeyframeArchiver:
     def take(self) -> dict[int, KeyframeContent]:
         """Every finished keyframe's content (waits for the pending ones; a failed one is left out, logged)."""
         out: dict[int, KeyframeContent] = {}
+        self._taking.set()
         for k, job in self._jobs.items():
             try:
                 out[k] = job.result()
