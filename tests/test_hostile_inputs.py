@@ -18,6 +18,7 @@ import time
 import zlib
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import cv2
 import numpy as np
@@ -57,6 +58,27 @@ def _kitti(root: Path, left: list[str], right: list[str], poses: int | None = No
     if poses is not None:
         (root / "poses.txt").write_text(POSE_ROW * poses)
     return root
+
+
+def _euroc(folder: Path, stamps: tuple[int, ...] = (1000,), rows: str | None = None, sensor: str | None = None,
+           **change: Any) -> Path:
+    """A two-camera EuRoC folder (``folder/mav0``) of black 64x48 PNGs at ``stamps`` (ns).
+
+    ``rows``: data.csv's rows (default one per stamp); ``sensor``: sensor.yaml's text (default a valid
+    one, its keys updated by ``change``).
+    """
+    euroc = folder / "mav0"
+    for cam in ("cam0", "cam1"):
+        (euroc / cam / "data").mkdir(parents=True)
+        for t in stamps:
+            cv2.imwrite(str(euroc / cam / "data" / f"{t}.png"), np.zeros((48, 64), np.uint8))
+        body = rows if rows is not None else "".join(f"{t},{t}.png\n" for t in stamps)
+        (euroc / cam / "data.csv").write_text("#t,f\n" + body)
+        T = np.eye(4)
+        T[0, 3] = 0.1 if cam == "cam1" else 0.0
+        data = {"T_BS": {"data": T.ravel().tolist()}, "intrinsics": [40.0, 40.0, 32.0, 24.0], "resolution": [64, 48]}
+        (euroc / cam / "sensor.yaml").write_text(sensor if sensor is not None else json.dumps({**data, **change}))
+    return folder
 
 
 def _names(n: int) -> list[str]:
@@ -915,12 +937,7 @@ def test_item10_internal_errors_become_one_line(tmp_path: Path, capsys: pytest.C
     got = decode_image(raw, "sensor_msgs/msg/Image", "/cam0/image_raw")
     assert got.dtype == np.uint8 and np.array_equal(got, (img16 >> 8).astype(np.uint8))
     # an empty sensor.yaml of a EuRoC folder
-    euroc = tmp_path / "e" / "mav0"
-    for cam in ("cam0", "cam1"):
-        (euroc / cam / "data").mkdir(parents=True)
-        cv2.imwrite(str(euroc / cam / "data" / "1000.png"), np.zeros((48, 64), np.uint8))
-        (euroc / cam / "data.csv").write_text("#t,f\n1000,1000.png\n")
-        (euroc / cam / "sensor.yaml").write_text("")
+    _euroc(tmp_path / "e", sensor="")
     with pytest.raises(CalibrationError, match="sensor.yaml is empty"):
         open_sequence(tmp_path / "e")
     # random bytes in a batch plan, a turntable layout, a run's metrics.json
@@ -984,16 +1001,7 @@ def test_item12_impossible_calibrations_are_refused(tmp_path: Path) -> None:
         ("dist", {"distortion_coefficients": [1e30, 0, 0, 0]}, "distortion coefficient"),
         ("model", {"distortion_model": "omni-radtan"}, "distortion_model 'omni-radtan'"),
     ):
-        euroc = tmp_path / name / "mav0"
-        for cam in ("cam0", "cam1"):
-            (euroc / cam / "data").mkdir(parents=True)
-            cv2.imwrite(str(euroc / cam / "data" / "1000.png"), np.zeros((48, 64), np.uint8))
-            (euroc / cam / "data.csv").write_text("#t,f\n1000,1000.png\n")
-            T = np.eye(4)
-            T[0, 3] = 0.1 if cam == "cam1" else 0.0
-            data = {"T_BS": {"data": T.ravel().tolist()}, "intrinsics": [40.0, 40.0, 32.0, 24.0]}
-            data.update({"resolution": [64, 48], "distortion_coefficients": [0.0, 0.0, 0.0, 0.0], **change})
-            (euroc / cam / "sensor.yaml").write_text(json.dumps(data))
+        _euroc(tmp_path / name, **{"distortion_coefficients": [0.0, 0.0, 0.0, 0.0], **change})
         with pytest.raises(CalibrationError, match=msg):
             open_sequence(tmp_path / name)
 
@@ -1005,15 +1013,7 @@ def test_item13_max_image_pixels_applies_to_kitti_folders(tmp_path: Path) -> Non
     with pytest.raises(InputError, match=r"64x48 = 3072 pixels, above the limit of 1000"):
         open_sequence(root, SequenceConfig(max_image_pixels=1000))
     # a EuRoC folder likewise (beyond the listed case)
-    euroc = tmp_path / "e" / "mav0"
-    for cam in ("cam0", "cam1"):
-        (euroc / cam / "data").mkdir(parents=True)
-        cv2.imwrite(str(euroc / cam / "data" / "1000.png"), np.zeros((48, 64), np.uint8))
-        (euroc / cam / "data.csv").write_text("#t,f\n1000,1000.png\n")
-        T = np.eye(4)
-        T[0, 3] = 0.1 if cam == "cam1" else 0.0
-        data = {"T_BS": {"data": T.ravel().tolist()}, "intrinsics": [40.0, 40.0, 32.0, 24.0], "resolution": [64, 48]}
-        (euroc / cam / "sensor.yaml").write_text(json.dumps(data))
+    _euroc(tmp_path / "e")
     with pytest.raises(InputError, match=r"64x48 = 3072 pixels, above the limit of 1000"):
         next(iter(open_sequence(tmp_path / "e", SequenceConfig(max_image_pixels=1000)).frames()))
 
@@ -1034,16 +1034,8 @@ def test_item14_odd_files_are_not_taken_for_absent(tmp_path: Path, caplog: pytes
             with pytest.raises(InputError, match=name):
                 open_sequence(root)
     # EuRoC rows naming a missing image: skipped with a warning; a negative stamp: refused
-    euroc = tmp_path / "e" / "mav0"
-    for cam in ("cam0", "cam1"):
-        (euroc / cam / "data").mkdir(parents=True)
-        for t in (1000, 2000, 3000):
-            cv2.imwrite(str(euroc / cam / "data" / f"{t}.png"), np.zeros((48, 64), np.uint8))
-        (euroc / cam / "data.csv").write_text("#t,f\n1000,1000.png\n2000,2000.png\n2500,gone.png\n3000,3000.png\n")
-        T = np.eye(4)
-        T[0, 3] = 0.1 if cam == "cam1" else 0.0
-        data = {"T_BS": {"data": T.ravel().tolist()}, "intrinsics": [40.0, 40.0, 32.0, 24.0], "resolution": [64, 48]}
-        (euroc / cam / "sensor.yaml").write_text(json.dumps(data))
+    rows = "1000,1000.png\n2000,2000.png\n2500,gone.png\n3000,3000.png\n"
+    euroc = _euroc(tmp_path / "e", (1000, 2000, 3000), rows) / "mav0"
     with caplog.at_level(logging.WARNING, logger="loopmodel"):
         assert len(open_sequence(tmp_path / "e")) == 3
     assert "1 of 4 rows name a missing image, skipped (gone.png)" in caplog.text

@@ -16,6 +16,26 @@ import numba
 import numpy as np
 
 
+def _template_py(src, r0, c0, out):  # type: ignore[no-untyped-def]
+    """``out`` (p, p) = src's window at (r0, c0) less its mean, in float32; returns its sum of squares."""
+    p = out.shape[0]
+    s = np.float32(0.0)
+    for a in range(p):
+        for b in range(p):
+            out[a, b] = np.float32(src[r0 + a, c0 + b])
+            s += out[a, b]
+    mean = np.float32(s / np.float32(p * p))
+    ss = np.float32(0.0)
+    for a in range(p):
+        for b in range(p):
+            out[a, b] = out[a, b] - mean
+            ss += out[a, b] * out[a, b]
+    return ss
+
+
+_template = numba.njit(cache=True, nogil=True, inline="always")(_template_py)
+
+
 def _zncc_scan_py(src, dst, pad, u, v, start, length, half, row_offsets):  # type: ignore[no-untyped-def]
     n = u.shape[0]
     p = 2 * half + 1
@@ -27,19 +47,7 @@ def _zncc_scan_py(src, dst, pad, u, v, start, length, half, row_offsets):  # typ
     s1 = np.empty(length, np.float32)
     s2 = np.empty(length, np.float32)
     for i in range(n):
-        r0 = v[i] + pad - half
-        c0 = u[i] + pad - half
-        s = np.float32(0.0)
-        for a in range(p):
-            for b in range(p):
-                tz[a, b] = np.float32(src[r0 + a, c0 + b])
-                s += tz[a, b]
-        mean = np.float32(s / pp)
-        ss = np.float32(0.0)
-        for a in range(p):
-            for b in range(p):
-                tz[a, b] = tz[a, b] - mean
-                ss += tz[a, b] * tz[a, b]
+        ss = _template(src, v[i] + pad - half, u[i] + pad - half, tz)
         tn = np.float32(np.float32(math.sqrt(ss)) + np.float32(1e-6))
         for ri in range(nr):
             w0 = v[i] + row_offsets[ri] + pad - half
@@ -73,20 +81,7 @@ def _row_gradient_py(src, dst, pad, u, v, x0, v_dst, half, iterations, min_sigma
     half32 = np.float32(0.5)
     one = np.float32(1.0)
     for i in range(n):
-        r0 = v[i] + pad - half
-        c0 = u[i] + pad - half
-        m = np.float32(0.0)
-        for a in range(p):
-            for b in range(p):
-                t[a, b] = np.float32(src[r0 + a, c0 + b])
-                m += t[a, b]
-        m = np.float32(m / pp)
-        tt = np.float32(0.0)
-        for a in range(p):
-            for b in range(p):
-                t[a, b] = t[a, b] - m
-                tt += t[a, b] * t[a, b]
-        tt = np.float32(tt + np.float32(1e-9))
+        tt = np.float32(_template(src, v[i] + pad - half, u[i] + pad - half, t) + np.float32(1e-9))
         rd = v_dst[i] + pad - half
         for _ in range(iterations):
             xf = math.floor(x[i])

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.frontend.stereo import triangulate_rectified
 from loopmodel.geometry.se3 import Y_DOWN_UP, invert_pose, look_at, se3_exp
 from loopmodel.loop.global_ba import LoopObservations
 from loopmodel.types import Keyframe
@@ -30,6 +31,24 @@ class SynthLoopProblem:
     cx_px: float
     cy_px: float
     baseline_m: float
+
+
+def _dead_reckoning(
+    true_T: list[F64], rng: np.random.Generator, drift_trans_m: float, drift_rot_rad: float
+) -> list[F64]:
+    """world_from_kf of every keyframe: the true relative motions perturbed (m, rad per step), accumulated."""
+    est_T = [true_T[0].copy()]
+    for i in range(1, len(true_T)):
+        rel = invert_pose(true_T[i - 1]) @ true_T[i]
+        noise = np.concatenate([rng.normal(0, drift_trans_m, 3), rng.normal(0, drift_rot_rad, 3)])
+        est_T.append(est_T[-1] @ rel @ se3_exp(noise))
+    return est_T
+
+
+def _triangulated(uL: F64, uR: F64, v: F64, fx_px: float, cx: float, cy: float, baseline_m: float) -> F64:
+    """(N, 3) points (m) in the left camera frame from measured stereo pixels (disparity at least 1e-3 px)."""
+    K = np.array([[fx_px, 0.0, cx], [0.0, fx_px, cy], [0.0, 0.0, 1.0]])
+    return triangulate_rectified(np.column_stack([uL, v]), np.maximum(uL - uR, 1e-3), K, baseline_m)
 
 
 def orbit_problem(
@@ -57,11 +76,7 @@ def orbit_problem(
         eye = np.array([radius_m * np.sin(a), 0.05 * np.sin(3 * a), -radius_m * np.cos(a)])
         true_T.append(look_at(eye, centre, Y_DOWN_UP))
     # dead reckoning: the true relative motions perturbed, accumulated
-    est_T = [true_T[0].copy()]
-    for i in range(1, n_keyframes):
-        rel = invert_pose(true_T[i - 1]) @ true_T[i]
-        noise = np.concatenate([rng.normal(0, drift_trans_m, 3), rng.normal(0, drift_rot_rad, 3)])
-        est_T.append(est_T[-1] @ rel @ se3_exp(noise))
+    est_T = _dead_reckoning(true_T, rng, drift_trans_m, drift_rot_rad)
     kfs: list[Keyframe] = []
     next_lid = 0
     sets: list[tuple[NDArray[np.int64], F64]] = []
@@ -82,9 +97,7 @@ def orbit_problem(
         uL = fx_px * pc[:, 0] / pc[:, 2] + cx + rng.normal(0, noise_px, len(P))
         uR = fx_px * (pc[:, 0] - baseline_m) / pc[:, 2] + cx + rng.normal(0, noise_px, len(P))
         v = fx_px * pc[:, 1] / pc[:, 2] + cy + rng.normal(0, noise_px, len(P))
-        disp = np.maximum(uL - uR, 1e-3)
-        z = fx_px * baseline_m / disp
-        p_kf = np.column_stack([(uL - cx) * z / fx_px, (v - cy) * z / fx_px, z])
+        p_kf = _triangulated(uL, uR, v, fx_px, cx, cy, baseline_m)
         ids = np.arange(next_lid, next_lid + len(P), dtype=np.int64)
         next_lid += len(P)
         sets.append((ids, P))
@@ -157,11 +170,7 @@ def rounds_problem(
         eye = np.array([d * np.cos(a), d * np.sin(a), heights[r % len(heights)]])
         true_T.append(look_at(eye, np.array([0.0, 0.0, 0.22])))
         azimuth.append(a)
-    est_T = [true_T[0].copy()]
-    for i in range(1, n_keyframes):
-        rel = invert_pose(true_T[i - 1]) @ true_T[i]
-        noise = np.concatenate([rng.normal(0, drift_trans_m, 3), rng.normal(0, drift_rot_rad, 3)])
-        est_T.append(est_T[-1] @ rel @ se3_exp(noise))
+    est_T = _dead_reckoning(true_T, rng, drift_trans_m, drift_rot_rad)
 
     def project(T: F64, P: F64) -> tuple[F64, NDArray[np.bool_]]:
         cfw = invert_pose(T)
@@ -190,8 +199,7 @@ def rounds_problem(
         uL = uvz[:, 0] + rng.normal(0, noise_px, len(P))
         uR = uvz[:, 0] - fx_px * baseline_m / z + rng.normal(0, noise_px, len(P))
         v = uvz[:, 1] + rng.normal(0, noise_px, len(P))
-        zm = fx_px * baseline_m / np.maximum(uL - uR, 1e-3)
-        p_kf = np.column_stack([(uL - cx) * zm / fx_px, (v - cy) * zm / fx_px, zm])
+        p_kf = _triangulated(uL, uR, v, fx_px, cx, cy, baseline_m)
         ids = np.arange(next_lid, next_lid + len(P), dtype=np.int64)
         next_lid += len(P)
         mono = []
