@@ -250,9 +250,11 @@ class FrontEnd:
         # the compiled stereo scan and affine re-measurement loaded (or compiled) now, not in a frame (issue 33)
         from loopmodel.frontend._stereo_kernels import warm_up as warm_up_stereo
         from loopmodel.frontend.affine_klt import warm_up
+        from loopmodel.pose._point_kernels import warm_up as warm_up_pose
 
         warm_up_stereo()
         warm_up()
+        warm_up_pose()
 
     # ------------------------------------------------------------------ public
     @property

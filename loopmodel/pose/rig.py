@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose
+from loopmodel.pose._point_kernels import point_jacobian, point_residuals
 
 F64 = NDArray[np.float64]
 
@@ -164,45 +165,40 @@ class PointTerm:
         q_rig = P @ rig_from_ref[:3, :3].T + rho * rig_from_ref[:3, 3]
         return q_rig, q_rig @ T[:3, :3].T + rho * T[:3, 3]
 
+    def _kernel_args(self, rig_from_ref: F64, j: int, idx: NDArray[np.int64] | None) -> tuple:  # type: ignore[type-arg]
+        """Arguments of the compiled kernels for camera j's points (all when ``idx`` is None)."""
+        P = self.p_in_ref if idx is None else self.p_in_ref[idx]
+        uv = self.uv_px if idx is None else self.uv_px[idx]
+        if self.inverse_depth_per_m is None:
+            rho = np.ones(P.shape[0])
+        else:
+            rho = self.inverse_depth_per_m if idx is None else self.inverse_depth_per_m[idx]
+        T = np.ascontiguousarray(rig_from_ref, dtype=np.float64)
+        C = self.rig.cam_from_rig[j]
+        cam = self.rig.cameras[j]
+        return (P, np.ascontiguousarray(rho, dtype=np.float64), uv, T[:3, :3], T[:3, 3], C[:3, :3], C[:3, 3],
+                float(cam.px), float(cam.py), float(cam.u0), float(cam.v0), float(cam.xi))
+
     def residuals(self, rig_from_ref: F64) -> F64:
-        n = len(self)
-        out = np.empty((n, 2))
+        if self._single:
+            return point_residuals(*self._kernel_args(rig_from_ref, 0, None))  # type: ignore[no-any-return]
+        out = np.empty((len(self), 2))
         for j, idx in enumerate(self._groups):
-            if idx.size == 0:
-                continue
-            sel = None if self._single else idx
-            _, p_cam = self._cam_points(rig_from_ref, j, sel)
-            uv = self.rig.cameras[j].project(p_cam)
-            if self._single:
-                out = uv - self.uv_px
-            else:
-                out[idx] = uv - self.uv_px[idx]
+            if idx.size:
+                out[idx] = point_residuals(*self._kernel_args(rig_from_ref, j, idx))
         return out
 
     def residuals_and_jacobian(self, rig_from_ref: F64) -> tuple[F64, F64]:
+        # d uv / d(v, w) = A [I, -[p_rig]x] with A = d uv / d p_rig; -A [p]x rows = p x a_row
+        # (homogeneous points: d q_rig / d(v, w) = [rho I, -[q_rig]x]); compiled in _point_kernels
+        if self._single:
+            return point_jacobian(*self._kernel_args(rig_from_ref, 0, None))  # type: ignore[no-any-return]
         n = len(self)
         r = np.empty((n, 2))
         J = np.empty((n, 2, 6))
         for j, idx in enumerate(self._groups):
-            if idx.size == 0:
-                continue
-            sel = None if self._single else idx
-            p_rig, p_cam = self._cam_points(rig_from_ref, j, sel)
-            cam = self.rig.cameras[j]
-            Jp = cam.project_jacobian(p_cam)  # (k, 2, 3)
-            A = Jp @ self.rig.cam_from_rig[j][:3, :3]  # d uv / d p_rig
-            # d p_rig / d(v, w) = [I, -[p_rig]x];  -A [p]x rows = p x a_row
-            # (homogeneous points: d q_rig / d(v, w) = [rho I, -[q_rig]x])
-            rho = self._rho(sel)
-            Av = A if rho is None else A * rho[:, :, None]
-            Jj = np.concatenate([Av, point_cross_rows(p_rig, A)], axis=2)
-            uv = cam.project(p_cam)
-            if self._single:
-                r = uv - self.uv_px
-                J = Jj
-            else:
-                r[idx] = uv - self.uv_px[idx]
-                J[idx] = Jj
+            if idx.size:
+                r[idx], J[idx] = point_jacobian(*self._kernel_args(rig_from_ref, j, idx))
         return r, J
 
     def depths(self, rig_from_ref: F64) -> F64:

@@ -1,0 +1,70 @@
+"""The compiled point term (issue 33: the robust pose's cost) against independent computations.
+
+Residuals against the camera model's own projection of the transformed points; the Jacobian against
+central finite differences of those residuals under a left twist; pinhole and unified (xi) cameras,
+Euclidean and homogeneous points (inverse depth 0 included), one camera and a stereo rig.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from loopmodel.geometry.camera import CentralCamera
+from loopmodel.geometry.se3 import se3_exp
+from loopmodel.pose.rig import CameraRig, PointTerm
+
+
+def _rig(xi: float, stereo: bool) -> CameraRig:
+    left = CentralCamera(700.0, 690.0, 610.0, 180.0, xi)
+    if not stereo:
+        return CameraRig.single(left)
+    right_from_left = se3_exp(np.array([-0.54, 0.01, 0.0, 0.01, -0.02, 0.005]))
+    return CameraRig.stereo(left, CentralCamera(705.0, 695.0, 600.0, 185.0, xi), right_from_left)
+
+
+def _term(rng: np.random.Generator, xi: float, stereo: bool, homogeneous: bool) -> PointTerm:
+    n = 50
+    p = np.column_stack([rng.uniform(-4, 4, n), rng.uniform(-2, 2, n), rng.uniform(3, 40, n)])
+    cam = rng.integers(0, 2, n) if stereo else np.zeros(n, np.int64)
+    uv = rng.uniform(0, 1200, (n, 2))
+    rho = None
+    if homogeneous:
+        rho = 1.0 / np.linalg.norm(p, axis=1)
+        rho[:5] = 0.0  # points at infinity
+        p = p * rho[:, None]
+        p[:5] = rng.normal(size=(5, 3)) * [0.2, 0.2, 0.0] + [0, 0, 1]
+    return PointTerm(_rig(xi, stereo), p, uv, cam, inverse_depth_per_m=rho)
+
+
+def _reference_residuals(term: PointTerm, T: np.ndarray) -> np.ndarray:
+    """Projection of each point by its own camera model, less the measurement (numpy, per camera)."""
+    rho = np.ones(len(term)) if term.inverse_depth_per_m is None else term.inverse_depth_per_m
+    q_rig = term.p_in_ref @ T[:3, :3].T + rho[:, None] * T[:3, 3]
+    out = np.empty((len(term), 2))
+    for j, cam in enumerate(term.rig.cameras):
+        sel = term.cam_index == j
+        C = term.rig.cam_from_rig[j]
+        q = q_rig[sel] @ C[:3, :3].T + rho[sel, None] * C[:3, 3]
+        out[sel] = cam.project(q) - term.uv_px[sel]
+    return out
+
+
+@pytest.mark.parametrize("xi", [0.0, 0.8])
+@pytest.mark.parametrize("stereo", [False, True])
+@pytest.mark.parametrize("homogeneous", [False, True])
+def test_point_term_residuals_and_jacobian(xi: float, stereo: bool, homogeneous: bool) -> None:
+    rng = np.random.default_rng(3)
+    term = _term(rng, xi, stereo, homogeneous)
+    T = se3_exp(np.array([0.3, -0.1, 0.5, 0.02, -0.03, 0.01]))
+    ref = _reference_residuals(term, T)
+    np.testing.assert_allclose(term.residuals(T), ref, rtol=0, atol=1e-9)
+    r, J = term.residuals_and_jacobian(T)
+    np.testing.assert_allclose(r, ref, rtol=0, atol=1e-9)
+    h = 1e-6
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = h
+        fd = (_reference_residuals(term, se3_exp(d) @ T) - _reference_residuals(term, se3_exp(-d) @ T)) / (2 * h)
+        # central differences of pixel residuals: measured agreement ~1e-6 px per unit twist
+        np.testing.assert_allclose(J[:, :, k], fd, rtol=1e-5, atol=1e-3)
