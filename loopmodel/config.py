@@ -308,6 +308,10 @@ class FrontendConfig(_Section):
     keyframe_stereo: Literal["thread", "inline"] = Field(
         "thread", description="a new keyframe's stereo matching: on a thread beside the local BA, or inline"
     )
+    # issue 33: the local BA of a keyframe's interval on a thread beside the next frame's KLT, taken
+    # before that frame's pose (refined points, offset, the keyframe's pose as a correction); the
+    # keyframe itself leaves at its tracked pose. Measured in CHANGELOG.md (issue 33, klt4)
+    local_ba_beside: bool = Field(False, description="run the local BA beside the next frame's tracking")
 
 
 class MappingConfig(_Section):

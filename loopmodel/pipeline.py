@@ -406,6 +406,8 @@ class _Run:
         """
         t0 = time.perf_counter()
         res = self.frontend.process(frame)
+        # frontend.local_ba_beside: a keyframe's local BA, taken in this frame, moved its pose
+        self._correct({k: T for k, T in self.frontend.take_corrections().items() if k in self.keyframes})
         if not res.ok:
             logger.info("frame %d LOST: %s", frame.index, res.reason)
         kf = res.keyframe

@@ -68,7 +68,7 @@ def run(quick: bool = False) -> dict[str, Any]:
     ba = [
         r.keyframe.ba_info["ba_ms"]
         for r in results
-        if r.keyframe is not None and r.keyframe.ba_info
+        if r.keyframe is not None and "ba_ms" in r.keyframe.ba_info  # (the first keyframe has no BA)
     ]
     out: dict[str, Any] = {
         "dataset": "kitti_clip (real KITTI 1226x370)" + (" first 30 frames" if quick else ""),

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from loopmodel.config import FrontendConfig
 from loopmodel.errors import EstimationError, InputError
 from loopmodel.frontend.beside import Beside
-from loopmodel.frontend.hybrid_ba import hybrid_keyframe_ba
+from loopmodel.frontend.hybrid_ba import HybridBAResult, hybrid_keyframe_ba
 from loopmodel.frontend.keyframe import FrameResult, Keyframe, TrackedFeatures
 from loopmodel.frontend.mono_depth import MonoDepthTracks, kf_from_ref_map
 from loopmodel.frontend.resume import ResumedSet
@@ -27,6 +27,7 @@ from loopmodel.imaging.klt import Pyramid, build_pyramid, track_klt
 from loopmodel.imaging.rectify import Rectifier
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, estimate_pose
 from loopmodel.pose.robust import robust_scale
+from loopmodel.pose.solver import PoseResult
 from loopmodel.stages import ResumeFeatures
 from loopmodel.types import StereoCalibration, StereoFrame
 
@@ -121,7 +122,108 @@ class _ClosedInterval:
     refined: list[tuple[_ActiveSet, NDArray[np.int64], F64, NDArray[np.bool_], F64]] = field(default_factory=list)
     offset: tuple[float, float] | None = None
     ba_info: dict[str, float] = field(default_factory=dict)
+    ba_job: _LocalBAJob | None = None  # frontend.local_ba_beside: the BA still to run
 
+
+@dataclass
+class _FrameTracks:
+    """One frame's KLT of the active set, its far bearings and the local map.
+
+    The active set's tracks ``idx`` (points ``pts``, keyframe frame) at ``uv`` (valid ``ok``), its far
+    bearings ``fidx`` (homogeneous points ``q_far`` at the predicted pose), the local map's points.
+    """
+
+    idx: NDArray[np.int64]
+    fidx: NDArray[np.int64]
+    pts: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    uv: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    ok: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    q_far: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    uv_far: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    ok_far: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    loc: _LocalPrediction = field(default_factory=_LocalPrediction)
+    uv_loc: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    ok_loc: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+
+
+@dataclass
+class _PoseTerms:
+    """A frame's pose terms and how their rows map back to the tracks.
+
+    ``term``: the active set's tracked points, then the local map's (``loc_sel``: their rows in the
+    frame's local prediction), ``n_stereo`` rows in all, then the converged mono-depth points
+    (``mono_sel`` of the tracked ``m_ok``, in the frames ``kf_from_ref``); ``extra``: the far bearings
+    (``far_sel``: the tracked ones) when three or more.
+    """
+
+    term: PointTerm | None = None
+    extra: list[PointTerm] = field(default_factory=list)
+    loc_sel: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    n_stereo: int = 0
+    m_ok: NDArray[np.bool_] | None = None
+    mono_sel: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    kf_from_ref: dict[int, F64] = field(default_factory=dict)
+    far_sel: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+
+
+
+@dataclass
+class _LocalBAJob:
+    """One local BA: its inputs (gathered on the tracking thread) and where its result goes (``closed``).
+
+    :meth:`take` fills ``closed`` from the BA's result: the new keyframe's pose (when within
+    ``max_jump_m`` / ``max_jump_deg`` of the tracked ``kf_from_cur``), the refined points, the
+    disparity offset and ``ba_info``. ``offset_px``: the offset applied to the matches of the time.
+    """
+
+    closed: _ClosedInterval
+    prev: _ActiveSet
+    wide: _WideRows
+    kf_from_cur: F64
+    config: FrontendConfig
+    offset_px: float
+    args: tuple  # type: ignore[type-arg]
+    kwargs: dict  # type: ignore[type-arg]
+    solve_ms: float = 0.0
+
+    def run(self) -> HybridBAResult:
+        """The BA itself (numpy and OpenCV; any thread)."""
+        t0 = time.perf_counter()
+        ba = hybrid_keyframe_ba(*self.args, **self.kwargs)
+        self.solve_ms = (time.perf_counter() - t0) * 1e3
+        return ba
+
+    def take(self, ba: HybridBAResult) -> None:
+        """Fill ``closed`` from the BA's result."""
+        cfg, closed, prev, wide = self.config, self.closed, self.prev, self.wide
+        idx = closed.track_idx
+        n_own = idx.size
+        step = invert_pose(self.kf_from_cur) @ invert_pose(ba.f_from_kf)
+        if np.linalg.norm(step[:3, 3]) < cfg.max_jump_m and _rotation_deg(step) < cfg.max_jump_deg:
+            closed.kf_from_new = kf_from_new = invert_pose(ba.f_from_kf)
+            if cfg.local_map_keyframes > 0:  # the local map keeps the refined points
+                closed.refined.append((prev, idx, ba.points_in_kf[:n_own], ba.inliers[:n_own], kf_from_new))
+                off = n_own
+                for k, (ls, n) in enumerate(zip(closed.local, wide.sizes, strict=False)):
+                    own_from_kf = wide.own_from_kf[k]
+                    p_own = ba.points_in_kf[off : off + n] @ own_from_kf[:3, :3].T + own_from_kf[:3, 3]
+                    kf_from_end = own_from_kf @ kf_from_new
+                    closed.refined.append((ls.kf_set, ls.idx, p_own, ba.inliers[off : off + n], kf_from_end))
+                    off += n
+            if cfg.disparity_offset == "estimate":
+                closed.offset = (prev.disparity_offset_px + ba.disparity_offset_px, ba.disparity_offset_var_px2)
+        closed.ba_info.update({
+            "ba_ms": self.solve_ms,
+            "ba_iterations": float(ba.iterations),
+            "ba_rms_before_px": ba.initial_rms_px,
+            "ba_rms_after_px": ba.final_rms_px,
+            "ba_points": float(n_own),
+            "ba_window_points": float(sum(wide.sizes)),
+        })
+        if cfg.disparity_offset == "estimate":
+            closed.ba_info["disparity_offset_px"] = ba.disparity_offset_px
+            closed.ba_info["disparity_offset_sigma_px"] = float(np.sqrt(ba.disparity_offset_var_px2))
+            closed.ba_info["disparity_offset_applied_px"] = self.offset_px  # to the new keyframe's matches
 
 
 
@@ -247,6 +349,9 @@ class FrontEnd:
         self._pose_sigma_px: list[float] = []
         # an old keyframe's features tracked again after a closure (resume_features)
         self._resumed: ResumedSet | None = None
+        # frontend.local_ba_beside: the last keyframe's BA on its thread, and the keyframe poses it corrected
+        self._pending_ba: tuple[Beside[HybridBAResult], _LocalBAJob, int] | None = None
+        self._ba_corrections: dict[int, F64] = {}
         # the compiled stereo scan and affine re-measurement loaded (or compiled) now, not in a frame (issue 33)
         from loopmodel.frontend._stereo_kernels import warm_up as warm_up_stereo
         from loopmodel.frontend.affine_klt import warm_up
@@ -443,142 +548,156 @@ class FrontEnd:
         """KLT from the last good frame, robust pose against the keyframe."""
         cfg = self.config
         assert self._active is not None and self._prev_pyr is not None
-        active = self._active
         idx = self._track_idx
         if idx.size < cfg.min_inliers:
             return "LOST", f"only {idx.size} tracks left", int(idx.size), 0, kf_from_pred, False
-        pts = active.points[idx]
         pred_from_kf = invert_pose(kf_from_pred)
-        p_pred = pts @ pred_from_kf[:3, :3].T + pred_from_kf[:3, 3]
+        ft = self._klt_frame(cur_pyr, pred_from_kf)
+        tracked = int(ft.ok.sum())
+        if tracked < cfg.min_inliers:
+            return "LOST", f"only {tracked} KLT tracks", tracked, 0, kf_from_pred, False
+        terms = self._pose_terms(ft, cur_pyr, pred_from_kf)
+        assert terms.term is not None
+        try:
+            res = estimate_pose(
+                terms.term,
+                pred_from_kf,
+                self.pose_options,
+                cfg.ransac_threshold_px,
+                cfg.prediction_gate_px,
+                extra_terms=terms.extra,
+            )
+        except EstimationError as exc:
+            return "LOST", f"pose failed ({exc})", tracked, 0, kf_from_pred, False
+        inl_all = res.inliers[0]
+        n_inl = int(inl_all[:tracked].sum())  # stereo points; local-map and mono-depth points follow
+        kf_from_cur = invert_pose(res.rig_from_ref)
+        why = self._pose_rejected(int(inl_all.sum()), n_inl, kf_from_pred, kf_from_cur)
+        if why:
+            return "LOST", why, tracked, n_inl, kf_from_pred, res.used_ransac
+        self._commit_tracks(ft, terms, res)
+        return "OK", "", tracked, n_inl, kf_from_cur, res.used_ransac
+
+    def _klt_frame(self, cur_pyr: Pyramid, pred_from_kf: F64) -> _FrameTracks:
+        """This frame's KLT of the active set's points, its far bearings and the local map's points.
+
+        Each starts at its motion-model prediction (``pred_from_kf``: predicted camera from the
+        active keyframe, rectified); a point behind the predicted camera is not tracked. The last
+        keyframe's local BA run beside (``local_ba_beside``) is taken after the KLT, before the pose.
+        """
+        cfg = self.config
+        assert self._active is not None and self._prev_pyr is not None
+        active = self._active
+        ft = _FrameTracks(idx=self._track_idx, fidx=self._far_idx)
+        ft.pts = active.points[ft.idx]
+        p_pred = ft.pts @ pred_from_kf[:3, :3].T + pred_from_kf[:3, 3]
         front = p_pred[:, 2] > 1e-3
         guess = self._track_uv.copy()
         guess[front] = self.left_camera.project(p_pred[front])
-        n_near = idx.size
-        fidx = self._far_idx
-        q_far = np.zeros((0, 3))
-        if fidx.size:
+        start = self._track_uv
+        if ft.fidx.size:
             # far bearings: homogeneous points R ray + rho t at the predicted pose
-            q_far = active.far_rays[fidx] @ pred_from_kf[:3, :3].T
-            q_far += active.far_inv_depth[fidx, None] * pred_from_kf[:3, 3]
-            f_front = q_far[:, 2] > 1e-6
+            ft.q_far = active.far_rays[ft.fidx] @ pred_from_kf[:3, :3].T
+            ft.q_far += active.far_inv_depth[ft.fidx, None] * pred_from_kf[:3, 3]
+            f_front = ft.q_far[:, 2] > 1e-6
             f_guess = self._far_uv.copy()
-            f_guess[f_front] = self.left_camera.project(q_far[f_front])
-            guess = np.vstack([guess, f_guess])
+            f_guess[f_front] = self.left_camera.project(ft.q_far[f_front])
+            start, guess = np.vstack([start, self._far_uv]), np.vstack([guess, f_guess])
             front = np.concatenate([front, f_front])
-        n_far = fidx.size
-        start = np.vstack([self._track_uv, self._far_uv]) if n_far else self._track_uv
-        loc = self._local_prediction(pred_from_kf)
-        if loc.sizes:
-            start = np.vstack([start, loc.prev_uv])
-            guess = np.vstack([guess, loc.guess])
-            front = np.concatenate([front, loc.front])
+        ft.loc = self._local_prediction(pred_from_kf)
+        if ft.loc.sizes:
+            start, guess = np.vstack([start, ft.loc.prev_uv]), np.vstack([guess, ft.loc.guess])
+            front = np.concatenate([front, ft.loc.front])
         uv, ok, _fb = track_klt(
-            self._prev_pyr,
-            cur_pyr,
-            start,
-            guess,
-            cfg.klt_window_px,
-            cfg.klt_levels,
-            cfg.fb_threshold_px,
-            cfg.klt_iterations,
-            self.calibration.image_size,
+            self._prev_pyr, cur_pyr, start, guess, cfg.klt_window_px, cfg.klt_levels, cfg.fb_threshold_px,
+            cfg.klt_iterations, self.calibration.image_size,
         )
         ok &= front
-        uv_far, ok_far = uv[n_near : n_near + n_far], ok[n_near : n_near + n_far]
-        uv_loc, ok_loc = uv[n_near + n_far :], ok[n_near + n_far :]
-        uv, ok = uv[:n_near], ok[:n_near]
-        tracked = int(ok.sum())
-        if tracked < cfg.min_inliers:
-            return "LOST", f"only {tracked} KLT tracks", tracked, 0, kf_from_pred, False
+        if self._pending_ba is not None:  # the last keyframe's BA: its points and pose before this pose solve
+            self._finish_local_ba()
+            ft.loc = self._local_prediction(pred_from_kf)
+        n_near, n_far = ft.idx.size, ft.fidx.size
+        ft.uv_far, ft.ok_far = uv[n_near : n_near + n_far], ok[n_near : n_near + n_far]
+        ft.uv_loc, ft.ok_loc = uv[n_near + n_far :], ok[n_near + n_far :]
+        ft.uv, ft.ok = uv[:n_near], ok[:n_near]
+        return ft
+
+    def _pose_terms(self, ft: _FrameTracks, cur_pyr: Pyramid, pred_from_kf: F64) -> _PoseTerms:
+        """The pose's terms: tracked stereo points (active set, local map), mono-depth points, far bearings."""
+        cfg = self.config
+        assert self._active is not None and self._prev_pyr is not None
+        active = self._active
+        ok, idx, loc = ft.ok, ft.idx, ft.loc
+        out = _PoseTerms()
         prior = None
         if cfg.depth_weighting:
             sigma_z = None
             if cfg.disparity_sigma_source == "match" and active.disparity_sigma_px.size:
                 fb = self.calibration.fx_px * self.calibration.baseline_m
-                sigma_z = pts[ok, 2] ** 2 / fb * active.disparity_sigma_px[idx[ok]]
-            prior = self._depth_weights(pts[ok], pred_from_kf, sigma_z)
-        p_all, uv_all, mono_sel, kf_from_ref = pts[ok], uv[ok], np.zeros(0, np.int64), {}
-        loc_sel = np.flatnonzero(ok_loc)
-        if loc_sel.size:  # the local map's points (earlier keyframes), in the active keyframe's frame
-            p_all, uv_all = np.vstack([p_all, loc.points_kf[loc_sel]]), np.vstack([uv_all, uv_loc[loc_sel]])
+                sigma_z = ft.pts[ok, 2] ** 2 / fb * active.disparity_sigma_px[idx[ok]]
+            prior = self._depth_weights(ft.pts[ok], pred_from_kf, sigma_z)
+        p_all, uv_all = ft.pts[ok], ft.uv[ok]
+        out.loc_sel = np.flatnonzero(ft.ok_loc)
+        if out.loc_sel.size:  # the local map's points (earlier keyframes), in the active keyframe's frame
+            p_all = np.vstack([p_all, loc.points_kf[out.loc_sel]])
+            uv_all = np.vstack([uv_all, ft.uv_loc[out.loc_sel]])
             if prior is not None and loc.prior is not None:
-                prior = np.concatenate([prior, loc.prior[loc_sel]])
-        n_sl = tracked + loc_sel.size  # stereo points first (active set, local map), then mono-depth ones
-        m_ok: NDArray[np.bool_] | None = None
+                prior = np.concatenate([prior, loc.prior[out.loc_sel]])
+        out.n_stereo = p_all.shape[0]
         if self._mono is not None and len(self._mono):
-            kf_from_ref = self._mono_frames()
-            m_uv, m_ok = self._mono.track(self._prev_pyr, cur_pyr, pred_from_kf, kf_from_ref)
-            mono_sel = np.flatnonzero(m_ok & self._mono.converged())
-            if mono_sel.size:
-                p_m = self._mono.points_in(kf_from_ref)[mono_sel]
-                w_m = self._depth_weights(p_m, pred_from_kf, self._mono.sigma_z_m()[mono_sel])
+            out.kf_from_ref = self._mono_frames()
+            m_uv, out.m_ok = self._mono.track(self._prev_pyr, cur_pyr, pred_from_kf, out.kf_from_ref)
+            out.mono_sel = np.flatnonzero(out.m_ok & self._mono.converged())
+            if out.mono_sel.size:
+                p_m = self._mono.points_in(out.kf_from_ref)[out.mono_sel]
+                w_m = self._depth_weights(p_m, pred_from_kf, self._mono.sigma_z_m()[out.mono_sel])
                 prior = np.concatenate([np.ones(len(p_all)) if prior is None else prior, w_m])
-                p_all, uv_all = np.vstack([p_all, p_m]), np.vstack([uv_all, m_uv[mono_sel]])
-        term = PointTerm(self.rig, p_all, uv_all, prior_weight=prior)
-        far_sel = np.flatnonzero(ok_far)
-        extra: list[PointTerm] = []
-        if far_sel.size >= 3:
-            extra.append(self._far_term(fidx[far_sel], uv_far[far_sel], q_far[far_sel], pred_from_kf))
-        try:
-            res = estimate_pose(
-                term,
-                pred_from_kf,
-                self.pose_options,
-                cfg.ransac_threshold_px,
-                cfg.prediction_gate_px,
-                extra_terms=extra,
-            )
-        except EstimationError as exc:
-            return "LOST", f"pose failed ({exc})", tracked, 0, kf_from_pred, False
-        inl_all = res.inliers[0]
-        inl = inl_all[:tracked]  # stereo points; mono-depth points follow
-        n_inl = int(inl.sum())
-        kf_from_cur = invert_pose(res.rig_from_ref)
-        if int(inl_all.sum()) < cfg.min_inliers:
-            return (
-                "LOST",
-                f"only {n_inl} pose inliers",
-                tracked,
-                n_inl,
-                kf_from_pred,
-                res.used_ransac,
-            )
+                p_all, uv_all = np.vstack([p_all, p_m]), np.vstack([uv_all, m_uv[out.mono_sel]])
+        out.term = PointTerm(self.rig, p_all, uv_all, prior_weight=prior)
+        out.far_sel = np.flatnonzero(ft.ok_far)
+        if out.far_sel.size >= 3:
+            s = out.far_sel
+            out.extra.append(self._far_term(ft.fidx[s], ft.uv_far[s], ft.q_far[s], pred_from_kf))
+        return out
+
+    def _pose_rejected(self, n_all: int, n_inl: int, kf_from_pred: F64, kf_from_cur: F64) -> str:
+        """Why a solved pose is not taken ("" when it is): too few inliers, or a jump from the motion model."""
+        cfg = self.config
+        if n_all < cfg.min_inliers:
+            return f"only {n_inl} pose inliers"
         jump = invert_pose(kf_from_pred) @ kf_from_cur
         jump_m = float(np.linalg.norm(jump[:3, 3]))
         jump_deg = _rotation_deg(jump)
         if self._velocity_known and (jump_m > cfg.max_jump_m or jump_deg > cfg.max_jump_deg):
-            return (
-                "LOST",
-                f"pose jump {jump_m:.3f} m / {jump_deg:.2f} deg from the motion model",
-                tracked,
-                n_inl,
-                kf_from_pred,
-                res.used_ransac,
-            )
-        keep = np.flatnonzero(ok)[inl]
-        if cfg.moving_gate > 0:
-            keep = self._drop_moving(idx, keep, uv, res.rig_from_ref)
-        self._outlier_uv = uv[np.flatnonzero(ok)[~inl]]
-        if n_inl >= 6:  # the run's own KLT/stereo noise (for the back end's final refinement)
+            return f"pose jump {jump_m:.3f} m / {jump_deg:.2f} deg from the motion model"
+        return ""
+
+    def _commit_tracks(self, ft: _FrameTracks, terms: _PoseTerms, res: PoseResult) -> None:
+        """Keep what the pose ``res`` kept: the active set's, far, local-map and mono-depth tracks."""
+        tracked = int(ft.ok.sum())
+        n_sl = terms.n_stereo
+        inl_all = res.inliers[0]
+        inl = inl_all[:tracked]
+        keep = np.flatnonzero(ft.ok)[inl]
+        if self.config.moving_gate > 0:
+            keep = self._drop_moving(ft.idx, keep, ft.uv, res.rig_from_ref)
+        self._outlier_uv = ft.uv[np.flatnonzero(ft.ok)[~inl]]
+        if int(inl.sum()) >= 6:  # the run's own KLT/stereo noise (for the back end's final refinement)
             self._pose_sigma_px.append(robust_scale(res.residual_norms[0][:tracked][inl], 2, 0.0))
-        self._track_idx = idx[keep]
+        self._track_idx = ft.idx[keep]
         self._mono_used = 0
-        if self._mono is not None and m_ok is not None:
-            m_keep = m_ok.copy()
-            m_keep[mono_sel[~inl_all[n_sl:]]] = False  # converged points the pose rejected
+        if self._mono is not None and terms.m_ok is not None:
+            m_keep = terms.m_ok.copy()
+            m_keep[terms.mono_sel[~inl_all[n_sl:]]] = False  # converged points the pose rejected
             self._mono_used = int(inl_all[n_sl:].sum())
             dt_s = max((self._last_stamp or 0) - self._good_stamp, 1) * 1e-9
-            self._mono.commit(res.rig_from_ref, kf_from_ref, dt_s, m_keep)
+            self._mono.commit(res.rig_from_ref, terms.kf_from_ref, dt_s, m_keep)
             self._good_stamp = self._last_stamp or 0
-        self._track_uv = uv[keep]
-        if loc.sizes:
-            self._keep_local(loc, loc_sel[inl_all[tracked:n_sl]], uv_loc)
-        if extra:
-            f_keep = far_sel[res.inliers[1]]
-            self._far_idx, self._far_uv = fidx[f_keep], uv_far[f_keep]
-        else:
-            self._far_idx, self._far_uv = fidx[far_sel], uv_far[far_sel]
-        return "OK", "", tracked, n_inl, kf_from_cur, res.used_ransac
+        self._track_uv = ft.uv[keep]
+        if ft.loc.sizes:
+            self._keep_local(ft.loc, terms.loc_sel[inl_all[tracked:n_sl]], ft.uv_loc)
+        f_keep = terms.far_sel[res.inliers[1]] if terms.extra else terms.far_sel
+        self._far_idx, self._far_uv = ft.fidx[f_keep], ft.uv_far[f_keep]
 
     def _local_prediction(self, pred_from_kf: F64) -> _LocalPrediction:
         """The local map's tracked points (earlier keyframes' sets) for this frame, at the predicted pose.
@@ -992,6 +1111,7 @@ class FrontEnd:
         """
         cfg = self.config
         t_kf = time.perf_counter()
+        self._finish_local_ba()
         prev = self._active if connected and kf_from_cur is not None else None
         # the right image is rectified with the matching unless the local BA needs it here too
         right = self.rectifier.right(frame.right) if prev is not None and cfg.ba_final_stereo else None
@@ -1015,6 +1135,8 @@ class FrontEnd:
             closed.mono_obs = self._observe_resumed(closed, left, kf_from_cur)
         kf = self._new_keyframe(frame, left, new, world_from_rect, closed, kf_from_cur)
         self._activate(kf, new, world_from_rect, cur_pyr)
+        if closed is not None and closed.ba_job is not None:
+            self._pending_ba = (Beside(True, closed.ba_job.run), closed.ba_job, kf.id)
         return FrameResult(
             frame.timestamp_ns,
             kf.world_from_kf,
@@ -1076,6 +1198,8 @@ class FrontEnd:
         mono_obs = np.column_stack([prev.keyframe.landmark_ids[idx].astype(float), uv])
         closed = _ClosedInterval(mono_obs, kf_from_cur, idx, uv, self._local)
         ba = cfg.local_ba and idx.size >= 6
+        beside = ba and cfg.local_ba_beside
+        ba = ba and not beside
         if ba and cfg.local_ba_keyframes == 0:  # the two-keyframe BA does not take the local map
             self._local_ba(closed, prev, left, right, kf_from_cur)
         if older:
@@ -1085,6 +1209,8 @@ class FrontEnd:
             closed.mono_obs, closed.local = self._observe_local(closed.mono_obs, sets)
         if ba and cfg.local_ba_keyframes > 0:
             self._local_ba(closed, prev, left, right, kf_from_cur)
+        if beside:  # gathered here; run beside the next frame's tracking (_finish_local_ba)
+            closed.ba_job = self._local_ba_job(closed, prev, left, right, kf_from_cur)
         if self._local_inliers:
             closed.ba_info["local_map_inliers"] = float(np.median(self._local_inliers))
         if self._pose_sigma_px:
@@ -1115,12 +1241,18 @@ class FrontEnd:
         ``local_ba_keyframes`` the local map's sets too. Accepted only within ``max_jump_m`` /
         ``max_jump_deg`` of the robust pose ``kf_from_cur`` (guards against a bad set).
         """
+        job = self._local_ba_job(closed, prev, left, right, kf_from_cur)
+        job.take(job.run())
+
+    def _local_ba_job(
+        self, closed: _ClosedInterval, prev: _ActiveSet, left: NDArray[np.uint8], right: NDArray[np.uint8] | None,
+        kf_from_cur: F64,
+    ) -> _LocalBAJob:
+        """:meth:`_local_ba`'s inputs, gathered on this thread (the BA itself may run on another)."""
         cfg = self.config
-        tb = time.perf_counter()
         idx, uv = closed.track_idx, closed.track_uv
         sp = prev.stereo_px[idx]
         wide = self._wide_ba_rows(prev, closed.local)
-        n_own = idx.size
         final_right = None
         if cfg.ba_final_stereo and right is not None:
             final_right = self._final_right(left, right, uv, int(sum(wide.sizes)))
@@ -1131,7 +1263,7 @@ class FrontEnd:
                 ds = ls.kf_set.disparity_sigma_px
                 sig.append(ds[ls.idx] if ds.size else np.full(n, cfg.disparity_sigma_px))
             right_sigma = np.concatenate(sig)
-        ba = hybrid_keyframe_ba(
+        args = (
             np.vstack([prev.points[idx], wide.points_kf]),
             np.vstack([sp[:, [0, 2]], wide.uv_left]),
             np.vstack([sp[:, [1, 2]], wide.uv_right]),
@@ -1142,39 +1274,45 @@ class FrontEnd:
             self.calibration.right_from_left,
             cfg.ba_iterations,
             cfg.ba_huber_px,
-            uv_final_right=final_right,
-            right_sigma_px=right_sigma,
-            estimate_disparity_offset=cfg.disparity_offset == "estimate",
-            offset_prior=(self._offset_mean_px - prev.disparity_offset_px, self._offset_info),
-            owner=np.concatenate([np.zeros(n_own, np.int64), wide.owner]),
-            own_from_kf=np.concatenate([np.eye(4)[None], wide.own_from_kf]),
         )
-        step = invert_pose(kf_from_cur) @ invert_pose(ba.f_from_kf)
-        if np.linalg.norm(step[:3, 3]) < cfg.max_jump_m and _rotation_deg(step) < cfg.max_jump_deg:
-            closed.kf_from_new = kf_from_new = invert_pose(ba.f_from_kf)
-            if cfg.local_map_keyframes > 0:  # the local map keeps the refined points
-                closed.refined.append((prev, idx, ba.points_in_kf[:n_own], ba.inliers[:n_own], kf_from_new))
-                off = n_own
-                for k, (ls, n) in enumerate(zip(closed.local, wide.sizes, strict=False)):
-                    own_from_kf = wide.own_from_kf[k]
-                    p_own = ba.points_in_kf[off : off + n] @ own_from_kf[:3, :3].T + own_from_kf[:3, 3]
-                    kf_from_end = own_from_kf @ kf_from_new
-                    closed.refined.append((ls.kf_set, ls.idx, p_own, ba.inliers[off : off + n], kf_from_end))
-                    off += n
-            if cfg.disparity_offset == "estimate":
-                closed.offset = (prev.disparity_offset_px + ba.disparity_offset_px, ba.disparity_offset_var_px2)
-        closed.ba_info.update({
-            "ba_ms": (time.perf_counter() - tb) * 1e3,
-            "ba_iterations": float(ba.iterations),
-            "ba_rms_before_px": ba.initial_rms_px,
-            "ba_rms_after_px": ba.final_rms_px,
-            "ba_points": float(n_own),
-            "ba_window_points": float(sum(wide.sizes)),
-        })
-        if cfg.disparity_offset == "estimate":
-            closed.ba_info["disparity_offset_px"] = ba.disparity_offset_px
-            closed.ba_info["disparity_offset_sigma_px"] = float(np.sqrt(ba.disparity_offset_var_px2))
-            closed.ba_info["disparity_offset_applied_px"] = self._offset_px  # to the new keyframe's matches
+        kwargs = {
+            "uv_final_right": final_right,
+            "right_sigma_px": right_sigma,
+            "estimate_disparity_offset": cfg.disparity_offset == "estimate",
+            "offset_prior": (self._offset_mean_px - prev.disparity_offset_px, self._offset_info),
+            "owner": np.concatenate([np.zeros(idx.size, np.int64), wide.owner]),
+            "own_from_kf": np.concatenate([np.eye(4)[None], wide.own_from_kf]),
+        }
+        return _LocalBAJob(closed, prev, wide, kf_from_cur, cfg, self._offset_px, args, kwargs)
+
+    def _finish_local_ba(self) -> None:
+        """Take the last keyframe's BA run beside the tracking (``frontend.local_ba_beside``), once done.
+
+        Its refined points and disparity offset join the tracker's state as inline; the keyframe's
+        pose moves by the BA's correction of the tracked pose (kept for :meth:`take_corrections`).
+        """
+        if self._pending_ba is None:
+            return
+        thread, job, kf_id = self._pending_ba
+        self._pending_ba = None
+        job.take(thread.result())
+        closed = job.closed
+        for kf_set, sel, points_m, inliers, kf_from_end in closed.refined:
+            self._refine_points(kf_set, sel, points_m, inliers, kf_from_end)
+        if closed.offset is not None:
+            self._fuse_offset(*closed.offset)
+        if kf_id in self._world_from_kf and closed.kf_from_new is not job.kf_from_cur:
+            # tracked keyframe <- BA keyframe, on top of any correction the back end made since
+            tracked_from_ba = invert_pose(job.kf_from_cur) @ closed.kf_from_new
+            world_from_rect = nearest_rigid(self._world_from_kf[kf_id] @ self.cam_from_rect @ tracked_from_ba)
+            pose = world_from_rect @ self.rect_from_cam
+            self.apply_correction({kf_id: pose})
+            self._ba_corrections[kf_id] = pose
+
+    def take_corrections(self) -> dict[int, F64]:
+        """Keyframe poses (original left camera) the front end corrected since the last call (local BA beside)."""
+        out, self._ba_corrections = self._ba_corrections, {}
+        return out
 
     def _apply_closed(self, closed: _ClosedInterval) -> None:
         """Take a closed interval: the outgoing set's final tracks, the local map's sets, the BA's points and offset."""
@@ -1202,7 +1340,7 @@ class FrontEnd:
         world_from_kf = world_from_rect @ self.rect_from_cam
         self._world_from_kf[kf_id] = world_from_kf
         linked = closed is not None and kf_from_cur is not None
-        info = closed.ba_info if closed is not None else {}
+        info = dict(closed.ba_info) if closed is not None else {}
         if self.config.disparity_offset == "estimate":  # the offset in these matches, and the latest estimate
             # (the back end's final refinement re-expresses every keyframe with the latest)
             info = {**info, "disparity_offset_applied_px": new.offset_px,
