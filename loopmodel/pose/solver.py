@@ -69,6 +69,50 @@ def _as_terms(terms: PoseTerm | Sequence[PoseTerm]) -> list[PoseTerm]:
     return [terms]
 
 
+def _irls_weights(term: PoseTerm, r: F64, it: int, opt: PoseOptions, c: float, scales: list[float], k: int) -> F64:
+    """IRLS weights of term ``k``'s residuals ``r`` in iteration ``it`` (updates its scale ``scales[k]``).
+
+    Huber during the warm-up of a Tukey loss; the MAD scale re-estimated during the warm-up and
+    frozen after the first Tukey iteration; times the term's ``prior_weight`` when it has one.
+    """
+    loss: Loss = "huber" if (opt.loss == "tukey" and it <= opt.huber_warmup) else opt.loss
+    cc = default_cutoff("huber") if loss != opt.loss else c
+    n = np.linalg.norm(r, axis=1)
+    if it <= opt.huber_warmup + 1 or opt.loss != "tukey":
+        scales[k] = opt.fixed_scale or robust_scale(n, term.dim, opt.min_scale)
+    w = weights(n / scales[k], loss, cc)
+    pw = getattr(term, "prior_weight", None)
+    return w if pw is None else w * pw
+
+
+def _weighted_cost(rs: list[F64], ws: list[F64]) -> float:
+    return float(sum(np.sum(w * np.einsum("ij,ij->i", r, r)) for r, w in zip(rs, ws, strict=True)))
+
+
+def _lm_step(
+    tlist: list[PoseTerm], wlist: list[F64], rs: list[F64], H: F64, g: F64, T: F64, lam: float
+) -> tuple[F64, float, bool, F64]:
+    """One Levenberg-Marquardt step of the weighted problem (weights ``wlist``, residuals ``rs`` at ``T``).
+
+    Up to 8 damping increases; returns the pose (moved when the weighted cost did not grow), the
+    damping, whether the step was taken and the last twist tried.
+    """
+    cost = _weighted_cost(rs, wlist)
+    delta = np.zeros(6)
+    for _ in range(8):
+        Hd = H + lam * np.diag(np.maximum(np.diag(H), 1e-9))
+        try:
+            delta = np.asarray(-np.linalg.solve(Hd, g), dtype=np.float64)
+        except np.linalg.LinAlgError:
+            lam *= 10.0
+            continue
+        T_new = se3_exp(delta) @ T
+        if _weighted_cost([t.residuals(T_new) for t in tlist], wlist) <= cost:
+            return T_new, max(lam * 0.3, 1e-9), True, delta
+        lam *= 10.0
+    return T, lam, False, delta
+
+
 def refine_pose(
     terms: PoseTerm | Sequence[PoseTerm],
     rig_from_ref_init: F64,
@@ -87,9 +131,6 @@ def refine_pose(
     it = 0
     scales = [opt.min_scale] * len(tlist)
 
-    def weighted_cost(rs: list[F64], ws: list[F64]) -> float:
-        return float(sum(np.sum(w * np.einsum("ij,ij->i", r, r)) for r, w in zip(rs, ws, strict=True)))
-
     wlist: list[F64] = [np.ones(len(t)) for t in tlist]
     for it in range(1, opt.max_iterations + 1):
         reweight = it <= opt.reweight_iterations
@@ -99,17 +140,7 @@ def refine_pose(
         for k, term in enumerate(tlist):
             r, J = term.residuals_and_jacobian(T)
             if reweight:
-                loss: Loss = "huber" if (opt.loss == "tukey" and it <= opt.huber_warmup) else opt.loss
-                cc = default_cutoff("huber") if loss != opt.loss else c
-                n = np.linalg.norm(r, axis=1)
-                if it <= opt.huber_warmup + 1 or opt.loss != "tukey":
-                    # MAD scale re-estimated during the Huber warm-up, frozen after the
-                    # first Tukey iteration
-                    scales[k] = opt.fixed_scale or robust_scale(n, term.dim, opt.min_scale)
-                wlist[k] = weights(n / scales[k], loss, cc)
-                pw = getattr(term, "prior_weight", None)
-                if pw is not None:
-                    wlist[k] = wlist[k] * pw
+                wlist[k] = _irls_weights(term, r, it, opt, c, scales, k)
             w = wlist[k]
             Jf = J.reshape(-1, 6)
             Jw = Jf * np.repeat(w, term.dim)[:, None]
@@ -119,24 +150,7 @@ def refine_pose(
         # IRLS: each step solves the weighted least-squares problem of the current weights;
         # after ``reweight_iterations`` the weights are frozen and Gauss-Newton converges
         # quadratically on that problem
-        cost = weighted_cost(rs, wlist)
-        accepted = False
-        delta = np.zeros(6)
-        for _ in range(8):
-            Hd = H + lam * np.diag(np.maximum(np.diag(H), 1e-9))
-            try:
-                delta = np.asarray(-np.linalg.solve(Hd, g), dtype=np.float64)
-            except np.linalg.LinAlgError:
-                lam *= 10.0
-                continue
-            T_new = se3_exp(delta) @ T
-            new_cost = weighted_cost([t.residuals(T_new) for t in tlist], wlist)
-            if new_cost <= cost:
-                T = T_new
-                lam = max(lam * 0.3, 1e-9)
-                accepted = True
-                break
-            lam *= 10.0
+        T, lam, accepted, delta = _lm_step(tlist, wlist, rs, H, g, T, lam)
         small = float(np.linalg.norm(delta)) < opt.step_tolerance
         if (not accepted or small) and it >= min(opt.reweight_iterations, opt.max_iterations):
             converged = True
