@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
-from frontend_scene import default_scene, render, stereo_rig, trajectory
+from frontend_scene import default_scene, render, stereo_rig, trajectory, write_kitti_folder
 
 import loopmodel.frontend.stereo as stereo_mod
 import loopmodel.frontend.tracker as tracker_mod
@@ -156,3 +157,56 @@ def test_local_ba_beside_the_next_frame_gives_the_inline_poses(
         else:
             np.testing.assert_allclose(b.world_from_cam, a.world_from_cam, atol=1e-6)
         assert np.linalg.norm(b.world_from_cam[:3, 3] - poses[b.frame_index][:3, 3]) < 0.005
+
+
+def test_the_pipeline_takes_the_beside_ba_corrections(tmp_path: Path) -> None:
+    """With ``local_ba_beside`` the pipeline applies each keyframe's BA correction in the next frame.
+
+    Through the one correction path: the anchored keyframe poses then hold the front end's; the run
+    stays on the rendered ground truth.
+    """
+    import loopmodel.pipeline as pl
+    from loopmodel.config import Config
+    from loopmodel.eval.of_run import evaluate
+    from loopmodel.io.sequence import open_sequence
+
+    write_kitti_folder(tmp_path / "seq", 12, np.random.default_rng(7))
+    cfg = Config()
+    cfg.frontend.max_disparity_px = 64
+    cfg.frontend.max_features = 400
+    cfg.frontend.min_tracked_fraction = 0.95  # several keyframes in a short sequence
+    cfg.frontend.local_ba_beside = True
+    cfg.backend.worker = "inline"  # type: ignore[assignment]
+    cfg.loop.enabled = False
+    cfg.mapping.write_mesh = False
+    cfg.output.write_map = False
+    seq = open_sequence(tmp_path / "seq")
+    run = pl._Run(seq.calibration, cfg, [])
+    events: list[tuple[str, dict]] = []  # type: ignore[type-arg]
+    inner_correct, inner_take = run._correct, run.frontend.take_corrections
+
+    def correct(world_from_kf):  # type: ignore[no-untyped-def]
+        events.append(("correct", dict(world_from_kf)))
+        inner_correct(world_from_kf)
+
+    def take():  # type: ignore[no-untyped-def]
+        out = inner_take()
+        events.append(("take", dict(out)))
+        return out
+
+    run._correct = correct  # type: ignore[method-assign]
+    run.frontend.take_corrections = take  # type: ignore[method-assign]
+    for frame in seq.frames():
+        run.step(frame)
+    taken: set[int] = set()
+    for (kind, poses), (next_kind, applied) in zip(events, events[1:], strict=False):
+        if kind == "take" and poses:  # the next correction is exactly the BA's: same keyframes, same poses
+            assert next_kind == "correct" and applied.keys() == poses.keys()
+            for k in poses:
+                np.testing.assert_array_equal(applied[k], poses[k])
+            taken |= set(poses)
+    kf_ids = sorted(run.keyframes)
+    assert len(kf_ids) >= 3
+    assert set(kf_ids[1:-1]) <= taken  # each connected keyframe's BA but the last one's
+    result = run.finish(False)
+    assert evaluate(result, seq).metrics["ate_rmse_m"] < 0.005
