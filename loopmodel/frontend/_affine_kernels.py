@@ -85,14 +85,125 @@ def _dot_py(a, b):  # type: ignore[no-untyped-def]
     return s
 
 
+def _template_py(ref, u0, v0, sx, sy, T, Jm):  # type: ignore[no-untyped-def]
+    """The reference template at (u0, v0) into ``T``; the gain and offset rows of ``Jm`` (-T, -1)."""
+    hr, wr = ref.shape
+    for k in range(T.shape[0]):
+        xa, xb, ya, yb, ax, ay, fin = _weights(hr, wr, u0 + sx[k], v0 + sy[k])
+        T[k] = _at(ref, xa, xb, ya, yb, ax, ay) if fin else 0.0
+        Jm[6, k] = -T[k]
+        Jm[7, k] = -1.0
+
+
+def _rows_py(cur, gx, gy, c0, c1, a00, a01, a10, a11, gain, offset, sx, sy, T, Jm):  # type: ignore[no-untyped-def]
+    """Position and warp Jacobian rows (0-5) and the residual (row 8) of ``Jm`` at the warp (c, A)."""
+    hc, wc = cur.shape
+    for k in range(T.shape[0]):
+        xa, xb, ya, yb, ax, ay, fin = _weights(hc, wc, c0 + a00 * sx[k] + a01 * sy[k], c1 + a10 * sx[k] + a11 * sy[k])
+        ic, ggx, ggy = 0.0, 0.0, 0.0
+        if fin:
+            ic = _at(cur, xa, xb, ya, yb, ax, ay)
+            ggx = _at(gx, xa, xb, ya, yb, ax, ay)
+            ggy = _at(gy, xa, xb, ya, yb, ax, ay)
+        Jm[8, k] = ic - (gain * T[k] + offset)
+        Jm[0, k] = ggx
+        Jm[1, k] = ggy
+        Jm[2, k] = ggx * sx[k]
+        Jm[3, k] = ggx * sy[k]
+        Jm[4, k] = ggy * sx[k]
+        Jm[5, k] = ggy * sy[k]
+
+
+def _normal_py(Jm, H, g):  # type: ignore[no-untyped-def]
+    """The damped normal equations of ``Jm``'s 8 rows against its residual row."""
+    for i in range(8):
+        g[i] = _dot(Jm[i], Jm[8])
+        for j in range(i, 8):
+            H[i, j] = _dot(Jm[i], Jm[j])
+            H[j, i] = H[i, j]
+    for i in range(8):
+        H[i, i] += 1e-6 * (1.0 + H[i, i])
+
+
+def _gauss_newton_py(cur, gx, gy, c, A, q, sx, sy, T, Jm, H, g, dp, iterations, limit):  # type: ignore[no-untyped-def]
+    """Gauss-Newton of feature q's position ``c[q]``, warp ``A[q]``, gain and offset, in place.
+
+    Stops when converged, singular, no longer finite or more than ``limit`` px from its guess.
+    """
+    g0 = c[q, 0]
+    g1 = c[q, 1]
+    gain = 1.0
+    offset = 0.0
+    for _ in range(iterations):
+        _rows(cur, gx, gy, c[q, 0], c[q, 1], A[q, 0, 0], A[q, 0, 1], A[q, 1, 0], A[q, 1, 1], gain, offset, sx, sy,
+              T, Jm)
+        _normal(Jm, H, g)
+        if not _solve8(H, g, dp):
+            break  # a singular (flat) patch stays where it is
+        c[q, 0] += dp[0]
+        c[q, 1] += dp[1]
+        A[q, 0, 0] += dp[2]
+        A[q, 0, 1] += dp[3]
+        A[q, 1, 0] += dp[4]
+        A[q, 1, 1] += dp[5]
+        gain += dp[6]
+        offset += dp[7]
+        e0 = c[q, 0] - g0
+        e1 = c[q, 1] - g1
+        if not (math.isfinite(c[q, 0]) and math.isfinite(c[q, 1])) or math.sqrt(e0 * e0 + e1 * e1) > limit:
+            break
+        if max(abs(dp[0]), abs(dp[1])) < 1e-3:
+            break  # converged
+
+
+def _finite_or_reset_py(c, A, q, g0, g1):  # type: ignore[no-untyped-def]
+    """Whether feature q's solution is finite; if not, put it back at its guess with an identity warp."""
+    finite = math.isfinite(c[q, 0]) and math.isfinite(c[q, 1])
+    for i in range(2):
+        for j in range(2):
+            finite = finite and math.isfinite(A[q, i, j])
+    if not finite:
+        c[q, 0] = g0
+        c[q, 1] = g1
+        A[q, 0, 0] = 1.0
+        A[q, 0, 1] = 0.0
+        A[q, 1, 0] = 0.0
+        A[q, 1, 1] = 1.0
+    return finite
+
+
+def _ncc_py(cur, c, A, q, sx, sy, T, Ic):  # type: ignore[no-untyped-def]
+    """NCC of the template ``T`` with the current image under feature q's warp."""
+    hc, wc = cur.shape
+    P = T.shape[0]
+    mt = 0.0
+    mi = 0.0
+    for k in range(P):
+        xa, xb, ya, yb, ax, ay, fin = _weights(hc, wc, c[q, 0] + A[q, 0, 0] * sx[k] + A[q, 0, 1] * sy[k],
+                                               c[q, 1] + A[q, 1, 0] * sx[k] + A[q, 1, 1] * sy[k])
+        Ic[k] = _at(cur, xa, xb, ya, yb, ax, ay) if fin else 0.0
+        mt += T[k]
+        mi += Ic[k]
+    mt /= P
+    mi /= P
+    stt = 0.0
+    sii = 0.0
+    sti = 0.0
+    for k in range(P):
+        tc = T[k] - mt
+        icc = Ic[k] - mi
+        stt += tc * tc
+        sii += icc * icc
+        sti += tc * icc
+    return sti / math.sqrt(stt * sii + 1e-9)
+
+
 def _refine_py(ref, cur, gx, gy, uv_ref, c, A, half, iterations, max_shift_px):  # type: ignore[no-untyped-def]
     """Refine positions ``c`` (n, 2) and warps ``A`` (n, 2, 2) in place; returns the NCC and finite flag per feature.
 
     A feature whose solution is not finite is put back at its guess with an identity warp.
     """
     n = uv_ref.shape[0]
-    hr, wr = ref.shape
-    hc, wc = cur.shape
     side = 2 * half + 1
     P = side * side
     sx = np.empty(P)
@@ -111,97 +222,12 @@ def _refine_py(ref, cur, gx, gy, uv_ref, c, A, half, iterations, max_shift_px): 
     ok = np.ones(n, np.bool_)
     limit = 2.0 * max_shift_px + 1.0
     for q in range(n):
-        u0 = uv_ref[q, 0]
-        v0 = uv_ref[q, 1]
-        for k in range(P):
-            xa, xb, ya, yb, ax, ay, fin = _weights(hr, wr, u0 + sx[k], v0 + sy[k])
-            T[k] = _at(ref, xa, xb, ya, yb, ax, ay) if fin else 0.0
-            Jm[6, k] = -T[k]
-            Jm[7, k] = -1.0
+        _template(ref, uv_ref[q, 0], uv_ref[q, 1], sx, sy, T, Jm)
         g0 = c[q, 0]
         g1 = c[q, 1]
-        gain = 1.0
-        offset = 0.0
-        for _ in range(iterations):
-            c0 = c[q, 0]
-            c1 = c[q, 1]
-            a00 = A[q, 0, 0]
-            a01 = A[q, 0, 1]
-            a10 = A[q, 1, 0]
-            a11 = A[q, 1, 1]
-            for k in range(P):
-                xa, xb, ya, yb, ax, ay, fin = _weights(hc, wc, c0 + a00 * sx[k] + a01 * sy[k],
-                                                       c1 + a10 * sx[k] + a11 * sy[k])
-                if fin:
-                    ic = _at(cur, xa, xb, ya, yb, ax, ay)
-                    ggx = _at(gx, xa, xb, ya, yb, ax, ay)
-                    ggy = _at(gy, xa, xb, ya, yb, ax, ay)
-                else:
-                    ic = 0.0
-                    ggx = 0.0
-                    ggy = 0.0
-                Jm[8, k] = ic - (gain * T[k] + offset)
-                Jm[0, k] = ggx
-                Jm[1, k] = ggy
-                Jm[2, k] = ggx * sx[k]
-                Jm[3, k] = ggx * sy[k]
-                Jm[4, k] = ggy * sx[k]
-                Jm[5, k] = ggy * sy[k]
-            for i in range(8):
-                g[i] = _dot(Jm[i], Jm[8])
-                for j in range(i, 8):
-                    H[i, j] = _dot(Jm[i], Jm[j])
-                    H[j, i] = H[i, j]
-            for i in range(8):
-                H[i, i] += 1e-6 * (1.0 + H[i, i])
-            if not _solve8(H, g, dp):
-                break  # a singular (flat) patch stays where it is
-            c[q, 0] += dp[0]
-            c[q, 1] += dp[1]
-            A[q, 0, 0] += dp[2]
-            A[q, 0, 1] += dp[3]
-            A[q, 1, 0] += dp[4]
-            A[q, 1, 1] += dp[5]
-            gain += dp[6]
-            offset += dp[7]
-            e0 = c[q, 0] - g0
-            e1 = c[q, 1] - g1
-            if not (math.isfinite(c[q, 0]) and math.isfinite(c[q, 1])) or math.sqrt(e0 * e0 + e1 * e1) > limit:
-                break
-            if max(abs(dp[0]), abs(dp[1])) < 1e-3:
-                break  # converged
-        finite = math.isfinite(c[q, 0]) and math.isfinite(c[q, 1])
-        for i in range(2):
-            for j in range(2):
-                finite = finite and math.isfinite(A[q, i, j])
-        ok[q] = finite
-        if not finite:
-            c[q, 0] = g0
-            c[q, 1] = g1
-            A[q, 0, 0] = 1.0
-            A[q, 0, 1] = 0.0
-            A[q, 1, 0] = 0.0
-            A[q, 1, 1] = 1.0
-        mt = 0.0
-        mi = 0.0
-        for k in range(P):
-            xa, xb, ya, yb, ax, ay, fin = _weights(hc, wc, c[q, 0] + A[q, 0, 0] * sx[k] + A[q, 0, 1] * sy[k],
-                                                   c[q, 1] + A[q, 1, 0] * sx[k] + A[q, 1, 1] * sy[k])
-            Ic[k] = _at(cur, xa, xb, ya, yb, ax, ay) if fin else 0.0
-            mt += T[k]
-            mi += Ic[k]
-        mt /= P
-        mi /= P
-        stt = 0.0
-        sii = 0.0
-        sti = 0.0
-        for k in range(P):
-            tc = T[k] - mt
-            icc = Ic[k] - mi
-            stt += tc * tc
-            sii += icc * icc
-            sti += tc * icc
-        ncc[q] = sti / math.sqrt(stt * sii + 1e-9)
+        _gauss_newton(cur, gx, gy, c, A, q, sx, sy, T, Jm, H, g, dp, iterations, limit)
+        ok[q] = _finite_or_reset(c, A, q, g0, g1)
+        ncc[q] = _ncc(cur, c, A, q, sx, sy, T, Ic)
     return ncc, ok
 
 
@@ -211,6 +237,13 @@ _at = numba.njit(cache=True, nogil=True, inline="always")(_at_py)
 # a sum in any order (vectorised); no assumption about NaN or infinity
 _dot = numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract", "nsz", "arcp"})(_dot_py)
 _solve8 = _jit(_solve8_py)
+_inline = numba.njit(cache=True, nogil=True, inline="always")
+_template = _inline(_template_py)
+_rows = _inline(_rows_py)
+_normal = _inline(_normal_py)
+_gauss_newton = _inline(_gauss_newton_py)
+_finite_or_reset = _inline(_finite_or_reset_py)
+_ncc = _inline(_ncc_py)
 refine_features = _jit(_refine_py)
 
 
