@@ -877,6 +877,22 @@ class SelfCalibrationConfig(_Section):
     laser_match_px: float = Field(
         1.5, gt=0, description="laser-stereo: a landmark this close to the stripe in the image"
     )
+    # issue 31, selfcal4: with the recorded rectification a right match lies up to 2.4 px off the
+    # left row (realistic orbits); the 1-D sub-pixel step reads its column at the left row, where a
+    # patch's shear turns the row offset into a column error that biases the calibration. While
+    # refining (refine != none) the front end measures at the match's own row (frontend.stereo_subpixel
+    # gradient_2d); with refine none it is untouched. Measured (tools/bench_selfcal.py, refined run,
+    # frontend -> gradient_2d): see CHANGELOG (selfcal4) and README "Self-calibration"
+    stereo_subpixel: Literal["frontend", "gradient_2d"] = Field(
+        "gradient_2d",
+        description="front end's sub-pixel disparity while refining: frontend.stereo_subpixel as set, or gradient_2d",
+    )
+
+    def frontend_config(self, frontend: FrontendConfig) -> FrontendConfig:
+        """The front end's configuration for a run with this self-calibration (``stereo_subpixel`` while refining)."""
+        if self.refine == "none" or self.stereo_subpixel == "frontend":
+            return frontend
+        return frontend.model_copy(update={"stereo_subpixel": self.stereo_subpixel})
 
 
 class Config(_Section):

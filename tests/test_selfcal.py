@@ -306,3 +306,21 @@ def test_run_writes_the_refined_calibration(tmp_path: Path) -> None:
     assert abs(cal.baseline_m - seq_cal.baseline_m) < 1e-9
     assert np.allclose(cal.K_left, res.calibration_refined.K_left)
     assert not (out["none"].folder / "calibration_refined.yaml").exists()
+
+
+def test_refining_reads_right_columns_at_their_rows() -> None:
+    """While refining, the front end measures the right column at the match's own row (gradient_2d).
+
+    With refine none the front end's own setting stands; ``calibration.stereo_subpixel: frontend`` keeps it too.
+    """
+    from loopmodel.config import Config
+
+    cfg = Config()
+    own = cfg.frontend.stereo_subpixel
+    assert own != "gradient_2d"  # the front end's default (else the test checks nothing)
+    assert cfg.calibration.frontend_config(cfg.frontend).stereo_subpixel == own
+    cfg.calibration.refine = "final"  # type: ignore[assignment]
+    assert cfg.calibration.frontend_config(cfg.frontend).stereo_subpixel == "gradient_2d"
+    assert cfg.frontend.stereo_subpixel == own  # the run's configuration is not changed
+    cfg.calibration.stereo_subpixel = "frontend"  # type: ignore[assignment]
+    assert cfg.calibration.frontend_config(cfg.frontend).stereo_subpixel == own
