@@ -881,6 +881,25 @@ class SelfCalibrationConfig(_Section):
     laser_match_px: float = Field(
         1.5, gt=0, description="laser-stereo: a landmark this close to the stripe in the image"
     )
+    # issue 31, selfcal4: with the recorded rectification a right match lies up to 2.4 px off the
+    # left row (realistic orbits); the 1-D sub-pixel step reads its column at the left row, where a
+    # patch's shear turns the row offset into a column error that biases the calibration. While
+    # refining (refine != none) the front end measures at the match's own row (frontend.stereo_subpixel
+    # gradient_2d); with refine none it is untouched. Measured (tools/bench_selfcal.py, refined run,
+    # frontend -> gradient_2d; realistic orbits, seeds 1 / 2 / 3): largest parameter error 2.11 /
+    # 2.06 / 1.69 -> 0.87 / 0.68 / 1.82 prior sigmas, drift 0.081 / 0.135 / 0.036 -> 0.079 / 0.097 /
+    # 0.034 %, mesh 0.59 / 0.88 / 0.70 -> 0.49 / 0.76 / 0.66 mm; the KITTI clip refined drift 0.889 ->
+    # 0.899 %, ATE 0.052 -> 0.055 m (off: 1.036 %, 0.102 m)
+    stereo_subpixel: Literal["frontend", "gradient_2d"] = Field(
+        "gradient_2d",
+        description="front end's sub-pixel disparity while refining: frontend.stereo_subpixel as set, or gradient_2d",
+    )
+
+    def frontend_config(self, frontend: FrontendConfig) -> FrontendConfig:
+        """The front end's configuration for a run with this self-calibration (``stereo_subpixel`` while refining)."""
+        if self.refine == "none" or self.stereo_subpixel == "frontend":
+            return frontend
+        return frontend.model_copy(update={"stereo_subpixel": self.stereo_subpixel})
 
 
 class Config(_Section):

@@ -360,7 +360,8 @@ class _Run:
         self.config = config
         self.listeners = listeners
         self.finishing = finishing
-        self.frontend = FrontEnd(calibration, config.frontend)
+        # issue 31: while refining, right-image columns read at their own rows (calibration.stereo_subpixel)
+        self.frontend = FrontEnd(calibration, config.calibration.frontend_config(config.frontend))
         # issue 33: in a worker beside the tracker (config.backend.worker)
         make = functools.partial(create_backend, config.backend, self.frontend.calibration, config.givens)
         self.backend: Backend = start_backend(config.backend, make)

@@ -8,7 +8,7 @@ calibration, the right one on the left one's row.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -48,6 +48,8 @@ class Scene:
     R2: np.ndarray
     P1: np.ndarray
     P2: np.ndarray
+    #: keyframe id -> the rectified row of each stereo match in the right image (``stereo_px`` order)
+    right_rows: dict[int, np.ndarray] = field(default_factory=dict)
 
 
 def true_rig(baseline_m: float = 0.06) -> StereoCalibration:
@@ -111,6 +113,7 @@ def make_scene(
     w, h = true.image_size
     keyframes: list[Keyframe] = []
     visible: list[np.ndarray] = []
+    right_rows: dict[int, np.ndarray] = {}
     for k, T in enumerate(world_from_kf):
         p_l = (invert_pose(T) @ np.column_stack([pts, np.ones(n_points)]).T).T[:, :3]
         p_r = p_l @ true.right_from_left[:3, :3].T + true.right_from_left[:3, 3]
@@ -136,6 +139,7 @@ def make_scene(
         # the front end: every keyframe defines new landmarks in stereo (id: point + n_points * keyframe),
         # tracked as monocular observations into the next ``track_kf`` keyframes
         stereo_px = np.column_stack([rl[:, 0], rr[:, 0], rl[:, 1]])
+        right_rows[k] = rr[:, 1].copy()
         ids = idx + n_points * k
         mono_rows = []
         for j in range(1, track_kf + 1):
@@ -156,4 +160,4 @@ def make_scene(
                 rect_from_cam=make_pose(R1, np.zeros(3)),
             )
         )
-    return Scene(true, rec, world_from_kf, pts, keyframes, R1, R2, P1, P2)
+    return Scene(true, rec, world_from_kf, pts, keyframes, R1, R2, P1, P2, right_rows)

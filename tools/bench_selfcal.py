@@ -26,7 +26,11 @@ run three times by :func:`loopmodel.pipeline.process`: with the recorded calibra
 
 The KITTI clip (real, rectified, well calibrated): ``kitti_drift_pct_off`` / ``_refined``,
 ``kitti_ate_m_off`` / ``_refined``, ``kitti_moved_max_sigma`` (the largest move of a parameter, in
-its prior sigma; ``kitti_moved_max_post_sigma`` in its posterior sigma). The top level holds the
+its prior sigma; ``kitti_moved_max_post_sigma`` in its posterior sigma); ``kitti_rows_rot_z_deg`` (and
+``_sd_deg``): the clip's stereo rotation about the optical axis from the right image's rows alone, an
+independent check of the refined ``rot_z_deg`` (:func:`_kitti_row_rotation`). The chessboard rig:
+``chess_*_default`` / ``_own`` (the configured priors / its calibration's own sigmas, right columns only)
+and ``chess_*_rows`` (the right corners' rows measured too). The top level holds the
 worst over seeds of each key. Scans are generated when missing into ``~/.cache/loopmodel/selfcal``
 (minutes each). ``--quick``: seed 1's first 80 frames at every 2nd frame (recorded and refined only,
 no true-calibration run), no KITTI.
@@ -271,6 +275,58 @@ def _kitti() -> dict[str, Any]:
     return out
 
 
+def _kitti_row_rotation() -> dict[str, Any]:
+    """The KITTI clip's stereo rotation about the optical axis from the right image's rows alone.
+
+    An independent check of the refinement's ``rot_z_deg`` (which sees only the right column): a
+    rotation ``phi`` of the right camera about its optical axis puts a rectified right match
+    ``phi (u - cx)`` off the left row. Corners tracked left -> right by OpenCV's pyramidal
+    Lucas-Kanade (2-D, forward-backward within 0.1 px), a robust fit of the row offset in
+    ``(u - cx) / f`` and ``(v - cy) / f``; the standard deviation by resampling whole pairs.
+    """
+    import cv2
+
+    from loopmodel.io.sequence import open_sequence
+
+    path = _kitti_path()
+    if not path.is_dir():
+        return {}
+    seq = open_sequence(path, Config().sequence)
+    K = seq.calibration.K_left
+    f, cx, cy = K[0, 0], K[0, 2], K[1, 2]
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-4)
+    rows = []
+    for frame in seq.frames():
+        left, right = (im if im.ndim == 2 else cv2.cvtColor(im, cv2.COLOR_BGR2GRAY) for im in (frame.left, frame.right))
+        p = cv2.goodFeaturesToTrack(left, 1500, 0.01, 8)
+        q, st, _ = cv2.calcOpticalFlowPyrLK(left, right, p, None, winSize=(21, 21), maxLevel=4, criteria=crit)
+        b, st2, _ = cv2.calcOpticalFlowPyrLK(right, left, q, None, winSize=(21, 21), maxLevel=4, criteria=crit)
+        p, q, b = p.reshape(-1, 2), q.reshape(-1, 2), b.reshape(-1, 2)
+        d = p[:, 0] - q[:, 0]
+        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(b - p, axis=1) < 0.1)
+        ok &= (d > 2) & (d < 150) & (np.abs(q[:, 1] - p[:, 1]) < 3)
+        rows.append(np.column_stack([(p[ok, 0] - cx) / f, (p[ok, 1] - cy) / f, q[ok, 1] - p[ok, 1]]))
+    X = np.vstack(rows)
+    A = np.column_stack([np.ones(X.shape[0]), X[:, 0], X[:, 1]])
+    w = np.ones(X.shape[0])
+    for _ in range(6):  # Huber at 2 MAD sigmas
+        coef = np.linalg.lstsq(A * w[:, None], X[:, 2] * w, rcond=None)[0]
+        r = X[:, 2] - A @ coef
+        s = 1.4826 * float(np.median(np.abs(r)))
+        w = np.sqrt(np.minimum(1.0, 2.0 * s / np.maximum(np.abs(r), 1e-9)))
+    edges = np.cumsum([0] + [len(x) for x in rows])
+    rng = np.random.default_rng(0)
+    boot = []
+    for _ in range(200):
+        sel = np.concatenate([np.arange(edges[k], edges[k + 1]) for k in rng.integers(0, len(rows), len(rows))])
+        boot.append(np.linalg.lstsq(A[sel] * w[sel, None], X[sel, 2] * w[sel], rcond=None)[0][1])
+    return {
+        "kitti_rows_rot_z_deg": round(float(np.degrees(coef[1] / f)), 4),
+        "kitti_rows_rot_z_sd_deg": round(float(np.degrees(np.std(boot) / f)), 4),
+        "kitti_rows_matches": int(X.shape[0]),
+    }
+
+
 def _chessboard() -> dict[str, Any]:
     """The real stereo chessboard rig (13 pairs): self-calibration from its corners alone.
 
@@ -297,6 +353,7 @@ def _chessboard() -> dict[str, Any]:
     obj = board_points((9, 6), 1.0)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     kfs, poses = [], []
+    right_rows: dict[int, np.ndarray] = {}
     std = []
     for side, corners, K, D in ((0, res.corners_left, cal.K_left, cal.dist_left),
                                 (1, res.corners_right, cal.K_right, cal.dist_right)):
@@ -317,10 +374,15 @@ def _chessboard() -> dict[str, Any]:
         rr = cv2.undistortPoints(cr.reshape(-1, 1, 2), cal.K_right, cal.dist_right, R=res.R_right, P=res.P_right,
                                  criteria=crit).reshape(-1, 2)
         stereo = np.column_stack([rl[:, 0], rr[:, 0], rl[:, 1]])
+        right_rows[k] = rr[:, 1]
         ids = np.arange(len(obj))
         kfs.append(Keyframe(k, k, poses[-1], ids, np.zeros((len(obj), 3)), stereo))
     obs, _kf_ids, lm = observations_from_keyframes(
         kfs, cal, res.P_left[:3, :3], res.P_right[:3, :3], res.R_left, res.R_right
+    )
+    # the right corners' rows measured too (and the right camera's fy, cy and the x rotation estimated)
+    obs_rows, _kf_ids, _lm = observations_from_keyframes(
+        kfs, cal, res.P_left[:3, :3], res.P_right[:3, :3], res.R_left, res.R_right, right_rows
     )
     c = Config().calibration
     out: dict[str, Any] = {"chess_views": len(kfs), "chess_rms_stereo_px": round(res.rms_stereo_px, 3)}
@@ -329,8 +391,11 @@ def _chessboard() -> dict[str, Any]:
     own = base.copy()
     for side in (0, 1):
         own[6 * side : 6 * side + 6] = std[side][[0, 1, 2, 3, 4, 5]]
-    for name, prior in (("default", base), ("own", own)):
-        _p, _pts, rep = refine_rig(obs, np.array(poses), obj[lm], cal, prior, estimated_parameters(c))
+    est_u = estimated_parameters(c)
+    est_rows = estimated_parameters(c.model_copy(update={"refine_right_rows": True}))
+    for name, prior, ob, est in (("default", base, obs, est_u), ("own", own, obs, est_u),
+                                 ("rows", base, obs_rows, est_rows)):
+        _p, _pts, rep = refine_rig(ob, np.array(poses), obj[lm], cal, prior, est)
         moved = rep.moved_sigma()
         out[f"chess_moved_max_sigma_{name}"] = round(max(abs(v) for v in moved.values()), 3)
         out[f"chess_moved_sigma_{name}"] = {k: round(v, 2) for k, v in moved.items()}
@@ -356,7 +421,7 @@ def run(quick: bool = False) -> dict[str, Any]:
     for s in seeds:
         per[f"seed_{s}"] = _scan(s, quick)
         print(json.dumps({f"seed_{s}": per[f"seed_{s}"]}), file=sys.stderr, flush=True)  # progress
-    return summary(per, quick, None if quick else {**_kitti(), **_chessboard()})
+    return summary(per, quick, None if quick else {**_kitti(), **_kitti_row_rotation(), **_chessboard()})
 
 
 def summary(per: dict[str, dict[str, Any]], quick: bool, real: dict[str, Any] | None) -> dict[str, Any]:

@@ -210,7 +210,8 @@ class RigObservations:
     ``measure`` (N x 2 x 2) maps a raw-pixel difference to what was measured: the identity for a
     left-image point (u and v measured); for the right image only the rectified u is measured (the
     front end matches along the left point's row), so its first row is the gradient of the
-    rectified u with respect to the raw pixel (the recorded model) and its second row is zero.
+    rectified u with respect to the raw pixel (the recorded model) and its second row is zero;
+    where the right match's own row is given both rows are the rectified pixel's gradient.
     """
 
     pose_idx: I64
@@ -227,9 +228,14 @@ class RigObservations:
         return int(self.pose_idx.size)
 
     @property
+    def row_measured(self) -> NDArray[np.bool_]:
+        """Observations whose row is measured: every left one, a right one where its row was given."""
+        return (self.cam == 0) | np.any(self.measure[:, 1, :] != 0.0, axis=1)
+
+    @property
     def residual_count(self) -> int:
-        """Scalar measurements (2 per left point, 1 per right point)."""
-        return int(2 * np.sum(self.cam == 0) + np.sum(self.cam == 1))
+        """Scalar measurements (2 per left point, 1 per right point, 2 where its row is measured)."""
+        return int(len(self) + np.sum(self.row_measured))
 
 
 def raw_from_rectified_px(uv_rect_px: F64, K_rect: F64, rect_from_cam_rot: F64, K: F64, dist: F64) -> F64:
@@ -271,12 +277,16 @@ def observations_from_keyframes(
     K_rect_right: F64,
     R_rect_left: F64,
     R_rect_right: F64,
+    right_rows_px: dict[int, F64] | None = None,
 ) -> tuple[RigObservations, list[int], I64]:
     """The keyframes' stereo and monocular measurements as raw pixels of the recorded model.
 
     Returns the observations, the keyframe ids in pose order and the landmark ids in point order.
     A keyframe's monocular observation of a landmark it also measures in stereo is dropped (one
-    measurement of one feature).
+    measurement of one feature). ``right_rows_px`` (keyframe id -> rectified row of each stereo
+    match in the right image, the order of ``stereo_px``): where given, the right image's row is
+    measured too (both rectified coordinates), which makes the right camera's fy, cy and the
+    rotation about the baseline observable; else only its rectified u at the left row.
     """
     kf_ids = [int(k.id) for k in keyframes]
     pose_of = {k: i for i, k in enumerate(kf_ids)}
@@ -284,16 +294,20 @@ def observations_from_keyframes(
     pose_rows: list[I64] = []
     cam_rows: list[I64] = []
     uv_rect: list[F64] = []
+    row_measured: list[NDArray[np.bool_]] = []
     for kf in keyframes:
         i = pose_of[int(kf.id)]
         ids = np.asarray(kf.landmark_ids, np.int64).ravel()
         st = np.asarray(kf.stereo_px, float).reshape(-1, 3)
+        rows_r = None if right_rows_px is None else right_rows_px.get(int(kf.id))
         if ids.size:
             for side, col in ((0, 0), (1, 1)):
                 lm_rows.append(ids)
                 pose_rows.append(np.full(ids.size, i, np.int64))
                 cam_rows.append(np.full(ids.size, side, np.int64))
-                uv_rect.append(np.column_stack([st[:, col], st[:, 2]]))
+                v = st[:, 2] if side == 0 or rows_r is None else np.asarray(rows_r, float).ravel()
+                uv_rect.append(np.column_stack([st[:, col], v]))
+                row_measured.append(np.full(ids.size, side == 0 or rows_r is not None))
         mono = np.asarray(kf.mono_obs, float).reshape(-1, 3)
         if mono.shape[0]:
             mids = mono[:, 0].astype(np.int64)
@@ -302,6 +316,7 @@ def observations_from_keyframes(
             pose_rows.append(np.full(int(keep.sum()), i, np.int64))
             cam_rows.append(np.zeros(int(keep.sum()), np.int64))
             uv_rect.append(mono[keep, 1:3])
+            row_measured.append(np.ones(int(keep.sum()), bool))
     if not lm_rows:
         empty = np.zeros(0, np.int64)
         return RigObservations(empty, empty, empty, np.zeros((0, 2)), np.zeros((0, 2, 2))), kf_ids, empty
@@ -309,11 +324,12 @@ def observations_from_keyframes(
     pose = np.concatenate(pose_rows)
     cam = np.concatenate(cam_rows)
     uvr = np.concatenate(uv_rect)
+    both = np.concatenate(row_measured)
     # one observation per (keyframe, landmark, camera): the first
     key = (pose * (lm.max() + 1) + lm) * 2 + cam
     _, first = np.unique(key, return_index=True)
     first = np.sort(first)
-    lm, pose, cam, uvr = lm[first], pose[first], cam[first], uvr[first]
+    lm, pose, cam, uvr, both = lm[first], pose[first], cam[first], uvr[first], both[first]
     lm_ids, point = np.unique(lm, return_inverse=True)
     uv = np.zeros_like(uvr)
     measure = np.zeros((uv.shape[0], 2, 2))
@@ -324,8 +340,8 @@ def observations_from_keyframes(
         d = cal_input.dist_left if side == 0 else cal_input.dist_right
         uv[sel], grad = _raw_and_gradient(uvr[sel], K_rect, R_rect, K, d)
         if side == 1:
-            m = np.zeros((int(sel.sum()), 2, 2))
-            m[:, 0, :] = grad[:, 0, :]
+            m = grad.copy()  # the right row measured: both rectified coordinates
+            m[~both[sel], 1, :] = 0.0  # else the rectified u only
             measure[sel] = m
     obs = RigObservations(pose, point.astype(np.int64), cam, uv, measure)
     return obs, kf_ids, lm_ids.astype(np.int64)
@@ -370,17 +386,19 @@ def residuals_and_jacobians(
         d_uv = uv - obs.uv_px[sel]
         o = 6 * side
         if side == 1:
-            # only the rectified u is measured: one row, the gradient m of u_rect by the raw pixel
-            m = obs.measure[sel, 0, :]
-            res[sel, 0] = np.sum(m * d_uv, axis=1)
-            jq = np.einsum("nk,nkj->nj", m, Jq)  # N x 3
-            J_th[sel, 0, o : o + 6] = np.einsum("nk,nkj->nj", m, Ji)
-            J_th[sel, 0, _ROT] = np.cross(q - t_rl, jq)  # the row jq (-[q - t]x)
-            J_th[sel, 0, _BASE] = jq @ rig.baseline_dir
-            jl = jq @ R_rl  # by p_l
-            J_pose[sel, 0, :3] = np.cross(jl, pc)  # the row jl [p_l]x
-            J_pose[sel, 0, 3:] = -jl
-            J_pt[sel, 0] = np.einsum("nj,nkj->nk", jl, R[sel])
+            # the rectified u (and the rectified v where the right row is measured, else a zero
+            # row): the rows of m, the gradient of the rectified pixel by the raw pixel
+            for row in (0, 1):
+                m = obs.measure[sel, row, :]
+                res[sel, row] = np.sum(m * d_uv, axis=1)
+                jq = np.einsum("nk,nkj->nj", m, Jq)  # N x 3
+                J_th[sel, row, o : o + 6] = np.einsum("nk,nkj->nj", m, Ji)
+                J_th[sel, row, _ROT] = np.cross(q - t_rl, jq)  # the row jq (-[q - t]x)
+                J_th[sel, row, _BASE] = jq @ rig.baseline_dir
+                jl = jq @ R_rl  # by p_l
+                J_pose[sel, row, :3] = np.cross(jl, pc)  # the row jl [p_l]x
+                J_pose[sel, row, 3:] = -jl
+                J_pt[sel, row] = np.einsum("nj,nkj->nk", jl, R[sel])
         else:
             res[sel] = d_uv
             J_th[sel, :, o : o + 6] = Ji
@@ -759,7 +777,7 @@ def robust_sigma_px(r: F64, unknowns: int, obs: RigObservations | None = None) -
     """Pixel noise of residuals (N x 2): 1.4826 MAD of the measured components, corrected for the redundancy."""
     comp = np.abs(r).ravel()
     if obs is not None:
-        comp = np.concatenate([np.abs(r[:, 0]), np.abs(r[obs.cam == 0, 1])])
+        comp = np.concatenate([np.abs(r[:, 0]), np.abs(r[obs.row_measured, 1])])
     n = comp.size
     mad = 1.4826 * float(np.median(comp)) if n else float("nan")
     red = n - unknowns
