@@ -642,9 +642,12 @@ class _Run:
         """
         result.stripes = self.laser.stripes
         result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, self.config.mapping)
+        t0 = time.perf_counter()
         if not result.interrupted:
             self.live.close(wait=True)
         result.live_mesh = self.live.mesh()
+        if self.live.enabled:  # of the mesh step: the wait for the live mesh's last update and its install
+            mesh_metrics["live_mesh_wait_s"] = time.perf_counter() - t0
         return mesh_metrics
 
     def _estimate(self, interrupted: bool) -> RunResult:

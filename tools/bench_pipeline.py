@@ -214,6 +214,8 @@ def finish_keys(prefix: str, r: dict[str, Any]) -> dict[str, Any]:
     out[f"wall_s_{prefix}"] = round(r["wall_s"], 2)
     for step, sec in (m.get("finish_s") or {}).items():
         out[f"finish_s_{step}_{prefix}"] = round(sec, 2)
+    if m.get("live_mesh_wait_s") is not None:  # of the mesh step
+        out[f"live_mesh_wait_s_{prefix}"] = round(m["live_mesh_wait_s"], 2)
     return out
 
 
