@@ -957,7 +957,7 @@ def run(
         cfg = config_from_dict(dict(config))
     else:
         cfg = config if isinstance(config, Config) else load_config(config)
-    seq = source if isinstance(source, Sequence) else open_sequence(source, cfg.sequence)
+    seq = open_sequence(source, cfg.sequence) if isinstance(source, str | Path) else source
     kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
     kwargs.update(base_map=base_map, resume=resume)
     if out_dir is not None:
