@@ -94,6 +94,7 @@ __all__ = [
     "StopFlag",
     "frontend_metrics",
     "frontend_only",
+    "interrupted_error",
     "process",
     "run",
     "run_frontend",
@@ -644,9 +645,12 @@ class _Run:
         """
         result.stripes = self.laser.stripes
         result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, self.config.mapping)
+        t0 = time.perf_counter()
         if not result.interrupted:
             self.live.close(wait=True)
         result.live_mesh = self.live.mesh()
+        if self.live.enabled:  # of the mesh step: the wait for the live mesh's last update and its install
+            mesh_metrics["live_mesh_wait_s"] = time.perf_counter() - t0
         return mesh_metrics
 
     def _estimate(self, interrupted: bool) -> RunResult:
@@ -895,18 +899,23 @@ def run_pipeline(
     it continues an interrupted run from its last keyframe. ``finishing`` is told each step after
     the last frame (:data:`FINISH_STEPS`).
     """
-    folder = ResultsFolder(out_dir if out_dir is not None else config.output.out_dir, name)
-    kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
-    kwargs.update(base_map=base_map, resume=resume)
-    result = _process_and_write(folder, sequence, config, handle_signals, evaluate, finishing, **kwargs)
-    beside = result.folder is not None and result.folder != folder.requested
-    if result.error is not None:
-        if beside:  # (issue 34) the older complete run stays; say where this one is
-            result.error.args = (f"{result.error}; {_kept_beside(result.folder, folder.requested)}",)
-        raise result.error
+    out = out_dir if out_dir is not None else config.output.out_dir
+    result = run(
+        sequence, config, out, name=name, max_frames=max_frames, progress=progress, handle_signals=handle_signals,
+        listeners=listeners, evaluate=evaluate, finishing=finishing, base_map=base_map, resume=resume,
+    )
     if result.interrupted:
-        raise RunInterrupted(result.folder, _kept_beside(result.folder, folder.requested) if beside else "")
+        raise interrupted_error(result, Path(out) / name)
     return result
+
+
+def interrupted_error(result: RunResult, requested: Path) -> RunInterrupted:
+    """The :class:`RunInterrupted` of an interrupted ``result`` written for the folder ``requested``.
+
+    Its note says where the results are when they were kept beside an older complete run (issue 34).
+    """
+    beside = result.folder is not None and result.folder != requested
+    return RunInterrupted(result.folder, _kept_beside(result.folder, requested) if beside else "")
 
 
 def _kept_beside(where: Path | None, old: Path) -> str:
@@ -925,6 +934,8 @@ def run(
     listeners: list[RunListener] | None = None,
     evaluate: bool = True,
     finishing: FinishFn | None = None,
+    base_map: SessionMap | None = None,
+    resume: ResumePoint | None = None,
 ) -> RunResult:
     """Run the whole pipeline over a sequence and return what it produced.
 
@@ -937,7 +948,11 @@ def run(
     the write when ``out_dir`` is given). ``listeners`` are told every event
     (:class:`~loopmodel.listener.RunListener`: visualisation, recording). With ``evaluate`` (and
     ground truth in the sequence) the metrics hold the errors of :func:`loopmodel.evaluate`, run
-    after the pipeline."""
+    after the pipeline. With ``base_map`` (a loaded :class:`~loopmodel.loop.session_map.SessionMap`)
+    the session localizes in it or extends it (``config.session.mode``); with ``resume``
+    (:func:`~loopmodel.io.map_file.read_resume_point`) it continues an interrupted run from its last
+    keyframe. With ``out_dir``, an error of a run kept beside an older complete one (issue 34) says
+    where it is; :func:`interrupted_error` says it for an interrupted one."""
     from loopmodel.config import config_from_dict, load_config
     from loopmodel.io.sequence import open_sequence
 
@@ -945,11 +960,15 @@ def run(
         cfg = config_from_dict(dict(config))
     else:
         cfg = config if isinstance(config, Config) else load_config(config)
-    seq = source if isinstance(source, Sequence) else open_sequence(source, cfg.sequence)
+    seq = open_sequence(source, cfg.sequence) if isinstance(source, str | Path) else source
     kwargs: dict[str, Any] = {"progress": progress, "max_frames": max_frames, "listeners": listeners}
+    kwargs.update(base_map=base_map, resume=resume)
     if out_dir is not None:
         folder = ResultsFolder(out_dir, name)
         result = _process_and_write(folder, seq, cfg, handle_signals, evaluate, finishing, **kwargs)
+        if result.error is not None and result.folder is not None and result.folder != folder.requested:
+            # (issue 34) the older complete run stays; say where this one is
+            result.error.args = (f"{result.error}; {_kept_beside(result.folder, folder.requested)}",)
     else:
         stop = StopFlag()
         with stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop):

@@ -21,8 +21,9 @@ workers over the wall time of the KITTI run: above 1 when the workers use the se
 ``sim_frame_ms_max_after_warmup`` (the worst frame after the first 10),
 ``sim_fps``, ``sim_frame_ms_p95`` (the orbit scan with ``configs/sim.yaml``: live mesh every 5
 keyframes), ``wall_over_frames_kitti`` / ``wall_over_frames_sim`` (``run_pipeline``'s wall time, the
-final mesh, evaluation and writes included, over the frame loop's, issue 32), ``finish_s_<step>_<kitti|sim>``
-(each step after the last frame), ``import_s`` (a fresh interpreter importing
+final mesh, evaluation and writes included, over the frame loop's, issue 32), ``finish_s_<step>_<kitti|sim|sim150>``
+(each step after the last frame), ``wall_over_frames_sim150`` (the same on the 150-frame realistic orbit
+with laser images, :func:`scan150`; not with ``--quick``), ``import_s`` (a fresh interpreter importing
 ``loopmodel.pipeline``, median of 3).
 
 The trajectory errors are computed here in plain numpy from the written TUM files and the
@@ -54,6 +55,25 @@ ROOT = Path(__file__).resolve().parents[1]
 def shared_data() -> Path:
     """The shared real data (``tools/shared_data.py``)."""
     return SHARED_DATA
+
+
+def scan150() -> Path:
+    """``$LOOPMODEL_SIM_SCAN150`` or ``datasets/sample/orbit150.mcap`` (generated when missing).
+
+    The 150-frame realistic orbit of issue 32 (``loopmodel simulate scan --preset orbit --frames 150
+    --laser-image``: the stripes are extracted from laser images during the run).
+    """
+    env = os.environ.get("LOOPMODEL_SIM_SCAN150")
+    path = Path(env) if env else ROOT / "datasets" / "sample" / "orbit150.mcap"
+    if not path.is_file():
+        from loopmodel.config import Config
+        from loopmodel.sim.generate import resolve_config, simulate_scan
+
+        c = Config()
+        print(f"generating {path} (150-frame orbit with laser images) ...", file=sys.stderr)
+        over: dict[str, dict[str, object]] = {"trajectory": {"frames": 150}, "laser": {"image": True}}
+        simulate_scan(resolve_config(c.simulation, "orbit", over, None), path, c.sequence.topics, None, "orbit")
+    return path
 
 
 def sim_sample() -> Path:
@@ -194,6 +214,8 @@ def finish_keys(prefix: str, r: dict[str, Any]) -> dict[str, Any]:
     out[f"wall_s_{prefix}"] = round(r["wall_s"], 2)
     for step, sec in (m.get("finish_s") or {}).items():
         out[f"finish_s_{step}_{prefix}"] = round(sec, 2)
+    if m.get("live_mesh_wait_s") is not None:  # of the mesh step
+        out[f"live_mesh_wait_s_{prefix}"] = round(m["live_mesh_wait_s"], 2)
     return out
 
 
@@ -328,10 +350,22 @@ def sim(out: Path, quick: bool) -> dict[str, Any]:
     return res
 
 
+def sim150(out: Path) -> dict[str, Any]:
+    """The full pipeline on the 150-frame realistic orbit (:func:`scan150`, ``configs/sim.yaml``; issue 32)."""
+    from loopmodel.io.sequence import open_sequence
+
+    r = _run(open_sequence(scan150()), ROOT / "configs" / "sim.yaml", out, "sim150")
+    res: dict[str, Any] = {"sim150_mesh_err_after_mm": r["metrics"].get("mesh_err_after_mm")}
+    res.update(finish_keys("sim150", r))
+    return res
+
+
 def run(quick: bool = False) -> dict[str, Any]:
     out: dict[str, Any] = {"load": os.getloadavg()[0], "import_s": round(import_seconds(), 3)}
     with tempfile.TemporaryDirectory() as tmp:
         out.update(kitti(Path(tmp)))
         out.update(sim(Path(tmp), quick))
+        if not quick:
+            out.update(sim150(Path(tmp)))
     out["load_after"] = os.getloadavg()[0]
     return out

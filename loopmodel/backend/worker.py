@@ -75,78 +75,110 @@ def _serve(factory: Callable[[], Backend], inbox: Any, outbox: Any) -> None:
         outbox.put(("error", "start", f"{type(exc).__name__}: {exc}"))
         return
     outbox.put(("ready",))
-    estimate: dict[int, F64] = {}
-    n_kf = 0  # keyframes handed to the back end
+    _Server(backend, outbox).serve(inbox)
+
+
+def _take_all(inbox: Any) -> list[tuple[Any, ...]]:
+    """The next message (waited for) and every one waiting behind it."""
+    batch = [inbox.get()]
     while True:
-        batch = [inbox.get()]
-        while True:
-            try:
-                batch.append(inbox.get_nowait())
-            except queue.Empty:
-                break
-        dirty = False
-        update_ms: list[float] = []
+        try:
+            batch.append(inbox.get_nowait())
+        except queue.Empty:
+            return batch
+
+
+#: the messages that change the back end's problem (an estimate follows them)
+_UPDATES = ("kf", "obs", "loop", "remove")
+
+
+class _Server:
+    """The worker's side of one back end: its messages applied in order, its estimates sent back."""
+
+    def __init__(self, backend: Backend, outbox: Any) -> None:
+        self.backend, self.outbox = backend, outbox
+        self.estimate: dict[int, F64] = {}  # the back end's latest keyframe poses
+        self.n_kf = 0  # keyframes handed to the back end
+        self._new_batch()
+
+    def _new_batch(self) -> None:
+        self.dirty = False
+        self.update_ms: list[float] = []
         # (message kind, keyframes handed to the back end, CPU ms of this thread: the load does not
         # change it, and GTSAM here runs in the calling thread) (issue 33)
-        calls: list[tuple[str, int, float]] = []
-        t0 = time.perf_counter()
-        for msg in batch:
-            kind = msg[0]
-            if kind == "stop":
-                return
-            tc = time.thread_time()
-            try:
-                if kind == "kf":
-                    kf, prev_pose = msg[1], msg[2]
-                    prev = kf.prev_keyframe_id
-                    pose = np.asarray(kf.world_from_kf, float)
-                    if prev_pose is not None and prev in estimate:
-                        # the tracker chained this pose from its pose of the previous keyframe
-                        pose = estimate[prev] @ invert_pose(prev_pose) @ pose
-                    # projected on SE(3): products of products drift off it (issue 33: 1.0e-5 after
-                    # 34 keyframes of the scale bench's rounds scan, past the anchored map's bound)
-                    kf = dataclasses.replace(kf, world_from_kf=nearest_rigid(pose))
-                    tk = time.perf_counter()
-                    backend.add_keyframe(kf)
-                    update_ms.append((time.perf_counter() - tk) * 1e3)
-                    dirty = True
-                elif kind == "obs":
-                    backend.add_observations(msg[1], msg[2])
-                    dirty = True
-                elif kind == "loop":
-                    backend.add_loop_constraint(msg[1], msg[2], msg[3], msg[4])
-                    dirty = True
-                elif kind == "remove":
-                    backend.remove_observations(msg[1])
-                    dirty = True
-                elif kind == "landmarks":
-                    outbox.put(("landmarks", backend.estimate(landmarks=True)))
-                elif kind == "final":
-                    outbox.put(("final", backend.final_estimate(msg[1]), backend.metrics()))
-                elif kind == "metrics":
-                    outbox.put(("metrics", backend.metrics()))
-                elif kind == "ping":
-                    if dirty:
-                        te = time.thread_time()
-                        est = backend.estimate(landmarks=False)
-                        estimate.update(est.world_from_kf)
-                        calls.append(("estimate", n_kf, (time.thread_time() - te) * 1e3))
-                        outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, update_ms, 0.0, calls))
-                        calls = []
-                        dirty, update_ms = False, []
-                    outbox.put(("pong", msg[1]))
-            except Exception as exc:  # noqa: BLE001 - one failed call is reported, the worker goes on
-                outbox.put(("error", kind, f"{type(exc).__name__}: {exc}"))
-            if kind in ("kf", "obs", "loop", "remove"):
-                n_kf += kind == "kf"
-                calls.append((kind, n_kf, (time.thread_time() - tc) * 1e3))
-        if dirty:
-            te = time.thread_time()
-            est = backend.estimate(landmarks=False)
-            estimate.update(est.world_from_kf)
-            calls.append(("estimate", n_kf, (time.thread_time() - te) * 1e3))
-            batch_ms = (time.perf_counter() - t0) * 1e3
-            outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, update_ms, batch_ms, calls))
+        self.calls: list[tuple[str, int, float]] = []
+
+    def serve(self, inbox: Any) -> None:
+        """Take every waiting message, apply them in order, then estimate once; until ``stop``."""
+        while True:
+            batch = _take_all(inbox)
+            self._new_batch()
+            t0 = time.perf_counter()
+            for msg in batch:
+                if msg[0] == "stop":
+                    return
+                self._handle(msg)
+            if self.dirty:
+                self._publish(t0)
+
+    def _handle(self, msg: tuple[Any, ...]) -> None:
+        """One message; a failed call is reported and the worker goes on."""
+        kind = msg[0]
+        tc = time.thread_time()
+        try:
+            if kind in _UPDATES:
+                self._update(msg)
+            elif kind == "landmarks":
+                self.outbox.put(("landmarks", self.backend.estimate(landmarks=True)))
+            elif kind == "final":
+                self.outbox.put(("final", self.backend.final_estimate(msg[1]), self.backend.metrics()))
+            elif kind == "metrics":
+                self.outbox.put(("metrics", self.backend.metrics()))
+            elif kind == "ping":
+                if self.dirty:
+                    self._publish(None)
+                self.outbox.put(("pong", msg[1]))
+        except Exception as exc:  # noqa: BLE001 - one failed call is reported, the worker goes on
+            self.outbox.put(("error", kind, f"{type(exc).__name__}: {exc}"))
+        if kind in _UPDATES:
+            self.n_kf += kind == "kf"
+            self.calls.append((kind, self.n_kf, (time.thread_time() - tc) * 1e3))
+
+    def _update(self, msg: tuple[Any, ...]) -> None:
+        kind = msg[0]
+        if kind == "kf":
+            self._add_keyframe(msg[1], msg[2])
+        elif kind == "obs":
+            self.backend.add_observations(msg[1], msg[2])
+        elif kind == "loop":
+            self.backend.add_loop_constraint(msg[1], msg[2], msg[3], msg[4])
+        else:
+            self.backend.remove_observations(msg[1])
+        self.dirty = True
+
+    def _add_keyframe(self, kf: Keyframe, prev_pose: F64 | None) -> None:
+        """The keyframe re-based on the back end's estimate of its previous keyframe, then added."""
+        prev = kf.prev_keyframe_id
+        pose = np.asarray(kf.world_from_kf, float)
+        if prev_pose is not None and prev in self.estimate:
+            # the tracker chained this pose from its pose of the previous keyframe
+            pose = self.estimate[prev] @ invert_pose(prev_pose) @ pose
+        # projected on SE(3): products of products drift off it (issue 33: 1.0e-5 after
+        # 34 keyframes of the scale bench's rounds scan, past the anchored map's bound)
+        kf = dataclasses.replace(kf, world_from_kf=nearest_rigid(pose))
+        tk = time.perf_counter()
+        self.backend.add_keyframe(kf)
+        self.update_ms.append((time.perf_counter() - tk) * 1e3)
+
+    def _publish(self, batch_t0: float | None) -> None:
+        """Estimate and send it (with the batch's wall ms since ``batch_t0``; 0 when asked by a ping)."""
+        te = time.thread_time()
+        est = self.backend.estimate(landmarks=False)
+        self.estimate.update(est.world_from_kf)
+        self.calls.append(("estimate", self.n_kf, (time.thread_time() - te) * 1e3))
+        batch_ms = 0.0 if batch_t0 is None else (time.perf_counter() - batch_t0) * 1e3
+        self.outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, self.update_ms, batch_ms, self.calls))
+        self._new_batch()
 
 
 # --------------------------------------------------------------------------- the tracker's side
@@ -213,26 +245,30 @@ class BackgroundBackend:
                 if deadline is not None and time.perf_counter() >= deadline:
                     raise EstimationError(f"the back-end worker did not answer within {timeout_s:.0f} s") from None
                 continue
-            kind = msg[0]
-            if kind == "estimate":
-                _, poses, changed, update_ms, batch_ms, calls = msg
-                self.call_ms.extend(calls)
-                self._latest.update(poses)
-                self._changed |= set(changed)
-                self._done_kf = max(poses) if poses else self._done_kf
-                self.update_ms.extend(update_ms)
-                if batch_ms:
-                    self.batch_ms.append(batch_ms)
-            elif kind == "error":
-                text = f"back end ({msg[1]}): {msg[2]}"
-                self.errors.append(text)
-                logger.warning("%s", text)
-                if msg[1] in ("start", "final", "landmarks", "metrics") and block_for is not None:
-                    raise EstimationError(text)
-            elif kind == "pong":
-                self._pongs = max(self._pongs, int(msg[1]))
-            if block_for is not None and kind == block_for:
+            self._absorb(msg, block_for is not None)
+            if block_for is not None and msg[0] == block_for:
                 return msg
+
+    def _absorb(self, msg: tuple[Any, ...], waiting: bool) -> None:
+        """One message of the worker taken in (an error of a call ``waiting`` for an answer raised)."""
+        kind = msg[0]
+        if kind == "estimate":
+            _, poses, changed, update_ms, batch_ms, calls = msg
+            self.call_ms.extend(calls)
+            self._latest.update(poses)
+            self._changed |= set(changed)
+            self._done_kf = max(poses) if poses else self._done_kf
+            self.update_ms.extend(update_ms)
+            if batch_ms:
+                self.batch_ms.append(batch_ms)
+        elif kind == "error":
+            text = f"back end ({msg[1]}): {msg[2]}"
+            self.errors.append(text)
+            logger.warning("%s", text)
+            if msg[1] in ("start", "final", "landmarks", "metrics") and waiting:
+                raise EstimationError(text)
+        elif kind == "pong":
+            self._pongs = max(self._pongs, int(msg[1]))
 
     def wait_idle(self, timeout_s: float | None = None) -> None:
         """Wait until the worker has handled everything sent so far (its estimate included)."""

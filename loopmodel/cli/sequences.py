@@ -216,8 +216,10 @@ def run(
     """
     from rich.progress import TextColumn as _Text
 
+    import loopmodel
     from loopmodel.io.sequence import open_sequence
-    from loopmodel.pipeline import run_frontend, run_pipeline
+    from loopmodel.pipeline import frontend_only as frontend_config
+    from loopmodel.pipeline import interrupted_error
 
     if max_frames is not None and max_frames < 1:
         raise InputError("--max-frames", f"must be at least 1, got {max_frames}")
@@ -242,39 +244,45 @@ def run(
     if getattr(seq, "choice", None):
         console.print(f"{seq.format_name}: {seq.choice}")  # type: ignore[attr-defined]
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
+    folder = Path(out if out is not None else cfg.output.out_dir) / run_name
     if frontend_only:
         with progress_bar(_Text("{task.fields[fps]:.1f} fps")) as bar, FinishLines(bar) as finishing:
             task = bar.add_task("front end", total=total, fps=0.0)
-            result = run_frontend(
+            result = loopmodel.run(
                 seq,
-                cfg,
-                out,
-                run_name,
+                frontend_config(cfg),
+                out if out is not None else cfg.output.out_dir,
+                name=run_name,
                 max_frames=max_frames,
-                progress=lambda i, n, fps: bar.update(task, completed=i, fps=fps),
+                progress=lambda i, n, fps, _kf: bar.update(task, completed=i, fps=fps),
+                handle_signals=True,
                 evaluate=not no_eval,
                 finishing=finishing,
             )
+            if result.interrupted:
+                raise interrupted_error(result, folder)
         console.print(frontend_summary(result.metrics, result.folder, _run_formatter(result)))
         return
-    folder = Path(out if out is not None else cfg.output.out_dir) / run_name
     frame_columns = (_Text("{task.fields[fps]:.1f} fps"), _Text("{task.fields[kf]} keyframes"))
     with progress_bar(*frame_columns) as bar, FinishLines(bar) as finishing:
         task = bar.add_task("run", total=total, fps=0.0, kf=0)
         try:
-            result = run_pipeline(
+            result = loopmodel.run(
                 seq,
                 cfg,
-                out,
-                run_name,
+                out if out is not None else cfg.output.out_dir,
+                name=run_name,
                 max_frames=max_frames,
                 progress=lambda i, n, fps, kf: bar.update(task, completed=i, fps=fps, kf=kf),
                 listeners=rerun_listeners(seq.calibration, rerun, rerun_spawn, rerun_connect, seq.ground_truth),
                 base_map=session_map,
                 resume=resume_point,
+                handle_signals=True,
                 evaluate=not no_eval,
                 finishing=finishing,
             )
+            if result.interrupted:
+                raise interrupted_error(result, folder)
         except KeyboardInterrupt as exc:
             finishing.close()
             note = getattr(exc, "note", "")  # kept beside a complete older run (issue 34)

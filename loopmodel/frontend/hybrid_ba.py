@@ -70,6 +70,191 @@ class _Block:
     weight: F64 | None = None  # (M,) relative weights (inverse variances); None: 1
 
 
+#: per block: residuals (M, 2), camera-frame points (M, 3), d uv / d point (M, 2, 3), d uv / d parameters
+#: (M, 2, n_par) or None
+_Eval = list[tuple[F64, F64, F64 | None, F64 | None]]
+
+
+def _make_blocks(
+    own: NDArray[np.int64],
+    frames: F64,
+    uv_left: F64,
+    uv_right: F64,
+    uv_final: F64,
+    uv_final_right: F64 | None,
+    left: CentralCamera,
+    right: CentralCamera,
+    rfl: F64,
+    right_w: F64 | None,
+) -> list[_Block]:
+    """The measurement blocks: each owner keyframe's left and right images, the final left (and right) image."""
+    blocks = []
+    for k, own_from in enumerate(frames):
+        valid = (own == k).astype(float)
+        if valid.any():
+            blocks.append(_Block(left, own_from, False, False, np.asarray(uv_left, float), valid))
+            blocks.append(_Block(right, rfl @ own_from, False, True, np.asarray(uv_right, float), valid, right_w))
+    f_valid = np.all(np.isfinite(uv_final), axis=1).astype(float)
+    blocks.append(_Block(left, np.eye(4), True, False, np.where(np.isfinite(uv_final), uv_final, 0.0), f_valid))
+    if uv_final_right is not None:
+        fr = np.asarray(uv_final_right, dtype=float)
+        valid = np.all(np.isfinite(fr), axis=1).astype(float)
+        blocks.append(_Block(right, rfl, True, True, np.where(np.isfinite(fr), fr, 0.0), valid))
+    return blocks
+
+
+@dataclass
+class _Normal:
+    """The normal equations of the points (M, 3) and the parameters (pose twist, [disparity offset])."""
+
+    Hxx: F64
+    gx: F64
+    Hpx: F64
+    Hpp: F64
+    gp: F64
+
+
+class _Problem:
+    """Eq. (1) over the blocks: residuals, Jacobians, Huber cost, normal equations and one damped step."""
+
+    def __init__(self, blocks: list[_Block], M: int, n_par: int, huber_px: float) -> None:
+        self.blocks, self.M, self.n_par, self.huber_px = blocks, M, n_par, huber_px
+        self.valid_all = np.stack([b.valid for b in blocks]) > 0
+        self.prior_w = 0.0
+        self.prior_mean = 0.0
+
+    def evaluate(self, Xc: F64, Tc: F64, jac: bool, dc: float) -> _Eval:
+        """Each block's residuals at points ``Xc``, ``f_from_kf`` ``Tc`` and offset ``dc`` (Jacobians with ``jac``)."""
+        pf = Xc @ Tc[:3, :3].T + Tc[:3, 3]
+        return [self._block(b, Xc, pf, Tc, jac, dc) for b in self.blocks]
+
+    def _block(
+        self, b: _Block, Xc: F64, pf: F64, Tc: F64, jac: bool, dc: float
+    ) -> tuple[F64, F64, F64 | None, F64 | None]:
+        base = pf if b.moving else Xc
+        p = base @ b.fixed[:3, :3].T + b.fixed[:3, 3]
+        # rows a block does not measure are projected from a harmless point (no inf, no NaN)
+        p = np.where(b.valid[:, None] > 0, p, np.array([0.0, 0.0, 1.0]))
+        pr = b.camera.project(p)
+        if b.is_right and dc != 0.0:
+            pr[:, 0] += dc
+        r = (pr - b.uv) * b.valid[:, None]
+        if not jac:
+            return r, p, None, None
+        Jc = b.camera.project_jacobian(p) @ b.fixed[:3, :3]  # d uv / d base point
+        JX = Jc @ Tc[:3, :3] if b.moving else Jc
+        Jp: F64 | None = None
+        offset = b.is_right and self.n_par == 7
+        if b.moving or offset:
+            Jp = np.zeros((self.M, 2, self.n_par))
+            if b.moving:
+                Jp[:, :, :6] = np.concatenate([Jc, point_cross_rows(pf, Jc)], axis=2)
+            if offset:
+                Jp[:, 0, 6] = b.valid
+        return r, p, JX, Jp
+
+    @staticmethod
+    def norms(ev: _Eval) -> F64:
+        """Residual norms (blocks, M), pixels."""
+        return np.stack([np.linalg.norm(e[0], axis=1) for e in ev])
+
+    def cost(self, nrm: F64, dc: float) -> float:
+        """Huber cost of the residual norms plus the offset prior's."""
+        return float(np.sum(_huber_rho(nrm, self.huber_px))) + 0.5 * self.prior_w * (dc - self.prior_mean) ** 2
+
+    def weights(self, nrm: F64) -> F64:
+        """Huber weights times validity and relative weights (blocks, M)."""
+        return _huber_w(nrm, self.huber_px) * np.stack(
+            [b.valid if b.weight is None else b.valid * b.weight for b in self.blocks]
+        )
+
+    def normal(self, ev: _Eval, w: F64, delta: float) -> _Normal:
+        """The Gauss-Newton normal equations at ``ev`` with weights ``w`` (the offset prior included)."""
+        M, n_par = self.M, self.n_par
+        ne = _Normal(np.zeros((M, 3, 3)), np.zeros((M, 3)), np.zeros((M, n_par, 3)), np.zeros((n_par, n_par)),
+                     np.zeros(n_par))
+        for k, (r, _p, JX, Jp) in enumerate(ev):
+            assert JX is not None
+            wk = w[k]
+            JXw = JX * wk[:, None, None]
+            ne.Hxx += np.matmul(JXw.transpose(0, 2, 1), JX)
+            ne.gx += np.einsum("mki,mk->mi", JXw, r)
+            if Jp is not None:
+                Jpw = Jp * wk[:, None, None]
+                ne.Hpx += np.matmul(Jpw.transpose(0, 2, 1), JX)
+                ne.Hpp += np.einsum("mki,mkj->ij", Jpw, Jp)
+                ne.gp += np.einsum("mki,mk->i", Jpw, r)
+        if self.prior_w > 0:
+            ne.Hpp[6, 6] += self.prior_w
+            ne.gp[6] += self.prior_w * (delta - self.prior_mean)
+        return ne
+
+    def solve(self, ne: _Normal, lam: float) -> tuple[F64, F64] | None:
+        """The damped step (parameters, points) by the Schur complement; None when singular."""
+        n_par = self.n_par
+        Hxx_d = ne.Hxx + lam * (ne.Hxx * np.eye(3)) + 1e-9 * np.eye(3)
+        Hpp_d = ne.Hpp + lam * np.diag(np.diag(ne.Hpp)) + 1e-12 * np.eye(n_par)
+        Hxx_inv = np.linalg.inv(Hxx_d)
+        HpxHi = np.matmul(ne.Hpx, Hxx_inv)  # (M, 6, 3)
+        S = Hpp_d - np.einsum("mij,mkj->ik", HpxHi, ne.Hpx)
+        b = -ne.gp + np.einsum("mij,mj->i", HpxHi, ne.gx)
+        try:
+            dp = np.linalg.solve(S, b)
+        except np.linalg.LinAlgError:
+            return None
+        dx = -np.einsum("mij,mj->mi", Hxx_inv, ne.gx + np.einsum("mji,j->mi", ne.Hpx, dp))
+        return dp, dx
+
+    def offset_variance(self, X: F64, T: F64, nrm: F64, delta: float, sigma2: float) -> float:
+        """The offset's variance: the reduced system at the solution (Huber weights), times ``sigma2``."""
+        ne = self.normal(self.evaluate(X, T, True, delta), self.weights(nrm), delta)
+        if self.prior_w < 0:  # normal() adds only a positive prior; the information has it whatever its sign
+            ne.Hpp[6, 6] += self.prior_w
+        HpxHi = np.matmul(ne.Hpx, np.linalg.inv(ne.Hxx + 1e-9 * np.eye(3)))
+        S = ne.Hpp - np.einsum("mij,mkj->ik", HpxHi, ne.Hpx)
+        try:
+            return float(np.linalg.inv(S)[6, 6]) * sigma2
+        except np.linalg.LinAlgError:
+            return float("inf")
+
+
+@dataclass
+class _State:
+    """The current solution: points, ``f_from_kf``, residual norms, offset, cost, damping."""
+
+    X: F64
+    T: F64
+    nrm: F64
+    delta: float
+    cost: float
+    lam: float = 1e-3
+
+
+def _lm_iteration(pb: _Problem, st: _State, ev: _Eval) -> tuple[bool, bool]:
+    """One Levenberg-Marquardt iteration from ``ev`` (at ``st``); returns (improved, converged)."""
+    ne = pb.normal(ev, pb.weights(st.nrm), st.delta)
+    for _ in range(6):
+        step = pb.solve(ne, st.lam)
+        if step is None:
+            st.lam *= 10
+            continue
+        dp, dx = step
+        T_new = se3_exp(dp[:6]) @ st.T
+        X_new = st.X + dx
+        d_new = st.delta + (float(dp[6]) if pb.n_par == 7 else 0.0)
+        ev_new = pb.evaluate(X_new, T_new, False, d_new)
+        nrm_new = pb.norms(ev_new)
+        in_front = all(np.all(e[1][:, 2] > 0) for e in ev_new)
+        c_new = pb.cost(nrm_new, d_new)
+        if in_front and c_new < st.cost:
+            converged = st.cost - c_new < 1e-4 * st.cost
+            st.X, st.T, st.nrm, st.delta, st.cost = X_new, T_new, nrm_new, d_new, c_new
+            st.lam = max(st.lam * 0.3, 1e-9)
+            return True, converged
+        st.lam *= 10.0
+    return False, False
+
+
 def hybrid_keyframe_ba(
     points_in_kf: F64,
     uv_left: F64,
@@ -104,159 +289,34 @@ def hybrid_keyframe_ba(
     ``uv_final`` may then have NaN rows (not seen at the end).
     """
     X = np.asarray(points_in_kf, dtype=float).copy()
-    T = np.asarray(f_from_kf, dtype=float).copy()
     M = X.shape[0]
-    rfl = np.asarray(right_from_left, dtype=float)
     own = np.zeros(M, np.int64) if owner is None else np.asarray(owner, np.int64)
     frames = np.eye(4)[None] if own_from_kf is None else np.asarray(own_from_kf, float).reshape(-1, 4, 4)
-    uv_f = np.asarray(uv_final, float)
-    right_w = _relative_weights(right_sigma_px)
-    blocks = []
-    for k, own_from in enumerate(frames):
-        valid = (own == k).astype(float)
-        if valid.any():
-            blocks.append(_Block(left, own_from, False, False, np.asarray(uv_left, float), valid))
-            blocks.append(_Block(right, rfl @ own_from, False, True, np.asarray(uv_right, float), valid, right_w))
-    f_valid = np.all(np.isfinite(uv_f), axis=1).astype(float)
-    blocks.append(_Block(left, np.eye(4), True, False, np.where(np.isfinite(uv_f), uv_f, 0.0), f_valid))
-    if uv_final_right is not None:
-        fr = np.asarray(uv_final_right, dtype=float)
-        valid = np.all(np.isfinite(fr), axis=1).astype(float)
-        blocks.append(_Block(right, rfl, True, True, np.where(np.isfinite(fr), fr, 0.0), valid))
-
-    Eval = list[tuple[F64, F64, F64 | None, F64 | None]]
+    blocks = _make_blocks(
+        own, frames, uv_left, uv_right, np.asarray(uv_final, float), uv_final_right, left, right,
+        np.asarray(right_from_left, dtype=float), _relative_weights(right_sigma_px),
+    )
     n_par = 7 if estimate_disparity_offset else 6
-    delta = 0.0
-
-    def evaluate(Xc: F64, Tc: F64, jac: bool, dc: float) -> Eval:
-        pf = Xc @ Tc[:3, :3].T + Tc[:3, 3]
-        out: Eval = []
-        for b in blocks:
-            base = pf if b.moving else Xc
-            p = base @ b.fixed[:3, :3].T + b.fixed[:3, 3]
-            # rows a block does not measure are projected from a harmless point (no inf, no NaN)
-            p = np.where(b.valid[:, None] > 0, p, np.array([0.0, 0.0, 1.0]))
-            pr = b.camera.project(p)
-            if b.is_right and dc != 0.0:
-                pr[:, 0] += dc
-            r = (pr - b.uv) * b.valid[:, None]
-            if not jac:
-                out.append((r, p, None, None))
-                continue
-            Jc = b.camera.project_jacobian(p) @ b.fixed[:3, :3]  # d uv / d base point
-            JX = Jc @ Tc[:3, :3] if b.moving else Jc
-            Jp: F64 | None = None
-            if b.moving or (b.is_right and n_par == 7):
-                Jp = np.zeros((M, 2, n_par))
-                if b.moving:
-                    Jp[:, :, :6] = np.concatenate([Jc, point_cross_rows(pf, Jc)], axis=2)
-                if b.is_right and n_par == 7:
-                    Jp[:, 0, 6] = b.valid
-            out.append((r, p, JX, Jp))
-        return out
-
-    def norms(ev: Eval) -> F64:
-        return np.stack([np.linalg.norm(e[0], axis=1) for e in ev])
-
-    def cost_of(nrm: F64) -> float:
-        return float(np.sum(_huber_rho(nrm, huber_px)))
-
-    ev = evaluate(X, T, True, delta)
-    nrm = norms(ev)
-    valid_all = np.stack([b.valid for b in blocks]) > 0
-    init_rms = float(np.sqrt(np.mean(nrm[valid_all] ** 2)))
+    pb = _Problem(blocks, M, n_par, huber_px)
+    T = np.asarray(f_from_kf, dtype=float).copy()
+    ev = pb.evaluate(X, T, True, 0.0)
+    nrm = pb.norms(ev)
+    init_rms = float(np.sqrt(np.mean(nrm[pb.valid_all] ** 2)))
     # the prior in the cost's units (pixels^2): scaled by the residual variance per coordinate, from
     # the starting residuals (conservative: they carry the tracked pose's error too); the posterior
     # variance uses the same scale
-    prior_mean, prior_info = offset_prior
-    dof = max(int(valid_all.sum()) * 2 - 3 * M - n_par, 1)
+    pb.prior_mean, prior_info = offset_prior
+    dof = max(int(pb.valid_all.sum()) * 2 - 3 * M - n_par, 1)
     sigma2 = max(float(np.sum(nrm**2)) / dof, 0.01)
-    prior_w = prior_info * sigma2 if n_par == 7 else 0.0
-
-    def prior_cost(dc: float) -> float:
-        return 0.5 * prior_w * (dc - prior_mean) ** 2
-
-    cost = cost_of(nrm) + prior_cost(delta)
-    lam = 1e-3
+    pb.prior_w = prior_info * sigma2 if n_par == 7 else 0.0
+    st = _State(X, T, nrm, 0.0, pb.cost(nrm, 0.0))
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007 (it is reported)
-        w = _huber_w(nrm, huber_px) * np.stack([b.valid if b.weight is None else b.valid * b.weight for b in blocks])
-        Hxx = np.zeros((M, 3, 3))
-        gx = np.zeros((M, 3))
-        Hpx = np.zeros((M, n_par, 3))
-        Hpp = np.zeros((n_par, n_par))
-        gp = np.zeros(n_par)
-        for k, (r, _p, JX, Jp) in enumerate(ev):
-            assert JX is not None
-            wk = w[k]
-            JXw = JX * wk[:, None, None]
-            Hxx += np.matmul(JXw.transpose(0, 2, 1), JX)
-            gx += np.einsum("mki,mk->mi", JXw, r)
-            if Jp is not None:
-                Jpw = Jp * wk[:, None, None]
-                Hpx += np.matmul(Jpw.transpose(0, 2, 1), JX)
-                Hpp += np.einsum("mki,mkj->ij", Jpw, Jp)
-                gp += np.einsum("mki,mk->i", Jpw, r)
-        if prior_w > 0:
-            Hpp[6, 6] += prior_w
-            gp[6] += prior_w * (delta - prior_mean)
-        improved = False
-        converged = False
-        for _ in range(6):
-            Hxx_d = Hxx + lam * (Hxx * np.eye(3)) + 1e-9 * np.eye(3)
-            Hpp_d = Hpp + lam * np.diag(np.diag(Hpp)) + 1e-12 * np.eye(n_par)
-            Hxx_inv = np.linalg.inv(Hxx_d)
-            HpxHi = np.matmul(Hpx, Hxx_inv)  # (M, 6, 3)
-            S = Hpp_d - np.einsum("mij,mkj->ik", HpxHi, Hpx)
-            b = -gp + np.einsum("mij,mj->i", HpxHi, gx)
-            try:
-                dp = np.linalg.solve(S, b)
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            dx = -np.einsum("mij,mj->mi", Hxx_inv, gx + np.einsum("mji,j->mi", Hpx, dp))
-            T_new = se3_exp(dp[:6]) @ T
-            X_new = X + dx
-            d_new = delta + (float(dp[6]) if n_par == 7 else 0.0)
-            ev_new = evaluate(X_new, T_new, False, d_new)
-            nrm_new = norms(ev_new)
-            in_front = all(np.all(e[1][:, 2] > 0) for e in ev_new)
-            c_new = cost_of(nrm_new) + prior_cost(d_new)
-            if in_front and c_new < cost:
-                X, T, nrm, delta = X_new, T_new, nrm_new, d_new
-                converged = cost - c_new < 1e-4 * cost
-                cost = c_new
-                lam = max(lam * 0.3, 1e-9)
-                improved = True
-                break
-            lam *= 10.0
+        improved, converged = _lm_iteration(pb, st, ev)
         if not improved or converged:
             break
-        ev = evaluate(X, T, True, delta)
-    inliers = np.all((nrm < 3.0 * huber_px) | ~valid_all, axis=0)
-    final_rms = float(np.sqrt(np.mean(nrm[valid_all] ** 2)))
-    var = float("inf")
-    if n_par == 7:
-        # the offset's variance: the reduced system at the solution (Huber weights), scaled by the
-        # residual variance per coordinate
-        w = _huber_w(nrm, huber_px) * np.stack([b.valid if b.weight is None else b.valid * b.weight for b in blocks])
-        ev = evaluate(X, T, True, delta)
-        Hxx = np.zeros((M, 3, 3))
-        Hpx = np.zeros((M, n_par, 3))
-        Hpp = np.zeros((n_par, n_par))
-        for k, (_r, _p, JX, Jp) in enumerate(ev):
-            assert JX is not None
-            JXw = JX * w[k][:, None, None]
-            Hxx += np.matmul(JXw.transpose(0, 2, 1), JX)
-            if Jp is not None:
-                Jpw = Jp * w[k][:, None, None]
-                Hpx += np.matmul(Jpw.transpose(0, 2, 1), JX)
-                Hpp += np.einsum("mki,mkj->ij", Jpw, Jp)
-        Hpp[6, 6] += prior_w
-        HpxHi = np.matmul(Hpx, np.linalg.inv(Hxx + 1e-9 * np.eye(3)))
-        S = Hpp - np.einsum("mij,mkj->ik", HpxHi, Hpx)
-        try:
-            var = float(np.linalg.inv(S)[6, 6]) * sigma2
-        except np.linalg.LinAlgError:
-            var = float("inf")
-    return HybridBAResult(T, X, it, init_rms, final_rms, inliers, delta, var)
+        ev = pb.evaluate(st.X, st.T, True, st.delta)
+    inliers = np.all((st.nrm < 3.0 * huber_px) | ~pb.valid_all, axis=0)
+    final_rms = float(np.sqrt(np.mean(st.nrm[pb.valid_all] ** 2)))
+    var = pb.offset_variance(st.X, st.T, st.nrm, st.delta, sigma2) if n_par == 7 else float("inf")
+    return HybridBAResult(st.T, st.X, it, init_rms, final_rms, inliers, st.delta, var)

@@ -159,7 +159,11 @@ def mesh_error_metrics(
     completeness_tol_m: float = 0.002,
     object_mesh: o3d.geometry.TriangleMesh | None = None,
     swept_radius_m: float = 0.005,
-    object_samples: int = 200_000,
+    # issue 32: 200,000 -> 50,000 samples (the evaluation's ray casting was most of its time: 150-frame
+    # realistic orbit, CPU 1.2 -> 0.3 s). Completeness is a binomial proportion over independent
+    # uniform samples: its standard error is at most 0.5 / sqrt(50,000) = 0.0022 (measured there:
+    # 0.0674 +- 0.0011 over 5 seeds, 0.0011 predicted), below the run-to-run change of the mesh.
+    object_samples: int = 50_000,
     meshes: Mapping[str, o3d.geometry.TriangleMesh] | None = None,
     looser_tols_m: tuple[float, ...] = (),
     swept_by: Trajectory | None = None,
