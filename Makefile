@@ -44,12 +44,14 @@ $(STAMP): pyproject.toml
 demo: setup
 	@bash tools/demo.sh
 
+# Two test processes (pytest-xdist), one per core of the 2-core machine; a module's tests stay in one
+# process (its module fixtures are built once).
 test: setup viewer-libs
-	$(PY) -m pytest -q -x --durations=15
+	$(PY) -m pytest -q -x -n 2 --dist loadfile --durations=15
 
 # Development tier: everything not marked slow (CI still runs the whole suite).
 test-fast: setup
-	$(PY) -m pytest -q -x -m "not slow"
+	$(PY) -m pytest -q -x -n 2 --dist loadfile -m "not slow"
 
 lint: setup
 	$(VENV)/bin/ruff check loopmodel tests tools

@@ -295,7 +295,8 @@ def test_short_realistic_orbit_closes_its_loop(tmp_path: Path) -> None:
     loops = [e for e in res["events"] if e["type"] == "loop"]
     assert loops
     assert b._ate(res["after"], res["gt"]) < 0.3 * b._ate(res["before"], res["gt"])
-    mesh = b._mesh_errors(res, out.with_suffix(".scene.ply"), Config())
+    # the SE(3)-aligned meshes only (the anchored two cost 2 of 5 Poisson meshes)
+    mesh = b._mesh_errors(res, out.with_suffix(".scene.ply"), Config(), anchored=False)
     assert mesh["mesh_err_after_mm"] is not None and mesh["mesh_err_before_mm"] is not None
     assert mesh["mesh_err_after_mm"] < 0.7 * mesh["mesh_err_before_mm"]
     assert mesh["mesh_err_gt_mm"] is not None

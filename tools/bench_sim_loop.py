@@ -255,14 +255,17 @@ def _stripe_extraction_px(path: Path, config: Config, every: int = 5) -> dict[st
     }
 
 
-def _mesh_errors(out: dict[str, Any], scene_ply: Path, config: Config) -> dict[str, float | None]:
+def _mesh_errors(
+    out: dict[str, Any], scene_ply: Path, config: Config, anchored: bool = True
+) -> dict[str, float | None]:
     """Mesh the laser stripes with the ground-truth, before and after trajectories.
 
     Each mesh is measured against the scene mesh (mm). ``mesh_err_<name>_mm``: SE(3)-aligned to the
     truth by the frame positions, as ATE and the pipeline's ``metrics.json``;
     ``mesh_err_<name>_anchored_mm``: anchored at the first ground-truth pose (the run's gauge: its
     first keyframe is fixed). Completeness: share of the scanned object's surface (``object.ply``
-    attachment) within 2 mm of the mesh, and of the part the laser swept.
+    attachment) within 2 mm of the mesh, and of the part the laser swept. ``anchored=False`` skips
+    the two anchored meshes (three Poisson meshes instead of five).
     """
     if not scene_ply.is_file():
         return {"mesh_err_before_mm": None, "mesh_err_after_mm": None}
@@ -275,8 +278,9 @@ def _mesh_errors(out: dict[str, Any], scene_ply: Path, config: Config) -> dict[s
     trajs = {"gt": Trajectory(out["stamps_ns"], gt)}
     for name in ("before", "after"):
         est = out[name]
-        anchored = np.einsum("ij,njk->nik", gt[0] @ invert_pose(est[0]), est)
-        trajs[name + "_anchored"] = Trajectory(out["stamps_ns"], anchored)
+        if anchored:
+            at_first = np.einsum("ij,njk->nik", gt[0] @ invert_pose(est[0]), est)
+            trajs[name + "_anchored"] = Trajectory(out["stamps_ns"], at_first)
         R, t, _ = umeyama_alignment(est[:, :3, 3], gt[:, :3, 3], with_scale=False)
         A = np.eye(4)
         A[:3, :3], A[:3, 3] = R, t
