@@ -27,6 +27,11 @@ measured links, and the final trajectory) against the ground truth after a rigid
 ``peak_rss_mib``; ``write_s``: writing the results folder (``write_results``); ``finish_s``: the end
 of the run before it (drain, final refinement, final mesh, session map). The curves are also drawn
 in ``results/bench_scale/scale.png`` (with ``scale.json``).
+
+The back end alone: ``python tools/bench_scale.py record SCAN OUT`` runs the pipeline once and keeps
+the calls its back-end worker made; ``python tools/bench_scale.py replay OUT ['{"key": value}']``
+replays them on a fresh iSAM2 back end (with those ``backend`` keys) in minutes instead of a pipeline
+run, printing the back end's cost per keyframe and its keyframe accuracy.
 """
 
 from __future__ import annotations
@@ -317,3 +322,139 @@ def run(quick: bool = False) -> dict[str, Any]:
     (OUT / f"{name}.json").write_text(json.dumps(result, indent=1))
     result["plot"] = str(OUT / f"{name}.png")
     return result
+
+
+# --------------------------------------------------------------------------- the back end alone (issue 33)
+_RECORDED = ("add_keyframe", "add_observations", "add_loop_constraint", "remove_observations")
+
+
+class _Recorder:
+    """A back end whose calls that change it are appended to ``log`` as (method, args, kwargs)."""
+
+    def __init__(self, inner: Any, log: list[tuple[str, tuple[Any, ...], dict[str, Any]]]) -> None:
+        self._inner, self._log = inner, log
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self._inner, name)
+        if name not in _RECORDED:
+            return attr
+
+        def recorded(*args: Any, **kwargs: Any) -> Any:
+            self._log.append((name, args, kwargs))
+            return attr(*args, **kwargs)
+
+        return recorded
+
+
+def record_backend_calls(path: Path, out: Path, config: Config | None = None) -> int:
+    """Run the pipeline over ``path`` and pickle the back end's calls as its worker made them into ``out``.
+
+    The worker runs as a thread (the calls are recorded where the worker hands them on, keyframe
+    poses re-based as the back end received them); with the calibration and the scan's ground
+    truth. Returns the number of calls.
+    """
+    import pickle
+
+    import loopmodel.pipeline as pl
+    from loopmodel.io.sequence import open_sequence
+
+    config = (config or Config()).model_copy(deep=True)
+    config.backend.worker = "thread"
+    log: list[tuple[str, tuple[Any, ...], dict[str, Any]]] = []
+    calibration: list[Any] = []
+    start = pl.start_backend
+
+    def recording(backend_config: Any, factory: Any) -> Any:
+        calibration.append(factory.args[1])  # functools.partial(create_backend, config, calibration, ...)
+        return start(backend_config, lambda: _Recorder(factory(), log))
+
+    seq = open_sequence(path, config.sequence)
+    pl.start_backend = recording  # type: ignore[assignment]
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            pl.run_pipeline(seq, config, tmp, "record")
+    finally:
+        pl.start_backend = start  # type: ignore[assignment]
+    out.write_bytes(pickle.dumps({"calls": log, "calibration": calibration[0], "ground_truth": seq.ground_truth}))
+    return len(log)
+
+
+def replay_backend_calls(recorded: Path, config: Config | None = None, block: int = 20) -> dict[str, Any]:
+    """Replay :func:`record_backend_calls`' calls on a fresh iSAM2 back end in this thread.
+
+    As the worker does: one ``estimate(landmarks=False)`` after each keyframe and the calls that
+    follow it. Keys: ``backend_ms_by_keyframes`` (CPU ms per keyframe, median per block of ``block``
+    keyframes, as [keyframes, ms]), ``backend_ms_last_over_first``, ``loop_ms_by_keyframes``,
+    ``cpu_s_by_call`` (per method), ``keyframe_ate_m`` (the iSAM2 estimate's keyframe positions
+    against the ground truth after a rigid alignment), ``factors``, ``landmarks``.
+    """
+    import pickle
+
+    from loopmodel.backend.isam2 import Isam2Backend
+
+    data = pickle.loads(recorded.read_bytes())  # noqa: S301 - a file this tool wrote
+    calls = data["calls"]
+    backend = Isam2Backend(data["calibration"], (config or Config()).backend)
+    per_kf: dict[int, float] = {}
+    by_call: dict[str, float] = {}
+    loop_ms: list[list[float]] = []
+    keyframes: list[Any] = []
+    for i, (name, args, kwargs) in enumerate(calls):
+        t0 = time.thread_time()
+        getattr(backend, name)(*args, **kwargs)
+        if i + 1 == len(calls) or calls[i + 1][0] == "add_keyframe":
+            backend.estimate(landmarks=False)
+        ms = (time.thread_time() - t0) * 1e3
+        if name == "add_keyframe":
+            keyframes.append(args[0])
+        per_kf[len(keyframes)] = per_kf.get(len(keyframes), 0.0) + ms
+        by_call[name] = by_call.get(name, 0.0) + ms / 1e3
+        if name == "add_loop_constraint":
+            loop_ms.append([len(keyframes), round(ms, 1)])
+    curve = _curve(per_kf, block)
+    est = backend.estimate(landmarks=False).world_from_kf
+    gt = data["ground_truth"]
+    ate = None
+    if gt is not None:
+        index = {t: i for i, t in enumerate(gt.timestamps_ns.tolist())}
+        kfs = [kf for kf in keyframes if kf.timestamp_ns in index]
+        g = gt.world_from_cam[np.array([index[kf.timestamp_ns] for kf in kfs])]
+        ate = _ate_m(np.array([est[kf.id] for kf in kfs]), g)
+    return {
+        "keyframes": len(keyframes),
+        "loops": len(loop_ms),
+        "backend_ms_by_keyframes": curve,
+        "backend_ms_last_over_first": round(curve[-1][1] / curve[0][1], 3) if len(curve) > 1 and curve[0][1] else None,
+        "loop_ms_by_keyframes": loop_ms,
+        "cpu_s_by_call": {k: round(v, 2) for k, v in by_call.items()},
+        "keyframe_ate_m": round(ate, 5) if ate is not None else None,
+        "factors": backend.num_factors,
+        "landmarks": backend.num_landmarks,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``record SCAN OUT``: the back end's calls over a scan; ``replay CALLS [JSON backend keys]``: them again."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description="the back end's calls of a scale scan, recorded and replayed")
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    rec = sub.add_parser("record")
+    rec.add_argument("scan", type=Path)
+    rec.add_argument("out", type=Path)
+    rep = sub.add_parser("replay")
+    rep.add_argument("calls", type=Path)
+    rep.add_argument("backend", nargs="?", default="{}", help='backend keys as JSON, e.g. \'{"relinearize_skip": 10}\'')
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    if args.cmd == "record":
+        print(record_backend_calls(args.scan, args.out), "calls")
+        return 0
+    config = Config()
+    config.backend = config.backend.model_copy(update=json.loads(args.backend))
+    print(json.dumps(replay_backend_calls(args.calls, config)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

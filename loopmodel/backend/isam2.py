@@ -322,17 +322,17 @@ class Isam2Backend:
             p[~good] = p0[~good]
         return p
 
-    def _create_landmarks(self, candidates: list[int], graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> int:
-        """Move pending landmarks with enough observations into the graph.
+    @staticmethod
+    def _meas_rows(obs: list[_Obs]) -> F64:
+        """(u_left, u_right or NaN for monocular, v) rows of observations ``obs`` (N, 3 px)."""
+        return np.array([o.px if o.stereo else (o.px[0], np.nan, o.px[1]) for o in obs], dtype=float)
 
-        Each is initialised from its stereo triangulation of largest disparity; observations farther
-        than ``init_gate_px`` from that point are dropped first. Returns how many were created.
-        """
-        cfg = self.config
+    def _creation_candidates(self, candidates: list[int]) -> list[tuple[int, list[_Obs], _Obs]]:
+        """Pending landmarks of ``candidates`` ready to enter: (id, observations, stereo one of largest disparity)."""
         todo = []
         for lm in candidates:
             obs = self._pending.get(lm)
-            if obs is None or len(obs) < cfg.min_observations:
+            if obs is None or len(obs) < self.config.min_observations:
                 continue
             best = None
             for o in obs:
@@ -340,75 +340,102 @@ class Isam2Backend:
                     best = o
             if best is not None:
                 todo.append((lm, obs, best))
+        return todo
+
+    def _gate_initial(self, todo: list[tuple[int, list[_Obs], _Obs]], p_world: F64) -> list[bool]:
+        """Which candidates pass the ``init_gate_px`` gate whole at their initial points ``p_world`` (world, m).
+
+        The pending buffer of one that does not keeps only its observations within the gate.
+        """
+        keep_all = [True] * len(todo)
+        gate = self.config.init_gate_px
+        if gate <= 0:
+            return keep_all
+        owner = np.array([i for i, (_, obs, _) in enumerate(todo) for _ in obs])
+        flat = [o for _, obs, _ in todo for o in obs]
+        pred = self._project([o.kf_id for o in flat], p_world[owner])
+        meas = self._meas_rows(flat)
+        err = np.abs(pred - meas)
+        err[~np.isfinite(meas)] = 0.0
+        bad = ~np.isfinite(pred[:, [0, 2]]).all(axis=1) | (err.max(axis=1) > gate)
+        if not bad.any():
+            return keep_all
+        for j in np.flatnonzero(bad).tolist():
+            keep_all[int(owner[j])] = False
+        start = 0
+        for i, (lm, obs, _) in enumerate(todo):
+            n = len(obs)
+            if not keep_all[i]:
+                self._pending[lm] = [o for o, b in zip(obs, bad[start : start + n].tolist(), strict=True) if not b]
+            start += n
+        return keep_all
+
+    def _regated(self, lm: int) -> tuple[list[_Obs], F64] | None:
+        """A gated candidate's surviving observations and its new initial point (world, m), if it still qualifies.
+
+        Its best triangulation may have changed; every survivor must lie within the gate of it.
+        """
+        cfg = self.config
+        kept = self._pending[lm]
+        if len(kept) < cfg.min_observations or not any(o.stereo for o in kept):
+            return None
+        b = max((o for o in kept if o.stereo), key=lambda o: o.px[0] - o.px[1])
+        Tb = self._pose_guess[b.kf_id]
+        assert b.point_in_kf is not None
+        pw = Tb[:3, :3] @ b.point_in_kf + Tb[:3, 3]
+        pr = self._project([o.kf_id for o in kept], np.tile(pw, (len(kept), 1)))
+        ok = all(
+            np.isfinite(pr[j, 0])
+            and max(
+                abs(pr[j, 0] - o.px[0]),
+                abs(pr[j, 2] - o.px[-1]),
+                abs(pr[j, 1] - o.px[1]) if o.stereo else 0.0,
+            )
+            <= cfg.init_gate_px
+            for j, o in enumerate(kept)
+        )
+        return (kept, pw) if ok else None
+
+    def _insert_landmark(
+        self, lm: int, obs: list[_Obs], point: F64, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
+    ) -> None:
+        """Landmark ``lm`` enters the graph at ``point`` (world, m) with its observations ``obs``."""
+        lkey = self._next_lkey
+        self._next_lkey += 1
+        self._landmarks[lkey] = _Landmark(lm, min(self._kf_seq[o.kf_id] for o in obs))
+        self._lm_current[lm] = lkey
+        values.insert(L(lkey), gtsam.Point3(float(point[0]), float(point[1]), float(point[2])))
+        for o in obs:
+            self._add_obs(o, lkey, lm, graph)
+        del self._pending[lm]
+
+    def _create_landmarks(self, candidates: list[int], graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> int:
+        """Move pending landmarks with enough observations into the graph.
+
+        Each is initialised from its stereo triangulation of largest disparity; observations farther
+        than ``init_gate_px`` from that point are dropped first. Returns how many were created.
+        """
+        todo = self._creation_candidates(candidates)
         if not todo:
             return 0
         T = np.stack([self._pose_guess[b.kf_id] for _, _, b in todo])
         pts = np.array([b.point_in_kf for _, _, b in todo])
         p_world = np.einsum("nij,nj->ni", T[:, :3, :3], pts) + T[:, :3, 3]
-        keep_all = [True] * len(todo)
-        if cfg.init_gate_px > 0:
-            owner = np.array([i for i, (_, obs, _) in enumerate(todo) for _ in obs])
-            flat = [o for _, obs, _ in todo for o in obs]
-            pred = self._project([o.kf_id for o in flat], p_world[owner])
-            meas = np.array([o.px if o.stereo else (o.px[0], np.nan, o.px[1]) for o in flat], dtype=float)
-            err = np.abs(pred - meas)
-            err[~np.isfinite(meas)] = 0.0
-            bad = ~np.isfinite(pred[:, [0, 2]]).all(axis=1) | (err.max(axis=1) > cfg.init_gate_px)
-            if bad.any():
-                for j in np.flatnonzero(bad).tolist():
-                    keep_all[int(owner[j])] = False
-                start = 0
-                for i, (lm, obs, _) in enumerate(todo):
-                    n = len(obs)
-                    if not keep_all[i]:
-                        kept = [o for o, b in zip(obs, bad[start : start + n].tolist(), strict=True) if not b]
-                        self._pending[lm] = kept
-                    start += n
+        keep_all = self._gate_initial(todo, p_world)
         ok_idx = [i for i, k in enumerate(keep_all) if k]
-        if ok_idx and cfg.init_iterations > 0:
+        if ok_idx and self.config.init_iterations > 0:
             # refine the points on all their observations (poses at their current guesses)
             owner = np.array([j for j, i in enumerate(ok_idx) for _ in todo[i][1]])
             flat = [o for i in ok_idx for o in todo[i][1]]
-            meas = np.array([o.px if o.stereo else (o.px[0], np.nan, o.px[1]) for o in flat], dtype=float)
             p_world[ok_idx] = self._triangulate(
-                owner, [o.kf_id for o in flat], meas, p_world[ok_idx], cfg.init_iterations
+                owner, [o.kf_id for o in flat], self._meas_rows(flat), p_world[ok_idx], self.config.init_iterations
             )
         created = 0
         for i, (lm, obs, _) in enumerate(todo):
-            if not keep_all[i]:
-                # retry with what survived the gate (its best triangulation may have changed)
-                kept = self._pending[lm]
-                if len(kept) < cfg.min_observations or not any(o.stereo for o in kept):
-                    continue
-                b = max((o for o in kept if o.stereo), key=lambda o: o.px[0] - o.px[1])
-                Tb = self._pose_guess[b.kf_id]
-                assert b.point_in_kf is not None
-                pw = Tb[:3, :3] @ b.point_in_kf + Tb[:3, 3]
-                pr = self._project([o.kf_id for o in kept], np.tile(pw, (len(kept), 1)))
-                ok = all(
-                    np.isfinite(pr[j, 0])
-                    and max(
-                        abs(pr[j, 0] - o.px[0]),
-                        abs(pr[j, 2] - o.px[-1]),
-                        abs(pr[j, 1] - o.px[1]) if o.stereo else 0.0,
-                    )
-                    <= cfg.init_gate_px
-                    for j, o in enumerate(kept)
-                )
-                if not ok:
-                    continue
-                obs, point = kept, pw
-            else:
-                point = p_world[i]
-            lkey = self._next_lkey
-            self._next_lkey += 1
-            self._landmarks[lkey] = _Landmark(lm, min(self._kf_seq[o.kf_id] for o in obs))
-            self._lm_current[lm] = lkey
-            values.insert(L(lkey), gtsam.Point3(float(point[0]), float(point[1]), float(point[2])))
-            for o in obs:
-                self._add_obs(o, lkey, lm, graph)
-            del self._pending[lm]
-            created += 1
+            entry = (obs, p_world[i]) if keep_all[i] else self._regated(lm)
+            if entry is not None:
+                self._insert_landmark(lm, entry[0], entry[1], graph, values)
+                created += 1
         return created
 
     def _observe(self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int]) -> None:
