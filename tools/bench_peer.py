@@ -138,6 +138,8 @@ def _step_growth(tum: Path, gt: Path) -> float | None:
 
     ref = read_kitti_poses(gt)
     t, est = read_tum(tum)
+    order = np.argsort(t)
+    t, est = t[order], est[order]
     frame = np.rint(t * 10.0).astype(int)
     keep = (frame >= 0) & (frame < len(ref))
     if int(keep.sum()) < 3:
