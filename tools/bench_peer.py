@@ -20,8 +20,12 @@ on the KITTI clip also the drift and rotation error after the ground truth's con
 steps (``*_after_gt_segment``, as ``bench pipeline``) and our front end alone
 (``ours_frontend_cpu_ms_per_frame``, ``ours_frontend_frame_ms_mean``). ``--quick``: one round and
 the first 150 frames of the scans. ``$LOOPMODEL_BENCH_PEER_ROUNDS`` sets the rounds,
-``$LOOPMODEL_BENCH_PEER_ONLY`` (comma-separated names) the sequences. Skips with one line when the
-peer is not set up.
+``$LOOPMODEL_BENCH_PEER_ONLY`` (comma-separated names) the sequences, ``$LOOPMODEL_BENCH_PEER_OURS_CONFIG``
+a YAML file layered over our configuration on every sequence (e.g. ``frontend.local_ba_keyframes``).
+``street`` (only when named there): the seeded street scene of ``tests/test_street_scale.py``
+(repetitive texture, cars, a 0.5 px right principal-point error; ``loopmodel.sim.street``) exported
+to KITTI layout in ``~/.cache/loopmodel``, ``configs/kitti.yaml``; adds ``*_step_scale_last_over_first``.
+Skips with one line when the peer is not set up.
 """
 
 from __future__ import annotations
@@ -96,6 +100,53 @@ def _export(peer: Path, scan: Path, name: str) -> Path:
     return folder
 
 
+def _export_street(folder: Path) -> Path:
+    """The street scene of ``tests/test_street_scale.py`` (seed 3, 40 frames at 1 m) in KITTI layout, cached."""
+    import cv2
+
+    from loopmodel.sim.street import StreetConfig, StreetScene
+
+    if (folder / "poses.txt").is_file():
+        return folder
+    sc = StreetConfig(width_px=832, height_px=256, fx_px=480.0, frames=40, speed_m_per_frame=1.0, open_from_m=20.0,
+                      supersample=1, right_cx_error_px=0.5, texture_size_px=512, seed=3, lead_speed_ratio=0.85,
+                      lead_start_m=16.0)
+    print(f"rendering the street scene -> {folder} ...", file=sys.stderr)
+    scene = StreetScene.build(sc)
+    tmp = folder.with_name(folder.name + ".tmp")
+    for side in ("image_l", "image_r"):
+        (tmp / side).mkdir(parents=True, exist_ok=True)
+    for i in range(sc.frames):
+        f = scene.render(i).frame
+        cv2.imwrite(str(tmp / "image_l" / f"{i:06d}.png"), f.left)
+        cv2.imwrite(str(tmp / "image_r" / f"{i:06d}.png"), f.right)
+    p0 = np.hstack([scene.K, np.zeros((3, 1))])
+    p1 = p0.copy()
+    p1[0, 3] = -scene.K[0, 0] * sc.baseline_m  # the recorded calibration (the right image's cx is 0.5 px off)
+    np.savetxt(tmp / "calib.txt", np.stack([p0.ravel(), p1.ravel()]), fmt="%.12e")
+    gt = scene.ground_truth().world_from_cam
+    np.savetxt(tmp / "poses.txt", gt[:, :3, :].reshape(len(gt), 12), fmt="%.9e")
+    tmp.rename(folder)
+    return folder
+
+
+def _step_growth(tum: Path, gt: Path) -> float | None:
+    """``step_scale_last_over_first`` of a TUM trajectory of 10 Hz frames against KITTI ``poses.txt``."""
+    from bench_pipeline import read_kitti_poses, read_tum
+
+    from loopmodel.eval.trajectory_metrics import step_scale_last_over_first
+
+    ref = read_kitti_poses(gt)
+    t, est = read_tum(tum)
+    order = np.argsort(t)
+    t, est = t[order], est[order]
+    frame = np.rint(t * 10.0).astype(int)
+    keep = (frame >= 0) & (frame < len(ref))
+    if int(keep.sum()) < 3:
+        return None
+    return round(float(step_scale_last_over_first(ref[frame[keep]], est[keep])), 5)
+
+
 def _trimmed(src: Path, first_frame: int, rate_hz: float, t0: float, dst: Path) -> Path:
     """The TUM file ``src`` from frame ``first_frame`` on (frame = round(rate (t - t0)))."""
     a = np.loadtxt(src, ndmin=2)
@@ -130,6 +181,9 @@ def _run_ours(seq: _Sequence, peer: Path, tmp: Path, tag: str, frontend_only: bo
            "--out", str(tmp), "--name", tag, "--overwrite"]
     if seq.config is not None:
         cmd += ["-c", str(seq.config)]
+    extra = os.environ.get("LOOPMODEL_BENCH_PEER_OURS_CONFIG")
+    if extra:
+        cmd += ["-c", extra]
     if seq.max_frames:
         cmd += ["--max-frames", str(seq.max_frames)]
     if frontend_only:
@@ -177,7 +231,9 @@ def _score(seq: _Sequence, peer: Path, run: dict[str, Any], ours: bool, seg: int
     e = _eval(peer, tum, seq.gt, seq.eval_args(ours, tum))
     run.update({k: e[k] for k in ("ate_se3_m", "ate_sim3_m", "sim3_scale", "drift_pct")})
     run["rot_err_deg"] = e["rot_err_final_deg"]
-    if seg is not None and not seq.scan:
+    if seq.name == "street":
+        run["step_scale_last_over_first"] = _step_growth(tum, seq.gt)
+    if seg is not None and seq.name == "kitti_clip":
         cut = _trimmed(tum, seg, 10.0, 0.0, tum.with_name("after_segment.tum"))
         e2 = _eval(peer, cut, seq.gt, [])
         run["drift_pct_after_gt_segment"] = e2["drift_pct"]
@@ -206,6 +262,10 @@ def _sequences(peer: Path, quick: bool, only: list[str]) -> list[_Sequence]:
         path = make()
         rect = _export(peer, path, name)
         seqs.append(_Sequence(name, path, rect, rect / "poses.txt", None, n, True))
+    if "street" in only:  # opt-in: not one of issue 36's three sequences
+        street = _export_street(CACHE / "street_seed3_kitti")
+        seqs.append(_Sequence("street", street, street, street / "poses.txt", ROOT / "configs" / "kitti.yaml",
+                              None, False))
     return seqs
 
 
@@ -238,14 +298,18 @@ def run(quick: bool = False) -> dict[str, Any]:
                 rows[s.name]["ours"].append(_score(s, peer, _run_ours(s, peer, tmp, f"{s.name}_ours{r}"), True, seg))
                 loads[s.name].append(_load())
                 rows[s.name]["peer"].append(_score(s, peer, _run_peer(s, peer, tmp, f"{s.name}_peer{r}"), False, seg))
-                if not s.scan:  # our front end alone, for the front-end CPU target
+                if s.name == "kitti_clip":  # our front end alone, for the front-end CPU target
                     loads[s.name].append(_load())
                     rows[s.name]["fe"].append(_run_ours(s, peer, tmp, f"{s.name}_fe{r}", frontend_only=True))
                 loads[s.name].append(_load())
     out: dict[str, Any] = {"peer": str(peer), "quick": quick}
     for s in seqs:
         obj: dict[str, Any] = {}
-        extra = ("keyframes",) + (() if s.scan else ("drift_pct_after_gt_segment", "rot_err_deg_after_gt_segment"))
+        extra: tuple[str, ...] = ("keyframes",)
+        if s.name == "kitti_clip":
+            extra += ("drift_pct_after_gt_segment", "rot_err_deg_after_gt_segment")
+        elif s.name == "street":
+            extra += ("step_scale_last_over_first",)
         for who in ("ours", "peer"):
             for k in KEYS + extra:
                 obj[f"{who}_{k}"] = _median(rows[s.name][who], k)
