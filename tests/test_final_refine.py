@@ -56,10 +56,6 @@ def test_batch_refine_with_huber_resists_blunders(rng: np.random.Generator) -> N
     assert robust < 0.5 * gaussian, (robust, gaussian)
 
 
-def _twist(rng: np.random.Generator, rot: float, trans: float) -> np.ndarray:
-    return np.concatenate([rng.normal(0, trans, 3), rng.normal(0, rot, 3)])
-
-
 def _orbit_pose(angle_rad: float, radius_m: float = 0.67) -> np.ndarray:
     """A camera on a circle about the origin (y down), looking at it."""
     c, s = np.cos(angle_rad), np.sin(angle_rad)

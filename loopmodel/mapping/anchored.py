@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from loopmodel.errors import EstimationError, InputError
-from loopmodel.geometry.se3 import invert_pose, is_rotation, se3_exp, se3_log, so3_log
+from loopmodel.geometry.se3 import invert_pose, is_rotation, so3_exp, so3_log
 from loopmodel.types import Trajectory
 
 F64 = NDArray[np.float64]
@@ -278,11 +278,14 @@ def bridge_interval(
        keyframe positions seen by the same biased stereo rig scale together; rotations do not).
        Only where the tracked path heads somewhere (chord >= ``min_chord_over_path`` of its length):
        on a path that turns back the chord does not measure the scale.
-    2. The remaining end correction ``D = (A_from_B scaled)^-1 A_from_B`` grows with the motion,
-       not with the clock: a frame gets the fraction of the tracked path (arc length of the
-       positions A, frames, B; the rotation angle where the path has no length; the time fraction
-       where neither moved) of ``log D``, right-multiplied in its own coordinates. The least-squares
-       chain with noise per metre moved, both ends held at the estimated keyframes.
+    2. The remaining end correction grows with the motion, not with the clock: a frame gets the
+       fraction of the tracked path (arc length of the positions A, frames, B; the rotation angle
+       where the path has no length; the time fraction where neither moved) of it. The least-squares
+       chain with noise per metre moved, both ends held at the estimated keyframes. The position
+       residual ``t_AB - t_AB scaled`` is added in A's coordinates (the tracker measured every
+       position against A's landmarks: their error is in A's frame; right-multiplied in each
+       frame's coordinates it would turn with the camera, 20-30 deg per interval on an orbit); the
+       rotation residual is right-multiplied in the frame's coordinates.
     """
     rel = np.array(a_from_cam_tracked, dtype=float).reshape(-1, 4, 4)
     end = np.array(a_from_b_tracked, dtype=float)
@@ -300,5 +303,10 @@ def bridge_interval(
         step = np.linalg.norm(turns, axis=1)
     total = float(step.sum())
     fraction = np.cumsum(step)[:-1] / total if total > 1e-12 else np.asarray(time_fraction, dtype=float)
-    correction = se3_log(invert_pose(end) @ a_from_b)
-    return np.stack([T @ se3_exp(f * correction) for T, f in zip(rel, fraction, strict=True)])
+    turn = so3_log(end[:3, :3].T @ a_from_b[:3, :3])
+    shift_m = a_from_b[:3, 3] - end[:3, 3]
+    out = rel.copy()
+    for k, f in enumerate(fraction):
+        out[k, :3, :3] = rel[k, :3, :3] @ so3_exp(f * turn)
+        out[k, :3, 3] = rel[k, :3, 3] + f * shift_m
+    return out
