@@ -14,7 +14,7 @@ from test_backend_isam2 import SIGMA_PX, batch_solution, calibration, exact_conf
 from loopmodel.backend import BackendEstimate
 from loopmodel.backend.isam2 import Isam2Backend
 from loopmodel.geometry.se3 import invert_pose, make_pose, se3_exp, se3_log, so3_exp
-from loopmodel.mapping.anchored import AnchoredTrajectory
+from loopmodel.mapping.anchored import AnchoredTrajectory, bridge_interval
 
 
 def _backend(kfs: list, **kw: float) -> Isam2Backend:
@@ -137,6 +137,29 @@ def test_bridged_trajectory_spreads_by_rotation_where_the_camera_only_turns() ->
     bridged = anchored.bridged_trajectory({0: 0, 1: len(turn) * 10 - 10}, links).world_from_cam
     # exact for a rotation gain about one axis (measured 1e-16)
     np.testing.assert_allclose(bridged, truth, atol=1e-12)
+
+
+def test_bridge_interval_spreads_a_position_error_in_the_keyframe_coordinates() -> None:
+    # positions measured against keyframe A's landmarks: an error that grows with the path in A's
+    # frame (1 mm at B) while the camera turns 0.5 rad at 6x varying speed; rotations exact
+    x = np.linspace(0.0, 1.0, 16)
+    angle = 0.2 * x + 0.3 * x**2
+    truth = np.stack([invert_pose(_orbit_pose(0.0)) @ _orbit_pose(a) for a in angle])  # a_from_cam
+    steps = np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1)
+    fraction = np.concatenate([[0.0], np.cumsum(steps) / steps.sum()])
+    error_m = np.array([0.6e-3, -0.5e-3, 0.6e-3])
+    tracked = truth.copy()
+    tracked[:, :3, 3] += fraction[:, None] * error_m
+    a_from_b = truth[-1]
+    got = bridge_interval(tracked[1:-1], x[1:-1], tracked[-1], a_from_b, min_chord_over_path=np.inf)
+    # measured 7.9e-8 m (the path fractions come from the erroneous tracked positions); the same
+    # fractions of the SE(3) residual right-multiplied in each frame's coordinates leave 0.105 mm
+    d = se3_log(invert_pose(tracked[-1]) @ a_from_b)
+    in_frame = np.stack([T @ se3_exp(f * d) for T, f in zip(tracked[1:-1], fraction[1:-1], strict=True)])
+    err = np.linalg.norm(got[:, :3, 3] - truth[1:-1, :3, 3], axis=1).max()
+    err_in_frame = np.linalg.norm(in_frame[:, :3, 3] - truth[1:-1, :3, 3], axis=1).max()
+    assert err < 3e-7 and err_in_frame > 8e-5, (err, err_in_frame)
+    np.testing.assert_allclose(got[:, :3, :3], truth[1:-1, :3, :3], atol=1e-12)
 
 
 def test_batch_refine_gives_every_keyframe_the_latest_disparity_offset(rng: np.random.Generator) -> None:
