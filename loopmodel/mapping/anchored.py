@@ -268,6 +268,7 @@ def bridge_interval(
     a_from_b_tracked: F64,
     a_from_b: F64,
     min_chord_over_path: float = 0.5,
+    max_scale_change: float = 0.1,
 ) -> F64:
     """The frames of one keyframe interval A -> B moved onto the estimated ``a_from_b`` (N x 4 x 4).
 
@@ -277,7 +278,9 @@ def bridge_interval(
     1. Scale: every tracked translation times ``s = |t_AB estimated| / |t_AB tracked|`` (frame and
        keyframe positions seen by the same biased stereo rig scale together; rotations do not).
        Only where the tracked path heads somewhere (chord >= ``min_chord_over_path`` of its length):
-       on a path that turns back the chord does not measure the scale.
+       on a path that turns back the chord does not measure the scale. Nor beyond
+       ``max_scale_change`` (a calibration's depth error is a few tenths of a percent; the selfcal
+       bench's links 0.2-0.5 %): a larger change is a tracking failure, not a scale.
     2. The remaining end correction grows with the motion, not with the clock: a frame gets the
        fraction of the tracked path (arc length of the positions A, frames, B; the rotation angle
        where the path has no length; the time fraction where neither moved) of it. The least-squares
@@ -293,8 +296,8 @@ def bridge_interval(
     step_m = np.linalg.norm(np.diff(chain[:, :3, 3], axis=0), axis=1)
     path_m = float(step_m.sum())
     chord_m = float(np.linalg.norm(end[:3, 3]))
-    if chord_m > 0.0 and chord_m >= min_chord_over_path * path_m:
-        s = float(np.linalg.norm(a_from_b[:3, 3])) / chord_m
+    s = float(np.linalg.norm(a_from_b[:3, 3])) / chord_m if chord_m > 0.0 else 1.0
+    if chord_m >= min_chord_over_path * path_m and abs(s - 1.0) <= max_scale_change:
         rel[:, :3, 3] *= s
         end[:3, 3] *= s
     step = step_m
