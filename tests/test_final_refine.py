@@ -13,8 +13,8 @@ from test_backend_isam2 import SIGMA_PX, batch_solution, calibration, exact_conf
 
 from loopmodel.backend import BackendEstimate
 from loopmodel.backend.isam2 import Isam2Backend
-from loopmodel.geometry.se3 import invert_pose, make_pose, se3_exp, so3_exp
-from loopmodel.mapping.anchored import AnchoredTrajectory
+from loopmodel.geometry.se3 import invert_pose, make_pose, se3_exp, se3_log, so3_exp
+from loopmodel.mapping.anchored import AnchoredTrajectory, bridge_interval
 
 
 def _backend(kfs: list, **kw: float) -> Isam2Backend:
@@ -56,43 +56,110 @@ def test_batch_refine_with_huber_resists_blunders(rng: np.random.Generator) -> N
     assert robust < 0.5 * gaussian, (robust, gaussian)
 
 
-def _twist(rng: np.random.Generator, rot: float, trans: float) -> np.ndarray:
-    return np.concatenate([rng.normal(0, trans, 3), rng.normal(0, rot, 3)])
+def _orbit_pose(angle_rad: float, radius_m: float = 0.67) -> np.ndarray:
+    """A camera on a circle about the origin (y down), looking at it."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    position = np.array([radius_m * s, 0.0, -radius_m * c])
+    z = -position / radius_m
+    x = np.cross([0.0, 1.0, 0.0], z)
+    return make_pose(np.column_stack([x, np.cross(z, x), z]), position)
 
 
-def test_bridged_trajectory_removes_drift_that_grows_along_the_interval(rng: np.random.Generator) -> None:
-    # ground truth: 3 keyframes, 10 frames per interval, hand-held-like wobble
-    n = 31
+def _time_fraction_bridge(anchored: AnchoredTrajectory, times: dict[int, int], links: dict) -> np.ndarray:
+    """The former bridge: each interval's end correction spread by the time fraction (reference)."""
+    out = anchored.trajectory().world_from_cam
+    kf, t = anchored.frame_keyframes(), anchored.frame_times_ns
+    poses = anchored.keyframe_poses
+    for b, (a, a_from_b_tracked) in links.items():
+        d = se3_log(invert_pose(a_from_b_tracked) @ invert_pose(poses[a]) @ poses[b])
+        for i in np.flatnonzero((kf == a) & (t > times[a]) & (t < times[b])):
+            out[i] = out[i] @ se3_exp((t[i] - times[a]) / (times[b] - times[a]) * d)
+    return out
+
+
+def test_bridged_trajectory_undoes_a_scale_error_at_non_uniform_speed(rng: np.random.Generator) -> None:
+    # ground truth: an orbit at 0.67 m that speeds up 18-fold (frames every 40 ms), the
+    # tracker's translations 1.2 % short (a depth bias), hand-held wobble of the view direction;
+    # keyframes at frames 0, 12, 24 as the refinement estimated them: exact
+    n = 37
     t_ns = np.arange(n, dtype=np.int64) * 40_000_000
-    truth = np.stack(
-        [make_pose(so3_exp([0.01 * np.sin(i), 0.02 * i, 0.0]), [0.004 * i, 0.001 * np.cos(i), 0.0]) for i in range(n)]
-    )
-    kf_frames = [0, 10, 20]
-    drift = {0: _twist(rng, 2e-4, 3e-4), 10: _twist(rng, 2e-4, 3e-4), 20: _twist(rng, 2e-4, 3e-4)}
+    angle = 0.1 * np.arange(n) / (n - 1) + 0.6 * (np.arange(n) / (n - 1)) ** 3
+    truth = np.stack([_orbit_pose(a) @ make_pose(so3_exp(rng.normal(0, 2e-3, 3)), np.zeros(3)) for a in angle])
+    scale = 1.0 / 1.012
+    kf_frames = [0, 12, 24]
     anchored = AnchoredTrajectory()
     links: dict[int, tuple[int, np.ndarray]] = {}
+
+    def tracked(a: int, i: int) -> np.ndarray:
+        rel = invert_pose(truth[a]) @ truth[i]
+        rel[:3, 3] *= scale
+        return rel
+
     for i in range(n):
         a = max(k for k in kf_frames if k <= i)
         if i == a:
-            anchored.set_keyframe(a, truth[a])  # keyframe poses as estimated: exact here
-            if a > 0:  # the tracker's pose of this keyframe in the previous one: drifted
-                prev = a - 10
-                links[a] = (prev, invert_pose(truth[prev]) @ truth[a] @ se3_exp(-drift[prev]))
-        alpha = (i - a) / 10
-        # tracked frame pose in its keyframe: the drift grows linearly along the interval
-        anchored.add_frame(
-            int(t_ns[i]), kf_id=a, kf_from_cam=invert_pose(truth[a]) @ truth[i] @ se3_exp(-alpha * drift[a])
-        )
+            anchored.set_keyframe(a, truth[a])
+            if a > 0:
+                links[a] = (a - 12, tracked(a - 12, a))
+        anchored.add_frame(int(t_ns[i]), kf_id=a, kf_from_cam=tracked(a, i))
     times = {k: int(t_ns[k]) for k in kf_frames}
     bridged = anchored.bridged_trajectory(times, links).world_from_cam
     plain = anchored.trajectory().world_from_cam
-    # frames of the linked intervals come back to the truth, keyframes stay where they are
-    np.testing.assert_allclose(bridged[:20], truth[:20], atol=1e-9)
-    assert np.abs(plain[1:10] - truth[1:10]).max() > 1e-5
+    before = _time_fraction_bridge(anchored, times, links)
+
+    def err_m(poses: np.ndarray) -> float:
+        return float(np.linalg.norm(poses[:24, :3, 3] - truth[:24, :3, 3], axis=1).max())
+
+    # the frames of the linked intervals come back to the truth: measured 1.1e-16 m; the time
+    # fraction leaves 0.20 mm (the plain recomposition 1.31 mm)
+    assert err_m(bridged) < 1e-12, err_m(bridged)
+    assert err_m(before) > 1.5e-4 and err_m(plain) > 1e-3, (err_m(before), err_m(plain))
+    np.testing.assert_allclose(bridged[:24], truth[:24], atol=1e-12)
     # the last interval has no successor: unchanged
-    np.testing.assert_allclose(bridged[20:], plain[20:], atol=1e-15)
+    np.testing.assert_allclose(bridged[24:], plain[24:], atol=1e-15)
     # without links it is the plain recomposition
     np.testing.assert_allclose(anchored.bridged_trajectory(times, {}).world_from_cam, plain, atol=1e-15)
+
+
+def test_bridged_trajectory_spreads_by_rotation_where_the_camera_only_turns() -> None:
+    # a camera turning on the spot: no path length, the correction follows the tracked rotation
+    # angle (turning 4x faster in the second half), not the clock
+    turn = np.concatenate([np.linspace(0, 0.1, 6), np.linspace(0.1, 0.5, 6)[1:]])
+    truth = np.stack([make_pose(so3_exp([0.0, a, 0.0]), np.zeros(3)) for a in turn])
+    anchored = AnchoredTrajectory()
+    anchored.set_keyframe(0, truth[0])
+    gain = 1.02  # the tracker's rotation 2 % long
+    for i, a in enumerate(turn[:-1]):
+        anchored.add_frame(i * 10, kf_id=0, kf_from_cam=make_pose(so3_exp([0.0, gain * a, 0.0]), np.zeros(3)))
+    anchored.set_keyframe(1, truth[-1])
+    anchored.add_frame(len(turn) * 10 - 10, kf_id=1, kf_from_cam=np.eye(4))
+    links = {1: (0, make_pose(so3_exp([0.0, gain * turn[-1], 0.0]), np.zeros(3)))}
+    bridged = anchored.bridged_trajectory({0: 0, 1: len(turn) * 10 - 10}, links).world_from_cam
+    # exact for a rotation gain about one axis (measured 1e-16)
+    np.testing.assert_allclose(bridged, truth, atol=1e-12)
+
+
+def test_bridge_interval_spreads_a_position_error_in_the_keyframe_coordinates() -> None:
+    # positions measured against keyframe A's landmarks: an error that grows with the path in A's
+    # frame (1 mm at B) while the camera turns 0.5 rad at 6x varying speed; rotations exact
+    x = np.linspace(0.0, 1.0, 16)
+    angle = 0.2 * x + 0.3 * x**2
+    truth = np.stack([invert_pose(_orbit_pose(0.0)) @ _orbit_pose(a) for a in angle])  # a_from_cam
+    steps = np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1)
+    fraction = np.concatenate([[0.0], np.cumsum(steps) / steps.sum()])
+    error_m = np.array([0.6e-3, -0.5e-3, 0.6e-3])
+    tracked = truth.copy()
+    tracked[:, :3, 3] += fraction[:, None] * error_m
+    a_from_b = truth[-1]
+    got = bridge_interval(tracked[1:-1], x[1:-1], tracked[-1], a_from_b, min_chord_over_path=np.inf)
+    # measured 7.9e-8 m (the path fractions come from the erroneous tracked positions); the same
+    # fractions of the SE(3) residual right-multiplied in each frame's coordinates leave 0.105 mm
+    d = se3_log(invert_pose(tracked[-1]) @ a_from_b)
+    in_frame = np.stack([T @ se3_exp(f * d) for T, f in zip(tracked[1:-1], fraction[1:-1], strict=True)])
+    err = np.linalg.norm(got[:, :3, 3] - truth[1:-1, :3, 3], axis=1).max()
+    err_in_frame = np.linalg.norm(in_frame[:, :3, 3] - truth[1:-1, :3, 3], axis=1).max()
+    assert err < 3e-7 and err_in_frame > 8e-5, (err, err_in_frame)
+    np.testing.assert_allclose(got[:, :3, :3], truth[1:-1, :3, :3], atol=1e-12)
 
 
 def test_batch_refine_gives_every_keyframe_the_latest_disparity_offset(rng: np.random.Generator) -> None:

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from loopmodel.errors import EstimationError, InputError
-from loopmodel.geometry.se3 import invert_pose, is_rotation
+from loopmodel.geometry.se3 import invert_pose, is_rotation, so3_exp, so3_log
 from loopmodel.types import Trajectory
 
 F64 = NDArray[np.float64]
@@ -146,39 +146,35 @@ class AnchoredTrajectory:
     def bridged_trajectory(
         self, keyframe_times_ns: Mapping[int, int], tracked_links: Mapping[int, tuple[int, F64]]
     ) -> Trajectory:
-        """Like :meth:`trajectory`, with each keyframe interval's tracking drift spread over its frames.
+        """Like :meth:`trajectory`, with each keyframe interval's tracking error taken out of its frames.
 
         ``tracked_links[B] = (A, A_from_B_tracked)``: keyframe B was made from a frame tracked
         against keyframe A at the tracker's pose ``A_from_B_tracked``; the estimated ``A_from_B``
-        (current keyframe poses) disagrees with it by the interval's drift. The least-squares chain
-        with equal noise per step and both ends held at the estimated keyframes gives a frame at
-        time t the fraction ``(t - t_A) / (t_B - t_A)`` of the end correction (on SE(3),
-        right-multiplied in the frame's coordinates). Frames of a keyframe without a linked
-        successor are recomposed as in :meth:`trajectory`.
+        (current keyframe poses) disagrees with it by the interval's tracking error. The frames
+        between A and B are corrected as that error would have moved them (:func:`bridge_interval`):
+        first as a scale (depth) error, then the rest in proportion to the tracked path. Frames of a
+        keyframe without a linked successor are recomposed as in :meth:`trajectory`.
         """
-        from loopmodel.geometry.se3 import se3_exp, se3_log
-
         base = self.trajectory()
         known = self._world_from_kf.keys() & keyframe_times_ns.keys()
-        successor = {
-            int(a): (int(b), np.asarray(rel, dtype=float).reshape(4, 4))
-            for b, (a, rel) in tracked_links.items()
-            if a in known and b in known
-        }
         out = base.world_from_cam.copy()
-        correction: dict[int, F64] = {}
-        for i, (t, k) in enumerate(zip(self._t.a, self._kf.a, strict=True)):
-            nxt = successor.get(int(k))
-            if nxt is None:
+        t, kf = self._t.a, self._kf.a
+        for b, (a, a_from_b_tracked) in tracked_links.items():
+            if a not in known or b not in known:
                 continue
-            b, a_from_b_tracked = nxt
-            t_a, t_b = keyframe_times_ns[int(k)], keyframe_times_ns[b]
-            if not t_a < t < t_b:
+            t_a, t_b = keyframe_times_ns[int(a)], keyframe_times_ns[int(b)]
+            frames = np.flatnonzero((kf == int(a)) & (t > t_a) & (t < t_b))
+            if frames.size == 0:
                 continue
-            if k not in correction:
-                a_from_b = invert_pose(self._world_from_kf[int(k)]) @ self._world_from_kf[b]
-                correction[int(k)] = se3_log(invert_pose(a_from_b_tracked) @ a_from_b)
-            out[i] = out[i] @ se3_exp((t - t_a) / (t_b - t_a) * correction[int(k)])
+            world_from_a = self._world_from_kf[int(a)]
+            a_from_b = invert_pose(world_from_a) @ self._world_from_kf[int(b)]
+            a_from_cam = bridge_interval(
+                self._kf_from_cam.a[frames],
+                (t[frames] - t_a) / (t_b - t_a),
+                np.asarray(a_from_b_tracked, dtype=float).reshape(4, 4),
+                a_from_b,
+            )
+            out[frames] = np.einsum("ij,njk->nik", world_from_a, a_from_cam)
         return Trajectory(base.timestamps_ns, out)
 
     # ------------------------------------------------------------------ changing
@@ -264,3 +260,56 @@ class AnchoredTrajectory:
             for w in self._watchers:
                 w.frames_moved(frames)
         return frames
+
+
+def bridge_interval(
+    a_from_cam_tracked: F64,
+    time_fraction: F64,
+    a_from_b_tracked: F64,
+    a_from_b: F64,
+    min_chord_over_path: float = 0.5,
+    max_scale_change: float = 0.1,
+) -> F64:
+    """The frames of one keyframe interval A -> B moved onto the estimated ``a_from_b`` (N x 4 x 4).
+
+    ``a_from_cam_tracked``: the tracker's frame poses in keyframe A (metres, in time order);
+    ``time_fraction``: (t - t_A) / (t_B - t_A) of each. The tracker measured the interval with the
+    recorded calibration, so its translations carry that calibration's depth error, a scale about A.
+    1. Scale: every tracked translation times ``s = |t_AB estimated| / |t_AB tracked|`` (frame and
+       keyframe positions seen by the same biased stereo rig scale together; rotations do not).
+       Only where the tracked path heads somewhere (chord >= ``min_chord_over_path`` of its length):
+       on a path that turns back the chord does not measure the scale. Nor beyond
+       ``max_scale_change`` (a calibration's depth error is a few tenths of a percent; the selfcal
+       bench's links 0.2-0.5 %): a larger change is a tracking failure, not a scale.
+    2. The remaining end correction grows with the motion, not with the clock: a frame gets the
+       fraction of the tracked path (arc length of the positions A, frames, B; the rotation angle
+       where the path has no length; the time fraction where neither moved) of it. The least-squares
+       chain with noise per metre moved, both ends held at the estimated keyframes. The position
+       residual ``t_AB - t_AB scaled`` is added in A's coordinates (the tracker measured every
+       position against A's landmarks: their error is in A's frame; right-multiplied in each
+       frame's coordinates it would turn with the camera, 20-30 deg per interval on an orbit); the
+       rotation residual is right-multiplied in the frame's coordinates.
+    """
+    rel = np.array(a_from_cam_tracked, dtype=float).reshape(-1, 4, 4)
+    end = np.array(a_from_b_tracked, dtype=float)
+    chain = np.concatenate([np.eye(4)[None], rel, end[None]])
+    step_m = np.linalg.norm(np.diff(chain[:, :3, 3], axis=0), axis=1)
+    path_m = float(step_m.sum())
+    chord_m = float(np.linalg.norm(end[:3, 3]))
+    s = float(np.linalg.norm(a_from_b[:3, 3])) / chord_m if chord_m > 0.0 else 1.0
+    if chord_m >= min_chord_over_path * path_m and abs(s - 1.0) <= max_scale_change:
+        rel[:, :3, 3] *= s
+        end[:3, 3] *= s
+    step = step_m
+    if path_m <= 1e-9:
+        turns = [so3_log(p[:3, :3].T @ q[:3, :3]) for p, q in zip(chain[:-1], chain[1:], strict=True)]
+        step = np.linalg.norm(turns, axis=1)
+    total = float(step.sum())
+    fraction = np.cumsum(step)[:-1] / total if total > 1e-12 else np.asarray(time_fraction, dtype=float)
+    turn = so3_log(end[:3, :3].T @ a_from_b[:3, :3])
+    shift_m = a_from_b[:3, 3] - end[:3, 3]
+    out = rel.copy()
+    for k, f in enumerate(fraction):
+        out[k, :3, :3] = rel[k, :3, :3] @ so3_exp(f * turn)
+        out[k, :3, 3] = rel[k, :3, 3] + f * shift_m
+    return out
