@@ -22,6 +22,7 @@ if [ ! -f "$SAMPLE" ]; then
 fi
 $LM info "$SAMPLE"
 # results/demo is the demo's own folder: a second `make demo` replaces it (--overwrite)
+mkdir -p "$OUT"  # a fresh clone has no results folder (--rerun wants an existing one)
 rm -f "$OUT/$NAME.rrd"  # a recording an interrupted demo left behind
 $LM run "$SAMPLE" --config configs/sim.yaml --out "$OUT" --name "$NAME" --rerun "$OUT/$NAME.rrd" --overwrite
 mv -f "$OUT/$NAME.rrd" "$OUT/$NAME/run.rrd"  # open it with: .venv/bin/rerun results/demo/run.rrd
