@@ -26,17 +26,26 @@ def _project_py(q0, q1, q2, px, py, u0, v0, xi):  # type: ignore[no-untyped-def]
 _project = numba.njit(cache=True, nogil=True, inline="always")(_project_py)
 
 
+def _in_rig_and_camera_py(p, s, R, t, Rc, tc):  # type: ignore[no-untyped-def]
+    """The point ``p`` (homogeneous weight ``s``) in the rig (``R p + s t``) and in the camera (``Rc a + s tc``)."""
+    a0 = R[0, 0] * p[0] + R[0, 1] * p[1] + R[0, 2] * p[2] + s * t[0]
+    a1 = R[1, 0] * p[0] + R[1, 1] * p[1] + R[1, 2] * p[2] + s * t[1]
+    a2 = R[2, 0] * p[0] + R[2, 1] * p[1] + R[2, 2] * p[2] + s * t[2]
+    q0 = Rc[0, 0] * a0 + Rc[0, 1] * a1 + Rc[0, 2] * a2 + s * tc[0]
+    q1 = Rc[1, 0] * a0 + Rc[1, 1] * a1 + Rc[1, 2] * a2 + s * tc[1]
+    q2 = Rc[2, 0] * a0 + Rc[2, 1] * a1 + Rc[2, 2] * a2 + s * tc[2]
+    return a0, a1, a2, q0, q1, q2
+
+
+_in_rig_and_camera = numba.njit(cache=True, nogil=True, inline="always")(_in_rig_and_camera_py)
+
+
 def _point_residuals_py(P, rho, uv, R, t, Rc, tc, px, py, u0, v0, xi):  # type: ignore[no-untyped-def]
     n = P.shape[0]
     out = np.empty((n, 2))
     for i in range(n):
         s = rho[i]
-        a0 = R[0, 0] * P[i, 0] + R[0, 1] * P[i, 1] + R[0, 2] * P[i, 2] + s * t[0]
-        a1 = R[1, 0] * P[i, 0] + R[1, 1] * P[i, 1] + R[1, 2] * P[i, 2] + s * t[1]
-        a2 = R[2, 0] * P[i, 0] + R[2, 1] * P[i, 1] + R[2, 2] * P[i, 2] + s * t[2]
-        q0 = Rc[0, 0] * a0 + Rc[0, 1] * a1 + Rc[0, 2] * a2 + s * tc[0]
-        q1 = Rc[1, 0] * a0 + Rc[1, 1] * a1 + Rc[1, 2] * a2 + s * tc[1]
-        q2 = Rc[2, 0] * a0 + Rc[2, 1] * a1 + Rc[2, 2] * a2 + s * tc[2]
+        a0, a1, a2, q0, q1, q2 = _in_rig_and_camera(P[i], s, R, t, Rc, tc)
         u, v, _ = _project(q0, q1, q2, px, py, u0, v0, xi)
         out[i, 0] = u - uv[i, 0]
         out[i, 1] = v - uv[i, 1]
@@ -50,12 +59,7 @@ def _point_jacobian_py(P, rho, uv, R, t, Rc, tc, px, py, u0, v0, xi):  # type: i
     A = np.empty((2, 3))
     for i in range(n):
         s = rho[i]
-        a0 = R[0, 0] * P[i, 0] + R[0, 1] * P[i, 1] + R[0, 2] * P[i, 2] + s * t[0]
-        a1 = R[1, 0] * P[i, 0] + R[1, 1] * P[i, 1] + R[1, 2] * P[i, 2] + s * t[1]
-        a2 = R[2, 0] * P[i, 0] + R[2, 1] * P[i, 1] + R[2, 2] * P[i, 2] + s * t[2]
-        q0 = Rc[0, 0] * a0 + Rc[0, 1] * a1 + Rc[0, 2] * a2 + s * tc[0]
-        q1 = Rc[1, 0] * a0 + Rc[1, 1] * a1 + Rc[1, 2] * a2 + s * tc[1]
-        q2 = Rc[2, 0] * a0 + Rc[2, 1] * a1 + Rc[2, 2] * a2 + s * tc[2]
+        a0, a1, a2, q0, q1, q2 = _in_rig_and_camera(P[i], s, R, t, Rc, tc)
         u, v, d = _project(q0, q1, q2, px, py, u0, v0, xi)
         out[i, 0] = u - uv[i, 0]
         out[i, 1] = v - uv[i, 1]
