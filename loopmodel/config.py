@@ -120,6 +120,17 @@ class BackendConfig(_Section):
     change_tolerance_m: float = Field(
         1e-4, ge=0, description="estimate(): a keyframe counts as changed above this"
     )
+    # issue 33 item 5: local keeps iSAM2 to the last local_window_kf keyframes' landmarks (an
+    # observation of an older landmark enters as one of a proxy fixed at its estimate, the real one
+    # and the loop constraints wait outside iSAM2); everything joins one graph for the final estimate
+    loop_policy: Literal["isam2", "local"] = Field(
+        "isam2",
+        description="isam2: loops and revisits in iSAM2; local: a local iSAM2 against a fixed old map, "
+        "loops and revisits join for the final estimate",
+    )
+    local_window_kf: int = Field(
+        10, ge=1, description="pose_graph: observations of landmarks older than this stay out of iSAM2"
+    )
     # issue 33: where the back end runs; process: beside the tracker, which never waits for it
     worker: Literal["process", "thread", "inline"] = Field(
         "process", description="process (beside the tracker), thread, or inline (the tracker waits)"

@@ -37,7 +37,7 @@ from typing import Any, Literal
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import L, P, X
 from numpy.typing import NDArray
 
 from loopmodel.backend.base import F64, BackendEstimate, BackendUpdate, Observation
@@ -62,7 +62,7 @@ class _Obs:
     point_in_kf: F64 | None  # stereo triangulation in the keyframe's left camera (m)
 
 
-FactorKind = Literal["stereo", "mono", "prior", "loop"]
+FactorKind = Literal["stereo", "mono", "prior", "loop", "proxy"]
 
 
 @dataclass(slots=True)
@@ -139,6 +139,16 @@ class Isam2Backend:
         # (px, kf id -> offset) and its latest estimate (frontend.disparity_offset: estimate)
         self._kf_offset_px: dict[int, float] = {}
         self._offset_estimate_px: float | None = None
+        # issue 33 item 5, loop_policy local: factor ids kept out of iSAM2 (observations of
+        # landmarks older than the local window, loop constraints) until the final estimate
+        self._windowed = cfg.loop_policy == "local"
+        self._outside: set[int] = set()
+        # a revisited landmark is seen in iSAM2 through a proxy P(i) held by a prior at its estimate
+        # (internal landmark index -> (proxy index, keyframe seq it was made at)); real fid -> proxy fids
+        self._proxy: dict[int, tuple[int, int]] = {}
+        self._proxy_fids: dict[int, list[int]] = {}
+        self._next_pkey = 0
+        self._new_proxies = gtsam.Values()
 
     # ------------------------------------------------------------------ set-up
     @staticmethod
@@ -148,6 +158,7 @@ class Isam2Backend:
         thresholds = gtsam.ISAM2ThresholdMap()
         thresholds.insert(("x", np.array([cfg.relinearize_threshold_rad] * 3 + [cfg.relinearize_threshold_m] * 3)))
         thresholds.insert(("l", np.full(3, cfg.relinearize_threshold_landmark_m)))
+        thresholds.insert(("p", np.full(3, cfg.relinearize_threshold_landmark_m)))  # proxies of old landmarks
         params.setRelinearizeThreshold(thresholds)
         params.relinearizeSkip = cfg.relinearize_skip
         params.enablePartialRelinearizationCheck = cfg.partial_relinearization_check
@@ -220,25 +231,78 @@ class Isam2Backend:
         self._batch.append(fid)
         return fid
 
-    def _obs_factor(self, obs: _Obs, lkey: int) -> gtsam.NonlinearFactor:
+    def _obs_factor(self, obs: _Obs, landmark_key: int) -> gtsam.NonlinearFactor:
+        """The factor of observation ``obs`` of the landmark variable ``landmark_key`` (a gtsam key)."""
         extra = self._body_pose.get(obs.kf_id, ())
         px = obs.px
         if obs.stereo:
             sp = gtsam.StereoPoint2(px[0], px[1], px[2])
-            return gtsam.GenericStereoFactor3D(sp, self._stereo_noise, X(obs.kf_id), L(lkey), self._cal_stereo, *extra)
+            return gtsam.GenericStereoFactor3D(
+                sp, self._stereo_noise, X(obs.kf_id), landmark_key, self._cal_stereo, *extra
+            )
         return gtsam.GenericProjectionFactorCal3_S2(
-            np.array(px[:2]), self._mono_noise, X(obs.kf_id), L(lkey), self._cal_mono, *extra
+            np.array(px[:2]), self._mono_noise, X(obs.kf_id), landmark_key, self._cal_mono, *extra
         )
 
     def _add_obs(self, obs: _Obs, lkey: int, lm_id: int, graph: gtsam.NonlinearFactorGraph) -> None:
         key = (obs.kf_id, lm_id)
         if key in self._obs_fid:  # the same observation twice: keep the first
             return
-        factor = self._obs_factor(obs, lkey)
-        fid = self._new_fid(_FactorRecord(factor, "stereo" if obs.stereo else "mono", lkey, key))
+        factor = self._obs_factor(obs, L(lkey))
+        rec = _FactorRecord(factor, "stereo" if obs.stereo else "mono", lkey, key)
+        if self._windowed and self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq > self.config.local_window_kf:
+            fid = self._outside_fid(rec)  # a revisit: it would tie this keyframe to an old part of the map
+            self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
+        else:
+            fid = self._new_fid(rec)
+            graph.add(factor)
         self._obs_fid[key] = fid
         self._landmarks[lkey].fids.add(fid)
-        graph.add(factor)
+
+    def _proxy_observation(self, obs: _Obs, lkey: int, graph: gtsam.NonlinearFactorGraph) -> list[int]:
+        """``obs`` of old landmark ``lkey`` as an observation of its proxy in iSAM2; returns the factor ids.
+
+        The proxy is a landmark variable held by a prior of ``loop_sigma_m`` at the landmark's current
+        estimate, renewed once older than ``local_window_kf`` keyframes: the old poses and landmarks
+        stay out of the update (ORB-SLAM's local BA with the old map fixed).
+        """
+        seq = self._kf_seq[obs.kf_id]
+        fids = []
+        entry = self._proxy.get(lkey)
+        if entry is None or seq - entry[1] > self.config.local_window_kf:
+            entry = (self._next_pkey, seq)
+            self._next_pkey += 1
+            self._proxy[lkey] = entry
+            p = self._isam.calculateEstimatePoint3(L(lkey))
+            self._new_proxies.insert(P(entry[0]), p)
+            noise = gtsam.noiseModel.Isotropic.Sigma(3, self.config.loop_sigma_m)
+            prior = gtsam.PriorFactorPoint3(P(entry[0]), p, noise)
+            fids.append(self._new_fid(_FactorRecord(prior, "proxy")))
+            graph.add(prior)
+        proxy = self._obs_factor(obs, P(entry[0]))
+        fids.append(self._new_fid(_FactorRecord(proxy, "proxy")))
+        graph.add(proxy)
+        return fids
+
+    def _drop_proxy_observation(self, fid: int) -> list[int]:
+        """Forget the proxy observation factor of factor ``fid`` (not the proxy's prior); its iSAM2 slots."""
+        slots = []
+        for pf in self._proxy_fids.pop(fid, []):
+            rec = self._factors.get(pf)
+            if rec is not None and rec.factor.size() == 2:
+                del self._factors[pf]
+                slot = self._slot.pop(pf, None)
+                if slot is not None:
+                    slots.append(slot)
+        return slots
+
+    def _outside_fid(self, rec: _FactorRecord) -> int:
+        """Record a factor that stays out of iSAM2 until :meth:`_merge_outside` (``pose_graph`` policy)."""
+        fid = self._next_fid
+        self._next_fid += 1
+        self._factors[fid] = rec
+        self._outside.add(fid)
+        return fid
 
     def _project(self, kf_ids: list[int], p_world: F64, poses: dict[int, F64] | None = None) -> F64:
         """Predicted (u_left, u_right, v) rectified pixels of world points ``p_world`` (N, 3).
@@ -526,7 +590,9 @@ class Isam2Backend:
         report.rejected_observations += self._observe_mono(kf_id, keyframe.mono_obs, graph, candidates)
         report.new_landmarks = self._create_landmarks(candidates, graph, values)
         self._prune_pending(seq)
-        linked = sum(1 for f in self._batch if (r := self._factors[f]).obs is not None and r.obs[0] == kf_id)
+        linked = sum(
+            1 for f in self._batch if (r := self._factors[f]).obs is not None and r.obs[0] == kf_id or r.kind == "proxy"
+        )
         if linked < 3 and not (first or not keyframe.connected):
             # too few observations determine this pose: a loose prior keeps the system solvable
             self._add_prior(kf_id, T, False, graph)
@@ -619,6 +685,10 @@ class Isam2Backend:
     ) -> None:
         """One iSAM2 update with the factors just recorded (the last ``graph.size()`` fids)."""
         new_fids, self._batch = self._batch, []
+        if self._new_proxies.size():
+            values.insert(self._new_proxies)
+            self._theta0.insert(self._new_proxies)
+            self._new_proxies = gtsam.Values()
         if len(new_fids) != graph.size():
             raise EstimationError(f"internal: {len(new_fids)} recorded factors but {graph.size()} in the update")
         # removal-only updates keep GTSAM's default ordering: their affected set may be tiny
@@ -671,8 +741,9 @@ class Isam2Backend:
             self._isam = gtsam.ISAM2(self.isam2_params(self.config))
             self._slot.clear()
             keys: set[int] = set()
-            for rec in self._factors.values():
-                keys.update(rec.factor.keys())
+            for fid, rec in self._factors.items():
+                if fid not in self._outside:
+                    keys.update(rec.factor.keys())
             for kf in self._kf_seq:  # a keyframe left without factors keeps a loose prior
                 if X(kf) not in keys:
                     src = theta if theta.exists(X(kf)) else self._theta0
@@ -680,7 +751,7 @@ class Isam2Backend:
                     keys.add(X(kf))
             self._batch.clear()
             graph = gtsam.NonlinearFactorGraph()
-            fids = sorted(self._factors)
+            fids = sorted(set(self._factors) - self._outside)
             for fid in fids:
                 graph.add(self._factors[fid].factor)
             values = gtsam.Values()
@@ -710,6 +781,8 @@ class Isam2Backend:
         slots = []
         for fid in lm.fids:
             rec = self._factors.pop(fid)
+            self._outside.discard(fid)
+            slots.extend(self._drop_proxy_observation(fid))
             if rec.obs is not None:
                 self._obs_fid.pop(rec.obs, None)
             slot = self._slot.pop(fid, None)
@@ -727,11 +800,13 @@ class Isam2Backend:
             rec = self._factors.pop(fid, None)
             if rec is None:
                 continue
+            self._outside.discard(fid)
             if rec.obs is not None:
                 self._obs_fid.pop(rec.obs, None)
             slot = self._slot.pop(fid, None)
             if slot is not None:
                 slots.append(slot)
+            slots.extend(self._drop_proxy_observation(fid))
             if rec.lkey >= 0 and rec.lkey in self._landmarks:
                 self._landmarks[rec.lkey].fids.discard(fid)
                 touched.add(rec.lkey)
@@ -973,6 +1048,8 @@ class Isam2Backend:
         Extra iterations by :meth:`refine`, the batch bundle adjustment by :meth:`batch_refine`; the
         plain estimate when ``refine`` is None.
         """
+        if self._windowed:
+            self._merge_outside()
         if refine is None:
             return self.estimate()
         self.refine()
@@ -1050,6 +1127,8 @@ class Isam2Backend:
         )
         noise = self._robust(gtsam.noiseModel.Diagonal.Sigmas(s))
         factor = gtsam.BetweenFactorPose3(X(int(kf_a)), X(int(kf_b)), gtsam.Pose3(np.asarray(a_from_b, float)), noise)
+        if self._windowed:
+            return self._outside_fid(_FactorRecord(factor, "loop"))  # it joins at the final estimate
         fid = self._new_fid(_FactorRecord(factor, "loop"))
         graph = gtsam.NonlinearFactorGraph()
         graph.add(factor)
@@ -1064,6 +1143,9 @@ class Isam2Backend:
         if rec is None or rec.kind != "loop":
             raise EstimationError(f"no loop constraint with id {constraint_id}")
         del self._factors[constraint_id]
+        if constraint_id in self._outside:
+            self._outside.discard(constraint_id)
+            return
         slot = self._slot.pop(constraint_id, None)
         if slot is not None:
             self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [slot], None)
@@ -1119,3 +1201,41 @@ class Isam2Backend:
         self._last_poses = world_from_kf
         self._pose_guess.update(world_from_kf)
         return BackendEstimate(world_from_kf, lm_ids, pts, changed)
+
+    # ------------------------------------------------------------------ loop policy local (issue 33)
+    def _merge_outside(self) -> None:
+        """Every factor in one iSAM2 (``loop_policy`` local, before the final estimate).
+
+        A fresh iSAM2 on all live factors (the proxies' left out) from the current estimate; from then
+        on the back end is a plain one.
+        """
+        theta = self._isam.calculateEstimate()
+        for fid in [f for f, rec in self._factors.items() if rec.kind == "proxy"]:
+            del self._factors[fid]
+        self._proxy.clear()
+        self._proxy_fids.clear()
+        values = gtsam.Values()
+        keys: set[int] = set()
+        for rec in self._factors.values():
+            keys.update(rec.factor.keys())
+        for key in keys:
+            if gtsam.Symbol(key).chr() == ord("x"):
+                values.insert(key, theta.atPose3(key))
+            else:
+                values.insert(key, theta.atPoint3(key))
+        self._windowed = False
+        self._outside.clear()
+        self._isam = gtsam.ISAM2(self.isam2_params(self.config))
+        self._slot.clear()
+        self._batch.clear()
+        fids = sorted(self._factors)
+        graph = gtsam.NonlinearFactorGraph()
+        for fid in fids:
+            graph.add(self._factors[fid].factor)
+        try:
+            result = self._isam.update(graph, values, [], constrainedKeys=self._ordering_groups(len(keys)))
+        except RuntimeError as exc:
+            self._recover(exc)
+            return
+        for fid, slot in zip(fids, result.getNewFactorsIndices(), strict=True):
+            self._slot[fid] = slot
