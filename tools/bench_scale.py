@@ -379,14 +379,19 @@ def record_backend_calls(path: Path, out: Path, config: Config | None = None) ->
     return len(log)
 
 
-def replay_backend_calls(recorded: Path, config: Config | None = None, block: int = 20) -> dict[str, Any]:
+def replay_backend_calls(
+    recorded: Path, config: Config | None = None, block: int = 20, final: bool = False
+) -> dict[str, Any]:
     """Replay :func:`record_backend_calls`' calls on a fresh iSAM2 back end in this thread.
 
     As the worker does: one ``estimate(landmarks=False)`` after each keyframe and the calls that
     follow it. Keys: ``backend_ms_by_keyframes`` (CPU ms per keyframe, median per block of ``block``
     keyframes, as [keyframes, ms]), ``backend_ms_last_over_first``, ``loop_ms_by_keyframes``,
     ``cpu_s_by_call`` (per method), ``keyframe_ate_m`` (the iSAM2 estimate's keyframe positions
-    against the ground truth after a rigid alignment), ``factors``, ``landmarks``.
+    against the ground truth after a rigid alignment), ``factors``, ``landmarks``. With ``final``
+    also ``final_keyframe_ate_m`` and ``final_s``: the run's final estimate (``final_estimate`` with
+    the configuration's ``refine`` section: extra iterations, batch bundle adjustment, loops spread)
+    and its CPU time.
     """
     import pickle
 
@@ -394,7 +399,8 @@ def replay_backend_calls(recorded: Path, config: Config | None = None, block: in
 
     data = pickle.loads(recorded.read_bytes())  # noqa: S301 - a file this tool wrote
     calls = data["calls"]
-    backend = Isam2Backend(data["calibration"], (config or Config()).backend)
+    config = config or Config()
+    backend = Isam2Backend(data["calibration"], config.backend)
     per_kf: dict[int, float] = {}
     by_call: dict[str, float] = {}
     loop_ms: list[list[float]] = []
@@ -412,14 +418,23 @@ def replay_backend_calls(recorded: Path, config: Config | None = None, block: in
         if name == "add_loop_constraint":
             loop_ms.append([len(keyframes), round(ms, 1)])
     curve = _curve(per_kf, block)
-    est = backend.estimate(landmarks=False).world_from_kf
     gt = data["ground_truth"]
-    ate = None
-    if gt is not None:
+
+    def keyframe_ate(est: dict[int, Any]) -> float | None:
+        if gt is None:
+            return None
         index = {t: i for i, t in enumerate(gt.timestamps_ns.tolist())}
         kfs = [kf for kf in keyframes if kf.timestamp_ns in index]
         g = gt.world_from_cam[np.array([index[kf.timestamp_ns] for kf in kfs])]
-        ate = _ate_m(np.array([est[kf.id] for kf in kfs]), g)
+        return _ate_m(np.array([est[kf.id] for kf in kfs]), g)
+
+    ate = keyframe_ate(backend.estimate(landmarks=False).world_from_kf)
+    extra: dict[str, Any] = {}
+    if final:
+        t0 = time.thread_time()
+        final_ate = keyframe_ate(backend.final_estimate(config.refine).world_from_kf)
+        extra = {"final_keyframe_ate_m": round(final_ate, 5) if final_ate is not None else None,
+                 "final_s": round(time.thread_time() - t0, 1)}
     return {
         "keyframes": len(keyframes),
         "loops": len(loop_ms),
@@ -430,6 +445,7 @@ def replay_backend_calls(recorded: Path, config: Config | None = None, block: in
         "keyframe_ate_m": round(ate, 5) if ate is not None else None,
         "factors": backend.num_factors,
         "landmarks": backend.num_landmarks,
+        **extra,
     }
 
 
@@ -445,6 +461,7 @@ def main(argv: list[str] | None = None) -> int:
     rep = sub.add_parser("replay")
     rep.add_argument("calls", type=Path)
     rep.add_argument("backend", nargs="?", default="{}", help='backend keys as JSON, e.g. \'{"relinearize_skip": 10}\'')
+    rep.add_argument("--final", action="store_true", help="also the final estimate's keyframe ATE")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     if args.cmd == "record":
@@ -452,7 +469,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     config = Config()
     config.backend = config.backend.model_copy(update=json.loads(args.backend))
-    print(json.dumps(replay_backend_calls(args.calls, config)))
+    print(json.dumps(replay_backend_calls(args.calls, config, final=args.final)))
     return 0
 
 

@@ -147,6 +147,7 @@ def rounds_problem(
     seed: int = 0,
     fx_px: float = 500.0,
     baseline_m: float = 0.06,
+    revisit_points: int = 0,
 ) -> SynthRoundsProblem:
     """Rounds of ``per_round`` keyframes around a cylinder (radius ``object_radius_m``, 0.5 m tall).
 
@@ -155,7 +156,10 @@ def rounds_problem(
     ``noise_px``) and observes the points of the ``local_map_kf`` keyframes before it
     monocularly (the front end's local map). From the second round on, every ``loop_every_kf``-th
     keyframe has a loop constraint to the keyframe of the previous round nearest in azimuth
-    (its true relative pose perturbed by ``loop_noise`` rad and m).
+    (its true relative pose perturbed by ``loop_noise`` rad and m). With ``revisit_points``, from
+    the second round on each keyframe also observes monocularly up to that many points of the
+    previous round's keyframe nearest in azimuth (the real scan's local map finds the old map's
+    points when a round passes the views of an earlier one).
     """
     rng = np.random.default_rng(seed)
     cx, cy = 319.5, 239.5
@@ -207,6 +211,17 @@ def rounds_problem(
             q, ok = project(T, pP)
             uv = q[ok, :2] + rng.normal(0, noise_px, (int(ok.sum()), 2))
             mono.append(np.column_stack([pid[ok].astype(float), uv]))
+        if revisit_points > 0 and i >= per_round:
+            r = i // per_round
+            j = min(
+                range((r - 1) * per_round, r * per_round),
+                key=lambda k: abs(np.angle(np.exp(1j * (azimuth[k] - azimuth[i])))),
+            )
+            pid, pP = sets[j]
+            q, ok = project(T, pP)
+            sel = np.flatnonzero(ok)[:revisit_points]
+            uv = q[sel, :2] + rng.normal(0, noise_px, (sel.size, 2))
+            mono.append(np.column_stack([pid[sel].astype(float), uv]))
         sets.append((ids, P))
         prev_from_kf = invert_pose(est_T[i - 1]) @ est_T[i] if i else None
         kfs.append(
