@@ -166,3 +166,40 @@ def test_local_policy_bounds_cost_where_rounds_revisit_the_map() -> None:
     # online, 2.87 mm final; local 4.25 mm online (the old map waits for the final estimate), 2.35 mm final
     assert local_online < 0.25 * before, (before, local_online)
     assert local_final < 1.1 * full_final, (full_final, local_final)
+
+
+def test_local_policy_keeps_revisits_and_loops_outside_isam2_until_the_end() -> None:
+    """Revisits reach iSAM2 through proxies, loops not at all, until the final estimate.
+
+    A removed revisit takes its proxy's observation along; the final estimate holds every live
+    factor and no proxy.
+    """
+    from loopmodel.config import RefineConfig
+
+    prob = rounds_problem(45, per_round=15, features_per_kf=60, local_map_kf=1, loop_every_kf=5, revisit_points=40)
+    backend = Isam2Backend(_calibration(), BackendConfig(loop_policy="local"))
+    for kf in prob.keyframes:
+        backend.add_keyframe(kf)
+        for q, old, rel in prob.loops:
+            if q == kf.id:
+                backend.add_loop_constraint(q, old, rel)
+    assert len(backend.loop_constraints()) == len(prob.loops) == 6
+
+    def in_isam2() -> int:
+        graph = backend._isam.getFactorsUnsafe()
+        return sum(1 for i in range(graph.size()) if graph.exists(i))
+
+    revisits = [  # observations in the back end of landmarks first seen more than 11 keyframes before
+        (kf.id, int(lm))
+        for kf in prob.keyframes[15:]
+        for lm in kf.mono_obs[:, 0]
+        if int(lm) < 60 * (kf.id - 11) and (kf.id, int(lm)) in backend._obs_fid
+    ]
+    assert revisits and all(backend.observation_factor_index(o) is None for o in revisits)
+    n_isam2 = in_isam2()
+    assert n_isam2 < backend.num_factors  # the loops and the real revisit observations wait
+    assert backend.remove_observations(revisits[:1]) == 1
+    assert in_isam2() == n_isam2 - 1  # its proxy's observation went with it
+    backend.final_estimate(RefineConfig(batch_ba=False, distribute_loops=False))
+    assert in_isam2() == backend.num_factors  # every live factor, no proxy
+    assert all(backend.observation_factor_index(o) is not None for o in revisits[1:])
