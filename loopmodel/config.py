@@ -129,7 +129,7 @@ class BackendConfig(_Section):
         "loops and revisits join for the final estimate",
     )
     local_window_kf: int = Field(
-        10, ge=1, description="pose_graph: observations of landmarks older than this stay out of iSAM2"
+        10, ge=1, description="local: observations of landmarks older than this reach iSAM2 through proxies"
     )
     # issue 33: where the back end runs; process: beside the tracker, which never waits for it
     worker: Literal["process", "thread", "inline"] = Field(

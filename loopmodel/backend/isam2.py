@@ -19,7 +19,11 @@ Each update hands iSAM2 only the new factors and values. What keeps updates chea
   clique after a relinearisation;
 * optionally (``max_landmark_span_kf``) a long track continues in a fresh landmark
   variable, bounding the band of the pose graph and thereby the root clique;
-* per-type relinearisation thresholds (poses vs landmarks).
+* per-type relinearisation thresholds (poses vs landmarks);
+* optionally (``loop_policy: local``) a local problem: an observation of a landmark older than
+  ``local_window_kf`` keyframes goes to a proxy variable ``P(i)`` fixed by a prior at the
+  landmark's estimate, and the real observation and the loop constraints join only for the final
+  estimate (:meth:`Isam2Backend._merge_outside`), so no update reaches into the old map.
 
 An ``IndeterminateSystemException`` (GTSAM raises it as ``RuntimeError`` naming the
 variable) leaves iSAM2's Bayes tree half-updated, so the back end rebuilds iSAM2 from its
@@ -224,11 +228,12 @@ class Isam2Backend:
         return None if fid is None else self._slot.get(fid)
 
     # ------------------------------------------------------------------ factors
-    def _new_fid(self, rec: _FactorRecord) -> int:
+    def _new_fid(self, rec: _FactorRecord, outside: bool = False) -> int:
+        """Record a factor for the next iSAM2 update, or ``outside`` it until :meth:`_merge_outside`."""
         fid = self._next_fid
         self._next_fid += 1
         self._factors[fid] = rec
-        self._batch.append(fid)
+        (self._outside.add if outside else self._batch.append)(fid)
         return fid
 
     def _obs_factor(self, obs: _Obs, landmark_key: int) -> gtsam.NonlinearFactor:
@@ -251,7 +256,7 @@ class Isam2Backend:
         factor = self._obs_factor(obs, L(lkey))
         rec = _FactorRecord(factor, "stereo" if obs.stereo else "mono", lkey, key)
         if self._windowed and self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq > self.config.local_window_kf:
-            fid = self._outside_fid(rec)  # a revisit: it would tie this keyframe to an old part of the map
+            fid = self._new_fid(rec, outside=True)  # a revisit: it would tie this keyframe to an old part of the map
             self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
         else:
             fid = self._new_fid(rec)
@@ -295,14 +300,6 @@ class Isam2Backend:
                 if slot is not None:
                     slots.append(slot)
         return slots
-
-    def _outside_fid(self, rec: _FactorRecord) -> int:
-        """Record a factor that stays out of iSAM2 until :meth:`_merge_outside` (``pose_graph`` policy)."""
-        fid = self._next_fid
-        self._next_fid += 1
-        self._factors[fid] = rec
-        self._outside.add(fid)
-        return fid
 
     def _project(self, kf_ids: list[int], p_world: F64, poses: dict[int, F64] | None = None) -> F64:
         """Predicted (u_left, u_right, v) rectified pixels of world points ``p_world`` (N, 3).
@@ -1128,7 +1125,7 @@ class Isam2Backend:
         noise = self._robust(gtsam.noiseModel.Diagonal.Sigmas(s))
         factor = gtsam.BetweenFactorPose3(X(int(kf_a)), X(int(kf_b)), gtsam.Pose3(np.asarray(a_from_b, float)), noise)
         if self._windowed:
-            return self._outside_fid(_FactorRecord(factor, "loop"))  # it joins at the final estimate
+            return self._new_fid(_FactorRecord(factor, "loop"), outside=True)  # it joins at the final estimate
         fid = self._new_fid(_FactorRecord(factor, "loop"))
         graph = gtsam.NonlinearFactorGraph()
         graph.add(factor)
