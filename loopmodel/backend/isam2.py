@@ -1164,7 +1164,8 @@ class Isam2Backend:
             ids = np.sort(idx[chars == ord("x")]).tolist()
             rows = gtsam.utilities.extractPose3(vals).reshape(-1, 12)
             lkeys = np.sort(idx[chars == ord("l")])
-            all_pts = gtsam.utilities.extractPoint3(vals).reshape(-1, 3)
+            # every Point3 in key order: the landmarks (l) before their proxies (p, loop_policy local)
+            all_pts = gtsam.utilities.extractPoint3(vals).reshape(-1, 3)[: lkeys.size]
             known = self._landmarks
             live = np.array([k in known for k in lkeys.tolist()], dtype=bool)
             lm_ids = np.array([known[k].landmark_id for k in lkeys[live].tolist()], dtype=np.int64)
