@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,6 +17,9 @@ from numpy.typing import NDArray
 from loopmodel.config import MappingConfig
 from loopmodel.errors import LoopmodelError
 from loopmodel.types import StripeAnchors, StripeProfile, Trajectory
+
+if TYPE_CHECKING:
+    from loopmodel.mapping.meshing import Beside
 
 logger = logging.getLogger(__name__)
 
@@ -45,11 +48,14 @@ def aligned_to(traj: Trajectory, reference: Trajectory) -> Trajectory:
     return Trajectory(traj.timestamps_ns, T[None] @ traj.world_from_cam)
 
 
-def final_mesh(stripes: list[StripeProfile], final: Trajectory, config: MappingConfig) -> tuple[Any, dict[str, Any]]:
+def final_mesh(
+    stripes: list[StripeProfile], final: Trajectory, config: MappingConfig, beside: Beside | None = None
+) -> tuple[Any, dict[str, Any]]:
     """The mesh of ``stripes`` placed with ``final`` (open3d, world frame) and its metrics (vertex count).
 
-    (None, {}) when meshing is off, there is nothing to mesh, or it fails (logged: a run without a
-    mesh still has its trajectories).
+    With ``beside`` (a submit to another process) half of it is made there at the same time
+    (:func:`~loopmodel.mapping.meshing.mesh_in_halves`). (None, {}) when meshing is off, there is
+    nothing to mesh, or it fails (logged: a run without a mesh still has its trajectories).
     """
     if not stripes or not config.write_mesh or len(final) < 2:
         return None, {}
@@ -58,7 +64,7 @@ def final_mesh(stripes: list[StripeProfile], final: Trajectory, config: MappingC
     try:
         smap = StripeMap.from_trajectory(final, stripes, config)
         smap.check_nonempty()
-        surface = smap.mesh()
+        surface = smap.mesh(beside)
     except LoopmodelError as exc:
         logger.error("mesh not written: %s", exc)
         return None, {}
