@@ -644,8 +644,7 @@ class _Run:
         beside the final refinement and the final mesh.
         """
         result.stripes = self.laser.stripes
-        # issue 32: half of the surface in the live mesh's worker process, at the same time
-        result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, self.config.mapping, self.live.beside())
+        result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, self.config.mapping)
         t0 = time.perf_counter()
         if not result.interrupted:
             self.live.close(wait=True)

@@ -182,35 +182,6 @@ def test_mesh_with_ground_truth_poses_lies_within_half_a_millimetre(
     assert np.mean(np.einsum("ij,ij->i", n, v) > 0) > 0.99
 
 
-def test_mesh_in_halves_lies_on_the_surface_and_covers_the_cut(
-    sphere: o3d.geometry.TriangleMesh, sphere_scan: tuple[Trajectory, list[StripeProfile]]
-) -> None:
-    """Issue 32: the final mesh made as two halves at once (here the other half in a thread).
-
-    Against the true sphere as the whole mesh is (above): vertices on it, the scanned band covered
-    across the cut (no gap where the halves meet), and as many vertices as the whole within 5 %
-    (measured: 0.033 / 0.068 mm mean / p95 as the whole 0.031 / 0.067, band completeness 1.0, 1.011 x
-    the whole's vertices).
-    """
-    from concurrent.futures import ThreadPoolExecutor
-
-    from loopmodel.mapping.meshing import MIN_SPLIT_POINTS
-
-    traj, stripes = sphere_scan
-    m = StripeMap.from_trajectory(traj, stripes, MappingConfig(voxel_m=0.001))
-    assert m.world_points().shape[0] >= MIN_SPLIT_POINTS
-    with ThreadPoolExecutor(1) as pool:
-        halves = m.mesh(beside=pool.submit)
-    whole = m.mesh()
-    acc = mesh_accuracy(halves, sphere)
-    assert acc.mean_mm < 0.15 and acc.p95_mm < 0.5, acc
-    band = mesh_accuracy(halves, sphere, region_min=np.array([-1, -0.02, -1]), region_max=np.array([1, 0.02, 1]))
-    assert band.completeness > 0.95, band
-    assert abs(len(halves.vertices) / len(whole.vertices) - 1.0) < 0.05
-    v, n = np.asarray(halves.vertices), np.asarray(halves.vertex_normals)
-    assert np.mean(np.einsum("ij,ij->i", n, v) > 0) > 0.99
-
-
 def test_ball_pivoting_option(
     sphere: o3d.geometry.TriangleMesh, sphere_scan: tuple[Trajectory, list[StripeProfile]]
 ) -> None:

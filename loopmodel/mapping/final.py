@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,9 +17,6 @@ from numpy.typing import NDArray
 from loopmodel.config import MappingConfig
 from loopmodel.errors import LoopmodelError
 from loopmodel.types import StripeAnchors, StripeProfile, Trajectory
-
-if TYPE_CHECKING:
-    from loopmodel.mapping.meshing import Beside
 
 logger = logging.getLogger(__name__)
 
@@ -48,14 +45,11 @@ def aligned_to(traj: Trajectory, reference: Trajectory) -> Trajectory:
     return Trajectory(traj.timestamps_ns, T[None] @ traj.world_from_cam)
 
 
-def final_mesh(
-    stripes: list[StripeProfile], final: Trajectory, config: MappingConfig, beside: Beside | None = None
-) -> tuple[Any, dict[str, Any]]:
+def final_mesh(stripes: list[StripeProfile], final: Trajectory, config: MappingConfig) -> tuple[Any, dict[str, Any]]:
     """The mesh of ``stripes`` placed with ``final`` (open3d, world frame) and its metrics (vertex count).
 
-    With ``beside`` (a submit to another process) half of it is made there at the same time
-    (:func:`~loopmodel.mapping.meshing.mesh_in_halves`). (None, {}) when meshing is off, there is
-    nothing to mesh, or it fails (logged: a run without a mesh still has its trajectories).
+    (None, {}) when meshing is off, there is nothing to mesh, or it fails (logged: a run without a
+    mesh still has its trajectories).
     """
     if not stripes or not config.write_mesh or len(final) < 2:
         return None, {}
@@ -64,7 +58,7 @@ def final_mesh(
     try:
         smap = StripeMap.from_trajectory(final, stripes, config)
         smap.check_nonempty()
-        surface = smap.mesh(beside)
+        surface = smap.mesh()
     except LoopmodelError as exc:
         logger.error("mesh not written: %s", exc)
         return None, {}

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any, Literal
 
 import numpy as np
@@ -82,7 +82,6 @@ class LiveMapping:
         self._pool: Any = None
         self._job: Any = None
         self._worker_kind = worker
-        self._closed = False
         if every_kf > 0:
             # placing stripes interpolates poses with scipy's rotations: its import (~0.3 s) here,
             # before the frames, not in the frame that places the first stripe (issue 33)
@@ -177,23 +176,12 @@ class LiveMapping:
             return None
         return self._world.point_count * sum(self.update_ms) / 1e3 / self.points_meshed
 
-    def beside(self) -> Callable[..., Any] | None:
-        """The worker process's ``submit`` while it runs (None without one: off, a thread, closed).
-
-        Issue 32: the final mesh makes half of its surface there (open3d is loaded, the core free
-        once the last update is done), queued behind that update.
-        """
-        if self._pool is None or self._closed or self._worker_kind != "process":
-            return None
-        return self._pool.submit  # type: ignore[no-any-return]
-
     def close(self, wait: bool) -> None:
         """Install the last worker result (``wait``) or abandon it; stop the worker."""
         if self._job is not None and wait:
             self._collect()
         if self._pool is not None:
             self._pool.shutdown(wait=wait, cancel_futures=True)
-        self._closed = True
 
     def mesh(self) -> Any:
         """The live mesh as the run left it (an open3d mesh).

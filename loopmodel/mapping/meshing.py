@@ -11,9 +11,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable
-from concurrent.futures import Future
-from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -64,29 +61,21 @@ def oriented_cloud(points_w: F64, sensors_w: F64, config: MappingConfig) -> o3d.
 
 def poisson_depth(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> int:
     """Octree depth whose finest cell is closest to ``poisson_cell_voxels`` x ``voxel_m`` (or the configured depth)."""
-    return depth_for_extent(float(np.max(cloud.get_max_bound() - cloud.get_min_bound())), config)
-
-
-def depth_for_extent(extent_m: float, config: MappingConfig) -> int:
-    """:func:`poisson_depth` of samples whose bounding box's longest side is ``extent_m`` (metres)."""
     if config.poisson_depth > 0:
         return config.poisson_depth
+    ext = float(np.max(cloud.get_max_bound() - cloud.get_min_bound()))
     cell_m = config.poisson_cell_voxels * config.voxel_m
-    depth = round(math.log2(max(extent_m * config.poisson_scale / cell_m, 2.0)))
+    depth = round(math.log2(max(ext * config.poisson_scale / cell_m, 2.0)))
     return int(min(max(depth, 5), config.poisson_max_depth))
 
 
-def _poisson(
-    cloud: o3d.geometry.PointCloud, config: MappingConfig, cell_m: float = 0.0
-) -> o3d.geometry.TriangleMesh:
-    """Screened Poisson, trimmed; finest cells of ``cell_m`` (metres) when given, else :func:`poisson_depth`."""
+def _poisson(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.TriangleMesh:
     # PoissonRecon's warnings ("Extract bad average roots", with open3d's build paths) say nothing
     # a user can act on: errors only while it runs (issue 35)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh, dens_vec = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
             cloud,
-            depth=0 if cell_m > 0 else poisson_depth(cloud, config),
-            width=cell_m,
+            depth=poisson_depth(cloud, config),
             scale=config.poisson_scale,
             linear_fit=config.poisson_linear_fit,
             n_threads=config.poisson_threads or -1,
@@ -126,31 +115,13 @@ def mesh_cloud(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geo
     return mesh
 
 
-#: ``beside(fn, *args)``: runs ``fn(*args)`` in another process and returns its future
-Beside = Callable[..., "Future[Any]"]
-#: a mesh as arrays: vertices (V, 3) m, triangles (T, 3) int
-PartArrays = tuple[F64, NDArray[np.int32]]
-# issue 32: the context beyond a part's faces, in finest Poisson cells. With 0.02 m (about 7 cells of
-# 3 mm) the two halves of the 150-frame realistic orbit's final mesh measured as the whole did
-# (mesh error 3.875 vs 3.876 mm, completeness 0.0696 vs 0.0710, 55,744 vs 55,179 vertices).
-PART_CONTEXT_CELLS = 8.0
-# below this many points one reconstruction is cheaper than two processes' hand-over
-MIN_SPLIT_POINTS = 20_000
-
-
-def mesh_from_points(
-    points_w: F64, sensors_w: F64, config: MappingConfig, beside: Beside | None = None
-) -> o3d.geometry.TriangleMesh:
+def mesh_from_points(points_w: F64, sensors_w: F64, config: MappingConfig) -> o3d.geometry.TriangleMesh:
     """Triangle mesh (world, metres) of stripe points seen from the given sensor positions.
 
-    With ``beside`` (Poisson, at least :data:`MIN_SPLIT_POINTS` points) the surface is reconstructed
-    in two halves at once, one of them in the other process (:func:`mesh_in_halves`). Raises
-    :class:`InputError` when there is too little data or no surface comes out.
+    Raises :class:`InputError` when there is too little data or no surface comes out.
     """
     if np.asarray(points_w).size == 0:
         raise InputError(None, "no stripe points to mesh")
-    if beside is not None and config.method == "poisson" and len(points_w) >= MIN_SPLIT_POINTS:
-        return mesh_in_halves(np.asarray(points_w, float), np.asarray(sensors_w, float), config, beside)
     t0 = time.perf_counter()
     cloud = oriented_cloud(points_w, sensors_w, config)
     t1 = time.perf_counter()
@@ -167,62 +138,6 @@ def mesh_from_points(
     if len(mesh.triangles) == 0:
         raise InputError(None, "surface reconstruction produced no triangles")
     return mesh
-
-
-def mesh_in_halves(points_w: F64, sensors_w: F64, config: MappingConfig, beside: Beside) -> o3d.geometry.TriangleMesh:
-    """:func:`mesh_from_points` as two half-surfaces made at once, one by ``beside`` (another process).
-
-    Issue 32: one Poisson reconstruction holds one core for most of the final mesh; the halves take
-    the two. The samples are cut across their longest side where half the occupied cells lie on
-    each side; each half is reconstructed with the samples up to :data:`PART_CONTEXT_CELLS` cells
-    beyond its face and keeps the triangles whose centroid is its own, at the finest cell the whole
-    would have had (:func:`depth_for_extent`). World frame, metres.
-    """
-    lo, hi = points_w.min(axis=0), points_w.max(axis=0)
-    extent_m = float(np.max(hi - lo))
-    cell_m = extent_m * config.poisson_scale / 2.0 ** depth_for_extent(extent_m, config)
-    axis = int(np.argmax(hi - lo))
-    cells = np.unique(np.floor(points_w / cell_m).astype(np.int64), axis=0)
-    cut = (float(np.median(cells[:, axis])) + 0.5) * cell_m
-    job = beside(mesh_part, points_w, sensors_w, config, cell_m, axis, -np.inf, cut)
-    mine = mesh_part(points_w, sensors_w, config, cell_m, axis, cut, np.inf)
-    parts = [job.result(), mine]
-    offset = np.cumsum([0] + [len(v) for v, _ in parts])
-    mesh = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(np.concatenate([v for v, _ in parts])),
-        o3d.utility.Vector3iVector(np.concatenate([t + o for (_, t), o in zip(parts, offset, strict=False)])),
-    )
-    mesh.remove_degenerate_triangles()
-    mesh.remove_unreferenced_vertices()
-    mesh.compute_vertex_normals()
-    if len(mesh.triangles) == 0:
-        raise InputError(None, "surface reconstruction produced no triangles")
-    return mesh
-
-
-def mesh_part(
-    points_w: F64, sensors_w: F64, config: MappingConfig, cell_m: float, axis: int, lo_m: float, hi_m: float
-) -> PartArrays:
-    """The surface of the samples whose ``axis`` coordinate lies in [``lo_m``, ``hi_m``) (world, metres).
-
-    Reconstructed (Poisson, finest cells ``cell_m``) from the samples up to
-    :data:`PART_CONTEXT_CELLS` cells beyond, keeping the triangles whose centroid lies inside; as
-    arrays, for another process. Empty arrays when the part has too few samples for a surface.
-    """
-    margin = PART_CONTEXT_CELLS * cell_m
-    near = (points_w[:, axis] >= lo_m - margin) & (points_w[:, axis] < hi_m + margin)
-    none: PartArrays = (np.zeros((0, 3)), np.zeros((0, 3), np.int32))
-    cloud = oriented_cloud(points_w[near], sensors_w[near], config)
-    if len(cloud.points) < config.min_points:
-        return none
-    mesh = _poisson(cloud, config, cell_m)
-    v, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-    if t.size == 0:
-        return none
-    c = v[t].mean(axis=1)[:, axis]
-    keep = t[(c >= lo_m) & (c < hi_m)]
-    used, inv = np.unique(keep, return_inverse=True)
-    return v[used], inv.reshape(-1, 3).astype(np.int32)
 
 
 BlockKey = tuple[int, int, int]

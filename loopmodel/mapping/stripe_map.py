@@ -29,8 +29,6 @@ from loopmodel.types import StripeProfile, Trajectory
 if TYPE_CHECKING:
     import open3d as o3d
 
-    from loopmodel.mapping.meshing import Beside
-
 logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
@@ -267,13 +265,13 @@ class StripeMap:
             keys = np.unique(keys, axis=0)
         self._dirty.update(map(tuple, keys.tolist()))
 
-    def mesh(self, beside: Beside | None = None) -> o3d.geometry.TriangleMesh:
-        """Surface of all placed stripes (config method); in two halves at once with ``beside`` (another process)."""
+    def mesh(self) -> o3d.geometry.TriangleMesh:
+        """Surface of all placed stripes, reconstructed in one piece (config method)."""
         from loopmodel.mapping.meshing import mesh_from_points
 
         if self.placed_mask.sum() == 0:
             raise InputError(None, "no placed laser stripes to mesh")
-        return mesh_from_points(self.world_points(), self.sensor_positions(), self.config, beside)
+        return mesh_from_points(self.world_points(), self.sensor_positions(), self.config)
 
     def update_live_mesh(self) -> o3d.geometry.TriangleMesh:
         """Chunked live mesh.
