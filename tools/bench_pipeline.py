@@ -65,17 +65,7 @@ def scan150() -> Path:
     The 150-frame realistic orbit of issue 32 (``loopmodel simulate scan --preset orbit --frames 150
     --laser-image``: the stripes are extracted from laser images during the run).
     """
-    env = os.environ.get("LOOPMODEL_SIM_SCAN150")
-    path = Path(env) if env else ROOT / "datasets" / "sample" / "orbit150.mcap"
-    if not path.is_file():
-        from loopmodel.config import Config
-        from loopmodel.sim.generate import resolve_config, simulate_scan
-
-        c = Config()
-        print(f"generating {path} (150-frame orbit with laser images) ...", file=sys.stderr)
-        over: dict[str, dict[str, object]] = {"trajectory": {"frames": 150}, "laser": {"image": True}}
-        simulate_scan(resolve_config(c.simulation, "orbit", over, None), path, c.sequence.topics, None, "orbit")
-    return path
+    return realistic_orbit(150, "LOOPMODEL_SIM_SCAN150")
 
 
 def scan300() -> Path:
@@ -83,15 +73,23 @@ def scan300() -> Path:
 
     The 300-frame realistic orbit of issue 32's live-mesh target (as :func:`scan150` with 300 frames).
     """
-    env = os.environ.get("LOOPMODEL_SIM_SCAN300")
-    path = Path(env) if env else ROOT / "datasets" / "sample" / "orbit300.mcap"
+    return realistic_orbit(300, "LOOPMODEL_SIM_SCAN300")
+
+
+def realistic_orbit(frames: int, env_name: str) -> Path:
+    """``$<env_name>`` or ``datasets/sample/orbit<frames>.mcap``: the realistic orbit with laser images.
+
+    Generated when missing (``loopmodel simulate scan --preset orbit --frames <frames> --laser-image``).
+    """
+    env = os.environ.get(env_name)
+    path = Path(env) if env else ROOT / "datasets" / "sample" / f"orbit{frames}.mcap"
     if not path.is_file():
         from loopmodel.config import Config
         from loopmodel.sim.generate import resolve_config, simulate_scan
 
         c = Config()
-        print(f"generating {path} (300-frame orbit with laser images) ...", file=sys.stderr)
-        over: dict[str, dict[str, object]] = {"trajectory": {"frames": 300}, "laser": {"image": True}}
+        print(f"generating {path} ({frames}-frame orbit with laser images) ...", file=sys.stderr)
+        over: dict[str, dict[str, object]] = {"trajectory": {"frames": frames}, "laser": {"image": True}}
         simulate_scan(resolve_config(c.simulation, "orbit", over, None), path, c.sequence.topics, None, "orbit")
     return path
 
