@@ -863,6 +863,9 @@ def _process_and_write(
         with timed_step("write", write_s, finishing):
             result.log = log.text()
             result.folder = write_results(folder, result, kitti_input=sequence.format_name == "kitti")
+    # the writes' time in the returned metrics only (metrics.json is one of the files written)
+    result.metrics.setdefault("finish_s", {}).update(write_s)
+    result.metrics["wall_s"] = result.metrics.get("wall_s", 0.0) + write_s["write"]
     return result
 
 

@@ -387,6 +387,13 @@ def test_rectified_frame_differs_from_camera_frame(rng):
     est = backend.estimate()
     for i, T in enumerate(poses):
         assert np.allclose(est.world_from_kf[i], T, atol=1e-6)
+    # the final batch refinement's factors carry the same body pose (issue 32: taken from the
+    # keyframe's, not inverted again per observation): its solution reprojects the noise-free pixels
+    # exactly and is the truth
+    refined = backend.batch_refine(1.0, huber_k=0.0)
+    assert backend.refine_info["refine_robust_px_after"] < 1e-6
+    for i, T in enumerate(poses):
+        assert np.allclose(refined.world_from_kf[i], T, atol=1e-6)
 
 
 def test_small_updates_after_many_keyframes(rng):

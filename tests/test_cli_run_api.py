@@ -38,3 +38,20 @@ def test_cli_run_goes_through_loopmodel_run(
         assert not call["config"].loop.enabled and not call["config"].mapping.write_mesh
     m = json.loads((tmp_path / "r" / "metrics.json").read_text())
     assert m["frames"] == 4 and "finish_s" in m
+
+
+def test_the_returned_metrics_hold_the_write_time(tmp_path: Path) -> None:
+    """Issue 32: the results' write is the last finishing step; its time is in the returned metrics.
+
+    ``metrics.json`` is written during that step, so it has the steps before it only; the returned
+    ``wall_s`` is the frame loop and every finishing step, the write included.
+    """
+    import loopmodel
+
+    result = loopmodel.run(ROOT / "datasets" / "tiny_kitti", None, tmp_path, name="w", max_frames=4)
+    steps = result.metrics["finish_s"]
+    assert steps["write"] > 0
+    assert result.metrics["wall_s"] == pytest.approx(result.metrics["frames_s"] + sum(steps.values()))
+    written = json.loads((tmp_path / "w" / "metrics.json").read_text())
+    assert "write" not in written["finish_s"]
+    assert written["wall_s"] == pytest.approx(written["frames_s"] + sum(written["finish_s"].values()))

@@ -973,8 +973,9 @@ class Isam2Backend:
             rec = self._factors[fid]
             f: Any = rec.factor
             if rec.kind in ("stereo", "mono") and rec.obs is not None:
-                body = self._body.get(rec.obs[0])
-                extra = () if body is None else (gtsam.Pose3(invert_pose(body)),)
+                # the keyframe's body_P_sensor as its factors got it (issue 32: with an inversion per
+                # observation the refinement took 0.83 instead of 0.68 s CPU, 150-frame realistic orbit)
+                extra = self._body_pose.get(rec.obs[0], ())
                 keys = f.keys()
                 if rec.kind == "stereo":
                     m, d = f.measured(), shift.get(rec.obs[0], 0.0)
@@ -996,7 +997,8 @@ class Isam2Backend:
             out = [np.asarray(f.unwhitenedError(vals), dtype=np.float64).ravel() for f in observed]
             return np.concatenate(out) if out else np.zeros(0)
 
-        before = self.robust_error_px(residuals(start), sigma, huber_k)
+        # at the start without re-expressed columns: the residuals r0 already computed
+        before = self.robust_error_px(residuals(start) if shift else r0, sigma, huber_k)
         after = self.robust_error_px(residuals(values), sigma, huber_k)
         # the robust chi-square (sum of 2 rho(r / sigma)) must drop by more than min_gain_sd
         # of its standard deviations sqrt(2 n): a smaller drop is not told apart from noise
