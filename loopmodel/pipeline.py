@@ -408,8 +408,10 @@ class _Run:
         """
         t0 = time.perf_counter()
         res = self.frontend.process(frame)
-        # frontend.local_ba_beside: a keyframe's local BA, taken in this frame, moved its pose
-        self._correct({k: T for k, T in self.frontend.take_corrections().items() if k in self.keyframes})
+        # frontend.local_ba_beside: a keyframe made now comes with the next frame (after its local BA);
+        # this frame anchors to it already
+        if res.is_keyframe and (res.keyframe is None or res.keyframe.id != res.keyframe_id):
+            self.anchored.set_keyframe(res.keyframe_id, res.world_from_cam)
         if not res.ok:
             logger.info("frame %d LOST: %s", frame.index, res.reason)
         kf = res.keyframe
@@ -418,6 +420,8 @@ class _Run:
             self._correct(self.localizer.on_frame(res, self.frontend.rectifier.left(frame.left), self._state()))
         if kf is not None:
             world_from_cam = self._keyframe_step(kf, res) @ res.kf_from_cam
+            if not res.is_keyframe or kf.id != res.keyframe_id:  # the last frame's keyframe (local_ba_beside)
+                world_from_cam = res.world_from_cam
             # do not hold every keyframe image; a resumed run's first pose is the old keyframe's
             res = dataclasses.replace(res, keyframe=None, world_from_cam=world_from_cam)
         self.frames.append(res)
@@ -603,6 +607,8 @@ class _Run:
         frames_s = self.times.since_start_s()
         steps = self.times.finish_s
         with timed_step("workers", steps, self.finishing):
+            for kf in self.frontend.finish_keyframes():  # frontend.local_ba_beside: the last keyframe
+                self._keyframe_step(kf, self.frames[-1])
             self._stop_workers(interrupted)
         if self.config.mapping.write_mesh and self.laser.stripes:
             _import_beside("loopmodel.mapping.meshing")
