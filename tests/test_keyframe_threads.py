@@ -134,7 +134,7 @@ def test_local_ba_beside_the_next_frame_gives_the_inline_keyframes(
 
     monkeypatch.setattr(tracker_mod, "hybrid_keyframe_ba", recording)
     cfg = CFG.model_copy(update={"local_ba_beside": True})
-    fe_inline, fe_beside = FrontEnd(cal, CFG), FrontEnd(cal, cfg)
+    fe_inline, fe_beside = FrontEnd(cal, CFG.model_copy(update={"local_ba_beside": False})), FrontEnd(cal, cfg)
     inline = [fe_inline.process(f) for f in frames]
     n_inline = len(ba_threads)
     assert n_inline >= 4 and set(ba_threads) == {threading.get_ident()}

@@ -332,6 +332,7 @@ class FrontEnd:
         self._offset_px = 0.0  # applied to new matches (measured right column - offset)
         self._left_rect: NDArray[np.uint8] | None = None  # the last rectified left image
         self._prev_pyr: Pyramid | None = None
+        self._kf_pyr: Pyramid | None = None
         self._kf_from_prev: F64 = np.eye(4)
         self._velocity: F64 = np.eye(4)  # prev_from_cur of the last measured step
         self._velocity_known = False  # a measured step exists (the jump test needs one)
@@ -425,7 +426,11 @@ class FrontEnd:
         if self._active is None or int(request.keyframe) != self._active.keyframe.id or not len(request):
             return 0
         self._resumed = ResumedSet.from_request(request)
-        return len(self._resumed)
+        if self._prev_pyr is not self._kf_pyr and self._kf_pyr is not None:
+            # the keyframe was handed a frame late (local_ba_beside): tracked on into the frame since, as
+            # that frame would have tracked it
+            self._track_resumed(self._prev_pyr, self._kf_from_prev, self._kf_pyr)
+        return len(self._resumed) if self._resumed is not None else 0
 
     def resumed_features(self) -> ResumedSet | None:
         """The old feature set being tracked again, if any (read-only use)."""
@@ -854,15 +859,17 @@ class FrontEnd:
         return PointTerm(
             self.rig, active.far_rays[sel], uv, prior_weight=prior, inverse_depth_per_m=active.far_inv_depth[sel]
         )
-    def _track_resumed(self, cur_pyr: Pyramid, kf_from_cur: F64) -> None:
-        """Track the resumed old set into this frame (KLT from the last good frame, gated by the pose)."""
-        if self._resumed is None or self._prev_pyr is None:
+
+    def _track_resumed(self, cur_pyr: Pyramid | None, kf_from_cur: F64, prev_pyr: Pyramid | None = None) -> None:
+        """Track the resumed old set into this frame (KLT from ``prev_pyr``, else the last good frame)."""
+        prev_pyr = self._prev_pyr if prev_pyr is None else prev_pyr
+        if self._resumed is None or prev_pyr is None or cur_pyr is None:
             return
         cfg = self.config
         klt = (cfg.klt_window_px, cfg.klt_levels, cfg.fb_threshold_px, cfg.klt_iterations)
         rs = self._resumed
         if not rs.track(
-            self.left_camera, self._prev_pyr, cur_pyr, kf_from_cur, cfg.prediction_gate_px, klt,
+            self.left_camera, prev_pyr, cur_pyr, kf_from_cur, cfg.prediction_gate_px, klt,
             self.calibration.image_size,
         ):
             logger.info("old feature set of keyframe %d: no feature left", rs.match_keyframe)
@@ -1346,6 +1353,10 @@ class FrontEnd:
             tracked_from_ba = invert_pose(job.kf_from_cur) @ closed.kf_from_new
             world_from_rect = nearest_rigid(self._world_from_kf[kf_id] @ self.cam_from_rect @ tracked_from_ba)
             self.apply_correction({kf_id: world_from_rect @ self.rect_from_cam})
+            if self._resumed is not None and "resumed_from_keyframe" in closed.ba_info:
+                # the resumed old set moved to this keyframe at its tracked pose: to the BA's, as inline
+                rs = self._resumed
+                rs.kf_from_match = invert_pose(closed.kf_from_new) @ job.kf_from_cur @ rs.kf_from_match
         for i, kf in enumerate(self._late):
             if kf.id == kf_id:
                 info = {**kf.ba_info, **closed.ba_info}
@@ -1450,6 +1461,7 @@ class FrontEnd:
         self._prev_pyr = (
             cur_pyr if cur_pyr is not None else build_pyramid(kf.image, cfg.klt_window_px, cfg.klt_levels)
         )
+        self._kf_pyr = self._prev_pyr  # the keyframe's own (resume_features of a keyframe handed late)
         self._kf_from_prev = np.eye(4)
         self._frames_since_ok = 0
 
