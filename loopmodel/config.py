@@ -319,15 +319,14 @@ class FrontendConfig(_Section):
     keyframe_stereo: Literal["thread", "inline"] = Field(
         "thread", description="a new keyframe's stereo matching: on a thread beside the local BA, or inline"
     )
-    # issue 33: the local BA of a keyframe's interval on a thread beside the next frame's KLT, taken
-    # before that frame's pose (refined points, offset, the keyframe's pose); the keyframe reaches the
-    # back end and loop stage with that frame, at the BA's pose (fe5). Full pipeline, on / off: KITTI
-    # clip (configs/kitti.yaml, on there) trajectory_final ATE 0.0427 / 0.0427 m, drift and rotation
-    # after the ground truth's constant-rate segment 0.531 / 0.531 %, 0.138 / 0.138 deg, tracking
-    # thread's CPU in a keyframe frame 12-14 / 21-22 ms. Not a code default: the orbit sample
-    # (configs/sim.yaml) final ATE 2.89 / 2.87 mm, deterministic (each frame after a keyframe is solved
-    # before that keyframe's back-end and loop corrections arrive). CHANGELOG.md (issue 33, fe5)
-    local_ba_beside: bool = Field(False, description="run the local BA beside the next frame's tracking")
+    # issue 33: the local BA of a keyframe's interval on a thread beside the pipeline's end of that
+    # frame and the next frame's reading; taken between frames with the keyframe's hand-off to the loop
+    # stage and back end (fe5: the inline order and results). Full pipeline, on / off: KITTI clip
+    # (configs/kitti.yaml) trajectory_final ATE 0.0427 / 0.0427 m, drift and rotation after the ground
+    # truth's constant-rate segment 0.531 / 0.531 %, 0.138 / 0.138 deg; orbit sample (configs/sim.yaml)
+    # final ATE 2.87 / 2.87 mm; the tracking thread's CPU in a KITTI keyframe frame 12-14 / 21-22 ms.
+    # CHANGELOG.md (issue 33, fe5)
+    local_ba_beside: bool = Field(True, description="run the local BA beside the tracking, taken between frames")
 
 
 class MappingConfig(_Section):

@@ -407,10 +407,13 @@ class _Run:
         trajectory, and the stripes taken up to it the live map.
         """
         t0 = time.perf_counter()
+        # frontend.local_ba_beside: the last frame's keyframe, its local BA (run beside since) taken, reaches
+        # the loop stage and back end before this frame is tracked, as it would have in its own frame
+        late = self.frontend.finish_keyframes()
+        for late_kf in late:
+            self._keyframe_step(late_kf, self.frames[-1])
         res = self.frontend.process(frame)
-        # frontend.local_ba_beside: a keyframe made now comes with the next frame (after its local BA);
-        # this frame anchors to it already
-        if res.is_keyframe and (res.keyframe is None or res.keyframe.id != res.keyframe_id):
+        if res.is_keyframe and res.keyframe is None:  # (local_ba_beside) its frame anchors to it already
             self.anchored.set_keyframe(res.keyframe_id, res.world_from_cam)
         if not res.ok:
             logger.info("frame %d LOST: %s", frame.index, res.reason)
@@ -420,15 +423,13 @@ class _Run:
             self._correct(self.localizer.on_frame(res, self.frontend.rectifier.left(frame.left), self._state()))
         if kf is not None:
             world_from_cam = self._keyframe_step(kf, res) @ res.kf_from_cam
-            if not res.is_keyframe or kf.id != res.keyframe_id:  # the last frame's keyframe (local_ba_beside)
-                world_from_cam = res.world_from_cam
             # do not hold every keyframe image; a resumed run's first pose is the old keyframe's
             res = dataclasses.replace(res, keyframe=None, world_from_cam=world_from_cam)
         self.frames.append(res)
         if res.ok:
             self.anchored.add_frame(res.timestamp_ns, kf_id=res.keyframe_id, kf_from_cam=res.kf_from_cam)
             self.live.feed(self.laser.new_profiles())
-        if kf is not None:
+        if kf is not None or late:
             updates = len(self.live.update_ms)
             self.live.on_keyframe()
             if self.listeners and len(self.live.update_ms) > updates:

@@ -454,7 +454,11 @@ class FrontEnd:
         return res
 
     def finish_keyframes(self) -> list[Keyframe]:
-        """The keyframes not handed yet (``local_ba_beside``: the last one), their BA taken; after the last frame."""
+        """The keyframes not handed yet (``local_ba_beside``: the last one), their BA taken.
+
+        Between frames (the pipeline, before each frame: the BA then precedes that frame's KLT, the
+        inline order) or after the last one.
+        """
         self._finish_local_ba()
         out, self._late = self._late, []
         return out
