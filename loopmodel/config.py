@@ -324,8 +324,8 @@ class FrontendConfig(_Section):
     # stage and back end (fe5: the inline order and results). Full pipeline, on / off: KITTI clip
     # (configs/kitti.yaml) trajectory_final ATE 0.0427 / 0.0427 m, drift and rotation after the ground
     # truth's constant-rate segment 0.531 / 0.531 %, 0.138 / 0.138 deg; orbit sample (configs/sim.yaml)
-    # final ATE 2.87 / 2.87 mm; the tracking thread's CPU in a KITTI keyframe frame 12-14 / 21-22 ms.
-    # CHANGELOG.md (issue 33, fe5)
+    # final ATE 2.87 / 2.87 mm; KITTI: the tracking thread's CPU in a keyframe frame 12-14 / 19-22 ms,
+    # kitti_frame_ms_p95 37.9 / 42.0 ms (4 alternating pairs, load 2.7-3). CHANGELOG.md (issue 33, fe5)
     local_ba_beside: bool = Field(True, description="run the local BA beside the tracking, taken between frames")
 
 
