@@ -407,9 +407,10 @@ class _Run:
         trajectory, and the stripes taken up to it the live map.
         """
         t0 = time.perf_counter()
+        late = self._hand_waiting_keyframes()
         res = self.frontend.process(frame)
-        # frontend.local_ba_beside: a keyframe's local BA, taken in this frame, moved its pose
-        self._correct({k: T for k, T in self.frontend.take_corrections().items() if k in self.keyframes})
+        if res.is_keyframe and res.keyframe is None:  # (local_ba_beside) its frame anchors to it already
+            self.anchored.set_keyframe(res.keyframe_id, res.world_from_cam)
         if not res.ok:
             logger.info("frame %d LOST: %s", frame.index, res.reason)
         kf = res.keyframe
@@ -424,7 +425,7 @@ class _Run:
         if res.ok:
             self.anchored.add_frame(res.timestamp_ns, kf_id=res.keyframe_id, kf_from_cam=res.kf_from_cam)
             self.live.feed(self.laser.new_profiles())
-        if kf is not None:
+        if kf is not None or late:
             updates = len(self.live.update_ms)
             self.live.on_keyframe()
             if self.listeners and len(self.live.update_ms) > updates:
@@ -437,6 +438,20 @@ class _Run:
             for listener in self.listeners:
                 listener.on_frame(frame, res, tracks)
         return res
+
+    def _hand_waiting_keyframes(self) -> bool:
+        """frontend.local_ba_beside: the last frame's keyframe, its local BA (run beside since) taken.
+
+        It reaches the loop stage and back end before the next frame is tracked, as it would have in
+        its own frame, and its frame's online pose becomes the BA's (the inline one). Whether one came.
+        """
+        late = self.frontend.finish_keyframes()
+        for kf in late:
+            self._keyframe_step(kf, self.frames[-1])
+            last = self.frames[-1]
+            if last.is_keyframe and last.keyframe_id == kf.id:
+                self.frames[-1] = dataclasses.replace(last, world_from_cam=np.asarray(kf.world_from_kf).copy())
+        return bool(late)
 
     def _state(self) -> MapState:
         return MapState(self.frontend.world_from_kf, *self._last)
@@ -603,6 +618,7 @@ class _Run:
         frames_s = self.times.since_start_s()
         steps = self.times.finish_s
         with timed_step("workers", steps, self.finishing):
+            self._hand_waiting_keyframes()  # frontend.local_ba_beside: the last keyframe
             self._stop_workers(interrupted)
         if self.config.mapping.write_mesh and self.laser.stripes:
             _import_beside("loopmodel.mapping.meshing")

@@ -61,15 +61,20 @@ def _blocked_backend(config: BackendConfig, calibration: StereoCalibration, give
     return _Blocked(create_backend(config, calibration, givens))  # type: ignore[return-value]
 
 
-@pytest.mark.parametrize("kind", ["process", "thread"])
-def test_blocked_worker_does_not_stall_tracking(kind: str, sequence_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize(("kind", "ba_beside"), [("process", False), ("thread", False), ("process", True)])
+def test_blocked_worker_does_not_stall_tracking(
+    kind: str, ba_beside: bool, sequence_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The worker sleeps 2 s inside its first keyframe; every frame still takes < 100 ms.
 
-    The final estimate waits for the worker and matches the ground truth as a waiting back end does.
+    The final estimate waits for the worker and matches the ground truth as a waiting back end does;
+    also with each keyframe's local BA beside the next frame (``frontend.local_ba_beside``, issue 33 fe5).
     """
     monkeypatch.setattr(pl, "create_backend", _blocked_backend)  # built in the worker
     seq = open_sequence(sequence_dir)
-    run = pl._Run(seq.calibration, _config(kind), [])
+    cfg = _config(kind)
+    cfg.frontend.local_ba_beside = ba_beside
+    run = pl._Run(seq.calibration, cfg, [])
     for frame in seq.frames():
         run.step(frame)
     backend = run.backend

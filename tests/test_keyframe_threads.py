@@ -115,13 +115,14 @@ def test_an_error_in_the_stereo_thread_reaches_the_tracker(
     assert calls[-1] != threading.get_ident()  # raised on the stereo thread, re-raised here
 
 
-def test_local_ba_beside_the_next_frame_gives_the_inline_poses(
+def test_local_ba_beside_the_next_frame_gives_the_inline_keyframes(
     rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """frontend.local_ba_beside: each keyframe's BA runs on another thread while the tracker returns.
 
-    It is taken in the next frame before its pose: every later frame's pose is the inline run's; a
-    keyframe's own frame carries its tracked pose, and the BA's correction reaches take_corrections.
+    It is taken in the next frame before its pose, and the keyframe is handed with that frame's result
+    (the last one by ``finish_keyframes``) as the inline run hands it in its own: the BA's pose, the same
+    measurements. Every later frame's pose is the inline run's; a keyframe's own frame carries its tracked pose.
     """
     frames, poses, cal = _frames(rng, 16)
     ba_threads: list[int] = []
@@ -133,24 +134,37 @@ def test_local_ba_beside_the_next_frame_gives_the_inline_poses(
 
     monkeypatch.setattr(tracker_mod, "hybrid_keyframe_ba", recording)
     cfg = CFG.model_copy(update={"local_ba_beside": True})
-    fe_inline, fe_beside = FrontEnd(cal, CFG), FrontEnd(cal, cfg)
+    fe_inline, fe_beside = FrontEnd(cal, CFG.model_copy(update={"local_ba_beside": False})), FrontEnd(cal, cfg)
     inline = [fe_inline.process(f) for f in frames]
     n_inline = len(ba_threads)
     assert n_inline >= 4 and set(ba_threads) == {threading.get_ident()}
-    beside, corrected = [], {}
-    for f in frames:
-        beside.append(fe_beside.process(f))
-        corrected.update(fe_beside.take_corrections())
-    assert len(ba_threads) - n_inline >= n_inline - 1  # the last keyframe's BA may still be pending
+    beside = [fe_beside.process(f) for f in frames]
+    last = fe_beside.finish_keyframes()
+    assert len(ba_threads) - n_inline == n_inline
     assert threading.get_ident() not in ba_threads[n_inline:]
     assert [r.keyframe_id for r in beside] == [r.keyframe_id for r in inline]
-    # every connected keyframe but the last had its BA taken and its pose moved (a few mm here)
-    kf_ids = [r.keyframe_id for r in inline if r.is_keyframe][1:-1]
-    assert set(kf_ids) <= set(corrected)
-    # the same up to rounding and the KLT's tolerance: the local map's KLT starts at the points before
-    # their BA (measured 3e-8 at most)
-    for k in kf_ids:
-        np.testing.assert_allclose(fe_beside.world_from_kf[k], fe_inline.world_from_kf[k], atol=1e-6)
+    assert [r.is_keyframe for r in beside] == [r.is_keyframe for r in inline]
+    kf_inline = [r.keyframe for r in inline if r.keyframe is not None]
+    handed = [(i, r.keyframe) for i, r in enumerate(beside) if r.keyframe is not None]
+    handed += [(len(frames), kf) for kf in last]
+    assert [kf.id for _, kf in handed] == [kf.id for kf in kf_inline]
+    for (at, b), a in zip(handed, kf_inline, strict=True):
+        # the first keyframe (no BA) in its own frame, every other with the next frame's result
+        assert at == (a.frame_index if a.prev_keyframe_id is None else a.frame_index + 1)
+        assert b.frame_index == a.frame_index and b.timestamp_ns == a.timestamp_ns
+        np.testing.assert_array_equal(b.landmark_ids, a.landmark_ids)
+        np.testing.assert_array_equal(b.stereo_px, a.stereo_px)
+        # the same up to rounding and the KLT's tolerance: the local map's KLT starts at the points
+        # before their BA (measured 2.2e-3 px, 3e-8 m at most)
+        np.testing.assert_array_equal(b.mono_obs[:, 0], a.mono_obs[:, 0])
+        np.testing.assert_allclose(b.mono_obs, a.mono_obs, atol=0.01)
+        assert b.ba_info.keys() == a.ba_info.keys()
+        np.testing.assert_allclose(b.world_from_kf, a.world_from_kf, atol=1e-6)
+        if a.kf_prev_from_kf is not None:
+            assert b.kf_prev_from_kf is not None
+            np.testing.assert_allclose(b.kf_prev_from_kf, a.kf_prev_from_kf, atol=1e-6)
+            np.testing.assert_allclose(b.kf_prev_from_kf_tracked, a.kf_prev_from_kf_tracked, atol=1e-6)  # type: ignore[arg-type]
+            assert b.ba_info["ba_points"] == a.ba_info["ba_points"]
     for a, b in zip(inline, beside, strict=True):
         if a.is_keyframe:  # the keyframe's own frame: the tracked pose (measured within 1 mm of the BA's)
             assert np.linalg.norm(a.world_from_cam[:3, 3] - b.world_from_cam[:3, 3]) < 0.003
@@ -159,11 +173,12 @@ def test_local_ba_beside_the_next_frame_gives_the_inline_poses(
         assert np.linalg.norm(b.world_from_cam[:3, 3] - poses[b.frame_index][:3, 3]) < 0.005
 
 
-def test_the_pipeline_takes_the_beside_ba_corrections(tmp_path: Path) -> None:
-    """With ``local_ba_beside`` the pipeline applies each keyframe's BA correction in the next frame.
+def test_the_pipeline_hands_each_keyframe_one_frame_later(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With ``local_ba_beside`` the back end takes each keyframe at the start of the next frame's step.
 
-    Through the one correction path: the anchored keyframe poses then hold the front end's; the run
-    stays on the rendered ground truth.
+    At its BA's pose, before that frame is tracked: the back end and the anchored trajectory then hold
+    what the inline BA gives them; the keyframe's own frame anchors to it from the start and moves with
+    it; the run's final trajectory is the inline run's.
     """
     import loopmodel.pipeline as pl
     from loopmodel.config import Config
@@ -171,42 +186,47 @@ def test_the_pipeline_takes_the_beside_ba_corrections(tmp_path: Path) -> None:
     from loopmodel.io.sequence import open_sequence
 
     write_kitti_folder(tmp_path / "seq", 12, np.random.default_rng(7))
-    cfg = Config()
-    cfg.frontend.max_disparity_px = 64
-    cfg.frontend.max_features = 400
-    cfg.frontend.min_tracked_fraction = 0.95  # several keyframes in a short sequence
-    cfg.frontend.local_ba_beside = True
-    cfg.backend.worker = "inline"  # type: ignore[assignment]
-    cfg.loop.enabled = False
-    cfg.mapping.write_mesh = False
-    cfg.output.write_map = False
     seq = open_sequence(tmp_path / "seq")
-    run = pl._Run(seq.calibration, cfg, [])
-    events: list[tuple[str, dict]] = []  # type: ignore[type-arg]
-    inner_correct, inner_take = run._correct, run.frontend.take_corrections
+    sent: dict[bool, list[tuple[int, tuple[int, int | None, np.ndarray]]]] = {}
+    results = {}
+    for beside in (False, True):
+        cfg = Config()
+        cfg.frontend.max_disparity_px = 64
+        cfg.frontend.max_features = 400
+        cfg.frontend.min_tracked_fraction = 0.95  # several keyframes in a short sequence
+        cfg.frontend.local_ba_beside = beside
+        cfg.backend.worker = "inline"  # type: ignore[assignment]
+        cfg.loop.enabled = False
+        cfg.mapping.write_mesh = False
+        cfg.output.write_map = False
+        run = pl._Run(seq.calibration, cfg, [])
+        log = sent[beside] = []
+        inner = run.backend.add_keyframe
 
-    def correct(world_from_kf):  # type: ignore[no-untyped-def]
-        events.append(("correct", dict(world_from_kf)))
-        inner_correct(world_from_kf)
+        def add(kf, log=log, run=run, inner=inner):  # type: ignore[no-untyped-def]
+            # frames done before this keyframe's step; its pose then (the front end moves its active keyframe's)
+            log.append((len(run.frames), (kf.id, kf.prev_keyframe_id, kf.world_from_kf.copy())))
+            return inner(kf)
 
-    def take():  # type: ignore[no-untyped-def]
-        out = inner_take()
-        events.append(("take", dict(out)))
-        return out
-
-    run._correct = correct  # type: ignore[method-assign]
-    run.frontend.take_corrections = take  # type: ignore[method-assign]
-    for frame in seq.frames():
-        run.step(frame)
-    taken: set[int] = set()
-    for (kind, poses), (next_kind, applied) in zip(events, events[1:], strict=False):
-        if kind == "take" and poses:  # the next correction is exactly the BA's: same keyframes, same poses
-            assert next_kind == "correct" and applied.keys() == poses.keys()
-            for k in poses:
-                np.testing.assert_array_equal(applied[k], poses[k])
-            taken |= set(poses)
-    kf_ids = sorted(run.keyframes)
-    assert len(kf_ids) >= 3
-    assert set(kf_ids[1:-1]) <= taken  # each connected keyframe's BA but the last one's
-    result = run.finish(False)
-    assert evaluate(result, seq).metrics["ate_rmse_m"] < 0.005
+        monkeypatch.setattr(run.backend, "add_keyframe", add)
+        for frame in seq.frames():
+            run.step(frame)
+            if beside and run.frames[-1].is_keyframe and len(run.frames) > 1:  # (the first has no BA)
+                kf_id = run.frames[-1].keyframe_id  # not in the back end yet, but its frame anchored to it
+                assert kf_id not in run.keyframes and kf_id in run.anchored.keyframe_poses
+            for k, T in run.anchored.keyframe_poses.items():  # the anchored keyframes are the front end's
+                np.testing.assert_allclose(T, run.frontend.world_from_kf[k], atol=1e-12)
+        results[beside] = (run, run.finish(False))
+    assert len(sent[True]) == len(sent[False]) >= 3
+    for (n_in, (a_id, a_prev, a_pose)), (n_bes, (b_id, _, b_pose)) in zip(sent[False], sent[True], strict=True):
+        assert a_id == b_id and n_bes == n_in + (a_prev is not None)
+        np.testing.assert_allclose(b_pose, a_pose, atol=1e-6)  # measured 1.3e-7
+    run, res = results[True]
+    # the pipeline takes the BA between frames (before the next frame's KLT) and hands the keyframe
+    # then, so every later step runs in the inline order: the final trajectory is the inline run's
+    # (measured 9e-16 m apart)
+    inline_res = results[False][1]
+    np.testing.assert_array_equal(res.final.timestamps_ns, inline_res.final.timestamps_ns)
+    np.testing.assert_allclose(res.final.world_from_cam, inline_res.final.world_from_cam, atol=1e-9)
+    np.testing.assert_allclose(res.keyframes.world_from_cam, inline_res.keyframes.world_from_cam, atol=1e-9)
+    assert evaluate(res, seq).metrics["ate_rmse_m"] < 0.005

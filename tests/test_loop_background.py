@@ -56,7 +56,8 @@ def test_keyframes_do_not_wait_for_a_blocked_verifier(monkeypatch: pytest.Monkey
     assert n_kf >= 3
     # every frame and keyframe went through while the first detection was still blocked
     assert frames_while_blocked == list(range(1, len(seq) + 1))
-    assert keyframes_while_blocked[-1] == n_kf
+    # (frontend.local_ba_beside: a keyframe made at the last frame reaches the loop stage after it)
+    assert keyframes_while_blocked[-1] == n_kf - int(out.frames[-1].is_keyframe)
     assert finished == out.keyframe_ids.tolist()  # each keyframe detected once, in order
     assert started == finished
     assert out.metrics["loop_keyframes_not_queried"] == 0

@@ -100,9 +100,12 @@ def test_front_end_tracks_the_old_feature_set_after_a_revisit(tmp_path: Path) ->
     run = _Run(seq.calibration, cfg, [])
     kept: dict[int, object] = {}
     for frame in seq.frames():
-        res = run.step(frame)
-        if res.is_keyframe:
-            kept[res.keyframe_id] = run.loop.keyframes[res.keyframe_id]  # type: ignore[attr-defined]
+        run.step(frame)
+        for k in run.keyframes:  # each keyframe once the loop stage has it (local_ba_beside: with the next frame)
+            kept.setdefault(k, run.loop.keyframes[k])  # type: ignore[attr-defined]
+    run.finish(False)  # the last keyframe (local_ba_beside) reaches the loop stage and back end here
+    for k in run.keyframes:
+        kept.setdefault(k, run.loop.keyframes[k])  # type: ignore[attr-defined]
     loops = [e for e in run.loop.metrics()["loop_events"] if e.get("old_features_resumed", 0) > 0]
     assert loops, "no closure handed old features to the front end"
     assert any(e.get("old_features_tracked_on") for e in loops), "no later keyframe observed them"

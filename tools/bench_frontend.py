@@ -65,11 +65,9 @@ def run(quick: bool = False) -> dict[str, Any]:
         best_kf = np.minimum(best_kf, [r.keyframe_ms for r in rr])
     m = frontend_metrics(results, wall)
     err = trajectory_errors(_online_trajectory(results), seq.ground_truth)
-    ba = [
-        r.keyframe.ba_info["ba_ms"]
-        for r in results
-        if r.keyframe is not None and "ba_ms" in r.keyframe.ba_info  # (the first keyframe has no BA)
-    ]
+    # each keyframe as handed (local_ba_beside: with the next frame; the last one after the frames)
+    handed = [r.keyframe for r in results if r.keyframe is not None] + fe.finish_keyframes()
+    ba = [kf.ba_info["ba_ms"] for kf in handed if "ba_ms" in kf.ba_info]  # (the first keyframe has no BA)
     out: dict[str, Any] = {
         "dataset": "kitti_clip (real KITTI 1226x370)" + (" first 30 frames" if quick else ""),
         "frames": m["frames"],

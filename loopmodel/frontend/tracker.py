@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -332,6 +332,7 @@ class FrontEnd:
         self._offset_px = 0.0  # applied to new matches (measured right column - offset)
         self._left_rect: NDArray[np.uint8] | None = None  # the last rectified left image
         self._prev_pyr: Pyramid | None = None
+        self._kf_pyr: Pyramid | None = None
         self._kf_from_prev: F64 = np.eye(4)
         self._velocity: F64 = np.eye(4)  # prev_from_cur of the last measured step
         self._velocity_known = False  # a measured step exists (the jump test needs one)
@@ -349,9 +350,10 @@ class FrontEnd:
         self._pose_sigma_px: list[float] = []
         # an old keyframe's features tracked again after a closure (resume_features)
         self._resumed: ResumedSet | None = None
-        # frontend.local_ba_beside: the last keyframe's BA on its thread, and the keyframe poses it corrected
+        # frontend.local_ba_beside: the last keyframe's BA on its thread, and the keyframes not handed yet
+        # (each with the next frame's result, at its BA's pose)
         self._pending_ba: tuple[Beside[HybridBAResult], _LocalBAJob, int] | None = None
-        self._ba_corrections: dict[int, F64] = {}
+        self._late: list[Keyframe] = []
         # the compiled stereo scan and affine re-measurement loaded (or compiled) now, not in a frame (issue 33)
         from loopmodel.frontend._stereo_kernels import warm_up as warm_up_stereo
         from loopmodel.frontend.affine_klt import warm_up
@@ -393,11 +395,21 @@ class FrontEnd:
     def apply_correction(self, world_from_kf: dict[int, F64]) -> None:
         """Replace keyframe poses by corrected ones (e.g. from the back end).
 
-        Tracking continues from the corrected pose of the current keyframe.
+        Tracking continues from the corrected pose of the current keyframe. A keyframe not handed yet
+        (``local_ba_beside``) moves with its previous keyframe, as if made after the correction.
         """
+        moved: dict[int, F64] = {}  # corrected keyframe -> new_from_old (world)
         for kf_id, T in world_from_kf.items():
             if kf_id in self._world_from_kf:
-                self._world_from_kf[kf_id] = np.asarray(T, dtype=float).reshape(4, 4).copy()
+                new = np.asarray(T, dtype=float).reshape(4, 4).copy()
+                moved[int(kf_id)] = new @ invert_pose(self._world_from_kf[kf_id])
+                self._world_from_kf[kf_id] = new
+        for i, late in enumerate(self._late):
+            prev_id = late.prev_keyframe_id
+            if late.id not in moved and prev_id is not None and prev_id in moved:
+                moved[late.id] = moved[prev_id]
+                self._world_from_kf[late.id] = nearest_rigid(moved[prev_id] @ self._world_from_kf[late.id])
+                self._late[i] = replace(late, world_from_kf=self._world_from_kf[late.id].copy())
         if self._active is not None:
             kf = self._active.keyframe
             kf.world_from_kf = self._world_from_kf[kf.id]
@@ -414,14 +426,45 @@ class FrontEnd:
         if self._active is None or int(request.keyframe) != self._active.keyframe.id or not len(request):
             return 0
         self._resumed = ResumedSet.from_request(request)
-        return len(self._resumed)
+        if self._prev_pyr is not self._kf_pyr and self._kf_pyr is not None:
+            # the keyframe was handed a frame late (local_ba_beside): tracked on into the frame since, as
+            # that frame would have tracked it
+            self._track_resumed(self._prev_pyr, self._kf_from_prev, self._kf_pyr)
+        return len(self._resumed) if self._resumed is not None else 0
 
     def resumed_features(self) -> ResumedSet | None:
         """The old feature set being tracked again, if any (read-only use)."""
         return self._resumed
 
     def process(self, frame: StereoFrame) -> FrameResult:
-        """Track one stereo frame; may create a keyframe."""
+        """Track one stereo frame; may create a keyframe.
+
+        ``res.keyframe`` is final when handed: with ``local_ba_beside`` a keyframe whose local BA runs
+        beside the next frame comes with that frame's result, at the BA's pose (its own frame's result
+        has ``is_keyframe`` and no ``keyframe``); after the last frame :meth:`finish_keyframes` hands it.
+        """
+        res = self._process(frame)
+        if self._late and self._late[0].timestamp_ns < frame.timestamp_ns:
+            # the last frame's keyframe: its BA taken in this frame after the KLT (here when the frame
+            # did not get that far); a keyframe made in this frame waits behind it
+            if self._pending_ba is not None and self._pending_ba[2] == self._late[0].id:
+                self._finish_local_ba()
+            assert res.keyframe is None
+            res.keyframe = self._late.pop(0)
+        return res
+
+    def finish_keyframes(self) -> list[Keyframe]:
+        """The keyframes not handed yet (``local_ba_beside``: the last one), their BA taken.
+
+        Between frames (the pipeline, before each frame: the BA then precedes that frame's KLT, the
+        inline order) or after the last one.
+        """
+        self._finish_local_ba()
+        out, self._late = self._late, []
+        return out
+
+    def _process(self, frame: StereoFrame) -> FrameResult:
+        """:meth:`process` but for the hand-off of the last frame's keyframe."""
         t0 = time.perf_counter()
         if self._last_stamp is not None and frame.timestamp_ns <= self._last_stamp:
             raise InputError(
@@ -820,15 +863,17 @@ class FrontEnd:
         return PointTerm(
             self.rig, active.far_rays[sel], uv, prior_weight=prior, inverse_depth_per_m=active.far_inv_depth[sel]
         )
-    def _track_resumed(self, cur_pyr: Pyramid, kf_from_cur: F64) -> None:
-        """Track the resumed old set into this frame (KLT from the last good frame, gated by the pose)."""
-        if self._resumed is None or self._prev_pyr is None:
+
+    def _track_resumed(self, cur_pyr: Pyramid | None, kf_from_cur: F64, prev_pyr: Pyramid | None = None) -> None:
+        """Track the resumed old set into this frame (KLT from ``prev_pyr``, else the last good frame)."""
+        prev_pyr = self._prev_pyr if prev_pyr is None else prev_pyr
+        if self._resumed is None or prev_pyr is None or cur_pyr is None:
             return
         cfg = self.config
         klt = (cfg.klt_window_px, cfg.klt_levels, cfg.fb_threshold_px, cfg.klt_iterations)
         rs = self._resumed
         if not rs.track(
-            self.left_camera, self._prev_pyr, cur_pyr, kf_from_cur, cfg.prediction_gate_px, klt,
+            self.left_camera, prev_pyr, cur_pyr, kf_from_cur, cfg.prediction_gate_px, klt,
             self.calibration.image_size,
         ):
             logger.info("old feature set of keyframe %d: no feature left", rs.match_keyframe)
@@ -1135,8 +1180,13 @@ class FrontEnd:
             closed.mono_obs = self._observe_resumed(closed, left, kf_from_cur)
         kf = self._new_keyframe(frame, left, new, world_from_rect, closed, kf_from_cur)
         self._activate(kf, new, world_from_rect, cur_pyr)
-        if closed is not None and closed.ba_job is not None:
-            self._pending_ba = (Beside(True, closed.ba_job.run), closed.ba_job, kf.id)
+        job = closed.ba_job if closed is not None else None
+        if job is not None:
+            self._pending_ba = (Beside(True, job.run), job, kf.id)
+        # handed with the next frame, after its BA (process); behind a keyframe still waiting, in order
+        late = job is not None or bool(self._late)
+        if late:
+            self._late.append(kf)
         return FrameResult(
             frame.timestamp_ns,
             kf.world_from_kf,
@@ -1146,7 +1196,7 @@ class FrontEnd:
             np.eye(4),
             0,
             0,
-            keyframe=kf,
+            keyframe=None if late else kf,
             frame_index=frame.index,
             segment=self._segment,
             track_ms=(t_kf - t0) * 1e3,
@@ -1289,7 +1339,8 @@ class FrontEnd:
         """Take the last keyframe's BA run beside the tracking (``frontend.local_ba_beside``), once done.
 
         Its refined points and disparity offset join the tracker's state as inline; the keyframe's
-        pose moves by the BA's correction of the tracked pose (kept for :meth:`take_corrections`).
+        pose moves by the BA's correction of the tracked pose, and the keyframe waiting to be handed
+        takes that pose, its ``kf_prev_from_kf`` and ``ba_info`` (what the inline BA gives it).
         """
         if self._pending_ba is None:
             return
@@ -1302,17 +1353,24 @@ class FrontEnd:
         if closed.offset is not None:
             self._fuse_offset(*closed.offset)
         if kf_id in self._world_from_kf and closed.kf_from_new is not job.kf_from_cur:
-            # tracked keyframe <- BA keyframe, on top of any correction the back end made since
+            # tracked keyframe <- BA keyframe, on top of any correction made since
             tracked_from_ba = invert_pose(job.kf_from_cur) @ closed.kf_from_new
             world_from_rect = nearest_rigid(self._world_from_kf[kf_id] @ self.cam_from_rect @ tracked_from_ba)
-            pose = world_from_rect @ self.rect_from_cam
-            self.apply_correction({kf_id: pose})
-            self._ba_corrections[kf_id] = pose
-
-    def take_corrections(self) -> dict[int, F64]:
-        """Keyframe poses (original left camera) the front end corrected since the last call (local BA beside)."""
-        out, self._ba_corrections = self._ba_corrections, {}
-        return out
+            self.apply_correction({kf_id: world_from_rect @ self.rect_from_cam})
+            if self._resumed is not None and "resumed_from_keyframe" in closed.ba_info:
+                # the resumed old set moved to this keyframe at its tracked pose: to the BA's, as inline
+                rs = self._resumed
+                rs.kf_from_match = invert_pose(closed.kf_from_new) @ job.kf_from_cur @ rs.kf_from_match
+        for i, kf in enumerate(self._late):
+            if kf.id == kf_id:
+                info = {**kf.ba_info, **closed.ba_info}
+                if self.config.disparity_offset == "estimate":  # as _new_keyframe: applied, and the latest
+                    info["disparity_offset_applied_px"] = kf.ba_info["disparity_offset_applied_px"]
+                    info["disparity_offset_estimate_px"] = self._offset_px
+                self._late[i] = replace(
+                    kf, world_from_kf=self._world_from_kf[kf_id].copy(), ba_info=info,
+                    kf_prev_from_kf=self.cam_from_rect @ closed.kf_from_new @ self.rect_from_cam,
+                )
 
     def _apply_closed(self, closed: _ClosedInterval) -> None:
         """Take a closed interval: the outgoing set's final tracks, the local map's sets, the BA's points and offset."""
@@ -1407,6 +1465,7 @@ class FrontEnd:
         self._prev_pyr = (
             cur_pyr if cur_pyr is not None else build_pyramid(kf.image, cfg.klt_window_px, cfg.klt_levels)
         )
+        self._kf_pyr = self._prev_pyr  # the keyframe's own (resume_features of a keyframe handed late)
         self._kf_from_prev = np.eye(4)
         self._frames_since_ok = 0
 
