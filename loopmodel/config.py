@@ -913,6 +913,19 @@ class SelfCalibrationConfig(_Section):
         description="front end's sub-pixel disparity while refining: frontend.stereo_subpixel as set, or gradient_2d",
     )
 
+    # issue 31, retrack5: the frames between keyframes were tracked with the recorded calibration;
+    # after the final refinement each is solved again from the points its pose kept, as the refined
+    # calibration sees them, against the refined landmarks (calibration/retrack.py)
+    retrack_frames: bool = Field(True, description="while refining: re-solve the frames between keyframes")
+    retrack_min_points: int = Field(
+        20, ge=6, description="fewest points a re-solved frame needs (else it keeps its bridged pose)"
+    )
+
+    @property
+    def retracks(self) -> bool:
+        """Whether the frames between keyframes are re-solved after refining (the front end keeps their points)."""
+        return self.refine != "none" and self.retrack_frames
+
     def frontend_config(self, frontend: FrontendConfig) -> FrontendConfig:
         """The front end's configuration for a run with this self-calibration (``stereo_subpixel`` while refining)."""
         if self.refine == "none" or self.stereo_subpixel == "frontend":
