@@ -563,6 +563,7 @@ class _Run:
             self.frames, self._final_trajectory(), self.selfcal_keyframes, sc.world_from_kf, sc.landmark_ids,
             sc.landmarks_in_world, recorded, sc.calibration, self.frontend.pose_options,
             self.config.calibration.retrack_min_points,
+            disparity_sigma_px=fc.disparity_sigma_px if (fc := self.frontend.config).depth_weighting else None,
         )
         sc.extra.update({f"calibration_retrack_{k}": v for k, v in self.retracked.stats.items()})
         sc.extra["calibration_retrack_s"] = time.perf_counter() - t0

@@ -30,9 +30,10 @@ from numpy.typing import NDArray
 from loopmodel.calibration.refine_rig import distortion5, project_with_jacobians, raw_from_rectified_px
 from loopmodel.calibration.selfcal import rays_from_raw_px, rectifying_rotations
 from loopmodel.errors import EstimationError
-from loopmodel.frontend.keyframe import FrameResult
+from loopmodel.frontend.keyframe import FrameObservations, FrameResult
 from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose, so3_log
+from loopmodel.mapping.anchored import bridge_interval
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, refine_pose
 from loopmodel.types import Keyframe, StereoCalibration, Trajectory
 
@@ -139,6 +140,7 @@ class _Landmarks:
     ) -> None:
         self.points = {int(i): p for i, p in zip(np.asarray(landmark_ids).tolist(),
                                                  np.asarray(landmarks_in_world, float), strict=True)}
+        self.fb_px_m = float(refined.K_left[0, 0]) * float(refined.baseline_m)
         self.refined_count = len(self.points)
         self._owner: dict[int, tuple[int, int]] = {}
         for kid, kf in keyframes.items():
@@ -148,6 +150,23 @@ class _Landmarks:
         self._keyframes, self._world_from_kf = keyframes, world_from_kf
         self._recorded, self._refined = recorded, refined
         self.triangulated = 0
+
+    def depth_rays(self, ids: I64, p_w: F64) -> tuple[F64, F64]:
+        """Each point's depth in its stereo keyframe (m), and the ray per metre of that depth (world, N x 3).
+
+        NaN where that keyframe is not known.
+        """
+        z = np.full(ids.size, np.nan)
+        ray = np.full((ids.size, 3), np.nan)
+        for k, i in enumerate(ids.tolist()):
+            own = self._owner.get(int(i))
+            if own is None:
+                continue
+            T = np.asarray(self._world_from_kf[own[0]], float)
+            d = p_w[k] - T[:3, 3]
+            z[k] = float(d @ T[:3, 2])
+            ray[k] = d / z[k] if z[k] > 0 else np.nan
+        return z, ray
 
     def get(self, ids: I64) -> tuple[F64, NDArray[np.bool_]]:
         """World points of ``ids`` (N x 3) and which are known (refined or triangulated now)."""
@@ -172,6 +191,57 @@ class _Landmarks:
         return out, np.all(np.isfinite(out), axis=1)
 
 
+def _depth_weights(
+    lms: _Landmarks, ids: I64, p_w: F64, world_from_cam: F64, camera: CentralCamera, pixel_sigma_px: float,
+    disparity_sigma_px: float,
+) -> F64:
+    """Pixel variance over pixel-plus-depth variance of each point's projection (first order; 1 where unknown)."""
+    z, ray = lms.depth_rays(ids, p_w)
+    R, t = world_from_cam[:3, :3], world_from_cam[:3, 3]
+    p_cam = (p_w - t) @ R
+    g = np.einsum("nij,nj->ni", camera.project_jacobian(p_cam), ray @ R)  # px per metre of depth
+    sigma_z = z**2 / lms.fb_px_m * disparity_sigma_px
+    var = pixel_sigma_px**2
+    w = var / (var + np.einsum("ni,ni->n", g, g) * sigma_z**2)
+    return np.where(np.isfinite(w), w, 1.0)
+
+
+def _solve_frame(
+    obs: FrameObservations, world_from_cam0: F64, lms: _Landmarks, rig: CameraRig, recorded: StereoCalibration,
+    refined: StereoCalibration, options: PoseOptions, disparity_sigma_px: float | None, min_points: int,
+    max_move_over_depth: float, max_turn_deg: float,
+) -> tuple[str, F64, float, float, int, float]:
+    """One frame re-solved from ``world_from_cam0``: (outcome, pose, move m, turn deg, inliers, rms px).
+
+    Outcome ``ok``, ``few_points``, ``failed`` or ``jumped`` (then the pose is ``world_from_cam0``).
+    """
+    ids = np.asarray(obs.landmark_ids, np.int64)
+    p_w, known = lms.get(ids)
+    if int(known.sum()) < min_points:
+        return "few_points", world_from_cam0, 0.0, 0.0, 0, 0.0
+    uv = refined_left_px(np.asarray(obs.uv_px, float)[known], recorded, refined)
+    weight = None
+    if disparity_sigma_px is not None:
+        weight = _depth_weights(lms, ids[known], p_w[known], world_from_cam0, rig.cameras[0], options.min_scale,
+                                disparity_sigma_px)
+    try:
+        res = refine_pose(PointTerm(rig, p_w[known], uv, prior_weight=weight), invert_pose(world_from_cam0), options)
+    except (EstimationError, np.linalg.LinAlgError):
+        return "failed", world_from_cam0, 0.0, 0.0, 0, 0.0
+    inl = res.inliers[0]
+    world_from_cam = invert_pose(res.rig_from_ref)
+    step = invert_pose(world_from_cam0) @ world_from_cam
+    move_m = float(np.linalg.norm(step[:3, 3]))
+    turn_deg = float(np.degrees(np.linalg.norm(so3_log(step[:3, :3]))))
+    depth_m = float(np.median((p_w[known] - world_from_cam0[:3, 3]) @ world_from_cam0[:3, 2]))
+    if int(inl.sum()) < min_points:
+        return "few_points", world_from_cam0, 0.0, 0.0, 0, 0.0
+    if move_m > max_move_over_depth * depth_m or turn_deg > max_turn_deg:
+        return "jumped", world_from_cam0, move_m, turn_deg, 0, 0.0
+    rms = float(np.sqrt(np.mean(res.residual_norms[0][inl] ** 2)))
+    return "ok", world_from_cam, move_m, turn_deg, int(inl.sum()), rms
+
+
 def retrack_frames(
     frames: Sequence[FrameResult],
     start: Trajectory,
@@ -185,6 +255,8 @@ def retrack_frames(
     min_points: int = 20,
     max_move_over_depth: float = 0.02,
     max_turn_deg: float = 0.5,
+    disparity_sigma_px: float | None = 0.3,
+    bridge: bool = True,
 ) -> RetrackedFrames:
     """Each tracked frame with kept points (``FrameResult.observed``) solved again; see the module docstring.
 
@@ -195,54 +267,70 @@ def retrack_frames(
     depth error is a few tenths of a percent; measured moves: the selfcal orbits' frames at most
     1.4 mm at 0.67 m (0.2 %) and 0.12 deg; the KITTI clip's 9.5 mm at about 10 m).
     ``keyframes`` as the front end measured them, ``world_from_kf`` and the landmarks refined,
-    ``recorded`` / ``refined`` the raw calibrations before and after.
+    ``recorded`` / ``refined`` the raw calibrations before and after. With ``disparity_sigma_px``
+    each point is weighted as the front end weighs it (``frontend.depth_weighting``): pixel variance
+    (``options.min_scale`` squared) over pixel-plus-depth variance, its depth uncertain by stereo
+    (``z^2 / (f b)`` times the disparity sigma) along its ray from the keyframe that measured it.
+
+    ``bridge``: the re-solved frames still carry the tracker's drift (KLT slides over an interval;
+    the local BA's keyframe does not): a keyframe B whose tracked pose's points were kept is solved
+    again the same way in its previous keyframe A, and :func:`~loopmodel.mapping.anchored.bridge_interval`
+    moves the re-solved frames between A and B as that end's disagreement with the refined A -> B.
     """
     rig = CameraRig.single(CentralCamera.from_K(refined.K_left))
     index = {int(t): i for i, t in enumerate(start.timestamps_ns.tolist())}
     lms = _Landmarks(keyframes, world_from_kf, landmark_ids, landmarks_in_world, recorded, refined)
-    times: list[int] = []
-    poses: list[F64] = []
-    counts = {"frames": 0, "few_points": 0, "failed": 0, "jumped": 0}
+    solved: dict[int, tuple[int, F64]] = {}  # frame time -> (its keyframe, world_from_cam re-solved)
+    ends: dict[int, F64] = {}  # keyframe B -> world_from_B re-solved from its tracked pose's points
+    counts = {"frames": 0, "ok": 0, "few_points": 0, "failed": 0, "jumped": 0}
     points, moves, turns, rms = [], [], [], []
+    args = (lms, rig, recorded, refined, options, disparity_sigma_px, min_points, max_move_over_depth, max_turn_deg)
     for fr in frames:
         obs = fr.observed
+        if obs is None or not fr.ok:
+            continue
+        kid = int(fr.keyframe_id)
+        if fr.is_keyframe:
+            kf = keyframes.get(kid)
+            if (not bridge or kf is None or kf.prev_keyframe_id is None or not kf.connected
+                    or int(kf.prev_keyframe_id) not in world_from_kf or kid not in world_from_kf):
+                continue
+            outcome, T, *_ = _solve_frame(obs, np.asarray(world_from_kf[kid], float), *args)
+            if outcome == "ok":
+                ends[kid] = T
+            continue
         i = index.get(int(fr.timestamp_ns))
-        if obs is None or i is None or not fr.ok or fr.is_keyframe or int(fr.keyframe_id) not in world_from_kf:
+        if i is None or kid not in world_from_kf:
             continue
         counts["frames"] += 1
-        p_w, known = lms.get(np.asarray(obs.landmark_ids, np.int64))
-        if int(known.sum()) < min_points:
-            counts["few_points"] += 1
+        outcome, T, move_m, turn_deg, n_inl, r = _solve_frame(obs, start.world_from_cam[i], *args)
+        counts[outcome] += 1
+        if outcome != "ok":
             continue
-        uv = refined_left_px(np.asarray(obs.uv_px, float)[known], recorded, refined)
-        world_from_cam0 = start.world_from_cam[i]
-        try:
-            res = refine_pose(PointTerm(rig, p_w[known], uv), invert_pose(world_from_cam0), options)
-        except (EstimationError, np.linalg.LinAlgError) as exc:
-            logger.debug("frame %d: not re-solved (%s)", fr.frame_index, exc)
-            counts["failed"] += 1
-            continue
-        inl = res.inliers[0]
-        world_from_cam = invert_pose(res.rig_from_ref)
-        step = invert_pose(world_from_cam0) @ world_from_cam
-        move_m = float(np.linalg.norm(world_from_cam[:3, 3] - world_from_cam0[:3, 3]))
-        turn_deg = float(np.degrees(np.linalg.norm(so3_log(step[:3, :3]))))
-        p_cam = p_w[known] @ world_from_cam0[:3, :3] + (-world_from_cam0[:3, 3] @ world_from_cam0[:3, :3])
-        depth_m = float(np.median(p_cam[:, 2]))
-        if int(inl.sum()) < min_points:
-            counts["few_points"] += 1
-            continue
-        if move_m > max_move_over_depth * depth_m or turn_deg > max_turn_deg:
-            counts["jumped"] += 1
-            continue
-        times.append(int(fr.timestamp_ns))
-        poses.append(world_from_cam)
-        points.append(int(inl.sum()))
+        solved[int(fr.timestamp_ns)] = (kid, T)
+        points.append(n_inl)
         moves.append(move_m)
         turns.append(turn_deg)
-        rms.append(float(np.sqrt(np.mean(res.residual_norms[0][inl] ** 2))))
-    stats = {k: float(v) for k, v in counts.items()}
+        rms.append(r)
+    bridged = 0
+    for b, world_from_b in ends.items():
+        kb = keyframes[b]
+        a = int(kb.prev_keyframe_id)  # type: ignore[arg-type]
+        t_a, t_b = int(keyframes[a].timestamp_ns), int(kb.timestamp_ns)
+        sel = sorted(t for t, (k, _T) in solved.items() if k == a and t_a < t < t_b)
+        if not sel:
+            continue
+        a_from_world = invert_pose(np.asarray(world_from_kf[a], float))
+        rel = np.array([a_from_world @ solved[t][1] for t in sel])
+        frac = (np.array(sel, float) - t_a) / (t_b - t_a)
+        out = bridge_interval(rel, frac, a_from_world @ world_from_b, a_from_world @ world_from_kf[b])
+        for t, T in zip(sel, out, strict=True):
+            solved[t] = (a, np.asarray(world_from_kf[a], float) @ T)
+        bridged += 1
+    times = sorted(solved)
+    stats = {k: float(v) for k, v in counts.items() if k != "ok"}
     stats["resolved"] = float(len(times))
+    stats["bridged_intervals"] = float(bridged)
     stats["points_median"] = float(np.median(points)) if points else 0.0
     stats["move_mm_median"] = 1e3 * float(np.median(moves)) if moves else 0.0
     stats["move_mm_max"] = 1e3 * float(np.max(moves)) if moves else 0.0
@@ -251,10 +339,10 @@ def retrack_frames(
     stats["landmarks_refined"] = float(lms.refined_count)
     stats["landmarks_triangulated"] = float(lms.triangulated)
     logger.info(
-        "re-tracking: %d of %d frames re-solved (%d few points, %d failed, %d jumped), median move %.2f mm",
-        len(times), counts["frames"], counts["few_points"], counts["failed"], counts["jumped"],
-        stats["move_mm_median"],
+        "re-tracking: %d of %d frames re-solved (%d few points, %d failed, %d jumped), %d intervals bridged, "
+        "median move %.2f mm", len(times), counts["frames"], counts["few_points"], counts["failed"],
+        counts["jumped"], bridged, stats["move_mm_median"],
     )
     return RetrackedFrames(
-        np.array(times, np.int64), np.array(poses).reshape(-1, 4, 4), stats
+        np.array(times, np.int64), np.array([solved[t][1] for t in times]).reshape(-1, 4, 4), stats
     )

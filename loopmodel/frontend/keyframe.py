@@ -68,7 +68,8 @@ class FrameResult:
     keyframe_ms: float = 0.0
     used_ransac: bool = False
     mono_points: int = 0  # points with observer depth (frontend.mono_depth) the pose kept
-    # the points the pose kept (FrontEnd(keep_observations=True): a tracked frame that is not a keyframe)
+    # the points the pose kept (FrontEnd(keep_observations=True), a tracked frame; for a connected
+    # keyframe those of its tracked pose in the previous keyframe, ``Keyframe.kf_prev_from_kf_tracked``)
     observed: FrameObservations | None = None
 
     @property

@@ -502,6 +502,7 @@ class FrontEnd:
         self._frames_since_ok = 0
 
         if self._need_keyframe(kf_from_cur, inliers):
+            observed = self._observed() if self.keep_observations else None  # before the new set replaces them
             res = self._start_keyframe(
                 frame,
                 left,
@@ -515,6 +516,7 @@ class FrontEnd:
                 res.tracked, res.inliers, res.used_ransac = tracked, inliers, used_ransac
                 res.mono_points = self._mono_used
                 res.track_ms = (t_track - t0) * 1e3
+                res.observed = observed if res.keyframe is not None and res.keyframe.connected else None
                 return res
         kf = active.keyframe
         world_from_cam = active.world_from_kfrect @ kf_from_cur @ self.rect_from_cam
