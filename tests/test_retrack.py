@@ -74,9 +74,9 @@ def test_front_end_keeps_each_frames_pose_points(rng: np.random.Generator) -> No
             cur_from_kf = invert_pose(poses[r.frame_index]) @ poses[kf.frame_index]
             q = cur_from_kf[:3, :3] @ kf.points_in_kf[row] + cur_from_kf[:3, 3]
             errs.append(np.linalg.norm(cal.K_left[:2, :2] @ (q[:2] / q[2]) + cal.K_left[:2, 2] - uv))
-    assert local > 0  # the local map's points (earlier keyframes) are kept too
-    # measured median 0.11 px, 95 % 0.39 px (stereo depth error of the keyframe's points)
-    assert np.median(errs) < 0.3 and np.percentile(errs, 95) < 1.0
+    assert local > 0  # the local map's points (earlier keyframes) are kept too (measured 5,530 of 11,298)
+    # measured median 0.032 px, 95 % 0.169 px (the keyframes' stereo depth error and the tracking)
+    assert np.median(errs) < 0.1 and np.percentile(errs, 95) < 0.5
 
 
 # ----------------------------------------------------------------------------- (3) pixel conversion

@@ -148,6 +148,9 @@ class _Landmarks:
                 for row, i in enumerate(np.asarray(kf.landmark_ids, np.int64).tolist()):
                     self._owner[int(i)] = (int(kid), row)
         self._keyframes, self._world_from_kf = keyframes, world_from_kf
+        # each keyframe's camera centre and optical axis (world)
+        self._axes = {int(k): np.concatenate([np.asarray(T, float)[:3, 3], np.asarray(T, float)[:3, 2]])
+                      for k, T in world_from_kf.items()}
         self._recorded, self._refined = recorded, refined
         self.triangulated = 0
 
@@ -156,21 +159,17 @@ class _Landmarks:
 
         NaN where that keyframe is not known.
         """
-        z = np.full(ids.size, np.nan)
-        ray = np.full((ids.size, 3), np.nan)
-        for k, i in enumerate(ids.tolist()):
-            own = self._owner.get(int(i))
-            if own is None:
-                continue
-            T = np.asarray(self._world_from_kf[own[0]], float)
-            d = p_w[k] - T[:3, 3]
-            z[k] = float(d @ T[:3, 2])
-            ray[k] = d / z[k] if z[k] > 0 else np.nan
+        nan = np.full(6, np.nan)
+        axes = np.array([self._axes.get(self._owner.get(i, (-1, 0))[0], nan) for i in ids.tolist()]).reshape(-1, 6)
+        d = p_w - axes[:, :3]
+        z = np.einsum("ni,ni->n", d, axes[:, 3:])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ray = np.where((z > 0)[:, None], d / z[:, None], np.nan)
         return z, ray
 
     def get(self, ids: I64) -> tuple[F64, NDArray[np.bool_]]:
         """World points of ``ids`` (N x 3) and which are known (refined or triangulated now)."""
-        missing = sorted({int(i) for i in ids.tolist() if int(i) not in self.points and int(i) in self._owner})
+        missing = sorted({i for i in ids.tolist() if i not in self.points and i in self._owner})
         by_kf: dict[int, list[int]] = {}
         for i in missing:
             by_kf.setdefault(self._owner[i][0], []).append(i)
@@ -183,11 +182,8 @@ class _Landmarks:
             for i, q, g in zip(lms, pw, good, strict=True):
                 self.points[i] = q if g else np.full(3, np.nan)
                 self.triangulated += 1
-        out = np.full((ids.size, 3), np.nan)
-        for k, i in enumerate(ids.tolist()):
-            q = self.points.get(int(i))
-            if q is not None:
-                out[k] = q
+        nan = np.full(3, np.nan)
+        out = np.array([self.points.get(i, nan) for i in ids.tolist()], dtype=float).reshape(-1, 3)
         return out, np.all(np.isfinite(out), axis=1)
 
 
