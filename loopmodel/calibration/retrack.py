@@ -11,8 +11,10 @@ through the recorded model (exactly the pixel the tracker measured) and out agai
 refined left camera (:func:`refined_left_px`), and solves the pose once more with the project's
 robust pose solver (:func:`loopmodel.pose.refine_pose`) against the refined landmarks; a landmark the
 refinement did not hold is triangulated again from its keyframe's stereo match with the refined rig
-(:func:`refined_keyframe_points`). A frame with too few points, or whose solve fails or jumps, keeps
-its earlier pose.
+(:func:`refined_keyframe_points`). The keyframes' own tracked poses are solved again the same way,
+and each interval's re-solved frames are bridged onto the refined keyframes (the tracker's KLT
+drift over the interval stays in the pixels). A frame with too few points, or whose solve fails or
+jumps, keeps its earlier pose.
 
 Frames: camera = the raw (unrectified) left camera, ``world_from_cam``; metres, pixels.
 """
