@@ -550,7 +550,10 @@ class _Run:
         self.laser.stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
         self.anchored.update_keyframes(sc.world_from_kf)
         if self.config.calibration.retracks:
-            self._retrack(sc, recorded)
+            try:
+                self._retrack(sc, recorded)
+            except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:  # the bridged frames stay
+                logger.warning("frames between keyframes not re-solved: %s", exc)
         self.selfcal = sc
         return BackendEstimate(dict(sc.world_from_kf), sc.landmark_ids, sc.landmarks_in_world, set(sc.world_from_kf))
 
