@@ -61,6 +61,7 @@ from loopmodel.stages import LoopConstraint, LoopStage, MapState, NullLoopStage
 from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripeProfile, Trajectory
 
 if TYPE_CHECKING:
+    from loopmodel.calibration.retrack import RetrackedFrames
     from loopmodel.eval.of_run import Evaluation
     from loopmodel.loop.session_map import ResumePoint, SessionMap
     from loopmodel.loop.vocabulary import Vocabulary
@@ -362,7 +363,10 @@ class _Run:
         self.listeners = listeners
         self.finishing = finishing
         # issue 31: while refining, right-image columns read at their own rows (calibration.stereo_subpixel)
-        self.frontend = FrontEnd(calibration, config.calibration.frontend_config(config.frontend))
+        self.frontend = FrontEnd(
+            calibration, config.calibration.frontend_config(config.frontend),
+            keep_observations=config.calibration.retracks,  # issue 31: re-solved after refining
+        )
         # issue 33: in a worker beside the tracker (config.backend.worker)
         make = functools.partial(create_backend, config.backend, self.frontend.calibration, config.givens)
         self.backend: Backend = start_backend(config.backend, make)
@@ -395,6 +399,7 @@ class _Run:
         # issue 31: the keyframes' measurements (no images) for the final self-calibration
         self.selfcal_keyframes: dict[int, Keyframe] = {}
         self.selfcal: Any = None
+        self.retracked: RetrackedFrames | None = None  # the frames between keyframes re-solved after refining
         self.loop_constraints: list[LoopConstraint] = []
         # the back end's last call (ms) and the ids of the loop constraints it was given (MapState)
         self._last: tuple[float, tuple[int | None, ...]] = (0.0, ())
@@ -559,8 +564,27 @@ class _Run:
         stripes = restripe(self.laser.stripes, recorded, sc.calibration, plane.normal_in_cam, plane.d_m)
         self.laser.stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
         self.anchored.update_keyframes(sc.world_from_kf)
+        if self.config.calibration.retracks:
+            try:
+                self._retrack(sc, recorded)
+            except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:  # the bridged frames stay
+                logger.warning("frames between keyframes not re-solved: %s", exc)
         self.selfcal = sc
         return BackendEstimate(dict(sc.world_from_kf), sc.landmark_ids, sc.landmarks_in_world, set(sc.world_from_kf))
+
+    def _retrack(self, sc: Any, recorded: StereoCalibration) -> None:
+        """The frames between keyframes solved again with the refined calibration (issue 31; final trajectory)."""
+        from loopmodel.calibration.retrack import retrack_frames
+
+        t0 = time.perf_counter()
+        self.retracked = retrack_frames(
+            self.frames, self._final_trajectory(), self.selfcal_keyframes, sc.world_from_kf, sc.landmark_ids,
+            sc.landmarks_in_world, recorded, sc.calibration, self.frontend.pose_options,
+            self.config.calibration.retrack_min_points,
+            disparity_sigma_px=fc.disparity_sigma_px if (fc := self.frontend.config).depth_weighting else None,
+        )
+        sc.extra.update({f"calibration_retrack_{k}": v for k, v in self.retracked.stats.items()})
+        sc.extra["calibration_retrack_s"] = time.perf_counter() - t0
 
     def _correct(self, world_from_kf: Mapping[int, F64]) -> None:
         """The one way corrections flow back: to the tracker and to the anchored frames."""
@@ -590,8 +614,10 @@ class _Run:
 
     def _final_trajectory(self) -> Trajectory:
         if self.config.refine.bridge_frames:
-            return self.anchored.bridged_trajectory(self.keyframes, self.tracked_links)
-        return self.anchored.trajectory()
+            final = self.anchored.bridged_trajectory(self.keyframes, self.tracked_links)
+        else:
+            final = self.anchored.trajectory()
+        return final if self.retracked is None else self.retracked.over(final)
 
     def _keyframe_trajectory(self) -> Trajectory:
         poses = self.anchored.keyframe_poses

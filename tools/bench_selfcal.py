@@ -22,7 +22,8 @@ run three times by :func:`loopmodel.pipeline.process`: with the recorded calibra
 * ``mesh_err_refined_mm``: the mesh of the refined run against the scene (SE(3)-aligned, as the
   pipeline's ``mesh_err_after_mm``); ``mesh_err_recorded_mm``; ``mesh_err_gt_mm``: the stripes of the
   run with the true calibration meshed with the ground-truth poses (the floor);
-* ``refine_s``: the self-calibration's time at the end of the run.
+* ``refine_s``: the self-calibration's time at the end of the run; ``retrack_s`` the re-solving of the
+  frames between keyframes after it, ``retrack_resolved`` how many it re-solved.
 
 The KITTI clip (real, rectified, well calibrated): ``kitti_drift_pct_off`` / ``_refined``,
 ``kitti_ate_m_off`` / ``_refined``, ``kitti_moved_max_sigma`` (the largest move of a parameter, in
@@ -246,6 +247,9 @@ def _scan(seed: int, quick: bool) -> dict[str, Any]:
             m["calibration_recorded_right_from_left"] = seq.calibration.right_from_left.tolist()
             out.update(_param_errors(m, true_cal))
             out["refine_s"] = round(float(m.get("calibration_refine_s", float("nan"))), 2)
+            # the frames between keyframes re-solved with the refined calibration (calibration.retrack_frames)
+            out["retrack_s"] = m.get("calibration_retrack_s")
+            out["retrack_resolved"] = m.get("calibration_retrack_resolved")
             out["moved_sigma"] = m.get("calibration_moved_sigma")
             out["laser_discrepancy_pct"] = m.get("calibration_laser_discrepancy_pct")
             out["pixel_sigma_px"] = m.get("calibration_pixel_sigma_px")

@@ -423,13 +423,22 @@ def restripe(
             out.append(s)
             continue
         uv, _ = cv2.projectPoints(p.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), recorded.K_left, d_rec)
-        xy = cv2.undistortPointsIter(
-            uv, refined.K_left, refined.dist_left, None, None,
-            (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12),
-        ).reshape(-1, 2) if hasattr(cv2, "undistortPointsIter") else cv2.undistortPoints(
-            uv, refined.K_left, refined.dist_left,
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12),
-        ).reshape(-1, 2)
-        ray = np.column_stack([xy, np.ones(xy.shape[0])])
+        ray = rays_from_raw_px(uv.reshape(-1, 2), refined.K_left, refined.dist_left)
         out.append(StripeProfile(s.timestamp_ns, ray * (-plane_d_m / (ray @ n))[:, None]))
     return out
+
+
+def rays_from_raw_px(uv_raw_px: F64, K: F64, dist: F64) -> F64:
+    """Rays ``(x, y, 1)`` (N x 3, camera frame) of raw (distorted) pixels through ``K`` and ``dist`` (OpenCV).
+
+    The distortion inverted iteratively (up to 50 iterations, to 1e-12).
+    """
+    import cv2
+
+    uv = np.ascontiguousarray(np.asarray(uv_raw_px, float).reshape(-1, 1, 2))
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+    if hasattr(cv2, "undistortPointsIter"):
+        xy = cv2.undistortPointsIter(uv, K, dist, None, None, crit).reshape(-1, 2)
+    else:
+        xy = cv2.undistortPoints(uv, K, dist, criteria=crit).reshape(-1, 2)
+    return np.column_stack([xy, np.ones(xy.shape[0])])

@@ -18,7 +18,7 @@ from loopmodel.config import FrontendConfig
 from loopmodel.errors import EstimationError, InputError
 from loopmodel.frontend.beside import Beside
 from loopmodel.frontend.hybrid_ba import HybridBAResult, hybrid_keyframe_ba
-from loopmodel.frontend.keyframe import FrameResult, Keyframe, TrackedFeatures
+from loopmodel.frontend.keyframe import FrameObservations, FrameResult, Keyframe, TrackedFeatures
 from loopmodel.frontend.mono_depth import MonoDepthTracks, kf_from_ref_map
 from loopmodel.frontend.resume import ResumedSet
 from loopmodel.frontend.stereo import StereoSet, keyframe_stereo_set, match_stereo
@@ -286,9 +286,11 @@ class FrontEnd:
     """
 
     def __init__(
-        self, calibration: StereoCalibration, config: FrontendConfig | None = None
+        self, calibration: StereoCalibration, config: FrontendConfig | None = None, keep_observations: bool = False
     ) -> None:
+        """``keep_observations``: each tracked frame's result carries the points its pose kept (``observed``)."""
         self.config = config or FrontendConfig()
+        self.keep_observations = keep_observations
         if self.config.patch_px % 2 == 0:
             raise InputError("frontend.patch_px", f"must be odd, got {self.config.patch_px}")
         self.input_calibration = calibration.check("calibration")
@@ -543,6 +545,7 @@ class FrontEnd:
         self._frames_since_ok = 0
 
         if self._need_keyframe(kf_from_cur, inliers):
+            observed = self._observed() if self.keep_observations else None  # before the new set replaces them
             res = self._start_keyframe(
                 frame,
                 left,
@@ -556,6 +559,7 @@ class FrontEnd:
                 res.tracked, res.inliers, res.used_ransac = tracked, inliers, used_ransac
                 res.mono_points = self._mono_used
                 res.track_ms = (t_track - t0) * 1e3
+                res.observed = observed if res.keyframe is not None and res.keyframe.connected else None
                 return res
         kf = active.keyframe
         world_from_cam = active.world_from_kfrect @ kf_from_cur @ self.rect_from_cam
@@ -573,7 +577,18 @@ class FrontEnd:
             track_ms=(time.perf_counter() - t0) * 1e3,
             used_ransac=used_ransac,
             mono_points=self._mono_used,
+            observed=self._observed() if self.keep_observations else None,
         )
+
+    def _observed(self) -> FrameObservations:
+        """The stereo points the last pose kept (active set, then the local map's sets) and their pixels."""
+        assert self._active is not None
+        ids = [self._active.keyframe.landmark_ids[self._track_idx]]
+        uv = [self._track_uv]
+        for ls in self._local:
+            ids.append(ls.kf_set.keyframe.landmark_ids[ls.idx])
+            uv.append(ls.uv)
+        return FrameObservations(np.concatenate(ids).astype(np.int64), np.vstack(uv).astype(np.float32))
 
     # ------------------------------------------------------------------ tracking
     def _image_ok(self, left: NDArray[np.uint8]) -> tuple[bool, str]:
