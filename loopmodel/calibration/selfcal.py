@@ -178,6 +178,20 @@ def estimated_parameters(config: SelfCalibrationConfig) -> NDArray[np.bool_]:
     return estimate
 
 
+def right_rows(keyframes: list[Keyframe], config: SelfCalibrationConfig) -> dict[int, F64] | None:
+    """The right matches' measured rows (keyframe id -> rectified rows) when ``refine_right_rows``, else None.
+
+    Keyframes without them (not measured by the front end) give only their right columns.
+    """
+    if not config.refine_right_rows:
+        return None
+    return {
+        int(k.id): np.asarray(k.right_rows_px, float)
+        for k in keyframes
+        if np.asarray(k.right_rows_px).size == np.asarray(k.landmark_ids).size
+    }
+
+
 def rectifying_rotations(cal: StereoCalibration) -> tuple[F64, F64, F64, F64]:
     """``R1, R2, K1, K2``: rectifying rotations and rectified camera matrices (identity/K for rectified input)."""
     if cal.rectified:
@@ -222,7 +236,7 @@ def refine_final(
     if len(kfs) < 3:
         raise LoopmodelError(f"self-calibration needs 3 keyframes, got {len(kfs)}")
     R1, R2, K1, K2 = rectifying_rotations(calibration)
-    obs, kf_ids, lm_ids = observations_from_keyframes(kfs, calibration, K1, K2, R1, R2)
+    obs, kf_ids, lm_ids = observations_from_keyframes(kfs, calibration, K1, K2, R1, R2, right_rows(kfs, config))
     # a landmark needs a stereo observation and a second keyframe (else it only adds unknowns)
     n_pt = lm_ids.size
     stereo = np.zeros(n_pt, bool)
