@@ -888,6 +888,13 @@ class SelfCalibrationConfig(_Section):
     observable_ratio: float = Field(
         0.9, gt=0, lt=1, description="posterior/prior sigma above which a parameter is unobservable"
     )
+    # issue 31, calib5: a combination of parameters can be unobservable while each parameter is not
+    # (a common vertical principal point of both cameras is nearly a rotation of the rig about x,
+    # which the keyframe poses absorb). Combinations whose posterior sigma stays above this share of
+    # the prior's are held at the recorded values and reported (1: none held)
+    observable_direction_ratio: float = Field(
+        1.0, gt=0, le=1, description="posterior/prior sigma above which a combination of parameters is held"
+    )
     huber_k: float = Field(1.345, ge=0, description="Huber threshold in sigmas (0: Gaussian)")
     max_iterations: int = Field(15, ge=1, le=200, description="Levenberg-Marquardt iterations")
     # off: the loops' relative poses were measured with the recorded calibration. On the realistic

@@ -393,9 +393,20 @@ def _chessboard() -> dict[str, Any]:
         own[6 * side : 6 * side + 6] = std[side][[0, 1, 2, 3, 4, 5]]
     est_u = estimated_parameters(c)
     est_rows = estimated_parameters(c.model_copy(update={"refine_right_rows": True}))
-    for name, prior, ob, est in (("default", base, obs, est_u), ("own", own, obs, est_u),
-                                 ("rows", base, obs_rows, est_rows)):
-        _p, _pts, rep = refine_rig(ob, np.array(poses), obj[lm], cal, prior, est)
+    for name, prior, ob, est, ratio in (
+        ("default", base, obs, est_u, c.observable_direction_ratio),
+        ("own", own, obs, est_u, c.observable_direction_ratio),
+        ("rows", base, obs_rows, est_rows, c.observable_direction_ratio),
+        ("rows_free", base, obs_rows, est_rows, 1.0),  # no combination held
+    ):
+        _p, _pts, rep = refine_rig(ob, np.array(poses), obj[lm], cal, prior, est, observable_direction_ratio=ratio)
+        if est[PARAM_NAMES.index("cy_right_px")]:
+            out[f"chess_common_cy_post_over_prior_{name}"] = round(
+                rep.direction_ratio({"cy_left_px": 1.0, "cy_right_px": 1.0}), 3
+            )
+        out[f"chess_unobservable_directions_{name}"] = [
+            {k: round(v, 3) for k, v in d.items()} for d in rep.unobservable_directions
+        ]
         moved = rep.moved_sigma()
         out[f"chess_moved_max_sigma_{name}"] = round(max(abs(v) for v in moved.values()), 3)
         out[f"chess_moved_sigma_{name}"] = {k: round(v, 2) for k, v in moved.items()}
@@ -404,6 +415,46 @@ def _chessboard() -> dict[str, Any]:
         out[f"chess_moved_max_post_sigma_{name}"] = round(max(abs(v) for v in post.values()), 3)
         out[f"chess_moved_post_sigma_{name}"] = {k: round(v, 2) for k, v in post.items()}
     out["chess_own_sigma"] = {n: float(f"{v:.3g}") for n, v in zip(PARAM_NAMES[:12], own[:12], strict=True)}
+    out.update(_chessboard_cy(res.corners_left, res.corners_right, obj, cal.image_size))
+    return out
+
+
+def _chessboard_cy(corners_left: Any, corners_right: Any, obj: np.ndarray, size: Any) -> dict[str, Any]:
+    """The chessboard rig's cy by plain OpenCV, independent of the self-calibration.
+
+    ``chess_flat_cy_px`` (left, right): ``calibrateCamera`` with the flat board (the recorded rig's
+    way); ``chess_released_cy_px``: ``calibrateCameraRO`` with the board's shape released (one far
+    corner fixed), the self-calibration's situation (landmarks free); ``chess_cy_halves_rms_px``:
+    the flat board's cy from disjoint halves of the views (6 seeded splits), the rms of the halves'
+    differences over sqrt(2) (the spread of one half's estimate), beside OpenCV's own sigma for a half
+    (``chess_cy_halves_opencv_sd_px``, the median).
+    """
+    import cv2
+
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    o = obj.astype(np.float32)
+    out: dict[str, Any] = {k: [] for k in ("chess_flat_cy_px", "chess_released_cy_px", "chess_cy_halves_rms_px",
+                                            "chess_cy_halves_opencv_sd_px")}
+    for corners in (corners_left, corners_right):
+        pts = [np.asarray(c, np.float32).reshape(-1, 1, 2) for c in corners]
+        n = len(pts)
+        flat = cv2.calibrateCamera([o] * n, pts, size, None, None, criteria=crit)
+        ro = cv2.calibrateCameraRO([o] * n, pts, size, len(o) // 6 - 1, None, None, criteria=crit)
+        out["chess_flat_cy_px"].append(round(float(flat[1][1, 2]), 2))
+        out["chess_released_cy_px"].append(round(float(ro[1][1, 2]), 2))
+        rng = np.random.default_rng(0)
+        diffs, sds = [], []
+        for _ in range(6):
+            perm = rng.permutation(n)
+            cy = []
+            for half in (perm[: n // 2], perm[n // 2 :]):
+                r = cv2.calibrateCameraExtended([o] * len(half), [pts[i] for i in half], size, None, None,
+                                                criteria=crit)
+                cy.append(float(r[1][1, 2]))
+                sds.append(float(np.asarray(r[5]).ravel()[3]))
+            diffs.append(cy[0] - cy[1])
+        out["chess_cy_halves_rms_px"].append(round(float(np.sqrt(np.mean(np.square(diffs)) / 2.0)), 2))
+        out["chess_cy_halves_opencv_sd_px"].append(round(float(np.median(sds)), 2))
     return out
 
 
