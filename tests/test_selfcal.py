@@ -37,7 +37,8 @@ from loopmodel.geometry.se3 import so3_exp, so3_log  # noqa: E402
 from loopmodel.types import StripeProfile  # noqa: E402
 
 PRIOR = prior_sigmas(0.3, 0.3, 0.002, 0.002, 0.02, 5e-5)
-EST = estimated_parameters(SelfCalibrationConfig())  # the pipeline's unknowns
+# the pipeline's unknowns with the right columns only (the observations of ``_problem``)
+EST = estimated_parameters(SelfCalibrationConfig(refine_right_rows=False))
 N_KF, N_PT = 30, 1200
 
 

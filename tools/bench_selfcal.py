@@ -391,7 +391,7 @@ def _chessboard() -> dict[str, Any]:
     own = base.copy()
     for side in (0, 1):
         own[6 * side : 6 * side + 6] = std[side][[0, 1, 2, 3, 4, 5]]
-    est_u = estimated_parameters(c)
+    est_u = estimated_parameters(c.model_copy(update={"refine_right_rows": False}))
     est_rows = estimated_parameters(c.model_copy(update={"refine_right_rows": True}))
     for name, prior, ob, est, ratio in (
         ("default", base, obs, est_u, c.observable_direction_ratio),
@@ -439,7 +439,7 @@ def _chessboard_cy(corners_left: Any, corners_right: Any, obj: np.ndarray, size:
         pts = [np.asarray(c, np.float32).reshape(-1, 1, 2) for c in corners]
         n = len(pts)
         flat = cv2.calibrateCamera([o] * n, pts, size, None, None, criteria=crit)
-        ro = cv2.calibrateCameraRO([o] * n, pts, size, len(o) // 6 - 1, None, None, criteria=crit)
+        ro = cv2.calibrateCameraRO([o] * n, pts, size, 8, None, None, criteria=crit)  # first row's last corner (9 x 6)
         out["chess_flat_cy_px"].append(round(float(flat[1][1, 2]), 2))
         out["chess_released_cy_px"].append(round(float(ro[1][1, 2]), 2))
         rng = np.random.default_rng(0)

@@ -237,7 +237,8 @@ def refine_final(
     if len(kfs) < 3:
         raise LoopmodelError(f"self-calibration needs 3 keyframes, got {len(kfs)}")
     R1, R2, K1, K2 = rectifying_rotations(calibration)
-    obs, kf_ids, lm_ids = observations_from_keyframes(kfs, calibration, K1, K2, R1, R2, right_rows(kfs, config))
+    rows = right_rows(kfs, config)
+    obs, kf_ids, lm_ids = observations_from_keyframes(kfs, calibration, K1, K2, R1, R2, rows)
     # a landmark needs a stereo observation and a second keyframe (else it only adds unknowns)
     n_pt = lm_ids.size
     stereo = np.zeros(n_pt, bool)
@@ -285,6 +286,8 @@ def refine_final(
         config.sigma_baseline_m,
     )
     estimate = estimated_parameters(config)
+    if not rows:  # no keyframe measured its right rows: the right columns alone do not inform them
+        estimate[[PARAM_NAMES.index(n) for n in RIGHT_ROW_PARAMS]] = False
     poses_out, pts_out, rep = refine_rig(
         obs, poses, pts, calibration, sig, estimate, config.observable_ratio, config.huber_k, config.max_iterations,
         observable_direction_ratio=config.observable_direction_ratio,
