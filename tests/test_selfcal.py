@@ -389,7 +389,9 @@ def test_an_unobservable_combination_is_held_and_reported() -> None:
     seed = 1
     sc, obs, pts0 = _rows_problem(recorded_rig(true_rig(), seed), seed, n_kf=10, arc_deg=60.0)
     _p, _q, free = refine_rig(obs, sc.world_from_kf.copy(), pts0, sc.recorded, PRIOR, est)
-    _p, _q, held = refine_rig(obs, sc.world_from_kf.copy(), pts0, sc.recorded, PRIOR, est, observable_direction_ratio=0.9)
+    _p, _q, held = refine_rig(
+        obs, sc.world_from_kf.copy(), pts0, sc.recorded, PRIOR, est, observable_direction_ratio=0.9
+    )
     common = {"cy_left_px": 1.0, "cy_right_px": 1.0}
     assert free.direction_ratio(common) > 0.95  # measured 0.981
     assert "cy_left_px" not in free.unobservable and "cy_right_px" not in free.unobservable
