@@ -430,5 +430,5 @@ def test_well_calibrated_rig_with_rows_and_held_combinations_moves_nothing() -> 
     _p, _q, rep = refine_rig(obs, sc.world_from_kf.copy(), pts0, sc.recorded, PRIOR, estimated_parameters(cfg),
                              observable_direction_ratio=cfg.observable_direction_ratio)
     moved = rep.moved_sigma()
-    assert max(abs(v) for v in moved.values()) < 1.0, moved  # measured max 0.36
-    assert rep.unobservable_directions  # the scan's weak combinations are held (measured: 6)
+    assert max(abs(v) for v in moved.values()) < 1.0, moved  # measured max 0.13
+    assert rep.unobservable_directions  # the scan's weak combinations are held (measured: 6, 0.73-0.96)
