@@ -869,8 +869,8 @@ class SelfCalibrationConfig(_Section):
     # 0.866 -> 0.224 / 0.222 against ORB-SLAM3's 0.66-0.69 / 0.65-0.69, modeler 0.555 / 0.694 -> 0.205 /
     # 0.106 against 0.50-0.55 / 0.55-0.59; KITTI kitti.yaml ATE 0.0427 -> 0.031-0.034 m; chessboard largest move
     # 0.53 sigma; KITTI's moves about z and y confirmed by the right rows and the ground truth's motion),
-    # but the finish: KITTI wall over frames 1.17-1.24 -> 1.66-1.86 (issue 32's target 1.2; the
-    # self-calibration 6-8 s on a 9-17 s frame loop). Still none
+    # but the finish: KITTI wall over frames 1.17-1.24 -> 1.53 with the refinement on one BLAS thread
+    # (issue 32's target 1.2; the self-calibration 4.0 s on an 11.5 s frame loop, load 22). Still none
     refine: Literal["none", "final"] = Field(
         "none", description="none: the recorded calibration as given; final: refined in the final bundle adjustment"
     )
