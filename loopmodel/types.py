@@ -227,6 +227,9 @@ class Keyframe:
     rect_from_cam: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
     segment: int = 0
     ba_info: dict[str, float] = field(default_factory=dict)
+    #: (M,) the rectified row of each stereo match in the right image (the order of ``stereo_px``;
+    #: empty when not measured): the self-calibration measures it (issue 31)
+    right_rows_px: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
 
     @property
     def world_from_rect(self) -> NDArray[np.float64]:

@@ -29,9 +29,14 @@ The KITTI clip (real, rectified, well calibrated): ``kitti_drift_pct_off`` / ``_
 ``kitti_ate_m_off`` / ``_refined``, ``kitti_moved_max_sigma`` (the largest move of a parameter, in
 its prior sigma; ``kitti_moved_max_post_sigma`` in its posterior sigma); ``kitti_rows_rot_z_deg`` (and
 ``_sd_deg``): the clip's stereo rotation about the optical axis from the right image's rows alone, an
-independent check of the refined ``rot_z_deg`` (:func:`_kitti_row_rotation`). The chessboard rig:
+independent check of the refined ``rot_z_deg`` (:func:`_kitti_row_rotation`); ``kitti_motion_disp_x2_px``
+(and ``_sd_px``): the disparity's error growing with x^2 against depth from the ground-truth motion, an
+independent check of the refined ``rot_y_deg`` (``kitti_refined_disp_x2_px``, :func:`_kitti_motion_disparity`).
+The chessboard rig:
 ``chess_*_default`` / ``_own`` (the configured priors / its calibration's own sigmas, right columns only)
-and ``chess_*_rows`` (the right corners' rows measured too). The top level holds the
+and ``chess_*_rows`` (the right corners' rows measured too; ``_rows_free`` with no combination held),
+``chess_common_cy_post_over_prior_*`` (the common cy's posterior over prior sigma), and plain OpenCV's
+cy with the flat and the released board and over halves of the views (:func:`_chessboard_cy`). The top level holds the
 worst over seeds of each key. Scans are generated when missing into ``~/.cache/loopmodel/selfcal``
 (minutes each). ``--quick``: seed 1's first 80 frames at every 2nd frame (recorded and refined only,
 no true-calibration run), no KITTI.
@@ -276,6 +281,10 @@ def _kitti() -> dict[str, Any]:
             out["kitti_moved_max_post_sigma"] = m.get("calibration_moved_max_post_sigma")
             out["kitti_unobservable"] = m.get("calibration_unobservable")
             out["kitti_moved_sigma"] = m.get("calibration_moved_sigma")
+            # the refined rotation about y as a disparity error growing with x^2 (see _kitti_motion_disparity)
+            rot_y = np.radians(m["calibration_parameters"]["rot_y_deg"]["refined"])
+            out["kitti_refined_disp_x2_px"] = round(float(-seq.calibration.K_left[0, 0] * rot_y), 3)
+            out["kitti_unobservable_directions"] = m.get("calibration_unobservable_directions")
     return out
 
 
@@ -328,6 +337,82 @@ def _kitti_row_rotation() -> dict[str, Any]:
         "kitti_rows_rot_z_deg": round(float(np.degrees(coef[1] / f)), 4),
         "kitti_rows_rot_z_sd_deg": round(float(np.degrees(np.std(boot) / f)), 4),
         "kitti_rows_matches": int(X.shape[0]),
+    }
+
+
+def _kitti_motion_disparity(gap: int = 2, min_parallax_deg: float = 2.0) -> dict[str, Any]:
+    """The KITTI clip's disparity against depth from the ground-truth motion: the stereo rotation about y.
+
+    Independent of the stereo calibration: left corners tracked from frame i to i + ``gap`` (OpenCV
+    pyramidal LK, forward-backward within 0.1 px) and triangulated with the ground truth's relative
+    pose (parallax above ``min_parallax_deg``, reprojection within 0.5 px); the same corners matched
+    left -> right in frame i (LK, 2-D). A rotation ``phi`` of the right camera about y adds
+    ``-fx phi (1 + x^2)`` to every disparity (``x = (u - cx) / fx``), a principal-point difference a
+    constant: the robust fit ``d - fx b / Z = a + c x^2 + s fx b / Z`` gives ``c`` (px, ``-fx phi``;
+    ``kitti_motion_disp_x2_px``, its sd by resampling whole frames); the refined calibration's own
+    ``-fx rot_y`` is ``kitti_refined_disp_x2_px`` in :func:`_kitti`.
+    """
+    import cv2
+
+    from loopmodel.io.sequence import open_sequence
+
+    path = _kitti_path()
+    if not path.is_dir():
+        return {}
+    seq = open_sequence(path, Config().sequence)
+    K = seq.calibration.K_left
+    f, cx = K[0, 0], K[0, 2]
+    fb = f * seq.calibration.baseline_m
+    gt = seq.ground_truth.world_from_cam
+    frames = list(seq.frames())
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-4)
+
+    def lk(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        q, st, _ = cv2.calcOpticalFlowPyrLK(a, b, p, None, winSize=(21, 21), maxLevel=4, criteria=crit)
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, q, None, winSize=(21, 21), maxLevel=4, criteria=crit)
+        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm((back - p).reshape(-1, 2), axis=1) < 0.1)
+        return q.reshape(-1, 2), ok
+
+    rows = []
+    for i in range(len(frames) - gap):
+        L0, R0, L1 = (np.asarray(im) for im in (frames[i].left, frames[i].right, frames[i + gap].left))
+        p = cv2.goodFeaturesToTrack(L0, 2000, 0.01, 7)
+        q, ok_t = lk(L0, L1, p)
+        r, ok_s = lk(L0, R0, p)
+        p = p.reshape(-1, 2)
+        d = p[:, 0] - r[:, 0]
+        ok = ok_t & ok_s & (d > 3) & (d < 120) & (np.abs(r[:, 1] - p[:, 1]) < 2)
+        T = invert_pose(gt[i + gap]) @ gt[i]  # the later frame from the earlier
+        P1 = K @ T[:3, :]
+        X = cv2.triangulatePoints(K @ np.eye(3, 4), P1, p[ok].T.astype(float), q[ok].T.astype(float))
+        X = (X[:3] / X[3]).T
+        c1 = -T[:3, :3].T @ T[:3, 3]
+        v0 = X / np.linalg.norm(X, axis=1, keepdims=True)
+        v1 = (X - c1) / np.linalg.norm(X - c1, axis=1, keepdims=True)
+        parallax = np.degrees(np.arccos(np.clip(np.sum(v0 * v1, axis=1), -1.0, 1.0)))
+        x1 = (P1 @ np.column_stack([X, np.ones(len(X))]).T).T
+        reproj = np.linalg.norm(x1[:, :2] / x1[:, 2:] - q[ok], axis=1)
+        good = (X[:, 2] > 2.0) & (parallax > min_parallax_deg) & (reproj < 0.5)
+        rows.append(np.column_stack([(p[ok][good, 0] - cx) / f, d[ok][good], fb / X[good, 2]]))
+    A = np.vstack(rows)
+    x, res, pred = A[:, 0], A[:, 1] - A[:, 2], A[:, 2]
+    M = np.column_stack([np.ones_like(x), x**2, pred])
+    w = np.ones_like(x)
+    for _ in range(8):  # Huber at 2 MAD sigmas
+        coef = np.linalg.lstsq(M * w[:, None], res * w, rcond=None)[0]
+        e = res - M @ coef
+        sd = 1.4826 * float(np.median(np.abs(e)))
+        w = np.sqrt(np.minimum(1.0, 2.0 * sd / np.maximum(np.abs(e), 1e-9)))
+    edges = np.cumsum([0] + [len(r_) for r_ in rows])
+    rng = np.random.default_rng(0)
+    boot = []
+    for _ in range(200):
+        sel = np.concatenate([np.arange(edges[k], edges[k + 1]) for k in rng.integers(0, len(rows), len(rows))])
+        boot.append(np.linalg.lstsq(M[sel] * w[sel, None], res[sel] * w[sel], rcond=None)[0][1])
+    return {
+        "kitti_motion_disp_x2_px": round(float(coef[1]), 3),
+        "kitti_motion_disp_x2_sd_px": round(float(np.std(boot)), 3),
+        "kitti_motion_disp_matches": int(len(x)),
     }
 
 
@@ -395,11 +480,22 @@ def _chessboard() -> dict[str, Any]:
     own = base.copy()
     for side in (0, 1):
         own[6 * side : 6 * side + 6] = std[side][[0, 1, 2, 3, 4, 5]]
-    est_u = estimated_parameters(c)
+    est_u = estimated_parameters(c.model_copy(update={"refine_right_rows": False}))
     est_rows = estimated_parameters(c.model_copy(update={"refine_right_rows": True}))
-    for name, prior, ob, est in (("default", base, obs, est_u), ("own", own, obs, est_u),
-                                 ("rows", base, obs_rows, est_rows)):
-        _p, _pts, rep = refine_rig(ob, np.array(poses), obj[lm], cal, prior, est)
+    for name, prior, ob, est, ratio in (
+        ("default", base, obs, est_u, c.observable_direction_ratio),
+        ("own", own, obs, est_u, c.observable_direction_ratio),
+        ("rows", base, obs_rows, est_rows, c.observable_direction_ratio),
+        ("rows_free", base, obs_rows, est_rows, 1.0),  # no combination held
+    ):
+        _p, _pts, rep = refine_rig(ob, np.array(poses), obj[lm], cal, prior, est, observable_direction_ratio=ratio)
+        if est[PARAM_NAMES.index("cy_right_px")]:
+            out[f"chess_common_cy_post_over_prior_{name}"] = round(
+                rep.direction_ratio({"cy_left_px": 1.0, "cy_right_px": 1.0}), 3
+            )
+        out[f"chess_unobservable_directions_{name}"] = [
+            {k: round(v, 3) for k, v in d.items()} for d in rep.unobservable_directions
+        ]
         moved = rep.moved_sigma()
         out[f"chess_moved_max_sigma_{name}"] = round(max(abs(v) for v in moved.values()), 3)
         out[f"chess_moved_sigma_{name}"] = {k: round(v, 2) for k, v in moved.items()}
@@ -408,6 +504,46 @@ def _chessboard() -> dict[str, Any]:
         out[f"chess_moved_max_post_sigma_{name}"] = round(max(abs(v) for v in post.values()), 3)
         out[f"chess_moved_post_sigma_{name}"] = {k: round(v, 2) for k, v in post.items()}
     out["chess_own_sigma"] = {n: float(f"{v:.3g}") for n, v in zip(PARAM_NAMES[:12], own[:12], strict=True)}
+    out.update(_chessboard_cy(res.corners_left, res.corners_right, obj, cal.image_size))
+    return out
+
+
+def _chessboard_cy(corners_left: Any, corners_right: Any, obj: np.ndarray, size: Any) -> dict[str, Any]:
+    """The chessboard rig's cy by plain OpenCV, independent of the self-calibration.
+
+    ``chess_flat_cy_px`` (left, right): ``calibrateCamera`` with the flat board (the recorded rig's
+    way); ``chess_released_cy_px``: ``calibrateCameraRO`` with the board's shape released (one far
+    corner fixed), the self-calibration's situation (landmarks free); ``chess_cy_halves_rms_px``:
+    the flat board's cy from disjoint halves of the views (6 seeded splits), the rms of the halves'
+    differences over sqrt(2) (the spread of one half's estimate), beside OpenCV's own sigma for a half
+    (``chess_cy_halves_opencv_sd_px``, the median).
+    """
+    import cv2
+
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    o = obj.astype(np.float32)
+    out: dict[str, Any] = {k: [] for k in ("chess_flat_cy_px", "chess_released_cy_px", "chess_cy_halves_rms_px",
+                                            "chess_cy_halves_opencv_sd_px")}
+    for corners in (corners_left, corners_right):
+        pts = [np.asarray(c, np.float32).reshape(-1, 1, 2) for c in corners]
+        n = len(pts)
+        flat = cv2.calibrateCamera([o] * n, pts, size, None, None, criteria=crit)
+        ro = cv2.calibrateCameraRO([o] * n, pts, size, 8, None, None, criteria=crit)  # first row's last corner (9 x 6)
+        out["chess_flat_cy_px"].append(round(float(flat[1][1, 2]), 2))
+        out["chess_released_cy_px"].append(round(float(ro[1][1, 2]), 2))
+        rng = np.random.default_rng(0)
+        diffs, sds = [], []
+        for _ in range(6):
+            perm = rng.permutation(n)
+            cy = []
+            for half in (perm[: n // 2], perm[n // 2 :]):
+                r = cv2.calibrateCameraExtended([o] * len(half), [pts[i] for i in half], size, None, None,
+                                                criteria=crit)
+                cy.append(float(r[1][1, 2]))
+                sds.append(float(np.asarray(r[5]).ravel()[3]))
+            diffs.append(cy[0] - cy[1])
+        out["chess_cy_halves_rms_px"].append(round(float(np.sqrt(np.mean(np.square(diffs)) / 2.0)), 2))
+        out["chess_cy_halves_opencv_sd_px"].append(round(float(np.median(sds)), 2))
     return out
 
 
@@ -425,7 +561,9 @@ def run(quick: bool = False) -> dict[str, Any]:
     for s in seeds:
         per[f"seed_{s}"] = _scan(s, quick)
         print(json.dumps({f"seed_{s}": per[f"seed_{s}"]}), file=sys.stderr, flush=True)  # progress
-    return summary(per, quick, None if quick else {**_kitti(), **_kitti_row_rotation(), **_chessboard()})
+    return summary(per, quick, None if quick else {
+        **_kitti(), **_kitti_row_rotation(), **_kitti_motion_disparity(), **_chessboard()
+    })
 
 
 def summary(per: dict[str, dict[str, Any]], quick: bool, real: dict[str, Any] | None) -> dict[str, Any]:

@@ -23,7 +23,10 @@ is put back at its recorded value, held there, and reported as unobservable.
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -507,6 +510,21 @@ class RigRefinement:
     posterior_sigma_model: F64 = field(default_factory=lambda: np.zeros(0))
     posterior_sigma_robust: F64 = field(default_factory=lambda: np.zeros(0))
     posterior_sigma_consider: F64 = field(default_factory=lambda: np.zeros(0))
+    #: combinations held at the recorded values (``observable_direction_ratio``): each its posterior
+    #: over prior sigma (``ratio``) and its largest weights by parameter (prior-whitened, unit length)
+    unobservable_directions: list[dict[str, float]] = field(default_factory=list)
+    #: the estimated parameters' posterior covariance in prior-whitened units, before any direction
+    #: was held (their order in :data:`PARAM_NAMES`): ``u^T C u`` is a combination's (posterior/prior)^2
+    whitened_posterior: F64 = field(default_factory=lambda: np.zeros((0, 0)))
+    #: the held directions in full (16 x h, prior-whitened, zero on parameters not estimated)
+    held_directions: F64 = field(default_factory=lambda: np.zeros((N_PARAMS, 0)))
+
+    def direction_ratio(self, weights: dict[str, float]) -> float:
+        """Posterior over prior sigma of a combination of estimated parameters (prior-whitened weights)."""
+        names = [n for n, a in zip(PARAM_NAMES, self.estimated, strict=True) if a]
+        u = np.array([weights.get(n, 0.0) for n in names])
+        u /= np.linalg.norm(u)
+        return float(np.sqrt(u @ self.whitened_posterior @ u))
 
     def moved_sigma(self, posterior: bool = False) -> dict[str, float]:
         """How far each parameter moved from its recorded value, in units of its prior (or posterior) sigma."""
@@ -545,12 +563,14 @@ def _normal_equations(
     active: NDArray[np.bool_],
     sigma_px: float,
     huber_k: float,
+    held_info: F64 | None = None,
 ) -> tuple[F64, F64, tuple[sp.csr_matrix, F64], F64, F64, F64, float, F64]:
     """Whitened normal equations of the Huber-weighted problem.
 
     ``H_zz`` (poses but the first, then active parameters), ``b_z``, ``H_zl`` (sparse pose rows,
     dense parameter rows), ``V`` (landmark 3x3 blocks), ``b_l``, the raw residuals, the robust cost
-    and the normalised residual norms.
+    and the normalised residual norms. ``held_info`` (16 x 16, in prior-whitened units) joins the
+    prior's information: a stiff prior along held directions (:func:`held_directions`).
     """
     r, Jp, Jl, Jt = residuals_and_jacobians(obs, st.R, st.t, st.pts, rig, st.theta)
     rn = np.linalg.norm(r, axis=1) / sigma_px
@@ -590,6 +610,12 @@ def _normal_equations(
     dth = (st.theta - prior_theta)[active]
     H[npz:, npz:] += np.diag(1.0 / ps**2)
     b[npz:] -= dth / ps**2
+    held_cost = 0.0
+    if held_info is not None:
+        E = held_info[np.ix_(active, active)]
+        H[npz:, npz:] += E / np.outer(ps, ps)
+        b[npz:] -= (E @ (dth / ps)) / ps
+        held_cost = float((dth / ps) @ E @ (dth / ps))
     if obs.loops and npz:
         HL, gL, cL = loop_terms(st.R, st.t, obs)
         H[:npz, :npz] += HL[6:, 6:]  # the first pose is fixed
@@ -602,7 +628,7 @@ def _normal_equations(
     np.add.at(V, obs.point_idx, np.einsum("nki,nkj->nij", Jl, Jl))
     bl = np.zeros((n_pt, 3))
     np.add.at(bl, obs.point_idx, -np.einsum("nki,nk->ni", Jl, rw))
-    cost = _huber_cost(rn, huber_k) + float(np.sum((dth / ps) ** 2)) + cL
+    cost = _huber_cost(rn, huber_k) + float(np.sum((dth / ps) ** 2)) + cL + held_cost
     return H, b, Hzl, V, bl.ravel(), r, cost, rn
 
 
@@ -672,10 +698,13 @@ def _solve(
     sigma_px: float,
     huber_k: float,
     max_iterations: int,
+    held_info: F64 | None = None,
 ) -> tuple[_State, int]:
     """Levenberg-Marquardt from ``st``; returns the solution and the iterations taken."""
     lam = 1e-4
-    H, b, Hzl, V, bl, _r, cost, _ = _normal_equations(obs, st, rig, prior_theta, prior_sigma, active, sigma_px, huber_k)
+    H, b, Hzl, V, bl, _r, cost, _ = _normal_equations(
+        obs, st, rig, prior_theta, prior_sigma, active, sigma_px, huber_k, held_info
+    )
     it = 0
     for _ in range(max_iterations):
         it += 1
@@ -691,7 +720,7 @@ def _solve(
             dl = np.einsum("nij,nj->ni", Vinv, (bl - _hlz_dot(Hzl, dz)).reshape(-1, 3)).ravel()
             cand = _apply(st, dz, dl, active)
             H2, b2, Hzl2, V2, bl2, _r2, cost2, _ = _normal_equations(
-                obs, cand, rig, prior_theta, prior_sigma, active, sigma_px, huber_k
+                obs, cand, rig, prior_theta, prior_sigma, active, sigma_px, huber_k, held_info
             )
             if cost2 < cost:
                 rel = (cost - cost2) / max(cost, 1e-300)
@@ -715,6 +744,7 @@ def _posterior_sigma(
     sigma_px: float,
     huber_k: float,
     consider: NDArray[np.bool_] | None = None,
+    held_info: F64 | None = None,
 ) -> tuple[F64, F64, F64]:
     """Posterior std. devs. of the active parameters: the model's, track-robust, and the held ones' variance.
 
@@ -732,7 +762,9 @@ def _posterior_sigma(
         return np.zeros(0), np.zeros(0), np.zeros(0)
     held = np.zeros_like(active) if consider is None else (np.asarray(consider, bool) & ~active)
     both = active | held
-    H, _b, Hzl, V, _bl, _r, _c, _ = _normal_equations(obs, st, rig, prior_theta, prior_sigma, both, sigma_px, huber_k)
+    H, _b, Hzl, V, _bl, _r, _c, _ = _normal_equations(
+        obs, st, rig, prior_theta, prior_sigma, both, sigma_px, huber_k, held_info
+    )
     S_all, _ = _schur(H, Hzl, V, 0.0)
     npz0 = S_all.shape[0] - int(both.sum())
     keep = np.concatenate([np.ones(npz0, bool), active[both]])
@@ -759,6 +791,8 @@ def _posterior_sigma(
     Xc = X[npz:, :]
     ps = prior_sigma[active]
     meat += Xc.T @ (Xc / ps[:, None] ** 2)  # the prior, a measurement of its own
+    if held_info is not None:
+        meat += Xc.T @ (held_info[np.ix_(active, active)] / np.outer(ps, ps)) @ Xc
     if obs.loops and npz:
         HL, _g, _cL = loop_terms(st.R, st.t, obs)
         Xp2 = X[:npz, :]
@@ -771,6 +805,60 @@ def _posterior_sigma(
     Mh = X.T @ S_h  # nc x held
     consider_var = np.sum(Mh**2 * (prior_sigma[held] ** 2)[None, :], axis=1)
     return model, robust, consider_var
+
+
+#: prior-whitened sigma of a held direction's stiff prior (holds it at the recorded values)
+_HELD_SIGMA = 1e-3
+
+
+def _reduced_system(
+    obs: RigObservations,
+    st: _State,
+    rig: RigParameters,
+    prior_theta: F64,
+    prior_sigma: F64,
+    active: NDArray[np.bool_],
+    sigma_px: float,
+    huber_k: float,
+) -> F64:
+    """The reduced system (poses but the first, then the active parameters; landmarks eliminated)."""
+    H, _b, Hzl, V, _bl, _r, _c, _ = _normal_equations(obs, st, rig, prior_theta, prior_sigma, active, sigma_px, huber_k)
+    return _schur(H, Hzl, V, 0.0)[0]
+
+
+def posterior_directions(S: F64, prior_sigma_active: F64) -> tuple[F64, F64]:
+    """Posterior over prior standard deviation along the principal directions of the calibration.
+
+    ``S`` the reduced system (the calibration last), ``prior_sigma_active`` the active parameters'
+    prior sigmas. Returns the ratios (ascending) and the directions (columns, in prior-whitened
+    units of the active parameters): a ratio near 1 is a combination the data hardly inform. A
+    common vertical principal point of both cameras, for one, is nearly a rotation of the rig about
+    x, which the free keyframe poses absorb: a per-parameter ratio does not see it.
+    """
+    nc = prior_sigma_active.size
+    C = np.linalg.inv(S)[-nc:, -nc:]
+    Cw = C / np.outer(prior_sigma_active, prior_sigma_active)
+    lam, U = np.linalg.eigh(0.5 * (Cw + Cw.T))
+    return np.sqrt(np.maximum(lam, 0.0)), U
+
+
+def _held_direction_variance(S: F64, nc: int, prior_sigma_active: F64, U_o: F64, U_h: F64) -> F64:
+    """Per active parameter, the variance that holding the directions ``U_h`` at their prior adds.
+
+    Schmidt's consider covariance in the rotated coordinates ``[U_o U_h]`` (prior-whitened): held at
+    the recorded value, a direction keeps its prior error (variance 1) and passes it into the
+    estimated ones by ``-S_oo^-1 S_oh``; the parameters' extra covariance is
+    ``D (U_h - U_o G) (U_h - U_o G)^T D`` with ``G`` those rows.
+    """
+    npz = S.shape[0] - nc
+    W = np.concatenate([U_o, U_h], axis=1) * prior_sigma_active[:, None]  # parameter = W z
+    T = np.eye(S.shape[0])
+    T[npz:, npz:] = W
+    Sz = T.T @ S @ T
+    no = npz + U_o.shape[1]
+    G = np.linalg.solve(Sz[:no, :no], Sz[:no, no:])[npz:, :]
+    A = (U_h - U_o @ G) * prior_sigma_active[:, None]
+    return np.asarray(np.sum(A**2, axis=1), dtype=np.float64)
 
 
 def robust_sigma_px(r: F64, unknowns: int, obs: RigObservations | None = None) -> float:
@@ -810,6 +898,41 @@ def _rms(r: F64, obs: RigObservations) -> float:
     return float(np.sqrt(np.sum(r**2) / n)) if n else float("nan")
 
 
+_BLAS_THREAD_SYMBOLS = (
+    ("scipy_openblas_get_num_threads64_", "scipy_openblas_set_num_threads64_"),
+    ("scipy_openblas_get_num_threads", "scipy_openblas_set_num_threads"),
+    ("openblas_get_num_threads", "openblas_set_num_threads"),
+)
+
+
+@contextlib.contextmanager
+def one_blas_thread() -> Iterator[None]:
+    """OpenBLAS (numpy's and scipy's, as loaded) on one thread inside the block, restored after.
+
+    The refinement's dense systems are small (a few hundred unknowns): a 145 x 145 Cholesky took
+    0.9 ms on one thread and 18-215 ms on OpenBLAS's default two at load 10-20 on the 2-core machine
+    (the threads spin for each other; calib5). No-op where the libraries or ``/proc`` are not found.
+    """
+    libs = []
+    with contextlib.suppress(OSError):
+        with open("/proc/self/maps") as f:
+            paths = sorted({ln.split()[-1] for ln in f if "openblas" in ln.lower() and ln.rstrip().endswith(".so")})
+        for path in paths:
+            lib = ctypes.CDLL(path)
+            for get, put in _BLAS_THREAD_SYMBOLS:
+                if hasattr(lib, get) and hasattr(lib, put):
+                    libs.append((getattr(lib, get), getattr(lib, put)))
+                    break
+    before = [int(get()) for get, _put in libs]
+    try:
+        for _get, put in libs:
+            put(ctypes.c_int(1))
+        yield
+    finally:
+        for (_get, put), n in zip(libs, before, strict=True):
+            put(ctypes.c_int(n))
+
+
 def refine_rig(
     obs: RigObservations,
     world_from_cam: F64,
@@ -822,14 +945,40 @@ def refine_rig(
     max_iterations: int = 15,
     track_robust: bool = True,
     consider: NDArray[np.bool_] | None = None,
+    observable_direction_ratio: float = 1.0,
 ) -> tuple[F64, F64, RigRefinement]:
     """Bundle adjustment of poses, landmarks and the rig calibration; see the module docstring.
 
     ``world_from_cam`` (P x 4 x 4, the first held fixed), ``points_w`` (L x 3) start values;
     ``prior_sigma`` in the order of :data:`PARAM_NAMES`; ``estimate`` which parameters are
-    unknowns (default: all but k2). Returns the refined poses, points and the report (its
-    ``world_from_kf`` and ``landmark_ids`` are left empty for the caller to fill).
+    unknowns (default: all but k2). A combination of the parameters whose posterior sigma stays
+    above ``observable_direction_ratio`` of its prior (:func:`posterior_directions`; 1: none) is
+    held at its recorded value and reported unobservable (``unobservable_directions``), its prior
+    variance passed on to the others' sigmas. Returns the refined poses, points and the report (its
+    ``world_from_kf`` and ``landmark_ids`` are left empty for the caller to fill). The dense algebra
+    runs on one BLAS thread (:func:`one_blas_thread`).
     """
+    with one_blas_thread():
+        return _refine_rig(
+            obs, world_from_cam, points_w, recorded, prior_sigma, estimate, observable_ratio, huber_k,
+            max_iterations, track_robust, consider, observable_direction_ratio,
+        )
+
+
+def _refine_rig(
+    obs: RigObservations,
+    world_from_cam: F64,
+    points_w: F64,
+    recorded: StereoCalibration,
+    prior_sigma: F64,
+    estimate: NDArray[np.bool_] | None,
+    observable_ratio: float,
+    huber_k: float,
+    max_iterations: int,
+    track_robust: bool,
+    consider: NDArray[np.bool_] | None,
+    observable_direction_ratio: float,
+) -> tuple[F64, F64, RigRefinement]:
     rig = RigParameters.of(recorded)
     prior_theta = rig.values.copy()
     active = np.ones(N_PARAMS, bool) if estimate is None else np.asarray(estimate, bool).copy()
@@ -864,14 +1013,41 @@ def refine_rig(
         active = active & ~blind
         st, it = _solve(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k, max_iterations)
         iterations += it
+    held_info, U_h, U_o, directions = None, None, None, []
+    whitened, Uh16 = np.zeros((0, 0)), np.zeros((N_PARAMS, 0))
+    if np.any(active):
+        ps_a = prior_sigma[active]
+        ratios, U = posterior_directions(
+            _reduced_system(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k), ps_a
+        )
+        whitened = (U * ratios**2) @ U.T
+        names_a = [PARAM_NAMES[i] for i in np.flatnonzero(active)]
+        hold = ratios > observable_direction_ratio
+        for k in np.flatnonzero(hold):
+            top = np.argsort(-np.abs(U[:, k]))
+            directions.append({"ratio": float(ratios[k]), **{names_a[i]: round(float(U[i, k]), 3) for i in top[:4]}})
+        if np.any(hold):
+            # held at the recorded values: the move along them taken out, a stiff prior keeps them there
+            U_h, U_o = U[:, hold], U[:, ~hold]
+            Uh16 = np.zeros((N_PARAMS, U_h.shape[1]))
+            Uh16[active] = U_h
+            held_info = Uh16 @ Uh16.T / _HELD_SIGMA**2
+            dw = (st.theta - prior_theta)[active] / ps_a
+            st.theta[active] = prior_theta[active] + ps_a * (dw - U_h @ (U_h.T @ dw))
+            st, it = _solve(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k, max_iterations, held_info)
+            iterations += it
     post = np.array(prior_sigma, float).copy()
     robust = post.copy()
     consider_var = np.zeros_like(post)
     if np.any(active):
         held = ~active if consider is None else np.asarray(consider, bool)  # default: every held parameter
         post[active], robust[active], consider_var[active] = _posterior_sigma(
-            obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k, held if track_robust else None
+            obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k, held if track_robust else None,
+            held_info,
         )
+        if U_h is not None and U_o is not None:
+            S = _reduced_system(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k)
+            consider_var[active] += _held_direction_variance(S, int(active.sum()), prior_sigma[active], U_o, U_h)
     honest = np.where(active, np.sqrt(np.maximum(post, robust) ** 2 + consider_var), post)
     r, *_ = residuals_and_jacobians(obs, st.R, st.t, st.pts, rig, st.theta)
     poses = np.tile(np.eye(4), (st.R.shape[0], 1, 1))
@@ -895,6 +1071,9 @@ def refine_rig(
         iterations=iterations,
         rms_px_before=rms0,
         rms_px_after=_rms(r, obs),
+        unobservable_directions=directions,
+        whitened_posterior=whitened,
+        held_directions=Uh16,
     )
     return poses, st.pts, report
 
@@ -905,6 +1084,7 @@ __all__ = [
     "RigParameters",
     "RigRefinement",
     "observations_from_keyframes",
+    "posterior_directions",
     "prior_sigmas",
     "project_with_jacobians",
     "raw_from_rectified_px",

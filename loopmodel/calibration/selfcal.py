@@ -156,6 +156,7 @@ class SelfCalibration:
             "calibration_rms_px_before": self.rig.rms_px_before,
             "calibration_rms_px_after": self.rig.rms_px_after,
             "calibration_refine_s": self.seconds,
+            "calibration_unobservable_directions": self.rig.unobservable_directions,
         }
         if self.laser is not None:
             m["calibration_laser_pairs"] = self.laser.pairs
@@ -176,6 +177,20 @@ def estimated_parameters(config: SelfCalibrationConfig) -> NDArray[np.bool_]:
     if not config.refine_right_rows:
         estimate[[PARAM_NAMES.index(n) for n in RIGHT_ROW_PARAMS]] = False
     return estimate
+
+
+def right_rows(keyframes: list[Keyframe], config: SelfCalibrationConfig) -> dict[int, F64] | None:
+    """The right matches' measured rows (keyframe id -> rectified rows) when ``refine_right_rows``, else None.
+
+    Keyframes without them (not measured by the front end) give only their right columns.
+    """
+    if not config.refine_right_rows:
+        return None
+    return {
+        int(k.id): np.asarray(k.right_rows_px, float)
+        for k in keyframes
+        if np.asarray(k.right_rows_px).size == np.asarray(k.landmark_ids).size
+    }
 
 
 def rectifying_rotations(cal: StereoCalibration) -> tuple[F64, F64, F64, F64]:
@@ -222,7 +237,8 @@ def refine_final(
     if len(kfs) < 3:
         raise LoopmodelError(f"self-calibration needs 3 keyframes, got {len(kfs)}")
     R1, R2, K1, K2 = rectifying_rotations(calibration)
-    obs, kf_ids, lm_ids = observations_from_keyframes(kfs, calibration, K1, K2, R1, R2)
+    rows = right_rows(kfs, config)
+    obs, kf_ids, lm_ids = observations_from_keyframes(kfs, calibration, K1, K2, R1, R2, rows)
     # a landmark needs a stereo observation and a second keyframe (else it only adds unknowns)
     n_pt = lm_ids.size
     stereo = np.zeros(n_pt, bool)
@@ -270,8 +286,11 @@ def refine_final(
         config.sigma_baseline_m,
     )
     estimate = estimated_parameters(config)
+    if not rows:  # no keyframe measured its right rows: the right columns alone do not inform them
+        estimate[[PARAM_NAMES.index(n) for n in RIGHT_ROW_PARAMS]] = False
     poses_out, pts_out, rep = refine_rig(
-        obs, poses, pts, calibration, sig, estimate, config.observable_ratio, config.huber_k, config.max_iterations
+        obs, poses, pts, calibration, sig, estimate, config.observable_ratio, config.huber_k, config.max_iterations,
+        observable_direction_ratio=config.observable_direction_ratio,
     )
     rep.world_from_kf = {k: poses_out[i] for i, k in enumerate(kf_ids)}
     rep.landmark_ids = lm_ids

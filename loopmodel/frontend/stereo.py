@@ -464,7 +464,9 @@ class StereoSet:
     each match's disparity standard deviation ``disparity_sigma_px`` (M,); far matches as bearings:
     ``far_rays`` (F, 3) = (x/z, y/z, 1), ``far_inv_depth`` (F,) 1/m (0 at zero disparity) and
     ``far_px`` (F, 2) left pixels; ``unmatched_px`` (U, 2) the corners without a stereo match;
-    ``offset_px`` the disparity offset taken out of the matches (``frontend.disparity_offset``).
+    ``offset_px`` the disparity offset taken out of the matches (``frontend.disparity_offset``);
+    ``right_rows_px`` (M,) the rectified row of each point's right match (the order of ``stereo_px``;
+    the self-calibration measures it, issue 31).
     """
 
     points: F64
@@ -475,6 +477,7 @@ class StereoSet:
     far_px: F64
     unmatched_px: F64
     offset_px: float
+    right_rows_px: F64 = field(default_factory=lambda: np.zeros(0))
 
 
 def far_match_mask(disparity_px: F64, cfg: FrontendConfig, fx_px: float, baseline_m: float) -> NDArray[np.bool_]:
@@ -555,4 +558,5 @@ def keyframe_stereo_set(
         far_px=far_px,
         unmatched_px=corners[unmatched],
         offset_px=offset_px,
+        right_rows_px=m.v_right[keep],
     )

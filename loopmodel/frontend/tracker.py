@@ -1425,6 +1425,7 @@ class FrontEnd:
             landmark_ids=ids,
             points_in_kf=new.points @ self.cam_from_rect[:3, :3].T,
             stereo_px=new.stereo_px,
+            right_rows_px=new.right_rows_px,
             mono_obs=closed.mono_obs if closed is not None else np.zeros((0, 3)),
             image=left,
             frame_index=frame.index,
