@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_exp
-from loopmodel.types import StereoCalibration
+from loopmodel.types import StereoCalibration, StereoFrame
 
 
 def random_texture(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
@@ -109,6 +109,17 @@ def stereo_rig(
     K = np.array([[f, 0, size[0] / 2 - 0.5], [0, f, size[1] / 2 - 0.5], [0, 0, 1.0]])
     right_from_left = make_pose(np.eye(3), [-baseline_m, 0, 0])
     return StereoCalibration(K, K, right_from_left, size)
+
+
+def stereo_frames(planes: list[Plane], cal: StereoCalibration, poses: np.ndarray) -> list[StereoFrame]:
+    """The rectified stereo pair rendered at each (N, 4, 4) world_from_cam pose, 0.1 s apart."""
+    frames = []
+    for i, world_from_cam in enumerate(poses):
+        cam_from_world = invert_pose(world_from_cam)
+        left = render(planes, cal.K_left, cam_from_world, cal.image_size)
+        right = render(planes, cal.K_right, cal.right_from_left @ cam_from_world, cal.image_size)
+        frames.append(StereoFrame(i * 100_000_000, left, right, i))
+    return frames
 
 
 def trajectory(n: int, step_m: float = 0.06) -> np.ndarray:

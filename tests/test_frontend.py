@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from frontend_scene import default_scene, depth_at, random_texture, render, stereo_rig, trajectory
+from frontend_scene import default_scene, depth_at, random_texture, stereo_frames, stereo_rig, trajectory
 
 from loopmodel.config import FrontendConfig
 from loopmodel.frontend import FrontEnd
@@ -24,16 +24,6 @@ CFG = FrontendConfig(
 )
 
 
-def _stereo_frames(planes, cal: StereoCalibration, poses: np.ndarray) -> list[StereoFrame]:
-    frames = []
-    for i, world_from_cam in enumerate(poses):
-        cam_from_world = invert_pose(world_from_cam)
-        left = render(planes, cal.K_left, cam_from_world, cal.image_size)
-        right = render(planes, cal.K_right, cal.right_from_left @ cam_from_world, cal.image_size)
-        frames.append(StereoFrame(i * 100_000_000, left, right, i))
-    return frames
-
-
 def _pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     d = invert_pose(T_true) @ T_est
     return float(np.linalg.norm(d[:3, 3])), float(np.degrees(np.linalg.norm(so3_log(d[:3, :3]))))
@@ -42,7 +32,7 @@ def _pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
 def test_triangulation_matches_ground_truth_depth(rng: np.random.Generator) -> None:
     planes = default_scene(rng)
     cal = stereo_rig()
-    (frame,) = _stereo_frames(planes, cal, np.eye(4)[None])
+    (frame,) = stereo_frames(planes, cal, np.eye(4)[None])
     corners = detect_corners(frame.left, 400, (6, 3), 0.005, 8, 12)
     m = match_stereo(frame.left, frame.right, corners, CFG)
     assert len(m.disparity) > 150
@@ -90,7 +80,7 @@ def test_short_sequence_ok_poses_match_ground_truth(rng: np.random.Generator) ->
     poses = trajectory(16)
     poses = invert_pose(poses[0]) @ poses  # world = first camera
     fe = FrontEnd(cal, CFG)
-    results = [fe.process(f) for f in _stereo_frames(planes, cal, poses)]
+    results = [fe.process(f) for f in stereo_frames(planes, cal, poses)]
     assert all(r.status == "OK" for r in results)
     assert results[0].is_keyframe and results[0].keyframe is not None
     _check_ok_poses(results, poses, 0.02, 0.2)
@@ -110,7 +100,7 @@ def test_blackout_burst_is_lost_then_tracking_resumes(rng: np.random.Generator) 
     cal = stereo_rig()
     poses = trajectory(22, step_m=0.04)
     poses = invert_pose(poses[0]) @ poses
-    frames = _stereo_frames(planes, cal, poses)
+    frames = stereo_frames(planes, cal, poses)
     burst = range(8, 11)
     for i in burst:
         frames[i] = StereoFrame(
@@ -135,7 +125,7 @@ def test_unrectified_input_gets_rectified(rng: np.random.Generator) -> None:
     cal = StereoCalibration(rect.K_left, K_right, right_from_left, rect.image_size, rectified=False)
     poses = trajectory(6)
     poses = invert_pose(poses[0]) @ poses
-    frames = _stereo_frames(planes, cal, poses)
+    frames = stereo_frames(planes, cal, poses)
     fe = FrontEnd(cal, CFG)
     assert not fe.rectifier.is_identity
     assert fe.calibration.rectified and abs(fe.calibration.baseline_m - 0.3) < 1e-6
@@ -170,7 +160,7 @@ def test_apply_correction_moves_later_poses(rng: np.random.Generator) -> None:
     planes = default_scene(rng)
     cal = stereo_rig()
     poses = trajectory(12)
-    frames = _stereo_frames(planes, cal, invert_pose(poses[0]) @ poses)
+    frames = stereo_frames(planes, cal, invert_pose(poses[0]) @ poses)
     fe1, fe2 = FrontEnd(cal, CFG), FrontEnd(cal, CFG)
     for f in frames[:6]:
         fe1.process(f)
@@ -196,7 +186,7 @@ def test_long_track_on_one_keyframe_stays_rigid(rng: np.random.Generator) -> Non
     poses = trajectory(40, step_m=0.004)
     poses = invert_pose(poses[0]) @ poses
     fe = FrontEnd(cal, CFG)
-    results = [fe.process(f) for f in _stereo_frames(planes, cal, poses)]
+    results = [fe.process(f) for f in stereo_frames(planes, cal, poses)]
     assert sum(r.is_keyframe for r in results) <= 3
     for r in results:
         R = r.world_from_cam[:3, :3]
@@ -209,12 +199,12 @@ def test_blurred_frame_and_pose_jump_are_lost_not_wrong(rng: np.random.Generator
     cal = stereo_rig()
     poses = trajectory(16, step_m=0.04)
     poses = invert_pose(poses[0]) @ poses
-    frames = _stereo_frames(planes, cal, poses)
+    frames = stereo_frames(planes, cal, poses)
     # frame 6: heavy defocus blur; frame 10: the view of a camera 1 m to the side and turned
     frames[6] = StereoFrame(frames[6].timestamp_ns, cv2.GaussianBlur(frames[6].left, (0, 0), 12),
                             cv2.GaussianBlur(frames[6].right, (0, 0), 12), 6)
     jumped = poses[10] @ make_pose(so3_exp([0.0, 0.25, 0.0]), [1.0, 0.0, 0.0])
-    (far,) = _stereo_frames(planes, cal, jumped[None])
+    (far,) = stereo_frames(planes, cal, jumped[None])
     frames[10] = StereoFrame(frames[10].timestamp_ns, far.left, far.right, 10)
     fe = FrontEnd(cal, CFG)
     results = [fe.process(f) for f in frames]
@@ -233,7 +223,7 @@ def test_pose_jump_beyond_motion_model_is_lost(rng: np.random.Generator) -> None
     poses[8] = poses[8] @ make_pose(np.eye(3), [0.25, 0.0, 0.0])  # one frame 25 cm off
     cfg = CFG.model_copy(update={"max_jump_m": 0.1})
     fe = FrontEnd(cal, cfg)
-    results = [fe.process(f) for f in _stereo_frames(planes, cal, poses)]
+    results = [fe.process(f) for f in stereo_frames(planes, cal, poses)]
     assert results[8].status == "LOST" and "jump" in results[8].reason
     assert all(r.status == "OK" for i, r in enumerate(results) if i != 8)
     _check_ok_poses(results, poses, 0.02, 0.2)
@@ -281,7 +271,7 @@ def test_local_map_points_stay_in_the_pose_and_are_observed_later(rng: np.random
     poses = trajectory(24)
     poses = invert_pose(poses[0]) @ poses
     fe = FrontEnd(cal, CFG.model_copy(update={"local_map_keyframes": 3, "max_parallax_ratio": 0.05}))
-    results = [fe.process(f) for f in _stereo_frames(planes, cal, poses)]
+    results = [fe.process(f) for f in stereo_frames(planes, cal, poses)]
     assert all(r.status == "OK" for r in results)
     _check_ok_poses(results, poses, 0.02, 0.2)
     kfs = [r.keyframe for r in results if r.keyframe is not None]
@@ -312,7 +302,7 @@ def test_wider_keyframe_ba_takes_the_local_map_and_keeps_the_poses(rng: np.rando
     poses = invert_pose(poses[0]) @ poses
     cfg = CFG.model_copy(update={"local_map_keyframes": 3, "local_ba_keyframes": 2, "max_parallax_ratio": 0.05})
     fe = FrontEnd(cal, cfg)
-    results = [fe.process(f) for f in _stereo_frames(planes, cal, poses)]
+    results = [fe.process(f) for f in stereo_frames(planes, cal, poses)]
     assert all(r.status == "OK" for r in results)
     _check_ok_poses(results, poses, 0.02, 0.2)
     kfs = [r.keyframe for r in results if r.keyframe is not None]

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from frontend_scene import default_scene, render, stereo_rig, trajectory, write_kitti_folder
+from frontend_scene import default_scene, stereo_frames, stereo_rig, trajectory, write_kitti_folder
 
 import loopmodel.frontend.stereo as stereo_mod
 import loopmodel.frontend.tracker as tracker_mod
@@ -28,12 +28,7 @@ def _frames(rng: np.random.Generator, n: int) -> tuple[list[StereoFrame], np.nda
     cal = stereo_rig()
     poses = trajectory(n)
     poses = invert_pose(poses[0]) @ poses
-    frames = []
-    for i, world_from_cam in enumerate(poses):
-        cam_from_world = invert_pose(world_from_cam)
-        left = render(planes, cal.K_left, cam_from_world, cal.image_size)
-        right = render(planes, cal.K_right, cal.right_from_left @ cam_from_world, cal.image_size)
-        frames.append(StereoFrame(i * 100_000_000, left, right, i))
+    frames = stereo_frames(planes, cal, poses)
     return frames, poses, cal
 
 

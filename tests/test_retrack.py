@@ -17,7 +17,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from frontend_scene import default_scene, render, stereo_rig, trajectory  # noqa: E402
+from frontend_scene import default_scene, stereo_frames, stereo_rig, trajectory  # noqa: E402
 from selfcal_scene import make_scene, recorded_rig, true_rig  # noqa: E402
 
 from loopmodel.calibration.retrack import refined_keyframe_points, refined_left_px, retrack_frames  # noqa: E402
@@ -30,7 +30,7 @@ from loopmodel.geometry.camera import CentralCamera  # noqa: E402
 from loopmodel.geometry.se3 import invert_pose, make_pose, so3_exp, so3_log  # noqa: E402
 from loopmodel.mapping.anchored import bridge_interval  # noqa: E402
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, refine_pose  # noqa: E402
-from loopmodel.types import StereoFrame, Trajectory  # noqa: E402
+from loopmodel.types import Trajectory  # noqa: E402
 
 CFG = FrontendConfig(
     max_disparity_px=64, max_features=400, grid_cols=6, grid_rows=3, min_tracked=60, min_stereo_points=30,
@@ -47,12 +47,7 @@ def test_front_end_keeps_each_frames_pose_points(rng: np.random.Generator) -> No
     cal = stereo_rig()
     poses = trajectory(24)
     poses = invert_pose(poses[0]) @ poses
-    frames = []
-    for i, world_from_cam in enumerate(poses):
-        cam_from_world = invert_pose(world_from_cam)
-        left = render(planes, cal.K_left, cam_from_world, cal.image_size)
-        right = render(planes, cal.K_right, cal.right_from_left @ cam_from_world, cal.image_size)
-        frames.append(StereoFrame(i * 100_000_000, left, right, i))
+    frames = stereo_frames(planes, cal, poses)
     kept = FrontEnd(cal, CFG, keep_observations=True)
     plain = FrontEnd(cal, CFG)
     res = [kept.process(f) for f in frames]

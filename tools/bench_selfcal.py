@@ -288,6 +288,31 @@ def _kitti() -> dict[str, Any]:
     return out
 
 
+def _huber_fit_block_bootstrap(
+    A: np.ndarray, y: np.ndarray, block_sizes: list[int], iterations: int, draws: int = 200
+) -> tuple[float, float]:
+    """Coefficient 1 of the Huber-weighted fit ``A c = y`` and its bootstrap standard deviation.
+
+    Huber at 2 MAD sigmas, ``iterations`` reweightings; the bootstrap resamples whole blocks
+    (consecutive rows of ``A`` in blocks of ``block_sizes``: one block per image pair, so its
+    correlated matches are resampled together).
+    """
+    w = np.ones(A.shape[0])
+    for _ in range(iterations):
+        coef = np.linalg.lstsq(A * w[:, None], y * w, rcond=None)[0]
+        r = y - A @ coef
+        s = 1.4826 * float(np.median(np.abs(r)))
+        w = np.sqrt(np.minimum(1.0, 2.0 * s / np.maximum(np.abs(r), 1e-9)))
+    edges = np.cumsum([0, *block_sizes])
+    n = len(block_sizes)
+    rng = np.random.default_rng(0)
+    boot = []
+    for _ in range(draws):
+        sel = np.concatenate([np.arange(edges[k], edges[k + 1]) for k in rng.integers(0, n, n)])
+        boot.append(np.linalg.lstsq(A[sel] * w[sel, None], y[sel] * w[sel], rcond=None)[0][1])
+    return float(coef[1]), float(np.std(boot))
+
+
 def _kitti_row_rotation() -> dict[str, Any]:
     """The KITTI clip's stereo rotation about the optical axis from the right image's rows alone.
 
@@ -321,21 +346,10 @@ def _kitti_row_rotation() -> dict[str, Any]:
         rows.append(np.column_stack([(p[ok, 0] - cx) / f, (p[ok, 1] - cy) / f, q[ok, 1] - p[ok, 1]]))
     X = np.vstack(rows)
     A = np.column_stack([np.ones(X.shape[0]), X[:, 0], X[:, 1]])
-    w = np.ones(X.shape[0])
-    for _ in range(6):  # Huber at 2 MAD sigmas
-        coef = np.linalg.lstsq(A * w[:, None], X[:, 2] * w, rcond=None)[0]
-        r = X[:, 2] - A @ coef
-        s = 1.4826 * float(np.median(np.abs(r)))
-        w = np.sqrt(np.minimum(1.0, 2.0 * s / np.maximum(np.abs(r), 1e-9)))
-    edges = np.cumsum([0] + [len(x) for x in rows])
-    rng = np.random.default_rng(0)
-    boot = []
-    for _ in range(200):
-        sel = np.concatenate([np.arange(edges[k], edges[k + 1]) for k in rng.integers(0, len(rows), len(rows))])
-        boot.append(np.linalg.lstsq(A[sel] * w[sel, None], X[sel, 2] * w[sel], rcond=None)[0][1])
+    coef1, sd1 = _huber_fit_block_bootstrap(A, X[:, 2], [len(x) for x in rows], iterations=6)
     return {
-        "kitti_rows_rot_z_deg": round(float(np.degrees(coef[1] / f)), 4),
-        "kitti_rows_rot_z_sd_deg": round(float(np.degrees(np.std(boot) / f)), 4),
+        "kitti_rows_rot_z_deg": round(float(np.degrees(coef1 / f)), 4),
+        "kitti_rows_rot_z_sd_deg": round(float(np.degrees(sd1 / f)), 4),
         "kitti_rows_matches": int(X.shape[0]),
     }
 
@@ -397,21 +411,10 @@ def _kitti_motion_disparity(gap: int = 2, min_parallax_deg: float = 2.0) -> dict
     A = np.vstack(rows)
     x, res, pred = A[:, 0], A[:, 1] - A[:, 2], A[:, 2]
     M = np.column_stack([np.ones_like(x), x**2, pred])
-    w = np.ones_like(x)
-    for _ in range(8):  # Huber at 2 MAD sigmas
-        coef = np.linalg.lstsq(M * w[:, None], res * w, rcond=None)[0]
-        e = res - M @ coef
-        sd = 1.4826 * float(np.median(np.abs(e)))
-        w = np.sqrt(np.minimum(1.0, 2.0 * sd / np.maximum(np.abs(e), 1e-9)))
-    edges = np.cumsum([0] + [len(r_) for r_ in rows])
-    rng = np.random.default_rng(0)
-    boot = []
-    for _ in range(200):
-        sel = np.concatenate([np.arange(edges[k], edges[k + 1]) for k in rng.integers(0, len(rows), len(rows))])
-        boot.append(np.linalg.lstsq(M[sel] * w[sel, None], res[sel] * w[sel], rcond=None)[0][1])
+    coef1, sd1 = _huber_fit_block_bootstrap(M, res, [len(r_) for r_ in rows], iterations=8)
     return {
-        "kitti_motion_disp_x2_px": round(float(coef[1]), 3),
-        "kitti_motion_disp_x2_sd_px": round(float(np.std(boot)), 3),
+        "kitti_motion_disp_x2_px": round(float(coef1), 3),
+        "kitti_motion_disp_x2_sd_px": round(float(sd1), 3),
         "kitti_motion_disp_matches": int(len(x)),
     }
 
