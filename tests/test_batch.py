@@ -216,3 +216,34 @@ def test_external_scheduler_and_two_workers(tmp_path):
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
+
+
+_PIN_AFTER_NUMBA = """
+import numba, numpy as np
+@numba.njit(parallel=True)
+def total(x):
+    s = 0.0
+    for i in numba.prange(x.shape[0]):
+        s += x[i]
+    return s
+total(np.ones(8))
+from loopmodel.batch.execute import pin_threads
+pinned = pin_threads(1)
+@numba.njit
+def plus_one(x):
+    return x + 1
+print(pinned["numba"], plus_one(np.ones(3)).sum())
+"""
+
+
+def test_pin_threads_after_numba_launched_its_pool_keeps_compiling() -> None:
+    """A task pinned to one thread in a process whose numba pool already runs (an in-process worker).
+
+    numba re-reads ``NUMBA_NUM_THREADS`` at every compilation and raises when it differs from the
+    launched pool, so pinning must limit numba at run time only (the CI failure of stop 40).
+    """
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_NUM_THREADS"}
+    env["PYTHONPATH"] = str(ROOT)
+    out = subprocess.run([sys.executable, "-c", _PIN_AFTER_NUMBA], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["1", "6.0"]

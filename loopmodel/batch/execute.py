@@ -24,6 +24,7 @@ import logging
 import os
 import shutil
 import socket
+import sys
 import time
 import uuid
 from pathlib import Path
@@ -46,8 +47,12 @@ def pin_threads(n: int) -> dict[str, Any]:
 
     The environment variables reach libraries loaded later and the processes a task starts;
     cv2 and numba are also limited at run time (numba up to the pool it was started with).
+    ``NUMBA_NUM_THREADS`` is left alone once numba is imported: numba re-reads its environment
+    at every compilation and refuses a value that differs from the pool it launched.
     """
     for k in THREAD_ENV:
+        if k == "NUMBA_NUM_THREADS" and "numba" in sys.modules:
+            continue
         os.environ[k] = str(n)
     done: dict[str, Any] = {"threads": n}
     import cv2
