@@ -309,7 +309,10 @@ def open_client(
     if scheduler == "local":
         n = workers or os.cpu_count() or 1
         env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
-        env.update({k: str(threads_per_task) for k in THREAD_ENV})
+        # The nanny applies this to the os.environ of THIS process before each spawn. numba re-reads
+        # NUMBA_NUM_THREADS at every compilation and raises when it differs from its launched pool,
+        # so it is left out: the worker's pin_threads limits numba itself.
+        env.update({k: str(threads_per_task) for k in THREAD_ENV if k != "NUMBA_NUM_THREADS"})
         settings = {
             "distributed.nanny.pre-spawn-environ": env,
             # a task may start processes of its own (loop closing's background BA)
