@@ -140,3 +140,41 @@ def test_corrections_move_every_stripe_point_and_mark_the_blocks_they_leave_and_
             for p in (before[s], got):
                 expected_dirty |= {tuple(k) for k in np.floor(p / cfg.chunk_m).astype(int).tolist()}
     assert expected_dirty and smap.dirty_blocks == expected_dirty
+
+
+def test_final_mesh_in_the_live_mesh_worker_process_is_the_mesh_made_here() -> None:
+    """Issue 32 (finish6): the final mesh queued on the live mesh's warm worker, all cores for Poisson.
+
+    The same surface as :func:`~loopmodel.mapping.final.final_mesh` in this process with one
+    thread (vertex for vertex within 1 um, order aside: measured 0.25 um, the threads add in another
+    order) and on the 0.25 m sphere the stripes sample: mean radial
+    error below 1 mm (measured 0.39 mm). No worker process (a thread, or shut down): None, the caller
+    meshes itself.
+    """
+    from scipy.spatial import cKDTree
+
+    from loopmodel.mapping.final import final_mesh, final_mesh_arrays, mesh_of
+    from loopmodel.types import Trajectory
+
+    cfg = MappingConfig(voxel_m=0.004, normal_radius_m=0.02)
+    smap = _sphere_map(cfg)
+    stripes = smap.stripes()
+    traj = Trajectory(np.arange(20, dtype=np.int64) * 1_000_000, np.tile(np.eye(4), (20, 1, 1)))
+    here, metrics = final_mesh(stripes, traj, cfg)
+    assert here is not None and metrics["mesh_vertices"] == len(here.vertices) > 100
+    assert LiveMapping(_sphere_map(cfg), 1, "thread").submit_after(final_mesh_arrays, stripes, traj, cfg, 0) is None
+    live = LiveMapping(StripeMap(cfg), 1, "process")
+    assert live.submit_after(final_mesh_arrays, stripes, traj, cfg, 0) is None  # not started: nothing fed yet
+    live.feed(stripes)  # starts the worker
+    job = live.submit_after(final_mesh_arrays, stripes, traj, cfg, 0)
+    assert job is not None
+    arrays, worker_metrics = job.result(timeout=120)
+    live.close(wait=True)
+    assert live.submit_after(final_mesh_arrays, stripes, traj, cfg, 0) is None  # shut down
+    got = mesh_of(arrays)
+    assert worker_metrics == metrics
+    a, b = np.asarray(got.vertices), np.asarray(here.vertices)
+    assert a.shape == b.shape
+    assert cKDTree(b).query(a)[0].max() < 1e-6 and cKDTree(a).query(b)[0].max() < 1e-6
+    radial_mm = np.abs(np.linalg.norm(a - [0.0, 0.0, 1.0], axis=1) - 0.25) * 1e3
+    assert radial_mm.mean() < 1.0, radial_mm.mean()
