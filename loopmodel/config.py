@@ -393,11 +393,6 @@ class MappingConfig(_Section):
     poisson_threads: int = Field(
         default=1, ge=0, description="threads of a Poisson reconstruction; 0 = all cores (may crash: Open3D #6828)"
     )
-    # issue 32 (finish6): with the live mesh on, the final mesh is made in its worker process, where a
-    # crash of a multi-threaded Poisson only costs a re-run in the run's process with poisson_threads
-    final_mesh_worker_threads: int = Field(
-        default=0, ge=0, description="Poisson threads of the final mesh in the live mesh's worker; 0 = all cores"
-    )
     chunk_m: float = Field(default=0.05, gt=0, description="block edge of the chunked live mesh")
     min_points: int = Field(default=100, ge=4, description="fewest points a surface is made from")
     laser_plane_point_in_cam_m: list[float] = Field(

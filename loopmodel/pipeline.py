@@ -52,7 +52,7 @@ from loopmodel.io.results import LogCapture, ResultsFolder, write_results
 from loopmodel.listener import RunListener
 from loopmodel.mapping.anchored import AnchoredTrajectory
 from loopmodel.mapping.extraction import StripeExtractor
-from loopmodel.mapping.final import final_mesh, final_mesh_arrays, mesh_of
+from loopmodel.mapping.final import final_mesh
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
@@ -681,34 +681,18 @@ class _Run:
     def _mesh(self, result: RunResult) -> dict[str, Any]:
         """The final mesh of the run's stripes placed with ``result.final``, and the live mesh; the mesh's metrics.
 
-        With the live mesh's worker process running, the final mesh is made there after its last
-        update (issue 32, finish6: open3d's Poisson with ``final_mesh_worker_threads`` threads; a
-        crash there, Open3D #6828, costs a re-run here with ``poisson_threads``); the live mesh's last
-        update is waited for and installed here meanwhile. Else it is made here.
+        The live mesh's last update (issue 32: 33 s of the workers step on the 150-frame orbit with
+        ``configs/sim.yaml`` at load 25) is waited for here: its worker process goes on meshing
+        beside the final refinement and the final mesh.
         """
         result.stripes = self.laser.stripes
-        mapping = self.config.mapping
-        job = None
-        if mapping.write_mesh and result.stripes and len(result.final) >= 2:
-            args = (result.stripes, result.final, mapping, mapping.final_mesh_worker_threads)
-            job = self.live.submit_after(final_mesh_arrays, *args)
+        result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, self.config.mapping)
         t0 = time.perf_counter()
         if not result.interrupted:
-            self.live.collect()
-        live_wait_s = time.perf_counter() - t0
+            self.live.close(wait=True)
         result.live_mesh = self.live.mesh()
-        if job is None:
-            result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, mapping)
-        else:
-            try:
-                arrays, mesh_metrics = job.result()
-                result.mesh = mesh_of(arrays)
-            except Exception as exc:  # e.g. the worker died (Open3D #6828): mesh here
-                logger.warning("final mesh in the worker failed (%s); meshing here", exc or type(exc).__name__)
-                result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, mapping)
-        self.live.close(wait=not result.interrupted)
-        if self.live.enabled:  # of the mesh step: the wait for the live mesh's last update
-            mesh_metrics["live_mesh_wait_s"] = live_wait_s
+        if self.live.enabled:  # of the mesh step: the wait for the live mesh's last update and its install
+            mesh_metrics["live_mesh_wait_s"] = time.perf_counter() - t0
         return mesh_metrics
 
     def _estimate(self, interrupted: bool) -> RunResult:

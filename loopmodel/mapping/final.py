@@ -65,33 +65,6 @@ def final_mesh(stripes: list[StripeProfile], final: Trajectory, config: MappingC
     return surface, {"mesh_vertices": len(surface.vertices)}
 
 
-#: a mesh as arrays: vertices (V, 3) m, triangles (T, 3) int, vertex normals (V, 3)
-MeshArrays = tuple[NDArray[np.float64], NDArray[np.int32], NDArray[np.float64]]
-
-
-def final_mesh_arrays(
-    stripes: list[StripeProfile], final: Trajectory, config: MappingConfig, poisson_threads: int
-) -> tuple[MeshArrays | None, dict[str, Any]]:
-    """:func:`final_mesh` with ``poisson_threads`` Poisson threads, as arrays (for a worker process)."""
-    mesh, metrics = final_mesh(stripes, final, config.model_copy(update={"poisson_threads": poisson_threads}))
-    if mesh is None:
-        return None, metrics
-    arrays = (np.asarray(mesh.vertices), np.asarray(mesh.triangles, np.int32), np.asarray(mesh.vertex_normals))
-    return arrays, metrics
-
-
-def mesh_of(arrays: MeshArrays | None) -> Any:
-    """The open3d mesh of :data:`MeshArrays` (None for None)."""
-    if arrays is None:
-        return None
-    import open3d as o3d
-
-    v, t, n = arrays
-    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t.astype(np.int32)))
-    mesh.vertex_normals = o3d.utility.Vector3dVector(n)
-    return mesh
-
-
 def anchor_stripes(
     stripes: list[StripeProfile],
     final: Trajectory,

@@ -8,15 +8,13 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Sequence
-from concurrent.futures import Future
+from collections.abc import Sequence
 from typing import Any, Literal
 
 import numpy as np
 
 from loopmodel.config import MappingConfig
 from loopmodel.errors import LoopmodelError
-from loopmodel.mapping.final import MeshArrays, mesh_of
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.types import StripeProfile
 
@@ -24,6 +22,8 @@ logger = logging.getLogger(__name__)
 
 
 BlockKey = tuple[int, int, int]
+#: a block's mesh as arrays: vertices (V, 3) m, triangles (T, 3) int, vertex normals (V, 3)
+MeshArrays = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def _worker_start() -> None:
@@ -50,6 +50,17 @@ def remesh_blocks(
         for k, m in meshes.items()
     }
     return out, (time.perf_counter() - t0) * 1e3, len(points_w)
+
+
+def _mesh_of(arrays: MeshArrays | None) -> Any:
+    if arrays is None:
+        return None
+    import open3d as o3d
+
+    v, t, n = arrays
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t.astype(np.int32)))
+    mesh.vertex_normals = o3d.utility.Vector3dVector(n)
+    return mesh
 
 
 class LiveMapping:
@@ -165,27 +176,6 @@ class LiveMapping:
             return None
         return self._world.point_count * sum(self.update_ms) / 1e3 / self.points_meshed
 
-    def collect(self) -> None:
-        """Install the update in progress, waited for (none: nothing)."""
-        if self._job is not None:
-            self._collect()
-
-    def submit_after(self, fn: Callable[..., Any], *args: Any) -> Future[Any] | None:
-        """``fn(*args)`` in the worker process after its updates (issue 32: the final mesh); None without one.
-
-        None when the updates run in a thread or the process was never started (the live mesh off or
-        nothing fed): the caller then runs ``fn`` itself. The worker is warm (open3d loaded), so the
-        job starts at once once the update in progress ends.
-        """
-        if self._pool is None or self._worker_kind != "process":
-            return None
-        try:
-            fut: Future[Any] = self._pool.submit(fn, *args)
-        except RuntimeError as exc:  # shut down or broken: the caller runs it itself
-            logger.info("mesh worker not available: %s", exc)
-            return None
-        return fut
-
     def close(self, wait: bool) -> None:
         """Install the last worker result (``wait``) or abandon it; stop the worker."""
         if self._job is not None and wait:
@@ -201,7 +191,7 @@ class LiveMapping:
         if self._every <= 0 or not self.update_ms:
             return None
         if self._arrays:
-            self._world.install_blocks({k: mesh_of(m) for k, m in self._arrays.items()})
+            self._world.install_blocks({k: _mesh_of(m) for k, m in self._arrays.items()})
             self._arrays = {}
         mesh = self._world.live_mesh()
         return mesh if len(mesh.triangles) else None
