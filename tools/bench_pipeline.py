@@ -310,7 +310,7 @@ def kitti(out: Path) -> dict[str, Any]:
         # trajectory; the final trajectory's beside it
         key = "kitti_rot_err_final_deg" if which == "online" else "kitti_final_traj_rot_err_deg"
         res[key] = round(e["rot_err_final_deg"], 3)
-    for k in ("pixel_sigma_px", "refine_applied", "refine_chi2_drop", "refine_chi2_sd"):
+    for k in ("pixel_sigma_px", "refine_applied", "refine_chi2_drop", "refine_chi2_sd", "refine_iterations"):
         if k in m:
             res[f"kitti_{k}"] = m[k]
     res["kitti_final_refine_s"] = round(m.get("final_refine_s", 0.0), 2)
@@ -362,7 +362,7 @@ def sim(out: Path, quick: bool) -> dict[str, Any]:
                 res[f"sim_{which}_drift_pct"] = round(e["drift_pct"], 3)
                 if which == "online":
                     res.update(_scale_keys(est, g, "sim_"))
-    for k in ("pixel_sigma_px", "refine_applied", "refine_chi2_drop", "refine_chi2_sd"):
+    for k in ("pixel_sigma_px", "refine_applied", "refine_chi2_drop", "refine_chi2_sd", "refine_iterations"):
         if k in m:
             res[f"sim_{k}"] = m[k]
     return res

@@ -919,6 +919,7 @@ class Isam2Backend:
         huber_k: float = 1.345,
         max_iterations: int = 30,
         min_gain_sd: float = 3.0,
+        stop_gain_sd: float = 0.0,
     ) -> BackendEstimate:
         """Final batch bundle adjustment of every keyframe and landmark on all live factors.
 
@@ -934,8 +935,10 @@ class Isam2Backend:
         reprojection error (:meth:`robust_error_px` at that scale) significantly: the robust
         chi-square drops by more than ``min_gain_sd`` standard deviations sqrt(2 n) of a chi-square
         of n residuals; otherwise the incremental solution is returned. :attr:`refine_info` says
-        which, with the noise. The incremental solution keeps its own weights; this one is not fed
-        back to iSAM2. With the front end's disparity offset estimated (``ba_info``
+        which, with the noise. With ``stop_gain_sd`` > 0 Levenberg-Marquardt stops when an iteration
+        lowers the robust chi-square by less than that many of those standard deviations (else at
+        gtsam's relative and absolute tolerances, 1e-5). The incremental solution keeps its own
+        weights; this one is not fed back to iSAM2. With the front end's disparity offset estimated (``ba_info``
         ``disparity_offset_applied_px`` / ``_estimate_px``), every keyframe's right columns are first
         re-expressed with the latest estimate instead of the one taken out when it was matched, so that
         all keyframes share one offset (the robust errors before and after are both of those).
@@ -989,7 +992,11 @@ class Isam2Backend:
             graph.add(f)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
-        values = gtsam.LevenbergMarquardtOptimizer(graph, start, params).optimize()
+        n_res = int(np.isfinite(r0).sum())
+        if stop_gain_sd > 0:  # gtsam's error: about half the robust chi-square (Huber on each factor's norm)
+            params.setAbsoluteErrorTol(0.5 * stop_gain_sd * np.sqrt(2.0 * n_res))
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, start, params)
+        values = optimizer.optimize()
 
         def residuals(vals: gtsam.Values) -> F64:
             if not shift:
@@ -1002,7 +1009,6 @@ class Isam2Backend:
         after = self.robust_error_px(residuals(values), sigma, huber_k)
         # the robust chi-square (sum of 2 rho(r / sigma)) must drop by more than min_gain_sd
         # of its standard deviations sqrt(2 n): a smaller drop is not told apart from noise
-        n_res = int(np.isfinite(r0).sum())
         drop = n_res * ((before / sigma) ** 2 - (after / sigma) ** 2)
         applied = bool(drop > min_gain_sd * np.sqrt(2.0 * n_res))
         self.refine_info = {
@@ -1018,6 +1024,7 @@ class Isam2Backend:
             "refine_chi2_drop": float(drop),
             "refine_chi2_sd": float(np.sqrt(2.0 * n_res)),
             "refine_applied": applied,
+            "refine_iterations": int(optimizer.iterations()),
         }
         if not applied:
             logger.info("batch refinement not applied: robust error %.4f px -> %.4f px", before, after)
@@ -1055,7 +1062,9 @@ class Isam2Backend:
         if not refine.batch_ba:
             est = self.estimate()
         else:
-            est = self.batch_refine(refine.pixel_sigma_px, refine.huber_k, refine.max_iterations, refine.min_gain_sd)
+            est = self.batch_refine(
+                refine.pixel_sigma_px, refine.huber_k, refine.max_iterations, refine.min_gain_sd, refine.stop_gain_sd
+            )
         return self._distribute_loops(est, refine) if refine.distribute_loops else est
 
     def loop_constraints(self) -> list[tuple[int, int, F64]]:
