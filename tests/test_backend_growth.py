@@ -270,3 +270,45 @@ def test_estimate_reads_a_bounded_number_of_poses_and_refreshes_after_a_loop() -
     # older poses are at most a few calls stale: measured 0.2 mm typically, 1.24 mm at most (the
     # keyframe after a loop, whose update relinearises the moved map; keyframes ~10 cm apart)
     assert max(stale_m) < 2e-3, max(stale_m)
+
+
+def test_mono_cap_keeps_the_newest_landmarks_in_isam2_and_the_rest_for_the_end() -> None:
+    """``local_max_mono_obs``: a keyframe's monocular observations beyond the cap wait for the final estimate.
+
+    With ``loop_policy: local`` on the revisiting rounds: the factors a keyframe brings to iSAM2 stay
+    at the first round's, those left out are of the oldest landmarks, and the final estimate (every
+    observation) is the uncapped one's within its noise (ground truth).
+    """
+    from loopmodel.config import RefineConfig
+
+    n, cap = 75, 150
+    prob = rounds_problem(n, features_per_kf=100, local_map_kf=2, loop_every_kf=6, revisit_points=150)
+    truth = np.array([T[:3, 3] for T in prob.true_world_from_kf])
+    runs = {}
+    for c in (0, cap):
+        backend = Isam2Backend(_calibration(), BackendConfig(loop_policy="local", local_max_mono_obs=c))
+        new_factors = []
+        for kf in prob.keyframes:
+            before = backend._isam.getFactorsUnsafe().size()
+            backend.add_keyframe(kf)
+            new_factors.append(backend._isam.getFactorsUnsafe().size() - before)
+            for q, old, rel in prob.loops:
+                if q == kf.id:
+                    backend.add_loop_constraint(q, old, rel)
+            if kf.id == n - 1 and c:  # the last keyframe: what waits outside iSAM2 is of the oldest landmarks
+                stereo = {int(i) for i in kf.landmark_ids}
+                mono = [(lm, f) for (k, lm), f in backend._obs_fid.items() if k == kf.id and lm not in stereo]
+                now = sorted(lm for lm, f in mono if f not in backend._outside or f in backend._proxy_fids)
+                later = sorted(lm for lm, f in mono if f in backend._outside and f not in backend._proxy_fids)
+                assert len(now) <= cap < kf.mono_obs.shape[0] and later
+                # keyframe k's new landmarks are 100 k ... 100 k + 99: none kept older than one left out
+                assert max(later) // 100 <= min(now) // 100, (later, now)
+        est = backend.final_estimate(RefineConfig(batch_ba=False, distribute_loops=False)).world_from_kf
+        p = np.array([est[i][:3, 3] for i in range(n)])
+        runs[c] = (new_factors, float(np.sqrt(np.mean(np.sum((p - truth) ** 2, axis=1)))))
+    (full_f, full_ate), (cap_f, cap_ate) = runs[0], runs[cap]
+    # the first round (25 keyframes) sees no revisit; later ones 150 old points each
+    assert np.median(full_f[-25:]) > 1.5 * np.median(full_f[5:25]), full_f
+    assert np.median(cap_f[-25:]) < 1.2 * np.median(cap_f[5:25]), cap_f
+    print(full_ate, cap_ate, np.median(full_f[5:25]), np.median(full_f[-25:]), np.median(cap_f[-25:]))
+    assert cap_ate < 1.1 * full_ate, (full_ate, cap_ate)
