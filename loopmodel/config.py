@@ -120,11 +120,6 @@ class BackendConfig(_Section):
     change_tolerance_m: float = Field(
         1e-4, ge=0, description="estimate(): a keyframe counts as changed above this"
     )
-    # issue 33 (scale6): a revisiting round's keyframes bring twice the observations of a first round's
-    local_max_mono_obs: int = Field(
-        0, ge=0, le=100000, description="local: a keyframe's monocular observations in iSAM2 during the run, "
-        "newest landmarks first; the rest join for the final estimate (0: all)"
-    )
     # issue 33 (scale6): reading every pose each keyframe grew the cost per keyframe with the map
     estimate_window_kf: int = Field(
         20, ge=0, le=100000, description="estimate(): read the newest N poses and N older ones in turn (0: all)"

@@ -253,18 +253,13 @@ class Isam2Backend:
             np.array(px[:2]), self._mono_noise, X(obs.kf_id), landmark_key, self._cal_mono, *extra
         )
 
-    def _add_obs(
-        self, obs: _Obs, lkey: int, lm_id: int, graph: gtsam.NonlinearFactorGraph, outside: bool = False
-    ) -> None:
-        """Record ``obs`` of landmark ``lkey``: for this update, as a revisit through a proxy, or ``outside``."""
+    def _add_obs(self, obs: _Obs, lkey: int, lm_id: int, graph: gtsam.NonlinearFactorGraph) -> None:
         key = (obs.kf_id, lm_id)
         if key in self._obs_fid:  # the same observation twice: keep the first
             return
         factor = self._obs_factor(obs, L(lkey))
         rec = _FactorRecord(factor, "stereo" if obs.stereo else "mono", lkey, key)
-        if outside:
-            fid = self._new_fid(rec, outside=True)  # beyond the keyframe's cap: joins at the final estimate
-        elif self._windowed and self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq > self.config.local_window_kf:
+        if self._windowed and self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq > self.config.local_window_kf:
             fid = self._new_fid(rec, outside=True)  # a revisit: it would tie this keyframe to an old part of the map
             self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
         else:
@@ -508,13 +503,10 @@ class Isam2Backend:
                 created += 1
         return created
 
-    def _observe(
-        self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int], outside: bool = False
-    ) -> None:
+    def _observe(self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int]) -> None:
         """Route one observation to its landmark in the graph or to the pending buffer.
 
-        Landmarks whose buffer is full enough are appended to ``candidates``. ``outside``: an
-        observation of a landmark in the graph waits outside iSAM2 (:meth:`_add_obs`).
+        Landmarks whose buffer is full enough are appended to ``candidates``.
         """
         lkey = self._lm_current.get(lm_id)
         if lkey is not None:
@@ -522,7 +514,7 @@ class Isam2Backend:
             if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
                 del self._lm_current[lm_id]  # the track continues as a new landmark variable
             else:
-                self._add_obs(o, lkey, lm_id, graph, outside)
+                self._add_obs(o, lkey, lm_id, graph)
                 return
         pend = self._pending.get(lm_id)
         if pend is None:
@@ -596,9 +588,7 @@ class Isam2Backend:
         for lm, p, q in zip(ids[sel].tolist(), px[sel].tolist(), pts[sel], strict=True):
             self._observe(lm, _Obs(kf_id, True, tuple(p), q), graph, candidates)
         seq = self._kf_seq[kf_id]
-        mono, later = self._capped_mono(np.asarray(keyframe.mono_obs, dtype=float).reshape(-1, 3))
-        report.rejected_observations += self._observe_mono(kf_id, mono, graph, candidates)
-        report.rejected_observations += self._observe_mono(kf_id, later, graph, candidates, outside=True)
+        report.rejected_observations += self._observe_mono(kf_id, keyframe.mono_obs, graph, candidates)
         report.new_landmarks = self._create_landmarks(candidates, graph, values)
         self._prune_pending(seq)
         linked = sum(
@@ -617,37 +607,10 @@ class Isam2Backend:
         report.update_ms = (time.perf_counter() - t0) * 1e3
         return report
 
-    def _capped_mono(self, rows: F64) -> tuple[F64, F64]:
-        """``loop_policy: local``: a keyframe's monocular observations (landmark id, u, v px) split at the cap.
-
-        Those for iSAM2 now: the pending landmarks' (the newest), then those in the graph by their
-        first keyframe, newest first; and the rest, which wait outside iSAM2 for the final estimate
-        like the loops (issue 33: a keyframe's cost in iSAM2 follows its observations, and a
-        revisiting round's keyframes observed twice as many landmarks as a first round's).
-        """
-        cap = self.config.local_max_mono_obs
-        if not self._windowed or cap <= 0 or rows.shape[0] <= cap:
-            return rows, rows[:0]
-        ids = rows[:, 0].astype(np.int64).tolist()
-        big = len(self._kf_seq) + 1  # ages from 1; 0: pending
-        age = np.array(
-            [big - self._landmarks[k].first_seq if (k := self._lm_current.get(i)) is not None else 0 for i in ids]
-        )
-        order = np.argsort(age, kind="stable")
-        return rows[np.sort(order[:cap])], rows[np.sort(order[cap:])]
-
-    def _observe_mono(
-        self,
-        kf_id: int,
-        mono_obs: F64,
-        graph: gtsam.NonlinearFactorGraph,
-        candidates: list[int],
-        outside: bool = False,
-    ) -> int:
+    def _observe_mono(self, kf_id: int, mono_obs: F64, graph: gtsam.NonlinearFactorGraph, candidates: list[int]) -> int:
         """Route monocular observations (landmark id, u, v px) of ``kf_id``; returns how many were rejected.
 
-        Rejected: non-finite, or of a landmark that was dropped or never seen. ``outside``: those of
-        landmarks in the graph wait outside iSAM2 for the final estimate (:meth:`_capped_mono`).
+        Rejected: non-finite, or of a landmark that was dropped or never seen.
         """
         rejected = 0
         for row in np.asarray(mono_obs, dtype=float).reshape(-1, 3).tolist():
@@ -655,7 +618,7 @@ class Isam2Backend:
             if not all(np.isfinite(row)) or (lm_id not in self._lm_current and lm_id not in self._pending):
                 rejected += 1
                 continue
-            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates, outside)
+            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates)
         return rejected
 
     def add_observations(self, keyframe_id: int, mono_obs: F64) -> BackendUpdate:
