@@ -120,6 +120,10 @@ class BackendConfig(_Section):
     change_tolerance_m: float = Field(
         1e-4, ge=0, description="estimate(): a keyframe counts as changed above this"
     )
+    # issue 33 (scale6): reading every pose each keyframe grew the cost per keyframe with the map
+    estimate_window_kf: int = Field(
+        20, ge=0, le=100000, description="estimate(): read the newest N poses and N older ones in turn (0: all)"
+    )
     # issue 33 item 5: local keeps iSAM2 to the last local_window_kf keyframes' landmarks (an
     # observation of an older landmark enters as one of a proxy fixed at its estimate, the real one
     # and the loop constraints wait outside iSAM2); everything joins one graph for the final estimate

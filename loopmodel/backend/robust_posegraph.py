@@ -728,6 +728,34 @@ def add_false_loops(graph: PoseGraph, rate: float, seed: int, min_gap: int = 10)
     )
 
 
+def _adjoint(T: F64) -> F64:
+    """GTSAM's ``Pose3.AdjointMap`` of a 4x4 pose (tangent order rotation, translation)."""
+    R, t = T[:3, :3], T[:3, 3]
+    skew = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    A[3:, :3] = skew @ R
+    return A
+
+
+def chain_information(world_from_kf: Mapping[int, F64], chain: Sequence[int], step_information: F64) -> F64:
+    """Information (6x6, GTSAM's tangent order) of the relative pose ``chain[0]`` -> ``chain[-1]``.
+
+    Of a chain of keyframes whose consecutive relative poses (from ``world_from_kf``) are independent
+    between-measurements of ``step_information`` each: their covariances carried to the last keyframe's
+    frame and summed (first order; marginalising the chain's inner poses out of a pose graph in which
+    nothing else touches them).
+    """
+    last_inv = np.linalg.inv(np.asarray(world_from_kf[chain[-1]], float))
+    step_cov = np.linalg.inv(step_information)
+    cov = np.zeros((6, 6))
+    for k in chain[1:]:  # the step into k is seen from the last keyframe through Ad(last^-1 k)
+        A = _adjoint(last_inv @ np.asarray(world_from_kf[k], float))
+        cov += A @ step_cov @ A.T
+    return positive_definite_information(np.asarray(np.linalg.inv(0.5 * (cov + cov.T)), dtype=np.float64))
+
+
 def keyframe_pose_graph(
     world_from_kf: Mapping[int, F64],
     links: Sequence[tuple[int, int]],
@@ -736,20 +764,26 @@ def keyframe_pose_graph(
     odometry_sigma_m: float,
     loop_sigma_deg: float,
     loop_sigma_m: float,
+    odometry_information: Sequence[F64] | None = None,
 ) -> PoseGraph:
     """The keyframe pose graph of a run: odometry edges from the estimate, loop edges from the constraints.
 
     ``links``: ``(kf_prev, kf)`` pairs whose current relative pose (from ``world_from_kf``, 4x4,
-    metres) becomes an odometry edge (a known inlier) of ``odometry_sigma_*``; ``loops``:
-    ``(kf_a, kf_b, kf_a_from_kf_b)`` with ``loop_sigma_*``. Holds the poses of the keyframes in an edge.
+    metres) becomes an odometry edge (a known inlier) of ``odometry_sigma_*`` (or of
+    ``odometry_information``, one per link: e.g. :func:`chain_information` of a link over several
+    keyframes); ``loops``: ``(kf_a, kf_b, kf_a_from_kf_b)`` with ``loop_sigma_*``. Holds the poses of
+    the keyframes in an edge.
     """
     ij = [(int(a), int(b)) for a, b in links] + [(int(a), int(b)) for a, b, _ in loops]
     meas = [np.linalg.inv(world_from_kf[a]) @ world_from_kf[b] for a, b in links] + [
         np.asarray(T, float) for *_, T in loops
     ]
-    infos = [pose_information(odometry_sigma_deg, odometry_sigma_m)] * len(links) + [
-        pose_information(loop_sigma_deg, loop_sigma_m)
-    ] * len(loops)
+    odo = (
+        [np.asarray(i, float) for i in odometry_information]
+        if odometry_information is not None
+        else [pose_information(odometry_sigma_deg, odometry_sigma_m)] * len(links)
+    )
+    infos = odo + [pose_information(loop_sigma_deg, loop_sigma_m)] * len(loops)
     used = sorted({k for e in ij for k in e})
     return PoseGraph(
         3,
@@ -771,6 +805,7 @@ def keyframe_loop_inliers(
     loop_sigma_deg: float,
     loop_sigma_m: float,
     probability: float = 0.99,
+    odometry_information: Sequence[F64] | None = None,
 ) -> tuple[NDArray[np.bool_], PoseGraphResult]:
     """Which loop constraints agree with the odometry and with each other (:func:`robust_optimize`).
 
@@ -780,7 +815,14 @@ def keyframe_loop_inliers(
     mask and the solve.
     """
     graph = keyframe_pose_graph(
-        world_from_kf, odometry, loops, odometry_sigma_deg, odometry_sigma_m, loop_sigma_deg, loop_sigma_m
+        world_from_kf,
+        odometry,
+        loops,
+        odometry_sigma_deg,
+        odometry_sigma_m,
+        loop_sigma_deg,
+        loop_sigma_m,
+        odometry_information,
     )
     res = robust_optimize(graph, probability=probability)
     return res.inlier[len(odometry) :], res

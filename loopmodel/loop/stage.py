@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from loopmodel.backend.robust_posegraph import keyframe_loop_inliers
+from loopmodel.backend.robust_posegraph import chain_information, keyframe_loop_inliers, pose_information
 from loopmodel.config import LoopConfig
 from loopmodel.errors import LoopmodelError
 from loopmodel.geometry.se3 import invert_pose, so3_log
@@ -538,9 +538,10 @@ class LoopClosingStage:
         """GNC-TLS on the keyframe pose graph from the loop's old keyframe to the current one.
 
         Edges: the current relative poses of consecutive connected keyframes (known inliers), the
-        loops accepted before and this one. False when this loop is an outlier (it is then kept in
-        ``rejected``, with the reason). A window that a new segment (unconnected keyframe) breaks is
-        not gated.
+        loops accepted before and this one; only the loops' keyframes are nodes, each chain between
+        two of them one odometry edge of the chain's information (:func:`chain_information`). False
+        when this loop is an outlier (it is then kept in ``rejected``, with the reason). A window
+        that a new segment (unconnected keyframe) breaks is not gated.
         """
         if self.config.robust == "none":
             return True
@@ -558,15 +559,24 @@ class LoopClosingStage:
         ]
         loops.append((hi, lo, self._cam_from_cam(closure)))
         t0 = time.perf_counter()
+        world = {k: np.asarray(world_from_kf[k], float) for k in ids}
+        # issue 33: only the loops' keyframes are nodes; the chain between two of them is one odometry
+        # edge of the chain's information (its inner poses marginalised: nothing else touches them)
+        at = {k: i for i, k in enumerate(ids)}
+        loops = [lp for lp in loops if lp[0] in at and lp[1] in at]
+        nodes = sorted({lo, hi} | {k for a, b, _ in loops for k in (a, b)})
+        step = pose_information(cfg.robust_odometry_sigma_deg, cfg.robust_odometry_sigma_m)
+        links = list(zip(nodes[:-1], nodes[1:], strict=True))
         inlier, res = keyframe_loop_inliers(
-            {k: np.asarray(world_from_kf[k], float) for k in ids},
-            list(zip(ids[:-1], ids[1:], strict=True)),
+            {k: world[k] for k in nodes},
+            links,
             loops,
             cfg.robust_odometry_sigma_deg,
             cfg.robust_odometry_sigma_m,
             cfg.robust_loop_sigma_deg,
             cfg.robust_loop_sigma_m,
             cfg.robust_probability,
+            [chain_information(world, ids[at[a] : at[b] + 1], step) for a, b in links],
         )
         gate_ms = (time.perf_counter() - t0) * 1e3
         if bool(inlier[-1]):
