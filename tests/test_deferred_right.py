@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pickle
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -23,12 +24,13 @@ CFG = FrontendConfig(
 )
 
 
-def _decoded_paths(monkeypatch: pytest.MonkeyPatch) -> list[str]:
-    seen: list[str] = []
+def _decoded_paths(monkeypatch: pytest.MonkeyPatch) -> list[tuple[str, int]]:
+    """(folder, thread) of each image decoded from now on."""
+    seen: list[tuple[str, int]] = []
     inner = images_mod.decode_image
 
     def counting(data: bytes, source: str | Path) -> np.ndarray:
-        seen.append(Path(source).parent.name)
+        seen.append((Path(source).parent.name, threading.get_ident()))
         return inner(data, source)
 
     monkeypatch.setattr(images_mod, "decode_image", counting)
@@ -45,9 +47,12 @@ def test_right_images_are_decoded_at_keyframes_only_with_the_same_poses(
     fe = FrontEnd(seq.calibration, CFG)
     deferred = [fe.process(f) for f in seq.frames()]
     keyframes = sum(r.is_keyframe for r in deferred)
-    # measured: 16 left images decoded, 4 right ones (the 4 keyframes: frames 0, 5, 9, 13)
-    assert seen.count("image_0") == 16
-    assert 2 <= keyframes < 16 and seen.count("image_1") == keyframes
+    # measured: 16 left images decoded, 4 right ones (the 4 keyframes: frames 0, 5, 9, 13), the right
+    # ones on a keyframe thread beside the corner detection, never on the tracking thread
+    folders = [name for name, _ in seen]
+    assert folders.count("image_0") == 16
+    assert 2 <= keyframes < 16 and folders.count("image_1") == keyframes
+    assert all(t != threading.get_ident() for name, t in seen if name == "image_1")
     fe = FrontEnd(seq.calibration, CFG)
     for a, b in zip(deferred, [fe.process(f) for f in eager], strict=True):
         assert a.is_keyframe == b.is_keyframe

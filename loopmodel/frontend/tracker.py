@@ -1224,11 +1224,16 @@ class FrontEnd:
     ) -> StereoSet | None:
         """:func:`~loopmodel.frontend.stereo.keyframe_stereo_set` of the rectified ``left`` and ``right``.
 
-        ``right`` (rectified) is ``frame``'s right image rectified here when None: a reader may decode
-        it only now, on this thread. The disparity offset is the current one.
+        ``right`` (rectified) is ``frame``'s right image rectified here when None, on a thread of its
+        own while the corners are detected (``keyframe_stereo: thread``): a reader may decode it only now
+        (:class:`~loopmodel.io.images.DeferredRightFrame`). The disparity offset is the current one.
         """
         if right is None:
-            right = self.rectifier.right(frame.right)
+            rectified = Beside(self.config.keyframe_stereo == "thread", lambda: self.rectifier.right(frame.right))
+            return keyframe_stereo_set(
+                left, rectified.result, self.calibration.K_left, self.calibration.baseline_m, self.config,
+                self._offset_px, avoid_px, threads,
+            )
         return keyframe_stereo_set(
             left, right, self.calibration.K_left, self.calibration.baseline_m, self.config, self._offset_px,
             avoid_px, threads,
