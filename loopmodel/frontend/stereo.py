@@ -7,6 +7,7 @@ and triangulation in the left camera frame.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -496,7 +497,7 @@ def far_match_mask(disparity_px: F64, cfg: FrontendConfig, fx_px: float, baselin
 
 def keyframe_stereo_set(
     left: NDArray[np.uint8],
-    right: NDArray[np.uint8],
+    right: NDArray[np.uint8] | Callable[[], NDArray[np.uint8]],
     K_left: F64,
     baseline_m: float,
     cfg: FrontendConfig,
@@ -512,12 +513,15 @@ def keyframe_stereo_set(
     ``moving_gate``, no point within ``moving_radius_px`` of ``avoid_px`` (N, 2) (where tracks were
     just dropped as moving). None when fewer than ``min_stereo_points`` points. Reads no tracker
     state: it runs beside the tracking thread (:class:`~loopmodel.frontend.FrontEnd`); ``threads``
-    > 1 splits the matching (:func:`match_stereo_split`).
+    > 1 splits the matching (:func:`match_stereo_split`). ``right`` may be a function giving the
+    rectified right image, called after the corner detection (it may be being decoded meanwhile).
     """
     corners = detect_corners(
         left, cfg.max_features, (cfg.grid_cols, cfg.grid_rows), cfg.gftt_quality, cfg.min_distance_px,
         cfg.border_px, cfg.detect_half_resolution,
     )
+    if callable(right):
+        right = right()
     bearing = cfg.far_points == "bearing"
     m = match_stereo_split(left, right, corners, cfg, 0.0 if bearing else None, threads)
     if offset_px != 0.0:

@@ -1179,8 +1179,8 @@ class FrontEnd:
         # segment) the matching itself is split between the two threads
         threaded = cfg.keyframe_stereo == "thread"
         stereo = Beside(
-            threaded and prev is not None, self._stereo_set, left, frame.right if right is None else right,
-            right is not None, self._moving_uv if connected else None, 2 if threaded and prev is None else 1,
+            threaded and prev is not None, self._stereo_set, left, frame, right,
+            self._moving_uv if connected else None, 2 if threaded and prev is None else 1,
         )
         closed = None
         if prev is not None and kf_from_cur is not None:
@@ -1219,15 +1219,21 @@ class FrontEnd:
         )
 
     def _stereo_set(
-        self, left: NDArray[np.uint8], right: NDArray[np.uint8], rectified: bool, avoid_px: F64 | None,
+        self, left: NDArray[np.uint8], frame: StereoFrame, right: NDArray[np.uint8] | None, avoid_px: F64 | None,
         threads: int,
     ) -> StereoSet | None:
         """:func:`~loopmodel.frontend.stereo.keyframe_stereo_set` of the rectified ``left`` and ``right``.
 
-        ``right`` rectified here unless ``rectified``; the disparity offset is the current one.
+        ``right`` (rectified) is ``frame``'s right image rectified here when None, on a thread of its
+        own while the corners are detected (``keyframe_stereo: thread``): a reader may decode it only now
+        (:class:`~loopmodel.io.images.DeferredRightFrame`). The disparity offset is the current one.
         """
-        if not rectified:
-            right = self.rectifier.right(right)
+        if right is None:
+            rectified = Beside(self.config.keyframe_stereo == "thread", lambda: self.rectifier.right(frame.right))
+            return keyframe_stereo_set(
+                left, rectified.result, self.calibration.K_left, self.calibration.baseline_m, self.config,
+                self._offset_px, avoid_px, threads,
+            )
         return keyframe_stereo_set(
             left, right, self.calibration.K_left, self.calibration.baseline_m, self.config, self._offset_px,
             avoid_px, threads,

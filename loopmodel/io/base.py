@@ -165,8 +165,12 @@ class FolderSequence(Sequence):
         return [t for t, _, _ in self._pairs]
 
     def frames(self) -> Iterator[StereoFrame]:
-        from loopmodel.io.images import read_image_of_size
+        """The pairs; each right image read with its frame, decoded when first used (:class:`DeferredRightFrame`)."""
+        from loopmodel.io.images import DeferredRightFrame, check_image_bytes, read_image_bytes, read_image_of_size
 
         size, limit = self._calibration.image_size, self.max_image_pixels
         for i, (t, lp, rp) in enumerate(self._pairs):
-            yield StereoFrame(t, read_image_of_size(lp, size, limit), read_image_of_size(rp, size, limit), i)
+            left = read_image_of_size(lp, size, limit)
+            data = read_image_bytes(rp)
+            check_image_bytes(data, limit, rp)
+            yield DeferredRightFrame(t, left, None, i, right_file=(data, rp, size))
