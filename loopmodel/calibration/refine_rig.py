@@ -749,7 +749,7 @@ def _schur(H: F64, Hzl: _Coupling, V: F64, damping: float) -> tuple[F64, F64]:
     idx = np.arange(3)
     Vd[:, idx, idx] *= 1.0 + damping
     Vd[:, idx, idx] += 1e-12
-    Vinv = np.linalg.inv(Vd)
+    Vinv = np.asarray(np.linalg.inv(Vd), dtype=np.float64)
     lay, W, Y = Hzl.layout, Hzl.W, Hzl.Y
     nc = Y.shape[1]
     npz = 6 * (lay.n_pose - 1)
@@ -766,7 +766,7 @@ def _schur(H: F64, Hzl: _Coupling, V: F64, damping: float) -> tuple[F64, F64]:
         Spc = np.asarray(lay.pair_to_pose @ _outer_sum_t(WV, Y[lay.pair_point]).reshape(W.shape[0], 6 * nc))
         S[:npz, npz:] -= Spc.reshape(npz, nc)
         S[npz:, :npz] = S[:npz, npz:].T
-    return S, np.asarray(Vinv, dtype=np.float64)
+    return S, Vinv
 
 
 def _hzl_dot(Hzl: _Coupling, x: F64) -> F64:
