@@ -870,8 +870,11 @@ def _posterior_sigma(
     huber_k: float,
     consider: NDArray[np.bool_] | None = None,
     held_info: F64 | None = None,
+    sandwich: bool = True,
 ) -> tuple[F64, F64, F64]:
     """Posterior std. devs. of the active parameters: the model's, track-robust, and the held ones' variance.
+
+    Without ``sandwich`` the model's alone (the other two zero).
 
     The model's: the inverse of the reduced system (independent pixel errors of ``sigma_px``). The
     track-robust one: the sandwich ``S^-1 (sum_l g_l g_l^T + prior + loops) S^-1`` with one cluster
@@ -901,6 +904,8 @@ def _posterior_sigma(
     cf = scipy.linalg.cho_factor(S)
     X = scipy.linalg.cho_solve(cf, E)  # S^-1 E: N x nc
     model = np.sqrt(np.maximum(np.diag(X[N - nc :, :]), 0.0))
+    if not sandwich:
+        return model, np.zeros(nc), np.zeros(nc)
     # per-observation whitened gradients, projected on X, summed per landmark
     r, Jp, Jl, Jt = residuals_and_jacobians(obs, st.R, st.t, st.pts, rig, st.theta)
     w = _huber_weights(np.linalg.norm(r, axis=1) / sigma_px, huber_k) / sigma_px**2
@@ -1143,7 +1148,9 @@ def _refine_rig(
         u = unknowns + int(active.sum())
         sigma = max(huber_sigma_px(r, u, obs, huber_k, max(robust_sigma_px(r, u, obs), 1e-3)), 1e-3)
     post = np.array(prior_sigma, float).copy()
-    post[active], _, _ = _posterior_sigma(obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k)
+    post[active], _, _ = _posterior_sigma(
+        obs, st, rig, prior_theta, prior_sigma, active, sigma, huber_k, sandwich=False
+    )
     weak = active & (post > observable_ratio * prior_sigma)
     blind = active & (post > HOLD_RATIO * prior_sigma)
     if np.any(blind):
