@@ -14,6 +14,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
@@ -141,7 +142,7 @@ def _tracked_pose(sc, kf, world_from_frame: np.ndarray, noise: np.random.Generat
     return kf_from_cam, FrameObservations(kf.landmark_ids[ok], rect.astype(np.float32))
 
 
-def test_retracked_frames_are_nearer_the_truth_than_bridged() -> None:
+def test_retracked_frames_are_nearer_the_truth_than_bridged(monkeypatch: pytest.MonkeyPatch) -> None:
     """A seeded scan with the realistic world's calibration error: frames between keyframes re-solved.
 
     The front end's in-between poses (tracked with the recorded calibration) bridged onto the refined
@@ -183,6 +184,18 @@ def test_retracked_frames_are_nearer_the_truth_than_bridged() -> None:
     rt = retrack_frames(frames + ends, *args)
     assert rt.stats["resolved"] == len(frames) and rt.stats["bridged_intervals"] == len(ends)
     new = rt.over(start).world_from_cam
+    # an interval whose end was not re-solved keeps its frames' poses: they are not solved at all
+    import loopmodel.calibration.retrack as retrack_module
+
+    solves = []
+    solve = retrack_module._solve_frame
+    monkeypatch.setattr(retrack_module, "_solve_frame", lambda *a: solves.append(1) or solve(*a))
+    part = retrack_frames(frames + ends[1:], *args)
+    monkeypatch.undo()
+    assert len(solves) == len(ends) - 1 + len(frames) - 3
+    assert part.stats["unbridged"] == 3 and part.stats["resolved"] == len(frames) - 3
+    kept = part.over(start).world_from_cam
+    assert np.array_equal(kept[:3], start.world_from_cam[:3]) and np.allclose(kept[3:], new[3:], atol=1e-12)
     solo = retrack_frames(frames + ends, *args, bridge=False).over(start).world_from_cam
     # one similarity taking the refined keyframes onto the true ones, applied to the frames
     R, t, s = umeyama_alignment(

@@ -109,7 +109,8 @@ class RetrackedFrames:
     """The re-solved frames: their ``timestamps_ns`` and ``world_from_cam`` (N x 4 x 4, metres), and counts.
 
     ``stats``: ``frames`` considered, ``resolved``, ``few_points`` / ``failed`` / ``jumped`` (kept
-    their earlier pose), ``points_median`` per re-solved frame, ``move_mm_median`` /
+    their earlier pose), ``unbridged`` (kept their earlier pose: no end of their interval was
+    re-solved; with ``bridge`` such a frame is not solved), ``points_median`` per re-solved frame, ``move_mm_median`` /
     ``move_mm_max`` from the earlier pose, ``rms_px_median`` of the re-solved poses' inliers.
     """
 
@@ -286,25 +287,30 @@ def retrack_frames(
     counts = {"frames": 0, "ok": 0, "few_points": 0, "failed": 0, "jumped": 0}
     points, moves, turns, rms = [], [], [], []
     args = (lms, rig, recorded, refined, options, disparity_sigma_px, min_points, max_move_over_depth, max_turn_deg)
-    for fr in frames:
-        obs = fr.observed
-        if obs is None or not fr.ok:
-            continue
+    tracked = [fr for fr in frames if fr.observed is not None and fr.ok]
+    # the interval ends first: with ``bridge`` a frame whose interval has no end keeps its pose, so
+    # it is not solved at all (the KITTI clip: 38 frames solved and then dropped, 0.4 s at load 18)
+    for fr in tracked if bridge else []:
         kid = int(fr.keyframe_id)
-        if fr.is_keyframe:
-            kf = keyframes.get(kid)
-            if (not bridge or kf is None or kf.prev_keyframe_id is None or not kf.connected
-                    or int(kf.prev_keyframe_id) not in world_from_kf or kid not in world_from_kf):
-                continue
-            outcome, T, *_ = _solve_frame(obs, np.asarray(world_from_kf[kid], float), *args)
-            if outcome == "ok":
-                ends[kid] = T
+        kf = keyframes.get(kid)
+        if (not fr.is_keyframe or kf is None or kf.prev_keyframe_id is None or not kf.connected
+                or int(kf.prev_keyframe_id) not in world_from_kf or kid not in world_from_kf):
             continue
+        outcome, T, *_ = _solve_frame(fr.observed, np.asarray(world_from_kf[kid], float), *args)  # type: ignore[arg-type]
+        if outcome == "ok":
+            ends[kid] = T
+    starts = {int(keyframes[b].prev_keyframe_id) for b in ends}  # type: ignore[arg-type]
+    skipped = 0
+    for fr in tracked:
+        kid = int(fr.keyframe_id)
         i = index.get(int(fr.timestamp_ns))
-        if i is None or kid not in world_from_kf:
+        if fr.is_keyframe or i is None or kid not in world_from_kf:
             continue
         counts["frames"] += 1
-        outcome, T, move_m, turn_deg, n_inl, r = _solve_frame(obs, start.world_from_cam[i], *args)
+        if bridge and kid not in starts:
+            skipped += 1
+            continue
+        outcome, T, move_m, turn_deg, n_inl, r = _solve_frame(fr.observed, start.world_from_cam[i], *args)  # type: ignore[arg-type]
         counts[outcome] += 1
         if outcome != "ok":
             continue
@@ -331,7 +337,7 @@ def retrack_frames(
         done.update(sel)
         bridged += 1
     if bridge:  # a frame whose interval end was not re-solved (after the last keyframe) keeps its pose
-        counts["unbridged"] = len(solved) - len(done)
+        counts["unbridged"] = len(solved) - len(done) + skipped
         solved = {t: v for t, v in solved.items() if t in done}
     times = sorted(solved)
     stats = {k: float(v) for k, v in counts.items() if k != "ok"}
