@@ -4,7 +4,7 @@ A stripe point's depth comes from the light plane (``n . p + d = 0``): scaling `
 stripe point about the camera centre. A stereo landmark's depth scales with the baseline. Where a
 stripe falls on a surface the landmarks also see, the two must agree: at each (subsampled) stripe
 pixel of a keyframe, the inverse depth of the surface is interpolated from the keyframe's landmarks
-within ``radius_px`` (inverse depth is affine in normalised image coordinates on a plane), and
+within ``radius_px`` (a quadratic in normalised image coordinates: unbiased on a curved surface), and
 ``log(z_stripe / z_stereo)`` is the discrepancy. Per keyframe the median of them, over keyframes
 the median ``m`` with its robust standard error.
 
@@ -77,16 +77,21 @@ def keyframe_discrepancies(
     stripe_in_cam: F64,
     landmarks_in_cam: F64,
     fx_px: float,
-    radius_px: float = 25.0,
+    radius_px: float = 40.0,
     every: int = 4,
-    min_landmarks: int = 5,
+    min_landmarks: int = 10,
     max_fit_rel: float = 0.003,
 ) -> tuple[F64, F64]:
     """``log(z_stripe / z_stereo)`` at the stripe points of one keyframe (camera frame, metres), and those points.
 
     At every ``every``-th stripe point, the landmarks within ``radius_px`` in the (normalised,
-    times ``fx_px``) image give an affine fit of inverse depth; a fit with fewer than
-    ``min_landmarks`` or a relative RMS above ``max_fit_rel`` (not a plane) gives nothing.
+    times ``fx_px``) image give a quadratic fit of inverse depth about the point; a fit with fewer
+    than ``min_landmarks`` or a relative RMS above ``max_fit_rel`` gives nothing. Quadratic, not
+    affine: inverse depth is affine in the image only on a plane, and on a curved surface an affine
+    fit over the disc is off at its centre by the surface's sag (a surface bulging towards the
+    camera lies in front of it). Measured on the realistic orbit, seed 1 (the stripes' true depths
+    from the scene mesh against the refined landmarks, whose own depth error is +0.021 %): affine
+    over 25 px -0.028 % median / -0.062 % mean over keyframes, quadratic over 40 px -0.022 / -0.033 %.
     """
     S = np.asarray(stripe_in_cam, float).reshape(-1, 3)[::every]
     L = np.asarray(landmarks_in_cam, float).reshape(-1, 3)
@@ -104,12 +109,13 @@ def keyframe_discrepancies(
         near = np.flatnonzero(d2[i] < r * r)
         if near.size < min_landmarks:
             continue
-        A = np.column_stack([l_xy[near] - s_xy[i], np.ones(near.size)])
+        q = (l_xy[near] - s_xy[i]) / r  # within the unit disc: a well-conditioned fit
+        A = np.column_stack([np.ones(near.size), q, q[:, 0] ** 2, q[:, 0] * q[:, 1], q[:, 1] ** 2])
         coef, *_ = np.linalg.lstsq(A, l_inv[near], rcond=None)
         fit = A @ coef
-        if np.sqrt(np.mean((fit - l_inv[near]) ** 2)) > max_fit_rel * abs(coef[2]) or coef[2] <= 0:
+        if np.sqrt(np.mean((fit - l_inv[near]) ** 2)) > max_fit_rel * abs(coef[0]) or coef[0] <= 0:
             continue
-        out.append(np.log(S[i, 2] * coef[2]))  # z_stripe / z_stereo = z_stripe * (1 / z_stereo)
+        out.append(np.log(S[i, 2] * coef[0]))  # z_stripe / z_stereo = z_stripe * (1 / z_stereo)
         used.append(S[i])
     return np.asarray(out, float), np.asarray(used, float).reshape(-1, 3)
 
@@ -127,7 +133,7 @@ def laser_stereo_scale(
     plane_normal_in_cam: F64,
     plane_d_m: float,
     sigma_tilt_rad: float,
-    radius_px: float = 25.0,
+    radius_px: float = 40.0,
 ) -> LaserStereoScale | None:
     """The joint estimate of the module docstring; None when no keyframe has a stripe on seen surfaces.
 
