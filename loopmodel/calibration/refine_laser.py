@@ -120,6 +120,39 @@ def keyframe_discrepancies(
     return np.asarray(out, float), np.asarray(used, float).reshape(-1, 3)
 
 
+def stripe_camera_sensitivity(
+    stripe_in_cam: F64, calibration: StereoCalibration, plane_normal_in_cam: F64, plane_d_m: float, sigma_left: F64
+) -> F64:
+    """N x 5: the log-depth change of each stripe point when the left camera's fx, fy, cx, cy (px) and k1 move.
+
+    Each point goes to its raw pixel through the left camera (pinhole, OpenCV plumb-bob) and back along
+    the ray of the camera with one parameter moved by its ``sigma_left`` to the light plane
+    (``n . p + d = 0``, camera frame, metres). Zero columns for a fisheye (equidistant) model.
+    """
+    import cv2
+
+    P = np.asarray(stripe_in_cam, float).reshape(-1, 3)
+    out = np.zeros((P.shape[0], 5))
+    if P.shape[0] == 0 or calibration.camera_model == "equidistant":
+        return out
+    K = calibration.K_left
+    dist = np.zeros(5) if calibration.rectified else np.asarray(calibration.dist_left, float)
+    uv, _ = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
+    n = np.asarray(plane_normal_in_cam, float)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+    for j, (row, col) in enumerate(((0, 0), (1, 1), (0, 2), (1, 2), (-1, 0))):
+        K2, d2 = K.copy(), dist.copy()
+        if row >= 0:
+            K2[row, col] += sigma_left[j]
+        else:
+            d2[0] += sigma_left[j]
+        xy = cv2.undistortPoints(uv, K2, d2, criteria=crit).reshape(-1, 2)
+        ray = np.column_stack([xy, np.ones(xy.shape[0])])
+        z = ray[:, 2] * (-plane_d_m / (ray @ n))
+        out[:, j] = np.log(z / P[:, 2])
+    return out
+
+
 def laser_stereo_scale(
     stripes: list[StripeProfile],
     keyframe_stamps_ns: dict[int, int],
@@ -134,11 +167,15 @@ def laser_stereo_scale(
     plane_d_m: float,
     sigma_tilt_rad: float,
     radius_px: float = 40.0,
+    sigma_left_camera: F64 | None = None,
 ) -> LaserStereoScale | None:
     """The joint estimate of the module docstring; None when no keyframe has a stripe on seen surfaces.
 
     ``keyframe_landmarks``: the landmark ids each keyframe observed; stripes are matched to keyframes
-    by exact timestamp.
+    by exact timestamp. ``sigma_left_camera``: the left camera's remaining uncertainty (fx, fy, cx,
+    cy in px, k1; the calibrating bundle adjustment's posterior), whose effect on the stripes' depth
+    (:func:`stripe_camera_sensitivity`) enters as five nuisance unknowns with unit priors: without
+    them a stripe depth error of the camera is shared out to the baseline and the plane.
     """
     by_stamp = {s.timestamp_ns: s for s in stripes}
     pos = {int(i): k for k, i in enumerate(np.asarray(landmark_ids).tolist())}
@@ -164,7 +201,12 @@ def laser_stereo_scale(
             per_kf.append(float(np.median(d)))
             vals.append(d)
             tilt = -np.column_stack([P @ e1, P @ e2]) / plane_d_m
-            rows.append(np.column_stack([np.ones(d.size), -np.ones(d.size), tilt]))
+            cam = (
+                -stripe_camera_sensitivity(P, calibration, n, plane_d_m, np.asarray(sigma_left_camera, float))
+                if sigma_left_camera is not None
+                else np.zeros((d.size, 0))
+            )
+            rows.append(np.column_stack([np.ones(d.size), -np.ones(d.size), tilt, cam]))
     if len(per_kf) < 3:
         return None
     v = np.asarray(per_kf)
@@ -174,8 +216,9 @@ def laser_stereo_scale(
     y = np.concatenate(vals)
     per_kf_pairs = A.shape[0] / len(rows)
     prior_sd = np.array([sigma_log_baseline, sigma_log_plane_offset, sigma_tilt_rad, sigma_tilt_rad])
+    prior_sd = np.concatenate([prior_sd, np.ones(A.shape[1] - 4)])  # the camera's, in its sigmas
     prior_info = np.diag(1.0 / prior_sd**2)
-    x = np.zeros(4)
+    x = np.zeros(A.shape[1])
     w = np.ones(y.size)
     sigma = 1.4826 * float(np.median(np.abs(y - np.median(y)))) + 1e-9
     for _ in range(5):  # Huber re-weighting, the pair noise from the residuals' MAD
@@ -189,5 +232,5 @@ def laser_stereo_scale(
     s = np.sqrt(np.diag(cov))
     return LaserStereoScale(
         float(x[0]), float(x[1]), float(s[0]), float(s[1]), float(cov[0, 1] / (s[0] * s[1])), m, sm,
-        int(y.size), int(v.size), x[2:].copy(), s[2:].copy(), np.vstack([e1, e2]),
+        int(y.size), int(v.size), x[2:4].copy(), s[2:4].copy(), np.vstack([e1, e2]),
     )
