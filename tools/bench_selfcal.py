@@ -36,7 +36,11 @@ The chessboard rig:
 ``chess_*_default`` / ``_own`` (the configured priors / its calibration's own sigmas, right columns only)
 and ``chess_*_rows`` (the right corners' rows measured too; ``_rows_free`` with no combination held),
 ``chess_common_cy_post_over_prior_*`` (the common cy's posterior over prior sigma), and plain OpenCV's
-cy with the flat and the released board and over halves of the views (:func:`_chessboard_cy`). The top level holds the
+cy with the flat and the released board and over halves of the views (:func:`_chessboard_cy`). The
+modeler (:func:`_modeler`, the 1,200-frame realistic scan, with ``none`` and ``final``):
+``modeler_ate_after_over_before_*``, ``modeler_mesh_err_mm_*`` over ``modeler_mesh_err_gt_mm_*``
+(``modeler_mesh_over_gt_*``). ``LOOPMODEL_BENCH_SELFCAL_PARTS`` (comma-separated, of ``seeds``,
+``kitti``, ``chess``, ``modeler``; default all) runs a part of the full bench. The top level holds the
 worst over seeds of each key. Scans are generated when missing into ``~/.cache/loopmodel/selfcal``
 (minutes each). ``--quick``: seed 1's first 80 frames at every 2nd frame (recorded and refined only,
 no true-calibration run), no KITTI.

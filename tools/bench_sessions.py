@@ -37,7 +37,8 @@ of both sessions' stripes).
 Full: 640x480 images (the simulator's default camera), A 240 frames, B 160. ``--quick``: 320x240
 images, A 120 frames, B 80, and the same KITTI part. Scans are generated once into
 ``~/.cache/loopmodel``. ``LOOPMODEL_BENCH_SESSIONS_REFINE=final`` runs the simulated sessions with
-``calibration.refine: final`` (``calibration_refine`` says which).
+``calibration.refine: final`` (``calibration_refine`` says which); then also
+``localize_map_calibration_*``: B localized with the calibration A's run refined (the same rig).
 """
 
 from __future__ import annotations
@@ -106,6 +107,22 @@ class _Window:
 
     def frames(self) -> Any:
         return (f for i, f in enumerate(self._seq.frames()) if self._first <= i <= self._last)
+
+
+class _Calibrated:
+    """A sequence seen with another calibration."""
+
+    def __init__(self, seq: Any, calibration: Any) -> None:
+        self._seq, self.calibration = seq, calibration
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._seq, name)
+
+    def __len__(self) -> int:
+        return len(self._seq)
+
+    def frames(self) -> Any:
+        return self._seq.frames()
 
 
 class _FrameCpu(RunListener):
@@ -331,6 +348,14 @@ def run(quick: bool = False) -> dict[str, Any]:
         if out["fps"] and out["fps_normal"]:
             out["fps_ratio"] = out["fps"] / out["fps_normal"]
         out["cpu_ms_per_frame"] = loc.metrics.get("bench_cpu_ms_per_frame")
+        if ra.calibration_refined is not None:
+            # issue 31 item 4, measured here (not yet in the pipeline): B, the same rig, localized with the
+            # calibration A's run refined instead of B's recorded one
+            seq_b_refined = _Calibrated(seq_b, ra.calibration_refined)
+            loc_r = _run(seq_b_refined, config, tmp, "B_localize_refined", map_a, "localize")
+            rot_r, pos_r = _pose_errors(loc_r.localized, seq_b, truth_from_a)
+            out["localize_map_calibration_rot_err_deg_median"] = rot_r
+            out["localize_map_calibration_pos_err_mm_median"] = pos_r
         out["cpu_ms_per_frame_normal"] = rb.metrics.get("bench_cpu_ms_per_frame")
         ext = _run(seq_b, config, tmp, "B_extend", map_a, "extend")
         gt_mesh = _gt_merged_mesh([seq_a, seq_b], config)
