@@ -36,7 +36,11 @@ The chessboard rig:
 ``chess_*_default`` / ``_own`` (the configured priors / its calibration's own sigmas, right columns only)
 and ``chess_*_rows`` (the right corners' rows measured too; ``_rows_free`` with no combination held),
 ``chess_common_cy_post_over_prior_*`` (the common cy's posterior over prior sigma), and plain OpenCV's
-cy with the flat and the released board and over halves of the views (:func:`_chessboard_cy`). The top level holds the
+cy with the flat and the released board and over halves of the views (:func:`_chessboard_cy`). The
+modeler (:func:`_modeler`, the 1,200-frame realistic scan, with ``none`` and ``final``):
+``modeler_ate_after_over_before_*``, ``modeler_mesh_err_mm_*`` over ``modeler_mesh_err_gt_mm_*``
+(``modeler_mesh_over_gt_*``). ``LOOPMODEL_BENCH_SELFCAL_PARTS`` (comma-separated, of ``seeds``,
+``kitti``, ``chess``, ``modeler``; default all) runs a part of the full bench. The top level holds the
 worst over seeds of each key. Scans are generated when missing into ``~/.cache/loopmodel/selfcal``
 (minutes each). ``--quick``: seed 1's first 80 frames at every 2nd frame (recorded and refined only,
 no true-calibration run), no KITTI.
@@ -46,6 +50,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -285,6 +290,67 @@ def _kitti() -> dict[str, Any]:
             rot_y = np.radians(m["calibration_parameters"]["rot_y_deg"]["refined"])
             out["kitti_refined_disp_x2_px"] = round(float(-seq.calibration.K_left[0, 0] * rot_y), 3)
             out["kitti_unobservable_directions"] = m.get("calibration_unobservable_directions")
+    return out
+
+
+MODELER = Path.home() / ".cache" / "loopmodel" / "modeler_1200.mcap"
+
+
+def _modeler(refine: str) -> dict[str, Any]:
+    """The 1,200-frame realistic modeler scan (``bench sim-loop --quick``'s, every frame) with ``refine``.
+
+    ``modeler_ate_mm_before_<refine>``: the keyframes chained by their measured links (dead reckoning,
+    no loop closing; as ``bench sim-loop``), ``_after``: the final trajectory, both SE(3)-aligned;
+    ``modeler_mesh_err_mm_<refine>``: the run's own mesh against the scene (the pipeline's
+    ``mesh_err_after_mm``, without a Sim(3) fit), over ``modeler_mesh_err_gt_mm``: the run's stripes
+    meshed with the ground-truth poses (the floor).
+    """
+    from bench_sim_loop import _ate, _ensure, dead_reckoning
+
+    from loopmodel.eval.of_run import evaluate
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.listener import RunListener
+    from loopmodel.pipeline import process
+
+    seq = open_sequence(_ensure(MODELER, "modeler", frames=1200))
+    chain: dict[int, Any] = {}
+
+    class _Chain(RunListener):
+        def on_keyframe(self, keyframe: Any, result: Any) -> None:
+            kf = keyframe
+            chain[kf.id] = (kf.prev_keyframe_id, kf.kf_prev_from_kf, kf.connected, kf.world_from_kf.copy())
+
+    cfg = Config()
+    cfg.calibration.refine = refine  # type: ignore[assignment]
+    cfg.output.write_map = False
+    cfg.loop.detection_worker = "none"  # as _run: loops found regardless of the load
+    t0 = time.perf_counter()
+    res = process(seq, cfg, listeners=[_Chain()])
+    wall = time.perf_counter() - t0
+    m = evaluate(res, seq, mesh_references=True).metrics
+    dr = dead_reckoning(chain)
+    final = dict(zip(res.final.timestamps_ns.tolist(), res.final.world_from_cam, strict=True))
+    gt = seq.ground_truth
+    gi = {int(t): i for i, t in enumerate(gt.timestamps_ns.tolist())}
+    ok = [f for f in res.frames if f.ok and f.timestamp_ns in final and int(f.timestamp_ns) in gi]
+    G = gt.world_from_cam[[gi[int(f.timestamp_ns)] for f in ok]]
+    before = _ate(np.array([dr[f.keyframe_id] @ f.kf_from_cam for f in ok]), G)
+    after = _ate(np.array([final[f.timestamp_ns] for f in ok]), G)
+    k = f"_{refine}"
+    out: dict[str, Any] = {
+        f"modeler_ate_mm_before{k}": round(1e3 * before, 3),
+        f"modeler_ate_mm_after{k}": round(1e3 * after, 3),
+        f"modeler_ate_after_over_before{k}": round(after / before, 3),
+        f"modeler_mesh_err_mm{k}": m.get("mesh_err_after_mm"),
+        f"modeler_mesh_err_gt_mm{k}": m.get("mesh_err_gt_mm"),
+        f"modeler_loops{k}": res.metrics.get("loop_closure_count"),
+        f"modeler_wall_s{k}": round(wall, 1),
+    }
+    if m.get("mesh_err_after_mm") and m.get("mesh_err_gt_mm"):
+        out[f"modeler_mesh_over_gt{k}"] = round(m["mesh_err_after_mm"] / m["mesh_err_gt_mm"], 3)
+    if refine != "none":
+        out["modeler_laser_discrepancy_pct"] = res.metrics.get("calibration_laser_discrepancy_pct")
+        out["modeler_param_moved_max_sigma"] = res.metrics.get("calibration_moved_max_sigma")
     return out
 
 
@@ -557,16 +623,29 @@ _WORST_MAX = (
 )
 
 
+#: the parts of the full bench (``LOOPMODEL_BENCH_SELFCAL_PARTS``, comma-separated; default all)
+PARTS = ("seeds", "kitti", "chess", "modeler")
+
+
 def run(quick: bool = False) -> dict[str, Any]:
     logging.basicConfig(level=logging.WARNING)
+    parts = os.environ.get("LOOPMODEL_BENCH_SELFCAL_PARTS", ",".join(PARTS)).split(",")
     seeds = SEEDS[:1] if quick else SEEDS
     per: dict[str, dict[str, Any]] = {}
-    for s in seeds:
+    for s in seeds if "seeds" in parts or quick else ():
         per[f"seed_{s}"] = _scan(s, quick)
         print(json.dumps({f"seed_{s}": per[f"seed_{s}"]}), file=sys.stderr, flush=True)  # progress
-    return summary(per, quick, None if quick else {
-        **_kitti(), **_kitti_row_rotation(), **_kitti_motion_disparity(), **_chessboard()
-    })
+    real: dict[str, Any] = {}
+    if not quick:
+        if "kitti" in parts:
+            real.update({**_kitti(), **_kitti_row_rotation(), **_kitti_motion_disparity()})
+        if "chess" in parts:
+            real.update(_chessboard())
+        if "modeler" in parts:
+            for refine in ("none", "final"):
+                real.update(_modeler(refine))
+                print(json.dumps(real), file=sys.stderr, flush=True)  # progress
+    return summary(per, quick, None if quick else real)
 
 
 def summary(per: dict[str, dict[str, Any]], quick: bool, real: dict[str, Any] | None) -> dict[str, Any]:

@@ -4,7 +4,7 @@ A stripe point's depth comes from the light plane (``n . p + d = 0``): scaling `
 stripe point about the camera centre. A stereo landmark's depth scales with the baseline. Where a
 stripe falls on a surface the landmarks also see, the two must agree: at each (subsampled) stripe
 pixel of a keyframe, the inverse depth of the surface is interpolated from the keyframe's landmarks
-within ``radius_px`` (inverse depth is affine in normalised image coordinates on a plane), and
+within ``radius_px`` (a quadratic in normalised image coordinates: unbiased on a curved surface), and
 ``log(z_stripe / z_stereo)`` is the discrepancy. Per keyframe the median of them, over keyframes
 the median ``m`` with its robust standard error.
 
@@ -77,16 +77,21 @@ def keyframe_discrepancies(
     stripe_in_cam: F64,
     landmarks_in_cam: F64,
     fx_px: float,
-    radius_px: float = 25.0,
+    radius_px: float = 40.0,
     every: int = 4,
-    min_landmarks: int = 5,
+    min_landmarks: int = 10,
     max_fit_rel: float = 0.003,
 ) -> tuple[F64, F64]:
     """``log(z_stripe / z_stereo)`` at the stripe points of one keyframe (camera frame, metres), and those points.
 
     At every ``every``-th stripe point, the landmarks within ``radius_px`` in the (normalised,
-    times ``fx_px``) image give an affine fit of inverse depth; a fit with fewer than
-    ``min_landmarks`` or a relative RMS above ``max_fit_rel`` (not a plane) gives nothing.
+    times ``fx_px``) image give a quadratic fit of inverse depth about the point; a fit with fewer
+    than ``min_landmarks`` or a relative RMS above ``max_fit_rel`` gives nothing. Quadratic, not
+    affine: inverse depth is affine in the image only on a plane, and on a curved surface an affine
+    fit over the disc is off at its centre by the surface's sag (a surface bulging towards the
+    camera lies in front of it). Measured on the realistic orbit, seed 1 (the stripes' true depths
+    from the scene mesh against the refined landmarks, whose own depth error is +0.021 %): affine
+    over 25 px -0.028 % median / -0.062 % mean over keyframes, quadratic over 40 px -0.022 / -0.033 %.
     """
     S = np.asarray(stripe_in_cam, float).reshape(-1, 3)[::every]
     L = np.asarray(landmarks_in_cam, float).reshape(-1, 3)
@@ -104,14 +109,48 @@ def keyframe_discrepancies(
         near = np.flatnonzero(d2[i] < r * r)
         if near.size < min_landmarks:
             continue
-        A = np.column_stack([l_xy[near] - s_xy[i], np.ones(near.size)])
+        q = (l_xy[near] - s_xy[i]) / r  # within the unit disc: a well-conditioned fit
+        A = np.column_stack([np.ones(near.size), q, q[:, 0] ** 2, q[:, 0] * q[:, 1], q[:, 1] ** 2])
         coef, *_ = np.linalg.lstsq(A, l_inv[near], rcond=None)
         fit = A @ coef
-        if np.sqrt(np.mean((fit - l_inv[near]) ** 2)) > max_fit_rel * abs(coef[2]) or coef[2] <= 0:
+        if np.sqrt(np.mean((fit - l_inv[near]) ** 2)) > max_fit_rel * abs(coef[0]) or coef[0] <= 0:
             continue
-        out.append(np.log(S[i, 2] * coef[2]))  # z_stripe / z_stereo = z_stripe * (1 / z_stereo)
+        out.append(np.log(S[i, 2] * coef[0]))  # z_stripe / z_stereo = z_stripe * (1 / z_stereo)
         used.append(S[i])
     return np.asarray(out, float), np.asarray(used, float).reshape(-1, 3)
+
+
+def stripe_camera_sensitivity(
+    stripe_in_cam: F64, calibration: StereoCalibration, plane_normal_in_cam: F64, plane_d_m: float, sigma_left: F64
+) -> F64:
+    """N x 5: the log-depth change of each stripe point when the left camera's fx, fy, cx, cy (px) and k1 move.
+
+    Each point goes to its raw pixel through the left camera (pinhole, OpenCV plumb-bob) and back along
+    the ray of the camera with one parameter moved by its ``sigma_left`` to the light plane
+    (``n . p + d = 0``, camera frame, metres). Zero columns for a fisheye (equidistant) model.
+    """
+    import cv2
+
+    P = np.asarray(stripe_in_cam, float).reshape(-1, 3)
+    out = np.zeros((P.shape[0], 5))
+    if P.shape[0] == 0 or calibration.camera_model == "equidistant":
+        return out
+    K = calibration.K_left
+    dist = np.zeros(5) if calibration.rectified else np.asarray(calibration.dist_left, float)
+    uv, _ = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
+    n = np.asarray(plane_normal_in_cam, float)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+    for j, (row, col) in enumerate(((0, 0), (1, 1), (0, 2), (1, 2), (-1, 0))):
+        K2, d2 = K.copy(), dist.copy()
+        if row >= 0:
+            K2[row, col] += sigma_left[j]
+        else:
+            d2[0] += sigma_left[j]
+        xy = cv2.undistortPoints(uv, K2, d2, criteria=crit).reshape(-1, 2)
+        ray = np.column_stack([xy, np.ones(xy.shape[0])])
+        z = ray[:, 2] * (-plane_d_m / (ray @ n))
+        out[:, j] = np.log(z / P[:, 2])
+    return out
 
 
 def laser_stereo_scale(
@@ -127,12 +166,16 @@ def laser_stereo_scale(
     plane_normal_in_cam: F64,
     plane_d_m: float,
     sigma_tilt_rad: float,
-    radius_px: float = 25.0,
+    radius_px: float = 40.0,
+    sigma_left_camera: F64 | None = None,
 ) -> LaserStereoScale | None:
     """The joint estimate of the module docstring; None when no keyframe has a stripe on seen surfaces.
 
     ``keyframe_landmarks``: the landmark ids each keyframe observed; stripes are matched to keyframes
-    by exact timestamp.
+    by exact timestamp. ``sigma_left_camera``: the left camera's remaining uncertainty (fx, fy, cx,
+    cy in px, k1; the calibrating bundle adjustment's posterior), whose effect on the stripes' depth
+    (:func:`stripe_camera_sensitivity`) enters as five nuisance unknowns with unit priors: without
+    them a stripe depth error of the camera is shared out to the baseline and the plane.
     """
     by_stamp = {s.timestamp_ns: s for s in stripes}
     pos = {int(i): k for k, i in enumerate(np.asarray(landmark_ids).tolist())}
@@ -158,7 +201,12 @@ def laser_stereo_scale(
             per_kf.append(float(np.median(d)))
             vals.append(d)
             tilt = -np.column_stack([P @ e1, P @ e2]) / plane_d_m
-            rows.append(np.column_stack([np.ones(d.size), -np.ones(d.size), tilt]))
+            cam = (
+                -stripe_camera_sensitivity(P, calibration, n, plane_d_m, np.asarray(sigma_left_camera, float))
+                if sigma_left_camera is not None
+                else np.zeros((d.size, 0))
+            )
+            rows.append(np.column_stack([np.ones(d.size), -np.ones(d.size), tilt, cam]))
     if len(per_kf) < 3:
         return None
     v = np.asarray(per_kf)
@@ -168,8 +216,9 @@ def laser_stereo_scale(
     y = np.concatenate(vals)
     per_kf_pairs = A.shape[0] / len(rows)
     prior_sd = np.array([sigma_log_baseline, sigma_log_plane_offset, sigma_tilt_rad, sigma_tilt_rad])
+    prior_sd = np.concatenate([prior_sd, np.ones(A.shape[1] - 4)])  # the camera's, in its sigmas
     prior_info = np.diag(1.0 / prior_sd**2)
-    x = np.zeros(4)
+    x = np.zeros(A.shape[1])
     w = np.ones(y.size)
     sigma = 1.4826 * float(np.median(np.abs(y - np.median(y)))) + 1e-9
     for _ in range(5):  # Huber re-weighting, the pair noise from the residuals' MAD
@@ -183,5 +232,5 @@ def laser_stereo_scale(
     s = np.sqrt(np.diag(cov))
     return LaserStereoScale(
         float(x[0]), float(x[1]), float(s[0]), float(s[1]), float(cov[0, 1] / (s[0] * s[1])), m, sm,
-        int(y.size), int(v.size), x[2:].copy(), s[2:].copy(), np.vstack([e1, e2]),
+        int(y.size), int(v.size), x[2:4].copy(), s[2:4].copy(), np.vstack([e1, e2]),
     )
