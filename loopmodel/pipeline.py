@@ -359,6 +359,7 @@ class _Run:
         # a session in a saved map (issue 20): localize in it, or extend it (merged at the end)
         self.session = map_session(config, base_map)
         config = self.session.run_config(config)
+        calibration = self.session.calibration(calibration, config)  # issue 31 item 4: a map's refined rig
         self.config = config
         self.listeners = listeners
         self.finishing = finishing
@@ -750,6 +751,15 @@ class _Run:
         smap = self.map_record.build(result, self.frames, self.anchored.keyframe_poses, self.loop_constraints)
         if smap is not None and self.resume is not None:
             smap = self.resume.join_map(smap)
+        if smap is not None and result.calibration_refined is not None:  # issue 31 item 4: for a later session
+            from loopmodel.loop.session_map import MapCalibration
+            from loopmodel.sessions import refined_map_points
+
+            recorded = self.frontend.rectifier.input_calibration
+            smap = refined_map_points(smap, recorded, result.calibration_refined)
+            smap.refined_calibration = MapCalibration.from_report(
+                result.calibration_refined, recorded, result.calibration_report
+            )
         return smap
 
     def _metrics(self, result: RunResult, frames_s: float, mesh_metrics: dict[str, Any]) -> dict[str, Any]:

@@ -13,13 +13,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from loopmodel.config import Config
-from loopmodel.errors import InputError
+from loopmodel.errors import InputError, LoopmodelError
 from loopmodel.types import StereoCalibration, StereoFrame, Trajectory
 
 if TYPE_CHECKING:
+    from loopmodel.config import SelfCalibrationConfig
     from loopmodel.frontend import FrameResult
     from loopmodel.loop.localize import MapLocalizationStage
-    from loopmodel.loop.session_map import ResumePoint, SessionMap
+    from loopmodel.loop.session_map import MapCalibration, ResumePoint, SessionMap
     from loopmodel.result import RunResult
 
 logger = logging.getLogger(__name__)
@@ -35,15 +36,149 @@ def localize_config(config: Config) -> Config:
     return out
 
 
+#: A session's recorded calibration and a map's refined one are of the same rig when no parameter differs
+#: by more than this many of its combined sigma (the recorded calibration's prior and the map's posterior,
+#: root sum of squares). The realistic simulator draws each session's recorded calibration 1 prior sigma
+#: off the true rig per parameter: the sessions bench's B against A's refined rig, 2.4 sigma at most
+#: (cx_right_px); another camera of the same model differs by pixels in its focal lengths and centre.
+SAME_RIG_SIGMAS = 4.0
+
+
+def rig_difference_sigma(
+    recorded: StereoCalibration, map_calibration: MapCalibration, config: SelfCalibrationConfig
+) -> dict[str, float]:
+    """Each parameter's difference between a session's recorded rig and a map's refined one, in combined sigmas.
+
+    Parameters as :data:`~loopmodel.calibration.refine_rig.PARAM_NAMES` (rotation: the angle of the
+    relative stereo rotation about each axis, degrees); the recorded calibration's sigma is the
+    configured prior (``calibration.sigma_*``), the map's its posterior. Empty when the two cannot be
+    compared (image size or camera model differ: then they are different rigs).
+    """
+    from loopmodel.calibration.refine_rig import PARAM_NAMES, RigParameters, prior_sigmas
+    from loopmodel.geometry.se3 import so3_log
+
+    ref = map_calibration.refined
+    if tuple(recorded.image_size) != tuple(ref.image_size) or recorded.camera_model != ref.camera_model:
+        return {}
+    try:
+        a, b = RigParameters.of(recorded).values, RigParameters.of(ref).values
+    except LoopmodelError:
+        return {}
+    diff = a - b
+    R = np.asarray(recorded.right_from_left, float)[:3, :3] @ np.asarray(ref.right_from_left, float)[:3, :3].T
+    rot = 12
+    diff[rot : rot + 3] = np.degrees(so3_log(R))
+    prior = prior_sigmas(
+        config.sigma_focal_px, config.sigma_principal_px, config.sigma_k1, config.sigma_k2,
+        config.sigma_rotation_deg, config.sigma_baseline_m,
+    )
+    prior[rot : rot + 3] = config.sigma_rotation_deg
+    out = {}
+    for i, name in enumerate(PARAM_NAMES):
+        post = map_calibration.sigma.get(name, float(prior[i]))
+        out[name] = float(abs(diff[i]) / np.hypot(prior[i], post))
+    return out
+
+
+def session_calibration(
+    recorded: StereoCalibration, base_map: SessionMap, config: SelfCalibrationConfig
+) -> tuple[StereoCalibration, dict[str, object]]:
+    """The calibration a session in ``base_map`` starts from, and what was decided (for ``metrics.json``).
+
+    The map's refined calibration when the map has one and the session's recorded rig is the same
+    (every parameter within :data:`SAME_RIG_SIGMAS`, :func:`rig_difference_sigma`); else the
+    session's own, and the log says why. ``recorded`` is the session's raw calibration.
+    """
+    mc = base_map.refined_calibration
+    if mc is None:
+        return recorded, {"session_calibration": "own", "session_calibration_why": "the map has no refined calibration"}
+    diff = rig_difference_sigma(recorded, mc, config)
+    if not diff:
+        logger.info("calibration: the map's rig has another image size or camera model; this session keeps its own")
+        return recorded, {"session_calibration": "own", "session_calibration_why": "image size or camera model differ"}
+    worst = max(diff, key=lambda k: diff[k])
+    info: dict[str, object] = {"session_calibration_max_sigma": round(diff[worst], 3), "session_calibration_worst": worst}
+    if diff[worst] > SAME_RIG_SIGMAS:
+        logger.info(
+            "calibration: the map was made with another rig (%s differs by %.1f sigma): this session keeps its own",
+            worst, diff[worst],
+        )
+        return recorded, {"session_calibration": "own", "session_calibration_why": "another rig", **info}
+    logger.info(
+        "calibration: the map's refined calibration (the same rig: largest difference %.1f sigma, %s)", diff[worst], worst
+    )
+    return mc.refined, {"session_calibration": "map", **info}
+
+
+def refined_map_points(smap: SessionMap, recorded: StereoCalibration, refined: StereoCalibration) -> SessionMap:
+    """``smap`` with its keyframes' stereo points placed as the refined calibration places them (issue 31).
+
+    The front end triangulated each keyframe's points with the recorded calibration; a later
+    session relocalizes against them (:class:`~loopmodel.loop.localize.MapLocalizationStage`: P3P and
+    the KLT stage on one map keyframe's points), so their error becomes the localization's. Each point
+    becomes its refined landmark (``smap.landmarks_in_world``, the calibrating bundle adjustment's)
+    seen from its refined keyframe, or, for a landmark the refinement did not hold, the keyframe's
+    stereo match triangulated with the refined rig
+    (:func:`~loopmodel.calibration.retrack.refined_keyframe_points`); one that does not converge keeps
+    its point. The loop features' 3-D points (``features.points_in_kf``, rectified keyframe frame)
+    follow their landmarks. Frames: keyframe = the raw left camera (``world_from_kf``), metres.
+    """
+    import dataclasses
+
+    from loopmodel.calibration.retrack import refined_keyframe_points
+    from loopmodel.geometry.se3 import invert_pose
+
+    world = {int(i): p for i, p in zip(smap.landmark_ids.tolist(), np.asarray(smap.landmarks_in_world), strict=True)}
+    pts = np.array(smap.lm_points_in_kf, dtype=float, copy=True)
+    f = smap.features
+    fpts = np.array(f.points_in_kf, dtype=float, copy=True)
+    moved = 0
+    for i in range(len(smap)):
+        a, b = int(smap.lm_offsets[i]), int(smap.lm_offsets[i + 1])
+        if b <= a:
+            continue
+        ids = smap.lm_ids[a:b]
+        kf_from_world = invert_pose(np.asarray(smap.world_from_kf[i], float))
+        new = np.full((b - a, 3), np.nan)
+        known = np.array([int(k) in world for k in ids.tolist()], bool)
+        if known.any():
+            X = np.array([world[int(k)] for k in ids[known].tolist()], float).reshape(-1, 3)
+            new[known] = X @ kf_from_world[:3, :3].T + kf_from_world[:3, 3]
+        if (~known).any():
+            rows = np.flatnonzero(~known).astype(np.int64)
+            new[rows] = refined_keyframe_points(smap.keyframe(i, with_image=False), rows, recorded, refined)
+        ok = np.all(np.isfinite(new), axis=1) & (new[:, 2] > 0)
+        pts[a:b][ok] = new[ok]
+        moved += int(ok.sum())
+        # the loop features at the keyframe's landmarks, in the rectified keyframe frame
+        lo, hi = int(f.offsets[i]), int(f.offsets[i + 1])
+        fid = f.ids[lo:hi]
+        row_of = {int(k): r for r, k in enumerate(ids.tolist())}
+        rect = np.asarray(smap.rect_from_cam[i], float)
+        for j in np.flatnonzero(fid >= 0).tolist():
+            r = row_of.get(int(fid[j]))
+            if r is not None and ok[r]:
+                fpts[lo + j] = rect[:3, :3] @ pts[a + r] + rect[:3, 3]
+    logger.info("map: %d of %d keyframe points placed with the refined calibration", moved, pts.shape[0])
+    features = dataclasses.replace(f, points_in_kf=fpts)
+    return dataclasses.replace(smap, lm_points_in_kf=pts, features=features)
+
+
 class OwnMap:
     """A run that makes its own map (no saved map): the recipe as it is."""
 
     #: the loop stage of a localization (every keyframe, and frames until in the map, relocalized)
     localizer: MapLocalizationStage | None = None
+    #: what :meth:`calibration` decided (``metrics.json``)
+    calibration_info: dict[str, object] = {}
 
     def run_config(self, config: Config) -> Config:
         """The configuration the run uses."""
         return config
+
+    def calibration(self, recorded: StereoCalibration, config: Config) -> StereoCalibration:
+        """The raw calibration the run starts from (the sequence's ``recorded`` one, or a map's refined one)."""
+        return recorded
 
     def setup(self, config: Config, calibration: StereoCalibration) -> None:
         """Build what the session needs once the run's configuration and calibration are known."""
@@ -60,6 +195,11 @@ class Localize(OwnMap):
 
     def run_config(self, config: Config) -> Config:
         return localize_config(config)
+
+    def calibration(self, recorded: StereoCalibration, config: Config) -> StereoCalibration:
+        """The map's refined calibration when the rig is the same (issue 31 item 4), else ``recorded``."""
+        cal, self.calibration_info = session_calibration(recorded, self.base_map, config.calibration)
+        return cal
 
     def setup(self, config: Config, calibration: StereoCalibration) -> None:
         from loopmodel.loop.localize import MapLocalizationStage
@@ -79,6 +219,7 @@ class Localize(OwnMap):
         in_map = {f.timestamp_ns for f, st in zip(frames, status, strict=True) if st == "MAP"}
         result.localized = result.final.slice(np.isin(result.final.timestamps_ns, list(in_map)))
         m = result.metrics
+        m.update(self.calibration_info)
         m["localization_status"] = status
         m["localized_frames"] = len(in_map)
         if not localizer.events:
@@ -91,10 +232,20 @@ class Extend(OwnMap):
     def __init__(self, base_map: SessionMap) -> None:
         self.base_map = base_map
 
+    def calibration(self, recorded: StereoCalibration, config: Config) -> StereoCalibration:
+        """The map's refined calibration when the rig is the same (issue 31 item 4), else ``recorded``.
+
+        With ``calibration.refine`` this session refines it again (priors: the configured sigmas).
+        """
+        cal, self.calibration_info = session_calibration(recorded, self.base_map, config.calibration)
+        return cal
+
     def finish(self, result: RunResult, frames: list[FrameResult], config: Config) -> None:
         """The session's map merged into the base map (its world); a session sharing no view keeps its own."""
         from loopmodel.loop.merge import merge_maps
         from loopmodel.mapping.final import posed_stripes_mesh
+
+        result.metrics.update(self.calibration_info)
 
         if result.session_map is None:
             logger.warning("no map of this session: nothing to merge")

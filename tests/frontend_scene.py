@@ -131,12 +131,18 @@ def trajectory(n: int, step_m: float = 0.06) -> np.ndarray:
     return np.array(out)
 
 
-def write_kitti_folder(folder: Path, n: int, rng: np.random.Generator) -> np.ndarray:
-    """A rendered rectified stereo sequence in KITTI layout with ground truth poses."""
+def write_kitti_folder(folder: Path, n: int, rng: np.random.Generator, cx_right_error_px: float = 0.0) -> np.ndarray:
+    """A rendered rectified stereo sequence in KITTI layout with ground truth poses.
+
+    ``cx_right_error_px``: the right images rendered with the right camera's cx this far off what
+    ``calib.txt`` says (a recorded calibration with an error, issue 31).
+    """
     planes = default_scene(rng)
     cal = stereo_rig()
     poses = trajectory(n)
     poses = invert_pose(poses[0]) @ poses
+    K_right = cal.K_right.copy()
+    K_right[0, 2] += cx_right_error_px
     (folder / "image_0").mkdir(parents=True)
     (folder / "image_1").mkdir()
     for i, world_from_cam in enumerate(poses):
@@ -147,7 +153,7 @@ def write_kitti_folder(folder: Path, n: int, rng: np.random.Generator) -> np.nda
         )
         cv2.imwrite(
             str(folder / "image_1" / f"{i:06d}.png"),
-            render(planes, cal.K_right, cal.right_from_left @ cam_from_world, cal.image_size),
+            render(planes, K_right, cal.right_from_left @ cam_from_world, cal.image_size),
         )
     P0 = np.hstack([cal.K_left, np.zeros((3, 1))])
     P1 = P0.copy()

@@ -255,3 +255,98 @@ def test_resume_continues_from_the_last_keyframe(first_session: tuple[Path, Path
     assert np.median(d_mm) < 1.0 and d_mm.max() < 1.5
     smap = load_session_map(resumed.folder)
     assert len(smap) == len(point.map) - 1 + resumed.metrics["keyframes"]
+
+
+def _raw_rig(fx: float = 500.0, cx_right: float = 322.0, k1: float = -0.28) -> StereoCalibration:
+    KL = np.array([[fx, 0, 319.5], [0, fx, 239.5], [0, 0, 1.0]])
+    KR = np.array([[fx * 0.9977, 0, cx_right], [0, fx * 0.9975, 241.5], [0, 0, 1.0]])
+    c, s = np.cos(np.radians(0.3)), np.sin(np.radians(0.3))
+    Ry = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    dist = np.array([k1, 0.075, 0.0, 0.0, 0.0])
+    return StereoCalibration(KL, KR, make_pose(Ry, np.array([-0.06, 0.0004, 0.0004])), (640, 480), dist, dist, False)
+
+
+def test_map_carries_the_refined_calibration_and_a_same_rig_session_starts_from_it(tmp_path: Path) -> None:
+    """Issue 31 item 4: the map file keeps the refined calibration (old maps load without it); the rig check."""
+    from loopmodel.calibration.refine_rig import PARAM_NAMES
+    from loopmodel.config import SelfCalibrationConfig
+    from loopmodel.loop.session_map import MapCalibration
+    from loopmodel.sessions import SAME_RIG_SIGMAS, rig_difference_sigma, session_calibration
+
+    smap = _small_map()
+    old_path = save_session_map(tmp_path / "old", smap)
+    assert load_session_map(old_path).refined_calibration is None  # a map without it loads as before
+    recorded, refined = _raw_rig(), _raw_rig(fx=500.25, cx_right=321.7, k1=-0.2795)
+    sigma = {n: 0.1 for n in PARAM_NAMES[:12]} | {"rot_x_deg": 0.01, "rot_y_deg": 0.01, "rot_z_deg": 0.01,
+                                                   "baseline_m": 4e-5}
+    smap.refined_calibration = MapCalibration(refined, recorded, sigma, {n: 2 * v for n, v in sigma.items()})
+    loaded = load_session_map(save_session_map(tmp_path / "new", smap))
+    mc = loaded.refined_calibration
+    assert mc is not None and mc.sigma == sigma and mc.sigma_prior["baseline_m"] == 8e-5
+    for a, b in ((mc.refined, refined), (mc.recorded, recorded)):
+        assert np.array_equal(a.K_left, b.K_left) and np.array_equal(a.K_right, b.K_right)
+        assert np.array_equal(a.right_from_left, b.right_from_left) and np.array_equal(a.dist_right, b.dist_right)
+        assert a.image_size == b.image_size and not a.rectified
+    assert loaded.summary()["calibration_refined"] is True
+    cfg = SelfCalibrationConfig()
+    # the same rig, recorded again 0.3 px / 0.002 off (the configured priors): the map's refined one
+    same = _raw_rig(fx=499.8, cx_right=322.3, k1=-0.282)
+    diff = rig_difference_sigma(same, mc, cfg)
+    # fx: 0.45 px over hypot(0.3, 0.1) = 1.42 sigma; cx_right 0.6 px: 1.90; k1 0.0025 over hypot(0.002, 0.1)
+    assert diff["fx_left_px"] == pytest.approx(0.45 / np.hypot(0.3, 0.1))
+    assert diff["cx_right_px"] == pytest.approx(0.6 / np.hypot(0.3, 0.1))
+    assert diff["rot_y_deg"] == pytest.approx(0.0, abs=1e-9)
+    cal, info = session_calibration(same, loaded, cfg)
+    assert cal is mc.refined and info["session_calibration"] == "map"
+    # another camera of the model: focal lengths 2 px apart (6.3 sigma): the session keeps its own
+    other = _raw_rig(fx=502.0)
+    cal, info = session_calibration(other, loaded, cfg)
+    assert cal is other and info["session_calibration"] == "own" and info["session_calibration_max_sigma"] > SAME_RIG_SIGMAS
+    # another image size, or a map without a refined calibration: its own
+    assert session_calibration(_raw_rig(), load_session_map(old_path), cfg)[1]["session_calibration"] == "own"
+
+
+@pytest.mark.slow
+def test_refined_map_points_and_a_second_session_on_the_same_rig(tmp_path: Path) -> None:
+    """Issue 31 item 4 in runs: a refined session's map, then a session of the same rig localizing in it.
+
+    A rendered rig whose right camera's cx is 0.6 px off what ``calib.txt`` says: the front end's
+    stereo points are 2-3 % too far. Their true depth follows from the rendering (the measured
+    disparity plus 0.6 px); the map keeps them as the refined calibration places them.
+    """
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from frontend_scene import write_kitti_folder
+
+    from loopmodel.io.sequence import open_sequence
+    from loopmodel.pipeline import run_pipeline
+
+    folder = tmp_path / "seq"
+    write_kitti_folder(folder, 16, np.random.default_rng(7), cx_right_error_px=0.6)
+    cfg = Config()
+    cfg.frontend.max_disparity_px = 64
+    cfg.frontend.max_features = 400
+    cfg.frontend.min_tracked_fraction = 0.95
+    cfg.calibration.refine = "final"  # type: ignore[assignment]
+    cfg.mapping.write_mesh = False
+    a = run_pipeline(open_sequence(folder), cfg, tmp_path, "A")
+    assert a.folder is not None
+    smap = load_session_map(a.folder / "map")
+    mc = smap.refined_calibration
+    assert mc is not None and np.array_equal(mc.refined.K_right, a.calibration_refined.K_right)
+    # every keyframe point against its true depth (the front end's from the same stereo match)
+    f_b = 450.0 * 0.3
+    z_rec = f_b / (smap.lm_stereo_px[:, 0] - smap.lm_stereo_px[:, 1])
+    z_true = f_b / (smap.lm_stereo_px[:, 0] - smap.lm_stereo_px[:, 1] + 0.6)
+    err_rec = np.median(np.abs(z_rec / z_true - 1.0))
+    err_map = np.median(np.abs(smap.lm_points_in_kf[:, 2] / z_true - 1.0))
+    # measured: the front end's points 4.05 % off (median), the map's 0.067 %
+    assert err_map < 0.05 * err_rec, (err_map, err_rec)
+    # a second session of the rig (the same recorded calibration) starts from the map's refined one
+    cfg.session.mode = "localize"  # type: ignore[assignment]
+    b = run_pipeline(open_sequence(folder), cfg, tmp_path, "B", base_map=smap)
+    m = b.metrics
+    # measured: 0.855 sigma at most (cx_right_px)
+    assert m["session_calibration"] == "map" and m["session_calibration_max_sigma"] < 2.0
+    assert m["localized_frames"] == 16

@@ -110,7 +110,8 @@ class RetrackedFrames:
 
     ``stats``: ``frames`` considered, ``resolved``, ``few_points`` / ``failed`` / ``jumped`` (kept
     their earlier pose), ``unbridged`` (kept their earlier pose: no end of their interval was
-    re-solved; with ``bridge`` such a frame is not solved), ``points_median`` per re-solved frame, ``move_mm_median`` /
+    re-solved; with ``bridge`` such a frame is not solved), ``tail`` (re-solved alone after their
+    segment's last keyframe), ``points_median`` per re-solved frame, ``move_mm_median`` /
     ``move_mm_max`` from the earlier pose, ``rms_px_median`` of the re-solved poses' inliers.
     """
 
@@ -130,7 +131,11 @@ class RetrackedFrames:
 
 
 class _Landmarks:
-    """World points (metres) by landmark id: refined, else triangulated in their keyframe with the refined rig."""
+    """World points (metres) by landmark id: refined, else triangulated in their keyframe with the refined rig.
+
+    Held as arrays over the sorted ids (a frame's few hundred points are looked up at once); a
+    keyframe's points are triangulated when a frame first needs one of them.
+    """
 
     def __init__(
         self,
@@ -141,29 +146,43 @@ class _Landmarks:
         recorded: StereoCalibration,
         refined: StereoCalibration,
     ) -> None:
-        self.points = {int(i): p for i, p in zip(np.asarray(landmark_ids).tolist(),
-                                                 np.asarray(landmarks_in_world, float), strict=True)}
+        ref_ids = np.asarray(landmark_ids, np.int64).ravel()
+        kids = [int(k) for k in keyframes if int(k) in world_from_kf]
+        own = [np.asarray(keyframes[k].landmark_ids, np.int64).ravel() for k in kids]
+        self.ids = np.unique(np.concatenate([ref_ids, *own]))
+        n = self.ids.size
+        self.points = np.full((n, 3), np.nan)
+        self.points[np.searchsorted(self.ids, ref_ids)] = np.asarray(landmarks_in_world, float).reshape(-1, 3)
+        self.tried = np.zeros(n, bool)  # refined, or triangulated (or failed) once
+        self.tried[np.searchsorted(self.ids, ref_ids)] = True
+        self.refined_count = int(np.unique(ref_ids).size)
+        self.owner = np.full(n, -1, np.int64)  # index into ``kids`` of the keyframe that measured it (the last)
+        self.row = np.zeros(n, np.int64)
+        for j, li in enumerate(own):
+            at = np.searchsorted(self.ids, li)
+            self.owner[at] = j
+            self.row[at] = np.arange(li.size)
         self.fb_px_m = float(refined.K_left[0, 0]) * float(refined.baseline_m)
-        self.refined_count = len(self.points)
-        self._owner: dict[int, tuple[int, int]] = {}
-        for kid, kf in keyframes.items():
-            if int(kid) in world_from_kf:
-                for row, i in enumerate(np.asarray(kf.landmark_ids, np.int64).tolist()):
-                    self._owner[int(i)] = (int(kid), row)
-        self._keyframes, self._world_from_kf = keyframes, world_from_kf
-        # each keyframe's camera centre and optical axis (world)
-        self._axes = {int(k): np.concatenate([np.asarray(T, float)[:3, 3], np.asarray(T, float)[:3, 2]])
-                      for k, T in world_from_kf.items()}
+        self._kids, self._keyframes, self._world_from_kf = kids, keyframes, world_from_kf
+        # each keyframe's camera centre and optical axis (world); a last row of NaN for "no keyframe"
+        self._axes = np.array(
+            [np.concatenate([np.asarray(world_from_kf[k], float)[:3, 3], np.asarray(world_from_kf[k], float)[:3, 2]])
+             for k in kids] + [np.full(6, np.nan)]
+        ).reshape(-1, 6)
         self._recorded, self._refined = recorded, refined
         self.triangulated = 0
+
+    def _index(self, ids: I64) -> tuple[I64, NDArray[np.bool_]]:
+        at = np.minimum(np.searchsorted(self.ids, ids), max(self.ids.size - 1, 0))
+        return at, (self.ids.size > 0) & (self.ids[at] == ids)
 
     def depth_rays(self, ids: I64, p_w: F64) -> tuple[F64, F64]:
         """Each point's depth in its stereo keyframe (m), and the ray per metre of that depth (world, N x 3).
 
         NaN where that keyframe is not known.
         """
-        nan = np.full(6, np.nan)
-        axes = np.array([self._axes.get(self._owner.get(i, (-1, 0))[0], nan) for i in ids.tolist()]).reshape(-1, 6)
+        at, found = self._index(np.asarray(ids, np.int64))
+        axes = self._axes[np.where(found, self.owner[at], -1)]
         d = p_w - axes[:, :3]
         z = np.einsum("ni,ni->n", d, axes[:, 3:])
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -172,21 +191,18 @@ class _Landmarks:
 
     def get(self, ids: I64) -> tuple[F64, NDArray[np.bool_]]:
         """World points of ``ids`` (N x 3) and which are known (refined or triangulated now)."""
-        missing = sorted({i for i in ids.tolist() if i not in self.points and i in self._owner})
-        by_kf: dict[int, list[int]] = {}
-        for i in missing:
-            by_kf.setdefault(self._owner[i][0], []).append(i)
-        for kid, lms in by_kf.items():
-            rows = np.array([self._owner[i][1] for i in lms], np.int64)
-            p = refined_keyframe_points(self._keyframes[kid], rows, self._recorded, self._refined)
+        at, found = self._index(np.asarray(ids, np.int64))
+        new = np.unique(at[found & ~self.tried[at] & (self.owner[at] >= 0)])
+        for j in np.unique(self.owner[new]).tolist():
+            sel = new[self.owner[new] == j]
+            kid = self._kids[j]
+            p = refined_keyframe_points(self._keyframes[kid], self.row[sel], self._recorded, self._refined)
             T = np.asarray(self._world_from_kf[kid], float)
-            pw = p @ T[:3, :3].T + T[:3, 3]
             good = np.all(np.isfinite(p), axis=1) & (p[:, 2] > 0)
-            for i, q, g in zip(lms, pw, good, strict=True):
-                self.points[i] = q if g else np.full(3, np.nan)
-                self.triangulated += 1
-        nan = np.full(3, np.nan)
-        out = np.array([self.points.get(i, nan) for i in ids.tolist()], dtype=float).reshape(-1, 3)
+            self.points[sel] = np.where(good[:, None], p @ T[:3, :3].T + T[:3, 3], np.nan)
+            self.tried[sel] = True
+            self.triangulated += int(sel.size)
+        out = np.where(found[:, None], self.points[at], np.nan)
         return out, np.all(np.isfinite(out), axis=1)
 
 
@@ -256,6 +272,7 @@ def retrack_frames(
     max_turn_deg: float = 0.5,
     disparity_sigma_px: float | None = 0.3,
     bridge: bool = True,
+    tail: bool = True,
 ) -> RetrackedFrames:
     """Each tracked frame with kept points (``FrameResult.observed``) solved again; see the module docstring.
 
@@ -275,9 +292,13 @@ def retrack_frames(
     the local BA's keyframe does not): a keyframe B whose tracked pose's points were kept is solved
     again the same way in its previous keyframe A, and :func:`~loopmodel.mapping.anchored.bridge_interval`
     moves the re-solved frames between A and B as that end's disagreement with the refined A -> B;
-    a frame without such an end (after the last keyframe, or the end's solve failed) keeps its earlier
-    pose: re-solved alone it carries the drift unbridged (the KITTI clip's last frame: ATE 0.0549 ->
-    0.0553 m re-solved alone, 0.0549 m kept; a rendered perfect rig's frames 0.27 -> 0.42 mm alone).
+    a frame whose end's solve failed keeps its earlier pose: re-solved alone it carries the drift
+    unbridged (the KITTI clip's last frame: ATE 0.0549 -> 0.0553 m re-solved alone, 0.0549 m kept; a
+    rendered perfect rig's frames 0.27 -> 0.42 mm alone). ``tail``: the frames after a segment's last
+    keyframe (no interval end exists) are re-solved alone: kept, they carry the recorded calibration's
+    depth error in their whole motion from that keyframe (a rendered rig with the right camera's cx
+    0.6 px off, tests/test_retrack.py: the four frames after the last keyframe 1.4-3.9 mm off kept,
+    0.26-0.59 mm re-solved alone).
     """
     rig = CameraRig.single(CentralCamera.from_K(refined.K_left))
     index = {int(t): i for i, t in enumerate(start.timestamps_ns.tolist())}
@@ -300,6 +321,9 @@ def retrack_frames(
         if outcome == "ok":
             ends[kid] = T
     starts = {int(keyframes[b].prev_keyframe_id) for b in ends}  # type: ignore[arg-type]
+    # a keyframe no later keyframe follows (its segment's last): its frames have no interval end at all
+    followed = {int(k.prev_keyframe_id) for k in keyframes.values() if k.prev_keyframe_id is not None and k.connected}
+    tails = {int(k) for k in world_from_kf if int(k) not in followed} if tail else set()
     skipped = 0
     for fr in tracked:
         kid = int(fr.keyframe_id)
@@ -307,7 +331,7 @@ def retrack_frames(
         if fr.is_keyframe or i is None or kid not in world_from_kf:
             continue
         counts["frames"] += 1
-        if bridge and kid not in starts:
+        if bridge and kid not in starts and kid not in tails:
             skipped += 1
             continue
         outcome, T, move_m, turn_deg, n_inl, r = _solve_frame(fr.observed, start.world_from_cam[i], *args)  # type: ignore[arg-type]
@@ -336,9 +360,11 @@ def retrack_frames(
             solved[t] = (a, np.asarray(world_from_kf[a], float) @ T)
         done.update(sel)
         bridged += 1
-    if bridge:  # a frame whose interval end was not re-solved (after the last keyframe) keeps its pose
-        counts["unbridged"] = len(solved) - len(done) + skipped
-        solved = {t: v for t, v in solved.items() if t in done}
+    if bridge:  # a frame whose interval end was not re-solved keeps its pose; after the last keyframe, alone
+        alone = {t for t, (k, _T) in solved.items() if t not in done and k in tails}
+        counts["unbridged"] = len(solved) - len(done) - len(alone) + skipped
+        counts["tail"] = len(alone)
+        solved = {t: v for t, v in solved.items() if t in done or t in alone}
     times = sorted(solved)
     stats = {k: float(v) for k, v in counts.items() if k != "ok"}
     stats["resolved"] = float(len(times))

@@ -559,7 +559,9 @@ class FrontEnd:
                 res.tracked, res.inliers, res.used_ransac = tracked, inliers, used_ransac
                 res.mono_points = self._mono_used
                 res.track_ms = (t_track - t0) * 1e3
-                res.observed = observed if res.keyframe is not None and res.keyframe.connected else None
+                # the new keyframe: handed now, or (local_ba_beside) waiting behind its BA, last in line
+                made = res.keyframe if res.keyframe is not None else (self._late[-1] if self._late else None)
+                res.observed = observed if made is not None and made.connected else None
                 return res
         kf = active.keyframe
         world_from_cam = active.world_from_kfrect @ kf_from_cur @ self.rect_from_cam

@@ -218,6 +218,8 @@ def _joined(
         stripe_kf=np.concatenate([a.stripe_kf, b.stripe_kf + off]),
         stripe_kf_from_cam=np.concatenate([a.stripe_kf_from_cam, b.stripe_kf_from_cam]),
         info={**a.info, "merged_from": [a.info.get("sequence"), b.info.get("sequence")]},
+        # the newer session's refined calibration (it started from A's when the rig is the same)
+        refined_calibration=b.refined_calibration if b.refined_calibration is not None else a.refined_calibration,
     )
 
 

@@ -118,6 +118,39 @@ class PackedFeatures:
         return _concat_packed([self], [rows])
 
 
+def _calibration_arrays(prefix: str, cal: StereoCalibration) -> dict[str, NDArray[Any]]:
+    """A raw calibration's arrays in the map file (``<prefix>_K_left`` ...)."""
+    return {
+        f"{prefix}_K_left": cal.K_left,
+        f"{prefix}_K_right": cal.K_right,
+        f"{prefix}_right_from_left": cal.right_from_left,
+        f"{prefix}_dist_left": np.asarray(cal.dist_left, float),
+        f"{prefix}_dist_right": np.asarray(cal.dist_right, float),
+    }
+
+
+def _map_calibration(arrays: dict[str, NDArray[Any]], meta: Any) -> MapCalibration | None:
+    """The map file's refined calibration (None when the map has none: written before issue 31 item 4)."""
+    if not isinstance(meta, dict) or "refined_K_left" not in arrays:
+        return None
+
+    def cal(prefix: str) -> StereoCalibration:
+        return StereoCalibration(
+            arrays[f"{prefix}_K_left"],
+            arrays[f"{prefix}_K_right"],
+            arrays[f"{prefix}_right_from_left"],
+            tuple(int(v) for v in meta["image_size"]),  # type: ignore[arg-type]
+            arrays[f"{prefix}_dist_left"],
+            arrays[f"{prefix}_dist_right"],
+            False,
+            str(meta.get("camera_model", "pinhole")),
+        )
+
+    sigma = {str(k): float(v) for k, v in dict(meta.get("sigma", {})).items()}
+    prior = {str(k): float(v) for k, v in dict(meta.get("sigma_prior", {})).items()}
+    return MapCalibration(cal("refined"), cal("recorded"), sigma, prior)
+
+
 def _offsets(counts: Sequence[int]) -> I64:
     return np.concatenate([[0], np.cumsum(np.asarray(counts, dtype=np.int64))]).astype(np.int64)
 
@@ -155,6 +188,33 @@ def _concat_packed(packs: Sequence[PackedFeatures], rows: Sequence[I64]) -> Pack
 
 
 @dataclass
+class MapCalibration:
+    """The rig's calibration as the session that made the map refined it (issue 31, ``calibration.refine``).
+
+    ``refined``: the raw (unrectified) calibration after the refinement; ``recorded``: the raw one
+    that session started from; ``sigma`` / ``sigma_prior``: each parameter's posterior and prior
+    standard deviation by :data:`~loopmodel.calibration.refine_rig.PARAM_NAMES` (pixels, radial terms,
+    degrees, metres). A later session of the same rig starts from ``refined`` (:mod:`loopmodel.sessions`).
+    """
+
+    refined: StereoCalibration
+    recorded: StereoCalibration
+    sigma: dict[str, float]
+    sigma_prior: dict[str, float]
+
+    @staticmethod
+    def from_report(refined: StereoCalibration, recorded: StereoCalibration, report: dict[str, Any]) -> MapCalibration:
+        """From a run's refined calibration and its report (``SelfCalibration.report()``)."""
+        params = dict(report.get("parameters", {}))
+        return MapCalibration(
+            refined,
+            recorded,
+            {str(n): float(p["sigma"]) for n, p in params.items()},
+            {str(n): float(p["sigma_prior"]) for n, p in params.items()},
+        )
+
+
+@dataclass
 class SessionMap:
     """A saved map (see the module docstring); row ``i`` of every per-keyframe array is one keyframe.
 
@@ -189,6 +249,8 @@ class SessionMap:
     stripe_kf_from_cam: F64
     config_yaml: str = ""
     info: dict[str, Any] = field(default_factory=dict)
+    # issue 31 item 4: the calibration the map's session refined (None: not refined, or an older map)
+    refined_calibration: MapCalibration | None = None
 
     def __post_init__(self) -> None:
         for name in ("lm_points_in_kf", "lm_stereo_px", "stripe_points_in_cam"):
@@ -276,6 +338,7 @@ class SessionMap:
             "images": int(np.sum(np.diff(self.image_offsets) > 0)),
             "keyframe_extent_m": extent,
             "calibration": self.calibration.summary(),
+            "calibration_refined": self.refined_calibration is not None,
             **{k: v for k, v in self.info.items() if k in ("loopmodel_version", "version", "sequence")},
         }
 
@@ -298,6 +361,10 @@ class SessionMap:
         }
         for name in _KF_ARRAYS + _OTHER_ARRAYS:
             arrays[name] = getattr(self, name)
+        rc = self.refined_calibration
+        if rc is not None:  # optional arrays: a map without them loads as before
+            for prefix, cal in (("refined", rc.refined), ("recorded", rc.recorded)):
+                arrays.update(_calibration_arrays(prefix, cal))
         for name in _FEATURE_ARRAYS:
             arrays[f"features_{name}"] = getattr(f, name)
         for name, dtype in _stored_dtypes(f).items():
@@ -315,6 +382,13 @@ class SessionMap:
             "info": self.info,
             "keyframes": len(self),
         }
+        if rc is not None:
+            meta["calibration_refined"] = {
+                "image_size": list(rc.refined.image_size),
+                "camera_model": rc.refined.camera_model,
+                "sigma": dict(rc.sigma),
+                "sigma_prior": dict(rc.sigma_prior),
+            }
         return MapFileData(meta, arrays)
 
     @classmethod
@@ -346,6 +420,7 @@ class SessionMap:
         kw = {n: a[n] for n in _KF_ARRAYS + _OTHER_ARRAYS}
         smap = cls(
             calibration=calibration,
+            refined_calibration=_map_calibration(a, m.get("calibration_refined")),
             features=feats,
             config_yaml=str(m.get("config_yaml", "")),
             info={
