@@ -879,6 +879,16 @@ class SessionConfig(_Section):
     # 5-16 mm (not yet checked on a real pair of sessions)
     merge_agree_m: float = Field(0.02, gt=0, description="agreement of two links between maps (translation)")
     merge_agree_deg: float = Field(2.0, gt=0, description="agreement of two links between maps (rotation)")
+    # issue 31 item 4: a map made with calibration.refine carries its refined calibration; a session
+    # whose recorded rig differs from it by no more than this many combined sigma per parameter (the
+    # recorded calibration's prior and the map's posterior) is the same rig and starts from it (0: never).
+    # The realistic simulator draws each session's recorded calibration about 1 prior sigma off the true
+    # rig per parameter: the sessions bench's B against A's refined rig 1.60 sigma at most (fy_right_px),
+    # tests/test_sessions.py's rendered rig 0.86; another camera of a model differs by pixels in its
+    # focal lengths (2 px: 6.3 sigma)
+    same_rig_sigma: float = Field(
+        4.0, ge=0, description="a map's refined calibration is used when the rig differs by at most this (sigmas)"
+    )
 
 
 class SelfCalibrationConfig(_Section):

@@ -36,14 +36,6 @@ def localize_config(config: Config) -> Config:
     return out
 
 
-#: A session's recorded calibration and a map's refined one are of the same rig when no parameter differs
-#: by more than this many of its combined sigma (the recorded calibration's prior and the map's posterior,
-#: root sum of squares). The realistic simulator draws each session's recorded calibration 1 prior sigma
-#: off the true rig per parameter: the sessions bench's B against A's refined rig, 2.4 sigma at most
-#: (cx_right_px); another camera of the same model differs by pixels in its focal lengths and centre.
-SAME_RIG_SIGMAS = 4.0
-
-
 def rig_difference_sigma(
     recorded: StereoCalibration, map_calibration: MapCalibration, config: SelfCalibrationConfig
 ) -> dict[str, float]:
@@ -81,13 +73,14 @@ def rig_difference_sigma(
 
 
 def session_calibration(
-    recorded: StereoCalibration, base_map: SessionMap, config: SelfCalibrationConfig
+    recorded: StereoCalibration, base_map: SessionMap, config: SelfCalibrationConfig, same_rig_sigma: float = 4.0
 ) -> tuple[StereoCalibration, dict[str, object]]:
     """The calibration a session in ``base_map`` starts from, and what was decided (for ``metrics.json``).
 
     The map's refined calibration when the map has one and the session's recorded rig is the same
-    (every parameter within :data:`SAME_RIG_SIGMAS`, :func:`rig_difference_sigma`); else the
-    session's own, and the log says why. ``recorded`` is the session's raw calibration.
+    (every parameter within ``same_rig_sigma``, ``session.same_rig_sigma``, of
+    :func:`rig_difference_sigma`); else the session's own, and the log says why. ``recorded`` is the
+    session's raw calibration.
     """
     mc = base_map.refined_calibration
     if mc is None:
@@ -97,15 +90,19 @@ def session_calibration(
         logger.info("calibration: the map's rig has another image size or camera model; this session keeps its own")
         return recorded, {"session_calibration": "own", "session_calibration_why": "image size or camera model differ"}
     worst = max(diff, key=lambda k: diff[k])
-    info: dict[str, object] = {"session_calibration_max_sigma": round(diff[worst], 3), "session_calibration_worst": worst}
-    if diff[worst] > SAME_RIG_SIGMAS:
+    info: dict[str, object] = {
+        "session_calibration_max_sigma": round(diff[worst], 3),
+        "session_calibration_worst": worst,
+    }
+    if same_rig_sigma <= 0 or diff[worst] > same_rig_sigma:
         logger.info(
             "calibration: the map was made with another rig (%s differs by %.1f sigma): this session keeps its own",
             worst, diff[worst],
         )
         return recorded, {"session_calibration": "own", "session_calibration_why": "another rig", **info}
     logger.info(
-        "calibration: the map's refined calibration (the same rig: largest difference %.1f sigma, %s)", diff[worst], worst
+        "calibration: the map's refined calibration (the same rig: largest difference %.1f sigma, %s)",
+        diff[worst], worst,
     )
     return mc.refined, {"session_calibration": "map", **info}
 
@@ -198,7 +195,9 @@ class Localize(OwnMap):
 
     def calibration(self, recorded: StereoCalibration, config: Config) -> StereoCalibration:
         """The map's refined calibration when the rig is the same (issue 31 item 4), else ``recorded``."""
-        cal, self.calibration_info = session_calibration(recorded, self.base_map, config.calibration)
+        cal, self.calibration_info = session_calibration(
+            recorded, self.base_map, config.calibration, config.session.same_rig_sigma
+        )
         return cal
 
     def setup(self, config: Config, calibration: StereoCalibration) -> None:
@@ -237,7 +236,9 @@ class Extend(OwnMap):
 
         With ``calibration.refine`` this session refines it again (priors: the configured sigmas).
         """
-        cal, self.calibration_info = session_calibration(recorded, self.base_map, config.calibration)
+        cal, self.calibration_info = session_calibration(
+            recorded, self.base_map, config.calibration, config.session.same_rig_sigma
+        )
         return cal
 
     def finish(self, result: RunResult, frames: list[FrameResult], config: Config) -> None:

@@ -271,7 +271,7 @@ def test_map_carries_the_refined_calibration_and_a_same_rig_session_starts_from_
     from loopmodel.calibration.refine_rig import PARAM_NAMES
     from loopmodel.config import SelfCalibrationConfig
     from loopmodel.loop.session_map import MapCalibration
-    from loopmodel.sessions import SAME_RIG_SIGMAS, rig_difference_sigma, session_calibration
+    from loopmodel.sessions import rig_difference_sigma, session_calibration
 
     smap = _small_map()
     old_path = save_session_map(tmp_path / "old", smap)
@@ -298,10 +298,11 @@ def test_map_carries_the_refined_calibration_and_a_same_rig_session_starts_from_
     assert diff["rot_y_deg"] == pytest.approx(0.0, abs=1e-9)
     cal, info = session_calibration(same, loaded, cfg)
     assert cal is mc.refined and info["session_calibration"] == "map"
+    assert session_calibration(same, loaded, cfg, same_rig_sigma=0.0)[0] is same  # session.same_rig_sigma 0: never
     # another camera of the model: focal lengths 2 px apart (6.3 sigma): the session keeps its own
     other = _raw_rig(fx=502.0)
     cal, info = session_calibration(other, loaded, cfg)
-    assert cal is other and info["session_calibration"] == "own" and info["session_calibration_max_sigma"] > SAME_RIG_SIGMAS
+    assert cal is other and info["session_calibration"] == "own" and info["session_calibration_max_sigma"] > 4.0
     # another image size, or a map without a refined calibration: its own
     assert session_calibration(_raw_rig(), load_session_map(old_path), cfg)[1]["session_calibration"] == "own"
 

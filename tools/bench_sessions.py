@@ -37,8 +37,11 @@ of both sessions' stripes).
 Full: 640x480 images (the simulator's default camera), A 240 frames, B 160. ``--quick``: 320x240
 images, A 120 frames, B 80, and the same KITTI part. Scans are generated once into
 ``~/.cache/loopmodel``. ``LOOPMODEL_BENCH_SESSIONS_REFINE=final`` runs the simulated sessions with
-``calibration.refine: final`` (``calibration_refine`` says which); then also
-``localize_map_calibration_*``: B localized with the calibration A's run refined (the same rig).
+``calibration.refine: final`` (``calibration_refine`` says which). A's map then carries its refined
+calibration and its keyframe points placed with it, and B (the same rig) localizes with A's refined
+calibration (``localize_session_calibration``: ``map`` or ``own``, ``_max_sigma`` the largest
+parameter difference); ``localize_own_calibration_*``: B localized in the same map with its own
+recorded calibration (``session.same_rig_sigma: 0``).
 """
 
 from __future__ import annotations
@@ -348,14 +351,17 @@ def run(quick: bool = False) -> dict[str, Any]:
         if out["fps"] and out["fps_normal"]:
             out["fps_ratio"] = out["fps"] / out["fps_normal"]
         out["cpu_ms_per_frame"] = loc.metrics.get("bench_cpu_ms_per_frame")
-        if ra.calibration_refined is not None:
-            # issue 31 item 4, measured here (not yet in the pipeline): B, the same rig, localized with the
-            # calibration A's run refined instead of B's recorded one
-            seq_b_refined = _Calibrated(seq_b, ra.calibration_refined)
-            loc_r = _run(seq_b_refined, config, tmp, "B_localize_refined", map_a, "localize")
-            rot_r, pos_r = _pose_errors(loc_r.localized, seq_b, truth_from_a)
-            out["localize_map_calibration_rot_err_deg_median"] = rot_r
-            out["localize_map_calibration_pos_err_mm_median"] = pos_r
+        out["localize_session_calibration"] = loc.metrics.get("session_calibration")
+        out["localize_session_calibration_max_sigma"] = loc.metrics.get("session_calibration_max_sigma")
+        if map_a.refined_calibration is not None:
+            # issue 31 item 4: B (the same rig) starts from A's refined calibration; here B with its own
+            # recorded one instead (session.same_rig_sigma 0), in the same map
+            own = config.model_copy(deep=True)
+            own.session.same_rig_sigma = 0.0
+            loc_o = _run(seq_b, own, tmp, "B_localize_own", map_a, "localize")
+            rot_o, pos_o = _pose_errors(loc_o.localized, seq_b, truth_from_a)
+            out["localize_own_calibration_rot_err_deg_median"] = rot_o
+            out["localize_own_calibration_pos_err_mm_median"] = pos_o
         out["cpu_ms_per_frame_normal"] = rb.metrics.get("bench_cpu_ms_per_frame")
         ext = _run(seq_b, config, tmp, "B_extend", map_a, "extend")
         gt_mesh = _gt_merged_mesh([seq_a, seq_b], config)
