@@ -58,7 +58,7 @@ def rig_difference_sigma(
         return {}
     diff = a - b
     R = np.asarray(recorded.right_from_left, float)[:3, :3] @ np.asarray(ref.right_from_left, float)[:3, :3].T
-    rot = 12
+    rot = PARAM_NAMES.index("rot_x_deg")  # rot_x, rot_y, rot_z
     diff[rot : rot + 3] = np.degrees(so3_log(R))
     prior = prior_sigmas(
         config.sigma_focal_px, config.sigma_principal_px, config.sigma_k1, config.sigma_k2,
