@@ -23,7 +23,8 @@ run three times by :func:`loopmodel.pipeline.process`: with the recorded calibra
   pipeline's ``mesh_err_after_mm``); ``mesh_err_recorded_mm``; ``mesh_err_gt_mm``: the stripes of the
   run with the true calibration meshed with the ground-truth poses (the floor);
 * ``refine_s``: the self-calibration's time at the end of the run; ``retrack_s`` the re-solving of the
-  frames between keyframes after it, ``retrack_resolved`` how many it re-solved.
+  frames between keyframes after it, ``retrack_resolved`` how many it re-solved (``retrack_tail``: of
+  them, after the last keyframe, solved alone).
 
 The KITTI clip (real, rectified, well calibrated): ``kitti_drift_pct_off`` / ``_refined``,
 ``kitti_ate_m_off`` / ``_refined``, ``kitti_moved_max_sigma`` (the largest move of a parameter, in
@@ -260,6 +261,7 @@ def _scan(seed: int, quick: bool) -> dict[str, Any]:
             # the frames between keyframes re-solved with the refined calibration (calibration.retrack_frames)
             out["retrack_s"] = m.get("calibration_retrack_s")
             out["retrack_resolved"] = m.get("calibration_retrack_resolved")
+            out["retrack_tail"] = m.get("calibration_retrack_tail")  # of them after the last keyframe (solved alone)
             out["moved_sigma"] = m.get("calibration_moved_sigma")
             out["laser_discrepancy_pct"] = m.get("calibration_laser_discrepancy_pct")
             out["pixel_sigma_px"] = m.get("calibration_pixel_sigma_px")
