@@ -225,31 +225,3 @@ def test_the_pipeline_hands_each_keyframe_one_frame_later(tmp_path: Path, monkey
     np.testing.assert_allclose(res.final.world_from_cam, inline_res.final.world_from_cam, atol=1e-9)
     np.testing.assert_allclose(res.keyframes.world_from_cam, inline_res.keyframes.world_from_cam, atol=1e-9)
     assert evaluate(res, seq).metrics["ate_rmse_m"] < 0.005
-
-
-def test_beside_keeps_its_threads_and_runs_nested_tasks() -> None:
-    """fe7: a finished task's thread takes the next task (no thread start per task).
-
-    A task that waits for another gets a second thread; an error is raised where the result is asked for.
-    """
-    from loopmodel.frontend.beside import Beside
-
-    first = Beside(True, threading.get_ident)
-    tid = first.result()
-    assert tid != threading.get_ident()
-    assert Beside(True, threading.get_ident).result() == tid  # the kept thread again
-
-    def outer() -> tuple[int, int]:
-        inner = Beside(True, threading.get_ident)
-        return threading.get_ident(), inner.result()
-
-    a, b = Beside(True, outer).result()
-    assert a != b and threading.get_ident() not in (a, b)
-
-    def fails() -> None:
-        raise ValueError("in the task")
-
-    failing = Beside(True, fails)
-    with pytest.raises(ValueError, match="in the task"):
-        failing.result()
-    assert Beside(False, threading.get_ident).result() == threading.get_ident()  # inline

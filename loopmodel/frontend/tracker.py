@@ -368,6 +368,8 @@ class FrontEnd:
         warm_up_stereo()
         warm_up()
         warm_up_pose()
+        if 0 < self.config.opencv_threads < cv2.getNumThreads():  # process-wide: only ever lowered
+            cv2.setNumThreads(self.config.opencv_threads)
 
     # ------------------------------------------------------------------ public
     @property
@@ -1260,7 +1262,9 @@ class FrontEnd:
         (:class:`~loopmodel.io.images.DeferredRightFrame`). The disparity offset is the current one.
         """
         if right is None:
-            rectified = Beside(self.config.keyframe_stereo == "thread", lambda: self.rectifier.right(frame.right))
+            # decoded already (FrontEnd.prepare, or a reader that decodes it): rectified when needed, here
+            threaded = self.config.keyframe_stereo == "thread" and not getattr(frame, "right_decoded", True)
+            rectified = Beside(threaded, lambda: self.rectifier.right(frame.right))
             return keyframe_stereo_set(
                 left, rectified.result, self.calibration.K_left, self.calibration.baseline_m, self.config,
                 self._offset_px, avoid_px, threads,
@@ -1283,8 +1287,9 @@ class FrontEnd:
         cfg = self.config
         world_from_rect = prev.world_from_kfrect @ kf_from_cur
         # older keyframes' points and the local map's sets measured in the new image on one thread
-        # beside this thread's work (numba nogil kernels): one task, not one thread per set (fe7:
-        # eight local-map sets on the KITTI clip, each a thread start and GIL hand-over)
+        # beside this thread's work (numba nogil kernels): one thread, not one per set (fe7: eight
+        # local-map sets on the KITTI clip, each a thread start and an interpreter-lock hand-over,
+        # while the stereo thread already fills the second core)
         gradients = self._left_gradients(left)
         olders = self._older if cfg.keyframe_remeasure else []
         sets_in = self._local if cfg.local_map_remeasure else []
