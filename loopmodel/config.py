@@ -342,6 +342,17 @@ class FrontendConfig(_Section):
     # final ATE 2.87 / 2.87 mm; KITTI: the tracking thread's CPU in a keyframe frame 12-14 / 19-22 ms,
     # kitti_frame_ms_p95 37.9 / 42.0 ms (4 alternating pairs, load 2.7-3). CHANGELOG.md (issue 33, fe5)
     local_ba_beside: bool = Field(True, description="run the local BA beside the tracking, taken between frames")
+    # fe7 (issues 33, 36): OpenCV's own worker threads (two on the 2-core machine) split each KLT, remap
+    # and corner detection, but the keyframe work already keeps both cores busy from Python threads and
+    # OpenCV's workers wait actively. One: the same poses, less CPU. Front end alone on the KITTI clip
+    # (configs/kitti.yaml), CPU per frame 2 / 1 thread(s), 2 alternated pairs of 2 passes at load 11-13:
+    # 31.9, 30.7, 31.0, 28.1 / 28.5, 28.2, 26.9, 26.9 ms; full pipeline, KITTI clip (3 alternated rounds,
+    # SCHED_FIFO at load 17) CPU per frame median 47.3 / 41.4 ms, p95 51.4 / 49.2 ms, final ATE 0.0427 m
+    # both; realistic orbit sample (configs/sim.yaml, first 200 frames, 2 rounds at load 17-20) CPU per frame
+    # 25.7, 24.6 / 29.1, 24.3 ms (noise), final ATE 1.336 mm both. CHANGELOG.md (fe7)
+    opencv_threads: int = Field(
+        1, ge=0, le=256, description="at most this many OpenCV threads in the process (0: OpenCV's own count)"
+    )
 
 
 class MappingConfig(_Section):

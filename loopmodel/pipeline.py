@@ -861,6 +861,7 @@ def _frame_loop(
             run.laser.take(scan)
             if run.skips(scan.frame):
                 continue
+            run.frontend.prepare(scan.frame)  # a keyframe's right image decoded with its reading (fe7)
             run.step(scan.frame)
             if progress is not None:
                 el = run.times.since_start_s()

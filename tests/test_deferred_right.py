@@ -92,3 +92,35 @@ def test_a_deferred_frame_pickles_and_replaces_as_a_stereo_frame(tmp_path: Path,
     moved = dataclasses.replace(frame, index=7)
     assert moved.index == 7
     np.testing.assert_array_equal(moved.right, truth)
+
+
+def test_prepare_decodes_an_expected_keyframes_right_image_before_its_frame(
+    tmp_path: Path, rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """fe7: ``FrontEnd.prepare`` decodes an expected keyframe's right image before its frame.
+
+    (The pipeline's frame loop, outside the frame's time.) The poses are those without it.
+    """
+    write_kitti_folder(tmp_path / "seq", 16, rng)
+    seq = open_sequence(tmp_path / "seq")
+    fe = FrontEnd(seq.calibration, CFG)
+    plain = [fe.process(f) for f in seq.frames()]
+    seen = _decoded_paths(monkeypatch)
+    fe = FrontEnd(seq.calibration, CFG)
+    prepared, ahead, within = [], 0, 0
+    for f in seq.frames():
+        before = len(seen)
+        fe.prepare(f)
+        ahead += sum(name == "image_1" for name, _ in seen[before:])
+        assert isinstance(f, DeferredRightFrame)
+        was_decoded = f.right_decoded
+        prepared.append(fe.process(f))
+        within += prepared[-1].is_keyframe and not was_decoded
+    keyframes = sum(r.is_keyframe for r in prepared)
+    # measured: 4 keyframes (frames 0, 5, 9, 13), the last three expected a frame ahead (frame 0 cannot
+    # be), no right image decoded for a frame that made none
+    assert [r.is_keyframe for r in prepared] == [r.is_keyframe for r in plain]
+    assert ahead == keyframes - 1 and within == 1
+    assert sum(name == "image_1" for name, _ in seen) == keyframes
+    for a, b in zip(prepared, plain, strict=True):
+        np.testing.assert_array_equal(a.world_from_cam, b.world_from_cam)

@@ -36,7 +36,7 @@ def track_klt(
     ``pts_guess`` (N, 2) is the predicted position in ``cur`` (e.g. from a motion model) and
     starts the search. Returns the tracked points, a validity mask (tracked both ways,
     forward-backward error below ``fb_threshold_px``, inside the image) and the
-    forward-backward error (pixels).
+    forward-backward error (pixels; inf where the forward search failed).
     """
     n = pts_prev.shape[0]
     if n == 0:
@@ -53,21 +53,27 @@ def track_klt(
         prev, cur, p0, p1, winSize=win, maxLevel=levels, criteria=criteria, flags=flags
     )
     # the backward search starts at the forward result itself (an independent search;
-    # starting it from the prediction would bias the check towards success)
-    p0b = p1.copy()
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
-        cur,
-        prev,
-        p1,
-        p0b,
-        winSize=win,
-        maxLevel=levels,
-        criteria=criteria,
-        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-    )
+    # starting it from the prediction would bias the check towards success); only for the points
+    # found forward (each point is searched on its own: the same values as searching all)
+    found = np.flatnonzero(st1.ravel() == 1)
     fwd = p1.reshape(-1, 2).astype(float)
-    fb = np.linalg.norm(p0b.reshape(-1, 2) - pts_prev, axis=1)
-    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < fb_threshold_px) & np.isfinite(fb)
+    fb = np.full(n, np.inf)
+    ok = np.zeros(n, dtype=bool)
+    if found.size:
+        p1f = np.ascontiguousarray(p1[found])
+        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
+            cur,
+            prev,
+            p1f,
+            p1f.copy(),
+            winSize=win,
+            maxLevel=levels,
+            criteria=criteria,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        fb[found] = np.linalg.norm(p0b.reshape(-1, 2) - pts_prev[found], axis=1)
+        ok[found] = st2.ravel() == 1
+    ok &= (fb < fb_threshold_px) & np.isfinite(fb)
     if image_size is not None:
         w, h = image_size
         ok &= (fwd[:, 0] >= 0) & (fwd[:, 0] <= w - 1) & (fwd[:, 1] >= 0) & (fwd[:, 1] <= h - 1)
