@@ -373,7 +373,13 @@ def sim150(out: Path) -> dict[str, Any]:
     from loopmodel.io.sequence import open_sequence
 
     r = _run(open_sequence(scan150()), ROOT / "configs" / "sim.yaml", out, "sim150")
-    res: dict[str, Any] = {"sim150_mesh_err_after_mm": r["metrics"].get("mesh_err_after_mm")}
+    m = r["metrics"]
+    res: dict[str, Any] = {
+        "sim150_mesh_err_after_mm": m.get("mesh_err_after_mm"),
+        "sim150_mesh_completeness_after": m.get("mesh_completeness_after"),
+        "sim150_live_mesh_updates": m.get("live_mesh_updates"),
+        "sim150_live_mesh_updates_abandoned": m.get("live_mesh_updates_abandoned"),
+    }
     res.update(finish_keys("sim150", r))
     return res
 
