@@ -186,14 +186,15 @@ class LiveMapping:
         """
         if self._job is not None and (wait or self._job.done()):
             self._collect()
-        if self._job is not None:
-            self.updates_abandoned += 1
+        dropped = self._job is not None
+        self.updates_abandoned += int(dropped)
         self._job = None
         if self._pool is None:
             return
         pool, self._pool = self._pool, None
-        # the executor's own worker processes (a thread pool has none), ended with their update
-        ending = [] if wait else list((getattr(pool, "_processes", None) or {}).values())
+        # the executor's own worker processes (a thread pool has none), ended with the dropped
+        # update; an idle one exits by itself
+        ending = list((getattr(pool, "_processes", None) or {}).values()) if dropped else []
         pool.shutdown(wait=wait, cancel_futures=True)
         for proc in ending:
             if proc.is_alive():
