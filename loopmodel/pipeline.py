@@ -676,7 +676,10 @@ class _Run:
     def _stop_workers(self, interrupted: bool) -> None:
         """Stop the workers: the last laser profiles join the stripes, late loops reach the back end."""
         self.laser.wait()
-        if interrupted:  # the live mesh's last update abandoned; else taken in the mesh step (_mesh)
+        if interrupted or (self.config.mapping.write_mesh and self.laser.stripes):
+            # the live mesh's last update abandoned, its worker process ended: the final mesh supersedes
+            # it (issue 32: else it takes the second core beside the final refinement and the final
+            # mesh); without a final mesh it is waited for in the mesh step (_mesh)
             self.live.close(wait=False)
         self._correct(settle(self.backend))  # issue 33: the back-end worker's last corrections
         self._correct(self.loop.close(self._state()))
@@ -688,9 +691,8 @@ class _Run:
     def _mesh(self, result: RunResult) -> dict[str, Any]:
         """The final mesh of the run's stripes placed with ``result.final``, and the live mesh; the mesh's metrics.
 
-        The live mesh's last update (issue 32: 33 s of the workers step on the 150-frame orbit with
-        ``configs/sim.yaml`` at load 25) is waited for here: its worker process goes on meshing
-        beside the final refinement and the final mesh.
+        The live mesh's last update is waited for here only when no final mesh is made
+        (:meth:`_stop_workers` abandons it otherwise).
         """
         result.stripes = self.laser.stripes
         result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, self.config.mapping)

@@ -140,3 +140,34 @@ def test_corrections_move_every_stripe_point_and_mark_the_blocks_they_leave_and_
             for p in (before[s], got):
                 expected_dirty |= {tuple(k) for k in np.floor(p / cfg.chunk_m).astype(int).tolist()}
     assert expected_dirty and smap.dirty_blocks == expected_dirty
+
+
+def test_abandoned_live_update_ends_its_worker_process() -> None:
+    """``close(wait=False)`` drops an unfinished update and ends the worker process at once (issue 32).
+
+    The update stands for the live mesh's last one, which took a core beside the final refinement
+    and the final mesh; a finished one is still installed.
+    """
+    smap = _sphere_map(MappingConfig(chunk_m=0.1))
+    live = LiveMapping(smap, 1, "process")
+    pool = live._workers()
+    live._job = pool.submit(time.sleep, 120.0)  # an update that would hold its core for two minutes
+    procs = list(pool._processes.values())  # type: ignore[attr-defined]
+    assert procs
+    t0 = time.perf_counter()
+    live.close(wait=False)
+    for proc in procs:
+        proc.join(timeout=30.0)
+    assert not any(proc.is_alive() for proc in procs)
+    assert time.perf_counter() - t0 < 30.0  # ended, not waited for (the sleep is 120 s)
+    assert live.updates_abandoned == 1 and live.metrics()["live_mesh_updates_abandoned"] == 1
+    assert live.mesh() is None  # no update ever finished
+
+    # a finished update is installed even without waiting
+    live = LiveMapping(_sphere_map(MappingConfig(chunk_m=0.1)), 1, "thread")
+    live.on_keyframe()
+    job = live._job
+    assert job is not None
+    job.result(timeout=120.0)
+    live.close(wait=False)
+    assert live.updates_abandoned == 0 and live.update_ms and live.mesh() is not None

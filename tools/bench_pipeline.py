@@ -23,7 +23,10 @@ workers over the wall time of the KITTI run: above 1 when the workers use the se
 keyframes), ``wall_over_frames_kitti`` / ``wall_over_frames_sim`` (``run_pipeline``'s wall time, the
 final mesh, evaluation and writes included, over the frame loop's, issue 32), ``finish_s_<step>_<kitti|sim|sim150>``
 (each step after the last frame), ``wall_over_frames_sim150`` (the same on the 150-frame realistic orbit
-with laser images, :func:`scan150`; not with ``--quick``), ``orbit300_frame_ms_p95`` /
+with laser images, :func:`scan150`; not with ``--quick``; ``sim150_mesh_completeness_after`` beside its
+mesh error), ``sim_live_mesh_updates`` / ``sim150_live_mesh_updates`` (live-mesh updates taken) and
+``..._live_mesh_updates_abandoned`` (unfinished at the last frame, dropped for the final mesh),
+``orbit300_frame_ms_p95`` /
 ``orbit300_frame_ms_max_after_warmup`` (the 300-frame realistic orbit with the live mesh, :func:`scan300`;
 not with ``--quick`` nor ``LOOPMODEL_BENCH_ORBIT300=0``), ``import_s`` (a fresh interpreter importing
 ``loopmodel.pipeline``, median of 3).
@@ -348,6 +351,8 @@ def sim(out: Path, quick: bool) -> dict[str, Any]:
         "sim_frontend_fps": round(frontend_fps(seq, cfg, n), 2),
         "sim_loops": m.get("loop_closure_count"),
         "sim_mesh_err_after_mm": m.get("mesh_err_after_mm"),
+        "sim_live_mesh_updates": m.get("live_mesh_updates"),
+        "sim_live_mesh_updates_abandoned": m.get("live_mesh_updates_abandoned"),
     }
     res.update(finish_keys("sim", r))
     gt = seq.ground_truth
@@ -373,7 +378,13 @@ def sim150(out: Path) -> dict[str, Any]:
     from loopmodel.io.sequence import open_sequence
 
     r = _run(open_sequence(scan150()), ROOT / "configs" / "sim.yaml", out, "sim150")
-    res: dict[str, Any] = {"sim150_mesh_err_after_mm": r["metrics"].get("mesh_err_after_mm")}
+    m = r["metrics"]
+    res: dict[str, Any] = {
+        "sim150_mesh_err_after_mm": m.get("mesh_err_after_mm"),
+        "sim150_mesh_completeness_after": m.get("mesh_completeness_after"),
+        "sim150_live_mesh_updates": m.get("live_mesh_updates"),
+        "sim150_live_mesh_updates_abandoned": m.get("live_mesh_updates_abandoned"),
+    }
     res.update(finish_keys("sim150", r))
     return res
 

@@ -90,6 +90,7 @@ class LiveMapping:
         self.update_ms: list[float] = []
         self.blocks_remeshed = 0
         self.points_meshed = 0
+        self.updates_abandoned = 0  # updates dropped unfinished (:meth:`close` without waiting)
 
     @property
     def enabled(self) -> bool:
@@ -177,11 +178,27 @@ class LiveMapping:
         return self._world.point_count * sum(self.update_ms) / 1e3 / self.points_meshed
 
     def close(self, wait: bool) -> None:
-        """Install the last worker result (``wait``) or abandon it; stop the worker."""
-        if self._job is not None and wait:
+        """Install the last worker result (``wait``) or abandon it; stop the worker.
+
+        Abandoned, a worker process is ended at once (issue 32: its last update, 143 blocks of the
+        150-frame orbit, took a core beside the final refinement and the final mesh); a thread
+        finishes its update unseen.
+        """
+        if self._job is not None and (wait or self._job.done()):
             self._collect()
-        if self._pool is not None:
-            self._pool.shutdown(wait=wait, cancel_futures=True)
+        dropped = self._job is not None
+        self.updates_abandoned += int(dropped)
+        self._job = None
+        if self._pool is None:
+            return
+        pool, self._pool = self._pool, None
+        # the executor's own worker processes (a thread pool has none), ended with the dropped
+        # update; an idle one exits by itself
+        ending = list((getattr(pool, "_processes", None) or {}).values()) if dropped else []
+        pool.shutdown(wait=wait, cancel_futures=True)
+        for proc in ending:
+            if proc.is_alive():
+                proc.terminate()
 
     def mesh(self) -> Any:
         """The live mesh as the run left it (an open3d mesh).
@@ -203,6 +220,7 @@ class LiveMapping:
         a = np.asarray(self.update_ms, dtype=float)
         return {
             "live_mesh_updates": len(self.update_ms),
+            "live_mesh_updates_abandoned": self.updates_abandoned,
             "live_mesh_blocks_remeshed": self.blocks_remeshed,
             "live_mesh_update_ms_median": float(np.median(a)) if a.size else None,
             "live_mesh_update_ms_p95": float(np.percentile(a, 95)) if a.size else None,
