@@ -573,8 +573,9 @@ class _Layout:
     ``pair`` the distinct (pose, landmark) pairs of the observations; ``of_pose``/``of_point``/
     ``of_pair`` sum observation rows per pose, landmark and pair; ``pair_to_pose`` sums pair rows
     per free pose (the first is fixed), ``pair_to_point`` per landmark; ``combo_a``/``combo_b``
-    every two pairs of one landmark, both with free poses, and ``of_combo`` sums them into the
-    (pose a, pose b) blocks of the reduced system.
+    every two pairs of one landmark, both with free poses, pose a not after pose b, and
+    ``of_combo`` sums them into the (pose a, pose b) blocks of the reduced system (on and above
+    its block diagonal).
     """
 
     pose_idx: I64
@@ -624,7 +625,9 @@ def _layout(obs: RigObservations, n_pose: int, n_pt: int) -> _Layout:
     a = np.repeat(order, m)
     offsets = np.arange(int(m.sum())) - np.repeat(np.cumsum(m) - m, m)
     b = order[np.repeat(first[pair_point[order]], m) + offsets]
-    free = (pair_pose[a] > 0) & (pair_pose[b] > 0)
+    # both poses free; each two pairs once (the reduced system is symmetric: pose a <= pose b, the
+    # blocks below the diagonal mirrored in _schur)
+    free = (pair_pose[a] > 0) & (pair_pose[b] > 0) & (pair_pose[a] <= pair_pose[b])
     a, b = a[free], b[free]
     nf = n_pose - 1
     layout = _Layout(
@@ -774,7 +777,10 @@ def _schur(H: F64, Hzl: _Coupling, V: F64, damping: float) -> tuple[F64, F64]:
         WV = _times_3x3(W, Vinv[lay.pair_point])
         nf = lay.n_pose - 1
         Spp = np.asarray(lay.of_combo @ _outer_sum_t(WV[lay.combo_a], W[lay.combo_b]).reshape(-1, 36))
-        S[:npz, :npz] -= Spp.reshape(nf, nf, 6, 6).transpose(0, 2, 1, 3).reshape(npz, npz)
+        upper = Spp.reshape(nf, nf, 6, 6).transpose(0, 2, 1, 3).reshape(npz, npz)  # blocks a <= b
+        blk = np.arange(npz) // 6
+        off = np.where(blk[:, None] < blk[None, :], upper, 0.0)  # above the diagonal blocks (those whole, symmetric)
+        S[:npz, :npz] -= upper + off.T
         Spc = np.asarray(lay.pair_to_pose @ _outer_sum_t(WV, Y[lay.pair_point]).reshape(W.shape[0], 6 * nc))
         S[:npz, npz:] -= Spc.reshape(npz, nc)
         S[npz:, :npz] = S[:npz, npz:].T
