@@ -468,7 +468,7 @@ def test_reduced_system_matches_a_dense_schur_complement() -> None:
 
 
 def test_early_stops_land_within_noise_of_the_converged_solution(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The rough solves and the final solve's stopping rule leave the calibration within a few hundredths of a prior sigma.
+    """The rough solves and the final stopping rule leave the calibration within hundredths of a prior sigma.
 
     Against the same problem solved to convergence (tolerances near zero, the noise re-estimated until it
     stops moving): values, pixel noise, posterior sigmas and what is reported unobservable.
