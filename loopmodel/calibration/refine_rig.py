@@ -130,6 +130,15 @@ def project_with_jacobians(p_cam: F64, intr: F64, dist: F64) -> tuple[F64, F64, 
     return uv, J_p, J_i
 
 
+def _cross(a: F64, b: F64) -> F64:
+    """Row-wise cross products of N x 3 arrays (``np.cross`` without its axis handling)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
+
+
 def _project(p_cam: F64, K: F64, dist: F64) -> F64:
     uv, _, _ = project_with_jacobians(p_cam, np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]), distortion5(dist))
     return uv
@@ -396,10 +405,10 @@ def residuals_and_jacobians(
                 res[sel, row] = np.sum(m * d_uv, axis=1)
                 jq = np.einsum("nk,nkj->nj", m, Jq)  # N x 3
                 J_th[sel, row, o : o + 6] = np.einsum("nk,nkj->nj", m, Ji)
-                J_th[sel, row, _ROT] = np.cross(q - t_rl, jq)  # the row jq (-[q - t]x)
+                J_th[sel, row, _ROT] = _cross(q - t_rl, jq)  # the row jq (-[q - t]x)
                 J_th[sel, row, _BASE] = jq @ rig.baseline_dir
                 jl = jq @ R_rl  # by p_l
-                J_pose[sel, row, :3] = np.cross(jl, pc)  # the row jl [p_l]x
+                J_pose[sel, row, :3] = _cross(jl, pc)  # the row jl [p_l]x
                 J_pose[sel, row, 3:] = -jl
                 J_pt[sel, row] = np.einsum("nj,nkj->nk", jl, R[sel])
         else:
@@ -408,7 +417,7 @@ def residuals_and_jacobians(
             # d p_l / d w = [p_l]x, d p_l / d v = -I, d p_l / d p_w = R^T
             for row in (0, 1):
                 jl = Jq[:, row, :]
-                J_pose[sel, row, :3] = np.cross(jl, pc)
+                J_pose[sel, row, :3] = _cross(jl, pc)
                 J_pose[sel, row, 3:] = -jl
                 J_pt[sel, row] = np.einsum("nj,nkj->nk", jl, R[sel])
     return res, J_pose, J_pt, J_th
@@ -671,7 +680,7 @@ def _times_3x3(A: F64, M: F64) -> F64:
 
 def _times_vec(M: F64, x: F64) -> F64:
     """``M_n x_n`` of 3x3 blocks ``M`` (N x 3 x 3) and a stacked vector ``x`` (3N): 3N."""
-    return np.asarray(np.sum(M * x.reshape(-1, 1, 3), axis=2).ravel())
+    return np.asarray(np.matmul(M, x.reshape(-1, 3, 1)).ravel())
 
 
 def _flat(A: F64) -> F64:
@@ -791,7 +800,7 @@ def _hzl_dot(Hzl: _Coupling, x: F64) -> F64:
     """``Hzl x`` for a landmark vector ``x`` (3L): the free poses' rows, then the calibration's."""
     lay = Hzl.layout
     xl = x.reshape(-1, 3)
-    top = np.asarray(lay.pair_to_pose @ np.sum(Hzl.W * xl[lay.pair_point][:, None, :], axis=2)).ravel()
+    top = np.asarray(lay.pair_to_pose @ np.matmul(Hzl.W, xl[lay.pair_point][:, :, None])[:, :, 0]).ravel()
     return np.concatenate([top, _flat(Hzl.Y) @ xl.ravel()])
 
 
@@ -801,7 +810,7 @@ def _hlz_dot(Hzl: _Coupling, y: F64) -> F64:
     npz = 6 * (lay.n_pose - 1)
     yp = np.concatenate([np.zeros(6), y[:npz]]).reshape(-1, 6)
     out = np.tensordot(Hzl.Y, y[npz:], axes=([1], [0]))
-    out += np.asarray(lay.pair_to_point @ np.sum(Hzl.W * yp[lay.pair_pose][:, :, None], axis=1))
+    out += np.asarray(lay.pair_to_point @ np.matmul(yp[lay.pair_pose][:, None, :], Hzl.W)[:, 0, :])
     return np.asarray(out.ravel(), dtype=np.float64)
 
 
