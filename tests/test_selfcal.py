@@ -327,6 +327,7 @@ def test_refining_reads_right_columns_at_their_rows() -> None:
     cfg = Config()
     own = cfg.frontend.stereo_subpixel
     assert own != "gradient_2d"  # the front end's default (else the test checks nothing)
+    cfg.calibration.refine = "none"  # type: ignore[assignment]
     assert cfg.calibration.frontend_config(cfg.frontend).stereo_subpixel == own
     cfg.calibration.refine = "final"  # type: ignore[assignment]
     assert cfg.calibration.frontend_config(cfg.frontend).stereo_subpixel == "gradient_2d"
