@@ -903,7 +903,7 @@ class SelfCalibrationConfig(_Section):
     # calib7: default final. The refinement's solver cut (rough solves until the pixel noise settles,
     # one final solve: KITTI 16 -> 10 iterations, the 150-frame orbit 21 -> 17, values within 0.005
     # prior sigma), its modules imported during the set-up. Measured (CHANGELOG calib7): the KITTI clip
-    # (configs/kitti.yaml) wall over frames final 1.193 -> 1.132 (none 1.138) at load 11-16, ATE
+    # (configs/kitti.yaml) wall over frames final 1.236 -> 1.161 (none 1.119) at load 5-10, ATE
     # 0.0347 m (none 0.0427), drift 0.830 % (none 0.907); the 150-frame realistic orbit (configs/sim.yaml)
     # mesh error after closure 0.595 mm (none 3.84); bench peer --quick orbit / modeler drift 0.227 /
     # 0.207 % against ORB-SLAM3's 0.650 / 0.587; the real chessboard rig's largest move 0.527 prior sigma
