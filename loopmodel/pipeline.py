@@ -371,6 +371,8 @@ class _Run:
         # issue 33: in a worker beside the tracker (config.backend.worker)
         make = functools.partial(create_backend, config.backend, self.frontend.calibration, config.givens)
         self.backend: Backend = start_backend(config.backend, make)
+        if config.calibration.refine != "none":  # calib7: the self-calibration's modules, not after the last frame
+            _import_beside("loopmodel.calibration.retrack")
         self.session.setup(config, self.frontend.calibration)
         self.localizer = self.session.localizer
         # the place-recognition vocabulary of the loop stage and the session map, read here (issue 32)

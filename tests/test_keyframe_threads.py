@@ -191,6 +191,9 @@ def test_the_pipeline_hands_each_keyframe_one_frame_later(tmp_path: Path, monkey
         cfg.frontend.min_tracked_fraction = 0.95  # several keyframes in a short sequence
         cfg.frontend.local_ba_beside = beside
         cfg.backend.worker = "inline"  # type: ignore[assignment]
+        # the back ends' poses agree to 1e-7 (below): the final trajectories compared at 1e-9 are the
+        # back end's, not a calibrating BA's from them (refine final: 3.1e-5 rotation, 0.31 mm apart)
+        cfg.calibration.refine = "none"  # type: ignore[assignment]
         cfg.loop.enabled = False
         cfg.mapping.write_mesh = False
         cfg.output.write_map = False
