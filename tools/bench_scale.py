@@ -8,7 +8,8 @@ frame, hours on a loaded 2-core machine). ``--quick``: the same kind of scan wit
 frames (faster motion, about 120 keyframes). The pipeline runs with its own configuration (iSAM2 back
 end in its worker, loop stage with its worker, live and final meshes, session map).
 
-Keys: ``frames``, ``keyframes``, ``loops``; ``frame_ms_last_over_first``: median per-frame time over
+Keys: ``frames``, ``keyframes``, ``loops``, ``loops_old_features_resumed`` (loops whose old features the
+front end tracked on); ``frame_ms_last_over_first``: median per-frame time over
 the last N frames divided by that over the first N (N = 500, quick 200; a frame's time is the
 interval between the pipeline's requests for consecutive frames, so it includes reading, the loop
 stage and the back end's queueing); ``frame_ms_by_frames``: that median per block of N frames;
@@ -258,6 +259,7 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None, 
         "frames": len(out.frames),
         "keyframes": int(out.keyframe_ids.size),
         "loops": len(loops),
+        "loops_old_features_resumed": sum(int(e.get("old_features_resumed") or 0) > 0 for e in loops),
         "frame_ms_first_median": round(float(np.median(dt[:n])), 2) if n > 0 else None,
         "frame_ms_last_median": round(float(np.median(dt[-n:])), 2) if n > 0 else None,
         "frame_ms_last_over_first": round(ratio, 3) if ratio is not None else None,
