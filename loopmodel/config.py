@@ -751,6 +751,12 @@ class LoopConfig(_Section):
     apply_worker: Literal["thread", "none"] = Field(
         "thread", description="where a late loop is moved to the current keyframe and gated"
     )
+    # whether such a loop, applied between frames while its keyframe is the front end's active one, hands
+    # the old features to the front end to track on (seed 004 section 5), as inline application does.
+    # bench scale --quick (rounds_1800, load 11-21): with it, final ATE 15.22 mm in 3 runs of 4 and
+    # 24.48 mm in one (inline application: 14.95-14.96 mm in 3); without it 9.36 mm in the one run
+    # made (load 11-15). One scan and one run: kept on until measured on more sequences.
+    late_resume: bool = Field(True, description="a loop applied between frames resumes its old features")
     # a backlog bound, not a tuned value: 16 keyframes is seconds of scanning at any keyframe rate
     max_queued_keyframes: int = Field(
         16, ge=1, le=100000, description="worker backlog above which new keyframes are stored but not queried"

@@ -406,7 +406,8 @@ class LoopClosingStage:
 
         Each accepted loop becomes a constraint whose keyframe (already with the back end) brings
         its observations of the old landmarks (``LoopConstraint.kf_a_mono_obs``); while that keyframe
-        is still the latest one, the old features go to the front end (``resume``). The outcome's
+        is still the latest one, the old features go to the front end (``resume``, with
+        ``loop.late_resume``). The outcome's
         ``keyframe`` is the stage's latest keyframe.
         """
         if not self._moving or not self._moving[0].done():
@@ -416,7 +417,7 @@ class LoopClosingStage:
         while self._moving and self._moving[0].done():
             moved = self._take_move(self._moving.popleft(), None)
             if moved is not None:
-                self._apply_moved(moved, out, state, resume=True)
+                self._apply_moved(moved, out, state, resume=self.config.late_resume)
         return out
 
     def _take_move(self, job: Future[_Moved], timeout_s: float | None) -> _Moved | None:
