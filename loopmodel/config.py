@@ -753,9 +753,10 @@ class LoopConfig(_Section):
     )
     # whether such a loop, applied between frames while its keyframe is the front end's active one, hands
     # the old features to the front end to track on (seed 004 section 5), as inline application does.
-    # bench scale --quick (rounds_1800, load 11-21): with it, final ATE 15.22 mm in 3 runs of 4 and
-    # 24.48 mm in one (inline application: 14.95-14.96 mm in 3); without it 9.36 mm in the one run
-    # made (load 11-15). One scan and one run: kept on until measured on more sequences.
+    # bench scale --quick (rounds_1800, load 4-21): with it, final ATE 14.99-15.22 mm in 4 runs of 5
+    # and 24.48 mm in one (inline application: 14.95-14.96 mm in 3); without it 9.36 and 9.37 mm (2 runs,
+    # side by side with two of the former). Only this scan closes loops late (the KITTI clip and the
+    # quick sim-loop scans close none): kept on until a second sequence with loops is measured.
     late_resume: bool = Field(True, description="a loop applied between frames resumes its old features")
     # a backlog bound, not a tuned value: 16 keyframes is seconds of scanning at any keyframe rate
     max_queued_keyframes: int = Field(
