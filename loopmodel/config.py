@@ -753,6 +753,22 @@ class LoopConfig(_Section):
     detection_worker: Literal["process", "thread", "none"] = Field(
         "thread", description="where retrieval and verification run; applied at the next keyframe"
     )
+    # issue 33 item 1: a loop the detection worker found for an earlier keyframe is moved to the current
+    # keyframe (its old features tracked into that image, P3P bank) and gated; ``thread``: both on a
+    # thread of their own, the loop applied between frames when done (its constraint with the
+    # keyframe's observations of the old landmarks, the old set to the front end while that keyframe is
+    # still the active one); ``none``: inline in the keyframe's loop stage, as before (rounds scan,
+    # scale6: about 115 ms of tracking and 4-135 ms of gate per applied loop on the tracking thread).
+    apply_worker: Literal["thread", "none"] = Field(
+        "thread", description="where a late loop is moved to the current keyframe and gated"
+    )
+    # whether such a loop, applied between frames while its keyframe is the front end's active one, hands
+    # the old features to the front end to track on (seed 004 section 5), as inline application does.
+    # bench scale --quick (rounds_1800, load 4-21): with it, final ATE 14.99-15.22 mm in 4 runs of 5
+    # and 24.48 mm in one (inline application: 14.95-14.96 mm in 3); without it 9.36 and 9.37 mm (2 runs,
+    # side by side with two of the former). Only this scan closes loops late (the KITTI clip and the
+    # quick sim-loop scans close none): kept on until a second sequence with loops is measured.
+    late_resume: bool = Field(True, description="a loop applied between frames resumes its old features")
     # a backlog bound, not a tuned value: 16 keyframes is seconds of scanning at any keyframe rate
     max_queued_keyframes: int = Field(
         16, ge=1, le=100000, description="worker backlog above which new keyframes are stored but not queried"

@@ -416,6 +416,7 @@ class _Run:
         """
         t0 = time.perf_counter()
         late = self._hand_waiting_keyframes()
+        self._loops_between_frames()
         res = self.frontend.process(frame)
         if res.is_keyframe and res.keyframe is None:  # (local_ba_beside) its frame anchors to it already
             self.anchored.set_keyframe(res.keyframe_id, res.world_from_cam)
@@ -460,6 +461,21 @@ class _Run:
             if last.is_keyframe and last.keyframe_id == kf.id:
                 self.frames[-1] = dataclasses.replace(last, world_from_cam=np.asarray(kf.world_from_kf).copy())
         return bool(late)
+
+    def _loops_between_frames(self) -> None:
+        """Loops the loop stage's workers finished since the last frame (issue 33): to the back end and front end."""
+        out = self.loop.between_frames(self._state())
+        if out is None:
+            return
+        self._correct(out.corrections)
+        if out.resume is not None:
+            self.frontend.resume_features(out.resume)
+        tb = time.perf_counter()
+        ids = self._add_constraints(out.constraints)
+        self._last = ((time.perf_counter() - tb) * 1e3, ids)
+        for listener in self.listeners:
+            if out.events:
+                listener.on_loop_events(out.events)
 
     def _state(self) -> MapState:
         return MapState(self.frontend.world_from_kf, *self._last)

@@ -108,6 +108,15 @@ class LoopStage(Protocol):
         """Process a new keyframe (after the front end, before the back end)."""
         ...
 
+    def between_frames(self, state: MapState) -> LoopOutcome | None:
+        """What its workers finished since the last call, to apply before the next frame, or None.
+
+        The outcome's ``keyframe`` is the one its loops were applied at (the back end has it
+        already); its constraints may carry that keyframe's observations of old landmarks
+        (``LoopConstraint.kf_a_mono_obs``), its ``resume`` is for the front end's active keyframe.
+        """
+        ...
+
     def close(self, state: MapState) -> dict[int, F64]:
         """Finish pending work at the end of the run; returns its last corrections."""
         ...
@@ -131,6 +140,10 @@ class NullLoopStage:
     def on_keyframe(self, keyframe: Keyframe, state: MapState) -> LoopOutcome:
         """The keyframe as it came."""
         return LoopOutcome(keyframe)
+
+    def between_frames(self, state: MapState) -> LoopOutcome | None:
+        """Nothing runs beside."""
+        return None
 
     def close(self, state: MapState) -> dict[int, F64]:
         """Nothing pending."""

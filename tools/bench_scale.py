@@ -8,7 +8,8 @@ frame, hours on a loaded 2-core machine). ``--quick``: the same kind of scan wit
 frames (faster motion, about 120 keyframes). The pipeline runs with its own configuration (iSAM2 back
 end in its worker, loop stage with its worker, live and final meshes, session map).
 
-Keys: ``frames``, ``keyframes``, ``loops``; ``frame_ms_last_over_first``: median per-frame time over
+Keys: ``frames``, ``keyframes``, ``loops``, ``loops_old_features_resumed`` (loops whose old features the
+front end tracked on); ``frame_ms_last_over_first``: median per-frame time over
 the last N frames divided by that over the first N (N = 500, quick 200; a frame's time is the
 interval between the pipeline's requests for consecutive frames, so it includes reading, the loop
 stage and the back end's queueing); ``frame_ms_by_frames``: that median per block of N frames;
@@ -18,8 +19,10 @@ CPU time per frame (``time.thread_time``: what the load does not change; worker 
 on it, as its worker thread measures it: ``add_keyframe``, late observations, loop constraints,
 ``estimate``, charged to the number of keyframes it holds), median per block of B keyframes (B = 20),
 as [keyframes, ms] pairs; ``backend_ms_last_over_first``: the last block's median over the first's;
+``frame_ms_p95`` and ``frame_ms_max_after_first``: over the frames after the first (wall);
 ``loop_stage_ms_by_keyframes``: the loop stage's ``on_keyframe`` on the tracking thread, the same
-way; ``loop_opt_ms_by_keyframes``: each loop constraint's optimisation in the back end (its
+way; ``loop_stage_s``: all its time on the tracking thread (``on_keyframe`` and ``between_frames``);
+``loop_opt_ms_by_keyframes``: each loop constraint's optimisation in the back end (its
 ``add_loop_constraint``: the update and the relinearisation after it) with the keyframes at that
 moment; ``loop_gate_ms_by_keyframes``: each verified loop's robust-gate solve; ``ate_rmse_before_m``
 and ``ate_rmse_after_m``: every tracked frame's position (dead reckoning through the keyframes'
@@ -169,6 +172,8 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None, 
     loop_clock = _Clock()
     backends: list[Any] = []
     start, write, on_keyframe = pl.start_backend, pl.write_results, LoopClosingStage.on_keyframe
+    between = LoopClosingStage.between_frames
+    between_ms: list[float] = []
     write_s = [0.0]
     chain: dict[int, tuple[int | None, np.ndarray | None, bool, np.ndarray]] = {}
 
@@ -198,9 +203,17 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None, 
         finally:
             loop_clock.add(t0)
 
+    def timed_between(self: Any, state: Any) -> Any:
+        t0 = time.perf_counter()
+        try:
+            return between(self, state)
+        finally:
+            between_ms.append((time.perf_counter() - t0) * 1e3)
+
     pl.start_backend = recorded_backend  # type: ignore[assignment]
     pl.write_results = timed_write  # type: ignore[assignment]
     LoopClosingStage.on_keyframe = timed_on_keyframe  # type: ignore[method-assign]
+    LoopClosingStage.between_frames = timed_between  # type: ignore[method-assign]
     try:
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
@@ -210,6 +223,7 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None, 
     finally:
         pl.start_backend, pl.write_results = start, write  # type: ignore[assignment]
         LoopClosingStage.on_keyframe = on_keyframe  # type: ignore[method-assign]
+        LoopClosingStage.between_frames = between  # type: ignore[method-assign]
     stamps = np.array(seq.stamps)
     dt = np.diff(stamps) * 1e3
     cpu = np.diff(np.array(seq.cpu_s)) * 1e3
@@ -245,10 +259,14 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None, 
         "frames": len(out.frames),
         "keyframes": int(out.keyframe_ids.size),
         "loops": len(loops),
+        "loops_old_features_resumed": sum(int(e.get("old_features_resumed") or 0) > 0 for e in loops),
         "frame_ms_first_median": round(float(np.median(dt[:n])), 2) if n > 0 else None,
         "frame_ms_last_median": round(float(np.median(dt[-n:])), 2) if n > 0 else None,
         "frame_ms_last_over_first": round(ratio, 3) if ratio is not None else None,
         "frame_ms_by_frames": _blocks(dt, max(n, 1)),
+        "frame_ms_p95": round(float(np.percentile(dt[1:], 95)), 1) if dt.size > 1 else None,
+        "frame_ms_max_after_first": round(float(dt[1:].max()), 1) if dt.size > 1 else None,
+        "loop_stage_s": round((sum(loop_clock.ms.values()) + sum(between_ms)) / 1e3, 2),
         "frame_cpu_ms_last_over_first": round(cpu_ratio, 3) if cpu_ratio is not None else None,
         "frame_cpu_ms_by_frames": _blocks(cpu, max(n, 1)),
         "backend_ms_by_keyframes": curve,

@@ -311,6 +311,10 @@ class MapLocalizationStage:
         """None: nothing is added to the map."""
         return []
 
+    def between_frames(self, state: MapState) -> LoopOutcome | None:
+        """None: its relocalizations are applied at keyframes."""
+        return None
+
     def detection(self, kf_id: int) -> Future[Any] | None:
         """None: a localizing run detects no loops."""
         return None

@@ -83,6 +83,21 @@ class Detection:
     features: FeatureSet | None = None
 
 
+@dataclass
+class _Moved:
+    """A late loop after the apply worker (``loop.apply_worker: thread``).
+
+    ``closure``: the loop as it is applied — moved to keyframe ``at_kf`` (``moved``: its old
+    features tracked into that keyframe's image) or the detection's own; ``accepted``: the robust
+    gate kept it.
+    """
+
+    closure: LoopClosure
+    moved: bool
+    accepted: bool
+    at_kf: int
+
+
 def detect_keyframe(closer: LoopCloser, kf: Keyframe, neighbours: set[int], query: bool) -> Detection:
     """Store ``kf`` in ``closer``'s database and look for a verified revisit."""
     det = closer.detector
@@ -150,6 +165,14 @@ def _motion(a: F64, b: F64) -> tuple[float, float]:
     return float(np.linalg.norm(d[:3, 3])), float(np.degrees(np.linalg.norm(so3_log(d[:3, :3]))))
 
 
+def _new_observations(kf: Keyframe, obs: LoopObservations) -> F64:
+    """Rows (landmark id, u, v) of the loop's observations of old landmarks that ``kf`` does not have yet."""
+    mono = np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3)
+    have = set(mono[:, 0].astype(np.int64).tolist())
+    keep = np.array([int(i) not in have for i in obs.landmark_ids], dtype=bool)
+    return np.column_stack([obs.landmark_ids[keep].astype(float), np.asarray(obs.uv_px, float).reshape(-1, 2)[keep]])
+
+
 def _with_observations(kf: Keyframe, obs: LoopObservations) -> Keyframe:
     """The keyframe with the loop's observations of old landmarks appended to its monocular observations.
 
@@ -158,10 +181,7 @@ def _with_observations(kf: Keyframe, obs: LoopObservations) -> Keyframe:
     if not obs.landmark_ids.size:
         return kf
     mono = np.asarray(kf.mono_obs, dtype=float).reshape(-1, 3)
-    have = set(mono[:, 0].astype(np.int64).tolist())
-    keep = np.array([int(i) not in have for i in obs.landmark_ids], dtype=bool)
-    extra = np.column_stack([obs.landmark_ids[keep].astype(float), obs.uv_px[keep]])
-    return dataclasses.replace(kf, mono_obs=np.vstack([mono, extra]))
+    return dataclasses.replace(kf, mono_obs=np.vstack([mono, _new_observations(kf, obs)]))
 
 
 class LoopClosingStage:
@@ -204,6 +224,10 @@ class LoopClosingStage:
         #: keyframes' images and landmarks (KLT stage, corrections)
         self._detect_pool: ThreadPoolExecutor | ProcessPoolExecutor | None = None
         self._inflight: deque[tuple[int, Future[Detection]]] = deque()
+        #: late loops being moved to their current keyframe and gated (``apply_worker: thread``)
+        self._apply_pool: ThreadPoolExecutor | None = None
+        self._moving: deque[Future[_Moved]] = deque()
+        self.applied_between_frames = 0
         self._detections: list[tuple[int, Future[Detection]]] = []  # the last keyframe's (detection())
         self.neighbours_skipped = 0
         self.detect_s: list[float] = []
@@ -313,9 +337,150 @@ class LoopClosingStage:
             except LoopmodelError as exc:  # a failed detection is logged, never applied
                 logger.warning("loop detection of keyframe %d failed (%s)", kf_id, exc)
                 continue
-            if closure is not None:
-                self.late_closures += 1
+            if closure is None:
+                continue
+            self.late_closures += 1
+            if self.via_backend and self.config.apply_worker == "thread" and closure.query_kf != int(out.keyframe.id):
+                self._submit_move(closure, out.keyframe, state)
+            else:
                 self._close_late(closure, out, state)
+
+    def _predicted_from_match(self, closure: LoopClosure, cur: Keyframe, state: MapState) -> F64:
+        """``current_from_match`` (rectified frames) the tracker's poses and the loop's pose predict."""
+        world = state.world_from_kf
+        w_q = np.asarray(world[closure.query_kf]) @ invert_pose(self.keyframes[closure.query_kf].rect_from_cam)
+        w_c = np.asarray(cur.world_from_kf) @ invert_pose(cur.rect_from_cam)
+        return invert_pose(w_c) @ w_q @ closure.query_from_match
+
+    def _submit_move(self, closure: LoopClosure, cur: Keyframe, state: MapState) -> None:
+        """Hand a late loop to the apply worker: moved to keyframe ``cur`` and gated there, beside tracking.
+
+        The worker gets copies of the poses and the keyframe table as they are now; the result is
+        applied between frames (:meth:`between_frames`).
+        """
+        pred = self._predicted_from_match(closure, cur, state)
+        world = {k: np.array(v, dtype=float) for k, v in state.world_from_kf.items()}
+        if self._apply_pool is None:
+            self._apply_pool = ThreadPoolExecutor(1, thread_name_prefix="loop-apply")
+        job = self._apply_pool.submit(
+            self._move, closure, int(cur.id), np.asarray(cur.image), pred, world, dict(self.keyframes)
+        )
+        self._moving.append(job)
+
+    def _move(
+        self,
+        closure: LoopClosure,
+        cur_id: int,
+        image: NDArray[np.uint8],
+        pred: F64,
+        world_from_kf: dict[int, F64],
+        keyframes: dict[int, Keyframe],
+    ) -> _Moved:
+        """The apply worker's job: the old features tracked into keyframe ``cur_id``'s ``image``, the gate.
+
+        ``pred``: the predicted ``current_from_match`` (rectified); ``world_from_kf`` and
+        ``keyframes``: the stage's as they were when the job was given (read only).
+        """
+        tr = self.closer.track_old_features(closure.match_kf, image, pred)
+        if tr is None or tr[1].size < self.config.min_inliers:
+            return _Moved(closure, False, self._robust_gate(closure, world_from_kf, keyframes), cur_id)
+        moved = LoopClosure(
+            cur_id,
+            closure.match_kf,
+            tr[0],
+            LoopObservations(cur_id, tr[1], tr[2]),
+            closure.n_descriptor_inliers,
+            int(tr[1].size),
+            closure.event,
+            closure.detect_ms,
+            closure.refine_ms,
+            {**closure.info, "verified_at_keyframe": closure.query_kf},
+        )
+        accepted = self._robust_gate(moved, world_from_kf, keyframes)
+        if accepted:
+            self.closer.closures.append(moved)
+        return _Moved(moved, True, accepted, cur_id)
+
+    def between_frames(self, state: MapState) -> LoopOutcome | None:
+        """The late loops the apply worker finished since the last call, or None (never waits).
+
+        Each accepted loop becomes a constraint whose keyframe (already with the back end) brings
+        its observations of the old landmarks (``LoopConstraint.kf_a_mono_obs``); while that keyframe
+        is still the latest one, the old features go to the front end (``resume``, with
+        ``loop.late_resume``). The outcome's
+        ``keyframe`` is the stage's latest keyframe.
+        """
+        if not self._moving or not self._moving[0].done():
+            return None
+        self._note_backend(state)
+        out = LoopOutcome(self.keyframes[max(self.keyframes)])
+        while self._moving and self._moving[0].done():
+            moved = self._take_move(self._moving.popleft(), None)
+            if moved is not None:
+                self._apply_moved(moved, out, state, resume=self.config.late_resume)
+        return out
+
+    def _take_move(self, job: Future[_Moved], timeout_s: float | None) -> _Moved | None:
+        """A move job's result (waiting at most ``timeout_s``); None when it failed (logged)."""
+        try:
+            return job.result(timeout=timeout_s)
+        except LoopmodelError as exc:
+            logger.warning("late loop not applied (%s)", exc)
+            return None
+
+    def _apply_moved(self, moved: _Moved, out: LoopOutcome, state: MapState, resume: bool) -> None:
+        """An accepted late loop into ``out``: its record and constraint (``resume``: old features too)."""
+        self.applied_between_frames += moved.accepted
+        if not moved.accepted:
+            return
+        closure = moved.closure
+        if not moved.moved:
+            with_obs = self.config.late_loop_observations
+            out.constraints.append(self._constraint_only(closure, state, moved.at_kf, observations=with_obs))
+            out.events.append(self.events[-1])
+            return
+        record = self._loop_record(closure)
+        record["applied_at_keyframe"] = moved.at_kf
+        record["applied_between_frames"] = True
+        self.events.append(record)
+        out.events.append(record)
+        record["old_features_resumed"] = 0
+        if resume and moved.at_kf == max(self.keyframes):  # still the front end's active keyframe
+            request = self._resume_request(closure)
+            if request is not None and (out.resume is None or len(request) > len(out.resume)):
+                if self._resume_record is not None and out.resume is not None:
+                    self._resume_record["old_features_resumed"] = 0
+                out.resume = request
+                record["old_features_resumed"] = len(request)
+                self._resume_record = record
+        record["pose_before"] = np.asarray(state.world_from_kf[moved.at_kf]).copy()
+        self._awaiting.append(record)
+        kf, m = self.keyframes[moved.at_kf], self.keyframes[closure.match_kf]
+        q_from_m = invert_pose(kf.rect_from_cam) @ closure.query_from_match @ m.rect_from_cam
+        rows = _new_observations(kf, closure.observations)
+        out.constraints.append(LoopConstraint(moved.at_kf, closure.match_kf, q_from_m, rows if rows.size else None))
+
+    def _finish_moves(self, state: MapState) -> None:
+        """The apply worker's pending loops, waited for (``drain_timeout_s``); their constraints are final."""
+        deadline = time.perf_counter() + self.config.drain_timeout_s
+        out = LoopOutcome(self.keyframes[max(self.keyframes)]) if self.keyframes else None
+        while self._moving and out is not None:
+            job = self._moving.popleft()
+            try:
+                moved = self._take_move(job, max(deadline - time.perf_counter(), 0.0))
+            except TimeoutError:
+                logger.warning("loop apply worker: %d late loops not done, left out", 1 + len(self._moving))
+                self.detections_abandoned += 1 + len(self._moving)
+                self._moving.clear()
+                break
+            if moved is not None:
+                self._apply_moved(moved, out, state, resume=False)
+        self._moving.clear()
+        if out is not None:
+            self._final_constraints.extend(out.constraints)
+        if self._apply_pool is not None:
+            self._apply_pool.shutdown(wait=False, cancel_futures=True)
+            self._apply_pool = None
 
     def _close_late(self, closure: LoopClosure, out: LoopOutcome, state: MapState) -> None:
         """A loop verified for an earlier keyframe, applied at the current one.
@@ -328,10 +493,7 @@ class LoopClosingStage:
         """
         cur = out.keyframe
         c, q = int(cur.id), closure.query_kf
-        world = state.world_from_kf
-        w_q = np.asarray(world[q]) @ invert_pose(self.keyframes[q].rect_from_cam)
-        w_c = np.asarray(cur.world_from_kf) @ invert_pose(cur.rect_from_cam)
-        pred = invert_pose(w_c) @ w_q @ closure.query_from_match
+        pred = self._predicted_from_match(closure, cur, state)
         tr = self.closer.track_old_features(closure.match_kf, cur.image, pred) if c != q else None
         if tr is not None and tr[1].size >= self.config.min_inliers:
             moved = LoopClosure(
@@ -529,35 +691,40 @@ class LoopClosingStage:
             return
         self._collect(self._submit(closure, dict(state.world_from_kf)), out)
 
-    def _cam_from_cam(self, closure: LoopClosure) -> F64:
+    def _cam_from_cam(self, closure: LoopClosure, keyframes: Mapping[int, Keyframe] | None = None) -> F64:
         """The closure's ``kf_query_from_kf_match`` between left camera (not rectified) frames."""
-        q, m = self.keyframes[closure.query_kf], self.keyframes[closure.match_kf]
+        kfs = self.keyframes if keyframes is None else keyframes
+        q, m = kfs[closure.query_kf], kfs[closure.match_kf]
         return invert_pose(q.rect_from_cam) @ closure.query_from_match @ m.rect_from_cam
 
-    def _robust_gate(self, closure: LoopClosure, world_from_kf: Mapping[int, F64]) -> bool:
+    def _robust_gate(
+        self, closure: LoopClosure, world_from_kf: Mapping[int, F64], keyframes: Mapping[int, Keyframe] | None = None
+    ) -> bool:
         """GNC-TLS on the keyframe pose graph from the loop's old keyframe to the current one.
 
         Edges: the current relative poses of consecutive connected keyframes (known inliers), the
         loops accepted before and this one; only the loops' keyframes are nodes, each chain between
         two of them one odometry edge of the chain's information (:func:`chain_information`). False
         when this loop is an outlier (it is then kept in ``rejected``, with the reason). A window
-        that a new segment (unconnected keyframe) breaks is not gated.
+        that a new segment (unconnected keyframe) breaks is not gated. ``keyframes``: the stage's
+        keyframe table or a copy of it (the apply worker's).
         """
         if self.config.robust == "none":
             return True
+        kfs = self.keyframes if keyframes is None else keyframes
         lo, hi = closure.match_kf, closure.query_kf
-        ids = sorted(k for k in self.keyframes if lo <= k <= hi and k in world_from_kf)
+        ids = sorted(k for k in kfs if lo <= k <= hi and k in world_from_kf)
         if len(ids) < 2 or ids[0] != lo or ids[-1] != hi:
             return True
-        if not all(self.keyframes[k].connected for k in ids[1:]):
+        if not all(kfs[k].connected for k in ids[1:]):
             return True
         cfg = self.config
         loops = [
-            (c.query_kf, c.match_kf, self._cam_from_cam(c))
+            (c.query_kf, c.match_kf, self._cam_from_cam(c, kfs))
             for c in self._gated
-            if lo <= c.match_kf and c.query_kf <= hi
+            if lo <= c.match_kf and c.query_kf <= hi and c.query_kf in kfs and c.match_kf in kfs
         ]
-        loops.append((hi, lo, self._cam_from_cam(closure)))
+        loops.append((hi, lo, self._cam_from_cam(closure, kfs)))
         t0 = time.perf_counter()
         world = {k: np.asarray(world_from_kf[k], float) for k in ids}
         # issue 33: only the loops' keyframes are nodes; the chain between two of them is one odometry
@@ -583,7 +750,10 @@ class LoopClosingStage:
             self._gated.append(closure)
             closure.info["robust_gate_ms"] = gate_ms
             return True
-        self.closer.closures = [c for c in self.closer.closures if c is not closure]
+        # (by identity, in place: the detection thread may append meanwhile)
+        gone = [i for i, c in enumerate(self.closer.closures) if c is closure]
+        for i in reversed(gone):
+            del self.closer.closures[i]
         weight = float(res.weights[-1])
         reason = f"robust gate: inconsistent with odometry and earlier loops (GNC weight {weight:.2f})"
         self.rejected.append({"query_kf": hi, "match_kf": lo, "reason": reason, "gate_ms": gate_ms})
@@ -713,6 +883,7 @@ class LoopClosingStage:
         Returns the corrections that arrived meanwhile.
         """
         self._note_backend(state)
+        self._finish_moves(state)
         corrected = self._drain(state)
         world = {**state.world_from_kf, **corrected}
         while self._pending is not None:
@@ -832,6 +1003,8 @@ class LoopClosingStage:
     # ------------------------------------------------------------------ metrics
     def metrics(self) -> dict[str, Any]:
         """Summary for ``metrics.json``."""
+        for record in self._awaiting:  # loops given to the back end at the end: no later state to read
+            record.pop("pose_before", None)
         loops = [e for e in self.events if e["type"] == "loop"]
         return {
             "loop_closure_count": len(loops),
@@ -841,6 +1014,7 @@ class LoopClosingStage:
             "loop_neighbours_skipped": self.neighbours_skipped,
             "loop_keyframes_not_queried": self.keyframes_not_queried,
             "loop_closures_late": self.late_closures,
+            "loop_closures_applied_between_frames": self.applied_between_frames,
             "loop_closures_after_last_keyframe": self.detections_unapplied,
             "loop_detections_abandoned": self.detections_abandoned,
             "loop_detect_ms_median": float(np.median(self.detect_s) * 1e3) if self.detect_s else None,
