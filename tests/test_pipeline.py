@@ -32,6 +32,11 @@ def _config() -> Config:
     cfg.frontend.max_disparity_px = 64
     cfg.frontend.max_features = 400
     cfg.frontend.min_tracked_fraction = 0.95  # several keyframes in a short sequence
+    # the back end against the front end, without the calibrating finish: on this perfectly
+    # calibrated 14-frame scene it moves the final ATE either way with the threads' timing
+    # (measured, front end 0.194 mm: none 0.283, final 0.211 or 0.282, final without retrack
+    # 0.270 mm); the self-calibration has its own tests (test_selfcal, test_retrack)
+    cfg.calibration.refine = "none"
     return cfg
 
 
