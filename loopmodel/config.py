@@ -759,6 +759,9 @@ class LoopConfig(_Section):
     # keyframe's observations of the old landmarks, the old set to the front end while that keyframe is
     # still the active one); ``none``: inline in the keyframe's loop stage, as before (rounds scan,
     # scale6: about 115 ms of tracking and 4-135 ms of gate per applied loop on the tracking thread).
+    # Default measured (scale7, CHANGELOG): the rounds scan (rounds_1800, load 9-22) loop time on the tracking
+    # thread 41-47 -> 0.6-1.0 s; the real KITTI clip and the quick orbit/sim-loop scans close no loop late:
+    # accuracy keys identical (bench pipeline --quick KITTI 0.0427 m, bench sim-loop --quick).
     apply_worker: Literal["thread", "none"] = Field(
         "thread", description="where a late loop is moved to the current keyframe and gated"
     )
@@ -912,7 +915,8 @@ class SessionConfig(_Section):
     # The realistic simulator draws each session's recorded calibration about 1 prior sigma off the true
     # rig per parameter: the sessions bench's B against A's refined rig 1.60 sigma at most (fy_right_px),
     # tests/test_sessions.py's rendered rig 0.86; another camera of a model differs by pixels in its
-    # focal lengths (2 px: 6.3 sigma)
+    # focal lengths (2 px: 6.3 sigma). No real pair of sessions of one rig is in the shared data: the
+    # value rests on the simulated sessions bench and the rendered test rig only.
     same_rig_sigma: float = Field(
         4.0, ge=0, description="a map's refined calibration is used when the rig differs by at most this (sigmas)"
     )

@@ -35,7 +35,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from loopmodel.errors import CalibrationError
-from loopmodel.geometry.se3 import so3_exp, so3_log
+from loopmodel.geometry.se3 import cross_rows, so3_exp, so3_log
 from loopmodel.types import Keyframe, StereoCalibration
 
 logger = logging.getLogger(__name__)
@@ -128,15 +128,6 @@ def project_with_jacobians(p_cam: F64, intr: F64, dist: F64) -> tuple[F64, F64, 
     J_i[:, 0, 5] = fx * x * r2 * r2
     J_i[:, 1, 5] = fy * y * r2 * r2
     return uv, J_p, J_i
-
-
-def _cross(a: F64, b: F64) -> F64:
-    """Row-wise cross products of N x 3 arrays (``np.cross`` without its axis handling)."""
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
-    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
-    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-    return out
 
 
 def _project(p_cam: F64, K: F64, dist: F64) -> F64:
@@ -405,10 +396,10 @@ def residuals_and_jacobians(
                 res[sel, row] = np.sum(m * d_uv, axis=1)
                 jq = np.einsum("nk,nkj->nj", m, Jq)  # N x 3
                 J_th[sel, row, o : o + 6] = np.einsum("nk,nkj->nj", m, Ji)
-                J_th[sel, row, _ROT] = _cross(q - t_rl, jq)  # the row jq (-[q - t]x)
+                J_th[sel, row, _ROT] = cross_rows(q - t_rl, jq)  # the row jq (-[q - t]x)
                 J_th[sel, row, _BASE] = jq @ rig.baseline_dir
                 jl = jq @ R_rl  # by p_l
-                J_pose[sel, row, :3] = _cross(jl, pc)  # the row jl [p_l]x
+                J_pose[sel, row, :3] = cross_rows(jl, pc)  # the row jl [p_l]x
                 J_pose[sel, row, 3:] = -jl
                 J_pt[sel, row] = np.einsum("nj,nkj->nk", jl, R[sel])
         else:
@@ -417,7 +408,7 @@ def residuals_and_jacobians(
             # d p_l / d w = [p_l]x, d p_l / d v = -I, d p_l / d p_w = R^T
             for row in (0, 1):
                 jl = Jq[:, row, :]
-                J_pose[sel, row, :3] = _cross(jl, pc)
+                J_pose[sel, row, :3] = cross_rows(jl, pc)
                 J_pose[sel, row, 3:] = -jl
                 J_pt[sel, row] = np.einsum("nj,nkj->nk", jl, R[sel])
     return res, J_pose, J_pt, J_th

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from loopmodel.geometry.se3 import cross_rows
+
 F64 = NDArray[np.float64]
 B = NDArray[np.bool_]
 
@@ -75,20 +77,13 @@ def _quartic_roots(coeffs: F64) -> tuple[F64, B]:
     return np.asarray(roots.real), real
 
 
-def _cross(a: F64, b: F64) -> F64:
-    """Cross product along the last axis (broadcasting; cheaper than np.cross)."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
 def _triangle_frame(T: F64) -> F64:
     """Orthonormal frames (columns) of stacked triangles (..., 3 points, 3)."""
     e1 = T[..., 1, :] - T[..., 0, :]
-    n = _cross(e1, T[..., 2, :] - T[..., 0, :])
+    n = cross_rows(e1, T[..., 2, :] - T[..., 0, :])
     e1 = e1 / np.maximum(np.linalg.norm(e1, axis=-1, keepdims=True), 1e-300)
     e3 = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
-    e2 = _cross(e3, e1)
+    e2 = cross_rows(e3, e1)
     return np.stack([e1, e2, e3], axis=-1)
 
 
@@ -114,10 +109,10 @@ def p3p_grunert(bearings: F64, p_in_world: F64, degenerate_tol: float = 1e-6) ->
 
     # Degeneracies: coincident/collinear points, coplanar rays (camera in the points' plane).
     side2 = np.maximum(np.maximum(a2, b2), c2)
-    area2 = np.sum(_cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]) ** 2, axis=1)
+    area2 = np.sum(cross_rows(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]) ** 2, axis=1)
     ok = (side2 > 0) & (b2 > 1e-12 * np.maximum(side2, 1e-300))
     ok &= area2 > (degenerate_tol * np.maximum(side2, 1e-300)) ** 2
-    triple = np.abs(np.einsum("hi,hi->h", j[:, 0], _cross(j[:, 1], j[:, 2])))
+    triple = np.abs(np.einsum("hi,hi->h", j[:, 0], cross_rows(j[:, 1], j[:, 2])))
     ok &= triple > degenerate_tol
     ok &= np.all(np.isfinite(j), axis=(1, 2)) & np.all(np.isfinite(P), axis=(1, 2))
 
@@ -189,7 +184,7 @@ def p3p_grunert(bearings: F64, p_in_world: F64, degenerate_tol: float = 1e-6) ->
         J[..., 2, 1] = 2 * s2_ - 2 * s3_ * cosines[..., 2]
         J[..., 2, 2] = 2 * s3_ - 2 * s2_ * cosines[..., 2]
         r0, r1, r2 = J[..., 0, :], J[..., 1, :], J[..., 2, :]
-        c12, c20, c01 = _cross(r1, r2), _cross(r2, r0), _cross(r0, r1)
+        c12, c20, c01 = cross_rows(r1, r2), cross_rows(r2, r0), cross_rows(r0, r1)
         det = np.sum(r0 * c12, axis=-1)
         good = valid & (np.abs(det) > 1e-14 * np.maximum(side2, 1e-300)[:, None] ** 1.5)
         det = np.where(good, det, 1.0)

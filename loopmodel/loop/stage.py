@@ -83,6 +83,27 @@ class Detection:
     features: FeatureSet | None = None
 
 
+def _moved_closure(closure: LoopClosure, kf_id: int, tracked: tuple[F64, NDArray[np.int64], F64]) -> LoopClosure:
+    """``closure`` moved to keyframe ``kf_id``.
+
+    ``tracked``: (``kf_from_match``, landmark ids, pixels) of the old features found in that keyframe
+    (:meth:`LoopCloser.track_old_features`).
+    """
+    kf_from_match, ids, uv = tracked
+    return LoopClosure(
+        kf_id,
+        closure.match_kf,
+        kf_from_match,
+        LoopObservations(kf_id, ids, uv),
+        closure.n_descriptor_inliers,
+        int(ids.size),
+        closure.event,
+        closure.detect_ms,
+        closure.refine_ms,
+        {**closure.info, "verified_at_keyframe": closure.query_kf},
+    )
+
+
 @dataclass
 class _Moved:
     """A late loop after the apply worker (``loop.apply_worker: thread``).
@@ -384,18 +405,7 @@ class LoopClosingStage:
         tr = self.closer.track_old_features(closure.match_kf, image, pred)
         if tr is None or tr[1].size < self.config.min_inliers:
             return _Moved(closure, False, self._robust_gate(closure, world_from_kf, keyframes), cur_id)
-        moved = LoopClosure(
-            cur_id,
-            closure.match_kf,
-            tr[0],
-            LoopObservations(cur_id, tr[1], tr[2]),
-            closure.n_descriptor_inliers,
-            int(tr[1].size),
-            closure.event,
-            closure.detect_ms,
-            closure.refine_ms,
-            {**closure.info, "verified_at_keyframe": closure.query_kf},
-        )
+        moved = _moved_closure(closure, cur_id, tr)
         accepted = self._robust_gate(moved, world_from_kf, keyframes)
         if accepted:
             self.closer.closures.append(moved)
@@ -496,18 +506,7 @@ class LoopClosingStage:
         pred = self._predicted_from_match(closure, cur, state)
         tr = self.closer.track_old_features(closure.match_kf, cur.image, pred) if c != q else None
         if tr is not None and tr[1].size >= self.config.min_inliers:
-            moved = LoopClosure(
-                c,
-                closure.match_kf,
-                tr[0],
-                LoopObservations(c, tr[1], tr[2]),
-                closure.n_descriptor_inliers,
-                int(tr[1].size),
-                closure.event,
-                closure.detect_ms,
-                closure.refine_ms,
-                {**closure.info, "verified_at_keyframe": q},
-            )
+            moved = _moved_closure(closure, c, tr)
             self.closer.closures.append(moved)
             self._close(moved, out, state)
             return

@@ -35,7 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from loopmodel.errors import EstimationError
 from loopmodel.geometry.camera import CentralCamera
-from loopmodel.geometry.se3 import hat, se3_exp
+from loopmodel.geometry.se3 import cross_rows, hat, se3_exp
 from loopmodel.pose.rig import F64, CameraRig, PoseTerm
 from loopmodel.pose.robust import Loss, default_cutoff, mad_scale, rho, robust_scale, weights
 from loopmodel.pose.solver import PoseResult
@@ -136,12 +136,12 @@ def line_conics(
     """
     P0 = np.asarray(p0_in_cam, dtype=float).reshape(-1, 3)
     P1 = np.asarray(p1_in_cam, dtype=float).reshape(-1, 3)
-    n1 = _cross(P0, P1)
+    n1 = cross_rows(P0, P1)
     nn = np.sqrt(np.einsum("ij,ij->i", n1, n1))
     dirn = P1 - P0
     dirn /= np.sqrt(np.einsum("ij,ij->i", dirn, dirn))[:, None]
     n1 /= np.where(nn > 0, nn, 1.0)[:, None]
-    n2 = _cross(n1, dirn)
+    n2 = cross_rows(n1, dirn)
     n2 /= np.maximum(np.sqrt(np.einsum("ij,ij->i", n2, n2)), 1e-300)[:, None]
     d2 = -np.einsum("ij,ij->i", n2, P0)
     A1, B1, C1 = n1[:, 0], n1[:, 1], n1[:, 2]
@@ -171,15 +171,6 @@ def line_conics(
     L[:, 1] = (2.0 * a4)[:, None] * k2 * L4
     L[:, 2] = k2 * (a3[:, None] * L4 + a4[:, None] * L3)
     return LineConics(a, L, n1, n2, d2, valid)
-
-
-def _cross(a: F64, b: F64) -> F64:
-    """Row-wise cross product of (n, 3) arrays (faster than np.cross for small n)."""
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
-    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
-    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-    return out
 
 
 def conic_value(a: F64, xy: F64) -> F64:
