@@ -16,7 +16,8 @@ Stages and their one entry point per event (all declared on their protocols):
 * mapping    ``AnchoredTrajectory.set_keyframe`` / ``add_frame`` / ``update_keyframes`` (frame
   poses anchored to keyframes; the live :class:`StripeMap` follows them),
   ``LiveMapping.feed`` / ``on_keyframe`` / ``close`` / ``mesh`` /
-  ``metrics``; :func:`loopmodel.mapping.final.final_mesh` at the end.
+  ``metrics``; :func:`loopmodel.mapping.final.start_final_mesh` at the end (in a worker process
+  while the session map is made).
 
 A stop request (:class:`StopFlag`, set by the signal handlers of :func:`stop_on_signals`)
 is checked between frames, so every frame's and keyframe's bookkeeping is done whole.
@@ -52,7 +53,7 @@ from loopmodel.io.results import LogCapture, ResultsFolder, write_results
 from loopmodel.listener import RunListener
 from loopmodel.mapping.anchored import AnchoredTrajectory
 from loopmodel.mapping.extraction import StripeExtractor
-from loopmodel.mapping.final import final_mesh
+from loopmodel.mapping.final import FinalMeshJob, FinalMeshWorker, start_final_mesh
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
@@ -78,11 +79,13 @@ PipelineProgressFn = Callable[[int, int, float, int], None]
 FinishFn = Callable[[str, float | None], None]
 
 #: The steps after the last frame, in order (``metrics.json`` ``finish_s`` keys): the loop and mesh
-#: workers stopped (pending loop detections drained), the back end's final refinement, the final
-#: mesh, the session map (and a localization's or an extension's results), the evaluation against
-#: ground truth (by the callers of :func:`process`, when asked), the results files (not in
-#: ``metrics.json``, which is one of them).
-FINISH_STEPS = ("workers", "final_refinement", "mesh", "map", "evaluation", "write")
+#: workers stopped (pending loop detections drained), the back end's final refinement (the final
+#: mesh handed to its worker process at its end), the session map (made while the final mesh is),
+#: the wait for the final mesh (and a localization's or an extension's results), the evaluation
+#: against ground truth (by the callers of :func:`process`, when asked), the results files (not in
+#: ``metrics.json``, which is one of them). Each step's time is the run's own wall time in it, so
+#: they add up to the finish (the mesh's own time in its process: ``final_mesh_s``).
+FINISH_STEPS = ("workers", "final_refinement", "map", "mesh", "evaluation", "write")
 
 #: The result of :func:`run_pipeline` (the name of earlier versions).
 RunOutput = RunResult
@@ -204,6 +207,7 @@ class _Times:
     frame_ms: list[float] = dataclasses.field(default_factory=list)
     backend_ms: list[float] = dataclasses.field(default_factory=list)
     finish_s: dict[str, float] = dataclasses.field(default_factory=dict)
+    frames_s: float | None = None  # from the start to the last frame (set when the finish starts)
 
     def since_start_s(self) -> float:
         """Seconds since the run started."""
@@ -325,6 +329,11 @@ class _MapRecord:
             return None
 
 
+def _final_mesh_worker() -> FinalMeshWorker | None:
+    """A process for the final mesh (None in a daemonic process, which may not start one: meshed in-process)."""
+    return None if mp.current_process().daemon else FinalMeshWorker()
+
+
 def _import_beside(module: str) -> None:
     """Import ``module`` in a thread (issue 32: open3d for the final mesh while the back end refines).
 
@@ -403,6 +412,7 @@ class _Run:
         self.selfcal_keyframes: dict[int, Keyframe] = {}
         self.selfcal: Any = None
         self.retracked: RetrackedFrames | None = None  # the frames between keyframes re-solved after refining
+        self.mesh_worker: FinalMeshWorker | None = None  # the final mesh's process, during the finish
         self.loop_constraints: list[LoopConstraint] = []
         # the back end's last call (ms) and the ids of the loop constraints it was given (MapState)
         self._last: tuple[float, tuple[int | None, ...]] = (0.0, ())
@@ -664,32 +674,50 @@ class _Run:
     def finish(self, interrupted: bool) -> RunResult:
         """The steps after the last frame (:data:`FINISH_STEPS`), each timed and told to ``finishing``.
 
-        Stop the workers, refine, mesh, gather the metrics, make the session map.
+        Stop the workers, refine, start the final mesh (in its worker process), make the session
+        map meanwhile, take the mesh, gather the metrics. A ``KeyboardInterrupt`` in a step ends the
+        finish: the worker processes are stopped and it is raised (:func:`process` keeps the results
+        so far).
         """
-        frames_s = self.times.since_start_s()
+        frames_s = self.times.frames_s = self.times.since_start_s()
         steps = self.times.finish_s
-        with timed_step("workers", steps, self.finishing):
-            self._hand_waiting_keyframes()  # frontend.local_ba_beside: the last keyframe
-            self._stop_workers(interrupted)
-        if self.config.mapping.write_mesh and self.laser.stripes:
-            _import_beside("loopmodel.mapping.meshing")
-        with timed_step("final_refinement", steps, self.finishing):
-            result = self._estimate(interrupted)
-        with timed_step("mesh", steps, self.finishing):
-            mesh_metrics = self._mesh(result)
-        result.metrics = self._metrics(result, frames_s, mesh_metrics)
-        if self.selfcal is not None:  # issue 31
-            result.metrics.update(self.selfcal.metrics())
-            result.calibration_refined = self.selfcal.calibration
-            result.calibration_report = self.selfcal.report()
-        with timed_step("map", steps, self.finishing):
-            result.session_map = self._session_map(result)
-            self.session.finish(result, self.frames, self.config)
+        try:
+            with timed_step("workers", steps, self.finishing):
+                self._hand_waiting_keyframes()  # frontend.local_ba_beside: the last keyframe
+                self._stop_workers(interrupted)
+            if self.config.mapping.write_mesh and self.laser.stripes:
+                # issue 32: its process (open3d's import) starts beside the final refinement
+                self.mesh_worker = _final_mesh_worker()
+                if self.mesh_worker is None:
+                    _import_beside("loopmodel.mapping.meshing")
+            with timed_step("final_refinement", steps, self.finishing):
+                result = self._estimate(interrupted)
+                # the refined stripes and poses to the mesh's process as soon as they are known
+                job = start_final_mesh(result.stripes, result.final, self.config.mapping, self.mesh_worker)
+            result.metrics = self._metrics(result, frames_s)
+            if self.selfcal is not None:  # issue 31
+                result.metrics.update(self.selfcal.metrics())
+                result.calibration_refined = self.selfcal.calibration
+                result.calibration_report = self.selfcal.report()
+            final = result.final
+            with timed_step("map", steps, self.finishing):  # while the mesh is made
+                result.session_map = self._session_map(result)
+                self.session.finish(result, self.frames, self.config)
+            with timed_step("mesh", steps, self.finishing):
+                # an extension merged into its base map has the mesh of both sessions (in that world)
+                result.metrics.update(self._mesh(result, job, own=result.final is final))
+        finally:
+            self._close_mesh_worker()
         result.metrics["finish_s"] = dict(steps)
         result.metrics["wall_s"] = frames_s + sum(steps.values())
         for listener in self.listeners:
             listener.on_finish(result)
         return result
+
+    def _close_mesh_worker(self) -> None:
+        if self.mesh_worker is not None:
+            self.mesh_worker.close()
+            self.mesh_worker = None
 
     def _stop_workers(self, interrupted: bool) -> None:
         """Stop the workers: the last laser profiles join the stripes, late loops reach the back end."""
@@ -706,14 +734,17 @@ class _Run:
             moved = self.backend.estimate(landmarks=False)
             self._correct({k: moved.world_from_kf[k] for k in moved.changed_keyframes})
 
-    def _mesh(self, result: RunResult) -> dict[str, Any]:
-        """The final mesh of the run's stripes placed with ``result.final``, and the live mesh; the mesh's metrics.
+    def _mesh(self, result: RunResult, job: FinalMeshJob, own: bool = True) -> dict[str, Any]:
+        """The final mesh of ``job`` (``result.mesh`` when ``own``) and the live mesh; their metrics.
 
         The live mesh's last update is waited for here only when no final mesh is made
         (:meth:`_stop_workers` abandons it otherwise).
         """
-        result.stripes = self.laser.stripes
-        result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, self.config.mapping)
+        if self.mesh_worker is not None:  # open3d here while the worker makes the mesh (the mesh is built here)
+            importlib.import_module("open3d")
+        mesh, mesh_metrics = job.result()
+        if own:
+            result.mesh = mesh
         t0 = time.perf_counter()
         if not result.interrupted:
             self.live.close(wait=True)
@@ -734,6 +765,7 @@ class _Run:
             keyframe_ids=np.array(list(self.keyframes), dtype=np.int64),
             interrupted=interrupted,
         )
+        result.stripes = self.laser.stripes
         if estimate is not None:
             result.landmark_ids, result.landmarks_in_world = estimate.landmark_ids, estimate.landmarks_in_world
         if self.resume is not None:
@@ -741,8 +773,12 @@ class _Run:
         return result
 
     def partial_result(self, interrupted: bool) -> RunResult:
-        """The frames' trajectories and metrics without the end-of-run steps (after :meth:`finish` failed)."""
+        """The frames' trajectories and metrics without the end-of-run steps (after :meth:`finish` failed).
+
+        ``finish_s``: the finishing steps begun (the last one cut short).
+        """
         self.live.close(wait=False)
+        self._close_mesh_worker()
         online = _online_trajectory(self.frames)
         try:
             final, keyframes = self._final_trajectory(), self._keyframe_trajectory()
@@ -762,6 +798,9 @@ class _Run:
         result.metrics.update(frontend_metrics(self.frames, self.times.since_start_s()))
         result.metrics.update(fps=len(self.frames) / busy_s if busy_s > 0 else None, backend=self.config.backend.kind)
         result.metrics["landmarks"] = 0
+        steps = dict(self.times.finish_s)
+        frames_s = self.times.frames_s if self.times.frames_s is not None else self.times.since_start_s()
+        result.metrics.update(frames_s=frames_s, finish_s=steps, wall_s=frames_s + sum(steps.values()))
         return result
 
     def _session_map(self, result: RunResult) -> SessionMap | None:
@@ -782,7 +821,7 @@ class _Run:
             )
         return smap
 
-    def _metrics(self, result: RunResult, frames_s: float, mesh_metrics: dict[str, Any]) -> dict[str, Any]:
+    def _metrics(self, result: RunResult, frames_s: float) -> dict[str, Any]:
         """``metrics.json``: each stage's own figures and the run's timings (no grading: :mod:`loopmodel.eval`).
 
         ``frames_s``: wall time of the frame loop (from the run's start to the last frame).
@@ -790,7 +829,6 @@ class _Run:
         t = self.times
         busy_s = sum(t.frame_ms) / 1e3
         m: dict[str, Any] = {"sequence": self.source, "interrupted": result.interrupted}
-        m.update(mesh_metrics)
         m.update(frontend_metrics(self.frames, frames_s))
         m["fps"] = len(self.frames) / busy_s if busy_s > 0 else None
         m["frames_s"] = frames_s
@@ -848,6 +886,10 @@ def process(
     stop.finishing = run.finishing_note()
     try:
         result = run.finish(interrupted)
+    except KeyboardInterrupt:  # a Ctrl-C while finishing without signal handlers (the API): what exists
+        interrupted = True
+        logger.warning("interrupted after %d frames, while finishing: the results so far", len(run.frames))
+        result = run.partial_result(interrupted)
     except Exception as exc:  # (issue 34) a bad value found after the frames: keep what they gave
         if not run.frames:
             raise
