@@ -188,10 +188,10 @@ def _loop_stage(config: Config, calibration: StereoCalibration, vocabulary: Voca
 @contextlib.contextmanager
 def timed_step(name: str, seconds: dict[str, float], finishing: FinishFn | None) -> Iterator[None]:
     """Time one finishing step into ``seconds[name]`` and tell ``finishing`` when it starts and ends."""
-    if finishing is not None:
-        finishing(name, None)
     t0 = time.perf_counter()
-    try:
+    try:  # a KeyboardInterrupt in the telling is the step's too (its time kept)
+        if finishing is not None:
+            finishing(name, None)
         yield
     finally:
         seconds[name] = time.perf_counter() - t0
@@ -798,6 +798,7 @@ class _Run:
         result.metrics.update(frontend_metrics(self.frames, self.times.since_start_s()))
         result.metrics.update(fps=len(self.frames) / busy_s if busy_s > 0 else None, backend=self.config.backend.kind)
         result.metrics["landmarks"] = 0
+        result.metrics["keyframes"] = len(keyframes)  # those the run took (a last one may be waiting)
         steps = dict(self.times.finish_s)
         frames_s = self.times.frames_s if self.times.frames_s is not None else self.times.since_start_s()
         result.metrics.update(frames_s=frames_s, finish_s=steps, wall_s=frames_s + sum(steps.values()))
@@ -972,18 +973,22 @@ def _process_and_write(
     """
     stop = StopFlag()
     signals = stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop)
-    with LogCapture() as log, signals:
-        result = process(sequence, config, stop=stop, finishing=finishing, **kwargs)
-        if evaluate:
-            try:
-                evaluated(result, sequence, finishing)
-            except (LoopmodelError, ValueError, OSError) as exc:  # grading must never lose the run's results
-                logger.error("evaluation failed: %s", exc)
-                result.metrics["evaluation_error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        write_s: dict[str, float] = {}
-        with timed_step("write", write_s, finishing):
-            result.log = log.text()
-            result.folder = write_results(folder, result, kitti_input=sequence.format_name == "kitti")
+    write_s: dict[str, float] = {}
+    try:
+        with LogCapture() as log, signals:
+            result = process(sequence, config, stop=stop, finishing=finishing, **kwargs)
+            if evaluate:
+                try:
+                    evaluated(result, sequence, finishing)
+                except (LoopmodelError, ValueError, OSError) as exc:  # grading must never lose the run's results
+                    logger.error("evaluation failed: %s", exc)
+                    result.metrics["evaluation_error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            with timed_step("write", write_s, finishing):
+                result.log = log.text()
+                result.folder = write_results(folder, result, kitti_input=sequence.format_name == "kitti")
+    except BaseException:  # e.g. a second Ctrl-C before the writes: no staged folder or lock left behind
+        folder.abandon()
+        raise
     # the writes' time in the returned metrics only (metrics.json is one of the files written)
     result.metrics.setdefault("finish_s", {}).update(write_s)
     result.metrics["wall_s"] = result.metrics.get("wall_s", 0.0) + write_s["write"]
