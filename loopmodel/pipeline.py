@@ -685,7 +685,7 @@ class _Run:
             with timed_step("workers", steps, self.finishing):
                 self._hand_waiting_keyframes()  # frontend.local_ba_beside: the last keyframe
                 self._stop_workers(interrupted)
-            if self.config.mapping.write_mesh and self.laser.stripes:
+            if self.mesh_worker is None and self.config.mapping.write_mesh and self.laser.stripes:
                 # issue 32: its process (open3d's import) starts beside the final refinement
                 self.mesh_worker = _final_mesh_worker()
                 if self.mesh_worker is None:
@@ -720,8 +720,16 @@ class _Run:
             self.mesh_worker = None
 
     def _stop_workers(self, interrupted: bool) -> None:
-        """Stop the workers: the last laser profiles join the stripes, late loops reach the back end."""
+        """Stop the workers: the last laser profiles join the stripes, late loops reach the back end.
+
+        An idle live-mesh worker process is kept for the final mesh (:attr:`mesh_worker`).
+        """
         self.laser.wait()
+        if self.config.mapping.write_mesh and self.laser.stripes and not mp.current_process().daemon:
+            idle = self.live.take_idle_worker()  # open3d loaded there: no new process to start
+            if idle is not None:
+                logger.info("final mesh in the live mesh's idle worker process")
+                self.mesh_worker = FinalMeshWorker(idle)
         if interrupted or (self.config.mapping.write_mesh and self.laser.stripes):
             # the live mesh's last update abandoned, its worker process ended: the final mesh supersedes
             # it (issue 32: else it takes the second core beside the final refinement and the final

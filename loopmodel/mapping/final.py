@@ -100,16 +100,20 @@ class FinalMeshWorker:
     """A process that makes the final mesh, started before the mesh is asked for.
 
     Issue 32: open3d's Poisson reconstruction holds the interpreter for 1.6-2.2 s on the 150-frame
-    orbit; in this process it runs while the run's own process makes the session map. Started at
-    the start of the finish, its imports (open3d) run beside the final refinement.
+    orbit; in this process it runs while the run's own process makes the session map. The live
+    mesh's worker process when it is idle at the last frame (open3d already loaded there), else one
+    started at the start of the finish (its imports run beside the final refinement).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, pool: Any = None) -> None:
+        """``pool``: an idle one-process pool whose process has open3d loaded (the live mesh's), else a new one."""
         from concurrent.futures import ProcessPoolExecutor
 
-        ctx = mp.get_context("spawn")
-        self._pool: Any = ProcessPoolExecutor(1, mp_context=ctx, initializer=_mesh_worker_start)
-        self._pool.submit(int, 0)  # the process starts now
+        if pool is None:
+            ctx = mp.get_context("spawn")
+            pool = ProcessPoolExecutor(1, mp_context=ctx, initializer=_mesh_worker_start)
+            pool.submit(int, 0)  # the process starts now
+        self._pool: Any = pool
 
     def submit(self, points_w: NDArray[np.float64], sensors_w: NDArray[np.float64], config: MappingConfig) -> Any:
         """The future of :func:`mesh_arrays` of these points (None when the process is gone)."""

@@ -177,6 +177,21 @@ class LiveMapping:
             return None
         return self._world.point_count * sum(self.update_ms) / 1e3 / self.points_meshed
 
+    def take_idle_worker(self) -> Any:
+        """The worker process's pool when it is idle (its last update installed), for the final mesh; else None.
+
+        The live mesh's updates end (as after :meth:`close`); the caller shuts the pool down.
+        A thread pool or a busy worker is not handed over (close it as before).
+        """
+        if self._pool is None or self._worker_kind != "process":
+            return None
+        if self._job is not None:
+            if not self._job.done():
+                return None
+            self._collect()
+        pool, self._pool = self._pool, None
+        return pool
+
     def close(self, wait: bool) -> None:
         """Install the last worker result (``wait``) or abandon it; stop the worker.
 
