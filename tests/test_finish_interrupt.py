@@ -139,3 +139,32 @@ def test_the_final_mesh_in_its_process_is_the_mesh_made_here_and_a_dead_worker_i
     finally:
         worker.close()
     assert not any(p.is_alive() for p in procs)
+
+
+def test_the_live_mesh_hands_its_idle_worker_to_the_final_mesh() -> None:
+    """The live mesh's worker process (open3d loaded) makes the final mesh when it is idle: the same mesh."""
+    from loopmodel.config import MappingConfig
+    from loopmodel.mapping.final import FinalMeshJob, FinalMeshWorker
+    from loopmodel.mapping.live import LiveMapping
+    from loopmodel.mapping.meshing import mesh_from_points
+    from loopmodel.mapping.stripe_map import StripeMap
+    from loopmodel.types import StripeProfile
+
+    pts, sensors = _patch_of_a_sphere(3000)
+    cfg = MappingConfig()
+    live = LiveMapping(StripeMap(cfg), 1, "process")
+    live.feed([StripeProfile(0, pts[:50])])  # its worker process starts with the first stripes
+    pool = live.take_idle_worker()
+    assert pool is not None and live.take_idle_worker() is None
+    live.close(wait=False)  # nothing left to end: the pool is the final mesh's now
+    worker = FinalMeshWorker(pool)
+    try:
+        mesh, m = FinalMeshJob(pts, sensors, cfg, worker).result()
+        procs = list(pool._processes.values())  # noqa: SLF001
+    finally:
+        worker.close()
+    here = mesh_from_points(pts, sensors, cfg)
+    np.testing.assert_array_equal(np.asarray(mesh.vertices), np.asarray(here.vertices))
+    assert m["mesh_vertices"] == len(here.vertices) and len(procs) == 1
+    procs[0].join(10)
+    assert not procs[0].is_alive()
