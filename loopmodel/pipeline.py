@@ -329,11 +329,6 @@ class _MapRecord:
             return None
 
 
-def _final_mesh_worker() -> FinalMeshWorker | None:
-    """A process for the final mesh (None in a daemonic process, which may not start one: meshed in-process)."""
-    return None if mp.current_process().daemon else FinalMeshWorker()
-
-
 def _import_beside(module: str) -> None:
     """Import ``module`` in a thread (issue 32: open3d for the final mesh while the back end refines).
 
@@ -686,10 +681,10 @@ class _Run:
                 self._hand_waiting_keyframes()  # frontend.local_ba_beside: the last keyframe
                 self._stop_workers(interrupted)
             if self.mesh_worker is None and self.config.mapping.write_mesh and self.laser.stripes:
-                # issue 32: its process (open3d's import) starts beside the final refinement
-                self.mesh_worker = _final_mesh_worker()
-                if self.mesh_worker is None:
-                    _import_beside("loopmodel.mapping.meshing")
+                # no idle live-mesh worker: the final mesh is made here. Not in a new process: its start
+                # (1.5 s CPU: the interpreter, numpy, open3d) cost more than the overlap gave on the
+                # loaded machine (150-frame orbit, load 10-13: mesh step median 6.7 -> 8.1 s)
+                _import_beside("loopmodel.mapping.meshing")
             with timed_step("final_refinement", steps, self.finishing):
                 result = self._estimate(interrupted)
                 # the refined stripes and poses to the mesh's process as soon as they are known
@@ -725,7 +720,7 @@ class _Run:
         An idle live-mesh worker process is kept for the final mesh (:attr:`mesh_worker`).
         """
         self.laser.wait()
-        if self.config.mapping.write_mesh and self.laser.stripes and not mp.current_process().daemon:
+        if self.config.mapping.write_mesh and self.laser.stripes:
             idle = self.live.take_idle_worker()  # open3d loaded there: no new process to start
             if idle is not None:
                 logger.info("final mesh in the live mesh's idle worker process")
