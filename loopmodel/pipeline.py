@@ -682,8 +682,8 @@ class _Run:
                 self._stop_workers(interrupted)
             if self.mesh_worker is None and self.config.mapping.write_mesh and self.laser.stripes:
                 # no idle live-mesh worker: the final mesh is made here. Not in a new process: its start
-                # (1.5 s CPU: the interpreter, numpy, open3d) cost more than the overlap gave on the
-                # loaded machine (150-frame orbit, load 10-13: mesh step median 6.7 -> 8.1 s)
+                # (1.5 s CPU: the interpreter, numpy, open3d) was not repaid on the loaded machine
+                # (150-frame orbit, load 10-13, 3 alternating runs: wall over frames 1.633 -> 1.670)
                 _import_beside("loopmodel.mapping.meshing")
             with timed_step("final_refinement", steps, self.finishing):
                 result = self._estimate(interrupted)
