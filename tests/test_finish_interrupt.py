@@ -127,6 +127,7 @@ def test_the_final_mesh_in_its_process_is_the_mesh_made_here_and_a_dead_worker_i
     try:
         mesh, m = FinalMeshJob(pts, sensors, cfg, worker).result()
         assert m["mesh_vertices"] == len(here.vertices) == len(mesh.vertices) and m["final_mesh_s"] > 0
+        assert m["final_mesh_in_worker"] is True
         np.testing.assert_array_equal(np.asarray(mesh.vertices), np.asarray(here.vertices))
         np.testing.assert_array_equal(np.asarray(mesh.triangles), np.asarray(here.triangles))
         # the worker process killed (as a Poisson crash would): meshed here instead, the same mesh
@@ -134,8 +135,9 @@ def test_the_final_mesh_in_its_process_is_the_mesh_made_here_and_a_dead_worker_i
         assert len(procs) == 1
         os.kill(procs[0].pid, signal.SIGKILL)
         procs[0].join(10)
-        mesh2, _ = FinalMeshJob(pts, sensors, cfg, worker).result()
+        mesh2, m2 = FinalMeshJob(pts, sensors, cfg, worker).result()
         np.testing.assert_array_equal(np.asarray(mesh2.vertices), np.asarray(here.vertices))
+        assert m2["final_mesh_in_worker"] is False
     finally:
         worker.close()
     assert not any(p.is_alive() for p in procs)

@@ -156,13 +156,19 @@ class FinalMeshJob:
             self._future = worker.submit(points_w, sensors_w, config)
 
     def result(self) -> tuple[Any, dict[str, Any]]:
-        """(mesh, ``{"mesh_vertices": n}``), or (None, {}) without stripes or when no surface comes out (logged)."""
+        """(mesh, metrics), or (None, {}) without stripes or when no surface comes out (logged).
+
+        Metrics: ``mesh_vertices``, ``final_mesh_s`` (its time where it was made) and
+        ``final_mesh_in_worker`` (whether the worker made it).
+        """
         if self._points is None or self._sensors is None:
             return None, {}
         out: tuple[MeshArrays | None, str, float] | None = None
+        in_worker = False
         if self._future is not None:
             try:
                 out = self._future.result()
+                in_worker = True
             except Exception as exc:  # noqa: BLE001 - the process died (a Poisson crash): mesh here
                 logger.warning("final mesh worker failed (%s): meshing here", exc or type(exc).__name__)
         if out is None:
@@ -171,7 +177,8 @@ class FinalMeshJob:
         if arrays is None:
             logger.error("mesh not written: %s", reason)
             return None, {}
-        return _mesh_of(arrays), {"mesh_vertices": int(arrays[0].shape[0]), "final_mesh_s": seconds}
+        metrics = {"mesh_vertices": int(arrays[0].shape[0]), "final_mesh_s": seconds, "final_mesh_in_worker": in_worker}
+        return _mesh_of(arrays), metrics
 
 
 def start_final_mesh(
