@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from loopmodel.config import MappingConfig
 from loopmodel.errors import LoopmodelError
+from loopmodel.mapping.live import MeshArrays, mesh_of_arrays
 from loopmodel.types import StripeAnchors, StripeProfile, Trajectory
 
 logger = logging.getLogger(__name__)
@@ -64,10 +65,6 @@ def _mesh_worker_start() -> None:
     import loopmodel.mapping.meshing  # noqa: F401 - open3d's import, beside the final refinement
 
 
-#: a mesh as arrays: vertices (V, 3) m, triangles (T, 3) int, vertex normals (V, 3)
-MeshArrays = tuple[NDArray[np.float64], NDArray[np.int32], NDArray[np.float64]]
-
-
 def mesh_arrays(
     points_w: NDArray[np.float64], sensors_w: NDArray[np.float64], config: MappingConfig
 ) -> tuple[MeshArrays | None, str, float]:
@@ -83,17 +80,8 @@ def mesh_arrays(
         m = mesh_from_points(points_w, sensors_w, config)
     except LoopmodelError as exc:
         return None, str(exc), time.perf_counter() - t0
-    arrays = (np.asarray(m.vertices), np.asarray(m.triangles).astype(np.int32), np.asarray(m.vertex_normals))
+    arrays = (np.asarray(m.vertices), np.asarray(m.triangles), np.asarray(m.vertex_normals))
     return arrays, "", time.perf_counter() - t0
-
-
-def _mesh_of(arrays: MeshArrays) -> Any:
-    import open3d as o3d
-
-    v, t, n = arrays
-    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t))
-    mesh.vertex_normals = o3d.utility.Vector3dVector(n)
-    return mesh
 
 
 class FinalMeshWorker:
@@ -178,7 +166,7 @@ class FinalMeshJob:
             logger.error("mesh not written: %s", reason)
             return None, {}
         metrics = {"mesh_vertices": int(arrays[0].shape[0]), "final_mesh_s": seconds, "final_mesh_in_worker": in_worker}
-        return _mesh_of(arrays), metrics
+        return mesh_of_arrays(arrays), metrics
 
 
 def start_final_mesh(

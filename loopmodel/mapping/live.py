@@ -52,7 +52,8 @@ def remesh_blocks(
     return out, (time.perf_counter() - t0) * 1e3, len(points_w)
 
 
-def _mesh_of(arrays: MeshArrays | None) -> Any:
+def mesh_of_arrays(arrays: MeshArrays | None) -> Any:
+    """An open3d mesh of (vertices, triangles, vertex normals) arrays (None for None)."""
     if arrays is None:
         return None
     import open3d as o3d
@@ -223,7 +224,7 @@ class LiveMapping:
         if self._every <= 0 or not self.update_ms:
             return None
         if self._arrays:
-            self._world.install_blocks({k: _mesh_of(m) for k, m in self._arrays.items()})
+            self._world.install_blocks({k: mesh_of_arrays(m) for k, m in self._arrays.items()})
             self._arrays = {}
         mesh = self._world.live_mesh()
         return mesh if len(mesh.triangles) else None
