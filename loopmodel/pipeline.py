@@ -16,8 +16,8 @@ Stages and their one entry point per event (all declared on their protocols):
 * mapping    ``AnchoredTrajectory.set_keyframe`` / ``add_frame`` / ``update_keyframes`` (frame
   poses anchored to keyframes; the live :class:`StripeMap` follows them),
   ``LiveMapping.feed`` / ``on_keyframe`` / ``close`` / ``mesh`` /
-  ``metrics``; :func:`loopmodel.mapping.final.start_final_mesh` at the end (in a worker process
-  while the session map is made).
+  ``metrics``; :func:`loopmodel.mapping.final.start_final_mesh` at the end (in the live mesh's idle
+  worker process while the session map is made, else in the run's process).
 
 A stop request (:class:`StopFlag`, set by the signal handlers of :func:`stop_on_signals`)
 is checked between frames, so every frame's and keyframe's bookkeeping is done whole.
@@ -80,7 +80,7 @@ FinishFn = Callable[[str, float | None], None]
 
 #: The steps after the last frame, in order (``metrics.json`` ``finish_s`` keys): the loop and mesh
 #: workers stopped (pending loop detections drained), the back end's final refinement (the final
-#: mesh handed to its worker process at its end), the session map (made while the final mesh is),
+#: mesh handed to the live mesh's idle worker at its end), the session map (made while it meshes),
 #: the wait for the final mesh (and a localization's or an extension's results), the evaluation
 #: against ground truth (by the callers of :func:`process`, when asked), the results files (not in
 #: ``metrics.json``, which is one of them). Each step's time is the run's own wall time in it, so
@@ -669,10 +669,10 @@ class _Run:
     def finish(self, interrupted: bool) -> RunResult:
         """The steps after the last frame (:data:`FINISH_STEPS`), each timed and told to ``finishing``.
 
-        Stop the workers, refine, start the final mesh (in its worker process), make the session
-        map meanwhile, take the mesh, gather the metrics. A ``KeyboardInterrupt`` in a step ends the
-        finish: the worker processes are stopped and it is raised (:func:`process` keeps the results
-        so far).
+        Stop the workers, refine, start the final mesh (in the live mesh's idle worker process, else
+        made here in the mesh step), make the session map meanwhile, take the mesh, gather the
+        metrics. A ``KeyboardInterrupt`` in a step ends the finish: the final mesh's process is
+        stopped and it is raised (:func:`process` keeps the results so far).
         """
         frames_s = self.times.frames_s = self.times.since_start_s()
         steps = self.times.finish_s
