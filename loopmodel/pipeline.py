@@ -16,8 +16,8 @@ Stages and their one entry point per event (all declared on their protocols):
 * mapping    ``AnchoredTrajectory.set_keyframe`` / ``add_frame`` / ``update_keyframes`` (frame
   poses anchored to keyframes; the live :class:`StripeMap` follows them),
   ``LiveMapping.feed`` / ``on_keyframe`` / ``close`` / ``mesh`` /
-  ``metrics``; :func:`loopmodel.mapping.final.start_final_mesh` at the end (in the live mesh's idle
-  worker process while the session map is made, else in the run's process).
+  ``metrics``; :func:`loopmodel.mapping.final.start_final_mesh` at the end (in the run's process, or
+  in the live mesh's idle worker process while the session map is made).
 
 A stop request (:class:`StopFlag`, set by the signal handlers of :func:`stop_on_signals`)
 is checked between frames, so every frame's and keyframe's bookkeeping is done whole.
@@ -80,8 +80,9 @@ FinishFn = Callable[[str, float | None], None]
 
 #: The steps after the last frame, in order (``metrics.json`` ``finish_s`` keys): the loop and mesh
 #: workers stopped (pending loop detections drained), the back end's final refinement (the final
-#: mesh handed to the live mesh's idle worker at its end), the session map (made while it meshes),
-#: the wait for the final mesh (and a localization's or an extension's results), the evaluation
+#: mesh started at its end), the session map (with ``mapping.final_mesh_in_live_worker`` made while
+#: the live mesh's idle worker meshes; a localization's or an extension's results), the final mesh
+#: (made here, or waited for), the evaluation
 #: against ground truth (by the callers of :func:`process`, when asked), the results files (not in
 #: ``metrics.json``, which is one of them). Each step's time is the run's own wall time in it, so
 #: they add up to the finish (the mesh's own time in its process: ``final_mesh_s``).
@@ -669,10 +670,11 @@ class _Run:
     def finish(self, interrupted: bool) -> RunResult:
         """The steps after the last frame (:data:`FINISH_STEPS`), each timed and told to ``finishing``.
 
-        Stop the workers, refine, start the final mesh (in the live mesh's idle worker process, else
-        made here in the mesh step), make the session map meanwhile, take the mesh, gather the
-        metrics. A ``KeyboardInterrupt`` in a step ends the finish: the final mesh's process is
-        stopped and it is raised (:func:`process` keeps the results so far).
+        Stop the workers, refine, start the final mesh (made here in the mesh step, or with
+        ``mapping.final_mesh_in_live_worker`` in the live mesh's idle worker process while the session
+        map is made), make the session map, take the mesh, gather the metrics. A
+        ``KeyboardInterrupt`` in a step ends the finish: the final mesh's process is stopped and it
+        is raised (:func:`process` keeps the results so far).
         """
         frames_s = self.times.frames_s = self.times.since_start_s()
         steps = self.times.finish_s
@@ -681,9 +683,9 @@ class _Run:
                 self._hand_waiting_keyframes()  # frontend.local_ba_beside: the last keyframe
                 self._stop_workers(interrupted)
             if self.mesh_worker is None and self.config.mapping.write_mesh and self.laser.stripes:
-                # no idle live-mesh worker: the final mesh is made here. Not in a new process: its start
-                # (1.5 s CPU: the interpreter, numpy, open3d) was not repaid on the loaded machine
-                # (150-frame orbit, load 10-13, 3 alternating runs: wall over frames 1.633 -> 1.670)
+                # the final mesh made here. Not in a new process: its start (1.5 s CPU: the interpreter,
+                # numpy, open3d) was not repaid on the loaded machine (150-frame orbit, load 10-13, 3
+                # alternating runs: wall over frames 1.633 -> 1.670)
                 _import_beside("loopmodel.mapping.meshing")
             with timed_step("final_refinement", steps, self.finishing):
                 result = self._estimate(interrupted)
@@ -717,10 +719,12 @@ class _Run:
     def _stop_workers(self, interrupted: bool) -> None:
         """Stop the workers: the last laser profiles join the stripes, late loops reach the back end.
 
-        An idle live-mesh worker process is kept for the final mesh (:attr:`mesh_worker`).
+        With ``mapping.final_mesh_in_live_worker`` an idle live-mesh worker process is kept for the
+        final mesh (:attr:`mesh_worker`).
         """
         self.laser.wait()
-        if self.config.mapping.write_mesh and self.laser.stripes:
+        mc = self.config.mapping
+        if mc.final_mesh_in_live_worker and mc.write_mesh and self.laser.stripes:
             idle = self.live.take_idle_worker()  # open3d loaded there: no new process to start
             if idle is not None:
                 logger.info("final mesh in the live mesh's idle worker process")
