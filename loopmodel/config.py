@@ -403,6 +403,14 @@ class MappingConfig(_Section):
     live_voxel_m: float = Field(
         default=0.003, gt=0, description="voxel size of the live mesh (coarser than voxel_m: faster updates)"
     )
+    # finish8 (issue 32): the final mesh in the live mesh's worker process when it is idle at the last
+    # frame, while the run's process makes the session map. Off: no gain measured on the loaded machine
+    # (150-frame orbit, 7 alternating pairs at load 8-18: wall over frames median 1.601 off / 1.689 on,
+    # KITTI, whose finish it does not touch, 1.194 / 1.235 in the same pairs: the noise); at low load it
+    # can only save the session map's time (0.12 s there)
+    final_mesh_in_live_worker: bool = Field(
+        default=False, description="make the final mesh in the live mesh's worker process when it is idle"
+    )
     # 1 by default: Open3D's multi-threaded Poisson segfaults at random (Open3D issue #6828; here once
     # in the final mesh of tests/test_one_pass.py under load 22), and a crash loses the whole run
     poisson_threads: int = Field(

@@ -16,7 +16,8 @@ Stages and their one entry point per event (all declared on their protocols):
 * mapping    ``AnchoredTrajectory.set_keyframe`` / ``add_frame`` / ``update_keyframes`` (frame
   poses anchored to keyframes; the live :class:`StripeMap` follows them),
   ``LiveMapping.feed`` / ``on_keyframe`` / ``close`` / ``mesh`` /
-  ``metrics``; :func:`loopmodel.mapping.final.final_mesh` at the end.
+  ``metrics``; :func:`loopmodel.mapping.final.start_final_mesh` at the end (in the run's process, or
+  in the live mesh's idle worker process while the session map is made).
 
 A stop request (:class:`StopFlag`, set by the signal handlers of :func:`stop_on_signals`)
 is checked between frames, so every frame's and keyframe's bookkeeping is done whole.
@@ -52,7 +53,7 @@ from loopmodel.io.results import LogCapture, ResultsFolder, write_results
 from loopmodel.listener import RunListener
 from loopmodel.mapping.anchored import AnchoredTrajectory
 from loopmodel.mapping.extraction import StripeExtractor
-from loopmodel.mapping.final import final_mesh
+from loopmodel.mapping.final import FinalMeshJob, FinalMeshWorker, start_final_mesh
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
@@ -78,11 +79,14 @@ PipelineProgressFn = Callable[[int, int, float, int], None]
 FinishFn = Callable[[str, float | None], None]
 
 #: The steps after the last frame, in order (``metrics.json`` ``finish_s`` keys): the loop and mesh
-#: workers stopped (pending loop detections drained), the back end's final refinement, the final
-#: mesh, the session map (and a localization's or an extension's results), the evaluation against
-#: ground truth (by the callers of :func:`process`, when asked), the results files (not in
-#: ``metrics.json``, which is one of them).
-FINISH_STEPS = ("workers", "final_refinement", "mesh", "map", "evaluation", "write")
+#: workers stopped (pending loop detections drained), the back end's final refinement (the final
+#: mesh started at its end), the session map (with ``mapping.final_mesh_in_live_worker`` made while
+#: the live mesh's idle worker meshes; a localization's or an extension's results), the final mesh
+#: (made here, or waited for), the evaluation
+#: against ground truth (by the callers of :func:`process`, when asked), the results files (not in
+#: ``metrics.json``, which is one of them). Each step's time is the run's own wall time in it, so
+#: they add up to the finish (the mesh's own time in its process: ``final_mesh_s``).
+FINISH_STEPS = ("workers", "final_refinement", "map", "mesh", "evaluation", "write")
 
 #: The result of :func:`run_pipeline` (the name of earlier versions).
 RunOutput = RunResult
@@ -185,10 +189,10 @@ def _loop_stage(config: Config, calibration: StereoCalibration, vocabulary: Voca
 @contextlib.contextmanager
 def timed_step(name: str, seconds: dict[str, float], finishing: FinishFn | None) -> Iterator[None]:
     """Time one finishing step into ``seconds[name]`` and tell ``finishing`` when it starts and ends."""
-    if finishing is not None:
-        finishing(name, None)
     t0 = time.perf_counter()
-    try:
+    try:  # a KeyboardInterrupt in the telling is the step's too (its time kept)
+        if finishing is not None:
+            finishing(name, None)
         yield
     finally:
         seconds[name] = time.perf_counter() - t0
@@ -204,6 +208,7 @@ class _Times:
     frame_ms: list[float] = dataclasses.field(default_factory=list)
     backend_ms: list[float] = dataclasses.field(default_factory=list)
     finish_s: dict[str, float] = dataclasses.field(default_factory=dict)
+    frames_s: float | None = None  # from the start to the last frame (set when the finish starts)
 
     def since_start_s(self) -> float:
         """Seconds since the run started."""
@@ -403,6 +408,7 @@ class _Run:
         self.selfcal_keyframes: dict[int, Keyframe] = {}
         self.selfcal: Any = None
         self.retracked: RetrackedFrames | None = None  # the frames between keyframes re-solved after refining
+        self.mesh_worker: FinalMeshWorker | None = None  # the final mesh's process, during the finish
         self.loop_constraints: list[LoopConstraint] = []
         # the back end's last call (ms) and the ids of the loop constraints it was given (MapState)
         self._last: tuple[float, tuple[int | None, ...]] = (0.0, ())
@@ -664,36 +670,65 @@ class _Run:
     def finish(self, interrupted: bool) -> RunResult:
         """The steps after the last frame (:data:`FINISH_STEPS`), each timed and told to ``finishing``.
 
-        Stop the workers, refine, mesh, gather the metrics, make the session map.
+        Stop the workers, refine, start the final mesh (made here in the mesh step, or with
+        ``mapping.final_mesh_in_live_worker`` in the live mesh's idle worker process while the session
+        map is made), make the session map, take the mesh, gather the metrics. A
+        ``KeyboardInterrupt`` in a step ends the finish: the final mesh's process is stopped and it
+        is raised (:func:`process` keeps the results so far).
         """
-        frames_s = self.times.since_start_s()
+        frames_s = self.times.frames_s = self.times.since_start_s()
         steps = self.times.finish_s
-        with timed_step("workers", steps, self.finishing):
-            self._hand_waiting_keyframes()  # frontend.local_ba_beside: the last keyframe
-            self._stop_workers(interrupted)
-        if self.config.mapping.write_mesh and self.laser.stripes:
-            _import_beside("loopmodel.mapping.meshing")
-        with timed_step("final_refinement", steps, self.finishing):
-            result = self._estimate(interrupted)
-        with timed_step("mesh", steps, self.finishing):
-            mesh_metrics = self._mesh(result)
-        result.metrics = self._metrics(result, frames_s, mesh_metrics)
-        if self.selfcal is not None:  # issue 31
-            result.metrics.update(self.selfcal.metrics())
-            result.calibration_refined = self.selfcal.calibration
-            result.calibration_report = self.selfcal.report()
-        with timed_step("map", steps, self.finishing):
-            result.session_map = self._session_map(result)
-            self.session.finish(result, self.frames, self.config)
+        try:
+            with timed_step("workers", steps, self.finishing):
+                self._hand_waiting_keyframes()  # frontend.local_ba_beside: the last keyframe
+                self._stop_workers(interrupted)
+            if self.mesh_worker is None and self.config.mapping.write_mesh and self.laser.stripes:
+                # the final mesh made here. Not in a new process: its start (1.5 s CPU: the interpreter,
+                # numpy, open3d) was not repaid on the loaded machine (150-frame orbit, load 10-13, 3
+                # alternating runs: wall over frames 1.633 -> 1.670)
+                _import_beside("loopmodel.mapping.meshing")
+            with timed_step("final_refinement", steps, self.finishing):
+                result = self._estimate(interrupted)
+                # the refined stripes and poses to the mesh's process as soon as they are known
+                job = start_final_mesh(result.stripes, result.final, self.config.mapping, self.mesh_worker)
+            result.metrics = self._metrics(result, frames_s)
+            if self.selfcal is not None:  # issue 31
+                result.metrics.update(self.selfcal.metrics())
+                result.calibration_refined = self.selfcal.calibration
+                result.calibration_report = self.selfcal.report()
+            final = result.final
+            with timed_step("map", steps, self.finishing):  # while the mesh is made
+                result.session_map = self._session_map(result)
+                self.session.finish(result, self.frames, self.config)
+            with timed_step("mesh", steps, self.finishing):
+                # an extension merged into its base map has the mesh of both sessions (in that world)
+                result.metrics.update(self._mesh(result, job, own=result.final is final))
+        finally:
+            self._close_mesh_worker()
         result.metrics["finish_s"] = dict(steps)
         result.metrics["wall_s"] = frames_s + sum(steps.values())
         for listener in self.listeners:
             listener.on_finish(result)
         return result
 
+    def _close_mesh_worker(self) -> None:
+        if self.mesh_worker is not None:
+            self.mesh_worker.close()
+            self.mesh_worker = None
+
     def _stop_workers(self, interrupted: bool) -> None:
-        """Stop the workers: the last laser profiles join the stripes, late loops reach the back end."""
+        """Stop the workers: the last laser profiles join the stripes, late loops reach the back end.
+
+        With ``mapping.final_mesh_in_live_worker`` an idle live-mesh worker process is kept for the
+        final mesh (:attr:`mesh_worker`).
+        """
         self.laser.wait()
+        mc = self.config.mapping
+        if mc.final_mesh_in_live_worker and mc.write_mesh and self.laser.stripes:
+            idle = self.live.take_idle_worker()  # open3d loaded there: no new process to start
+            if idle is not None:
+                logger.info("final mesh in the live mesh's idle worker process")
+                self.mesh_worker = FinalMeshWorker(idle)
         if interrupted or (self.config.mapping.write_mesh and self.laser.stripes):
             # the live mesh's last update abandoned, its worker process ended: the final mesh supersedes
             # it (issue 32: else it takes the second core beside the final refinement and the final
@@ -706,14 +741,17 @@ class _Run:
             moved = self.backend.estimate(landmarks=False)
             self._correct({k: moved.world_from_kf[k] for k in moved.changed_keyframes})
 
-    def _mesh(self, result: RunResult) -> dict[str, Any]:
-        """The final mesh of the run's stripes placed with ``result.final``, and the live mesh; the mesh's metrics.
+    def _mesh(self, result: RunResult, job: FinalMeshJob, own: bool = True) -> dict[str, Any]:
+        """The final mesh of ``job`` (``result.mesh`` when ``own``) and the live mesh; their metrics.
 
         The live mesh's last update is waited for here only when no final mesh is made
         (:meth:`_stop_workers` abandons it otherwise).
         """
-        result.stripes = self.laser.stripes
-        result.mesh, mesh_metrics = final_mesh(result.stripes, result.final, self.config.mapping)
+        if self.mesh_worker is not None:  # open3d here while the worker makes the mesh (the mesh is built here)
+            importlib.import_module("open3d")
+        mesh, mesh_metrics = job.result()
+        if own:
+            result.mesh = mesh
         t0 = time.perf_counter()
         if not result.interrupted:
             self.live.close(wait=True)
@@ -734,6 +772,7 @@ class _Run:
             keyframe_ids=np.array(list(self.keyframes), dtype=np.int64),
             interrupted=interrupted,
         )
+        result.stripes = self.laser.stripes
         if estimate is not None:
             result.landmark_ids, result.landmarks_in_world = estimate.landmark_ids, estimate.landmarks_in_world
         if self.resume is not None:
@@ -741,8 +780,12 @@ class _Run:
         return result
 
     def partial_result(self, interrupted: bool) -> RunResult:
-        """The frames' trajectories and metrics without the end-of-run steps (after :meth:`finish` failed)."""
+        """The frames' trajectories and metrics without the end-of-run steps (after :meth:`finish` failed).
+
+        ``finish_s``: the finishing steps begun (the last one cut short).
+        """
         self.live.close(wait=False)
+        self._close_mesh_worker()
         online = _online_trajectory(self.frames)
         try:
             final, keyframes = self._final_trajectory(), self._keyframe_trajectory()
@@ -762,6 +805,10 @@ class _Run:
         result.metrics.update(frontend_metrics(self.frames, self.times.since_start_s()))
         result.metrics.update(fps=len(self.frames) / busy_s if busy_s > 0 else None, backend=self.config.backend.kind)
         result.metrics["landmarks"] = 0
+        result.metrics["keyframes"] = len(keyframes)  # those the run took (a last one may be waiting)
+        steps = dict(self.times.finish_s)
+        frames_s = self.times.frames_s if self.times.frames_s is not None else self.times.since_start_s()
+        result.metrics.update(frames_s=frames_s, finish_s=steps, wall_s=frames_s + sum(steps.values()))
         return result
 
     def _session_map(self, result: RunResult) -> SessionMap | None:
@@ -782,7 +829,7 @@ class _Run:
             )
         return smap
 
-    def _metrics(self, result: RunResult, frames_s: float, mesh_metrics: dict[str, Any]) -> dict[str, Any]:
+    def _metrics(self, result: RunResult, frames_s: float) -> dict[str, Any]:
         """``metrics.json``: each stage's own figures and the run's timings (no grading: :mod:`loopmodel.eval`).
 
         ``frames_s``: wall time of the frame loop (from the run's start to the last frame).
@@ -790,7 +837,6 @@ class _Run:
         t = self.times
         busy_s = sum(t.frame_ms) / 1e3
         m: dict[str, Any] = {"sequence": self.source, "interrupted": result.interrupted}
-        m.update(mesh_metrics)
         m.update(frontend_metrics(self.frames, frames_s))
         m["fps"] = len(self.frames) / busy_s if busy_s > 0 else None
         m["frames_s"] = frames_s
@@ -848,6 +894,10 @@ def process(
     stop.finishing = run.finishing_note()
     try:
         result = run.finish(interrupted)
+    except KeyboardInterrupt:  # a Ctrl-C while finishing without signal handlers (the API): what exists
+        interrupted = True
+        logger.warning("interrupted after %d frames, while finishing: the results so far", len(run.frames))
+        result = run.partial_result(interrupted)
     except Exception as exc:  # (issue 34) a bad value found after the frames: keep what they gave
         if not run.frames:
             raise
@@ -930,18 +980,22 @@ def _process_and_write(
     """
     stop = StopFlag()
     signals = stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop)
-    with LogCapture() as log, signals:
-        result = process(sequence, config, stop=stop, finishing=finishing, **kwargs)
-        if evaluate:
-            try:
-                evaluated(result, sequence, finishing)
-            except (LoopmodelError, ValueError, OSError) as exc:  # grading must never lose the run's results
-                logger.error("evaluation failed: %s", exc)
-                result.metrics["evaluation_error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        write_s: dict[str, float] = {}
-        with timed_step("write", write_s, finishing):
-            result.log = log.text()
-            result.folder = write_results(folder, result, kitti_input=sequence.format_name == "kitti")
+    write_s: dict[str, float] = {}
+    try:
+        with LogCapture() as log, signals:
+            result = process(sequence, config, stop=stop, finishing=finishing, **kwargs)
+            if evaluate:
+                try:
+                    evaluated(result, sequence, finishing)
+                except (LoopmodelError, ValueError, OSError) as exc:  # grading must never lose the run's results
+                    logger.error("evaluation failed: %s", exc)
+                    result.metrics["evaluation_error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            with timed_step("write", write_s, finishing):
+                result.log = log.text()
+                result.folder = write_results(folder, result, kitti_input=sequence.format_name == "kitti")
+    except BaseException:  # e.g. a second Ctrl-C before the writes: no staged folder or lock left behind
+        folder.abandon()
+        raise
     # the writes' time in the returned metrics only (metrics.json is one of the files written)
     result.metrics.setdefault("finish_s", {}).update(write_s)
     result.metrics["wall_s"] = result.metrics.get("wall_s", 0.0) + write_s["write"]

@@ -630,7 +630,7 @@ def test_item1_failure_after_the_last_frame_keeps_the_results(
         raise FormatError("s.mcap /laser/points", "a bad value found at the end")
 
     # a value found bad only while finishing (the final mesh of the stripes; issue 32 reads them in the frames)
-    monkeypatch.setattr(pipeline, "final_mesh", bad_cloud)
+    monkeypatch.setattr(pipeline, "start_final_mesh", bad_cloud)
     assert main(args) == 2
     assert "/laser/points: a bad value" in capsys.readouterr().err
     out = seq.parent / "out" / "r"

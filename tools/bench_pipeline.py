@@ -353,6 +353,7 @@ def sim(out: Path, quick: bool) -> dict[str, Any]:
         "sim_mesh_err_after_mm": m.get("mesh_err_after_mm"),
         "sim_live_mesh_updates": m.get("live_mesh_updates"),
         "sim_live_mesh_updates_abandoned": m.get("live_mesh_updates_abandoned"),
+        "sim_final_mesh_in_worker": m.get("final_mesh_in_worker"),
     }
     res.update(finish_keys("sim", r))
     gt = seq.ground_truth
@@ -384,6 +385,8 @@ def sim150(out: Path) -> dict[str, Any]:
         "sim150_mesh_completeness_after": m.get("mesh_completeness_after"),
         "sim150_live_mesh_updates": m.get("live_mesh_updates"),
         "sim150_live_mesh_updates_abandoned": m.get("live_mesh_updates_abandoned"),
+        # finish8: the final mesh made in the live mesh's idle worker process (else in the run's)
+        "sim150_final_mesh_in_worker": m.get("final_mesh_in_worker"),
     }
     res.update(finish_keys("sim150", r))
     return res

@@ -8,6 +8,8 @@ alignment of a trajectory to a reference (used by the evaluation).
 from __future__ import annotations
 
 import logging
+import multiprocessing as mp
+import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -16,6 +18,7 @@ from numpy.typing import NDArray
 
 from loopmodel.config import MappingConfig
 from loopmodel.errors import LoopmodelError
+from loopmodel.mapping.live import MeshArrays, mesh_of_arrays
 from loopmodel.types import StripeAnchors, StripeProfile, Trajectory
 
 logger = logging.getLogger(__name__)
@@ -48,21 +51,142 @@ def aligned_to(traj: Trajectory, reference: Trajectory) -> Trajectory:
 def final_mesh(stripes: list[StripeProfile], final: Trajectory, config: MappingConfig) -> tuple[Any, dict[str, Any]]:
     """The mesh of ``stripes`` placed with ``final`` (open3d, world frame) and its metrics (vertex count).
 
-    (None, {}) when meshing is off, there is nothing to mesh, or it fails (logged: a run without a
-    mesh still has its trajectories).
+    Made here (:func:`start_final_mesh` without a worker). (None, {}) when meshing is off, there is
+    nothing to mesh, or it fails (logged: a run without a mesh still has its trajectories).
+    """
+    return start_final_mesh(stripes, final, config).result()
+
+
+def _mesh_worker_start() -> None:
+    """The final mesh's process: Ctrl-C is the run's (it ends the finish); open3d loaded up front."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    import loopmodel.mapping.meshing  # noqa: F401 - open3d's import, before the mesh is asked for
+
+
+def mesh_arrays(
+    points_w: NDArray[np.float64], sensors_w: NDArray[np.float64], config: MappingConfig
+) -> tuple[MeshArrays | None, str, float]:
+    """:func:`~loopmodel.mapping.meshing.mesh_from_points` as arrays (for a worker process).
+
+    Returns the mesh (None when no surface comes out), the reason when there is none, and the
+    meshing time (s). World frame, metres.
+    """
+    from loopmodel.mapping.meshing import mesh_from_points
+
+    t0 = time.perf_counter()
+    try:
+        m = mesh_from_points(points_w, sensors_w, config)
+    except LoopmodelError as exc:
+        return None, str(exc), time.perf_counter() - t0
+    arrays = (np.asarray(m.vertices), np.asarray(m.triangles), np.asarray(m.vertex_normals))
+    return arrays, "", time.perf_counter() - t0
+
+
+class FinalMeshWorker:
+    """A process that makes the final mesh, started before the mesh is asked for.
+
+    Issue 32: open3d's Poisson reconstruction holds the interpreter for 1.6-2.2 s on the 150-frame
+    orbit; in this process it runs while the run's own process makes the session map. The pipeline
+    gives it the live mesh's worker process when that is idle at the last frame (open3d already
+    loaded there); without one it starts its own (spawned: 1.5 s CPU before it can mesh).
+    """
+
+    def __init__(self, pool: Any = None) -> None:
+        """``pool``: an idle one-process pool whose process has open3d loaded (the live mesh's), else a new one."""
+        from concurrent.futures import ProcessPoolExecutor
+
+        if pool is None:
+            ctx = mp.get_context("spawn")
+            pool = ProcessPoolExecutor(1, mp_context=ctx, initializer=_mesh_worker_start)
+            pool.submit(int, 0)  # the process starts now
+        self._pool: Any = pool
+
+    def submit(self, points_w: NDArray[np.float64], sensors_w: NDArray[np.float64], config: MappingConfig) -> Any:
+        """The future of :func:`mesh_arrays` of these points (None when the process is gone)."""
+        if self._pool is None:
+            return None
+        try:
+            return self._pool.submit(mesh_arrays, points_w, sensors_w, config)
+        except RuntimeError:  # a broken or shut-down pool: the caller meshes itself
+            return None
+
+    def close(self) -> None:
+        """End the process (at once: an unfinished mesh is dropped)."""
+        pool, self._pool = self._pool, None
+        if pool is None:
+            return
+        procs = list((getattr(pool, "_processes", None) or {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in procs:
+            if proc.is_alive():
+                proc.terminate()
+
+
+class FinalMeshJob:
+    """The final mesh being made (in a :class:`FinalMeshWorker`, or here when there is none).
+
+    :meth:`result` gives the mesh (open3d, world frame) and its metrics; a worker that died is
+    replaced by meshing here (logged).
+    """
+
+    def __init__(
+        self,
+        points_w: NDArray[np.float64] | None,
+        sensors_w: NDArray[np.float64] | None,
+        config: MappingConfig,
+        worker: FinalMeshWorker | None,
+    ) -> None:
+        self._points, self._sensors, self._config = points_w, sensors_w, config
+        self._future = None
+        if points_w is not None and sensors_w is not None and worker is not None:
+            self._future = worker.submit(points_w, sensors_w, config)
+
+    def result(self) -> tuple[Any, dict[str, Any]]:
+        """(mesh, metrics), or (None, {}) without stripes or when no surface comes out (logged).
+
+        Metrics: ``mesh_vertices``, ``final_mesh_s`` (its time where it was made) and
+        ``final_mesh_in_worker`` (whether the worker made it).
+        """
+        if self._points is None or self._sensors is None:
+            return None, {}
+        out: tuple[MeshArrays | None, str, float] | None = None
+        in_worker = False
+        if self._future is not None:
+            try:
+                out = self._future.result()
+                in_worker = True
+            except Exception as exc:  # noqa: BLE001 - the process died (a Poisson crash): mesh here
+                logger.warning("final mesh worker failed (%s): meshing here", exc or type(exc).__name__)
+        if out is None:
+            out = mesh_arrays(self._points, self._sensors, self._config)
+        arrays, reason, seconds = out
+        if arrays is None:
+            logger.error("mesh not written: %s", reason)
+            return None, {}
+        metrics = {"mesh_vertices": int(arrays[0].shape[0]), "final_mesh_s": seconds, "final_mesh_in_worker": in_worker}
+        return mesh_of_arrays(arrays), metrics
+
+
+def start_final_mesh(
+    stripes: list[StripeProfile], final: Trajectory, config: MappingConfig, worker: FinalMeshWorker | None = None
+) -> FinalMeshJob:
+    """The mesh of ``stripes`` placed with ``final`` started (in ``worker`` when given; :func:`final_mesh`'s result).
+
+    The stripes are placed here, and the points handed over as values.
     """
     if not stripes or not config.write_mesh or len(final) < 2:
-        return None, {}
+        return FinalMeshJob(None, None, config, None)
     from loopmodel.mapping.stripe_map import StripeMap
 
     try:
         smap = StripeMap.from_trajectory(final, stripes, config)
         smap.check_nonempty()
-        surface = smap.mesh()
     except LoopmodelError as exc:
         logger.error("mesh not written: %s", exc)
-        return None, {}
-    return surface, {"mesh_vertices": len(surface.vertices)}
+        return FinalMeshJob(None, None, config, None)
+    return FinalMeshJob(smap.world_points(), smap.sensor_positions(), config, worker)
 
 
 def anchor_stripes(

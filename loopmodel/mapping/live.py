@@ -52,7 +52,8 @@ def remesh_blocks(
     return out, (time.perf_counter() - t0) * 1e3, len(points_w)
 
 
-def _mesh_of(arrays: MeshArrays | None) -> Any:
+def mesh_of_arrays(arrays: MeshArrays | None) -> Any:
+    """An open3d mesh of (vertices, triangles, vertex normals) arrays (None for None)."""
     if arrays is None:
         return None
     import open3d as o3d
@@ -177,6 +178,21 @@ class LiveMapping:
             return None
         return self._world.point_count * sum(self.update_ms) / 1e3 / self.points_meshed
 
+    def take_idle_worker(self) -> Any:
+        """The worker process's pool when it is idle (its last update installed), for the final mesh; else None.
+
+        The live mesh's updates end (as after :meth:`close`); the caller shuts the pool down.
+        A thread pool or a busy worker is not handed over (close it as before).
+        """
+        if self._pool is None or self._worker_kind != "process":
+            return None
+        if self._job is not None:
+            if not self._job.done():
+                return None
+            self._collect()
+        pool, self._pool = self._pool, None
+        return pool
+
     def close(self, wait: bool) -> None:
         """Install the last worker result (``wait``) or abandon it; stop the worker.
 
@@ -208,7 +224,7 @@ class LiveMapping:
         if self._every <= 0 or not self.update_ms:
             return None
         if self._arrays:
-            self._world.install_blocks({k: _mesh_of(m) for k, m in self._arrays.items()})
+            self._world.install_blocks({k: mesh_of_arrays(m) for k, m in self._arrays.items()})
             self._arrays = {}
         mesh = self._world.live_mesh()
         return mesh if len(mesh.triangles) else None
