@@ -957,8 +957,8 @@ class SelfCalibrationConfig(_Section):
     # the last online_window_kf go through the calibrating bundle adjustment beside the tracker; the
     # windows' information is fused, and when the fused calibration has moved online_switch_sigma
     # prior sigmas from the one in force the front end's rectification follows it
-    online_every_kf: int = Field(5, ge=1, description="online: a window refinement every this many keyframes")
-    online_window_kf: int = Field(10, ge=3, description="online: keyframes in a window")
+    online_every_kf: int = Field(3, ge=1, description="online: a window refinement every this many keyframes")
+    online_window_kf: int = Field(6, ge=3, description="online: keyframes in a window")
     online_switch_sigma: float = Field(
         0.5, gt=0, description="online: a move (prior sigmas) of the fused calibration that re-rectifies"
     )

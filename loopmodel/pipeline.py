@@ -585,7 +585,7 @@ class _Run:
             self.selfcal_keyframes = {
                 int(k.id): k for k in self.online.keyframes_as_recorded(list(self.selfcal_keyframes.values()))
             }
-            start = self.online.values
+            start = self.online.latest_values
         kfs = list(self.selfcal_keyframes.values())
         loops = [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints]
         b = self.config.backend

@@ -260,16 +260,7 @@ class OnlineCalibration:
 
         ``timestamp_ns``: the frame about to be tracked (the first the new model rectifies).
         """
-        done = [f for f in self._pending if f.done()]
-        for f in done:
-            self._pending.remove(f)
-            try:
-                w = f.result()
-            except Exception as exc:  # noqa: BLE001 - a failed window is logged, the run goes on
-                logger.warning("online self-calibration: window failed (%s)", exc)
-                continue
-            if w is not None:
-                self._take(w)
+        self.collect()
         if float(np.max(np.abs(self.moved - self.applied))) <= self.config.online_switch_sigma:
             return None
         self.applied = self.moved.copy()
@@ -281,13 +272,32 @@ class OnlineCalibration:
         )
         return self.current
 
+    def collect(self) -> None:
+        """The finished windows fused (none waited for)."""
+        done = [f for f in self._pending if f.done()]
+        for f in done:
+            self._pending.remove(f)
+            try:
+                w = f.result()
+            except Exception as exc:  # noqa: BLE001 - a failed window is logged, the run goes on
+                logger.warning("online self-calibration: window failed (%s)", exc)
+                continue
+            if w is not None:
+                self._take(w)
+
     @property
     def values(self) -> F64:
         """The calibration in force (:data:`~loopmodel.calibration.refine_rig.PARAM_NAMES` order)."""
         return self.rig.values + self.applied * self.sigma
 
+    @property
+    def latest_values(self) -> F64:
+        """The latest fused calibration (the final refinement's start), in force or not."""
+        return self.rig.values + self.moved * self.sigma
+
     def close(self) -> None:
-        """Stop the worker (pending windows are dropped)."""
+        """Stop the worker: finished windows fused, pending ones dropped."""
+        self.collect()
         if self._executor is not None:
             self._executor.shutdown(wait=False, cancel_futures=True)
             self._executor = None
