@@ -121,12 +121,16 @@ def test_online_run_rerectifies_with_the_injected_error(tmp_path: Path) -> None:
     first = run.online.switches[0][0]
     assert first <= res.frames[len(res.frames) // 2].timestamp_ns
     fe, rec = run.frontend.rectifier.input_calibration, run.frontend.input_calibration
-    offset = (fe.K_right[0, 2] - rec.K_right[0, 2]) - (fe.K_left[0, 2] - rec.K_left[0, 2])
+    v, v0 = run.online.values, run.online.rig.values
+    offset = (v[8] - v0[8]) - (v[2] - v0[2])  # cx_right - cx_left, moved (px)
     C = np.linalg.inv(np.eye(16) + run.online.fusion.information)
     sd = 0.3 * np.sqrt(C[8, 8] + C[2, 2] - 2 * C[2, 8])  # px (prior 0.3 px each)
     # measured 0.612 px, the fusion's sd 0.011 px (the windows' model posterior: independent pixel
     # errors, noise-free renders; 1.1 sd off); before the switch the front end carried 0
     assert abs(offset - 0.6) < max(2 * sd, 0.03) and sd < 0.05
+    # the front end's rectification: the left lens as recorded, the offset in the right camera (measured 0.630 px:
+    # the refined focal lengths' ratio moves it too)
+    assert np.array_equal(fe.K_left, rec.K_left) and abs(fe.K_right[0, 2] - rec.K_right[0, 2] - 0.6) < 0.06
     P = m["calibration_parameters"]
     final = (P["cx_right_px"]["refined"] - P["cx_right_px"]["recorded"]) - (
         P["cx_left_px"]["refined"] - P["cx_left_px"]["recorded"]
