@@ -959,8 +959,9 @@ class SelfCalibrationConfig(_Section):
     # prior sigmas from the one in force the front end's rectification follows it (the left lens kept).
     # Not the default: measured (CHANGELOG calib8; one run per mode, alternating, load 7-17) it costs
     # accuracy: KITTI clip (default config) ATE 0.0495 -> 0.0541 / 0.0546 m (drift 0.841 -> 0.837 /
-    # 0.838 %); realistic orbits (tools/bench_selfcal.py's runs) segment drift seeds 1 / 3 0.0597 /
-    # 0.0365 -> 0.0676 / 0.0419 %; the rendered rig of tests/test_online_calib.py 0.41 -> 0.70 mm.
+    # 0.838 %); realistic orbits (tools/bench_selfcal.py's runs) segment drift seeds 1 / 2 / 3 0.0597 /
+    # 0.0283 / 0.0365 -> 0.0676 / 0.0328 / 0.0419 %; the rendered rig of tests/test_online_calib.py
+    # 0.41 -> 0.70 mm.
     # Without the switches (windows and warm start only) KITTI, seed 3 and that rig are unchanged
     # (0.0494 m, 0.0363 %, 0.43 mm): the re-rectified images themselves (their resampling) move it
     online_every_kf: int = Field(3, ge=1, description="online: a window refinement every this many keyframes")
