@@ -315,6 +315,7 @@ class OnlineCalibration:
     def close(self) -> None:
         """Stop the worker: finished windows fused, pending ones dropped."""
         self.collect()
+        self._pending.clear()
         if self._executor is not None:
             self._executor.shutdown(wait=False, cancel_futures=True)
             self._executor = None
