@@ -410,6 +410,11 @@ class _Run:
         self.retracked: RetrackedFrames | None = None  # the frames between keyframes re-solved after refining
         self.mesh_worker: FinalMeshWorker | None = None  # the final mesh's process, during the finish
         self.loop_constraints: list[LoopConstraint] = []
+        self.online: Any = None  # issue 31, calibration.refine online: calibration/online.py
+        if config.calibration.refine == "online" and self.localizer is None:
+            from loopmodel.calibration.online import OnlineCalibration
+
+            self.online = OnlineCalibration(self.frontend.input_calibration, config.calibration)
         # the back end's last call (ms) and the ids of the loop constraints it was given (MapState)
         self._last: tuple[float, tuple[int | None, ...]] = (0.0, ())
 
@@ -423,6 +428,8 @@ class _Run:
         t0 = time.perf_counter()
         late = self._hand_waiting_keyframes()
         self._loops_between_frames()
+        if self.online is not None:
+            self._online_between_frames(frame.timestamp_ns)
         res = self.frontend.process(frame)
         if res.is_keyframe and res.keyframe is None:  # (local_ba_beside) its frame anchors to it already
             self.anchored.set_keyframe(res.keyframe_id, res.world_from_cam)
@@ -467,6 +474,15 @@ class _Run:
             if last.is_keyframe and last.keyframe_id == kf.id:
                 self.frames[-1] = dataclasses.replace(last, world_from_cam=np.asarray(kf.world_from_kf).copy())
         return bool(late)
+
+    def _online_between_frames(self, timestamp_ns: int) -> None:
+        """``calibration.refine: online``: a moved online calibration becomes the front end's rectification."""
+        from loopmodel.imaging.rectify import Rectifier
+
+        model = self.online.poll(timestamp_ns)
+        if model is not None:
+            fe = self.frontend
+            fe.rectifier = Rectifier.following(fe.rectifier, model.raw, *model.rot_rect_from_cam)
 
     def _loops_between_frames(self) -> None:
         """Loops the loop stage's workers finished since the last frame (issue 33): to the back end and front end."""
@@ -526,6 +542,8 @@ class _Run:
             self.map_record.add(kf, self.loop.detection(kf.id))
         if self.config.calibration.refine != "none":
             self.selfcal_keyframes[kf.id] = kf.without_image()
+            if self.online is not None:
+                self.online.add_keyframe(self.selfcal_keyframes[kf.id], self.anchored.keyframe_poses)
         for listener in self.listeners:
             if out.events:
                 listener.on_loop_events(out.events)
@@ -567,14 +585,21 @@ class _Run:
         from loopmodel.mapping.extraction import LightPlane
 
         plane = LightPlane.from_config(self.config.mapping)
+        start = None
+        if self.online is not None:  # measurements after a switch back to the recorded rectification
+            self.online.close()
+            self.selfcal_keyframes = {
+                int(k.id): k for k in self.online.keyframes_as_recorded(list(self.selfcal_keyframes.values()))
+            }
+            start = self.online.latest_values
         kfs = list(self.selfcal_keyframes.values())
         loops = [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints]
         b = self.config.backend
         try:
             sc = refine_final(
                 kfs, estimate.world_from_kf, estimate.landmark_ids, estimate.landmarks_in_world,
-                self.frontend.rectifier.input_calibration, self.config.calibration, plane.normal_in_cam, plane.d_m,
-                loops, np.array([b.loop_sigma_rad] * 3 + [b.loop_sigma_m] * 3),
+                self.frontend.input_calibration, self.config.calibration, plane.normal_in_cam, plane.d_m,
+                loops, np.array([b.loop_sigma_rad] * 3 + [b.loop_sigma_m] * 3), start,
             )
         except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:
             logger.warning("self-calibration not done: %s", exc)
@@ -585,7 +610,7 @@ class _Run:
                 sc, kfs, loops, r.loop_odometry_sigma_deg, r.loop_odometry_sigma_m,
                 float(np.degrees(b.loop_sigma_rad)), b.loop_sigma_m,
             )
-        recorded = self.frontend.rectifier.input_calibration
+        recorded = self.frontend.input_calibration
         stripes = restripe(self.laser.stripes, recorded, sc.calibration, plane.normal_in_cam, plane.d_m)
         self.laser.stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
         self.anchored.update_keyframes(sc.world_from_kf)
@@ -594,6 +619,8 @@ class _Run:
                 self._retrack(sc, recorded)
             except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:  # the bridged frames stay
                 logger.warning("frames between keyframes not re-solved: %s", exc)
+        if self.online is not None:
+            sc.extra.update(self.online.metrics())
         self.selfcal = sc
         return BackendEstimate(dict(sc.world_from_kf), sc.landmark_ids, sc.landmarks_in_world, set(sc.world_from_kf))
 
@@ -602,8 +629,9 @@ class _Run:
         from loopmodel.calibration.retrack import retrack_frames
 
         t0 = time.perf_counter()
+        frames = self.frames if self.online is None else self.online.observations_as_recorded(self.frames)
         self.retracked = retrack_frames(
-            self.frames, self._final_trajectory(), self.selfcal_keyframes, sc.world_from_kf, sc.landmark_ids,
+            frames, self._final_trajectory(), self.selfcal_keyframes, sc.world_from_kf, sc.landmark_ids,
             sc.landmarks_in_world, recorded, sc.calibration, self.frontend.pose_options,
             self.config.calibration.retrack_min_points,
             disparity_sigma_px=fc.disparity_sigma_px if (fc := self.frontend.config).depth_weighting else None,
@@ -734,6 +762,8 @@ class _Run:
             # it (issue 32: else it takes the second core beside the final refinement and the final
             # mesh); without a final mesh it is waited for in the mesh step (_mesh)
             self.live.close(wait=False)
+        if self.online is not None:  # its windows left unfinished are not waited for
+            self.online.close()
         self._correct(settle(self.backend))  # issue 33: the back-end worker's last corrections
         self._correct(self.loop.close(self._state()))
         # perf (issue 26): loops whose (background) detection finished after the last keyframe
@@ -822,7 +852,7 @@ class _Run:
             from loopmodel.loop.session_map import MapCalibration
             from loopmodel.sessions import refined_map_points
 
-            recorded = self.frontend.rectifier.input_calibration
+            recorded = self.frontend.input_calibration
             smap = refined_map_points(smap, recorded, result.calibration_refined)
             smap.refined_calibration = MapCalibration.from_report(
                 result.calibration_refined, recorded, result.calibration_report

@@ -1125,6 +1125,7 @@ def refine_rig(
     track_robust: bool = True,
     consider: NDArray[np.bool_] | None = None,
     observable_direction_ratio: float = 1.0,
+    start_values: F64 | None = None,
 ) -> tuple[F64, F64, RigRefinement]:
     """Bundle adjustment of poses, landmarks and the rig calibration; see the module docstring.
 
@@ -1134,13 +1135,14 @@ def refine_rig(
     above ``observable_direction_ratio`` of its prior (:func:`posterior_directions`; 1: none) is
     held at its recorded value and reported unobservable (``unobservable_directions``), its prior
     variance passed on to the others' sigmas. Returns the refined poses, points and the report (its
-    ``world_from_kf`` and ``landmark_ids`` are left empty for the caller to fill). The dense algebra
-    runs on one BLAS thread (:func:`one_blas_thread`).
+    ``world_from_kf`` and ``landmark_ids`` are left empty for the caller to fill). ``start_values``:
+    the calibration to start from (the order of :data:`PARAM_NAMES`, e.g. the online estimate; the
+    priors stay at the recorded values). The dense algebra runs on one BLAS thread (:func:`one_blas_thread`).
     """
     with one_blas_thread():
         return _refine_rig(
             obs, world_from_cam, points_w, recorded, prior_sigma, estimate, observable_ratio, huber_k,
-            max_iterations, track_robust, consider, observable_direction_ratio,
+            max_iterations, track_robust, consider, observable_direction_ratio, start_values,
         )
 
 
@@ -1157,15 +1159,18 @@ def _refine_rig(
     track_robust: bool,
     consider: NDArray[np.bool_] | None,
     observable_direction_ratio: float,
+    start_values: F64 | None = None,
 ) -> tuple[F64, F64, RigRefinement]:
     rig = RigParameters.of(recorded)
     prior_theta = rig.values.copy()
     active = np.ones(N_PARAMS, bool) if estimate is None else np.asarray(estimate, bool).copy()
     if estimate is None:
         active[[5, 11]] = False
+    start = prior_theta.copy()
+    if start_values is not None:  # a warm start (the online estimate)
+        start = np.where(active, np.asarray(start_values, float), prior_theta)
     st = _State(
-        world_from_cam[:, :3, :3].copy(), world_from_cam[:, :3, 3].copy(), np.asarray(points_w, float).copy(),
-        prior_theta.copy(),
+        world_from_cam[:, :3, :3].copy(), world_from_cam[:, :3, 3].copy(), np.asarray(points_w, float).copy(), start
     )
     unknowns = 6 * (st.R.shape[0] - 1) + 3 * st.pts.shape[0]
     r0 = st.residuals(obs, rig)[0]

@@ -220,6 +220,7 @@ def refine_final(
     plane_d_m: float,
     loops: list[tuple[int, int, F64]] | None = None,
     loop_sigmas: F64 | None = None,
+    start_values: F64 | None = None,
 ) -> SelfCalibration:
     """The calibrating bundle adjustment over the run's keyframes; see the module docstring.
 
@@ -230,6 +231,8 @@ def refine_final(
 
     ``calibration`` is the recorded (input) calibration; ``world_from_kf`` and the landmarks the back
     end's final estimate (landmarks it does not hold start from their keyframe's triangulation).
+    ``start_values``: the calibration the adjustment starts from (:data:`PARAM_NAMES` order; the
+    online estimate), the priors staying at ``calibration``.
     Raises :class:`LoopmodelError` when there is nothing to refine.
     """
     t0 = time.perf_counter()
@@ -290,7 +293,7 @@ def refine_final(
         estimate[[PARAM_NAMES.index(n) for n in RIGHT_ROW_PARAMS]] = False
     poses_out, pts_out, rep = refine_rig(
         obs, poses, pts, calibration, sig, estimate, config.observable_ratio, config.huber_k, config.max_iterations,
-        observable_direction_ratio=config.observable_direction_ratio,
+        observable_direction_ratio=config.observable_direction_ratio, start_values=start_values,
     )
     rep.world_from_kf = {k: poses_out[i] for i, k in enumerate(kf_ids)}
     rep.landmark_ids = lm_ids

@@ -103,6 +103,27 @@ class Rectifier:
             K, P2[:3, :3].copy(), right_from_left, size, rectified=True
         )
 
+    @classmethod
+    def following(
+        cls, rectifier: Rectifier, raw: StereoCalibration, rot_rect_from_left: F64, rot_rect_from_right: F64
+    ) -> Rectifier:
+        """A rectifier to the same rectified pair as ``rectifier`` from another raw calibration.
+
+        ``raw``'s lenses (K, distortion) with the rectifying rotations given (3x3, rectified from
+        each camera); the rectified calibration and ``rect_from_cam`` stay ``rectifier``'s, so
+        rectified pixels keep their meaning (issue 31, ``calibration.refine: online``).
+        """
+        out = cls.__new__(cls)
+        out.input_calibration = raw
+        out.rect_from_cam = rectifier.rect_from_cam.copy()
+        out.calibration = rectifier.calibration
+        K1, K2 = rectifier.calibration.K_left, rectifier.calibration.K_right
+        out._maps = (
+            undistort_rectify_map(raw, 0, rot_rect_from_left, K1, cv2.CV_16SC2),
+            undistort_rectify_map(raw, 1, rot_rect_from_right, K2, cv2.CV_16SC2),
+        )
+        return out
+
     @property
     def is_identity(self) -> bool:
         """True when images pass through unchanged."""
