@@ -253,13 +253,17 @@ class Isam2Backend:
             np.array(px[:2]), self._mono_noise, X(obs.kf_id), landmark_key, self._cal_mono, *extra
         )
 
-    def _add_obs(self, obs: _Obs, lkey: int, lm_id: int, graph: gtsam.NonlinearFactorGraph) -> None:
+    def _add_obs(
+        self, obs: _Obs, lkey: int, lm_id: int, graph: gtsam.NonlinearFactorGraph, outside: bool = False
+    ) -> None:
         key = (obs.kf_id, lm_id)
         if key in self._obs_fid:  # the same observation twice: keep the first
             return
         factor = self._obs_factor(obs, L(lkey))
         rec = _FactorRecord(factor, "stereo" if obs.stereo else "mono", lkey, key)
-        if self._windowed and self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq > self.config.local_window_kf:
+        if outside:  # over the keyframe's factor budget: joins at the final estimate
+            fid = self._new_fid(rec, outside=True)
+        elif self._windowed and self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq > self.config.local_window_kf:
             fid = self._new_fid(rec, outside=True)  # a revisit: it would tie this keyframe to an old part of the map
             self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
         else:
@@ -503,10 +507,14 @@ class Isam2Backend:
                 created += 1
         return created
 
-    def _observe(self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int]) -> None:
+    def _observe(
+        self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int], budget: int = 0
+    ) -> None:
         """Route one observation to its landmark in the graph or to the pending buffer.
 
-        Landmarks whose buffer is full enough are appended to ``candidates``.
+        Landmarks whose buffer is full enough are appended to ``candidates``. With ``budget`` > 0 an
+        observation of a landmark in the graph waits outside iSAM2 (until the final estimate) once
+        the update being built holds ``budget`` factors.
         """
         lkey = self._lm_current.get(lm_id)
         if lkey is not None:
@@ -514,7 +522,7 @@ class Isam2Backend:
             if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
                 del self._lm_current[lm_id]  # the track continues as a new landmark variable
             else:
-                self._add_obs(o, lkey, lm_id, graph)
+                self._add_obs(o, lkey, lm_id, graph, outside=0 < budget <= len(self._batch))
                 return
         pend = self._pending.get(lm_id)
         if pend is None:
@@ -613,12 +621,17 @@ class Isam2Backend:
         Rejected: non-finite, or of a landmark that was dropped or never seen.
         """
         rejected = 0
-        for row in np.asarray(mono_obs, dtype=float).reshape(-1, 3).tolist():
+        rows = np.asarray(mono_obs, dtype=float).reshape(-1, 3)
+        budget = self.config.keyframe_obs_budget
+        if budget > 0 and len(self._batch) + rows.shape[0] > budget:
+            # which ones wait outside the budget: a random subset (seeded by the keyframe), spread over the image
+            rows = rows[np.random.default_rng(kf_id).permutation(rows.shape[0])]
+        for row in rows.tolist():
             lm_id = int(row[0])
             if not all(np.isfinite(row)) or (lm_id not in self._lm_current and lm_id not in self._pending):
                 rejected += 1
                 continue
-            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates)
+            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates, budget)
         return rejected
 
     def add_observations(self, keyframe_id: int, mono_obs: F64) -> BackendUpdate:
@@ -1061,7 +1074,7 @@ class Isam2Backend:
         Extra iterations by :meth:`refine`, the batch bundle adjustment by :meth:`batch_refine`; the
         plain estimate when ``refine`` is None.
         """
-        if self._windowed:
+        if self._windowed or self._outside:
             self._merge_outside()
         if refine is None:
             return self.estimate()
