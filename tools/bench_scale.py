@@ -20,6 +20,7 @@ CPU time per frame (``time.thread_time``: what the load does not change; worker 
 on it, as its worker thread measures it: ``add_keyframe``, late observations, loop constraints,
 ``estimate``, charged to the number of keyframes it holds), median per block of B keyframes (B = 20),
 as [keyframes, ms] pairs; ``backend_ms_last_over_first``: the last block's median over the first's;
+``backend_cpu_s_by_call``: the back end's CPU s per kind of call (kf, obs, loop, remove, estimate);
 ``frame_ms_p95`` and ``frame_ms_max_after_first``: over the frames after the first (wall);
 ``loop_stage_ms_by_keyframes``: the loop stage's ``on_keyframe`` on the tracking thread, the same
 way; ``loop_stage_s``: all its time on the tracking thread (``on_keyframe`` and ``between_frames``);
@@ -273,6 +274,9 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None, 
         "backend_ms_by_keyframes": curve,
         "backend_ms_last_over_first": round(curve[-1][1] / curve[0][1], 3) if len(curve) > 1 and curve[0][1] else None,
         "backend_block_keyframes": block,
+        "backend_cpu_s_by_call": {
+            kind: round(sum(ms for k2, _, ms in calls if k2 == kind) / 1e3, 2) for kind in sorted({c[0] for c in calls})
+        },
         "loop_stage_ms_by_keyframes": loop_clock.curve(block),
         "loop_opt_ms_by_keyframes": [[k, round(ms, 1)] for kind, k, ms in calls if kind == "loop"],
         "loop_gate_ms_by_keyframes": [

@@ -157,6 +157,8 @@ class Isam2Backend:
         self._proxy_fids: dict[int, list[int]] = {}
         self._next_pkey = 0
         self._new_proxies = gtsam.Values()
+        # keyframe_obs_budget: observations of known landmarks each keyframe's updates took so far
+        self._budget_used: dict[int, int] = {}
 
     # ------------------------------------------------------------------ set-up
     @staticmethod
@@ -261,7 +263,7 @@ class Isam2Backend:
             return
         factor = self._obs_factor(obs, L(lkey))
         rec = _FactorRecord(factor, "stereo" if obs.stereo else "mono", lkey, key)
-        if outside:  # over the keyframe's factor budget: joins at the final estimate
+        if outside:  # over the keyframe's observation budget: joins at the final estimate
             fid = self._new_fid(rec, outside=True)
         elif self._windowed and self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq > self.config.local_window_kf:
             fid = self._new_fid(rec, outside=True)  # a revisit: it would tie this keyframe to an old part of the map
@@ -508,11 +510,11 @@ class Isam2Backend:
         return created
 
     def _observe(
-        self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int], budget: int = 0
+        self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int], budget: int | None = None
     ) -> None:
         """Route one observation to its landmark in the graph or to the pending buffer.
 
-        Landmarks whose buffer is full enough are appended to ``candidates``. With ``budget`` > 0 an
+        Landmarks whose buffer is full enough are appended to ``candidates``. With a ``budget`` an
         observation of a landmark in the graph waits outside iSAM2 (until the final estimate) once
         the update being built holds ``budget`` factors.
         """
@@ -522,7 +524,7 @@ class Isam2Backend:
             if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
                 del self._lm_current[lm_id]  # the track continues as a new landmark variable
             else:
-                self._add_obs(o, lkey, lm_id, graph, outside=0 < budget <= len(self._batch))
+                self._add_obs(o, lkey, lm_id, graph, outside=budget is not None and budget <= len(self._batch))
                 return
         pend = self._pending.get(lm_id)
         if pend is None:
@@ -622,16 +624,21 @@ class Isam2Backend:
         """
         rejected = 0
         rows = np.asarray(mono_obs, dtype=float).reshape(-1, 3)
-        budget = self.config.keyframe_obs_budget
-        if budget > 0 and len(self._batch) + rows.shape[0] > budget:
-            # which ones wait outside the budget: a random subset (seeded by the keyframe), spread over the image
-            rows = rows[np.random.default_rng(kf_id).permutation(rows.shape[0])]
+        budget: int | None = None
+        used = self._budget_used.get(kf_id, 0)
+        if self.config.keyframe_obs_budget > 0:  # the keyframe's budget over all its updates (late observations)
+            budget = max(self.config.keyframe_obs_budget - used, len(self._batch))
+            if len(self._batch) + rows.shape[0] > budget:
+                # which ones wait: a random subset (seeded by the keyframe), spread over the image as they are
+                rows = rows[np.random.default_rng(kf_id).permutation(rows.shape[0])]
         for row in rows.tolist():
             lm_id = int(row[0])
             if not all(np.isfinite(row)) or (lm_id not in self._lm_current and lm_id not in self._pending):
                 rejected += 1
                 continue
             self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates, budget)
+        if budget is not None:
+            self._budget_used[kf_id] = used + len(self._batch)
         return rejected
 
     def add_observations(self, keyframe_id: int, mono_obs: F64) -> BackendUpdate:
