@@ -11,7 +11,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import pytest
 
 from loopmodel.backend.isam2 import Isam2Backend
 from loopmodel.backend.worker import BackgroundBackend
@@ -307,7 +306,6 @@ def _feed_budget(budget: int, policy: str) -> tuple[Isam2Backend, list[tuple[int
     return backend, counts, before, online, final
 
 
-@pytest.mark.slow  # three 50-keyframe feeds: 60 s at load 11-17
 def test_keyframe_obs_budget_bounds_each_update_and_the_rest_joins_at_the_end() -> None:
     """``keyframe_obs_budget`` (issue 33, scale8): an update takes at most that many known landmarks' observations.
 
