@@ -1,11 +1,12 @@
 """Benchmark ``scale``: cost growth of the pipeline over a long realistic multi-loop scan (issues 17, 33).
 
-Full run: the 10,000-frame realistic ``rounds`` scan (400 s at 25 Hz: 16 rounds around the object,
+Full run: a 5,400-frame realistic ``rounds`` scan (216 s at 25 Hz: 18 rounds around the object,
 each at its own height and distance, each running past its own start; every round passes the
-views of the earlier ones from another height, so the path keeps finding new views: about 20
-keyframes a round); generated once into ``~/.cache/loopmodel`` (slow: about 0.35-0.5 CPU-s per
-frame, hours on a loaded 2-core machine). ``--quick``: the same kind of scan with 6 rounds in 1,800
-frames (faster motion, about 120 keyframes). The pipeline runs with its own configuration (iSAM2 back
+views of the earlier ones from another height, so the path keeps finding new views); the quick
+scan's pace (about 19 keyframes a round), 3 times as long. The ``rounds`` preset's 10,000 frames
+(16 rounds, slower) would take twice as long to generate (0.2-0.25 CPU-s a frame) and to run.
+Generated once into ``~/.cache/loopmodel``. ``--quick``: the same kind of scan with 6 rounds in
+1,800 frames (about 120 keyframes). The pipeline runs with its own configuration (iSAM2 back
 end in its worker, loop stage with its worker, live and final meshes, session map).
 
 Keys: ``frames``, ``keyframes``, ``loops``, ``loops_old_features_resumed`` (loops whose old features the
@@ -19,6 +20,7 @@ CPU time per frame (``time.thread_time``: what the load does not change; worker 
 on it, as its worker thread measures it: ``add_keyframe``, late observations, loop constraints,
 ``estimate``, charged to the number of keyframes it holds), median per block of B keyframes (B = 20),
 as [keyframes, ms] pairs; ``backend_ms_last_over_first``: the last block's median over the first's;
+``backend_cpu_s_by_call``: the back end's CPU s per kind of call (kf, obs, loop, remove, estimate);
 ``frame_ms_p95`` and ``frame_ms_max_after_first``: over the frames after the first (wall);
 ``loop_stage_ms_by_keyframes``: the loop stage's ``on_keyframe`` on the tracking thread, the same
 way; ``loop_stage_s``: all its time on the tracking thread (``on_keyframe`` and ``between_frames``);
@@ -272,6 +274,9 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None, 
         "backend_ms_by_keyframes": curve,
         "backend_ms_last_over_first": round(curve[-1][1] / curve[0][1], 3) if len(curve) > 1 and curve[0][1] else None,
         "backend_block_keyframes": block,
+        "backend_cpu_s_by_call": {
+            kind: round(sum(ms for k2, _, ms in calls if k2 == kind) / 1e3, 2) for kind in sorted({c[0] for c in calls})
+        },
         "loop_stage_ms_by_keyframes": loop_clock.curve(block),
         "loop_opt_ms_by_keyframes": [[k, round(ms, 1)] for kind, k, ms in calls if kind == "loop"],
         "loop_gate_ms_by_keyframes": [
@@ -332,8 +337,8 @@ def run(quick: bool = False) -> dict[str, Any]:
 
     if quick:  # 6 rounds in 1,800 frames (4 rounds in 1,200 made 79 keyframes)
         path, window = sl._ensure(CACHE / "rounds_1800.mcap", "rounds", frames=1800, sweeps=6), 200
-    else:  # the preset: 16 rounds in 10,000 frames
-        path, window = sl._ensure(CACHE / "rounds_10000.mcap", "rounds"), 500
+    else:  # 18 rounds in 5,400 frames: the quick scan's pace (about 19 keyframes a round), 3 times as long
+        path, window = sl._ensure(CACHE / "rounds_5400.mcap", "rounds", frames=5400, sweeps=18), 500
     result = measure(path, 1, window)
     name = "scale_quick" if quick else "scale"
     plot(result, OUT / f"{name}.png")

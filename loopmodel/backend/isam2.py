@@ -157,6 +157,8 @@ class Isam2Backend:
         self._proxy_fids: dict[int, list[int]] = {}
         self._next_pkey = 0
         self._new_proxies = gtsam.Values()
+        # keyframe_obs_budget: observations of known landmarks each keyframe's updates took so far
+        self._budget_used: dict[int, int] = {}
 
     # ------------------------------------------------------------------ set-up
     @staticmethod
@@ -253,13 +255,17 @@ class Isam2Backend:
             np.array(px[:2]), self._mono_noise, X(obs.kf_id), landmark_key, self._cal_mono, *extra
         )
 
-    def _add_obs(self, obs: _Obs, lkey: int, lm_id: int, graph: gtsam.NonlinearFactorGraph) -> None:
+    def _add_obs(
+        self, obs: _Obs, lkey: int, lm_id: int, graph: gtsam.NonlinearFactorGraph, outside: bool = False
+    ) -> None:
         key = (obs.kf_id, lm_id)
         if key in self._obs_fid:  # the same observation twice: keep the first
             return
         factor = self._obs_factor(obs, L(lkey))
         rec = _FactorRecord(factor, "stereo" if obs.stereo else "mono", lkey, key)
-        if self._windowed and self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq > self.config.local_window_kf:
+        if outside:  # over the keyframe's observation budget: joins at the final estimate
+            fid = self._new_fid(rec, outside=True)
+        elif self._windowed and self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq > self.config.local_window_kf:
             fid = self._new_fid(rec, outside=True)  # a revisit: it would tie this keyframe to an old part of the map
             self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
         else:
@@ -503,10 +509,14 @@ class Isam2Backend:
                 created += 1
         return created
 
-    def _observe(self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int]) -> None:
+    def _observe(
+        self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int], budget: int | None = None
+    ) -> None:
         """Route one observation to its landmark in the graph or to the pending buffer.
 
-        Landmarks whose buffer is full enough are appended to ``candidates``.
+        Landmarks whose buffer is full enough are appended to ``candidates``. With a ``budget`` an
+        observation of a landmark in the graph waits outside iSAM2 (until the final estimate) once
+        the update being built holds ``budget`` factors.
         """
         lkey = self._lm_current.get(lm_id)
         if lkey is not None:
@@ -514,7 +524,7 @@ class Isam2Backend:
             if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
                 del self._lm_current[lm_id]  # the track continues as a new landmark variable
             else:
-                self._add_obs(o, lkey, lm_id, graph)
+                self._add_obs(o, lkey, lm_id, graph, outside=budget is not None and budget <= len(self._batch))
                 return
         pend = self._pending.get(lm_id)
         if pend is None:
@@ -613,12 +623,22 @@ class Isam2Backend:
         Rejected: non-finite, or of a landmark that was dropped or never seen.
         """
         rejected = 0
-        for row in np.asarray(mono_obs, dtype=float).reshape(-1, 3).tolist():
+        rows = np.asarray(mono_obs, dtype=float).reshape(-1, 3)
+        budget: int | None = None
+        used = self._budget_used.get(kf_id, 0)
+        if self.config.keyframe_obs_budget > 0:  # the keyframe's budget over all its updates (late observations)
+            budget = max(self.config.keyframe_obs_budget - used, len(self._batch))
+            if len(self._batch) + rows.shape[0] > budget:
+                # which ones wait: a random subset (seeded by the keyframe), spread over the image as they are
+                rows = rows[np.random.default_rng(kf_id).permutation(rows.shape[0])]
+        for row in rows.tolist():
             lm_id = int(row[0])
             if not all(np.isfinite(row)) or (lm_id not in self._lm_current and lm_id not in self._pending):
                 rejected += 1
                 continue
-            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates)
+            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates, budget)
+        if budget is not None:
+            self._budget_used[kf_id] = used + len(self._batch)
         return rejected
 
     def add_observations(self, keyframe_id: int, mono_obs: F64) -> BackendUpdate:
@@ -1061,7 +1081,7 @@ class Isam2Backend:
         Extra iterations by :meth:`refine`, the batch bundle adjustment by :meth:`batch_refine`; the
         plain estimate when ``refine`` is None.
         """
-        if self._windowed:
+        if self._windowed or self._outside:
             self._merge_outside()
         if refine is None:
             return self.estimate()
