@@ -559,9 +559,11 @@ class _Run:
             return estimate
         from loopmodel.calibration.selfcal import apply_laser_scale, close_loops, refine_final, restripe
         from loopmodel.mapping.extraction import LightPlane
+        from loopmodel.types import at_latest_disparity_offset
 
         plane = LightPlane.from_config(self.config.mapping)
-        kfs = list(self.selfcal_keyframes.values())
+        # drift8 (issue 36): the right columns at the front end's latest disparity offset, as the batch BA has them
+        kfs = at_latest_disparity_offset(list(self.selfcal_keyframes.values()))
         loops = [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints]
         b = self.config.backend
         try:
@@ -585,19 +587,19 @@ class _Run:
         self.anchored.update_keyframes(sc.world_from_kf)
         if self.config.calibration.retracks:
             try:
-                self._retrack(sc, recorded)
+                self._retrack(sc, recorded, {int(k.id): k for k in kfs})
             except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:  # the bridged frames stay
                 logger.warning("frames between keyframes not re-solved: %s", exc)
         self.selfcal = sc
         return BackendEstimate(dict(sc.world_from_kf), sc.landmark_ids, sc.landmarks_in_world, set(sc.world_from_kf))
 
-    def _retrack(self, sc: Any, recorded: StereoCalibration) -> None:
+    def _retrack(self, sc: Any, recorded: StereoCalibration, keyframes: Mapping[int, Keyframe]) -> None:
         """The frames between keyframes solved again with the refined calibration (issue 31; final trajectory)."""
         from loopmodel.calibration.retrack import retrack_frames
 
         t0 = time.perf_counter()
         self.retracked = retrack_frames(
-            self.frames, self._final_trajectory(), self.selfcal_keyframes, sc.world_from_kf, sc.landmark_ids,
+            self.frames, self._final_trajectory(), keyframes, sc.world_from_kf, sc.landmark_ids,
             sc.landmarks_in_world, recorded, sc.calibration, self.frontend.pose_options,
             self.config.calibration.retrack_min_points,
             disparity_sigma_px=fc.disparity_sigma_px if (fc := self.frontend.config).depth_weighting else None,
