@@ -403,6 +403,8 @@ class _Run:
         self.selfcal_keyframes: dict[int, Keyframe] = {}
         self.selfcal: Any = None
         self.retracked: RetrackedFrames | None = None  # the frames between keyframes re-solved after refining
+        # drift8: the keyframes' stereo points triangulated with the refined rig (the re-solve's and the map's)
+        self.refined_points: dict[int, F64] | None = None
         self.loop_constraints: list[LoopConstraint] = []
         # the back end's last call (ms) and the ids of the loop constraints it was given (MapState)
         self._last: tuple[float, tuple[int | None, ...]] = (0.0, ())
@@ -585,6 +587,13 @@ class _Run:
         stripes = restripe(self.laser.stripes, recorded, sc.calibration, plane.normal_in_cam, plane.d_m)
         self.laser.stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
         self.anchored.update_keyframes(sc.world_from_kf)
+        if self.config.calibration.retracks or self.map_record is not None:  # drift8: one triangulation for both
+            from loopmodel.calibration.retrack import refined_stereo_points
+
+            t0 = time.perf_counter()
+            placed = [k for k in kfs if int(k.id) in sc.world_from_kf]
+            self.refined_points = refined_stereo_points(placed, sc.landmark_ids, recorded, sc.calibration)
+            sc.extra["calibration_refined_points_s"] = time.perf_counter() - t0
         if self.config.calibration.retracks:
             try:
                 self._retrack(sc, recorded, {int(k.id): k for k in kfs})
@@ -603,6 +612,7 @@ class _Run:
             sc.landmarks_in_world, recorded, sc.calibration, self.frontend.pose_options,
             self.config.calibration.retrack_min_points,
             disparity_sigma_px=fc.disparity_sigma_px if (fc := self.frontend.config).depth_weighting else None,
+            keyframe_points=self.refined_points,
         )
         sc.extra.update({f"calibration_retrack_{k}": v for k, v in self.retracked.stats.items()})
         sc.extra["calibration_retrack_s"] = time.perf_counter() - t0
@@ -778,7 +788,7 @@ class _Run:
             from loopmodel.sessions import refined_map_points
 
             recorded = self.frontend.rectifier.input_calibration
-            smap = refined_map_points(smap, recorded, result.calibration_refined)
+            smap = refined_map_points(smap, recorded, result.calibration_refined, self.refined_points)
             smap.refined_calibration = MapCalibration.from_report(
                 result.calibration_refined, recorded, result.calibration_report
             )
