@@ -592,7 +592,10 @@ class _Run:
 
             t0 = time.perf_counter()
             placed = [k for k in kfs if int(k.id) in sc.world_from_kf]
-            self.refined_points = refined_stereo_points(placed, sc.landmark_ids, recorded, sc.calibration)
+            try:  # else the re-solve and the map triangulate their own
+                self.refined_points = refined_stereo_points(placed, sc.landmark_ids, recorded, sc.calibration)
+            except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:
+                logger.warning("keyframe points not triangulated with the refined rig: %s", exc)
             sc.extra["calibration_refined_points_s"] = time.perf_counter() - t0
         if self.config.calibration.retracks:
             try:
