@@ -791,7 +791,9 @@ class _Run:
             from loopmodel.sessions import refined_map_points
 
             recorded = self.frontend.rectifier.input_calibration
-            smap = refined_map_points(smap, recorded, result.calibration_refined, self.refined_points)
+            # a resumed run's map renumbers this run's keyframes (loop.merge.append_session): its own triangulation
+            shared = self.refined_points if self.resume is None else None
+            smap = refined_map_points(smap, recorded, result.calibration_refined, shared)
             smap.refined_calibration = MapCalibration.from_report(
                 result.calibration_refined, recorded, result.calibration_report
             )

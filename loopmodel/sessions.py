@@ -122,8 +122,8 @@ def refined_map_points(
     becomes its refined landmark (``smap.landmarks_in_world``, the calibrating bundle adjustment's)
     seen from its refined keyframe, or, for a landmark the refinement did not hold, the keyframe's
     stereo match triangulated with the refined rig: ``keyframe_points`` (keyframe id -> its rows, the
-    run's one triangulation, :func:`~loopmodel.calibration.retrack.refined_stereo_points`) where it
-    has the keyframe, else triangulated here in one batch
+    run's one triangulation, :func:`~loopmodel.calibration.retrack.refined_stereo_points`, keyed by
+    this map's keyframe ids) where it has the keyframe, else triangulated here in one batch
     (:func:`~loopmodel.calibration.retrack.refined_stereo_px_points`); one that does not converge keeps
     its point. The loop features' 3-D points (``features.points_in_kf``, rectified keyframe frame)
     follow their landmarks. Frames: keyframe = the raw left camera (``world_from_kf``), metres.
