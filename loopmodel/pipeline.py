@@ -409,6 +409,8 @@ class _Run:
         self.selfcal: Any = None
         self.retracked: RetrackedFrames | None = None  # the frames between keyframes re-solved after refining
         self.mesh_worker: FinalMeshWorker | None = None  # the final mesh's process, during the finish
+        # the keyframes' stereo points triangulated with the refined rig (the re-solve's and the map's)
+        self.refined_points: dict[int, F64] | None = None
         self.loop_constraints: list[LoopConstraint] = []
         self.online: Any = None  # issue 31, calibration.refine online: calibration/online.py
         if config.calibration.refine == "online" and self.localizer is None:
@@ -583,6 +585,7 @@ class _Run:
             return estimate
         from loopmodel.calibration.selfcal import apply_laser_scale, close_loops, refine_final, restripe
         from loopmodel.mapping.extraction import LightPlane
+        from loopmodel.types import at_latest_disparity_offset
 
         plane = LightPlane.from_config(self.config.mapping)
         start = None
@@ -592,7 +595,8 @@ class _Run:
                 int(k.id): k for k in self.online.keyframes_as_recorded(list(self.selfcal_keyframes.values()))
             }
             start = self.online.latest_values
-        kfs = list(self.selfcal_keyframes.values())
+        # issue 36: the right columns at the front end's latest disparity offset, as the batch BA has them
+        kfs = at_latest_disparity_offset(list(self.selfcal_keyframes.values()))
         loops = [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints]
         b = self.config.backend
         try:
@@ -614,9 +618,19 @@ class _Run:
         stripes = restripe(self.laser.stripes, recorded, sc.calibration, plane.normal_in_cam, plane.d_m)
         self.laser.stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
         self.anchored.update_keyframes(sc.world_from_kf)
+        if self.config.calibration.retracks or self.map_record is not None:  # issue 32: one triangulation for both
+            from loopmodel.calibration.retrack import refined_stereo_points
+
+            t0 = time.perf_counter()
+            placed = [k for k in kfs if int(k.id) in sc.world_from_kf]
+            try:  # else the re-solve and the map triangulate their own
+                self.refined_points = refined_stereo_points(placed, sc.landmark_ids, recorded, sc.calibration)
+            except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:
+                logger.warning("keyframe points not triangulated with the refined rig: %s", exc)
+            sc.extra["calibration_refined_points_s"] = time.perf_counter() - t0
         if self.config.calibration.retracks:
             try:
-                self._retrack(sc, recorded)
+                self._retrack(sc, recorded, {int(k.id): k for k in kfs})
             except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:  # the bridged frames stay
                 logger.warning("frames between keyframes not re-solved: %s", exc)
         if self.online is not None:
@@ -624,17 +638,18 @@ class _Run:
         self.selfcal = sc
         return BackendEstimate(dict(sc.world_from_kf), sc.landmark_ids, sc.landmarks_in_world, set(sc.world_from_kf))
 
-    def _retrack(self, sc: Any, recorded: StereoCalibration) -> None:
+    def _retrack(self, sc: Any, recorded: StereoCalibration, keyframes: Mapping[int, Keyframe]) -> None:
         """The frames between keyframes solved again with the refined calibration (issue 31; final trajectory)."""
         from loopmodel.calibration.retrack import retrack_frames
 
         t0 = time.perf_counter()
         frames = self.frames if self.online is None else self.online.observations_as_recorded(self.frames)
         self.retracked = retrack_frames(
-            frames, self._final_trajectory(), self.selfcal_keyframes, sc.world_from_kf, sc.landmark_ids,
+            frames, self._final_trajectory(), keyframes, sc.world_from_kf, sc.landmark_ids,
             sc.landmarks_in_world, recorded, sc.calibration, self.frontend.pose_options,
             self.config.calibration.retrack_min_points,
             disparity_sigma_px=fc.disparity_sigma_px if (fc := self.frontend.config).depth_weighting else None,
+            keyframe_points=self.refined_points,
         )
         sc.extra.update({f"calibration_retrack_{k}": v for k, v in self.retracked.stats.items()})
         sc.extra["calibration_retrack_s"] = time.perf_counter() - t0
@@ -853,7 +868,9 @@ class _Run:
             from loopmodel.sessions import refined_map_points
 
             recorded = self.frontend.input_calibration
-            smap = refined_map_points(smap, recorded, result.calibration_refined)
+            # a resumed run's map renumbers this run's keyframes (loop.merge.append_session): its own triangulation
+            shared = self.refined_points if self.resume is None else None
+            smap = refined_map_points(smap, recorded, result.calibration_refined, shared)
             smap.refined_calibration = MapCalibration.from_report(
                 result.calibration_refined, recorded, result.calibration_report
             )

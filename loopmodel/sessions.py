@@ -7,6 +7,7 @@ makes its own map (:class:`OwnMap`) and resumes nothing (``None``).
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -107,7 +108,12 @@ def session_calibration(
     return mc.refined, {"session_calibration": "map", **info}
 
 
-def refined_map_points(smap: SessionMap, recorded: StereoCalibration, refined: StereoCalibration) -> SessionMap:
+def refined_map_points(
+    smap: SessionMap,
+    recorded: StereoCalibration,
+    refined: StereoCalibration,
+    keyframe_points: Mapping[int, F64] | None = None,
+) -> SessionMap:
     """``smap`` with its keyframes' stereo points placed as the refined calibration places them (issue 31).
 
     The front end triangulated each keyframe's points with the recorded calibration; a later
@@ -115,48 +121,61 @@ def refined_map_points(smap: SessionMap, recorded: StereoCalibration, refined: S
     the KLT stage on one map keyframe's points), so their error becomes the localization's. Each point
     becomes its refined landmark (``smap.landmarks_in_world``, the calibrating bundle adjustment's)
     seen from its refined keyframe, or, for a landmark the refinement did not hold, the keyframe's
-    stereo match triangulated with the refined rig
-    (:func:`~loopmodel.calibration.retrack.refined_keyframe_points`); one that does not converge keeps
+    stereo match triangulated with the refined rig: ``keyframe_points`` (keyframe id -> its rows, the
+    run's one triangulation, :func:`~loopmodel.calibration.retrack.refined_stereo_points`, keyed by
+    this map's keyframe ids) where it has the keyframe, else triangulated here in one batch
+    (:func:`~loopmodel.calibration.retrack.refined_stereo_px_points`); one that does not converge keeps
     its point. The loop features' 3-D points (``features.points_in_kf``, rectified keyframe frame)
     follow their landmarks. Frames: keyframe = the raw left camera (``world_from_kf``), metres.
     """
     import dataclasses
 
-    from loopmodel.calibration.retrack import refined_keyframe_points
+    from loopmodel.calibration.retrack import refined_stereo_px_points
     from loopmodel.geometry.se3 import invert_pose
 
-    world = {int(i): p for i, p in zip(smap.landmark_ids.tolist(), np.asarray(smap.landmarks_in_world), strict=True)}
+    held = np.asarray(smap.landmark_ids, np.int64).ravel()
+    order = np.argsort(held, kind="stable")
+    held_sorted, held_pts = held[order], np.asarray(smap.landmarks_in_world, float).reshape(-1, 3)[order]
     pts = np.array(smap.lm_points_in_kf, dtype=float, copy=True)
-    f = smap.features
-    fpts = np.array(f.points_in_kf, dtype=float, copy=True)
-    moved = 0
+    new = np.full(pts.shape, np.nan)
+    lm_ids = np.asarray(smap.lm_ids, np.int64)
+    at = np.minimum(np.searchsorted(held_sorted, lm_ids), max(held_sorted.size - 1, 0))
+    known = (held_sorted.size > 0) & (held_sorted[at] == lm_ids)
+    todo = np.zeros(pts.shape[0], bool)  # rows to triangulate here (no shared point for their keyframe)
+    shared = keyframe_points or {}
     for i in range(len(smap)):
         a, b = int(smap.lm_offsets[i]), int(smap.lm_offsets[i + 1])
         if b <= a:
             continue
-        ids = smap.lm_ids[a:b]
         kf_from_world = invert_pose(np.asarray(smap.world_from_kf[i], float))
-        new = np.full((b - a, 3), np.nan)
-        known = np.array([int(k) in world for k in ids.tolist()], bool)
-        if known.any():
-            X = np.array([world[int(k)] for k in ids[known].tolist()], float).reshape(-1, 3)
-            new[known] = X @ kf_from_world[:3, :3].T + kf_from_world[:3, 3]
-        if (~known).any():
-            rows = np.flatnonzero(~known).astype(np.int64)
-            new[rows] = refined_keyframe_points(smap.keyframe(i, with_image=False), rows, recorded, refined)
-        ok = np.all(np.isfinite(new), axis=1) & (new[:, 2] > 0)
-        pts[a:b][ok] = new[ok]
-        moved += int(ok.sum())
-        # the loop features at the keyframe's landmarks, in the rectified keyframe frame
+        k = known[a:b]
+        new[a:b][k] = held_pts[at[a:b][k]] @ kf_from_world[:3, :3].T + kf_from_world[:3, 3]
+        p = shared.get(int(smap.keyframe_ids[i]))
+        if p is not None and p.shape[0] == b - a:
+            new[a:b][~k] = p[~k]
+        else:
+            todo[a:b] = ~k
+    if todo.any():
+        new[todo] = refined_stereo_px_points(np.asarray(smap.lm_stereo_px, float)[todo], recorded, refined)
+    ok = np.all(np.isfinite(new), axis=1) & (new[:, 2] > 0)
+    pts[ok] = new[ok]
+    # the loop features at their keyframe's landmarks, in the rectified keyframe frame
+    f = smap.features
+    fpts = np.array(f.points_in_kf, dtype=float, copy=True)
+    for i in range(len(smap)):
+        a, b = int(smap.lm_offsets[i]), int(smap.lm_offsets[i + 1])
         lo, hi = int(f.offsets[i]), int(f.offsets[i + 1])
-        fid = f.ids[lo:hi]
-        row_of = {int(k): r for r, k in enumerate(ids.tolist())}
+        if b <= a or hi <= lo:
+            continue
+        ids = lm_ids[a:b]
+        srt = np.argsort(ids, kind="stable")
+        fid = np.asarray(f.ids[lo:hi], np.int64)
+        pos = np.minimum(np.searchsorted(ids[srt], fid), b - a - 1)
+        row = srt[pos]
+        hit = (fid >= 0) & (ids[row] == fid) & ok[a + row]
         rect = np.asarray(smap.rect_from_cam[i], float)
-        for j in np.flatnonzero(fid >= 0).tolist():
-            r = row_of.get(int(fid[j]))
-            if r is not None and ok[r]:
-                fpts[lo + j] = rect[:3, :3] @ pts[a + r] + rect[:3, 3]
-    logger.info("map: %d of %d keyframe points placed with the refined calibration", moved, pts.shape[0])
+        fpts[lo:hi][hit] = pts[a + row[hit]] @ rect[:3, :3].T + rect[:3, 3]
+    logger.info("map: %d of %d keyframe points placed with the refined calibration", int(ok.sum()), pts.shape[0])
     features = dataclasses.replace(f, points_in_kf=fpts)
     return dataclasses.replace(smap, lm_points_in_kf=pts, features=features)
 

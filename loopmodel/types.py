@@ -240,6 +240,43 @@ class Keyframe:
         """A shallow copy without the image (small to hold or send to a worker process)."""
         return replace(self, image=_empty_image())
 
+    def at_disparity_offset(self, offset_px: float) -> Keyframe:
+        """A copy whose right columns have the disparity offset ``offset_px`` taken out instead of the front end's.
+
+        With ``frontend.disparity_offset: estimate`` the front end stored each right column as measured
+        minus the offset estimated when the keyframe was made (``ba_info["disparity_offset_applied_px"]``);
+        the copy holds measured minus ``offset_px`` (its ``stereo_px`` column 1 moved by applied minus
+        ``offset_px``, and that key set to ``offset_px``). The keyframe itself when nothing moves.
+        """
+        applied = self.ba_info.get("disparity_offset_applied_px")
+        if applied is None or not np.isfinite(applied) or float(applied) == float(offset_px):
+            return self
+        st = np.array(self.stereo_px, dtype=float, copy=True).reshape(-1, 3)
+        st[:, 1] += float(applied) - float(offset_px)
+        info = {**self.ba_info, "disparity_offset_applied_px": float(offset_px)}
+        return replace(self, stereo_px=st, ba_info=info)
+
+
+def at_latest_disparity_offset(keyframes: list[Keyframe]) -> list[Keyframe]:
+    """``keyframes`` with every right column at one disparity offset: the latest estimate (issue 36, drift8).
+
+    The front end's offset (``frontend.disparity_offset: estimate``) converges over the run, so early
+    keyframes had a different one taken out of their right columns than later ones; the back end's
+    batch refinement re-expresses them at the latest estimate (``Isam2Backend.batch_refine``), and a
+    stage that reads ``stereo_px`` itself (the calibrating bundle adjustment) does the same through
+    this. The latest: that of the last keyframe (in the given order) whose ``ba_info`` holds both
+    ``disparity_offset_applied_px`` and ``disparity_offset_estimate_px``, as the back end takes it.
+    The list as it is without an estimate (``disparity_offset: none``, the code default).
+    """
+    latest = None
+    for kf in keyframes:
+        a, e = kf.ba_info.get("disparity_offset_applied_px"), kf.ba_info.get("disparity_offset_estimate_px")
+        if a is not None and e is not None and np.isfinite(a) and np.isfinite(e):
+            latest = float(e)
+    if latest is None:
+        return list(keyframes)
+    return [kf.at_disparity_offset(latest) for kf in keyframes]
+
 
 @dataclass
 class Trajectory:

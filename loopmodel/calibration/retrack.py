@@ -10,8 +10,9 @@ undo an error that is not a scale). :func:`retrack_frames` takes the points each
 through the recorded model (exactly the pixel the tracker measured) and out again through the
 refined left camera (:func:`refined_left_px`), and solves the pose once more with the project's
 robust pose solver (:func:`loopmodel.pose.refine_pose`) against the refined landmarks; a landmark the
-refinement did not hold is triangulated again from its keyframe's stereo match with the refined rig
-(:func:`refined_keyframe_points`). The keyframes' own tracked poses are solved again the same way,
+refinement did not hold takes its keyframe's stereo match triangulated with the refined rig
+(:func:`refined_stereo_points`: every keyframe's in one batch, shared with the session map's refined
+points). The keyframes' own tracked poses are solved again the same way,
 and each interval's re-solved frames are bridged onto the refined keyframes (the tracker's KLT
 drift over the interval stays in the pixels). A frame with too few points, or whose solve fails or
 jumps, keeps its earlier pose.
@@ -22,7 +23,7 @@ Frames: camera = the raw (unrectified) left camera, ``world_from_cam``; metres, 
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -103,16 +104,29 @@ def refined_keyframe_points(
 ) -> F64:
     """Keyframe stereo points ``rows`` (indices into its ``stereo_px``) triangulated with the refined rig (N x 3).
 
-    In the keyframe's raw left camera (metres). The left pixel goes back to its raw pixel through the
-    recorded model and out along the refined left camera's ray; the depth along it is where the
-    point's refined right-camera projection, rectified with the recorded model, has the measured
-    right column (the front end measures the right match's column only, as the refinement models
-    it: :class:`~loopmodel.calibration.refine_rig.RigObservations`): secant steps from the linear
+    In the keyframe's raw left camera (metres); :func:`refined_stereo_px_points` of those rows.
+    """
+    st = np.asarray(keyframe.stereo_px, float).reshape(-1, 3)[np.asarray(rows, np.int64)]
+    return refined_stereo_px_points(st, recorded, refined, iterations)
+
+
+def refined_stereo_px_points(
+    stereo_px: F64, recorded: StereoCalibration, refined: StereoCalibration, iterations: int = 4
+) -> F64:
+    """Stereo matches triangulated with the refined rig (N x 3, the raw left camera's frame, metres).
+
+    ``stereo_px`` (N x 3): u_left, u_right, v of the recorded rectified pair. The left pixel goes
+    back to its raw pixel through the recorded model and out along the refined left camera's ray;
+    the depth along it is where the point's refined right-camera projection,
+    rectified with the recorded model, has the measured right column (the front end measures the
+    right match's column only, as the refinement models it:
+    :class:`~loopmodel.calibration.refine_rig.RigObservations`): secant steps from the linear
     two-ray triangulation (OpenCV) at the left row. NaN rows where it does not converge.
     """
     R1, R2, K1, K2 = rectifying_rotations(recorded)
-    st = np.asarray(keyframe.stereo_px, float)
-    st = st.reshape(-1, st.shape[-1])[np.asarray(rows, np.int64)]
+    st = np.asarray(stereo_px, float).reshape(-1, 3)
+    if st.shape[0] == 0:
+        return np.zeros((0, 3))
     raw_l = raw_from_rectified_px(st[:, [0, 2]], K1, R1, recorded.K_left, recorded.dist_left)
     raw_r = raw_from_rectified_px(st[:, [1, 2]], K2, R2, recorded.K_right, recorded.dist_right)
     ray_l = rays_from_raw_px(raw_l, refined.K_left, refined.dist_left)
@@ -139,6 +153,34 @@ def refined_keyframe_points(
         e1 = u_error(z1)
     z1 = np.where(np.abs(e1) < 1e-6, z1, np.nan)
     return np.asarray(z1[:, None] * ray_l, dtype=np.float64)
+
+
+def refined_stereo_points(
+    keyframes: Iterable[Keyframe], held_ids: I64, recorded: StereoCalibration, refined: StereoCalibration
+) -> dict[int, F64]:
+    """Every keyframe's stereo points triangulated with the refined rig in one batch: keyframe id -> (M x 3).
+
+    The rows of each keyframe's ``stereo_px``, in its raw left camera (metres). NaN rows: the
+    landmarks in ``held_ids`` (the calibrating bundle adjustment holds them; their refined world point
+    is the one) and the matches whose triangulation does not converge. One triangulation for the
+    re-solve of the frames (:func:`retrack_frames`) and the session map's refined points
+    (:func:`loopmodel.sessions.refined_map_points`; issue 32: they triangulated the same keyframe
+    points twice).
+    """
+    held = np.unique(np.asarray(held_ids, np.int64).ravel())
+    kfs = list(keyframes)
+    need = [~np.isin(np.asarray(k.landmark_ids, np.int64).ravel(), held) for k in kfs]
+    rows = [np.asarray(k.stereo_px, float).reshape(-1, 3)[n] for k, n in zip(kfs, need, strict=True)]
+    p = refined_stereo_px_points(np.concatenate(rows) if rows else np.zeros((0, 3)), recorded, refined)
+    out: dict[int, F64] = {}
+    at = 0
+    for k, n in zip(kfs, need, strict=True):
+        pts = np.full((n.size, 3), np.nan)
+        pts[n] = p[at : at + int(n.sum())]
+        at += int(n.sum())
+        pts[~(pts[:, 2] > 0)] = np.nan
+        out[int(k.id)] = pts
+    return out
 
 
 @dataclass
@@ -168,10 +210,11 @@ class RetrackedFrames:
 
 
 class _Landmarks:
-    """World points (metres) by landmark id: refined, else triangulated in their keyframe with the refined rig.
+    """World points (metres) by landmark id: refined, else their keyframe's stereo point with the refined rig.
 
     Held as arrays over the sorted ids (a frame's few hundred points are looked up at once); a
-    keyframe's points are triangulated when a frame first needs one of them.
+    landmark the refinement did not hold takes its point from the last keyframe that measured it
+    (``keyframe_points``: :func:`refined_stereo_points`) placed with that keyframe's refined pose.
     """
 
     def __init__(
@@ -180,6 +223,7 @@ class _Landmarks:
         world_from_kf: Mapping[int, F64],
         landmark_ids: I64,
         landmarks_in_world: F64,
+        keyframe_points: Mapping[int, F64],
         recorded: StereoCalibration,
         refined: StereoCalibration,
     ) -> None:
@@ -189,9 +233,7 @@ class _Landmarks:
         self.ids = np.unique(np.concatenate([ref_ids, *own]))
         n = self.ids.size
         self.points = np.full((n, 3), np.nan)
-        self.points[np.searchsorted(self.ids, ref_ids)] = np.asarray(landmarks_in_world, float).reshape(-1, 3)
-        self.tried = np.zeros(n, bool)  # refined, or triangulated (or failed) once
-        self.tried[np.searchsorted(self.ids, ref_ids)] = True
+        refined_at = np.searchsorted(self.ids, ref_ids)
         self.refined_count = int(np.unique(ref_ids).size)
         self.owner = np.full(n, -1, np.int64)  # index into ``kids`` of the keyframe that measured it (the last)
         self.row = np.zeros(n, np.int64)
@@ -199,15 +241,23 @@ class _Landmarks:
             at = np.searchsorted(self.ids, li)
             self.owner[at] = j
             self.row[at] = np.arange(li.size)
+        for j, kid in enumerate(kids):  # the owned points, placed with their keyframe's refined pose
+            sel = np.flatnonzero(self.owner == j)
+            p = keyframe_points.get(kid)
+            if sel.size == 0 or p is None or p.shape[0] != own[j].size:
+                continue
+            T = np.asarray(world_from_kf[kid], float)
+            self.points[sel] = p[self.row[sel]] @ T[:3, :3].T + T[:3, 3]
+        self.points[refined_at] = np.asarray(landmarks_in_world, float).reshape(-1, 3)
+        is_refined = np.zeros(n, bool)
+        is_refined[refined_at] = True
+        self.triangulated = int((np.all(np.isfinite(self.points), axis=1) & ~is_refined).sum())
         self.fb_px_m = float(refined.K_left[0, 0]) * float(refined.baseline_m)
-        self._kids, self._keyframes, self._world_from_kf = kids, keyframes, world_from_kf
         # each keyframe's camera centre and optical axis (world); a last row of NaN for "no keyframe"
         self._axes = np.array(
             [np.concatenate([np.asarray(world_from_kf[k], float)[:3, 3], np.asarray(world_from_kf[k], float)[:3, 2]])
              for k in kids] + [np.full(6, np.nan)]
         ).reshape(-1, 6)
-        self._recorded, self._refined = recorded, refined
-        self.triangulated = 0
         self.pixels = RefinedPixelGrid(recorded, refined)  # a frame's pixels as the refined camera sees them
 
     def _index(self, ids: I64) -> tuple[I64, NDArray[np.bool_]]:
@@ -228,18 +278,8 @@ class _Landmarks:
         return z, ray
 
     def get(self, ids: I64) -> tuple[F64, NDArray[np.bool_]]:
-        """World points of ``ids`` (N x 3) and which are known (refined or triangulated now)."""
+        """World points of ``ids`` (N x 3) and which are known (refined or triangulated)."""
         at, found = self._index(np.asarray(ids, np.int64))
-        new = np.unique(at[found & ~self.tried[at] & (self.owner[at] >= 0)])
-        for j in np.unique(self.owner[new]).tolist():
-            sel = new[self.owner[new] == j]
-            kid = self._kids[j]
-            p = refined_keyframe_points(self._keyframes[kid], self.row[sel], self._recorded, self._refined)
-            T = np.asarray(self._world_from_kf[kid], float)
-            good = np.all(np.isfinite(p), axis=1) & (p[:, 2] > 0)
-            self.points[sel] = np.where(good[:, None], p @ T[:3, :3].T + T[:3, 3], np.nan)
-            self.tried[sel] = True
-            self.triangulated += int(sel.size)
         out = np.where(found[:, None], self.points[at], np.nan)
         return out, np.all(np.isfinite(out), axis=1)
 
@@ -311,6 +351,7 @@ def retrack_frames(
     disparity_sigma_px: float | None = 0.3,
     bridge: bool = True,
     tail: bool = True,
+    keyframe_points: Mapping[int, F64] | None = None,
 ) -> RetrackedFrames:
     """Each tracked frame with kept points (``FrameResult.observed``) solved again; see the module docstring.
 
@@ -338,14 +379,20 @@ def retrack_frames(
     0.6 px off, tests/test_retrack.py: the four frames after the last keyframe 1.4-3.9 mm and up to
     0.04 deg off kept, 0.26-0.59 mm and 0.005 deg re-solved alone; their motion's translation rescaled
     by the keyframe's refined-over-recorded depth ratio instead: 0.97-3.6 mm, the rotation error
-    stays). The cost on a well-calibrated rig: the KITTI clip (``configs/kitti.yaml``, ``refine:
-    final``) ATE 0.03450 -> 0.03528 m with its last two frames re-solved alone (the front end's
-    monocular points, which the re-solve does not use, and the KLT drift unbridged), still below
-    ``refine: none``'s 0.0427 m.
+    stays). On a well-calibrated rig: the KITTI clip (``configs/kitti.yaml``, ``refine: final``, the
+    keyframes at one disparity offset, drift8) ATE 0.02428 -> 0.02466 m with its last two frames
+    re-solved alone (the front end's monocular points, which the re-solve does not use, and the KLT
+    drift unbridged), drift after the ground truth's constant-rate segment 0.560 -> 0.558 %.
+    ``keyframe_points``: :func:`refined_stereo_points` of ``keyframes`` when the caller has them
+    (computed here otherwise).
     """
     rig = CameraRig.single(CentralCamera.from_K(refined.K_left))
     index = {int(t): i for i, t in enumerate(start.timestamps_ns.tolist())}
-    lms = _Landmarks(keyframes, world_from_kf, landmark_ids, landmarks_in_world, recorded, refined)
+    if keyframe_points is None:
+        keyframe_points = refined_stereo_points(
+            [kf for k, kf in keyframes.items() if int(k) in world_from_kf], landmark_ids, recorded, refined
+        )
+    lms = _Landmarks(keyframes, world_from_kf, landmark_ids, landmarks_in_world, keyframe_points, recorded, refined)
     solved: dict[int, tuple[int, F64]] = {}  # frame time -> (its keyframe, world_from_cam re-solved)
     ends: dict[int, F64] = {}  # keyframe B -> world_from_B re-solved from its tracked pose's points
     counts = {"frames": 0, "ok": 0, "few_points": 0, "failed": 0, "jumped": 0}
