@@ -334,6 +334,13 @@ class FrontendConfig(_Section):
     keyframe_stereo: Literal["thread", "inline"] = Field(
         "thread", description="a new keyframe's stereo matching: on a thread beside the local BA, or inline"
     )
+    # fe8 (issue 33): a frame expected to make a keyframe (the policy run one frame ahead) starts its
+    # corner detection and stereo matching beside its own KLT and pose (keyframe_stereo: thread); a
+    # false expectation drops them. The same poses (bit-identical: KITTI clip, orbit sample); measured
+    # in CHANGELOG.md (fe8)
+    keyframe_match_ahead: bool = Field(
+        True, description="an expected keyframe's corners and stereo matches made beside its frame's tracking"
+    )
     # issue 33: the local BA of a keyframe's interval on a thread beside the pipeline's end of that
     # frame and the next frame's reading; taken between frames with the keyframe's hand-off to the loop
     # stage and back end (fe5: the inline order and results). Full pipeline, on / off: KITTI clip
