@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from loopmodel.frontend._stereo_kernels import row_gradient, zncc_scan
+from loopmodel.frontend._stereo_kernels import row_gradient, row_peaks, zncc_scan
 from loopmodel.frontend.affine_klt import refine_affine
 from loopmodel.frontend.stereo import MIN_DISPARITY_SIGMA_PX, _zncc_scan
 
@@ -129,6 +129,25 @@ def test_compiled_zncc_scan_matches_float64_zncc(rng: np.random.Generator, lengt
     assert np.abs(got - want).max() < 5e-5  # float32 sums; measured 4.7e-6
     with pytest.raises(ValueError):  # a window beyond the padding is refused, never read
         _zncc_scan(srcp, dstp, pad, u, v, start - pad - 30, length, half, rows)
+
+
+def test_compiled_row_peaks_match_numpy_masks_and_maxima(rng: np.random.Generator) -> None:
+    """The coarse scan's best window inside the image and its margin (fe8): numpy's argmax, ties included."""
+    for trial in range(40):
+        n, length = 30, int(rng.integers(1, 90))
+        levels = np.linspace(-1, 1, 7).astype(np.float32)  # every other trial: many ties
+        sc = rng.choice(levels, (n, length)) if trial % 2 else rng.uniform(-1, 1, (n, length)).astype(np.float32)
+        start = rng.integers(-20, 600, n).astype(np.int64)
+        lo, hi = 3, int(rng.integers(0, 620))
+        masked = sc.copy()
+        col = start[:, None] + np.arange(length)
+        masked[(col < lo) | (col > hi)] = -2.0
+        k = np.argmax(masked, axis=1)
+        apart = np.abs(np.arange(length)[None, :] - k[:, None]) > 2
+        margin = (masked[np.arange(n), k] - np.max(np.where(apart, masked, -2.0), axis=1)).astype(float)
+        got_k, got_margin = row_peaks(sc, start, lo, hi, 2)
+        np.testing.assert_array_equal(got_k, k)
+        np.testing.assert_array_equal(got_margin, margin)
 
 
 def test_compiled_column_fit_recovers_a_sub_pixel_shift() -> None:

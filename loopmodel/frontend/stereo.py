@@ -270,15 +270,11 @@ def _search_row(
     Dh = dmax // 2 + 2
     start_c = uh - Dh if sign < 0 else uh
     sc = _zncc_scan(src_c, dst_c, pad_c, uh, vh, start_c, Dh + 1, half_c)[:, 0]
-    col_c = start_c[:, None] + np.arange(Dh + 1)
-    wc = width // 2
-    sc[(col_c < half_c) | (col_c > wc - 1 - half_c)] = -2.0
-    k_c = np.argmax(sc, axis=1)
+    from loopmodel.frontend._stereo_kernels import row_peaks  # numba: imported when first needed
+
+    # the best column inside the half-size image, and the best more than 2 columns from it
+    k_c, margin = row_peaks(sc, np.ascontiguousarray(start_c, dtype=np.int64), half_c, width // 2 - 1 - half_c, 2)
     best_c = start_c + k_c
-    idx_n = np.arange(len(u))
-    far_from_best = np.abs(np.arange(Dh + 1)[None, :] - k_c[:, None]) > 2
-    second = np.max(np.where(far_from_best, sc, -2.0), axis=1)
-    margin = (sc[idx_n, k_c] - second).astype(float)
     start_f = 2 * best_c - 3
     L = 7
     sf = _zncc_scan(src_f, dst_f, pad_f, u, v, start_f, L, half_f, rows)
