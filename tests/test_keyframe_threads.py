@@ -68,7 +68,7 @@ def test_keyframe_stereo_runs_beside_the_tracker_with_the_same_poses(
     runs = {}
     # "ahead": frontend.keyframe_match_ahead (fe8), an expected keyframe's corners and matches made
     # beside its frame's tracking, before the keyframe is decided
-    modes = {"inline": {"keyframe_stereo": "inline"}, "thread": {"keyframe_match_ahead": False}, "ahead": {}}
+    modes = {"inline": {"keyframe_stereo": "inline"}, "thread": {}, "ahead": {"keyframe_match_ahead": True}}
     main = threading.get_ident()
     for mode, update in modes.items():
         threads.clear()
