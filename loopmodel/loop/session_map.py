@@ -722,8 +722,14 @@ class KeyframeArchiver:
         images = [self._images[k] for k in features]
         self.close()
         with ThreadPoolExecutor(max_workers=2, thread_name_prefix="map-png") as pool:
-            pngs = list(pool.map(_png, images))
-        return {k: KeyframeContent(f, png) for (k, f), png in zip(features.items(), pngs, strict=True)}
+            encoding = [pool.submit(_png, image) for image in images]
+        out: dict[int, KeyframeContent] = {}
+        for (k, f), png in zip(features.items(), encoding, strict=True):
+            try:
+                out[k] = KeyframeContent(f, png.result())
+            except Exception as exc:  # the map step prepares it again
+                logger.warning("map image of keyframe %d: %s", k, exc)
+        return out
 
     def close(self) -> None:
         """Stop the worker (pending work is dropped)."""
