@@ -671,6 +671,8 @@ class _Run:
         with timed_step("workers", steps, self.finishing):
             self._hand_waiting_keyframes()  # frontend.local_ba_beside: the last keyframe
             self._stop_workers(interrupted)
+        if self.map_record is not None:  # fe8: the map's keyframe PNGs beside the final refinement
+            self.map_record.archiver.encode_images()
         if self.config.mapping.write_mesh and self.laser.stripes:
             _import_beside("loopmodel.mapping.meshing")
         with timed_step("final_refinement", steps, self.finishing):

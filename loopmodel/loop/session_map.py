@@ -658,9 +658,9 @@ class KeyframeArchiver:
     The loop features are taken from the loop stage's detection (or detected) in a worker thread
     during the run, so the session map at the end of a run (:func:`build_session_map`) does not
     prepare every keyframe after the last frame (onepass, issue 32: on the KITTI clip that was 1.4 s
-    of the 1.6 s of the map step). The images are PNG-encoded in :meth:`take`, after the frames, on
-    two threads (OpenCV releases the GIL): encoding during the run took 10-14 ms of CPU per KITTI
-    keyframe from the tracking thread's two cores (fe8).
+    of the 1.6 s of the map step). The images are PNG-encoded after the frames on two threads
+    (:meth:`encode_images`, beside the final refinement; OpenCV releases the GIL): encoding during the
+    run took 10-14 ms of CPU per KITTI keyframe from the tracking thread's two cores (fe8).
     """
 
     def __init__(self, calibration: StereoCalibration, config: LoopConfig) -> None:
@@ -672,6 +672,7 @@ class KeyframeArchiver:
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-keyframes")
         self._jobs: dict[int, Future[FeatureSet]] = {}
         self._images: dict[int, NDArray[np.uint8]] = {}
+        self._encoding: dict[int, Future[NDArray[np.uint8]]] | None = None  # encode_images(): each image's PNG
         self._taking = threading.Event()  # set by take(): detections are no longer waited for
 
     def add(self, kf: Keyframe, detection: Future[Any] | None = None) -> None:
@@ -705,13 +706,23 @@ class KeyframeArchiver:
             self._closer = LoopCloser(self._calibration, self._config)
         return self._closer.keyframe_features(kf)
 
-    def take(self) -> dict[int, KeyframeContent]:
-        """Every finished keyframe's content, its image encoded now (waits for the pending features).
+    def encode_images(self) -> None:
+        """Start the keyframe images' PNG encoding on two threads (after the last frame: beside the final refinement).
 
-        A failed one is left out, logged (the map step prepares it again).
+        :meth:`take` waits for them (and starts them when not started). Keyframes added later are not encoded.
         """
         from concurrent.futures import ThreadPoolExecutor
 
+        if self._encoding is None:
+            pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="map-png")
+            self._encoding = {k: pool.submit(_png, image) for k, image in self._images.items()}
+            pool.shutdown(wait=False)
+
+    def take(self) -> dict[int, KeyframeContent]:
+        """Every finished keyframe's content with its PNG image (waits for the pending features and images).
+
+        A failed one is left out, logged (the map step prepares it again).
+        """
         features: dict[int, FeatureSet] = {}
         self._taking.set()
         for k, job in self._jobs.items():
@@ -719,14 +730,13 @@ class KeyframeArchiver:
                 features[k] = job.result()
             except Exception as exc:  # the map step prepares it again
                 logger.warning("map content of keyframe %d: %s", k, exc)
-        images = [self._images[k] for k in features]
+        self.encode_images()
+        encoding, self._encoding = self._encoding or {}, None
         self.close()
-        with ThreadPoolExecutor(max_workers=2, thread_name_prefix="map-png") as pool:
-            encoding = [pool.submit(_png, image) for image in images]
         out: dict[int, KeyframeContent] = {}
-        for (k, f), png in zip(features.items(), encoding, strict=True):
+        for k, f in features.items():
             try:
-                out[k] = KeyframeContent(f, png.result())
+                out[k] = KeyframeContent(f, encoding[k].result())
             except Exception as exc:  # the map step prepares it again
                 logger.warning("map image of keyframe %d: %s", k, exc)
         return out
