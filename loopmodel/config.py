@@ -341,6 +341,16 @@ class FrontendConfig(_Section):
     keyframe_stereo: Literal["thread", "inline"] = Field(
         "thread", description="a new keyframe's stereo matching: on a thread beside the local BA, or inline"
     )
+    # fe8 (issue 33): a frame expected to make a keyframe (the policy run one frame ahead) starts its
+    # corner detection and stereo matching beside its own KLT and pose (keyframe_stereo: thread); a
+    # false expectation drops them. The same poses and stereo points (bit-identical, front end alone
+    # on the KITTI clip). Off: no gain measured. Full pipeline, KITTI clip (configs/kitti.yaml), under
+    # SCHED_FIFO at load 12.4-12.9, 3 alternated rounds on / off: kitti_frame_ms_p95 44.7, 45.6, 43.7 /
+    # 41.8, 44.1, 43.0 ms (both cores are busy in a keyframe frame already; the thread's start waited
+    # up to 28 ms for the interpreter). CHANGELOG.md (fe8)
+    keyframe_match_ahead: bool = Field(
+        False, description="an expected keyframe's corners and stereo matches made beside its frame's tracking"
+    )
     # issue 33: the local BA of a keyframe's interval on a thread beside the pipeline's end of that
     # frame and the next frame's reading; taken between frames with the keyframe's hand-off to the loop
     # stage and back end (fe5: the inline order and results). Full pipeline, on / off: KITTI clip

@@ -725,6 +725,8 @@ class _Run:
             with timed_step("workers", steps, self.finishing):
                 self._hand_waiting_keyframes()  # frontend.local_ba_beside: the last keyframe
                 self._stop_workers(interrupted)
+            if self.map_record is not None:  # fe8: the map's keyframe PNGs beside the final refinement
+                self.map_record.archiver.encode_images()
             if self.mesh_worker is None and self.config.mapping.write_mesh and self.laser.stripes:
                 # the final mesh made here. Not in a new process: its start (1.5 s CPU: the interpreter,
                 # numpy, open3d) was not repaid on the loaded machine (150-frame orbit, load 10-13, 3

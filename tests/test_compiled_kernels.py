@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from loopmodel.frontend._stereo_kernels import row_gradient, zncc_scan
+from loopmodel.frontend._stereo_kernels import row_gradient, row_peaks, zncc_scan
 from loopmodel.frontend.affine_klt import refine_affine
 from loopmodel.frontend.stereo import MIN_DISPARITY_SIGMA_PX, _zncc_scan
 
@@ -104,10 +104,12 @@ def test_compiled_affine_refinement_at_the_border_matches_numpy(rng: np.random.G
     assert np.abs(m.uv_px - c_np)[both].max() < 1e-4
     assert np.abs(m.ncc - ncc_np)[both].max() < 1e-5
 
-def test_compiled_zncc_scan_matches_float64_zncc(rng: np.random.Generator) -> None:
+@pytest.mark.parametrize(("length", "half"), [(9, 3), (7, 5), (1, 2), (40, 3)])
+def test_compiled_zncc_scan_matches_float64_zncc(rng: np.random.Generator, length: int, half: int) -> None:
+    """Both paths of the scan: a long row (vectorised over the windows), a short one (eight windows in registers)."""
     src, dst = _texture(rng, (80, 120)), _texture(rng, (80, 120))
-    pad, half, length = 10, 3, 9
-    u = rng.integers(20, 90, 25)
+    pad = 10 if length < 20 else 40
+    u = rng.integers(20, min(90, 120 - length - half + 5), 25)  # every window inside the unpadded image
     v = rng.integers(20, 60, 25)
     start = u - 6
     rows = (-1, 0, 1)
@@ -126,7 +128,26 @@ def test_compiled_zncc_scan_matches_float64_zncc(rng: np.random.Generator) -> No
                 want[i, ri, k] = np.sum(t * w) / (np.sqrt(np.sum(t * t)) * np.sqrt(np.sum(w * w)))
     assert np.abs(got - want).max() < 5e-5  # float32 sums; measured 4.7e-6
     with pytest.raises(ValueError):  # a window beyond the padding is refused, never read
-        _zncc_scan(srcp, dstp, pad, u, v, start - 40, length, half, rows)
+        _zncc_scan(srcp, dstp, pad, u, v, start - pad - 30, length, half, rows)
+
+
+def test_compiled_row_peaks_match_numpy_masks_and_maxima(rng: np.random.Generator) -> None:
+    """The coarse scan's best window inside the image and its margin (fe8): numpy's argmax, ties included."""
+    for trial in range(40):
+        n, length = 30, int(rng.integers(1, 90))
+        levels = np.linspace(-1, 1, 7).astype(np.float32)  # every other trial: many ties
+        sc = rng.choice(levels, (n, length)) if trial % 2 else rng.uniform(-1, 1, (n, length)).astype(np.float32)
+        start = rng.integers(-20, 600, n).astype(np.int64)
+        lo, hi = 3, int(rng.integers(0, 620))
+        masked = sc.copy()
+        col = start[:, None] + np.arange(length)
+        masked[(col < lo) | (col > hi)] = -2.0
+        k = np.argmax(masked, axis=1)
+        apart = np.abs(np.arange(length)[None, :] - k[:, None]) > 2
+        margin = (masked[np.arange(n), k] - np.max(np.where(apart, masked, -2.0), axis=1)).astype(float)
+        got_k, got_margin = row_peaks(sc, start, lo, hi, 2)
+        np.testing.assert_array_equal(got_k, k)
+        np.testing.assert_array_equal(got_margin, margin)
 
 
 def test_compiled_column_fit_recovers_a_sub_pixel_shift() -> None:

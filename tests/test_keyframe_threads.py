@@ -66,26 +66,34 @@ def test_keyframe_stereo_runs_beside_the_tracker_with_the_same_poses(
     monkeypatch.setattr(tracker_mod, "keyframe_stereo_set", recording_set)
     monkeypatch.setattr(stereo_mod, "match_stereo", recording_match)
     runs = {}
-    for mode in ("inline", "thread"):
+    # "ahead": frontend.keyframe_match_ahead (fe8), an expected keyframe's corners and matches made
+    # beside its frame's tracking, before the keyframe is decided
+    modes = {"inline": {"keyframe_stereo": "inline"}, "thread": {}, "ahead": {"keyframe_match_ahead": True}}
+    main = threading.get_ident()
+    for mode, update in modes.items():
         threads.clear()
-        fe = FrontEnd(cal, CFG.model_copy(update={"keyframe_stereo": mode}))
+        fe = FrontEnd(cal, CFG.model_copy(update=update))
         runs[mode] = [fe.process(f) for f in frames]
         kf_threads = list(threads)
         if mode == "thread":
-            main = threading.get_ident()
             assert kf_threads[0] == (main, 2)  # the first keyframe: its matching split over two threads
             assert len(kf_threads) >= 3 and all(t != main and n == 1 for t, n in kf_threads[1:])
+        elif mode == "ahead":  # matched already when the set is made (no matching in it), or in it on one thread
+            assert kf_threads[0] == (main, 2) and all(t != main and n in (0, 1) for t, n in kf_threads[1:])
+            assert sum(n == 0 for _, n in kf_threads[1:]) >= 4  # measured: all 7 later keyframes matched ahead
         else:
-            assert all(t == threading.get_ident() for t, _ in kf_threads)
-    inline, threaded = runs["inline"], runs["thread"]
-    assert [r.keyframe_id for r in threaded] == [r.keyframe_id for r in inline]
-    for a, b in zip(inline, threaded, strict=True):
-        np.testing.assert_array_equal(a.world_from_cam, b.world_from_cam)
-        if a.keyframe is not None:
-            assert b.keyframe is not None
-            np.testing.assert_array_equal(a.keyframe.mono_obs, b.keyframe.mono_obs)
-            assert a.keyframe.ba_info.keys() == b.keyframe.ba_info.keys()
-    for r in threaded:  # and right: against the rendered ground truth (measured 1.8 mm at most)
+            assert all(t == main for t, _ in kf_threads)
+    inline = runs["inline"]
+    for threaded in (runs["thread"], runs["ahead"]):
+        assert [r.keyframe_id for r in threaded] == [r.keyframe_id for r in inline]
+        for a, b in zip(inline, threaded, strict=True):
+            np.testing.assert_array_equal(a.world_from_cam, b.world_from_cam)
+            if a.keyframe is not None:
+                assert b.keyframe is not None
+                np.testing.assert_array_equal(a.keyframe.stereo_px, b.keyframe.stereo_px)
+                np.testing.assert_array_equal(a.keyframe.mono_obs, b.keyframe.mono_obs)
+                assert a.keyframe.ba_info.keys() == b.keyframe.ba_info.keys()
+    for r in runs["ahead"]:  # and right: against the rendered ground truth (measured 1.8 mm at most)
         assert r.status == "OK"
         assert np.linalg.norm(r.world_from_cam[:3, 3] - poses[r.frame_index][:3, 3]) < 0.005
 

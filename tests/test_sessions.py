@@ -351,3 +351,36 @@ def test_refined_map_points_and_a_second_session_on_the_same_rig(tmp_path: Path)
     # measured: 0.855 sigma at most (cx_right_px)
     assert m["session_calibration"] == "map" and m["session_calibration_max_sigma"] < 2.0
     assert m["localized_frames"] == 16
+
+
+def test_map_archiver_encodes_keyframe_images_after_the_frames(monkeypatch: pytest.MonkeyPatch) -> None:
+    """fe8: no PNG encoding while keyframes arrive (the tracking thread's cores); at take(), lossless."""
+    from concurrent.futures import Future
+    from types import SimpleNamespace
+
+    import cv2
+
+    import loopmodel.loop.session_map as sm
+    from loopmodel.loop.features import empty_features
+
+    encoded: list[int] = []
+    png = sm._png
+    monkeypatch.setattr(sm, "_png", lambda image: encoded.append(image.size) or png(image))
+    rng = np.random.default_rng(5)
+    K = np.array([[250.0, 0, 159.5], [0, 250.0, 119.5], [0, 0, 1]])
+    cal = StereoCalibration(K, K, make_pose(np.eye(3), np.array([-0.06, 0, 0])), (320, 240))
+    archiver = sm.KeyframeArchiver(cal, LoopConfig())
+    images = [cv2.GaussianBlur((rng.random((240, 320)) * 255).astype(np.uint8), (3, 3), 0) for _ in range(3)]
+    features = empty_features(LoopConfig().descriptor)
+    for i, img in enumerate(images):
+        detection: Future[SimpleNamespace] = Future()
+        detection.set_result(SimpleNamespace(features=features))
+        archiver.add(Keyframe(i, 1000 + i, np.eye(4), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)),
+                              image=img), detection)
+    archiver._pool.submit(lambda: None).result()  # the worker has taken every keyframe's features
+    assert encoded == []
+    content = archiver.take()
+    assert sorted(content) == [0, 1, 2] and len(encoded) == 3
+    for i, img in enumerate(images):
+        assert content[i].features is features
+        assert np.array_equal(cv2.imdecode(content[i].png, cv2.IMREAD_UNCHANGED), img)

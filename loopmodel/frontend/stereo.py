@@ -270,15 +270,11 @@ def _search_row(
     Dh = dmax // 2 + 2
     start_c = uh - Dh if sign < 0 else uh
     sc = _zncc_scan(src_c, dst_c, pad_c, uh, vh, start_c, Dh + 1, half_c)[:, 0]
-    col_c = start_c[:, None] + np.arange(Dh + 1)
-    wc = width // 2
-    sc[(col_c < half_c) | (col_c > wc - 1 - half_c)] = -2.0
-    k_c = np.argmax(sc, axis=1)
+    from loopmodel.frontend._stereo_kernels import row_peaks  # numba: imported when first needed
+
+    # the best column inside the half-size image, and the best more than 2 columns from it
+    k_c, margin = row_peaks(sc, np.ascontiguousarray(start_c, dtype=np.int64), half_c, width // 2 - 1 - half_c, 2)
     best_c = start_c + k_c
-    idx_n = np.arange(len(u))
-    far_from_best = np.abs(np.arange(Dh + 1)[None, :] - k_c[:, None]) > 2
-    second = np.max(np.where(far_from_best, sc, -2.0), axis=1)
-    margin = (sc[idx_n, k_c] - second).astype(float)
     start_f = 2 * best_c - 3
     L = 7
     sf = _zncc_scan(src_f, dst_f, pad_f, u, v, start_f, L, half_f, rows)
@@ -495,6 +491,40 @@ def far_match_mask(disparity_px: F64, cfg: FrontendConfig, fx_px: float, baselin
     return np.asarray(far)
 
 
+@dataclass
+class KeyframeMatches:
+    """A keyframe's corners ``corners`` (N, 2, pixels) and their stereo ``matches``: what reads no tracker state.
+
+    :func:`keyframe_matches`; :func:`keyframe_stereo_set` applies the disparity offset and the moving
+    gate to them.
+    """
+
+    corners: F64
+    matches: StereoMatches
+
+
+def keyframe_matches(
+    left: NDArray[np.uint8],
+    right: NDArray[np.uint8] | Callable[[], NDArray[np.uint8]],
+    cfg: FrontendConfig,
+    threads: int = 1,
+) -> KeyframeMatches:
+    """Corners (:func:`detect_corners`) of the rectified ``left`` image and their row matches in ``right``.
+
+    :func:`match_stereo_split` over ``threads`` threads; far matches kept down to zero disparity when
+    they enter as bearings (``far_points``). ``right`` may be a function giving the rectified right
+    image, called after the corner detection (it may be being decoded meanwhile).
+    """
+    corners = detect_corners(
+        left, cfg.max_features, (cfg.grid_cols, cfg.grid_rows), cfg.gftt_quality, cfg.min_distance_px,
+        cfg.border_px, cfg.detect_half_resolution,
+    )
+    if callable(right):
+        right = right()
+    bearing = cfg.far_points == "bearing"
+    return KeyframeMatches(corners, match_stereo_split(left, right, corners, cfg, 0.0 if bearing else None, threads))
+
+
 def keyframe_stereo_set(
     left: NDArray[np.uint8],
     right: NDArray[np.uint8] | Callable[[], NDArray[np.uint8]],
@@ -504,32 +534,29 @@ def keyframe_stereo_set(
     offset_px: float = 0.0,
     avoid_px: F64 | None = None,
     threads: int = 1,
+    matched: KeyframeMatches | None = None,
 ) -> StereoSet | None:
     """Detect, match and triangulate a keyframe's features in a rectified pair (``K_left``, ``baseline_m``).
 
-    Corners (:func:`detect_corners`), their row matches (:func:`match_stereo`) with the disparity
-    offset ``offset_px`` taken out, points nearer than ``max_depth_m`` (at most
-    ``max_keyframe_points``, spread over the grid), far matches as bearings (``far_points``); with
-    ``moving_gate``, no point within ``moving_radius_px`` of ``avoid_px`` (N, 2) (where tracks were
-    just dropped as moving). None when fewer than ``min_stereo_points`` points. Reads no tracker
-    state: it runs beside the tracking thread (:class:`~loopmodel.frontend.FrontEnd`); ``threads``
-    > 1 splits the matching (:func:`match_stereo_split`). ``right`` may be a function giving the
-    rectified right image, called after the corner detection (it may be being decoded meanwhile).
+    Corners and their row matches (:func:`keyframe_matches`, or ``matched``: made already, e.g.
+    while the frame was tracked) with the disparity offset ``offset_px`` taken out, points nearer
+    than ``max_depth_m`` (at most ``max_keyframe_points``, spread over the grid), far matches as
+    bearings (``far_points``); with ``moving_gate``, no point within ``moving_radius_px`` of
+    ``avoid_px`` (N, 2) (where tracks were just dropped as moving). None when fewer than
+    ``min_stereo_points`` points. Reads no tracker state: it runs beside the tracking thread
+    (:class:`~loopmodel.frontend.FrontEnd`); ``threads`` > 1 splits the matching
+    (:func:`match_stereo_split`).
     """
-    corners = detect_corners(
-        left, cfg.max_features, (cfg.grid_cols, cfg.grid_rows), cfg.gftt_quality, cfg.min_distance_px,
-        cfg.border_px, cfg.detect_half_resolution,
-    )
-    if callable(right):
-        right = right()
+    km = matched if matched is not None else keyframe_matches(left, right, cfg, threads)
+    corners, m = km.corners, km.matches
     bearing = cfg.far_points == "bearing"
-    m = match_stereo_split(left, right, corners, cfg, 0.0 if bearing else None, threads)
+    u_right, disparity = m.u_right, m.disparity
     if offset_px != 0.0:
-        m.u_right = m.u_right - offset_px
-        m.disparity = m.disparity + offset_px
+        u_right = u_right - offset_px
+        disparity = disparity + offset_px
     with np.errstate(divide="ignore", invalid="ignore"):  # zero disparity: at infinity
-        pts = triangulate_rectified(m.uv_left, m.disparity, K_left, baseline_m)
-    far = far_match_mask(m.disparity, cfg, K_left[0, 0], baseline_m) if bearing else np.zeros(len(m.disparity), bool)
+        pts = triangulate_rectified(m.uv_left, disparity, K_left, baseline_m)
+    far = far_match_mask(disparity, cfg, K_left[0, 0], baseline_m) if bearing else np.zeros(len(disparity), bool)
     keep = (pts[:, 2] < cfg.max_depth_m) & ~far
     if cfg.moving_gate > 0 and avoid_px is not None and avoid_px.shape[0]:
         d2 = np.sum((m.uv_left[:, None, :] - avoid_px[None, :, :]) ** 2, axis=2)
@@ -555,10 +582,10 @@ def keyframe_stereo_set(
     unmatched[m.index] = False
     return StereoSet(
         points=pts[keep],
-        stereo_px=np.column_stack([m.uv_left[keep, 0], m.u_right[keep], m.uv_left[keep, 1]]),
+        stereo_px=np.column_stack([m.uv_left[keep, 0], u_right[keep], m.uv_left[keep, 1]]),
         disparity_sigma_px=m.sigma_px[keep],
         far_rays=far_rays,
-        far_inv_depth=np.maximum(m.disparity[far], 0.0) / (K_left[0, 0] * baseline_m),
+        far_inv_depth=np.maximum(disparity[far], 0.0) / (K_left[0, 0] * baseline_m),
         far_px=far_px,
         unmatched_px=corners[unmatched],
         offset_px=offset_px,

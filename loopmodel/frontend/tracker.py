@@ -21,7 +21,7 @@ from loopmodel.frontend.hybrid_ba import HybridBAResult, hybrid_keyframe_ba
 from loopmodel.frontend.keyframe import FrameObservations, FrameResult, Keyframe, TrackedFeatures
 from loopmodel.frontend.mono_depth import MonoDepthTracks, kf_from_ref_map
 from loopmodel.frontend.resume import ResumedSet
-from loopmodel.frontend.stereo import StereoSet, keyframe_stereo_set, match_stereo
+from loopmodel.frontend.stereo import KeyframeMatches, StereoSet, keyframe_matches, keyframe_stereo_set, match_stereo
 from loopmodel.geometry.se3 import invert_pose, nearest_rigid, se3_exp, se3_log, so3_log
 from loopmodel.imaging.klt import Pyramid, build_pyramid, track_klt
 from loopmodel.imaging.rectify import Rectifier
@@ -360,6 +360,9 @@ class FrontEnd:
         # the next frame is expected to make a keyframe
         self._inliers_prev: int | None = None
         self._expect_keyframe = False
+        # frontend.keyframe_match_ahead: the expected keyframe's corners and matches, made beside its
+        # frame's tracking (its rectified left image, the thread)
+        self._ahead: tuple[NDArray[np.uint8], Beside[KeyframeMatches]] | None = None
         # the compiled stereo scan and affine re-measurement loaded (or compiled) now, not in a frame (issue 33)
         from loopmodel.frontend._stereo_kernels import warm_up as warm_up_stereo
         from loopmodel.frontend.affine_klt import warm_up
@@ -507,6 +510,7 @@ class FrontEnd:
             self._frames_since_ok += 1
             return self._lost(frame, active.world_from_kfrect @ kf_from_pred, why, t0)
 
+        self._match_ahead(frame, left)
         cur_pyr = build_pyramid(left, cfg.klt_window_px, cfg.klt_levels)
         status, reason, tracked, inliers, kf_from_cur, used_ransac = self._track(
             cur_pyr, kf_from_pred
@@ -975,6 +979,20 @@ class FrontEnd:
         if self._expect_keyframe:
             frame.right  # noqa: B018  # decoded here, kept by the frame
 
+    def _match_ahead(self, frame: StereoFrame, left: NDArray[np.uint8]) -> None:
+        """An expected keyframe's corners and stereo matches started beside this frame's KLT and pose.
+
+        ``frontend.keyframe_match_ahead`` with ``keyframe_stereo: thread``. They read no tracker state
+        (:func:`~loopmodel.frontend.stereo.keyframe_matches`); :meth:`_stereo_set` takes them when the
+        frame makes its keyframe, with the offset and moving gate of that moment: the same set as made
+        then. A false expectation drops them (the thread ends on its own).
+        """
+        self._ahead = None
+        cfg = self.config
+        if self._expect_keyframe and cfg.keyframe_match_ahead and cfg.keyframe_stereo == "thread":
+            rectified = self.rectifier.right
+            self._ahead = (left, Beside(True, keyframe_matches, left, lambda: rectified(frame.right), cfg))
+
     def _need_keyframe(self, kf_from_cur: F64, inliers: int) -> bool:
         cfg = self.config
         assert self._active is not None
@@ -1213,9 +1231,11 @@ class FrontEnd:
         # beside the interval's closing on this thread; without one (the first keyframe, a new
         # segment) the matching itself is split between the two threads
         threaded = cfg.keyframe_stereo == "thread"
+        ahead, self._ahead = self._ahead, None
         stereo = Beside(
             threaded and prev is not None, self._stereo_set, left, frame, right,
             self._moving_uv if connected else None, 2 if threaded and prev is None else 1,
+            ahead[1] if ahead is not None and ahead[0] is left else None,
         )
         closed = None
         if prev is not None and kf_from_cur is not None:
@@ -1255,14 +1275,21 @@ class FrontEnd:
 
     def _stereo_set(
         self, left: NDArray[np.uint8], frame: StereoFrame, right: NDArray[np.uint8] | None, avoid_px: F64 | None,
-        threads: int,
+        threads: int, ahead: Beside[KeyframeMatches] | None = None,
     ) -> StereoSet | None:
         """:func:`~loopmodel.frontend.stereo.keyframe_stereo_set` of the rectified ``left`` and ``right``.
 
         ``right`` (rectified) is ``frame``'s right image rectified here when None, on a thread of its
         own while the corners are detected (``keyframe_stereo: thread``): a reader may decode it only now
-        (:class:`~loopmodel.io.images.DeferredRightFrame`). The disparity offset is the current one.
+        (:class:`~loopmodel.io.images.DeferredRightFrame`). ``ahead``: the corners and matches being made
+        beside the frame's tracking (:meth:`_match_ahead`), taken instead. The disparity offset is the
+        current one.
         """
+        if ahead is not None:  # made beside this frame's tracking (_match_ahead)
+            return keyframe_stereo_set(
+                left, lambda: self.rectifier.right(frame.right), self.calibration.K_left, self.calibration.baseline_m,
+                self.config, self._offset_px, avoid_px, matched=ahead.result(),
+            )
         if right is None:
             # decoded already (FrontEnd.prepare, or a reader that decodes it): rectified when needed, here
             threaded = self.config.keyframe_stereo == "thread" and not getattr(frame, "right_decoded", True)

@@ -595,10 +595,20 @@ def _from_storage(name: str, a: NDArray[Any], kind: str) -> NDArray[Any]:
 
 
 # ---------------------------------------------------------------------- building
+#: a keyframe image's PNG: the "sub" row filter, then deflate with Huffman codes only (fe8). Lossless as
+#: before and smaller, at less than half the CPU of level 1 with the adaptive filters: KITTI clip image
+#: (1226x370) 5.7 ms / 294 kB against 12.8 ms / 301 kB; realistic orbit and sample scan images (640x480)
+#: 3.5 ms / 168 kB against 8.0 ms / 181 kB (load 4)
+_PNG_PARAMS = [
+    cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
+    cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB,
+]
+
+
 def _png(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
     if image.size == 0:
         return np.zeros(0, np.uint8)
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    ok, buf = cv2.imencode(".png", image, _PNG_PARAMS)
     return np.asarray(buf, np.uint8).ravel() if ok else np.zeros(0, np.uint8)
 
 
@@ -643,12 +653,14 @@ class KeyframeContent:
 
 
 class KeyframeArchiver:
-    """Each keyframe's map content (:class:`KeyframeContent`), prepared in a worker thread as keyframes arrive.
+    """Each keyframe's map content (:class:`KeyframeContent`): features as keyframes arrive, images at the end.
 
-    OpenCV's feature detection and PNG encoding release the GIL, so tracking does not wait for them,
-    and the session map at the end of a run (:func:`build_session_map`) takes them instead of
-    preparing every keyframe after the last frame (onepass, issue 32: on the KITTI clip that was
-    1.4 s of the 1.6 s of the map step).
+    The loop features are taken from the loop stage's detection (or detected) in a worker thread
+    during the run, so the session map at the end of a run (:func:`build_session_map`) does not
+    prepare every keyframe after the last frame (onepass, issue 32: on the KITTI clip that was 1.4 s
+    of the 1.6 s of the map step). The images are PNG-encoded after the frames on two threads
+    (:meth:`encode_images`, beside the final refinement; OpenCV releases the GIL): encoding during the
+    run took 10-14 ms of CPU per KITTI keyframe from the tracking thread's two cores (fe8).
     """
 
     def __init__(self, calibration: StereoCalibration, config: LoopConfig) -> None:
@@ -658,19 +670,22 @@ class KeyframeArchiver:
         self._config = config
         self._closer: Any = None
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-keyframes")
-        self._jobs: dict[int, Future[KeyframeContent]] = {}
+        self._jobs: dict[int, Future[FeatureSet]] = {}
+        self._images: dict[int, NDArray[np.uint8]] = {}
+        self._encoding: dict[int, Future[NDArray[np.uint8]]] | None = None  # encode_images(): each image's PNG
         self._taking = threading.Event()  # set by take(): detections are no longer waited for
 
     def add(self, kf: Keyframe, detection: Future[Any] | None = None) -> None:
-        """Prepare this keyframe's content in the worker.
+        """Prepare this keyframe's features in the worker; its image is kept for :meth:`take`.
 
         ``detection``: the loop stage's detection of the keyframe (a future of
         :class:`~loopmodel.loop.stage.Detection`): its ``features``, when there, are the same loop
         features, not detected a second time (issue 33: 5-6 ms of CPU per KITTI frame).
         """
         self._jobs[int(kf.id)] = self._pool.submit(self._prepare, kf, detection)
+        self._images[int(kf.id)] = np.asarray(kf.image)
 
-    def _prepare(self, kf: Keyframe, detection: Future[Any] | None = None) -> KeyframeContent:
+    def _prepare(self, kf: Keyframe, detection: Future[Any] | None = None) -> FeatureSet:
         features = None
         # a detection still running when the map is taken (abandoned at the loop stage's drain) is not
         # waited for: its features are detected here
@@ -682,29 +697,55 @@ class KeyframeArchiver:
             except Exception:  # noqa: BLE001 - a failed detection: the features are detected here
                 logger.debug("keyframe %d: no features from its detection", kf.id, exc_info=True)
         if features is not None and np.asarray(kf.image).size:
-            return KeyframeContent(features, _png(np.asarray(kf.image)))
+            return features
+        if not np.asarray(kf.image).size:
+            return empty_features(self._config.descriptor)
         if self._closer is None:
             from loopmodel.loop.closer import LoopCloser
 
             self._closer = LoopCloser(self._calibration, self._config)
-        return keyframe_content(self._closer, kf, self._config.descriptor)
+        return self._closer.keyframe_features(kf)
+
+    def encode_images(self) -> None:
+        """Start the keyframe images' PNG encoding on two threads (after the last frame: beside the final refinement).
+
+        :meth:`take` waits for them (and starts them when not started). Keyframes added later are not encoded.
+        """
+        from concurrent.futures import ThreadPoolExecutor
+
+        if self._encoding is None:
+            pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="map-png")
+            self._encoding = {k: pool.submit(_png, image) for k, image in self._images.items()}
+            pool.shutdown(wait=False)
 
     def take(self) -> dict[int, KeyframeContent]:
-        """Every finished keyframe's content (waits for the pending ones; a failed one is left out, logged)."""
-        out: dict[int, KeyframeContent] = {}
+        """Every finished keyframe's content with its PNG image (waits for the pending features and images).
+
+        A failed one is left out, logged (the map step prepares it again).
+        """
+        features: dict[int, FeatureSet] = {}
         self._taking.set()
         for k, job in self._jobs.items():
             try:
-                out[k] = job.result()
+                features[k] = job.result()
             except Exception as exc:  # the map step prepares it again
                 logger.warning("map content of keyframe %d: %s", k, exc)
+        self.encode_images()
+        encoding, self._encoding = self._encoding or {}, None
         self.close()
+        out: dict[int, KeyframeContent] = {}
+        for k, f in features.items():
+            try:
+                out[k] = KeyframeContent(f, encoding[k].result())
+            except Exception as exc:  # the map step prepares it again
+                logger.warning("map image of keyframe %d: %s", k, exc)
         return out
 
     def close(self) -> None:
         """Stop the worker (pending work is dropped)."""
         self._pool.shutdown(wait=False, cancel_futures=True)
         self._jobs = {}
+        self._images = {}
 
 
 def keyframe_content(closer: Any, kf: Keyframe, kind: str) -> KeyframeContent:
