@@ -19,6 +19,11 @@ from loopmodel.sim.loop_problem import rounds_problem
 from loopmodel.types import StereoCalibration
 
 
+def _ate_m(world_from_kf: dict[int, np.ndarray], truth_in_world: np.ndarray) -> float:
+    """Position RMSE (m) of keyframes 0..n-1 against their true positions (no alignment)."""
+    p = np.array([world_from_kf[i][:3, 3] for i in range(len(truth_in_world))])
+    return float(np.sqrt(np.mean(np.sum((p - truth_in_world) ** 2, axis=1))))
+
 def _calibration() -> StereoCalibration:
     K = np.array([[500.0, 0.0, 319.5], [0.0, 500.0, 239.5], [0.0, 0.0, 1.0]])
     right_from_left = np.eye(4)
@@ -134,8 +139,7 @@ def _feed_revisits(policy: str) -> tuple[list[float], float, float, float]:
     truth = np.array([T[:3, 3] for T in prob.true_world_from_kf])
 
     def ate(world_from_kf: dict[int, np.ndarray]) -> float:
-        p = np.array([world_from_kf[i][:3, 3] for i in range(n)])
-        return float(np.sqrt(np.mean(np.sum((p - truth) ** 2, axis=1))))
+        return _ate_m(world_from_kf, truth)
 
     before = ate({kf.id: kf.world_from_kf for kf in prob.keyframes})
     online = ate(backend.estimate(landmarks=False).world_from_kf)
@@ -297,8 +301,7 @@ def _feed_budget(budget: int, policy: str) -> tuple[Isam2Backend, list[tuple[int
     truth = np.array([T[:3, 3] for T in prob.true_world_from_kf])
 
     def ate(world_from_kf: dict[int, np.ndarray]) -> float:
-        p = np.array([world_from_kf[i][:3, 3] for i in range(n)])
-        return float(np.sqrt(np.mean(np.sum((p - truth) ** 2, axis=1))))
+        return _ate_m(world_from_kf, truth)
 
     before = ate({kf.id: kf.world_from_kf for kf in prob.keyframes})
     online = ate(backend.estimate(landmarks=False).world_from_kf)
