@@ -187,15 +187,23 @@ def _loop_stage(config: Config, calibration: StereoCalibration, vocabulary: Voca
 
 
 @contextlib.contextmanager
-def timed_step(name: str, seconds: dict[str, float], finishing: FinishFn | None) -> Iterator[None]:
-    """Time one finishing step into ``seconds[name]`` and tell ``finishing`` when it starts and ends."""
-    t0 = time.perf_counter()
+def timed_step(
+    name: str, seconds: dict[str, float], finishing: FinishFn | None, cpu_s: dict[str, float] | None = None
+) -> Iterator[None]:
+    """Time one finishing step into ``seconds[name]`` and tell ``finishing`` when it starts and ends.
+
+    ``cpu_s[name]`` (when given): the CPU seconds of this process (all its threads; not its worker
+    processes) in the step: on the shared machine the wall time follows the load, the CPU time less.
+    """
+    t0, c0 = time.perf_counter(), time.process_time()
     try:  # a KeyboardInterrupt in the telling is the step's too (its time kept)
         if finishing is not None:
             finishing(name, None)
         yield
     finally:
         seconds[name] = time.perf_counter() - t0
+        if cpu_s is not None:
+            cpu_s[name] = time.process_time() - c0
         if finishing is not None:
             finishing(name, seconds[name])
 
@@ -208,6 +216,7 @@ class _Times:
     frame_ms: list[float] = dataclasses.field(default_factory=list)
     backend_ms: list[float] = dataclasses.field(default_factory=list)
     finish_s: dict[str, float] = dataclasses.field(default_factory=dict)
+    finish_cpu_s: dict[str, float] = dataclasses.field(default_factory=dict)  # this process's CPU in each step
     frames_s: float | None = None  # from the start to the last frame (set when the finish starts)
 
     def since_start_s(self) -> float:
@@ -720,9 +729,13 @@ class _Run:
         is raised (:func:`process` keeps the results so far).
         """
         frames_s = self.times.frames_s = self.times.since_start_s()
-        steps = self.times.finish_s
+        steps, cpu = self.times.finish_s, self.times.finish_cpu_s
+        # the live map's last update has its points already (the finish takes no new one) and the
+        # final mesh places the stripes itself: the live map no longer follows the corrections
+        # (finish9: re-placing its stripes cost 1.1 s of the finish's 4.4 s CPU on the 150-frame orbit)
+        self.anchored.unwatch(self.stripe_map)
         try:
-            with timed_step("workers", steps, self.finishing):
+            with timed_step("workers", steps, self.finishing, cpu):
                 self._hand_waiting_keyframes()  # frontend.local_ba_beside: the last keyframe
                 self._stop_workers(interrupted)
             if self.map_record is not None:  # fe8: the map's keyframe PNGs beside the final refinement
@@ -732,7 +745,7 @@ class _Run:
                 # numpy, open3d) was not repaid on the loaded machine (150-frame orbit, load 10-13, 3
                 # alternating runs: wall over frames 1.633 -> 1.670)
                 _import_beside("loopmodel.mapping.meshing")
-            with timed_step("final_refinement", steps, self.finishing):
+            with timed_step("final_refinement", steps, self.finishing, cpu):
                 result = self._estimate(interrupted)
                 # the refined stripes and poses to the mesh's process as soon as they are known
                 job = start_final_mesh(result.stripes, result.final, self.config.mapping, self.mesh_worker)
@@ -742,15 +755,16 @@ class _Run:
                 result.calibration_refined = self.selfcal.calibration
                 result.calibration_report = self.selfcal.report()
             final = result.final
-            with timed_step("map", steps, self.finishing):  # while the mesh is made
+            with timed_step("map", steps, self.finishing, cpu):  # while the mesh is made
                 result.session_map = self._session_map(result)
                 self.session.finish(result, self.frames, self.config)
-            with timed_step("mesh", steps, self.finishing):
+            with timed_step("mesh", steps, self.finishing, cpu):
                 # an extension merged into its base map has the mesh of both sessions (in that world)
                 result.metrics.update(self._mesh(result, job, own=result.final is final))
         finally:
             self._close_mesh_worker()
         result.metrics["finish_s"] = dict(steps)
+        result.metrics["finish_cpu_s"] = dict(cpu)
         result.metrics["wall_s"] = frames_s + sum(steps.values())
         for listener in self.listeners:
             listener.on_finish(result)
@@ -856,6 +870,7 @@ class _Run:
         steps = dict(self.times.finish_s)
         frames_s = self.times.frames_s if self.times.frames_s is not None else self.times.since_start_s()
         result.metrics.update(frames_s=frames_s, finish_s=steps, wall_s=frames_s + sum(steps.values()))
+        result.metrics["finish_cpu_s"] = dict(self.times.finish_cpu_s)
         return result
 
     def _session_map(self, result: RunResult) -> SessionMap | None:
@@ -1006,7 +1021,7 @@ def evaluated(result: RunResult, sequence: Sequence, finishing: FinishFn | None 
     from loopmodel.eval.of_run import evaluate
 
     seconds = result.metrics.setdefault("finish_s", {})
-    with timed_step("evaluation", seconds, finishing):
+    with timed_step("evaluation", seconds, finishing, result.metrics.setdefault("finish_cpu_s", {})):
         evaluation = evaluate(result, sequence)
     result.metrics.update(evaluation.metrics)
     result.metrics["wall_s"] = result.metrics.get("wall_s", 0.0) + seconds["evaluation"]
@@ -1030,6 +1045,7 @@ def _process_and_write(
     stop = StopFlag()
     signals = stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop)
     write_s: dict[str, float] = {}
+    write_cpu_s: dict[str, float] = {}
     try:
         with LogCapture() as log, signals:
             result = process(sequence, config, stop=stop, finishing=finishing, **kwargs)
@@ -1039,7 +1055,7 @@ def _process_and_write(
                 except (LoopmodelError, ValueError, OSError) as exc:  # grading must never lose the run's results
                     logger.error("evaluation failed: %s", exc)
                     result.metrics["evaluation_error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            with timed_step("write", write_s, finishing):
+            with timed_step("write", write_s, finishing, write_cpu_s):
                 result.log = log.text()
                 result.folder = write_results(folder, result, kitti_input=sequence.format_name == "kitti")
     except BaseException:  # e.g. a second Ctrl-C before the writes: no staged folder or lock left behind
@@ -1047,6 +1063,7 @@ def _process_and_write(
         raise
     # the writes' time in the returned metrics only (metrics.json is one of the files written)
     result.metrics.setdefault("finish_s", {}).update(write_s)
+    result.metrics.setdefault("finish_cpu_s", {}).update(write_cpu_s)
     result.metrics["wall_s"] = result.metrics.get("wall_s", 0.0) + write_s["write"]
     return result
 

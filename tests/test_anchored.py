@@ -37,3 +37,25 @@ def test_unknown_keyframe_is_an_error():
     with pytest.raises(EstimationError, match="keyframe 3 was not declared"):
         traj.add_frame(0, kf_id=3, kf_from_cam=np.eye(4))
     assert len(traj.trajectory()) == 0
+
+
+def test_a_map_that_stops_watching_keeps_its_points():
+    """finish9: the finish unhooks the live stripe map; the trajectory still takes the corrections."""
+    from loopmodel.mapping.stripe_map import StripeMap
+    from loopmodel.types import StripeProfile
+
+    traj = AnchoredTrajectory()
+    traj.set_keyframe(0, np.eye(4))
+    for i in range(3):
+        traj.add_frame(i * 10, kf_id=0, kf_from_cam=make_pose(np.eye(3), [0.01 * i, 0, 0]))
+    smap = StripeMap(poses=traj)
+    smap.add(StripeProfile(15, np.array([[0.0, 0.0, 0.5], [0.01, 0.0, 0.5]])))
+    before = smap.world_points()
+    moved = make_pose(np.eye(3), [0.1, 0, 0])
+    traj.update_keyframes({0: moved})
+    np.testing.assert_allclose(smap.world_points(), before + [0.1, 0, 0])  # following
+    traj.unwatch(smap)
+    traj.update_keyframes({0: np.eye(4)})
+    np.testing.assert_allclose(smap.world_points(), before + [0.1, 0, 0])  # no longer following
+    assert np.allclose(traj.keyframe_poses[0], np.eye(4))
+    traj.unwatch(smap)  # a second time: nothing to do

@@ -90,6 +90,9 @@ def test_a_run_reads_each_frame_and_laser_image_once(laser_scan: tuple[Path, Con
     # the run graded nothing: no error against the ground truth in its metrics
     assert not [k for k in result.metrics if k.startswith(("ate_", "drift_", "mesh_err", "mesh_completeness"))]
     assert set(result.metrics["finish_s"]) == {"workers", "final_refinement", "mesh", "map"}
+    cpu = result.metrics["finish_cpu_s"]  # this process's CPU seconds in each step
+    assert set(cpu) == set(result.metrics["finish_s"]) and all(v >= 0 for v in cpu.values())
+    assert cpu["mesh"] > 0.01  # the final mesh is made in this process (no mesh worker by default)
     assert result.metrics["wall_s"] == pytest.approx(
         result.metrics["frames_s"] + sum(result.metrics["finish_s"].values())
     )

@@ -22,7 +22,9 @@ workers over the wall time of the KITTI run: above 1 when the workers use the se
 ``sim_fps``, ``sim_frame_ms_p95`` (the orbit scan with ``configs/sim.yaml``: live mesh every 5
 keyframes), ``wall_over_frames_kitti`` / ``wall_over_frames_sim`` (``run_pipeline``'s wall time, the
 final mesh, evaluation and writes included, over the frame loop's, issue 32), ``finish_s_<step>_<kitti|sim|sim150>``
-(each step after the last frame), ``wall_over_frames_sim150`` (the same on the 150-frame realistic orbit
+(each step after the last frame; ``finish_cpu_s_<step>_<...>`` the run's process's CPU seconds in it, all its
+threads, its worker processes not included, and ``finish_cpu_s_<...>`` their sum),
+``wall_over_frames_sim150`` (the same on the 150-frame realistic orbit
 with laser images, :func:`scan150`; not with ``--quick``; ``sim150_mesh_completeness_after`` beside its
 mesh error), ``sim_live_mesh_updates`` / ``sim150_live_mesh_updates`` (live-mesh updates taken) and
 ``..._live_mesh_updates_abandoned`` (unfinished at the last frame, dropped for the final mesh),
@@ -235,6 +237,10 @@ def finish_keys(prefix: str, r: dict[str, Any]) -> dict[str, Any]:
     out[f"wall_s_{prefix}"] = round(r["wall_s"], 2)
     for step, sec in (m.get("finish_s") or {}).items():
         out[f"finish_s_{step}_{prefix}"] = round(sec, 2)
+    for step, sec in (m.get("finish_cpu_s") or {}).items():  # the run's process's CPU in each step
+        out[f"finish_cpu_s_{step}_{prefix}"] = round(sec, 2)
+    if m.get("finish_cpu_s"):
+        out[f"finish_cpu_s_{prefix}"] = round(sum(m["finish_cpu_s"].values()), 2)
     if m.get("live_mesh_wait_s") is not None:  # of the mesh step
         out[f"live_mesh_wait_s_{prefix}"] = round(m["live_mesh_wait_s"], 2)
     return out

@@ -100,6 +100,11 @@ class AnchoredTrajectory:
         """Tell ``watcher`` about every frame added or moved from now on."""
         self._watchers.append(watcher)
 
+    def unwatch(self, watcher: PoseWatcher) -> None:
+        """Stop telling ``watcher`` (no-op when it was not watching)."""
+        if watcher in self._watchers:
+            self._watchers.remove(watcher)
+
     # ------------------------------------------------------------------ reading
     @property
     def frame_count(self) -> int:
