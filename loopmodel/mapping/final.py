@@ -209,8 +209,10 @@ def anchor_stripes(
     none = StripeAnchors([], np.zeros(0, np.int64), np.zeros((0, 4, 4)))
     if not stripes or len(final) < 2 or frame_times_ns.size == 0:
         return none
-    smap = StripeMap.from_trajectory(final, stripes, config)
     kept = [s for s in stripes if np.asarray(s.points_in_cam).size]  # as from_trajectory keeps them
+    # a stripe's pose depends on its time only: one point each is placed, not every point (finish9)
+    ones = [StripeProfile(s.timestamp_ns, np.asarray(s.points_in_cam)[:1]) for s in kept]
+    smap = StripeMap.from_trajectory(final, ones, config)
     placed = smap.placed_mask
     poses = smap.stripe_poses()
     order = np.argsort(frame_times_ns)
