@@ -59,3 +59,27 @@ def test_a_map_that_stops_watching_keeps_its_points():
     np.testing.assert_allclose(smap.world_points(), before + [0.1, 0, 0])  # no longer following
     assert np.allclose(traj.keyframe_poses[0], np.eye(4))
     traj.unwatch(smap)  # a second time: nothing to do
+
+
+def test_the_live_map_re_places_moved_stripes_when_read():
+    """finish9: corrections are applied to the stripes when the live mesh reads them: their net move."""
+    from loopmodel.config import MappingConfig
+    from loopmodel.mapping.stripe_map import StripeMap
+    from loopmodel.types import StripeProfile
+
+    traj = AnchoredTrajectory()
+    traj.set_keyframe(0, np.eye(4))
+    for i in range(3):
+        traj.add_frame(i * 10, kf_id=0, kf_from_cam=np.eye(4))
+    smap = StripeMap(MappingConfig(chunk_m=0.05), poses=traj)
+    pts = np.array([[0.01, 0.01, 0.51], [0.02, 0.01, 0.51]])
+    smap.add(StripeProfile(15, pts))
+    assert smap.take_dirty_blocks() is not None  # the first live snapshot: every block, then clean
+    far = make_pose(np.eye(3), [0.2, 0, 0])
+    traj.update_keyframes({0: far})
+    traj.update_keyframes({0: np.eye(4)})  # and back before the live mesh looked: nothing to re-mesh
+    assert smap.dirty_blocks == set()
+    traj.update_keyframes({0: far})
+    assert smap.dirty_blocks == {(0, 0, 10), (4, 0, 10)}  # where the surface was and where it is now
+    np.testing.assert_allclose(smap.world_points(), pts + [0.2, 0, 0])
+    np.testing.assert_allclose(smap.stripe_poses()[0], far)
