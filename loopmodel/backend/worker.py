@@ -198,6 +198,11 @@ class BackgroundBackend:
             self._worker: Any = ctx.Process(
                 target=_serve_process, args=(factory, self._inbox, self._outbox), name="loopmodel-backend", daemon=True
             )
+            # at the interpreter's exit the (daemon) worker is terminated first, then multiprocessing joins
+            # the inbox's feeder thread: a worker that was behind left the pipe full, this process holds
+            # its read end too, so the feeder's write never returned and the process hung at exit (the
+            # full scale bench, issue 33). What the inbox still buffers then has no reader: drop it.
+            self._inbox.cancel_join_thread()
         else:
             self._inbox, self._outbox = queue.Queue(), queue.Queue()
             self._worker = threading.Thread(
