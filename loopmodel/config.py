@@ -135,6 +135,11 @@ class BackendConfig(_Section):
     local_window_kf: int = Field(
         10, ge=1, description="local: observations of landmarks older than this reach iSAM2 through proxies"
     )
+    # issue 33 item 5 (window9): under local a loop also enters iSAM2 at once as a prior on its newer
+    # keyframe at the older one's estimate (the live end corrected by one small update)
+    local_loop_prior: bool = Field(
+        True, description="local: a loop corrects its newer keyframe online through a prior (else only at the end)"
+    )
     # issue 33 (scale8): rounds_1800 replay (local): a keyframe's observations of landmarks already in
     # the graph (local map and revisits) grow 92 -> 378 a keyframe from the first round to the sixth,
     # its new landmarks' 342 -> 406; over the budget its monocular ones wait outside iSAM2 for the

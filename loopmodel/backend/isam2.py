@@ -1163,7 +1163,10 @@ class Isam2Backend:
         noise = self._robust(gtsam.noiseModel.Diagonal.Sigmas(s))
         factor = gtsam.BetweenFactorPose3(X(int(kf_a)), X(int(kf_b)), gtsam.Pose3(np.asarray(a_from_b, float)), noise)
         if self._windowed:
-            return self._new_fid(_FactorRecord(factor, "loop"), outside=True)  # it joins at the final estimate
+            fid = self._new_fid(_FactorRecord(factor, "loop"), outside=True)  # it joins at the final estimate
+            if cfg.local_loop_prior:
+                self._loop_prior(fid, int(kf_a), int(kf_b), np.asarray(a_from_b, float), noise)
+            return fid
         fid = self._new_fid(_FactorRecord(factor, "loop"))
         graph = gtsam.NonlinearFactorGraph()
         graph.add(factor)
@@ -1171,6 +1174,24 @@ class Isam2Backend:
         # a loop moves much of the trajectory: relinearise right away
         self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
         return fid
+
+    def _loop_prior(self, fid: int, kf_a: int, kf_b: int, a_from_b: F64, noise: gtsam.noiseModel.Base) -> None:
+        """``loop_policy`` local: loop ``fid`` as a prior on its newer keyframe at the older one's estimate.
+
+        ``world_from_new = world_from_old (estimate) * old_from_new`` with the loop's noise: the update
+        involves only the newer keyframe (in the local window), so a loop corrects the live end of
+        the trajectory at the cost of one small update, however old its other keyframe (issue 33
+        item 5); the old map stays where it is until the final estimate, where this prior is dropped
+        and the loop constraint itself joins (:meth:`_merge_outside`).
+        """
+        new, old = (kf_a, kf_b) if self._kf_seq[kf_a] >= self._kf_seq[kf_b] else (kf_b, kf_a)
+        old_from_new = a_from_b if new == kf_b else invert_pose(a_from_b)
+        world_from_old = self._isam.calculateEstimatePose3(X(old)).matrix()
+        prior = gtsam.PriorFactorPose3(X(new), gtsam.Pose3(world_from_old @ old_from_new), noise)
+        self._proxy_fids[fid] = [self._new_fid(_FactorRecord(prior, "proxy"))]
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(prior)
+        self._run_update(graph, gtsam.Values(), [], X(new))
 
     def remove_loop_constraint(self, constraint_id: int) -> None:
         """Remove a loop constraint returned by :meth:`add_loop_constraint`."""
@@ -1180,6 +1201,10 @@ class Isam2Backend:
         del self._factors[constraint_id]
         if constraint_id in self._outside:
             self._outside.discard(constraint_id)
+            slots = [s for pf in self._proxy_fids.pop(constraint_id, []) if self._factors.pop(pf, None) is not None
+                     and (s := self._slot.pop(pf, None)) is not None]
+            if slots:
+                self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), slots, None)
             return
         slot = self._slot.pop(constraint_id, None)
         if slot is not None:
