@@ -246,9 +246,9 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None, 
     calls = list(backends[0].call_ms) if backends else []
     per_kf: dict[int, float] = {}
     factors_kf: dict[int, float] = {}
-    for _, k, ms, nf in calls:
-        per_kf[k] = per_kf.get(k, 0.0) + ms
-        factors_kf[k] = factors_kf.get(k, 0.0) + nf
+    for c in calls:  # (kind, keyframes, CPU ms[, factors]: a worker of before window9 has no count)
+        per_kf[c[1]] = per_kf.get(c[1], 0.0) + c[2]
+        factors_kf[c[1]] = factors_kf.get(c[1], 0.0) + (c[3] if len(c) > 3 else 0)
     curve = _curve(per_kf, block)
     fcurve = _curve(factors_kf, block)
     # the back end's CPU per factor it was given (window9): what the map's size costs, apart from

@@ -631,9 +631,11 @@ class Isam2Backend:
             if len(self._batch) + rows.shape[0] > budget:
                 # which ones wait: a random subset (seeded by the keyframe), spread over the image as they are
                 rows = rows[np.random.default_rng(kf_id).permutation(rows.shape[0])]
-        for row in rows.tolist():
-            lm_id = int(row[0])
-            if not all(np.isfinite(row)) or (lm_id not in self._lm_current and lm_id not in self._pending):
+        finite = np.isfinite(rows).all(axis=1).tolist()  # one array operation, not one per row
+        current, pending = self._lm_current, self._pending
+        for row, ok in zip(rows.tolist(), finite, strict=True):
+            lm_id = int(row[0]) if ok else -1
+            if not ok or (lm_id not in current and lm_id not in pending):
                 rejected += 1
                 continue
             self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates, budget)
