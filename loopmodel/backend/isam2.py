@@ -662,7 +662,10 @@ class Isam2Backend:
         report.new_factors = graph.size()
         new_fids = list(self._batch)
         self._theta0.insert(values)
-        self._run_update(graph, values, [], None)
+        # under local the update stays in the window (older landmarks through proxies): the old map does
+        # not move, so estimate() need not read every pose again (a keyframe's update, as for add_keyframe)
+        recent = self._windowed and self._kf_seq[kf_id] >= len(self._kf_order) - 1 - self.config.local_window_kf
+        self._run_update(graph, values, [], X(kf_id) if recent else None)
         if self.config.blunder_sigma > 0:
             report.removed_blunders = self._screen_new([f for f in new_fids if f in self._factors])
         report.pending_landmarks = len(self._pending)
