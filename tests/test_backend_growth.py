@@ -245,8 +245,10 @@ def test_estimate_reads_a_bounded_number_of_poses_and_refreshes_after_a_loop() -
     loops: dict[int, list[tuple[int, np.ndarray]]] = {}
     for q, o, rel in prob.loops:
         loops.setdefault(q, []).append((o, rel))
-    full = Isam2Backend(_calibration(), BackendConfig(estimate_window_kf=0))
-    part = Isam2Backend(_calibration(), BackendConfig(estimate_window_kf=window))
+    # loop_policy isam2: there a loop moves the whole map (under local it moves only the window, whose
+    # poses are read anyway)
+    full = Isam2Backend(_calibration(), BackendConfig(estimate_window_kf=0, loop_policy="isam2"))
+    part = Isam2Backend(_calibration(), BackendConfig(estimate_window_kf=window, loop_policy="isam2"))
     reads, stale_m = [], []
     for kf in prob.keyframes:
         for b in (full, part):
