@@ -61,11 +61,13 @@ def _feed(n: int, config: BackendConfig) -> tuple[list[float], list[float], floa
 def test_cost_per_keyframe_and_loop_stays_bounded() -> None:
     # 175 keyframes (7 rounds, 13 loops). Measured (CPU ms, load 33): per keyframe 32.2 (keyframes
     # 25-50) -> 34.1 (last 25), ratio 1.06; loops 2-5 median 98, the last three at most 135 (1.38);
-    # ATE 39.3 mm dead reckoning -> 12.3 mm
+    # ATE 39.3 mm dead reckoning -> 12.3 mm (loop_policy isam2). Under the default local (window9, load 6):
+    # loops 2-5 median 6.3 ms, the last three at most 13.2 (a prior on the newer keyframe: a few ms,
+    # whose timing noise the absolute slack covers)
     kf_ms, loop_ms, ate_before, ate_after = _feed(175, BackendConfig())
     first, last = np.median(kf_ms[25:50]), np.median(kf_ms[-25:])
     assert last / first < 1.5, (first, last)
-    assert np.max(loop_ms[-3:]) < 2.0 * np.median(loop_ms[2:6]), loop_ms
+    assert np.max(loop_ms[-3:]) < 2.0 * np.median(loop_ms[2:6]) + 10.0, loop_ms
     # the loops correct the drift (ground truth, not the back end's own output)
     assert ate_after < 0.5 * ate_before, (ate_before, ate_after)
 
@@ -245,8 +247,10 @@ def test_estimate_reads_a_bounded_number_of_poses_and_refreshes_after_a_loop() -
     loops: dict[int, list[tuple[int, np.ndarray]]] = {}
     for q, o, rel in prob.loops:
         loops.setdefault(q, []).append((o, rel))
-    full = Isam2Backend(_calibration(), BackendConfig(estimate_window_kf=0))
-    part = Isam2Backend(_calibration(), BackendConfig(estimate_window_kf=window))
+    # loop_policy isam2: there a loop moves the whole map (under local it moves only the window, whose
+    # poses are read anyway)
+    full = Isam2Backend(_calibration(), BackendConfig(estimate_window_kf=0, loop_policy="isam2"))
+    part = Isam2Backend(_calibration(), BackendConfig(estimate_window_kf=window, loop_policy="isam2"))
     reads, stale_m = [], []
     for kf in prob.keyframes:
         for b in (full, part):
@@ -337,3 +341,71 @@ def test_keyframe_obs_budget_bounds_each_update_and_the_rest_joins_at_the_end() 
     assert all(inside <= 62 for _, inside, _ in counts), counts
     assert online_local < 0.6 * before, (before, online_local)
     assert final_local < 1.1 * full_final, (full_final, final_local)
+
+
+def _feed_live(loop_prior: bool) -> tuple[list[float], list[float], float]:
+    """4 rounds without revisits, a loop every 6 keyframes, ``loop_policy: local``.
+
+    Per keyframe the error (m) of its own pose right after its update and loops (the live end of
+    the trajectory, against the truth); the CPU ms of each loop's call; the final estimate's ATE (m).
+    """
+    from loopmodel.config import RefineConfig
+
+    n = 100
+    prob = rounds_problem(n, features_per_kf=100, local_map_kf=2, loop_every_kf=6)
+    loops: dict[int, list[tuple[int, np.ndarray]]] = {}
+    for q, o, rel in prob.loops:
+        loops.setdefault(q, []).append((o, rel))
+    backend = Isam2Backend(_calibration(), BackendConfig(loop_policy="local", local_loop_prior=loop_prior))
+    truth = np.array([T[:3, 3] for T in prob.true_world_from_kf])
+    live, loop_ms = [], []
+    for kf in prob.keyframes:
+        backend.add_keyframe(kf)
+        for old, rel in loops.get(kf.id, []):
+            t0 = time.process_time()
+            backend.add_loop_constraint(kf.id, old, rel)
+            loop_ms.append((time.process_time() - t0) * 1e3)
+        est = backend.estimate(landmarks=False).world_from_kf
+        live.append(float(np.linalg.norm(est[kf.id][:3, 3] - truth[kf.id])))
+    final = backend.final_estimate(RefineConfig(batch_ba=False, distribute_loops=False))
+    return live, loop_ms, _ate_m(final.world_from_kf, truth)
+
+
+def test_local_loop_prior_corrects_the_live_end_at_a_bounded_cost() -> None:
+    """``local_loop_prior`` (issue 33 item 5, window9): under ``local`` a loop moves the live end at once.
+
+    Without it the loops wait for the final estimate and the third round's live poses keep the drift.
+    """
+    live_off, _, final_off = _feed_live(False)
+    live_on, loop_ms, final_on = _feed_live(True)
+    rms = lambda e: float(np.sqrt(np.mean(np.square(e[50:75]))))  # noqa: E731 - the third round (m)
+    # measured (m): the third round's live error 11.9 mm without, 7.8 mm with the priors (the default
+    # loop_policy isam2: 7.8 mm); final ATE 4.97 / 5.14 mm
+    assert rms(live_on) < 0.8 * rms(live_off), (rms(live_off), rms(live_on))
+    assert final_on < 1.1 * final_off, (final_off, final_on)
+    # one small update whatever the loop's span: the last loops cost what the first ones did
+    assert np.max(loop_ms[-3:]) < 3.0 * np.median(loop_ms[:4]) + 2.0, loop_ms
+
+
+_BEHIND_WORKER = """
+import functools, time
+import numpy as np
+from loopmodel.backend.worker import BackgroundBackend
+backend = BackgroundBackend(functools.partial(time.sleep, 600), "process")  # a worker that never reads
+for _ in range(5):
+    backend.add_observations(1, np.zeros((20000, 3)))  # more than a pipe holds
+time.sleep(0.5)
+"""
+
+
+def test_process_exits_while_its_backend_worker_is_behind() -> None:
+    """A run whose back-end worker is far behind still exits (the full scale bench hung at exit).
+
+    At exit the daemon worker is terminated, then multiprocessing joined the inbox's feeder thread,
+    which was blocked writing into the full pipe for ever.
+    """
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _BEHIND_WORKER], timeout=120, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]

@@ -84,6 +84,9 @@ def exact_config(**kw) -> BackendConfig:
         wildfire_threshold=0.0,
         init_gate_px=0.0,
         min_disparity_px=1.0,
+        # every factor in iSAM2 during the run (the default local keeps landmarks older than its window
+        # behind proxies and the loops outside until the final estimate: not the batch optimum online)
+        loop_policy="isam2",
     )
     base.update(kw)
     return BackendConfig(**base)

@@ -21,6 +21,10 @@ on it, as its worker thread measures it: ``add_keyframe``, late observations, lo
 ``estimate``, charged to the number of keyframes it holds), median per block of B keyframes (B = 20),
 as [keyframes, ms] pairs; ``backend_ms_last_over_first``: the last block's median over the first's;
 ``backend_cpu_s_by_call``: the back end's CPU s per kind of call (kf, obs, loop, remove, estimate);
+``backend_factors_by_keyframes``: the factors each keyframe's update (and its late observations) added,
+median per block; ``backend_us_per_factor_by_keyframes`` and ``backend_us_per_factor_last_over_first``:
+the back end's CPU per keyframe divided by those factors (what the map's size costs apart from how
+many observations each keyframe brings);
 ``frame_ms_p95`` and ``frame_ms_max_after_first``: over the frames after the first (wall);
 ``loop_stage_ms_by_keyframes``: the loop stage's ``on_keyframe`` on the tracking thread, the same
 way; ``loop_stage_s``: all its time on the tracking thread (``on_keyframe`` and ``between_frames``);
@@ -125,7 +129,7 @@ class _TimedBackend:
 
     def __init__(self, inner: Any) -> None:
         self._inner = inner
-        self.call_ms: list[tuple[str, int, float]] = []
+        self.call_ms: list[tuple[str, int, float, int]] = []
         self._n_kf = 0
 
     def __getattr__(self, name: str) -> Any:
@@ -135,11 +139,14 @@ class _TimedBackend:
 
         def timed(*args: Any, **kwargs: Any) -> Any:
             t0 = time.thread_time()
+            out = None
             try:
-                return attr(*args, **kwargs)
+                out = attr(*args, **kwargs)
+                return out
             finally:
                 self._n_kf += name == "add_keyframe"
-                self.call_ms.append((self.KINDS[name], self._n_kf, (time.thread_time() - t0) * 1e3))
+                factors = int(getattr(out, "new_factors", 0) or 0)
+                self.call_ms.append((self.KINDS[name], self._n_kf, (time.thread_time() - t0) * 1e3, factors))
 
         return timed
 
@@ -238,9 +245,16 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None, 
     # the back end's CPU ms per keyframe (every call charged to the keyframes it held then)
     calls = list(backends[0].call_ms) if backends else []
     per_kf: dict[int, float] = {}
-    for _, k, ms in calls:
-        per_kf[k] = per_kf.get(k, 0.0) + ms
+    factors_kf: dict[int, float] = {}
+    for c in calls:  # (kind, keyframes, CPU ms[, factors]: a worker of before window9 has no count)
+        per_kf[c[1]] = per_kf.get(c[1], 0.0) + c[2]
+        factors_kf[c[1]] = factors_kf.get(c[1], 0.0) + (c[3] if len(c) > 3 else 0)
     curve = _curve(per_kf, block)
+    fcurve = _curve(factors_kf, block)
+    # the back end's CPU per factor it was given (window9): what the map's size costs, apart from
+    # how many observations each keyframe brings
+    us_per_factor = {k: 1e3 * ms / factors_kf[k] for k, ms in per_kf.items() if factors_kf.get(k)}
+    ucurve = _curve(us_per_factor, block)
     # accuracy: dead reckoning through the measured keyframe links, and the final trajectory
     from bench_sim_loop import dead_reckoning  # tools/ is on sys.path (run() puts it there)
 
@@ -274,11 +288,16 @@ def measure(path: Path, stride: int, window: int, config: Config | None = None, 
         "backend_ms_by_keyframes": curve,
         "backend_ms_last_over_first": round(curve[-1][1] / curve[0][1], 3) if len(curve) > 1 and curve[0][1] else None,
         "backend_block_keyframes": block,
+        "backend_factors_by_keyframes": fcurve,
+        "backend_us_per_factor_by_keyframes": ucurve,
+        "backend_us_per_factor_last_over_first": (
+            round(ucurve[-1][1] / ucurve[0][1], 3) if len(ucurve) > 1 and ucurve[0][1] else None
+        ),
         "backend_cpu_s_by_call": {
-            kind: round(sum(ms for k2, _, ms in calls if k2 == kind) / 1e3, 2) for kind in sorted({c[0] for c in calls})
+            kind: round(sum(c[2] for c in calls if c[0] == kind) / 1e3, 2) for kind in sorted({c[0] for c in calls})
         },
         "loop_stage_ms_by_keyframes": loop_clock.curve(block),
-        "loop_opt_ms_by_keyframes": [[k, round(ms, 1)] for kind, k, ms in calls if kind == "loop"],
+        "loop_opt_ms_by_keyframes": [[c[1], round(c[2], 1)] for c in calls if c[0] == "loop"],
         "loop_gate_ms_by_keyframes": [
             [kf_number.get(int(e["keyframe"]), 0), round(float(e.get("robust_gate_ms") or 0.0), 1)] for e in loops
         ],

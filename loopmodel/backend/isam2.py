@@ -631,9 +631,11 @@ class Isam2Backend:
             if len(self._batch) + rows.shape[0] > budget:
                 # which ones wait: a random subset (seeded by the keyframe), spread over the image as they are
                 rows = rows[np.random.default_rng(kf_id).permutation(rows.shape[0])]
-        for row in rows.tolist():
-            lm_id = int(row[0])
-            if not all(np.isfinite(row)) or (lm_id not in self._lm_current and lm_id not in self._pending):
+        finite = np.isfinite(rows).all(axis=1).tolist()  # one array operation, not one per row
+        current, pending = self._lm_current, self._pending
+        for row, ok in zip(rows.tolist(), finite, strict=True):
+            lm_id = int(row[0]) if ok else -1
+            if not ok or (lm_id not in current and lm_id not in pending):
                 rejected += 1
                 continue
             self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates, budget)
@@ -660,7 +662,10 @@ class Isam2Backend:
         report.new_factors = graph.size()
         new_fids = list(self._batch)
         self._theta0.insert(values)
-        self._run_update(graph, values, [], None)
+        # under local the update stays in the window (older landmarks through proxies): the old map does
+        # not move, so estimate() need not read every pose again (a keyframe's update, as for add_keyframe)
+        recent = self._windowed and self._kf_seq[kf_id] >= len(self._kf_order) - 1 - self.config.local_window_kf
+        self._run_update(graph, values, [], X(kf_id) if recent else None)
         if self.config.blunder_sigma > 0:
             report.removed_blunders = self._screen_new([f for f in new_fids if f in self._factors])
         report.pending_landmarks = len(self._pending)
@@ -1163,7 +1168,10 @@ class Isam2Backend:
         noise = self._robust(gtsam.noiseModel.Diagonal.Sigmas(s))
         factor = gtsam.BetweenFactorPose3(X(int(kf_a)), X(int(kf_b)), gtsam.Pose3(np.asarray(a_from_b, float)), noise)
         if self._windowed:
-            return self._new_fid(_FactorRecord(factor, "loop"), outside=True)  # it joins at the final estimate
+            fid = self._new_fid(_FactorRecord(factor, "loop"), outside=True)  # it joins at the final estimate
+            if cfg.local_loop_prior:
+                self._loop_prior(fid, int(kf_a), int(kf_b), np.asarray(a_from_b, float), noise)
+            return fid
         fid = self._new_fid(_FactorRecord(factor, "loop"))
         graph = gtsam.NonlinearFactorGraph()
         graph.add(factor)
@@ -1171,6 +1179,24 @@ class Isam2Backend:
         # a loop moves much of the trajectory: relinearise right away
         self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
         return fid
+
+    def _loop_prior(self, fid: int, kf_a: int, kf_b: int, a_from_b: F64, noise: gtsam.noiseModel.Base) -> None:
+        """``loop_policy`` local: loop ``fid`` as a prior on its newer keyframe at the older one's estimate.
+
+        ``world_from_new = world_from_old (estimate) * old_from_new`` with the loop's noise: the update
+        involves only the newer keyframe (in the local window), so a loop corrects the live end of
+        the trajectory at the cost of one small update, however old its other keyframe (issue 33
+        item 5); the old map stays where it is until the final estimate, where this prior is dropped
+        and the loop constraint itself joins (:meth:`_merge_outside`).
+        """
+        new, old = (kf_a, kf_b) if self._kf_seq[kf_a] >= self._kf_seq[kf_b] else (kf_b, kf_a)
+        old_from_new = a_from_b if new == kf_b else invert_pose(a_from_b)
+        world_from_old = self._isam.calculateEstimatePose3(X(old)).matrix()
+        prior = gtsam.PriorFactorPose3(X(new), gtsam.Pose3(world_from_old @ old_from_new), noise)
+        self._proxy_fids[fid] = [self._new_fid(_FactorRecord(prior, "proxy"))]
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(prior)
+        self._run_update(graph, gtsam.Values(), [], X(new))
 
     def remove_loop_constraint(self, constraint_id: int) -> None:
         """Remove a loop constraint returned by :meth:`add_loop_constraint`."""
@@ -1180,6 +1206,10 @@ class Isam2Backend:
         del self._factors[constraint_id]
         if constraint_id in self._outside:
             self._outside.discard(constraint_id)
+            slots = [s for pf in self._proxy_fids.pop(constraint_id, []) if self._factors.pop(pf, None) is not None
+                     and (s := self._slot.pop(pf, None)) is not None]
+            if slots:
+                self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), slots, None)
             return
         slot = self._slot.pop(constraint_id, None)
         if slot is not None:

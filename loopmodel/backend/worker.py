@@ -105,8 +105,9 @@ class _Server:
         self.dirty = False
         self.update_ms: list[float] = []
         # (message kind, keyframes handed to the back end, CPU ms of this thread: the load does not
-        # change it, and GTSAM here runs in the calling thread) (issue 33)
-        self.calls: list[tuple[str, int, float]] = []
+        # change it, and GTSAM here runs in the calling thread, factors the call added) (issue 33)
+        self.calls: list[tuple[str, int, float, int]] = []
+        self._factors = 0  # factors the message being handled added (its BackendUpdate)
 
     def serve(self, inbox: Any) -> None:
         """Take every waiting message, apply them in order, then estimate once; until ``stop``."""
@@ -125,6 +126,7 @@ class _Server:
         """One message; a failed call is reported and the worker goes on."""
         kind = msg[0]
         tc = time.thread_time()
+        self._factors = 0
         try:
             if kind in _UPDATES:
                 self._update(msg)
@@ -142,14 +144,14 @@ class _Server:
             self.outbox.put(("error", kind, f"{type(exc).__name__}: {exc}"))
         if kind in _UPDATES:
             self.n_kf += kind == "kf"
-            self.calls.append((kind, self.n_kf, (time.thread_time() - tc) * 1e3))
+            self.calls.append((kind, self.n_kf, (time.thread_time() - tc) * 1e3, self._factors))
 
     def _update(self, msg: tuple[Any, ...]) -> None:
         kind = msg[0]
         if kind == "kf":
             self._add_keyframe(msg[1], msg[2])
         elif kind == "obs":
-            self.backend.add_observations(msg[1], msg[2])
+            self._factors = self.backend.add_observations(msg[1], msg[2]).new_factors
         elif kind == "loop":
             self.backend.add_loop_constraint(msg[1], msg[2], msg[3], msg[4])
         else:
@@ -167,7 +169,7 @@ class _Server:
         # 34 keyframes of the scale bench's rounds scan, past the anchored map's bound)
         kf = dataclasses.replace(kf, world_from_kf=nearest_rigid(pose))
         tk = time.perf_counter()
-        self.backend.add_keyframe(kf)
+        self._factors = self.backend.add_keyframe(kf).new_factors
         self.update_ms.append((time.perf_counter() - tk) * 1e3)
 
     def _publish(self, batch_t0: float | None) -> None:
@@ -175,7 +177,7 @@ class _Server:
         te = time.thread_time()
         est = self.backend.estimate(landmarks=False)
         self.estimate.update(est.world_from_kf)
-        self.calls.append(("estimate", self.n_kf, (time.thread_time() - te) * 1e3))
+        self.calls.append(("estimate", self.n_kf, (time.thread_time() - te) * 1e3, 0))
         batch_ms = 0.0 if batch_t0 is None else (time.perf_counter() - batch_t0) * 1e3
         self.outbox.put(("estimate", est.world_from_kf, est.changed_keyframes, self.update_ms, batch_ms, self.calls))
         self._new_batch()
@@ -198,6 +200,11 @@ class BackgroundBackend:
             self._worker: Any = ctx.Process(
                 target=_serve_process, args=(factory, self._inbox, self._outbox), name="loopmodel-backend", daemon=True
             )
+            # at the interpreter's exit the (daemon) worker is terminated first, then multiprocessing joins
+            # the inbox's feeder thread: a worker that was behind left the pipe full, this process holds
+            # its read end too, so the feeder's write never returned and the process hung at exit (the
+            # full scale bench, issue 33). What the inbox still buffers then has no reader: drop it.
+            self._inbox.cancel_join_thread()
         else:
             self._inbox, self._outbox = queue.Queue(), queue.Queue()
             self._worker = threading.Thread(
@@ -216,8 +223,9 @@ class BackgroundBackend:
         self.update_ms: list[float] = []  # the worker's add_keyframe times
         self.batch_ms: list[float] = []  # the worker's time per batch (updates and estimate)
         #: the worker's calls on the back end: (message kind "kf", "obs", "loop", "remove" or "estimate",
-        #: keyframes handed to it so far, the worker thread's CPU ms), in order (issue 33: the scale bench)
-        self.call_ms: list[tuple[str, int, float]] = []
+        #: keyframes handed to it so far, the worker thread's CPU ms, the factors a keyframe's or late
+        #: observations' update added), in order (issue 33: the scale bench)
+        self.call_ms: list[tuple[str, int, float, int]] = []
         self.errors: list[str] = []
         self.lag_kf: list[int] = []  # keyframes sent but not yet in the estimate, per estimate() call
 
