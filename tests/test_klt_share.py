@@ -18,6 +18,23 @@ def test_shared_tracks_pick_the_first_of_each_close_group() -> None:
     assert shared_tracks(pts, guess, 0.0, 2.0).tolist() == list(range(6))
 
 
+def test_shared_tracks_against_brute_force(rng: np.random.Generator) -> None:
+    """The compiled search equals the definition: each point takes the first earlier self-tracked point near it."""
+    pts = rng.uniform(0, 40, (400, 2))
+    guess = pts + rng.normal(0, 1.5, (400, 2))
+    pts[7] = np.nan
+    share = shared_tracks(pts, guess, 1.0, 2.0)
+    ref = np.arange(400)
+    d = guess - pts
+    for j in range(400):
+        for i in range(j):
+            if (ref[i] == i and np.abs(pts[i] - pts[j]).max() <= 1.0 and np.abs(d[i] - d[j]).max() <= 2.0):
+                ref[j] = i
+                break
+    np.testing.assert_array_equal(share, ref)
+    assert (share != np.arange(400)).sum() > 50
+
+
 def test_shared_klt_equals_opencv_per_point(rng: np.random.Generator) -> None:
     """Each twin moves with its first point.
 

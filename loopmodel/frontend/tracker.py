@@ -371,6 +371,10 @@ class FrontEnd:
         warm_up_stereo()
         warm_up()
         warm_up_pose()
+        if self.config.klt_share_px > 0:
+            from loopmodel.imaging._klt_kernels import warm_up as warm_up_share
+
+            warm_up_share()
         if 0 < self.config.opencv_threads < cv2.getNumThreads():  # process-wide: only ever lowered
             cv2.setNumThreads(self.config.opencv_threads)
 

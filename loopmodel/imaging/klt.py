@@ -30,22 +30,14 @@ def shared_tracks(pts_prev: F64, pts_guess: F64, radius_px: float, motion_px: fl
     ``radius_px`` 0: every point its own.
     """
     n = pts_prev.shape[0]
-    share = np.arange(n, dtype=np.int64)
     if radius_px <= 0 or n < 2:
-        return share
-    from scipy.spatial import cKDTree
+        return np.arange(n, dtype=np.int64)
+    from loopmodel.imaging._klt_kernels import share_tracks
 
-    x = np.column_stack([pts_prev, (pts_guess - pts_prev) * (radius_px / max(motion_px, 1e-9))])
+    x = np.ascontiguousarray(np.column_stack([pts_prev, pts_guess - pts_prev]), dtype=np.float64)
     fin = np.flatnonzero(np.isfinite(x).all(axis=1))
-    pairs = cKDTree(x[fin]).query_pairs(radius_px, p=np.inf, output_type="ndarray")
-    if not len(pairs):
-        return share
-    pairs = fin[pairs]  # (i, j) with i < j
-    pairs = pairs[np.lexsort((pairs[:, 0], pairs[:, 1]))]  # by j, then i
-    for i, j in pairs.tolist():
-        if share[j] == j and share[i] == i:  # j not placed yet, i tracked itself
-            share[j] = i
-    return share
+    order = fin[np.argsort(x[fin, 0], kind="stable")]
+    return np.asarray(share_tracks(x, order, float(radius_px), float(motion_px)), dtype=np.int64)
 
 
 def track_klt(
