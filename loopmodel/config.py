@@ -182,6 +182,15 @@ class FrontendConfig(_Section):
     klt_levels: int = Field(3, ge=0, le=10, description="pyramid levels above the base")
     klt_iterations: int = Field(7, ge=1, le=100)
     fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward tolerance")
+    # issue 33 (fe9): points of one frame's KLT at the same place moving alike (a local-map point and a
+    # later keyframe's corner on the same feature) are searched once, the others moved with it. At 1 px:
+    # 14.5 % of the KITTI clip's points (configs/kitti.yaml), 9 % of the realistic orbit's; front-end
+    # accuracy within noise on both and the sample scan, but no CPU gain measured (KITTI -0.18 ms a frame,
+    # orbit +0.09 ms, replayed KLT calls): off
+    klt_share_px: float = Field(0.0, ge=0, le=2, description="KLT points this close (px) share a search; 0 off")
+    klt_share_motion_px: float = Field(
+        2.0, gt=0, le=10, description="... when their predicted motions also agree to this (px)"
+    )
     # robust pose
     pose_loss: Literal["tukey", "huber"] = Field("tukey")
     pose_min_scale_px: float = Field(0.5, gt=0, description="floor of the MAD scale")

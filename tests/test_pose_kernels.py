@@ -68,3 +68,25 @@ def test_point_term_residuals_and_jacobian(xi: float, stereo: bool, homogeneous:
         fd = (_reference_residuals(term, se3_exp(d) @ T) - _reference_residuals(term, se3_exp(-d) @ T)) / (2 * h)
         # central differences of pixel residuals: measured agreement ~1e-6 px per unit twist
         np.testing.assert_allclose(J[:, :, k], fd, rtol=1e-5, atol=1e-3)
+
+
+@pytest.mark.parametrize("dim", [1, 2])
+def test_weighted_normal_equations_against_numpy(dim: int) -> None:
+    """The solver's compiled ``J^T W J``, ``J^T W r`` and ``sum w |r|^2`` equal numpy's products (to rounding)."""
+    from loopmodel.pose._point_kernels import weighted_cost, weighted_normal_equations
+
+    rng = np.random.default_rng(5)
+    n = 300
+    J = rng.normal(size=(n, dim, 6)) * [1.0, 2.0, 0.5, 300.0, 40.0, 7.0]
+    r = rng.normal(size=(n, dim))
+    w = rng.uniform(0.0, 1.0, n)
+    w[:20] = 0.0  # rejected points
+    H, g = weighted_normal_equations(J, r, w)
+    Jf = J.reshape(-1, 6)
+    wf = np.repeat(w, dim)
+    H_ref = (Jf * wf[:, None]).T @ Jf
+    g_ref = (Jf * wf[:, None]).T @ r.ravel()
+    np.testing.assert_allclose(H, H_ref, rtol=1e-12, atol=1e-9)
+    np.testing.assert_array_equal(H, H.T)
+    np.testing.assert_allclose(g, g_ref, rtol=1e-12, atol=1e-9)
+    assert weighted_cost(r, w) == pytest.approx(float(np.sum(wf * r.ravel() ** 2)), rel=1e-12)

@@ -23,7 +23,7 @@ from loopmodel.frontend.mono_depth import MonoDepthTracks, kf_from_ref_map
 from loopmodel.frontend.resume import ResumedSet
 from loopmodel.frontend.stereo import KeyframeMatches, StereoSet, keyframe_matches, keyframe_stereo_set, match_stereo
 from loopmodel.geometry.se3 import invert_pose, nearest_rigid, se3_exp, se3_log, so3_log
-from loopmodel.imaging.klt import Pyramid, build_pyramid, track_klt
+from loopmodel.imaging.klt import Pyramid, build_pyramid, shared_tracks, track_klt
 from loopmodel.imaging.rectify import Rectifier
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, estimate_pose
 from loopmodel.pose.robust import robust_scale
@@ -371,6 +371,10 @@ class FrontEnd:
         warm_up_stereo()
         warm_up()
         warm_up_pose()
+        if self.config.klt_share_px > 0:
+            from loopmodel.imaging._klt_kernels import warm_up as warm_up_share
+
+            warm_up_share()
         if 0 < self.config.opencv_threads < cv2.getNumThreads():  # process-wide: only ever lowered
             cv2.setNumThreads(self.config.opencv_threads)
 
@@ -681,9 +685,10 @@ class FrontEnd:
         if ft.loc.sizes:
             start, guess = np.vstack([start, ft.loc.prev_uv]), np.vstack([guess, ft.loc.guess])
             front = np.concatenate([front, ft.loc.front])
+        share = shared_tracks(start, guess, cfg.klt_share_px, cfg.klt_share_motion_px)
         uv, ok, _fb = track_klt(
             self._prev_pyr, cur_pyr, start, guess, cfg.klt_window_px, cfg.klt_levels, cfg.fb_threshold_px,
-            cfg.klt_iterations, self.calibration.image_size,
+            cfg.klt_iterations, self.calibration.image_size, share,
         )
         ok &= front
         if self._pending_ba is not None:  # the last keyframe's BA: its points and pose before this pose solve

@@ -88,8 +88,42 @@ def _point_jacobian_py(P, rho, uv, R, t, Rc, tc, px, py, u0, v0, xi):  # type: i
     return out, J
 
 
+def _weighted_normal_equations_py(J, r, w):  # type: ignore[no-untyped-def]
+    """``H = sum_i w_i J_i^T J_i`` (6, 6) and ``g = sum_i w_i J_i^T r_i`` (6) of (n, d, 6) Jacobians."""
+    n, d = r.shape
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    for i in range(n):
+        wi = w[i]
+        for k in range(d):
+            rk = wi * r[i, k]
+            for a in range(6):
+                ja = wi * J[i, k, a]
+                g[a] += J[i, k, a] * rk
+                for b in range(a, 6):
+                    H[a, b] += ja * J[i, k, b]
+    for a in range(6):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return H, g
+
+
+def _weighted_cost_py(r, w):  # type: ignore[no-untyped-def]
+    """``sum_i w_i |r_i|^2`` of (n, d) residuals."""
+    n, d = r.shape
+    c = 0.0
+    for i in range(n):
+        s = 0.0
+        for k in range(d):
+            s += r[i, k] * r[i, k]
+        c += w[i] * s
+    return c
+
+
 point_residuals = numba.njit(cache=True, nogil=True)(_point_residuals_py)
 point_jacobian = numba.njit(cache=True, nogil=True)(_point_jacobian_py)
+weighted_normal_equations = numba.njit(cache=True, nogil=True)(_weighted_normal_equations_py)
+weighted_cost = numba.njit(cache=True, nogil=True)(_weighted_cost_py)
 
 
 def warm_up() -> None:
@@ -100,4 +134,6 @@ def warm_up() -> None:
     R = np.eye(3)
     t = np.zeros(3)
     point_residuals(P, one, uv, R, t, R, t, 500.0, 500.0, 320.0, 240.0, 0.0)
-    point_jacobian(P, one, uv, R, t, R, t, 500.0, 500.0, 320.0, 240.0, 0.0)
+    r, J = point_jacobian(P, one, uv, R, t, R, t, 500.0, 500.0, 320.0, 240.0, 0.0)
+    weighted_normal_equations(J, r, one)
+    weighted_cost(r, one)

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from loopmodel.errors import EstimationError
 from loopmodel.geometry.se3 import nearest_rigid, se3_exp
+from loopmodel.pose._point_kernels import weighted_cost, weighted_normal_equations
 from loopmodel.pose.rig import F64, PointTerm, PoseTerm
 from loopmodel.pose.robust import Loss, default_cutoff, rho, robust_scale, weights
 
@@ -86,7 +87,21 @@ def _irls_weights(term: PoseTerm, r: F64, it: int, opt: PoseOptions, c: float, s
 
 
 def _weighted_cost(rs: list[F64], ws: list[F64]) -> float:
-    return float(sum(np.sum(w * np.einsum("ij,ij->i", r, r)) for r, w in zip(rs, ws, strict=True)))
+    """``sum w |r|^2`` over the terms (residuals (n, dim) or (n,), weights (n,))."""
+    return float(sum(weighted_cost(r.reshape(w.shape[0], -1), w) for r, w in zip(rs, ws, strict=True)))
+
+
+def _normal_equations(J: F64, r: F64, w: F64) -> tuple[F64, F64]:
+    """``(J^T W J, J^T W r)`` (6x6, 6) of one term: Jacobian (n, dim, 6) or (n * dim, 6), per-feature weights ``w``.
+
+    One compiled pass (issue 33: the numpy form, a repeat, a product and two matrix products, was
+    most of the pose solve's time at a few hundred points).
+    """
+    n = w.shape[0]
+    return weighted_normal_equations(  # type: ignore[no-any-return]
+        np.ascontiguousarray(J).reshape(n, -1, 6), np.ascontiguousarray(r).reshape(n, -1),
+        np.ascontiguousarray(w, dtype=np.float64),
+    )
 
 
 def _lm_step(
@@ -141,11 +156,9 @@ def refine_pose(
             r, J = term.residuals_and_jacobian(T)
             if reweight:
                 wlist[k] = _irls_weights(term, r, it, opt, c, scales, k)
-            w = wlist[k]
-            Jf = J.reshape(-1, 6)
-            Jw = Jf * np.repeat(w, term.dim)[:, None]
-            H += Jw.T @ Jf
-            g += Jw.T @ r.ravel()
+            Hk, gk = _normal_equations(J, r, wlist[k])
+            H += Hk
+            g += gk
             rs.append(r)
         # IRLS: each step solves the weighted least-squares problem of the current weights;
         # after ``reweight_iterations`` the weights are frozen and Gauss-Newton converges
@@ -168,8 +181,7 @@ def refine_pose(
         pw = getattr(term, "prior_weight", None)
         if pw is not None:
             w = w * pw
-        Jf = J.reshape(-1, 6)
-        H += (Jf * np.repeat(w, term.dim)[:, None]).T @ Jf / (s * s)
+        H += _normal_equations(J, r, w)[0] / (s * s)
         cost += float(np.sum(rho(n / s, opt.loss, c)) * s * s)
         inl.append(n < opt.inlier_cutoff * s)
         wts.append(w)
