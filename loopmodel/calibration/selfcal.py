@@ -157,6 +157,7 @@ class SelfCalibration:
             "calibration_rms_px_after": self.rig.rms_px_after,
             "calibration_refine_s": self.seconds,
             "calibration_unobservable_directions": self.rig.unobservable_directions,
+            "calibration_anchored": list(self.rig.anchored),
         }
         if self.laser is not None:
             m["calibration_laser_pairs"] = self.laser.pairs
@@ -294,6 +295,7 @@ def refine_final(
     poses_out, pts_out, rep = refine_rig(
         obs, poses, pts, calibration, sig, estimate, config.observable_ratio, config.huber_k, config.max_iterations,
         observable_direction_ratio=config.observable_direction_ratio, start_values=start_values,
+        anchor_principal_point=config.anchor_principal_point,
     )
     rep.world_from_kf = {k: poses_out[i] for i, k in enumerate(kf_ids)}
     rep.landmark_ids = lm_ids
