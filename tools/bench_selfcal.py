@@ -265,6 +265,7 @@ def _scan(seed: int, quick: bool) -> dict[str, Any]:
             out["moved_sigma"] = m.get("calibration_moved_sigma")
             out["laser_discrepancy_pct"] = m.get("calibration_laser_discrepancy_pct")
             out["pixel_sigma_px"] = m.get("calibration_pixel_sigma_px")
+            out["anchored"] = m.get("calibration_anchored")  # left parameters pinned for a held common one
         if floor:
             out["mesh_err_gt_mm"] = m.get("mesh_err_gt_mm")
     return out
@@ -292,6 +293,7 @@ def _kitti() -> dict[str, Any]:
             rot_y = np.radians(m["calibration_parameters"]["rot_y_deg"]["refined"])
             out["kitti_refined_disp_x2_px"] = round(float(-seq.calibration.K_left[0, 0] * rot_y), 3)
             out["kitti_unobservable_directions"] = m.get("calibration_unobservable_directions")
+            out["kitti_anchored"] = m.get("calibration_anchored")
     return out
 
 
@@ -553,13 +555,15 @@ def _chessboard() -> dict[str, Any]:
         own[6 * side : 6 * side + 6] = std[side][[0, 1, 2, 3, 4, 5]]
     est_u = estimated_parameters(c.model_copy(update={"refine_right_rows": False}))
     est_rows = estimated_parameters(c.model_copy(update={"refine_right_rows": True}))
+    anchor = c.anchor_principal_point
     for name, prior, ob, est, ratio in (
         ("default", base, obs, est_u, c.observable_direction_ratio),
         ("own", own, obs, est_u, c.observable_direction_ratio),
         ("rows", base, obs_rows, est_rows, c.observable_direction_ratio),
         ("rows_free", base, obs_rows, est_rows, 1.0),  # no combination held
     ):
-        _p, _pts, rep = refine_rig(ob, np.array(poses), obj[lm], cal, prior, est, observable_direction_ratio=ratio)
+        _p, _pts, rep = refine_rig(ob, np.array(poses), obj[lm], cal, prior, est, observable_direction_ratio=ratio,
+                                   anchor_principal_point=anchor)
         if est[PARAM_NAMES.index("cy_right_px")]:
             out[f"chess_common_cy_post_over_prior_{name}"] = round(
                 rep.direction_ratio({"cy_left_px": 1.0, "cy_right_px": 1.0}), 3
@@ -571,6 +575,7 @@ def _chessboard() -> dict[str, Any]:
         out[f"chess_moved_max_sigma_{name}"] = round(max(abs(v) for v in moved.values()), 3)
         out[f"chess_moved_sigma_{name}"] = {k: round(v, 2) for k, v in moved.items()}
         out[f"chess_unobservable_{name}"] = rep.unobservable
+        out[f"chess_anchored_{name}"] = rep.anchored
         post = rep.moved_sigma(posterior=True)
         out[f"chess_moved_max_post_sigma_{name}"] = round(max(abs(v) for v in post.values()), 3)
         out[f"chess_moved_post_sigma_{name}"] = {k: round(v, 2) for k, v in post.items()}

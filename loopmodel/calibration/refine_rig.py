@@ -1071,8 +1071,9 @@ def anchored_held_directions(U_h: F64, names: list[str]) -> tuple[F64, F64, list
         c = np.zeros(n)
         c[names.index(left)] = c[names.index(right)] = np.sqrt(0.5)
         a = H.T @ c  # the common shift in held coordinates
-        if float(a @ a) < ANCHOR_MIN_SHARE:
-            continue
+        held_left = H[names.index(left)]  # the left coordinate in held coordinates
+        if float(a @ a) < ANCHOR_MIN_SHARE or float(held_left @ held_left) > 1.0 - 1e-9:
+            continue  # not held, or held through the left camera already
         # the held vector nearest the common shift, replaced by the left camera's own coordinate
         h = H @ (a / np.linalg.norm(a))
         rest = H - np.outer(h, h @ H)
@@ -1081,8 +1082,6 @@ def anchored_held_directions(U_h: F64, names: list[str]) -> tuple[F64, F64, list
         e = np.zeros(n)
         e[names.index(left)] = 1.0
         e -= kept @ (kept.T @ e)
-        if np.linalg.norm(e) < 1e-6:  # the left coordinate is held already
-            continue
         H = np.column_stack([kept, e / np.linalg.norm(e)])
         pinned.append(left)
     if not pinned:
