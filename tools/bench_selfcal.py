@@ -17,7 +17,8 @@ run three times by :func:`loopmodel.pipeline.process`: with the recorded calibra
 * ``param_err_before_sigma`` / ``param_err_after_sigma``: the largest error against the true rig
   over the parameters the data constrain (not ``unobservable``), in prior sigmas, before (the
   recorded values) and after refinement; ``param_err_after_post_sigma`` the same in posterior
-  sigmas (the reported ones: track-robust, held parameters considered);
+  sigmas (the reported ones: track-robust, held parameters considered); ``anchored``: the left
+  camera's parameters pinned for a held common principal point (``calibration_anchored``);
   ``param_err_rms_before_sigma`` / ``_after``: the rms over them; ``unobservable``;
 * ``mesh_err_refined_mm``: the mesh of the refined run against the scene (SE(3)-aligned, as the
   pipeline's ``mesh_err_after_mm``); ``mesh_err_recorded_mm``; ``mesh_err_gt_mm``: the stripes of the
@@ -28,7 +29,7 @@ run three times by :func:`loopmodel.pipeline.process`: with the recorded calibra
 
 The KITTI clip (real, rectified, well calibrated): ``kitti_drift_pct_off`` / ``_refined``,
 ``kitti_ate_m_off`` / ``_refined``, ``kitti_moved_max_sigma`` (the largest move of a parameter, in
-its prior sigma; ``kitti_moved_max_post_sigma`` in its posterior sigma); ``kitti_rows_rot_z_deg`` (and
+its prior sigma; ``kitti_moved_max_post_sigma`` in its posterior sigma; ``kitti_anchored``); ``kitti_rows_rot_z_deg`` (and
 ``_sd_deg``): the clip's stereo rotation about the optical axis from the right image's rows alone, an
 independent check of the refined ``rot_z_deg`` (:func:`_kitti_row_rotation`); ``kitti_motion_disp_x2_px``
 (and ``_sd_px``): the disparity's error growing with x^2 against depth from the ground-truth motion, an
