@@ -29,7 +29,8 @@ run three times by :func:`loopmodel.pipeline.process`: with the recorded calibra
 
 The KITTI clip (real, rectified, well calibrated): ``kitti_drift_pct_off`` / ``_refined``,
 ``kitti_ate_m_off`` / ``_refined``, ``kitti_moved_max_sigma`` (the largest move of a parameter, in
-its prior sigma; ``kitti_moved_max_post_sigma`` in its posterior sigma; ``kitti_anchored``); ``kitti_rows_rot_z_deg`` (and
+its prior sigma; ``kitti_moved_max_post_sigma`` in its posterior sigma; ``kitti_anchored``);
+``kitti_rows_rot_z_deg`` (and
 ``_sd_deg``): the clip's stereo rotation about the optical axis from the right image's rows alone, an
 independent check of the refined ``rot_z_deg`` (:func:`_kitti_row_rotation`); ``kitti_motion_disp_x2_px``
 (and ``_sd_px``): the disparity's error growing with x^2 against depth from the ground-truth motion, an
