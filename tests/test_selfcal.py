@@ -31,7 +31,7 @@ from loopmodel.calibration.refine_rig import (  # noqa: E402
     refine_rig,
     residuals_and_jacobians,
 )
-from loopmodel.calibration.selfcal import estimated_parameters  # noqa: E402
+from loopmodel.calibration.selfcal import anchors_principal_point, estimated_parameters  # noqa: E402
 from loopmodel.config import SelfCalibrationConfig  # noqa: E402
 from loopmodel.geometry.align import umeyama_alignment  # noqa: E402
 from loopmodel.geometry.se3 import so3_exp, so3_log  # noqa: E402
@@ -483,6 +483,18 @@ def test_a_held_common_principal_point_is_held_through_the_left_camera() -> None
     e = np.zeros(len(names))
     e[names.index("cx_left_px")] = 1.0
     assert np.linalg.norm(U @ (U.T @ e) - e) < 1e-9
+
+
+def test_the_principal_point_is_anchored_for_rectified_input_by_default() -> None:
+    """``anchor_principal_point: rectified``: the rectified left camera defines the frame; a raw rig's is a lens."""
+    raw = true_rig()
+    rect = StereoCalibration(raw.K_left, raw.K_left, raw.right_from_left, raw.image_size, np.zeros(5), np.zeros(5),
+                             rectified=True)
+    cfg = SelfCalibrationConfig()
+    assert anchors_principal_point(cfg, rect) and not anchors_principal_point(cfg, raw)
+    always = cfg.model_copy(update={"anchor_principal_point": "always"})
+    never = cfg.model_copy(update={"anchor_principal_point": "never"})
+    assert anchors_principal_point(always, raw) and not anchors_principal_point(never, rect)
 
 
 # ----------------------------------------------------------------------------- the solver (calib7)

@@ -503,7 +503,7 @@ def _chessboard() -> dict[str, Any]:
 
     from loopmodel.calibration.chessboard import board_points
     from loopmodel.calibration.refine_rig import PARAM_NAMES, observations_from_keyframes, prior_sigmas, refine_rig
-    from loopmodel.calibration.selfcal import estimated_parameters
+    from loopmodel.calibration.selfcal import anchors_principal_point, estimated_parameters
     from loopmodel.calibration.stereo import calibrate_stereo, pair_images
     from loopmodel.geometry.se3 import make_pose
     from loopmodel.types import Keyframe
@@ -557,7 +557,7 @@ def _chessboard() -> dict[str, Any]:
         own[6 * side : 6 * side + 6] = std[side][[0, 1, 2, 3, 4, 5]]
     est_u = estimated_parameters(c.model_copy(update={"refine_right_rows": False}))
     est_rows = estimated_parameters(c.model_copy(update={"refine_right_rows": True}))
-    anchor = c.anchor_principal_point
+    anchor = anchors_principal_point(c, cal)  # the rig's corners are raw: held as the sum unless always
     for name, prior, ob, est, ratio in (
         ("default", base, obs, est_u, c.observable_direction_ratio),
         ("own", own, obs, est_u, c.observable_direction_ratio),
