@@ -56,15 +56,17 @@ def test_final_trajectory_no_worse_than_online_on_kitti(shared_data: Path, tmp_p
     assert res["online"][0] < 0.2 and res["online"][1] < 1.5  # the run itself is sane
     # issue 36 (drift8): the final trajectory's drift after the ground truth's constant-rate first
     # steps (its leading steps with one relative rotation: 11 on the clip), first poses aligned there.
-    # measured: 0.551-0.558 % (0.588 % before the calibrating finish read every keyframe at the front
-    # end's latest disparity offset; 0.531 % with refine none)
+    # measured: 0.511-0.512 % (ridge9: a held common principal point held through the left camera;
+    # 0.550-0.558 % before, the left camera's share of the principal-point difference turning the
+    # frame; 0.588 % before the calibrating finish read every keyframe at the front end's latest
+    # disparity offset; 0.531 % with refine none). Issue 36's target 0.54
     rel = [np.linalg.inv(gt_T[k - 1]) @ gt_T[k] for k in range(1, len(gt_T))]
     turn = [np.linalg.norm(cv2.Rodrigues(rel[0][:3, :3].T @ r[:3, :3])[0]) for r in rel]
     seg = int(np.argmax(np.degrees(turn) > 2e-3))
     assert seg == 11
     rows = [idx[int(t)] for t in out.final.timestamps_ns]
     _, drift_after = _ate_and_drift(np.asarray(out.final.world_from_cam)[seg:], gt_T[rows][seg:])
-    assert drift_after < 0.57, drift_after
+    assert drift_after < 0.53, drift_after
     m = out.metrics
     # the run's own noise: from the batch BA, or (refine final, the default, which skips the batch BA)
     # from the calibrating bundle adjustment's residuals

@@ -23,6 +23,7 @@ from loopmodel.calibration.refine_laser import keyframe_discrepancies, laser_ste
 from loopmodel.calibration.refine_rig import (  # noqa: E402
     PARAM_NAMES,
     RigParameters,
+    anchored_held_directions,
     observations_from_keyframes,
     prior_sigmas,
     project_with_jacobians,
@@ -30,11 +31,11 @@ from loopmodel.calibration.refine_rig import (  # noqa: E402
     refine_rig,
     residuals_and_jacobians,
 )
-from loopmodel.calibration.selfcal import estimated_parameters  # noqa: E402
+from loopmodel.calibration.selfcal import anchors_principal_point, estimated_parameters  # noqa: E402
 from loopmodel.config import SelfCalibrationConfig  # noqa: E402
 from loopmodel.geometry.align import umeyama_alignment  # noqa: E402
 from loopmodel.geometry.se3 import so3_exp, so3_log  # noqa: E402
-from loopmodel.types import StripeProfile  # noqa: E402
+from loopmodel.types import StereoCalibration, StripeProfile  # noqa: E402
 
 PRIOR = prior_sigmas(0.3, 0.3, 0.002, 0.002, 0.02, 5e-5)
 # the pipeline's unknowns with the right columns only (the observations of ``_problem``)
@@ -433,6 +434,67 @@ def test_well_calibrated_rig_with_rows_and_held_combinations_moves_nothing() -> 
     moved = rep.moved_sigma()
     assert max(abs(v) for v in moved.values()) < 1.0, moved  # measured max 0.13
     assert rep.unobservable_directions  # the scan's weak combinations are held (measured: 6, 0.73-0.96)
+
+
+def test_a_held_common_principal_point_is_held_through_the_left_camera() -> None:
+    """A right-camera principal-point error on a short arc, where the common principal point is held.
+
+    Recorded rig: the true one with the right camera's cx 0.6 px and cy 0.4 px off (a right-image
+    rectification error; KITTI's refinement finds one, ridge9). The data determine the left-right
+    difference, not the common shift (nearly a rotation of every pose), which is held. Held as the
+    sum of both, the difference is split between the cameras by their priors and the left camera's
+    share turns the reported frame; held through the left camera (``anchor_principal_point``) the
+    left principal point stays and the right camera carries the error.
+    """
+    tr = true_rig()
+    KR = tr.K_right.copy()
+    KR[0, 2] -= 0.6
+    KR[1, 2] += 0.4
+    rec = StereoCalibration(tr.K_left.copy(), KR, tr.right_from_left.copy(), tr.image_size, tr.dist_left.copy(),
+                            tr.dist_right.copy(), rectified=False)
+    est = estimated_parameters(SelfCalibrationConfig(refine_right_rows=True))
+    sc, obs, pts0 = _rows_problem(rec, 1, n_kf=10, arc_deg=60.0)
+    truth = _true_values(sc)
+    i = {n: PARAM_NAMES.index(n) for n in ("cx_left_px", "cy_left_px", "cx_right_px", "cy_right_px")}
+    runs = {}
+    for anchor in (False, True):
+        _p, _q, runs[anchor] = refine_rig(obs, sc.world_from_kf.copy(), pts0, sc.recorded, PRIOR, est,
+                                          observable_direction_ratio=0.9, anchor_principal_point=anchor)
+    split, held = runs[False], runs[True]
+    assert split.anchored == [] and held.anchored == ["cx_left_px", "cy_left_px"]
+    moved = held.values - held.recorded_values
+    assert abs(moved[i["cx_left_px"]]) < 0.01 and abs(moved[i["cy_left_px"]]) < 0.01  # measured 0.000
+    # the right camera carries the error (measured off the truth by 0.073 / 0.005 px; split: 0.32 / 0.16)
+    assert abs(held.values[i["cx_right_px"]] - truth[i["cx_right_px"]]) < 0.15
+    assert abs(held.values[i["cy_right_px"]] - truth[i["cy_right_px"]]) < 0.1
+    assert abs(split.values[i["cx_left_px"]] - split.recorded_values[i["cx_left_px"]]) > 0.15  # measured 0.27
+    # the same left-right difference either way (what the data determine)
+    for a, b in (("cx_left_px", "cx_right_px"), ("cy_left_px", "cy_right_px")):
+        assert abs((held.values[i[a]] - held.values[i[b]]) - (split.values[i[a]] - split.values[i[b]])) < 0.06
+    z = ((held.values - truth) / held.posterior_sigma)[held.estimated]
+    assert np.abs(z).max() < 2.0  # measured 1.33 (split 1.44)
+    # the held directions: orthonormal, with their complement a basis; the left cx among them
+    names = [n for n, a in zip(PARAM_NAMES, held.estimated, strict=True) if a]
+    U = held.held_directions[held.estimated]
+    H, O, pinned = anchored_held_directions(U, names)
+    assert pinned == [] and np.allclose(H, U)  # already anchored: unchanged
+    B = np.column_stack([O, H])
+    assert np.allclose(B.T @ B, np.eye(len(names)), atol=1e-9)
+    e = np.zeros(len(names))
+    e[names.index("cx_left_px")] = 1.0
+    assert np.linalg.norm(U @ (U.T @ e) - e) < 1e-9
+
+
+def test_the_principal_point_is_anchored_for_rectified_input_by_default() -> None:
+    """``anchor_principal_point: rectified``: the rectified left camera defines the frame; a raw rig's is a lens."""
+    raw = true_rig()
+    rect = StereoCalibration(raw.K_left, raw.K_left, raw.right_from_left, raw.image_size, np.zeros(5), np.zeros(5),
+                             rectified=True)
+    cfg = SelfCalibrationConfig()
+    assert anchors_principal_point(cfg, rect) and not anchors_principal_point(cfg, raw)
+    always = cfg.model_copy(update={"anchor_principal_point": "always"})
+    never = cfg.model_copy(update={"anchor_principal_point": "never"})
+    assert anchors_principal_point(always, raw) and not anchors_principal_point(never, rect)
 
 
 # ----------------------------------------------------------------------------- the solver (calib7)

@@ -17,7 +17,8 @@ run three times by :func:`loopmodel.pipeline.process`: with the recorded calibra
 * ``param_err_before_sigma`` / ``param_err_after_sigma``: the largest error against the true rig
   over the parameters the data constrain (not ``unobservable``), in prior sigmas, before (the
   recorded values) and after refinement; ``param_err_after_post_sigma`` the same in posterior
-  sigmas (the reported ones: track-robust, held parameters considered);
+  sigmas (the reported ones: track-robust, held parameters considered); ``anchored``: the left
+  camera's parameters pinned for a held common principal point (``calibration_anchored``);
   ``param_err_rms_before_sigma`` / ``_after``: the rms over them; ``unobservable``;
 * ``mesh_err_refined_mm``: the mesh of the refined run against the scene (SE(3)-aligned, as the
   pipeline's ``mesh_err_after_mm``); ``mesh_err_recorded_mm``; ``mesh_err_gt_mm``: the stripes of the
@@ -28,7 +29,8 @@ run three times by :func:`loopmodel.pipeline.process`: with the recorded calibra
 
 The KITTI clip (real, rectified, well calibrated): ``kitti_drift_pct_off`` / ``_refined``,
 ``kitti_ate_m_off`` / ``_refined``, ``kitti_moved_max_sigma`` (the largest move of a parameter, in
-its prior sigma; ``kitti_moved_max_post_sigma`` in its posterior sigma); ``kitti_rows_rot_z_deg`` (and
+its prior sigma; ``kitti_moved_max_post_sigma`` in its posterior sigma; ``kitti_anchored``);
+``kitti_rows_rot_z_deg`` (and
 ``_sd_deg``): the clip's stereo rotation about the optical axis from the right image's rows alone, an
 independent check of the refined ``rot_z_deg`` (:func:`_kitti_row_rotation`); ``kitti_motion_disp_x2_px``
 (and ``_sd_px``): the disparity's error growing with x^2 against depth from the ground-truth motion, an
@@ -265,6 +267,7 @@ def _scan(seed: int, quick: bool) -> dict[str, Any]:
             out["moved_sigma"] = m.get("calibration_moved_sigma")
             out["laser_discrepancy_pct"] = m.get("calibration_laser_discrepancy_pct")
             out["pixel_sigma_px"] = m.get("calibration_pixel_sigma_px")
+            out["anchored"] = m.get("calibration_anchored")  # left parameters pinned for a held common one
         if floor:
             out["mesh_err_gt_mm"] = m.get("mesh_err_gt_mm")
     return out
@@ -292,6 +295,7 @@ def _kitti() -> dict[str, Any]:
             rot_y = np.radians(m["calibration_parameters"]["rot_y_deg"]["refined"])
             out["kitti_refined_disp_x2_px"] = round(float(-seq.calibration.K_left[0, 0] * rot_y), 3)
             out["kitti_unobservable_directions"] = m.get("calibration_unobservable_directions")
+            out["kitti_anchored"] = m.get("calibration_anchored")
     return out
 
 
@@ -499,7 +503,7 @@ def _chessboard() -> dict[str, Any]:
 
     from loopmodel.calibration.chessboard import board_points
     from loopmodel.calibration.refine_rig import PARAM_NAMES, observations_from_keyframes, prior_sigmas, refine_rig
-    from loopmodel.calibration.selfcal import estimated_parameters
+    from loopmodel.calibration.selfcal import anchors_principal_point, estimated_parameters
     from loopmodel.calibration.stereo import calibrate_stereo, pair_images
     from loopmodel.geometry.se3 import make_pose
     from loopmodel.types import Keyframe
@@ -553,13 +557,15 @@ def _chessboard() -> dict[str, Any]:
         own[6 * side : 6 * side + 6] = std[side][[0, 1, 2, 3, 4, 5]]
     est_u = estimated_parameters(c.model_copy(update={"refine_right_rows": False}))
     est_rows = estimated_parameters(c.model_copy(update={"refine_right_rows": True}))
+    anchor = anchors_principal_point(c, cal)  # the rig's corners are raw: held as the sum unless always
     for name, prior, ob, est, ratio in (
         ("default", base, obs, est_u, c.observable_direction_ratio),
         ("own", own, obs, est_u, c.observable_direction_ratio),
         ("rows", base, obs_rows, est_rows, c.observable_direction_ratio),
         ("rows_free", base, obs_rows, est_rows, 1.0),  # no combination held
     ):
-        _p, _pts, rep = refine_rig(ob, np.array(poses), obj[lm], cal, prior, est, observable_direction_ratio=ratio)
+        _p, _pts, rep = refine_rig(ob, np.array(poses), obj[lm], cal, prior, est, observable_direction_ratio=ratio,
+                                   anchor_principal_point=anchor)
         if est[PARAM_NAMES.index("cy_right_px")]:
             out[f"chess_common_cy_post_over_prior_{name}"] = round(
                 rep.direction_ratio({"cy_left_px": 1.0, "cy_right_px": 1.0}), 3
@@ -571,6 +577,7 @@ def _chessboard() -> dict[str, Any]:
         out[f"chess_moved_max_sigma_{name}"] = round(max(abs(v) for v in moved.values()), 3)
         out[f"chess_moved_sigma_{name}"] = {k: round(v, 2) for k, v in moved.items()}
         out[f"chess_unobservable_{name}"] = rep.unobservable
+        out[f"chess_anchored_{name}"] = rep.anchored
         post = rep.moved_sigma(posterior=True)
         out[f"chess_moved_max_post_sigma_{name}"] = round(max(abs(v) for v in post.values()), 3)
         out[f"chess_moved_post_sigma_{name}"] = {k: round(v, 2) for k, v in post.items()}

@@ -518,6 +518,9 @@ class RigRefinement:
     whitened_posterior: F64 = field(default_factory=lambda: np.zeros((0, 0)))
     #: the held directions in full (16 x h, prior-whitened, zero on parameters not estimated)
     held_directions: F64 = field(default_factory=lambda: np.zeros((N_PARAMS, 0)))
+    #: the left camera's parameters pinned in place of a held common principal point
+    #: (:func:`anchored_held_directions`)
+    anchored: list[str] = field(default_factory=list)
 
     def direction_ratio(self, weights: dict[str, float]) -> float:
         """Posterior over prior sigma of a combination of estimated parameters (prior-whitened weights)."""
@@ -1040,6 +1043,58 @@ def _held_direction_variance(S: F64, nc: int, prior_sigma_active: F64, U_o: F64,
     return np.asarray(np.sum(A**2, axis=1), dtype=np.float64)
 
 
+#: the principal-point pairs (left, right) whose common move rotates the output frame
+_PRINCIPAL_PAIRS = (("cx_left_px", "cx_right_px"), ("cy_left_px", "cy_right_px"))
+#: a common principal point counts as held when this share of it (squared projection) lies in the held directions
+ANCHOR_MIN_SHARE = 0.5
+
+
+def anchored_held_directions(U_h: F64, names: list[str]) -> tuple[F64, F64, list[str]]:
+    """The held directions with a held common principal point pinned on the left camera instead.
+
+    A common principal-point shift of both cameras is nearly a rotation of every pose (the data do
+    not tell them apart, so it is held). Held as the sum of both (the prior-whitened eigenvector),
+    a determined left-right difference is split between the cameras by their priors, and the left
+    camera's share turns the reported camera frame, and the whole trajectory with it, by
+    ``share / f``. Pinning the left (reference) camera's principal point instead holds the same
+    unobservable combination while the right camera carries the difference, the frame staying the
+    recorded one. ``U_h`` (active x h, orthonormal, prior-whitened) and the active parameters'
+    ``names``; returns the new held directions, their orthonormal complement (the directions
+    estimated) and the left parameters pinned.
+    """
+    n = U_h.shape[0]
+    pinned: list[str] = []
+    H = U_h.copy()
+    for left, right in _PRINCIPAL_PAIRS:
+        if left not in names or right not in names or H.shape[1] == 0:
+            continue
+        c = np.zeros(n)
+        c[names.index(left)] = c[names.index(right)] = np.sqrt(0.5)
+        a = H.T @ c  # the common shift in held coordinates
+        held_left = H[names.index(left)]  # the left coordinate in held coordinates
+        if float(a @ a) < ANCHOR_MIN_SHARE or float(held_left @ held_left) > 1.0 - 1e-9:
+            continue  # not held, or held through the left camera already
+        # the held vector nearest the common shift, replaced by the left camera's own coordinate
+        h = H @ (a / np.linalg.norm(a))
+        rest = H - np.outer(h, h @ H)
+        u, sv, _ = np.linalg.svd(rest, full_matrices=False)
+        kept = u[:, sv > 1e-9]
+        e = np.zeros(n)
+        e[names.index(left)] = 1.0
+        e -= kept @ (kept.T @ e)
+        H = np.column_stack([kept, e / np.linalg.norm(e)])
+        pinned.append(left)
+    if not pinned:
+        return U_h, _complement(U_h), pinned
+    return H, _complement(H), pinned
+
+
+def _complement(H: F64) -> F64:
+    """An orthonormal basis of the directions orthogonal to the orthonormal columns of ``H``."""
+    q, _ = np.linalg.qr(np.column_stack([H, np.eye(H.shape[0])]))
+    return q[:, H.shape[1] : H.shape[0]]
+
+
 def robust_sigma_px(r: F64, unknowns: int, obs: RigObservations | None = None) -> float:
     """Pixel noise of residuals (N x 2): 1.4826 MAD of the measured components, corrected for the redundancy."""
     comp = np.abs(r).ravel()
@@ -1126,6 +1181,7 @@ def refine_rig(
     consider: NDArray[np.bool_] | None = None,
     observable_direction_ratio: float = 1.0,
     start_values: F64 | None = None,
+    anchor_principal_point: bool = False,
 ) -> tuple[F64, F64, RigRefinement]:
     """Bundle adjustment of poses, landmarks and the rig calibration; see the module docstring.
 
@@ -1137,12 +1193,15 @@ def refine_rig(
     variance passed on to the others' sigmas. Returns the refined poses, points and the report (its
     ``world_from_kf`` and ``landmark_ids`` are left empty for the caller to fill). ``start_values``:
     the calibration to start from (the order of :data:`PARAM_NAMES`, e.g. the online estimate; the
-    priors stay at the recorded values). The dense algebra runs on one BLAS thread (:func:`one_blas_thread`).
+    priors stay at the recorded values). ``anchor_principal_point``: a held common principal point is
+    held through the left camera's (:func:`anchored_held_directions`). The dense algebra runs on one
+    BLAS thread (:func:`one_blas_thread`).
     """
     with one_blas_thread():
         return _refine_rig(
             obs, world_from_cam, points_w, recorded, prior_sigma, estimate, observable_ratio, huber_k,
             max_iterations, track_robust, consider, observable_direction_ratio, start_values,
+            anchor_principal_point,
         )
 
 
@@ -1160,6 +1219,7 @@ def _refine_rig(
     consider: NDArray[np.bool_] | None,
     observable_direction_ratio: float,
     start_values: F64 | None = None,
+    anchor_principal_point: bool = False,
 ) -> tuple[F64, F64, RigRefinement]:
     rig = RigParameters.of(recorded)
     prior_theta = rig.values.copy()
@@ -1212,6 +1272,7 @@ def _refine_rig(
         S = S[np.ix_(keep, keep)]  # held: conditioned on, its rows out of the information
         active = active & ~blind
     held_info, U_h, U_o, directions = None, None, None, []
+    anchored: list[str] = []
     whitened, Uh16 = np.zeros((0, 0)), np.zeros((N_PARAMS, 0))
     if np.any(active):
         ps_a = prior_sigma[active]
@@ -1225,6 +1286,8 @@ def _refine_rig(
         if np.any(hold):
             # held at the recorded values: the move along them taken out, a stiff prior keeps them there
             U_h, U_o = U[:, hold], U[:, ~hold]
+            if anchor_principal_point:  # a held common principal point pinned on the left camera
+                U_h, U_o, anchored = anchored_held_directions(U_h, names_a)
             Uh16 = np.zeros((N_PARAMS, U_h.shape[1]))
             Uh16[active] = U_h
             held_info = Uh16 @ Uh16.T / _HELD_SIGMA**2
@@ -1272,6 +1335,7 @@ def _refine_rig(
         unobservable_directions=directions,
         whitened_posterior=whitened,
         held_directions=Uh16,
+        anchored=anchored,
     )
     return poses, st.pts, report
 
@@ -1281,6 +1345,7 @@ __all__ = [
     "RigObservations",
     "RigParameters",
     "RigRefinement",
+    "anchored_held_directions",
     "observations_from_keyframes",
     "posterior_directions",
     "prior_sigmas",

@@ -157,6 +157,7 @@ class SelfCalibration:
             "calibration_rms_px_after": self.rig.rms_px_after,
             "calibration_refine_s": self.seconds,
             "calibration_unobservable_directions": self.rig.unobservable_directions,
+            "calibration_anchored": list(self.rig.anchored),
         }
         if self.laser is not None:
             m["calibration_laser_pairs"] = self.laser.pairs
@@ -177,6 +178,15 @@ def estimated_parameters(config: SelfCalibrationConfig) -> NDArray[np.bool_]:
     if not config.refine_right_rows:
         estimate[[PARAM_NAMES.index(n) for n in RIGHT_ROW_PARAMS]] = False
     return estimate
+
+
+def anchors_principal_point(config: SelfCalibrationConfig, calibration: StereoCalibration) -> bool:
+    """Whether a held common principal point is held through the left camera's (``anchor_principal_point``).
+
+    ``rectified``: for rectified input, whose (rectified) left camera defines the frame the poses refer to.
+    """
+    mode = config.anchor_principal_point
+    return mode == "always" or (mode == "rectified" and bool(calibration.rectified))
 
 
 def right_rows(keyframes: list[Keyframe], config: SelfCalibrationConfig) -> dict[int, F64] | None:
@@ -294,6 +304,7 @@ def refine_final(
     poses_out, pts_out, rep = refine_rig(
         obs, poses, pts, calibration, sig, estimate, config.observable_ratio, config.huber_k, config.max_iterations,
         observable_direction_ratio=config.observable_direction_ratio, start_values=start_values,
+        anchor_principal_point=anchors_principal_point(config, calibration),
     )
     rep.world_from_kf = {k: poses_out[i] for i, k in enumerate(kf_ids)}
     rep.landmark_ids = lm_ids
