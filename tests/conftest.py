@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,13 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 # LOOPMODEL_SHARED_DATA points elsewhere (e.g. from a git worktree); default ../shared/data
 SHARED_DATA = Path(os.environ.get("LOOPMODEL_SHARED_DATA", ROOT / ".." / "shared" / "data")).resolve()
+
+# A background job of a non-interactive shell (`make test &`, nohup) starts with SIGINT ignored, and an
+# ignored signal stays ignored across exec: every process the Ctrl-C tests start would ignore their
+# SIGINT and the tests would fail whatever the code does. A handler (unlike SIG_IGN) is reset to the
+# default by exec, so the children start with Python's usual KeyboardInterrupt.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture
