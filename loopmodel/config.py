@@ -139,7 +139,10 @@ class BackendConfig(_Section):
         10, ge=1, description="local: observations of landmarks older than this reach iSAM2 through proxies"
     )
     # issue 33 item 5 (window9): under local a loop also enters iSAM2 at once as a prior on its newer
-    # keyframe at the older one's estimate (the live end corrected by one small update)
+    # keyframe at the older one's estimate (the live end corrected by one small update). Measured with
+    # local on: scale --quick (rounds_1800, 67 loops) last loop's optimisation 7-12 ms, final ATE equal
+    # to isam2's (0.00081-0.00083 m); the KITTI clip (configs/kitti.yaml, real) and the 600-frame sample
+    # (configs/sim.yaml) identical with it on or off (no loop closes there) (CHANGELOG window9, integration)
     local_loop_prior: bool = Field(
         True, description="local: a loop corrects its newer keyframe online through a prior (else only at the end)"
     )

@@ -685,7 +685,7 @@ class FrontEnd:
         if ft.loc.sizes:
             start, guess = np.vstack([start, ft.loc.prev_uv]), np.vstack([guess, ft.loc.guess])
             front = np.concatenate([front, ft.loc.front])
-        share = shared_tracks(start, guess, cfg.klt_share_px, cfg.klt_share_motion_px)
+        share = shared_tracks(start, guess, cfg.klt_share_px, cfg.klt_share_motion_px) if cfg.klt_share_px > 0 else None
         uv, ok, _fb = track_klt(
             self._prev_pyr, cur_pyr, start, guess, cfg.klt_window_px, cfg.klt_levels, cfg.fb_threshold_px,
             cfg.klt_iterations, self.calibration.image_size, share,

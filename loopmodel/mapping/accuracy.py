@@ -193,15 +193,16 @@ def mesh_error_metrics(
     given = dict(meshes or {})
     # a given surface is measured as it is: its stripes are not placed again (finish9: 0.1 s CPU a
     # placing of the 600-frame sample's 225,000 stripe points)
-    maps = {
-        name: StripeMap.from_trajectory(traj, stripes, config)
-        for name, traj in trajectories.items()
-        if name not in given or (name == "gt" and swept_by is None and object_mesh is not None)
-    }
+    maps = {name: StripeMap.from_trajectory(traj, stripes, config) for name, traj in trajectories.items()
+            if name not in given}
     reference = swept = None
     if object_mesh is not None:
         reference = sample_surface(object_mesh, object_samples)
-        placed = StripeMap.from_trajectory(swept_by, stripes, config) if swept_by is not None else maps.get("gt")
+        sweep = swept_by if swept_by is not None else trajectories.get("gt")
+        placed = None
+        if sweep is not None:  # the gt map when it was placed for its own mesh, else placed for this
+            reuse = swept_by is None and "gt" in maps
+            placed = maps["gt"] if reuse else StripeMap.from_trajectory(sweep, stripes, config)
         if placed is not None:
             swept = swept_mask(reference, placed.world_points(), swept_radius_m)
     to_gt = SurfaceDistance(gt_mesh) if len(gt_mesh.triangles) else None
