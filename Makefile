@@ -9,6 +9,7 @@ SHARED ?= ../shared
 .PHONY: demo test test-fast setup syslibs viewer-libs lint bench clean
 
 setup: syslibs $(STAMP)
+	@$(PY) -m loopmodel.kernels
 
 # open3d 0.20 fails to import without Debian's libusb-1.0-0.
 syslibs:

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import typer
 from rich.markup import escape
+from rich.progress import TimeElapsedColumn
 from rich.table import Table
 
 from loopmodel.cli.common import (
@@ -241,6 +242,7 @@ def run(
     from loopmodel.frontend.tracker import check_sizes_against_image
 
     check_sizes_against_image(cfg.frontend, *seq.calibration.image_size)  # before the progress bar
+    compile_kernels_if_cold(cfg)
     if getattr(seq, "choice", None):
         console.print(f"{seq.format_name}: {seq.choice}")  # type: ignore[attr-defined]
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
@@ -294,6 +296,21 @@ def run(
         table.add_row(escape(k), escape(v))
     console.print(table)
     console.print(f"results in {result.folder}")
+
+
+def compile_kernels_if_cold(cfg: Config) -> None:
+    """Compile the run's numba kernels that numba's cache lacks (after an install or update) before the frames.
+
+    Otherwise they compiled inside the first run's frames and its workers (issue 33 item 2).
+    """
+    from loopmodel.kernels import cold_kernel_modules, modules_for, warm_up
+
+    cold = cold_kernel_modules(modules_for(cfg))
+    if not cold:
+        return
+    with progress_bar(TimeElapsedColumn()) as bar:
+        task = bar.add_task("compiling kernels (once after an install or update)", total=len(cold))
+        warm_up(tuple(cold), lambda i, _n, _label: bar.update(task, completed=i))
 
 
 #: What the finishing steps (:data:`loopmodel.pipeline.FINISH_STEPS`) are called on the terminal.

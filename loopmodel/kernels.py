@@ -1,0 +1,155 @@
+"""The compiled (numba) kernels: which are cached on disk, and compiling them all once up front.
+
+numba compiles a kernel at its first call and keeps the machine code in a cache next to the
+module (or in the user's cache folder when the package folder is read-only). Right after an
+install or an update that cache is empty: the first run then compiled inside its frames and in
+its worker processes (the KITTI clip: 35 s of frames instead of 3 s, single frames up to 1.6 s;
+issue 33 item 2). :func:`cold_kernel_modules` tells, without compiling, which modules the cache
+lacks; :func:`warm_up` compiles (or loads) them in this process, so later
+processes, the workers included, only load them. ``make setup`` and ``loopmodel run`` call it when
+the cache is cold.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from collections.abc import Callable, Hashable
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from loopmodel.config import Config
+
+logger = logging.getLogger(__name__)
+
+#: The modules holding ``numba.njit(cache=True)`` kernels.
+KERNEL_MODULES = (
+    "loopmodel.frontend._stereo_kernels",
+    "loopmodel.frontend._affine_kernels",
+    "loopmodel.pose._point_kernels",
+    "loopmodel.imaging._klt_kernels",
+    "loopmodel.loop._vocabulary_kernels",
+    "loopmodel.loop.p3p_kernels",
+    "loopmodel.loop.surf",
+    "loopmodel.backend._givens_kernels",
+)
+
+
+def _warm_surf() -> None:
+    """One SURF detection and description on a small textured image (float64 integral image)."""
+    from loopmodel.loop.surf import Surf
+
+    image = (np.random.default_rng(0).random((96, 96)) * 255).astype(np.uint8)
+    Surf(max_features=50).detect_and_describe(image)
+
+
+def _warm_givens() -> None:
+    """A two-parameter-block estimator with one local block, one observation added and removed."""
+    from loopmodel.backend.givens import GivensEstimator
+
+    est = GivensEstimator(local_block_max=3)
+    est.add_parameters("g", 2)
+    est.add_parameters("p", 3, local=True)
+    rows: dict[Hashable, NDArray[np.float64]] = {"g": np.eye(3, 2), "p": np.eye(3)}
+    obs = est.add_observation(rows, np.ones(3), sigma=np.ones(3))
+    est.add_observation({"g": np.eye(2)}, np.ones(2), sigma=np.ones(2))
+    est.solution()
+    est.delete_observation(obs)
+    est.refactorize()
+
+
+def _warm_ups() -> dict[str, tuple[str, Callable[[], None]]]:
+    """Per kernel module: (label, warm-up), each calling the module's kernels with small inputs."""
+    from loopmodel.frontend._stereo_kernels import warm_up as stereo
+    from loopmodel.frontend.affine_klt import warm_up as affine
+    from loopmodel.imaging._klt_kernels import warm_up as klt_share
+    from loopmodel.loop._vocabulary_kernels import warm_up as vocabulary
+    from loopmodel.loop.pnp import warm_up as p3p
+    from loopmodel.pose._point_kernels import warm_up as pose
+
+    ups = {"stereo matching": stereo, "affine KLT": affine, "pose solve": pose, "KLT share": klt_share,
+           "vocabulary": vocabulary, "P3P bank": p3p, "SURF": _warm_surf, "Givens estimator": _warm_givens}
+    return {m: (label, fn) for m, (label, fn) in zip(KERNEL_MODULES, ups.items(), strict=True)}
+
+
+def modules_for(config: Config) -> tuple[str, ...]:
+    """The kernel modules a run with ``config`` calls (SURF, the Givens estimator and the KLT share only when set)."""
+    skip = set()
+    if config.loop.descriptor != "surf":
+        skip.add("loopmodel.loop.surf")
+    if config.backend.kind not in ("givens", "both"):
+        skip.add("loopmodel.backend._givens_kernels")
+    if config.frontend.klt_share_px <= 0:
+        skip.add("loopmodel.imaging._klt_kernels")
+    return tuple(m for m in KERNEL_MODULES if m not in skip)
+
+
+def _dispatchers(module: ModuleType) -> list[Any]:
+    from numba.core.registry import CPUDispatcher
+
+    return [v for v in vars(module).values() if isinstance(v, CPUDispatcher) and getattr(v, "_cache", None) is not None]
+
+
+def _is_cached(dispatcher: Any) -> bool:
+    """Whether the on-disk cache holds a compiled version of ``dispatcher`` for its current source.
+
+    numba's index is stamped with the source file's time and size; a stale or missing index loads
+    as empty. Reads numba's cache object (numba 0.6x); an unexpected layout counts as cached, so a
+    changed numba never makes every run compile up front.
+    """
+    try:
+        index = dispatcher._cache._cache_file._load_index()
+    except Exception:  # noqa: BLE001 - only a hint; see the docstring
+        logger.debug("numba cache index not readable", exc_info=True)
+        return True
+    return bool(index)
+
+
+def cold_kernel_modules(modules: tuple[str, ...] = KERNEL_MODULES) -> list[str]:
+    """The kernel modules of which numba's cache holds nothing for the current source.
+
+    A module's cache entries are stamped with its file, so an install or an edit leaves none of them
+    valid; a module with at least one valid entry has been run since (a kernel called only from
+    another kernel never has an entry of its own, and one that a run never needed compiles at its
+    first call as before).
+    """
+    cold = []
+    for name in modules:
+        found = _dispatchers(importlib.import_module(name))
+        if found and not any(_is_cached(d) for d in found):
+            cold.append(name)
+    return cold
+
+
+def warm_up(modules: tuple[str, ...] = KERNEL_MODULES, on_step: Callable[[int, int, str], None] | None = None) -> None:
+    """Compile (or load) the kernels of ``modules`` in this process; ``on_step(done, total, label)`` after each."""
+    ups = _warm_ups()
+    for i, name in enumerate(modules, 1):
+        label, warm = ups[name]
+        warm()
+        if on_step is not None:
+            on_step(i, len(modules), label)
+
+
+def main() -> None:
+    """``python -m loopmodel.kernels``: compile what the cache lacks, one line per group."""
+    import time
+
+    cold = cold_kernel_modules()
+    if not cold:
+        print("loopmodel kernels: cached")
+        return
+    print(f"loopmodel kernels: compiling ({len(cold)} of {len(KERNEL_MODULES)} modules not in numba's cache; "
+          "once after an install or update)")
+    t0 = time.perf_counter()
+    warm_up(on_step=lambda i, n, name: print(f"  {i}/{n} {name} ({time.perf_counter() - t0:.0f} s)", flush=True))
+    left = cold_kernel_modules()
+    tail = f"; still not cached: {', '.join(left)}" if left else ""
+    print(f"loopmodel kernels: done in {time.perf_counter() - t0:.0f} s{tail}")
+
+
+if __name__ == "__main__":
+    main()

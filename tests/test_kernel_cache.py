@@ -1,0 +1,61 @@
+"""numba's on-disk cache of the compiled kernels (issue 33 item 2: no compiling inside the first run's frames).
+
+- every module with ``cache=True`` kernels is in :data:`loopmodel.kernels.KERNEL_MODULES`;
+- with an empty cache folder every module is reported cold, and warming one module makes exactly it
+  warm (a subprocess with its own ``NUMBA_CACHE_DIR``, so the suite's cache is untouched);
+- after :func:`warm_up` no module is cold (every module has a warm-up that reaches it); a run warms only the
+  modules its configuration calls.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from loopmodel.config import Config
+from loopmodel.kernels import KERNEL_MODULES, cold_kernel_modules, modules_for, warm_up
+
+PACKAGE = Path(__file__).resolve().parents[1] / "loopmodel"
+
+
+def test_every_cached_kernel_module_is_listed() -> None:
+    found = {
+        ".".join(p.relative_to(PACKAGE.parent).with_suffix("").parts)
+        for p in PACKAGE.rglob("*.py")
+        if "cache=True" in p.read_text() and p.name != "kernels.py"
+    }
+    assert found == set(KERNEL_MODULES)
+
+
+def test_an_empty_cache_is_cold_and_one_warmed_module_is_not(tmp_path: Path) -> None:
+    code = (
+        "import json\n"
+        "from loopmodel.kernels import cold_kernel_modules\n"
+        "before = cold_kernel_modules()\n"
+        "from loopmodel.imaging._klt_kernels import warm_up\n"
+        "warm_up()\n"
+        "print(json.dumps([before, cold_kernel_modules()]))\n"
+    )
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True, timeout=300)
+    before, after = json.loads(out.stdout.strip().splitlines()[-1])
+    assert before == list(KERNEL_MODULES)
+    assert after == [m for m in KERNEL_MODULES if m != "loopmodel.imaging._klt_kernels"]
+    assert any(tmp_path.rglob("*.nbi"))  # the cache went where NUMBA_CACHE_DIR says
+
+
+def test_after_warming_all_no_module_is_cold() -> None:
+    steps: list[str] = []
+    warm_up(on_step=lambda i, n, label: steps.append(label))
+    assert len(steps) == len(KERNEL_MODULES)
+    assert cold_kernel_modules() == []
+
+
+def test_a_run_warms_only_the_kernels_its_configuration_calls() -> None:
+    default = modules_for(Config())  # ORB loop descriptors, iSAM2, no KLT share
+    assert "loopmodel.loop.surf" not in default and "loopmodel.backend._givens_kernels" not in default
+    surf = Config.model_validate({"loop": {"descriptor": "surf"}, "backend": {"kind": "both"}})
+    assert {"loopmodel.loop.surf", "loopmodel.backend._givens_kernels"} <= set(modules_for(surf))
