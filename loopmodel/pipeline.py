@@ -400,7 +400,8 @@ class _Run:
         # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
         # placed with them (the stripe map follows every change of the anchored poses)
         self.anchored = AnchoredTrajectory()
-        self.stripe_map = StripeMap(config.mapping, self.anchored)
+        # placed in one batch when the live mesh takes its points, not on the tracking thread each frame (issue 33)
+        self.stripe_map = StripeMap(config.mapping, self.anchored, place_when_read=True)
         self.live = LiveMapping(self.stripe_map, config.mapping.live_mesh_every_kf, config.mapping.live_mesh_worker)
         # the laser profiles of the frames read so far (meshed at the end; the live map takes the new
         # ones at the next tracked frame)
