@@ -29,6 +29,7 @@ import contextlib
 import dataclasses
 import functools
 import importlib
+import itertools
 import logging
 import multiprocessing as mp
 import signal
@@ -399,7 +400,8 @@ class _Run:
         # frame poses anchored to their keyframes (corrections reach every frame), and the stripes
         # placed with them (the stripe map follows every change of the anchored poses)
         self.anchored = AnchoredTrajectory()
-        self.stripe_map = StripeMap(config.mapping, self.anchored)
+        # placed in one batch when the live mesh takes its points, not on the tracking thread each frame (issue 33)
+        self.stripe_map = StripeMap(config.mapping, self.anchored, place_when_read=True)
         self.live = LiveMapping(self.stripe_map, config.mapping.live_mesh_every_kf, config.mapping.live_mesh_worker)
         # the laser profiles of the frames read so far (meshed at the end; the live map takes the new
         # ones at the next tracked frame)
@@ -979,6 +981,22 @@ def process(
     return result
 
 
+def _one_ahead(scans: Iterator[ScanFrame]) -> Iterator[tuple[ScanFrame, ScanFrame | None]]:
+    """Each scan with the next one (None at the end), read before the scan is handed on.
+
+    An error reading the next one comes after the scan it follows, as without reading ahead.
+    """
+    scan = next(scans, None)
+    while scan is not None:
+        try:
+            coming = next(scans, None)
+        except Exception:
+            yield scan, None
+            raise
+        yield scan, coming
+        scan = coming
+
+
 def _frame_loop(
     run: _Run, scans: Iterator[ScanFrame], total: int, stop: StopFlag, progress: PipelineProgressFn | None
 ) -> tuple[bool, Exception | None]:
@@ -988,11 +1006,11 @@ def _frame_loop(
     it, if any.
     """
     try:
-        for i, scan in enumerate(scans):
-            if i >= total:
-                break
+        for i, (scan, coming) in enumerate(_one_ahead(itertools.islice(scans, total))):
             if stop.is_set():
                 return True, None
+            if coming is not None:  # its left image rectified beside this frame (issue 33)
+                run.frontend.rectifier.left_ahead(coming.frame.left)
             run.laser.take(scan)
             if run.skips(scan.frame):
                 continue

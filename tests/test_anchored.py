@@ -83,3 +83,49 @@ def test_the_live_map_re_places_moved_stripes_when_read():
     assert smap.dirty_blocks == {(0, 0, 10), (4, 0, 10)}  # where the surface was and where it is now
     np.testing.assert_allclose(smap.world_points(), pts + [0.2, 0, 0])
     np.testing.assert_allclose(smap.stripe_poses()[0], far)
+
+
+def test_stripes_placed_when_read_equal_stripes_placed_as_they_come(rng):
+    """orbit10 (issue 33): the live map places new stripes in one batch when read, not each frame.
+
+    Against a map on the same trajectory that places them as they come: the same world points,
+    sensor positions and stripe poses at every read; its dirty blocks those of the stripes placed or
+    moved since the last read (the other also marks where a stripe sat before a move it was never
+    meshed at).
+    """
+    from loopmodel.config import MappingConfig
+    from loopmodel.mapping.stripe_map import StripeMap
+    from loopmodel.types import StripeProfile
+
+    traj = AnchoredTrajectory()
+    cfg = MappingConfig(chunk_m=0.05)
+    now, later = StripeMap(cfg, poses=traj), StripeMap(cfg, poses=traj, place_when_read=True)
+    kf_pose = {0: np.eye(4)}
+    traj.set_keyframe(0, kf_pose[0])
+    fresh: list[np.ndarray] = []
+    for i in range(60):
+        kf = i // 15
+        if kf not in kf_pose:
+            kf_pose[kf] = make_pose(so3_exp(rng.normal(0, 0.05, 3)), rng.normal(0, 0.1, 3))
+            traj.set_keyframe(kf, kf_pose[kf])
+        traj.add_frame(i * 10, kf_id=kf, kf_from_cam=make_pose(so3_exp(rng.normal(0, 0.02, 3)), [0.002 * i, 0, 0]))
+        stripes = [StripeProfile(i * 10 + d, rng.normal([0, 0, 0.5], 0.05, (int(rng.integers(1, 30)), 3)))
+                   for d in (3, 7, 12)]  # the last one after the newest frame: it waits for the next
+        now.add_many(stripes)
+        later.add_many(stripes)
+        fresh += [s.points_in_cam for s in stripes]
+        if i % 7 == 3:  # a correction of the older keyframes
+            traj.update_keyframes({k: make_pose(so3_exp(rng.normal(0, 0.01, 3)), rng.normal(0, 0.01, 3)) @ p
+                                   for k, p in kf_pose.items() if k < kf})
+        if i % 11 == 10:
+            assert later._s_f0.a.max() < 0 or (later._s_f0.a >= 0).sum() < (now._s_f0.a >= 0).sum()  # waiting
+            a, b = now.take_dirty_blocks(), later.take_dirty_blocks()
+            assert a is not None and b is not None
+            np.testing.assert_array_equal(b[0], a[0])
+            np.testing.assert_array_equal(b[1], a[1])
+            assert b[2] <= a[2] and len(b[2]) > 0
+            np.testing.assert_array_equal(later.stripe_poses(), now.stripe_poses())
+    np.testing.assert_array_equal(later.world_points(), now.world_points())
+    np.testing.assert_array_equal(later.sensor_positions(), now.sensor_positions())
+    np.testing.assert_array_equal(later.placed_mask, now.placed_mask)
+    assert later.stripe_count == now.stripe_count == len(fresh)

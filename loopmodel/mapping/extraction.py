@@ -22,6 +22,9 @@ from loopmodel.errors import CalibrationError, InputError
 from loopmodel.types import ScanFrame, StereoCalibration, StripeProfile
 
 F64 = NDArray[np.float64]
+# the across-line refinement's slope fit (profiles either side) and steepest slope refined
+_ACROSS_FIT_PX = 3
+_ACROSS_MAX_SLOPE = 1.5
 
 
 @dataclass
@@ -166,6 +169,7 @@ def extract_laser_peaks(
     smooth_along_px: float = 0.0,
     local_background: bool = False,
     across_line: bool = False,
+    compiled: bool = True,
 ) -> F64:
     """Sub-pixel laser-line positions: M x 2 pixel coordinates (u, v).
 
@@ -184,11 +188,22 @@ def extract_laser_peaks(
     the profile *across the line* (along its local normal, from the neighbouring profiles' peaks),
     averaged *along the line* (the Gaussian of ``smooth_along_px``), then moved along the line back
     onto its image row (column): see :func:`_refine_across_line`.
+    ``compiled``: a uint8 image without ``mask`` or ``max_width_px``, with ``cog``, goes through the
+    compiled peak finder (:func:`_compiled_peaks`: the same peaks, about 10x faster); False forces
+    the numpy path.
     """
     if axis not in ("columns", "rows"):
         raise InputError(None, f"laser peak axis must be 'columns' or 'rows', got '{axis}'")
     if method not in ("cog", "gauss"):
         raise InputError(None, f"laser peak method must be 'cog' or 'gauss', got '{method}'")
+    src = np.asarray(image)
+    if compiled and method == "cog" and mask is None and max_width_px is None and src.dtype == np.uint8:
+        u8 = src.max(axis=2) if src.ndim == 3 else src
+        half = max(1, int(np.ceil(3.0 * smooth_along_px))) if smooth_along_px > 0 else 0
+        if u8.ndim == 2 and min(u8.shape) > 2 * half + 1:
+            return _compiled_peaks(
+                u8, axis, min_contrast, window_px, smooth_along_px, local_background, across_line
+            )
     g = _grey(image)
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
@@ -275,6 +290,49 @@ def extract_laser_peaks(
     return np.column_stack([sub, line])
 
 
+def _compiled_peaks(
+    u8: NDArray[np.uint8],
+    axis: str,
+    min_contrast: float,
+    window_px: int,
+    smooth_along_px: float,
+    local_background: bool,
+    across_line: bool,
+) -> F64:
+    """:func:`extract_laser_peaks` of a grey uint8 image (``cog``, no mask or width gate), compiled.
+
+    The same arithmetic as the numpy path (``tests/test_peak_kernels.py`` compares them), but the
+    smoothing along the line is evaluated only at the positions whose upper bound (the largest
+    sample the Gaussian reaches, a vertical dilation) can reach the profile's best value, and the
+    across-line samples are read from the image directly.
+    """
+    import cv2
+
+    from loopmodel.mapping import _peak_kernels as kern
+
+    P = np.ascontiguousarray(u8 if axis == "rows" else u8.T)  # one laser profile per row of P
+    if smooth_along_px > 0:
+        half = max(1, int(np.ceil(3.0 * smooth_along_px)))
+        taps = cv2.getGaussianKernel(2 * half + 1, smooth_along_px).ravel().astype(np.float64)
+        bound = cv2.dilate(P, cv2.getStructuringElement(cv2.MORPH_RECT, (1, 2 * half + 1)))
+    else:
+        taps, bound = np.ones(1), P
+    _k, pos, ok, background = kern.profile_peaks(
+        P, bound, taps, float(min_contrast), int(window_px), bool(local_background)
+    )
+    line = np.flatnonzero(ok)
+    sub = pos[ok]
+    if across_line and line.size >= 3:
+        bg = np.zeros(0) if local_background else background[ok]
+        sub = kern.across_line(
+            P, line.astype(np.int64), sub, int(window_px), float(smooth_along_px), bg, _ACROSS_FIT_PX, _ACROSS_MAX_SLOPE
+        )
+    lf = line.astype(np.float64)
+    if axis == "columns":
+        return np.column_stack([lf, sub])
+    return np.column_stack([sub, lf])
+
+
 def _refine_across_line(
     prof: F64,
     line: F64,
@@ -282,8 +340,8 @@ def _refine_across_line(
     window_px: int,
     smooth_along_px: float,
     background: F64 | None,
-    fit_px: int = 3,
-    max_slope: float = 1.5,
+    fit_px: int = _ACROSS_FIT_PX,
+    max_slope: float = _ACROSS_MAX_SLOPE,
 ) -> F64:
     """Peak positions refined across the line; ``prof[sub, line]`` is the (unsmoothed) image.
 

@@ -28,6 +28,9 @@ def _extract_start(extractor: StripeExtractor) -> None:
     global _EXTRACTOR
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _EXTRACTOR = extractor
+    from loopmodel.mapping import _peak_kernels
+
+    _peak_kernels.warm_up()  # the compiled peak finder loaded before the first image
 
 
 def _extract(timestamp_ns: int, image: Any) -> StripeProfile:

@@ -44,8 +44,15 @@ class StripeMap:
     surfaces. Offline: ``from_trajectory``.
     """
 
-    def __init__(self, config: MappingConfig | None = None, poses: AnchoredTrajectory | None = None) -> None:
+    def __init__(
+        self,
+        config: MappingConfig | None = None,
+        poses: AnchoredTrajectory | None = None,
+        place_when_read: bool = False,
+    ) -> None:
         self.config = config or MappingConfig()
+        #: new stripes placed when the map is next read, in one batch, not as they and their frames come
+        self.place_when_read = place_when_read
         #: the frame poses the stripes are placed with (the map follows its changes)
         self.poses = poses if poses is not None else AnchoredTrajectory()
         self.poses.watch(self)
@@ -70,8 +77,8 @@ class StripeMap:
 
     # ------------------------------------------------------------- pose events
     def frames_added(self) -> None:
-        """Place the waiting stripes that the new frames bracket."""
-        if self._pending:
+        """Place the waiting stripes that the new frames bracket (with :attr:`place_when_read`: when next read)."""
+        if self._pending and not self.place_when_read:
             self._place_pending()
 
     def frames_moved(self, frames: I64) -> None:
@@ -85,6 +92,12 @@ class StripeMap:
             self._moved.append(np.array(frames, dtype=np.int64))
             if len(self._moved) > 64:  # a long run between reads: one array
                 self._moved = [np.unique(np.concatenate(self._moved))]
+
+    def _settle(self) -> None:
+        """Before a read: the moves since the last one applied, then the waiting stripes placed."""
+        self._apply_moves()
+        if self._pending and self.place_when_read:
+            self._place_pending()
 
     def _apply_moves(self) -> None:
         """Re-place the stripes of the frames moved since the last read (their net move: dirty blocks)."""
@@ -105,6 +118,10 @@ class StripeMap:
     @property
     def placed_mask(self) -> NDArray[np.bool_]:
         """Which stripes have a pose (bracketed by frames)."""
+        self._settle()
+        return self._placed()
+
+    def _placed(self) -> NDArray[np.bool_]:
         return self._s_f0.a >= 0
 
     def add(self, stripe: StripeProfile) -> int:
@@ -142,7 +159,8 @@ class StripeMap:
                 pend_before.append(s)
         finally:
             self._pending = pend_before
-            self._place_pending()
+            if not self.place_when_read:
+                self._place_pending()
 
     def stripes(self) -> list[StripeProfile]:
         """All profiles as given (sensor frame), in insertion order."""
@@ -153,23 +171,24 @@ class StripeMap:
 
     def stripes_governed_by(self, kf_ids: Iterable[int]) -> I64:
         """Indices of placed stripes whose neighbouring frames belong to these keyframes."""
+        self._settle()
         ids = np.fromiter((int(k) for k in kf_ids), dtype=np.int64)
         return self.stripes_of_frames(np.flatnonzero(np.isin(self.poses.frame_keyframes(), ids)))
 
     def stripes_of_frames(self, frames: I64) -> I64:
         """Indices of placed stripes next to (bracketed by) any of these frames."""
-        placed = self.placed_mask
+        placed = self._placed()
         hit = placed & (np.isin(self._s_f0.a, frames) | np.isin(self._s_f1.a, frames))
         return np.flatnonzero(hit)
 
     def stripe_poses(self) -> F64:
         """``world_from_cam`` at every stripe's time (S x 4 x 4; NaN while unplaced)."""
-        self._apply_moves()
+        self._settle()
         return self._s_world_from_cam.a.copy()
 
     def world_points(self, stripe: int | None = None) -> F64:
         """World points (metres) of one stripe, or of all placed stripes (P x 3)."""
-        self._apply_moves()
+        self._settle()
         if stripe is not None:
             a, n = int(self._s_start.a[stripe]), int(self._s_count.a[stripe])
             return self._p_world.a[a : a + n].copy()
@@ -177,12 +196,12 @@ class StripeMap:
 
     def sensor_positions(self) -> F64:
         """Camera centre (world, metres) at the capture time of each placed point (P x 3)."""
-        self._apply_moves()
+        self._settle()
         centres = self._s_world_from_cam.a[:, :3, 3]
         return centres[self._p_stripe.a[self._point_placed_mask()]]
 
     def _point_placed_mask(self) -> NDArray[np.bool_]:
-        return self.placed_mask[self._p_stripe.a]
+        return self._placed()[self._p_stripe.a]
 
     def _place_pending(self) -> None:
         nf = self.poses.frame_count
@@ -313,7 +332,7 @@ class StripeMap:
         :func:`~loopmodel.mapping.meshing.mesh_blocks`, which may run in another thread. None when
         no block is dirty.
         """
-        self._apply_moves()
+        self._settle()
         if not self._live:
             self._live = True
             self._mark_dirty(self._p_world.a[self._point_placed_mask()])
@@ -345,7 +364,7 @@ class StripeMap:
     @property
     def dirty_blocks(self) -> set[tuple[int, int, int]]:
         """Blocks whose live mesh is out of date."""
-        self._apply_moves()
+        self._settle()
         return set(self._dirty)
 
     def check_nonempty(self) -> None:
