@@ -35,6 +35,7 @@ KERNEL_MODULES = (
     "loopmodel.loop.p3p_kernels",
     "loopmodel.loop.surf",
     "loopmodel.backend._givens_kernels",
+    "loopmodel.mapping._peak_kernels",
 )
 
 
@@ -68,10 +69,12 @@ def _warm_ups() -> dict[str, tuple[str, Callable[[], None]]]:
     from loopmodel.imaging._klt_kernels import warm_up as klt_share
     from loopmodel.loop._vocabulary_kernels import warm_up as vocabulary
     from loopmodel.loop.pnp import warm_up as p3p
+    from loopmodel.mapping._peak_kernels import warm_up as laser_peaks
     from loopmodel.pose._point_kernels import warm_up as pose
 
     ups = {"stereo matching": stereo, "affine KLT": affine, "pose solve": pose, "KLT share": klt_share,
-           "vocabulary": vocabulary, "P3P bank": p3p, "SURF": _warm_surf, "Givens estimator": _warm_givens}
+           "vocabulary": vocabulary, "P3P bank": p3p, "SURF": _warm_surf, "Givens estimator": _warm_givens,
+           "laser peaks": laser_peaks}
     return {m: (label, fn) for m, (label, fn) in zip(KERNEL_MODULES, ups.items(), strict=True)}
 
 
