@@ -119,3 +119,15 @@ def test_other_pngs_and_damage_go_to_opencv() -> None:
     assert decode_png_8bit(bad) is None
     assert decode_quietly(bad) is None and _opencv(bad) is None
     assert np.array_equal(decode_png_8bit(good), img)
+
+
+def test_a_stream_longer_than_the_image_is_not_inflated_whole() -> None:
+    """A small file whose stream inflates far beyond its declared size goes to OpenCV (as libpng, it stops there)."""
+    img = np.zeros((9, 11), np.uint8)
+    raw = b"".join(b"\x00" + img[y].tobytes() for y in range(9)) + bytes(5_000_000)
+    data = _stream(11, 9, 0, raw)
+    assert len(data) < 20_000
+    assert decode_png_8bit(data) is None
+    ref = _opencv(data)
+    ours = decode_quietly(data)
+    assert (ours is None and ref is None) or np.array_equal(ours, ref)
