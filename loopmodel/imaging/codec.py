@@ -45,8 +45,8 @@ def decode_png_8bit(data: bytes | NDArray[np.uint8]) -> NDArray[np.uint8] | None
     (H, W) grey or (H, W, 3) in OpenCV's BGR order, the same bytes as OpenCV (tests). Every chunk's
     CRC and the stream's checksum and length are checked; None for any other PNG, any chunk it does
     not know (transparency, palette, significant bits, an animation) and any damage, which the caller
-    decodes with OpenCV (and its errors) instead. Cheaper than libpng (issue 36: a KITTI image
-    3.8 -> about 1.5 ms of CPU): ISA-L's inflate where installed, rows unfiltered in a compiled kernel.
+    decodes with OpenCV (and its errors) instead. Cheaper than libpng (issue 36: a KITTI image 3.0 ->
+    1.1 ms of CPU, 2.2 ms without ISA-L): ISA-L's inflate where installed, rows unfiltered in a compiled kernel.
     """
     mv = (np.ascontiguousarray(data, np.uint8).reshape(-1).data if isinstance(data, np.ndarray) else memoryview(data))
     mv = mv.cast("B")

@@ -147,36 +147,19 @@ def _one_camera_points(tlist: list[PoseTerm]) -> tuple | None:  # type: ignore[t
         float(cam.px), float(cam.py), float(cam.u0), float(cam.v0), float(cam.xi))
 
 
-def refine_pose(
-    terms: PoseTerm | Sequence[PoseTerm],
-    rig_from_ref_init: F64,
-    options: PoseOptions | None = None,
-) -> PoseResult:
-    """Robust LM refinement of ``rig_from_ref`` (4x4, metres) from an initial pose."""
-    opt = options or PoseOptions()
-    tlist = _as_terms(terms)
-    total = sum(len(t) for t in tlist)
-    if total < 3:
-        raise EstimationError(f"pose needs at least 3 features, got {total}")
-    c = opt.cutoff if opt.cutoff is not None else default_cutoff(opt.loss)
-    T = nearest_rigid(np.asarray(rig_from_ref_init, dtype=float))
-    lam = opt.lm_lambda0
+def _irls_loop(
+    tlist: list[PoseTerm], T: F64, opt: PoseOptions, c: float, lam: float
+) -> tuple[F64, list[float], int, bool]:
+    """:func:`refine_pose`'s IRLS / Levenberg-Marquardt iterations from ``T``.
+
+    The pose, each term's scale, the iterations and whether it converged (``refine_points`` is this
+    loop compiled, for point terms of one camera).
+    """
     converged = False
     it = 0
     scales = [opt.min_scale] * len(tlist)
-
-    points = _one_camera_points(tlist)
-    if points is not None:  # the loop below, compiled (issues 33/36: ~1 ms of Python a KITTI frame)
-        (P, rho_, uv, pw, start), cam = points
-        loss_code = {"l2": 0, "huber": 1, "tukey": 2}[opt.loss]
-        T, sc, it, converged = refine_points(  # type: ignore[call-arg]
-            P, rho_, uv, pw, start, T, *cam, loss_code, float(c), float(default_cutoff("huber")),
-            float(opt.min_scale), float(opt.fixed_scale or 0.0), opt.max_iterations, float(lam),
-            float(opt.step_tolerance), opt.huber_warmup, opt.reweight_iterations,
-        )
-        scales = [float(x) for x in sc]
     wlist: list[F64] = [np.ones(len(t)) for t in tlist]
-    for it in range(1, opt.max_iterations + 1) if points is None else ():
+    for it in range(1, opt.max_iterations + 1):
         reweight = it <= opt.reweight_iterations
         H = np.zeros((6, 6))
         g = np.zeros(6)
@@ -197,6 +180,35 @@ def refine_pose(
         if (not accepted or small) and it >= min(opt.reweight_iterations, opt.max_iterations):
             converged = True
             break
+    return T, scales, it, converged
+
+
+def refine_pose(
+    terms: PoseTerm | Sequence[PoseTerm],
+    rig_from_ref_init: F64,
+    options: PoseOptions | None = None,
+) -> PoseResult:
+    """Robust LM refinement of ``rig_from_ref`` (4x4, metres) from an initial pose."""
+    opt = options or PoseOptions()
+    tlist = _as_terms(terms)
+    total = sum(len(t) for t in tlist)
+    if total < 3:
+        raise EstimationError(f"pose needs at least 3 features, got {total}")
+    c = opt.cutoff if opt.cutoff is not None else default_cutoff(opt.loss)
+    T = nearest_rigid(np.asarray(rig_from_ref_init, dtype=float))
+    lam = opt.lm_lambda0
+    points = _one_camera_points(tlist)
+    if points is not None:  # the loop of _irls_loop, compiled (issues 33/36: ~1 ms of Python a KITTI frame)
+        (P, rho_, uv, pw, start), cam = points
+        loss_code = {"l2": 0, "huber": 1, "tukey": 2}[opt.loss]
+        T, sc, it, converged = refine_points(  # type: ignore[call-arg]
+            P, rho_, uv, pw, start, T, *cam, loss_code, float(c), float(default_cutoff("huber")),
+            float(opt.min_scale), float(opt.fixed_scale or 0.0), opt.max_iterations, float(lam),
+            float(opt.step_tolerance), opt.huber_warmup, opt.reweight_iterations,
+        )
+        scales = [float(x) for x in sc]
+    else:
+        T, scales, it, converged = _irls_loop(tlist, T, opt, c, lam)
 
     # final weights, inliers and covariance at the solution
     H = np.zeros((6, 6))
