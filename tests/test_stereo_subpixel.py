@@ -6,7 +6,11 @@ the left one moved by an exactly known fractional disparity (no resampling of an
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import cv2
 import numpy as np
+import pytest
 
 from loopmodel.config import FrontendConfig
 from loopmodel.frontend.stereo import match_stereo
@@ -133,3 +137,39 @@ def test_keyframe_set_carries_the_right_rows() -> None:
     # within 0.15 px of the truth
     assert abs(float(np.median(s.right_rows_px - s.stereo_px[:, 2])) - dv_true) < 0.05
     assert np.allclose(s.stereo_px[:, 0] - s.stereo_px[:, 1], d_true, atol=0.2)
+
+
+@pytest.mark.parametrize("half", [5, 1])
+def test_narrow_fine_padding_gives_the_wide_padding_search(shared_data: Path, half: int) -> None:
+    """The fine row search on images padded by 2*half+8 px equals it on images padded by the whole disparity range.
+
+    On a KITTI pair, with corners at every border (where the coarse search can find no valid column
+    and the fine window lies far outside the image: scored -2 there, as its invalid columns were).
+    """
+    from loopmodel.frontend.stereo import _search_row
+
+    left = cv2.imread(str(shared_data / "kitti_clip" / "image_l" / "000010.png"), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(shared_data / "kitti_clip" / "image_r" / "000010.png"), cv2.IMREAD_GRAYSCALE)
+    h, w = left.shape
+    dmax = 160
+    corners = cv2.goodFeaturesToTrack(left, 400, 0.01, 8).reshape(-1, 2)
+    border = np.array([[half, 60], [half + 1, 200], [w - half - 1, 100], [w - half - 2, 300], [300, half + 1],
+                       [700, h - half - 2]], float)
+    uv = np.rint(np.vstack([corners, border])).astype(np.int64)
+    ok = (uv[:, 0] >= half) & (uv[:, 0] < w - half) & (uv[:, 1] >= half + 1) & (uv[:, 1] < h - half - 1)
+    u, v = uv[ok, 0], uv[ok, 1]
+    pad_c = dmax // 2 + 16
+
+    def padded(img: np.ndarray, pad: int) -> np.ndarray:
+        return cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+
+    lc, rc = padded(cv2.pyrDown(left), pad_c), padded(cv2.pyrDown(right), pad_c)
+    for src_c, dst_c, src, dst, sign, rows in ((lc, rc, left, right, -1, (-1, 0, 1)), (rc, lc, right, left, 1, (0,))):
+        out = [
+            _search_row(src_c, dst_c, padded(src, pad), padded(dst, pad), pad_c, pad, u, v, sign, dmax, half, w, rows)
+            for pad in (dmax + 2 * half + 8, 2 * half + 8)
+        ]
+        for wide, narrow in zip(*out, strict=True):
+            assert np.array_equal(wide, narrow, equal_nan=True)
+        if half == 1 and sign < 0:  # corners left of the coarse search's first valid column: far beyond
+            assert (out[0][0] < -2 * half - 8).any()

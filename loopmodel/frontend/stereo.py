@@ -277,10 +277,16 @@ def _search_row(
     best_c = start_c + k_c
     start_f = 2 * best_c - 3
     L = 7
-    sf = _zncc_scan(src_f, dst_f, pad_f, u, v, start_f, L, half_f, rows)
+    # a fine row beyond the padding (no valid coarse column: every one of its columns is invalid
+    # below, the match fails) is scanned at a column inside instead and scored -2 after
+    wd = dst_f.shape[1]
+    beyond = (start_f + pad_f - half_f < 0) | (start_f + L - 1 + pad_f + half_f >= wd)
+    scan_f = np.where(beyond, half_f, start_f) if beyond.any() else start_f
+    sf = _zncc_scan(src_f, dst_f, pad_f, u, v, scan_f, L, half_f, rows)
     col_f = start_f[:, None] + np.arange(L)
     bad_col = (col_f < half_f) | (col_f > width - 1 - half_f)
     bad_col |= (col_f - u[:, None]) * sign < 0  # wrong side of the source column
+    bad_col |= beyond[:, None]
     sf[np.broadcast_to(bad_col[:, None, :], sf.shape)] = -2.0
     flat = np.argmax(sf.reshape(len(u), -1), axis=1)
     ri, k = np.divmod(flat, L)
@@ -332,7 +338,10 @@ def match_stereo(
     )
     if u.size == 0:
         return empty
-    pad_f = dmax + 2 * half + 8
+    # the fine search and the sub-pixel refinement stay within a few pixels of valid columns (a row
+    # whose coarse search found none is scored -2 in _search_row): a narrow border, not the whole
+    # disparity range (issue 36: padding both full-size images by 178 px was 1 ms of a KITTI keyframe)
+    pad_f = 2 * half + 8
     pad_c = dmax // 2 + 16
     lf = cv2.copyMakeBorder(left, pad_f, pad_f, pad_f, pad_f, cv2.BORDER_REPLICATE)
     rf = cv2.copyMakeBorder(right, pad_f, pad_f, pad_f, pad_f, cv2.BORDER_REPLICATE)

@@ -6,9 +6,11 @@ No files are read here (the readers in ``io/`` and a session map's stored keyfra
 from __future__ import annotations
 
 import os
+import struct
 import sys
 import tempfile
 import threading
+import zlib
 from typing import Any, Literal
 
 import cv2
@@ -24,13 +26,85 @@ _CAPTURE: dict[int, Any] = {}
 _LIBRARY_NOISE = (b"libpng ", b"Corrupt JPEG", b"Premature end of JPEG", b"Invalid SOS", b"Bogus ", b"[ERROR:")
 
 
+try:  # ISA-L's inflate: the same bytes, about twice as fast as zlib's (KITTI image 2.0 -> 1.0 ms)
+    from isal.isal_zlib import decompressobj as _inflater
+except ImportError:  # pragma: no cover - optional
+    _inflater = zlib.decompressobj
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: ancillary chunks that do not change the pixels OpenCV returns (no gamma or bit shifts applied
+#: there); any other chunk sends the image to OpenCV
+_PNG_IGNORED = frozenset(
+    (b"gAMA", b"cHRM", b"sRGB", b"iCCP", b"pHYs", b"tEXt", b"zTXt", b"iTXt", b"tIME", b"bKGD", b"eXIf", b"hIST")
+)
+
+
+def decode_png_8bit(data: bytes | NDArray[np.uint8]) -> NDArray[np.uint8] | None:
+    """An 8-bit grey or RGB non-interlaced PNG as ``cv2.imdecode(..., IMREAD_UNCHANGED)`` gives it.
+
+    (H, W) grey or (H, W, 3) in OpenCV's BGR order, the same bytes as OpenCV (tests). Every chunk's
+    CRC and the stream's checksum and length are checked; None for any other PNG, any chunk it does
+    not know (transparency, palette, significant bits, an animation) and any damage, which the caller
+    decodes with OpenCV (and its errors) instead. Cheaper than libpng (issue 36: a KITTI image 3.0 ->
+    1.1 ms of CPU, 2.2 ms without ISA-L): ISA-L's inflate where installed, rows unfiltered in a compiled kernel.
+    """
+    mv = (np.ascontiguousarray(data, np.uint8).reshape(-1).data if isinstance(data, np.ndarray) else memoryview(data))
+    mv = mv.cast("B")
+    n = len(mv)
+    if n < 45 or bytes(mv[:8]) != _PNG_SIGNATURE or bytes(mv[12:16]) != b"IHDR":
+        return None
+    width, height, depth, colour, method, filt, interlace = struct.unpack(">IIBBBBB", mv[16:29])
+    if depth != 8 or colour not in (0, 2) or method or filt or interlace or not width or not height:
+        return None
+    channels = 1 if colour == 0 else 3
+    parts: list[memoryview] = []
+    at = 8
+    while True:
+        if at + 12 > n:
+            return None
+        (length,) = struct.unpack(">I", mv[at : at + 4])
+        kind = bytes(mv[at + 4 : at + 8])
+        end = at + 8 + length
+        if end + 4 > n or zlib.crc32(mv[at + 4 : end]) != struct.unpack(">I", mv[end : end + 4])[0]:
+            return None
+        if kind == b"IDAT":
+            parts.append(mv[at + 8 : end])
+        elif kind == b"IEND":
+            break
+        elif at > 8 and kind not in _PNG_IGNORED:
+            return None
+        at = end + 4
+    row_bytes = width * channels
+    size = height * (row_bytes + 1)
+    try:  # never more than the declared image (a small file can inflate to gigabytes); the stream complete
+        inflater = _inflater()
+        raw = inflater.decompress(b"".join(parts), size)
+        if len(raw) != size or inflater.decompress(inflater.unconsumed_tail, 1) or not inflater.eof:
+            return None
+    except Exception:  # isal and zlib raise their own error types
+        return None
+    from loopmodel.imaging._png_kernels import unfilter  # numba: imported when first needed
+
+    img, ok = unfilter(np.frombuffer(raw, np.uint8), height, row_bytes, channels)
+    if not ok:
+        return None
+    if channels == 1:
+        return img
+    return np.ascontiguousarray(img.reshape(height, width, 3)[:, :, ::-1])
+
+
 def decode_quietly(data: bytes | NDArray[np.uint8], flags: int = cv2.IMREAD_UNCHANGED) -> NDArray[Any] | None:
     """``cv2.imdecode`` without libpng's and libjpeg's own lines on stderr (issue 34).
 
     The process's stderr goes to a temporary file while the image decodes; what others wrote there
     in the meantime is copied back, the libraries' lines are dropped (the caller's one line says
-    what went wrong).
+    what went wrong). An 8-bit grey or RGB PNG read unchanged is decoded by :func:`decode_png_8bit`
+    (the same pixels, less CPU).
     """
+    if flags == cv2.IMREAD_UNCHANGED:
+        fast = decode_png_8bit(data)
+        if fast is not None:
+            return fast
     buf = np.frombuffer(data, np.uint8) if isinstance(data, bytes | bytearray) else data
     with _STDERR_LOCK:
         try:

@@ -125,6 +125,138 @@ point_jacobian = numba.njit(cache=True, nogil=True)(_point_jacobian_py)
 weighted_normal_equations = numba.njit(cache=True, nogil=True)(_weighted_normal_equations_py)
 weighted_cost = numba.njit(cache=True, nogil=True)(_weighted_cost_py)
 
+#: ``robust.RAYLEIGH_MEDIAN`` (the median of a 2-D standard normal vector's norm)
+_RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
+
+
+def _se3_exp_py(xi):  # type: ignore[no-untyped-def]
+    """:func:`loopmodel.geometry.se3.se3_exp` of the twist ``xi`` (v, w), written out (4, 4)."""
+    w0, w1, w2 = xi[3], xi[4], xi[5]
+    theta2 = w0 * w0 + w1 * w1 + w2 * w2
+    K = np.zeros((3, 3))
+    K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -w2, w1, w2, -w0, -w1, w0
+    KK = K @ K
+    if theta2 < 1e-16:
+        a, b = 1.0, 0.5
+    else:
+        theta = math.sqrt(theta2)
+        a, b = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta2
+    if theta2 < 1e-12:
+        c, d = 0.5, 1.0 / 6.0
+        V = np.eye(3) + c * K + KK / 6.0
+    else:
+        theta = math.sqrt(theta2)
+        c, d = (1.0 - math.cos(theta)) / theta2, (theta - math.sin(theta)) / (theta2 * theta)
+        V = np.eye(3) + c * K + d * KK
+    T = np.eye(4)
+    T[:3, :3] = np.eye(3) + a * K + b * KK
+    T[:3, 3] = V @ xi[:3].copy()
+    return T
+
+
+def _irls_weights_py(r, pw, scale, loss, cc):  # type: ignore[no-untyped-def]
+    """``robust.weights(|r| / scale, loss, cc) * pw`` with loss 0 l2, 1 Huber, 2 Tukey."""
+    n = r.shape[0]
+    w = np.empty(n)
+    for i in range(n):
+        s = math.sqrt(r[i, 0] * r[i, 0] + r[i, 1] * r[i, 1]) / scale
+        if loss == 0:
+            wi = 1.0
+        elif loss == 1:
+            wi = 1.0 if s <= cc else cc / max(s, 1e-300)
+        else:
+            u = s / cc
+            wi = (1.0 - u * u) ** 2 if u < 1.0 else 0.0
+        w[i] = wi * pw[i]
+    return w
+
+
+def _refine_points_py(  # type: ignore[no-untyped-def]
+    P, rho, uv, pw, start, T0, Rc, tc, px, py, u0, v0, xi, loss, c, huber_c, min_scale, fixed_scale, max_iterations,
+    lam0, step_tolerance, huber_warmup, reweight_iterations,
+):
+    """:func:`loopmodel.pose.solver.refine_pose`'s IRLS / Levenberg-Marquardt loop for point terms of one camera.
+
+    Term k is rows ``start[k]:start[k + 1]`` of the points ``P`` (homogeneous weights ``rho``), pixels
+    ``uv`` and prior weights ``pw``; ``loss`` 0 l2, 1 Huber, 2 Tukey (Huber with ``huber_c`` during the
+    warm-up); ``fixed_scale`` 0: the MAD scale. Every step as the Python loop takes it, in the same
+    order. Returns the pose, each term's scale, the iterations and whether it converged.
+    """
+    nt = start.shape[0] - 1
+    n = P.shape[0]
+    T = T0.copy()
+    lam = lam0
+    scales = np.full(nt, min_scale)
+    w = np.ones(n)
+    r = np.empty((n, 2))
+    converged = False
+    it = 0
+    for it in range(1, max_iterations + 1):
+        reweight = it <= reweight_iterations
+        H = np.zeros((6, 6))
+        g = np.zeros(6)
+        R = np.ascontiguousarray(T[:3, :3])
+        t = np.ascontiguousarray(T[:3, 3])
+        warm = loss == 2 and it <= huber_warmup
+        for k in range(nt):
+            a, b = start[k], start[k + 1]
+            rk, J = point_jacobian(P[a:b], rho[a:b], uv[a:b], R, t, Rc, tc, px, py, u0, v0, xi)
+            r[a:b] = rk
+            if reweight:
+                if it <= huber_warmup + 1 or loss != 2:
+                    if fixed_scale > 0.0:
+                        scales[k] = fixed_scale
+                    elif b == a:
+                        scales[k] = min_scale
+                    else:
+                        norms = np.empty(b - a)
+                        for i in range(b - a):
+                            norms[i] = math.sqrt(rk[i, 0] * rk[i, 0] + rk[i, 1] * rk[i, 1])
+                        scales[k] = max(np.median(norms) / _RAYLEIGH_MEDIAN, min_scale)
+                w[a:b] = _irls_weights(rk, pw[a:b], scales[k], 1 if warm else loss, huber_c if warm else c)
+            Hk, gk = weighted_normal_equations(J, rk, w[a:b])
+            H += Hk
+            g += gk
+        # one Levenberg-Marquardt step: up to 8 damping increases
+        cost = 0.0
+        for k in range(nt):
+            cost += weighted_cost(r[start[k] : start[k + 1]], w[start[k] : start[k + 1]])
+        delta = np.zeros(6)
+        accepted = False
+        for _ in range(8):
+            Hd = H.copy()
+            for i in range(6):
+                Hd[i, i] = H[i, i] + lam * max(H[i, i], 1e-9)
+            try:
+                delta = -np.linalg.solve(Hd, g)
+            except Exception:  # singular
+                lam *= 10.0
+                continue
+            T_new = _se3_exp(delta) @ T
+            R_new = np.ascontiguousarray(T_new[:3, :3])
+            t_new = np.ascontiguousarray(T_new[:3, 3])
+            new_cost = 0.0
+            for k in range(nt):
+                a, b = start[k], start[k + 1]
+                rn = point_residuals(P[a:b], rho[a:b], uv[a:b], R_new, t_new, Rc, tc, px, py, u0, v0, xi)
+                new_cost += weighted_cost(rn, w[a:b])
+            if new_cost <= cost:
+                T = T_new
+                lam = max(lam * 0.3, 1e-9)
+                accepted = True
+                break
+            lam *= 10.0
+        small = math.sqrt(np.dot(delta, delta)) < step_tolerance
+        if (not accepted or small) and it >= min(reweight_iterations, max_iterations):
+            converged = True
+            break
+    return T, scales, it, converged
+
+
+_se3_exp = numba.njit(cache=True, nogil=True)(_se3_exp_py)
+_irls_weights = numba.njit(cache=True, nogil=True)(_irls_weights_py)
+refine_points = numba.njit(cache=True, nogil=True)(_refine_points_py)
+
 
 def warm_up() -> None:
     """Load (or compile) the kernels for float64 arrays: the first call's cost, up front."""
@@ -137,3 +269,5 @@ def warm_up() -> None:
     r, J = point_jacobian(P, one, uv, R, t, R, t, 500.0, 500.0, 320.0, 240.0, 0.0)
     weighted_normal_equations(J, r, one)
     weighted_cost(r, one)
+    refine_points(P, one, uv, one, np.array([0, 1]), np.eye(4), R, t, 500.0, 500.0, 320.0, 240.0, 0.0, 2, 4.6851,
+                  1.345, 0.5, 0.0, 2, 1e-4, 1e-6, 2, 4)

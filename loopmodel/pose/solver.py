@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from loopmodel.errors import EstimationError
 from loopmodel.geometry.se3 import nearest_rigid, se3_exp
-from loopmodel.pose._point_kernels import weighted_cost, weighted_normal_equations
+from loopmodel.pose._point_kernels import refine_points, weighted_cost, weighted_normal_equations
 from loopmodel.pose.rig import F64, PointTerm, PoseTerm
 from loopmodel.pose.robust import Loss, default_cutoff, rho, robust_scale, weights
 
@@ -128,24 +128,36 @@ def _lm_step(
     return T, lam, False, delta
 
 
-def refine_pose(
-    terms: PoseTerm | Sequence[PoseTerm],
-    rig_from_ref_init: F64,
-    options: PoseOptions | None = None,
-) -> PoseResult:
-    """Robust LM refinement of ``rig_from_ref`` (4x4, metres) from an initial pose."""
-    opt = options or PoseOptions()
-    tlist = _as_terms(terms)
-    total = sum(len(t) for t in tlist)
-    if total < 3:
-        raise EstimationError(f"pose needs at least 3 features, got {total}")
-    c = opt.cutoff if opt.cutoff is not None else default_cutoff(opt.loss)
-    T = nearest_rigid(np.asarray(rig_from_ref_init, dtype=float))
-    lam = opt.lm_lambda0
+def _one_camera_points(tlist: list[PoseTerm]) -> tuple | None:  # type: ignore[type-arg]
+    """:func:`refine_points`'s arrays when every term is a :class:`PointTerm` of the same rig's first camera."""
+    if not tlist or not all(isinstance(t, PointTerm) and t._single and t.dim == 2 for t in tlist):
+        return None
+    pts = [t for t in tlist if isinstance(t, PointTerm)]
+    rig = pts[0].rig
+    if any(t.rig is not rig for t in pts):
+        return None
+    C, cam = rig.cam_from_rig[0], rig.cameras[0]
+    return (
+        np.ascontiguousarray(np.vstack([t.p_in_ref for t in pts]), dtype=np.float64),
+        np.concatenate([np.ones(len(t)) if t.inverse_depth_per_m is None else t.inverse_depth_per_m for t in pts]),
+        np.ascontiguousarray(np.vstack([t.uv_px for t in pts]), dtype=np.float64),
+        np.concatenate([np.ones(len(t)) if t.prior_weight is None else t.prior_weight for t in pts]).astype(np.float64),
+        np.cumsum([0] + [len(t) for t in pts]).astype(np.int64),
+    ), (np.ascontiguousarray(C[:3, :3], dtype=np.float64), np.ascontiguousarray(C[:3, 3], dtype=np.float64),
+        float(cam.px), float(cam.py), float(cam.u0), float(cam.v0), float(cam.xi))
+
+
+def _irls_loop(
+    tlist: list[PoseTerm], T: F64, opt: PoseOptions, c: float, lam: float
+) -> tuple[F64, list[float], int, bool]:
+    """:func:`refine_pose`'s IRLS / Levenberg-Marquardt iterations from ``T``.
+
+    The pose, each term's scale, the iterations and whether it converged (``refine_points`` is this
+    loop compiled, for point terms of one camera).
+    """
     converged = False
     it = 0
     scales = [opt.min_scale] * len(tlist)
-
     wlist: list[F64] = [np.ones(len(t)) for t in tlist]
     for it in range(1, opt.max_iterations + 1):
         reweight = it <= opt.reweight_iterations
@@ -168,6 +180,35 @@ def refine_pose(
         if (not accepted or small) and it >= min(opt.reweight_iterations, opt.max_iterations):
             converged = True
             break
+    return T, scales, it, converged
+
+
+def refine_pose(
+    terms: PoseTerm | Sequence[PoseTerm],
+    rig_from_ref_init: F64,
+    options: PoseOptions | None = None,
+) -> PoseResult:
+    """Robust LM refinement of ``rig_from_ref`` (4x4, metres) from an initial pose."""
+    opt = options or PoseOptions()
+    tlist = _as_terms(terms)
+    total = sum(len(t) for t in tlist)
+    if total < 3:
+        raise EstimationError(f"pose needs at least 3 features, got {total}")
+    c = opt.cutoff if opt.cutoff is not None else default_cutoff(opt.loss)
+    T = nearest_rigid(np.asarray(rig_from_ref_init, dtype=float))
+    lam = opt.lm_lambda0
+    points = _one_camera_points(tlist)
+    if points is not None:  # the loop of _irls_loop, compiled (issues 33/36: ~1 ms of Python a KITTI frame)
+        (P, rho_, uv, pw, start), cam = points
+        loss_code = {"l2": 0, "huber": 1, "tukey": 2}[opt.loss]
+        T, sc, it, converged = refine_points(  # type: ignore[call-arg]
+            P, rho_, uv, pw, start, T, *cam, loss_code, float(c), float(default_cutoff("huber")),
+            float(opt.min_scale), float(opt.fixed_scale or 0.0), opt.max_iterations, float(lam),
+            float(opt.step_tolerance), opt.huber_warmup, opt.reweight_iterations,
+        )
+        scales = [float(x) for x in sc]
+    else:
+        T, scales, it, converged = _irls_loop(tlist, T, opt, c, lam)
 
     # final weights, inliers and covariance at the solution
     H = np.zeros((6, 6))
