@@ -36,6 +36,7 @@ KERNEL_MODULES = (
     "loopmodel.loop.surf",
     "loopmodel.backend._givens_kernels",
     "loopmodel.mapping._peak_kernels",
+    "loopmodel.imaging._png_kernels",
 )
 
 
@@ -67,6 +68,7 @@ def _warm_ups() -> dict[str, tuple[str, Callable[[], None]]]:
     from loopmodel.frontend._stereo_kernels import warm_up as stereo
     from loopmodel.frontend.affine_klt import warm_up as affine
     from loopmodel.imaging._klt_kernels import warm_up as klt_share
+    from loopmodel.imaging._png_kernels import warm_up as png
     from loopmodel.loop._vocabulary_kernels import warm_up as vocabulary
     from loopmodel.loop.pnp import warm_up as p3p
     from loopmodel.mapping._peak_kernels import warm_up as laser_peaks
@@ -74,7 +76,7 @@ def _warm_ups() -> dict[str, tuple[str, Callable[[], None]]]:
 
     ups = {"stereo matching": stereo, "affine KLT": affine, "pose solve": pose, "KLT share": klt_share,
            "vocabulary": vocabulary, "P3P bank": p3p, "SURF": _warm_surf, "Givens estimator": _warm_givens,
-           "laser peaks": laser_peaks}
+           "laser peaks": laser_peaks, "PNG rows": png}
     return {m: (label, fn) for m, (label, fn) in zip(KERNEL_MODULES, ups.items(), strict=True)}
 
 
