@@ -6,12 +6,12 @@ No files are read here (the readers in ``io/`` and a session map's stored keyfra
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
 import struct
 import sys
 import tempfile
 import threading
 import zlib
+from collections.abc import Callable
 from typing import Any, Literal
 
 import cv2
