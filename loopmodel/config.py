@@ -1110,6 +1110,12 @@ class SelfCalibrationConfig(_Section):
     retrack_min_points: int = Field(
         20, ge=6, description="fewest points a re-solved frame needs (else it keeps its bridged pose)"
     )
+    # issue 32 (finish10): the re-solves are independent and hold the interpreter; the run's stripe-extraction
+    # worker process, idle after the last frame, solves this share of them meanwhile (the same poses).
+    # Only where laser-line images are extracted (no such process otherwise): measured in CHANGELOG (finish10)
+    retrack_helper_share: float = Field(
+        0.5, ge=0, lt=1, description="share of the frames re-solved in the idle stripe-extraction process; 0 = none"
+    )
 
     @property
     def retracks(self) -> bool:

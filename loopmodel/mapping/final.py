@@ -115,13 +115,18 @@ class FinalMeshWorker:
     def close(self) -> None:
         """End the process (at once: an unfinished mesh is dropped)."""
         pool, self._pool = self._pool, None
-        if pool is None:
-            return
-        procs = list((getattr(pool, "_processes", None) or {}).values())
-        pool.shutdown(wait=False, cancel_futures=True)
-        for proc in procs:
-            if proc.is_alive():
-                proc.terminate()
+        end_pool(pool)
+
+
+def end_pool(pool: Any) -> None:
+    """Shut a process pool down at once: queued work dropped, its processes ended (a running job too)."""
+    if pool is None:
+        return
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
 
 
 class FinalMeshJob:
