@@ -359,15 +359,15 @@ def warm_up() -> None:
 
 def _solve_shared(
     starts: list[tuple[FrameObservations, F64]], args: tuple[Any, ...], helper: Any, helper_share: float,
-    chunk: int = 24,
+    chunk: int = 16,
 ) -> tuple[list[_Solved], int]:
     """:func:`solve_frames` of ``starts``, the last ``helper_share`` of them offered to ``helper`` (a process pool).
 
     Issue 32: the frames' solves are independent and hold the interpreter; a helper process (the
     run's idle stripe-extraction worker) takes its share in chunks of ``chunk`` frames while this
-    process solves the rest; the chunks it has not begun when this process is done are taken back
-    (a helper slowed by the machine's load costs no wait). The same function on the same values: the
-    poses are those of one process. A chunk whose helper fails is solved here. Returns the solves
+    process solves the rest; the chunks the pool has not begun (nor queued for its process: at most
+    two are) when this process is done are taken back, so a helper slowed by the machine's load costs
+    little wait. The same function on the same values: the poses are those of one process. A chunk whose helper fails is solved here. Returns the solves
     in the order of ``starts`` and how many the helper made.
     """
     n_here = len(starts) - (int(round(helper_share * len(starts))) if helper is not None else 0)
