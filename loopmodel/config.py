@@ -441,12 +441,14 @@ class MappingConfig(_Section):
         default=0.003, gt=0, description="voxel size of the live mesh (coarser than voxel_m: faster updates)"
     )
     # finish8 (issue 32): the final mesh in the live mesh's worker process when it is idle at the last
-    # frame, while the run's process makes the session map. Off: no gain measured on the loaded machine
+    # frame, while the run's process makes the session map. No gain measured on the loaded machine
     # (150-frame orbit, 7 alternating pairs at load 8-18: wall over frames median 1.601 off / 1.689 on,
-    # KITTI, whose finish it does not touch, 1.194 / 1.235 in the same pairs: the noise); at low load it
-    # can only save the session map's time (0.12 s there)
+    # KITTI, whose finish it does not touch, 1.194 / 1.235 in the same pairs: the noise). On by default
+    # since finish10: the run's process then imports open3d (0.85 s CPU, holding the interpreter) while
+    # the worker meshes, instead of beside the final refinement, whose Python it slows on a quiet machine;
+    # the same mesh (tests/test_finish_interrupt.py). Measured in CHANGELOG (finish10)
     final_mesh_in_live_worker: bool = Field(
-        default=False, description="make the final mesh in the live mesh's worker process when it is idle"
+        default=True, description="make the final mesh in the live mesh's worker process when it is idle"
     )
     # 1 by default: Open3D's multi-threaded Poisson segfaults at random (Open3D issue #6828; here once
     # in the final mesh of tests/test_one_pass.py under load 22), and a crash loses the whole run
