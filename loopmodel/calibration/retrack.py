@@ -367,8 +367,9 @@ def _solve_shared(
     run's idle stripe-extraction worker) takes its share in chunks of ``chunk`` frames while this
     process solves the rest; the chunks the pool has not begun (nor queued for its process: at most
     two are) when this process is done are taken back, so a helper slowed by the machine's load costs
-    little wait. The same function on the same values: the poses are those of one process. A chunk whose helper fails is solved here. Returns the solves
-    in the order of ``starts`` and how many the helper made.
+    little wait. The same function on the same values: the poses are those of one process. A chunk
+    whose helper fails is solved here. Returns the solves in the order of ``starts`` and how many the
+    helper made.
     """
     n_here = len(starts) - (int(round(helper_share * len(starts))) if helper is not None else 0)
     bounds = [(a, min(a + chunk, len(starts))) for a in range(n_here, len(starts), chunk)]
