@@ -348,9 +348,11 @@ def test_retrack_with_a_helper_process_gives_the_same_poses() -> None:
         shared = retrack_frames(frames, *args, helper=pool, helper_share=0.5)
     assert np.array_equal(shared.world_from_cam, alone.world_from_cam)
     assert np.array_equal(shared.timestamps_ns, alone.timestamps_ns)
-    assert {k: v for k, v in shared.stats.items() if k != "helper_frames"} == {
-        k: v for k, v in alone.stats.items() if k != "helper_frames"
+    own = ("helper_frames", "helper_cpu_s")
+    assert {k: v for k, v in shared.stats.items() if k not in own} == {
+        k: v for k, v in alone.stats.items() if k not in own
     }
+    assert shared.stats["helper_cpu_s"] >= 0 and alone.stats["helper_cpu_s"] == 0
     held = threading.Event()
     with ThreadPoolExecutor(1) as busy:
         busy.submit(held.wait, 30)  # its one thread busy: the chunks stay queued

@@ -23,6 +23,7 @@ Frames: camera = the raw (unrectified) left camera, ``world_from_cam``; metres, 
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -340,8 +341,17 @@ _Solved = tuple[str, F64, float, float, int, float]
 
 
 def solve_frames(starts: list[tuple[FrameObservations, F64]], args: tuple[Any, ...]) -> list[_Solved]:
-    """:func:`_solve_frame` of each (observations, start pose) with the shared ``args`` (a worker process's share)."""
+    """:func:`_solve_frame` of each (observations, start pose) with the shared ``args``."""
     return [_solve_frame(obs, T0, *args) for obs, T0 in starts]
+
+
+def helper_solve_frames(
+    starts: list[tuple[FrameObservations, F64]], args: tuple[Any, ...]
+) -> tuple[list[_Solved], float]:
+    """:func:`solve_frames` in a helper process, with that process's CPU seconds in it."""
+    c0 = time.process_time()
+    out = solve_frames(starts, args)
+    return out, time.process_time() - c0
 
 
 def warm_up() -> None:
@@ -360,7 +370,7 @@ def warm_up() -> None:
 def _solve_shared(
     starts: list[tuple[FrameObservations, F64]], args: tuple[Any, ...], helper: Any, helper_share: float,
     chunk: int = 16,
-) -> tuple[list[_Solved], int]:
+) -> tuple[list[_Solved], int, float]:
     """:func:`solve_frames` of ``starts``, the last ``helper_share`` of them offered to ``helper`` (a process pool).
 
     Issue 32: the frames' solves are independent and hold the interpreter; a helper process (the
@@ -368,19 +378,19 @@ def _solve_shared(
     process solves the rest; the chunks the pool has not begun (nor queued for its process: at most
     two are) when this process is done are taken back, so a helper slowed by the machine's load costs
     little wait. The same function on the same values: the poses are those of one process. A chunk
-    whose helper fails is solved here. Returns the solves in the order of ``starts`` and how many the
-    helper made.
+    whose helper fails is solved here. Returns the solves in the order of ``starts``, how many the
+    helper made and its CPU seconds in them.
     """
     n_here = len(starts) - (int(round(helper_share * len(starts))) if helper is not None else 0)
     bounds = [(a, min(a + chunk, len(starts))) for a in range(n_here, len(starts), chunk)]
     futures: list[Any] = []
     for a, b in bounds:
         try:
-            futures.append(helper.submit(solve_frames, starts[a:b], args))
+            futures.append(helper.submit(helper_solve_frames, starts[a:b], args))
         except RuntimeError:  # a broken or shut-down pool
             futures.append(None)
     out = solve_frames(starts[:n_here], args)
-    helped = 0
+    helped, helper_cpu_s = 0, 0.0
     parts: list[list[_Solved] | None] = [None] * len(bounds)
     for k in reversed(range(len(bounds))):  # not begun: solved here
         if futures[k] is None or futures[k].cancel():
@@ -389,13 +399,14 @@ def _solve_shared(
         part = parts[k]
         if part is None:
             try:
-                part = futures[k].result()
+                part, cpu_s = futures[k].result()
                 helped += b - a
+                helper_cpu_s += cpu_s
             except Exception as exc:  # noqa: BLE001 - the helper process died: its chunk solved here
                 logger.warning("re-tracking helper failed (%s): its frames solved here", exc or type(exc).__name__)
                 part = solve_frames(starts[a:b], args)
         out += part
-    return out, helped
+    return out, helped, helper_cpu_s
 
 
 def retrack_frames(
@@ -494,7 +505,7 @@ def retrack_frames(
             continue
         todo.append(fr)
         from_pose.append((fr.observed, start.world_from_cam[i]))  # type: ignore[arg-type]
-    solves, helped = _solve_shared(from_pose, args, helper, helper_share)
+    solves, helped, helper_cpu_s = _solve_shared(from_pose, args, helper, helper_share)
     for fr, (outcome, T, move_m, turn_deg, n_inl, r) in zip(todo, solves, strict=True):
         kid = int(fr.keyframe_id)
         counts[outcome] += 1
@@ -539,6 +550,7 @@ def retrack_frames(
     stats["landmarks_refined"] = float(lms.refined_count)
     stats["landmarks_triangulated"] = float(lms.triangulated)
     stats["helper_frames"] = float(helped)  # re-solved in the helper process
+    stats["helper_cpu_s"] = helper_cpu_s  # its CPU in them (not in the run's finish_cpu_s)
     logger.info(
         "re-tracking: %d of %d frames re-solved (%d few points, %d failed, %d jumped), %d intervals bridged, "
         "median move %.2f mm", len(times), counts["frames"], counts["few_points"], counts["failed"],
