@@ -1120,6 +1120,11 @@ class SelfCalibrationConfig(_Section):
     retrack_helper_share: float = Field(
         0.5, ge=0, lt=1, description="share of the frames re-solved in the idle stripe-extraction process; 0 = none"
     )
+    # the helper's imports cost 0.85 s CPU: a run of fewer frames re-solves them alone (the 150-frame orbit's
+    # half share was 0.13-0.17 s CPU; on a loaded machine the imports cost more than they save)
+    retrack_helper_min_frames: int = Field(
+        300, ge=0, description="fewest frames of a run whose re-solve is shared with the helper process"
+    )
 
     @property
     def retracks(self) -> bool:
