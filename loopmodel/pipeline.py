@@ -798,7 +798,7 @@ class _Run:
         """
         cc = self.config.calibration
         # issue 32 (finish10): the idle extraction process takes a share of the frames' re-solve,
-        # its imports (1.2 s CPU) beside the back end's final estimate and the calibrating BA
+        # its imports (0.85 s CPU) beside the back end's final estimate and the calibrating BA
         keep = cc.retracks and cc.retrack_helper_share > 0 and not interrupted and self.localizer is None
         keep = keep and len(self.frames) >= cc.retrack_helper_min_frames
         self.helper = self.laser.wait(keep_process=keep)
