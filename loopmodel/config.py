@@ -441,12 +441,14 @@ class MappingConfig(_Section):
         default=0.003, gt=0, description="voxel size of the live mesh (coarser than voxel_m: faster updates)"
     )
     # finish8 (issue 32): the final mesh in the live mesh's worker process when it is idle at the last
-    # frame, while the run's process makes the session map. Off: no gain measured on the loaded machine
+    # frame, while the run's process makes the session map. No gain measured on the loaded machine
     # (150-frame orbit, 7 alternating pairs at load 8-18: wall over frames median 1.601 off / 1.689 on,
-    # KITTI, whose finish it does not touch, 1.194 / 1.235 in the same pairs: the noise); at low load it
-    # can only save the session map's time (0.12 s there)
+    # KITTI, whose finish it does not touch, 1.194 / 1.235 in the same pairs: the noise). On by default
+    # since finish10: the run's process then imports open3d (0.85 s CPU, holding the interpreter) while
+    # the worker meshes, instead of beside the final refinement, whose Python it slows on a quiet machine;
+    # the same mesh (tests/test_finish_interrupt.py). Measured in CHANGELOG (finish10)
     final_mesh_in_live_worker: bool = Field(
-        default=False, description="make the final mesh in the live mesh's worker process when it is idle"
+        default=True, description="make the final mesh in the live mesh's worker process when it is idle"
     )
     # 1 by default: Open3D's multi-threaded Poisson segfaults at random (Open3D issue #6828; here once
     # in the final mesh of tests/test_one_pass.py under load 22), and a crash loses the whole run
@@ -1109,6 +1111,19 @@ class SelfCalibrationConfig(_Section):
     # 20: the value of the measured runs above (selfcal seeds 1-3, the KITTI clip); not varied
     retrack_min_points: int = Field(
         20, ge=6, description="fewest points a re-solved frame needs (else it keeps its bridged pose)"
+    )
+    # issue 32 (finish10): the re-solves are independent and hold the interpreter; the run's stripe-extraction
+    # worker process, idle after the last frame, solves this share of them meanwhile (bit-identical poses).
+    # The 600-frame sample (2 alternating pairs, load 11-14): the run's own re-solve CPU 1.01 -> 0.58-0.67 s
+    # (the helper 272-290 of 581 frames; its imports 0.85 s CPU beside the calibrating BA); the 150-frame
+    # orbit 0.26 -> 0.13 s. Only where laser-line images are extracted (KITTI: no such process, unchanged)
+    retrack_helper_share: float = Field(
+        0.5, ge=0, lt=1, description="share of the frames re-solved in the idle stripe-extraction process; 0 = none"
+    )
+    # the helper's imports cost 0.85 s CPU: a run of fewer frames re-solves them alone (the 150-frame orbit's
+    # half share was 0.13-0.17 s CPU; on a loaded machine the imports cost more than they save)
+    retrack_helper_min_frames: int = Field(
+        300, ge=0, description="fewest frames of a run whose re-solve is shared with the helper process"
     )
 
     @property

@@ -54,7 +54,7 @@ from loopmodel.io.results import LogCapture, ResultsFolder, write_results
 from loopmodel.listener import RunListener
 from loopmodel.mapping.anchored import AnchoredTrajectory
 from loopmodel.mapping.extraction import StripeExtractor
-from loopmodel.mapping.final import FinalMeshJob, FinalMeshWorker, start_final_mesh
+from loopmodel.mapping.final import FinalMeshJob, FinalMeshWorker, end_pool, start_final_mesh
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
@@ -265,11 +265,16 @@ class _LaserFeed:
         out, self._unfed = self._unfed, []
         return out
 
-    def wait(self) -> None:
-        """The profiles of the last laser images join :attr:`stripes` (waited for); the worker stops."""
-        if self._worker is not None:
-            self.stripes.extend(self._worker.wait())
-            self._worker = None
+    def wait(self, keep_process: bool = False) -> Any:
+        """The profiles of the last laser images join :attr:`stripes` (waited for); the worker stops.
+
+        With ``keep_process`` its idle process pool is returned for other work (None without one).
+        """
+        if self._worker is None:
+            return None
+        worker, self._worker = self._worker, None
+        self.stripes.extend(worker.wait(keep_process))
+        return worker.take_pool() if keep_process else None
 
 
 class _MapRecord:
@@ -420,6 +425,7 @@ class _Run:
         self.selfcal: Any = None
         self.retracked: RetrackedFrames | None = None  # the frames between keyframes re-solved after refining
         self.mesh_worker: FinalMeshWorker | None = None  # the final mesh's process, during the finish
+        self.helper: Any = None  # the idle stripe-extraction process pool, during the finish (the re-solve's share)
         # the keyframes' stereo points triangulated with the refined rig (the re-solve's and the map's)
         self.refined_points: dict[int, F64] | None = None
         self.loop_constraints: list[LoopConstraint] = []
@@ -661,7 +667,10 @@ class _Run:
             self.config.calibration.retrack_min_points,
             disparity_sigma_px=fc.disparity_sigma_px if (fc := self.frontend.config).depth_weighting else None,
             keyframe_points=self.refined_points,
+            helper=self.helper,
+            helper_share=self.config.calibration.retrack_helper_share,
         )
+        self._close_helper()
         sc.extra.update({f"calibration_retrack_{k}": v for k, v in self.retracked.stats.items()})
         sc.extra["calibration_retrack_s"] = time.perf_counter() - t0
 
@@ -777,6 +786,11 @@ class _Run:
         if self.mesh_worker is not None:
             self.mesh_worker.close()
             self.mesh_worker = None
+        self._close_helper()
+
+    def _close_helper(self) -> None:
+        helper, self.helper = self.helper, None
+        end_pool(helper)
 
     def _stop_workers(self, interrupted: bool) -> None:
         """Stop the workers: the last laser profiles join the stripes, late loops reach the back end.
@@ -784,7 +798,19 @@ class _Run:
         With ``mapping.final_mesh_in_live_worker`` an idle live-mesh worker process is kept for the
         final mesh (:attr:`mesh_worker`).
         """
-        self.laser.wait()
+        cc = self.config.calibration
+        # issue 32 (finish10): the idle extraction process takes a share of the frames' re-solve,
+        # its imports (0.85 s CPU) beside the back end's final estimate and the calibrating BA
+        keep = cc.retracks and cc.retrack_helper_share > 0 and not interrupted and self.localizer is None
+        keep = keep and len(self.frames) >= cc.retrack_helper_min_frames
+        self.helper = self.laser.wait(keep_process=keep)
+        if self.helper is not None:
+            from loopmodel.calibration.retrack import warm_up
+
+            try:
+                self.helper.submit(warm_up)
+            except RuntimeError:  # a broken pool: the re-solve runs here alone
+                self._close_helper()
         mc = self.config.mapping
         if mc.final_mesh_in_live_worker and mc.write_mesh and self.laser.stripes:
             idle = self.live.take_idle_worker()  # open3d loaded there: no new process to start

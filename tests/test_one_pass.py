@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from collections import Counter
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -96,6 +97,20 @@ def test_a_run_reads_each_frame_and_laser_image_once(laser_scan: tuple[Path, Con
     assert result.metrics["wall_s"] == pytest.approx(
         result.metrics["frames_s"] + sum(result.metrics["finish_s"].values())
     )
+    # finish10: the idle extraction process kept as the re-solve's helper (any run length here) is ended
+    # with the finish (this scan's few keyframes give no re-solve: tests/test_retrack.py has the helper's)
+    import multiprocessing as mp
+
+    helped = cfg.model_copy(deep=True)
+    helped.calibration.retrack_helper_min_frames = 0
+    again = process(open_sequence(path, cfg.sequence), helped)
+    m = again.metrics
+    assert m.get("calibration_retrack_helper_frames", 0) <= m.get("calibration_retrack_resolved", 0)
+    assert len(again.frames) == N_FRAMES and set(m["finish_s"]) == set(result.metrics["finish_s"])
+    deadline = time.monotonic() + 10
+    while mp.active_children() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not mp.active_children()
 
 
 @pytest.mark.slow

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -298,3 +299,67 @@ def test_run_resolves_the_frames_between_keyframes(tmp_path: Path) -> None:
     # the keyframes are the refinement's, untouched (two runs differ by the back-end worker's batching: 2e-7 m)
     kf = ~between
     assert np.allclose(res.final.world_from_cam[kf], out[False].final.world_from_cam[kf], atol=1e-5)
+
+
+def _small_retrack_case() -> tuple[list[FrameResult], tuple[Any, ...]]:
+    """A seeded 8-keyframe scan's frames between keyframes (tracked with the recorded rig) and retrack_frames' args."""
+    seed = 2
+    sc = make_scene(recorded_rig(true_rig(), seed), seed=seed, n_kf=8, n_points=600, noise_px=0.1)
+    noise = np.random.default_rng(7)
+    kfs = [sc.keyframes[0]] + [dataclasses.replace(k, prev_keyframe_id=k.id - 1) for k in sc.keyframes[1:]]
+    world_from_kf = {kfs[0].id: sc.world_from_kf[0].copy()}
+    frames, ends, poses = [], [], []
+    for a, b in zip(kfs[:-1], kfs[1:], strict=True):
+        a_from_b, obs_b = _tracked_pose(sc, a, b.world_from_kf, noise)
+        world_from_kf[b.id] = world_from_kf[a.id] @ a_from_b
+        ends.append(FrameResult(b.timestamp_ns, world_from_kf[b.id], "OK", True, b.id, np.eye(4), 0, 0, observed=obs_b))
+        for f in (0.2, 0.4, 0.6, 0.8):
+            a_from_cam, obs = _tracked_pose(sc, a, _interp(a.world_from_kf, b.world_from_kf, f), noise)
+            t_ns = int(a.timestamp_ns + f * (b.timestamp_ns - a.timestamp_ns))
+            frames.append(FrameResult(t_ns, world_from_kf[a.id] @ a_from_cam, "OK", False, a.id, a_from_cam,
+                                      len(obs.landmark_ids), len(obs.landmark_ids), observed=obs))
+            poses.append((a.id, a_from_cam))
+    refined = refine_final(kfs, world_from_kf, np.zeros(0, np.int64), np.zeros((0, 3)), sc.recorded,
+                           SelfCalibrationConfig(), np.array([0.0, 0.0, 1.0]), -0.5)
+    on_refined = np.array([refined.world_from_kf[k] @ T for k, T in poses])  # the start: on the refined keyframes
+    start = Trajectory(np.array([fr.timestamp_ns for fr in frames]), on_refined)
+    args = (start, {k.id: k for k in kfs}, refined.world_from_kf, refined.landmark_ids, refined.landmarks_in_world,
+            sc.recorded, refined.calibration, PoseOptions())
+    return frames + ends, args
+
+
+def test_retrack_with_a_helper_process_gives_the_same_poses() -> None:
+    """Issue 32: a share of the frames re-solved in another process (spawned), or taken back when it has not begun.
+
+    The poses are bit-identical to the re-solve in one process; a helper whose chunks never begin (its
+    one thread held) has its share solved here; a shut-down pool is no helper.
+    """
+    import multiprocessing as mp
+    import threading
+    from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
+    from loopmodel.calibration.retrack import warm_up
+
+    frames, args = _small_retrack_case()
+    alone = retrack_frames(frames, *args)
+    assert alone.stats["resolved"] == 28 and alone.stats["helper_frames"] == 0
+    with ProcessPoolExecutor(1, mp_context=mp.get_context("spawn")) as pool:
+        pool.submit(warm_up).result()
+        shared = retrack_frames(frames, *args, helper=pool, helper_share=0.5)
+    assert np.array_equal(shared.world_from_cam, alone.world_from_cam)
+    assert np.array_equal(shared.timestamps_ns, alone.timestamps_ns)
+    own = ("helper_frames", "helper_cpu_s")
+    assert {k: v for k, v in shared.stats.items() if k not in own} == {
+        k: v for k, v in alone.stats.items() if k not in own
+    }
+    assert shared.stats["helper_cpu_s"] >= 0 and alone.stats["helper_cpu_s"] == 0
+    held = threading.Event()
+    with ThreadPoolExecutor(1) as busy:
+        busy.submit(held.wait, 30)  # its one thread busy: the chunks stay queued
+        taken = retrack_frames(frames, *args, helper=busy, helper_share=0.5)
+        held.set()
+    assert taken.stats["helper_frames"] == 0 and np.array_equal(taken.world_from_cam, alone.world_from_cam)
+    pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
+    pool.shutdown()
+    gone = retrack_frames(frames, *args, helper=pool, helper_share=0.5)
+    assert gone.stats["helper_frames"] == 0 and np.array_equal(gone.world_from_cam, alone.world_from_cam)

@@ -243,6 +243,13 @@ def finish_keys(prefix: str, r: dict[str, Any]) -> dict[str, Any]:
         out[f"finish_cpu_s_{prefix}"] = round(sum(m["finish_cpu_s"].values()), 2)
     if m.get("live_mesh_wait_s") is not None:  # of the mesh step
         out[f"live_mesh_wait_s_{prefix}"] = round(m["live_mesh_wait_s"], 2)
+    # finish10: the CPU the finish spends in worker processes (not in finish_cpu_s): the final mesh
+    # (in the live mesh's worker when final_mesh_in_worker) and the re-solve's helper share
+    if m.get("final_mesh_in_worker") and m.get("final_mesh_cpu_s") is not None:
+        out[f"final_mesh_worker_cpu_s_{prefix}"] = round(m["final_mesh_cpu_s"], 2)
+    if m.get("calibration_retrack_helper_cpu_s") is not None:
+        out[f"retrack_helper_cpu_s_{prefix}"] = round(m["calibration_retrack_helper_cpu_s"], 2)
+        out[f"retrack_helper_frames_{prefix}"] = m.get("calibration_retrack_helper_frames")
     return out
 
 

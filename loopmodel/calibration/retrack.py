@@ -23,8 +23,10 @@ Frames: camera = the raw (unrectified) left camera, ``world_from_cam``; metres, 
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -335,6 +337,78 @@ def _solve_frame(
     return "ok", world_from_cam, move_m, turn_deg, int(inl.sum()), rms
 
 
+_Solved = tuple[str, F64, float, float, int, float]
+
+
+def solve_frames(starts: list[tuple[FrameObservations, F64]], args: tuple[Any, ...]) -> list[_Solved]:
+    """:func:`_solve_frame` of each (observations, start pose) with the shared ``args``."""
+    return [_solve_frame(obs, T0, *args) for obs, T0 in starts]
+
+
+def helper_solve_frames(
+    starts: list[tuple[FrameObservations, F64]], args: tuple[Any, ...]
+) -> tuple[list[_Solved], float]:
+    """:func:`solve_frames` in a helper process, with that process's CPU seconds in it."""
+    c0 = time.process_time()
+    out = solve_frames(starts, args)
+    return out, time.process_time() - c0
+
+
+def warm_up() -> None:
+    """This module and the pose solve's compiled kernels loaded (a helper process, before its share is sent).
+
+    One pose solve of 20 synthetic points (numba loads each kernel at its first call).
+    """
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    rig = CameraRig.single(CentralCamera.from_K(K))
+    g = np.linspace(-0.2, 0.2, 5)
+    p = np.column_stack([np.repeat(g, 4), np.tile(g[:4], 5), np.full(20, 1.0)])
+    uv = p[:, :2] / p[:, 2:] * 500.0 + np.array([320.0, 240.0])
+    refine_pose(PointTerm(rig, p, uv), np.eye(4), PoseOptions())
+
+
+def _solve_shared(
+    starts: list[tuple[FrameObservations, F64]], args: tuple[Any, ...], helper: Any, helper_share: float,
+    chunk: int = 16,
+) -> tuple[list[_Solved], int, float]:
+    """:func:`solve_frames` of ``starts``, the last ``helper_share`` of them offered to ``helper`` (a process pool).
+
+    Issue 32: the frames' solves are independent and hold the interpreter; a helper process (the
+    run's idle stripe-extraction worker) takes its share in chunks of ``chunk`` frames while this
+    process solves the rest; the chunks the pool has not begun (nor queued for its process: at most
+    two are) when this process is done are taken back, so a helper slowed by the machine's load costs
+    little wait. The same function on the same values: the poses are those of one process. A chunk
+    whose helper fails is solved here. Returns the solves in the order of ``starts``, how many the
+    helper made and its CPU seconds in them.
+    """
+    n_here = len(starts) - (int(round(helper_share * len(starts))) if helper is not None else 0)
+    bounds = [(a, min(a + chunk, len(starts))) for a in range(n_here, len(starts), chunk)]
+    futures: list[Any] = []
+    for a, b in bounds:
+        try:
+            futures.append(helper.submit(helper_solve_frames, starts[a:b], args))
+        except RuntimeError:  # a broken or shut-down pool
+            futures.append(None)
+    out = solve_frames(starts[:n_here], args)
+    helped, helper_cpu_s = 0, 0.0
+    parts: list[list[_Solved] | None] = [None] * len(bounds)
+    for k in reversed(range(len(bounds))):  # not begun: solved here
+        if futures[k] is None or futures[k].cancel():
+            parts[k] = solve_frames(starts[bounds[k][0] : bounds[k][1]], args)
+    for k, (a, b) in enumerate(bounds):
+        part = parts[k]
+        if part is None:
+            try:
+                part, cpu_s = futures[k].result()
+                helped += b - a
+                helper_cpu_s += cpu_s
+            except Exception as exc:  # noqa: BLE001 - the helper process died: its chunk solved here
+                logger.warning("re-tracking helper failed (%s): its frames solved here", exc or type(exc).__name__)
+                part = solve_frames(starts[a:b], args)
+        out += part
+    return out, helped, helper_cpu_s
+
+
 def retrack_frames(
     frames: Sequence[FrameResult],
     start: Trajectory,
@@ -352,6 +426,8 @@ def retrack_frames(
     bridge: bool = True,
     tail: bool = True,
     keyframe_points: Mapping[int, F64] | None = None,
+    helper: Any = None,
+    helper_share: float = 0.5,
 ) -> RetrackedFrames:
     """Each tracked frame with kept points (``FrameResult.observed``) solved again; see the module docstring.
 
@@ -384,7 +460,8 @@ def retrack_frames(
     re-solved alone (the front end's monocular points, which the re-solve does not use, and the KLT
     drift unbridged), drift after the ground truth's constant-rate segment 0.560 -> 0.558 %.
     ``keyframe_points``: :func:`refined_stereo_points` of ``keyframes`` when the caller has them
-    (computed here otherwise).
+    (computed here otherwise). ``helper``: a one-process pool (:func:`warm_up` submitted to it
+    beforehand) that solves ``helper_share`` of the frames between keyframes meanwhile; the same poses.
     """
     rig = CameraRig.single(CentralCamera.from_K(refined.K_left))
     index = {int(t): i for i, t in enumerate(start.timestamps_ns.tolist())}
@@ -415,6 +492,8 @@ def retrack_frames(
     followed = {int(k.prev_keyframe_id) for k in keyframes.values() if k.prev_keyframe_id is not None and k.connected}
     tails = {int(k) for k in world_from_kf if int(k) not in followed} if tail else set()
     skipped = 0
+    todo: list[FrameResult] = []
+    from_pose: list[tuple[FrameObservations, F64]] = []
     for fr in tracked:
         kid = int(fr.keyframe_id)
         i = index.get(int(fr.timestamp_ns))
@@ -424,7 +503,11 @@ def retrack_frames(
         if bridge and kid not in starts and kid not in tails:
             skipped += 1
             continue
-        outcome, T, move_m, turn_deg, n_inl, r = _solve_frame(fr.observed, start.world_from_cam[i], *args)  # type: ignore[arg-type]
+        todo.append(fr)
+        from_pose.append((fr.observed, start.world_from_cam[i]))  # type: ignore[arg-type]
+    solves, helped, helper_cpu_s = _solve_shared(from_pose, args, helper, helper_share)
+    for fr, (outcome, T, move_m, turn_deg, n_inl, r) in zip(todo, solves, strict=True):
+        kid = int(fr.keyframe_id)
         counts[outcome] += 1
         if outcome != "ok":
             continue
@@ -466,6 +549,8 @@ def retrack_frames(
     stats["rms_px_median"] = float(np.median(rms)) if rms else 0.0
     stats["landmarks_refined"] = float(lms.refined_count)
     stats["landmarks_triangulated"] = float(lms.triangulated)
+    stats["helper_frames"] = float(helped)  # re-solved in the helper process
+    stats["helper_cpu_s"] = helper_cpu_s  # its CPU in them (not in the run's finish_cpu_s)
     logger.info(
         "re-tracking: %d of %d frames re-solved (%d few points, %d failed, %d jumped), %d intervals bridged, "
         "median move %.2f mm", len(times), counts["frames"], counts["few_points"], counts["failed"],

@@ -67,21 +67,21 @@ def _mesh_worker_start() -> None:
 
 def mesh_arrays(
     points_w: NDArray[np.float64], sensors_w: NDArray[np.float64], config: MappingConfig
-) -> tuple[MeshArrays | None, str, float]:
+) -> tuple[MeshArrays | None, str, float, float]:
     """:func:`~loopmodel.mapping.meshing.mesh_from_points` as arrays (for a worker process).
 
     Returns the mesh (None when no surface comes out), the reason when there is none, and the
-    meshing time (s). World frame, metres.
+    meshing time and its process's CPU time in it (s). World frame, metres.
     """
     from loopmodel.mapping.meshing import mesh_from_points
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         m = mesh_from_points(points_w, sensors_w, config)
     except LoopmodelError as exc:
-        return None, str(exc), time.perf_counter() - t0
+        return None, str(exc), time.perf_counter() - t0, time.process_time() - c0
     arrays = (np.asarray(m.vertices), np.asarray(m.triangles), np.asarray(m.vertex_normals))
-    return arrays, "", time.perf_counter() - t0
+    return arrays, "", time.perf_counter() - t0, time.process_time() - c0
 
 
 class FinalMeshWorker:
@@ -115,13 +115,18 @@ class FinalMeshWorker:
     def close(self) -> None:
         """End the process (at once: an unfinished mesh is dropped)."""
         pool, self._pool = self._pool, None
-        if pool is None:
-            return
-        procs = list((getattr(pool, "_processes", None) or {}).values())
-        pool.shutdown(wait=False, cancel_futures=True)
-        for proc in procs:
-            if proc.is_alive():
-                proc.terminate()
+        end_pool(pool)
+
+
+def end_pool(pool: Any) -> None:
+    """Shut a process pool down at once: queued work dropped, its processes ended (a running job too)."""
+    if pool is None:
+        return
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
 
 
 class FinalMeshJob:
@@ -146,12 +151,13 @@ class FinalMeshJob:
     def result(self) -> tuple[Any, dict[str, Any]]:
         """(mesh, metrics), or (None, {}) without stripes or when no surface comes out (logged).
 
-        Metrics: ``mesh_vertices``, ``final_mesh_s`` (its time where it was made) and
+        Metrics: ``mesh_vertices``, ``final_mesh_s`` (its time where it was made), ``final_mesh_cpu_s``
+        (that process's CPU time in it: not in the run's ``finish_cpu_s`` when a worker made it) and
         ``final_mesh_in_worker`` (whether the worker made it).
         """
         if self._points is None or self._sensors is None:
             return None, {}
-        out: tuple[MeshArrays | None, str, float] | None = None
+        out: tuple[MeshArrays | None, str, float, float] | None = None
         in_worker = False
         if self._future is not None:
             try:
@@ -161,11 +167,14 @@ class FinalMeshJob:
                 logger.warning("final mesh worker failed (%s): meshing here", exc or type(exc).__name__)
         if out is None:
             out = mesh_arrays(self._points, self._sensors, self._config)
-        arrays, reason, seconds = out
+        arrays, reason, seconds, cpu_s = out
         if arrays is None:
             logger.error("mesh not written: %s", reason)
             return None, {}
-        metrics = {"mesh_vertices": int(arrays[0].shape[0]), "final_mesh_s": seconds, "final_mesh_in_worker": in_worker}
+        metrics = {
+            "mesh_vertices": int(arrays[0].shape[0]), "final_mesh_s": seconds, "final_mesh_cpu_s": cpu_s,
+            "final_mesh_in_worker": in_worker,
+        }
         return mesh_of_arrays(arrays), metrics
 
 

@@ -50,7 +50,7 @@ class ExtractionWorker:
     def __init__(self, extractor: StripeExtractor) -> None:
         from concurrent.futures import ProcessPoolExecutor
 
-        self._pool = ProcessPoolExecutor(
+        self._pool: Any = ProcessPoolExecutor(
             1, mp_context=mp.get_context("spawn"), initializer=_extract_start, initargs=(extractor,)
         )
         self._pool.submit(int, 0)  # start it now: its imports overlap the first frames
@@ -82,12 +82,22 @@ class ExtractionWorker:
             n += 1
         return self._take(n)
 
-    def wait(self) -> list[StripeProfile]:
-        """Every remaining profile (waits), then the worker stops."""
+    def wait(self, keep_process: bool = False) -> list[StripeProfile]:
+        """Every remaining profile (waits), then the worker stops (its process kept for :meth:`take_pool`)."""
         out = self._take(len(self._jobs))
-        self.close()
+        if not keep_process:
+            self.close()
         return out
+
+    def take_pool(self) -> Any:
+        """The worker's process pool, idle after :meth:`wait`, for other work of the run (None once closed).
+
+        Issue 32: the finish's helper process (no new process to start); the caller shuts it down.
+        """
+        pool, self._pool = self._pool, None
+        return pool
 
     def close(self) -> None:
         """Stop the worker; queued images are dropped."""
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
