@@ -54,6 +54,7 @@ logger = logging.getLogger(__name__)
 
 _SYMBOL_RE = re.compile(r"Symbol:\s*([A-Za-z])(\d+)")
 _INDEX_MASK = np.uint64((1 << 56) - 1)
+_EYE4 = np.eye(4)
 
 
 @dataclass(slots=True)
@@ -327,13 +328,13 @@ class Isam2Backend:
         behind the camera.
         """
         src = self._pose_guess if poses is None else poses
-        T = np.stack([src[k] for k in kf_ids]) if kf_ids else np.zeros((0, 4, 4))
+        # one pose (and body transform) per keyframe, indexed per point
+        uniq, inv = np.unique(np.asarray(kf_ids, dtype=np.int64), return_inverse=True)
+        T = np.stack([src[k] for k in uniq.tolist()])[inv] if kf_ids else np.zeros((0, 4, 4))
         p = np.einsum("nji,nj->ni", T[:, :3, :3], p_world - T[:, :3, 3])
-        if self._body:
-            for i, k in enumerate(kf_ids):
-                body = self._body.get(k)
-                if body is not None:
-                    p[i] = body[:3, :3] @ p[i] + body[:3, 3]
+        if self._body and kf_ids:
+            B = np.stack([self._body.get(k, _EYE4) for k in uniq.tolist()])[inv]
+            p = np.einsum("nij,nj->ni", B[:, :3, :3], p) + B[:, :3, 3]
         z = p[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             zi = np.where(z > 1e-9, 1.0 / z, np.nan)
@@ -360,7 +361,7 @@ class Isam2Backend:
         Rt = np.transpose(T[:, :3, :3], (0, 2, 1))  # cam_from_world rotation
         t = T[:, :3, 3]
         if self._body:
-            B = np.stack([self._body.get(k, np.eye(4)) for k in kf_ids])
+            B = np.stack([self._body.get(int(k), _EYE4) for k in uniq])[inv]
             Rt = B[:, :3, :3] @ Rt
             t_b = B[:, :3, 3]
         else:
