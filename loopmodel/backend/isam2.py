@@ -160,7 +160,7 @@ class Isam2Backend:
         self._new_proxies = gtsam.Values()
         # keyframe_obs_budget: observations of known landmarks each keyframe's updates took so far
         self._budget_used: dict[int, int] = {}
-        # local_defer_late: a loop's prior and late observations wait for the next keyframe's update
+        # local_defer_late: late observations (a loop's) wait for the next update (the loop prior's)
         self._defer_late = self._windowed and cfg.local_defer_late and cfg.blunder_sigma <= 0
         self._deferred_graph = gtsam.NonlinearFactorGraph()
         self._deferred_values = gtsam.Values()
