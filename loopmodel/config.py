@@ -141,9 +141,9 @@ class BackendConfig(_Section):
     # issue 33 item 5 (isam10): a loop keyframe of the rounds scan brought three iSAM2 updates (its own,
     # the loop's late observations, the loop's prior), each re-eliminating the top of the window; the
     # late observations now join the next update (the loop prior's right after them). scale --quick
-    # (rounds_1800, 2 alternating pairs, load 8-13): back end per keyframe last block / first 2.92 / 3.56
-    # -> 2.53 / 2.55, its CPU for late observations 0.96-0.98 -> 0.25-0.26 s, final ATE equal. Inert
-    # without loops: the KITTI clip (configs/kitti.yaml) and the 600-frame sample never take this path
+    # (rounds_1800, 4 alternating pairs, load 1-13): back-end CPU 6.2-6.6 -> 5.4-5.9 s (late observations
+    # 0.96-0.99 -> 0.25-0.27 s), its last block / first 2.61-3.56 -> 2.53-3.23 (noise), final ATE equal.
+    # Inert without loops: the KITTI clip (configs/kitti.yaml) and the 600-frame sample never take this path
     local_defer_late: bool = Field(
         True, description="local: a loop's late observations join the next iSAM2 update (its prior's)"
     )
