@@ -387,6 +387,106 @@ def test_local_loop_prior_corrects_the_live_end_at_a_bounded_cost() -> None:
     assert np.max(loop_ms[-3:]) < 3.0 * np.median(loop_ms[:4]) + 2.0, loop_ms
 
 
+class _CountingIsam2:
+    """An ``ISAM2`` whose ``update`` calls are counted (what each one costs: the window's top re-eliminated)."""
+
+    def __init__(self, inner: object) -> None:
+        self._inner, self.updates = inner, 0
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._inner, name)
+
+    def update(self, *args: object, **kwargs: object) -> object:
+        self.updates += 1
+        return self._inner.update(*args, **kwargs)  # type: ignore[attr-defined]
+
+
+def _feed_late(defer: bool) -> tuple[list[int], list[int], int, float, float]:
+    """3 rounds with revisits; each keyframe's monocular observations half in ``add_keyframe``, half late.
+
+    As the loop stage hands them over (``add_observations``, then the loop constraint for a loop
+    keyframe). Per keyframe the iSAM2 updates it cost and whether it had a loop; the live factors; the
+    live error (m, RMS over the third round) of each loop keyframe right after its loop; the final ATE (m).
+    """
+    import dataclasses
+
+    from loopmodel.config import RefineConfig
+
+    prob = rounds_problem(45, per_round=15, features_per_kf=60, local_map_kf=1, loop_every_kf=5, revisit_points=40)
+    loops: dict[int, list[tuple[int, np.ndarray]]] = {}
+    for q, o, rel in prob.loops:
+        loops.setdefault(q, []).append((o, rel))
+    backend = Isam2Backend(_calibration(), BackendConfig(loop_policy="local", local_defer_late=defer))
+    counter = _CountingIsam2(backend._isam)
+    backend._isam = counter
+    truth = np.array([T[:3, 3] for T in prob.true_world_from_kf])
+    updates, looped, live = [], [], []
+    for kf in prob.keyframes:
+        mono = np.asarray(kf.mono_obs, float).reshape(-1, 3)
+        half = mono.shape[0] // 2
+        n0 = counter.updates
+        backend.add_keyframe(dataclasses.replace(kf, mono_obs=mono[:half]))
+        backend.add_observations(kf.id, mono[half:])
+        for old, rel in loops.get(kf.id, []):
+            backend.add_loop_constraint(kf.id, old, rel)
+        est = backend.estimate(landmarks=False).world_from_kf
+        updates.append(counter.updates - n0)
+        looped.append(int(kf.id in loops))
+        if kf.id in loops and kf.id >= 30:
+            live.append(float(np.linalg.norm(est[kf.id][:3, 3] - truth[kf.id])))
+    final = backend.final_estimate(RefineConfig(batch_ba=False, distribute_loops=False))
+    rms = float(np.sqrt(np.mean(np.square(live))))
+    return updates, looped, backend.num_factors, rms, _ate_m(final.world_from_kf, truth)
+
+
+def test_late_observations_join_the_next_update() -> None:
+    """``local_defer_late`` (issue 33 item 5, isam10): a loop keyframe costs two iSAM2 updates, not three.
+
+    The rounds scan's loop keyframes brought three updates each (the keyframe's, its loop's late
+    observations', the loop's prior's), each re-eliminating the window's top: the late observations
+    now wait for the next update (the prior's; the next keyframe's without a loop). Same factors, the
+    loop's correction of the live end and the final accuracy unchanged.
+    """
+    upd_on, looped, factors_on, live_on, final_on = _feed_late(True)
+    upd_off, _, factors_off, live_off, final_off = _feed_late(False)
+    assert sum(looped[15:]) == 6
+    # deterministic counts: without deferral 2 a keyframe, 3 with a loop; with it 1 and 2
+    assert upd_off[15:] == [2 + lp for lp in looped[15:]], upd_off
+    assert upd_on[15:] == [1 + lp for lp in looped[15:]], upd_on
+    # the same observations; landmark creation gates them at the pose estimates of the moment, which
+    # the deferred observations reach one update later (measured 6217 / 6188 factors)
+    assert abs(factors_on - factors_off) < 0.01 * factors_off, (factors_off, factors_on)
+    # measured: the third round's loop keyframes right after their loops 4.02 mm without, 4.08 mm with;
+    # final ATE 1.82 / 1.75 mm
+    assert live_on < 1.1 * live_off + 1e-4, (live_off, live_on)
+    assert final_on < 1.05 * final_off + 1e-5, (final_off, final_on)
+
+
+def test_deferred_observations_are_removable_and_join_the_final_estimate() -> None:
+    """Late observations waiting for an update can be removed (their slots come first) or kept to the end."""
+    import dataclasses
+
+    from loopmodel.config import RefineConfig
+
+    prob = rounds_problem(12, per_round=12, features_per_kf=60, local_map_kf=2)
+    backend = Isam2Backend(_calibration(), BackendConfig(loop_policy="local"))
+    for kf in prob.keyframes:
+        mono = np.asarray(kf.mono_obs, float).reshape(-1, 3)
+        backend.add_keyframe(dataclasses.replace(kf, mono_obs=mono[:0]))
+        backend.add_observations(kf.id, mono)
+    last = prob.keyframes[-1]
+    late = [(last.id, int(lm)) for lm in np.asarray(last.mono_obs)[:, 0]]
+    assert backend.observation_factor_index(late[0]) is None  # waiting: not in iSAM2 yet
+    assert backend.remove_observations(late[:5]) == 5  # flushed first, then removed from iSAM2
+    assert all(backend.observation_factor_index(o) is None for o in late[:5])
+    assert all(backend.observation_factor_index(o) is not None for o in late[5:])
+    n = backend.num_factors
+    final = backend.final_estimate(RefineConfig(batch_ba=False, distribute_loops=False))
+    assert backend.num_factors == n
+    truth = np.array([T[:3, 3] for T in prob.true_world_from_kf])
+    assert _ate_m(final.world_from_kf, truth) < 0.005
+
+
 _BEHIND_WORKER = """
 import functools, time
 import numpy as np

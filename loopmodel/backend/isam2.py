@@ -54,6 +54,7 @@ logger = logging.getLogger(__name__)
 
 _SYMBOL_RE = re.compile(r"Symbol:\s*([A-Za-z])(\d+)")
 _INDEX_MASK = np.uint64((1 << 56) - 1)
+_EYE4 = np.eye(4)
 
 
 @dataclass(slots=True)
@@ -159,6 +160,12 @@ class Isam2Backend:
         self._new_proxies = gtsam.Values()
         # keyframe_obs_budget: observations of known landmarks each keyframe's updates took so far
         self._budget_used: dict[int, int] = {}
+        # local_defer_late: late observations (a loop's) wait for the next update (the loop prior's)
+        self._defer_late = self._windowed and cfg.local_defer_late and cfg.blunder_sigma <= 0
+        self._deferred_graph = gtsam.NonlinearFactorGraph()
+        self._deferred_values = gtsam.Values()
+        self._deferred_fids: list[int] = []
+        self._deferred_all = False  # a deferred update may move more than the window
 
     # ------------------------------------------------------------------ set-up
     @staticmethod
@@ -226,6 +233,7 @@ class Isam2Backend:
 
     def values(self) -> gtsam.Values:
         """The current iSAM2 estimate of every variable (``gtsam.Values``)."""
+        self._flush_deferred()
         return self._isam.calculateEstimate()
 
     def observation_factor_index(self, observation: Observation) -> int | None:
@@ -288,7 +296,9 @@ class Isam2Backend:
             entry = (self._next_pkey, seq)
             self._next_pkey += 1
             self._proxy[lkey] = entry
-            p = self._isam.calculateEstimatePoint3(L(lkey))
+            # a landmark made by a deferred update (local_defer_late) is not in iSAM2 yet: its initial point
+            waiting = self._deferred_values
+            p = waiting.atPoint3(L(lkey)) if waiting.exists(L(lkey)) else self._isam.calculateEstimatePoint3(L(lkey))
             self._new_proxies.insert(P(entry[0]), p)
             noise = gtsam.noiseModel.Isotropic.Sigma(3, self.config.loop_sigma_m)
             prior = gtsam.PriorFactorPoint3(P(entry[0]), p, noise)
@@ -318,13 +328,13 @@ class Isam2Backend:
         behind the camera.
         """
         src = self._pose_guess if poses is None else poses
-        T = np.stack([src[k] for k in kf_ids]) if kf_ids else np.zeros((0, 4, 4))
+        # one pose (and body transform) per keyframe, indexed per point
+        uniq, inv = np.unique(np.asarray(kf_ids, dtype=np.int64), return_inverse=True)
+        T = np.stack([src[k] for k in uniq.tolist()])[inv] if kf_ids else np.zeros((0, 4, 4))
         p = np.einsum("nji,nj->ni", T[:, :3, :3], p_world - T[:, :3, 3])
-        if self._body:
-            for i, k in enumerate(kf_ids):
-                body = self._body.get(k)
-                if body is not None:
-                    p[i] = body[:3, :3] @ p[i] + body[:3, 3]
+        if self._body and kf_ids:
+            B = np.stack([self._body.get(k, _EYE4) for k in uniq.tolist()])[inv]
+            p = np.einsum("nij,nj->ni", B[:, :3, :3], p) + B[:, :3, 3]
         z = p[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             zi = np.where(z > 1e-9, 1.0 / z, np.nan)
@@ -351,7 +361,7 @@ class Isam2Backend:
         Rt = np.transpose(T[:, :3, :3], (0, 2, 1))  # cam_from_world rotation
         t = T[:, :3, 3]
         if self._body:
-            B = np.stack([self._body.get(k, np.eye(4)) for k in kf_ids])
+            B = np.stack([self._body.get(int(k), _EYE4) for k in uniq])[inv]
             Rt = B[:, :3, :3] @ Rt
             t_b = B[:, :3, 3]
         else:
@@ -665,7 +675,7 @@ class Isam2Backend:
         # under local the update stays in the window (older landmarks through proxies): the old map does
         # not move, so estimate() need not read every pose again (a keyframe's update, as for add_keyframe)
         recent = self._windowed and self._kf_seq[kf_id] >= len(self._kf_order) - 1 - self.config.local_window_kf
-        self._run_update(graph, values, [], X(kf_id) if recent else None)
+        self._run_update(graph, values, [], X(kf_id) if recent else None, defer=True)
         if self.config.blunder_sigma > 0:
             report.removed_blunders = self._screen_new([f for f in new_fids if f in self._factors])
         report.pending_landmarks = len(self._pending)
@@ -708,8 +718,14 @@ class Isam2Backend:
         values: gtsam.Values,
         remove_slots: list[int],
         newest: int | None,
+        defer: bool = False,
     ) -> None:
-        """One iSAM2 update with the factors just recorded (the last ``graph.size()`` fids)."""
+        """One iSAM2 update with the factors just recorded (the last ``graph.size()`` fids).
+
+        With ``defer`` (late observations) under ``local_defer_late`` the factors wait and join the next
+        update: the loop's prior that follows them, the next keyframe's, or :meth:`_flush_deferred`'s
+        before a removal or a read of the whole map.
+        """
         new_fids, self._batch = self._batch, []
         if self._new_proxies.size():
             values.insert(self._new_proxies)
@@ -717,6 +733,16 @@ class Isam2Backend:
             self._new_proxies = gtsam.Values()
         if len(new_fids) != graph.size():
             raise EstimationError(f"internal: {len(new_fids)} recorded factors but {graph.size()} in the update")
+        if self._deferred_fids or defer and self._defer_late:
+            self._deferred_all |= newest is None
+            self._deferred_graph.push_back(graph)
+            self._deferred_values.insert(values)
+            self._deferred_fids.extend(new_fids)
+            if defer and self._defer_late and not remove_slots:
+                return
+            graph, values, new_fids = self._deferred_graph, self._deferred_values, self._deferred_fids
+            newest = None if self._deferred_all else newest
+            self._clear_deferred()
         self._estimate_all |= newest is None  # not a keyframe's update: it may move the whole map
         # removal-only updates keep GTSAM's default ordering: their affected set may be tiny
         groups = None if newest is None else self._ordering_groups(len(graph.keyVector()))
@@ -728,6 +754,17 @@ class Isam2Backend:
         self.last_result = result
         for fid, slot in zip(new_fids, result.getNewFactorsIndices(), strict=True):
             self._slot[fid] = slot
+
+    def _clear_deferred(self) -> None:
+        self._deferred_graph = gtsam.NonlinearFactorGraph()
+        self._deferred_values = gtsam.Values()
+        self._deferred_fids = []
+        self._deferred_all = False
+
+    def _flush_deferred(self) -> None:
+        """Run the update the deferred factors wait for (``local_defer_late``), if any."""
+        if self._deferred_fids:
+            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None)
 
     def _ordering_groups(self, n_keys: int) -> gtsam.KeyGroupMap | None:
         """Elimination groups for an update whose affected set has at least ``n_keys`` variables.
@@ -766,6 +803,7 @@ class Isam2Backend:
             logger.warning("iSAM2 indeterminate near %s%d; rebuilding", symbol, index)
             self.rebuilds += 1
             self._estimate_all = True
+            self._clear_deferred()  # their factors are in the record: the rebuild takes them
             self._isam = gtsam.ISAM2(self.isam2_params(self.config))
             self._slot.clear()
             keys: set[int] = set()
@@ -849,6 +887,7 @@ class Isam2Backend:
 
         Pending ones are just forgotten. Returns the count removed.
         """
+        self._flush_deferred()  # their slots first
         fids = []
         n = 0
         for kf_id, lm_id in observations:
@@ -1196,13 +1235,14 @@ class Isam2Backend:
         self._proxy_fids[fid] = [self._new_fid(_FactorRecord(prior, "proxy"))]
         graph = gtsam.NonlinearFactorGraph()
         graph.add(prior)
-        self._run_update(graph, gtsam.Values(), [], X(new))
+        self._run_update(graph, gtsam.Values(), [], X(new))  # with the loop's late observations (local_defer_late)
 
     def remove_loop_constraint(self, constraint_id: int) -> None:
         """Remove a loop constraint returned by :meth:`add_loop_constraint`."""
         rec = self._factors.get(constraint_id)
         if rec is None or rec.kind != "loop":
             raise EstimationError(f"no loop constraint with id {constraint_id}")
+        self._flush_deferred()  # its prior's slot first
         del self._factors[constraint_id]
         if constraint_id in self._outside:
             self._outside.discard(constraint_id)
@@ -1225,6 +1265,7 @@ class Isam2Backend:
         lm_ids = np.zeros(0, dtype=np.int64)
         pts = np.zeros((0, 3))
         if landmarks:
+            self._flush_deferred()
             vals = self._isam.calculateEstimate()
             keys = np.asarray(vals.keys(), dtype=np.uint64)
             chars = (keys >> np.uint64(56)).astype(np.int64)
@@ -1298,6 +1339,7 @@ class Isam2Backend:
         A fresh iSAM2 on all live factors (the proxies' left out) from the current estimate; from then
         on the back end is a plain one.
         """
+        self._flush_deferred()
         theta = self._isam.calculateEstimate()
         for fid in [f for f, rec in self._factors.items() if rec.kind == "proxy"]:
             del self._factors[fid]
