@@ -74,10 +74,18 @@ def _warm_ups() -> dict[str, tuple[str, Callable[[], None]]]:
     from loopmodel.mapping._peak_kernels import warm_up as laser_peaks
     from loopmodel.pose._point_kernels import warm_up as pose
 
-    ups = {"stereo matching": stereo, "affine KLT": affine, "pose solve": pose, "KLT share": klt_share,
-           "vocabulary": vocabulary, "P3P bank": p3p, "SURF": _warm_surf, "Givens estimator": _warm_givens,
-           "laser peaks": laser_peaks, "PNG rows": png}
-    return {m: (label, fn) for m, (label, fn) in zip(KERNEL_MODULES, ups.items(), strict=True)}
+    return {
+        "loopmodel.frontend._stereo_kernels": ("stereo matching", stereo),
+        "loopmodel.frontend._affine_kernels": ("affine KLT", affine),
+        "loopmodel.pose._point_kernels": ("pose solve", pose),
+        "loopmodel.imaging._klt_kernels": ("KLT share", klt_share),
+        "loopmodel.loop._vocabulary_kernels": ("vocabulary", vocabulary),
+        "loopmodel.loop.p3p_kernels": ("P3P bank", p3p),
+        "loopmodel.loop.surf": ("SURF", _warm_surf),
+        "loopmodel.backend._givens_kernels": ("Givens estimator", _warm_givens),
+        "loopmodel.mapping._peak_kernels": ("laser peaks", laser_peaks),
+        "loopmodel.imaging._png_kernels": ("PNG rows", png),
+    }
 
 
 def modules_for(config: Config) -> tuple[str, ...]:
