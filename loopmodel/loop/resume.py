@@ -89,29 +89,18 @@ def retrack_keyframe_features(
     if idx.size == 0:
         return empty
     A = predicted_affine(camera, X[idx], cur_from_kf)  # d uv_cur / d uv_kf
-    ref = kf_image.astype(np.float32)
     cur = cur_image.astype(np.float32)
-    s = np.arange(-r, r + 1, dtype=float)
-    sx, sy = np.meshgrid(s, s)
+    tpls, textured = _warped_templates(kf_image.astype(np.float32), uv0[idx], A, r)
     coarse = np.full((idx.size, 2), np.nan)
-    for n, i in enumerate(idx):
-        # template in current-image geometry: sample the keyframe at uv0 + A^-1 s
-        try:
-            Ainv = np.linalg.inv(A[n])
-        except np.linalg.LinAlgError:
-            continue
-        mx = (uv0[i, 0] + Ainv[0, 0] * sx + Ainv[0, 1] * sy).astype(np.float32)
-        my = (uv0[i, 1] + Ainv[1, 0] * sx + Ainv[1, 1] * sy).astype(np.float32)
-        tpl = cv2.remap(ref, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        if float(tpl.std()) < 1.0:
-            continue
-        cx, cy = int(round(pred[i, 0])), int(round(pred[i, 1]))
+    # issue 33: only the search is left per feature (the templates above are made in one pass: this
+    # loop runs on the loop workers' threads, and its Python holds the interpreter lock the tracker needs)
+    centre = np.rint(pred[idx]).astype(np.int64)  # (Python's round and NumPy's rint both round half to even)
+    for n in np.flatnonzero(textured).tolist():
+        cx, cy = int(centre[n, 0]), int(centre[n, 1])
         win = cur[cy - r - search_px : cy + r + search_px + 1, cx - r - search_px : cx + r + search_px + 1]
-        score = cv2.matchTemplate(win, tpl, cv2.TM_CCOEFF_NORMED)
-        _, best, _, loc = cv2.minMaxLoc(score)
-        if best < min_ncc - 0.1:
-            continue
-        coarse[n] = (cx - search_px + loc[0], cy - search_px + loc[1])
+        _, best, _, loc = cv2.minMaxLoc(cv2.matchTemplate(win, tpls[n], cv2.TM_CCOEFF_NORMED))
+        if best >= min_ncc - 0.1:
+            coarse[n] = (cx - search_px + loc[0], cy - search_px + loc[1])
     have = np.isfinite(coarse).all(axis=1)
     if not np.any(have):
         return empty
@@ -128,3 +117,43 @@ def retrack_keyframe_features(
     )
     good = m.ok
     return Retracked(ids[sel[good]], m.uv_px[good], pred[sel[good]], m.ncc[good])
+
+
+def _warped_templates(
+    ref: NDArray[np.float32], uv: F64, A: F64, r: int
+) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Each feature's (2r+1)-pixel template in current-image geometry, and whether it has texture.
+
+    Template n samples the keyframe image ``ref`` at ``uv[n] + A[n]^-1 s`` for the window's offsets
+    ``s`` (bilinear, replicated border); ``A`` (N, 2, 2) maps keyframe to current pixels. Textured:
+    ``A[n]`` invertible and a standard deviation of at least 1 grey level. One remap for all of them
+    (the per-feature remaps gave the same pixels: remap is pointwise).
+    """
+    n, size = uv.shape[0], 2 * r + 1
+    s = np.arange(-r, r + 1, dtype=float)
+    sx, sy = np.meshgrid(s, s)
+    try:
+        Ainv = np.linalg.inv(A)
+        invertible = np.ones(n, dtype=bool)
+    except np.linalg.LinAlgError:  # a singular one among them: each on its own
+        Ainv = np.zeros((n, 2, 2))
+        invertible = np.zeros(n, dtype=bool)
+        for k in range(n):
+            try:
+                Ainv[k] = np.linalg.inv(A[k])
+                invertible[k] = True
+            except np.linalg.LinAlgError:
+                pass
+    a = Ainv[:, :, :, None, None]
+    mx = (uv[:, 0, None, None] + a[:, 0, 0] * sx + a[:, 0, 1] * sy).astype(np.float32)
+    my = (uv[:, 1, None, None] + a[:, 1, 0] * sx + a[:, 1, 1] * sy).astype(np.float32)
+    chunk = max(1, 30000 // size)  # (OpenCV's remap takes maps below 32767 rows)
+    tpls = np.concatenate([
+        cv2.remap(
+            ref, mx[k : k + chunk].reshape(-1, size), my[k : k + chunk].reshape(-1, size), cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        ).reshape(-1, size, size)
+        for k in range(0, n, chunk)
+    ])
+    textured = invertible & (tpls.reshape(n, -1).std(axis=1) >= 1.0)
+    return tpls, textured
