@@ -57,6 +57,8 @@ class PoseGraph:
     name: str = ""
     #: edges whose information matrix was not positive definite and was repaired on reading
     repaired_information: int = 0
+    #: the edges' GTSAM factors, made once (:func:`_factors`)
+    _gtsam: _GraphFactors | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def n_edges(self) -> int:
@@ -286,6 +288,47 @@ def _pose(dim: int, T: F64) -> Any:
     return gtsam.Pose3(gtsam.Rot3(np.asarray(T[:3, :3])), gtsam.Point3(*np.asarray(T[:3, 3], float)))
 
 
+class _GraphFactors:
+    """A graph's GTSAM pieces, made once per graph.
+
+    Issue 33: remade for every stage and chi-square of a solve they were 95 % of the keyframe loop
+    gate's CPU (Python holding the interpreter lock on the loop stage's thread beside the tracker);
+    the same objects give the same numbers. ``prior``: the first pose's prior; per edge its measured
+    pose, its Gaussian noise and its plain between-factor; ``full``: the prior and every plain edge.
+    """
+
+    def __init__(self, graph: PoseGraph) -> None:
+        first = int(min(graph.world_from_pose))
+        n = 3 if graph.dim == 2 else 6
+        prior_noise = gtsam.noiseModel.Isotropic.Sigma(n, 1e-6)
+        prior_pose = _pose(graph.dim, graph.world_from_pose[first])
+        between: Any = gtsam.BetweenFactorPose2 if graph.dim == 2 else gtsam.BetweenFactorPose3
+        self.between = between
+        self.prior: Any = (
+            gtsam.PriorFactorPose2(first, prior_pose, prior_noise)
+            if graph.dim == 2
+            else gtsam.PriorFactorPose3(first, prior_pose, prior_noise)
+        )
+        self.ij = [(int(a), int(b)) for a, b in graph.edges_ij]
+        self.meas = [_pose(graph.dim, T) for T in graph.i_from_j]
+        self.noise: list[Any] = [
+            gtsam.noiseModel.Gaussian.Information(np.asarray(info, float)) for info in graph.information
+        ]
+        self.plain = [between(i, j, m, nm) for (i, j), m, nm in zip(self.ij, self.meas, self.noise, strict=True)]
+        self.full = gtsam.NonlinearFactorGraph()
+        self.full.add(self.prior)
+        for f in self.plain:
+            self.full.add(f)
+
+
+def _factors(graph: PoseGraph) -> _GraphFactors:
+    """``graph``'s :class:`_GraphFactors` (made at the first call; a graph's edges are not changed)."""
+    made = graph._gtsam
+    if made is None or len(made.plain) != graph.n_edges:
+        made = graph._gtsam = _GraphFactors(graph)
+    return made
+
+
 def _factor_graph(
     graph: PoseGraph,
     keep: NDArray[np.bool_] | None = None,
@@ -295,32 +338,39 @@ def _factor_graph(
 
     Returns it and the edge index of every between-factor (the prior is factor 0).
     """
+    made = _factors(graph)
+    if keep is None and cauchy_k is None:
+        return made.full, list(range(graph.n_edges))
     g = gtsam.NonlinearFactorGraph()
-    first = int(min(graph.world_from_pose))
-    n = 3 if graph.dim == 2 else 6
-    prior_noise = gtsam.noiseModel.Isotropic.Sigma(n, 1e-6)
-    if graph.dim == 2:
-        g.add(gtsam.PriorFactorPose2(first, _pose(2, graph.world_from_pose[first]), prior_noise))
-    else:
-        g.add(gtsam.PriorFactorPose3(first, _pose(3, graph.world_from_pose[first]), prior_noise))
+    g.add(made.prior)
     order: list[int] = []
+    kernel = None if cauchy_k is None else gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k)
     for e in range(graph.n_edges):
         if keep is not None and not keep[e]:
             continue
-        i, j = (int(v) for v in graph.edges_ij[e])
-        noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Information(np.asarray(graph.information[e], float))
-        if cauchy_k is not None and not graph.odometry[e]:
-            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k), noise)
-        meas = _pose(graph.dim, graph.i_from_j[e])
-        if graph.dim == 2:
-            g.add(gtsam.BetweenFactorPose2(i, j, meas, noise))
+        if kernel is not None and not graph.odometry[e]:
+            i, j = made.ij[e]
+            g.add(made.between(i, j, made.meas[e], gtsam.noiseModel.Robust.Create(kernel, made.noise[e])))
         else:
-            g.add(gtsam.BetweenFactorPose3(i, j, meas, noise))
+            g.add(made.plain[e])
         order.append(e)
     return g, order
 
 
+class _Poses(dict[int, F64]):
+    """``world_from_pose`` read from GTSAM values of a 3-D graph, which :func:`_values` gives back as they were.
+
+    (A Pose3 from its own matrix is the same Pose3: Rot3 keeps its matrix.)
+    """
+
+    def __init__(self, items: dict[int, F64], graph: PoseGraph, values: gtsam.Values) -> None:
+        super().__init__(items)
+        self.graph, self.gtsam_values = graph, values
+
+
 def _values(graph: PoseGraph, init: dict[int, F64] | None = None) -> gtsam.Values:
+    if isinstance(init, _Poses) and init.graph is graph:
+        return init.gtsam_values
     v = gtsam.Values()
     src = init if init is not None else graph.world_from_pose
     for k in sorted(set(graph.edges_ij.ravel().tolist()) | {int(min(graph.world_from_pose))}):
@@ -332,7 +382,7 @@ def _matrices(graph: PoseGraph, values: gtsam.Values) -> dict[int, F64]:
     ids = sorted(set(graph.edges_ij.ravel().tolist()) | {int(min(graph.world_from_pose))})
     if graph.dim == 2:
         return {k: np.asarray(values.atPose2(k).matrix()) for k in ids}
-    return {k: np.asarray(values.atPose3(k).matrix()) for k in ids}
+    return _Poses({k: np.asarray(values.atPose3(k).matrix()) for k in ids}, graph, values)
 
 
 def _lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
@@ -652,12 +702,9 @@ def _gnc_tls(
 
 def _edge_chi2(graph: PoseGraph, world_from_pose: dict[int, F64]) -> F64:
     """Squared whitened residual of every edge at the given poses."""
-    g, order = _factor_graph(graph)
+    plain = _factors(graph).plain
     v = _values(graph, world_from_pose)
-    out = np.zeros(graph.n_edges)
-    for f, e in enumerate(order):
-        out[e] = 2.0 * g.at(f + 1).error(v)
-    return out
+    return np.array([2.0 * f.error(v) for f in plain], dtype=float).reshape(graph.n_edges)
 
 
 def _chi2_quantile(dim: int, probability: float) -> float:
