@@ -230,3 +230,31 @@ def test_gate_on_the_loops_keyframes_agrees_with_the_whole_chain() -> None:
     np.testing.assert_array_equal(reduced, full)
     # measured (wall, load 20): full 1120 ms, reduced 241 ms (80 -> 30 nodes); CPU of this thread
     assert t2 - t1 < t1 - t0
+
+
+def test_edge_chi_squares_from_the_graphs_kept_factors_are_each_edges_own() -> None:
+    """The chi-squares of a graph's kept GTSAM factors (made once, issue 33) equal each edge's, built on its own.
+
+    At the estimate and at a solution read back from GTSAM (whose values are reused): every edge's
+    ``_between_chi2`` (a factor of its own, from the edge's matrices) agrees to 1e-9 relative.
+    """
+    from loopmodel.backend.robust_posegraph import (
+        _between_chi2,
+        _edge_chi2,
+        _matrices,
+        _values,
+        keyframe_pose_graph,
+    )
+
+    true, est = _helix_chain(30, 4)
+    loops = [(q, q - 12, invert_pose(true[q]) @ true[q - 12]) for q in range(14, 30, 3)]
+    graph = keyframe_pose_graph(est, [(k, k + 1) for k in range(29)], loops, 1.0, 0.02, 1.0, 0.03)
+    solved = _matrices(graph, _values(graph))
+    for poses in (est, solved, optimize_lm(graph).world_from_pose):
+        chi2 = _edge_chi2(graph, poses)
+        own = [
+            _between_chi2(3, graph.i_from_j[e], invert_pose(poses[int(i)]) @ poses[int(j)], graph.information[e])
+            for e, (i, j) in enumerate(graph.edges_ij)
+        ]
+        np.testing.assert_allclose(chi2, own, rtol=1e-9, atol=1e-12)
+    assert _edge_chi2(graph, est)[len(est) - 1 :].max() > 1e-3  # the estimate drifted: the loops are not met
