@@ -176,7 +176,11 @@ def _grad2d_py(src, dst, pad, u, v, x0, y0, half, iterations, min_sigma):  # typ
     sigma = np.full(n, np.inf)
     t = np.empty((p, p), np.float32)
     S = np.empty((q, q), np.float32)
-    R = np.empty((3, p, q), np.float32)  # S interpolated at rows y - 1, y, y + 1
+    # S interpolated at row y + j - 1 (L), then at column x + c - 1 (H), j, c < p + 2: the window is H[1:p+1,
+    # 1:p+1], its column neighbours H[1:p+1, 0:p] and [2:p+2], its row neighbours H[0:p, 1:p+1] and [2:p+2]
+    # (each value the same products as interpolating every shifted window on its own)
+    L = np.empty((p + 2, q), np.float32)
+    H = np.empty((p + 2, p + 2), np.float32)
     W = np.empty((p, p), np.float32)
     GX = np.empty((p, p), np.float32)
     GY = np.empty((p, p), np.float32)
@@ -196,23 +200,21 @@ def _grad2d_py(src, dst, pad, u, v, x0, y0, half, iterations, min_sigma):  # typ
             for a in range(q):
                 for b in range(q):
                     S[a, b] = np.float32(dst[r0 + a, c0 + b])
-            for k in range(3):
-                for a in range(p):
-                    for b in range(q):
-                        R[k, a, b] = (one - ay) * S[k + a, b] + ay * S[k + a + 1, b]
+            for j in range(p + 2):
+                for b in range(q):
+                    L[j, b] = (one - ay) * S[j, b] + ay * S[j + 1, b]
+            for j in range(p + 2):
+                for c in range(p + 2):
+                    H[j, c] = (one - ax) * L[j, c] + ax * L[j, c + 1]
             mw = np.float32(0.0)
             mx = np.float32(0.0)
             my = np.float32(0.0)
             for a in range(p):
                 for b in range(p):
-                    w = (one - ax) * R[1, a, b + 1] + ax * R[1, a, b + 2]
-                    wp = (one - ax) * R[1, a, b + 2] + ax * R[1, a, b + 3]
-                    wm = (one - ax) * R[1, a, b] + ax * R[1, a, b + 1]
-                    dn = (one - ax) * R[2, a, b + 1] + ax * R[2, a, b + 2]
-                    up = (one - ax) * R[0, a, b + 1] + ax * R[0, a, b + 2]
+                    w = H[a + 1, b + 1]
                     W[a, b] = w
-                    GX[a, b] = half32 * (wp - wm)
-                    GY[a, b] = half32 * (dn - up)
+                    GX[a, b] = half32 * (H[a + 1, b + 2] - H[a + 1, b])
+                    GY[a, b] = half32 * (H[a + 2, b + 1] - H[a, b + 1])
                     mw += w
                     mx += GX[a, b]
                     my += GY[a, b]
