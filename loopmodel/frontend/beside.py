@@ -12,6 +12,7 @@ kept one is busy (a job never waits behind another, so a job may wait for jobs i
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 from collections.abc import Callable
@@ -21,6 +22,17 @@ T = TypeVar("T")
 
 _IDLE: list[_Worker] = []  # kept threads waiting for a job
 _IDLE_LOCK = threading.Lock()
+
+
+def _forget_after_fork() -> None:
+    """A forked child has none of the parent's threads: it keeps none (and a fresh lock)."""
+    global _IDLE_LOCK
+    _IDLE.clear()
+    _IDLE_LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_after_fork)
 
 
 class _Worker:
