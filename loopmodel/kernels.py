@@ -29,6 +29,7 @@ logger = logging.getLogger(__name__)
 KERNEL_MODULES = (
     "loopmodel.frontend._stereo_kernels",
     "loopmodel.frontend._affine_kernels",
+    "loopmodel.frontend._ba_kernels",
     "loopmodel.pose._point_kernels",
     "loopmodel.imaging._klt_kernels",
     "loopmodel.loop._vocabulary_kernels",
@@ -65,6 +66,7 @@ def _warm_givens() -> None:
 
 def _warm_ups() -> dict[str, tuple[str, Callable[[], None]]]:
     """Per kernel module: (label, warm-up), each calling the module's kernels with small inputs."""
+    from loopmodel.frontend._ba_kernels import warm_up as local_ba
     from loopmodel.frontend._stereo_kernels import warm_up as stereo
     from loopmodel.frontend.affine_klt import warm_up as affine
     from loopmodel.imaging._klt_kernels import warm_up as klt_share
@@ -77,6 +79,7 @@ def _warm_ups() -> dict[str, tuple[str, Callable[[], None]]]:
     return {
         "loopmodel.frontend._stereo_kernels": ("stereo matching", stereo),
         "loopmodel.frontend._affine_kernels": ("affine KLT", affine),
+        "loopmodel.frontend._ba_kernels": ("local BA", local_ba),
         "loopmodel.pose._point_kernels": ("pose solve", pose),
         "loopmodel.imaging._klt_kernels": ("KLT share", klt_share),
         "loopmodel.loop._vocabulary_kernels": ("vocabulary", vocabulary),

@@ -131,3 +131,50 @@ def test_wider_window_matches_an_independent_least_squares(rng: np.random.Genera
     # and near the truth
     dt = invert_pose(F_true) @ res.f_from_kf
     assert np.linalg.norm(dt[:3, 3]) < 0.01
+
+
+def test_compiled_loop_gives_the_numpy_loop(rng: np.random.Generator) -> None:
+    """The compiled Levenberg-Marquardt loop (fe11) against the numpy one, every option at once.
+
+    An earlier keyframe's points (a wider window), the final right image with unmatched rows, per-point
+    disparity sigmas, a disparity offset with a prior, 10 % outliers (Huber active); a pinhole and a
+    unified (``xi`` 0.8) camera. Only the order of the sums differs: measured |d pose| <= 1e-14, points
+    <= 1e-11 m on the KITTI clip's 12 keyframe BAs, the same iterations and inliers.
+    """
+    right_from_left = np.eye(4)
+    right_from_left[0, 3] = -0.5
+    for cam in (CentralCamera(700.0, 700.0, 600.0, 180.0), CentralCamera(500.0, 500.0, 320.0, 240.0, 0.8)):
+        M0, M1 = 90, 40
+        n = M0 + M1
+        X = np.column_stack([rng.uniform(-5, 5, n), rng.uniform(-2, 2, n), rng.uniform(5, 25, n)])
+        F_true = se3_exp([0.05, -0.02, -1.0, 0.01, 0.03, -0.005])
+        own_true = se3_exp([0.02, 0.0, 1.2, 0.0, -0.01, 0.0])
+        owner = np.r_[np.zeros(M0, np.int64), np.ones(M1, np.int64)]
+        frames = np.stack([np.eye(4), own_true])
+
+        def obs(T: np.ndarray, P: np.ndarray, cam: CentralCamera = cam) -> np.ndarray:
+            return cam.project(P @ T[:3, :3].T + T[:3, 3])
+
+        uvl = np.vstack([obs(frames[k], X[owner == k]) for k in (0, 1)]) + rng.normal(0, 0.2, (n, 2))
+        uvr = np.vstack([obs(right_from_left @ frames[k], X[owner == k]) for k in (0, 1)]) + 0.3  # offset 0.3 px
+        uvr += rng.normal(0, 0.2, uvr.shape)
+        uvf = obs(F_true, X) + rng.normal(0, 0.2, (n, 2))
+        uvf[rng.random(n) < 0.1] += rng.normal(0, 15, 2)  # outliers
+        uvf[M0::4] = np.nan
+        uvfr = np.full((n, 2), np.nan)
+        uvfr[:M0] = obs(right_from_left @ F_true, X[:M0]) + 0.3 + rng.normal(0, 0.2, (M0, 2))
+        uvfr[:M0:3] = np.nan
+        X0 = X * rng.uniform(0.95, 1.05, (n, 1))
+        F0 = se3_exp([0.03, 0.02, 0.05, 0.004, -0.004, 0.003]) @ F_true
+        kw = {"uv_final_right": uvfr, "right_sigma_px": rng.uniform(0.05, 0.4, n), "estimate_disparity_offset": True,
+              "offset_prior": (0.1, 4.0), "owner": owner, "own_from_kf": frames}
+        got = hybrid_keyframe_ba(X0, uvl, uvr, uvf, F0, cam, cam, right_from_left, iterations=10, **kw)
+        want = hybrid_keyframe_ba(X0, uvl, uvr, uvf, F0, cam, cam, right_from_left, iterations=10, compiled=False,
+                                  **kw)
+        assert got.iterations == want.iterations >= 3
+        np.testing.assert_array_equal(got.inliers, want.inliers)
+        assert 0 < (~got.inliers).sum() < 0.3 * n  # the outliers are found
+        np.testing.assert_allclose(got.f_from_kf, want.f_from_kf, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(got.points_in_kf, want.points_in_kf, rtol=0, atol=1e-8)
+        for f in ("initial_rms_px", "final_rms_px", "disparity_offset_px", "disparity_offset_var_px2"):
+            assert abs(getattr(got, f) - getattr(want, f)) <= 1e-9 * max(1.0, abs(getattr(want, f))), f

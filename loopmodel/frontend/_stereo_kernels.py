@@ -166,6 +166,102 @@ def _row_gradient_py(src, dst, pad, u, v, x0, v_dst, half, iterations, min_sigma
     return x, sigma
 
 
+def _grad2d_py(src, dst, pad, u, v, x0, y0, half, iterations, min_sigma):  # type: ignore[no-untyped-def]
+    n = u.shape[0]
+    p = 2 * half + 1
+    pp = np.float32(p * p)
+    q = p + 3  # the window's rows / columns around floor(y) / floor(x), one more each side for the gradients
+    x = x0.copy()
+    y = y0.copy()
+    sigma = np.full(n, np.inf)
+    t = np.empty((p, p), np.float32)
+    S = np.empty((q, q), np.float32)
+    # S interpolated at row y + j - 1 (L), then at column x + c - 1 (H), j, c < p + 2: the window is H[1:p+1,
+    # 1:p+1], its column neighbours H[1:p+1, 0:p] and [2:p+2], its row neighbours H[0:p, 1:p+1] and [2:p+2]
+    # (each value the same products as interpolating every shifted window on its own)
+    L = np.empty((p + 2, q), np.float32)
+    H = np.empty((p + 2, p + 2), np.float32)
+    W = np.empty((p, p), np.float32)
+    GX = np.empty((p, p), np.float32)
+    GY = np.empty((p, p), np.float32)
+    half32 = np.float32(0.5)
+    one = np.float32(1.0)
+    tiny = np.float32(1e-9)
+    dof = np.float32(max(p * p - 4, 1))
+    for i in range(n):
+        tt = np.float32(_template(src, v[i] + pad - half, u[i] + pad - half, t) + tiny)
+        for _ in range(iterations):
+            xf = math.floor(x[i])
+            yf = math.floor(y[i])
+            ax = np.float32(x[i] - xf)
+            ay = np.float32(y[i] - yf)
+            r0 = int(yf) + pad - half - 1
+            c0 = int(xf) + pad - half - 1
+            for a in range(q):
+                for b in range(q):
+                    S[a, b] = np.float32(dst[r0 + a, c0 + b])
+            for j in range(p + 2):
+                for b in range(q):
+                    L[j, b] = (one - ay) * S[j, b] + ay * S[j + 1, b]
+            for j in range(p + 2):
+                for c in range(p + 2):
+                    H[j, c] = (one - ax) * L[j, c] + ax * L[j, c + 1]
+            mw = np.float32(0.0)
+            mx = np.float32(0.0)
+            my = np.float32(0.0)
+            for a in range(p):
+                for b in range(p):
+                    w = H[a + 1, b + 1]
+                    W[a, b] = w
+                    GX[a, b] = half32 * (H[a + 1, b + 2] - H[a + 1, b])
+                    GY[a, b] = half32 * (H[a + 2, b + 1] - H[a, b + 1])
+                    mw += w
+                    mx += GX[a, b]
+                    my += GY[a, b]
+            mw = np.float32(mw / pp)
+            mx = np.float32(mx / pp)
+            my = np.float32(my / pp)
+            wt = np.float32(0.0)
+            for a in range(p):
+                for b in range(p):
+                    W[a, b] = W[a, b] - mw
+                    GX[a, b] = GX[a, b] - mx
+                    GY[a, b] = GY[a, b] - my
+                    wt += W[a, b] * t[a, b]
+            gain = np.float32(wt / tt)
+            hxx = np.float32(0.0)
+            hyy = np.float32(0.0)
+            hxy = np.float32(0.0)
+            bx = np.float32(0.0)
+            by = np.float32(0.0)
+            rr = np.float32(0.0)
+            for a in range(p):
+                for b in range(p):
+                    r = W[a, b] - gain * t[a, b]
+                    hxx += GX[a, b] * GX[a, b]
+                    hyy += GY[a, b] * GY[a, b]
+                    hxy += GX[a, b] * GY[a, b]
+                    bx -= GX[a, b] * r
+                    by -= GY[a, b] * r
+                    rr += r * r
+            hxx = np.float32(hxx + tiny)
+            hyy = np.float32(hyy + tiny)
+            det = np.float32(hxx * hyy - hxy * hxy)
+            if det > np.float32(1e-6) * hxx * hyy:
+                sx = np.float32((hyy * bx - hxy * by) / det)
+                sy = np.float32((hxx * by - hxy * bx) / det)
+                var_x = np.float32(hyy / det)
+            else:
+                sx = np.float32(bx / hxx)
+                sy = np.float32(0.0)
+                var_x = np.float32(one / hxx)
+            x[i] += np.float64(min(max(sx, np.float32(-0.5)), np.float32(0.5)))
+            y[i] += np.float64(min(max(sy, np.float32(-0.5)), np.float32(0.5)))
+            sigma[i] = np.float64(np.float32(math.sqrt(np.float32(np.float32(rr / dof) * var_x))))
+        sigma[i] = max(sigma[i], min_sigma)
+    return x, y, sigma
+
+
 def _row_peaks_py(scores, start, lo, hi, apart):  # type: ignore[no-untyped-def]
     n, length = scores.shape
     best_k = np.zeros(n, np.int64)
@@ -193,6 +289,7 @@ def _row_peaks_py(scores, start, lo, hi, apart):  # type: ignore[no-untyped-def]
 zncc_scan = numba.njit(cache=True, nogil=True)(_zncc_scan_py)
 row_peaks = numba.njit(cache=True, nogil=True)(_row_peaks_py)
 row_gradient = numba.njit(cache=True, nogil=True)(_row_gradient_py)
+gradient_2d = numba.njit(cache=True, nogil=True)(_grad2d_py)
 
 
 def warm_up() -> None:
@@ -202,3 +299,4 @@ def warm_up() -> None:
     scores = zncc_scan(img, img, 3, one, one, one, 2, 1, np.zeros(1, np.int64))
     row_peaks(scores[:, 0], one, 0, 9, 2)
     row_gradient(img, img, 3, one, one, np.full(1, 5.0), one, 1, 1, 0.05)
+    gradient_2d(img, img, 3, one, one, np.full(1, 5.0), np.full(1, 5.0), 1, 1, 0.05)

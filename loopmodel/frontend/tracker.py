@@ -364,6 +364,7 @@ class FrontEnd:
         # frame's tracking (its rectified left image, the thread)
         self._ahead: tuple[NDArray[np.uint8], Beside[KeyframeMatches]] | None = None
         # the compiled stereo scan and affine re-measurement loaded (or compiled) now, not in a frame (issue 33)
+        from loopmodel.frontend._ba_kernels import warm_up as warm_up_ba
         from loopmodel.frontend._stereo_kernels import warm_up as warm_up_stereo
         from loopmodel.frontend.affine_klt import warm_up
         from loopmodel.pose._point_kernels import warm_up as warm_up_pose
@@ -371,6 +372,8 @@ class FrontEnd:
         warm_up_stereo()
         warm_up()
         warm_up_pose()
+        if self.config.local_ba:
+            warm_up_ba()
         if self.config.klt_share_px > 0:
             from loopmodel.imaging._klt_kernels import warm_up as warm_up_share
 
