@@ -1010,7 +1010,6 @@ def process(
         sequence.calibration, config, listeners or [], base_map, resume, str(sequence.path), finishing,
         _laser_kind(sequence),
     )
-    run.wait_for_workers()
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     stop = stop if stop is not None else StopFlag()
     logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
@@ -1074,6 +1073,7 @@ def _frame_loop(
     it, if any.
     """
     try:
+        run.wait_for_workers()  # their start-up not beside the first frames (tail11)
         for i, (scan, coming) in enumerate(_one_ahead(itertools.islice(scans, total))):
             if stop.is_set():
                 return True, None
