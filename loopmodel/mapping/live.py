@@ -174,10 +174,11 @@ class LiveMapping:
         snap = self._world.take_dirty_blocks()
         if snap is None:
             return
+        pool = self._workers()  # (a daemonic process gets a thread)
         if self._worker_kind == "process":
-            self._job = self._workers().submit(remesh_blocks_low, self._nice, *snap, self._world.config)
+            self._job = pool.submit(remesh_blocks_low, self._nice, *snap, self._world.config)
         else:  # the pool's thread has the lowered priority (it still shares the interpreter lock)
-            self._job = self._workers().submit(remesh_blocks, *snap, self._world.config)
+            self._job = pool.submit(remesh_blocks, *snap, self._world.config)
 
     def start(self) -> None:
         """Start the worker now (when the live mesh is on): its imports before the frames, not among them."""
