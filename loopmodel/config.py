@@ -446,6 +446,12 @@ class MappingConfig(_Section):
     live_mesh_worker: Literal["process", "thread"] = Field(
         default="process", description="where live-mesh updates run: process (tracking never stalls) or thread"
     )
+    # tail11 (issues 32, 33): a live update takes a core for 0.3-1 s (the 300-frame realistic orbit: 15 ms of
+    # CPU a frame); at normal priority it took the core of the tracking thread's keyframe work. Measured
+    # in CHANGELOG (tail11). A scheduling priority, not a data-dependent setting; KITTI has no laser data
+    live_mesh_nice: int = Field(
+        default=10, ge=0, le=19, description="live-mesh updates run this much below the run's priority (0 = same)"
+    )
     live_voxel_m: float = Field(
         default=0.003, gt=0, description="voxel size of the live mesh (coarser than voxel_m: faster updates)"
     )

@@ -38,7 +38,7 @@ import time
 from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import Future
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import numpy.ma  # noqa: F401 - np.median's lazy import, else 126 ms of frame 0 (KITTI clip, issue 33)
@@ -110,6 +110,8 @@ __all__ = [
 ]
 
 F64 = np.ndarray
+#: a sequence's laser data as the run receives it
+LaserKind = Literal["none", "stripes", "images"]
 
 
 # --------------------------------------------------------------------------- metrics
@@ -240,15 +242,25 @@ class _LaserFeed:
         self._unfed: list[StripeProfile] = []
         self._worker: ExtractionWorker | None = None  # made at the first laser-line image
 
+    def start(self) -> None:
+        """Start the extraction worker now (a sequence with laser-line images), not at the first image."""
+        if self._worker is None and not mp.current_process().daemon:
+            from loopmodel.mapping.stripe_feed import ExtractionWorker
+
+            self._worker = ExtractionWorker(self.extractor)
+
+    def wait_started(self, timeout_s: float | None = None) -> None:
+        """Wait until the extraction worker (if any) has started."""
+        if self._worker is not None:
+            self._worker.wait_started(timeout_s)
+
     def take(self, scan: ScanFrame) -> None:
         """A frame's laser data: its profiles join :attr:`stripes` (those of images when extracted)."""
         if not scan.stripes and not scan.laser_images:
             return
         t0 = time.perf_counter()
-        if scan.laser_images and self._worker is None and not mp.current_process().daemon:
-            from loopmodel.mapping.stripe_feed import ExtractionWorker
-
-            self._worker = ExtractionWorker(self.extractor)
+        if scan.laser_images:
+            self.start()
         if self._worker is not None:
             profiles = list(scan.stripes)
             for t_ns, image in scan.laser_images:
@@ -372,6 +384,7 @@ class _Run:
         resume: ResumePoint | None = None,
         source: str = "",
         finishing: FinishFn | None = None,
+        laser: LaserKind = "none",
     ) -> None:
         self.source = source  # the sequence's name, for metrics.json and the session map
         # continue an interrupted run from its last keyframe
@@ -383,6 +396,12 @@ class _Run:
         self.config = config
         self.listeners = listeners
         self.finishing = finishing
+        # the laser profiles of the frames read so far (meshed at the end; the live map takes the new
+        # ones at the next tracked frame); the extraction worker's start (numba's kernels, 1.2 s of
+        # CPU) beside the run's own set-up, not beside its first frames (tail11)
+        self.laser = _LaserFeed(StripeExtractor(calibration, config.mapping))
+        if laser == "images":
+            self.laser.start()
         # issue 31: while refining, right-image columns read at their own rows (calibration.stereo_subpixel)
         self.frontend = FrontEnd(
             calibration, config.calibration.frontend_config(config.frontend),
@@ -407,10 +426,10 @@ class _Run:
         self.anchored = AnchoredTrajectory()
         # placed in one batch when the live mesh takes its points, not on the tracking thread each frame (issue 33)
         self.stripe_map = StripeMap(config.mapping, self.anchored, place_when_read=True)
-        self.live = LiveMapping(self.stripe_map, config.mapping.live_mesh_every_kf, config.mapping.live_mesh_worker)
-        # the laser profiles of the frames read so far (meshed at the end; the live map takes the new
-        # ones at the next tracked frame)
-        self.laser = _LaserFeed(StripeExtractor(calibration, config.mapping))
+        m = config.mapping
+        self.live = LiveMapping(self.stripe_map, m.live_mesh_every_kf, m.live_mesh_worker, m.live_mesh_nice)
+        if laser != "none":  # open3d's import in the live mesh's worker, beside the set-up as well
+            self.live.start()
         self.frames: list[FrameResult] = []
         self.keyframes: dict[int, int] = {}  # keyframe id -> timestamp_ns, in order
         # keyframe -> (previous keyframe, the tracker's pose of it there): drift per interval
@@ -436,6 +455,18 @@ class _Run:
             self.online = OnlineCalibration(self.frontend.input_calibration, config.calibration)
         # the back end's last call (ms) and the ids of the loop constraints it was given (MapState)
         self._last: tuple[float, tuple[int | None, ...]] = (0.0, ())
+
+    def wait_for_workers(self, timeout_s: float = 60.0) -> None:
+        """Before the first frame: the worker processes started with the run have done their imports.
+
+        Their start-up (the back end's GTSAM, the extraction's compiled kernels, the live mesh's open3d:
+        each 0.5-1.5 s of a core) otherwise shares the 2-core machine with the first hundred frames
+        (tail11). A worker that does not start in ``timeout_s`` is not waited for further.
+        """
+        waits = (self.laser.wait_started, self.live.wait_started, getattr(self.backend, "wait_started", None))
+        for wait in waits:
+            if wait is not None:
+                wait(timeout_s)
 
     # ------------------------------------------------------------------ per frame
     def step(self, frame: StereoFrame) -> FrameResult:
@@ -975,7 +1006,10 @@ def process(
     last keyframe (frames before it are skipped and keep the interrupted run's poses).
     ``finishing`` is told each step after the last frame (:data:`FINISH_STEPS`) as it starts and
     ends. The errors against ground truth are :func:`loopmodel.eval.of_run.evaluate`'s."""
-    run = _Run(sequence.calibration, config, listeners or [], base_map, resume, str(sequence.path), finishing)
+    run = _Run(
+        sequence.calibration, config, listeners or [], base_map, resume, str(sequence.path), finishing,
+        _laser_kind(sequence),
+    )
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     stop = stop if stop is not None else StopFlag()
     logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
@@ -1007,6 +1041,13 @@ def process(
     return result
 
 
+def _laser_kind(sequence: Sequence) -> LaserKind:
+    """The laser data the sequence's scan delivers (:meth:`~loopmodel.io.base.Sequence.scan`'s choice)."""
+    if sequence.stripe_count():
+        return "stripes"
+    return "images" if sequence.laser_image_count() else "none"
+
+
 def _one_ahead(scans: Iterator[ScanFrame]) -> Iterator[tuple[ScanFrame, ScanFrame | None]]:
     """Each scan with the next one (None at the end), read before the scan is handed on.
 
@@ -1032,6 +1073,7 @@ def _frame_loop(
     it, if any.
     """
     try:
+        run.wait_for_workers()  # their start-up not beside the first frames (tail11)
         for i, (scan, coming) in enumerate(_one_ahead(itertools.islice(scans, total))):
             if stop.is_set():
                 return True, None

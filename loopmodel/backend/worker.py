@@ -219,6 +219,7 @@ class BackgroundBackend:
         self._done_kf: int | None = None  # the newest keyframe in the worker's estimate
         self._next_constraint = 0
         self._closed = False
+        self._started = False  # the worker's "ready" (or its start's error) taken
         self._pongs = 0
         self.update_ms: list[float] = []  # the worker's add_keyframe times
         self.batch_ms: list[float] = []  # the worker's time per batch (updates and estimate)
@@ -277,6 +278,31 @@ class BackgroundBackend:
                 raise EstimationError(text)
         elif kind == "pong":
             self._pongs = max(self._pongs, int(msg[1]))
+        elif kind == "ready":
+            self._started = True
+
+    def wait_started(self, timeout_s: float | None = None) -> None:
+        """Wait until the worker has built its back end (its imports done; a failure is logged, not raised).
+
+        Before a run's first frame (tail11), so that the start does not share the cores with the first frames.
+        """
+        if self._started:
+            return
+        deadline = None if timeout_s is None else time.perf_counter() + timeout_s
+        while not self._started:
+            left = None if deadline is None else deadline - time.perf_counter()
+            if left is not None and left <= 0:
+                logger.warning("the back-end worker did not start within %.0f s", timeout_s)
+                return
+            try:
+                msg = self._outbox.get(timeout=min(left, 1.0) if left is not None else 1.0)
+            except queue.Empty:
+                if not self._worker.is_alive():
+                    logger.warning("the back-end worker stopped while starting")
+                    return
+                continue
+            self._absorb(msg, False)
+            self._started = self._started or msg[0] in ("ready", "error")
 
     def wait_idle(self, timeout_s: float | None = None) -> None:
         """Wait until the worker has handled everything sent so far (its estimate included)."""

@@ -1,12 +1,14 @@
 """The pipeline's live mapping stage.
 
 Laser stripes fed to the run's :class:`StripeMap` as frames arrive, and the chunked live mesh
-re-meshed in a worker thread.
+re-meshed in a worker (a process by default) on a thread of lowered scheduling priority.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import threading
 import time
 from collections.abc import Sequence
 from typing import Any, Literal
@@ -32,6 +34,43 @@ def _worker_start() -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     import loopmodel.mapping.meshing  # noqa: F401 - open3d's import, before the first update
+
+
+def lower_thread_priority(nice: int) -> None:
+    """Lower the calling thread's scheduling priority by ``nice`` (0: unchanged; at most 19).
+
+    Linux schedules threads one by one, so only this thread yields (a process's other threads keep
+    theirs; raising the priority again would need privileges, lowering it does not). Where the thread
+    cannot be named (not Linux) nothing changes.
+    """
+    if nice <= 0:
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + nice, 19))
+    except (OSError, AttributeError):  # no per-thread priority here: the update keeps the process's
+        logger.debug("live mesh: thread priority not lowered")
+
+
+# the meshing process's low-priority thread (its main thread keeps the process's priority for other
+# work, e.g. the final mesh: mapping.final_mesh_in_live_worker)
+_LOW_PRIORITY: Any = None
+
+
+def remesh_blocks_low(
+    nice: int, points_w: np.ndarray, sensors_w: np.ndarray, blocks: set[BlockKey], config: MappingConfig
+) -> tuple[dict[BlockKey, MeshArrays | None], float, int]:
+    """:func:`remesh_blocks` on a thread of this process whose priority is lowered by ``nice``.
+
+    Issue 32/33: a live update (0.3-1 s of a core on the 300-frame realistic orbit) then yields the
+    cores to the tracking thread and its keyframe work (tail11).
+    """
+    global _LOW_PRIORITY
+    if _LOW_PRIORITY is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _LOW_PRIORITY = ThreadPoolExecutor(1, "live-mesh-low", lower_thread_priority, (nice,))
+    return _LOW_PRIORITY.submit(remesh_blocks, points_w, sensors_w, blocks, config).result()  # type: ignore[no-any-return]
 
 
 def remesh_blocks(
@@ -75,14 +114,18 @@ class LiveMapping:
     meshes as arrays; or a thread. Tracking never waits for it.
     """
 
-    def __init__(self, world: StripeMap, every_kf: int, worker: Literal["process", "thread"] = "process") -> None:
+    def __init__(
+        self, world: StripeMap, every_kf: int, worker: Literal["process", "thread"] = "process", nice: int = 0
+    ) -> None:
         self._world = world
         self._every = every_kf
         self._feeding = every_kf > 0
         self._keyframes = 0
         self._pool: Any = None
         self._job: Any = None
+        self._started: Any = None  # the worker's start (its imports)
         self._worker_kind = worker
+        self._nice = nice  # the updates' priority lowered by this (mapping.live_mesh_nice)
         if every_kf > 0:
             # placing stripes interpolates poses with scipy's rotations: its import (~0.3 s) here,
             # before the frames, not in the frame that places the first stripe (issue 33)
@@ -110,7 +153,7 @@ class LiveMapping:
             if batch:
                 self._world.add_many(batch)
                 if self._pool is None:  # the worker's imports overlap the frames before the first update
-                    self._workers().submit(int, 0)
+                    self.start()
         except LoopmodelError as exc:
             logger.error("live mesh: laser stripes no longer fed: %s", exc)
             self._feeding = False
@@ -131,7 +174,25 @@ class LiveMapping:
         snap = self._world.take_dirty_blocks()
         if snap is None:
             return
-        self._job = self._workers().submit(remesh_blocks, *snap, self._world.config)
+        pool = self._workers()  # (a daemonic process gets a thread)
+        if self._worker_kind == "process":
+            self._job = pool.submit(remesh_blocks_low, self._nice, *snap, self._world.config)
+        else:  # the pool's thread has the lowered priority (it still shares the interpreter lock)
+            self._job = pool.submit(remesh_blocks, *snap, self._world.config)
+
+    def start(self) -> None:
+        """Start the worker now (when the live mesh is on): its imports before the frames, not among them."""
+        if self.enabled and self._pool is None:
+            self._started = self._workers().submit(int, 0)
+
+    def wait_started(self, timeout_s: float | None = None) -> None:
+        """Wait until the worker started by :meth:`start` has done its imports (a failure is logged)."""
+        if self._started is None:
+            return
+        try:
+            self._started.result(timeout_s)
+        except Exception as exc:  # noqa: BLE001 - the updates report it again; the run goes on
+            logger.warning("live mesh worker not started: %s", exc)
 
     def _workers(self) -> Any:
         if self._pool is None:
@@ -149,7 +210,7 @@ class LiveMapping:
             else:
                 from concurrent.futures import ThreadPoolExecutor
 
-                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="live-mesh")
+                self._pool = ThreadPoolExecutor(1, "live-mesh", lower_thread_priority, (self._nice,))
         return self._pool
 
     def _collect(self) -> None:

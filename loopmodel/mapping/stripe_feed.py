@@ -53,9 +53,20 @@ class ExtractionWorker:
         self._pool: Any = ProcessPoolExecutor(
             1, mp_context=mp.get_context("spawn"), initializer=_extract_start, initargs=(extractor,)
         )
-        self._pool.submit(int, 0)  # start it now: its imports overlap the first frames
+        self._started = self._pool.submit(int, 0)  # start it now (its imports: :meth:`wait_started`)
         self._jobs: list[Any] = []
         self.failed = 0
+
+    def wait_started(self, timeout_s: float | None = None) -> None:
+        """Wait until the worker has started (its imports and compiled kernels loaded); a failure is logged.
+
+        A run waits before its first frame (tail11): the start, 1.2 s of CPU, then does not share the
+        machine's two cores with the first frames.
+        """
+        try:
+            self._started.result(timeout_s)
+        except Exception as exc:  # noqa: BLE001 - the images' extraction reports it again; the run goes on
+            logger.warning("laser stripe extraction worker not started: %s", exc)
 
     def submit(self, timestamp_ns: int, image: Any) -> None:
         """Queue one laser-line image (uint8, left camera)."""
