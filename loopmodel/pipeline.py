@@ -54,7 +54,7 @@ from loopmodel.io.results import LogCapture, ResultsFolder, write_results
 from loopmodel.listener import RunListener
 from loopmodel.mapping.anchored import AnchoredTrajectory
 from loopmodel.mapping.extraction import StripeExtractor
-from loopmodel.mapping.final import FinalMeshJob, FinalMeshWorker, end_pool, start_final_mesh
+from loopmodel.mapping.final import FinalMeshJob, FinalMeshWorker, MovedMeshJob, end_pool, start_final_mesh
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
@@ -425,6 +425,7 @@ class _Run:
         self.selfcal: Any = None
         self.retracked: RetrackedFrames | None = None  # the frames between keyframes re-solved after refining
         self.mesh_worker: FinalMeshWorker | None = None  # the final mesh's process, during the finish
+        self.early_mesh: MovedMeshJob | None = None  # the final mesh started before the frames' re-solve
         self.helper: Any = None  # the idle stripe-extraction process pool, during the finish (the re-solve's share)
         # the keyframes' stereo points triangulated with the refined rig (the re-solve's and the map's)
         self.refined_points: dict[int, F64] | None = None
@@ -635,6 +636,7 @@ class _Run:
         stripes = restripe(self.laser.stripes, recorded, sc.calibration, plane.normal_in_cam, plane.d_m)
         self.laser.stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
         self.anchored.update_keyframes(sc.world_from_kf)
+        self._start_mesh_before_resolve()  # the stripes and the keyframes are final here
         if self.config.calibration.retracks or self.map_record is not None:  # issue 32: one triangulation for both
             from loopmodel.calibration.retrack import refined_stereo_points
 
@@ -760,7 +762,10 @@ class _Run:
             with timed_step("final_refinement", steps, self.finishing, cpu):
                 result = self._estimate(interrupted)
                 # the refined stripes and poses to the mesh's process as soon as they are known
-                job = start_final_mesh(result.stripes, result.final, self.config.mapping, self.mesh_worker)
+                if self.early_mesh is not None and result.stripes is self.early_mesh.stripes:
+                    job: FinalMeshJob | MovedMeshJob = self.early_mesh.moved_to(result.final)
+                else:
+                    job = start_final_mesh(result.stripes, result.final, self.config.mapping, self.mesh_worker)
             result.metrics = self._metrics(result, frames_s)
             if self.selfcal is not None:  # issue 31
                 result.metrics.update(self.selfcal.metrics())
@@ -798,11 +803,20 @@ class _Run:
         With ``mapping.final_mesh_in_live_worker`` an idle live-mesh worker process is kept for the
         final mesh (:attr:`mesh_worker`).
         """
-        cc = self.config.calibration
+        cc, mc = self.config.calibration, self.config.mapping
+        if mc.final_mesh_in_live_worker and mc.write_mesh and self.laser.stripes:
+            # open3d loaded there: no new process to start. With the mesh started before the re-solve
+            # (a refinement after this) also a busy one: its last update ends by then (finish11)
+            idle = self.live.take_idle_worker(busy=mc.final_mesh_before_resolve and cc.retracks)
+            if idle is not None:
+                logger.info("final mesh in the live mesh's worker process")
+                self.mesh_worker = FinalMeshWorker(idle)
         # issue 32 (finish10): the idle extraction process takes a share of the frames' re-solve,
-        # its imports (0.85 s CPU) beside the back end's final estimate and the calibrating BA
+        # its imports (0.85 s CPU) beside the back end's final estimate and the calibrating BA;
+        # not while the mesh's process meshes beside the re-solve (finish11: the mesh is then the
+        # longer path, and a third busy process on two cores slows it)
         keep = cc.retracks and cc.retrack_helper_share > 0 and not interrupted and self.localizer is None
-        keep = keep and len(self.frames) >= cc.retrack_helper_min_frames
+        keep = keep and len(self.frames) >= cc.retrack_helper_min_frames and not self._mesh_before_resolve()
         self.helper = self.laser.wait(keep_process=keep)
         if self.helper is not None:
             from loopmodel.calibration.retrack import warm_up
@@ -811,12 +825,6 @@ class _Run:
                 self.helper.submit(warm_up)
             except RuntimeError:  # a broken pool: the re-solve runs here alone
                 self._close_helper()
-        mc = self.config.mapping
-        if mc.final_mesh_in_live_worker and mc.write_mesh and self.laser.stripes:
-            idle = self.live.take_idle_worker()  # open3d loaded there: no new process to start
-            if idle is not None:
-                logger.info("final mesh in the live mesh's idle worker process")
-                self.mesh_worker = FinalMeshWorker(idle)
         if interrupted or (self.config.mapping.write_mesh and self.laser.stripes):
             # the live mesh's last update abandoned, its worker process ended: the final mesh supersedes
             # it (issue 32: else it takes the second core beside the final refinement and the final
@@ -831,7 +839,26 @@ class _Run:
             moved = self.backend.estimate(landmarks=False)
             self._correct({k: moved.world_from_kf[k] for k in moved.changed_keyframes})
 
-    def _mesh(self, result: RunResult, job: FinalMeshJob, own: bool = True) -> dict[str, Any]:
+    def _mesh_before_resolve(self) -> bool:
+        """Whether the final mesh starts before the frames' re-solve (``mapping.final_mesh_before_resolve``).
+
+        Only into a mesh process (:attr:`mesh_worker`), for a run that refines and re-solves its
+        frames (not a resumed or localizing one).
+        """
+        c = self.config
+        return (
+            c.mapping.final_mesh_before_resolve and self.mesh_worker is not None and c.calibration.retracks
+            and c.calibration.refine != "none" and self.resume is None and self.localizer is None
+        )
+
+    def _start_mesh_before_resolve(self) -> None:
+        """The final mesh started with the refined keyframes, moved to the re-solved frames when taken (finish11)."""
+        if not self._mesh_before_resolve() or not self.laser.stripes:
+            return
+        mc = self.config.mapping
+        self.early_mesh = MovedMeshJob(self.laser.stripes, self._final_trajectory(), mc, self.mesh_worker)
+
+    def _mesh(self, result: RunResult, job: FinalMeshJob | MovedMeshJob, own: bool = True) -> dict[str, Any]:
         """The final mesh of ``job`` (``result.mesh`` when ``own``) and the live mesh; their metrics.
 
         The live mesh's last update is waited for here only when no final mesh is made
