@@ -345,15 +345,19 @@ class _MapRecord:
             return None
 
 
-def _import_beside(module: str) -> None:
-    """Import ``module`` in a thread (issue 32: open3d for the final mesh while the back end refines).
+def _import_beside(*modules: str) -> None:
+    """Import ``modules`` in a thread (issue 32: open3d for the final mesh while the back end refines).
 
     Importing open3d took 4.8 s of the 17 s final-mesh step (150-frame realistic orbit, load 15);
     the final refinement runs in the back-end worker meanwhile, the tracking thread only waits.
     Not before the loop drain: the loop worker thread needs the interpreter then (drain 0.3-0.6 s ->
     4.5-5 s with the import beside it).
     """
-    threading.Thread(target=importlib.import_module, args=(module,), name="loopmodel-import", daemon=True).start()
+    def _load() -> None:
+        for module in modules:
+            importlib.import_module(module)
+
+    threading.Thread(target=_load, name="loopmodel-import", daemon=True).start()
 
 
 class _Run:
@@ -391,8 +395,12 @@ class _Run:
         # issue 33: in a worker beside the tracker (config.backend.worker)
         make = functools.partial(create_backend, config.backend, self.frontend.calibration, config.givens)
         self.backend: Backend = start_backend(config.backend, make)
+        # finish11: the evaluation's and the writes' modules too (0.02 s of the KITTI clip's finish in a new process)
+        later = ["loopmodel.eval.of_run", "loopmodel.eval.trajectory_metrics", "loopmodel.io.map_file",
+                 "loopmodel.io.calib_files"]
         if config.calibration.refine != "none":  # calib7: the self-calibration's modules, not after the last frame
-            _import_beside("loopmodel.calibration.retrack")
+            later.insert(0, "loopmodel.calibration.retrack")
+        _import_beside(*later)
         self.session.setup(config, self.frontend.calibration)
         self.localizer = self.session.localizer
         # the place-recognition vocabulary of the loop stage and the session map, read here (issue 32)

@@ -310,7 +310,7 @@ class MovedMeshJob:
         if mesh is None:
             return mesh, metrics
         t1 = time.perf_counter()
-        v = np.asarray(mesh.vertices)
+        v = np.array(mesh.vertices)  # a copy: open3d's buffer is replaced below
         moved = mover.moved(v)
         import open3d as o3d
 
