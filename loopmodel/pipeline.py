@@ -64,7 +64,7 @@ from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripePro
 
 if TYPE_CHECKING:
     from loopmodel.calibration.retrack import RetrackedFrames
-    from loopmodel.eval.of_run import Evaluation
+    from loopmodel.eval.of_run import Evaluation, Prepared
     from loopmodel.loop.session_map import ResumePoint, SessionMap
     from loopmodel.loop.vocabulary import Vocabulary
     from loopmodel.mapping.stripe_feed import ExtractionWorker
@@ -434,6 +434,7 @@ class _Run:
         self.retracked: RetrackedFrames | None = None  # the frames between keyframes re-solved after refining
         self.mesh_worker: FinalMeshWorker | None = None  # the final mesh's process, during the finish
         self.early_mesh: MovedMeshJob | None = None  # the final mesh started before the frames' re-solve
+        self.beside_mesh: Callable[[RunResult], None] | None = None  # process()'s: while the final mesh is made
         self.helper: Any = None  # the idle stripe-extraction process pool, during the finish (the re-solve's share)
         # the keyframes' stereo points triangulated with the refined rig (the re-solve's and the map's)
         self.refined_points: dict[int, F64] | None = None
@@ -874,6 +875,11 @@ class _Run:
         """
         if self.mesh_worker is not None:  # open3d here while the worker makes the mesh (the mesh is built here)
             importlib.import_module("open3d")
+            if self.beside_mesh is not None and own:
+                try:  # e.g. the evaluation's part that needs no mesh (finish11)
+                    self.beside_mesh(result)
+                except Exception as exc:  # noqa: BLE001 - the caller's; the run's results come first
+                    logger.error("beside the mesh: %s", exc)
         mesh, mesh_metrics = job.result()
         if own:
             result.mesh = mesh
@@ -997,6 +1003,7 @@ def process(
     base_map: SessionMap | None = None,
     resume: ResumePoint | None = None,
     finishing: FinishFn | None = None,
+    beside_mesh: Callable[[RunResult], None] | None = None,
 ) -> RunResult:
     """Reader -> front end -> loop closing -> back end -> mapping, writing nothing and grading nothing.
 
@@ -1009,8 +1016,11 @@ def process(
     extends it (``config.session.mode``); with ``resume`` it continues an interrupted run from its
     last keyframe (frames before it are skipped and keep the interrupted run's poses).
     ``finishing`` is told each step after the last frame (:data:`FINISH_STEPS`) as it starts and
-    ends. The errors against ground truth are :func:`loopmodel.eval.of_run.evaluate`'s."""
+    ends. The errors against ground truth are :func:`loopmodel.eval.of_run.evaluate`'s.
+    ``beside_mesh`` is called with the result (its trajectories final, no mesh yet) while another
+    process makes the final mesh (e.g. :func:`loopmodel.eval.of_run.prepare`; finish11)."""
     run = _Run(sequence.calibration, config, listeners or [], base_map, resume, str(sequence.path), finishing)
+    run.beside_mesh = beside_mesh
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     stop = stop if stop is not None else StopFlag()
     logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
@@ -1091,10 +1101,13 @@ def _frame_loop(
     return False, None
 
 
-def evaluated(result: RunResult, sequence: Sequence, finishing: FinishFn | None = None) -> Evaluation | None:
+def evaluated(
+    result: RunResult, sequence: Sequence, finishing: FinishFn | None = None, prepared: Prepared | None = None
+) -> Evaluation | None:
     """:func:`loopmodel.eval.of_run.evaluate` of ``result`` merged into its metrics (``finish_s``, ``wall_s``).
 
-    None (and no step) when the sequence has no ground truth.
+    None (and no step) when the sequence has no ground truth. ``prepared``: its part made while the
+    mesh was made (:func:`loopmodel.eval.of_run.prepare`; then in the ``mesh`` step's time).
     """
     if sequence.ground_truth is None:
         return None
@@ -1102,7 +1115,7 @@ def evaluated(result: RunResult, sequence: Sequence, finishing: FinishFn | None 
 
     seconds = result.metrics.setdefault("finish_s", {})
     with timed_step("evaluation", seconds, finishing, result.metrics.setdefault("finish_cpu_s", {})):
-        evaluation = evaluate(result, sequence)
+        evaluation = evaluate(result, sequence, prepared=prepared)
     result.metrics.update(evaluation.metrics)
     result.metrics["wall_s"] = result.metrics.get("wall_s", 0.0) + seconds["evaluation"]
     return evaluation
@@ -1126,12 +1139,21 @@ def _process_and_write(
     signals = stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop)
     write_s: dict[str, float] = {}
     write_cpu_s: dict[str, float] = {}
+    prepared: list[Prepared] = []
+    beside = None
+    if evaluate and sequence.ground_truth is not None:
+
+        def beside(result: RunResult) -> None:  # the evaluation's part that needs no mesh, while it is made
+            from loopmodel.eval.of_run import prepare
+
+            prepared.append(prepare(result, sequence))
+
     try:
         with LogCapture() as log, signals:
-            result = process(sequence, config, stop=stop, finishing=finishing, **kwargs)
+            result = process(sequence, config, stop=stop, finishing=finishing, beside_mesh=beside, **kwargs)
             if evaluate:
                 try:
-                    evaluated(result, sequence, finishing)
+                    evaluated(result, sequence, finishing, prepared[-1] if prepared else None)
                 except (LoopmodelError, ValueError, OSError) as exc:  # grading must never lose the run's results
                     logger.error("evaluation failed: %s", exc)
                     result.metrics["evaluation_error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
