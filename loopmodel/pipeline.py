@@ -816,7 +816,7 @@ class _Run:
         if mc.final_mesh_in_live_worker and mc.write_mesh and self.laser.stripes:
             # open3d loaded there: no new process to start. With the mesh started before the re-solve
             # (a refinement after this) also a busy one: its last update ends by then (finish11)
-            idle = self.live.take_idle_worker(busy=mc.final_mesh_before_resolve and cc.retracks)
+            idle = self.live.take_idle_worker(busy=not interrupted and self._mesh_before_resolve(any_worker=True))
             if idle is not None:
                 logger.info("final mesh in the live mesh's worker process")
                 self.mesh_worker = FinalMeshWorker(idle)
@@ -848,16 +848,17 @@ class _Run:
             moved = self.backend.estimate(landmarks=False)
             self._correct({k: moved.world_from_kf[k] for k in moved.changed_keyframes})
 
-    def _mesh_before_resolve(self) -> bool:
+    def _mesh_before_resolve(self, any_worker: bool = False) -> bool:
         """Whether the final mesh starts before the frames' re-solve (``mapping.final_mesh_before_resolve``).
 
-        Only into a mesh process (:attr:`mesh_worker`), for a run that refines and re-solves its
-        frames (not a resumed or localizing one).
+        Only into a mesh process (:attr:`mesh_worker`, or before it is taken with ``any_worker``), for
+        a run that refines and re-solves its frames (not a resumed or localizing one).
         """
         c = self.config
         return (
-            c.mapping.final_mesh_before_resolve and self.mesh_worker is not None and c.calibration.retracks
-            and c.calibration.refine != "none" and self.resume is None and self.localizer is None
+            c.mapping.final_mesh_before_resolve and (any_worker or self.mesh_worker is not None)
+            and c.calibration.retracks and c.calibration.refine != "none" and self.resume is None
+            and self.localizer is None
         )
 
     def _start_mesh_before_resolve(self) -> None:
