@@ -810,7 +810,7 @@ class _Run:
         """Stop the workers: the last laser profiles join the stripes, late loops reach the back end.
 
         With ``mapping.final_mesh_in_live_worker`` an idle live-mesh worker process is kept for the
-        final mesh (:attr:`mesh_worker`).
+        final mesh (:attr:`mesh_worker`; a busy one too when the mesh starts before the re-solve).
         """
         cc, mc = self.config.calibration, self.config.mapping
         if mc.final_mesh_in_live_worker and mc.write_mesh and self.laser.stripes:
