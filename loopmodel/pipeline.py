@@ -54,7 +54,7 @@ from loopmodel.io.results import LogCapture, ResultsFolder, write_results
 from loopmodel.listener import RunListener
 from loopmodel.mapping.anchored import AnchoredTrajectory
 from loopmodel.mapping.extraction import StripeExtractor
-from loopmodel.mapping.final import FinalMeshJob, FinalMeshWorker, end_pool, start_final_mesh
+from loopmodel.mapping.final import FinalMeshJob, FinalMeshWorker, MovedMeshJob, end_pool, start_final_mesh
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
@@ -64,7 +64,7 @@ from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripePro
 
 if TYPE_CHECKING:
     from loopmodel.calibration.retrack import RetrackedFrames
-    from loopmodel.eval.of_run import Evaluation
+    from loopmodel.eval.of_run import Evaluation, Prepared
     from loopmodel.loop.session_map import ResumePoint, SessionMap
     from loopmodel.loop.vocabulary import Vocabulary
     from loopmodel.mapping.stripe_feed import ExtractionWorker
@@ -357,15 +357,19 @@ class _MapRecord:
             return None
 
 
-def _import_beside(module: str) -> None:
-    """Import ``module`` in a thread (issue 32: open3d for the final mesh while the back end refines).
+def _import_beside(*modules: str) -> None:
+    """Import ``modules`` in a thread (issue 32: open3d for the final mesh while the back end refines).
 
     Importing open3d took 4.8 s of the 17 s final-mesh step (150-frame realistic orbit, load 15);
     the final refinement runs in the back-end worker meanwhile, the tracking thread only waits.
     Not before the loop drain: the loop worker thread needs the interpreter then (drain 0.3-0.6 s ->
     4.5-5 s with the import beside it).
     """
-    threading.Thread(target=importlib.import_module, args=(module,), name="loopmodel-import", daemon=True).start()
+    def _load() -> None:
+        for module in modules:
+            importlib.import_module(module)
+
+    threading.Thread(target=_load, name="loopmodel-import", daemon=True).start()
 
 
 class _Run:
@@ -410,8 +414,12 @@ class _Run:
         # issue 33: in a worker beside the tracker (config.backend.worker)
         make = functools.partial(create_backend, config.backend, self.frontend.calibration, config.givens)
         self.backend: Backend = start_backend(config.backend, make)
+        # finish11: the evaluation's and the writes' modules too (0.02 s of the KITTI clip's finish in a new process)
+        later = ["loopmodel.eval.of_run", "loopmodel.eval.trajectory_metrics", "loopmodel.io.map_file",
+                 "loopmodel.io.calib_files"]
         if config.calibration.refine != "none":  # calib7: the self-calibration's modules, not after the last frame
-            _import_beside("loopmodel.calibration.retrack")
+            later.insert(0, "loopmodel.calibration.retrack")
+        _import_beside(*later)
         self.session.setup(config, self.frontend.calibration)
         self.localizer = self.session.localizer
         # the place-recognition vocabulary of the loop stage and the session map, read here (issue 32)
@@ -444,6 +452,8 @@ class _Run:
         self.selfcal: Any = None
         self.retracked: RetrackedFrames | None = None  # the frames between keyframes re-solved after refining
         self.mesh_worker: FinalMeshWorker | None = None  # the final mesh's process, during the finish
+        self.early_mesh: MovedMeshJob | None = None  # the final mesh started before the frames' re-solve
+        self.beside_mesh: Callable[[RunResult], None] | None = None  # process()'s: while the final mesh is made
         self.helper: Any = None  # the idle stripe-extraction process pool, during the finish (the re-solve's share)
         # the keyframes' stereo points triangulated with the refined rig (the re-solve's and the map's)
         self.refined_points: dict[int, F64] | None = None
@@ -666,6 +676,7 @@ class _Run:
         stripes = restripe(self.laser.stripes, recorded, sc.calibration, plane.normal_in_cam, plane.d_m)
         self.laser.stripes = apply_laser_scale(sc, kfs, stripes, self.config.calibration.sigma_plane_tilt_deg)
         self.anchored.update_keyframes(sc.world_from_kf)
+        self._start_mesh_before_resolve()  # the stripes and the keyframes are final here
         if self.config.calibration.retracks or self.map_record is not None:  # issue 32: one triangulation for both
             from loopmodel.calibration.retrack import refined_stereo_points
 
@@ -791,7 +802,10 @@ class _Run:
             with timed_step("final_refinement", steps, self.finishing, cpu):
                 result = self._estimate(interrupted)
                 # the refined stripes and poses to the mesh's process as soon as they are known
-                job = start_final_mesh(result.stripes, result.final, self.config.mapping, self.mesh_worker)
+                if self.early_mesh is not None and result.stripes is self.early_mesh.stripes:
+                    job: FinalMeshJob | MovedMeshJob = self.early_mesh.moved_to(result.final)
+                else:
+                    job = start_final_mesh(result.stripes, result.final, self.config.mapping, self.mesh_worker)
             result.metrics = self._metrics(result, frames_s)
             if self.selfcal is not None:  # issue 31
                 result.metrics.update(self.selfcal.metrics())
@@ -827,13 +841,22 @@ class _Run:
         """Stop the workers: the last laser profiles join the stripes, late loops reach the back end.
 
         With ``mapping.final_mesh_in_live_worker`` an idle live-mesh worker process is kept for the
-        final mesh (:attr:`mesh_worker`).
+        final mesh (:attr:`mesh_worker`; a busy one too when the mesh starts before the re-solve).
         """
-        cc = self.config.calibration
+        cc, mc = self.config.calibration, self.config.mapping
+        if mc.final_mesh_in_live_worker and mc.write_mesh and self.laser.stripes:
+            # open3d loaded there: no new process to start. With the mesh started before the re-solve
+            # (a refinement after this) also a busy one: its last update ends by then (finish11)
+            idle = self.live.take_idle_worker(busy=not interrupted and self._mesh_before_resolve(any_worker=True))
+            if idle is not None:
+                logger.info("final mesh in the live mesh's worker process")
+                self.mesh_worker = FinalMeshWorker(idle)
         # issue 32 (finish10): the idle extraction process takes a share of the frames' re-solve,
-        # its imports (0.85 s CPU) beside the back end's final estimate and the calibrating BA
+        # its imports (0.85 s CPU) beside the back end's final estimate and the calibrating BA;
+        # not while the mesh's process meshes beside the re-solve (finish11: the mesh is then the
+        # longer path, and a third busy process on two cores slows it)
         keep = cc.retracks and cc.retrack_helper_share > 0 and not interrupted and self.localizer is None
-        keep = keep and len(self.frames) >= cc.retrack_helper_min_frames
+        keep = keep and len(self.frames) >= cc.retrack_helper_min_frames and not self._mesh_before_resolve()
         self.helper = self.laser.wait(keep_process=keep)
         if self.helper is not None:
             from loopmodel.calibration.retrack import warm_up
@@ -842,12 +865,6 @@ class _Run:
                 self.helper.submit(warm_up)
             except RuntimeError:  # a broken pool: the re-solve runs here alone
                 self._close_helper()
-        mc = self.config.mapping
-        if mc.final_mesh_in_live_worker and mc.write_mesh and self.laser.stripes:
-            idle = self.live.take_idle_worker()  # open3d loaded there: no new process to start
-            if idle is not None:
-                logger.info("final mesh in the live mesh's idle worker process")
-                self.mesh_worker = FinalMeshWorker(idle)
         if interrupted or (self.config.mapping.write_mesh and self.laser.stripes):
             # the live mesh's last update abandoned, its worker process ended: the final mesh supersedes
             # it (issue 32: else it takes the second core beside the final refinement and the final
@@ -862,7 +879,27 @@ class _Run:
             moved = self.backend.estimate(landmarks=False)
             self._correct({k: moved.world_from_kf[k] for k in moved.changed_keyframes})
 
-    def _mesh(self, result: RunResult, job: FinalMeshJob, own: bool = True) -> dict[str, Any]:
+    def _mesh_before_resolve(self, any_worker: bool = False) -> bool:
+        """Whether the final mesh starts before the frames' re-solve (``mapping.final_mesh_before_resolve``).
+
+        Only into a mesh process (:attr:`mesh_worker`, or before it is taken with ``any_worker``), for
+        a run that refines and re-solves its frames (not a resumed or localizing one).
+        """
+        c = self.config
+        return (
+            c.mapping.final_mesh_before_resolve and (any_worker or self.mesh_worker is not None)
+            and c.calibration.retracks and c.calibration.refine != "none" and self.resume is None
+            and self.localizer is None
+        )
+
+    def _start_mesh_before_resolve(self) -> None:
+        """The final mesh started with the refined keyframes, moved to the re-solved frames when taken (finish11)."""
+        if not self._mesh_before_resolve() or not self.laser.stripes:
+            return
+        mc = self.config.mapping
+        self.early_mesh = MovedMeshJob(self.laser.stripes, self._final_trajectory(), mc, self.mesh_worker)
+
+    def _mesh(self, result: RunResult, job: FinalMeshJob | MovedMeshJob, own: bool = True) -> dict[str, Any]:
         """The final mesh of ``job`` (``result.mesh`` when ``own``) and the live mesh; their metrics.
 
         The live mesh's last update is waited for here only when no final mesh is made
@@ -870,6 +907,11 @@ class _Run:
         """
         if self.mesh_worker is not None:  # open3d here while the worker makes the mesh (the mesh is built here)
             importlib.import_module("open3d")
+            if self.beside_mesh is not None and own:
+                try:  # e.g. the evaluation's part that needs no mesh (finish11)
+                    self.beside_mesh(result)
+                except Exception as exc:  # noqa: BLE001 - the caller's; the run's results come first
+                    logger.error("beside the mesh: %s", exc)
         mesh, mesh_metrics = job.result()
         if own:
             result.mesh = mesh
@@ -993,6 +1035,7 @@ def process(
     base_map: SessionMap | None = None,
     resume: ResumePoint | None = None,
     finishing: FinishFn | None = None,
+    beside_mesh: Callable[[RunResult], None] | None = None,
 ) -> RunResult:
     """Reader -> front end -> loop closing -> back end -> mapping, writing nothing and grading nothing.
 
@@ -1005,11 +1048,14 @@ def process(
     extends it (``config.session.mode``); with ``resume`` it continues an interrupted run from its
     last keyframe (frames before it are skipped and keep the interrupted run's poses).
     ``finishing`` is told each step after the last frame (:data:`FINISH_STEPS`) as it starts and
-    ends. The errors against ground truth are :func:`loopmodel.eval.of_run.evaluate`'s."""
+    ends. The errors against ground truth are :func:`loopmodel.eval.of_run.evaluate`'s.
+    ``beside_mesh`` is called with the result (its trajectories final, no mesh yet) while another
+    process makes the final mesh (e.g. :func:`loopmodel.eval.of_run.prepare`)."""
     run = _Run(
         sequence.calibration, config, listeners or [], base_map, resume, str(sequence.path), finishing,
         _laser_kind(sequence),
     )
+    run.beside_mesh = beside_mesh
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     stop = stop if stop is not None else StopFlag()
     logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
@@ -1098,10 +1144,13 @@ def _frame_loop(
     return False, None
 
 
-def evaluated(result: RunResult, sequence: Sequence, finishing: FinishFn | None = None) -> Evaluation | None:
+def evaluated(
+    result: RunResult, sequence: Sequence, finishing: FinishFn | None = None, prepared: Prepared | None = None
+) -> Evaluation | None:
     """:func:`loopmodel.eval.of_run.evaluate` of ``result`` merged into its metrics (``finish_s``, ``wall_s``).
 
-    None (and no step) when the sequence has no ground truth.
+    None (and no step) when the sequence has no ground truth. ``prepared``: its part made while the
+    mesh was made (:func:`loopmodel.eval.of_run.prepare`; then in the ``mesh`` step's time).
     """
     if sequence.ground_truth is None:
         return None
@@ -1109,7 +1158,7 @@ def evaluated(result: RunResult, sequence: Sequence, finishing: FinishFn | None 
 
     seconds = result.metrics.setdefault("finish_s", {})
     with timed_step("evaluation", seconds, finishing, result.metrics.setdefault("finish_cpu_s", {})):
-        evaluation = evaluate(result, sequence)
+        evaluation = evaluate(result, sequence, prepared=prepared)
     result.metrics.update(evaluation.metrics)
     result.metrics["wall_s"] = result.metrics.get("wall_s", 0.0) + seconds["evaluation"]
     return evaluation
@@ -1133,12 +1182,21 @@ def _process_and_write(
     signals = stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop)
     write_s: dict[str, float] = {}
     write_cpu_s: dict[str, float] = {}
+    prepared: list[Prepared] = []
+    beside = None
+    if evaluate and sequence.ground_truth is not None:
+
+        def beside(result: RunResult) -> None:  # the evaluation's part that needs no mesh, while it is made
+            from loopmodel.eval.of_run import prepare
+
+            prepared.append(prepare(result, sequence))
+
     try:
         with LogCapture() as log, signals:
-            result = process(sequence, config, stop=stop, finishing=finishing, **kwargs)
+            result = process(sequence, config, stop=stop, finishing=finishing, beside_mesh=beside, **kwargs)
             if evaluate:
                 try:
-                    evaluated(result, sequence, finishing)
+                    evaluated(result, sequence, finishing, prepared[-1] if prepared else None)
                 except (LoopmodelError, ValueError, OSError) as exc:  # grading must never lose the run's results
                     logger.error("evaluation failed: %s", exc)
                     result.metrics["evaluation_error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__

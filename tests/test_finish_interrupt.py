@@ -170,3 +170,31 @@ def test_the_live_mesh_hands_its_idle_worker_to_the_final_mesh() -> None:
     assert m["mesh_vertices"] == len(here.vertices) and len(procs) == 1
     procs[0].join(10)
     assert not procs[0].is_alive()
+
+
+def test_a_busy_live_worker_is_handed_over_only_when_asked() -> None:
+    """finish11: ``take_idle_worker(busy=True)`` drops the unfinished update; the final mesh runs after it."""
+    import time
+
+    from loopmodel.config import MappingConfig
+    from loopmodel.mapping.final import FinalMeshJob, FinalMeshWorker
+    from loopmodel.mapping.live import LiveMapping
+    from loopmodel.mapping.meshing import mesh_from_points
+    from loopmodel.mapping.stripe_map import StripeMap
+    from loopmodel.types import StripeProfile
+
+    pts, sensors = _patch_of_a_sphere(3000)
+    cfg = MappingConfig()
+    live = LiveMapping(StripeMap(cfg), 1, "process")
+    live.feed([StripeProfile(0, pts[:50])])  # its worker process starts with the first stripes
+    live._job = live._pool.submit(time.sleep, 1.0)  # noqa: SLF001 - an update still running
+    assert live.take_idle_worker() is None
+    pool = live.take_idle_worker(busy=True)
+    assert pool is not None and live.updates_abandoned == 1 and live.take_idle_worker(busy=True) is None
+    worker = FinalMeshWorker(pool)
+    try:
+        mesh, m = FinalMeshJob(pts, sensors, cfg, worker).result()
+    finally:
+        worker.close()
+    assert m["final_mesh_in_worker"] is True
+    np.testing.assert_array_equal(np.asarray(mesh.vertices), np.asarray(mesh_from_points(pts, sensors, cfg).vertices))

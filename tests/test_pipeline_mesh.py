@@ -101,3 +101,11 @@ def test_run_writes_mesh_and_mesh_errors(
     # final mesh's 2-voxel Poisson cells (mapping.poisson_cell_voxels) live 1.63, final 0.75 mm (2.17x):
     # the smoother final surface gained, the live mesh (1-voxel cells) did not change
     assert np.quantile(d_live, 0.9) < 2.0 and np.quantile(d_live, 0.9) < 2.6 * np.quantile(d_final, 0.9)
+    # finish11: the evaluation's part made before the mesh (pipeline's beside_mesh) gives the same numbers
+    from loopmodel.eval.of_run import evaluate, prepare
+
+    whole = evaluate(out, seq).metrics
+    before = prepare(out, seq)
+    assert before.truth is not None and before.truth.object_truth is not None
+    assert evaluate(out, seq, prepared=before).metrics == whole
+    assert whole["mesh_err_after_mm"] == m["mesh_err_after_mm"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import open3d as o3d
@@ -19,6 +20,9 @@ from numpy.typing import NDArray
 from loopmodel.config import MappingConfig
 from loopmodel.errors import InputError
 from loopmodel.types import StripeProfile, Trajectory
+
+if TYPE_CHECKING:
+    from loopmodel.mapping.stripe_map import StripeMap
 
 
 @dataclass
@@ -151,6 +155,37 @@ def mesh_accuracy(
     )
 
 
+@dataclass
+class ObjectTruth:
+    """The scanned object's surface samples (P x 3, world, metres) and which of them the laser swept (or None)."""
+
+    samples_w: NDArray[np.float64]
+    swept: NDArray[np.bool_] | None
+
+
+def object_truth_of(
+    object_mesh: o3d.geometry.TriangleMesh,
+    stripes: list[StripeProfile],
+    swept_by: Trajectory | None,
+    config: MappingConfig | None = None,
+    object_samples: int = 50_000,
+    swept_radius_m: float = 0.005,
+    placed: StripeMap | None = None,
+) -> ObjectTruth:
+    """:class:`ObjectTruth` of ``object_mesh``: seeded samples, swept where within ``swept_radius_m`` of a stripe point.
+
+    The stripes placed with ``swept_by`` (the ground-truth poses in the mesh's world; or ``placed``,
+    already placed); no swept mask without either. Needs no mesh of the run (:func:`mesh_error_metrics`).
+    """
+    from loopmodel.mapping.stripe_map import StripeMap
+
+    reference = sample_surface(object_mesh, object_samples)
+    if placed is None and swept_by is not None:
+        placed = StripeMap.from_trajectory(swept_by, stripes, config)
+    swept = swept_mask(reference, placed.world_points(), swept_radius_m) if placed is not None else None
+    return ObjectTruth(reference, swept)
+
+
 def mesh_error_metrics(
     stripes: list[StripeProfile],
     trajectories: dict[str, Trajectory],
@@ -169,6 +204,7 @@ def mesh_error_metrics(
     meshes: Mapping[str, o3d.geometry.TriangleMesh] | None = None,
     looser_tols_m: tuple[float, ...] = (),
     swept_by: Trajectory | None = None,
+    object_truth: ObjectTruth | None = None,
 ) -> dict[str, float]:
     """Mesh the stripes once per named trajectory and measure each against the ground truth.
 
@@ -187,6 +223,8 @@ def mesh_error_metrics(
     within ``swept_radius_m`` of a stripe point placed with the ``gt`` trajectory, or with
     ``swept_by``, the ground-truth poses in the same world, when given; the stripes are not meshed
     for it).
+    ``object_truth``: the object's samples and their swept mask as :func:`object_truth` gave them
+    for these stripes and ``swept_by`` (computed before the mesh was there; finish11).
     """
     from loopmodel.mapping.stripe_map import StripeMap
 
@@ -196,15 +234,15 @@ def mesh_error_metrics(
     maps = {name: StripeMap.from_trajectory(traj, stripes, config) for name, traj in trajectories.items()
             if name not in given}
     reference = swept = None
-    if object_mesh is not None:
-        reference = sample_surface(object_mesh, object_samples)
+    if object_truth is not None:
+        reference, swept = object_truth.samples_w, object_truth.swept
+    elif object_mesh is not None:
         sweep = swept_by if swept_by is not None else trajectories.get("gt")
-        placed = None
-        if sweep is not None:  # the gt map when it was placed for its own mesh, else placed for this
-            reuse = swept_by is None and "gt" in maps
-            placed = maps["gt"] if reuse else StripeMap.from_trajectory(sweep, stripes, config)
-        if placed is not None:
-            swept = swept_mask(reference, placed.world_points(), swept_radius_m)
+        # the gt map when it was placed for its own mesh, else placed for this
+        reuse = swept_by is None and "gt" in maps
+        t = object_truth_of(object_mesh, stripes, sweep, config, object_samples, swept_radius_m,
+                            maps["gt"] if reuse else None)
+        reference, swept = t.samples_w, t.swept
     to_gt = SurfaceDistance(gt_mesh) if len(gt_mesh.triangles) else None
     out: dict[str, float] = {}
     for name in trajectories:

@@ -239,18 +239,24 @@ class LiveMapping:
             return None
         return self._world.point_count * sum(self.update_ms) / 1e3 / self.points_meshed
 
-    def take_idle_worker(self) -> Any:
+    def take_idle_worker(self, busy: bool = False) -> Any:
         """The worker process's pool when it is idle (its last update installed), for the final mesh; else None.
 
         The live mesh's updates end (as after :meth:`close`); the caller shuts the pool down.
-        A thread pool or a busy worker is not handed over (close it as before).
+        A thread pool is not handed over, nor a busy worker unless ``busy``: then its unfinished
+        update is abandoned unseen (counted in ``updates_abandoned``) and what the caller submits
+        runs after it (finish11: the final mesh started a refinement later, when the update is done).
         """
         if self._pool is None or self._worker_kind != "process":
             return None
         if self._job is not None:
             if not self._job.done():
-                return None
-            self._collect()
+                if not busy:
+                    return None
+                self._job = None
+                self.updates_abandoned += 1
+            else:
+                self._collect()
         pool, self._pool = self._pool, None
         return pool
 
