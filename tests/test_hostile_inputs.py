@@ -1223,3 +1223,18 @@ def test_rig_mask_is_a_regular_file_inside_the_rig_folder(tmp_path: Path) -> Non
         rig.write_text(json.dumps({"cameras": [cam], "mask": name}))
         with pytest.raises(InputError, match=msg):
             read_rig(rig)
+
+
+def test_an_interrupt_surfacing_as_a_cleanup_error_is_still_an_interrupt() -> None:
+    from loopmodel.cli.signals import caused_by_interrupt
+
+    def clean_up_fails() -> None:
+        try:
+            raise KeyboardInterrupt("signal 15")
+        finally:
+            raise RuntimeError("generator already executing")  # noqa: B012 - the case under test
+
+    with pytest.raises(RuntimeError) as info:
+        clean_up_fails()
+    assert caused_by_interrupt(info.value)
+    assert not caused_by_interrupt(RuntimeError("a plain error"))

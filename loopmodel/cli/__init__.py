@@ -45,18 +45,6 @@ def main(argv: list[str] | None = None) -> int:
             _ignore_signals_at_exit()
 
 
-def _caused_by_interrupt(exc: BaseException) -> bool:
-    """Whether ``exc`` comes from a Ctrl-C (an ImportError "initialization failed" wraps one)."""
-    seen: set[int] = set()
-    cur: BaseException | None = exc
-    while cur is not None and id(cur) not in seen:
-        if isinstance(cur, KeyboardInterrupt):
-            return True
-        seen.add(id(cur))
-        cur = cur.__cause__ or cur.__context__
-    return False
-
-
 def _ignore_signals_at_exit() -> None:
     """Ignore Ctrl-C and SIGTERM once the command is over and its exit status decided.
 
@@ -75,7 +63,7 @@ def _main(args: list[str]) -> int:
     debug = "--debug" in args
     if not debug:  # numeric warnings are for developers; the results say what went wrong
         warnings.filterwarnings("ignore", category=RuntimeWarning)
-    from loopmodel.cli.signals import sigterm_as_interrupt
+    from loopmodel.cli.signals import caused_by_interrupt, sigterm_as_interrupt
 
     try:
         with sigterm_as_interrupt():  # SIGTERM is Ctrl-C everywhere (temporary files removed)
@@ -119,7 +107,7 @@ def _main(args: list[str]) -> int:
         err_console.print(f"[red]I/O error:[/red] {where}{exc.strerror or exc}", highlight=False, soft_wrap=True)
         return 1
     except Exception as exc:  # a bug, not bad input: say so in one line unless --debug
-        if _caused_by_interrupt(exc):  # a Ctrl-C inside an extension module's import
+        if caused_by_interrupt(exc):  # a Ctrl-C inside an extension module's import
             _ignore_further_interrupts()
             err_console.print("interrupted")
             return 130
