@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from pathlib import Path
 
 import numpy as np
@@ -33,3 +34,30 @@ def shared_data() -> Path:
 def rng() -> np.random.Generator:
     """A seeded random generator."""
     return np.random.default_rng(12345)
+
+
+def process_ended(pid: int, timeout_s: float) -> bool:
+    """Whether process ``pid`` has ended (gone, or a zombie) within ``timeout_s``.
+
+    Not ``Process.is_alive()``: a ``ProcessPoolExecutor``'s manager thread joins its processes too, and
+    when it reaps one first, the test's own ``waitpid`` fails and ``is_alive()`` stays True for good
+    (seen under load: 1 run in ~15).
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                state = f.read().rsplit(")", 1)[1].split()[0]
+        except FileNotFoundError:
+            return True
+        except OSError:  # no /proc: ask the kernel (a zombie still counts as running there)
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                return True
+            state = "?"
+        if state in ("Z", "X"):
+            return True
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)

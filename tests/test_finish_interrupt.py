@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import process_ended
 
 from loopmodel.io.trajectory_io import read_trajectory
 
@@ -140,7 +141,7 @@ def test_the_final_mesh_in_its_process_is_the_mesh_made_here_and_a_dead_worker_i
         assert m2["final_mesh_in_worker"] is False
     finally:
         worker.close()
-    assert not any(p.is_alive() for p in procs)
+    assert all(process_ended(p.pid, 10.0) for p in procs)
 
 
 def test_the_live_mesh_hands_its_idle_worker_to_the_final_mesh() -> None:
@@ -168,8 +169,7 @@ def test_the_live_mesh_hands_its_idle_worker_to_the_final_mesh() -> None:
     here = mesh_from_points(pts, sensors, cfg)
     np.testing.assert_array_equal(np.asarray(mesh.vertices), np.asarray(here.vertices))
     assert m["mesh_vertices"] == len(here.vertices) and len(procs) == 1
-    procs[0].join(10)
-    assert not procs[0].is_alive()
+    assert process_ended(procs[0].pid, 10.0)
 
 
 def test_a_busy_live_worker_is_handed_over_only_when_asked() -> None:

@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import process_ended
 
 from loopmodel.config import MappingConfig
 from loopmodel.mapping.live import LiveMapping
@@ -156,9 +157,7 @@ def test_abandoned_live_update_ends_its_worker_process() -> None:
     assert procs
     t0 = time.perf_counter()
     live.close(wait=False)
-    for proc in procs:
-        proc.join(timeout=30.0)
-    assert not any(proc.is_alive() for proc in procs)
+    assert all(process_ended(proc.pid, 30.0) for proc in procs)
     assert time.perf_counter() - t0 < 30.0  # ended, not waited for (the sleep is 120 s)
     assert live.updates_abandoned == 1 and live.metrics()["live_mesh_updates_abandoned"] == 1
     assert live.mesh() is None  # no update ever finished
