@@ -1051,9 +1051,10 @@ def process(
     ends. The errors against ground truth are :func:`loopmodel.eval.of_run.evaluate`'s.
     ``beside_mesh`` is called with the result (its trajectories final, no mesh yet) while another
     process makes the final mesh (e.g. :func:`loopmodel.eval.of_run.prepare`)."""
+    # the laser data the scan delivers (Sequence.scan's choice): read here, in the run's one reader
+    laser: LaserKind = "stripes" if sequence.stripe_count() else "images" if sequence.laser_image_count() else "none"
     run = _Run(
-        sequence.calibration, config, listeners or [], base_map, resume, str(sequence.path), finishing,
-        _laser_kind(sequence),
+        sequence.calibration, config, listeners or [], base_map, resume, str(sequence.path), finishing, laser
     )
     run.beside_mesh = beside_mesh
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
@@ -1085,13 +1086,6 @@ def process(
         "done: %d frames, %d keyframes, %s fps", len(run.frames), len(run.keyframes), f"{fps:.1f}" if fps else "-"
     )
     return result
-
-
-def _laser_kind(sequence: Sequence) -> LaserKind:
-    """The laser data the sequence's scan delivers (:meth:`~loopmodel.io.base.Sequence.scan`'s choice)."""
-    if sequence.stripe_count():
-        return "stripes"
-    return "images" if sequence.laser_image_count() else "none"
 
 
 def _one_ahead(scans: Iterator[ScanFrame]) -> Iterator[tuple[ScanFrame, ScanFrame | None]]:
