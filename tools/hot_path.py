@@ -135,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--write", type=Path, help="write the list here (else print it)")
     args = ap.parse_args(argv)
     shared = Path(os.environ.get("LOOPMODEL_SHARED_DATA", "/work/shared/data"))
-    runs = args.runs or [f"{shared / 'kitti_clip'}={ROOT / 'configs/kitti.yaml'}", str(ROOT / "datasets/sample/scan.mcap")]
+    kitti = f"{shared / 'kitti_clip'}={ROOT / 'configs/kitti.yaml'}"
+    runs = args.runs or [kitti, str(ROOT / "datasets/sample/scan.mcap")]
     # laser-line images extracted in this process (a daemonic process starts no extraction worker)
     mp.current_process()._config["daemon"] = True  # type: ignore[attr-defined]
     for run in runs:
