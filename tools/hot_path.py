@@ -8,11 +8,12 @@ hook on every thread; a compiled (numba) kernel is recorded when called from Pyt
 swapped for a subclass whose call records it), with the kernels it calls in turn (the dispatchers
 its source names, followed to the end).
 
-    python tools/hot_path.py [--write tests/data/hot_path.txt] [SEQUENCE [CONFIG]] ...
+    python tools/hot_path.py [--write tests/hot_path.txt] [--first N] [--last N] [SEQUENCE[=CONFIG] ...]
 
 Default sequences: the KITTI clip (``configs/kitti.yaml``, from ``$LOOPMODEL_SHARED_DATA``) and the
-600-frame laser sample ``datasets/sample/scan.mcap``. The list (``path:function`` per line, sorted)
-is what ``tests/test_hot_path_complexity.py`` checks.
+600-frame laser sample ``datasets/sample/scan.mcap`` (its loop closure: P3P and relocalization), each
+from frame 10 to its end. The list (``path:function`` per line, sorted) is what
+``tests/test_hot_path_complexity.py`` checks; trace again when a per-frame function is renamed or moved.
 """
 
 from __future__ import annotations
@@ -88,6 +89,7 @@ def trace(source: str, config_path: str | None, first: int, last: int) -> None:
     global _active
     import loopmodel
     from loopmodel.config import config_from_dict, load_config
+    from loopmodel.io.sequence import open_sequence
     from loopmodel.kernels import warm_up
 
     cfg = load_config(config_path) if config_path else config_from_dict({})
@@ -101,6 +103,8 @@ def trace(source: str, config_path: str | None, first: int, last: int) -> None:
             },
         )
     )
+    sequence = open_sequence(source, cfg.sequence)
+    last = min(last, len(sequence))  # (after the last frame the run finishes: not counted)
     warm_up()  # every kernel loaded before its class is swapped
     import loopmodel.pipeline  # noqa: F401
 
@@ -113,7 +117,7 @@ def trace(source: str, config_path: str | None, first: int, last: int) -> None:
     threading.setprofile(_hook)
     sys.setprofile(_hook)
     try:
-        loopmodel.run(source, cfg, max_frames=last, progress=progress, evaluate=False)
+        loopmodel.run(sequence, cfg, max_frames=last, progress=progress, evaluate=False)
     finally:
         sys.setprofile(None)
         threading.setprofile(None)  # type: ignore[arg-type]
@@ -131,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="*", help="SEQUENCE or SEQUENCE=CONFIG (default: the KITTI clip and scan.mcap)")
     ap.add_argument("--first", type=int, default=10, help="first frame counted (after set-up)")
-    ap.add_argument("--last", type=int, default=40, help="frames run; frames before it counted")
+    ap.add_argument("--last", type=int, default=600, help="frames run (at most); frames before it counted")
     ap.add_argument("--write", type=Path, help="write the list here (else print it)")
     args = ap.parse_args(argv)
     shared = Path(os.environ.get("LOOPMODEL_SHARED_DATA", "/work/shared/data"))
