@@ -39,32 +39,27 @@ def _template_py(src, r0, c0, out):  # type: ignore[no-untyped-def]
 _template = numba.njit(cache=True, nogil=True, inline="always")(_template_py)
 
 
-def _band_py(dst, w0, x0, p, width, band, col1, col2):  # type: ignore[no-untyped-def]
-    """The windows' pixels (p rows from (w0, x0), ``width`` columns) as float32 once, and their column sums."""
-    col1[:] = 0
-    col2[:] = 0
+def _cross_long_py(tz, band, p, length, cross):  # type: ignore[no-untyped-def]
+    """``cross[k]`` = the template ``tz``'s cross term with the window at column k of ``band``.
+
+    Over the template's pixels, every window at once (vectorised over k).
+    """
+    cross[:] = 0.0
     for a in range(p):
-        for c in range(width):
-            g = np.int64(dst[w0 + a, x0 + c])
-            band[a, c] = np.float32(g)
-            col1[c] += g
-            col2[c] += g * g
+        for b in range(p):
+            t = tz[a, b]
+            for k in range(length):
+                cross[k] += t * band[a, b + k]
 
 
-_band = numba.njit(cache=True, nogil=True, inline="always")(_band_py)
+_cross_long = numba.njit(cache=True, nogil=True, inline="always")(_cross_long_py)
 
 
-def _cross_py(tz, band, p, length, cross):  # type: ignore[no-untyped-def]
-    """``cross[k]`` = the template ``tz``'s cross term with the window at column k of ``band``."""
-    if length > 8:  # over the template's pixels, every window at once (vectorised over k)
-        cross[:] = 0.0
-        for a in range(p):
-            for b in range(p):
-                t = tz[a, b]
-                for k in range(length):
-                    cross[k] += t * band[a, b + k]
-        return
-    # a short row (the fine search): eight windows in registers, each summed in the same order
+def _cross_short_py(tz, band, p, length, cross):  # type: ignore[no-untyped-def]
+    """:func:`_cross_long_py` of a short row (the fine search, ``length`` <= 8).
+
+    Eight windows in registers, each summed in the same order.
+    """
     c0 = c1 = c2 = c3 = c4 = c5 = c6 = c7 = np.float32(0.0)
     for a in range(p):
         for b in range(p):
@@ -82,11 +77,11 @@ def _cross_py(tz, band, p, length, cross):  # type: ignore[no-untyped-def]
         cross[k] = block[k]
 
 
-_cross = numba.njit(cache=True, nogil=True, inline="always")(_cross_py)
+_cross_short = numba.njit(cache=True, nogil=True, inline="always")(_cross_short_py)
 
 
-def _scores_py(col1, col2, cross, p, pp, tn, length, out_row):  # type: ignore[no-untyped-def]
-    """``out_row[k]``: the cross terms normalised by the windows' sliding sums (exact integers)."""
+def _scores_py(col1, col2, cross, p, pp, tn, length, out, i, ri):  # type: ignore[no-untyped-def]
+    """``out[i, ri, k]``: the cross terms normalised by the windows' sliding sums (exact integers)."""
     s1 = np.int64(0)
     s2 = np.int64(0)
     for c in range(p):
@@ -98,7 +93,7 @@ def _scores_py(col1, col2, cross, p, pp, tn, length, out_row):  # type: ignore[n
             s2 += col2[k + p - 1] - col2[k - 1]
         f1 = np.float32(s1)
         var = max(np.float32(np.float32(s2) - f1 * f1 / pp), np.float32(1e-3))
-        out_row[k] = np.float32(cross[k] / np.float32(tn * np.float32(math.sqrt(var))))
+        out[i, ri, k] = np.float32(cross[k] / np.float32(tn * np.float32(math.sqrt(var))))
 
 
 _scores = numba.njit(cache=True, nogil=True, inline="always")(_scores_py)
@@ -122,9 +117,20 @@ def _zncc_scan_py(src, dst, pad, u, v, start, length, half, row_offsets):  # typ
         for ri in range(nr):
             w0 = v[i] + row_offsets[ri] + pad - half
             x0 = start[i] + pad - half
-            _band(dst, w0, x0, p, width, band, col1, col2)
-            _cross(tz, band, p, length, cross)
-            _scores(col1, col2, cross, p, pp, tn, length, out[i, ri])
+            # the windows' pixels as float32 once, and their column sums (exact integers)
+            col1[:] = 0
+            col2[:] = 0
+            for a in range(p):
+                for c in range(width):
+                    g = np.int64(dst[w0 + a, x0 + c])
+                    band[a, c] = np.float32(g)
+                    col1[c] += g
+                    col2[c] += g * g
+            if length > 8:
+                _cross_long(tz, band, p, length, cross)
+            else:
+                _cross_short(tz, band, p, length, cross)
+            _scores(col1, col2, cross, p, pp, tn, length, out, i, ri)
     return out
 
 
