@@ -274,34 +274,6 @@ def _polish_distances(s: F64, a2: float, b2: float, c2: float, ca: float, cb: fl
         s[2] -= d2
 
 
-@nb.njit(cache=True, inline="always")
-def _pose_of_distances(
-    s: F64, j: F64, P: F64, Fp: F64, X: F64, Fx: F64, side2: float, Rs: F64, ts: F64, n: int
-) -> bool:
-    """The pose taking the points ``P`` to the rays ``j`` at distances ``s`` -> ``Rs[n]``, ``ts[n]``; False if none.
-
-    ``Fp``: the points' triangle frame; ``X``, ``Fx``: scratch. A pose that does not map every point
-    onto its ray point (1e-5 of the triangle's size) is refused.
-    """
-    if not (s[0] > 0 and s[1] > 0 and s[2] > 0):
-        return False
-    for r in range(3):
-        X[r] = s[r] * j[r]
-    if not _frame(X[0], X[1], X[2], Fx):
-        return False
-    R = _mm3(Fx, Fp.T.copy())
-    t = X[0] - _mv3(R, P[0])
-    err = 0.0
-    for r in range(3):
-        d = _mv3(R, P[r]) + t - X[r]
-        err = max(err, np.sqrt(np.sum(d * d)))
-    if err > 1e-5 * np.sqrt(side2) + 1e-9:
-        return False
-    Rs[n] = R
-    ts[n] = t
-    return True
-
-
 @nb.njit(cache=True)
 def p3p_one(j: F64, P: F64, Rs: F64, ts: F64) -> int:
     """All valid P3P poses (at most 4) of three unit rays and world points; returns their number.
@@ -337,8 +309,23 @@ def p3p_one(j: F64, P: F64, Rs: F64, ts: F64) -> int:
         s1 = np.sqrt(s1sq)
         s = np.array([s1, best_u * s1, v * s1])
         _polish_distances(s, a2, b2, c2, ca, cb, cg, side2)
-        if _pose_of_distances(s, j, P, Fp, X, Fx, side2, Rs, ts, n):
-            n += 1
+        if not (s[0] > 0 and s[1] > 0 and s[2] > 0):
+            continue
+        for r in range(3):
+            X[r] = s[r] * j[r]
+        if not _frame(X[0], X[1], X[2], Fx):
+            continue
+        R = _mm3(Fx, Fp.T.copy())
+        t = X[0] - _mv3(R, P[0])
+        err = 0.0
+        for r in range(3):
+            d = _mv3(R, P[r]) + t - X[r]
+            err = max(err, np.sqrt(np.sum(d * d)))
+        if err > 1e-5 * np.sqrt(side2) + 1e-9:
+            continue
+        Rs[n] = R
+        ts[n] = t
+        n += 1
     return n
 
 
@@ -489,32 +476,6 @@ def _tangent_bases(rays: F64) -> F64:
 
 
 @nb.njit(cache=True, inline="always")
-def _add_ray_rows(
-    H: F64, g: F64, J: F64, Ek: F64, w: float, r0: float, r1: float, x0: float, x1: float, x2: float, nx: float
-) -> None:
-    """The two tangent-plane rows of one ray (weight ``w``) added to the normal equations ``H``, ``g``."""
-    u0, u1, u2 = x0 / nx, x1 / nx, x2 / nx
-    for a in range(2):
-        ea0, ea1, ea2 = Ek[3 * a], Ek[3 * a + 1], Ek[3 * a + 2]
-        eu = ea0 * u0 + ea1 * u1 + ea2 * u2
-        # d r_a / d x = (e - (e . u) u) / |x|; x moves by omega x x + v
-        g0 = (ea0 - eu * u0) / nx
-        g1 = (ea1 - eu * u1) / nx
-        g2 = (ea2 - eu * u2) / nx
-        J[0] = x1 * g2 - x2 * g1
-        J[1] = x2 * g0 - x0 * g2
-        J[2] = x0 * g1 - x1 * g0
-        J[3] = g0
-        J[4] = g1
-        J[5] = g2
-        r = r0 if a == 0 else r1
-        for q in range(6):
-            g[q] += w * J[q] * r
-            for q2 in range(q, 6):
-                H[q, q2] += w * J[q] * J[q2]
-
-
-@nb.njit(cache=True, inline="always")
 def _ray_normal_equations(R: F64, t: F64, P: F64, E: F64, c: float, H: F64, g: F64, J: F64) -> None:
     """``H``, ``g``: the Huber-weighted (cutoff ``c``) Gauss-Newton normal equations at (R, t), H symmetric."""
     H[:] = 0.0
@@ -525,7 +486,25 @@ def _ray_normal_equations(R: F64, t: F64, P: F64, E: F64, c: float, H: F64, g: F
             continue
         d = np.sqrt(r0 * r0 + r1 * r1)
         w = 1.0 if d <= c else c / d
-        _add_ray_rows(H, g, J, E[k], w, r0, r1, x0, x1, x2, nx)
+        u0, u1, u2 = x0 / nx, x1 / nx, x2 / nx
+        for a in range(2):
+            ea0, ea1, ea2 = E[k, 3 * a], E[k, 3 * a + 1], E[k, 3 * a + 2]
+            eu = ea0 * u0 + ea1 * u1 + ea2 * u2
+            # d r_a / d x = (e - (e . u) u) / |x|; x moves by omega x x + v
+            g0 = (ea0 - eu * u0) / nx
+            g1 = (ea1 - eu * u1) / nx
+            g2 = (ea2 - eu * u2) / nx
+            J[0] = x1 * g2 - x2 * g1
+            J[1] = x2 * g0 - x0 * g2
+            J[2] = x0 * g1 - x1 * g0
+            J[3] = g0
+            J[4] = g1
+            J[5] = g2
+            r = r0 if a == 0 else r1
+            for q in range(6):
+                g[q] += w * J[q] * r
+                for q2 in range(q, 6):
+                    H[q, q2] += w * J[q] * J[q2]
     for q in range(6):
         for q2 in range(q):
             H[q, q2] = H[q2, q]
