@@ -39,26 +39,10 @@ def _template_py(src, r0, c0, out):  # type: ignore[no-untyped-def]
 _template = numba.njit(cache=True, nogil=True, inline="always")(_template_py)
 
 
-def _cross_long_py(tz, band, p, length, cross):  # type: ignore[no-untyped-def]
-    """``cross[k]`` = the template ``tz``'s cross term with the window at column k of ``band``.
-
-    Over the template's pixels, every window at once (vectorised over k).
-    """
-    cross[:] = 0.0
-    for a in range(p):
-        for b in range(p):
-            t = tz[a, b]
-            for k in range(length):
-                cross[k] += t * band[a, b + k]
-
-
-_cross_long = numba.njit(cache=True, nogil=True, inline="always")(_cross_long_py)
-
-
 def _cross_short_py(tz, band, p, length, cross):  # type: ignore[no-untyped-def]
-    """:func:`_cross_long_py` of a short row (the fine search, ``length`` <= 8).
+    """``cross[k]`` = the template ``tz``'s cross term with the window at column k of ``band``, k < ``length`` <= 8.
 
-    Eight windows in registers, each summed in the same order.
+    A short row (the fine search): eight windows in registers, each summed in the same order.
     """
     c0 = c1 = c2 = c3 = c4 = c5 = c6 = c7 = np.float32(0.0)
     for a in range(p):
@@ -78,25 +62,6 @@ def _cross_short_py(tz, band, p, length, cross):  # type: ignore[no-untyped-def]
 
 
 _cross_short = numba.njit(cache=True, nogil=True, inline="always")(_cross_short_py)
-
-
-def _scores_py(col1, col2, cross, p, pp, tn, length, out, i, ri):  # type: ignore[no-untyped-def]
-    """``out[i, ri, k]``: the cross terms normalised by the windows' sliding sums (exact integers)."""
-    s1 = np.int64(0)
-    s2 = np.int64(0)
-    for c in range(p):
-        s1 += col1[c]
-        s2 += col2[c]
-    for k in range(length):
-        if k > 0:  # the window slides one column
-            s1 += col1[k + p - 1] - col1[k - 1]
-            s2 += col2[k + p - 1] - col2[k - 1]
-        f1 = np.float32(s1)
-        var = max(np.float32(np.float32(s2) - f1 * f1 / pp), np.float32(1e-3))
-        out[i, ri, k] = np.float32(cross[k] / np.float32(tn * np.float32(math.sqrt(var))))
-
-
-_scores = numba.njit(cache=True, nogil=True, inline="always")(_scores_py)
 
 
 def _zncc_scan_py(src, dst, pad, u, v, start, length, half, row_offsets):  # type: ignore[no-untyped-def]
@@ -126,11 +91,27 @@ def _zncc_scan_py(src, dst, pad, u, v, start, length, half, row_offsets):  # typ
                     band[a, c] = np.float32(g)
                     col1[c] += g
                     col2[c] += g * g
-            if length > 8:
-                _cross_long(tz, band, p, length, cross)
+            if length > 8:  # over the template's pixels, every window at once (vectorised over k)
+                cross[:] = 0.0
+                for a in range(p):
+                    for b in range(p):
+                        t = tz[a, b]
+                        for k in range(length):
+                            cross[k] += t * band[a, b + k]
             else:
                 _cross_short(tz, band, p, length, cross)
-            _scores(col1, col2, cross, p, pp, tn, length, out, i, ri)
+            s1 = np.int64(0)
+            s2 = np.int64(0)
+            for c in range(p):
+                s1 += col1[c]
+                s2 += col2[c]
+            for k in range(length):
+                if k > 0:  # the window slides one column
+                    s1 += col1[k + p - 1] - col1[k - 1]
+                    s2 += col2[k + p - 1] - col2[k - 1]
+                f1 = np.float32(s1)
+                var = max(np.float32(np.float32(s2) - f1 * f1 / pp), np.float32(1e-3))
+                out[i, ri, k] = np.float32(cross[k] / np.float32(tn * np.float32(math.sqrt(var))))
     return out
 
 
@@ -212,7 +193,7 @@ def _interpolate_py(dst, r0, c0, ax, ay, S, L, H):  # type: ignore[no-untyped-de
             H[j, c] = (one - ax) * L[j, c] + ax * L[j, c + 1]
 
 
-_interpolate = numba.njit(cache=True, nogil=True, inline="always")(_interpolate_py)
+_interpolate = numba.njit(cache=True, nogil=True)(_interpolate_py)
 
 
 def _centred_window_py(H, t, pp, W, GX, GY):  # type: ignore[no-untyped-def]
@@ -244,7 +225,7 @@ def _centred_window_py(H, t, pp, W, GX, GY):  # type: ignore[no-untyped-def]
     return wt
 
 
-_centred_window = numba.njit(cache=True, nogil=True, inline="always")(_centred_window_py)
+_centred_window = numba.njit(cache=True, nogil=True)(_centred_window_py)
 
 
 def _step_2d_py(W, GX, GY, t, gain, dof):  # type: ignore[no-untyped-def]
@@ -281,7 +262,7 @@ def _step_2d_py(W, GX, GY, t, gain, dof):  # type: ignore[no-untyped-def]
     return sx, sy, np.float32(math.sqrt(np.float32(np.float32(rr / dof) * var_x)))
 
 
-_step_2d = numba.njit(cache=True, nogil=True, inline="always")(_step_2d_py)
+_step_2d = numba.njit(cache=True, nogil=True)(_step_2d_py)
 
 
 def _grad2d_py(src, dst, pad, u, v, x0, y0, half, iterations, min_sigma):  # type: ignore[no-untyped-def]
