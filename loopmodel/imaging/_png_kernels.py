@@ -6,41 +6,6 @@ import numba
 import numpy as np
 
 
-def _copy_row_py(raw, src, out, o, row_bytes):  # type: ignore[no-untyped-def]
-    """Filter 0 (None): the row as stored."""
-    for x in range(row_bytes):
-        out[o + x] = raw[src + x]
-
-
-_copy_row = numba.njit(cache=True, nogil=True, inline="always")(_copy_row_py)
-
-
-def _sub_row_py(raw, src, out, o, row_bytes, bpp):  # type: ignore[no-untyped-def]
-    """Filter 1 (Sub): each byte plus the byte ``bpp`` to its left."""
-    if bpp == 1:
-        a = np.int32(0)
-        for x in range(row_bytes):
-            a = (a + np.int32(raw[src + x])) & 0xFF
-            out[o + x] = a
-    else:
-        for x in range(bpp):
-            out[o + x] = raw[src + x]
-        for x in range(bpp, row_bytes):
-            out[o + x] = (np.int32(raw[src + x]) + np.int32(out[o + x - bpp])) & 0xFF
-
-
-_sub_row = numba.njit(cache=True, nogil=True, inline="always")(_sub_row_py)
-
-
-def _up_row_py(raw, src, out, o, up, row_bytes):  # type: ignore[no-untyped-def]
-    """Filter 2 (Up) of a row below the first: each byte plus the byte above."""
-    for x in range(row_bytes):
-        out[o + x] = (np.int32(raw[src + x]) + np.int32(out[up + x])) & 0xFF
-
-
-_up_row = numba.njit(cache=True, nogil=True, inline="always")(_up_row_py)
-
-
 def _paeth_py(a, b, c):  # type: ignore[no-untyped-def]
     """The Paeth predictor of left ``a``, above ``b`` and upper-left ``c``."""
     p = a + b - c
@@ -80,7 +45,7 @@ def _unfilter_py(raw, height, row_bytes, bpp):  # type: ignore[no-untyped-def]
     Filters 0-4 of the PNG specification (None, Sub, Up, Average, Paeth) with ``bpp`` bytes per
     pixel, arithmetic modulo 256. Returns (image, ok); ok is False for an unknown filter type. The
     left neighbour of a one-byte pixel is kept in a register (the chain along the row is the cost).
-    Each filter's row is a helper inlined here (issue 32: every per-frame function at complexity <= 12).
+    The Average and Paeth rows are a helper inlined here (issue 32: every per-frame function at complexity <= 12).
     """
     out = np.empty(height * row_bytes, np.uint8)
     stride = row_bytes + 1
@@ -90,11 +55,22 @@ def _unfilter_py(raw, height, row_bytes, bpp):  # type: ignore[no-untyped-def]
         o = y * row_bytes
         up = o - row_bytes  # the row above (y > 0)
         if ft == 0 or (ft == 2 and y == 0):
-            _copy_row(raw, src, out, o, row_bytes)
+            for x in range(row_bytes):
+                out[o + x] = raw[src + x]
         elif ft == 1:
-            _sub_row(raw, src, out, o, row_bytes, bpp)
+            if bpp == 1:
+                a = np.int32(0)
+                for x in range(row_bytes):
+                    a = (a + np.int32(raw[src + x])) & 0xFF
+                    out[o + x] = a
+            else:
+                for x in range(bpp):
+                    out[o + x] = raw[src + x]
+                for x in range(bpp, row_bytes):
+                    out[o + x] = (np.int32(raw[src + x]) + np.int32(out[o + x - bpp])) & 0xFF
         elif ft == 2:
-            _up_row(raw, src, out, o, up, row_bytes)
+            for x in range(row_bytes):
+                out[o + x] = (np.int32(raw[src + x]) + np.int32(out[up + x])) & 0xFF
         elif ft == 3 or ft == 4:
             _average_paeth_row(raw, src, out, o, up, y, row_bytes, bpp, ft)
         else:

@@ -476,42 +476,6 @@ def _tangent_bases(rays: F64) -> F64:
 
 
 @nb.njit(cache=True, inline="always")
-def _ray_normal_equations(R: F64, t: F64, P: F64, E: F64, c: float, H: F64, g: F64, J: F64) -> None:
-    """``H``, ``g``: the Huber-weighted (cutoff ``c``) Gauss-Newton normal equations at (R, t), H symmetric."""
-    H[:] = 0.0
-    g[:] = 0.0
-    for k in range(P.shape[0]):
-        r0, r1, x0, x1, x2, nx = _tangent_residual(R, t, P[k], E[k])
-        if nx <= 0:
-            continue
-        d = np.sqrt(r0 * r0 + r1 * r1)
-        w = 1.0 if d <= c else c / d
-        u0, u1, u2 = x0 / nx, x1 / nx, x2 / nx
-        for a in range(2):
-            ea0, ea1, ea2 = E[k, 3 * a], E[k, 3 * a + 1], E[k, 3 * a + 2]
-            eu = ea0 * u0 + ea1 * u1 + ea2 * u2
-            # d r_a / d x = (e - (e . u) u) / |x|; x moves by omega x x + v
-            g0 = (ea0 - eu * u0) / nx
-            g1 = (ea1 - eu * u1) / nx
-            g2 = (ea2 - eu * u2) / nx
-            J[0] = x1 * g2 - x2 * g1
-            J[1] = x2 * g0 - x0 * g2
-            J[2] = x0 * g1 - x1 * g0
-            J[3] = g0
-            J[4] = g1
-            J[5] = g2
-            r = r0 if a == 0 else r1
-            for q in range(6):
-                g[q] += w * J[q] * r
-                for q2 in range(q, 6):
-                    H[q, q2] += w * J[q] * J[q2]
-    for q in range(6):
-        for q2 in range(q):
-            H[q, q2] = H[q2, q]
-        H[q, q] *= 1.0 + 1e-9
-
-
-@nb.njit(cache=True, inline="always")
 def _rotation_of(om0: float, om1: float, om2: float) -> F64:
     """The rotation exp([omega]x) (Rodrigues; first order below 1e-12 rad)."""
     th = np.sqrt(om0 * om0 + om1 * om1 + om2 * om2)
@@ -527,6 +491,7 @@ def refine_rays(R: F64, t: F64, rays: F64, P: F64, sigma: float, iterations: int
 
     Huber cutoff 1.345 ``sigma`` (radians). A step that raises the robust cost stops it.
     """
+    m = rays.shape[0]
     E = _tangent_bases(rays)  # tangent bases (e1, e2) of the observed rays
     c = 1.345 * sigma
     R = R.copy()
@@ -536,7 +501,37 @@ def refine_rays(R: F64, t: F64, rays: F64, P: F64, sigma: float, iterations: int
     g = np.zeros(6)
     J = np.zeros(6)
     for _ in range(iterations):
-        _ray_normal_equations(R, t, P, E, c, H, g, J)
+        H[:] = 0.0
+        g[:] = 0.0
+        for k in range(m):
+            r0, r1, x0, x1, x2, nx = _tangent_residual(R, t, P[k], E[k])
+            if nx <= 0:
+                continue
+            d = np.sqrt(r0 * r0 + r1 * r1)
+            w = 1.0 if d <= c else c / d
+            u0, u1, u2 = x0 / nx, x1 / nx, x2 / nx
+            for a in range(2):
+                ea0, ea1, ea2 = E[k, 3 * a], E[k, 3 * a + 1], E[k, 3 * a + 2]
+                eu = ea0 * u0 + ea1 * u1 + ea2 * u2
+                # d r_a / d x = (e - (e . u) u) / |x|; x moves by omega x x + v
+                g0 = (ea0 - eu * u0) / nx
+                g1 = (ea1 - eu * u1) / nx
+                g2 = (ea2 - eu * u2) / nx
+                J[0] = x1 * g2 - x2 * g1
+                J[1] = x2 * g0 - x0 * g2
+                J[2] = x0 * g1 - x1 * g0
+                J[3] = g0
+                J[4] = g1
+                J[5] = g2
+                r = r0 if a == 0 else r1
+                for q in range(6):
+                    g[q] += w * J[q] * r
+                    for q2 in range(q, 6):
+                        H[q, q2] += w * J[q] * J[q2]
+        for q in range(6):
+            for q2 in range(q):
+                H[q, q2] = H[q2, q]
+            H[q, q] *= 1.0 + 1e-9
         ok, sol = _solve_spd(H, g)
         if not ok:
             break

@@ -75,31 +75,6 @@ def _best_position_py(P, bound, taps, li, top, slack):  # type: ignore[no-untype
 _best_position = numba.njit(cache=True, nogil=True, inline="always")(_best_position_py)
 
 
-def _centre_of_gravity_py(P, taps, li, k, window, local_background, bg):  # type: ignore[no-untyped-def]
-    """Sums (w, w o) of the smoothed samples above the background over ``window`` either side of ``k``."""
-    n = P.shape[1]
-    e = window + 1
-    lo = hi = 0.0
-    if local_background:
-        lo = _smoothed(P, taps, li, min(max(k - e, 0), n - 1))
-        hi = _smoothed(P, taps, li, min(max(k + e, 0), n - 1))
-    sw = 0.0
-    swo = 0.0
-    for o in range(-window, window + 1):
-        idx = k + o
-        if idx < 0 or idx >= n:
-            continue
-        base = lo + (hi - lo) * ((o + e) / (2.0 * e)) if local_background else bg
-        w = _smoothed(P, taps, li, idx) - base
-        if w > 0.0:
-            sw += w
-            swo += w * o
-    return sw, swo
-
-
-_centre_of_gravity = numba.njit(cache=True, nogil=True, inline="always")(_centre_of_gravity_py)
-
-
 def _profile_peaks_py(P, bound, taps, min_contrast, window, local_background):  # type: ignore[no-untyped-def]
     """Per profile of ``P`` (uint8, profiles x positions): peak index, sub-pixel position, accepted, background.
 
@@ -120,6 +95,8 @@ def _profile_peaks_py(P, bound, taps, min_contrast, window, local_background):  
         tsum += taps[j]
     slack = tsum * (1.0 + 1e-9)
     need = max(min_contrast, 1e-9)
+    e = window + 1
+    lo = hi = 0.0
     for li in range(m):
         bg = _median_u8(P[li], counts)
         background[li] = bg
@@ -134,7 +111,20 @@ def _profile_peaks_py(P, bound, taps, min_contrast, window, local_background):  
         k_out[li] = k
         if best - bg < need:
             continue
-        sw, swo = _centre_of_gravity(P, taps, li, k, window, local_background, bg)
+        if local_background:
+            lo = _smoothed(P, taps, li, min(max(k - e, 0), n - 1))
+            hi = _smoothed(P, taps, li, min(max(k + e, 0), n - 1))
+        sw = 0.0
+        swo = 0.0
+        for o in range(-window, window + 1):
+            idx = k + o
+            if idx < 0 or idx >= n:
+                continue
+            base = lo + (hi - lo) * ((o + e) / (2.0 * e)) if local_background else bg
+            w = _smoothed(P, taps, li, idx) - base
+            if w > 0.0:
+                sw += w
+                swo += w * o
         if sw > 0.0:
             ok[li] = True
             pos[li] = k + swo / sw
