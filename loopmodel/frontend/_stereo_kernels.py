@@ -39,6 +39,31 @@ def _template_py(src, r0, c0, out):  # type: ignore[no-untyped-def]
 _template = numba.njit(cache=True, nogil=True, inline="always")(_template_py)
 
 
+def _cross_short_py(tz, band, p, length, cross):  # type: ignore[no-untyped-def]
+    """``cross[k]`` = the template ``tz``'s cross term with the window at column k of ``band``, k < ``length`` <= 8.
+
+    A short row (the fine search): eight windows in registers, each summed in the same order.
+    """
+    c0 = c1 = c2 = c3 = c4 = c5 = c6 = c7 = np.float32(0.0)
+    for a in range(p):
+        for b in range(p):
+            t = tz[a, b]
+            c0 += t * band[a, b]
+            c1 += t * band[a, b + 1]
+            c2 += t * band[a, b + 2]
+            c3 += t * band[a, b + 3]
+            c4 += t * band[a, b + 4]
+            c5 += t * band[a, b + 5]
+            c6 += t * band[a, b + 6]
+            c7 += t * band[a, b + 7]
+    block = (c0, c1, c2, c3, c4, c5, c6, c7)
+    for k in range(length):
+        cross[k] = block[k]
+
+
+_cross_short = numba.njit(cache=True, nogil=True, inline="always")(_cross_short_py)
+
+
 def _zncc_scan_py(src, dst, pad, u, v, start, length, half, row_offsets):  # type: ignore[no-untyped-def]
     n = u.shape[0]
     p = 2 * half + 1
@@ -73,22 +98,8 @@ def _zncc_scan_py(src, dst, pad, u, v, start, length, half, row_offsets):  # typ
                         t = tz[a, b]
                         for k in range(length):
                             cross[k] += t * band[a, b + k]
-            else:  # a short row (the fine search): eight windows in registers, each summed in the same order
-                c0 = c1 = c2 = c3 = c4 = c5 = c6 = c7 = np.float32(0.0)
-                for a in range(p):
-                    for b in range(p):
-                        t = tz[a, b]
-                        c0 += t * band[a, b]
-                        c1 += t * band[a, b + 1]
-                        c2 += t * band[a, b + 2]
-                        c3 += t * band[a, b + 3]
-                        c4 += t * band[a, b + 4]
-                        c5 += t * band[a, b + 5]
-                        c6 += t * band[a, b + 6]
-                        c7 += t * band[a, b + 7]
-                block = (c0, c1, c2, c3, c4, c5, c6, c7)
-                for k in range(length):
-                    cross[k] = block[k]
+            else:
+                _cross_short(tz, band, p, length, cross)
             s1 = np.int64(0)
             s2 = np.int64(0)
             for c in range(p):
@@ -166,6 +177,94 @@ def _row_gradient_py(src, dst, pad, u, v, x0, v_dst, half, iterations, min_sigma
     return x, sigma
 
 
+def _interpolate_py(dst, r0, c0, ax, ay, S, L, H):  # type: ignore[no-untyped-def]
+    """``H``: ``dst`` from (r0, c0) interpolated at the fractional offsets (ax, ay): rows (L), then columns."""
+    one = np.float32(1.0)
+    q = S.shape[0]
+    m = H.shape[0]
+    for a in range(q):
+        for b in range(q):
+            S[a, b] = np.float32(dst[r0 + a, c0 + b])
+    for j in range(m):
+        for b in range(q):
+            L[j, b] = (one - ay) * S[j, b] + ay * S[j + 1, b]
+    for j in range(m):
+        for c in range(m):
+            H[j, c] = (one - ax) * L[j, c] + ax * L[j, c + 1]
+
+
+_interpolate = numba.njit(cache=True, nogil=True)(_interpolate_py)
+
+
+def _centred_window_py(H, t, pp, W, GX, GY):  # type: ignore[no-untyped-def]
+    """The window ``W`` (H's inner p x p) and its gradients ``GX``, ``GY``, each less its mean; returns W . t."""
+    p = W.shape[0]
+    half32 = np.float32(0.5)
+    mw = np.float32(0.0)
+    mx = np.float32(0.0)
+    my = np.float32(0.0)
+    for a in range(p):
+        for b in range(p):
+            w = H[a + 1, b + 1]
+            W[a, b] = w
+            GX[a, b] = half32 * (H[a + 1, b + 2] - H[a + 1, b])
+            GY[a, b] = half32 * (H[a + 2, b + 1] - H[a, b + 1])
+            mw += w
+            mx += GX[a, b]
+            my += GY[a, b]
+    mw = np.float32(mw / pp)
+    mx = np.float32(mx / pp)
+    my = np.float32(my / pp)
+    wt = np.float32(0.0)
+    for a in range(p):
+        for b in range(p):
+            W[a, b] = W[a, b] - mw
+            GX[a, b] = GX[a, b] - mx
+            GY[a, b] = GY[a, b] - my
+            wt += W[a, b] * t[a, b]
+    return wt
+
+
+_centred_window = numba.njit(cache=True, nogil=True)(_centred_window_py)
+
+
+def _step_2d_py(W, GX, GY, t, gain, dof):  # type: ignore[no-untyped-def]
+    """The Gauss-Newton step (sx, sy) of the gain-fitted residual W - gain t, and its x standard deviation."""
+    p = W.shape[0]
+    one = np.float32(1.0)
+    tiny = np.float32(1e-9)
+    hxx = np.float32(0.0)
+    hyy = np.float32(0.0)
+    hxy = np.float32(0.0)
+    bx = np.float32(0.0)
+    by = np.float32(0.0)
+    rr = np.float32(0.0)
+    for a in range(p):
+        for b in range(p):
+            r = W[a, b] - gain * t[a, b]
+            hxx += GX[a, b] * GX[a, b]
+            hyy += GY[a, b] * GY[a, b]
+            hxy += GX[a, b] * GY[a, b]
+            bx -= GX[a, b] * r
+            by -= GY[a, b] * r
+            rr += r * r
+    hxx = np.float32(hxx + tiny)
+    hyy = np.float32(hyy + tiny)
+    det = np.float32(hxx * hyy - hxy * hxy)
+    if det > np.float32(1e-6) * hxx * hyy:
+        sx = np.float32((hyy * bx - hxy * by) / det)
+        sy = np.float32((hxx * by - hxy * bx) / det)
+        var_x = np.float32(hyy / det)
+    else:
+        sx = np.float32(bx / hxx)
+        sy = np.float32(0.0)
+        var_x = np.float32(one / hxx)
+    return sx, sy, np.float32(math.sqrt(np.float32(np.float32(rr / dof) * var_x)))
+
+
+_step_2d = numba.njit(cache=True, nogil=True)(_step_2d_py)
+
+
 def _grad2d_py(src, dst, pad, u, v, x0, y0, half, iterations, min_sigma):  # type: ignore[no-untyped-def]
     n = u.shape[0]
     p = 2 * half + 1
@@ -184,8 +283,6 @@ def _grad2d_py(src, dst, pad, u, v, x0, y0, half, iterations, min_sigma):  # typ
     W = np.empty((p, p), np.float32)
     GX = np.empty((p, p), np.float32)
     GY = np.empty((p, p), np.float32)
-    half32 = np.float32(0.5)
-    one = np.float32(1.0)
     tiny = np.float32(1e-9)
     dof = np.float32(max(p * p - 4, 1))
     for i in range(n):
@@ -195,69 +292,12 @@ def _grad2d_py(src, dst, pad, u, v, x0, y0, half, iterations, min_sigma):  # typ
             yf = math.floor(y[i])
             ax = np.float32(x[i] - xf)
             ay = np.float32(y[i] - yf)
-            r0 = int(yf) + pad - half - 1
-            c0 = int(xf) + pad - half - 1
-            for a in range(q):
-                for b in range(q):
-                    S[a, b] = np.float32(dst[r0 + a, c0 + b])
-            for j in range(p + 2):
-                for b in range(q):
-                    L[j, b] = (one - ay) * S[j, b] + ay * S[j + 1, b]
-            for j in range(p + 2):
-                for c in range(p + 2):
-                    H[j, c] = (one - ax) * L[j, c] + ax * L[j, c + 1]
-            mw = np.float32(0.0)
-            mx = np.float32(0.0)
-            my = np.float32(0.0)
-            for a in range(p):
-                for b in range(p):
-                    w = H[a + 1, b + 1]
-                    W[a, b] = w
-                    GX[a, b] = half32 * (H[a + 1, b + 2] - H[a + 1, b])
-                    GY[a, b] = half32 * (H[a + 2, b + 1] - H[a, b + 1])
-                    mw += w
-                    mx += GX[a, b]
-                    my += GY[a, b]
-            mw = np.float32(mw / pp)
-            mx = np.float32(mx / pp)
-            my = np.float32(my / pp)
-            wt = np.float32(0.0)
-            for a in range(p):
-                for b in range(p):
-                    W[a, b] = W[a, b] - mw
-                    GX[a, b] = GX[a, b] - mx
-                    GY[a, b] = GY[a, b] - my
-                    wt += W[a, b] * t[a, b]
-            gain = np.float32(wt / tt)
-            hxx = np.float32(0.0)
-            hyy = np.float32(0.0)
-            hxy = np.float32(0.0)
-            bx = np.float32(0.0)
-            by = np.float32(0.0)
-            rr = np.float32(0.0)
-            for a in range(p):
-                for b in range(p):
-                    r = W[a, b] - gain * t[a, b]
-                    hxx += GX[a, b] * GX[a, b]
-                    hyy += GY[a, b] * GY[a, b]
-                    hxy += GX[a, b] * GY[a, b]
-                    bx -= GX[a, b] * r
-                    by -= GY[a, b] * r
-                    rr += r * r
-            hxx = np.float32(hxx + tiny)
-            hyy = np.float32(hyy + tiny)
-            det = np.float32(hxx * hyy - hxy * hxy)
-            if det > np.float32(1e-6) * hxx * hyy:
-                sx = np.float32((hyy * bx - hxy * by) / det)
-                sy = np.float32((hxx * by - hxy * bx) / det)
-                var_x = np.float32(hyy / det)
-            else:
-                sx = np.float32(bx / hxx)
-                sy = np.float32(0.0)
-                var_x = np.float32(one / hxx)
+            _interpolate(dst, int(yf) + pad - half - 1, int(xf) + pad - half - 1, ax, ay, S, L, H)
+            gain = np.float32(_centred_window(H, t, pp, W, GX, GY) / tt)
+            sx, sy, sd = _step_2d(W, GX, GY, t, gain, dof)
             x[i] += np.float64(min(max(sx, np.float32(-0.5)), np.float32(0.5)))
             y[i] += np.float64(min(max(sy, np.float32(-0.5)), np.float32(0.5)))
-            sigma[i] = np.float64(np.float32(math.sqrt(np.float32(np.float32(rr / dof) * var_x))))
+            sigma[i] = np.float64(sd)
         sigma[i] = max(sigma[i], min_sigma)
     return x, y, sigma
 

@@ -61,6 +61,26 @@ def decode_png_8bit(data: bytes | NDArray[np.uint8]) -> NDArray[np.uint8] | None
     if depth != 8 or colour not in (0, 2) or method or filt or interlace or not width or not height:
         return None
     channels = 1 if colour == 0 else 3
+    parts = _png_data_chunks(mv)
+    if parts is None:
+        return None
+    row_bytes = width * channels
+    raw = _inflate(parts, height * (row_bytes + 1))
+    if raw is None:
+        return None
+    from loopmodel.imaging._png_kernels import unfilter  # numba: imported when first needed
+
+    img, ok = unfilter(np.frombuffer(raw, np.uint8), height, row_bytes, channels)
+    if not ok:
+        return None
+    if channels == 1:
+        return img
+    return np.ascontiguousarray(img.reshape(height, width, 3)[:, :, ::-1])
+
+
+def _png_data_chunks(mv: memoryview) -> list[memoryview] | None:
+    """The IDAT chunks' data of a PNG, up to IEND; None for a bad CRC, a cut file or a chunk that changes pixels."""
+    n = len(mv)
     parts: list[memoryview] = []
     at = 8
     while True:
@@ -74,12 +94,14 @@ def decode_png_8bit(data: bytes | NDArray[np.uint8]) -> NDArray[np.uint8] | None
         if kind == b"IDAT":
             parts.append(mv[at + 8 : end])
         elif kind == b"IEND":
-            break
+            return parts
         elif at > 8 and kind not in _PNG_IGNORED:
             return None
         at = end + 4
-    row_bytes = width * channels
-    size = height * (row_bytes + 1)
+
+
+def _inflate(parts: list[memoryview], size: int) -> bytes | None:
+    """The zlib stream of ``parts`` inflated: exactly ``size`` bytes and complete, else None."""
     try:  # never more than the declared image (a small file can inflate to gigabytes); the stream complete
         inflater = _inflater()
         raw = inflater.decompress(b"".join(parts), size)
@@ -87,14 +109,7 @@ def decode_png_8bit(data: bytes | NDArray[np.uint8]) -> NDArray[np.uint8] | None
             return None
     except Exception:  # isal and zlib raise their own error types
         return None
-    from loopmodel.imaging._png_kernels import unfilter  # numba: imported when first needed
-
-    img, ok = unfilter(np.frombuffer(raw, np.uint8), height, row_bytes, channels)
-    if not ok:
-        return None
-    if channels == 1:
-        return img
-    return np.ascontiguousarray(img.reshape(height, width, 3)[:, :, ::-1])
+    return bytes(raw)
 
 
 def decode_quietly(data: bytes | NDArray[np.uint8], flags: int = cv2.IMREAD_UNCHANGED) -> NDArray[Any] | None:

@@ -117,6 +117,42 @@ def _cubic_max_root(b: float, c: float, d: float) -> float:
     return x
 
 
+@nb.njit(cache=True, inline="always")
+def _biquadratic_roots(p: float, r: float, ys: F64) -> int:
+    """Real roots y of y^4 + p y^2 + r (the depressed quartic without its linear term) -> ``ys``."""
+    n = 0
+    disc = p * p - 4.0 * r
+    if disc >= 0:
+        for z in ((-p + np.sqrt(disc)) / 2.0, (-p - np.sqrt(disc)) / 2.0):
+            if z >= 0:
+                ys[n] = np.sqrt(z)
+                ys[n + 1] = -np.sqrt(z)
+                n += 2
+    return n
+
+
+@nb.njit(cache=True, inline="always")
+def _ferrari_roots(p: float, q: float, r: float, ys: F64) -> int:
+    """Real roots y of y^4 + p y^2 + q y + r by Ferrari (resolvent cubic, two quadratics) -> ``ys``."""
+    n = 0
+    m = _cubic_max_root(p, p * p / 4.0 - r, -q * q / 8.0)
+    if m <= 0:
+        m = 1e-300
+    s2 = np.sqrt(2.0 * m)
+    for sg in (1.0, -1.0):
+        # y^2 + sg s2 y + (p/2 + m - sg q / (2 s2)) = 0
+        cc = p / 2.0 + m - sg * q / (2.0 * s2)
+        disc = 2.0 * m - 4.0 * cc
+        if disc < 0 and disc > -1e-9 * (2.0 * m + 4.0 * abs(cc)):
+            disc = 0.0
+        if disc >= 0:
+            sq = np.sqrt(disc)
+            ys[n] = (-sg * s2 + sq) / 2.0
+            ys[n + 1] = (-sg * s2 - sq) / 2.0
+            n += 2
+    return n
+
+
 @nb.njit(cache=True)
 def quartic_real_roots(A4: float, A3: float, A2: float, A1: float, A0: float, out: F64) -> int:
     """Real roots of A4 v^4 + ...
@@ -130,32 +166,11 @@ def quartic_real_roots(A4: float, A3: float, A2: float, A1: float, A0: float, ou
     p = b - 3.0 * a * a / 8.0
     q = c - a * b / 2.0 + a**3 / 8.0
     r = d - a * c / 4.0 + a * a * b / 16.0 - 3.0 * a**4 / 256.0
-    n = 0
     ys = np.empty(4)
     if abs(q) < 1e-14 * max(1.0, abs(p), abs(r)):
-        disc = p * p - 4.0 * r
-        if disc >= 0:
-            for z in ((-p + np.sqrt(disc)) / 2.0, (-p - np.sqrt(disc)) / 2.0):
-                if z >= 0:
-                    ys[n] = np.sqrt(z)
-                    ys[n + 1] = -np.sqrt(z)
-                    n += 2
+        n = _biquadratic_roots(p, r, ys)
     else:
-        m = _cubic_max_root(p, p * p / 4.0 - r, -q * q / 8.0)
-        if m <= 0:
-            m = 1e-300
-        s2 = np.sqrt(2.0 * m)
-        for sg in (1.0, -1.0):
-            # y^2 + sg s2 y + (p/2 + m - sg q / (2 s2)) = 0
-            cc = p / 2.0 + m - sg * q / (2.0 * s2)
-            disc = 2.0 * m - 4.0 * cc
-            if disc < 0 and disc > -1e-9 * (2.0 * m + 4.0 * abs(cc)):
-                disc = 0.0
-            if disc >= 0:
-                sq = np.sqrt(disc)
-                ys[n] = (-sg * s2 + sq) / 2.0
-                ys[n + 1] = (-sg * s2 - sq) / 2.0
-                n += 2
+        n = _ferrari_roots(p, q, r, ys)
     for k in range(n):
         x = ys[k] - a / 4.0
         for _ in range(2):
@@ -166,6 +181,97 @@ def quartic_real_roots(A4: float, A3: float, A2: float, A1: float, A0: float, ou
             x -= f / df
         out[k] = x
     return n
+
+
+@nb.njit(cache=True, inline="always")
+def _degenerate(j: F64, P: F64, b2: float, side2: float) -> bool:
+    """Whether the three points are (nearly) collinear or coincident, or the three rays coplanar."""
+    if side2 <= 0 or b2 <= 1e-12 * side2:
+        return True
+    e1 = P[1] - P[0]
+    e2 = P[2] - P[0]
+    cx = e1[1] * e2[2] - e1[2] * e2[1]
+    cy = e1[2] * e2[0] - e1[0] * e2[2]
+    cz = e1[0] * e2[1] - e1[1] * e2[0]
+    if cx * cx + cy * cy + cz * cz <= (1e-6 * side2) ** 2:
+        return True
+    tx = j[1, 1] * j[2, 2] - j[1, 2] * j[2, 1]
+    ty = j[1, 2] * j[2, 0] - j[1, 0] * j[2, 2]
+    tz = j[1, 0] * j[2, 1] - j[1, 1] * j[2, 0]
+    return abs(j[0, 0] * tx + j[0, 1] * ty + j[0, 2] * tz) <= 1e-6
+
+
+@nb.njit(cache=True, inline="always")
+def _grunert_quartic(
+    a2: float, b2: float, c2: float, ca: float, cb: float, cg: float
+) -> tuple[float, float, float, float, float]:
+    """Grunert's quartic in v = s3 / s1 from the squared sides and the rays' cosines: (A4, A3, A2, A1, A0)."""
+    amc = (a2 - c2) / b2
+    apc = (a2 + c2) / b2
+    A4 = (amc - 1.0) ** 2 - 4.0 * c2 / b2 * ca**2
+    A3 = 4.0 * (amc * (1.0 - amc) * cb - (1.0 - apc) * ca * cg + 2.0 * c2 / b2 * ca**2 * cb)
+    A2 = 2.0 * (
+        amc**2
+        - 1.0
+        + 2.0 * amc**2 * cb**2
+        + 2.0 * (b2 - c2) / b2 * ca**2
+        - 4.0 * apc * ca * cb * cg
+        + 2.0 * (b2 - a2) / b2 * cg**2
+    )
+    A1 = 4.0 * (-amc * (1.0 + amc) * cb + 2.0 * a2 / b2 * cg**2 * cb - (1.0 - apc) * ca * cg)
+    A0 = (1.0 + amc) ** 2 - 4.0 * a2 / b2 * cg**2
+    return A4, A3, A2, A1, A0
+
+
+@nb.njit(cache=True, inline="always")
+def _distances_of_root(
+    v: float, a2: float, b2: float, c2: float, ca: float, cb: float, cg: float, side2: float
+) -> tuple[bool, float, float]:
+    """The root ``v``'s distance s1 and ratio u = s2 / s1 (the better of two); False when it gives none."""
+    if v <= 0:
+        return False, 0.0, 0.0
+    den = 1.0 + v * v - 2.0 * v * cb
+    if den <= 1e-12:
+        return False, 0.0, 0.0
+    s1sq = b2 / den
+    disc = cg * cg - 1.0 + c2 / s1sq
+    if disc < -1e-6:
+        return False, 0.0, 0.0
+    root = np.sqrt(max(disc, 0.0))
+    best_u = 0.0
+    best_res = np.inf
+    for sign in (1.0, -1.0):
+        u = cg + sign * root
+        res = abs(s1sq * (u * u + v * v - 2.0 * u * v * ca) - a2)
+        if u > 0 and res < best_res:
+            best_u = u
+            best_res = res
+    return best_res <= 1e-2 * side2 + 1e-9, s1sq, best_u
+
+
+@nb.njit(cache=True, inline="always")
+def _polish_distances(s: F64, a2: float, b2: float, c2: float, ca: float, cb: float, cg: float, side2: float) -> None:
+    """Newton polish of the distances ``s`` (3,) on the law-of-cosines equations, in place."""
+    for _ in range(3):
+        f0 = s[0] ** 2 + s[1] ** 2 - 2 * s[0] * s[1] * cg - c2
+        f1 = s[0] ** 2 + s[2] ** 2 - 2 * s[0] * s[2] * cb - b2
+        f2 = s[1] ** 2 + s[2] ** 2 - 2 * s[1] * s[2] * ca - a2
+        # Jacobian [[p, q, 0], [r, 0, u], [0, w, z]]; Cramer's rule
+        jp = 2 * s[0] - 2 * s[1] * cg
+        jq = 2 * s[1] - 2 * s[0] * cg
+        jr = 2 * s[0] - 2 * s[2] * cb
+        ju = 2 * s[2] - 2 * s[0] * cb
+        jw = 2 * s[1] - 2 * s[2] * ca
+        jz = 2 * s[2] - 2 * s[1] * ca
+        det = -jp * ju * jw - jq * jr * jz
+        if abs(det) <= 1e-14 * side2**1.5:
+            break
+        d0 = (-f0 * ju * jw - jq * (f1 * jz - ju * f2)) / det
+        d1 = (jp * (f1 * jz - ju * f2) - f0 * jr * jz) / det
+        d2 = (-jp * f1 * jw - jq * jr * f2 + f0 * jr * jw) / det
+        s[0] -= d0
+        s[1] -= d1
+        s[2] -= d2
 
 
 @nb.njit(cache=True)
@@ -181,34 +287,9 @@ def p3p_one(j: F64, P: F64, Rs: F64, ts: F64) -> int:
     cb = np.sum(j[0] * j[2])
     cg = np.sum(j[0] * j[1])
     side2 = max(a2, b2, c2)
-    if side2 <= 0 or b2 <= 1e-12 * side2:
+    if _degenerate(j, P, b2, side2):
         return 0
-    e1 = P[1] - P[0]
-    e2 = P[2] - P[0]
-    cx = e1[1] * e2[2] - e1[2] * e2[1]
-    cy = e1[2] * e2[0] - e1[0] * e2[2]
-    cz = e1[0] * e2[1] - e1[1] * e2[0]
-    if cx * cx + cy * cy + cz * cz <= (1e-6 * side2) ** 2:
-        return 0
-    tx = j[1, 1] * j[2, 2] - j[1, 2] * j[2, 1]
-    ty = j[1, 2] * j[2, 0] - j[1, 0] * j[2, 2]
-    tz = j[1, 0] * j[2, 1] - j[1, 1] * j[2, 0]
-    if abs(j[0, 0] * tx + j[0, 1] * ty + j[0, 2] * tz) <= 1e-6:
-        return 0
-    amc = (a2 - c2) / b2
-    apc = (a2 + c2) / b2
-    A4 = (amc - 1.0) ** 2 - 4.0 * c2 / b2 * ca**2
-    A3 = 4.0 * (amc * (1.0 - amc) * cb - (1.0 - apc) * ca * cg + 2.0 * c2 / b2 * ca**2 * cb)
-    A2 = 2.0 * (
-        amc**2
-        - 1.0
-        + 2.0 * amc**2 * cb**2
-        + 2.0 * (b2 - c2) / b2 * ca**2
-        - 4.0 * apc * ca * cb * cg
-        + 2.0 * (b2 - a2) / b2 * cg**2
-    )
-    A1 = 4.0 * (-amc * (1.0 + amc) * cb + 2.0 * a2 / b2 * cg**2 * cb - (1.0 - apc) * ca * cg)
-    A0 = (1.0 + amc) ** 2 - 4.0 * a2 / b2 * cg**2
+    A4, A3, A2, A1, A0 = _grunert_quartic(a2, b2, c2, ca, cb, cg)
     sc = max(abs(A4), abs(A3), abs(A2), abs(A1), abs(A0))
     if sc <= 0 or abs(A4) < 1e-12 * sc:
         return 0
@@ -222,49 +303,12 @@ def p3p_one(j: F64, P: F64, Rs: F64, ts: F64) -> int:
     Fx = np.empty((3, 3))
     for q in range(n_roots):
         v = roots[q]
-        if v <= 0:
-            continue
-        den = 1.0 + v * v - 2.0 * v * cb
-        if den <= 1e-12:
-            continue
-        s1sq = b2 / den
-        disc = cg * cg - 1.0 + c2 / s1sq
-        if disc < -1e-6:
-            continue
-        root = np.sqrt(max(disc, 0.0))
-        best_u = 0.0
-        best_res = np.inf
-        for sign in (1.0, -1.0):
-            u = cg + sign * root
-            res = abs(s1sq * (u * u + v * v - 2.0 * u * v * ca) - a2)
-            if u > 0 and res < best_res:
-                best_u = u
-                best_res = res
-        if not best_res <= 1e-2 * side2 + 1e-9:
+        ok, s1sq, best_u = _distances_of_root(v, a2, b2, c2, ca, cb, cg, side2)
+        if not ok:
             continue
         s1 = np.sqrt(s1sq)
         s = np.array([s1, best_u * s1, v * s1])
-        # Newton polish of the distances on the law-of-cosines equations
-        for _ in range(3):
-            f0 = s[0] ** 2 + s[1] ** 2 - 2 * s[0] * s[1] * cg - c2
-            f1 = s[0] ** 2 + s[2] ** 2 - 2 * s[0] * s[2] * cb - b2
-            f2 = s[1] ** 2 + s[2] ** 2 - 2 * s[1] * s[2] * ca - a2
-            # Jacobian [[p, q, 0], [r, 0, u], [0, w, z]]; Cramer's rule
-            jp = 2 * s[0] - 2 * s[1] * cg
-            jq = 2 * s[1] - 2 * s[0] * cg
-            jr = 2 * s[0] - 2 * s[2] * cb
-            ju = 2 * s[2] - 2 * s[0] * cb
-            jw = 2 * s[1] - 2 * s[2] * ca
-            jz = 2 * s[2] - 2 * s[1] * ca
-            det = -jp * ju * jw - jq * jr * jz
-            if abs(det) <= 1e-14 * side2**1.5:
-                break
-            d0 = (-f0 * ju * jw - jq * (f1 * jz - ju * f2)) / det
-            d1 = (jp * (f1 * jz - ju * f2) - f0 * jr * jz) / det
-            d2 = (-jp * f1 * jw - jq * jr * f2 + f0 * jr * jw) / det
-            s[0] -= d0
-            s[1] -= d1
-            s[2] -= d2
+        _polish_distances(s, a2, b2, c2, ca, cb, cg, side2)
         if not (s[0] > 0 and s[1] > 0 and s[2] > 0):
             continue
         for r in range(3):
@@ -409,14 +453,11 @@ def _huber_cost(R: F64, t: F64, P: F64, E: F64, c: float) -> float:
     return tot
 
 
-@nb.njit(cache=True)
-def refine_rays(R: F64, t: F64, rays: F64, P: F64, sigma: float, iterations: int) -> tuple[F64, F64]:
-    """Gauss-Newton with Huber weights on the tangent-plane errors of unit rays -> (R, t).
-
-    Huber cutoff 1.345 ``sigma`` (radians). A step that raises the robust cost stops it.
-    """
+@nb.njit(cache=True, inline="always")
+def _tangent_bases(rays: F64) -> F64:
+    """Per unit ray: two unit vectors (e1, e2) orthogonal to it and to each other -> (m, 6)."""
     m = rays.shape[0]
-    E = np.empty((m, 6))  # tangent bases (e1, e2) of the observed rays
+    E = np.empty((m, 6))
     for k in range(m):
         b0, b1, b2 = rays[k, 0], rays[k, 1], rays[k, 2]
         if abs(b0) < 0.9:
@@ -431,6 +472,27 @@ def refine_rays(R: F64, t: F64, rays: F64, P: F64, sigma: float, iterations: int
         E[k, 3] = b1 * e2 - b2 * e1
         E[k, 4] = b2 * e0 - b0 * e2
         E[k, 5] = b0 * e1 - b1 * e0
+    return E
+
+
+@nb.njit(cache=True, inline="always")
+def _rotation_of(om0: float, om1: float, om2: float) -> F64:
+    """The rotation exp([omega]x) (Rodrigues; first order below 1e-12 rad)."""
+    th = np.sqrt(om0 * om0 + om1 * om1 + om2 * om2)
+    K = np.array([[0.0, -om2, om1], [om2, 0.0, -om0], [-om1, om0, 0.0]])
+    if th < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * _mm3(K, K)
+
+
+@nb.njit(cache=True)
+def refine_rays(R: F64, t: F64, rays: F64, P: F64, sigma: float, iterations: int) -> tuple[F64, F64]:
+    """Gauss-Newton with Huber weights on the tangent-plane errors of unit rays -> (R, t).
+
+    Huber cutoff 1.345 ``sigma`` (radians). A step that raises the robust cost stops it.
+    """
+    m = rays.shape[0]
+    E = _tangent_bases(rays)  # tangent bases (e1, e2) of the observed rays
     c = 1.345 * sigma
     R = R.copy()
     t = t.copy()
@@ -474,13 +536,8 @@ def refine_rays(R: F64, t: F64, rays: F64, P: F64, sigma: float, iterations: int
         if not ok:
             break
         delta = -sol
-        om0, om1, om2 = delta[0], delta[1], delta[2]
-        th = np.sqrt(om0 * om0 + om1 * om1 + om2 * om2)
-        K = np.array([[0.0, -om2, om1], [om2, 0.0, -om0], [-om1, om0, 0.0]])
-        if th < 1e-12:
-            dR = np.eye(3) + K
-        else:
-            dR = np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * _mm3(K, K)
+        th = np.sqrt(delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2])
+        dR = _rotation_of(delta[0], delta[1], delta[2])
         R_new = _mm3(dR, R)
         t_new = _mv3(dR, t) + delta[3:]
         new = _huber_cost(R_new, t_new, P, E, c)

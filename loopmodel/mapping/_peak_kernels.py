@@ -54,6 +54,27 @@ def _median_u8_py(row, counts):  # type: ignore[no-untyped-def]
 _median_u8 = numba.njit(cache=True, nogil=True)(_median_u8_py)
 
 
+def _best_position_py(P, bound, taps, li, top, slack):  # type: ignore[no-untyped-def]
+    """Profile ``li``'s maximum of the smoothed values and its (first) position.
+
+    ``top``: the position of the largest bound; only positions whose bound can reach the best value
+    so far are smoothed.
+    """
+    n = P.shape[1]
+    best = _smoothed(P, taps, li, top)
+    k = top
+    for s in range(n):
+        if bound[li, s] * slack < best or s == top:
+            continue
+        v = _smoothed(P, taps, li, s)
+        if v > best or (v == best and s < k):
+            best, k = v, s
+    return best, k
+
+
+_best_position = numba.njit(cache=True, nogil=True, inline="always")(_best_position_py)
+
+
 def _profile_peaks_py(P, bound, taps, min_contrast, window, local_background):  # type: ignore[no-untyped-def]
     """Per profile of ``P`` (uint8, profiles x positions): peak index, sub-pixel position, accepted, background.
 
@@ -86,14 +107,7 @@ def _profile_peaks_py(P, bound, taps, min_contrast, window, local_background):  
                 top = s
         if bound[li, top] * slack - bg < need:
             continue  # no position can stand out enough
-        best = _smoothed(P, taps, li, top)
-        k = top
-        for s in range(n):
-            if bound[li, s] * slack < best or s == top:
-                continue
-            v = _smoothed(P, taps, li, s)
-            if v > best or (v == best and s < k):
-                best, k = v, s
+        best, k = _best_position(P, bound, taps, li, top, slack)
         k_out[li] = k
         if best - bg < need:
             continue
@@ -135,6 +149,90 @@ def _bilinear_py(P, lc, sc):  # type: ignore[no-untyped-def]
 _bilinear = numba.njit(cache=True, nogil=True, inline="always")(_bilinear_py)
 
 
+def _neighbour_run_py(pos, li, si, F, near):  # type: ignore[no-untyped-def]
+    """``near[o + F]``: profile ``li + o``'s peak continues the line through ``si``; the run of them either side."""
+    for o in range(-F, F + 1):
+        nb = pos[li + F + o]
+        near[o + F] = o == 0 or (np.isfinite(nb) and abs(nb - si) <= 2.0 * abs(o) + 1.0)
+    right = 0
+    while right < F and near[F + 1 + right]:
+        right += 1
+    left = 0
+    while left < F and near[F - 1 - left]:
+        left += 1
+    return min(left, right)
+
+
+_neighbour_run = numba.njit(cache=True, nogil=True, inline="always")(_neighbour_run_py)
+
+
+def _line_slope_py(pos, near, li, si, F, lim):  # type: ignore[no-untyped-def]
+    """The least-squares slope of the near peaks within ``lim`` profiles of ``li`` (0 with fewer than 3)."""
+    cnt = 0
+    sx = 0.0
+    sy = 0.0
+    for o in range(-lim, lim + 1):
+        if near[o + F]:
+            cnt += 1
+            sx += o
+            sy += pos[li + F + o] - si
+    mx, my = sx / cnt, sy / cnt
+    sxx = 0.0
+    sxy = 0.0
+    for o in range(-lim, lim + 1):
+        if near[o + F]:
+            sxx += (o - mx) ** 2
+            sxy += (o - mx) * (pos[li + F + o] - si - my)
+    return sxy / sxx if cnt >= 3 and sxx > 0 else 0.0
+
+
+_line_slope = numba.njit(cache=True, nogil=True, inline="always")(_line_slope_py)
+
+
+def _normal_profile_py(P, li, si, slope, run, reach, sig, e, wj, p):  # type: ignore[no-untyped-def]
+    """``p[t + e]``: ``P`` along the normal at (li, si), t in -e..e, averaged along the line over ``run``.
+
+    Returns the normal's direction (n_s, n_l).
+    """
+    norm = math.sqrt(1.0 + slope * slope)
+    n_s, n_l = 1.0 / norm, -slope / norm
+    d_s, d_l = slope / norm, 1.0 / norm
+    wsum = 0.0
+    for j in range(-reach, reach + 1):
+        w = math.exp(-0.5 * j * j / (sig * sig)) if abs(j) <= run else 0.0
+        wj[j + reach] = w
+        wsum += w
+    for t in range(-e, e + 1):
+        acc = 0.0
+        for j in range(-reach, reach + 1):
+            if wj[j + reach] == 0.0:
+                continue
+            sc = si + t * n_s + j * d_s
+            lc = li + t * n_l + j * d_l
+            acc += _bilinear(P, lc, sc) * (wj[j + reach] / wsum)
+        p[t + e] = acc
+    return n_s, n_l
+
+
+_normal_profile = numba.njit(cache=True, nogil=True, inline="always")(_normal_profile_py)
+
+
+def _profile_cog_py(p, background, i, e):  # type: ignore[no-untyped-def]
+    """Sums (w, w t) of the normal's samples above the background (the peak's, or the end samples' line)."""
+    sw = 0.0
+    swt = 0.0
+    for t in range(-e + 1, e):
+        base = background[i] if background.shape[0] else p[0] + (p[2 * e] - p[0]) * ((t + e) / (2.0 * e))
+        w = p[t + e] - base
+        if w > 0.0:
+            sw += w
+            swt += w * t
+    return sw, swt
+
+
+_profile_cog = numba.njit(cache=True, nogil=True, inline="always")(_profile_cog_py)
+
+
 def _across_line_py(P, line, sub, window, smooth, background, fit_px, max_slope):  # type: ignore[no-untyped-def]
     """The peaks refined across the line: :func:`loopmodel.mapping.extraction._refine_across_line` on ``P``.
 
@@ -155,58 +253,10 @@ def _across_line_py(P, line, sub, window, smooth, background, fit_px, max_slope)
     p = np.zeros(2 * e + 1)
     for i in range(line.shape[0]):
         li, si = line[i], sub[i]
-        for o in range(-F, F + 1):
-            nb = pos[li + F + o]
-            near[o + F] = o == 0 or (np.isfinite(nb) and abs(nb - si) <= 2.0 * abs(o) + 1.0)
-        right = 0
-        while right < F and near[F + 1 + right]:
-            right += 1
-        left = 0
-        while left < F and near[F - 1 - left]:
-            left += 1
-        run = min(left, right)
-        lim = min(run, fit_px)
-        cnt = 0
-        sx = 0.0
-        sy = 0.0
-        for o in range(-lim, lim + 1):
-            if near[o + F]:
-                cnt += 1
-                sx += o
-                sy += pos[li + F + o] - si
-        mx, my = sx / cnt, sy / cnt
-        sxx = 0.0
-        sxy = 0.0
-        for o in range(-lim, lim + 1):
-            if near[o + F]:
-                sxx += (o - mx) ** 2
-                sxy += (o - mx) * (pos[li + F + o] - si - my)
-        slope = sxy / sxx if cnt >= 3 and sxx > 0 else 0.0
-        norm = math.sqrt(1.0 + slope * slope)
-        n_s, n_l = 1.0 / norm, -slope / norm
-        d_s, d_l = slope / norm, 1.0 / norm
-        wsum = 0.0
-        for j in range(-reach, reach + 1):
-            w = math.exp(-0.5 * j * j / (sig * sig)) if abs(j) <= run else 0.0
-            wj[j + reach] = w
-            wsum += w
-        for t in range(-e, e + 1):
-            acc = 0.0
-            for j in range(-reach, reach + 1):
-                if wj[j + reach] == 0.0:
-                    continue
-                sc = si + t * n_s + j * d_s
-                lc = li + t * n_l + j * d_l
-                acc += _bilinear(P, lc, sc) * (wj[j + reach] / wsum)
-            p[t + e] = acc
-        sw = 0.0
-        swt = 0.0
-        for t in range(-e + 1, e):
-            base = background[i] if background.shape[0] else p[0] + (p[2 * e] - p[0]) * ((t + e) / (2.0 * e))
-            w = p[t + e] - base
-            if w > 0.0:
-                sw += w
-                swt += w * t
+        run = _neighbour_run(pos, li, si, F, near)
+        slope = _line_slope(pos, near, li, si, F, min(run, fit_px))
+        n_s, n_l = _normal_profile(P, li, si, slope, run, reach, sig, e, wj, p)
+        sw, swt = _profile_cog(p, background, i, e)
         if sw > 0.0:
             off = swt / sw
             if abs(off) <= window and run >= 1 and abs(slope) <= max_slope:

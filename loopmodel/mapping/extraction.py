@@ -204,6 +204,25 @@ def extract_laser_peaks(
             return _compiled_peaks(
                 u8, axis, min_contrast, window_px, smooth_along_px, local_background, across_line
             )
+    return _numpy_peaks(
+        image, axis, min_contrast, window_px, method, mask, max_width_px, smooth_along_px, local_background,
+        across_line,
+    )
+
+
+def _numpy_peaks(
+    image: NDArray,  # type: ignore[type-arg]
+    axis: str,
+    min_contrast: float,
+    window_px: int,
+    method: str,
+    mask: NDArray[np.bool_] | None,
+    max_width_px: float | None,
+    smooth_along_px: float,
+    local_background: bool,
+    across_line: bool,
+) -> F64:
+    """:func:`extract_laser_peaks` in numpy (any image, mask, width gate and method)."""
     g = _grey(image)
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
@@ -219,66 +238,16 @@ def extract_laser_peaks(
         prof = cv2.sepFilter2D(
             np.ascontiguousarray(prof), cv2.CV_64F, kernel, np.array([1.0]), borderType=cv2.BORDER_REFLECT
         )
-    n, m = prof.shape
-    cols = np.arange(m)
-    if mask is not None:
-        inside = mask if axis == "columns" else mask.T
-        background = np.zeros(m)
-        has = inside.any(axis=0)
-        if has.any():
-            background[has] = np.nanmedian(np.where(inside[:, has], prof[:, has], np.nan), axis=0)
-        k = np.argmax(np.where(inside, prof, -np.inf), axis=0)
-        peak = prof[k, cols]
-        ok = inside[k, cols]
-    else:
-        k = np.argmax(prof, axis=0)
-        src = np.asarray(image)
-        if src.dtype == np.uint8 and prof.shape[0] > 0:
-            u8 = src.max(axis=2) if src.ndim == 3 else src
-            background = _row_medians_u8(u8.T if axis == "columns" else u8)
-        else:
-            background = np.median(prof, axis=0)
-        peak = prof[k, cols]
-        ok = np.ones(m, dtype=bool)
+    k, background, peak, ok = _profile_maxima(prof, mask, axis, image)
     ok &= (peak - background) >= max(min_contrast, 1e-9)
     if max_width_px is not None:
-        half = background + 0.5 * (peak - background)
-        above = prof >= half[None, :]
-        # the run of samples above half maximum that contains the peak
-        rows = np.arange(n)[:, None]
-        below_before = np.where(~above & (rows < k[None, :]), rows, -1).max(axis=0)
-        below_after = np.where(~above & (rows > k[None, :]), rows, n).min(axis=0)
-        ok &= (below_after - below_before - 1) <= max_width_px
+        ok &= _peak_width(prof, k, background, peak) <= max_width_px
     if method == "cog":
-        offs = np.arange(-window_px, window_px + 1)
-        idx = k[None, :] + offs[:, None]
-        valid = (idx >= 0) & (idx < n)
-        if local_background:
-            e = window_px + 1
-            lo = prof[np.clip(k - e, 0, n - 1), cols]
-            hi = prof[np.clip(k + e, 0, n - 1), cols]
-            base = lo[None, :] + (hi - lo)[None, :] * ((offs[:, None] + e) / (2.0 * e))
-        else:
-            base = background[None, :]
-        w = np.where(valid, prof[np.clip(idx, 0, n - 1), cols[None, :]] - base, 0.0)
-        w = np.maximum(w, 0.0)
-        sw = w.sum(axis=0)
-        ok &= sw > 0
-        pos = k + (w * offs[:, None]).sum(axis=0) / np.where(sw > 0, sw, 1.0)
+        pos, good = _cog_positions(prof, k, background, window_px, local_background)
     else:
-        inner = (k > 0) & (k < n - 1)
-        ok &= inner
-        km, kp = np.clip(k - 1, 0, n - 1), np.clip(k + 1, 0, n - 1)
-        eps = 1e-6
-        lm = np.log(np.maximum(prof[km, cols] - background, eps))
-        l0 = np.log(np.maximum(peak - background, eps))
-        lp = np.log(np.maximum(prof[kp, cols] - background, eps))
-        den = lm - 2.0 * l0 + lp
-        ok &= den < 0
-        delta = 0.5 * (lm - lp) / np.where(den < 0, den, -1.0)
-        ok &= np.abs(delta) <= 1.0
-        pos = k + delta
-    line = cols[ok].astype(np.float64)
+        pos, good = _gauss_positions(prof, k, background, peak)
+    ok &= good
+    line = np.arange(prof.shape[1])[ok].astype(np.float64)
     sub = pos[ok]
     if across_line and method == "cog" and line.size >= 3:
         sub = _refine_across_line(
@@ -288,6 +257,81 @@ def extract_laser_peaks(
     if axis == "columns":
         return np.column_stack([line, sub])
     return np.column_stack([sub, line])
+
+
+def _profile_maxima(
+    prof: F64, mask: NDArray[np.bool_] | None, axis: str, image: NDArray  # type: ignore[type-arg]
+) -> tuple[NDArray[np.intp], F64, F64, NDArray[np.bool_]]:
+    """Per profile (column of ``prof``): the maximum's index, the background (median), the maximum, inside the mask."""
+    n, m = prof.shape
+    cols = np.arange(m)
+    if mask is not None:
+        inside = mask if axis == "columns" else mask.T
+        background = np.zeros(m)
+        has = inside.any(axis=0)
+        if has.any():
+            background[has] = np.nanmedian(np.where(inside[:, has], prof[:, has], np.nan), axis=0)
+        k = np.argmax(np.where(inside, prof, -np.inf), axis=0)
+        return k, background, prof[k, cols], inside[k, cols]
+    k = np.argmax(prof, axis=0)
+    src = np.asarray(image)
+    if src.dtype == np.uint8 and prof.shape[0] > 0:
+        u8 = src.max(axis=2) if src.ndim == 3 else src
+        background = _row_medians_u8(u8.T if axis == "columns" else u8)
+    else:
+        background = np.median(prof, axis=0)
+    return k, background, prof[k, cols], np.ones(m, dtype=bool)
+
+
+def _peak_width(prof: F64, k: NDArray[np.intp], background: F64, peak: F64) -> NDArray[np.intp]:
+    """Per profile: the samples of the run above half maximum that contains the peak."""
+    n = prof.shape[0]
+    half = background + 0.5 * (peak - background)
+    above = prof >= half[None, :]
+    rows = np.arange(n)[:, None]
+    below_before = np.where(~above & (rows < k[None, :]), rows, -1).max(axis=0)
+    below_after = np.where(~above & (rows > k[None, :]), rows, n).min(axis=0)
+    return below_after - below_before - 1  # type: ignore[no-any-return]
+
+
+def _cog_positions(
+    prof: F64, k: NDArray[np.intp], background: F64, window_px: int, local_background: bool
+) -> tuple[F64, NDArray[np.bool_]]:
+    """Per profile: the centre of gravity over ``window_px`` either side of the peak, and whether it has weight."""
+    n, m = prof.shape
+    cols = np.arange(m)
+    offs = np.arange(-window_px, window_px + 1)
+    idx = k[None, :] + offs[:, None]
+    valid = (idx >= 0) & (idx < n)
+    if local_background:
+        e = window_px + 1
+        lo = prof[np.clip(k - e, 0, n - 1), cols]
+        hi = prof[np.clip(k + e, 0, n - 1), cols]
+        base = lo[None, :] + (hi - lo)[None, :] * ((offs[:, None] + e) / (2.0 * e))
+    else:
+        base = background[None, :]
+    w = np.where(valid, prof[np.clip(idx, 0, n - 1), cols[None, :]] - base, 0.0)
+    w = np.maximum(w, 0.0)
+    sw = w.sum(axis=0)
+    pos = k + (w * offs[:, None]).sum(axis=0) / np.where(sw > 0, sw, 1.0)
+    return pos, sw > 0
+
+
+def _gauss_positions(prof: F64, k: NDArray[np.intp], background: F64, peak: F64) -> tuple[F64, NDArray[np.bool_]]:
+    """Per profile: the Gaussian (parabola of logs) through the peak and its neighbours, and whether it fits."""
+    n, m = prof.shape
+    cols = np.arange(m)
+    ok = (k > 0) & (k < n - 1)
+    km, kp = np.clip(k - 1, 0, n - 1), np.clip(k + 1, 0, n - 1)
+    eps = 1e-6
+    lm = np.log(np.maximum(prof[km, cols] - background, eps))
+    l0 = np.log(np.maximum(peak - background, eps))
+    lp = np.log(np.maximum(prof[kp, cols] - background, eps))
+    den = lm - 2.0 * l0 + lp
+    ok &= den < 0
+    delta = 0.5 * (lm - lp) / np.where(den < 0, den, -1.0)
+    ok &= np.abs(delta) <= 1.0
+    return k + delta, ok
 
 
 def _compiled_peaks(

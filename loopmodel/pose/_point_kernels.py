@@ -171,6 +171,50 @@ def _irls_weights_py(r, pw, scale, loss, cc):  # type: ignore[no-untyped-def]
     return w
 
 
+def _term_scale_py(rk, fixed_scale, min_scale):  # type: ignore[no-untyped-def]
+    """A term's residual scale: ``fixed_scale``, or the MAD scale of its residuals ``rk`` (at least ``min_scale``)."""
+    if fixed_scale > 0.0:
+        return fixed_scale
+    if rk.shape[0] == 0:
+        return min_scale
+    norms = np.empty(rk.shape[0])
+    for i in range(rk.shape[0]):
+        norms[i] = math.sqrt(rk[i, 0] * rk[i, 0] + rk[i, 1] * rk[i, 1])
+    return max(np.median(norms) / _RAYLEIGH_MEDIAN, min_scale)
+
+
+def _lm_step_py(  # type: ignore[no-untyped-def]
+    H, g, T, lam, cost, P, rho, uv, w, start, Rc, tc, px, py, u0, v0, xi
+):
+    """One Levenberg-Marquardt step from ``T``: up to 8 damping increases until the cost does not rise.
+
+    Returns (pose, damping, step, accepted).
+    """
+    nt = start.shape[0] - 1
+    delta = np.zeros(6)
+    for _ in range(8):
+        Hd = H.copy()
+        for i in range(6):
+            Hd[i, i] = H[i, i] + lam * max(H[i, i], 1e-9)
+        try:
+            delta = -np.linalg.solve(Hd, g)
+        except Exception:  # singular
+            lam *= 10.0
+            continue
+        T_new = _se3_exp(delta) @ T
+        R_new = np.ascontiguousarray(T_new[:3, :3])
+        t_new = np.ascontiguousarray(T_new[:3, 3])
+        new_cost = 0.0
+        for k in range(nt):
+            a, b = start[k], start[k + 1]
+            rn = point_residuals(P[a:b], rho[a:b], uv[a:b], R_new, t_new, Rc, tc, px, py, u0, v0, xi)
+            new_cost += weighted_cost(rn, w[a:b])
+        if new_cost <= cost:
+            return T_new, max(lam * 0.3, 1e-9), delta, True
+        lam *= 10.0
+    return T, lam, delta, False
+
+
 def _refine_points_py(  # type: ignore[no-untyped-def]
     P, rho, uv, pw, start, T0, Rc, tc, px, py, u0, v0, xi, loss, c, huber_c, min_scale, fixed_scale, max_iterations,
     lam0, step_tolerance, huber_warmup, reweight_iterations,
@@ -204,48 +248,15 @@ def _refine_points_py(  # type: ignore[no-untyped-def]
             r[a:b] = rk
             if reweight:
                 if it <= huber_warmup + 1 or loss != 2:
-                    if fixed_scale > 0.0:
-                        scales[k] = fixed_scale
-                    elif b == a:
-                        scales[k] = min_scale
-                    else:
-                        norms = np.empty(b - a)
-                        for i in range(b - a):
-                            norms[i] = math.sqrt(rk[i, 0] * rk[i, 0] + rk[i, 1] * rk[i, 1])
-                        scales[k] = max(np.median(norms) / _RAYLEIGH_MEDIAN, min_scale)
+                    scales[k] = _term_scale(rk, fixed_scale, min_scale)
                 w[a:b] = _irls_weights(rk, pw[a:b], scales[k], 1 if warm else loss, huber_c if warm else c)
             Hk, gk = weighted_normal_equations(J, rk, w[a:b])
             H += Hk
             g += gk
-        # one Levenberg-Marquardt step: up to 8 damping increases
         cost = 0.0
         for k in range(nt):
             cost += weighted_cost(r[start[k] : start[k + 1]], w[start[k] : start[k + 1]])
-        delta = np.zeros(6)
-        accepted = False
-        for _ in range(8):
-            Hd = H.copy()
-            for i in range(6):
-                Hd[i, i] = H[i, i] + lam * max(H[i, i], 1e-9)
-            try:
-                delta = -np.linalg.solve(Hd, g)
-            except Exception:  # singular
-                lam *= 10.0
-                continue
-            T_new = _se3_exp(delta) @ T
-            R_new = np.ascontiguousarray(T_new[:3, :3])
-            t_new = np.ascontiguousarray(T_new[:3, 3])
-            new_cost = 0.0
-            for k in range(nt):
-                a, b = start[k], start[k + 1]
-                rn = point_residuals(P[a:b], rho[a:b], uv[a:b], R_new, t_new, Rc, tc, px, py, u0, v0, xi)
-                new_cost += weighted_cost(rn, w[a:b])
-            if new_cost <= cost:
-                T = T_new
-                lam = max(lam * 0.3, 1e-9)
-                accepted = True
-                break
-            lam *= 10.0
+        T, lam, delta, accepted = _lm_step(H, g, T, lam, cost, P, rho, uv, w, start, Rc, tc, px, py, u0, v0, xi)
         small = math.sqrt(np.dot(delta, delta)) < step_tolerance
         if (not accepted or small) and it >= min(reweight_iterations, max_iterations):
             converged = True
@@ -255,6 +266,8 @@ def _refine_points_py(  # type: ignore[no-untyped-def]
 
 _se3_exp = numba.njit(cache=True, nogil=True)(_se3_exp_py)
 _irls_weights = numba.njit(cache=True, nogil=True)(_irls_weights_py)
+_term_scale = numba.njit(cache=True, nogil=True)(_term_scale_py)
+_lm_step = numba.njit(cache=True, nogil=True)(_lm_step_py)
 refine_points = numba.njit(cache=True, nogil=True)(_refine_points_py)
 
 
