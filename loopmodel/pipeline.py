@@ -421,12 +421,9 @@ class _Run:
         # finish11: the evaluation's and the writes' modules too (0.02 s of the KITTI clip's finish in a new process)
         later = ["loopmodel.eval.of_run", "loopmodel.eval.trajectory_metrics", "loopmodel.io.map_file",
                  "loopmodel.io.calib_files"]
-        warm: tuple[str, ...] = ()
         if config.calibration.refine != "none":  # calib7: the self-calibration's modules, not after the last frame
             later.insert(0, "loopmodel.calibration.retrack")
-            # fin12: the calibrating BA's compiled kernels loaded from numba's cache (0.05 s, 0.035 s CPU)
-            warm = ("loopmodel.calibration._rig_kernels",)
-        _import_beside(*later, warm=warm)
+        _import_beside(*later)
         self.session.setup(config, self.frontend.calibration)
         self.localizer = self.session.localizer
         # the place-recognition vocabulary of the loop stage and the session map, read here (issue 32)
@@ -795,6 +792,10 @@ class _Run:
         # (finish9: re-placing its stripes for the finish's three corrections took 0.31 s CPU on the
         # 600-frame sample, 0.04 s on the 150-frame orbit)
         self.anchored.unwatch(self.stripe_map)
+        if not interrupted and self.config.calibration.refine != "none" and self.localizer is None:
+            # fin12: the calibrating BA's compiled kernels loaded from numba's cache (0.05 s, 0.035 s CPU) while
+            # this thread waits for the back end's last corrections and final estimate; not beside the frames
+            _import_beside(warm=("loopmodel.calibration._rig_kernels",))
         try:
             with timed_step("workers", steps, self.finishing, cpu):
                 self._hand_waiting_keyframes()  # frontend.local_ba_beside: the last keyframe
