@@ -472,7 +472,9 @@ class MappingConfig(_Section):
     # moved as the stripe points moved (mapping/final.VertexMover: median 0.31-0.36 mm, at most
     # 2.7-3.5 mm). Mesh against scene.ply, the same captured finish meshed both ways: 150-frame
     # realistic orbit 0.42384 -> 0.42290 mm, completeness 0.9161 -> 0.9165; the 600-frame sample
-    # 0.45131 -> 0.45117 mm, 0.97872 -> 0.97896. KITTI (real) has no laser: untouched; no real laser scan
+    # 0.45131 -> 0.45117 mm, 0.97872 -> 0.97896. Measured on simulated laser scans only (no real laser
+    # scan is shared). Without laser stripes (the KITTI clip, real) it is a no-op: no mesh process, no
+    # early mesh; fin12: KITTI's trajectory_final.tum bit-identical with it on, off, on (configs/kitti.yaml)
     final_mesh_before_resolve: bool = Field(
         default=True, description="start the final mesh before the frames' re-solve and move it after (needs a"
         " mesh process: final_mesh_in_live_worker)"

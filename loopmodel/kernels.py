@@ -38,6 +38,7 @@ KERNEL_MODULES = (
     "loopmodel.backend._givens_kernels",
     "loopmodel.mapping._peak_kernels",
     "loopmodel.imaging._png_kernels",
+    "loopmodel.calibration._rig_kernels",
 )
 
 
@@ -66,6 +67,7 @@ def _warm_givens() -> None:
 
 def _warm_ups() -> dict[str, tuple[str, Callable[[], None]]]:
     """Per kernel module: (label, warm-up), each calling the module's kernels with small inputs."""
+    from loopmodel.calibration._rig_kernels import warm_up as calibrating_ba
     from loopmodel.frontend._ba_kernels import warm_up as local_ba
     from loopmodel.frontend._stereo_kernels import warm_up as stereo
     from loopmodel.frontend.affine_klt import warm_up as affine
@@ -88,6 +90,7 @@ def _warm_ups() -> dict[str, tuple[str, Callable[[], None]]]:
         "loopmodel.backend._givens_kernels": ("Givens estimator", _warm_givens),
         "loopmodel.mapping._peak_kernels": ("laser peaks", laser_peaks),
         "loopmodel.imaging._png_kernels": ("PNG rows", png),
+        "loopmodel.calibration._rig_kernels": ("calibrating BA", calibrating_ba),
     }
 
 
@@ -100,6 +103,8 @@ def modules_for(config: Config) -> tuple[str, ...]:
         skip.add("loopmodel.backend._givens_kernels")
     if config.frontend.klt_share_px <= 0:
         skip.add("loopmodel.imaging._klt_kernels")
+    if config.calibration.refine == "none":
+        skip.add("loopmodel.calibration._rig_kernels")
     return tuple(m for m in KERNEL_MODULES if m not in skip)
 
 

@@ -357,8 +357,10 @@ class _MapRecord:
             return None
 
 
-def _import_beside(*modules: str) -> None:
+def _import_beside(*modules: str, warm: tuple[str, ...] = ()) -> None:
     """Import ``modules`` in a thread (issue 32: open3d for the final mesh while the back end refines).
+
+    ``warm``: kernel modules whose ``warm_up()`` (numba's cached machine code loaded) runs there after the imports.
 
     Importing open3d took 4.8 s of the 17 s final-mesh step (150-frame realistic orbit, load 15);
     the final refinement runs in the back-end worker meanwhile, the tracking thread only waits.
@@ -368,6 +370,8 @@ def _import_beside(*modules: str) -> None:
     def _load() -> None:
         for module in modules:
             importlib.import_module(module)
+        for module in warm:
+            importlib.import_module(module).warm_up()
 
     threading.Thread(target=_load, name="loopmodel-import", daemon=True).start()
 
@@ -788,6 +792,10 @@ class _Run:
         # (finish9: re-placing its stripes for the finish's three corrections took 0.31 s CPU on the
         # 600-frame sample, 0.04 s on the 150-frame orbit)
         self.anchored.unwatch(self.stripe_map)
+        if not interrupted and self.config.calibration.refine != "none" and self.localizer is None:
+            # fin12: the calibrating BA's compiled kernels loaded from numba's cache (0.05 s, 0.035 s CPU) while
+            # this thread waits for the back end's last corrections and final estimate; not beside the frames
+            _import_beside(warm=("loopmodel.calibration._rig_kernels",))
         try:
             with timed_step("workers", steps, self.finishing, cpu):
                 self._hand_waiting_keyframes()  # frontend.local_ba_beside: the last keyframe

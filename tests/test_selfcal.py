@@ -550,3 +550,72 @@ def test_early_stops_land_within_noise_of_the_converged_solution(monkeypatch: py
     assert np.max(np.abs(rep.posterior_sigma - conv.posterior_sigma) / conv.posterior_sigma) < 0.01
     assert abs(rep.pixel_sigma_px / conv.pixel_sigma_px - 1.0) < 0.01
     assert rep.unobservable == conv.unobservable
+
+
+# ----------------------------------------------------------------------------- the compiled kernels (fin12)
+
+
+@pytest.mark.parametrize("right_rows", [False, True])
+def test_compiled_residuals_and_jacobians_give_the_numpy_ones(right_rows: bool) -> None:
+    """The kernel's residuals and Jacobians equal the numpy form's (distortion, rotation correction, right rows)."""
+    from loopmodel.calibration.refine_rig import residuals_and_jacobians_compiled
+
+    sc, obs, pts = _rows_problem(recorded_rig(true_rig(), 5), 5, 8, 90.0, 300) if right_rows else _problem(
+        recorded_rig(true_rig(), 5), 5, 8, 300
+    )
+    rig = RigParameters.of(sc.recorded)
+    theta = rig.values.copy()
+    theta[:12] += np.random.default_rng(5).normal(0, 1e-3, 12)
+    theta[12:15] = [1e-3, -2e-3, 5e-4]
+    R, t = sc.world_from_kf[:, :3, :3], sc.world_from_kf[:, :3, 3]
+    ref = residuals_and_jacobians(obs, R, t, pts, rig, theta)
+    got = residuals_and_jacobians_compiled(obs, R, t, pts, rig, theta)
+    for a, b in zip(ref, got, strict=True):
+        assert a.shape == b.shape
+        assert np.abs(a - b).max() <= 1e-12 * max(float(np.abs(a).max()), 1.0)  # measured <= 1.2e-14 relative
+    assert np.array_equal(residuals_and_jacobians_compiled(obs, R, t, pts, rig, theta, jacobians=False)[0], got[0])
+
+
+def test_compiled_reduced_system_and_steps_give_the_numpy_ones() -> None:
+    """Normal equations, the landmarks' elimination and the products with the coupling: kernel against numpy."""
+    from loopmodel.calibration import refine_rig as rr
+
+    sc, obs, pts0 = _rows_problem(recorded_rig(true_rig(), 6), 6, 7, 90.0, 200)
+    rig = rr.RigParameters.of(sc.recorded)
+    est = estimated_parameters(SelfCalibrationConfig())
+    out = []
+    for compiled in (False, True):
+        st = rr._State(sc.world_from_kf[:, :3, :3].copy(), sc.world_from_kf[:, :3, 3].copy(), pts0, rig.values.copy(),
+                       compiled)
+        # a small sigma puts some observations in the Huber tail
+        H, b, Hzl, V, bl, _r, cost, rn = rr._normal_equations(obs, st, rig, rig.values, PRIOR, est, 0.05, 1.345)
+        S, Vinv = rr._schur(H, Hzl, V, 1e-3)
+        x = np.random.default_rng(1).normal(size=bl.size)
+        y = np.random.default_rng(2).normal(size=b.size)
+        out.append((H, b, V, bl, np.array([cost]), rn, S, Vinv, rr._hzl_dot(Hzl, x), rr._hlz_dot(Hzl, y), Hzl.W, Hzl.Y))
+    assert np.any(out[0][5] > 1.345) and np.any(out[0][5] <= 1.345)
+    for a, b in zip(*out, strict=True):
+        assert np.allclose(a, b, rtol=1e-10, atol=1e-10 * float(np.abs(a).max()))
+
+
+def test_compiled_adjustment_gives_the_numpy_adjustment() -> None:
+    """``refine_rig`` with the kernels and with numpy: the same solution, noise, posterior and iterations.
+
+    After a warm-up no kernel compiles again (the run loads them before its frames).
+    """
+    from loopmodel.calibration import _rig_kernels
+
+    _rig_kernels.warm_up()
+    kernels = [_rig_kernels.evaluate, _rig_kernels.normal_equations, _rig_kernels.schur, _rig_kernels.hzl_dot,
+               _rig_kernels.hlz_dot]
+    signatures = [len(k.signatures) for k in kernels]
+    sc, obs, pts0 = _problem(recorded_rig(true_rig(), 3), 3, n_kf=10, n_pt=300)
+    p0, q0, a = refine_rig(obs, sc.world_from_kf.copy(), pts0, sc.recorded, PRIOR, EST, compiled=False)
+    p1, q1, b = refine_rig(obs, sc.world_from_kf.copy(), pts0, sc.recorded, PRIOR, EST)
+    assert [len(k.signatures) for k in kernels] == signatures
+    assert a.iterations == b.iterations and a.unobservable == b.unobservable
+    # measured: poses 3e-14 m, values 3e-12 prior sigma, posterior 2.4e-10 relative, noise 2e-15 px
+    assert np.abs(p0 - p1).max() < 1e-10 and np.abs(q0 - q1).max() < 1e-10
+    assert np.max(np.abs(a.values - b.values) / PRIOR) < 1e-8
+    assert np.max(np.abs(a.posterior_sigma / b.posterior_sigma - 1.0)) < 1e-7
+    assert abs(a.pixel_sigma_px - b.pixel_sigma_px) < 1e-12

@@ -414,6 +414,44 @@ def residuals_and_jacobians(
     return res, J_pose, J_pt, J_th
 
 
+def _camera_arrays(rig: RigParameters, theta: F64) -> tuple[F64, F64, F64, F64]:
+    """``(fx, fy, cx, cy)`` (2 x 4) and the 5 distortion terms (2 x 5) of both cameras, ``R_rl``, ``t_rl`` (m)."""
+    il, dl = rig.intrinsics(theta, 0)
+    ir, dr = rig.intrinsics(theta, 1)
+    R_rl = so3_exp(theta[_ROT]) @ rig.rot_right_from_left
+    return np.array([il, ir]), np.array([dl, dr]), R_rl, theta[_BASE] * rig.baseline_dir
+
+
+def residuals_and_jacobians_compiled(
+    obs: RigObservations,
+    rot_world_from_cam: F64,
+    t_world_from_cam: F64,
+    points_w: F64,
+    rig: RigParameters,
+    theta: F64,
+    jacobians: bool = True,
+) -> tuple[F64, F64, F64, F64]:
+    """:func:`residuals_and_jacobians` by the compiled kernel (:mod:`._rig_kernels`): the same values.
+
+    Without ``jacobians`` only the residuals are computed (the Jacobians returned as zeros).
+    """
+    from loopmodel.calibration import _rig_kernels
+
+    n = len(obs)
+    intr, dist, R_rl, t_rl = _camera_arrays(rig, theta)
+    r = np.zeros((n, 2))
+    Jp, Jl, Jt = np.zeros((n, 2, 6)), np.zeros((n, 2, 3)), np.zeros((n, 2, N_PARAMS))
+    _rig_kernels.evaluate(
+        np.ascontiguousarray(obs.pose_idx, np.int64), np.ascontiguousarray(obs.point_idx, np.int64),
+        np.ascontiguousarray(obs.cam, np.int64), np.ascontiguousarray(obs.uv_px, np.float64),
+        np.ascontiguousarray(obs.measure, np.float64), np.ascontiguousarray(rot_world_from_cam, np.float64),
+        np.ascontiguousarray(t_world_from_cam, np.float64), np.ascontiguousarray(points_w, np.float64),
+        intr, dist, R_rl, np.ascontiguousarray(t_rl), np.ascontiguousarray(rig.baseline_dir, np.float64), jacobians,
+        r, Jp, Jl, Jt,
+    )
+    return r, Jp, Jl, Jt
+
+
 def _loop_residual(Ra: F64, ta: F64, Rb: F64, tb: F64, a_from_b: F64) -> F64:
     """``(log R, t)`` of ``a_from_b^-1 a_from_world b`` (rad, m): zero when the poses agree with the loop."""
     R = a_from_b[:3, :3].T @ Ra.T @ Rb
@@ -555,6 +593,9 @@ class _State:
     t: F64
     pts: F64
     theta: F64
+    #: residuals, Jacobians, normal equations and the landmarks' elimination by the compiled kernels
+    #: (:mod:`._rig_kernels`) or by numpy (the reference form; the same values but for the sums' order)
+    compiled: bool = True
     #: (observations, rig, residuals and Jacobians) of this state, once computed (:meth:`residuals`)
     _cache: tuple[object, object, tuple[F64, F64, F64, F64]] | None = field(default=None, repr=False, compare=False)
 
@@ -562,7 +603,8 @@ class _State:
         """:func:`residuals_and_jacobians` of this state, computed once (read-only arrays; never change a state)."""
         c = self._cache
         if c is None or c[0] is not obs or c[1] is not rig:
-            out = residuals_and_jacobians(obs, self.R, self.t, self.pts, rig, self.theta)
+            fn = residuals_and_jacobians_compiled if self.compiled else residuals_and_jacobians
+            out = fn(obs, self.R, self.t, self.pts, rig, self.theta)
             for a in out:
                 a.setflags(write=False)
             c = self._cache = (obs, rig, out)
@@ -599,6 +641,10 @@ class _Layout:
     #: (3 per residual row) in a sparse 2N x 3L matrix
     by_pose: list[I64]
     point_cols: I64
+    #: the pair of each observation; the pairs grouped by landmark (``lm_pairs[lm_start[l]:lm_start[l + 1]]``)
+    pair_of_obs: I64
+    lm_start: I64
+    lm_pairs: I64
 
 
 def _summing(group: I64, n_groups: int) -> sp.csr_matrix:
@@ -640,6 +686,8 @@ def _layout(obs: RigObservations, n_pose: int, n_pt: int) -> _Layout:
         _summing((pair_pose[a] - 1) * nf + pair_pose[b] - 1, nf * nf),
         [np.flatnonzero(obs.pose_idx == i) for i in range(n_pose)],
         np.repeat(3 * obs.point_idx, 6) + np.tile(np.arange(3), 2 * obs.point_idx.size),
+        np.ascontiguousarray(of_obs, np.int64), np.concatenate([[0], np.cumsum(count)]).astype(np.int64),
+        np.ascontiguousarray(order, np.int64),
     )
     obs.__dict__["_layout_cache"] = layout
     return layout
@@ -655,6 +703,8 @@ class _Coupling:
     layout: _Layout
     W: F64
     Y: F64
+    #: products and the elimination by the compiled kernels (:mod:`._rig_kernels`)
+    compiled: bool = False
 
 
 def _outer_sum(A: F64, B: F64) -> F64:
@@ -703,34 +753,31 @@ def _normal_equations(
     and pair (:class:`_Layout`), no sparse Jacobian is formed.
     """
     r, Jp, Jl, Jt = st.residuals(obs, rig)
-    rn = np.linalg.norm(r, axis=1) / sigma_px
-    w = np.sqrt(_huber_weights(rn, huber_k)) / sigma_px
-    rw = r * w[:, None]
-    Jp = Jp * w[:, None, None]
-    Jl = Jl * w[:, None, None]
-    Jt = Jt[:, :, active] * w[:, None, None]
-    n = len(obs)
     n_pose = st.R.shape[0]
     n_pt = st.pts.shape[0]
     lay = _layout(obs, n_pose, n_pt)
     nc = int(active.sum())
     npz = 6 * (n_pose - 1)
     N = npz + nc
-    Jt2 = Jt.reshape(2 * n, nc)
-    r2 = rw.ravel()
     H = np.zeros((N, N))
     b = np.zeros(N)
-    if npz:
-        for i in range(1, n_pose):
-            sel = lay.by_pose[i]
-            Ji = Jp[sel].reshape(-1, 6)
-            o = 6 * (i - 1)
-            H[o : o + 6, o : o + 6] = Ji.T @ Ji
-            H[o : o + 6, npz:] = Ji.T @ Jt[sel].reshape(Ji.shape[0], nc)
-            b[o : o + 6] = -(Ji.T @ rw[sel].ravel())
-        H[npz:, :npz] = H[:npz, npz:].T
-    H[npz:, npz:] = Jt2.T @ Jt2
-    b[npz:] = -(Jt2.T @ r2)
+    if st.compiled:
+        from loopmodel.calibration import _rig_kernels
+
+        W = np.zeros((lay.pair_pose.size, 6, 3))
+        Y = np.zeros((n_pt, nc, 3))
+        V = np.zeros((n_pt, 3, 3))
+        bl = np.zeros((n_pt, 3))
+        rn = np.zeros(len(obs))
+        robust_cost = _rig_kernels.normal_equations(
+            r, Jp, Jl, Jt, np.ascontiguousarray(lay.pose_idx, np.int64),
+            np.ascontiguousarray(lay.point_idx, np.int64), lay.pair_of_obs, np.flatnonzero(active).astype(np.int64),
+            float(sigma_px), float(huber_k), H, b, W, Y, V, bl, rn,
+        )
+    else:
+        W, Y, V, bl, rn, robust_cost = _normal_equations_numpy(
+            r, Jp, Jl, Jt, lay, active, sigma_px, huber_k, H, b, n_pose, n_pt
+        )
     # priors on the active parameters
     ps = prior_sigma[active]
     dth = (st.theta - prior_theta)[active]
@@ -748,13 +795,56 @@ def _normal_equations(
         b[:npz] -= gL[6:]
     else:
         cL = 0.0
+    cost = robust_cost + float(np.sum((dth / ps) ** 2)) + cL + held_cost
+    return H, b, _Coupling(lay, W, Y, st.compiled), V, bl.ravel(), r, cost, rn
+
+
+def _normal_equations_numpy(
+    r: F64,
+    Jp: F64,
+    Jl: F64,
+    Jt: F64,
+    lay: _Layout,
+    active: NDArray[np.bool_],
+    sigma_px: float,
+    huber_k: float,
+    H: F64,
+    b: F64,
+    n_pose: int,
+    n_pt: int,
+) -> tuple[F64, F64, F64, F64, F64, float]:
+    """The observations' part of :func:`_normal_equations` by numpy, into ``H`` and ``b``.
+
+    Returns ``W``, ``Y``, ``V``, ``bl``, the normalised residual norms and the robust cost.
+    """
+    rn = np.linalg.norm(r, axis=1) / sigma_px
+    w = np.sqrt(_huber_weights(rn, huber_k)) / sigma_px
+    rw = r * w[:, None]
+    Jp = Jp * w[:, None, None]
+    Jl = Jl * w[:, None, None]
+    Jt = Jt[:, :, active] * w[:, None, None]
+    n = r.shape[0]
+    nc = int(active.sum())
+    npz = 6 * (n_pose - 1)
+    Jt2 = Jt.reshape(2 * n, nc)
+    r2 = rw.ravel()
+    if npz:
+        for i in range(1, n_pose):
+            sel = lay.by_pose[i]
+            Ji = Jp[sel].reshape(-1, 6)
+            o = 6 * (i - 1)
+            H[o : o + 6, o : o + 6] = Ji.T @ Ji
+            H[o : o + 6, npz:] = Ji.T @ Jt[sel].reshape(Ji.shape[0], nc)
+            b[o : o + 6] = -(Ji.T @ rw[sel].ravel())
+        H[npz:, :npz] = H[:npz, npz:].T
+    H[npz:, npz:] = Jt2.T @ Jt2
+    b[npz:] = -(Jt2.T @ r2)
     W = np.asarray(lay.of_pair @ _outer_sum(Jp, Jl).reshape(n, 18)).reshape(-1, 6, 3)
     Jl_sp = sp.csr_matrix((Jl.ravel(), lay.point_cols, np.arange(0, 6 * n + 1, 3)), shape=(2 * n, 3 * n_pt))
     Y = np.asarray(Jl_sp.T @ Jt2).reshape(n_pt, 3, nc).transpose(0, 2, 1)
     V = np.asarray(lay.of_point @ _outer_sum(Jl, Jl).reshape(n, 9)).reshape(n_pt, 3, 3)
     bl = -np.asarray(lay.of_point @ (Jl[:, 0] * rw[:, :1] + Jl[:, 1] * rw[:, 1:]))
-    cost = _huber_cost(rn, huber_k) + float(np.sum((dth / ps) ** 2)) + cL + held_cost
-    return H, b, _Coupling(lay, W, Y), V, bl.ravel(), r, cost, rn
+    return W, Y, V, bl, rn, _huber_cost(rn, huber_k)
 
 
 def _schur(H: F64, Hzl: _Coupling, V: F64, damping: float) -> tuple[F64, F64]:
@@ -763,6 +853,16 @@ def _schur(H: F64, Hzl: _Coupling, V: F64, damping: float) -> tuple[F64, F64]:
     The pose blocks of ``Hzl V^-1 Hlz`` are summed over every two (pose, landmark) pairs of one
     landmark (:class:`_Layout`).
     """
+    if Hzl.compiled:
+        from loopmodel.calibration import _rig_kernels
+
+        lay = Hzl.layout
+        S = np.empty_like(H)
+        Vinv = np.empty_like(V)
+        ok = _rig_kernels.schur(H, Hzl.W, Hzl.Y, V, float(damping), lay.pair_pose, lay.lm_start, lay.lm_pairs, S, Vinv)
+        if not ok:
+            raise np.linalg.LinAlgError("a landmark's block of the calibrating bundle adjustment is singular")
+        return S, Vinv
     Vd = V.copy()
     idx = np.arange(3)
     Vd[:, idx, idx] *= 1.0 + damping
@@ -794,6 +894,12 @@ def _hzl_dot(Hzl: _Coupling, x: F64) -> F64:
     """``Hzl x`` for a landmark vector ``x`` (3L): the free poses' rows, then the calibration's."""
     lay = Hzl.layout
     xl = x.reshape(-1, 3)
+    if Hzl.compiled:
+        from loopmodel.calibration import _rig_kernels
+
+        out = np.empty(6 * (lay.n_pose - 1) + Hzl.Y.shape[1])
+        _rig_kernels.hzl_dot(Hzl.W, Hzl.Y, lay.pair_pose, lay.pair_point, np.ascontiguousarray(xl), out)
+        return out
     top = np.asarray(lay.pair_to_pose @ np.matmul(Hzl.W, xl[lay.pair_point][:, :, None])[:, :, 0]).ravel()
     return np.concatenate([top, _flat(Hzl.Y) @ xl.ravel()])
 
@@ -802,6 +908,12 @@ def _hlz_dot(Hzl: _Coupling, y: F64) -> F64:
     """``Hlz y`` for a vector ``y`` of the free poses and the calibration: a landmark vector (3L)."""
     lay = Hzl.layout
     npz = 6 * (lay.n_pose - 1)
+    if Hzl.compiled:
+        from loopmodel.calibration import _rig_kernels
+
+        res = np.empty((Hzl.Y.shape[0], 3))
+        _rig_kernels.hlz_dot(Hzl.W, Hzl.Y, lay.pair_pose, lay.pair_point, np.ascontiguousarray(y, np.float64), res)
+        return res.ravel()
     yp = np.concatenate([np.zeros(6), y[:npz]]).reshape(-1, 6)
     out = np.tensordot(Hzl.Y, y[npz:], axes=([1], [0]))
     out += np.asarray(lay.pair_to_point @ np.matmul(yp[lay.pair_pose][:, None, :], Hzl.W)[:, 0, :])
@@ -820,7 +932,7 @@ def _apply(st: _State, dz: F64, dl: F64, active: NDArray[np.bool_]) -> _State:
         R[i] = st.R[i] @ so3_exp(w)
     theta = st.theta.copy()
     theta[active] += dz[npz:]
-    return _State(R, t, st.pts + dl.reshape(-1, 3), theta)
+    return _State(R, t, st.pts + dl.reshape(-1, 3), theta, st.compiled)
 
 
 def _solve(
@@ -1182,6 +1294,7 @@ def refine_rig(
     observable_direction_ratio: float = 1.0,
     start_values: F64 | None = None,
     anchor_principal_point: bool = False,
+    compiled: bool = True,
 ) -> tuple[F64, F64, RigRefinement]:
     """Bundle adjustment of poses, landmarks and the rig calibration; see the module docstring.
 
@@ -1195,13 +1308,15 @@ def refine_rig(
     the calibration to start from (the order of :data:`PARAM_NAMES`, e.g. the online estimate; the
     priors stay at the recorded values). ``anchor_principal_point``: a held common principal point is
     held through the left camera's (:func:`anchored_held_directions`). The dense algebra runs on one
-    BLAS thread (:func:`one_blas_thread`).
+    BLAS thread (:func:`one_blas_thread`). ``compiled``: the residuals, Jacobians, normal equations and
+    the landmarks' elimination by the compiled kernels (:mod:`._rig_kernels`), else by numpy (the same
+    values but for the order of the sums; fin12).
     """
     with one_blas_thread():
         return _refine_rig(
             obs, world_from_cam, points_w, recorded, prior_sigma, estimate, observable_ratio, huber_k,
             max_iterations, track_robust, consider, observable_direction_ratio, start_values,
-            anchor_principal_point,
+            anchor_principal_point, compiled,
         )
 
 
@@ -1220,6 +1335,7 @@ def _refine_rig(
     observable_direction_ratio: float,
     start_values: F64 | None = None,
     anchor_principal_point: bool = False,
+    compiled: bool = True,
 ) -> tuple[F64, F64, RigRefinement]:
     rig = RigParameters.of(recorded)
     prior_theta = rig.values.copy()
@@ -1230,7 +1346,8 @@ def _refine_rig(
     if start_values is not None:  # a warm start (the online estimate)
         start = np.where(active, np.asarray(start_values, float), prior_theta)
     st = _State(
-        world_from_cam[:, :3, :3].copy(), world_from_cam[:, :3, 3].copy(), np.asarray(points_w, float).copy(), start
+        world_from_cam[:, :3, :3].copy(), world_from_cam[:, :3, 3].copy(), np.asarray(points_w, float).copy(), start,
+        compiled,
     )
     unknowns = 6 * (st.R.shape[0] - 1) + 3 * st.pts.shape[0]
     r0 = st.residuals(obs, rig)[0]
@@ -1267,7 +1384,7 @@ def _refine_rig(
         # (a 20-keyframe synthetic scan: k1_right 24 sigma off)
         theta = st.theta.copy()
         theta[blind] = prior_theta[blind]
-        st = _State(st.R, st.t, st.pts, theta)
+        st = _State(st.R, st.t, st.pts, theta, st.compiled)
         keep = np.concatenate([np.ones(S.shape[0] - nc, bool), ~blind[active]])
         S = S[np.ix_(keep, keep)]  # held: conditioned on, its rows out of the information
         active = active & ~blind
