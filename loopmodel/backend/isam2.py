@@ -174,6 +174,7 @@ class Isam2Backend:
         self._deferred_all = False  # a deferred update may move more than the window
         # local_defer_keyframe: a keyframe's own update waits for the next one (its loop's) or an estimate
         self._defer_kf = self._defer_late and cfg.local_defer_keyframe
+        self._kf_waiting = False  # a keyframe's update waits (at most one: the next keyframe runs it first)
         # local_rebuild_kf: the variables a rebuild left out of iSAM2, at their estimate (keys disjoint
         # from iSAM2's); the gauge-tight priors holding the older keyframes a rebuild kept (factor ids)
         self._frozen = gtsam.Values()
@@ -579,6 +580,8 @@ class Isam2Backend:
         if applied is not None and estimate is not None and np.isfinite(applied) and np.isfinite(estimate):
             self._kf_offset_px[kf_id] = float(applied)
             self._offset_estimate_px = float(estimate)
+        if self._kf_waiting:  # the previous keyframe's update (no estimate came between) runs on its own
+            self._flush_deferred()
         if self._windowed and cfg.local_rebuild_kf > 0:
             n_kf = len(self._kf_order)
             keep = max(cfg.local_rebuild_keep_kf, cfg.local_window_kf)
@@ -640,6 +643,7 @@ class Isam2Backend:
         new_fids = list(self._batch)
         self._theta0.insert(values)
         self._run_update(graph, values, [], X(kf_id), defer=self._defer_kf)
+        self._kf_waiting = self._defer_kf and bool(self._deferred_fids)
         if cfg.blunder_sigma > 0:
             report.removed_blunders = self._screen_new([f for f in new_fids if f in self._factors])
         report.pending_landmarks = len(self._pending)
@@ -781,11 +785,16 @@ class Isam2Backend:
         self._deferred_values = gtsam.Values()
         self._deferred_fids = []
         self._deferred_all = False
+        self._kf_waiting = False
 
     def _flush_deferred(self) -> None:
-        """Run the update the deferred factors wait for (``local_defer_late``), if any."""
+        """Run the update the deferred factors wait for (``local_defer_late``), if any.
+
+        A waiting keyframe's (``local_defer_keyframe``) runs as that keyframe's update would have.
+        """
         if self._deferred_fids:
-            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None)
+            newest = X(self._kf_order[-1]) if self._kf_waiting else None
+            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], newest)
 
     def _ordering_groups(self, n_keys: int) -> gtsam.KeyGroupMap | None:
         """Elimination groups for an update whose affected set has at least ``n_keys`` variables.
