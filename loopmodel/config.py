@@ -162,8 +162,8 @@ class BackendConfig(_Section):
     # issue 33 item 5 (isam12): under local a keyframe's own update waits for the calls that follow it
     # in the same batch (a loop's late observations and prior) and runs with them at the next estimate:
     # one iSAM2 update a loop keyframe instead of two, the live end corrected in the same estimate
-    # rounds_1800 call stream replayed (2 runs, load 9-10): back-end CPU 4.3-5.0 -> 3.9-4.4 s, last block
-    # median 47-59 -> 37-40 ms; the KITTI clip and the orbit have no loop: one update a keyframe either way
+    # rounds_1800 call stream replayed (load 13-15): back-end CPU 5.4 -> 5.0 s, last block median 63 -> 51 ms;
+    # the KITTI clip (configs/kitti.yaml) and the orbit identical or within noise in bench pipeline --quick
     local_defer_keyframe: bool = Field(
         True, description="local: a keyframe's iSAM2 update waits for its loop's (one update, at the next estimate)"
     )
@@ -172,9 +172,10 @@ class BackendConfig(_Section):
     # prior at their estimate; the rest of the map leaves iSAM2 at its estimate and rejoins for the
     # final estimate): what each update pays for stays bounded by construction (0: off). The
     # rounds_5400 call stream (18 rounds, 348 keyframes) replayed with local_defer_keyframe: back end
-    # per keyframe last block / first 4.4 -> 2.3 (19.6 -> 85.8 ms against 18.4 -> 43.0), CPU 20.1 /
-    # 21.0 s (the rebuilds 5.6 s), online keyframe ATE 9.54 / 9.56 mm; inert below keep + N keyframes
-    # (the KITTI clip's 13, the 600-frame sample's 19) (CHANGELOG isam12)
+    # per keyframe last block / first 3.0 -> 1.6 (23.6 -> 71.5 ms against 24.1 -> 38.3), CPU 20.8 /
+    # 22.7 s (the rebuilds 5.8 s), online keyframe ATE 9.56 / 9.59 mm; on rounds_1800 20-30 % more CPU;
+    # inert below keep + N keyframes: the KITTI clip (13, identical in bench pipeline --quick) and the
+    # 600-frame sample (19) (CHANGELOG isam12)
     local_rebuild_kf: int = Field(
         20, ge=0, le=100000, description="local: rebuild iSAM2 on the newest keyframes every N keyframes (0: off)"
     )
