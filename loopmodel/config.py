@@ -109,6 +109,10 @@ class BackendConfig(_Section):
     relinearize_threshold_m: float = Field(0.02, gt=0, description="pose position")
     relinearize_threshold_landmark_m: float = Field(0.2, gt=0, description="landmark position")
     relinearize_skip: int = Field(1, ge=1, le=10000, description="check relinearisation every N updates")
+    # issue 33 item 5 (isam12): the full check visits every variable each update (a cost growing with
+    # the map); on, the rounds_1800 call stream replayed cost 3.3-3.4 s of back-end CPU against 3.9-4.4
+    # (2 runs each, load 9-10) but the synthetic rounds' final estimates (tests/test_backend_growth.py,
+    # without the batch BA) 5-15 % worse: left off (CHANGELOG isam12)
     partial_relinearization_check: bool = Field(
         False, description="check relinearisation only in the cliques an update touches"
     )
@@ -154,6 +158,29 @@ class BackendConfig(_Section):
     # (configs/sim.yaml) identical with it on or off (no loop closes there) (CHANGELOG window9, integration)
     local_loop_prior: bool = Field(
         True, description="local: a loop corrects its newer keyframe online through a prior (else only at the end)"
+    )
+    # issue 33 item 5 (isam12): under local a keyframe's own update waits for the calls that follow it
+    # in the same batch (a loop's late observations and prior) and runs with them at the next estimate:
+    # one iSAM2 update a loop keyframe instead of two, the live end corrected in the same estimate
+    # rounds_1800 call stream replayed (load 13-15): back-end CPU 5.4 -> 5.0 s, last block median 63 -> 51 ms;
+    # the KITTI clip (configs/kitti.yaml) and the orbit identical or within noise in bench pipeline --quick
+    local_defer_keyframe: bool = Field(
+        True, description="local: a keyframe's iSAM2 update waits for its loop's (one update, at the next estimate)"
+    )
+    # issue 33 item 5 (isam12): under local every N keyframes iSAM2 is rebuilt on the newest
+    # local_rebuild_keep_kf keyframes' factors (older keyframes those factors name held by a gauge-tight
+    # prior at their estimate; the rest of the map leaves iSAM2 at its estimate and rejoins for the
+    # final estimate): what each update pays for stays bounded by construction (0: off). The
+    # rounds_5400 call stream (18 rounds, 348 keyframes) replayed with local_defer_keyframe: back end
+    # per keyframe last block / first 3.0 -> 1.6 (23.6 -> 71.5 ms against 24.1 -> 38.3), CPU 20.8 /
+    # 22.7 s (the rebuilds 5.8 s), online keyframe ATE 9.56 / 9.59 mm; on rounds_1800 20-30 % more CPU;
+    # inert below keep + N keyframes: the KITTI clip (13, identical in bench pipeline --quick) and the
+    # 600-frame sample (19) (CHANGELOG isam12)
+    local_rebuild_kf: int = Field(
+        20, ge=0, le=100000, description="local: rebuild iSAM2 on the newest keyframes every N keyframes (0: off)"
+    )
+    local_rebuild_keep_kf: int = Field(
+        10, ge=1, le=100000, description="local_rebuild_kf: keyframes a rebuild keeps free (at least local_window_kf)"
     )
     # issue 33 (scale8): rounds_1800 replay (local): a keyframe's observations of landmarks already in
     # the graph (local map and revisits) grow 92 -> 378 a keyframe from the first round to the sixth,

@@ -905,6 +905,7 @@ def _island_backend(segment_sigma_m: float | None = None, segment_sigma_rad: flo
     mono = np.c_[np.arange(100, 121), px[:, 0], px[:, 2]]
     empty = np.zeros((0, 3))
     be.add_keyframe(Keyframe(3, 3, T3 @ se3_exp([0.01, 0, 0, 0, 0, 0]), np.zeros(0, np.int64), empty, empty, mono))
+    be.estimate(landmarks=False)  # as the back end's worker does after each batch (its update may wait for it)
     return be, {2: T2, 3: T3}
 
 

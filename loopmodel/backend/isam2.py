@@ -55,6 +55,7 @@ logger = logging.getLogger(__name__)
 _SYMBOL_RE = re.compile(r"Symbol:\s*([A-Za-z])(\d+)")
 _INDEX_MASK = np.uint64((1 << 56) - 1)
 _EYE4 = np.eye(4)
+_X_CHAR = ord("x")
 
 
 @dataclass(slots=True)
@@ -83,6 +84,11 @@ class _Landmark:
     landmark_id: int
     first_seq: int  # keyframe sequence number of the first observation in the graph
     fids: set[int] = field(default_factory=set)
+
+
+def _is_pose_key(key: int) -> bool:
+    """Whether gtsam key ``key`` is a keyframe pose ``X(i)``."""
+    return key >> 56 == _X_CHAR
 
 
 def _is_identity(T: F64) -> bool:
@@ -166,6 +172,16 @@ class Isam2Backend:
         self._deferred_values = gtsam.Values()
         self._deferred_fids: list[int] = []
         self._deferred_all = False  # a deferred update may move more than the window
+        # local_defer_keyframe: a keyframe's own update waits for the next one (its loop's) or an estimate
+        self._defer_kf = self._defer_late and cfg.local_defer_keyframe
+        self._kf_waiting = False  # a keyframe's update waits (at most one: the next keyframe runs it first)
+        # local_rebuild_kf: the variables a rebuild left out of iSAM2, at their estimate (keys disjoint
+        # from iSAM2's); the gauge-tight priors holding the older keyframes a rebuild kept (factor ids)
+        self._frozen = gtsam.Values()
+        self._frozen_keys: set[int] = set()
+        self._fixed_fids: list[int] = []
+        self._rebuilt_at = 0  # keyframes in the graph at the last rebuild
+        self.window_rebuilds = 0
 
     # ------------------------------------------------------------------ set-up
     @staticmethod
@@ -234,7 +250,7 @@ class Isam2Backend:
     def values(self) -> gtsam.Values:
         """The current iSAM2 estimate of every variable (``gtsam.Values``)."""
         self._flush_deferred()
-        return self._isam.calculateEstimate()
+        return self._current_values()
 
     def observation_factor_index(self, observation: Observation) -> int | None:
         """iSAM2 factor index of an observation ``(keyframe_id, landmark_id)`` in the graph."""
@@ -297,8 +313,7 @@ class Isam2Backend:
             self._next_pkey += 1
             self._proxy[lkey] = entry
             # a landmark made by a deferred update (local_defer_late) is not in iSAM2 yet: its initial point
-            waiting = self._deferred_values
-            p = waiting.atPoint3(L(lkey)) if waiting.exists(L(lkey)) else self._isam.calculateEstimatePoint3(L(lkey))
+            p = self._point_estimate(L(lkey))
             self._new_proxies.insert(P(entry[0]), p)
             noise = gtsam.noiseModel.Isotropic.Sigma(3, self.config.loop_sigma_m)
             prior = gtsam.PriorFactorPoint3(P(entry[0]), p, noise)
@@ -565,6 +580,13 @@ class Isam2Backend:
         if applied is not None and estimate is not None and np.isfinite(applied) and np.isfinite(estimate):
             self._kf_offset_px[kf_id] = float(applied)
             self._offset_estimate_px = float(estimate)
+        if self._kf_waiting:  # the previous keyframe's update (no estimate came between) runs on its own
+            self._flush_deferred()
+        if self._windowed and cfg.local_rebuild_kf > 0:
+            n_kf = len(self._kf_order)
+            keep = max(cfg.local_rebuild_keep_kf, cfg.local_window_kf)
+            if n_kf >= keep + cfg.local_rebuild_kf and n_kf - self._rebuilt_at >= cfg.local_rebuild_kf:
+                self._rebuild_window(keep)
         self._kf_seq[kf_id] = len(self._kf_seq)
         self._kf_order.append(kf_id)
         prev = keyframe.prev_keyframe_id
@@ -620,7 +642,8 @@ class Isam2Backend:
         report.new_factors = graph.size()
         new_fids = list(self._batch)
         self._theta0.insert(values)
-        self._run_update(graph, values, [], X(kf_id))
+        self._run_update(graph, values, [], X(kf_id), defer=self._defer_kf)
+        self._kf_waiting = self._defer_kf and bool(self._deferred_fids)
         if cfg.blunder_sigma > 0:
             report.removed_blunders = self._screen_new([f for f in new_fids if f in self._factors])
         report.pending_landmarks = len(self._pending)
@@ -743,6 +766,8 @@ class Isam2Backend:
             graph, values, new_fids = self._deferred_graph, self._deferred_values, self._deferred_fids
             newest = None if self._deferred_all else newest
             self._clear_deferred()
+        if self._frozen_keys:
+            self._thaw(graph, values, new_fids)
         self._estimate_all |= newest is None  # not a keyframe's update: it may move the whole map
         # removal-only updates keep GTSAM's default ordering: their affected set may be tiny
         groups = None if newest is None else self._ordering_groups(len(graph.keyVector()))
@@ -760,11 +785,16 @@ class Isam2Backend:
         self._deferred_values = gtsam.Values()
         self._deferred_fids = []
         self._deferred_all = False
+        self._kf_waiting = False
 
     def _flush_deferred(self) -> None:
-        """Run the update the deferred factors wait for (``local_defer_late``), if any."""
+        """Run the update the deferred factors wait for (``local_defer_late``), if any.
+
+        A waiting keyframe's (``local_defer_keyframe``) runs as that keyframe's update would have.
+        """
         if self._deferred_fids:
-            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None)
+            newest = X(self._kf_order[-1]) if self._kf_waiting else None
+            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], newest)
 
     def _ordering_groups(self, n_keys: int) -> gtsam.KeyGroupMap | None:
         """Elimination groups for an update whose affected set has at least ``n_keys`` variables.
@@ -792,7 +822,7 @@ class Isam2Backend:
             if "ndeterminant" not in message and "ndeterminate" not in message or match is None:
                 raise EstimationError(f"iSAM2 update failed: {message.strip().splitlines()[0]}") from exc
             symbol, index = match.group(1), int(match.group(2))
-            theta = self._isam.getLinearizationPoint()
+            theta = self._current_values(self._isam.getLinearizationPoint())  # with what a rebuild left out
             if symbol == "l":
                 self._drop_landmark(index)
             elif symbol == "x" and index in self._kf_seq:
@@ -835,6 +865,7 @@ class Isam2Backend:
                 continue
             for fid, slot in zip(fids, result.getNewFactorsIndices(), strict=True):
                 self._slot[fid] = slot
+            self._frozen, self._frozen_keys = gtsam.Values(), set()  # every variable is in iSAM2 again
             return
         raise EstimationError("iSAM2 stayed indeterminate after dropping 20 landmarks") from exc
 
@@ -1230,7 +1261,7 @@ class Isam2Backend:
         """
         new, old = (kf_a, kf_b) if self._kf_seq[kf_a] >= self._kf_seq[kf_b] else (kf_b, kf_a)
         old_from_new = a_from_b if new == kf_b else invert_pose(a_from_b)
-        world_from_old = self._isam.calculateEstimatePose3(X(old)).matrix()
+        world_from_old = self._pose_estimate(old).matrix()
         prior = gtsam.PriorFactorPose3(X(new), gtsam.Pose3(world_from_old @ old_from_new), noise)
         self._proxy_fids[fid] = [self._new_fid(_FactorRecord(prior, "proxy"))]
         graph = gtsam.NonlinearFactorGraph()
@@ -1264,9 +1295,10 @@ class Isam2Backend:
         """
         lm_ids = np.zeros(0, dtype=np.int64)
         pts = np.zeros((0, 3))
-        if landmarks:
+        if landmarks or self._defer_kf:  # a keyframe's update waits at most until here (local_defer_keyframe)
             self._flush_deferred()
-            vals = self._isam.calculateEstimate()
+        if landmarks:
+            vals = self._current_values()
             keys = np.asarray(vals.keys(), dtype=np.uint64)
             chars = (keys >> np.uint64(56)).astype(np.int64)
             idx = (keys & _INDEX_MASK).astype(np.int64)
@@ -1281,12 +1313,8 @@ class Isam2Backend:
             pts = all_pts[live]
         else:
             ids = self._estimate_keys()
-            isam = self._isam
             rows = np.array(
-                [
-                    np.concatenate([m[:3, :3].ravel(), m[:3, 3]])
-                    for m in (isam.calculateEstimatePose3(X(k)).matrix() for k in ids)
-                ]
+                [np.concatenate([m[:3, :3].ravel(), m[:3, 3]]) for m in (self._pose_estimate(k).matrix() for k in ids)]
             ).reshape(-1, 12)
         poses = np.zeros((rows.shape[0], 4, 4))
         poses[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
@@ -1333,6 +1361,127 @@ class Isam2Backend:
         return (old[start : start + n] + old[: max(start + n - len(old), 0)]) + order[-recent:]
 
     # ------------------------------------------------------------------ loop policy local (issue 33)
+    def _current_values(self, base: gtsam.Values | None = None) -> gtsam.Values:
+        """iSAM2's estimate (or a copy of ``base``) with the variables a window rebuild left out."""
+        vals = self._isam.calculateEstimate() if base is None else gtsam.Values(base)
+        if self._frozen_keys:
+            vals.insert_or_assign(self._frozen)
+        return vals
+
+    def _pose_estimate(self, kf_id: int) -> gtsam.Pose3:
+        """The current estimate of keyframe ``kf_id``'s pose: iSAM2's, a deferred update's, or a rebuild's."""
+        key = X(kf_id)
+        if key in self._frozen_keys:
+            return self._frozen.atPose3(key)
+        if self._deferred_values.exists(key):
+            return self._deferred_values.atPose3(key)
+        return self._isam.calculateEstimatePose3(key)
+
+    def _point_estimate(self, key: int) -> F64:
+        """The current estimate of landmark variable ``key``, wherever it is (see :meth:`_pose_estimate`)."""
+        if key in self._frozen_keys:
+            return self._frozen.atPoint3(key)
+        if self._deferred_values.exists(key):
+            return self._deferred_values.atPoint3(key)
+        return self._isam.calculateEstimatePoint3(key)
+
+    def _hold(self, key: int, value: Any, graph: gtsam.NonlinearFactorGraph) -> int:
+        """A prior that holds variable ``key`` at ``value`` in iSAM2 only (kind proxy: dropped at the merge).
+
+        Keyframes by the gauge prior's sigmas (fixed, as the old map under ``local``), landmarks by
+        ``loop_sigma_m`` (as a proxy). Returns its factor id (recorded for the next update).
+        """
+        cfg = self.config
+        if _is_pose_key(key):
+            noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([cfg.prior_sigma_rad] * 3 + [cfg.prior_sigma_m] * 3))
+            prior: gtsam.NonlinearFactor = gtsam.PriorFactorPose3(key, value, noise)
+        else:
+            prior = gtsam.PriorFactorPoint3(key, value, gtsam.noiseModel.Isotropic.Sigma(3, cfg.loop_sigma_m))
+        graph.add(prior)
+        fid = self._next_fid
+        self._next_fid += 1
+        self._factors[fid] = _FactorRecord(prior, "proxy")
+        self._fixed_fids.append(fid)
+        return fid
+
+    def _thaw(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, new_fids: list[int]) -> None:
+        """Variables of ``graph`` a rebuild left out return to iSAM2, held at their estimate by :meth:`_hold`.
+
+        E.g. a new landmark first seen by a keyframe older than the rebuild's window; appends the
+        priors' factor ids to ``new_fids``.
+        """
+        back = self._frozen_keys.intersection(graph.keyVector())
+        if not back:
+            return
+        for key in sorted(back):
+            if _is_pose_key(key):
+                value: Any = self._frozen.atPose3(key)
+            else:
+                value = self._frozen.atPoint3(key)
+            values.insert(key, value)
+            new_fids.append(self._hold(key, value, graph))
+            self._frozen.erase(key)
+            self._frozen_keys.discard(key)
+
+    def _rebuild_window(self, keep: int) -> None:
+        """A fresh iSAM2 on the factors of the newest ``keep`` keyframes (``local_rebuild_kf``).
+
+        Kept: every factor in iSAM2 whose landmarks (and proxies) the newest ``keep`` keyframes observe
+        and whose keyframes are among them, or are older ones those factors name, each held by
+        :meth:`_hold` at its estimate (the fixed old map of ``local``). Every other variable leaves
+        iSAM2 at its estimate (:attr:`_frozen`); its factors stay recorded and join for the final
+        estimate (:meth:`_merge_outside`). Only what is in iSAM2 is visited: the cost is bounded by
+        the window, not the map.
+        """
+        self._flush_deferred()
+        theta = self._isam.calculateEstimate()
+        free = {X(k) for k in self._kf_order[-keep:]}
+        is_pose = _is_pose_key
+        keys_of = {fid: self._factors[fid].factor.keys() for fid in self._slot}
+        kept_vars = set(free)
+        for keys in keys_of.values():
+            if not free.isdisjoint(keys):
+                kept_vars.update(keys)
+        old_fixed = set(self._fixed_fids)
+        self._fixed_fids = []
+        fids: list[int] = []
+        for fid, keys in keys_of.items():
+            others = [k for k in keys if not is_pose(k)]
+            # a landmark's or proxy's factor if the window keeps them; a pose-only one (a prior) if its
+            # keyframes are free: an older keyframe's hold is made anew below
+            if all(k in kept_vars for k in others) if others else free.issuperset(keys):
+                fids.append(fid)
+                if fid in old_fixed:
+                    self._fixed_fids.append(fid)
+        for fid in old_fixed.difference(fids):
+            self._factors.pop(fid, None)
+        graph = gtsam.NonlinearFactorGraph()
+        for fid in fids:
+            graph.add(self._factors[fid].factor)
+        in_graph = set(graph.keyVector())
+        for key in sorted(in_graph - free):
+            if is_pose(key):
+                fids.append(self._hold(key, theta.atPose3(key), graph))
+        values = gtsam.Values()
+        for key in theta.keys():
+            value = theta.atPose3(key) if is_pose(key) else theta.atPoint3(key)
+            if key in in_graph:
+                values.insert(key, value)
+            else:
+                self._frozen.insert(key, value)
+                self._frozen_keys.add(key)
+        self._isam = gtsam.ISAM2(self.isam2_params(self.config))
+        self._slot.clear()
+        self._rebuilt_at = len(self._kf_order)
+        self.window_rebuilds += 1
+        try:
+            result = self._isam.update(graph, values, [], constrainedKeys=self._ordering_groups(len(in_graph)))
+        except RuntimeError as exc:
+            self._recover(exc)
+            return
+        for fid, slot in zip(fids, result.getNewFactorsIndices(), strict=True):
+            self._slot[fid] = slot
+
     def _merge_outside(self) -> None:
         """Every factor in one iSAM2 (``loop_policy`` local, before the final estimate).
 
@@ -1340,7 +1489,8 @@ class Isam2Backend:
         on the back end is a plain one.
         """
         self._flush_deferred()
-        theta = self._isam.calculateEstimate()
+        theta = self._current_values()
+        self._frozen, self._frozen_keys, self._fixed_fids = gtsam.Values(), set(), []
         for fid in [f for f, rec in self._factors.items() if rec.kind == "proxy"]:
             del self._factors[fid]
         self._proxy.clear()
