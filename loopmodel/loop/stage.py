@@ -57,6 +57,7 @@ from loopmodel.loop.closure import LoopEvent
 from loopmodel.loop.features import FeatureSet
 from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hybrid_ba
 from loopmodel.loop.vocabulary import Vocabulary
+from loopmodel.priority import low_priority_pool, lower_thread_priority
 from loopmodel.stages import LoopConstraint, LoopOutcome, LoopStage, MapState, NullLoopStage, ResumeFeatures
 from loopmodel.types import Keyframe, StereoCalibration
 
@@ -138,6 +139,7 @@ def _worker_start(calibration: StereoCalibration, config: LoopConfig, vocabulary
     global _WORKER_CLOSER
     _WORKER_CLOSER = LoopCloser(calibration, config, vocabulary)
     _warm_up_kernels()
+    lower_thread_priority(config.worker_nice)  # its start at the run's priority, its detections below (kf12)
 
 
 def _worker_detect(kf: Keyframe, neighbours: set[int], query: bool) -> Detection:
@@ -330,7 +332,7 @@ class LoopClosingStage:
                     initargs=(self.closer.calibration, self.config, self._vocabulary),
                 )
             else:
-                self._detect_pool = ThreadPoolExecutor(1, thread_name_prefix="loop-detect")
+                self._detect_pool = low_priority_pool("loop-detect", self.config.worker_nice)
         return self._detect_pool
 
     def _note(self, d: Detection) -> LoopClosure | None:
@@ -382,7 +384,7 @@ class LoopClosingStage:
         pred = self._predicted_from_match(closure, cur, state)
         world = {k: np.array(v, dtype=float) for k, v in state.world_from_kf.items()}
         if self._apply_pool is None:
-            self._apply_pool = ThreadPoolExecutor(1, thread_name_prefix="loop-apply")
+            self._apply_pool = low_priority_pool("loop-apply", self.config.worker_nice)
         job = self._apply_pool.submit(
             self._move, closure, int(cur.id), np.asarray(cur.image), pred, world, dict(self.keyframes)
         )
