@@ -169,7 +169,7 @@ class BackendConfig(_Section):
     # kf12 (issue 33): the worker's keyframe updates on a thread of lowered scheduling priority (what the
     # run waits for - the final estimate, landmarks - keeps the run's), so the tracking thread and its keyframe
     # threads get the 2-core machine first. Measured in CHANGELOG (kf12)
-    worker_nice: int = Field(10, ge=0, le=19, description="lower the worker's update thread's priority by this")
+    worker_nice: int = Field(0, ge=0, le=19, description="lower the worker's update thread's priority by this")
 
 
 class FrontendConfig(_Section):
