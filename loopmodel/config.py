@@ -403,6 +403,13 @@ class FrontendConfig(_Section):
     opencv_threads: int = Field(
         1, ge=0, le=256, description="at most this many OpenCV threads in the process (0: OpenCV's own count)"
     )
+    # kf12 (issue 33): in a keyframe frame three threads of the run take turns on the interpreter lock (the
+    # tracking thread's compiled and OpenCV calls, the keyframe threads' stereo set and re-measurements); each
+    # return from a call that released it waited up to Python's 5 ms interval for a thread running Python.
+    # Process-wide, only ever lowered (as opencv_threads). Measured in CHANGELOG (kf12)
+    gil_switch_interval_ms: float = Field(
+        0.5, ge=0, le=100, description="lower the interpreter's switch interval to this (ms; 0: Python's own)"
+    )
 
 
 class MappingConfig(_Section):

@@ -1,4 +1,4 @@
-"""Scheduling priority of the run's worker threads (issue 33).
+"""Scheduling of the run's threads (issue 33).
 
 Work that the tracking thread never waits for (a live-mesh update, the back end's keyframe updates, loop
 detection) runs on threads of lowered priority, so on a 2-core machine the tracking thread and its
@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["low_priority_pool", "lower_thread_priority"]
+__all__ = ["low_priority_pool", "lower_switch_interval", "lower_thread_priority"]
 
 
 def lower_thread_priority(nice: int) -> None:
@@ -36,3 +37,14 @@ def lower_thread_priority(nice: int) -> None:
 def low_priority_pool(name: str, nice: int) -> ThreadPoolExecutor:
     """One worker thread named ``name`` whose priority is lowered by ``nice`` when it starts."""
     return ThreadPoolExecutor(1, name, lower_thread_priority, (nice,))
+
+
+def lower_switch_interval(ms: float) -> None:
+    """Lower the interpreter's switch interval to ``ms`` milliseconds (process-wide; only ever lowered; 0: unchanged).
+
+    A thread that gives up the interpreter lock for a compiled or OpenCV call (the tracking thread's KLT,
+    the keyframe threads' kernels) waits for it on return while a thread running Python holds it: up to
+    the interval (Python's default 5 ms) at each such return, longer when the holder is descheduled.
+    """
+    if 0 < ms < sys.getswitchinterval() * 1e3:
+        sys.setswitchinterval(ms / 1e3)
