@@ -841,7 +841,7 @@ class LoopConfig(_Section):
     # kf12 (issue 33): the detection worker (thread or process) and the late loops' apply thread at a lowered
     # scheduling priority: on the KITTI clip a keyframe's detection (~11 ms of CPU) ran beside the next frame's
     # tracking at the same priority. Measured in CHANGELOG (kf12)
-    worker_nice: int = Field(10, ge=0, le=19, description="lower the detection and apply workers' priority by this")
+    worker_nice: int = Field(0, ge=0, le=19, description="lower the detection and apply workers' priority by this")
     # issue 33 item 1: a loop the detection worker found for an earlier keyframe is moved to the current
     # keyframe (its old features tracked into that image, P3P bank) and gated; ``thread``: both on a
     # thread of their own, the loop applied between frames when done (its constraint with the

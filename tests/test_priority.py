@@ -36,6 +36,7 @@ def test_queued_detections_leave_the_lowered_worker_in_order() -> None:
     import threading
     from collections import deque
 
+    from loopmodel.config import LoopConfig
     from loopmodel.loop.stage import LoopClosingStage
     from loopmodel.priority import low_priority_pool
 
@@ -55,6 +56,7 @@ def test_queued_detections_leave_the_lowered_worker_in_order() -> None:
         return run
 
     stage = LoopClosingStage.__new__(LoopClosingStage)
+    stage.config = LoopConfig(worker_nice=4)
     worker = low_priority_pool("loop-detect", 4)
     calls = {k: detection(k) for k in range(3)}
     stage._inflight = deque((k, worker.submit(calls[k])) for k in range(3))

@@ -920,6 +920,8 @@ class LoopClosingStage:
         first after the worker's last: the database sees the keyframes in order. The new thread.
         """
         calls, self._calls = self._calls, {}
+        if self.config.worker_nice <= 0:  # the worker runs at the run's priority already
+            return None
         back: list[int] = []
         for i in reversed(range(len(self._inflight))):
             kf_id, fut = self._inflight[i]
