@@ -256,8 +256,8 @@ class LoopClosingStage:
         #: keyframes' images and landmarks (KLT stage, corrections)
         self._detect_pool: ThreadPoolExecutor | ProcessPoolExecutor | None = None
         self._inflight: deque[tuple[int, Future[Detection]]] = deque()
-        # the thread worker's detections by keyframe, until taken: those not started at the end run on the
-        # finishing thread at the run's priority (the worker's is loop.worker_nice below it)
+        # with loop.worker_nice, the thread worker's detections by keyframe until taken: those not started at
+        # the end move to a thread at the run's priority (_take_back_queued)
         self._calls: dict[int, Callable[[], Detection]] = {}
         #: late loops being moved to their current keyframe and gated (``apply_worker: thread``)
         self._apply_pool: ThreadPoolExecutor | None = None
@@ -322,7 +322,8 @@ class LoopClosingStage:
                 fut = self._workers().submit(_worker_detect, out.keyframe, neighbours, query)
             else:
                 call = functools.partial(detect_keyframe, self.closer, out.keyframe, neighbours, query)
-                self._calls[int(keyframe.id)] = call
+                if self.config.worker_nice > 0:
+                    self._calls[int(keyframe.id)] = call
                 fut = self._workers().submit(call)
             self._inflight.append((int(keyframe.id), fut))
             self._detections = [(int(keyframe.id), fut)]
