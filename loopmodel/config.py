@@ -413,7 +413,7 @@ class FrontendConfig(_Section):
     # (ATE, drift, mesh error): KITTI clip (configs/kitti.yaml, real; 4 alternated pairs at load 12-14) frame
     # p95 148.9 -> 145.0 ms, max after the first 182.6 -> 169.8, median 68.3 -> 64.9; orbit sample
     # (configs/sim.yaml, 200 frames; 4 pairs at load 10-12) p95 67.2 -> 52.1 ms (lower in 4 of 4), max
-    # after warm-up 157 -> 111, median 19.0 -> 14.8. CHANGELOG (kf12)
+    # after warm-up 157 -> 111, median 19.0 -> 14.8; on a quiet machine (load 2-3) within noise. CHANGELOG (kf12)
     gil_switch_interval_ms: float = Field(
         0.5, ge=0, le=100, description="lower the interpreter's switch interval to this (ms; 0: Python's own)"
     )
