@@ -193,6 +193,13 @@ class BackendConfig(_Section):
     worker: Literal["process", "thread", "inline"] = Field(
         "process", description="process (beside the tracker), thread, or inline (the tracker waits)"
     )
+    # kf12 (issue 33): the worker's keyframe updates on a thread of lowered scheduling priority (what the
+    # run waits for - the final estimate, landmarks - keeps the run's), so the tracking thread and its keyframe
+    # threads get the 2-core machine first. Off: a lagging back end moves the online corrections, and with
+    # them the results: KITTI clip (configs/kitti.yaml, full pipeline, 5 alternated pairs at load 9-10) with
+    # 10, final ATE 0.0251 -> 0.0215-0.0228 m, drift after the constant-rate segment 0.547 -> 0.566-0.654 %
+    # (frame median 72.8 -> 51.2 ms, p95 139.1 -> 132.4 ms). CHANGELOG (kf12)
+    worker_nice: int = Field(0, ge=0, le=19, description="lower the worker's update thread's priority by this")
 
 
 class FrontendConfig(_Section):
@@ -425,6 +432,17 @@ class FrontendConfig(_Section):
     # 25.7, 24.6 / 29.1, 24.3 ms (noise), final ATE 1.336 mm both. CHANGELOG.md (fe7)
     opencv_threads: int = Field(
         1, ge=0, le=256, description="at most this many OpenCV threads in the process (0: OpenCV's own count)"
+    )
+    # kf12 (issue 33): in a keyframe frame three threads of the run take turns on the interpreter lock (the
+    # tracking thread's compiled and OpenCV calls, the keyframe threads' stereo set and re-measurements); each
+    # return from a call that released it waited up to Python's 5 ms interval for a thread running Python.
+    # Process-wide, only ever lowered (as opencv_threads). Full pipeline, 5 ms (base) vs 0.5, the same results
+    # (ATE, drift, mesh error): KITTI clip (configs/kitti.yaml, real; 4 alternated pairs at load 12-14) frame
+    # p95 148.9 -> 145.0 ms, max after the first 182.6 -> 169.8, median 68.3 -> 64.9; orbit sample
+    # (configs/sim.yaml, 200 frames; 4 pairs at load 10-12) p95 67.2 -> 52.1 ms (lower in 4 of 4), max
+    # after warm-up 157 -> 111, median 19.0 -> 14.8; on a quiet machine (load 2-3) within noise. CHANGELOG (kf12)
+    gil_switch_interval_ms: float = Field(
+        0.5, ge=0, le=100, description="lower the interpreter's switch interval to this (ms; 0: Python's own)"
     )
 
 
@@ -856,6 +874,14 @@ class LoopConfig(_Section):
     detection_worker: Literal["process", "thread", "none"] = Field(
         "thread", description="where retrieval and verification run; applied at the next keyframe"
     )
+    # kf12 (issue 33): the detection worker (thread or process) and the late loops' apply thread at a lowered
+    # scheduling priority (a keyframe's detection, ~11 ms of CPU on the KITTI clip, runs beside the next
+    # frame's tracking). Off: full pipeline, 10 vs 0, the same results; KITTI clip (configs/kitti.yaml, 5
+    # alternated pairs at load 11-14) frame median 58.7 -> 39.9 ms, max after the first 226 -> 140 ms, p95
+    # 108.0 -> 106.8 ms; but the orbit sample (configs/sim.yaml, 200 frames, 4 pairs at load 7-9) max after
+    # warm-up 122 -> 198 ms (higher in 4 of 4): a lowered thread descheduled while it holds the interpreter
+    # lock keeps the tracking thread waiting. CHANGELOG (kf12)
+    worker_nice: int = Field(0, ge=0, le=19, description="lower the detection and apply workers' priority by this")
     # issue 33 item 1: a loop the detection worker found for an earlier keyframe is moved to the current
     # keyframe (its old features tracked into that image, P3P bank) and gated; ``thread``: both on a
     # thread of their own, the loop applied between frames when done (its constraint with the

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -19,12 +20,14 @@ from frontend_scene import write_kitti_folder
 
 import loopmodel.pipeline as pl
 from loopmodel.backend import Backend, create_backend
+from loopmodel.backend.base import BackendEstimate, BackendUpdate
 from loopmodel.backend.worker import BackgroundBackend
 from loopmodel.config import BackendConfig, Config, MappingConfig
 from loopmodel.io.base import Sequence
 from loopmodel.io.sequence import open_sequence
 from loopmodel.mapping import live
-from loopmodel.types import StereoCalibration, StereoFrame, Trajectory
+from loopmodel.priority import lower_thread_priority
+from loopmodel.types import Keyframe, StereoCalibration, StereoFrame, Trajectory
 
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread priorities are Linux's")
 
@@ -39,7 +42,7 @@ def test_lower_thread_priority_lowers_only_the_calling_thread() -> None:
     seen: dict[str, int] = {}
 
     def lowered(nice: int, key: str) -> None:
-        live.lower_thread_priority(nice)
+        lower_thread_priority(nice)
         seen[key] = _priority()
 
     for nice, key in ((0, "zero"), (4, "four"), (40, "capped")):
@@ -157,3 +160,46 @@ def test_a_run_waits_for_its_workers_before_the_first_frame(tmp_path: Path, monk
     result = pl.process(seq, cfg)
     assert at_first == {"extraction": True, "backend": True, "live": True}
     assert len(result.frames) == 4
+
+
+class _PriorityBackend:
+    """A back end that notes the scheduling priority of the thread each call runs on."""
+
+    def __init__(self) -> None:
+        self.seen: dict[str, int] = {}
+
+    def add_keyframe(self, keyframe: Keyframe) -> BackendUpdate:
+        self.seen["add_keyframe"] = _priority()
+        return BackendUpdate(int(keyframe.id))
+
+    def estimate(self, landmarks: bool = True) -> BackendEstimate:
+        self.seen["estimate_landmarks" if landmarks else "estimate"] = _priority()
+        return BackendEstimate({}, np.zeros(0, np.int64), np.zeros((0, 3)))
+
+    def final_estimate(self, refine: Any) -> BackendEstimate:
+        self.seen["final_estimate"] = _priority()
+        return self.estimate(landmarks=True)
+
+    def metrics(self) -> dict[str, Any]:
+        return {f"priority_{k}": v for k, v in self.seen.items()}
+
+
+@linux_only
+def test_backend_updates_run_lowered_and_what_the_run_waits_for_does_not() -> None:
+    """The back end's keyframe updates (and their estimate) run ``worker_nice`` below the worker's start.
+
+    The end-of-run call the tracker waits for keeps the run's priority (kf12).
+    """
+    base = _priority()
+    backend = BackgroundBackend(_PriorityBackend, "thread", nice=6)
+    backend.wait_started(10.0)
+    backend.add_keyframe(Keyframe(0, 0, np.eye(4), np.arange(1), np.ones((1, 3)), np.ones((1, 3))))
+    deadline = time.perf_counter() + 10.0
+    while not backend.batch_ms and time.perf_counter() < deadline:  # its batch (update, estimate) done alone
+        backend.estimate(landmarks=False)
+        time.sleep(0.01)
+    backend.final_estimate(None)
+    seen = {k.removeprefix("priority_"): v for k, v in backend.metrics().items() if k.startswith("priority_")}
+    low = min(base + 6, 19)
+    assert seen == {"add_keyframe": low, "estimate": low, "final_estimate": base, "estimate_landmarks": base}
+    assert _priority() == base

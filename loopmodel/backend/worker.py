@@ -25,6 +25,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Literal
 
 import numpy as np
@@ -34,6 +35,7 @@ from loopmodel.backend.base import Backend, BackendEstimate, BackendUpdate, Obse
 from loopmodel.config import BackendConfig, RefineConfig
 from loopmodel.errors import EstimationError
 from loopmodel.geometry.se3 import invert_pose, nearest_rigid
+from loopmodel.priority import low_priority_pool
 from loopmodel.types import Keyframe
 
 logger = logging.getLogger(__name__)
@@ -57,25 +59,34 @@ def start_backend(config: BackendConfig, factory: Callable[[], Backend]) -> Back
         # a daemonic process (a Dask or pool worker running this run) may not start children
         logger.info("back end in a thread: this process is a daemon and cannot start a worker process")
         worker = "thread"
-    return BackgroundBackend(factory, worker)
+    return BackgroundBackend(factory, worker, config.worker_nice)
 
 
 # --------------------------------------------------------------------------- the worker's side
-def _serve_process(factory: Callable[[], Backend], inbox: Any, outbox: Any) -> None:
+def _serve_process(factory: Callable[[], Backend], inbox: Any, outbox: Any, nice: int = 0) -> None:
     """:func:`_serve` in a worker process, which leaves Ctrl-C to the run (it stops between frames)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _serve(factory, inbox, outbox)
+    _serve(factory, inbox, outbox, nice)
 
 
-def _serve(factory: Callable[[], Backend], inbox: Any, outbox: Any) -> None:
-    """The worker's loop: build the back end, apply messages in order, estimate after each batch."""
+def _serve(factory: Callable[[], Backend], inbox: Any, outbox: Any, nice: int = 0) -> None:
+    """The worker's loop: build the back end, apply messages in order, estimate after each batch.
+
+    The updates and their estimates run on a thread whose priority is lowered by ``nice`` (issue 33,
+    kf12: the tracking thread never waits for them); what the run waits for keeps the run's priority.
+    """
     try:
         backend = factory()
     except Exception as exc:  # noqa: BLE001 - reported to the caller, which logs it
         outbox.put(("error", "start", f"{type(exc).__name__}: {exc}"))
         return
     outbox.put(("ready",))
-    _Server(backend, outbox).serve(inbox)
+    low = low_priority_pool("loopmodel-backend-updates", nice) if nice > 0 else None
+    try:
+        _Server(backend, outbox, low).serve(inbox)
+    finally:
+        if low is not None:
+            low.shutdown(wait=False)
 
 
 def _take_all(inbox: Any) -> list[tuple[Any, ...]]:
@@ -92,11 +103,20 @@ def _take_all(inbox: Any) -> list[tuple[Any, ...]]:
 _UPDATES = ("kf", "obs", "loop", "remove")
 
 
+def _call(pool: ThreadPoolExecutor | None, fn: Callable[..., None], *args: Any) -> None:
+    """``fn(*args)`` on ``pool``'s thread, waited for (the messages stay in order), or here when None."""
+    if pool is None:
+        fn(*args)
+    else:
+        pool.submit(fn, *args).result()
+
+
 class _Server:
     """The worker's side of one back end: its messages applied in order, its estimates sent back."""
 
-    def __init__(self, backend: Backend, outbox: Any) -> None:
+    def __init__(self, backend: Backend, outbox: Any, low: ThreadPoolExecutor | None = None) -> None:
         self.backend, self.outbox = backend, outbox
+        self.low = low  # the thread of lowered priority the updates run on (None: this one)
         self.estimate: dict[int, F64] = {}  # the back end's latest keyframe poses
         self.n_kf = 0  # keyframes handed to the back end
         self._new_batch()
@@ -110,17 +130,22 @@ class _Server:
         self._factors = 0  # factors the message being handled added (its BackendUpdate)
 
     def serve(self, inbox: Any) -> None:
-        """Take every waiting message, apply them in order, then estimate once; until ``stop``."""
+        """Take every waiting message, apply them in order, then estimate once; until ``stop``.
+
+        The updates and the batch's estimate on :attr:`low` when set, unless the run waits for a message
+        of the batch (then the whole batch here, at the run's priority).
+        """
         while True:
             batch = _take_all(inbox)
             self._new_batch()
             t0 = time.perf_counter()
+            low = self.low if all(m[0] in _UPDATES for m in batch) else None
             for msg in batch:
                 if msg[0] == "stop":
                     return
-                self._handle(msg)
+                _call(low, self._handle, msg)
             if self.dirty:
-                self._publish(t0)
+                _call(low, self._publish, t0)
 
     def _handle(self, msg: tuple[Any, ...]) -> None:
         """One message; a failed call is reported and the worker goes on."""
@@ -191,14 +216,15 @@ class BackgroundBackend:
     ``functools.partial`` of :func:`loopmodel.backend.create_backend`).
     """
 
-    def __init__(self, factory: Callable[[], Backend], kind: WorkerKind = "process") -> None:
+    def __init__(self, factory: Callable[[], Backend], kind: WorkerKind = "process", nice: int = 0) -> None:
         self.kind = kind
         if kind == "process":
             ctx = mp.get_context("spawn")
             self._inbox: Any = ctx.Queue()
             self._outbox: Any = ctx.Queue()
             self._worker: Any = ctx.Process(
-                target=_serve_process, args=(factory, self._inbox, self._outbox), name="loopmodel-backend", daemon=True
+                target=_serve_process, args=(factory, self._inbox, self._outbox, nice), name="loopmodel-backend",
+                daemon=True,
             )
             # at the interpreter's exit the (daemon) worker is terminated first, then multiprocessing joins
             # the inbox's feeder thread: a worker that was behind left the pipe full, this process holds
@@ -208,7 +234,7 @@ class BackgroundBackend:
         else:
             self._inbox, self._outbox = queue.Queue(), queue.Queue()
             self._worker = threading.Thread(
-                target=_serve, args=(factory, self._inbox, self._outbox), name="loopmodel-backend", daemon=True
+                target=_serve, args=(factory, self._inbox, self._outbox, nice), name="loopmodel-backend", daemon=True
             )
         self._worker.start()
         #: the pose the pipeline holds of every keyframe sent (as sent, then as corrected by us)

@@ -28,6 +28,7 @@ from loopmodel.imaging.rectify import Rectifier
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, estimate_pose
 from loopmodel.pose.robust import robust_scale
 from loopmodel.pose.solver import PoseResult
+from loopmodel.priority import lower_switch_interval
 from loopmodel.stages import ResumeFeatures
 from loopmodel.types import StereoCalibration, StereoFrame
 
@@ -380,6 +381,7 @@ class FrontEnd:
             warm_up_share()
         if 0 < self.config.opencv_threads < cv2.getNumThreads():  # process-wide: only ever lowered
             cv2.setNumThreads(self.config.opencv_threads)
+        lower_switch_interval(self.config.gil_switch_interval_ms)
 
     # ------------------------------------------------------------------ public
     @property

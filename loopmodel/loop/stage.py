@@ -36,12 +36,14 @@ effect on a loop (how far it moved the keyframe, how long the update took) is re
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import multiprocessing as mp
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import wait as wait_futures
 from dataclasses import dataclass
 from typing import Any
 
@@ -57,6 +59,7 @@ from loopmodel.loop.closure import LoopEvent
 from loopmodel.loop.features import FeatureSet
 from loopmodel.loop.global_ba import GlobalBAResult, LoopObservations, global_hybrid_ba
 from loopmodel.loop.vocabulary import Vocabulary
+from loopmodel.priority import low_priority_pool, lower_thread_priority
 from loopmodel.stages import LoopConstraint, LoopOutcome, LoopStage, MapState, NullLoopStage, ResumeFeatures
 from loopmodel.types import Keyframe, StereoCalibration
 
@@ -138,6 +141,14 @@ def _worker_start(calibration: StereoCalibration, config: LoopConfig, vocabulary
     global _WORKER_CLOSER
     _WORKER_CLOSER = LoopCloser(calibration, config, vocabulary)
     _warm_up_kernels()
+    lower_thread_priority(config.worker_nice)  # its start at the run's priority, its detections below (kf12)
+
+
+def _after(before: Future[Detection] | None, call: Callable[[], Detection]) -> Detection:
+    """``call()`` once ``before`` (when given) has finished, whichever way."""
+    if before is not None:
+        wait_futures([before])
+    return call()
 
 
 def _worker_detect(kf: Keyframe, neighbours: set[int], query: bool) -> Detection:
@@ -245,6 +256,9 @@ class LoopClosingStage:
         #: keyframes' images and landmarks (KLT stage, corrections)
         self._detect_pool: ThreadPoolExecutor | ProcessPoolExecutor | None = None
         self._inflight: deque[tuple[int, Future[Detection]]] = deque()
+        # with loop.worker_nice, the thread worker's detections by keyframe until taken: those not started at
+        # the end move to a thread at the run's priority (_take_back_queued)
+        self._calls: dict[int, Callable[[], Detection]] = {}
         #: late loops being moved to their current keyframe and gated (``apply_worker: thread``)
         self._apply_pool: ThreadPoolExecutor | None = None
         self._moving: deque[Future[_Moved]] = deque()
@@ -307,7 +321,10 @@ class LoopClosingStage:
                 self.closer.remember(out.keyframe)
                 fut = self._workers().submit(_worker_detect, out.keyframe, neighbours, query)
             else:
-                fut = self._workers().submit(detect_keyframe, self.closer, out.keyframe, neighbours, query)
+                call = functools.partial(detect_keyframe, self.closer, out.keyframe, neighbours, query)
+                if self.config.worker_nice > 0:
+                    self._calls[int(keyframe.id)] = call
+                fut = self._workers().submit(call)
             self._inflight.append((int(keyframe.id), fut))
             self._detections = [(int(keyframe.id), fut)]
         self.keyframes[int(keyframe.id)] = out.keyframe
@@ -330,7 +347,7 @@ class LoopClosingStage:
                     initargs=(self.closer.calibration, self.config, self._vocabulary),
                 )
             else:
-                self._detect_pool = ThreadPoolExecutor(1, thread_name_prefix="loop-detect")
+                self._detect_pool = low_priority_pool("loop-detect", self.config.worker_nice)
         return self._detect_pool
 
     def _note(self, d: Detection) -> LoopClosure | None:
@@ -353,6 +370,7 @@ class LoopClosingStage:
         """
         while self._inflight and (wait or self._inflight[0][1].done()):
             kf_id, fut = self._inflight.popleft()
+            self._calls.pop(kf_id, None)
             try:
                 closure = self._note(fut.result())
             except LoopmodelError as exc:  # a failed detection is logged, never applied
@@ -382,7 +400,7 @@ class LoopClosingStage:
         pred = self._predicted_from_match(closure, cur, state)
         world = {k: np.array(v, dtype=float) for k, v in state.world_from_kf.items()}
         if self._apply_pool is None:
-            self._apply_pool = ThreadPoolExecutor(1, thread_name_prefix="loop-apply")
+            self._apply_pool = low_priority_pool("loop-apply", self.config.worker_nice)
         job = self._apply_pool.submit(
             self._move, closure, int(cur.id), np.asarray(cur.image), pred, world, dict(self.keyframes)
         )
@@ -895,6 +913,32 @@ class LoopClosingStage:
             self._pool = None
         return corrected
 
+    def _take_back_queued(self) -> ThreadPoolExecutor | None:
+        """The thread worker's detections not started yet, moved to a thread at the run's priority.
+
+        Taken back from the last one until one has started (the worker takes them front first, so it
+        never starts one after a later one was taken back); the new thread runs them in order, its
+        first after the worker's last: the database sees the keyframes in order. The new thread.
+        """
+        calls, self._calls = self._calls, {}
+        if self.config.worker_nice <= 0:  # the worker runs at the run's priority already
+            return None
+        back: list[int] = []
+        for i in reversed(range(len(self._inflight))):
+            kf_id, fut = self._inflight[i]
+            if kf_id not in calls or not fut.cancel():
+                break
+            back.append(i)
+        if not back:
+            return None
+        pool = ThreadPoolExecutor(1, thread_name_prefix="loop-detect-drain")  # this thread's priority
+        before = self._inflight[back[-1] - 1][1] if back[-1] > 0 else None
+        for i in reversed(back):
+            kf_id = self._inflight[i][0]
+            self._inflight[i] = (kf_id, pool.submit(_after, before, calls[kf_id]))
+            before = None  # one thread: the others follow the first
+        return pool
+
     def _drain(self, state: MapState) -> dict[int, F64]:
         """Wait for the worker's pending detections (``drain_timeout_s`` in all), then stop it.
 
@@ -903,10 +947,12 @@ class LoopClosingStage:
         query keyframe's observations of the old landmarks: the back end then holds what inline
         detection would have given it. Without the back end their global BA runs now; the
         corrections are returned. Detections still running at the deadline are abandoned
-        (``loop_detections_abandoned``).
+        (``loop_detections_abandoned``). The thread worker's detections it has not started move to a
+        thread at the run's priority (kf12: the worker's is ``loop.worker_nice`` below it).
         """
         deadline = time.perf_counter() + self.config.drain_timeout_s
         corrected: dict[int, F64] = {}
+        moved = self._take_back_queued()
         while self._inflight:
             kf_id, fut = self._inflight.popleft()
             try:
@@ -936,9 +982,10 @@ class LoopClosingStage:
                 last = LoopOutcome(self.keyframes[max(self.keyframes)])
                 self._close(closure, last, state)
                 corrected.update(last.corrections)
-        if self._detect_pool is not None:
-            self._detect_pool.shutdown(wait=not self.detections_abandoned, cancel_futures=True)
-            self._detect_pool = None
+        for pool in (self._detect_pool, moved):
+            if pool is not None:
+                pool.shutdown(wait=not self.detections_abandoned, cancel_futures=True)
+        self._detect_pool = None
         return corrected
 
     def final_constraints(self) -> list[LoopConstraint]:

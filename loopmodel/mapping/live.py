@@ -7,8 +7,6 @@ re-meshed in a worker (a process by default) on a thread of lowered scheduling p
 from __future__ import annotations
 
 import logging
-import os
-import threading
 import time
 from collections.abc import Sequence
 from typing import Any, Literal
@@ -18,6 +16,7 @@ import numpy as np
 from loopmodel.config import MappingConfig
 from loopmodel.errors import LoopmodelError
 from loopmodel.mapping.stripe_map import StripeMap
+from loopmodel.priority import low_priority_pool
 from loopmodel.types import StripeProfile
 
 logger = logging.getLogger(__name__)
@@ -36,22 +35,6 @@ def _worker_start() -> None:
     import loopmodel.mapping.meshing  # noqa: F401 - open3d's import, before the first update
 
 
-def lower_thread_priority(nice: int) -> None:
-    """Lower the calling thread's scheduling priority by ``nice`` (0: unchanged; at most 19).
-
-    Linux schedules threads one by one, so only this thread yields (a process's other threads keep
-    theirs; raising the priority again would need privileges, lowering it does not). Where the thread
-    cannot be named (not Linux) nothing changes.
-    """
-    if nice <= 0:
-        return
-    try:
-        tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + nice, 19))
-    except (OSError, AttributeError):  # no per-thread priority here: the update keeps the process's
-        logger.debug("live mesh: thread priority not lowered")
-
-
 # the meshing process's low-priority thread (its main thread keeps the process's priority for other
 # work, e.g. the final mesh: mapping.final_mesh_in_live_worker)
 _LOW_PRIORITY: Any = None
@@ -67,9 +50,7 @@ def remesh_blocks_low(
     """
     global _LOW_PRIORITY
     if _LOW_PRIORITY is None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _LOW_PRIORITY = ThreadPoolExecutor(1, "live-mesh-low", lower_thread_priority, (nice,))
+        _LOW_PRIORITY = low_priority_pool("live-mesh-low", nice)
     return _LOW_PRIORITY.submit(remesh_blocks, points_w, sensors_w, blocks, config).result()  # type: ignore[no-any-return]
 
 
@@ -208,9 +189,7 @@ class LiveMapping:
                 ctx = mp.get_context("spawn")
                 self._pool = ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_start)
             else:
-                from concurrent.futures import ThreadPoolExecutor
-
-                self._pool = ThreadPoolExecutor(1, "live-mesh", lower_thread_priority, (self._nice,))
+                self._pool = low_priority_pool("live-mesh", self._nice)
         return self._pool
 
     def _collect(self) -> None:
