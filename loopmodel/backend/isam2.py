@@ -572,21 +572,8 @@ class Isam2Backend:
         if not np.all(np.isfinite(T)):
             raise InputError(f"keyframe {kf_id}", "world_from_kf has non-finite values")
         cfg = self.config
-        sig = keyframe.ba_info.get("pose_residual_sigma_px")
-        if sig is not None and np.isfinite(sig) and sig > 0:
-            self._frontend_sigma_px.append(float(sig))
-        applied = keyframe.ba_info.get("disparity_offset_applied_px")
-        estimate = keyframe.ba_info.get("disparity_offset_estimate_px")
-        if applied is not None and estimate is not None and np.isfinite(applied) and np.isfinite(estimate):
-            self._kf_offset_px[kf_id] = float(applied)
-            self._offset_estimate_px = float(estimate)
-        if self._kf_waiting:  # the previous keyframe's update (no estimate came between) runs on its own
-            self._flush_deferred()
-        if self._windowed and cfg.local_rebuild_kf > 0:
-            n_kf = len(self._kf_order)
-            keep = max(cfg.local_rebuild_keep_kf, cfg.local_window_kf)
-            if n_kf >= keep + cfg.local_rebuild_kf and n_kf - self._rebuilt_at >= cfg.local_rebuild_kf:
-                self._rebuild_window(keep)
+        self._note_frontend_info(kf_id, keyframe.ba_info)
+        self._before_keyframe()
         self._kf_seq[kf_id] = len(self._kf_seq)
         self._kf_order.append(kf_id)
         prev = keyframe.prev_keyframe_id
@@ -649,6 +636,28 @@ class Isam2Backend:
         report.pending_landmarks = len(self._pending)
         report.update_ms = (time.perf_counter() - t0) * 1e3
         return report
+
+    def _note_frontend_info(self, kf_id: int, ba_info: dict[str, float]) -> None:
+        """Keep the front end's pose residual sigma (px) and the disparity offset (px) it applied to ``kf_id``."""
+        sig = ba_info.get("pose_residual_sigma_px")
+        if sig is not None and np.isfinite(sig) and sig > 0:
+            self._frontend_sigma_px.append(float(sig))
+        applied = ba_info.get("disparity_offset_applied_px")
+        estimate = ba_info.get("disparity_offset_estimate_px")
+        if applied is not None and estimate is not None and np.isfinite(applied) and np.isfinite(estimate):
+            self._kf_offset_px[kf_id] = float(applied)
+            self._offset_estimate_px = float(estimate)
+
+    def _before_keyframe(self) -> None:
+        """Run the waiting keyframe's deferred update; rebuild iSAM2 on its window when it is due."""
+        cfg = self.config
+        if self._kf_waiting:  # the previous keyframe's update (no estimate came between) runs on its own
+            self._flush_deferred()
+        if self._windowed and cfg.local_rebuild_kf > 0:
+            n_kf = len(self._kf_order)
+            keep = max(cfg.local_rebuild_keep_kf, cfg.local_window_kf)
+            if n_kf >= keep + cfg.local_rebuild_kf and n_kf - self._rebuilt_at >= cfg.local_rebuild_kf:
+                self._rebuild_window(keep)
 
     def _observe_mono(self, kf_id: int, mono_obs: F64, graph: gtsam.NonlinearFactorGraph, candidates: list[int]) -> int:
         """Route monocular observations (landmark id, u, v px) of ``kf_id``; returns how many were rejected.
