@@ -60,6 +60,45 @@ def _project_jacobian_py(cam, x, y, z, J):  # type: ignore[no-untyped-def]
         J[r, r] += f / d
 
 
+def _in_block_py(F, x, y, z, measured):  # type: ignore[no-untyped-def]
+    """A point (x, y, z) in a block's fixed frame ``F`` (4, 4); a harmless (0, 0, 1) in a row it does not measure."""
+    if not measured:
+        return 0.0, 0.0, 1.0
+    px = F[0, 0] * x + F[0, 1] * y + F[0, 2] * z + F[0, 3]
+    py = F[1, 0] * x + F[1, 1] * y + F[1, 2] * z + F[1, 3]
+    pz = F[2, 0] * x + F[2, 1] * y + F[2, 2] * z + F[2, 3]
+    return px, py, pz
+
+
+def _chain_fixed_py(Jcam, F, Jc):  # type: ignore[no-untyped-def]
+    """``Jc`` (2, 3) = ``Jcam`` (2, 3) times the rotation of ``F``: d pixel / d point in the block's input frame."""
+    for a in range(2):
+        for c in range(3):
+            Jc[a, c] = Jcam[a, 0] * F[0, c] + Jcam[a, 1] * F[1, c] + Jcam[a, 2] * F[2, c]
+
+
+def _fill_jacobians_py(Jc, T, moving, fx, fy, fz, n_par, JX, Jp, b, i):  # type: ignore[no-untyped-def]
+    """Measurement (b, i)'s ``JX[b, i]`` (2, 3) d pixel / d point, ``Jp[b, i]`` (2, n_par) d pixel / d (twist, offset).
+
+    ``Jc`` (2, 3) is d pixel / d point in the block's input frame; a moving block's input is the
+    point moved by ``T`` (at (fx, fy, fz)), whose twist is applied on the left.
+    """
+    for a in range(2):
+        for c in range(3):
+            if moving:
+                JX[b, i, a, c] = Jc[a, 0] * T[0, c] + Jc[a, 1] * T[1, c] + Jc[a, 2] * T[2, c]
+            else:
+                JX[b, i, a, c] = Jc[a, c]
+        for k in range(n_par):
+            Jp[b, i, a, k] = 0.0
+        if moving:
+            for c in range(3):
+                Jp[b, i, a, c] = Jc[a, c]
+            Jp[b, i, a, 3] = fy * Jc[a, 2] - fz * Jc[a, 1]
+            Jp[b, i, a, 4] = fz * Jc[a, 0] - fx * Jc[a, 2]
+            Jp[b, i, a, 5] = fx * Jc[a, 1] - fy * Jc[a, 0]
+
+
 def _evaluate_py(X, T, fixed, moving, is_right, uv, valid, cams, dc, n_par, jac, r, pz, JX, Jp):  # type: ignore[no-untyped-def]
     """Residuals ``r`` (B, M, 2), depths ``pz`` (B, M) and with ``jac`` ``JX`` (B, M, 2, 3), ``Jp`` (B, M, 2, n_par)."""
     nb, m = valid.shape
@@ -73,12 +112,7 @@ def _evaluate_py(X, T, fixed, moving, is_right, uv, valid, cams, dc, n_par, jac,
         for b in range(nb):
             bx, by, bz = (fx, fy, fz) if moving[b] else (X[i, 0], X[i, 1], X[i, 2])
             F = fixed[b]
-            if valid[b, i] > 0:
-                px = F[0, 0] * bx + F[0, 1] * by + F[0, 2] * bz + F[0, 3]
-                py = F[1, 0] * bx + F[1, 1] * by + F[1, 2] * bz + F[1, 3]
-                pzz = F[2, 0] * bx + F[2, 1] * by + F[2, 2] * bz + F[2, 3]
-            else:  # a row the block does not measure: projected from a harmless point
-                px, py, pzz = 0.0, 0.0, 1.0
+            px, py, pzz = _in_block(F, bx, by, bz, valid[b, i] > 0)
             pz[b, i] = pzz
             _project(cams[b], px, py, pzz, pr)
             if is_right[b] and dc != 0.0:
@@ -88,23 +122,8 @@ def _evaluate_py(X, T, fixed, moving, is_right, uv, valid, cams, dc, n_par, jac,
             if not jac:
                 continue
             _project_jacobian(cams[b], px, py, pzz, Jcam)
-            for a in range(2):
-                for c in range(3):
-                    Jc[a, c] = Jcam[a, 0] * F[0, c] + Jcam[a, 1] * F[1, c] + Jcam[a, 2] * F[2, c]
-            for a in range(2):
-                for c in range(3):
-                    if moving[b]:
-                        JX[b, i, a, c] = Jc[a, 0] * T[0, c] + Jc[a, 1] * T[1, c] + Jc[a, 2] * T[2, c]
-                    else:
-                        JX[b, i, a, c] = Jc[a, c]
-                for k in range(n_par):
-                    Jp[b, i, a, k] = 0.0
-                if moving[b]:
-                    for c in range(3):
-                        Jp[b, i, a, c] = Jc[a, c]
-                    Jp[b, i, a, 3] = fy * Jc[a, 2] - fz * Jc[a, 1]
-                    Jp[b, i, a, 4] = fz * Jc[a, 0] - fx * Jc[a, 2]
-                    Jp[b, i, a, 5] = fx * Jc[a, 1] - fy * Jc[a, 0]
+            _chain_fixed(Jcam, F, Jc)
+            _fill_jacobians(Jc, T, moving[b], fx, fy, fz, n_par, JX, Jp, b, i)
             if is_right[b] and n_par == 7:
                 Jp[b, i, 0, 6] = valid[b, i]
 
@@ -293,6 +312,67 @@ def _se3_exp_py(xi, T):  # type: ignore[no-untyped-def]
         T[i, 3] = acc
 
 
+def _schur_py(Hxx, gx, Hpx, Hpp, gp, lam, S, bv, Hi, HpxHi, A3):  # type: ignore[no-untyped-def]
+    """The damped system reduced to the pose (and offset) by the Schur complement of the points.
+
+    ``S`` (P, P), ``bv`` (P,): the reduced system S dp = bv; ``Hi`` (M, 3, 3) the damped point blocks'
+    inverses, ``HpxHi`` (M, P, 3) their products with ``Hpx``. False when a point block is singular.
+    """
+    m = Hxx.shape[0]
+    n_par = gp.shape[0]
+    for k in range(n_par):
+        for k2 in range(n_par):
+            S[k, k2] = Hpp[k, k2] + (lam * Hpp[k, k] if k == k2 else 0.0) + (1e-12 if k == k2 else 0.0)
+        bv[k] = -gp[k]
+    for i in range(m):
+        for c in range(3):
+            for e in range(3):
+                A3[c, e] = Hxx[i, c, e] + (lam * Hxx[i, c, c] + 1e-9 if c == e else 0.0)
+        if not _inv3(A3, Hi[i]):
+            return False
+        for k in range(n_par):
+            for e in range(3):
+                HpxHi[i, k, e] = Hpx[i, k, 0] * Hi[i, 0, e] + Hpx[i, k, 1] * Hi[i, 1, e] + Hpx[i, k, 2] * Hi[i, 2, e]
+        for k in range(n_par):
+            for k2 in range(n_par):
+                S[k, k2] -= (HpxHi[i, k, 0] * Hpx[i, k2, 0] + HpxHi[i, k, 1] * Hpx[i, k2, 1]
+                             + HpxHi[i, k, 2] * Hpx[i, k2, 2])
+            bv[k] += HpxHi[i, k, 0] * gx[i, 0] + HpxHi[i, k, 1] * gx[i, 1] + HpxHi[i, k, 2] * gx[i, 2]
+    return True
+
+
+def _back_substitute_py(gx, Hpx, Hi, dp, dx, A3):  # type: ignore[no-untyped-def]
+    """The points' steps ``dx`` (M, 3) = -Hi_i (gx_i + Hpx_i^T dp) given the pose step ``dp`` (P,)."""
+    m = gx.shape[0]
+    n_par = dp.shape[0]
+    for i in range(m):
+        for c in range(3):
+            acc = gx[i, c]
+            for k in range(n_par):
+                acc += Hpx[i, k, c] * dp[k]
+            A3[0, c] = acc
+        for c in range(3):
+            dx[i, c] = -(Hi[i, c, 0] * A3[0, 0] + Hi[i, c, 1] * A3[0, 1] + Hi[i, c, 2] * A3[0, 2])
+
+
+def _compose_py(dT, T, Tn):  # type: ignore[no-untyped-def]
+    """``Tn`` (4, 4) = dT @ T, the twist applied on the left."""
+    for a in range(4):
+        for c in range(4):
+            Tn[a, c] = dT[a, 0] * T[0, c] + dT[a, 1] * T[1, c] + dT[a, 2] * T[2, c] + dT[a, 3] * T[3, c]
+
+
+def _all_in_front_py(pz):  # type: ignore[no-untyped-def]
+    """True when every depth of ``pz`` (B, M) is positive (NaN counts as behind)."""
+    nb, m = pz.shape
+    in_front = True
+    for b in range(nb):
+        for i in range(m):
+            if not pz[b, i] > 0:
+                in_front = False
+    return in_front
+
+
 def _lm_py(X, T, fixed, moving, is_right, uv, valid, weight, cams, n_par, huber, iterations, prior_w, prior_mean):  # type: ignore[no-untyped-def]
     """The LM loop from (X, T, offset 0): returns (X, T, offset, residual norms (B, M), iterations)."""
     nb, m = valid.shape
@@ -331,52 +411,17 @@ def _lm_py(X, T, fixed, moving, is_right, uv, valid, weight, cams, n_par, huber,
         converged = False
         for _ in range(6):
             # the damped step by the Schur complement of the points
-            ok = True
-            for k in range(n_par):
-                for k2 in range(n_par):
-                    S[k, k2] = Hpp[k, k2] + (lam * Hpp[k, k] if k == k2 else 0.0) + (1e-12 if k == k2 else 0.0)
-                bv[k] = -gp[k]
-            for i in range(m):
-                for c in range(3):
-                    for e in range(3):
-                        A3[c, e] = Hxx[i, c, e] + (lam * Hxx[i, c, c] + 1e-9 if c == e else 0.0)
-                if not _inv3(A3, Hi[i]):
-                    ok = False
-                    break
-                for k in range(n_par):
-                    for e in range(3):
-                        HpxHi[i, k, e] = (Hpx[i, k, 0] * Hi[i, 0, e] + Hpx[i, k, 1] * Hi[i, 1, e]
-                                          + Hpx[i, k, 2] * Hi[i, 2, e])
-                for k in range(n_par):
-                    for k2 in range(n_par):
-                        S[k, k2] -= (HpxHi[i, k, 0] * Hpx[i, k2, 0] + HpxHi[i, k, 1] * Hpx[i, k2, 1]
-                                     + HpxHi[i, k, 2] * Hpx[i, k2, 2])
-                    bv[k] += HpxHi[i, k, 0] * gx[i, 0] + HpxHi[i, k, 1] * gx[i, 1] + HpxHi[i, k, 2] * gx[i, 2]
-            if not ok or not _solve_lu(S, bv, dp):
+            if not _schur(Hxx, gx, Hpx, Hpp, gp, lam, S, bv, Hi, HpxHi, A3) or not _solve_lu(S, bv, dp):
                 lam *= 10
                 continue
-            for i in range(m):
-                for c in range(3):
-                    acc = gx[i, c]
-                    for k in range(n_par):
-                        acc += Hpx[i, k, c] * dp[k]
-                    A3[0, c] = acc
-                for c in range(3):
-                    dx[i, c] = -(Hi[i, c, 0] * A3[0, 0] + Hi[i, c, 1] * A3[0, 1] + Hi[i, c, 2] * A3[0, 2])
+            _back_substitute(gx, Hpx, Hi, dp, dx, A3)
             _se3_exp(dp, dT)
-            for a in range(4):
-                for c in range(4):
-                    Tn[a, c] = dT[a, 0] * T[0, c] + dT[a, 1] * T[1, c] + dT[a, 2] * T[2, c] + dT[a, 3] * T[3, c]
+            _compose(dT, T, Tn)
             Xn = X + dx
             d_new = delta + (dp[6] if n_par == 7 else 0.0)
             _evaluate(Xn, Tn, fixed, moving, is_right, uv, valid, cams, d_new, n_par, False, r2, pz2, JX, Jp)
             c_new = _norms_cost(r2, huber, prior_w, prior_mean, d_new, nrm2)
-            in_front = True
-            for b in range(nb):
-                for i in range(m):
-                    if not pz2[b, i] > 0:
-                        in_front = False
-            if in_front and c_new < cost:
+            if _all_in_front(pz2) and c_new < cost:
                 converged = cost - c_new < 1e-4 * cost
                 X = Xn
                 T = Tn.copy()
@@ -397,12 +442,19 @@ _project = numba.njit(cache=True, nogil=True, inline="always")(_project_py)
 _huber_rho = numba.njit(cache=True, nogil=True, inline="always")(_huber_rho_py)
 _huber_w = numba.njit(cache=True, nogil=True, inline="always")(_huber_w_py)
 _project_jacobian = numba.njit(cache=True, nogil=True, inline="always")(_project_jacobian_py)
+_in_block = numba.njit(cache=True, nogil=True, inline="always")(_in_block_py)
+_chain_fixed = numba.njit(cache=True, nogil=True, inline="always")(_chain_fixed_py)
+_fill_jacobians = numba.njit(cache=True, nogil=True, inline="always")(_fill_jacobians_py)
 _evaluate = numba.njit(cache=True, nogil=True)(_evaluate_py)
 _norms_cost = numba.njit(cache=True, nogil=True)(_norms_cost_py)
 _solve_lu = numba.njit(cache=True, nogil=True)(_solve_lu_py)
 _inv3 = numba.njit(cache=True, nogil=True)(_inv3_py)
 _se3_exp = numba.njit(cache=True, nogil=True)(_se3_exp_py)
 _normal = numba.njit(cache=True, nogil=True)(_normal_py)
+_schur = numba.njit(cache=True, nogil=True, inline="always")(_schur_py)
+_back_substitute = numba.njit(cache=True, nogil=True, inline="always")(_back_substitute_py)
+_compose = numba.njit(cache=True, nogil=True, inline="always")(_compose_py)
+_all_in_front = numba.njit(cache=True, nogil=True, inline="always")(_all_in_front_py)
 initial = numba.njit(cache=True, nogil=True)(_initial_py)
 offset_variance = numba.njit(cache=True, nogil=True)(_offset_variance_py)
 lm = numba.njit(cache=True, nogil=True)(_lm_py)
