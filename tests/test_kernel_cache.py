@@ -4,7 +4,9 @@
 - with an empty cache folder every module is reported cold, and warming one module makes exactly it
   warm (a subprocess with its own ``NUMBA_CACHE_DIR``, so the suite's cache is untouched);
 - after :func:`warm_up` no module is cold (every module has a warm-up that reaches it); a run warms only the
-  modules its configuration calls.
+  modules its configuration calls;
+- a run after :func:`warm_up` compiles nothing more: the warm-ups call the kernels with the argument types the run
+  does (numba compiles per type, and a module with one warm entry counts as warm).
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ from pathlib import Path
 from loopmodel.config import Config
 from loopmodel.kernels import KERNEL_MODULES, cold_kernel_modules, modules_for, warm_up
 
-PACKAGE = Path(__file__).resolve().parents[1] / "loopmodel"
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "loopmodel"
 
 
 def test_every_cached_kernel_module_is_listed() -> None:
@@ -59,3 +62,34 @@ def test_a_run_warms_only_the_kernels_its_configuration_calls() -> None:
     assert "loopmodel.loop.surf" not in default and "loopmodel.backend._givens_kernels" not in default
     surf = Config.model_validate({"loop": {"descriptor": "surf"}, "backend": {"kind": "both"}})
     assert {"loopmodel.loop.surf", "loopmodel.backend._givens_kernels"} <= set(modules_for(surf))
+
+
+def test_a_run_after_warming_compiles_nothing_more() -> None:
+    """After the warm-up, the tiny KITTI sequence's run in a fresh interpreter adds no type to any kernel.
+
+    cx13 (issue 33): the KITTI clip's first run after ``python -m loopmodel.kernels`` compiled the robust pose's
+    kernels for the views of (4, 4) matrices it passes (the warm-up's were contiguous) and the PNG kernel for a
+    read-only buffer, in its frames (frame 1: 1-5 s). The run's worker processes are not checked here.
+    """
+    code = (
+        "import importlib, json\n"
+        "from numba.core.registry import CPUDispatcher\n"
+        "from loopmodel.config import load_config\n"
+        "from loopmodel.io.sequence import open_sequence\n"
+        "from loopmodel.kernels import KERNEL_MODULES, modules_for, warm_up\n"
+        "from loopmodel.pipeline import process\n"
+        f"cfg = load_config({str(ROOT / 'configs' / 'kitti.yaml')!r})\n"
+        "warm_up(modules_for(cfg))\n"
+        "def types():\n"
+        "    return {f'{m}.{k}': set(map(str, v.signatures)) for m in KERNEL_MODULES\n"
+        "            for k, v in vars(importlib.import_module(m)).items() if isinstance(v, CPUDispatcher)}\n"
+        "before = types()\n"
+        f"result = process(open_sequence({str(ROOT / 'datasets' / 'tiny_kitti')!r}), cfg)\n"
+        "added = {k: sorted(v - before.get(k, set())) for k, v in types().items() if v - before.get(k, set())}\n"
+        "print(json.dumps([result.metrics['frames'], result.metrics['keyframes'], added]))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert out.returncode == 0, out.stderr[-2000:]
+    frames, keyframes, added = json.loads(out.stdout.strip().splitlines()[-1])
+    assert frames == 8 and keyframes >= 2  # tracked frames and a local BA were reached
+    assert added == {}

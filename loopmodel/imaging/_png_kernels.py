@@ -82,5 +82,10 @@ unfilter = numba.njit(cache=True, nogil=True)(_unfilter_py)
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the kernel with the argument types it is called with."""
-    unfilter(np.zeros(4, np.uint8), 1, 3, 1)
+    """Compile (or load from numba's cache) the kernel with the argument types it is called with.
+
+    :func:`loopmodel.imaging.codec.decode_png_8bit` passes the inflated bytes as a read-only array
+    (``np.frombuffer``), a type of its own for numba: a writable array here left the run's type to
+    compile inside the first run (cx13).
+    """
+    unfilter(np.frombuffer(bytes(4), np.uint8), 1, 3, 1)

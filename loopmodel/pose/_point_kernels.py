@@ -272,14 +272,21 @@ refine_points = numba.njit(cache=True, nogil=True)(_refine_points_py)
 
 
 def warm_up() -> None:
-    """Load (or compile) the kernels for float64 arrays: the first call's cost, up front."""
+    """Load (or compile) the kernels for float64 arrays: the first call's cost, up front.
+
+    ``point_residuals`` / ``point_jacobian`` get their rotations and translations as
+    :meth:`loopmodel.pose.rig.PointTerm._kernel_args` passes them, views of (4, 4) matrices (non-contiguous,
+    a type of their own for numba: contiguous ones here left the run's types to compile in its first
+    frames, 1-5 s; cx13).
+    """
     P = np.array([[0.1, -0.2, 3.0]])
     one = np.ones(1)
     uv = np.zeros((1, 2))
     R = np.eye(3)
     t = np.zeros(3)
-    point_residuals(P, one, uv, R, t, R, t, 500.0, 500.0, 320.0, 240.0, 0.0)
-    r, J = point_jacobian(P, one, uv, R, t, R, t, 500.0, 500.0, 320.0, 240.0, 0.0)
+    T = np.eye(4)
+    point_residuals(P, one, uv, T[:3, :3], T[:3, 3], T[:3, :3], T[:3, 3], 500.0, 500.0, 320.0, 240.0, 0.0)
+    r, J = point_jacobian(P, one, uv, T[:3, :3], T[:3, 3], T[:3, :3], T[:3, 3], 500.0, 500.0, 320.0, 240.0, 0.0)
     weighted_normal_equations(J, r, one)
     weighted_cost(r, one)
     refine_points(P, one, uv, one, np.array([0, 1]), np.eye(4), R, t, 500.0, 500.0, 320.0, 240.0, 0.0, 2, 4.6851,
