@@ -237,6 +237,12 @@ class FrontendConfig(_Section):
     klt_share_motion_px: float = Field(
         2.0, gt=0, le=10, description="... when their predicted motions also agree to this (px)"
     )
+    # orb13 (issue 33): a frame's KLT (7-13 ms on the tracking thread, half its frame on the orbit) split in two
+    # halves, the second on a thread beside (OpenCV releases the interpreter lock; each point is searched on its
+    # own: the same tracks). Measured: see CHANGELOG (orb13). 0: one call on the tracking thread
+    klt_split_min_points: int = Field(
+        64, ge=0, le=100000, description="a KLT of this many points or more runs in two halves at once; 0 off"
+    )
     # robust pose
     pose_loss: Literal["tukey", "huber"] = Field("tukey")
     pose_min_scale_px: float = Field(0.5, gt=0, description="floor of the MAD scale")
