@@ -50,6 +50,14 @@ class SequenceConfig(_Section):
     # an image (MCAP message) declaring more pixels than this is refused before decoding: a
     # safety limit (100 Mpx, ~15x the largest shared image), not a tuned value
     max_image_pixels: int = Field(100_000_000, ge=1, le=2**31 - 1, description="max width*height")
+    # orb13 (issue 33): the run may read and decode its frames on a thread of its own, this many frames ahead
+    # of the tracking (the MCAP chunks, the PNG inflate and the laser images release the interpreter lock),
+    # instead of on the tracking thread between frames. Off: the reading then competes with the frames' own
+    # threads for the two cores. Realistic orbit (datasets/sample/scan.mcap, 150 frames, under SCHED_FIFO at
+    # load 11-12: the cores ours), 2 alternated pairs 0 / 2: wall per frame 14.7, 15.1 / 12.8, 13.2 ms, mean
+    # frame 8.9, 9.3 / 9.5, 9.5 ms; KITTI clip (configs/kitti.yaml), 2 pairs: cpu_util 1.55, 1.48 / 1.54, 1.57,
+    # frame median 13.3, 12.1 / 14.5, 16.1 ms, the same poses. CHANGELOG (orb13)
+    read_ahead_frames: int = Field(0, ge=0, le=64, description="frames read and decoded ahead on a thread")
 
 
 class OutputConfig(_Section):
