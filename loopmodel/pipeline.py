@@ -1180,20 +1180,24 @@ def _frame_loop(
     Returns whether it was stopped early (stop flag, ``KeyboardInterrupt``) and the error that ended
     it, if any.
     """
-    # the reader's decoding on a thread of its own, beside the frames (issue 33, orb13)
+    # sequence.read_ahead_frames > 0: the reader's decoding on a thread of its own (issue 33, orb13)
     ahead = _ReadAhead(itertools.islice(scans, total), run.config.sequence.read_ahead_frames)
     try:
         run.wait_for_workers()  # their start-up not beside the first frames (tail11)
         for i, (scan, coming) in enumerate(_one_ahead(ahead)):
             if stop.is_set():
                 return True, None
-            if coming is not None:  # its left image rectified beside this frame (issue 33)
-                run.frontend.rectifier.left_ahead(coming.frame.left)
-            run.laser.take(scan)
             if run.skips(scan.frame):
+                run.laser.take(scan)
                 continue
             run.frontend.prepare(scan.frame)  # a keyframe's right image decoded with its reading (fe7)
             run.step(scan.frame)
+            # the side jobs after the frame (orb13): its laser data to the extraction process, the coming
+            # left image's rectification (issue 33) run while the next frame is read, not beside this
+            # frame's KLT halves on the second core
+            run.laser.take(scan)
+            if coming is not None:
+                run.frontend.rectifier.left_ahead(coming.frame.left)
             if progress is not None:
                 el = run.times.since_start_s()
                 progress(i + 1, total, (i + 1) / el if el > 0 else 0.0, len(run.keyframes))
