@@ -247,7 +247,12 @@ class FrontendConfig(_Section):
     )
     # orb13 (issue 33): a frame's KLT (7-13 ms on the tracking thread, half its frame on the orbit) split in two
     # halves, the second on a thread beside (OpenCV releases the interpreter lock; each point is searched on its
-    # own: the same tracks). Measured: see CHANGELOG (orb13). 0: one call on the tracking thread
+    # own: the same tracks, bit for bit). 0: one call on the tracking thread. Measured under SCHED_FIFO (the two
+    # cores ours) at load 16-18, 3 alternated pairs with the tree before: realistic orbit (datasets/sample/scan.mcap,
+    # `bench peer --quick`, 150 frames) mean frame 10.0 -> 8.0 ms (median), with the MCAP and order changes of
+    # orb13; KITTI clip (configs/kitti.yaml, `bench pipeline`'s kitti part) p95 23.9 -> 22.0 ms, but the median
+    # 11.1 -> 12.5 ms (split off / on alone: 10.8 / 12.8: the second core is busy there), the same poses on
+    # both. CHANGELOG (orb13)
     klt_split_min_points: int = Field(
         64, ge=0, le=100000, description="a KLT of this many points or more runs in two halves at once; 0 off"
     )
