@@ -50,6 +50,14 @@ class SequenceConfig(_Section):
     # an image (MCAP message) declaring more pixels than this is refused before decoding: a
     # safety limit (100 Mpx, ~15x the largest shared image), not a tuned value
     max_image_pixels: int = Field(100_000_000, ge=1, le=2**31 - 1, description="max width*height")
+    # orb13 (issue 33): the run may read and decode its frames on a thread of its own, this many frames ahead
+    # of the tracking (the MCAP chunks, the PNG inflate and the laser images release the interpreter lock),
+    # instead of on the tracking thread between frames. Off: the reading then competes with the frames' own
+    # threads for the two cores. Realistic orbit (datasets/sample/scan.mcap, 150 frames, under SCHED_FIFO at
+    # load 11-12: the cores ours), 2 alternated pairs 0 / 2: wall per frame 14.7, 15.1 / 12.8, 13.2 ms, mean
+    # frame 8.9, 9.3 / 9.5, 9.5 ms; KITTI clip (configs/kitti.yaml), 2 pairs: cpu_util 1.55, 1.48 / 1.54, 1.57,
+    # frame median 13.3, 12.1 / 14.5, 16.1 ms, the same poses. CHANGELOG (orb13)
+    read_ahead_frames: int = Field(0, ge=0, le=64, description="frames read and decoded ahead on a thread")
 
 
 class OutputConfig(_Section):
@@ -236,6 +244,17 @@ class FrontendConfig(_Section):
     klt_share_px: float = Field(0.0, ge=0, le=2, description="KLT points this close (px) share a search; 0 off")
     klt_share_motion_px: float = Field(
         2.0, gt=0, le=10, description="... when their predicted motions also agree to this (px)"
+    )
+    # orb13 (issue 33): a frame's KLT (7-13 ms on the tracking thread, half its frame on the orbit) split in two
+    # halves, the second on a thread beside (OpenCV releases the interpreter lock; each point is searched on its
+    # own: the same tracks, bit for bit). 0: one call on the tracking thread. Measured under SCHED_FIFO (the two
+    # cores ours) at load 16-18, 3 alternated pairs with the tree before: realistic orbit (datasets/sample/scan.mcap,
+    # `bench peer --quick`, 150 frames) mean frame 10.0 -> 8.0 ms (median), with the MCAP and order changes of
+    # orb13; KITTI clip (configs/kitti.yaml, `bench pipeline`'s kitti part) p95 23.9 -> 22.0 ms, but the median
+    # 11.1 -> 12.5 ms (split off / on alone: 10.8 / 12.8: the second core is busy there), the same poses on
+    # both. CHANGELOG (orb13)
+    klt_split_min_points: int = Field(
+        64, ge=0, le=100000, description="a KLT of this many points or more runs in two halves at once; 0 off"
     )
     # robust pose
     pose_loss: Literal["tukey", "huber"] = Field("tukey")

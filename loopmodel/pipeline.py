@@ -32,6 +32,7 @@ import importlib
 import itertools
 import logging
 import multiprocessing as mp
+import queue
 import signal
 import threading
 import time
@@ -1096,6 +1097,65 @@ def process(
     return result
 
 
+class _ReadAhead:
+    """The scans of ``scans`` read and decoded on a thread of their own, at most ``depth`` ahead (issue 33, orb13).
+
+    The reader's work (the MCAP chunks' decompression, the PNG inflate, the laser images) then runs beside
+    the tracking instead of between its frames; it releases the interpreter lock for most of it. They come
+    out in order, an error where its scan would have been. ``depth`` 0 (the default): read on the caller's thread.
+    :meth:`close` stops the thread (after the scan it is reading) before the caller closes ``scans``.
+    """
+
+    def __init__(self, scans: Iterator[ScanFrame], depth: int) -> None:
+        self._scans = scans
+        self._queue: queue.Queue[tuple[ScanFrame | None, BaseException | None]] = queue.Queue(max(depth, 1))
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        if depth > 0:
+            self._thread = threading.Thread(target=self._feed, name="read-ahead", daemon=True)
+            self._thread.start()
+
+    def _put(self, item: tuple[ScanFrame | None, BaseException | None]) -> bool:
+        """Queue ``item`` unless stopped meanwhile; whether it was queued."""
+        while not self._stop.is_set():
+            with contextlib.suppress(queue.Full):
+                self._queue.put(item, timeout=0.05)
+                return True
+        return False
+
+    def _feed(self) -> None:
+        try:
+            for scan in self._scans:
+                if not self._put((scan, None)):
+                    return
+        except BaseException as exc:  # raised on the caller's thread, in its place
+            self._put((None, exc))
+            return
+        self._put((None, None))
+
+    def __iter__(self) -> Iterator[ScanFrame]:
+        return self
+
+    def __next__(self) -> ScanFrame:
+        if self._thread is None:
+            return next(self._scans)
+        scan, error = self._queue.get()
+        if error is not None:
+            raise error
+        if scan is None:
+            self._queue.put((None, None))  # stays ended
+            raise StopIteration
+        return scan
+
+    def close(self, timeout_s: float = 10.0) -> bool:
+        """Stop reading ahead; whether the reading thread has ended (the scans may then be closed)."""
+        self._stop.set()
+        if self._thread is None:
+            return True
+        self._thread.join(timeout_s)
+        return not self._thread.is_alive()
+
+
 def _one_ahead(scans: Iterator[ScanFrame]) -> Iterator[tuple[ScanFrame, ScanFrame | None]]:
     """Each scan with the next one (None at the end), read before the scan is handed on.
 
@@ -1120,18 +1180,24 @@ def _frame_loop(
     Returns whether it was stopped early (stop flag, ``KeyboardInterrupt``) and the error that ended
     it, if any.
     """
+    # sequence.read_ahead_frames > 0: the reader's decoding on a thread of its own (issue 33, orb13)
+    ahead = _ReadAhead(itertools.islice(scans, total), run.config.sequence.read_ahead_frames)
     try:
         run.wait_for_workers()  # their start-up not beside the first frames (tail11)
-        for i, (scan, coming) in enumerate(_one_ahead(itertools.islice(scans, total))):
+        for i, (scan, coming) in enumerate(_one_ahead(ahead)):
             if stop.is_set():
                 return True, None
-            if coming is not None:  # its left image rectified beside this frame (issue 33)
-                run.frontend.rectifier.left_ahead(coming.frame.left)
-            run.laser.take(scan)
             if run.skips(scan.frame):
+                run.laser.take(scan)
                 continue
             run.frontend.prepare(scan.frame)  # a keyframe's right image decoded with its reading (fe7)
             run.step(scan.frame)
+            # the side jobs after the frame (orb13): its laser data to the extraction process, the coming
+            # left image's rectification (issue 33) run while the next frame is read, not beside this
+            # frame's KLT halves on the second core
+            run.laser.take(scan)
+            if coming is not None:
+                run.frontend.rectifier.left_ahead(coming.frame.left)
             if progress is not None:
                 el = run.times.since_start_s()
                 progress(i + 1, total, (i + 1) / el if el > 0 else 0.0, len(run.keyframes))
@@ -1141,7 +1207,7 @@ def _frame_loop(
         return False, exc
     finally:
         close = getattr(scans, "close", None)
-        if close is not None:
+        if ahead.close() and close is not None:  # not while the reading thread is in it
             close()
     return False, None
 

@@ -124,3 +124,36 @@ def test_prepare_decodes_an_expected_keyframes_right_image_before_its_frame(
     assert sum(name == "image_1" for name, _ in seen) == keyframes
     for a, b in zip(prepared, plain, strict=True):
         np.testing.assert_array_equal(a.world_from_cam, b.world_from_cam)
+
+
+def test_an_mcap_scans_right_images_are_decoded_at_keyframes_only(
+    tmp_path: Path, rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """orb13: the MCAP reader defers its PNG right images too; the same poses as with every image decoded."""
+    import loopmodel.io.mcap_io as mcap_mod
+    from loopmodel.io.convert import convert_sequence
+
+    write_kitti_folder(tmp_path / "seq", 16, rng)
+    path = convert_sequence(open_sequence(tmp_path / "seq"), tmp_path / "seq.mcap", "mcap")
+    seq = open_sequence(path)
+    eager = [StereoFrame(f.timestamp_ns, f.left, f.right, f.index) for f in seq.frames()]
+    kitti = [f.right for f in open_sequence(tmp_path / "seq").frames()]
+    for f, right in zip(eager, kitti, strict=True):
+        np.testing.assert_array_equal(f.right, right)  # the deferred decode is the file's image
+    seen: list[str] = []
+    inner = mcap_mod.decode_image
+
+    def counting(msg: object, schema: str, topic: str, max_pixels: int = 0) -> np.ndarray:
+        seen.append(topic.split()[0])
+        return inner(msg, schema, topic, max_pixels)
+
+    monkeypatch.setattr(mcap_mod, "decode_image", counting)
+    fe = FrontEnd(seq.calibration, CFG)
+    deferred = [fe.process(f) for f in seq.frames()]
+    keyframes = sum(r.is_keyframe for r in deferred)
+    assert seen.count("/cam0/image_raw") == 16
+    assert 2 <= keyframes < 16 and seen.count("/cam1/image_raw") == keyframes
+    fe = FrontEnd(seq.calibration, CFG)
+    for a, b in zip(deferred, [fe.process(f) for f in eager], strict=True):
+        assert a.is_keyframe == b.is_keyframe
+        np.testing.assert_array_equal(a.world_from_cam, b.world_from_cam)

@@ -19,11 +19,12 @@ from loopmodel.errors import EstimationError, InputError
 from loopmodel.frontend.beside import Beside
 from loopmodel.frontend.hybrid_ba import HybridBAResult, hybrid_keyframe_ba
 from loopmodel.frontend.keyframe import FrameObservations, FrameResult, Keyframe, TrackedFeatures
+from loopmodel.frontend.klt_halves import track_klt_halves
 from loopmodel.frontend.mono_depth import MonoDepthTracks, kf_from_ref_map
 from loopmodel.frontend.resume import ResumedSet
 from loopmodel.frontend.stereo import KeyframeMatches, StereoSet, keyframe_matches, keyframe_stereo_set, match_stereo
 from loopmodel.geometry.se3 import invert_pose, nearest_rigid, se3_exp, se3_log, so3_log
-from loopmodel.imaging.klt import Pyramid, build_pyramid, shared_tracks, track_klt
+from loopmodel.imaging.klt import Pyramid, build_pyramid, shared_tracks
 from loopmodel.imaging.rectify import Rectifier
 from loopmodel.pose import CameraRig, PointTerm, PoseOptions, estimate_pose
 from loopmodel.pose.robust import robust_scale
@@ -691,10 +692,7 @@ class FrontEnd:
             start, guess = np.vstack([start, ft.loc.prev_uv]), np.vstack([guess, ft.loc.guess])
             front = np.concatenate([front, ft.loc.front])
         share = shared_tracks(start, guess, cfg.klt_share_px, cfg.klt_share_motion_px) if cfg.klt_share_px > 0 else None
-        uv, ok, _fb = track_klt(
-            self._prev_pyr, cur_pyr, start, guess, cfg.klt_window_px, cfg.klt_levels, cfg.fb_threshold_px,
-            cfg.klt_iterations, self.calibration.image_size, share,
-        )
+        uv, ok = track_klt_halves(self._prev_pyr, cur_pyr, start, guess, cfg, self.calibration.image_size, share)
         ok &= front
         if self._pending_ba is not None:  # the last keyframe's BA: its points and pose before this pose solve
             self._finish_local_ba()

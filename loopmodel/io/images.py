@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -112,16 +113,24 @@ class DeferredRightFrame(StereoFrame):
     def __init__(
         self, timestamp_ns: int, left: NDArray[np.uint8], right: NDArray[np.uint8] | None = None, index: int = 0,
         *, right_file: tuple[bytes, Path, tuple[int, int]] | None = None,
+        right_decode: Callable[[], NDArray[np.uint8]] | None = None,
     ) -> None:
-        if right is None and right_file is None:
-            raise ValueError("DeferredRightFrame needs the right image or its file's bytes")
+        """The right image, or its file's bytes, path and (width, height), or a function that decodes it.
+
+        ``right_decode`` (an MCAP message's, orb13) raises :class:`InputError` for a bad image.
+        """
+        if right is None and right_file is None and right_decode is None:
+            raise ValueError("DeferredRightFrame needs the right image, its file's bytes or its decoder")
         self.timestamp_ns, self.left, self.index = timestamp_ns, left, index
         self._right, self._file, self._lock = right, right_file, threading.Lock()
+        self._decode = right_decode
 
     @property  # type: ignore[override]
     def right(self) -> NDArray[np.uint8]:
         """The right image (8-bit grey or BGR), decoded at the first use (``(width, height)`` checked)."""
         with self._lock:
+            if self._right is None and self._decode is not None:
+                self._right, self._decode = self._decode(), None
             if self._right is None:
                 assert self._file is not None
                 data, path, size = self._file
@@ -132,7 +141,7 @@ class DeferredRightFrame(StereoFrame):
     @right.setter
     def right(self, value: NDArray[np.uint8]) -> None:
         with self._lock:
-            self._right, self._file = value, None
+            self._right, self._file, self._decode = value, None, None
 
     @property
     def right_decoded(self) -> bool:

@@ -9,6 +9,7 @@ Images: ``sensor_msgs/Image`` (mono8, bgr8, rgb8, mono16) or ``sensor_msgs/Compr
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 from collections import deque
 from collections.abc import Iterator
@@ -29,6 +30,7 @@ from loopmodel.io.atomic import atomic_path
 from loopmodel.io.base import Sequence
 from loopmodel.io.images import (
     MAX_IMAGE_PIXELS,
+    DeferredRightFrame,
     check_declared_size,
     check_image_bytes,
     decode_quietly,
@@ -400,17 +402,8 @@ class McapSequence(Sequence):
                     lq.popleft()
                     rq.popleft()
                     # the image errors name the frame too (issue 34)
-                    left = decode_image(ml, sl, f"{t.left_image} frame {index} ({tl} ns)", self.max_image_pixels)
-                    right = decode_image(mr, sr, f"{t.right_image} frame {index} ({tr} ns)", self.max_image_pixels)
-                    w, h = self._calibration.image_size
-                    for tp, img in ((t.left_image, left), (t.right_image, right)):
-                        if img.shape[:2] != (h, w):
-                            raise InputError(
-                                f"{self.path} {tp}",
-                                f"frame {index} ({tl} ns) is {img.shape[1]}x{img.shape[0]} pixels, "
-                                f"the CameraInfo says {w}x{h}",
-                            )
-                    yield StereoFrame(tl, left, right, index)
+                    left = self._image(ml, sl, t.left_image, index, tl)
+                    yield self._frame(tl, left, mr, sr, index)
                     index += 1
                 elif tl < tr:
                     lq.popleft()
@@ -420,6 +413,30 @@ class McapSequence(Sequence):
                     dropped += 1
         if dropped:
             logger.warning("%s: %d images without a stereo partner were skipped", self.path, dropped)
+
+    def _image(self, msg: Any, schema: str, topic: str, index: int, stamp: int) -> np.ndarray:
+        """Frame ``index``'s image on ``topic`` decoded, of the CameraInfo's size (else :class:`InputError`)."""
+        img = decode_image(msg, schema, f"{topic} frame {index} ({stamp} ns)", self.max_image_pixels)
+        w, h = self._calibration.image_size
+        if img.shape[:2] != (h, w):
+            raise InputError(
+                f"{self.path} {topic}",
+                f"frame {index} ({stamp} ns) is {img.shape[1]}x{img.shape[0]} pixels, the CameraInfo says {w}x{h}",
+            )
+        return img
+
+    def _frame(self, stamp: int, left: np.ndarray, msg: Any, schema: str, index: int) -> StereoFrame:
+        """The frame, its right image decoded when first used when compressed (orb13).
+
+        The front end uses a right image only at a keyframe (:class:`DeferredRightFrame`): a PNG decode
+        saved on the others; its declared size is checked now, its decoded size at the first use.
+        """
+        topic = self.topics.right_image
+        if not schema.endswith("CompressedImage"):
+            return StereoFrame(stamp, left, self._image(msg, schema, topic, index, stamp), index)
+        check_image_bytes(bytes(msg.data), self.max_image_pixels, f"{topic} frame {index} ({stamp} ns)")
+        decode = functools.partial(self._image, msg, schema, topic, index, stamp)
+        return DeferredRightFrame(stamp, left, None, index, right_decode=decode)
 
     def stripes(self) -> Iterator[StripeProfile]:
         topic = self.topics.stripe
