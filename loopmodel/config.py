@@ -185,9 +185,13 @@ class BackendConfig(_Section):
     # issue 33 (scale8): rounds_1800 replay (local): a keyframe's observations of landmarks already in
     # the graph (local map and revisits) grow 92 -> 378 a keyframe from the first round to the sixth,
     # its new landmarks' 342 -> 406; over the budget its monocular ones wait outside iSAM2 for the
-    # final estimate. Off: in the pipeline (scale --quick, local) 100 / 150 did not flatten the cost
+    # final estimate. be13: on at 100 (the first round's ~93 a keyframe; those kept spread over the
+    # image, best-supported landmarks first): rounds_1800 call stream replayed (load 9-15) iSAM2
+    # factors a keyframe in the sixth round 748 -> 521, back end per keyframe last block / first
+    # 2.1-2.9 -> 1.2-1.7, online keyframe ATE 9.60 -> 10.29 mm, final 8.13 -> 8.12 mm; bench scale,
+    # the KITTI clip (configs/kitti.yaml) and the orbit in bench pipeline --quick: CHANGELOG (be13)
     keyframe_obs_budget: int = Field(
-        0, ge=0, le=100000, description="observations of landmarks in the graph a keyframe's update takes (0: all)"
+        100, ge=0, le=100000, description="observations of landmarks in the graph a keyframe's update takes (0: all)"
     )
     # issue 33: where the back end runs; process: beside the tracker, which never waits for it
     worker: Literal["process", "thread", "inline"] = Field(
