@@ -185,13 +185,15 @@ class BackendConfig(_Section):
     # issue 33 (scale8): rounds_1800 replay (local): a keyframe's observations of landmarks already in
     # the graph (local map and revisits) grow 92 -> 378 a keyframe from the first round to the sixth,
     # its new landmarks' 342 -> 406; over the budget its monocular ones wait outside iSAM2 for the
-    # final estimate. be13: on at 100 (the first round's ~93 a keyframe; those kept spread over the
-    # image, best-supported landmarks first): rounds_1800 call stream replayed (load 9-15) iSAM2
-    # factors a keyframe in the sixth round 748 -> 521, back end per keyframe last block / first
-    # 2.1-2.9 -> 1.2-1.7, online keyframe ATE 9.60 -> 10.29 mm, final 8.13 -> 8.12 mm; bench scale,
-    # the KITTI clip (configs/kitti.yaml) and the orbit in bench pipeline --quick: CHANGELOG (be13)
+    # final estimate. be13: on at 200, those kept spread over the image (best-supported landmarks first).
+    # rounds_1800 call stream replayed (load 7-15): iSAM2 factors a keyframe in the sixth round 748 ->
+    # 622, re-eliminated variables 735 -> 502, online keyframe ATE 9.60 -> 10.02 mm, final 8.13 -> 8.12
+    # mm at the same final CPU (7.2 / 7.4-7.6 s). 100 flattened more (521 factors) but left the merged
+    # map off its relinearisation point: the final estimate's iSAM2 iterations 1 -> 3, final CPU 7.5 ->
+    # 12-16 s, live final refinement 16 -> 99 s (scale --quick). bench scale and the KITTI clip
+    # (configs/kitti.yaml) and orbit in bench pipeline --quick: CHANGELOG (be13)
     keyframe_obs_budget: int = Field(
-        100, ge=0, le=100000, description="observations of landmarks in the graph a keyframe's update takes (0: all)"
+        200, ge=0, le=100000, description="observations of landmarks in the graph a keyframe's update takes (0: all)"
     )
     # issue 33: where the back end runs; process: beside the tracker, which never waits for it
     worker: Literal["process", "thread", "inline"] = Field(
