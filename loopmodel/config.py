@@ -185,15 +185,16 @@ class BackendConfig(_Section):
     # issue 33 (scale8): rounds_1800 replay (local): a keyframe's observations of landmarks already in
     # the graph (local map and revisits) grow 92 -> 378 a keyframe from the first round to the sixth,
     # its new landmarks' 342 -> 406; over the budget its monocular ones wait outside iSAM2 for the
-    # final estimate. be13: on at 200, those kept spread over the image (best-supported landmarks first).
-    # rounds_1800 call stream replayed (load 7-15): iSAM2 factors a keyframe in the sixth round 748 ->
-    # 622, re-eliminated variables 735 -> 502, online keyframe ATE 9.60 -> 10.02 mm, final 8.13 -> 8.12
-    # mm at the same final CPU (7.2 / 7.4-7.6 s). 100 flattened more (521 factors) but left the merged
-    # map off its relinearisation point: the final estimate's iSAM2 iterations 1 -> 3, final CPU 7.5 ->
-    # 12-16 s, live final refinement 16 -> 99 s (scale --quick). bench scale and the KITTI clip
-    # (configs/kitti.yaml) and orbit in bench pipeline --quick: CHANGELOG (be13)
+    # final estimate. be13: those kept are spread over the image (best-supported landmarks first). Left
+    # off: rounds_1800 call stream replayed (load 7-15) with 200, the sixth round's factors 748 -> 622 a
+    # keyframe, re-eliminated variables 735 -> 502, online keyframe ATE 9.60 -> 10.02 mm, final 8.13 ->
+    # 8.12 mm at the same final CPU; 100 flattens more (521) but the final estimate's iSAM2 iterations
+    # 1 -> 3 (live final refinement 16 -> 99 s). In bench scale --quick (3 alternating pairs at 200) the
+    # back end's last block / first 2.70-2.93 against 2.87-3.64 and its CPU 1-15 % lower, but
+    # frame_ms_last_over_first 1.51-1.75 against 0.34-1.22 (not explained); the KITTI clip
+    # (configs/kitti.yaml) final ATE 0.0251 -> 0.0252 m, the orbit identical (CHANGELOG be13)
     keyframe_obs_budget: int = Field(
-        200, ge=0, le=100000, description="observations of landmarks in the graph a keyframe's update takes (0: all)"
+        0, ge=0, le=100000, description="observations of landmarks in the graph a keyframe's update takes (0: all)"
     )
     # issue 33: where the back end runs; process: beside the tracker, which never waits for it
     worker: Literal["process", "thread", "inline"] = Field(
