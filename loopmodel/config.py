@@ -193,7 +193,14 @@ class BackendConfig(_Section):
     # issue 33 (scale8): rounds_1800 replay (local): a keyframe's observations of landmarks already in
     # the graph (local map and revisits) grow 92 -> 378 a keyframe from the first round to the sixth,
     # its new landmarks' 342 -> 406; over the budget its monocular ones wait outside iSAM2 for the
-    # final estimate. Off: in the pipeline (scale --quick, local) 100 / 150 did not flatten the cost
+    # final estimate. be13: those kept are spread over the image (best-supported landmarks first). Left
+    # off: rounds_1800 call stream replayed (load 7-15) with 200, the sixth round's factors 748 -> 622 a
+    # keyframe, re-eliminated variables 735 -> 502, online keyframe ATE 9.60 -> 10.02 mm, final 8.13 ->
+    # 8.12 mm at the same final CPU; 100 flattens more (521) but the final estimate's iSAM2 iterations
+    # 1 -> 3 (live final refinement 16 -> 99 s). In bench scale --quick (3 alternating pairs at 200) the
+    # back end's last block / first 2.70-2.93 against 2.87-3.64 and its CPU 1-15 % lower, but
+    # frame_ms_last_over_first 1.51-1.75 against 0.34-1.22 (not explained); the KITTI clip
+    # (configs/kitti.yaml) final ATE 0.0251 -> 0.0252 m, the orbit identical (CHANGELOG be13)
     keyframe_obs_budget: int = Field(
         0, ge=0, le=100000, description="observations of landmarks in the graph a keyframe's update takes (0: all)"
     )

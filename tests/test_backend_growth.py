@@ -345,6 +345,30 @@ def test_keyframe_obs_budget_bounds_each_update_and_the_rest_joins_at_the_end() 
     assert final_local < 1.1 * full_final, (full_final, final_local)
 
 
+
+def test_budget_keeps_observations_spread_over_the_image_best_supported_first() -> None:
+    """``keyframe_obs_budget`` takes a keyframe's observations round robin over an 8 x 4 grid of the image.
+
+    In each cell those of the landmarks with the most factors first (issue 33, be13): 30 observations
+    crowding one cell and 10 in ten other cells; the first 11 taken are the crowded cell's best-supported
+    one and the 10 others, then the crowded cell's next; a non-finite row does not stop it.
+    """
+    from loopmodel.backend.isam2 import _Landmark
+
+    backend = Isam2Backend(_calibration(), BackendConfig())
+    for i in range(40):  # landmark i in the graph with i + 1 factors
+        backend._landmarks[i] = _Landmark(i, 0, set(range(i + 1)))
+        backend._lm_current[i] = i
+    rng = np.random.default_rng(0)
+    crowded = np.column_stack([np.arange(30), rng.uniform(1, 79, 30), rng.uniform(1, 119, 30)])  # 80 x 120 px cell
+    others = np.array([[30 + k, 80 * (k % 7 + 1) + 40, 60 + 120 * (k // 7)] for k in range(10)], float)
+    rows = np.vstack([crowded, others, [[np.nan, 5.0, 5.0]]])[rng.permutation(41)]
+    order = backend._spread_order(rows)
+    assert sorted(order[:, 0].tolist(), key=lambda x: (np.isnan(x), x))[:40] == list(range(40))  # all kept
+    first = order[:11, 0].astype(int).tolist()
+    assert sorted(first) == [29, *range(30, 40)], first
+    assert int(order[11, 0]) == 28
+
 def _feed_live(loop_prior: bool) -> tuple[list[float], list[float], float]:
     """4 rounds without revisits, a loop every 6 keyframes, ``loop_policy: local``.
 

@@ -56,6 +56,8 @@ _SYMBOL_RE = re.compile(r"Symbol:\s*([A-Za-z])(\d+)")
 _INDEX_MASK = np.uint64((1 << 56) - 1)
 _EYE4 = np.eye(4)
 _X_CHAR = ord("x")
+#: keyframe_obs_budget: the grid (columns, rows) over the image its observations are spread on
+_BUDGET_GRID = (8, 4)
 
 
 @dataclass(slots=True)
@@ -116,6 +118,7 @@ class Isam2Backend:
         )
         self._K = np.array([[fx, skew, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         self._baseline_m = calibration.baseline_m
+        self._image_size = calibration.image_size  # (width, height) px
         self._cal_stereo = gtsam.Cal3_S2Stereo(fx, fy, skew, cx, cy, self._baseline_m)
         self._cal_mono = gtsam.Cal3_S2(fx, fy, skew, cx, cy)
         self._stereo_noise = self._robust(gtsam.noiseModel.Isotropic.Sigma(3, cfg.pixel_sigma_px))
@@ -670,9 +673,8 @@ class Isam2Backend:
         used = self._budget_used.get(kf_id, 0)
         if self.config.keyframe_obs_budget > 0:  # the keyframe's budget over all its updates (late observations)
             budget = max(self.config.keyframe_obs_budget - used, len(self._batch))
-            if len(self._batch) + rows.shape[0] > budget:
-                # which ones wait: a random subset (seeded by the keyframe), spread over the image as they are
-                rows = rows[np.random.default_rng(kf_id).permutation(rows.shape[0])]
+            if len(self._batch) + rows.shape[0] > budget:  # which ones wait: the last of the spread order
+                rows = self._spread_order(rows)
         finite = np.isfinite(rows).all(axis=1).tolist()  # one array operation, not one per row
         current, pending = self._lm_current, self._pending
         for row, ok in zip(rows.tolist(), finite, strict=True):
@@ -684,6 +686,32 @@ class Isam2Backend:
         if budget is not None:
             self._budget_used[kf_id] = used + len(self._batch)
         return rejected
+
+    def _spread_order(self, rows: F64) -> F64:
+        """Monocular observations ``rows`` (landmark id, u, v rectified px) in the order a budget takes them.
+
+        Round robin over a grid of the image (``_BUDGET_GRID`` cells), in each cell the observations of
+        the landmarks with the most factors first (a point many keyframes fix constrains the pose
+        most): what :attr:`BackendConfig.keyframe_obs_budget` keeps is spread over the image and well
+        determined (issue 33, be13). Ties keep their order: deterministic.
+        """
+        n = rows.shape[0]
+        if n == 0:
+            return rows
+        finite = np.asarray(np.isfinite(rows).all(axis=1), dtype=bool)
+        uv = np.where(finite[:, None], rows[:, 1:3], 0.0)
+        (cols, grid_rows), (w, h) = _BUDGET_GRID, self._image_size
+        cell = np.clip((uv[:, 0] * cols / w).astype(np.int64), 0, cols - 1) + cols * np.clip(
+            (uv[:, 1] * grid_rows / h).astype(np.int64), 0, grid_rows - 1
+        )
+        current, landmarks = self._lm_current, self._landmarks
+        ids = np.where(finite, rows[:, 0], -1.0).astype(np.int64).tolist()
+        support = np.array([len(landmarks[k].fids) if (k := current.get(i)) is not None else 0 for i in ids])
+        by_cell = np.lexsort((-support, cell))  # by cell, the best supported first
+        sorted_cell = cell[by_cell]
+        first = np.r_[0, np.flatnonzero(np.diff(sorted_cell)) + 1]
+        rank = np.arange(n) - np.repeat(first, np.diff(np.r_[first, n]))  # place within its cell
+        return rows[by_cell[np.lexsort((sorted_cell, rank))]]
 
     def add_observations(self, keyframe_id: int, mono_obs: F64) -> BackendUpdate:
         """Add monocular observations (landmark id, u, v rectified px) to keyframe ``keyframe_id``; update.
