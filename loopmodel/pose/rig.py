@@ -173,10 +173,14 @@ class PointTerm:
             rho = np.ones(P.shape[0])
         else:
             rho = self.inverse_depth_per_m if idx is None else self.inverse_depth_per_m[idx]
-        T = np.ascontiguousarray(rig_from_ref, dtype=np.float64)
+        # contiguous blocks: the signature the warm-up compiles (slices of the 4 x 4 poses were another,
+        # which every cold run compiled in its frames; fin13)
+        T = np.asarray(rig_from_ref, dtype=np.float64)
         C = self.rig.cam_from_rig[j]
         cam = self.rig.cameras[j]
-        return (P, np.ascontiguousarray(rho, dtype=np.float64), uv, T[:3, :3], T[:3, 3], C[:3, :3], C[:3, 3],
+        c = np.ascontiguousarray
+        f64 = np.float64
+        return (P, c(rho, dtype=f64), uv, c(T[:3, :3]), c(T[:3, 3]), c(C[:3, :3], dtype=f64), c(C[:3, 3], dtype=f64),
                 float(cam.px), float(cam.py), float(cam.u0), float(cam.v0), float(cam.xi))
 
     def residuals(self, rig_from_ref: F64) -> F64:
