@@ -7,8 +7,8 @@ its worker processes (the KITTI clip: 35 s of frames instead of 3 s, single fram
 issue 33 item 2). :func:`cold_kernel_modules` tells, without compiling, which modules the cache
 lacks; :func:`warm_up` compiles (or loads) them in this process, so later
 processes, the workers included, only load them; :func:`compile_in_processes` compiles them in a
-pool of processes, one per core (numba compiles in one thread: two processes halve the wall time on
-two cores). ``make setup`` and ``loopmodel run`` compile this way when the cache is cold.
+pool of processes, one per core (numba compiles in one thread). ``make setup`` and ``loopmodel run``
+compile this way when the cache is cold.
 """
 
 from __future__ import annotations
@@ -47,8 +47,8 @@ KERNEL_MODULES = (
 )
 
 
-#: Cold compile time of each module's warm-up (s of CPU, measured one by one in one process, load ~8,
-#: numba 0.6x): the pool starts the longest first, so the processes end close together.
+#: Cold compile time of each module's warm-up (wall s, one after the other in one process, load ~8,
+#: numba 0.6x; only their order matters): the pool starts the longest first, so its processes end close together.
 COMPILE_COST_S = {
     "loopmodel.frontend._stereo_kernels": 5.5,
     "loopmodel.frontend._affine_kernels": 4.8,
