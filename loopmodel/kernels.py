@@ -6,14 +6,19 @@ install or an update that cache is empty: the first run then compiled inside its
 its worker processes (the KITTI clip: 35 s of frames instead of 3 s, single frames up to 1.6 s;
 issue 33 item 2). :func:`cold_kernel_modules` tells, without compiling, which modules the cache
 lacks; :func:`warm_up` compiles (or loads) them in this process, so later
-processes, the workers included, only load them. ``make setup`` and ``loopmodel run`` call it when
-the cache is cold.
+processes, the workers included, only load them; :func:`compile_in_processes` compiles them in a
+pool of processes, one per core (numba compiles in one thread). ``make setup`` and ``loopmodel run``
+compile this way when the cache is cold.
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import logging
+import multiprocessing as mp
+import os
+import signal
 from collections.abc import Callable, Hashable
 from types import ModuleType
 from typing import Any
@@ -40,6 +45,24 @@ KERNEL_MODULES = (
     "loopmodel.imaging._png_kernels",
     "loopmodel.calibration._rig_kernels",
 )
+
+
+#: Cold compile time of each module's warm-up (wall s, one after the other in one process, load ~8,
+#: numba 0.6x; only their order matters): the pool starts the longest first, so its processes end close together.
+COMPILE_COST_S = {
+    "loopmodel.frontend._stereo_kernels": 5.5,
+    "loopmodel.frontend._affine_kernels": 4.8,
+    "loopmodel.frontend._ba_kernels": 14.5,
+    "loopmodel.pose._point_kernels": 14.5,
+    "loopmodel.imaging._klt_kernels": 0.6,
+    "loopmodel.loop._vocabulary_kernels": 0.3,
+    "loopmodel.loop.p3p_kernels": 16.7,
+    "loopmodel.loop.surf": 14.0,
+    "loopmodel.backend._givens_kernels": 2.0,
+    "loopmodel.mapping._peak_kernels": 3.5,
+    "loopmodel.imaging._png_kernels": 1.4,
+    "loopmodel.calibration._rig_kernels": 5.2,
+}
 
 
 def _warm_surf() -> None:
@@ -155,19 +178,77 @@ def warm_up(modules: tuple[str, ...] = KERNEL_MODULES, on_step: Callable[[int, i
             on_step(i, len(modules), label)
 
 
-def main() -> None:
-    """``python -m loopmodel.kernels``: compile what the cache lacks, one line per group."""
+def _cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _ignore_interrupts() -> None:
+    """A pool process's start: Ctrl-C (sent to the whole process group) stops only the parent, which ends the pool."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _warm_one(name: str) -> str:
+    """Compile (or load) one kernel module's kernels in this process; its label."""
+    label, warm = _warm_ups()[name]
+    warm()
+    return label
+
+
+def compile_in_processes(
+    modules: tuple[str, ...], on_step: Callable[[int, int, str], None] | None = None, processes: int = 0
+) -> None:
+    """Compile the kernels of ``modules`` into numba's cache in a pool of ``processes`` (0: one per core).
+
+    The longest (:data:`COMPILE_COST_S`) start first. This process only waits: it loads none of them
+    (a run loads them from the cache in its warm-ups, before its first frame). One module, or one core:
+    :func:`warm_up` in this process. ``on_step(done, total, label)`` as each module is done.
+    """
+    n = min(processes or _cores(), len(modules))
+    if n <= 1:
+        warm_up(modules, on_step)
+        return
+    order = sorted(modules, key=lambda m: -COMPILE_COST_S.get(m, 1.0))
+    # spawn: a fresh interpreter, nothing of this process's threads or numba state copied
+    with mp.get_context("spawn").Pool(n, initializer=_ignore_interrupts) as pool:
+        for i, label in enumerate(pool.imap_unordered(_warm_one, order), 1):
+            if on_step is not None:
+                on_step(i, len(order), label)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m loopmodel.kernels [--config FILE]``: compile what the cache lacks, one line per group.
+
+    With ``--config`` only the modules a run with that configuration calls (:func:`modules_for`);
+    the others compile when first needed (``loopmodel run`` before its first frame).
+    """
     import time
 
-    cold = cold_kernel_modules()
+    parser = argparse.ArgumentParser(prog="python -m loopmodel.kernels", description=main.__doc__)
+    parser.add_argument("--config", help="only the kernels a run with this configuration file calls")
+    parser.add_argument("--processes", type=int, default=0, help="compiling processes (0: one per core)")
+    args = parser.parse_args(argv)
+    wanted: tuple[str, ...] = KERNEL_MODULES
+    if args.config:
+        from loopmodel.config import load_config
+
+        wanted = modules_for(load_config(args.config))
+    cold = cold_kernel_modules(wanted)
     if not cold:
         print("loopmodel kernels: cached")
         return
-    print(f"loopmodel kernels: compiling ({len(cold)} of {len(KERNEL_MODULES)} modules not in numba's cache; "
+    print(f"loopmodel kernels: compiling ({len(cold)} of {len(wanted)} modules not in numba's cache; "
           "once after an install or update)")
     t0 = time.perf_counter()
-    warm_up(on_step=lambda i, n, name: print(f"  {i}/{n} {name} ({time.perf_counter() - t0:.0f} s)", flush=True))
-    left = cold_kernel_modules()
+    compile_in_processes(
+        tuple(cold),
+        lambda i, n, name: print(f"  {i}/{n} {name} ({time.perf_counter() - t0:.0f} s)", flush=True),
+        args.processes,
+    )
+    left = cold_kernel_modules(wanted)
     tail = f"; still not cached: {', '.join(left)}" if left else ""
     print(f"loopmodel kernels: done in {time.perf_counter() - t0:.0f} s{tail}")
 

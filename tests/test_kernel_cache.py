@@ -93,3 +93,60 @@ def test_a_run_after_warming_compiles_nothing_more() -> None:
     frames, keyframes, added = json.loads(out.stdout.strip().splitlines()[-1])
     assert frames == 8 and keyframes >= 2  # tracked frames and a local BA were reached
     assert added == {}
+
+
+def test_kernels_compiled_in_a_pool_are_cached_for_the_next_process(tmp_path: Path) -> None:
+    """Two processes compile cold modules; a later process finds them in numba's cache.
+
+    The two cheapest modules, in this test's own cache folder.
+    """
+    small = ("loopmodel.imaging._klt_kernels", "loopmodel.loop._vocabulary_kernels")
+    # the modules imported (as `cold_kernel_modules` does in a run) before the pool compiles: this
+    # process then loads them from the cache (hits, no miss), it does not compile them again
+    code = (
+        "import json\n"
+        "from loopmodel.kernels import _dispatchers, _warm_ups, cold_kernel_modules, compile_in_processes\n"
+        f"assert cold_kernel_modules({small!r}) == list({small!r})\n"
+        "done = []\n"
+        f"compile_in_processes({small!r}, lambda i, n, label: done.append([i, n, label]), processes=2)\n"
+        "import importlib\n"
+        f"for m in {small!r}:\n"
+        "    _warm_ups()[m][1]()\n"
+        "    ds = _dispatchers(importlib.import_module(m))\n"
+        "    assert all(not d.stats.cache_misses for d in ds) and any(d.stats.cache_hits for d in ds), m\n"
+        "print(json.dumps(done))\n"
+    )
+    check = (
+        "import json\n"
+        "from loopmodel.kernels import cold_kernel_modules\n"
+        f"print(json.dumps(cold_kernel_modules({small!r})))\n"
+    )
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+
+    def last_line(source: str) -> list:
+        out = subprocess.run(
+            [sys.executable, "-c", source], env=env, capture_output=True, text=True, check=True, timeout=300
+        )
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    done = last_line(code)
+    assert [d[:2] for d in done] == [[1, 2], [2, 2]] and {d[2] for d in done} == {"KLT share", "vocabulary"}
+    assert last_line(check) == []
+
+
+def test_the_command_compiles_only_what_a_configuration_calls(tmp_path: Path) -> None:
+    """``--config``: the modules of :func:`modules_for` that are cold, no others (none cold: "cached")."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("frontend:\n  klt_share_px: 2.0\n")
+    code = (
+        "import loopmodel.kernels as k\n"
+        "share = ('loopmodel.imaging._klt_kernels',)\n"
+        "k.modules_for = lambda config: share if config.frontend.klt_share_px > 0 else ()\n"
+        f"k.main(['--config', {str(cfg)!r}, '--processes', '1'])\n"
+        f"k.main(['--config', {str(cfg)!r}])\n"
+    )
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True, timeout=300)
+    lines = out.stdout.strip().splitlines()
+    assert "1 of 1 modules" in lines[0] and "KLT share" in lines[1] and "done" in lines[2], lines
+    assert lines[-1] == "loopmodel kernels: cached"

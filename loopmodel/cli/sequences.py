@@ -303,16 +303,17 @@ def run(
 def compile_kernels_if_cold(cfg: Config) -> None:
     """Compile the run's numba kernels that numba's cache lacks (after an install or update) before the frames.
 
-    Otherwise they compiled inside the first run's frames and its workers (issue 33 item 2).
+    Otherwise they compiled inside the first run's frames and its workers (issue 33 item 2). They compile
+    in a process per core; the run loads them from the cache in its warm-ups, as a run with a warm cache.
     """
-    from loopmodel.kernels import cold_kernel_modules, modules_for, warm_up
+    from loopmodel.kernels import cold_kernel_modules, compile_in_processes, modules_for
 
     cold = cold_kernel_modules(modules_for(cfg))
     if not cold:
         return
     with progress_bar(TimeElapsedColumn()) as bar:
         task = bar.add_task("compiling kernels (once after an install or update)", total=len(cold))
-        warm_up(tuple(cold), lambda i, _n, _label: bar.update(task, completed=i))
+        compile_in_processes(tuple(cold), lambda i, _n, _label: bar.update(task, completed=i))
 
 
 #: What the finishing steps (:data:`loopmodel.pipeline.FINISH_STEPS`) are called on the terminal.
