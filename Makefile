@@ -41,7 +41,7 @@ $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	@# uv (from PyPI) installs the releases pip would choose (checked: the same versions of all 121 packages)
 	@# in 22 s on a fresh clone against pip's ~150 s (2026-12-04, quiet); pip when uv cannot be had.
-	$(PY) -m pip install -q uv && $(VENV)/bin/uv pip install -q --python $(PY) -e '.[dev,viz,batch]' || \
+	$(PY) -m pip install -qq uv && $(VENV)/bin/uv pip install -q --python $(PY) -e '.[dev,viz,batch]' || \
 	  { $(PY) -m pip install -q --upgrade pip && $(PY) -m pip install -q -e '.[dev,viz,batch]'; }
 	@touch $(STAMP)
 
