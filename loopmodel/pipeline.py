@@ -25,6 +25,7 @@ is checked between frames, so every frame's and keyframe's bookkeeping is done w
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import functools
@@ -459,6 +460,8 @@ class _Run:
         self.mesh_worker: FinalMeshWorker | None = None  # the final mesh's process, during the finish
         self.early_mesh: MovedMeshJob | None = None  # the final mesh started before the frames' re-solve
         self.beside_mesh: Callable[[RunResult], None] | None = None  # process()'s: while the final mesh is made
+        self.total_frames: int | None = None  # process()'s: the frames the run is to take, when known
+        self.frame_starts_s: collections.deque[float] = collections.deque(maxlen=21)  # the last frames' starts (s)
         self.helper: Any = None  # the idle stripe-extraction process pool, during the finish (the re-solve's share)
         # the keyframes' stereo points triangulated with the refined rig (the re-solve's and the map's)
         self.refined_points: dict[int, F64] | None = None
@@ -491,6 +494,7 @@ class _Run:
         trajectory, and the stripes taken up to it the live map.
         """
         t0 = time.perf_counter()
+        self.frame_starts_s.append(t0)
         late = self._hand_waiting_keyframes()
         self._loops_between_frames()
         if self.online is not None:
@@ -514,7 +518,7 @@ class _Run:
             self.live.feed(self.laser.new_profiles())
         if kf is not None or late:
             updates = len(self.live.update_ms)
-            self.live.on_keyframe()
+            self.live.on_keyframe(self._seconds_left())
             if self.listeners and len(self.live.update_ms) > updates:
                 mesh = self.live.mesh()
                 for listener in self.listeners:
@@ -767,6 +771,18 @@ class _Run:
             np.array([self.keyframes[k] for k in ids], dtype=np.int64),
             np.stack([poses[k] for k in ids]) if ids else np.zeros((0, 4, 4)),
         )
+
+    def _seconds_left(self) -> float | None:
+        """The frames still to come in seconds at the recent frames' rate; None when unknown or no final mesh follows.
+
+        For the live mesh (mesh14): an update that would end after the last frame is abandoned for the
+        final mesh, whose process it would hold up.
+        """
+        starts = self.frame_starts_s
+        if self.total_frames is None or len(starts) < 2 or not self.config.mapping.write_mesh:
+            return None
+        left = max(self.total_frames - len(self.frames), 0)
+        return left * (starts[-1] - starts[0]) / (len(starts) - 1)  # at the last 20 frames' rate
 
     def finishing_note(self) -> str:
         """What :meth:`finish` and the writes will do, with the mesh time estimated from the live mesher's rate."""
@@ -1067,6 +1083,7 @@ def process(
     )
     run.beside_mesh = beside_mesh
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
+    run.total_frames = total
     stop = stop if stop is not None else StopFlag()
     logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
     interrupted, error = _frame_loop(run, sequence.scan(), total, stop, progress)
