@@ -56,7 +56,14 @@ from loopmodel.io.results import LogCapture, ResultsFolder, write_results
 from loopmodel.listener import RunListener
 from loopmodel.mapping.anchored import AnchoredTrajectory
 from loopmodel.mapping.extraction import StripeExtractor
-from loopmodel.mapping.final import FinalMeshJob, FinalMeshWorker, MovedMeshJob, end_pool, start_final_mesh
+from loopmodel.mapping.final import (
+    FinalMeshJob,
+    FinalMeshWorker,
+    MovedMeshJob,
+    end_pool,
+    load_mesh_modules,
+    start_final_mesh,
+)
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
@@ -278,6 +285,11 @@ class _LaserFeed:
         """The profiles taken since the last call."""
         out, self._unfed = self._unfed, []
         return out
+
+    @property
+    def has_process(self) -> bool:
+        """Whether the laser images are extracted in a process of their own (running)."""
+        return self._worker is not None
 
     def wait(self, keep_process: bool = False) -> Any:
         """The profiles of the last laser images join :attr:`stripes` (waited for); the worker stops.
@@ -869,10 +881,15 @@ class _Run:
         final mesh (:attr:`mesh_worker`; a busy one too when the mesh starts before the re-solve).
         """
         cc, mc = self.config.calibration, self.config.mapping
+        early = not interrupted and self._mesh_before_resolve(any_worker=True)
+        in_helper = False  # mesh14: the final mesh in the idle extraction process (the live worker busy)
         if mc.final_mesh_in_live_worker and mc.write_mesh and self.laser.stripes:
             # open3d loaded there: no new process to start. With the mesh started before the re-solve
-            # (a refinement after this) also a busy one: its last update ends by then (finish11)
-            idle = self.live.take_idle_worker(busy=not interrupted and self._mesh_before_resolve(any_worker=True))
+            # (a refinement after this) also a busy one: its last update ends by then (finish11) unless
+            # the extraction process takes the mesh (mapping.final_mesh_in_helper_when_busy)
+            in_helper = early and mc.final_mesh_in_helper_when_busy and self.laser.has_process
+            idle = self.live.take_idle_worker(busy=early and not in_helper)
+            in_helper = in_helper and idle is None
             if idle is not None:
                 logger.info("final mesh in the live mesh's worker process")
                 self.mesh_worker = FinalMeshWorker(idle)
@@ -882,7 +899,9 @@ class _Run:
         # longer path, and a third busy process on two cores slows it)
         keep = cc.retracks and cc.retrack_helper_share > 0 and not interrupted and self.localizer is None
         keep = keep and len(self.frames) >= cc.retrack_helper_min_frames and not self._mesh_before_resolve()
-        self.helper = self.laser.wait(keep_process=keep)
+        self.helper = self.laser.wait(keep_process=keep or in_helper)
+        if in_helper:
+            self._mesh_in_helper()
         if self.helper is not None:
             from loopmodel.calibration.retrack import warm_up
 
@@ -903,6 +922,26 @@ class _Run:
         if self._add_constraints(self.loop.final_constraints()):
             moved = self.backend.estimate(landmarks=False)
             self._correct({k: moved.world_from_kf[k] for k in moved.changed_keyframes})
+
+    def _mesh_in_helper(self) -> None:
+        """The idle extraction process made the final mesh's (open3d loaded there now, beside the refinement).
+
+        mesh14 (issue 32): the live mesh's update still running at the last frame is abandoned and its
+        process ended (:meth:`_stop_workers`) instead of the final mesh waiting for it. Without the
+        process (gone), the busy live worker is taken as before.
+        """
+        helper, self.helper = self.helper, None
+        if helper is not None:
+            try:
+                helper.submit(load_mesh_modules)
+                logger.info("final mesh in the extraction process: the live mesh's worker is busy")
+                self.mesh_worker = FinalMeshWorker(helper)
+                return
+            except RuntimeError:  # a broken pool
+                end_pool(helper)
+        idle = self.live.take_idle_worker(busy=True)
+        if idle is not None:
+            self.mesh_worker = FinalMeshWorker(idle)
 
     def _mesh_before_resolve(self, any_worker: bool = False) -> bool:
         """Whether the final mesh starts before the frames' re-solve (``mapping.final_mesh_before_resolve``).
