@@ -887,7 +887,7 @@ class _Run:
             # open3d loaded there: no new process to start. With the mesh started before the re-solve
             # (a refinement after this) also a busy one: its last update ends by then (finish11) unless
             # the extraction process takes the mesh (mapping.final_mesh_in_helper_when_busy)
-            in_helper = early and mc.final_mesh_in_helper_when_busy and self.laser.has_process
+            in_helper = early and mc.final_mesh_in_helper_when_busy and self.laser.has_process and self.live.busy
             idle = self.live.take_idle_worker(busy=early and not in_helper)
             in_helper = in_helper and idle is None
             if idle is not None:

@@ -148,8 +148,9 @@ class LiveMapping:
         Every ``every_kf``-th one installs the worker's finished blocks and, when the worker is
         free, hands it the blocks that changed since. ``seconds_left``: the run's frames still to
         come, in seconds (known when the sequence's length is and a final mesh supersedes the live
-        one): no update is started that the last one's time says would not end before them
-        (mesh14: it would be abandoned, and the final mesh would wait for the worker).
+        one): in a worker process no update is started that the last one's time says would not end
+        before them (mesh14: it would be abandoned, and the final mesh would wait for the process; a
+        thread's update is not ended at the finish, and the written live mesh has it when it ends in time).
         """
         self._keyframes += 1
         if self._every <= 0 or self._keyframes % self._every or self._world.point_count == 0:
@@ -158,7 +159,8 @@ class LiveMapping:
             if not self._job.done():
                 return  # still busy: the dirty blocks wait for the next turn
             self._collect()
-        if seconds_left is not None and self._last_wall_s is not None and self._last_wall_s > seconds_left:
+        late = seconds_left is not None and self._last_wall_s is not None and self._last_wall_s > seconds_left
+        if late and self._worker_kind == "process":
             self.updates_skipped += 1  # the dirty blocks stay for the final mesh (or a later turn)
             return
         snap = self._world.take_dirty_blocks()
@@ -235,6 +237,11 @@ class LiveMapping:
         if not self.points_meshed:
             return None
         return self._world.point_count * sum(self.update_ms) / 1e3 / self.points_meshed
+
+    @property
+    def busy(self) -> bool:
+        """Whether an update is running in the worker."""
+        return self._job is not None and not self._job.done()
 
     def take_idle_worker(self, busy: bool = False) -> Any:
         """The worker process's pool when it is idle (its last update installed), for the final mesh; else None.
