@@ -550,6 +550,12 @@ class MappingConfig(_Section):
         default=True, description="start the final mesh before the frames' re-solve and move it after (needs a"
         " mesh process: final_mesh_in_live_worker)"
     )
+    # mesh14 (issue 32): the live mesh's update still running at the last frame (niced; 1.8-6 s long on the
+    # 150-frame realistic orbit) held the final mesh up until it ended. Measured in CHANGELOG (mesh14)
+    final_mesh_in_helper_when_busy: bool = Field(
+        default=True, description="the live mesh's worker busy at the last frame: the final mesh in the idle laser"
+        " extraction process (open3d imported there beside the refinement), the live update ended"
+    )
     # 1 by default: Open3D's multi-threaded Poisson segfaults at random (Open3D issue #6828; here once
     # in the final mesh of tests/test_one_pass.py under load 22), and a crash loses the whole run
     poisson_threads: int = Field(

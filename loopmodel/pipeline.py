@@ -25,6 +25,7 @@ is checked between frames, so every frame's and keyframe's bookkeeping is done w
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import functools
@@ -55,7 +56,14 @@ from loopmodel.io.results import LogCapture, ResultsFolder, write_results
 from loopmodel.listener import RunListener
 from loopmodel.mapping.anchored import AnchoredTrajectory
 from loopmodel.mapping.extraction import StripeExtractor
-from loopmodel.mapping.final import FinalMeshJob, FinalMeshWorker, MovedMeshJob, end_pool, start_final_mesh
+from loopmodel.mapping.final import (
+    FinalMeshJob,
+    FinalMeshWorker,
+    MovedMeshJob,
+    end_pool,
+    load_mesh_modules,
+    start_final_mesh,
+)
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
 from loopmodel.result import RunResult
@@ -278,6 +286,11 @@ class _LaserFeed:
         out, self._unfed = self._unfed, []
         return out
 
+    @property
+    def has_process(self) -> bool:
+        """Whether the laser images are extracted in a process of their own (running)."""
+        return self._worker is not None
+
     def wait(self, keep_process: bool = False) -> Any:
         """The profiles of the last laser images join :attr:`stripes` (waited for); the worker stops.
 
@@ -459,6 +472,8 @@ class _Run:
         self.mesh_worker: FinalMeshWorker | None = None  # the final mesh's process, during the finish
         self.early_mesh: MovedMeshJob | None = None  # the final mesh started before the frames' re-solve
         self.beside_mesh: Callable[[RunResult], None] | None = None  # process()'s: while the final mesh is made
+        self.total_frames: int | None = None  # process()'s: the frames the run is to take, when known
+        self.frame_starts_s: collections.deque[float] = collections.deque(maxlen=21)  # the last frames' starts (s)
         self.helper: Any = None  # the idle stripe-extraction process pool, during the finish (the re-solve's share)
         # the keyframes' stereo points triangulated with the refined rig (the re-solve's and the map's)
         self.refined_points: dict[int, F64] | None = None
@@ -491,6 +506,7 @@ class _Run:
         trajectory, and the stripes taken up to it the live map.
         """
         t0 = time.perf_counter()
+        self.frame_starts_s.append(t0)
         late = self._hand_waiting_keyframes()
         self._loops_between_frames()
         if self.online is not None:
@@ -514,7 +530,7 @@ class _Run:
             self.live.feed(self.laser.new_profiles())
         if kf is not None or late:
             updates = len(self.live.update_ms)
-            self.live.on_keyframe()
+            self.live.on_keyframe(self._seconds_left())
             if self.listeners and len(self.live.update_ms) > updates:
                 mesh = self.live.mesh()
                 for listener in self.listeners:
@@ -768,6 +784,18 @@ class _Run:
             np.stack([poses[k] for k in ids]) if ids else np.zeros((0, 4, 4)),
         )
 
+    def _seconds_left(self) -> float | None:
+        """The frames still to come in seconds at the recent frames' rate; None when unknown or no final mesh follows.
+
+        For the live mesh (mesh14): an update that would end after the last frame is abandoned for the
+        final mesh, whose process it would hold up.
+        """
+        starts = self.frame_starts_s
+        if self.total_frames is None or len(starts) < 2 or not self.config.mapping.write_mesh:
+            return None
+        left = max(self.total_frames - len(self.frames), 0)
+        return left * (starts[-1] - starts[0]) / (len(starts) - 1)  # at the last 20 frames' rate
+
     def finishing_note(self) -> str:
         """What :meth:`finish` and the writes will do, with the mesh time estimated from the live mesher's rate."""
         n = self.stripe_map.point_count
@@ -853,10 +881,15 @@ class _Run:
         final mesh (:attr:`mesh_worker`; a busy one too when the mesh starts before the re-solve).
         """
         cc, mc = self.config.calibration, self.config.mapping
+        early = not interrupted and self._mesh_before_resolve(any_worker=True)
+        in_helper = False  # mesh14: the final mesh in the idle extraction process (the live worker busy)
         if mc.final_mesh_in_live_worker and mc.write_mesh and self.laser.stripes:
             # open3d loaded there: no new process to start. With the mesh started before the re-solve
-            # (a refinement after this) also a busy one: its last update ends by then (finish11)
-            idle = self.live.take_idle_worker(busy=not interrupted and self._mesh_before_resolve(any_worker=True))
+            # (a refinement after this) also a busy one: its last update ends by then (finish11) unless
+            # the extraction process takes the mesh (mapping.final_mesh_in_helper_when_busy)
+            in_helper = early and mc.final_mesh_in_helper_when_busy and self.laser.has_process and self.live.busy
+            idle = self.live.take_idle_worker(busy=early and not in_helper)
+            in_helper = in_helper and idle is None
             if idle is not None:
                 logger.info("final mesh in the live mesh's worker process")
                 self.mesh_worker = FinalMeshWorker(idle)
@@ -866,7 +899,9 @@ class _Run:
         # longer path, and a third busy process on two cores slows it)
         keep = cc.retracks and cc.retrack_helper_share > 0 and not interrupted and self.localizer is None
         keep = keep and len(self.frames) >= cc.retrack_helper_min_frames and not self._mesh_before_resolve()
-        self.helper = self.laser.wait(keep_process=keep)
+        self.helper = self.laser.wait(keep_process=keep or in_helper)
+        if in_helper:
+            self._mesh_in_helper()
         if self.helper is not None:
             from loopmodel.calibration.retrack import warm_up
 
@@ -887,6 +922,26 @@ class _Run:
         if self._add_constraints(self.loop.final_constraints()):
             moved = self.backend.estimate(landmarks=False)
             self._correct({k: moved.world_from_kf[k] for k in moved.changed_keyframes})
+
+    def _mesh_in_helper(self) -> None:
+        """The idle extraction process made the final mesh's (open3d loaded there now, beside the refinement).
+
+        mesh14 (issue 32): the live mesh's update still running at the last frame is abandoned and its
+        process ended (:meth:`_stop_workers`) instead of the final mesh waiting for it. Without the
+        process (gone), the busy live worker is taken as before.
+        """
+        helper, self.helper = self.helper, None
+        if helper is not None:
+            try:
+                helper.submit(load_mesh_modules)
+                logger.info("final mesh in the extraction process: the live mesh's worker is busy")
+                self.mesh_worker = FinalMeshWorker(helper)
+                return
+            except RuntimeError:  # a broken pool
+                end_pool(helper)
+        idle = self.live.take_idle_worker(busy=True)
+        if idle is not None:
+            self.mesh_worker = FinalMeshWorker(idle)
 
     def _mesh_before_resolve(self, any_worker: bool = False) -> bool:
         """Whether the final mesh starts before the frames' re-solve (``mapping.final_mesh_before_resolve``).
@@ -1067,6 +1122,7 @@ def process(
     )
     run.beside_mesh = beside_mesh
     total = len(sequence) if max_frames is None else min(len(sequence), max_frames)
+    run.total_frames = total
     stop = stop if stop is not None else StopFlag()
     logger.info("pipeline on %s (%d frames, back end %s)", sequence.path, total, config.backend.kind)
     interrupted, error = _frame_loop(run, sequence.scan(), total, stop, progress)

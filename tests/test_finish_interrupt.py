@@ -198,3 +198,51 @@ def test_a_busy_live_worker_is_handed_over_only_when_asked() -> None:
         worker.close()
     assert m["final_mesh_in_worker"] is True
     np.testing.assert_array_equal(np.asarray(mesh.vertices), np.asarray(mesh_from_points(pts, sensors, cfg).vertices))
+
+
+def test_a_busy_live_worker_leaves_the_final_mesh_to_the_extraction_process() -> None:
+    """mesh14: ``_Run._mesh_in_helper`` gives the idle helper pool (no open3d yet) the final mesh: the same mesh.
+
+    The busy live worker is not taken (its update is abandoned when the live mesh closes); without a
+    helper the busy worker is taken as before (finish11).
+    """
+    import multiprocessing as mp
+    import time
+    import types
+    from concurrent.futures import ProcessPoolExecutor
+
+    from loopmodel.config import MappingConfig
+    from loopmodel.mapping.final import FinalMeshJob
+    from loopmodel.mapping.live import LiveMapping
+    from loopmodel.mapping.meshing import mesh_from_points
+    from loopmodel.mapping.stripe_map import StripeMap
+    from loopmodel.pipeline import _Run
+    from loopmodel.types import StripeProfile
+
+    pts, sensors = _patch_of_a_sphere(3000)
+    cfg = MappingConfig()
+    live = LiveMapping(StripeMap(cfg), 1, "process")
+    live.feed([StripeProfile(0, pts[:50])])
+    live._job = live._pool.submit(time.sleep, 120.0)  # noqa: SLF001 - an update still running
+    helper = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))  # stands for the extraction process
+    run = types.SimpleNamespace(helper=helper, live=live, mesh_worker=None)
+    _Run._mesh_in_helper(run)  # type: ignore[arg-type]
+    assert run.helper is None and run.mesh_worker is not None and run.mesh_worker._pool is helper  # noqa: SLF001
+    live_procs = list(live._pool._processes.values())  # noqa: SLF001
+    live.close(wait=False)  # the busy update abandoned, its process ended
+    assert live.updates_abandoned == 1 and all(process_ended(p.pid, 30.0) for p in live_procs)
+    try:
+        mesh, m = FinalMeshJob(pts, sensors, cfg, run.mesh_worker).result()
+    finally:
+        run.mesh_worker.close()
+    assert m["final_mesh_in_worker"] is True
+    np.testing.assert_array_equal(np.asarray(mesh.vertices), np.asarray(mesh_from_points(pts, sensors, cfg).vertices))
+
+    # no helper process: the busy live worker is taken (its update dropped, the mesh runs after it)
+    live = LiveMapping(StripeMap(cfg), 1, "process")
+    live.feed([StripeProfile(0, pts[:50])])
+    live._job = live._pool.submit(time.sleep, 0.5)  # noqa: SLF001
+    run = types.SimpleNamespace(helper=None, live=live, mesh_worker=None)
+    _Run._mesh_in_helper(run)  # type: ignore[arg-type]
+    assert run.mesh_worker is not None and live.updates_abandoned == 1
+    run.mesh_worker.close()

@@ -170,3 +170,35 @@ def test_abandoned_live_update_ends_its_worker_process() -> None:
     job.result(timeout=120.0)
     live.close(wait=False)
     assert live.updates_abandoned == 0 and live.update_ms and live.mesh() is not None
+
+
+def test_live_update_not_started_when_it_would_end_after_the_last_frame() -> None:
+    """mesh14: with the frames left shorter than the last update took, no update starts; else one does.
+
+    Such an update is abandoned for the final mesh, and held the final mesh's process up at the end.
+    The dirty blocks are kept (a later turn with more time left takes them).
+    """
+    smap = _sphere_map(MappingConfig(chunk_m=0.1))
+    live = LiveMapping(smap, 1, "process")
+    live.wait_started()
+    t0 = time.perf_counter()
+    live.on_keyframe(seconds_left=0.0)  # no update measured yet: it starts
+    job = live._job
+    assert job is not None
+    job.result(timeout=120.0)
+    took_s = time.perf_counter() - t0
+    smap.add_many([StripeProfile(19_000_000, np.array([[0.0, 0.3, 1.0], [0.01, 0.3, 1.0]]))])  # a dirty block
+    live.on_keyframe(seconds_left=0.0)  # the last update took longer than 0 s: skipped
+    assert live._job is None and live.updates_skipped == 1 and live._last_wall_s is not None
+    assert 0.0 < live._last_wall_s <= took_s + 0.05
+    assert smap.dirty_blocks  # left for later
+    live.on_keyframe(seconds_left=live._last_wall_s + 60.0)  # time enough: it starts
+    assert live._job is not None
+    live.close(wait=True)
+    assert live.metrics()["live_mesh_updates_skipped"] == 1 and len(live.update_ms) == 2
+    # a thread's update is not ended at the finish: it is not skipped
+    live = LiveMapping(_sphere_map(MappingConfig(chunk_m=0.1)), 1, "thread")
+    live._last_wall_s = 10.0
+    live.on_keyframe(seconds_left=0.0)
+    assert live._job is not None and live.updates_skipped == 0
+    live.close(wait=True)

@@ -65,6 +65,11 @@ def _mesh_worker_start() -> None:
     import loopmodel.mapping.meshing  # noqa: F401 - open3d's import, before the mesh is asked for
 
 
+def load_mesh_modules() -> None:
+    """open3d and the meshing module imported in this process (a pool's process taking the final mesh)."""
+    import loopmodel.mapping.meshing  # noqa: F401
+
+
 def mesh_arrays(
     points_w: NDArray[np.float64], sensors_w: NDArray[np.float64], config: MappingConfig
 ) -> tuple[MeshArrays | None, str, float, float]:

@@ -116,6 +116,9 @@ class LiveMapping:
         self.blocks_remeshed = 0
         self.points_meshed = 0
         self.updates_abandoned = 0  # updates dropped unfinished (:meth:`close` without waiting)
+        self.updates_skipped = 0  # updates not started: they would not end before the run's last frame
+        self._submitted_s = self._done_s = 0.0  # when the running update was handed over and done (perf_counter, s)
+        self._last_wall_s: float | None = None  # the last finished update's time from hand-over to result
 
     @property
     def enabled(self) -> bool:
@@ -139,11 +142,15 @@ class LiveMapping:
             logger.error("live mesh: laser stripes no longer fed: %s", exc)
             self._feeding = False
 
-    def on_keyframe(self) -> None:
+    def on_keyframe(self, seconds_left: float | None = None) -> None:
         """Count a keyframe.
 
         Every ``every_kf``-th one installs the worker's finished blocks and, when the worker is
-        free, hands it the blocks that changed since.
+        free, hands it the blocks that changed since. ``seconds_left``: the run's frames still to
+        come, in seconds (known when the sequence's length is and a final mesh supersedes the live
+        one): in a worker process no update is started that the last one's time says would not end
+        before them (mesh14: it would be abandoned, and the final mesh would wait for the process; a
+        thread's update is not ended at the finish, and the written live mesh has it when it ends in time).
         """
         self._keyframes += 1
         if self._every <= 0 or self._keyframes % self._every or self._world.point_count == 0:
@@ -152,14 +159,24 @@ class LiveMapping:
             if not self._job.done():
                 return  # still busy: the dirty blocks wait for the next turn
             self._collect()
+        late = seconds_left is not None and self._last_wall_s is not None and self._last_wall_s > seconds_left
+        if late and self._worker_kind == "process":
+            self.updates_skipped += 1  # the dirty blocks stay for the final mesh (or a later turn)
+            return
         snap = self._world.take_dirty_blocks()
         if snap is None:
             return
         pool = self._workers()  # (a daemonic process gets a thread)
+        self._submitted_s = time.perf_counter()
         if self._worker_kind == "process":
             self._job = pool.submit(remesh_blocks_low, self._nice, *snap, self._world.config)
         else:  # the pool's thread has the lowered priority (it still shares the interpreter lock)
             self._job = pool.submit(remesh_blocks, *snap, self._world.config)
+        self._job.add_done_callback(self._note_done)
+
+    def _note_done(self, _job: Any) -> None:
+        """The running update's end time (on the pool's thread that sees it end)."""
+        self._done_s = time.perf_counter()
 
     def start(self) -> None:
         """Start the worker now (when the live mesh is on): its imports before the frames, not among them."""
@@ -194,6 +211,9 @@ class LiveMapping:
 
     def _collect(self) -> None:
         job, self._job = self._job, None
+        # (the end noted by the pool's thread, perhaps just after ``done()`` said so: then now)
+        done_s = self._done_s if self._done_s >= self._submitted_s else time.perf_counter()
+        self._last_wall_s = done_s - self._submitted_s
         try:
             meshes, ms, n_points = job.result()
         except Exception as exc:  # the live view is a convenience: log, keep tracking
@@ -217,6 +237,11 @@ class LiveMapping:
         if not self.points_meshed:
             return None
         return self._world.point_count * sum(self.update_ms) / 1e3 / self.points_meshed
+
+    @property
+    def busy(self) -> bool:
+        """Whether an update is running in the worker."""
+        return self._job is not None and not self._job.done()
 
     def take_idle_worker(self, busy: bool = False) -> Any:
         """The worker process's pool when it is idle (its last update installed), for the final mesh; else None.
@@ -283,6 +308,7 @@ class LiveMapping:
         return {
             "live_mesh_updates": len(self.update_ms),
             "live_mesh_updates_abandoned": self.updates_abandoned,
+            "live_mesh_updates_skipped": self.updates_skipped,
             "live_mesh_blocks_remeshed": self.blocks_remeshed,
             "live_mesh_update_ms_median": float(np.median(a)) if a.size else None,
             "live_mesh_update_ms_p95": float(np.percentile(a, 95)) if a.size else None,
