@@ -281,6 +281,11 @@ class FrontendConfig(_Section):
     min_tracked: int = Field(100, ge=6, le=100000, description="new keyframe below this many inliers")
     max_parallax_ratio: float = Field(0.25, gt=0, description="translation / median depth")
     max_rotation_deg: float = Field(20.0, gt=0, description="rotation since the keyframe")
+    # issue 36 (tail14): the run's last frame, tracked, becomes a keyframe (the pipeline tells the front
+    # end which frame is the last); the frames after the policy's last keyframe are then bridged between
+    # two keyframes and the last pose is in the final BA. Measured on the 1200-frame modeler scan and
+    # the KITTI clip + orbit sample (CHANGELOG.md, tail14)
+    last_frame_keyframe: bool = Field(True, description="the run's last tracked frame becomes a keyframe")
     # tracking loss
     min_inliers: int = Field(20, ge=6, le=100000, description="LOST below this many inliers")
     max_jump_m: float = Field(0.6, gt=0, description="LOST when the pose departs from the motion model by more")
