@@ -1246,7 +1246,8 @@ def _frame_loop(
             if run.skips(scan.frame):
                 run.laser.take(scan)
                 continue
-            run.frontend.prepare(scan.frame)  # a keyframe's right image decoded with its reading (fe7)
+            # a keyframe's right image decoded with its reading (fe7); the run's last frame a keyframe (tail14)
+            run.frontend.prepare(scan.frame, last=coming is None)
             run.step(scan.frame)
             # the side jobs after the frame (orb13): its laser data to the extraction process, the coming
             # left image's rectification (issue 33) run while the next frame is read, not beside this

@@ -254,7 +254,9 @@ def test_run_resolves_the_frames_between_keyframes(tmp_path: Path) -> None:
     A rendered rig whose right camera's cx is 0.6 px off the recorded calibration (a 2-3 % depth
     error at the scene's 4.5-9 m): the keyframes' own tracked poses keep their points (the keyframe
     waits a frame for its local BA, ``frontend.local_ba_beside``), so every interval's end is solved
-    and its frames bridged onto it; the frames after the last keyframe are solved alone.
+    and its frames bridged onto it; the frames after the last keyframe are solved alone (the run's last
+    frame not made a keyframe here, ``frontend.last_frame_keyframe`` off: as in a run whose last frame is
+    lost; tests/test_last_keyframe.py has it on).
     """
     from frontend_scene import write_kitti_folder
 
@@ -271,6 +273,7 @@ def test_run_resolves_the_frames_between_keyframes(tmp_path: Path) -> None:
         cfg.frontend.min_tracked_fraction = 0.95
         cfg.calibration.refine = "final"  # type: ignore[assignment]
         cfg.calibration.retrack_frames = retrack
+        cfg.frontend.last_frame_keyframe = False  # frames after the last keyframe, solved alone
         cfg.output.write_map = False
         cfg.mapping.write_mesh = False
         out[retrack] = process(open_sequence(tmp_path / "seq"), cfg)

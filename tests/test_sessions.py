@@ -241,7 +241,10 @@ def test_resume_continues_from_the_last_keyframe(first_session: tuple[Path, Path
     from loopmodel.pipeline import run_pipeline
 
     seq_path, folder_full = first_session
-    part = run_pipeline(open_sequence(seq_path), Config(), tmp_path, "part", max_frames=30, handle_signals=False)
+    # max_frames stands for an interruption there, whose last frame is not made a keyframe (tail14)
+    interrupted = Config()
+    interrupted.frontend.last_frame_keyframe = False
+    part = run_pipeline(open_sequence(seq_path), interrupted, tmp_path, "part", max_frames=30, handle_signals=False)
     point = read_resume_point(part.folder)
     assert 0 < point.frame_index < 30
     resumed = run_pipeline(open_sequence(seq_path), Config(), tmp_path, "part", handle_signals=False, resume=point)

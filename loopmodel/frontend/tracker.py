@@ -362,6 +362,9 @@ class FrontEnd:
         # the next frame is expected to make a keyframe
         self._inliers_prev: int | None = None
         self._expect_keyframe = False
+        # issue 36 (tail14): the frame being processed is the run's last (prepare): it becomes a keyframe
+        # when tracked, so the frames after the last policy keyframe are bridged and refined like the others
+        self._last_frame = False
         # frontend.keyframe_match_ahead: the expected keyframe's corners and matches, made beside its
         # frame's tracking (its rectified left image, the thread)
         self._ahead: tuple[NDArray[np.uint8], Beside[KeyframeMatches]] | None = None
@@ -977,13 +980,17 @@ class FrontEnd:
         loss = max(self._inliers_prev - inliers, 0) if self._inliers_prev is not None else 0
         return self._need_keyframe(kf_from_cur @ self._velocity, inliers - loss // 2)
 
-    def prepare(self, frame: StereoFrame) -> None:
+    def prepare(self, frame: StereoFrame, last: bool = False) -> None:
         """Before :meth:`process` of ``frame``, outside its time: decode what it will need.
 
         Its right image when the last frame expected a keyframe now (a reader may decode it only when
         first used, :class:`~loopmodel.io.images.DeferredRightFrame`); it is then not decoded beside the
-        keyframe's corner detection, within the frame (fe7: kitti_frame_ms_p95).
+        keyframe's corner detection, within the frame (fe7: kitti_frame_ms_p95). ``last``: ``frame`` is
+        the run's last one; tracked, it becomes a keyframe (``last_frame_keyframe``; issue 36, tail14: the
+        frames after the last keyframe otherwise have none after them, are not bridged nor in the final BA).
         """
+        self._last_frame = last and self.config.last_frame_keyframe
+        self._expect_keyframe = self._expect_keyframe or self._last_frame
         if self._expect_keyframe:
             frame.right  # noqa: B018  # decoded here, kept by the frame
 
@@ -1005,7 +1012,7 @@ class FrontEnd:
         cfg = self.config
         assert self._active is not None
         m = self._active.points.shape[0]
-        if inliers < max(cfg.min_tracked, cfg.min_tracked_fraction * m):
+        if self._last_frame or inliers < max(cfg.min_tracked, cfg.min_tracked_fraction * m):
             return True
         if cfg.keyframe_parallax == "angle":
             parallax = median_parallax_rad(self._active.points[self._track_idx], kf_from_cur[:3, 3])
