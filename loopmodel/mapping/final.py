@@ -57,17 +57,17 @@ def final_mesh(stripes: list[StripeProfile], final: Trajectory, config: MappingC
     return start_final_mesh(stripes, final, config).result()
 
 
+def load_mesh_modules() -> None:
+    """open3d and the meshing module imported in this process (a pool's process taking the final mesh)."""
+    import loopmodel.mapping.meshing  # noqa: F401 - open3d's import, before the mesh is asked for
+
+
 def _mesh_worker_start() -> None:
     """The final mesh's process: Ctrl-C is the run's (it ends the finish); open3d loaded up front."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    import loopmodel.mapping.meshing  # noqa: F401 - open3d's import, before the mesh is asked for
-
-
-def load_mesh_modules() -> None:
-    """open3d and the meshing module imported in this process (a pool's process taking the final mesh)."""
-    import loopmodel.mapping.meshing  # noqa: F401
+    load_mesh_modules()
 
 
 def mesh_arrays(
