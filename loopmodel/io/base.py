@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import abc
+import functools
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -166,11 +167,17 @@ class FolderSequence(Sequence):
 
     def frames(self) -> Iterator[StereoFrame]:
         """The pairs; each right image read with its frame, decoded when first used (:class:`DeferredRightFrame`)."""
-        from loopmodel.io.images import DeferredRightFrame, check_image_bytes, read_image_bytes, read_image_of_size
+        from loopmodel.io.images import (
+            DeferredRightFrame,
+            check_image_bytes,
+            decode_of_size,
+            read_image_bytes,
+            read_image_of_size,
+        )
 
         size, limit = self._calibration.image_size, self.max_image_pixels
         for i, (t, lp, rp) in enumerate(self._pairs):
             left = read_image_of_size(lp, size, limit)
             data = read_image_bytes(rp)
             check_image_bytes(data, limit, rp)
-            yield DeferredRightFrame(t, left, None, i, right_file=(data, rp, size))
+            yield DeferredRightFrame(t, left, None, i, right_decode=functools.partial(decode_of_size, data, rp, size))

@@ -100,48 +100,47 @@ def _of_size(img: NDArray[np.uint8], size: tuple[int, int], source: str | Path) 
     return img
 
 
+def decode_of_size(data: bytes, path: Path, size: tuple[int, int]) -> NDArray[np.uint8]:
+    """The image file ``path``'s bytes ``data`` decoded, of ``size`` (width, height) (else :class:`InputError`)."""
+    return _of_size(decode_image(data, path), size, path)
+
+
 class DeferredRightFrame(StereoFrame):
-    """A :class:`StereoFrame` whose right image is decoded from its file's bytes when first used.
+    """A :class:`StereoFrame` whose right image is decoded when first used.
 
     The front end uses a right image only at a keyframe (its stereo matching, on the keyframe's
     stereo thread), so the other frames' right images are read and their declared size checked
     (:func:`check_image_bytes`) with the frame, but never decoded: a PNG decode costs 3.8 ms of CPU
-    per KITTI clip image. A corrupt right image raises :class:`InputError` naming its file where it
-    is first used. Pickles as a plain :class:`StereoFrame` (decoded).
+    per KITTI clip image. A corrupt right image raises :class:`InputError` naming its file (or topic)
+    where it is first used. Pickles as a plain :class:`StereoFrame` (decoded).
     """
 
     def __init__(
         self, timestamp_ns: int, left: NDArray[np.uint8], right: NDArray[np.uint8] | None = None, index: int = 0,
-        *, right_file: tuple[bytes, Path, tuple[int, int]] | None = None,
-        right_decode: Callable[[], NDArray[np.uint8]] | None = None,
+        *, right_decode: Callable[[], NDArray[np.uint8]] | None = None,
     ) -> None:
-        """The right image, or its file's bytes, path and (width, height), or a function that decodes it.
+        """The right image, or a function that decodes it (a file's: :func:`decode_of_size`; an MCAP message's).
 
-        ``right_decode`` (an MCAP message's, orb13) raises :class:`InputError` for a bad image.
+        ``right_decode`` raises :class:`InputError` for a bad image.
         """
-        if right is None and right_file is None and right_decode is None:
-            raise ValueError("DeferredRightFrame needs the right image, its file's bytes or its decoder")
+        if right is None and right_decode is None:
+            raise ValueError("DeferredRightFrame needs the right image or its decoder")
         self.timestamp_ns, self.left, self.index = timestamp_ns, left, index
-        self._right, self._file, self._lock = right, right_file, threading.Lock()
-        self._decode = right_decode
+        self._right, self._decode, self._lock = right, right_decode, threading.Lock()
 
     @property  # type: ignore[override]
     def right(self) -> NDArray[np.uint8]:
-        """The right image (8-bit grey or BGR), decoded at the first use (``(width, height)`` checked)."""
+        """The right image (8-bit grey or BGR), decoded at the first use."""
         with self._lock:
-            if self._right is None and self._decode is not None:
-                self._right, self._decode = self._decode(), None
             if self._right is None:
-                assert self._file is not None
-                data, path, size = self._file
-                self._right = _of_size(decode_image(data, path), size, path)
-                self._file = None
+                assert self._decode is not None
+                self._right, self._decode = self._decode(), None
             return self._right
 
     @right.setter
     def right(self, value: NDArray[np.uint8]) -> None:
         with self._lock:
-            self._right, self._file, self._decode = value, None, None
+            self._right, self._decode = value, None
 
     @property
     def right_decoded(self) -> bool:
