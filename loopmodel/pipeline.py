@@ -1254,7 +1254,7 @@ def _frame_loop(
             # frame's KLT halves on the second core
             run.laser.take(scan)
             if coming is not None:
-                run.frontend.rectifier.left_ahead(coming.frame.left)
+                run.frontend.left_ahead(coming.frame.left)  # and its image check (cpu15)
             if progress is not None:
                 el = run.times.since_start_s()
                 progress(i + 1, total, (i + 1) / el if el > 0 else 0.0, len(run.keyframes))

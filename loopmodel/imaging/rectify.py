@@ -7,7 +7,9 @@ matrix and the baseline along x.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any
 
 import cv2
 import numpy as np
@@ -27,6 +29,14 @@ def _ahead_pool() -> ThreadPoolExecutor:
         if not _AHEAD:
             _AHEAD.append(ThreadPoolExecutor(1, thread_name_prefix="rectify-ahead"))
         return _AHEAD[0]
+
+
+Then = Callable[[NDArray[np.uint8]], Any]
+"""A function of a rectified left image run after its rectification (:meth:`Rectifier.left_ahead`)."""
+
+
+def _applied(then: Then | None, rect: NDArray[np.uint8]) -> Any:
+    return None if then is None else then(rect)
 
 
 def to_grey(img: NDArray[np.uint8]) -> NDArray[np.uint8]:
@@ -100,7 +110,7 @@ class Rectifier:
         self._maps: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = (
             None
         )
-        self._ahead: list[tuple[NDArray[np.uint8], Future[NDArray[np.uint8]]]] = []  # see left_ahead
+        self._ahead: list[tuple[NDArray[np.uint8], Then | None, Future[tuple[NDArray[np.uint8], Any]]]] = []  # see left_ahead
         if calibration.rectified:
             self.calibration = calibration
             return
@@ -147,23 +157,40 @@ class Rectifier:
     def __getstate__(self) -> dict[str, object]:
         return {**self.__dict__, "_ahead": []}  # a started rectification stays with this process
 
-    def left_ahead(self, img: NDArray[np.uint8]) -> None:
+    def left_ahead(self, img: NDArray[np.uint8], then: Then | None = None) -> None:
         """Start rectifying a coming frame's left image in a background thread.
 
         ``cv2.remap`` releases the interpreter, so it runs beside the frame being tracked (issue 33:
         2 ms of the realistic orbit's 640x480 frames on the tracking thread); :meth:`left` of the
-        same array takes the result. The last two images started are kept.
+        same array takes the result. The last two images started are kept. ``then``: a function of the
+        rectified image run after it on the same thread (the front end's image check, cpu15; started
+        also when the images pass through unrectified), whose value :meth:`left_and` hands with the image.
         """
-        if self._maps is not None:
-            self._ahead = [*self._ahead[-1:], (img, _ahead_pool().submit(self._left_now, img))]
+        if self._maps is not None or then is not None:
+            job = _ahead_pool().submit(self._left_then, img, then)
+            self._ahead = [*self._ahead[-1:], (img, then, job)]
 
     def left(self, img: NDArray[np.uint8]) -> NDArray[np.uint8]:
         """Rectified grey left image (the one :meth:`left_ahead` started for this array, when it did)."""
-        for i, (src, job) in enumerate(self._ahead):
+        return self.left_and(img)[0]
+
+    def left_and(self, img: NDArray[np.uint8], then: Then | None = None) -> tuple[NDArray[np.uint8], Any]:
+        """:meth:`left` of ``img`` and ``then`` of it (None without ``then``).
+
+        Both from :meth:`left_ahead`'s thread when it was started for this array with the same ``then``;
+        what it did not start is done here.
+        """
+        for i, (src, fn, job) in enumerate(self._ahead):
             if src is img:
                 del self._ahead[: i + 1]
-                return job.result()
-        return self._left_now(img)
+                rect, value = job.result()
+                return rect, value if fn == then else _applied(then, rect)
+        rect = self._left_now(img)
+        return rect, _applied(then, rect)
+
+    def _left_then(self, img: NDArray[np.uint8], then: Then | None) -> tuple[NDArray[np.uint8], Any]:
+        rect = self._left_now(img)
+        return rect, _applied(then, rect)
 
     def _left_now(self, img: NDArray[np.uint8]) -> NDArray[np.uint8]:
         g = to_grey(img)
