@@ -51,3 +51,33 @@ def test_a_forked_child_starts_its_own_threads() -> None:
         os._exit(0 if job._done is not None and job._done.wait(10) and job.result() == 4 else 1)
     _, status = os.waitpid(pid, 0)
     assert os.waitstatus_to_exitcode(status) == 0
+
+
+def test_a_job_not_begun_runs_on_the_callers_thread_with_run_here(monkeypatch: pytest.MonkeyPatch) -> None:
+    """cpu15: ``result(run_here=True)`` runs a job its thread has not begun (its core busy) on the caller's
+    thread; the thread, when it comes to it, skips it: one run, the same value. A begun job is waited for."""
+    from loopmodel.frontend import beside
+
+    held: list[object] = []
+
+    class _Late:  # a kept thread that has not come to its job yet
+        def hand(self, job: object) -> None:
+            held.append(job)
+
+    runs: list[str] = []
+
+    def job(k: int) -> int:
+        runs.append(threading.current_thread().name)
+        return k * k
+
+    monkeypatch.setattr(beside, "_worker", _Late)
+    late = Beside(True, job, 6)
+    assert late.result(run_here=True) == 36 and late.ran_here
+    held[0]()  # type: ignore[operator]  # the thread comes to it: skipped
+    assert runs == [threading.current_thread().name]
+    monkeypatch.undo()
+    gate = threading.Event()
+    begun = Beside(True, lambda: gate.wait(5.0) and threading.current_thread().name)
+    time.sleep(0.2)  # begun on its thread (waiting at the gate): result(run_here=True) waits for it
+    threading.Timer(0.2, gate.set).start()
+    assert begun.result(run_here=True) not in (False, threading.current_thread().name) and not begun.ran_here

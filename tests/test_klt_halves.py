@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import cv2
 import numpy as np
@@ -35,8 +36,13 @@ def test_halves_give_the_tracks_of_one_call(rng: np.random.Generator) -> None:
     threads: set[str] = set()
     real = klt_halves.track_klt
 
+    caller = threading.current_thread().name
+
     def spy(*args: object) -> object:
-        threads.add(threading.current_thread().name)
+        name = threading.current_thread().name
+        threads.add(name)
+        if name == caller:  # the caller's half waits a while: the thread beside has begun the other
+            time.sleep(0.3)  # (one it has not begun by then the caller tracks itself: test_beside.py)
         return real(*args)  # type: ignore[arg-type]
 
     with pytest.MonkeyPatch.context() as mp:

@@ -70,11 +70,18 @@ class Beside(Generic[T]):
         self._value: T | None = None
         self._error: BaseException | None = None
         self._done: threading.Event | None = None
+        self._claim = threading.Lock()  # taken by the one thread that runs fn (result's run_here)
+        self.ran_here = False  # result(run_here=True) ran it on the caller's thread
+        self._job = (fn, args)
         if threaded:
             self._done = threading.Event()
-            _worker().hand(lambda: self._run(fn, args))
+            _worker().hand(self._begin)
         else:
             self._run(fn, args)
+
+    def _begin(self) -> None:
+        if self._claim.acquire(blocking=False):  # else the caller has run it (result(run_here=True))
+            self._run(*self._job)
 
     def _run(self, fn: Callable[..., T], args: tuple[Any, ...]) -> None:
         try:
@@ -85,9 +92,16 @@ class Beside(Generic[T]):
             if self._done is not None:
                 self._done.set()
 
-    def result(self) -> T:
-        """The value of ``fn(*args)`` once it is done."""
+    def result(self, run_here: bool = False) -> T:
+        """The value of ``fn(*args)`` once it is done.
+
+        ``run_here``: a job the thread beside has not begun yet (its core busy with other work) is run
+        on the caller's thread instead of waited for, and the thread skips it (cpu15): the same value.
+        """
         if self._done is not None:
+            if run_here and self._claim.acquire(blocking=False):
+                self.ran_here = True
+                self._run(*self._job)
             self._done.wait()
         if self._error is not None:
             raise self._error

@@ -3,7 +3,9 @@
 OpenCV's pyramidal Lucas-Kanade releases the interpreter lock and searches each point on its own, so
 the second half of the points is tracked on a :class:`~loopmodel.frontend.beside.Beside` thread while
 the caller tracks the first: the same tracks as one call, in about half the wall time when the second
-core is free (each half builds its own pyramids: about 0.7 ms of CPU more a frame at 640x480).
+core is free (each half builds its own pyramids: about 0.7 ms of CPU more a frame at 640x480). A
+second half the thread has not begun when the first is done (the other core busy: a keyframe's loop
+detection, the back-end process) is tracked on the caller's thread, not waited for (cpu15).
 """
 
 from __future__ import annotations
@@ -41,5 +43,5 @@ def track_klt_halves(
     h = n // 2
     other = Beside(True, track_klt, prev, cur, start[h:], guess[h:], *klt)
     uv0, ok0, _fb0 = track_klt(prev, cur, start[:h], guess[:h], *klt)
-    uv1, ok1, _fb1 = other.result()
+    uv1, ok1, _fb1 = other.result(run_here=True)  # not begun yet (its core busy): tracked here
     return np.vstack([uv0, uv1]), np.concatenate([ok0, ok1])

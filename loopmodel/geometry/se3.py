@@ -173,12 +173,18 @@ def interpolate_pose(a_from_b0: ArrayLike, a_from_b1: ArrayLike, alpha: float) -
     return make_pose(R0 @ dR, (1.0 - alpha) * T0[:3, 3] + alpha * T1[:3, 3])
 
 
+_EYE3 = np.eye(3)
+
+
 def is_rotation(R: ArrayLike, tol: float = 1e-6) -> bool:
     """True when R is a proper rotation (orthonormal, det +1) within ``tol``."""
     R = np.asarray(R, dtype=float)
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         return False
-    return bool(np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1) < tol)
+    # np.allclose(R.T @ R, I, atol=tol) (its rtol 1e-5 on the diagonal's ones) in one pass: a tenth of
+    # its time, checked every tracked frame (AnchoredTrajectory.add_frame; cpu15)
+    off = np.abs(R.T @ R - _EYE3) - _EYE3 * 1e-5
+    return bool(off.max() <= tol and abs(np.linalg.det(R) - 1) < tol)
 
 
 def interpolate_poses(a_from_b0: ArrayLike, a_from_b1: ArrayLike, alpha: ArrayLike) -> F64:

@@ -21,6 +21,21 @@ RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
 GAUSS_MAD = 0.6744897501960817  # median of |N(0,1)|
 
 
+def median_1d(x: F64) -> float:
+    """``np.median`` of a non-empty 1-D array, the same value (NaN when any is), without its overhead.
+
+    One partition at the middle (and the end, where a NaN goes); an even count takes the mean of the two
+    middle values, as numpy does. A third of ``np.median``'s time at a few hundred values (twice a
+    tracked frame, cpu15).
+    """
+    n = x.shape[0]
+    k = n // 2
+    part = np.partition(x, (k - 1, k, n - 1) if n % 2 == 0 else (k, n - 1))
+    if np.isnan(part[n - 1]):
+        return float("nan")
+    return float(part[k]) if n % 2 else float((part[k - 1] + part[k]) / 2.0)
+
+
 def robust_scale(norms: F64, dim: int, floor: float) -> float:
     """Robust standard deviation (per component) of residual vectors of dimension ``dim``.
 
@@ -28,7 +43,7 @@ def robust_scale(norms: F64, dim: int, floor: float) -> float:
     """
     if norms.size == 0:
         return floor
-    med = float(np.median(norms))
+    med = median_1d(norms)
     denom = RAYLEIGH_MEDIAN if dim == 2 else GAUSS_MAD if dim == 1 else np.sqrt(dim - 2.0 / 3.0)
     return max(med / denom, floor)
 
