@@ -54,8 +54,10 @@ def test_a_forked_child_starts_its_own_threads() -> None:
 
 
 def test_a_job_not_begun_runs_on_the_callers_thread_with_run_here(monkeypatch: pytest.MonkeyPatch) -> None:
-    """cpu15: ``result(run_here=True)`` runs a job its thread has not begun (its core busy) on the caller's
-    thread; the thread, when it comes to it, skips it: one run, the same value. A begun job is waited for."""
+    """cpu15: ``result(run_here=True)`` runs a job its thread has not begun on the caller's thread.
+
+    The thread, when it comes to it, skips it: one run, the same value. A begun job is waited for.
+    """
     from loopmodel.frontend import beside
 
     held: list[object] = []

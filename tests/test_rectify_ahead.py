@@ -67,3 +67,42 @@ def test_one_ahead_pairs_each_item_with_the_next_and_a_read_error_comes_after_it
         for pair in _one_ahead(failing()):  # type: ignore[arg-type]
             got.append(pair)
     assert got == [(1, 2), (2, None)]
+
+
+def test_left_ahead_then_runs_on_the_thread_and_left_and_hands_its_value() -> None:
+    """cpu15: ``then`` (the front end's image check) runs after the rectification on the ahead thread.
+
+    ``left_and`` hands its value with the image; another function, or an array not started, is run on the
+    spot with the same result; images passed through unrectified are started too when a ``then`` is given.
+    """
+    import threading
+
+    rng = np.random.default_rng(4)
+    imgs = [rng.integers(0, 256, (480, 640), dtype=np.uint8) for _ in range(2)]
+    where: list[str] = []
+
+    def check(rect: np.ndarray) -> float:
+        where.append(threading.current_thread().name)
+        return float(rect.mean())
+
+    rect = Rectifier(_raw_rig())
+    expected = Rectifier(_raw_rig()).left(imgs[0])
+    rect.left_ahead(imgs[0], check)
+    got, value = rect.left_and(imgs[0], check)
+    np.testing.assert_array_equal(got, expected)
+    assert value == float(expected.mean()) and where == ["rectify-ahead_0"]
+    rect.left_ahead(imgs[1], check)
+    got, value = rect.left_and(imgs[1], lambda r: float(r.mean()))  # another function: run here
+    assert value == float(got.mean()) and rect._ahead == []
+    assert where == ["rectify-ahead_0"] * 2  # (the started check ran on the thread, its value unused)
+    got, value = rect.left_and(imgs[1], check)  # nothing started: both on the spot
+    assert value == float(got.mean()) and where[-1] == threading.current_thread().name
+    assert rect.left_and(imgs[1])[1] is None
+    K = np.array([[500.0, 0, 320.0], [0, 500.0, 240.0], [0, 0, 1]])
+    t = np.eye(4)
+    t[0, 3] = -0.06
+    same = Rectifier(StereoCalibration(K, K, t, (640, 480)))
+    same.left_ahead(imgs[0], check)  # rectified input: started for its check
+    assert len(same._ahead) == 1
+    got, value = same.left_and(imgs[0], check)
+    assert got is imgs[0] and value == float(imgs[0].mean()) and where[-1] == "rectify-ahead_0"

@@ -35,6 +35,10 @@ Then = Callable[[NDArray[np.uint8]], Any]
 """A function of a rectified left image run after its rectification (:meth:`Rectifier.left_ahead`)."""
 
 
+_Ahead = tuple[NDArray[np.uint8], Then | None, Future[tuple[NDArray[np.uint8], Any]]]
+"""A started :meth:`Rectifier.left_ahead`: the raw image, its ``then`` and the job (rectified image, value)."""
+
+
 def _applied(then: Then | None, rect: NDArray[np.uint8]) -> Any:
     return None if then is None else then(rect)
 
@@ -110,7 +114,7 @@ class Rectifier:
         self._maps: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = (
             None
         )
-        self._ahead: list[tuple[NDArray[np.uint8], Then | None, Future[tuple[NDArray[np.uint8], Any]]]] = []  # see left_ahead
+        self._ahead: list[_Ahead] = []  # see left_ahead
         if calibration.rectified:
             self.calibration = calibration
             return
