@@ -301,3 +301,28 @@ def test_short_realistic_orbit_closes_its_loop(tmp_path: Path) -> None:
     assert mesh["mesh_err_after_mm"] < 0.7 * mesh["mesh_err_before_mm"]
     assert mesh["mesh_err_gt_mm"] is not None
     assert mesh["mesh_err_after_mm"] < 1.5 * mesh["mesh_err_gt_mm"]
+
+
+def test_bench_segment_distances_match_all_pairs() -> None:
+    """``bench sim-loop``'s pruned nearest-segment distance equals the all-pairs one (tst15).
+
+    Random polylines with gaps, short and long segments, and points on and far off the line.
+    """
+    import importlib.util
+
+    tool = Path(__file__).parents[1] / "tools" / "bench_sim_loop.py"
+    spec = importlib.util.spec_from_file_location("bench_sim_loop", tool)
+    assert spec is not None and spec.loader is not None
+    b = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(b)
+    rng = np.random.default_rng(0)
+    for step_px in (0.5, 3.0, 30.0, 0.5, 3.0, 30.0):
+        n = 200
+        pts = 200 + np.cumsum(rng.normal(0, step_px, (n, 2)), axis=0)
+        keep = rng.random(n - 1) > 0.05
+        a, c = pts[:-1][keep], pts[1:][keep]
+        uv = np.vstack([rng.uniform(0, 400, (150, 2)), pts[rng.integers(0, n, 150)] + rng.normal(0, 1, (150, 2))])
+        ab = c - a
+        w = np.clip(np.einsum("pnk,nk->pn", uv[:, None] - a[None], ab) / np.sum(ab * ab, 1), 0, 1)
+        every_pair = np.linalg.norm(uv[:, None] - (a[None] + w[..., None] * ab[None]), axis=2).min(axis=1)
+        np.testing.assert_allclose(b._segment_distances_px(uv, a, c), every_pair, rtol=0, atol=1e-9)
