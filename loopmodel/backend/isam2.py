@@ -169,6 +169,7 @@ class Isam2Backend:
         self._new_proxies = gtsam.Values()
         # keyframe_obs_budget: observations of known landmarks each keyframe's updates took so far
         self._budget_used: dict[int, int] = {}
+        self.budget_dropped = 0  # observations over the budget left out (keyframe_obs_overflow drop)
         # local_defer_late: late observations (a loop's) wait for the next update (the loop prior's)
         self._defer_late = self._windowed and cfg.local_defer_late and cfg.blunder_sigma <= 0
         self._deferred_graph = gtsam.NonlinearFactorGraph()
@@ -178,6 +179,9 @@ class Isam2Backend:
         # local_defer_keyframe: a keyframe's own update waits for the next one (its loop's) or an estimate
         self._defer_kf = self._defer_late and cfg.local_defer_keyframe
         self._kf_waiting = False  # a keyframe's update waits (at most one: the next keyframe runs it first)
+        # local_defer_loop: a loop's prior (and its late observations) wait for the next keyframe's update
+        self._defer_loop = self._defer_kf and cfg.local_defer_loop
+        self._updated = True  # an iSAM2 update ran since the last estimate()
         # local_rebuild_kf: the variables a rebuild left out of iSAM2, at their estimate (keys disjoint
         # from iSAM2's); the gauge-tight priors holding the older keyframes a rebuild kept (factor ids)
         self._frozen = gtsam.Values()
@@ -552,7 +556,11 @@ class Isam2Backend:
             if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
                 del self._lm_current[lm_id]  # the track continues as a new landmark variable
             else:
-                self._add_obs(o, lkey, lm_id, graph, outside=budget is not None and budget <= len(self._batch))
+                over = budget is not None and budget <= len(self._batch)
+                if over and self.config.keyframe_obs_overflow == "drop":
+                    self.budget_dropped += 1  # never in the graph: what one keyframe adds stays bounded
+                    return
+                self._add_obs(o, lkey, lm_id, graph, outside=over)
                 return
         pend = self._pending.get(lm_id)
         if pend is None:
@@ -814,6 +822,7 @@ class Isam2Backend:
             self._recover(exc)
             return
         self.last_result = result
+        self._updated = True
         for fid, slot in zip(new_fids, result.getNewFactorsIndices(), strict=True):
             self._slot[fid] = slot
 
@@ -872,6 +881,7 @@ class Isam2Backend:
             self._estimate_all = True
             self._clear_deferred()  # their factors are in the record: the rebuild takes them
             self._isam = gtsam.ISAM2(self.isam2_params(self.config))
+            self._updated = True
             self._slot.clear()
             keys: set[int] = set()
             for fid, rec in self._factors.items():
@@ -897,6 +907,7 @@ class Isam2Backend:
             groups = self._ordering_groups(len(keys))
             try:
                 result = self._isam.update(graph, values, [], constrainedKeys=groups)
+                self._updated = True
             except RuntimeError as again:
                 message = str(again)
                 continue
@@ -1020,6 +1031,7 @@ class Isam2Backend:
         self._estimate_all = True
         for it in range(max_iterations):
             result = self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
+            self._updated = True
             if result.getVariablesRelinearized() == 0:
                 return it + 1
         return max_iterations
@@ -1285,6 +1297,7 @@ class Isam2Backend:
         self._run_update(graph, gtsam.Values(), [], None)
         # a loop moves much of the trajectory: relinearise right away
         self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
+        self._updated = True
         return fid
 
     def _loop_prior(self, fid: int, kf_a: int, kf_b: int, a_from_b: F64, noise: gtsam.noiseModel.Base) -> None:
@@ -1303,7 +1316,8 @@ class Isam2Backend:
         self._proxy_fids[fid] = [self._new_fid(_FactorRecord(prior, "proxy"))]
         graph = gtsam.NonlinearFactorGraph()
         graph.add(prior)
-        self._run_update(graph, gtsam.Values(), [], X(new))  # with the loop's late observations (local_defer_late)
+        # with the loop's late observations (local_defer_late), and with local_defer_loop in the next keyframe's update
+        self._run_update(graph, gtsam.Values(), [], X(new), defer=self._defer_loop)
 
     def remove_loop_constraint(self, constraint_id: int) -> None:
         """Remove a loop constraint returned by :meth:`add_loop_constraint`."""
@@ -1332,8 +1346,12 @@ class Isam2Backend:
         """
         lm_ids = np.zeros(0, dtype=np.int64)
         pts = np.zeros((0, 3))
-        if landmarks or self._defer_kf:  # a keyframe's update waits at most until here (local_defer_keyframe)
+        # a keyframe's update waits at most until here (local_defer_keyframe); a loop's for the next keyframe's
+        if landmarks or self._kf_waiting or (self._defer_kf and not self._defer_loop):
             self._flush_deferred()
+        if not (landmarks or self._updated or len(self._kf_order) > self._estimated_kfs):
+            return BackendEstimate(dict(self._last_poses), lm_ids, pts, set())  # nothing moved since the last call
+        self._updated = False
         if landmarks:
             vals = self._current_values()
             keys = np.asarray(vals.keys(), dtype=np.uint64)
@@ -1508,11 +1526,13 @@ class Isam2Backend:
                 self._frozen.insert(key, value)
                 self._frozen_keys.add(key)
         self._isam = gtsam.ISAM2(self.isam2_params(self.config))
+        self._updated = True
         self._slot.clear()
         self._rebuilt_at = len(self._kf_order)
         self.window_rebuilds += 1
         try:
             result = self._isam.update(graph, values, [], constrainedKeys=self._ordering_groups(len(in_graph)))
+            self._updated = True
         except RuntimeError as exc:
             self._recover(exc)
             return
@@ -1545,6 +1565,7 @@ class Isam2Backend:
         self._outside.clear()
         self._estimate_all = True
         self._isam = gtsam.ISAM2(self.isam2_params(self.config))
+        self._updated = True
         self._slot.clear()
         self._batch.clear()
         fids = sorted(self._factors)
@@ -1553,6 +1574,7 @@ class Isam2Backend:
             graph.add(self._factors[fid].factor)
         try:
             result = self._isam.update(graph, values, [], constrainedKeys=self._ordering_groups(len(keys)))
+            self._updated = True
         except RuntimeError as exc:
             self._recover(exc)
             return
