@@ -103,3 +103,20 @@ def test_a_given_mesh_is_measured_as_it_is_and_looser_tolerances_tell_offset_fro
     assert m["mesh_completeness_off_5mm"] == pytest.approx(m["mesh_completeness_gt_5mm"], abs=0.02)
     assert m["mesh_completeness_off_10mm"] == pytest.approx(m["mesh_completeness_gt_10mm"], abs=0.02)
     assert m["mesh_completeness_gt_10mm"] >= m["mesh_completeness_gt_5mm"] >= m["mesh_completeness_gt"]
+
+
+def test_a_distance_to_the_scene_made_beforehand_gives_the_same_errors(
+    scan: tuple[o3d.geometry.TriangleMesh, o3d.geometry.TriangleMesh, Trajectory, list[StripeProfile]],
+) -> None:
+    """``to_gt`` built before the mesh is there (fin15: the evaluation's truth beside the mesh) changes no figure."""
+    from loopmodel.mapping.accuracy import SurfaceDistance
+
+    sphere, scene, traj, stripes = scan
+    cfg = MappingConfig(voxel_m=0.003, normal_radius_m=0.01)
+    here = mesh_error_metrics(stripes, {"gt": traj}, scene, cfg, object_mesh=sphere, object_samples=20_000)
+    before = mesh_error_metrics(
+        stripes, {"gt": traj}, scene, cfg, object_mesh=sphere, object_samples=20_000,
+        to_gt=SurfaceDistance(scene, build=True),
+    )
+    assert before == here
+    assert here["mesh_err_gt_mm"] < 0.2

@@ -154,3 +154,39 @@ def test_stripe_camera_sensitivity_matches_the_closed_form() -> None:
         assert np.allclose(g[:, j], np.log(z / P[:, 2]), atol=1e-9), j
     assert np.abs(g[:, 2]).max() > 1e-4  # cx moves the stripe's depth (measured up to 0.2 % per 0.3 px)
     assert np.all(np.abs(g[:, 4]) < 1e-3)
+
+
+def test_discrepancies_are_the_per_point_least_squares_fits() -> None:
+    """All stripe points' quadratic fits at once (fin15) give each point's own ``lstsq`` fit.
+
+    Noisy landmarks on the sphere plus a few far ones (fits with too few landmarks, or a rough fit
+    that is rejected): the same points kept, the discrepancies within 1e-12.
+    """
+    stamps, poses, _lms, _ids, pts_w, stripes = _scan(1.0, N_REC, D_REC)
+    T = poses[4]
+    rng = np.random.default_rng(3)
+    L = (pts_w - T[:3, 3]) @ T[:3, :3]
+    L = L[L[:, 2] > 0] * (1.0 + 2e-3 * rng.standard_normal((L[L[:, 2] > 0].shape[0], 1)))
+    S = stripes[4].points_in_cam
+    kept = []
+    for max_fit_rel in (0.003, 0.002):
+        d, used = keyframe_discrepancies(S, L, FX_PX, max_fit_rel=max_fit_rel)
+        # the reference: one lstsq per kept stripe point, as the fit is defined
+        ref_d, ref_used = [], []
+        s_xy, l_xy, r = S[::4, :2] / S[::4, 2:], L[:, :2] / L[:, 2:], 40.0 / FX_PX
+        for p, xy in zip(S[::4], s_xy, strict=True):
+            near = np.sum((l_xy - xy) ** 2, axis=1) < r * r
+            if near.sum() < 10:
+                continue
+            q = (l_xy[near] - xy) / r
+            A = np.column_stack([np.ones(near.sum()), q, q[:, 0] ** 2, q[:, 0] * q[:, 1], q[:, 1] ** 2])
+            coef = np.linalg.lstsq(A, 1.0 / L[near, 2], rcond=None)[0]
+            rms = np.sqrt(np.mean((A @ coef - 1.0 / L[near, 2]) ** 2))
+            if rms <= max_fit_rel * abs(coef[0]) and coef[0] > 0:
+                ref_d.append(np.log(p[2] * coef[0]))
+                ref_used.append(p)
+        assert d.size == len(ref_d)
+        np.testing.assert_allclose(d, ref_d, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(used, np.asarray(ref_used).reshape(-1, 3))
+        kept.append(d.size)
+    assert kept[0] > 10 and 0 < kept[1] < kept[0]  # the stricter test rejects some fits, not all

@@ -619,3 +619,36 @@ def test_compiled_adjustment_gives_the_numpy_adjustment() -> None:
     assert np.max(np.abs(a.values - b.values) / PRIOR) < 1e-8
     assert np.max(np.abs(a.posterior_sigma / b.posterior_sigma - 1.0)) < 1e-7
     assert abs(a.pixel_sigma_px - b.pixel_sigma_px) < 1e-12
+
+
+def test_restriped_points_keep_their_pixels_and_lie_on_the_plane() -> None:
+    """``restripe`` (all stripes in one call, fin15): each point keeps its raw pixel and stays on the light plane.
+
+    Stripes of a few points triangulated with the recorded rig (distorted lens); restriped to the
+    true rig, each point projects through the true left camera to the pixel it had through the
+    recorded one, on the plane ``n . p + d = 0``; an empty stripe stays empty, the order and times kept.
+    """
+    from loopmodel.calibration.selfcal import restripe
+
+    true = true_rig()
+    rec = recorded_rig(true, 4)
+    n = np.array([0.977, 0.0, 0.213]) / np.linalg.norm([0.977, 0.0, 0.213])
+    d = -float(n @ np.array([0.12, 0.0, 0.0]))
+    rng = np.random.default_rng(5)
+    stripes = []
+    for k, count in enumerate((40, 0, 7, 120)):
+        ray = np.column_stack([rng.uniform(-0.4, 0.4, count), rng.uniform(-0.3, 0.3, count), np.ones(count)])
+        stripes.append(StripeProfile(1000 * k, ray * (-d / (ray @ n))[:, None]))
+    out = restripe(stripes, rec, true, n, d)
+    assert [s.timestamp_ns for s in out] == [s.timestamp_ns for s in stripes]
+    for before, after in zip(stripes, out, strict=True):
+        assert after.points_in_cam.shape == before.points_in_cam.shape
+        if before.points_in_cam.shape[0] == 0:
+            continue
+        px = [
+            cv2.projectPoints(p.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), c.K_left, c.dist_left)[0].reshape(-1, 2)
+            for p, c in ((before.points_in_cam, rec), (after.points_in_cam, true))
+        ]
+        np.testing.assert_allclose(px[1], px[0], atol=1e-6)
+        np.testing.assert_allclose(after.points_in_cam @ n + d, 0.0, atol=1e-12)
+        assert np.max(np.abs(after.points_in_cam - before.points_in_cam)) > 1e-6  # the rigs differ: moved

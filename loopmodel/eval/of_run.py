@@ -73,7 +73,9 @@ class MeshTruth:
 
     ``run_from_gt`` (4x4) takes the truth into the world of ``final`` (the trajectory it was aligned
     with); ``scene`` the ground-truth scene mesh there, ``object_truth`` the scanned object's samples
-    (:func:`~loopmodel.mapping.accuracy.object_truth_of`; None without ``object.ply``).
+    (:func:`~loopmodel.mapping.accuracy.object_truth_of`; None without ``object.ply``); ``to_scene``
+    the distance to ``scene`` (:class:`~loopmodel.mapping.accuracy.SurfaceDistance`, its search
+    structure built here; None for a scene without triangles).
     """
 
     final: Trajectory
@@ -82,6 +84,7 @@ class MeshTruth:
     scene: Any
     object_truth: Any
     in_run: Any
+    to_scene: Any = None
 
 
 def mesh_truth(result: RunResult, sequence: Sequence) -> MeshTruth | None:
@@ -92,7 +95,7 @@ def mesh_truth(result: RunResult, sequence: Sequence) -> MeshTruth | None:
         return None
     from loopmodel.geometry.se3 import invert_pose
     from loopmodel.io.mesh_io import mesh_from_bytes
-    from loopmodel.mapping.accuracy import object_truth_of
+    from loopmodel.mapping.accuracy import SurfaceDistance, object_truth_of
     from loopmodel.mapping.final import reference_from_traj
 
     run_from_gt = invert_pose(reference_from_traj(result.final, gt))
@@ -107,7 +110,9 @@ def mesh_truth(result: RunResult, sequence: Sequence) -> MeshTruth | None:
         obj_mesh = mesh_from_bytes(sequence.read_attachment("object.ply"), "ply", sequence.path)
         obj_mesh.transform(run_from_gt)
         obj = object_truth_of(obj_mesh, result.stripes, in_run(gt), result.config.mapping)
-    return MeshTruth(result.final, result.stripes, run_from_gt, gt_mesh, obj, in_run)
+    # fin15 (issue 32): the scene's search structure built here, while the run's mesh is made, not after
+    to_scene = SurfaceDistance(gt_mesh, build=True) if len(gt_mesh.triangles) else None
+    return MeshTruth(result.final, result.stripes, run_from_gt, gt_mesh, obj, in_run, to_scene)
 
 
 def mesh_errors(
@@ -141,7 +146,7 @@ def mesh_errors(
     given = {"after": result.mesh}
     return mesh_error_metrics(
         result.stripes, trajs, truth.scene, cfg, meshes=given, swept_by=truth.in_run(gt),
-        object_truth=truth.object_truth,
+        object_truth=truth.object_truth, to_gt=truth.to_scene,
     )
 
 

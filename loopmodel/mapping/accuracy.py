@@ -50,10 +50,13 @@ def _scene(mesh: o3d.geometry.TriangleMesh) -> o3d.t.geometry.RaycastingScene:
 class SurfaceDistance:
     """Unsigned distances to one mesh surface; its ray-casting scene (and BVH) is built once and reused."""
 
-    def __init__(self, mesh: o3d.geometry.TriangleMesh) -> None:
+    def __init__(self, mesh: o3d.geometry.TriangleMesh, build: bool = False) -> None:
+        """``build``: the search structure made now (open3d makes it at the first query otherwise)."""
         if len(mesh.triangles) == 0:
             raise InputError(None, "distance to a mesh without triangles")
         self._scene = _scene(mesh)
+        if build:
+            self(np.asarray(mesh.vertices)[:1])
 
     def __call__(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
         """Distance (metres) from each of the P x 3 points (the mesh's frame) to the surface."""
@@ -205,6 +208,7 @@ def mesh_error_metrics(
     looser_tols_m: tuple[float, ...] = (),
     swept_by: Trajectory | None = None,
     object_truth: ObjectTruth | None = None,
+    to_gt: SurfaceDistance | None = None,
 ) -> dict[str, float]:
     """Mesh the stripes once per named trajectory and measure each against the ground truth.
 
@@ -224,7 +228,8 @@ def mesh_error_metrics(
     ``swept_by``, the ground-truth poses in the same world, when given; the stripes are not meshed
     for it).
     ``object_truth``: the object's samples and their swept mask as :func:`object_truth` gave them
-    for these stripes and ``swept_by`` (computed before the mesh was there; finish11).
+    for these stripes and ``swept_by`` (computed before the mesh was there; finish11); ``to_gt``: the
+    distance to ``gt_mesh`` made beforehand (fin15).
     """
     from loopmodel.mapping.stripe_map import StripeMap
 
@@ -243,7 +248,8 @@ def mesh_error_metrics(
         t = object_truth_of(object_mesh, stripes, sweep, config, object_samples, swept_radius_m,
                             maps["gt"] if reuse else None)
         reference, swept = t.samples_w, t.swept
-    to_gt = SurfaceDistance(gt_mesh) if len(gt_mesh.triangles) else None
+    if to_gt is None and len(gt_mesh.triangles):
+        to_gt = SurfaceDistance(gt_mesh)
     out: dict[str, float] = {}
     for name in trajectories:
         if name in given:
