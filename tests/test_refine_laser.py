@@ -190,3 +190,13 @@ def test_discrepancies_are_the_per_point_least_squares_fits() -> None:
         np.testing.assert_array_equal(used, np.asarray(ref_used).reshape(-1, 3))
         kept.append(d.size)
     assert kept[0] > 10 and 0 < kept[1] < kept[0]  # the stricter test rejects some fits, not all
+
+
+def test_a_fit_of_landmarks_on_one_line_is_the_least_squares_one() -> None:
+    """Landmarks along one image line make the quadratic's normal matrix singular: that fit is ``lstsq``'s, no error."""
+    S = np.array([[0.0, 0.0, 0.5], [0.01, 0.0, 0.5]])
+    x = np.linspace(-0.02, 0.02, 15)
+    L = np.column_stack([x, np.zeros_like(x), np.full_like(x, 0.5)])  # on the row through both stripe points
+    d, used = keyframe_discrepancies(S, L, FX_PX, every=1)
+    assert d.size == 2 and used.shape == (2, 3)
+    np.testing.assert_allclose(d, 0.0, atol=1e-12)  # the same depth: z_stripe / z_stereo = 1

@@ -122,7 +122,8 @@ def _quadratic_fits(
     Normalised image coordinates scaled by ``r`` (within the unit disc: well conditioned). Every
     centre's fit at once (fin15, issue 32: a ``lstsq`` per stripe point was most of the laser-stereo
     scale's 0.1 s CPU before the final mesh starts): its rows gathered into a zero-padded stack (zero
-    rows change no least-squares solution) solved by the pseudo-inverse, as ``lstsq`` (SVD, minimum norm).
+    rows change no least-squares solution) solved by its normal equations; a fit whose normal matrix is
+    ill-conditioned (condition above 1e8, e.g. landmarks on one line) by ``lstsq`` on its rows, as before.
     """
     m = int(near.sum(axis=1).max())
     order = np.argsort(~near, axis=1, kind="stable")[:, :m]  # each centre's near landmarks first, in order
@@ -131,7 +132,14 @@ def _quadratic_fits(
     qx, qy = q[..., 0], q[..., 1]
     A = np.stack([np.ones_like(qx), qx, qy, qx**2, qx * qy, qy**2], axis=-1) * valid[..., None]
     b = l_inv[order] * valid
-    coef = np.linalg.solve(np.einsum("cmi,cmj->cij", A, A), np.einsum("cmi,cm->ci", A, b)[..., None])[..., 0]
+    N, rhs = np.einsum("cmi,cmj->cij", A, A), np.einsum("cmi,cm->ci", A, b)
+    with np.errstate(all="ignore"):
+        good = np.linalg.cond(N) < 1e8  # False for a singular one (inf) too
+    coef = np.zeros((A.shape[0], 6))
+    if np.any(good):
+        coef[good] = np.linalg.solve(N[good], rhs[good][..., None])[..., 0]
+    for c in np.flatnonzero(~good):
+        coef[c] = np.linalg.lstsq(A[c], b[c], rcond=None)[0]
     res = (np.einsum("cmi,ci->cm", A, coef) - b) * valid
     return coef, np.sqrt(np.sum(res**2, axis=1) / valid.sum(axis=1))
 
