@@ -1267,7 +1267,12 @@ class Isam2Backend:
         The noise and outcome of the final batch refinement (:attr:`refine_info`: ``pixel_sigma_px``
         and where it came from).
         """
-        return {"isam2_factors": self.num_factors, "isam2_landmarks": self.num_landmarks, **self.refine_info}
+        return {
+            "isam2_factors": self.num_factors,
+            "isam2_landmarks": self.num_landmarks,
+            "isam2_budget_dropped": self.budget_dropped,  # keyframe_obs_budget's rest left out (drop)
+            **self.refine_info,
+        }
 
     def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
         """Add ``kf_a_from_kf_b`` (4x4) as a robust between-factor.
