@@ -180,7 +180,8 @@ class BackendConfig(_Section):
     # wait for the next keyframe's update: one update a keyframe, the live end corrected one keyframe later.
     # rounds_1800 call stream replayed as the worker batches it (interleaved, load ~10): the last block
     # 63 -> 51 ms a keyframe (with the budget 42 -> 36), online keyframe ATE 9.69 -> 9.60 mm, final equal.
-    # Inert without loops: the KITTI clip (configs/kitti.yaml) and the 600-frame sample (CHANGELOG be15)
+    # The KITTI clip (configs/kitti.yaml, no loop) and the 600-frame sample (configs/sim.yaml, one loop)
+    # identical in bench pipeline (final ATE 0.0251 m / 0.76 mm) (CHANGELOG be15)
     local_defer_loop: bool = Field(
         True, description="local: a loop's prior and late observations join the next keyframe's iSAM2 update"
     )
@@ -210,16 +211,19 @@ class BackendConfig(_Section):
     # back end's last block / first 2.70-2.93 against 2.87-3.64 and its CPU 1-15 % lower, but
     # frame_ms_last_over_first 1.51-1.75 against 0.34-1.22 (not explained); the KITTI clip
     # (configs/kitti.yaml) final ATE 0.0251 -> 0.0252 m, the orbit identical (CHANGELOG be13).
-    # be15: 150 with the rest dropped (keyframe_obs_overflow), default: rounds_1800 call stream replayed
-    # with an estimate after each keyframe as the worker does (4 back ends interleaved call by call,
-    # load ~10): the last block's factors 750 -> 570 a keyframe, its CPU 63 -> 42 ms, final keyframe ATE
-    # 8.13 -> 8.22 mm at the same final CPU (joining at the end instead: 8.13 mm, final CPU +40-140 %);
-    # the first round (about 90 a keyframe) untouched. SCALE_LIVE; KITTI_SIM (CHANGELOG be15)
+    # be15: 150 with the rest dropped (keyframe_obs_overflow; a revisit's observations never are): the
+    # rounds_1800 call stream replayed with an estimate after each keyframe as the worker does (back ends
+    # interleaved call by call, load ~10): the last block's factors 750 -> 570 a keyframe, its CPU 63 -> 42
+    # ms, final keyframe ATE 8.13 -> 8.22 mm (joining at the end instead: 8.13 mm, final CPU +40-140 %);
+    # with local_defer_loop, scale --quick (2 alternating pairs, load 9-12) backend_ms_last_over_first
+    # 3.5-3.9 -> 2.4-2.6, ATE after equal; the KITTI clip and the 600-frame sample identical. Left off: a
+    # short loop's resumed old features are landmarks of the local window, and the budget dropped most of
+    # their observations (tests/test_loop_pipeline.py: 126 of 545 reached the back end) (CHANGELOG be15)
     keyframe_obs_budget: int = Field(
-        150, ge=0, le=100000, description="observations of landmarks in the graph a keyframe's update takes (0: all)"
+        0, ge=0, le=100000, description="observations of landmarks in the graph a keyframe's update takes (0: all)"
     )
     keyframe_obs_overflow: Literal["final", "drop"] = Field(
-        "drop", description="keyframe_obs_budget: the observations over it join at the final estimate, or are dropped"
+        "final", description="keyframe_obs_budget: the observations over it join at the final estimate, or are dropped"
     )
     # issue 33: where the back end runs; process: beside the tracker, which never waits for it
     worker: Literal["process", "thread", "inline"] = Field(

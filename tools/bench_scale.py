@@ -30,7 +30,9 @@ many observations each keyframe brings);
 way; ``loop_stage_s``: all its time on the tracking thread (``on_keyframe`` and ``between_frames``);
 ``loop_opt_ms_by_keyframes``: each loop constraint's optimisation in the back end (its
 ``add_loop_constraint``: the update and the relinearisation after it) with the keyframes at that
-moment; ``loop_gate_ms_by_keyframes``: each verified loop's robust-gate solve; ``ate_rmse_before_m``
+moment (with ``backend.local_defer_loop``, be15, the loop's update runs in the next keyframe's, which
+``backend_ms_by_keyframes`` counts: what is left here is recording the constraint);
+``loop_gate_ms_by_keyframes``: each verified loop's robust-gate solve; ``ate_rmse_before_m``
 and ``ate_rmse_after_m``: every tracked frame's position (dead reckoning through the keyframes'
 measured links, and the final trajectory) against the ground truth after a rigid alignment;
 ``peak_rss_mib``; ``write_s``: writing the results folder (``write_results``); ``finish_s``: the end

@@ -296,7 +296,7 @@ class Isam2Backend:
         rec = _FactorRecord(factor, "stereo" if obs.stereo else "mono", lkey, key)
         if outside:  # over the keyframe's observation budget: joins at the final estimate
             fid = self._new_fid(rec, outside=True)
-        elif self._windowed and self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq > self.config.local_window_kf:
+        elif self._revisit(obs, lkey):
             fid = self._new_fid(rec, outside=True)  # a revisit: it would tie this keyframe to an old part of the map
             self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
         else:
@@ -304,6 +304,15 @@ class Isam2Backend:
             graph.add(factor)
         self._obs_fid[key] = fid
         self._landmarks[lkey].fids.add(fid)
+
+    def _revisit(self, obs: _Obs, lkey: int) -> bool:
+        """Whether ``obs`` sees landmark ``lkey`` after the local window (``loop_policy`` local: through a proxy).
+
+        Such observations (a revisit, a loop's resumed features) tie the keyframe to the old map: the
+        keyframe's budget does not leave them out (be15).
+        """
+        age_kf = self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq
+        return self._windowed and age_kf > self.config.local_window_kf
 
     def _proxy_observation(self, obs: _Obs, lkey: int, graph: gtsam.NonlinearFactorGraph) -> list[int]:
         """``obs`` of old landmark ``lkey`` as an observation of its proxy in iSAM2; returns the factor ids.
@@ -556,7 +565,7 @@ class Isam2Backend:
             if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
                 del self._lm_current[lm_id]  # the track continues as a new landmark variable
             else:
-                over = budget is not None and budget <= len(self._batch)
+                over = budget is not None and budget <= len(self._batch) and not self._revisit(o, lkey)
                 if over and self.config.keyframe_obs_overflow == "drop":
                     self.budget_dropped += 1  # never in the graph: what one keyframe adds stays bounded
                     return
@@ -1267,7 +1276,12 @@ class Isam2Backend:
         The noise and outcome of the final batch refinement (:attr:`refine_info`: ``pixel_sigma_px``
         and where it came from).
         """
-        return {"isam2_factors": self.num_factors, "isam2_landmarks": self.num_landmarks, **self.refine_info}
+        return {
+            "isam2_factors": self.num_factors,
+            "isam2_landmarks": self.num_landmarks,
+            "isam2_budget_dropped": self.budget_dropped,  # keyframe_obs_budget's rest left out (drop)
+            **self.refine_info,
+        }
 
     def add_loop_constraint(self, kf_a: int, kf_b: int, a_from_b: F64, sigmas: F64 | None = None) -> int:
         """Add ``kf_a_from_kf_b`` (4x4) as a robust between-factor.
