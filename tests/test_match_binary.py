@@ -57,3 +57,23 @@ def test_same_pairs_as_opencv_on_orb_features() -> None:
     got = match_descriptors(fa, fb, ratio=0.8)
     want = _opencv_pairs(da, db, 0.8, True)
     assert want.shape[0] > 50 and np.array_equal(got, want)
+
+
+def test_database_describes_a_scored_keyframe_once() -> None:
+    """A keyframe scored, then stored: the words a fresh description gives, its descriptors walked down once."""
+    from loopmodel.loop.database import KeyframeDatabase
+    from loopmodel.loop.vocabulary import Vocabulary
+
+    rng = np.random.default_rng(5)
+    sets = [rng.integers(0, 256, (200, 32)).astype(np.uint8) for _ in range(4)]
+    voc = Vocabulary.train(np.concatenate(sets), 4, 3, rng=np.random.default_rng(0), documents=sets)
+    db = KeyframeDatabase(voc)
+    calls = []
+    transform = voc.transform
+    voc.transform = lambda d: calls.append(len(d)) or transform(d)  # type: ignore[method-assign]
+    for k, d in enumerate(sets):
+        fs = FeatureSet(np.zeros((len(d), 2)), d, "orb")
+        db.query(k, fs)
+        db.add(k, fs)
+        assert np.array_equal(db.words_of(k), transform(d))
+    assert calls == [200] * 4
