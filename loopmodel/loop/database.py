@@ -115,6 +115,8 @@ class KeyframeDatabase:
         self._matrix: Any = None
         self._history: list[tuple[int, int, int, int]] = []  # (query id, lo, hi, count)
         self._last_query: int | None = None
+        #: the last scored feature set, the vocabulary it was described with and its words (kf15)
+        self._scored: tuple[FeatureSet, Vocabulary, I64] | None = None
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -154,9 +156,19 @@ class KeyframeDatabase:
         self._matrix = None
         logger.info("vocabulary trained on %d keyframes: %d words", n, self.vocabulary.n_words)
 
+    def _words(self, features: FeatureSet) -> I64:
+        """The vocabulary's word of each feature; a keyframe scored just before it is stored is described once."""
+        assert self.vocabulary is not None
+        last = self._scored
+        if last is not None and last[0] is features and last[1] is self.vocabulary:
+            return last[2]
+        words = self.vocabulary.transform(features.descriptors)
+        self._scored = (features, self.vocabulary, words)
+        return words
+
     def _set_bow(self, e: _Entry) -> None:
         assert self.vocabulary is not None
-        e.words = self.vocabulary.transform(e.features.descriptors)
+        e.words = self._words(e.features)
         e.bow_ids, e.bow_w = self.vocabulary.bow(words=e.words)
 
     # -- storage and scoring ------------------------------------------------------------
@@ -208,7 +220,7 @@ class KeyframeDatabase:
         """
         if self.vocabulary is None or not self._entries:
             return np.zeros(0, np.int64), np.zeros(0)
-        q_ids, q_w = self.vocabulary.bow(features.descriptors)
+        q_ids, q_w = self.vocabulary.bow(words=self._words(features))
         ids = np.array([e.kf_id for e in self._entries], np.int64)
         if q_ids.size == 0:
             return ids, np.zeros(ids.size)

@@ -182,6 +182,8 @@ def _match(
     """Ratio-test (and mutual) matches between two descriptor arrays -> (K, 2) indices."""
     if qd.shape[0] < 2 or td.shape[0] < 2:
         return np.zeros((0, 2), np.int64)
+    if binary and mask is None and qd.shape[1] % 8 == 0:
+        return _match_binary(qd, td, ratio, mutual)
     norm = cv2.NORM_HAMMING if binary else cv2.NORM_L2
     matcher = cv2.BFMatcher(norm)
     knn = matcher.knnMatch(qd, td, k=2, mask=mask)
@@ -199,6 +201,22 @@ def _match(
             best_q[bm.queryIdx] = bm.trainIdx
         out = out[best_q[out[:, 1]] == out[:, 0]]
     return out
+
+
+def _match_binary(qd: NDArray[np.uint8], td: NDArray[np.uint8], ratio: float, mutual: bool) -> NDArray[np.int64]:
+    """:func:`_match` of unmasked binary descriptors from one pass over their Hamming distances.
+
+    The pairs OpenCV's ``knnMatch(k=2)`` with the ratio test and, when ``mutual``, the reverse
+    ``match`` give (ties to the first index, as there), without the second pass (kf15)."""
+    from loopmodel.loop._vocabulary_kernels import nearest_both_ways
+
+    q = np.ascontiguousarray(qd, dtype=np.uint8).view(np.uint64)
+    t = np.ascontiguousarray(td, dtype=np.uint8).view(np.uint64)
+    best, d_best, d_second, back = nearest_both_ways(q, t)
+    rows = np.flatnonzero(d_best < ratio * d_second)
+    if mutual:
+        rows = rows[back[best[rows]] == rows]
+    return np.column_stack([rows, best[rows]]).astype(np.int64)
 
 
 def fundamental_from_poses(K1: F64, cam1_from_world: F64, K2: F64, cam2_from_world: F64) -> F64:
