@@ -15,8 +15,16 @@ import numpy as np
 from loopmodel.backend.isam2 import Isam2Backend
 from loopmodel.backend.worker import BackgroundBackend
 from loopmodel.config import BackendConfig
-from loopmodel.sim.loop_problem import rounds_problem
+from loopmodel.sim.loop_problem import SynthRoundsProblem, rounds_problem
 from loopmodel.types import StereoCalibration
+
+
+def _loops_by_query(prob: SynthRoundsProblem) -> dict[int, list[tuple[int, np.ndarray]]]:
+    """``prob.loops`` by query keyframe: (old keyframe, query_from_old) of each loop."""
+    loops: dict[int, list[tuple[int, np.ndarray]]] = {}
+    for q, o, rel in prob.loops:
+        loops.setdefault(q, []).append((o, rel))
+    return loops
 
 
 def _ate_m(world_from_kf: dict[int, np.ndarray], truth_in_world: np.ndarray) -> float:
@@ -34,9 +42,7 @@ def _calibration() -> StereoCalibration:
 def _feed(n: int, config: BackendConfig) -> tuple[list[float], list[float], float, float]:
     """CPU ms per keyframe (add_keyframe, its loops, estimate), per loop; ATE (m) before and after."""
     prob = rounds_problem(n, features_per_kf=100, local_map_kf=2)
-    loops: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for q, o, rel in prob.loops:
-        loops.setdefault(q, []).append((o, rel))
+    loops = _loops_by_query(prob)
     backend = Isam2Backend(_calibration(), config)
     kf_ms, loop_ms = [], []
     for kf in prob.keyframes:
@@ -126,9 +132,7 @@ def _feed_revisits(policy: str) -> tuple[list[float], float, float, float]:
 
     n = 100
     prob = rounds_problem(n, features_per_kf=100, local_map_kf=2, loop_every_kf=6, revisit_points=150)
-    loops: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for q, o, rel in prob.loops:
-        loops.setdefault(q, []).append((o, rel))
+    loops = _loops_by_query(prob)
     backend = Isam2Backend(_calibration(), BackendConfig(loop_policy=policy))  # type: ignore[arg-type]
     kf_ms = []
     for kf in prob.keyframes:
@@ -246,9 +250,7 @@ def test_estimate_reads_a_bounded_number_of_poses_and_refreshes_after_a_loop() -
     """
     n, window = 60, 5
     prob = rounds_problem(n, features_per_kf=60, local_map_kf=2)
-    loops: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for q, o, rel in prob.loops:
-        loops.setdefault(q, []).append((o, rel))
+    loops = _loops_by_query(prob)
     # loop_policy isam2: there a loop moves the whole map (under local it moves only the window, whose
     # poses are read anyway)
     full = Isam2Backend(_calibration(), BackendConfig(estimate_window_kf=0, loop_policy="isam2"))
@@ -401,9 +403,7 @@ def _feed_live(loop_prior: bool) -> tuple[list[float], list[float], float]:
 
     n = 100
     prob = rounds_problem(n, features_per_kf=100, local_map_kf=2, loop_every_kf=6)
-    loops: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for q, o, rel in prob.loops:
-        loops.setdefault(q, []).append((o, rel))
+    loops = _loops_by_query(prob)
     # without local_rebuild_kf: the loop prior alone (with rebuilds every 20 keyframes, measured: the third
     # round's live error 8.8 / 6.7 mm, final ATE 4.36 / 4.95 mm)
     config = BackendConfig(loop_policy="local", local_loop_prior=loop_prior, local_rebuild_kf=0)
@@ -464,9 +464,7 @@ def _feed_late(defer: bool, defer_keyframe: bool = False) -> tuple[list[int], li
     from loopmodel.config import RefineConfig
 
     prob = rounds_problem(45, per_round=15, features_per_kf=60, local_map_kf=1, loop_every_kf=5, revisit_points=40)
-    loops: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for q, o, rel in prob.loops:
-        loops.setdefault(q, []).append((o, rel))
+    loops = _loops_by_query(prob)
     config = BackendConfig(
         loop_policy="local", local_defer_late=defer, local_defer_keyframe=defer_keyframe, local_rebuild_kf=0
     )
@@ -590,9 +588,7 @@ def _feed_rebuild(rebuild_kf: int) -> tuple[Isam2Backend, list[int], list[float]
     update, the landmarks of ``estimate(landmarks=True)`` at the end; the back end before its final estimate.
     """
     prob = rounds_problem(60, per_round=15, features_per_kf=60, local_map_kf=1, loop_every_kf=5, revisit_points=40)
-    loops: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for q, o, rel in prob.loops:
-        loops.setdefault(q, []).append((o, rel))
+    loops = _loops_by_query(prob)
     config = BackendConfig(loop_policy="local", local_rebuild_kf=rebuild_kf, local_rebuild_keep_kf=10)
     backend = Isam2Backend(_calibration(), config)
     sizes, live = [], []
@@ -667,9 +663,7 @@ def _feed_loop_after(defer_loop: bool) -> tuple[list[int], list[int], list[int],
     from loopmodel.config import RefineConfig
 
     prob = rounds_problem(45, per_round=15, features_per_kf=60, local_map_kf=1, loop_every_kf=5, revisit_points=40)
-    loops: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for q, o, rel in prob.loops:
-        loops.setdefault(q, []).append((o, rel))
+    loops = _loops_by_query(prob)
     config = BackendConfig(loop_policy="local", local_defer_loop=defer_loop, local_rebuild_kf=0)
     backend = Isam2Backend(_calibration(), config)
     counter = _CountingIsam2(backend._isam)

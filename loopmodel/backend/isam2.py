@@ -305,6 +305,17 @@ class Isam2Backend:
         self._obs_fid[key] = fid
         self._landmarks[lkey].fids.add(fid)
 
+    def _isam_update(self, *args: Any, **kwargs: Any) -> Any:
+        """``self._isam.update(...)``; what :meth:`estimate` reads has changed (``_updated``)."""
+        result = self._isam.update(*args, **kwargs)
+        self._updated = True
+        return result
+
+    def _new_isam(self) -> None:
+        """An empty iSAM2 with this back end's parameters (a rebuild); :meth:`estimate` reads it anew."""
+        self._isam = gtsam.ISAM2(self.isam2_params(self.config))
+        self._updated = True
+
     def _revisit(self, obs: _Obs, lkey: int) -> bool:
         """Whether ``obs`` sees landmark ``lkey`` after the local window (``loop_policy`` local: through a proxy).
 
@@ -826,12 +837,11 @@ class Isam2Backend:
         # removal-only updates keep GTSAM's default ordering: their affected set may be tiny
         groups = None if newest is None else self._ordering_groups(len(graph.keyVector()))
         try:
-            result = self._isam.update(graph, values, remove_slots, constrainedKeys=groups)
+            result = self._isam_update(graph, values, remove_slots, constrainedKeys=groups)
         except RuntimeError as exc:
             self._recover(exc)
             return
         self.last_result = result
-        self._updated = True
         for fid, slot in zip(new_fids, result.getNewFactorsIndices(), strict=True):
             self._slot[fid] = slot
 
@@ -889,8 +899,7 @@ class Isam2Backend:
             self.rebuilds += 1
             self._estimate_all = True
             self._clear_deferred()  # their factors are in the record: the rebuild takes them
-            self._isam = gtsam.ISAM2(self.isam2_params(self.config))
-            self._updated = True
+            self._new_isam()
             self._slot.clear()
             keys: set[int] = set()
             for fid, rec in self._factors.items():
@@ -915,8 +924,7 @@ class Isam2Backend:
                     values.insert(key, src.atPoint3(key))
             groups = self._ordering_groups(len(keys))
             try:
-                result = self._isam.update(graph, values, [], constrainedKeys=groups)
-                self._updated = True
+                result = self._isam_update(graph, values, [], constrainedKeys=groups)
             except RuntimeError as again:
                 message = str(again)
                 continue
@@ -1039,8 +1047,7 @@ class Isam2Backend:
         """
         self._estimate_all = True
         for it in range(max_iterations):
-            result = self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
-            self._updated = True
+            result = self._isam_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
             if result.getVariablesRelinearized() == 0:
                 return it + 1
         return max_iterations
@@ -1310,8 +1317,7 @@ class Isam2Backend:
         graph.add(factor)
         self._run_update(graph, gtsam.Values(), [], None)
         # a loop moves much of the trajectory: relinearise right away
-        self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
-        self._updated = True
+        self._isam_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
         return fid
 
     def _loop_prior(self, fid: int, kf_a: int, kf_b: int, a_from_b: F64, noise: gtsam.noiseModel.Base) -> None:
@@ -1539,14 +1545,12 @@ class Isam2Backend:
             else:
                 self._frozen.insert(key, value)
                 self._frozen_keys.add(key)
-        self._isam = gtsam.ISAM2(self.isam2_params(self.config))
-        self._updated = True
+        self._new_isam()
         self._slot.clear()
         self._rebuilt_at = len(self._kf_order)
         self.window_rebuilds += 1
         try:
-            result = self._isam.update(graph, values, [], constrainedKeys=self._ordering_groups(len(in_graph)))
-            self._updated = True
+            result = self._isam_update(graph, values, [], constrainedKeys=self._ordering_groups(len(in_graph)))
         except RuntimeError as exc:
             self._recover(exc)
             return
@@ -1578,8 +1582,7 @@ class Isam2Backend:
         self._windowed = False
         self._outside.clear()
         self._estimate_all = True
-        self._isam = gtsam.ISAM2(self.isam2_params(self.config))
-        self._updated = True
+        self._new_isam()
         self._slot.clear()
         self._batch.clear()
         fids = sorted(self._factors)
@@ -1587,8 +1590,7 @@ class Isam2Backend:
         for fid in fids:
             graph.add(self._factors[fid].factor)
         try:
-            result = self._isam.update(graph, values, [], constrainedKeys=self._ordering_groups(len(keys)))
-            self._updated = True
+            result = self._isam_update(graph, values, [], constrainedKeys=self._ordering_groups(len(keys)))
         except RuntimeError as exc:
             self._recover(exc)
             return
