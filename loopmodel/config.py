@@ -504,7 +504,7 @@ class FrontendConfig(_Section):
 class MappingConfig(_Section):
     """Laser-stripe integration and open3d meshing (lengths in metres, world frame)."""
 
-    method: Literal["poisson", "ball_pivoting"] = Field(default="poisson", description="surface method")
+    method: Literal["poisson", "sdf", "ball_pivoting"] = Field(default="poisson", description="surface method")
     write_mesh: bool = Field(True, description="the pipeline writes mesh.ply (its errors: the evaluation after a run)")
     voxel_m: float = Field(default=0.0015, gt=0, description="voxel down-sampling size before meshing")
     normal_radius_m: float = Field(default=0.006, gt=0, description="neighbourhood radius for normals")
@@ -532,6 +532,20 @@ class MappingConfig(_Section):
     )
     trim_distance_m: float = Field(
         default=0.0, ge=0, description="drop vertices farther from the samples; 0 = 2.5 x voxel_m"
+    )
+    # sdf16 (issue 32): the signed-distance surface (method sdf) on the grid of Poisson's finest cell
+    sdf_reach_cells: float = Field(
+        default=3.0, gt=0.5, le=6.0, description="sdf: a sample's plane distance reaches corners this many cells away"
+    )
+    sdf_sigma_cells: float = Field(default=1.5, gt=0, description="sdf: Gaussian weight's sigma, cells")
+    sdf_min_weight: float = Field(
+        default=0.5, ge=0, description="sdf: a grid corner has a value from this summed weight on"
+    )
+    sdf_min_component_cells: float = Field(
+        default=50.0, ge=0, description="sdf: drop connected pieces of a smaller area than this many cells' faces"
+    )
+    sdf_project_steps: int = Field(
+        default=1, ge=0, le=5, description="sdf: Newton steps of each vertex onto the field evaluated at it"
     )
     bpa_radii_m: list[float] = Field(
         default_factory=list, description="ball-pivoting radii; empty = 1.5, 3, 6 x voxel_m"

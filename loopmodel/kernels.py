@@ -42,6 +42,7 @@ KERNEL_MODULES = (
     "loopmodel.loop.surf",
     "loopmodel.backend._givens_kernels",
     "loopmodel.mapping._peak_kernels",
+    "loopmodel.mapping._sdf_kernels",
     "loopmodel.imaging._png_kernels",
     "loopmodel.calibration._rig_kernels",
 )
@@ -60,6 +61,7 @@ COMPILE_COST_S = {
     "loopmodel.loop.surf": 14.0,
     "loopmodel.backend._givens_kernels": 2.0,
     "loopmodel.mapping._peak_kernels": 3.5,
+    "loopmodel.mapping._sdf_kernels": 3.0,
     "loopmodel.imaging._png_kernels": 1.4,
     "loopmodel.calibration._rig_kernels": 5.2,
 }
@@ -99,6 +101,7 @@ def _warm_ups() -> dict[str, tuple[str, Callable[[], None]]]:
     from loopmodel.loop._vocabulary_kernels import warm_up as vocabulary
     from loopmodel.loop.pnp import warm_up as p3p
     from loopmodel.mapping._peak_kernels import warm_up as laser_peaks
+    from loopmodel.mapping._sdf_kernels import warm_up as sdf_surface
     from loopmodel.pose._point_kernels import warm_up as pose
 
     return {
@@ -112,13 +115,14 @@ def _warm_ups() -> dict[str, tuple[str, Callable[[], None]]]:
         "loopmodel.loop.surf": ("SURF", _warm_surf),
         "loopmodel.backend._givens_kernels": ("Givens estimator", _warm_givens),
         "loopmodel.mapping._peak_kernels": ("laser peaks", laser_peaks),
+        "loopmodel.mapping._sdf_kernels": ("sdf surface", sdf_surface),
         "loopmodel.imaging._png_kernels": ("PNG rows", png),
         "loopmodel.calibration._rig_kernels": ("calibrating BA", calibrating_ba),
     }
 
 
 def modules_for(config: Config) -> tuple[str, ...]:
-    """The kernel modules a run with ``config`` calls (SURF, the Givens estimator and the KLT share only when set)."""
+    """The kernel modules a run with ``config`` calls (SURF, Givens, the KLT share, the sdf surface only when set)."""
     skip = set()
     if config.loop.descriptor != "surf":
         skip.add("loopmodel.loop.surf")
@@ -128,6 +132,8 @@ def modules_for(config: Config) -> tuple[str, ...]:
         skip.add("loopmodel.imaging._klt_kernels")
     if config.calibration.refine == "none":
         skip.add("loopmodel.calibration._rig_kernels")
+    if config.mapping.method != "sdf":
+        skip.add("loopmodel.mapping._sdf_kernels")
     return tuple(m for m in KERNEL_MODULES if m not in skip)
 
 

@@ -94,6 +94,57 @@ def _poisson(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geome
     return mesh
 
 
+def _sdf(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.TriangleMesh:
+    """The zero set of the samples' weighted mean tangent-plane distance (``method: sdf``), trimmed as Poisson's.
+
+    Grid cell ``poisson_cell_voxels`` x ``voxel_m`` (Poisson's finest cell); each oriented sample adds
+    ``n . (x - p)`` with weight ``exp(-|x - p|^2 / (2 sigma^2))`` to the corners within ``sdf_reach_cells``
+    cells (``sigma``: ``sdf_sigma_cells`` cells); corners of summed weight below ``sdf_min_weight`` have no
+    value; surface nets extract the zero set (:mod:`loopmodel.mapping._sdf_kernels`). World frame, metres.
+    """
+    from loopmodel.mapping import _sdf_kernels as k
+
+    pts = np.ascontiguousarray(np.asarray(cloud.points), dtype=np.float64)
+    nrm = np.ascontiguousarray(np.asarray(cloud.normals), dtype=np.float64)
+    h = config.poisson_cell_voxels * config.voxel_m
+    reach_m = config.sdf_reach_cells * h
+    origin = pts.min(axis=0) - reach_m - 2.0 * h
+    dims = np.floor((pts.max(axis=0) + reach_m - origin) / h).astype(np.int64) + 3
+    bdims = (dims >> k.SHIFT) + 1
+    if float(np.prod(bdims.astype(np.float64))) > _SDF_MAX_BLOCKS:
+        raise InputError(None, f"the samples span {dims.tolist()} cells of {h * 1e3:.2f} mm: too many for the sdf grid")
+    # the samples in block order: the corners each one updates are then mostly in memory the last one touched
+    cell = np.floor((pts - origin) / (h * k.B)).astype(np.int64)
+    by_block = np.argsort((cell[:, 0] * bdims[1] + cell[:, 1]) * bdims[2] + cell[:, 2], kind="stable")
+    pts, nrm = pts[by_block], nrm[by_block]
+    bmap, blocks = k.mark_blocks(pts, origin, h, reach_m, bdims)
+    acc = k.splat(pts, nrm, origin, h, reach_m, config.sdf_sigma_cells * h, bmap, blocks.shape[0])
+    value = k.corner_values(acc, config.sdf_min_weight)
+    verts, index = k.vertices(bmap, blocks, value, origin, h)
+    tris = k.faces(bmap, blocks, value, index, verts.shape[0])
+    if config.sdf_project_steps > 0:
+        order, start = k.bucket_points(pts, origin, h, bmap, blocks.shape[0])
+        k.project(verts, pts, nrm, order, start, bmap, origin, h, reach_m, config.sdf_sigma_cells * h,
+                  config.sdf_min_weight, config.sdf_project_steps)
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris.astype(np.int32))
+    )
+    if len(mesh.vertices) == 0:
+        return mesh
+    trim = config.trim_distance_m or 2.5 * config.voxel_m
+    dist = np.asarray(o3d.geometry.PointCloud(mesh.vertices).compute_point_cloud_distance(cloud))
+    mesh.remove_vertices_by_mask(dist > trim)  # type: ignore[arg-type]
+    if config.sdf_min_component_cells > 0 and len(mesh.triangles):
+        # a lone sample (a stray laser peak) makes a small disc of its own; Poisson's density trim drops those
+        area = k.component_areas(np.asarray(mesh.vertices), np.asarray(mesh.triangles).astype(np.int64))
+        mesh.remove_triangles_by_mask(area < config.sdf_min_component_cells * h * h)  # type: ignore[arg-type]
+    return mesh
+
+
+#: most blocks (of 8^3 corners) the sdf grid's block map may span (an int32 each: 256 MB)
+_SDF_MAX_BLOCKS = 64_000_000
+
+
 def _ball_pivoting(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.TriangleMesh:
     radii = config.bpa_radii_m or [1.5 * config.voxel_m, 3.0 * config.voxel_m, 6.0 * config.voxel_m]
     return o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(
@@ -108,7 +159,12 @@ def mesh_cloud(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geo
             None,
             f"{len(cloud.points)} points after down-sampling; at least {config.min_points} are needed for a surface",
         )
-    mesh = _poisson(cloud, config) if config.method == "poisson" else _ball_pivoting(cloud, config)
+    if config.method == "poisson":
+        mesh = _poisson(cloud, config)
+    elif config.method == "sdf":
+        mesh = _sdf(cloud, config)
+    else:
+        mesh = _ball_pivoting(cloud, config)
     mesh.remove_degenerate_triangles()
     mesh.remove_unreferenced_vertices()
     mesh.compute_vertex_normals()

@@ -1,0 +1,510 @@
+"""Compiled kernels of the signed-distance surface (:func:`loopmodel.mapping.meshing.sdf_surface`; numba, GIL released).
+
+The signed distance is sampled at the corners of a grid of cell ``h`` (metres, world frame): corner
+``(i, j, k)`` is at ``origin + h * (i, j, k)``. Only blocks of ``B^3`` corners near a sample are stored:
+``bmap[bi, bj, bk]`` is the slot of block ``(bi, bj, bk)`` (``i >> 3`` ...) in the per-corner arrays of
+shape (blocks, ``B^3``), or -1. Corner ``(i, j, k)`` is entry ``((i & 7) * B + (j & 7)) * B + (k & 7)`` of its slot.
+
+- :func:`mark_blocks` makes ``bmap`` (blocks within ``reach_m`` of a sample);
+- :func:`splat` adds each oriented sample's signed distance to its tangent plane, ``n . (x - p)``,
+  with a Gaussian weight of the distance ``|x - p|``, into every corner within ``reach_m`` (an
+  implicit moving least-squares surface: Hoppe et al. 1992, Kolluri 2008);
+- :func:`surface_nets` extracts the zero set of the weighted mean over corners of enough weight: one
+  vertex per cell the surface crosses (the mean of its edges' linear zero crossings, then one Newton step
+  of the cell's trilinear field towards zero), two triangles per crossed edge, oriented so that their
+  normals point to the positive (sensor) side.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+B = 8  # corners per block edge
+SHIFT = 3  # log2(B)
+MASK = B - 1
+
+
+def _slot_py(bmap, i, j, k):  # type: ignore[no-untyped-def]
+    """The block slot of corner (i, j, k), -1 outside the grid or in an unstored block."""
+    if i < 0 or j < 0 or k < 0:
+        return -1
+    bi, bj, bk = i >> SHIFT, j >> SHIFT, k >> SHIFT
+    if bi >= bmap.shape[0] or bj >= bmap.shape[1] or bk >= bmap.shape[2]:
+        return -1
+    return bmap[bi, bj, bk]
+
+
+_slot = numba.njit(cache=True, nogil=True, inline="always")(_slot_py)
+
+
+def _local_py(i, j, k):  # type: ignore[no-untyped-def]
+    """The entry of corner (i, j, k) in its block's row."""
+    return (((i & MASK) << SHIFT) + (j & MASK)) * B + (k & MASK)
+
+
+_local = numba.njit(cache=True, nogil=True, inline="always")(_local_py)
+
+
+def _value_py(bmap, value, i, j, k):  # type: ignore[no-untyped-def]
+    """The field at corner (i, j, k); NaN where there is none."""
+    s = _slot(bmap, i, j, k)
+    if s < 0:
+        return np.nan
+    return value[s, _local(i, j, k)]
+
+
+_value = numba.njit(cache=True, nogil=True, inline="always")(_value_py)
+
+
+def _mark_blocks_py(points, origin, h, reach_m, bdims):  # type: ignore[no-untyped-def]
+    """The block map and the stored blocks' coordinates (slot order, blocks x 3).
+
+    ``bmap`` (``bdims``, int32) has a slot for every block holding a corner within ``reach_m`` of a point.
+    """
+    bmap = np.full((bdims[0], bdims[1], bdims[2]), -1, np.int32)
+    count = 0
+    lo = np.zeros(3, np.int64)
+    hi = np.zeros(3, np.int64)
+    for p in range(points.shape[0]):
+        for a in range(3):
+            lo[a] = max(int(math.ceil((points[p, a] - reach_m - origin[a]) / h)), 0) >> SHIFT
+            hi[a] = min(int(math.floor((points[p, a] + reach_m - origin[a]) / h)) >> SHIFT, bdims[a] - 1)
+        for bi in range(lo[0], hi[0] + 1):
+            for bj in range(lo[1], hi[1] + 1):
+                for bk in range(lo[2], hi[2] + 1):
+                    if bmap[bi, bj, bk] < 0:
+                        bmap[bi, bj, bk] = count
+                        count += 1
+    blocks = np.zeros((count, 3), np.int64)
+    for bi in range(bdims[0]):
+        for bj in range(bdims[1]):
+            for bk in range(bdims[2]):
+                s = bmap[bi, bj, bk]
+                if s >= 0:
+                    blocks[s, 0], blocks[s, 1], blocks[s, 2] = bi, bj, bk
+    return bmap, blocks
+
+
+mark_blocks = numba.njit(cache=True, nogil=True)(_mark_blocks_py)
+
+
+def _splat_py(points, normals, origin, h, reach_m, sigma_m, bmap, nblocks):  # type: ignore[no-untyped-def]
+    """Per corner (blocks x B^3 x 8) the Gaussian-weighted sums of the samples within ``reach_m``.
+
+    The sums: weight, normal (3), position (3, relative to the corner) and ``n . (p - x)``.
+    """
+    acc = np.zeros((nblocks, B * B * B, 8))
+    r2max = reach_m * reach_m
+    inv2s2 = 0.5 / (sigma_m * sigma_m)
+    for p in range(points.shape[0]):
+        px, py, pz = points[p, 0], points[p, 1], points[p, 2]
+        nx, ny, nz = normals[p, 0], normals[p, 1], normals[p, 2]
+        i0 = max(int(math.ceil((px - reach_m - origin[0]) / h)), 0)
+        j0 = max(int(math.ceil((py - reach_m - origin[1]) / h)), 0)
+        i1 = int(math.floor((px + reach_m - origin[0]) / h))
+        j1 = int(math.floor((py + reach_m - origin[1]) / h))
+        for i in range(i0, i1 + 1):
+            dx = px - origin[0] - i * h
+            for j in range(j0, j1 + 1):
+                dy = py - origin[1] - j * h
+                rest = r2max - dx * dx - dy * dy
+                if rest < 0.0:
+                    continue
+                half = math.sqrt(rest)  # the corners of this column within reach
+                k0 = max(int(math.ceil((pz - half - origin[2]) / h)), 0)
+                k1 = int(math.floor((pz + half - origin[2]) / h))
+                for k in range(k0, k1 + 1):
+                    s = _slot(bmap, i, j, k)
+                    if s < 0:
+                        continue
+                    dz = pz - origin[2] - k * h
+                    w = math.exp(-(dx * dx + dy * dy + dz * dz) * inv2s2)
+                    e = _local(i, j, k)
+                    acc[s, e, 0] += w
+                    acc[s, e, 1] += w * nx
+                    acc[s, e, 2] += w * ny
+                    acc[s, e, 3] += w * nz
+                    acc[s, e, 4] += w * dx
+                    acc[s, e, 5] += w * dy
+                    acc[s, e, 6] += w * dz
+                    acc[s, e, 7] += w * (nx * dx + ny * dy + nz * dz)
+    return acc
+
+
+splat = numba.njit(cache=True, nogil=True)(_splat_py)
+
+
+def _corner_values_py(acc, min_weight):  # type: ignore[no-untyped-def]
+    """The signed distance per corner (blocks x B^3); NaN below ``min_weight``.
+
+    The mean of two estimates at the corner ``x``: the weighted mean distance to the samples' tangent planes,
+    ``<n . (x - p)>``, and the distance to the plane of the mean normal through the weighted centroid,
+    ``<n> . (x - <p>)``. On a curved surface they are off to opposite sides by the same amount to second
+    order (for a surface ``z = (k1 u^2 + k2 v^2) / 2`` sampled evenly about the corner: ``-/+ <k1 u^2 + k2 v^2> / 2``),
+    so their mean has no curvature bias of that order.
+    """
+    value = np.full(acc.shape[:2], np.nan)
+    for s in range(acc.shape[0]):
+        for e in range(acc.shape[1]):
+            a = acc[s, e]
+            w = a[0]
+            if w < min_weight or w <= 0.0:
+                continue
+            f_planes = -a[7] / w
+            f_centroid = -(a[1] * a[4] + a[2] * a[5] + a[3] * a[6]) / (w * w)
+            value[s, e] = 0.5 * (f_planes + f_centroid)
+    return value
+
+
+corner_values = numba.njit(cache=True, nogil=True)(_corner_values_py)
+
+
+def _cell_values_py(bmap, value, i, j, k, f):  # type: ignore[no-untyped-def]
+    """Whether all 8 corner values of cell (i, j, k) are there and the surface crosses the cell.
+
+    The values into ``f`` (corner ``c``: offset bits x=4, y=2, z=1).
+    """
+    neg = 0
+    for c in range(8):
+        v = _value(bmap, value, i + (c >> 2), j + ((c >> 1) & 1), k + (c & 1))
+        if np.isnan(v):
+            return False
+        f[c] = v
+        if v < 0.0:
+            neg += 1
+    return 0 < neg < 8
+
+
+_cell_values = numba.njit(cache=True, nogil=True)(_cell_values_py)
+
+
+def _cell_vertex_py(f, out):  # type: ignore[no-untyped-def]
+    """The surface's point in a unit cell of corner values ``f``, into ``out`` (cell units).
+
+    The mean of its edges' zero crossings, then one Newton step of the trilinear field towards zero along its
+    gradient, kept in the cell.
+    """
+    sx = sy = sz = 0.0
+    n = 0
+    for c in range(8):
+        for bit in (4, 2, 1):
+            if c & bit:
+                continue
+            d = c | bit
+            if (f[c] < 0.0) == (f[d] < 0.0):
+                continue
+            t = f[c] / (f[c] - f[d])
+            x, y, z = float(c >> 2), float((c >> 1) & 1), float(c & 1)
+            if bit == 4:
+                x = t
+            elif bit == 2:
+                y = t
+            else:
+                z = t
+            sx += x
+            sy += y
+            sz += z
+            n += 1
+    x, y, z = sx / n, sy / n, sz / n
+    # trilinear value and gradient at (x, y, z)
+    val = gx = gy = gz = 0.0
+    for c in range(8):
+        cx, cy, cz = c >> 2, (c >> 1) & 1, c & 1
+        wx = x if cx else 1.0 - x
+        wy = y if cy else 1.0 - y
+        wz = z if cz else 1.0 - z
+        sgx = 1.0 if cx else -1.0
+        sgy = 1.0 if cy else -1.0
+        sgz = 1.0 if cz else -1.0
+        val += f[c] * wx * wy * wz
+        gx += f[c] * sgx * wy * wz
+        gy += f[c] * wx * sgy * wz
+        gz += f[c] * wx * wy * sgz
+    g2 = gx * gx + gy * gy + gz * gz
+    if g2 > 0.0:
+        x = min(max(x - val * gx / g2, 0.0), 1.0)
+        y = min(max(y - val * gy / g2, 0.0), 1.0)
+        z = min(max(z - val * gz / g2, 0.0), 1.0)
+    out[0], out[1], out[2] = x, y, z
+
+
+_cell_vertex = numba.njit(cache=True, nogil=True)(_cell_vertex_py)
+
+
+def _vertices_py(bmap, blocks, value, origin, h):  # type: ignore[no-untyped-def]
+    """One vertex (world, metres) per crossed cell; the cells' vertex indices (blocks x B^3, -1 where none)."""
+    nb = blocks.shape[0]
+    index = np.full((nb, B * B * B), -1, np.int64)
+    f = np.zeros(8)
+    count = 0
+    for s in range(nb):
+        for e in range(B * B * B):
+            i = (blocks[s, 0] << SHIFT) + (e >> (2 * SHIFT))
+            j = (blocks[s, 1] << SHIFT) + ((e >> SHIFT) & MASK)
+            k = (blocks[s, 2] << SHIFT) + (e & MASK)
+            if _cell_values(bmap, value, i, j, k, f):
+                index[s, e] = count
+                count += 1
+    verts = np.zeros((count, 3))
+    u = np.zeros(3)
+    for s in range(nb):
+        for e in range(B * B * B):
+            v = index[s, e]
+            if v < 0:
+                continue
+            i = (blocks[s, 0] << SHIFT) + (e >> (2 * SHIFT))
+            j = (blocks[s, 1] << SHIFT) + ((e >> SHIFT) & MASK)
+            k = (blocks[s, 2] << SHIFT) + (e & MASK)
+            _cell_values(bmap, value, i, j, k, f)
+            _cell_vertex(f, u)
+            verts[v, 0] = origin[0] + (i + u[0]) * h
+            verts[v, 1] = origin[1] + (j + u[1]) * h
+            verts[v, 2] = origin[2] + (k + u[2]) * h
+    return verts, index
+
+
+vertices = numba.njit(cache=True, nogil=True)(_vertices_py)
+
+
+def _cell_index_py(bmap, index, i, j, k):  # type: ignore[no-untyped-def]
+    """The vertex of cell (i, j, k), -1 when none."""
+    s = _slot(bmap, i, j, k)
+    if s < 0:
+        return -1
+    return index[s, _local(i, j, k)]
+
+
+_cell_index = numba.njit(cache=True, nogil=True, inline="always")(_cell_index_py)
+
+
+def _quad_py(bmap, index, i, j, k, a, negative, quad):  # type: ignore[no-untyped-def]
+    """Whether the 4 cells around the edge from corner (i, j, k) along axis ``a`` all have vertices.
+
+    Their vertices into ``quad``, counter-clockwise about the surface's normal (towards positive values;
+    ``negative``: the corner's value is below zero, the normal is +a).
+    """
+    for q in range(4):
+        # (0, 0), (-1, 0), (-1, -1), (0, -1) in the axes (a + 1, a + 2): counter-clockwise about +a
+        ob = -1 if q == 1 or q == 2 else 0
+        od = -1 if q >= 2 else 0
+        if a == 0:
+            v = _cell_index(bmap, index, i, j + ob, k + od)
+        elif a == 1:
+            v = _cell_index(bmap, index, i + od, j, k + ob)
+        else:
+            v = _cell_index(bmap, index, i + ob, j + od, k)
+        if v < 0:
+            return False
+        quad[q if negative else 3 - q] = v
+    return True
+
+
+_quad = numba.njit(cache=True, nogil=True, inline="always")(_quad_py)
+
+
+def _faces_py(bmap, blocks, value, index, n_vertices):  # type: ignore[no-untyped-def]
+    """Two triangles (vertex indices, T x 3) per crossed edge whose four cells have vertices.
+
+    A cell's vertex has at most 12 crossed edges, each shared by 4 cells: at most 6 triangles a vertex.
+    """
+    tris = np.empty((6 * n_vertices, 3), np.int64)
+    quad = np.zeros(4, np.int64)
+    count = 0
+    for s in range(blocks.shape[0]):
+        for e in range(B * B * B):
+            f0 = value[s, e]
+            if np.isnan(f0):
+                continue
+            i = (blocks[s, 0] << SHIFT) + (e >> (2 * SHIFT))
+            j = (blocks[s, 1] << SHIFT) + ((e >> SHIFT) & MASK)
+            k = (blocks[s, 2] << SHIFT) + (e & MASK)
+            for a in range(3):
+                if a == 0:
+                    f1 = _value(bmap, value, i + 1, j, k)
+                elif a == 1:
+                    f1 = _value(bmap, value, i, j + 1, k)
+                else:
+                    f1 = _value(bmap, value, i, j, k + 1)
+                if np.isnan(f1) or (f0 < 0.0) == (f1 < 0.0):
+                    continue
+                if not _quad(bmap, index, i, j, k, a, f0 < 0.0, quad):
+                    continue
+                tris[count, 0], tris[count, 1], tris[count, 2] = quad[0], quad[1], quad[2]
+                tris[count + 1, 0], tris[count + 1, 1], tris[count + 1, 2] = quad[0], quad[2], quad[3]
+                count += 2
+    return tris[:count].copy()
+
+
+faces = numba.njit(cache=True, nogil=True)(_faces_py)
+
+
+def _bucket_points_py(points, origin, h, bmap, nblocks):  # type: ignore[no-untyped-def]
+    """The points by grid cell: the point indices in that order and each cell's first position in it.
+
+    A cell is keyed by its lowest corner's entry ``slot * B^3 + local``; ``nblocks * B^3 + 1`` start positions.
+    """
+    n_cells = nblocks * B * B * B
+    start = np.zeros(n_cells + 1, np.int64)
+    key = np.full(points.shape[0], -1, np.int64)
+    for p in range(points.shape[0]):
+        i = int(math.floor((points[p, 0] - origin[0]) / h))
+        j = int(math.floor((points[p, 1] - origin[1]) / h))
+        k = int(math.floor((points[p, 2] - origin[2]) / h))
+        s = _slot(bmap, i, j, k)
+        if s >= 0:
+            key[p] = s * (B * B * B) + _local(i, j, k)
+            start[key[p] + 1] += 1
+    for c in range(n_cells):
+        start[c + 1] += start[c]
+    order = np.zeros(start[n_cells], np.int64)
+    fill = start[:-1].copy()
+    for p in range(points.shape[0]):
+        if key[p] >= 0:
+            order[fill[key[p]]] = p
+            fill[key[p]] += 1
+    return order, start
+
+
+bucket_points = numba.njit(cache=True, nogil=True)(_bucket_points_py)
+
+
+def _field_at_py(x, points, normals, order, start, bmap, origin, h, reach_m, inv2s2, a):  # type: ignore[no-untyped-def]
+    """The squared distance (m^2) from ``x`` to the nearest sample within ``reach_m`` (``inf`` without one).
+
+    The weighted sums of :func:`splat` at the point ``x`` (world, metres) into ``a`` (8).
+    """
+    a[:] = 0.0
+    r2max = reach_m * reach_m
+    nearest = np.inf
+    i0 = int(math.floor((x[0] - reach_m - origin[0]) / h))
+    i1 = int(math.floor((x[0] + reach_m - origin[0]) / h))
+    j0 = int(math.floor((x[1] - reach_m - origin[1]) / h))
+    j1 = int(math.floor((x[1] + reach_m - origin[1]) / h))
+    for i in range(i0, i1 + 1):
+        # the distance from x to cell column (i, j)'s nearest side: cells wholly beyond reach are skipped
+        gx = max(origin[0] + i * h - x[0], x[0] - origin[0] - (i + 1) * h, 0.0)
+        for j in range(j0, j1 + 1):
+            gy = max(origin[1] + j * h - x[1], x[1] - origin[1] - (j + 1) * h, 0.0)
+            rest = r2max - gx * gx - gy * gy
+            if rest < 0.0:
+                continue
+            half = math.sqrt(rest)
+            k0 = int(math.floor((x[2] - half - origin[2]) / h))
+            k1 = int(math.floor((x[2] + half - origin[2]) / h))
+            for k in range(k0, k1 + 1):
+                s = _slot(bmap, i, j, k)
+                if s < 0:
+                    continue
+                c = s * (B * B * B) + _local(i, j, k)
+                for q in range(start[c], start[c + 1]):
+                    p = order[q]
+                    dx = points[p, 0] - x[0]
+                    dy = points[p, 1] - x[1]
+                    dz = points[p, 2] - x[2]
+                    r2 = dx * dx + dy * dy + dz * dz
+                    if r2 > r2max:
+                        continue
+                    nearest = min(nearest, r2)
+                    w = math.exp(-r2 * inv2s2)
+                    nx, ny, nz = normals[p, 0], normals[p, 1], normals[p, 2]
+                    a[0] += w
+                    a[1] += w * nx
+                    a[2] += w * ny
+                    a[3] += w * nz
+                    a[4] += w * dx
+                    a[5] += w * dy
+                    a[6] += w * dz
+                    a[7] += w * (nx * dx + ny * dy + nz * dz)
+    return nearest
+
+
+_field_at = numba.njit(cache=True, nogil=True)(_field_at_py)
+
+
+def _project_py(verts, points, normals, order, start, bmap, origin, h, reach_m, sigma_m, min_weight, steps):  # type: ignore[no-untyped-def]
+    """The vertices moved onto the zero set of the field of :func:`corner_values`, in place (world frame, metres).
+
+    The field evaluated at each vertex, not interpolated between corners (whose linear interpolation of a curved
+    surface's distance puts the crossings inside it); ``steps`` Newton steps along the mean normal.
+    """
+    inv2s2 = 0.5 / (sigma_m * sigma_m)
+    a = np.zeros(8)
+    x = np.zeros(3)
+    for v in range(verts.shape[0]):
+        for _ in range(steps):
+            x[0], x[1], x[2] = verts[v, 0], verts[v, 1], verts[v, 2]
+            _field_at(x, points, normals, order, start, bmap, origin, h, reach_m, inv2s2, a)
+            w = a[0]
+            if w < min_weight or w <= 0.0:
+                break
+            f = 0.5 * (-a[7] / w - (a[1] * a[4] + a[2] * a[5] + a[3] * a[6]) / (w * w))
+            gx, gy, gz = a[1] / w, a[2] / w, a[3] / w
+            g2 = gx * gx + gy * gy + gz * gz
+            if g2 < 0.25:  # normals that disagree: no reliable direction
+                break
+            verts[v, 0] -= f * gx / g2
+            verts[v, 1] -= f * gy / g2
+            verts[v, 2] -= f * gz / g2
+
+
+project = numba.njit(cache=True, nogil=True)(_project_py)
+
+
+def _root_py(parent, v):  # type: ignore[no-untyped-def]
+    """The root of ``v`` in the union-find forest ``parent`` (halving the path on the way)."""
+    while parent[v] != v:
+        parent[v] = parent[parent[v]]
+        v = parent[v]
+    return v
+
+
+_root = numba.njit(cache=True, nogil=True, inline="always")(_root_py)
+
+
+def _component_areas_py(verts, tris):  # type: ignore[no-untyped-def]
+    """Per triangle, the area (m^2) of the edge-connected piece of the mesh it belongs to (union-find over vertices)."""
+    parent = np.arange(verts.shape[0])
+    for t in range(tris.shape[0]):
+        r0 = _root(parent, tris[t, 0])
+        for c in range(1, 3):
+            r = _root(parent, tris[t, c])
+            if r != r0:
+                parent[r] = r0
+    area = np.zeros(verts.shape[0])
+    tri_area = np.zeros(tris.shape[0])
+    for t in range(tris.shape[0]):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        ux, uy, uz = verts[b, 0] - verts[a, 0], verts[b, 1] - verts[a, 1], verts[b, 2] - verts[a, 2]
+        vx, vy, vz = verts[c, 0] - verts[a, 0], verts[c, 1] - verts[a, 1], verts[c, 2] - verts[a, 2]
+        cx, cy, cz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        tri_area[t] = 0.5 * math.sqrt(cx * cx + cy * cy + cz * cz)
+        area[_root(parent, a)] += tri_area[t]
+    out = np.zeros(tris.shape[0])
+    for t in range(tris.shape[0]):
+        out[t] = area[_root(parent, tris[t, 0])]
+    return out
+
+
+component_areas = numba.njit(cache=True, nogil=True)(_component_areas_py)
+
+
+def warm_up() -> None:
+    """Load (or compile) the kernels: their first call's cost, up front (a small plane)."""
+    g = np.linspace(0.0, 0.02, 8)
+    x, y = np.meshgrid(g, g)
+    pts = np.stack([x.ravel(), y.ravel(), np.full(x.size, 0.0101)], 1)
+    nrm = np.tile(np.array([0.0, 0.0, 1.0]), (pts.shape[0], 1))
+    origin = np.full(3, -0.01)
+    h = 0.003
+    bdims = np.full(3, 2, np.int64)
+    bmap, blocks = mark_blocks(pts, origin, h, 0.006, bdims)
+    acc = splat(pts, nrm, origin, h, 0.006, 0.003, bmap, blocks.shape[0])
+    value = corner_values(acc, 0.1)
+    v, index = vertices(bmap, blocks, value, origin, h)
+    t = faces(bmap, blocks, value, index, v.shape[0])
+    component_areas(v, t)
+    order, start = bucket_points(pts, origin, h, bmap, blocks.shape[0])
+    project(v, pts, nrm, order, start, bmap, origin, h, 0.006, 0.003, 0.1, 1)
