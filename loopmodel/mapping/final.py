@@ -58,8 +58,10 @@ def final_mesh(stripes: list[StripeProfile], final: Trajectory, config: MappingC
 
 
 def load_mesh_modules() -> None:
-    """open3d and the meshing module imported in this process (a pool's process taking the final mesh)."""
-    import loopmodel.mapping.meshing  # noqa: F401 - open3d's import, before the mesh is asked for
+    """open3d, the meshing module and the sdf kernels loaded in this process (the final mesh's pool process)."""
+    from loopmodel.mapping.meshing import preload_kernels  # open3d's import, before the mesh is asked for
+
+    preload_kernels()
 
 
 def _mesh_worker_start() -> None:

@@ -1,8 +1,10 @@
 """Surfaces from world-frame stripe points with open3d.
 
 Points are voxel down-sampled, normals estimated from neighbours and oriented towards the
-sensor position at each point's capture time, then either screened Poisson reconstruction
-(trimmed by vertex density and by distance to the samples) or ball pivoting.
+sensor position at each point's capture time, then the signed-distance surface (``sdf``: the zero set of
+the samples' weighted plane distances on a sparse grid, :mod:`loopmodel.mapping._sdf_kernels`; trimmed
+by distance to the samples and by piece size), screened Poisson reconstruction (trimmed by vertex
+density and by distance to the samples) or ball pivoting.
 All lengths in metres, world frame.
 """
 
@@ -92,6 +94,23 @@ def _poisson(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geome
     remove |= dist > trim
     mesh.remove_vertices_by_mask(remove)  # type: ignore[arg-type]
     return mesh
+
+
+SDF_KERNELS = "loopmodel.mapping._sdf_kernels"
+
+
+def preload_kernels() -> None:
+    """The sdf surface's compiled kernels loaded from numba's cache into this process (a worker about to mesh).
+
+    Their first call in a process otherwise loads them then (0.5 s CPU). Nothing when the cache lacks them: they
+    would compile here (``loopmodel run`` compiles them up front when ``mapping.method`` is sdf).
+    """
+    from loopmodel.kernels import cold_kernel_modules
+
+    if not cold_kernel_modules((SDF_KERNELS,)):
+        from loopmodel.mapping._sdf_kernels import warm_up
+
+        warm_up()
 
 
 def _sdf(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.TriangleMesh:

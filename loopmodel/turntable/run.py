@@ -81,8 +81,9 @@ def scan_turntable(
     A candidate laser plane is taken when its table-plane residual is within ``plane_gate_mm`` (else
     the plane is self-calibrated).
     """
-    # octree cells of one voxel, as before issue 32 (the coarser default was measured on hand-held scans only)
-    cfg = config or MappingConfig(poisson_cell_voxels=1.0)
+    # octree cells of one voxel, as before issue 32 (the coarser default was measured on hand-held scans only);
+    # Poisson, not the sdf (sdf16: on this scan the sdf leaves holes in concavities that Poisson closes)
+    cfg = config or MappingConfig(poisson_cell_voxels=1.0, method="poisson")
     detector = make_detector(scan.markers.dictionary)
     n = len(scan)
     dets = []
