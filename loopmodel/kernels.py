@@ -122,7 +122,7 @@ def _warm_ups() -> dict[str, tuple[str, Callable[[], None]]]:
 
 
 def modules_for(config: Config) -> tuple[str, ...]:
-    """The kernel modules a run with ``config`` calls (SURF, Givens, the KLT share, the sdf surface only when set)."""
+    """The kernel modules a run with ``config`` calls (SURF, the Givens estimator and the KLT share only when set)."""
     skip = set()
     if config.loop.descriptor != "surf":
         skip.add("loopmodel.loop.surf")
@@ -132,8 +132,6 @@ def modules_for(config: Config) -> tuple[str, ...]:
         skip.add("loopmodel.imaging._klt_kernels")
     if config.calibration.refine == "none":
         skip.add("loopmodel.calibration._rig_kernels")
-    if config.mapping.method != "sdf":
-        skip.add("loopmodel.mapping._sdf_kernels")
     return tuple(m for m in KERNEL_MODULES if m not in skip)
 
 

@@ -557,19 +557,23 @@ def test_cli_mesh_of_a_sequence_with_ground_truth(
     assert mesh_accuracy(mesh, sphere).p95_mm < 0.5
 
 
+@pytest.mark.parametrize(("method", "p95_mm"), [("poisson", 0.5), ("sdf", 0.8)])
 def test_isolated_stripes_get_normals_from_the_view_direction(
-    sphere: o3d.geometry.TriangleMesh, sphere_scan: tuple[Trajectory, list[StripeProfile]]
+    sphere: o3d.geometry.TriangleMesh, sphere_scan: tuple[Trajectory, list[StripeProfile]], method: str, p95_mm: float
 ) -> None:
     """Every 10th stripe.
 
-    About 13 mm apart, beyond the 6 mm normal radius, so each neighbourhood is a line whose plain
-    PCA normal is arbitrary about the stripe.
+    About 13 mm apart, beyond the 12 mm normal radius, so each neighbourhood is a line whose plain
+    PCA normal is arbitrary about the stripe. Measured (sdf16): Poisson mean 0.081 mm, p95 0.291 mm
+    (0.345 with 6 mm normals); the sdf mean 0.127 mm, p95 0.640 mm (it bridges more of the gaps between
+    the stripes: completeness 0.76 against 0.65); without the view direction p95 3.35 / 2.83 mm.
     """
     traj, stripes = sphere_scan
     sparse = stripes[::10]
-    good = mesh_accuracy(StripeMap.from_trajectory(traj, sparse).mesh(), sphere)
-    assert good.mean_mm < 0.2 and good.p95_mm < 0.5, good
-    plain = mesh_accuracy(StripeMap.from_trajectory(traj, sparse, MappingConfig(line_ratio=0.0)).mesh(), sphere)
+    good = mesh_accuracy(StripeMap.from_trajectory(traj, sparse, MappingConfig(method=method)).mesh(), sphere)
+    assert good.mean_mm < 0.2 and good.p95_mm < p95_mm, good
+    plain_cfg = MappingConfig(method=method, line_ratio=0.0)
+    plain = mesh_accuracy(StripeMap.from_trajectory(traj, sparse, plain_cfg).mesh(), sphere)
     assert plain.p95_mm > 2 * good.p95_mm, (plain, good)
 
 

@@ -96,21 +96,15 @@ def _poisson(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geome
     return mesh
 
 
-SDF_KERNELS = "loopmodel.mapping._sdf_kernels"
-
-
 def preload_kernels() -> None:
     """The sdf surface's compiled kernels loaded from numba's cache into this process (a worker about to mesh).
 
-    Their first call in a process otherwise loads them then (0.5 s CPU). Nothing when the cache lacks them: they
-    would compile here (``loopmodel run`` compiles them up front when ``mapping.method`` is sdf).
+    Their first call in a process otherwise loads them then (0.5 s CPU); ``loopmodel run`` compiles them up front
+    when the cache lacks them.
     """
-    from loopmodel.kernels import cold_kernel_modules
+    from loopmodel.mapping._sdf_kernels import warm_up
 
-    if not cold_kernel_modules((SDF_KERNELS,)):
-        from loopmodel.mapping._sdf_kernels import warm_up
-
-        warm_up()
+    warm_up()
 
 
 def _sdf(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.TriangleMesh:
