@@ -971,6 +971,8 @@ class _Run:
         """
         if self.mesh_worker is not None:  # open3d here while the worker makes the mesh (the mesh is built here)
             importlib.import_module("open3d")
+            if own:  # the live mesh's last update ended at the workers step: its mesh for the writes beside
+                result.live_mesh = self.live.mesh()
             if self.beside_mesh is not None and own:
                 try:  # e.g. the evaluation's part that needs no mesh (finish11)
                     self.beside_mesh(result)
@@ -982,7 +984,8 @@ class _Run:
         t0 = time.perf_counter()
         if not result.interrupted:
             self.live.close(wait=True)
-        result.live_mesh = self.live.mesh()
+        if result.live_mesh is None:
+            result.live_mesh = self.live.mesh()
         if self.live.enabled:  # of the mesh step: the wait for the live mesh's last update and its install
             mesh_metrics["live_mesh_wait_s"] = time.perf_counter() - t0
         return mesh_metrics

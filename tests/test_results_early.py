@@ -35,6 +35,7 @@ def _result(localized: bool = True, shift_m: float = 0.0) -> RunResult:
         landmark_ids=np.arange(4, dtype=np.int64),
         landmarks_in_world=np.arange(12, dtype=float).reshape(4, 3),
         mesh=mesh,
+        live_mesh=mesh,
         metrics={"frames": 5},
         log="a line\n",
         localized=_trajectory(3) if localized else None,
@@ -53,6 +54,7 @@ def test_early_then_rest_writes_the_same_folder_as_one_write(tmp_path: Path) -> 
     assert early is not None and early.holds_for(run)
     assert "trajectory_final.tum" in early.names and "metrics.json" not in early.names
     assert not (folder.path / "metrics.json").exists() and not (folder.path / "mesh.ply").exists()
+    assert (folder.path / "mesh_live.ply").exists()  # settled before the final mesh
     run.metrics["later"] = 1.0  # the metrics may change after the early files
     two = write_results(folder, run, early=early)
     a, b = _files(one), _files(two)

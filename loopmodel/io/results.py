@@ -151,6 +151,7 @@ def _early_values(run: RunResult) -> tuple[Any, ...]:
     return (
         run.config, run.online, run.final, run.keyframes, run.localized, run.keyframe_ids, run.landmark_ids,
         run.landmarks_in_world, run.calibration_refined, run.calibration_report, run.stripes, run.session_map,
+        run.live_mesh,
     )
 
 
@@ -212,7 +213,7 @@ def _write_small(folder: ResultsFolder, run: RunResult, kitti_input: bool, names
 
 
 def _write_large(folder: ResultsFolder, run: RunResult, names: list[str]) -> None:
-    """``stripes.npz`` and the session map's folder (``names`` gets each one written)."""
+    """``stripes.npz``, the session map's folder and ``mesh_live.ply`` (``names`` gets each one written)."""
     if run.stripes:
         from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
 
@@ -223,6 +224,11 @@ def _write_large(folder: ResultsFolder, run: RunResult, names: list[str]) -> Non
 
         names.append("map")
         save_session_map(folder.file("map"), run.session_map)
+    if run.live_mesh is not None:
+        from loopmodel.io.mesh_io import write_mesh
+
+        names.append("mesh_live.ply")
+        write_mesh(folder.file("mesh_live.ply"), run.live_mesh, "ply")
 
 
 def write_results_early(folder: ResultsFolder, run: RunResult, kitti_input: bool = False) -> EarlyFiles | None:
@@ -257,7 +263,7 @@ def write_results(
     or when it is unset and ``kitti_input``: the sequence is a KITTI folder), ``map.npz``,
     ``calibration_refined.yaml`` (with ``calibration.refine``),
     ``metrics.json``, ``run.log``, then ``stripes.npz`` (when the run has laser profiles), the
-    session map folder ``map/`` (when made), ``mesh.ply`` and ``mesh_live.ply`` (when made). Returns the folder's path.
+    session map folder ``map/`` (when made), ``mesh_live.ply`` and ``mesh.ply`` (when made). Returns the folder's path.
     ``early``: :func:`write_results_early` of this run (its files are not written again while
     ``run`` holds the values they were made of; else they are removed first and written again).
 
@@ -284,11 +290,10 @@ def write_results(
     try:
         if not done:
             _write_large(folder, run, [])
-        for name, mesh in (("mesh.ply", run.mesh), ("mesh_live.ply", run.live_mesh)):
-            if mesh is not None:
-                from loopmodel.io.mesh_io import write_mesh
+        if run.mesh is not None:
+            from loopmodel.io.mesh_io import write_mesh
 
-                write_mesh(folder.file(name), mesh, "ply")
+            write_mesh(folder.file("mesh.ply"), run.mesh, "ply")
     except OSError as exc:  # a full disk: the folder is kept under a name that says it is incomplete
         with contextlib.suppress(OSError):
             with open(folder.file("run.log"), "a") as log:
