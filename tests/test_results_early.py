@@ -90,3 +90,16 @@ def test_a_failed_early_write_leaves_nothing_and_the_write_does_it_all(
     monkeypatch.undo()
     got = _files(write_results(folder, _result(), early=None))
     assert got == _files(write_results(ResultsFolder(tmp_path / "a", "run"), _result()))
+
+
+def test_a_ctrl_c_in_the_early_write_leaves_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A partial result written after it has no calibration, stripes or map: no early file may stay."""
+    folder = ResultsFolder(tmp_path / "b", "run")
+
+    def ctrl_c(name: str, arrays: dict[str, object]) -> Path:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(folder, "write_npz", ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        write_results_early(folder, _result())
+    assert [p.name for p in folder.path.iterdir()] == []

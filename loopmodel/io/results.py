@@ -182,34 +182,34 @@ class EarlyFiles:
 
 def _write_small(folder: ResultsFolder, run: RunResult, kitti_input: bool, names: list[str]) -> None:
     """The small files known before the mesh and the metrics (``names`` gets each one written)."""
+    names.append("config.yaml")  # each name before its write: a write cut short is removed too
     folder.write_config(run.config)
-    names.append("config.yaml")
     trajectories = [("trajectory_online.tum", run.online), ("trajectory_final.tum", run.final)]
     trajectories.append(("keyframes.tum", run.keyframes))
     if run.localized is not None:
         trajectories.append(("trajectory_in_map.tum", run.localized))
     for name, traj in trajectories:
-        folder.write_trajectory(name, traj)
         names.append(name)
+        folder.write_trajectory(name, traj)
     write_kitti = run.config.output.write_kitti
     if write_kitti or (write_kitti is None and kitti_input):
+        names += ["trajectory_online.kitti", "trajectory_final.kitti"]
         folder.write_trajectory("trajectory_online.kitti", run.online, "kitti")
         folder.write_trajectory("trajectory_final.kitti", run.final, "kitti")
-        names += ["trajectory_online.kitti", "trajectory_final.kitti"]
         if len(run.final) != len(run.frames):  # KITTI rows carry no times: say they are not one per image
             logging.getLogger(__name__).warning(
                 "trajectory_final.kitti: %d rows for %d frames (untracked frames have none; "
                 "trajectory_final.tum has the times)", len(run.final), len(run.frames)
             )
-    folder.write_npz("map.npz", run.map_arrays())
     names.append("map.npz")
+    folder.write_npz("map.npz", run.map_arrays())
     if run.calibration_refined is not None:  # issue 31: calibration.refine
         from loopmodel.io.calib_files import refined_calibration_yaml
 
+        names.append("calibration_refined.yaml")
         folder.write_text(
             "calibration_refined.yaml", refined_calibration_yaml(run.calibration_refined, run.calibration_report)
         )
-        names.append("calibration_refined.yaml")
 
 
 def _write_large(folder: ResultsFolder, run: RunResult, names: list[str]) -> None:
@@ -235,7 +235,8 @@ def write_results_early(folder: ResultsFolder, run: RunResult, kitti_input: bool
     """The files of :func:`write_results` that need neither the final mesh nor the metrics, written now.
 
     pre16 (issue 32): called while the final mesh is made in another process, so that only
-    ``metrics.json``, ``run.log`` and the meshes are left for after it. Pass the returned record to
+    ``metrics.json``, ``run.log`` and ``mesh.ply`` are left for after it (a Ctrl-C here removes what
+    was written and is raised). Pass the returned record to
     :func:`write_results` (which writes these again, or removes them, when ``run`` changed since).
     None when a file could not be written (what was written is removed; :func:`write_results`
     then writes everything and reports the error as usual).
@@ -249,6 +250,9 @@ def write_results_early(folder: ResultsFolder, run: RunResult, kitti_input: bool
         logging.getLogger(__name__).warning("results not written beside the mesh: %s", exc)
         EarlyFiles(names, ()).remove(folder)
         return None
+    except BaseException:  # e.g. a Ctrl-C: the result written later may not have these files
+        EarlyFiles(names, ()).remove(folder)
+        raise
     return EarlyFiles(names, _early_values(run), time.perf_counter() - t0)
 
 
