@@ -52,7 +52,7 @@ from loopmodel.errors import LoopmodelError, RunInterrupted
 from loopmodel.frontend import FrameResult, FrontEnd, Keyframe
 from loopmodel.frontend.metrics import frontend_metrics, percentile_or_none
 from loopmodel.io.base import Sequence
-from loopmodel.io.results import LogCapture, ResultsFolder, write_results
+from loopmodel.io.results import EarlyFiles, LogCapture, ResultsFolder, write_results, write_results_early
 from loopmodel.listener import RunListener
 from loopmodel.mapping.anchored import AnchoredTrajectory
 from loopmodel.mapping.extraction import StripeExtractor
@@ -971,6 +971,8 @@ class _Run:
         """
         if self.mesh_worker is not None:  # open3d here while the worker makes the mesh (the mesh is built here)
             importlib.import_module("open3d")
+            if own:  # the live mesh's last update ended at the workers step: its mesh for the writes beside
+                result.live_mesh = self.live.mesh()
             if self.beside_mesh is not None and own:
                 try:  # e.g. the evaluation's part that needs no mesh (finish11)
                     self.beside_mesh(result)
@@ -982,7 +984,8 @@ class _Run:
         t0 = time.perf_counter()
         if not result.interrupted:
             self.live.close(wait=True)
-        result.live_mesh = self.live.mesh()
+        if result.live_mesh is None:
+            result.live_mesh = self.live.mesh()
         if self.live.enabled:  # of the mesh step: the wait for the live mesh's last update and its install
             mesh_metrics["live_mesh_wait_s"] = time.perf_counter() - t0
         return mesh_metrics
@@ -1301,17 +1304,24 @@ def _process_and_write(
     """:func:`process` under a log capture (and the signal handlers when asked), evaluate, write ``folder``.
 
     The evaluation (when ``evaluate`` and the sequence has ground truth) runs after
-    :func:`process`, before :func:`~loopmodel.io.results.write_results` writes the results.
+    :func:`process`, before :func:`~loopmodel.io.results.write_results` writes the results. While
+    another process makes the final mesh, the files that need neither it nor the metrics are written
+    (:func:`~loopmodel.io.results.write_results_early`, ``write_beside_mesh_s``) and the evaluation's
+    part that needs no mesh is made.
     """
     stop = StopFlag()
     signals = stop_on_signals(stop) if handle_signals else contextlib.nullcontext(stop)
     write_s: dict[str, float] = {}
     write_cpu_s: dict[str, float] = {}
     prepared: list[Prepared] = []
-    beside = None
-    if evaluate and sequence.ground_truth is not None:
+    early: list[EarlyFiles | None] = []
+    kitti_input = sequence.format_name == "kitti"
+    grade = evaluate and sequence.ground_truth is not None
 
-        def beside(result: RunResult) -> None:  # the evaluation's part that needs no mesh, while it is made
+    def beside(result: RunResult) -> None:  # while another process makes the final mesh
+        # pre16 (issue 32): the results files that need neither the mesh nor the metrics
+        early.append(write_results_early(folder, result, kitti_input))
+        if grade:  # the evaluation's part that needs no mesh (finish11)
             from loopmodel.eval.of_run import prepare
 
             prepared.append(prepare(result, sequence))
@@ -1319,6 +1329,9 @@ def _process_and_write(
     try:
         with LogCapture() as log, signals:
             result = process(sequence, config, stop=stop, finishing=finishing, beside_mesh=beside, **kwargs)
+            written = early[-1] if early else None
+            if written is not None and written.holds_for(result):
+                result.metrics["write_beside_mesh_s"] = written.seconds
             if evaluate:
                 try:
                     evaluated(result, sequence, finishing, prepared[-1] if prepared else None)
@@ -1327,7 +1340,7 @@ def _process_and_write(
                     result.metrics["evaluation_error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             with timed_step("write", write_s, finishing, write_cpu_s):
                 result.log = log.text()
-                result.folder = write_results(folder, result, kitti_input=sequence.format_name == "kitti")
+                result.folder = write_results(folder, result, kitti_input=kitti_input, early=written)
     except BaseException:  # e.g. a second Ctrl-C before the writes: no staged folder or lock left behind
         folder.abandon()
         raise

@@ -241,6 +241,8 @@ def finish_keys(prefix: str, r: dict[str, Any]) -> dict[str, Any]:
         out[f"finish_cpu_s_{step}_{prefix}"] = round(sec, 2)
     if m.get("finish_cpu_s"):
         out[f"finish_cpu_s_{prefix}"] = round(sum(m["finish_cpu_s"].values()), 2)
+    if m.get("write_beside_mesh_s") is not None:  # pre16: the results files written while the mesh is made
+        out[f"write_beside_mesh_s_{prefix}"] = round(m["write_beside_mesh_s"], 2)
     if m.get("live_mesh_wait_s") is not None:  # of the mesh step
         out[f"live_mesh_wait_s_{prefix}"] = round(m["live_mesh_wait_s"], 2)
     # finish10: the CPU the finish spends in worker processes (not in finish_cpu_s): the final mesh

@@ -12,6 +12,8 @@ import json
 import logging
 import os
 import shutil
+import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -144,7 +146,119 @@ def _free_name(path: Path) -> Path:
     return candidate
 
 
-def write_results(folder: ResultsFolder, run: RunResult, kitti_input: bool = False) -> Path:
+def _early_values(run: RunResult) -> tuple[Any, ...]:
+    """The values of ``run`` the files of :func:`write_results_early` are made of."""
+    return (
+        run.config, run.online, run.final, run.keyframes, run.localized, run.keyframe_ids, run.landmark_ids,
+        run.landmarks_in_world, run.calibration_refined, run.calibration_report, run.stripes, run.session_map,
+        run.live_mesh,
+    )
+
+
+@dataclass
+class EarlyFiles:
+    """What :func:`write_results_early` wrote (file and folder names in the results folder) and of what."""
+
+    names: list[str]
+    of: tuple[Any, ...]
+    #: wall time of the early writes (s)
+    seconds: float = 0.0
+
+    def holds_for(self, run: RunResult) -> bool:
+        """Whether ``run`` still has the values the files were written from (the same objects)."""
+        now = _early_values(run)
+        return len(now) == len(self.of) and all(a is b for a, b in zip(self.of, now, strict=True))
+
+    def remove(self, folder: ResultsFolder) -> None:
+        """The early files taken out of ``folder`` (e.g. the run's result was replaced after them)."""
+        for name in self.names:
+            path = folder.file(name)
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()
+
+
+def _write_small(folder: ResultsFolder, run: RunResult, kitti_input: bool, names: list[str]) -> None:
+    """The small files known before the mesh and the metrics (``names`` gets each one written)."""
+    names.append("config.yaml")  # each name before its write: a write cut short is removed too
+    folder.write_config(run.config)
+    trajectories = [("trajectory_online.tum", run.online), ("trajectory_final.tum", run.final)]
+    trajectories.append(("keyframes.tum", run.keyframes))
+    if run.localized is not None:
+        trajectories.append(("trajectory_in_map.tum", run.localized))
+    for name, traj in trajectories:
+        names.append(name)
+        folder.write_trajectory(name, traj)
+    write_kitti = run.config.output.write_kitti
+    if write_kitti or (write_kitti is None and kitti_input):
+        names += ["trajectory_online.kitti", "trajectory_final.kitti"]
+        folder.write_trajectory("trajectory_online.kitti", run.online, "kitti")
+        folder.write_trajectory("trajectory_final.kitti", run.final, "kitti")
+        if len(run.final) != len(run.frames):  # KITTI rows carry no times: say they are not one per image
+            logging.getLogger(__name__).warning(
+                "trajectory_final.kitti: %d rows for %d frames (untracked frames have none; "
+                "trajectory_final.tum has the times)", len(run.final), len(run.frames)
+            )
+    names.append("map.npz")
+    folder.write_npz("map.npz", run.map_arrays())
+    if run.calibration_refined is not None:  # issue 31: calibration.refine
+        from loopmodel.io.calib_files import refined_calibration_yaml
+
+        names.append("calibration_refined.yaml")
+        folder.write_text(
+            "calibration_refined.yaml", refined_calibration_yaml(run.calibration_refined, run.calibration_report)
+        )
+
+
+def _write_large(folder: ResultsFolder, run: RunResult, names: list[str]) -> None:
+    """``stripes.npz``, the session map's folder and ``mesh_live.ply`` (``names`` gets each one written)."""
+    if run.stripes:
+        from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
+
+        names.append(STRIPES_FILE)
+        save_stripes(folder.file(STRIPES_FILE), run.stripes)
+    if run.session_map is not None:
+        from loopmodel.io.map_file import save_session_map
+
+        names.append("map")
+        save_session_map(folder.file("map"), run.session_map)
+    if run.live_mesh is not None:
+        from loopmodel.io.mesh_io import write_mesh
+
+        names.append("mesh_live.ply")
+        write_mesh(folder.file("mesh_live.ply"), run.live_mesh, "ply")
+
+
+def write_results_early(folder: ResultsFolder, run: RunResult, kitti_input: bool = False) -> EarlyFiles | None:
+    """The files of :func:`write_results` that need neither the final mesh nor the metrics, written now.
+
+    pre16 (issue 32): called while the final mesh is made in another process, so that only
+    ``metrics.json``, ``run.log`` and ``mesh.ply`` are left for after it (a Ctrl-C here removes what
+    was written and is raised). Pass the returned record to
+    :func:`write_results` (which writes these again, or removes them, when ``run`` changed since).
+    None when a file could not be written (what was written is removed; :func:`write_results`
+    then writes everything and reports the error as usual).
+    """
+    t0 = time.perf_counter()
+    names: list[str] = []
+    try:
+        _write_small(folder, run, kitti_input, names)
+        _write_large(folder, run, names)
+    except OSError as exc:
+        logging.getLogger(__name__).warning("results not written beside the mesh: %s", exc)
+        EarlyFiles(names, ()).remove(folder)
+        return None
+    except BaseException:  # e.g. a Ctrl-C: the result written later may not have these files
+        EarlyFiles(names, ()).remove(folder)
+        raise
+    return EarlyFiles(names, _early_values(run), time.perf_counter() - t0)
+
+
+def write_results(
+    folder: ResultsFolder, run: RunResult, kitti_input: bool = False, early: EarlyFiles | None = None
+) -> Path:
     """Write a run into ``folder``, the small files first.
 
     ``config.yaml`` (the pipeline's configuration), ``trajectory_online.tum``,
@@ -153,35 +267,20 @@ def write_results(folder: ResultsFolder, run: RunResult, kitti_input: bool = Fal
     or when it is unset and ``kitti_input``: the sequence is a KITTI folder), ``map.npz``,
     ``calibration_refined.yaml`` (with ``calibration.refine``),
     ``metrics.json``, ``run.log``, then ``stripes.npz`` (when the run has laser profiles), the
-    session map folder ``map/`` (when made), ``mesh.ply`` and ``mesh_live.ply`` (when made). Returns the folder's path.
+    session map folder ``map/`` (when made), ``mesh_live.ply`` and ``mesh.ply`` (when made). Returns the folder's path.
+    ``early``: :func:`write_results_early` of this run (its files are not written again while
+    ``run`` holds the values they were made of; else they are removed first and written again).
 
     A staged folder (:class:`ResultsFolder`) replaces the older run's folder once the small
     files through ``run.log`` are written, even when a large file then fails (a full disk:
     the error is raised after the commit); when a small file fails, the older folder stays
     and the staging is removed."""
+    done = early is not None and early.holds_for(run)
+    if early is not None and not done:
+        early.remove(folder)
     try:
-        folder.write_config(run.config)
-        folder.write_trajectory("trajectory_online.tum", run.online)
-        folder.write_trajectory("trajectory_final.tum", run.final)
-        folder.write_trajectory("keyframes.tum", run.keyframes)
-        if run.localized is not None:
-            folder.write_trajectory("trajectory_in_map.tum", run.localized)
-        write_kitti = run.config.output.write_kitti
-        if write_kitti or (write_kitti is None and kitti_input):
-            folder.write_trajectory("trajectory_online.kitti", run.online, "kitti")
-            folder.write_trajectory("trajectory_final.kitti", run.final, "kitti")
-            if len(run.final) != len(run.frames):  # KITTI rows carry no times: say they are not one per image
-                logging.getLogger(__name__).warning(
-                    "trajectory_final.kitti: %d rows for %d frames (untracked frames have none; "
-                    "trajectory_final.tum has the times)", len(run.final), len(run.frames)
-                )
-        folder.write_npz("map.npz", run.map_arrays())
-        if run.calibration_refined is not None:  # issue 31: calibration.refine
-            from loopmodel.io.calib_files import refined_calibration_yaml
-
-            folder.write_text(
-                "calibration_refined.yaml", refined_calibration_yaml(run.calibration_refined, run.calibration_report)
-            )
+        if not done:
+            _write_small(folder, run, kitti_input, [])
         folder.write_json("metrics.json", run.metrics)
         folder.write_text("run.log", run.log)
     except OSError as exc:  # a full disk: nothing kept, the line names the file and the folder
@@ -193,19 +292,12 @@ def write_results(folder: ResultsFolder, run: RunResult, kitti_input: bool = Fal
         raise
     complete = not run.interrupted and run.error is None
     try:
-        if run.stripes:
-            from loopmodel.io.stripes_io import STRIPES_FILE, save_stripes
+        if not done:
+            _write_large(folder, run, [])
+        if run.mesh is not None:
+            from loopmodel.io.mesh_io import write_mesh
 
-            save_stripes(folder.file(STRIPES_FILE), run.stripes)
-        if run.session_map is not None:
-            from loopmodel.io.map_file import save_session_map
-
-            save_session_map(folder.file("map"), run.session_map)
-        for name, mesh in (("mesh.ply", run.mesh), ("mesh_live.ply", run.live_mesh)):
-            if mesh is not None:
-                from loopmodel.io.mesh_io import write_mesh
-
-                write_mesh(folder.file(name), mesh, "ply")
+            write_mesh(folder.file("mesh.ply"), run.mesh, "ply")
     except OSError as exc:  # a full disk: the folder is kept under a name that says it is incomplete
         with contextlib.suppress(OSError):
             with open(folder.file("run.log"), "a") as log:
