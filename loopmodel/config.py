@@ -510,8 +510,8 @@ class MappingConfig(_Section):
     # scene.ply / completeness of the object, 150-frame realistic orbit 0.418 -> 0.350 mm / 0.917 -> 0.933; the
     # 600-frame sample 0.419 -> 0.402 mm / 0.979 -> 0.982; 300-frame orbit 0.387 -> 0.332 mm / 0.972 -> 0.975; the
     # mesh call on the 150-frame orbit's cloud 4.0x faster (wall; CPU 2.07 -> 0.47 s). The KITTI clip has no laser
-    # (no mesh). The real turntable scan keeps Poisson (turntable/run.py): there the sdf leaves holes in
-    # concavities that Poisson closes. CHANGELOG (sdf16)
+    # (no mesh). The real turntable scan keeps Poisson (turntable/run.py; no surface truth there): the sdf's mesh
+    # lies farther from its points (mean 0.228 -> 0.279 mm) with a few small holes. CHANGELOG (sdf16)
     method: Literal["poisson", "sdf", "ball_pivoting"] = Field(default="sdf", description="surface method")
     write_mesh: bool = Field(True, description="the pipeline writes mesh.ply (its errors: the evaluation after a run)")
     voxel_m: float = Field(default=0.0015, gt=0, description="voxel down-sampling size before meshing")
