@@ -504,13 +504,14 @@ class FrontendConfig(_Section):
 class MappingConfig(_Section):
     """Laser-stripe integration and open3d meshing (lengths in metres, world frame)."""
 
-    # sdf16 (issue 32): the signed-distance surface (mapping/meshing._sdf) instead of screened Poisson. The same
+    # sdf16 (issue 32): the final mesh by the signed-distance surface (mapping/meshing._sdf) instead of screened
+    # Poisson (the live mesh: live_method). The same
     # captured final clouds (configs/sim.yaml runs), Poisson -> sdf (with normal_radius_m 0.012): mesh error against
     # scene.ply / completeness of the object, 150-frame realistic orbit 0.418 -> 0.350 mm / 0.917 -> 0.933; the
     # 600-frame sample 0.419 -> 0.402 mm / 0.979 -> 0.982; 300-frame orbit 0.387 -> 0.332 mm / 0.972 -> 0.975; the
     # mesh call on the 150-frame orbit's cloud 4.0x faster (wall; CPU 2.07 -> 0.47 s). The KITTI clip has no laser
-    # (no mesh). The real turntable scan keeps Poisson (turntable/run.py): there the sdf leaves holes in
-    # concavities that Poisson closes. CHANGELOG (sdf16)
+    # (no mesh). The real turntable scan keeps Poisson (turntable/run.py; no surface truth there): the sdf's mesh
+    # lies farther from its points (mean 0.228 -> 0.279 mm) with a few small holes. CHANGELOG (sdf16)
     method: Literal["poisson", "sdf", "ball_pivoting"] = Field(default="sdf", description="surface method")
     write_mesh: bool = Field(True, description="the pipeline writes mesh.ply (its errors: the evaluation after a run)")
     voxel_m: float = Field(default=0.0015, gt=0, description="voxel down-sampling size before meshing")
@@ -581,6 +582,13 @@ class MappingConfig(_Section):
     # in CHANGELOG (tail11). A scheduling priority, not a data-dependent setting; KITTI has no laser data
     live_mesh_nice: int = Field(
         default=10, ge=0, le=19, description="live-mesh updates run this much below the run's priority (0 = same)"
+    )
+    # sdf16: the live mesh keeps Poisson. At the live settings (3 mm voxels and cells) the sdf covered less of the
+    # object: the 150-frame realistic orbit's final cloud meshed whole, completeness 0.975 (Poisson) -> 0.806 (sdf),
+    # error 0.433 -> 0.445 mm (a lower weight floor, 0.1: 0.935, 0.576 mm), though at 1/5 of Poisson's CPU (12
+    # blocks of the 300-frame orbit: 1.61 -> 0.19 s). CHANGELOG (sdf16)
+    live_method: Literal["poisson", "sdf", "ball_pivoting"] = Field(
+        default="poisson", description="surface method of the live mesh's updates"
     )
     live_voxel_m: float = Field(
         default=0.003, gt=0, description="voxel size of the live mesh (coarser than voxel_m: faster updates)"

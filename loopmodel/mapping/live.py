@@ -54,6 +54,16 @@ def remesh_blocks_low(
     return _LOW_PRIORITY.submit(remesh_blocks, points_w, sensors_w, blocks, config).result()  # type: ignore[no-any-return]
 
 
+def preload_low(nice: int) -> None:
+    """The sdf kernels loaded on this process's low-priority thread (the final mesh may be made here)."""
+    global _LOW_PRIORITY
+    if _LOW_PRIORITY is None:
+        _LOW_PRIORITY = low_priority_pool("live-mesh-low", nice)
+    from loopmodel.mapping.meshing import preload_kernels
+
+    _LOW_PRIORITY.submit(preload_kernels).result()
+
+
 def remesh_blocks(
     points_w: np.ndarray, sensors_w: np.ndarray, blocks: set[BlockKey], config: MappingConfig
 ) -> tuple[dict[BlockKey, MeshArrays | None], float, int]:
@@ -182,6 +192,10 @@ class LiveMapping:
         """Start the worker now (when the live mesh is on): its imports before the frames, not among them."""
         if self.enabled and self._pool is None:
             self._started = self._workers().submit(int, 0)
+            cfg = self._world.config
+            if self._worker_kind == "process" and cfg.method == "sdf" and cfg.final_mesh_in_live_worker:
+                # sdf16: the final mesh's kernels (0.5 s CPU), below the run's priority, before any update
+                self._workers().submit(preload_low, self._nice)
 
     def wait_started(self, timeout_s: float | None = None) -> None:
         """Wait until the worker started by :meth:`start` has done its imports (a failure is logged)."""

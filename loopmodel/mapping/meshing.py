@@ -217,9 +217,11 @@ def live_mesh_config(config: MappingConfig) -> MappingConfig:
 
     ``live_voxel_m`` resolution with octree cells of that size (``poisson_cell_voxels`` 1: the
     final mesh's coarser cells are not the live mesh's), one Poisson thread (the other core keeps
-    tracking).
+    tracking), the surface method ``live_method``.
     """
-    update = {"voxel_m": config.live_voxel_m, "poisson_threads": 1, "poisson_cell_voxels": 1.0}
+    update = {
+        "voxel_m": config.live_voxel_m, "poisson_threads": 1, "poisson_cell_voxels": 1.0, "method": config.live_method
+    }
     return config.model_copy(update=update)
 
 

@@ -82,7 +82,8 @@ def scan_turntable(
     the plane is self-calibrated).
     """
     # octree cells of one voxel, as before issue 32 (the coarser default was measured on hand-held scans only);
-    # Poisson, not the sdf (sdf16: on this scan the sdf leaves holes in concavities that Poisson closes)
+    # Poisson, not the sdf (sdf16: on this scan the sdf's mesh lies farther from the points, mean 0.228 -> 0.279 mm,
+    # with a few small holes; no surface truth here)
     cfg = config or MappingConfig(poisson_cell_voxels=1.0, method="poisson")
     detector = make_detector(scan.markers.dictionary)
     n = len(scan)
