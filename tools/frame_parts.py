@@ -5,8 +5,10 @@ measurement (:func:`bench_scale.measure`) over ``SCAN`` (default the quick ``rou
 the pipeline's per-frame parts timed (wall ms and the tracking thread's CPU ms, summed per frame):
 the frame's step and the work between steps, the front end's parts, the loop stage, the back end's
 calls as the tracking thread sees them, the corrections, the live mesh's hand-over; the garbage
-collector's pauses (``gc.callbacks``) and the local map's size. Prints each part's mean per frame in
-the first and last blocks of ``N`` frames (N = 200) and the ratio, as JSON lines.
+collector's pauses (``gc.callbacks``: per block, their count and the longest), the local map's size,
+and each thread's and worker process's CPU per frame (psutil, sampled every 10 frames). Prints the
+scale keys, then each part's mean per frame (wall, CPU) in the first and last blocks of ``N`` frames
+(N = 200).
 """
 
 from __future__ import annotations
@@ -55,6 +57,8 @@ def wrap(owner: Any, name: str, label: str) -> None:
 
 
 _gc_t0: list[float] = [0.0]
+GC_MAX: dict[int, float] = {}  # generation -> longest pause (ms) on the tracking thread
+GC_COUNT: dict[int, int] = {}
 THREAD_CPU: dict[int, dict[str, float]] = {}  # frame -> thread or child name -> cumulative CPU s
 
 
@@ -84,7 +88,10 @@ def _gc(phase: str, info: dict[str, Any]) -> None:
     if phase == "start":
         _gc_t0[0] = time.perf_counter()
     else:
-        _add(WALL, f"gc{info['generation']}", (time.perf_counter() - _gc_t0[0]) * 1e3)
+        ms = (time.perf_counter() - _gc_t0[0]) * 1e3
+        _add(WALL, f"gc{info['generation']}", ms)
+        GC_MAX[info["generation"]] = max(GC_MAX.get(info["generation"], 0.0), ms)
+        GC_COUNT[info["generation"]] = GC_COUNT.get(info["generation"], 0) + 1
 
 
 def install() -> None:
@@ -157,6 +164,7 @@ def report(result: dict[str, Any], block: int) -> None:
         w, c = WALL[label], CPU.get(label, {})
         rows.append((label, "ms", sum(w.get(i, 0.0) for i in first) / block, sum(w.get(i, 0.0) for i in last) / block,
                      sum(c.get(i, 0.0) for i in first) / block, sum(c.get(i, 0.0) for i in last) / block))
+    print("gc on the tracking thread: collections", GC_COUNT, "longest ms", {k: round(v, 1) for k, v in GC_MAX.items()})
     fr = sorted(THREAD_CPU)
     if fr:
         a0 = THREAD_CPU[min(fr, key=lambda f: abs(f - first.start))]
