@@ -59,6 +59,7 @@ def wrap(owner: Any, name: str, label: str) -> None:
 _gc_t0: list[float] = [0.0]
 GC_MAX: dict[int, float] = {}  # generation -> longest pause (ms) on the tracking thread
 GC_COUNT: dict[int, int] = {}
+GC_FULL: list[tuple[int, float, int]] = []  # each full pass: (frames so far, ms, objects frozen then)
 THREAD_CPU: dict[int, dict[str, float]] = {}  # frame -> thread or child name -> cumulative CPU s
 
 
@@ -92,6 +93,8 @@ def _gc(phase: str, info: dict[str, Any]) -> None:
         _add(WALL, f"gc{info['generation']}", ms)
         GC_MAX[info["generation"]] = max(GC_MAX.get(info["generation"], 0.0), ms)
         GC_COUNT[info["generation"]] = GC_COUNT.get(info["generation"], 0) + 1
+        if info["generation"] == 2:
+            GC_FULL.append((FRAME[0], round(ms, 1), gc.get_freeze_count()))
 
 
 def install() -> None:
@@ -165,6 +168,7 @@ def report(result: dict[str, Any], block: int) -> None:
         rows.append((label, "ms", sum(w.get(i, 0.0) for i in first) / block, sum(w.get(i, 0.0) for i in last) / block,
                      sum(c.get(i, 0.0) for i in first) / block, sum(c.get(i, 0.0) for i in last) / block))
     print("gc on the tracking thread: collections", GC_COUNT, "longest ms", {k: round(v, 1) for k, v in GC_MAX.items()})
+    print("full passes (frames so far, ms, frozen objects):", GC_FULL)
     fr = sorted(THREAD_CPU)
     if fr:
         a0 = THREAD_CPU[min(fr, key=lambda f: abs(f - first.start))]
