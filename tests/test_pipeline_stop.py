@@ -130,3 +130,24 @@ def test_a_second_signal_during_the_final_writes_says_what_is_written(
     # no stripes here (the mesh case with its time estimate: test_pipeline_mesh)
     assert said == ["signal 2: already stopping, please wait: the results are being written (a few seconds)"]
     assert out.metrics["frames"] == N_FRAMES and not out.interrupted
+
+
+def test_the_objects_before_the_first_frame_are_frozen_during_the_frames_only(sequence_dir: Path) -> None:
+    """fr16 (issue 33): the garbage collector's full passes skip the set-up's objects during the frames.
+
+    ``gc.freeze`` before the first frame, ``gc.unfreeze`` after the last (also when stopped): a process
+    running many runs keeps none of them out of the collector.
+    """
+    import gc
+
+    frozen: list[int] = []
+
+    def progress(i: int, n: int, fps: float, kf: int) -> None:
+        frozen.append(gc.get_freeze_count())
+
+    process(open_sequence(sequence_dir), _config(), progress=progress)
+    assert len(frozen) == N_FRAMES and min(frozen) > 10_000  # the imports' objects (about 110,000)
+    assert gc.get_freeze_count() == 0
+    stop = StopFlag()
+    process(open_sequence(sequence_dir), _config(), progress=lambda i, *_: stop.set() if i == 2 else None, stop=stop)
+    assert gc.get_freeze_count() == 0

@@ -100,11 +100,23 @@ class ResumedSet:
         """
         if not len(self):
             return 0
-        pred, front = self.predict(camera, invert_pose(kf_from_cur))
+        pred, _front = self.predict(camera, invert_pose(kf_from_cur))
         window, levels, fb_px, iterations = klt
         uv, ok, _ = track_klt(prev, cur, self.uv, pred, window, levels, fb_px, iterations, image_size)
-        ok &= front & (np.linalg.norm(uv - pred, axis=1) < gate_px)
-        self._keep(ok, uv[ok])
+        return self.keep_tracked(camera, kf_from_cur, uv, ok, gate_px)
+
+    def keep_tracked(
+        self, camera: CentralCamera, kf_from_cur: F64, uv: F64, ok: NDArray[np.bool_], gate_px: float
+    ) -> int:
+        """Take a frame's KLT of the set (``uv`` (K, 2) px, valid ``ok``): those within ``gate_px`` of the prediction.
+
+        ``kf_from_cur``: the frame's solved pose (rectified, active keyframe frame); a point it puts
+        behind the camera is dropped. The KLT may have started elsewhere (the frame's motion-model
+        prediction, fr16: one KLT call with the frame's other points). Returns how many remain.
+        """
+        pred, front = self.predict(camera, invert_pose(kf_from_cur))
+        keep = ok & front & (np.linalg.norm(uv - pred, axis=1) < gate_px)
+        self._keep(keep, uv[keep])
         return len(self)
 
     def observe_at_keyframe(

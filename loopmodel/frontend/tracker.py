@@ -146,6 +146,9 @@ class _FrameTracks:
     loc: _LocalPrediction = field(default_factory=_LocalPrediction)
     uv_loc: F64 = field(default_factory=lambda: np.zeros((0, 2)))
     ok_loc: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    # the resumed old set (seed 004 section 5), in the same KLT call (fr16)
+    uv_res: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    ok_res: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
 
 
 @dataclass
@@ -562,8 +565,7 @@ class FrontEnd:
         # the rotation blocks would otherwise grow geometrically
         self._velocity = nearest_rigid(step)
         self._velocity_known = True
-        self._kf_from_prev = nearest_rigid(kf_from_cur)
-        self._track_resumed(cur_pyr, kf_from_cur)
+        self._kf_from_prev = nearest_rigid(kf_from_cur)  # (the resumed old set tracked with the frame: _klt_frame)
         self._prev_pyr = cur_pyr
         self._frames_since_ok = 0
 
@@ -699,15 +701,22 @@ class FrontEnd:
         if ft.loc.sizes:
             start, guess = np.vstack([start, ft.loc.prev_uv]), np.vstack([guess, ft.loc.guess])
             front = np.concatenate([front, ft.loc.front])
+        rs = self._resumed
+        n_res = len(rs) if rs is not None else 0
+        if rs is not None and n_res:  # fr16: its own KLT call cost 0.6 ms of fixed CPU (pyramids, derivatives)
+            r_guess, r_front = rs.predict(self.left_camera, pred_from_kf)
+            start, guess = np.vstack([start, rs.uv]), np.vstack([guess, r_guess])
+            front = np.concatenate([front, r_front])
         share = shared_tracks(start, guess, cfg.klt_share_px, cfg.klt_share_motion_px) if cfg.klt_share_px > 0 else None
         uv, ok = track_klt_halves(self._prev_pyr, cur_pyr, start, guess, cfg, self.calibration.image_size, share)
         ok &= front
         if self._pending_ba is not None:  # the last keyframe's BA: its points and pose before this pose solve
             self._finish_local_ba()
             ft.loc = self._local_prediction(pred_from_kf)
-        n_near, n_far = ft.idx.size, ft.fidx.size
+        n_near, n_far, n_all = ft.idx.size, ft.fidx.size, uv.shape[0] - n_res
         ft.uv_far, ft.ok_far = uv[n_near : n_near + n_far], ok[n_near : n_near + n_far]
-        ft.uv_loc, ft.ok_loc = uv[n_near + n_far :], ok[n_near + n_far :]
+        ft.uv_loc, ft.ok_loc = uv[n_near + n_far : n_all], ok[n_near + n_far : n_all]
+        ft.uv_res, ft.ok_res = uv[n_all:], ok[n_all:]
         ft.uv, ft.ok = uv[:n_near], ok[:n_near]
         return ft
 
@@ -787,6 +796,16 @@ class FrontEnd:
             self._keep_local(ft.loc, terms.loc_sel[inl_all[tracked:n_sl]], ft.uv_loc)
         f_keep = terms.far_sel[res.inliers[1]] if terms.extra else terms.far_sel
         self._far_idx, self._far_uv = ft.fidx[f_keep], ft.uv_far[f_keep]
+        if self._resumed is not None and ft.ok_res.size == len(self._resumed):
+            self._keep_resumed(ft, invert_pose(res.rig_from_ref))
+
+    def _keep_resumed(self, ft: _FrameTracks, kf_from_cur: F64) -> None:
+        """The resumed old set's tracks of this frame (:meth:`_klt_frame`) within the gate of the solved pose."""
+        rs = self._resumed
+        assert rs is not None
+        if not rs.keep_tracked(self.left_camera, kf_from_cur, ft.uv_res, ft.ok_res, self.config.prediction_gate_px):
+            logger.info("old feature set of keyframe %d: no feature left", rs.match_keyframe)
+            self._resumed = None
 
     def _local_prediction(self, pred_from_kf: F64) -> _LocalPrediction:
         """The local map's tracked points (earlier keyframes' sets) for this frame, at the predicted pose.
