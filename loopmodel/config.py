@@ -206,9 +206,11 @@ class BackendConfig(_Section):
     # keyframe (its updates together, late observations included) get proxies, the first N of the
     # spread order (best-supported old landmarks over the image); the rest wait outside iSAM2 as every
     # revisit's real observation does, for the final estimate (the same graph there). rounds_1800 call
-    # stream replayed (load 3-12): back-end CPU 4.8 -> 3.7 s, online keyframe ATE 9.67 -> 10.11 mm, final
-    # 8.13 mm both; with 20: 10.39 mm online. Inert without revisits older than the window: the KITTI
-    # clip (configs/kitti.yaml, 13 keyframes) and the 600-frame sample (configs/sim.yaml) (CHANGELOG be16)
+    # stream replayed interleaved with 0 (load 12): blocks 4-6 25.6-35.5 ms a keyframe against 31.1-38.0,
+    # CPU 5.01 / 5.10 s, online keyframe ATE 10.11 / 9.67 mm, final 8.13 mm both; live scale --quick (3
+    # pairs, load 8-14): factors of the last block 750 -> 665, its ms within the load's noise. The KITTI
+    # clip (configs/kitti.yaml) and the 600-frame sample (configs/sim.yaml): every key of bench pipeline
+    # identical (CHANGELOG be16)
     local_proxies_per_kf: int = Field(
         40, ge=0, le=100000, description="local: old landmarks a keyframe sees through proxies in iSAM2 (0: all)"
     )
