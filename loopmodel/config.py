@@ -200,6 +200,20 @@ class BackendConfig(_Section):
     local_rebuild_keep_kf: int = Field(
         10, ge=1, le=100000, description="local_rebuild_kf: keyframes a rebuild keeps free (at least local_window_kf)"
     )
+    # issue 33 item 5 (be16): under local a revisit observation (a landmark older than local_window_kf)
+    # reaches iSAM2 as three things (a proxy variable, its prior, the observation of it): 170-260
+    # factors a keyframe from the first revisit on in rounds_1800, none in the first round. At most N a
+    # keyframe (its updates together, late observations included) get proxies, the first N of the
+    # spread order (best-supported old landmarks over the image); the rest wait outside iSAM2 as every
+    # revisit's real observation does, for the final estimate (the same graph there). rounds_1800 call
+    # stream replayed interleaved with 0 (load 12): blocks 4-6 25.6-35.5 ms a keyframe against 31.1-38.0,
+    # CPU 5.01 / 5.10 s, online keyframe ATE 10.11 / 9.67 mm, final 8.13 mm both; live scale --quick (3
+    # pairs, load 8-14): factors of the last block 750 -> 665, its ms within the load's noise. The KITTI
+    # clip (configs/kitti.yaml) and the 600-frame sample (configs/sim.yaml): every key of bench pipeline
+    # identical (CHANGELOG be16)
+    local_proxies_per_kf: int = Field(
+        40, ge=0, le=100000, description="local: old landmarks a keyframe sees through proxies in iSAM2 (0: all)"
+    )
     # issue 33 (scale8): rounds_1800 replay (local): a keyframe's observations of landmarks already in
     # the graph (local map and revisits) grow 92 -> 378 a keyframe from the first round to the sixth,
     # its new landmarks' 342 -> 406; over the budget its monocular ones wait outside iSAM2 for the

@@ -174,3 +174,48 @@ def test_a_killed_worker_with_unsent_data_does_not_hang_the_exit(tmp_path: Path)
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "closed" in done.stdout
+
+
+def test_a_worker_process_freezes_each_batchs_survivors_out_of_the_collector() -> None:
+    """be16 (issue 33 item 5): with ``freeze_gc`` (the worker process) the back end's objects leave the GC's scans.
+
+    Each batch's survivors are frozen (``gc.freeze``), so the cyclic collector's full passes no longer
+    visit every factor record of the map; a thread worker (``freeze_gc`` off) leaves the process's
+    collector alone.
+    """
+    import gc
+    import queue
+
+    from loopmodel.backend.worker import _Server
+
+    class _Stub:
+        def add_observations(self, keyframe_id: int, mono_obs: Any) -> BackendUpdate:
+            self.kept = [[i] for i in range(1000)]  # long-lived objects the collector tracks
+            return BackendUpdate(keyframe_id)
+
+        def estimate(self, landmarks: bool = True) -> Any:
+            from loopmodel.backend.base import BackendEstimate
+
+            return BackendEstimate({}, np.zeros(0, dtype=np.int64), np.zeros((0, 3)), set())
+
+    class _Inbox:  # one message a batch: the update, then the stop
+        def __init__(self) -> None:
+            self.msgs: list[tuple[Any, ...]] = [("obs", 0, np.zeros((0, 3))), ("stop",)]
+
+        def get(self) -> tuple[Any, ...]:
+            return self.msgs.pop(0)
+
+        def get_nowait(self) -> tuple[Any, ...]:
+            raise queue.Empty
+
+    gc.unfreeze()
+    try:
+        for freeze in (False, True):
+            inbox = _Inbox()
+            before = gc.get_freeze_count()
+            server = _Server(_Stub(), queue.Queue(), None, freeze)  # type: ignore[arg-type]
+            server.serve(inbox)
+            frozen = gc.get_freeze_count() - before
+            assert (frozen >= 1000) if freeze else (frozen == 0), (freeze, frozen)
+    finally:
+        gc.unfreeze()

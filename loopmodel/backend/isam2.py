@@ -35,8 +35,9 @@ from __future__ import annotations
 import logging
 import re
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any, Literal
 
 import gtsam
@@ -75,10 +76,19 @@ FactorKind = Literal["stereo", "mono", "prior", "loop", "proxy"]
 
 @dataclass(slots=True)
 class _FactorRecord:
-    factor: gtsam.NonlinearFactor
+    made: gtsam.NonlinearFactor | None  # the factor, or None until :attr:`factor` is first read
     kind: FactorKind
     lkey: int = -1  # internal landmark index, or -1
     obs: Observation | None = None
+    build: Callable[[], gtsam.NonlinearFactor] | None = None  # makes ``made`` on first use
+
+    @property
+    def factor(self) -> gtsam.NonlinearFactor:
+        """The factor; one waiting outside iSAM2 is made when first needed (its final estimate, be16)."""
+        if self.made is None:
+            assert self.build is not None
+            self.made, self.build = self.build(), None
+        return self.made
 
 
 @dataclass
@@ -170,6 +180,9 @@ class Isam2Backend:
         # keyframe_obs_budget: observations of known landmarks each keyframe's updates took so far
         self._budget_used: dict[int, int] = {}
         self.budget_dropped = 0  # observations over the budget left out (keyframe_obs_overflow drop)
+        # local_proxies_per_kf: old landmarks each keyframe sees through proxies so far; those left out
+        self._proxies_used: dict[int, int] = {}
+        self.proxies_skipped = 0
         # local_defer_late: late observations (a loop's) wait for the next update (the loop prior's)
         self._defer_late = self._windowed and cfg.local_defer_late and cfg.blunder_sigma <= 0
         self._deferred_graph = gtsam.NonlinearFactorGraph()
@@ -292,15 +305,17 @@ class Isam2Backend:
         key = (obs.kf_id, lm_id)
         if key in self._obs_fid:  # the same observation twice: keep the first
             return
-        factor = self._obs_factor(obs, L(lkey))
-        rec = _FactorRecord(factor, "stereo" if obs.stereo else "mono", lkey, key)
-        if outside:  # over the keyframe's observation budget: joins at the final estimate
+        kind: FactorKind = "stereo" if obs.stereo else "mono"
+        revisit = not outside and self._revisit(obs, lkey)
+        if outside or revisit:  # over the keyframe's budget, or a revisit: joins at the final estimate
+            # its factor is made then (what waits outside iSAM2 costs the keyframe little, be16)
+            rec = _FactorRecord(None, kind, lkey, key, partial(self._obs_factor, obs, L(lkey)))
             fid = self._new_fid(rec, outside=True)
-        elif self._revisit(obs, lkey):
-            fid = self._new_fid(rec, outside=True)  # a revisit: it would tie this keyframe to an old part of the map
-            self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
+            if revisit and self._proxy_room(obs.kf_id):  # through a proxy: ties the keyframe to the old map
+                self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
         else:
-            fid = self._new_fid(rec)
+            factor = self._obs_factor(obs, L(lkey))
+            fid = self._new_fid(_FactorRecord(factor, kind, lkey, key))
             graph.add(factor)
         self._obs_fid[key] = fid
         self._landmarks[lkey].fids.add(fid)
@@ -324,6 +339,29 @@ class Isam2Backend:
         """
         age_kf = self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq
         return self._windowed and age_kf > self.config.local_window_kf
+
+    def _proxy_room(self, kf_id: int) -> bool:
+        """Whether keyframe ``kf_id`` may see one more old landmark through a proxy (``local_proxies_per_kf``).
+
+        Counts it if so. Over the bound a revisit's observation only joins at the final estimate.
+        """
+        bound = self.config.local_proxies_per_kf
+        if bound <= 0:
+            return True
+        used = self._proxies_used.get(kf_id, 0)
+        if used >= bound:
+            self.proxies_skipped += 1
+            return False
+        self._proxies_used[kf_id] = used + 1
+        return True
+
+    def _revisit_rows(self, kf_id: int, ids: list[int]) -> int:
+        """How many of landmark ids ``ids`` keyframe ``kf_id`` would see through proxies (old landmarks)."""
+        if not self._windowed:
+            return 0
+        cut = self._kf_seq[kf_id] - self.config.local_window_kf
+        current, landmarks = self._lm_current, self._landmarks
+        return sum(1 for i in ids if (k := current.get(i)) is not None and landmarks[k].first_seq < cut)
 
     def _proxy_observation(self, obs: _Obs, lkey: int, graph: gtsam.NonlinearFactorGraph) -> list[int]:
         """``obs`` of old landmark ``lkey`` as an observation of its proxy in iSAM2; returns the factor ids.
@@ -701,8 +739,9 @@ class Isam2Backend:
         used = self._budget_used.get(kf_id, 0)
         if self.config.keyframe_obs_budget > 0:  # the keyframe's budget over all its updates (late observations)
             budget = max(self.config.keyframe_obs_budget - used, len(self._batch))
-            if len(self._batch) + rows.shape[0] > budget:  # which ones wait: the last of the spread order
-                rows = self._spread_order(rows)
+        # which ones wait (budget) and which old landmarks get proxies (local_proxies_per_kf): by the spread order
+        if budget is not None and len(self._batch) + rows.shape[0] > budget or self._proxies_bind(kf_id, rows):
+            rows = self._spread_order(rows)
         finite = np.isfinite(rows).all(axis=1).tolist()  # one array operation, not one per row
         current, pending = self._lm_current, self._pending
         for row, ok in zip(rows.tolist(), finite, strict=True):
@@ -714,6 +753,15 @@ class Isam2Backend:
         if budget is not None:
             self._budget_used[kf_id] = used + len(self._batch)
         return rejected
+
+    def _proxies_bind(self, kf_id: int, rows: F64) -> bool:
+        """Whether ``local_proxies_per_kf`` leaves some of ``rows``' old landmarks without a proxy."""
+        bound = self.config.local_proxies_per_kf
+        if bound <= 0 or not self._windowed:
+            return False
+        left = bound - self._proxies_used.get(kf_id, 0)
+        ids = rows[np.isfinite(rows[:, 0]), 0].astype(np.int64).tolist()
+        return self._revisit_rows(kf_id, ids) > left
 
     def _spread_order(self, rows: F64) -> F64:
         """Monocular observations ``rows`` (landmark id, u, v rectified px) in the order a budget takes them.
@@ -1287,6 +1335,7 @@ class Isam2Backend:
             "isam2_factors": self.num_factors,
             "isam2_landmarks": self.num_landmarks,
             "isam2_budget_dropped": self.budget_dropped,  # keyframe_obs_budget's rest left out (drop)
+            "isam2_proxies_skipped": self.proxies_skipped,  # revisits over local_proxies_per_kf (final only)
             **self.refine_info,
         }
 
