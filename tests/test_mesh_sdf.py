@@ -13,7 +13,6 @@ import open3d as o3d
 import pytest
 
 from loopmodel.config import MappingConfig
-from loopmodel.errors import InputError
 from loopmodel.mapping.accuracy import distances_to_mesh
 from loopmodel.mapping.meshing import mesh_cloud, mesh_from_points
 
@@ -81,10 +80,11 @@ def test_sdf_plane_patch_stays_on_the_plane_and_within_the_samples() -> None:
     assert np.all(np.asarray(mesh.vertex_normals) @ n > 0.9)
 
 
-def test_sdf_refuses_a_grid_too_large() -> None:
-    cfg = MappingConfig(method="sdf", voxel_m=1e-5)
+def test_sdf_falls_back_to_poisson_for_a_grid_too_large(caplog: pytest.LogCaptureFixture) -> None:
+    cfg = MappingConfig(method="sdf", voxel_m=1e-5, poisson_depth=6)
     pts, nrm = _sphere_samples(1.0, 2_000, 0.0, seed=0)
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     pc.normals = o3d.utility.Vector3dVector(nrm)
-    with pytest.raises(InputError, match="too many"):
-        mesh_cloud(pc, cfg)
+    with caplog.at_level("WARNING"):
+        mesh = mesh_cloud(pc, cfg.model_copy(update={"trim_distance_m": 0.2}))
+    assert "Poisson instead" in caplog.text and len(mesh.triangles) > 0

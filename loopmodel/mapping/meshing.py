@@ -125,7 +125,11 @@ def _sdf(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.
     dims = np.floor((pts.max(axis=0) + reach_m - origin) / h).astype(np.int64) + 3
     bdims = (dims >> k.SHIFT) + 1
     if float(np.prod(bdims.astype(np.float64))) > _SDF_MAX_BLOCKS:
-        raise InputError(None, f"the samples span {dims.tolist()} cells of {h * 1e3:.2f} mm: too many for the sdf grid")
+        logger.warning(
+            "the samples span %s cells of %.2f mm, too many for the sdf grid: screened Poisson instead",
+            dims.tolist(), h * 1e3,
+        )
+        return _poisson(cloud, config)
     # the samples in block order: the corners each one updates are then mostly in memory the last one touched
     cell = np.floor((pts - origin) / (h * k.B)).astype(np.int64)
     by_block = np.argsort((cell[:, 0] * bdims[1] + cell[:, 1]) * bdims[2] + cell[:, 2], kind="stable")
@@ -154,7 +158,7 @@ def _sdf(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.
     return mesh
 
 
-#: most blocks (of 8^3 corners) the sdf grid's block map may span (an int32 each: 256 MB)
+#: most blocks (of 8^3 corners) the sdf grid's block map may span (an int32 each: 256 MB); beyond, Poisson
 _SDF_MAX_BLOCKS = 64_000_000
 
 
