@@ -17,7 +17,8 @@ constant-rate first ``kitti_gt_constant_rate_steps`` steps, see ``bench kitti-ro
 last quarter over first, of the online trajectory; issue 36; ``sim_`` likewise),
 ``kitti_first_frame_ms`` and ``kitti_frame_ms_max_after_first`` (frame 0, which makes the first
 keyframe, and the worst frame after it; issue 33), ``cpu_util`` (CPU time of the process and its
-workers over the wall time of the KITTI run: above 1 when the workers use the second core),
+workers over the wall time of the KITTI run: above 1 when the workers use the second core; read once the
+workers have exited and been reaped, fr16),
 ``sim_frame_ms_max_after_warmup`` (the worst frame after the first 10),
 ``sim_fps``, ``sim_frame_ms_p95`` (the orbit scan with ``configs/sim.yaml``: live mesh every 5
 keyframes), ``wall_over_frames_kitti`` / ``wall_over_frames_sim`` (``run_pipeline``'s wall time, the

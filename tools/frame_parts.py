@@ -64,8 +64,11 @@ THREAD_CPU: dict[int, dict[str, float]] = {}  # frame -> thread or child name ->
 
 
 def _sample_threads() -> None:
-    """Every thread's and child process's CPU so far (psutil), by name."""
-    import psutil
+    """Every thread's and child process's CPU so far (psutil, when installed: not a dependency), by name."""
+    try:
+        import psutil
+    except ImportError:
+        return
 
     me = psutil.Process()
     names = {t.native_id: t.name for t in threading.enumerate()}
