@@ -929,6 +929,11 @@ class LoopConfig(_Section):
     robust_odometry_sigma_m: float = Field(0.02, gt=0, le=100, description="translation per keyframe step")
     robust_loop_sigma_deg: float = Field(1.0, gt=0, le=90, description="loop constraint rotation")
     robust_loop_sigma_m: float = Field(0.03, gt=0, le=100, description="loop constraint translation")
+    # issue 33: the gate's pose graph took every earlier loop between the new loop's keyframes, so its
+    # GNC solve grew with the loops (rounds_5400: 1 ms at the first loops, 100-600 ms at 300, on the
+    # loop stage's apply thread beside tracking). It takes the loops that leave the least odometry
+    # between the new loop's ends (robust_posegraph.nearest_loops); 0: every loop. MEASURED: see CHANGELOG gate16.
+    robust_max_loops: int = Field(32, ge=0, le=100000, description="earlier loops in a gate's graph (0: all)")
     # perf (issue 26): loop detection off the tracking path
     # KITTI clip, 2 runs each at load 25 on 2 cores (frame-time p95 / track_ms median):
     # thread 472, 466 / 57, 53 ms; process 416, 473 / 61, 69 ms; none 506, 904 / 29, 40 ms.
