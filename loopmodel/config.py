@@ -930,9 +930,13 @@ class LoopConfig(_Section):
     robust_loop_sigma_deg: float = Field(1.0, gt=0, le=90, description="loop constraint rotation")
     robust_loop_sigma_m: float = Field(0.03, gt=0, le=100, description="loop constraint translation")
     # issue 33: the gate's pose graph took every earlier loop between the new loop's keyframes, so its
-    # GNC solve grew with the loops (rounds_5400: 1 ms at the first loops, 100-600 ms at 300, on the
-    # loop stage's apply thread beside tracking). It takes the loops that leave the least odometry
-    # between the new loop's ends (robust_posegraph.nearest_loops); 0: every loop. MEASURED: see CHANGELOG gate16.
+    # GNC solve grew with the loops (up to 244 of them on rounds_5400: 182 ms CPU, one gtsam call holding
+    # the interpreter lock). It takes those on the shortest bridges between the new loop's keyframes
+    # (robust_posegraph.nearest_loops); 0: every loop. At 32, rounds_5400's 295 gates replayed: the same
+    # verdicts as with every loop, CPU per gate median 15-20 ms, max 32 ms, flat (all loops: max 182 ms);
+    # synthetic rounds (18 x 20 keyframes, 340 true loops, 10 % random and near-miss false ones, seeds 0
+    # and 1): no disagreement (at 24: 2). KITTI clip: no loop closes (unchanged). Not on a real sequence
+    # with loops.
     robust_max_loops: int = Field(32, ge=0, le=100000, description="earlier loops in a gate's graph (0: all)")
     # perf (issue 26): loop detection off the tracking path
     # KITTI clip, 2 runs each at load 25 on 2 cores (frame-time p95 / track_ms median):
