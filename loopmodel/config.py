@@ -981,6 +981,17 @@ class LoopConfig(_Section):
     robust_odometry_sigma_m: float = Field(0.02, gt=0, le=100, description="translation per keyframe step")
     robust_loop_sigma_deg: float = Field(1.0, gt=0, le=90, description="loop constraint rotation")
     robust_loop_sigma_m: float = Field(0.03, gt=0, le=100, description="loop constraint translation")
+    # issue 33: the gate's pose graph took every earlier loop between the new loop's keyframes, so its
+    # GNC solve grew with the loops (up to 244 of them on rounds_5400: 182 ms CPU, one gtsam call holding
+    # the interpreter lock). It takes those on the shortest bridges between the new loop's keyframes
+    # (robust_posegraph.nearest_loops); 0: every loop. tools/bench_gate.py (synthetic rounds, 18 x 20
+    # keyframes, 340 true loops, 34 random false ones, 37 near misses 0.25 m / 5 deg off; seeds 0, 1, 2):
+    # every true loop kept and every random one rejected at any bound; near misses accepted that every
+    # loop rejects: at 32 0, 2, 1, at 48 0, 1, 0; CPU per gate in the last sixth 17-20 ms at 32, 25-27 at
+    # 48, flat (every loop: 28-58 ms, growing, max 292-383). rounds_5400's 295 real gates replayed: the
+    # same verdicts at 32 and 48 (CPU per gate at most 31 ms at 32, 37 at 48; every loop 174-182). KITTI: no loop
+    # closes (unchanged). Not checked on a real sequence with loops.
+    robust_max_loops: int = Field(48, ge=0, le=100000, description="earlier loops in a gate's graph (0: all)")
     # perf (issue 26): loop detection off the tracking path
     # KITTI clip, 2 runs each at load 25 on 2 cores (frame-time p95 / track_ms median):
     # thread 472, 466 / 57, 53 ms; process 416, 473 / 61, 69 ms; none 506, 904 / 29, 40 ms.

@@ -22,6 +22,7 @@ information matrix that is not positive definite is repaired (:func:`positive_de
 
 from __future__ import annotations
 
+import heapq
 import math
 import time
 from collections import deque
@@ -775,17 +776,6 @@ def add_false_loops(graph: PoseGraph, rate: float, seed: int, min_gap: int = 10)
     )
 
 
-def _adjoint(T: F64) -> F64:
-    """GTSAM's ``Pose3.AdjointMap`` of a 4x4 pose (tangent order rotation, translation)."""
-    R, t = T[:3, :3], T[:3, 3]
-    skew = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    A = np.zeros((6, 6))
-    A[:3, :3] = R
-    A[3:, 3:] = R
-    A[3:, :3] = skew @ R
-    return A
-
-
 def chain_information(world_from_kf: Mapping[int, F64], chain: Sequence[int], step_information: F64) -> F64:
     """Information (6x6, GTSAM's tangent order) of the relative pose ``chain[0]`` -> ``chain[-1]``.
 
@@ -796,10 +786,18 @@ def chain_information(world_from_kf: Mapping[int, F64], chain: Sequence[int], st
     """
     last_inv = np.linalg.inv(np.asarray(world_from_kf[chain[-1]], float))
     step_cov = np.linalg.inv(step_information)
-    cov = np.zeros((6, 6))
-    for k in chain[1:]:  # the step into k is seen from the last keyframe through Ad(last^-1 k)
-        A = _adjoint(last_inv @ np.asarray(world_from_kf[k], float))
-        cov += A @ step_cov @ A.T
+    # the step into k is seen from the last keyframe through Ad(last^-1 k); all steps at once (issue 33:
+    # a loop's chain spans the map)
+    T = last_inv @ np.stack([np.asarray(world_from_kf[k], float) for k in chain[1:]]).reshape(-1, 4, 4)
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    skew = np.zeros_like(R)
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = t[:, 2], -t[:, 1], t[:, 0]
+    A = np.zeros((T.shape[0], 6, 6))
+    A[:, :3, :3] = R
+    A[:, 3:, 3:] = R
+    A[:, 3:, :3] = skew @ R
+    cov = np.einsum("nij,jk,nlk->il", A, step_cov, A)
     return positive_definite_information(np.asarray(np.linalg.inv(0.5 * (cov + cov.T)), dtype=np.float64))
 
 
@@ -873,3 +871,102 @@ def keyframe_loop_inliers(
     )
     res = robust_optimize(graph, probability=probability)
     return res.inlier[len(odometry) :], res
+
+
+#: a loop edge counts as this many keyframe steps of odometry on a bridge (:func:`nearest_loops`): its
+#: sigmas (loop.robust_loop_sigma_*, 1 deg and 3 cm) are those of about one step (1 deg and 2 cm)
+LOOP_STEPS = 1
+
+
+def _steps_from(start: int, nodes: Sequence[int], loops: Sequence[tuple[int, int, F64]]) -> dict[int, int]:
+    """Fewest keyframe steps from ``start`` to every node: along the chain (the id gap) or over a loop."""
+    nbrs: dict[int, list[tuple[int, int]]] = {k: [] for k in nodes}
+    for a, b in zip(nodes[:-1], nodes[1:], strict=True):
+        nbrs[a].append((b, b - a))
+        nbrs[b].append((a, b - a))
+    for a, b, _ in loops:
+        nbrs[int(a)].append((int(b), LOOP_STEPS))
+        nbrs[int(b)].append((int(a), LOOP_STEPS))
+    dist = {start: 0}
+    heap = [(0, start)]
+    while heap:
+        d, k = heapq.heappop(heap)
+        if d > dist[k]:
+            continue
+        for j, w in nbrs[k]:
+            if d + w < dist.get(j, d + w + 1):
+                dist[j] = d + w
+                heapq.heappush(heap, (d + w, j))
+    return dist
+
+
+def nearest_loops(
+    loops: Sequence[tuple[int, int, F64]], lo: int, hi: int, max_loops: int | None
+) -> list[tuple[int, int, F64]]:
+    """The ``max_loops`` loops ``(kf_a, kf_b, kf_a_from_kf_b)`` on the shortest bridges of keyframes ``lo`` -> ``hi``.
+
+    A loop's bridge is the shortest path lo -> a -> (the loop) -> b -> hi through the keyframe chain
+    (one step per keyframe) and the other loops (``LOOP_STEPS`` each): the fewer steps, the smaller
+    the covariance the odometry and the loops put on ``hi_from_lo``, the more the loop says about a
+    new loop between ``lo`` and ``hi``. Ties go to the later loop. All loops (in their order) when
+    there are at most ``max_loops`` or it is None; else the chosen ones in their order.
+    """
+    if max_loops is None or len(loops) <= max_loops:
+        return list(loops)
+    nodes = sorted({lo, hi} | {int(k) for a, b, _ in loops for k in (a, b)})
+    d_lo, d_hi = _steps_from(lo, nodes, loops), _steps_from(hi, nodes, loops)
+    steps = [min(d_lo[int(a)] + d_hi[int(b)], d_lo[int(b)] + d_hi[int(a)]) for a, b, _ in loops]
+    order = sorted(range(len(loops)), key=lambda i: (steps[i], -i))
+    return [loops[i] for i in sorted(order[:max_loops])]
+
+
+@dataclass(frozen=True)
+class GateSigmas:
+    """The keyframe gate's noise: per keyframe step of odometry and per loop (degrees, metres)."""
+
+    odometry_deg: float
+    odometry_m: float
+    loop_deg: float
+    loop_m: float
+
+
+def gate_keyframe_loop(
+    world_from_kf: Mapping[int, F64],
+    chain: Sequence[int],
+    earlier: Sequence[tuple[int, int, F64]],
+    loop: tuple[int, int, F64],
+    sigmas: GateSigmas,
+    probability: float = 0.99,
+    max_loops: int | None = None,
+) -> tuple[bool, PoseGraphResult, int]:
+    """Whether a new loop agrees with the odometry and the earlier loops (:func:`keyframe_loop_inliers`).
+
+    ``chain``: the connected keyframes from the loop's older keyframe to its newer one, in order
+    (``world_from_kf`` holds their 4x4 poses, metres); ``earlier``: loops accepted before,
+    ``(kf_a, kf_b, kf_a_from_kf_b)`` (camera frames); ``loop``: the new one. Only the loops with
+    both ends in the chain take part, at most ``max_loops`` of them (:func:`nearest_loops`: the
+    gate's cost then stays bounded as loops accumulate). Only the loops' keyframes are nodes; the
+    chain between two of them is one odometry edge of the chain's information
+    (:func:`chain_information`: its inner poses marginalised, nothing else touches them). Returns
+    the new loop's verdict, the solve and how many earlier loops took part.
+    """
+    at = {int(k): i for i, k in enumerate(chain)}
+    lo, hi = int(chain[0]), int(chain[-1])
+    inside = [lp for lp in earlier if lp[0] in at and lp[1] in at]
+    chosen = nearest_loops(inside, lo, hi, max_loops) + [loop]
+    nodes = sorted({lo, hi} | {int(k) for a, b, _ in chosen for k in (a, b)})
+    world = {k: np.asarray(world_from_kf[k], float) for k in nodes}
+    step = pose_information(sigmas.odometry_deg, sigmas.odometry_m)
+    links = list(zip(nodes[:-1], nodes[1:], strict=True))
+    inlier, res = keyframe_loop_inliers(
+        world,
+        links,
+        chosen,
+        sigmas.odometry_deg,
+        sigmas.odometry_m,
+        sigmas.loop_deg,
+        sigmas.loop_m,
+        probability,
+        [chain_information(world_from_kf, chain[at[a] : at[b] + 1], step) for a, b in links],
+    )
+    return bool(inlier[-1]), res, len(chosen) - 1

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from loopmodel.backend.robust_posegraph import chain_information, keyframe_loop_inliers, pose_information
+from loopmodel.backend.robust_posegraph import GateSigmas, gate_keyframe_loop, keyframe_loop_inliers
 from loopmodel.config import LoopConfig
 from loopmodel.errors import LoopmodelError
 from loopmodel.geometry.se3 import invert_pose, so3_log
@@ -249,8 +249,9 @@ class LoopClosingStage:
         self._rerun: LoopClosure | None = None
         #: records of the last outcome's constraints, completed from the next MapState
         self._awaiting: list[dict[str, Any]] = []
-        #: loops the robust gate accepted (they join later gates' pose graphs)
-        self._gated: list[LoopClosure] = []
+        #: loops the robust gate accepted, ``(query_kf, match_kf, kf_query_from_kf_match)`` (left camera
+        #: frames; they join later gates' pose graphs)
+        self._gated: list[tuple[int, int, F64]] = []
         #: Place recognition and verification in a worker (``detection_worker``); in the
         #: process variant the database lives there and ``self.closer`` keeps only the
         #: keyframes' images and landmarks (KLT stage, corrections)
@@ -720,8 +721,9 @@ class LoopClosingStage:
         """GNC-TLS on the keyframe pose graph from the loop's old keyframe to the current one.
 
         Edges: the current relative poses of consecutive connected keyframes (known inliers), the
-        loops accepted before and this one; only the loops' keyframes are nodes, each chain between
-        two of them one odometry edge of the chain's information (:func:`chain_information`). False
+        loops accepted before (at most ``loop.robust_max_loops``: those that leave the least odometry
+        between this loop's keyframes) and this one; only the loops' keyframes are nodes, each chain
+        between two of them one odometry edge of the chain's information (:func:`gate_keyframe_loop`). False
         when this loop is an outlier (it is then kept in ``rejected``, with the reason). A window
         that a new segment (unconnected keyframe) breaks is not gated. ``keyframes``: the stage's
         keyframe table or a copy of it (the apply worker's).
@@ -736,35 +738,28 @@ class LoopClosingStage:
         if not all(kfs[k].connected for k in ids[1:]):
             return True
         cfg = self.config
-        loops = [
-            (c.query_kf, c.match_kf, self._cam_from_cam(c, kfs))
-            for c in self._gated
-            if lo <= c.match_kf and c.query_kf <= hi and c.query_kf in kfs and c.match_kf in kfs
-        ]
-        loops.append((hi, lo, self._cam_from_cam(closure, kfs)))
+        earlier = [g for g in self._gated if lo <= g[1] and g[0] <= hi and g[0] in kfs and g[1] in kfs]
+        loop = (hi, lo, self._cam_from_cam(closure, kfs))
         t0 = time.perf_counter()
-        world = {k: np.asarray(world_from_kf[k], float) for k in ids}
-        # issue 33: only the loops' keyframes are nodes; the chain between two of them is one odometry
-        # edge of the chain's information (its inner poses marginalised: nothing else touches them)
-        at = {k: i for i, k in enumerate(ids)}
-        loops = [lp for lp in loops if lp[0] in at and lp[1] in at]
-        nodes = sorted({lo, hi} | {k for a, b, _ in loops for k in (a, b)})
-        step = pose_information(cfg.robust_odometry_sigma_deg, cfg.robust_odometry_sigma_m)
-        links = list(zip(nodes[:-1], nodes[1:], strict=True))
-        inlier, res = keyframe_loop_inliers(
-            {k: world[k] for k in nodes},
-            links,
-            loops,
+        sigmas = GateSigmas(
             cfg.robust_odometry_sigma_deg,
             cfg.robust_odometry_sigma_m,
             cfg.robust_loop_sigma_deg,
             cfg.robust_loop_sigma_m,
+        )
+        accepted, res, n_loops = gate_keyframe_loop(
+            world_from_kf,
+            ids,
+            earlier,
+            loop,
+            sigmas,
             cfg.robust_probability,
-            [chain_information(world, ids[at[a] : at[b] + 1], step) for a, b in links],
+            cfg.robust_max_loops or None,
         )
         gate_ms = (time.perf_counter() - t0) * 1e3
-        if bool(inlier[-1]):
-            self._gated.append(closure)
+        closure.info["robust_gate_loops"] = n_loops
+        if accepted:
+            self._gated.append(loop)
             closure.info["robust_gate_ms"] = gate_ms
             return True
         # (by identity, in place: the detection thread may append meanwhile)
