@@ -1,4 +1,4 @@
-"""Compiled kernels of the signed-distance surface (:func:`loopmodel.mapping.meshing.sdf_surface`; numba, GIL released).
+"""Compiled kernels of the signed-distance surface (``mapping.method: sdf``; numba, GIL released).
 
 The signed distance is sampled at the corners of a grid of cell ``h`` (metres, world frame): corner
 ``(i, j, k)`` is at ``origin + h * (i, j, k)``. Only blocks of ``B^3`` corners near a sample are stored:
@@ -6,13 +6,15 @@ The signed distance is sampled at the corners of a grid of cell ``h`` (metres, w
 shape (blocks, ``B^3``), or -1. Corner ``(i, j, k)`` is entry ``((i & 7) * B + (j & 7)) * B + (k & 7)`` of its slot.
 
 - :func:`mark_blocks` makes ``bmap`` (blocks within ``reach_m`` of a sample);
-- :func:`splat` adds each oriented sample's signed distance to its tangent plane, ``n . (x - p)``,
-  with a Gaussian weight of the distance ``|x - p|``, into every corner within ``reach_m`` (an
-  implicit moving least-squares surface: Hoppe et al. 1992, Kolluri 2008);
-- :func:`surface_nets` extracts the zero set of the weighted mean over corners of enough weight: one
-  vertex per cell the surface crosses (the mean of its edges' linear zero crossings, then one Newton step
-  of the cell's trilinear field towards zero), two triangles per crossed edge, oriented so that their
-  normals point to the positive (sensor) side.
+- :func:`splat` adds each oriented sample, with a Gaussian weight of its distance ``|x - p|``, to the sums
+  of every corner within ``reach_m``; :func:`corner_values` turns them into the signed distance: the mean
+  of the distance to the samples' tangent planes ``<n . (x - p)>`` and to the plane of the mean normal
+  through the weighted centroid (an implicit moving least-squares surface: Hoppe et al. 1992, Kolluri 2008);
+- :func:`vertices` and :func:`faces` extract its zero set over corners of enough weight (surface nets):
+  one vertex per cell the surface crosses, two triangles per crossed edge, oriented so that their
+  normals point to the positive (sensor) side; :func:`project` moves each vertex by Newton steps onto the
+  field evaluated at it;
+- :func:`component_areas` gives each triangle the area of its vertex-connected piece (small pieces dropped).
 """
 
 from __future__ import annotations

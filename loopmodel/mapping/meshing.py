@@ -88,12 +88,17 @@ def _poisson(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geome
     remove = np.zeros(dens.shape[0], dtype=bool)
     if config.density_quantile > 0:
         remove |= dens < np.quantile(dens, config.density_quantile)
-    trim = config.trim_distance_m or 2.5 * config.voxel_m
-    verts = o3d.geometry.PointCloud(mesh.vertices)
-    dist = np.asarray(verts.compute_point_cloud_distance(cloud))
-    remove |= dist > trim
-    mesh.remove_vertices_by_mask(remove)  # type: ignore[arg-type]
+    mesh.remove_vertices_by_mask(remove | _far_from_samples(mesh, cloud, config))  # type: ignore[arg-type]
     return mesh
+
+
+def _far_from_samples(
+    mesh: o3d.geometry.TriangleMesh, cloud: o3d.geometry.PointCloud, config: MappingConfig
+) -> np.ndarray:
+    """Per vertex: farther than ``trim_distance_m`` (0: 2.5 ``voxel_m``) from every sample (both surfaces' trim)."""
+    trim = config.trim_distance_m or 2.5 * config.voxel_m
+    dist = np.asarray(o3d.geometry.PointCloud(mesh.vertices).compute_point_cloud_distance(cloud))
+    return dist > trim
 
 
 def preload_kernels() -> None:
@@ -148,9 +153,7 @@ def _sdf(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.
     )
     if len(mesh.vertices) == 0:
         return mesh
-    trim = config.trim_distance_m or 2.5 * config.voxel_m
-    dist = np.asarray(o3d.geometry.PointCloud(mesh.vertices).compute_point_cloud_distance(cloud))
-    mesh.remove_vertices_by_mask(dist > trim)  # type: ignore[arg-type]
+    mesh.remove_vertices_by_mask(_far_from_samples(mesh, cloud, config))  # type: ignore[arg-type]
     if config.sdf_min_component_cells > 0 and len(mesh.triangles):
         # a lone sample (a stray laser peak) makes a small disc of its own; Poisson's density trim drops those
         area = k.component_areas(np.asarray(mesh.vertices), np.asarray(mesh.triangles).astype(np.int64))
