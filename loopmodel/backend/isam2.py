@@ -145,6 +145,7 @@ class Isam2Backend:
         self._pending: dict[int, list[_Obs]] = {}
         self._pending_buckets: dict[int, list[int]] = {}  # keyframe seq -> pending landmark ids
         self._kf_seq: dict[int, int] = {}
+        self._xkey: dict[int, int] = {}  # kf id -> X(kf id)
         self._kf_order: list[int] = []
         self._pose_guess: dict[int, F64] = {}
         self._body: dict[int, F64] = {}  # kf id -> rect_from_cam
@@ -290,35 +291,44 @@ class Isam2Backend:
         """The factor of observation ``obs`` of the landmark variable ``landmark_key`` (a gtsam key)."""
         extra = self._body_pose.get(obs.kf_id, ())
         px = obs.px
+        pose_key = self._xkey[obs.kf_id]  # X(kf_id), made once a keyframe (be17)
         if obs.stereo:
             sp = gtsam.StereoPoint2(px[0], px[1], px[2])
-            return gtsam.GenericStereoFactor3D(
-                sp, self._stereo_noise, X(obs.kf_id), landmark_key, self._cal_stereo, *extra
-            )
+            return gtsam.GenericStereoFactor3D(sp, self._stereo_noise, pose_key, landmark_key, self._cal_stereo, *extra)
         return gtsam.GenericProjectionFactorCal3_S2(
-            np.array(px[:2]), self._mono_noise, X(obs.kf_id), landmark_key, self._cal_mono, *extra
+            np.array(px[:2]), self._mono_noise, pose_key, landmark_key, self._cal_mono, *extra
         )
 
     def _add_obs(
         self, obs: _Obs, lkey: int, lm_id: int, graph: gtsam.NonlinearFactorGraph, outside: bool = False
     ) -> None:
         key = (obs.kf_id, lm_id)
-        if key in self._obs_fid:  # the same observation twice: keep the first
+        obs_fid = self._obs_fid
+        if key in obs_fid:  # the same observation twice: keep the first
             return
         kind: FactorKind = "stereo" if obs.stereo else "mono"
-        revisit = not outside and self._revisit(obs, lkey)
+        landmark = self._landmarks[lkey]
+        # _revisit inlined (this runs for every observation entering the graph, be17)
+        revisit = (
+            not outside
+            and self._windowed
+            and self._kf_seq[obs.kf_id] - landmark.first_seq > self.config.local_window_kf
+        )
         if outside or revisit:  # over the keyframe's budget, or a revisit: joins at the final estimate
             # its factor is made then (what waits outside iSAM2 costs the keyframe little, be16)
             rec = _FactorRecord(None, kind, lkey, key, partial(self._obs_factor, obs, L(lkey)))
             fid = self._new_fid(rec, outside=True)
             if revisit and self._proxy_room(obs.kf_id):  # through a proxy: ties the keyframe to the old map
                 self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
-        else:
+        else:  # _new_fid inlined
             factor = self._obs_factor(obs, L(lkey))
-            fid = self._new_fid(_FactorRecord(factor, kind, lkey, key))
+            fid = self._next_fid
+            self._next_fid = fid + 1
+            self._factors[fid] = _FactorRecord(factor, kind, lkey, key)
+            self._batch.append(fid)
             graph.add(factor)
-        self._obs_fid[key] = fid
-        self._landmarks[lkey].fids.add(fid)
+        obs_fid[key] = fid
+        landmark.fids.add(fid)
 
     def _isam_update(self, *args: Any, **kwargs: Any) -> Any:
         """``self._isam.update(...)``; what :meth:`estimate` reads has changed (``_updated``)."""
@@ -565,7 +575,7 @@ class Isam2Backend:
         self._next_lkey += 1
         self._landmarks[lkey] = _Landmark(lm, min(self._kf_seq[o.kf_id] for o in obs))
         self._lm_current[lm] = lkey
-        values.insert(L(lkey), gtsam.Point3(float(point[0]), float(point[1]), float(point[2])))
+        values.insertPoint3(L(lkey), np.asarray(point, dtype=float))  # no overload resolution (be17)
         for o in obs:
             self._add_obs(o, lkey, lm, graph)
         del self._pending[lm]
@@ -644,6 +654,7 @@ class Isam2Backend:
         self._note_frontend_info(kf_id, keyframe.ba_info)
         self._before_keyframe()
         self._kf_seq[kf_id] = len(self._kf_seq)
+        self._xkey[kf_id] = X(kf_id)
         self._kf_order.append(kf_id)
         prev = keyframe.prev_keyframe_id
         if keyframe.connected and prev is not None and int(prev) in self._kf_seq:
@@ -689,10 +700,7 @@ class Isam2Backend:
         report.rejected_observations += self._observe_mono(kf_id, keyframe.mono_obs, graph, candidates)
         report.new_landmarks = self._create_landmarks(candidates, graph, values)
         self._prune_pending(seq)
-        linked = sum(
-            1 for f in self._batch if (r := self._factors[f]).obs is not None and r.obs[0] == kf_id or r.kind == "proxy"
-        )
-        if linked < 3 and not (first or not keyframe.connected):
+        if not (first or not keyframe.connected) and not self._linked(kf_id, 3):
             # too few observations determine this pose: a loose prior keeps the system solvable
             self._add_prior(kf_id, T, False, graph)
         report.new_factors = graph.size()
@@ -705,6 +713,20 @@ class Isam2Backend:
         report.pending_landmarks = len(self._pending)
         report.update_ms = (time.perf_counter() - t0) * 1e3
         return report
+
+    def _linked(self, kf_id: int, n: int) -> bool:
+        """Whether the factors recorded for the next update hold ``n`` observations of keyframe ``kf_id``.
+
+        Proxy factors count (they tie it to the old map); stops at the ``n``-th (be17: not the whole batch).
+        """
+        factors, found = self._factors, 0
+        for f in self._batch:
+            r = factors[f]
+            if r.obs is not None and r.obs[0] == kf_id or r.kind == "proxy":
+                found += 1
+                if found >= n:
+                    return True
+        return False
 
     def _note_frontend_info(self, kf_id: int, ba_info: dict[str, float]) -> None:
         """Keep the front end's pose residual sigma (px) and the disparity offset (px) it applied to ``kf_id``."""
