@@ -81,6 +81,7 @@ class _FactorRecord:
     lkey: int = -1  # internal landmark index, or -1
     obs: Observation | None = None
     build: Callable[[], gtsam.NonlinearFactor] | None = None  # makes ``made`` on first use
+    key_tuple: tuple[int, ...] | None = None  # the factor's gtsam keys, once known
 
     @property
     def factor(self) -> gtsam.NonlinearFactor:
@@ -89,6 +90,12 @@ class _FactorRecord:
             assert self.build is not None
             self.made, self.build = self.build(), None
         return self.made
+
+    def keys(self) -> tuple[int, ...]:
+        """The factor's gtsam keys (an observation's are known when it is recorded: no call into GTSAM, be17)."""
+        if self.key_tuple is None:
+            self.key_tuple = tuple(self.factor.keys())
+        return self.key_tuple
 
 
 @dataclass
@@ -259,7 +266,7 @@ class Isam2Backend:
         """Initial values of the variables still in the graph (for a batch solution)."""
         keys: set[int] = set()
         for rec in self._factors.values():
-            keys.update(rec.factor.keys())
+            keys.update(rec.keys())
         out = gtsam.Values()
         for key in keys:
             if gtsam.Symbol(key).chr() == ord("x"):
@@ -314,17 +321,19 @@ class Isam2Backend:
             and self._windowed
             and self._kf_seq[obs.kf_id] - landmark.first_seq > self.config.local_window_kf
         )
+        landmark_key = L(lkey)
+        keys = (self._xkey[obs.kf_id], landmark_key)  # as the factor names them
         if outside or revisit:  # over the keyframe's budget, or a revisit: joins at the final estimate
             # its factor is made then (what waits outside iSAM2 costs the keyframe little, be16)
-            rec = _FactorRecord(None, kind, lkey, key, partial(self._obs_factor, obs, L(lkey)))
+            rec = _FactorRecord(None, kind, lkey, key, partial(self._obs_factor, obs, landmark_key), keys)
             fid = self._new_fid(rec, outside=True)
             if revisit and self._proxy_room(obs.kf_id):  # through a proxy: ties the keyframe to the old map
                 self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
         else:  # _new_fid inlined
-            factor = self._obs_factor(obs, L(lkey))
+            factor = self._obs_factor(obs, landmark_key)
             fid = self._next_fid
             self._next_fid = fid + 1
-            self._factors[fid] = _FactorRecord(factor, kind, lkey, key)
+            self._factors[fid] = _FactorRecord(factor, kind, lkey, key, None, keys)
             self._batch.append(fid)
             graph.add(factor)
         obs_fid[key] = fid
@@ -974,7 +983,7 @@ class Isam2Backend:
             keys: set[int] = set()
             for fid, rec in self._factors.items():
                 if fid not in self._outside:
-                    keys.update(rec.factor.keys())
+                    keys.update(rec.keys())
             for kf in self._kf_seq:  # a keyframe left without factors keeps a loose prior
                 if X(kf) not in keys:
                     src = theta if theta.exists(X(kf)) else self._theta0
@@ -1583,7 +1592,7 @@ class Isam2Backend:
         theta = self._isam.calculateEstimate()
         free = {X(k) for k in self._kf_order[-keep:]}
         is_pose = _is_pose_key
-        keys_of = {fid: self._factors[fid].factor.keys() for fid in self._slot}
+        keys_of = {fid: self._factors[fid].keys() for fid in self._slot}
         kept_vars = set(free)
         for keys in keys_of.values():
             if not free.isdisjoint(keys):
@@ -1608,14 +1617,15 @@ class Isam2Backend:
         for key in sorted(in_graph - free):
             if is_pose(key):
                 fids.append(self._hold(key, theta.atPose3(key), graph))
-        values = gtsam.Values()
+        # theta split by copies and erasures (no value through Python, be17): iSAM2's part, the rest frozen
+        values, out = gtsam.Values(theta), gtsam.Values(theta)
         for key in theta.keys():
-            value = theta.atPose3(key) if is_pose(key) else theta.atPoint3(key)
             if key in in_graph:
-                values.insert(key, value)
+                out.erase(key)
             else:
-                self._frozen.insert(key, value)
+                values.erase(key)
                 self._frozen_keys.add(key)
+        self._frozen.insert(out)
         self._new_isam()
         self._slot.clear()
         self._rebuilt_at = len(self._kf_order)
@@ -1641,15 +1651,13 @@ class Isam2Backend:
             del self._factors[fid]
         self._proxy.clear()
         self._proxy_fids.clear()
-        values = gtsam.Values()
         keys: set[int] = set()
         for rec in self._factors.values():
-            keys.update(rec.factor.keys())
-        for key in keys:
-            if gtsam.Symbol(key).chr() == ord("x"):
-                values.insert(key, theta.atPose3(key))
-            else:
-                values.insert(key, theta.atPoint3(key))
+            keys.update(rec.keys())
+        values = gtsam.Values(theta)  # the variables the factors name, at the estimate (be17: erasures)
+        for key in theta.keys():
+            if key not in keys:
+                values.erase(key)
         self._windowed = False
         self._outside.clear()
         self._estimate_all = True
