@@ -389,7 +389,7 @@ class FrontEnd:
         """Load (or compile) the front end's compiled kernels now, not in a frame (issue 33).
 
         The stereo scan, the affine re-measurement, the pose's point term, the local BA's loop (and the
-        shared tracks' kernel when on): 0.1 s of CPU from numba's cache on the KITTI clip's machine.
+        shared tracks' kernel when on): 0.11-0.13 s of CPU from numba's cache in a KITTI clip run (cpu17).
         """
         from loopmodel.frontend._ba_kernels import warm_up as warm_up_ba
         from loopmodel.frontend._stereo_kernels import warm_up as warm_up_stereo
