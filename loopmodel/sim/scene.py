@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
-from scipy.interpolate import PchipInterpolator
 
 from loopmodel.sim.texture import make_texture
 
@@ -158,6 +157,8 @@ def _bust(height: float, rng: np.random.Generator) -> tuple[F64, NDArray[np.int3
     nz, nphi = 220, 240
     # denser rings where the profile bends: parametrise by arc length of the profile
     zz = np.linspace(0, 1, 2000)
+    from scipy.interpolate import PchipInterpolator  # here: render workers never import scipy
+
     rx_f, ry_f = PchipInterpolator(key[:, 0], key[:, 1]), PchipInterpolator(key[:, 0], key[:, 2])
     ds = np.hypot(np.gradient(zz), np.gradient(0.5 * (rx_f(zz) + ry_f(zz))))
     s = np.concatenate([[0.0], np.cumsum(0.5 * (ds[1:] + ds[:-1]))])
