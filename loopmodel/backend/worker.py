@@ -281,6 +281,8 @@ class BackgroundBackend:
         self.kind = kind
         #: the library the worker process preloads as its allocator (``BackendConfig.worker_allocator``), if any
         self.allocator_library = allocator_preload(allocator) if kind == "process" else None
+        if kind == "process" and allocator != "system" and self.allocator_library is None:
+            logger.info("back-end worker on the system allocator: %s not installed (Debian: libjemalloc2)", allocator)
         if kind == "process":
             ctx = mp.get_context("spawn")
             self._inbox: Any = ctx.Queue()
