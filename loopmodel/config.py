@@ -250,6 +250,16 @@ class BackendConfig(_Section):
     # 10, final ATE 0.0251 -> 0.0215-0.0228 m, drift after the constant-rate segment 0.547 -> 0.566-0.654 %
     # (frame median 72.8 -> 51.2 ms, p95 139.1 -> 132.4 ms). CHANGELOG (kf12)
     worker_nice: int = Field(0, ge=0, le=19, description="lower the worker's update thread's priority by this")
+    # issue 33 item 5 (be17): with glibc's allocator the iSAM2 update's CPU per re-eliminated variable
+    # doubles over the long scan (rounds_5400 call stream replayed: 14 -> 38 us at the same Bayes-tree
+    # size and density); with jemalloc it stays 13-15 us. Replays (rounds_1800 / rounds_5400, load ~5):
+    # back-end CPU 3.18 -> 2.26 s / 13.7 -> 7.8 s, last block / first 1.87 -> 1.65 / 3.62 -> 2.54, estimates
+    # bit-identical. Only the worker process; without the library (Debian: libjemalloc2) the system's.
+    # bench pipeline with it: the KITTI clip (configs/kitti.yaml) and the 600-frame sample (configs/sim.yaml)
+    # identical (final ATE 0.0251 m / 0.76 mm, online 0.0758 m / 10.69 mm) (CHANGELOG be17)
+    worker_allocator: Literal["system", "jemalloc"] = Field(
+        "jemalloc", description="process worker: its memory allocator (jemalloc when installed, else the system's)"
+    )
 
 
 class FrontendConfig(_Section):

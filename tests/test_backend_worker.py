@@ -219,3 +219,26 @@ def test_a_worker_process_freezes_each_batchs_survivors_out_of_the_collector() -
             assert (frozen >= 1000) if freeze else (frozen == 0), (freeze, frozen)
     finally:
         gc.unfreeze()
+
+
+def test_the_worker_process_runs_on_jemalloc_when_it_is_installed() -> None:
+    """``worker_allocator: jemalloc`` preloads the library in the worker process only (be17)."""
+    import functools
+    import os
+
+    from loopmodel.backend.worker import allocator_preload
+
+    assert allocator_preload("system") is None
+    library = allocator_preload("jemalloc")
+    if library is None:
+        pytest.skip("libjemalloc2 is not installed")
+    before = os.environ.get("LD_PRELOAD")
+    bb = BackgroundBackend(functools.partial(create_backend, BackendConfig()), "process", allocator="jemalloc")
+    try:
+        bb.wait_started(60.0)
+        maps = Path(f"/proc/{bb._worker.pid}/maps").read_text()
+        assert "libjemalloc" in maps  # the worker's allocator
+        assert os.environ.get("LD_PRELOAD") == before  # this process's environment as it was
+        assert "libjemalloc" not in Path("/proc/self/maps").read_text()
+    finally:
+        bb.close()

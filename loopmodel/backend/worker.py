@@ -17,15 +17,18 @@ keyframe: the back end starts from the pose a waiting pipeline would have given 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import gc
 import logging
 import multiprocessing as mp
+import os
 import queue
 import signal
+import sys
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Literal
 
@@ -60,7 +63,50 @@ def start_backend(config: BackendConfig, factory: Callable[[], Backend]) -> Back
         # a daemonic process (a Dask or pool worker running this run) may not start children
         logger.info("back end in a thread: this process is a daemon and cannot start a worker process")
         worker = "thread"
-    return BackgroundBackend(factory, worker, config.worker_nice)
+    return BackgroundBackend(factory, worker, config.worker_nice, config.worker_allocator)
+
+
+#: where Debian/Ubuntu and other distributions put jemalloc's shared library
+_JEMALLOC_DIRS = (
+    "/usr/lib/x86_64-linux-gnu",
+    "/lib/x86_64-linux-gnu",
+    "/usr/lib/aarch64-linux-gnu",
+    "/usr/lib64",
+    "/usr/lib",
+)
+
+
+def allocator_preload(allocator: str) -> str | None:
+    """The shared library a worker process should preload for ``allocator`` (``LD_PRELOAD``), if installed.
+
+    ``jemalloc``: glibc's allocator makes the iSAM2 update's cost per variable grow with the run's
+    length (the heap's fragmentation, be17); jemalloc keeps it flat. None for ``system`` or when the
+    library is missing (the worker then uses the system's).
+    """
+    if allocator != "jemalloc" or not sys.platform.startswith("linux"):
+        return None
+    for d in _JEMALLOC_DIRS:
+        path = os.path.join(d, "libjemalloc.so.2")
+        if os.path.exists(path):
+            return path
+    return None
+
+
+@contextlib.contextmanager
+def _preloaded(library: str | None) -> Iterator[None]:
+    """``LD_PRELOAD`` with ``library`` first while a (spawned) worker process starts; restored after."""
+    if library is None:
+        yield
+        return
+    before = os.environ.get("LD_PRELOAD")
+    os.environ["LD_PRELOAD"] = library if not before else f"{library}:{before}"
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("LD_PRELOAD", None)
+        else:
+            os.environ["LD_PRELOAD"] = before
 
 
 # --------------------------------------------------------------------------- the worker's side
@@ -229,8 +275,14 @@ class BackgroundBackend:
     ``functools.partial`` of :func:`loopmodel.backend.create_backend`).
     """
 
-    def __init__(self, factory: Callable[[], Backend], kind: WorkerKind = "process", nice: int = 0) -> None:
+    def __init__(
+        self, factory: Callable[[], Backend], kind: WorkerKind = "process", nice: int = 0, allocator: str = "system"
+    ) -> None:
         self.kind = kind
+        #: the library the worker process preloads as its allocator (``BackendConfig.worker_allocator``), if any
+        self.allocator_library = allocator_preload(allocator) if kind == "process" else None
+        if kind == "process" and allocator != "system" and self.allocator_library is None:
+            logger.info("back-end worker on the system allocator: %s not installed (Debian: libjemalloc2)", allocator)
         if kind == "process":
             ctx = mp.get_context("spawn")
             self._inbox: Any = ctx.Queue()
@@ -249,7 +301,8 @@ class BackgroundBackend:
             self._worker = threading.Thread(
                 target=_serve, args=(factory, self._inbox, self._outbox, nice), name="loopmodel-backend", daemon=True
             )
-        self._worker.start()
+        with _preloaded(self.allocator_library):
+            self._worker.start()
         #: the pose the pipeline holds of every keyframe sent (as sent, then as corrected by us)
         self._known: dict[int, F64] = {}
         self._order: list[int] = []  # keyframes in the order sent
