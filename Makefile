@@ -24,6 +24,17 @@ syslibs:
 	    echo "error: open3d needs the Debian package libusb-1.0-0; install it: sudo apt-get install libusb-1.0-0"; exit 1; \
 	  fi; \
 	fi
+	@# the back end's worker process runs on jemalloc when it is installed (backend.worker_allocator; optional)
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libjemalloc.so.2'; then \
+	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	    echo "installing libjemalloc2 (the back-end worker's allocator)"; \
+	    (apt-get install -y -q libjemalloc2 >/dev/null 2>&1 || \
+	     (apt-get update -q >/dev/null && apt-get install -y -q libjemalloc2 >/dev/null)) || \
+	     echo "note: could not install libjemalloc2: the back-end worker uses the system allocator"; \
+	  else \
+	    echo "note: the back-end worker is faster on jemalloc: sudo apt-get install libjemalloc2"; \
+	  fi; \
+	fi
 
 # Headless rerun screenshots (tools/screenshot_rerun.sh, tests/test_viz.py): a virtual X server
 # and Mesa's CPU Vulkan driver. Optional: the test is skipped without them.
