@@ -763,8 +763,10 @@ class _Run:
         if refine is not None and self.config.calibration.refine != "none" and self.localizer is None:
             # the calibrating bundle adjustment re-solves every keyframe and landmark: the batch BA
             # before it changes nothing (calib6: KITTI clip and 150-frame orbit bit-identical results,
-            # the finish 0.6 s / 2.4 s shorter at load 20-22)
-            refine = refine.model_copy(update={"batch_ba": False})
+            # the finish 0.6 s / 2.4 s shorter at load 20-22), nor do iSAM2's extra relinearising
+            # updates (fin17: 33.5 s CPU of the 349-keyframe scale scan's finish, keyframes moved by
+            # 0.06 mm at most; CHANGELOG fin17)
+            refine = refine.model_copy(update={"batch_ba": False, "extra_iterations": 0})
         try:
             estimate = self.backend.final_estimate(refine)
             if self.localizer is None:  # a localization's poses are the tracker's, corrected into the map

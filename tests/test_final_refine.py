@@ -212,3 +212,51 @@ def test_batch_refine_stops_when_an_iteration_gains_less_than_the_given_sd(rng: 
     n_early = backend.refine_info["refine_iterations"]
     assert n_early < n_full, (n_early, n_full)
     assert early < 1.02 * full, (early, full)
+
+
+def test_final_estimate_makes_at_most_extra_iterations_relinearising_updates(rng: np.random.Generator) -> None:
+    """fin17: ``refine.extra_iterations`` bounds iSAM2's extra updates; 0 (before the calibrating BA) makes none."""
+    from loopmodel.config import RefineConfig
+
+    poses, pts = scene(rng)
+    kfs = keyframes(rng, poses, pts)
+    calls: list[int] = []
+    for n in (0, 3):
+        backend = Isam2Backend(calibration(), exact_config())
+        for kf in kfs:
+            backend.add_keyframe(kf)
+        inner = backend.refine
+
+        def counted(max_iterations: int = 10, inner=inner) -> int:  # type: ignore[no-untyped-def]
+            calls.append(max_iterations)
+            return inner(max_iterations)
+
+        backend.refine = counted  # type: ignore[method-assign]
+        est = backend.final_estimate(RefineConfig(batch_ba=False, extra_iterations=n, distribute_loops=False))
+        assert set(est.world_from_kf) == {kf.id for kf in kfs}
+    assert calls == [3]
+
+
+def test_the_pipeline_makes_no_extra_iterations_before_the_calibrating_ba() -> None:
+    """The refine section the back end's final estimate gets with and without ``calibration.refine: final``."""
+    from types import SimpleNamespace
+
+    from loopmodel.config import Config
+    from loopmodel.pipeline import _Run
+
+    asked: list = []
+
+    class _Backend:
+        def final_estimate(self, refine):  # type: ignore[no-untyped-def]
+            asked.append(refine)
+            return BackendEstimate({1: np.eye(4)}, np.zeros(0, np.int64), np.zeros((0, 3)), {1})
+
+    for refine in ("final", "none"):
+        config = Config()
+        config.calibration.refine = refine
+        run = SimpleNamespace(keyframes={1: 0}, config=config, localizer=None, backend=_Backend(),
+                              anchored=SimpleNamespace(update_keyframes=lambda poses: None))
+        _Run._final_estimate(run, interrupted=False)  # type: ignore[arg-type]
+    assert (asked[0].extra_iterations, asked[0].batch_ba) == (0, False)
+    default = Config().refine
+    assert (asked[1].extra_iterations, asked[1].batch_ba) == (default.extra_iterations, default.batch_ba)

@@ -652,3 +652,68 @@ def test_restriped_points_keep_their_pixels_and_lie_on_the_plane() -> None:
         np.testing.assert_allclose(px[1], px[0], atol=1e-6)
         np.testing.assert_allclose(after.points_in_cam @ n + d, 0.0, atol=1e-12)
         assert np.max(np.abs(after.points_in_cam - before.points_in_cam)) > 1e-6  # the rigs differ: moved
+
+
+def _loop_terms_one_by_one(R: np.ndarray, t: np.ndarray, loops: list, sigmas: np.ndarray) -> tuple:
+    """The loop block, gradient and cost a loop at a time, by central differences (fin17's reference)."""
+    n = R.shape[0]
+    H, g, cost, w, h = np.zeros((6 * n, 6 * n)), np.zeros(6 * n), 0.0, 1.0 / sigmas, 1e-7
+
+    def residual(Ra, ta, Rb, tb, T):  # type: ignore[no-untyped-def]
+        Rr = T[:3, :3].T @ Ra.T @ Rb
+        return np.concatenate([so3_log(Rr), T[:3, :3].T @ (Ra.T @ (tb - ta) - T[:3, 3])]) * w
+
+    for a, b, T in loops:
+        e = residual(R[a], t[a], R[b], t[b], T)
+        J = np.zeros((6, 12))
+        for k in range(12):
+            which, j = divmod(k, 6)
+            res = []
+            for sgn in (1.0, -1.0):
+                Rs, ts = [R[a].copy(), R[b].copy()], [t[a].copy(), t[b].copy()]
+                ts[which] = ts[which] + Rs[which] @ (sgn * h * np.eye(3)[j - 3]) if j >= 3 else ts[which]
+                Rs[which] = Rs[which] @ so3_exp(sgn * h * np.eye(3)[j]) if j < 3 else Rs[which]
+                res.append(residual(Rs[0], ts[0], Rs[1], ts[1], T))
+            J[:, k] = (res[0] - res[1]) / (2 * h)
+        idx = np.r_[6 * a : 6 * a + 6, 6 * b : 6 * b + 6]
+        H[np.ix_(idx, idx)] += J.T @ J
+        g[idx] += J.T @ e
+        cost += float(e @ e)
+    return H, g, cost
+
+
+def test_loop_terms_at_once_give_them_one_by_one() -> None:
+    """fin17: every loop's residual and numerical Jacobian in one batch, as one loop at a time (poses sharing loops)."""
+    from loopmodel.calibration.refine_rig import RigObservations, loop_terms
+
+    rng = np.random.default_rng(3)
+    n = 12
+    R = np.stack([so3_exp(rng.normal(size=3)) for _ in range(n)])
+    t = rng.normal(size=(n, 3))
+    loops = []
+    for _ in range(30):
+        a, b = (int(i) for i in rng.choice(n, 2, replace=False))
+        T = np.eye(4)
+        T[:3, :3] = R[a].T @ R[b] @ so3_exp(rng.normal(size=3) * 0.02)
+        T[:3, 3] = R[a].T @ (t[b] - t[a]) + rng.normal(size=3) * 0.01
+        loops.append((a, b, T))
+    loops.append((2, 5, np.eye(4)))  # far from agreeing with the poses
+    obs = RigObservations(*[np.zeros(0, np.int64)] * 3, np.zeros((0, 2)), np.zeros((0, 2)))
+    obs.loops, obs.loop_sigmas = loops, np.array([0.01] * 3 + [0.02] * 3)
+    H, g, cost = loop_terms(R, t, obs)
+    H1, g1, cost1 = _loop_terms_one_by_one(R, t, loops, obs.loop_sigmas)
+    np.testing.assert_allclose(H, H1, rtol=0, atol=1e-9 * np.abs(H1).max())
+    np.testing.assert_allclose(g, g1, rtol=0, atol=1e-9 * np.abs(g1).max())
+    assert cost == pytest.approx(cost1, rel=1e-12)
+    assert np.allclose(H, H.T)
+
+
+def test_calibration_covariance_is_the_inverse_s_last_block() -> None:
+    from loopmodel.calibration.refine_rig import calibration_covariance
+
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(40, 40))
+    S = A @ A.T + 40 * np.eye(40)
+    np.testing.assert_allclose(calibration_covariance(S, 7), np.linalg.inv(S)[-7:, -7:], rtol=1e-10, atol=1e-14)
+    singular = np.diag([1.0, 1.0, -1.0])  # not positive definite: by the inverse
+    np.testing.assert_allclose(calibration_covariance(singular, 2), np.linalg.inv(singular)[-2:, -2:])

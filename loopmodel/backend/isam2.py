@@ -1297,14 +1297,15 @@ class Isam2Backend:
     def final_estimate(self, refine: RefineConfig | None) -> BackendEstimate:
         """Extra iSAM2 iterations, then the batch bundle adjustment when ``refine.batch_ba``.
 
-        Extra iterations by :meth:`refine`, the batch bundle adjustment by :meth:`batch_refine`; the
-        plain estimate when ``refine`` is None.
+        Extra iterations by :meth:`refine` (at most ``refine.extra_iterations``), the batch bundle
+        adjustment by :meth:`batch_refine`; the plain estimate when ``refine`` is None.
         """
         if self._windowed or self._outside:
             self._merge_outside()
         if refine is None:
             return self.estimate()
-        self.refine()
+        if refine.extra_iterations > 0:
+            self.refine(refine.extra_iterations)
         if not refine.batch_ba:
             est = self.estimate()
         else:

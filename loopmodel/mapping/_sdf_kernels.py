@@ -96,18 +96,36 @@ mark_blocks = numba.njit(cache=True, nogil=True)(_mark_blocks_py)
 def _splat_py(points, normals, origin, h, reach_m, sigma_m, bmap, nblocks):  # type: ignore[no-untyped-def]
     """Per corner (blocks x B^3 x 8) the Gaussian-weighted sums of the samples within ``reach_m``.
 
-    The sums: weight, normal (3), position (3, relative to the corner) and ``n . (p - x)``.
+    The sums: weight, normal (3), position (3, relative to the corner) and ``n . (p - x)``. The weight
+    ``exp(-|x - p|^2 / (2 sigma^2))`` as the product of its three axes' factors, each made once a sample
+    (fin17: 21 exponentials a sample instead of one a corner within reach, ~113; the splat 0.112 -> 0.087 s
+    CPU on the 150-frame orbit's cloud, the sums within 4e-16 of each corner's own exponential).
     """
     acc = np.zeros((nblocks, B * B * B, 8))
     r2max = reach_m * reach_m
     inv2s2 = 0.5 / (sigma_m * sigma_m)
+    n_axis = int(math.ceil(2.0 * reach_m / h)) + 2  # the corners within reach along one axis, at most
+    ex = np.empty(n_axis)
+    ey = np.empty(n_axis)
+    ez = np.empty(n_axis)
     for p in range(points.shape[0]):
         px, py, pz = points[p, 0], points[p, 1], points[p, 2]
         nx, ny, nz = normals[p, 0], normals[p, 1], normals[p, 2]
         i0 = max(int(math.ceil((px - reach_m - origin[0]) / h)), 0)
         j0 = max(int(math.ceil((py - reach_m - origin[1]) / h)), 0)
+        z0 = max(int(math.ceil((pz - reach_m - origin[2]) / h)), 0)
         i1 = int(math.floor((px + reach_m - origin[0]) / h))
         j1 = int(math.floor((py + reach_m - origin[1]) / h))
+        z1 = int(math.floor((pz + reach_m - origin[2]) / h))
+        for i in range(i0, i1 + 1):
+            dx = px - origin[0] - i * h
+            ex[i - i0] = math.exp(-dx * dx * inv2s2)
+        for j in range(j0, j1 + 1):
+            dy = py - origin[1] - j * h
+            ey[j - j0] = math.exp(-dy * dy * inv2s2)
+        for k in range(z0, z1 + 1):
+            dz = pz - origin[2] - k * h
+            ez[k - z0] = math.exp(-dz * dz * inv2s2)
         for i in range(i0, i1 + 1):
             dx = px - origin[0] - i * h
             for j in range(j0, j1 + 1):
@@ -118,12 +136,13 @@ def _splat_py(points, normals, origin, h, reach_m, sigma_m, bmap, nblocks):  # t
                 half = math.sqrt(rest)  # the corners of this column within reach
                 k0 = max(int(math.ceil((pz - half - origin[2]) / h)), 0)
                 k1 = int(math.floor((pz + half - origin[2]) / h))
+                wxy = ex[i - i0] * ey[j - j0]
                 for k in range(k0, k1 + 1):
                     s = _slot(bmap, i, j, k)
                     if s < 0:
                         continue
                     dz = pz - origin[2] - k * h
-                    w = math.exp(-(dx * dx + dy * dy + dz * dz) * inv2s2)
+                    w = wxy * ez[k - z0]
                     e = _local(i, j, k)
                     acc[s, e, 0] += w
                     acc[s, e, 1] += w * nx
