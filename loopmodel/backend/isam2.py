@@ -314,13 +314,7 @@ class Isam2Backend:
         if key in obs_fid:  # the same observation twice: keep the first
             return
         kind: FactorKind = "stereo" if obs.stereo else "mono"
-        landmark = self._landmarks[lkey]
-        # _revisit inlined (this runs for every observation entering the graph, be17)
-        revisit = (
-            not outside
-            and self._windowed
-            and self._kf_seq[obs.kf_id] - landmark.first_seq > self.config.local_window_kf
-        )
+        revisit = not outside and self._revisit(obs, lkey)
         landmark_key = L(lkey)
         keys = (self._xkey[obs.kf_id], landmark_key)  # as the factor names them
         if outside or revisit:  # over the keyframe's budget, or a revisit: joins at the final estimate
@@ -329,15 +323,12 @@ class Isam2Backend:
             fid = self._new_fid(rec, outside=True)
             if revisit and self._proxy_room(obs.kf_id):  # through a proxy: ties the keyframe to the old map
                 self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
-        else:  # _new_fid inlined
+        else:
             factor = self._obs_factor(obs, landmark_key)
-            fid = self._next_fid
-            self._next_fid = fid + 1
-            self._factors[fid] = _FactorRecord(factor, kind, lkey, key, None, keys)
-            self._batch.append(fid)
+            fid = self._new_fid(_FactorRecord(factor, kind, lkey, key, None, keys))
             graph.add(factor)
         obs_fid[key] = fid
-        landmark.fids.add(fid)
+        self._landmarks[lkey].fids.add(fid)
 
     def _isam_update(self, *args: Any, **kwargs: Any) -> Any:
         """``self._isam.update(...)``; what :meth:`estimate` reads has changed (``_updated``)."""

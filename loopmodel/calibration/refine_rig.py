@@ -35,7 +35,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from loopmodel.errors import CalibrationError
-from loopmodel.geometry.se3 import cross_rows, so3_exp, so3_log
+from loopmodel.geometry.se3 import cross_rows, so3_exp, so3_log_rows
 from loopmodel.types import Keyframe, StereoCalibration
 
 logger = logging.getLogger(__name__)
@@ -452,19 +452,6 @@ def residuals_and_jacobians_compiled(
     return r, Jp, Jl, Jt
 
 
-def _so3_log_rows(R: F64) -> F64:
-    """:func:`~loopmodel.geometry.se3.so3_log` of each of N rotations (N x 3 x 3 -> N x 3, radians)."""
-    cos_theta = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    theta = np.arccos(cos_theta)
-    vee = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
-    small = theta < 1e-7
-    scale = np.where(small, 0.5, theta / (2.0 * np.sin(np.where(small, 1.0, theta))))
-    out = scale[:, None] * vee
-    for i in np.flatnonzero(np.pi - theta < 1e-4):  # near pi: the axis from the symmetric part
-        out[i] = so3_log(R[i])
-    return np.asarray(out, dtype=np.float64)
-
-
 def _loop_residuals(Ra: F64, ta: F64, Rb: F64, tb: F64, TR_t: F64, T_t: F64) -> F64:
     """``(log R, t)`` of ``a_from_b^-1 a_from_world b`` per loop (N rows; rad, m): zero when the poses agree.
 
@@ -473,7 +460,7 @@ def _loop_residuals(Ra: F64, ta: F64, Rb: F64, tb: F64, TR_t: F64, T_t: F64) -> 
     RaT = Ra.transpose(0, 2, 1)
     R = np.matmul(np.matmul(TR_t, RaT), Rb)
     t = np.matmul(TR_t, (np.matmul(RaT, (tb - ta)[:, :, None])[:, :, 0] - T_t)[:, :, None])[:, :, 0]
-    return np.concatenate([_so3_log_rows(R), t], axis=1)
+    return np.concatenate([so3_log_rows(R), t], axis=1)
 
 
 def _loop_perturbations(h: float) -> tuple[F64, F64, F64, F64]:

@@ -58,6 +58,19 @@ def so3_log(R: ArrayLike) -> F64:
     return theta / (2.0 * np.sin(theta)) * vee
 
 
+def so3_log_rows(R: F64) -> F64:
+    """:func:`so3_log` of each of N rotation matrices (N x 3 x 3 -> N x 3, radians)."""
+    cos_theta = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos_theta)
+    vee = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    small = theta < 1e-7
+    scale = np.where(small, 0.5, theta / (2.0 * np.sin(np.where(small, 1.0, theta))))
+    out = scale[:, None] * vee
+    for i in np.flatnonzero(np.pi - theta < 1e-4):  # near pi: the axis from the symmetric part
+        out[i] = so3_log(R[i])
+    return np.asarray(out, dtype=np.float64)
+
+
 def _left_jacobian_so3(w: F64) -> F64:
     theta2 = float(w @ w)
     K = hat(w)
