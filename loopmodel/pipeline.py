@@ -74,7 +74,7 @@ from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripePro
 
 if TYPE_CHECKING:
     from loopmodel.calibration.retrack import RetrackedFrames
-    from loopmodel.eval.of_run import Evaluation, Prepared
+    from loopmodel.eval.of_run import Evaluation, Prepared, SceneTruth
     from loopmodel.loop.session_map import ResumePoint, SessionMap
     from loopmodel.loop.vocabulary import Vocabulary
     from loopmodel.mapping.stripe_feed import ExtractionWorker
@@ -1286,12 +1286,17 @@ def _frame_loop(
 
 
 def evaluated(
-    result: RunResult, sequence: Sequence, finishing: FinishFn | None = None, prepared: Prepared | None = None
+    result: RunResult,
+    sequence: Sequence,
+    finishing: FinishFn | None = None,
+    prepared: Prepared | None = None,
+    loaded: SceneTruth | None = None,
 ) -> Evaluation | None:
     """:func:`loopmodel.eval.of_run.evaluate` of ``result`` merged into its metrics (``finish_s``, ``wall_s``).
 
     None (and no step) when the sequence has no ground truth. ``prepared``: its part made while the
-    mesh was made (:func:`loopmodel.eval.of_run.prepare`; then in the ``mesh`` step's time).
+    mesh was made (:func:`loopmodel.eval.of_run.prepare`; then in the ``mesh`` step's time); ``loaded``:
+    the sequence's ground-truth surfaces loaded earlier (:func:`loopmodel.eval.of_run.load_scene_truth`).
     """
     if sequence.ground_truth is None:
         return None
@@ -1299,10 +1304,15 @@ def evaluated(
 
     seconds = result.metrics.setdefault("finish_s", {})
     with timed_step("evaluation", seconds, finishing, result.metrics.setdefault("finish_cpu_s", {})):
-        evaluation = evaluate(result, sequence, prepared=prepared)
+        evaluation = evaluate(result, sequence, prepared=prepared, loaded=loaded)
     result.metrics.update(evaluation.metrics)
     result.metrics["wall_s"] = result.metrics.get("wall_s", 0.0) + seconds["evaluation"]
     return evaluation
+
+
+#: how far the ground truth's loading thread at a run's finish runs below the run's priority (a scheduling
+#: priority, as ``mapping.live_mesh_nice``; fin18)
+_TRUTH_NICE = 10
 
 
 def _process_and_write(
@@ -1330,6 +1340,21 @@ def _process_and_write(
     early: list[EarlyFiles | None] = []
     kitti_input = sequence.format_name == "kitti"
     grade = evaluate and sequence.ground_truth is not None
+    truth: list[Any] = []  # the evaluation's ground-truth surfaces, loading from the finish's start
+    load_truth = grade and config.mapping.write_mesh and "scene.ply" in sequence.attachment_names
+
+    def finish_step(name: str, seconds: float | None) -> None:
+        # fin18 (issue 32): the ground truth's surfaces (scene.ply and object.ply read, the object's samples:
+        # 0.07 s CPU on the 150-frame orbit) loaded on a thread while the finish first waits for the workers
+        # and the back end's final estimate, no longer beside the final mesh; at a lower priority, so that on a
+        # busy machine the back end's worker and this process's refinement go first. Not the scene's search
+        # structure: open3d holds the interpreter 0.04-0.08 s for it (a probe's main thread stalled that long)
+        if load_truth and not truth:
+            from loopmodel.eval.of_run import SceneTruthLoader
+
+            truth.append(SceneTruthLoader(sequence, nice=_TRUTH_NICE))
+        if finishing is not None:
+            finishing(name, seconds)
 
     def beside(result: RunResult) -> None:  # while another process makes the final mesh
         # pre16 (issue 32): the results files that need neither the mesh nor the metrics
@@ -1337,17 +1362,18 @@ def _process_and_write(
         if grade:  # the evaluation's part that needs no mesh (finish11)
             from loopmodel.eval.of_run import prepare
 
-            prepared.append(prepare(result, sequence))
+            prepared.append(prepare(result, sequence, truth[0].result() if truth else None))
 
     try:
         with LogCapture() as log, signals:
-            result = process(sequence, config, stop=stop, finishing=finishing, beside_mesh=beside, **kwargs)
+            result = process(sequence, config, stop=stop, finishing=finish_step, beside_mesh=beside, **kwargs)
             written = early[-1] if early else None
             if written is not None and written.holds_for(result):
                 result.metrics["write_beside_mesh_s"] = written.seconds
             if evaluate:
                 try:
-                    evaluated(result, sequence, finishing, prepared[-1] if prepared else None)
+                    evaluated(result, sequence, finishing, prepared[-1] if prepared else None,
+                              truth[0].result() if truth else None)
                 except (LoopmodelError, ValueError, OSError) as exc:  # grading must never lose the run's results
                     logger.error("evaluation failed: %s", exc)
                     result.metrics["evaluation_error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__

@@ -88,3 +88,47 @@ def test_sdf_falls_back_to_poisson_for_a_grid_too_large(caplog: pytest.LogCaptur
     with caplog.at_level("WARNING"):
         mesh = mesh_cloud(pc, cfg.model_copy(update={"trim_distance_m": 0.2}))
     assert "Poisson instead" in caplog.text and len(mesh.triangles) > 0
+
+
+def test_grid_normals_match_open3d_kd_tree_search() -> None:
+    """fin18: the grid search's normals are those of open3d's k-d tree search (the same nearest points).
+
+    Stripes on a sphere (dense along, sparse across: the 12 mm radius matters there), one stripe alone
+    (a line: the view made perpendicular to it) and a lone point (fewer than 3 neighbours: open3d's identity).
+    """
+    from loopmodel.mapping.meshing import _grid_normals, _open3d_normals
+
+    rng = np.random.default_rng(3)
+    cfg = MappingConfig()
+    rows = []
+    for a in np.linspace(0.0, np.pi, 40):  # stripes: great half-circles 4.5 deg apart (4 mm at 50 mm)
+        t = np.linspace(0.1, np.pi - 0.1, 120)
+        rows.append(np.stack([np.cos(a) * np.sin(t), np.sin(a) * np.sin(t), np.cos(t)], 1) * 0.05)
+    line = np.stack([np.linspace(0.2, 0.26, 40), np.zeros(40), np.zeros(40)], 1)
+    lone = np.array([[0.0, 0.3, 0.0]])
+    pts = np.concatenate(rows + [line, lone]) + rng.normal(scale=1e-4, size=(40 * 120 + 41, 3))
+    view = np.concatenate([pts[:-41] / np.linalg.norm(pts[:-41], axis=1, keepdims=True),
+                           np.tile([[0.0, 0.6, 0.8]], (41, 1))])
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    expected = _open3d_normals(cloud, view, cfg)
+    got = _grid_normals(pts, view, cfg)
+    assert got is not None
+    assert np.max(np.abs(got - expected)) < 1e-9
+    assert abs(got[-10] @ np.array([1.0, 0.0, 0.0])) < 0.01  # the stripe alone (0.1 mm noise): across it
+
+
+def test_sdf_trim_keeps_the_vertices_within_reach_of_a_sample() -> None:
+    """fin18: the sdf's distance trim on the samples' cells keeps a vertex iff a sample lies within the distance."""
+    from loopmodel.mapping import _sdf_kernels as k
+
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(0.0, 0.05, size=(2000, 3))
+    verts = rng.uniform(-0.01, 0.06, size=(3000, 3))
+    h, limit = 0.003, 0.00375
+    origin = pts.min(axis=0) - 4 * h
+    bdims = (np.floor((pts.max(axis=0) - origin) / h).astype(np.int64) + 3 >> k.SHIFT) + 1
+    bmap, blocks = k.mark_blocks(pts, origin, h, 3 * h, bdims)
+    order, start = k.bucket_points(pts, origin, h, bmap, blocks.shape[0])
+    got = k.near_samples(verts, pts, limit, origin, h, bmap, order, start)
+    brute = np.min(np.linalg.norm(verts[:, None] - pts[None], axis=2), axis=1) <= limit
+    assert np.array_equal(got, brute)

@@ -87,8 +87,74 @@ class MeshTruth:
     to_scene: Any = None
 
 
-def mesh_truth(result: RunResult, sequence: Sequence) -> MeshTruth | None:
-    """:class:`MeshTruth` for ``result``'s final trajectory and stripes (None when no mesh error can be made)."""
+@dataclass
+class SceneTruth:
+    """The sequence's ground-truth surfaces in the ground truth's own frame: no result of the run needed.
+
+    ``scene`` (``scene.ply``) and ``object_samples`` (the seeded samples of ``object.ply``, P x 3, metres; None
+    without it). :func:`mesh_truth` moves them into the run's world and makes the scene's search structure
+    (fin18: loaded while the run's finish waits for its workers, not beside the mesh).
+    """
+
+    scene: Any
+    object_samples: Any
+    seconds: float = 0.0
+
+
+def load_scene_truth(sequence: Sequence, object_samples: int = 50_000) -> SceneTruth | None:
+    """:class:`SceneTruth` of ``sequence`` (None without ground truth or ``scene.ply``)."""
+    names = sequence.attachment_names
+    if sequence.ground_truth is None or "scene.ply" not in names:
+        return None
+    from loopmodel.io.mesh_io import mesh_from_bytes
+    from loopmodel.mapping.accuracy import sample_surface
+
+    t0 = time.perf_counter()
+    scene = mesh_from_bytes(sequence.read_attachment("scene.ply"), "ply", sequence.path)
+    samples = None
+    if "object.ply" in names:  # sampled in its own frame: the same samples moved (a rigid move keeps areas)
+        obj = mesh_from_bytes(sequence.read_attachment("object.ply"), "ply", sequence.path)
+        samples = sample_surface(obj, object_samples)
+    return SceneTruth(scene, samples, time.perf_counter() - t0)
+
+
+class SceneTruthLoader:
+    """:func:`load_scene_truth` on a thread of its own, started when asked (e.g. at a run's finish).
+
+    The thread's scheduling priority is lowered by ``nice`` (the run's own work first on a busy machine).
+    :meth:`result` waits for it; a failure gives None (the evaluation then loads the truth itself and
+    reports what is wrong).
+    """
+
+    def __init__(self, sequence: Sequence, nice: int = 0) -> None:
+        import threading
+
+        self._out: list[SceneTruth | None] = [None]
+        self._thread = threading.Thread(
+            target=self._load, args=(sequence, nice), name="loopmodel-truth", daemon=True
+        )
+        self._thread.start()
+
+    def _load(self, sequence: Sequence, nice: int) -> None:
+        from loopmodel.priority import lower_thread_priority
+
+        lower_thread_priority(nice)
+        try:
+            self._out[0] = load_scene_truth(sequence)
+        except Exception as exc:  # noqa: BLE001 - the evaluation loads it again and says what is wrong
+            logger.debug("ground truth not loaded ahead: %s", exc)
+
+    def result(self) -> SceneTruth | None:
+        """The loaded truth (waits for the thread)."""
+        self._thread.join()
+        return self._out[0]
+
+
+def mesh_truth(result: RunResult, sequence: Sequence, loaded: SceneTruth | None = None) -> MeshTruth | None:
+    """:class:`MeshTruth` for ``result``'s final trajectory and stripes (None when no mesh error can be made).
+
+    ``loaded``: :func:`load_scene_truth` of ``sequence``, made beforehand (its surfaces moved here).
+    """
     gt = sequence.ground_truth
     names = sequence.attachment_names
     if not result.stripes or gt is None or "scene.ply" not in names or len(result.final) < 2:
@@ -98,11 +164,25 @@ def mesh_truth(result: RunResult, sequence: Sequence) -> MeshTruth | None:
     from loopmodel.mapping.accuracy import SurfaceDistance, object_truth_of
     from loopmodel.mapping.final import reference_from_traj
 
-    run_from_gt = invert_pose(reference_from_traj(result.final, gt))
+    gt_from_run = reference_from_traj(result.final, gt)
+    run_from_gt = invert_pose(gt_from_run)
 
     def in_run(traj: Trajectory) -> Trajectory:
         return Trajectory(traj.timestamps_ns, run_from_gt[None] @ traj.world_from_cam)
 
+    if loaded is not None:
+        import open3d as o3d
+
+        gt_mesh = o3d.geometry.TriangleMesh(loaded.scene)
+        gt_mesh.transform(run_from_gt)
+        obj = None
+        if loaded.object_samples is not None:
+            samples = loaded.object_samples @ run_from_gt[:3, :3].T + run_from_gt[:3, 3]
+            obj = object_truth_of(None, result.stripes, in_run(gt), result.config.mapping, samples_w=samples)
+        to_scene = None
+        if len(loaded.scene.triangles):  # the search structure made here, beside the mesh (fin15), in the truth's frame
+            to_scene = SurfaceDistance(loaded.scene, build=True).queried_from(gt_from_run)
+        return MeshTruth(result.final, result.stripes, run_from_gt, gt_mesh, obj, in_run, to_scene)
     gt_mesh = mesh_from_bytes(sequence.read_attachment("scene.ply"), "ply", sequence.path)
     gt_mesh.transform(run_from_gt)
     obj = None
@@ -116,7 +196,11 @@ def mesh_truth(result: RunResult, sequence: Sequence) -> MeshTruth | None:
 
 
 def mesh_errors(
-    result: RunResult, sequence: Sequence, references: bool = False, truth: MeshTruth | None = None
+    result: RunResult,
+    sequence: Sequence,
+    references: bool = False,
+    truth: MeshTruth | None = None,
+    loaded: SceneTruth | None = None,
 ) -> dict[str, Any]:
     """The final mesh against the sequence's ground-truth scene (``scene.ply`` attachment).
 
@@ -127,13 +211,14 @@ def mesh_errors(
     the truth by its frame positions (as ATE) and the meshes are made in the run's world, where the
     run made its own: open3d's Poisson octree follows the frame's axes, so meshes made in different
     frames would not compare like with like. Empty without a mesh, stripes, scene or ground truth.
-    ``truth``: :func:`mesh_truth` of this result made beforehand (e.g. while the mesh was made).
+    ``truth``: :func:`mesh_truth` of this result made beforehand (e.g. while the mesh was made);
+    ``loaded``: :func:`load_scene_truth` of ``sequence`` made beforehand (used when ``truth`` is not).
     """
     gt = sequence.ground_truth
     if result.mesh is None or gt is None:
         return {}
     if truth is None or truth.final is not result.final or truth.stripes is not result.stripes:
-        truth = mesh_truth(result, sequence)
+        truth = mesh_truth(result, sequence, loaded)
     if truth is None:
         return {}
     from loopmodel.mapping.accuracy import mesh_error_metrics
@@ -180,16 +265,17 @@ def trajectory_metrics(result: RunResult, sequence: Sequence) -> dict[str, Any]:
     return m
 
 
-def prepare(result: RunResult, sequence: Sequence) -> Prepared:
+def prepare(result: RunResult, sequence: Sequence, loaded: SceneTruth | None = None) -> Prepared:
     """The evaluation's part that needs no mesh: trajectory errors and the mesh's ground truth (finish11).
 
     For a caller with time while the run's mesh is made (:func:`loopmodel.pipeline.process`'s
-    ``beside_mesh``); :func:`evaluate` with it gives what it gives without.
+    ``beside_mesh``); :func:`evaluate` with it gives what it gives without. ``loaded``: the sequence's
+    :func:`load_scene_truth`, made earlier.
     """
     t0 = time.perf_counter()
     truth = None
     try:
-        truth = mesh_truth(result, sequence) if result.config.mapping.write_mesh else None
+        truth = mesh_truth(result, sequence, loaded) if result.config.mapping.write_mesh else None
     except LoopmodelError as exc:
         logger.error("no mesh accuracy: %s", exc)
     of = (result.online, result.final, result.localized)
@@ -197,7 +283,12 @@ def prepare(result: RunResult, sequence: Sequence) -> Prepared:
 
 
 def evaluate(
-    result: RunResult, sequence: Sequence, *, mesh_references: bool | None = None, prepared: Prepared | None = None
+    result: RunResult,
+    sequence: Sequence,
+    *,
+    mesh_references: bool | None = None,
+    prepared: Prepared | None = None,
+    loaded: SceneTruth | None = None,
 ) -> Evaluation:
     """Grade ``result`` (of :func:`~loopmodel.pipeline.process` over ``sequence``) against its ground truth.
 
@@ -207,7 +298,8 @@ def evaluate(
     configuration). Nothing without ground truth; a mesh that cannot be measured is logged and left
     out. Changes nothing: the caller merges :attr:`Evaluation.metrics` where it wants them.
     ``prepared``: :func:`prepare` of this result (its trajectories as they are now), made earlier;
-    :attr:`Evaluation.seconds` then counts only what is left.
+    :attr:`Evaluation.seconds` then counts only what is left. ``loaded``: :func:`load_scene_truth` of
+    ``sequence``, made earlier (for the mesh's truth when ``prepared`` has none).
     """
     t0 = time.perf_counter()
     gt = sequence.ground_truth
@@ -218,7 +310,7 @@ def evaluate(
         m.update(prepared.trajectory_metrics if prepared is not None else trajectory_metrics(result, sequence))
         refs = result.config.eval.mesh_references if mesh_references is None else mesh_references
         try:
-            m.update(mesh_errors(result, sequence, refs, prepared.truth if prepared is not None else None))
+            m.update(mesh_errors(result, sequence, refs, prepared.truth if prepared is not None else None, loaded))
         except LoopmodelError as exc:
             logger.error("no mesh accuracy: %s", exc)
     return Evaluation(m, time.perf_counter() - t0)

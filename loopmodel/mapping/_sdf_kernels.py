@@ -15,6 +15,9 @@ shape (blocks, ``B^3``), or -1. Corner ``(i, j, k)`` is entry ``((i & 7) * B + (
   normals point to the positive (sensor) side; :func:`project` moves each vertex by Newton steps onto the
   field evaluated at it;
 - :func:`component_areas` gives each triangle the area of its vertex-connected piece (small pieces dropped).
+- :func:`near_samples` tells the vertices within the trim distance of a sample (the samples bucketed by cell);
+- :func:`normals` gives each sample the normal of its nearest samples within a radius (the covariance's least
+  eigenvector by Jacobi rotations), searched over the same kind of grid (fin18: in place of open3d's k-d tree).
 """
 
 from __future__ import annotations
@@ -474,6 +477,238 @@ def _project_py(verts, points, normals, order, start, bmap, origin, h, reach_m, 
 project = numba.njit(cache=True, nogil=True)(_project_py)
 
 
+def _nearest_insert_py(d2, o, n, max_nn, bd, bi):  # type: ignore[no-untyped-def]
+    """Point ``o`` at squared distance ``d2`` into the ascending ``bd`` / ``bi`` of the ``n`` nearest; the new ``n``."""
+    m = n if n < max_nn else max_nn - 1
+    while m > 0 and bd[m - 1] > d2:
+        bd[m] = bd[m - 1]
+        bi[m] = bi[m - 1]
+        m -= 1
+    bd[m] = d2
+    bi[m] = o
+    return min(n + 1, max_nn)
+
+
+_nearest_insert = numba.njit(cache=True, nogil=True, inline="always")(_nearest_insert_py)
+
+
+def _cell_gap_py(x, origin, h, i):  # type: ignore[no-untyped-def]
+    """The distance (m) from coordinate ``x`` to the cell span ``[origin + i h, origin + (i + 1) h]`` (0 inside)."""
+    return max(origin + i * h - x, x - origin - (i + 1) * h, 0.0)
+
+
+_cell_gap = numba.njit(cache=True, nogil=True, inline="always")(_cell_gap_py)
+
+
+def _shell_py(points, p, c, R, bound, n, max_nn, bd, bi, origin, h, bmap, order, start):  # type: ignore[no-untyped-def]
+    """The cells of the shell ``R`` cells around cell ``c`` of point ``p`` searched; the new count of nearest found."""
+    px, py, pz = points[p, 0], points[p, 1], points[p, 2]
+    for i in range(c[0] - R, c[0] + R + 1):
+        gx = _cell_gap(px, origin[0], h, i)
+        for j in range(c[1] - R, c[1] + R + 1):
+            gy = _cell_gap(py, origin[1], h, j)
+            gxy = gx * gx + gy * gy
+            if gxy > bound[0]:
+                continue
+            face = R == 0 or i == c[0] - R or i == c[0] + R or j == c[1] - R or j == c[1] + R
+            step = 1 if face else 2 * R  # inside the shell's side faces only its two caps along z
+            for k in range(c[2] - R, c[2] + R + 1, max(step, 1)):
+                gz = _cell_gap(pz, origin[2], h, k)
+                s = _slot(bmap, i, j, k)
+                if s < 0 or gxy + gz * gz > bound[0]:
+                    continue
+                e = s * (B * B * B) + _local(i, j, k)
+                for q in range(start[e], start[e + 1]):
+                    o = order[q]
+                    dx, dy, dz = points[o, 0] - px, points[o, 1] - py, points[o, 2] - pz
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 > bound[0] or (n == max_nn and d2 >= bd[n - 1]):
+                        continue
+                    n = _nearest_insert(d2, o, n, max_nn, bd, bi)
+                    if n == max_nn:
+                        bound[0] = bd[n - 1]
+    return n
+
+
+_shell = numba.njit(cache=True, nogil=True, inline="always")(_shell_py)
+
+
+def _nearest_py(points, p, radius_m, max_nn, bd, bi, c, bound, origin, h, bmap, order, start):  # type: ignore[no-untyped-def]
+    """The ``max_nn`` points nearest to point ``p`` within ``radius_m`` (``p`` itself among them) into ``bi``; how many.
+
+    Shells of cells around ``p``'s cell until every point nearer than the farthest kept one has been seen.
+    ``c`` (3 ints) and ``bound`` (1) are work space.
+    """
+    for a in range(3):
+        c[a] = int(math.floor((points[p, a] - origin[a]) / h))
+    bound[0] = radius_m * radius_m
+    n = 0
+    for R in range(int(math.ceil(radius_m / h)) + 1):
+        n = _shell(points, p, c, R, bound, n, max_nn, bd, bi, origin, h, bmap, order, start)
+        seen = np.inf  # every point this near to p lies in the cells searched so far
+        for a in range(3):
+            seen = min(seen, points[p, a] - origin[a] - (c[a] - R) * h, origin[a] + (c[a] + R + 1) * h - points[p, a])
+        if seen * seen >= bound[0]:
+            break
+    return n
+
+
+_nearest = numba.njit(cache=True, nogil=True, inline="always")(_nearest_py)
+
+
+def _jacobi3_py(a, vals, vecs, v):  # type: ignore[no-untyped-def]
+    """Eigen-decomposition of the symmetric 3 x 3 ``a`` (overwritten) by cyclic Jacobi rotations.
+
+    ``vals`` ascending, ``vecs[:, m]`` the unit eigenvector of ``vals[m]``; ``v`` (3 x 3) work space.
+    """
+    for r in range(3):
+        for m in range(3):
+            v[r, m] = 1.0 if r == m else 0.0
+    for _ in range(50):
+        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+        diag = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
+        if off <= 1e-36 * diag or off == 0.0:
+            break
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            if a[p, q] == 0.0:
+                continue
+            theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+            t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
+            cs = 1.0 / math.sqrt(t * t + 1.0)
+            sn = t * cs
+            for r in range(3):  # a <- a J (columns p, q)
+                arp, arq = a[r, p], a[r, q]
+                a[r, p] = cs * arp - sn * arq
+                a[r, q] = sn * arp + cs * arq
+            for r in range(3):  # a <- J^T a (rows p, q)
+                apr, aqr = a[p, r], a[q, r]
+                a[p, r] = cs * apr - sn * aqr
+                a[q, r] = sn * apr + cs * aqr
+            for r in range(3):
+                vrp, vrq = v[r, p], v[r, q]
+                v[r, p] = cs * vrp - sn * vrq
+                v[r, q] = sn * vrp + cs * vrq
+    lo, hi = 0, 0  # the diagonal's order (ties: the lower index first, as a stable sort)
+    for m in range(1, 3):
+        if a[m, m] < a[lo, lo]:
+            lo = m
+        if a[m, m] >= a[hi, hi]:
+            hi = m
+    if lo == hi:  # all equal
+        lo, hi = 0, 2
+    mid = 3 - lo - hi
+    for m, s in ((0, lo), (1, mid), (2, hi)):
+        vals[m] = a[s, s]
+        for r in range(3):
+            vecs[r, m] = v[r, s]
+
+
+_jacobi3 = numba.njit(cache=True, nogil=True, inline="always")(_jacobi3_py)
+
+
+def _neighbour_covariance_py(points, bi, n, cov):  # type: ignore[no-untyped-def]
+    """The covariance (m^2) of the ``n`` points ``bi`` into ``cov`` (3 x 3); the identity below 3 points (open3d's)."""
+    cov[:, :] = 0.0
+    if n < 3:
+        for a in range(3):
+            cov[a, a] = 1.0
+        return
+    mx = my = mz = 0.0
+    for t in range(n):
+        mx += points[bi[t], 0]
+        my += points[bi[t], 1]
+        mz += points[bi[t], 2]
+    mx, my, mz = mx / n, my / n, mz / n
+    for t in range(n):
+        dx, dy, dz = points[bi[t], 0] - mx, points[bi[t], 1] - my, points[bi[t], 2] - mz
+        cov[0, 0] += dx * dx
+        cov[0, 1] += dx * dy
+        cov[0, 2] += dx * dz
+        cov[1, 1] += dy * dy
+        cov[1, 2] += dy * dz
+        cov[2, 2] += dz * dz
+    for a in range(3):
+        for b in range(a, 3):
+            cov[a, b] /= n
+            cov[b, a] = cov[a, b]
+
+
+_neighbour_covariance = numba.njit(cache=True, nogil=True, inline="always")(_neighbour_covariance_py)
+
+
+def _normals_py(points, view, radius_m, max_nn, line_ratio, origin, h, bmap, order, start):  # type: ignore[no-untyped-def]
+    """Per point (P x 3, world, metres) the unit normal of its ``max_nn`` nearest points within ``radius_m``.
+
+    The covariance's least eigenvector, turned toward ``view`` (P x 3, unit, to the sensor); where the
+    neighbourhood is (nearly) a line (middle eigenvalue below ``line_ratio`` x the largest) the view direction
+    made perpendicular to the line instead. ``order`` / ``start``: :func:`bucket_points` of ``points``.
+    """
+    out = np.empty_like(points)
+    bd = np.empty(max_nn)
+    bi = np.empty(max_nn, np.int64)
+    cov = np.empty((3, 3))
+    vals = np.empty(3)
+    vecs = np.empty((3, 3))
+    work = np.empty((3, 3))
+    c = np.empty(3, np.int64)
+    bound = np.empty(1)
+    for q in range(order.shape[0]):  # in cell order: neighbouring queries touch the same cells
+        p = order[q]
+        n = _nearest(points, p, radius_m, max_nn, bd, bi, c, bound, origin, h, bmap, order, start)
+        _neighbour_covariance(points, bi, n, cov)
+        _jacobi3(cov, vals, vecs, work)
+        nx, ny, nz = vecs[0, 0], vecs[1, 0], vecs[2, 0]
+        if vals[1] < line_ratio * max(vals[2], 1e-30):
+            tx, ty, tz = vecs[0, 2], vecs[1, 2], vecs[2, 2]
+            along = view[p, 0] * tx + view[p, 1] * ty + view[p, 2] * tz
+            nx, ny, nz = view[p, 0] - along * tx, view[p, 1] - along * ty, view[p, 2] - along * tz
+            norm = max(math.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)
+            nx, ny, nz = nx / norm, ny / norm, nz / norm
+        if nx * view[p, 0] + ny * view[p, 1] + nz * view[p, 2] < 0.0:
+            nx, ny, nz = -nx, -ny, -nz
+        out[p, 0], out[p, 1], out[p, 2] = nx, ny, nz
+    return out
+
+
+normals = numba.njit(cache=True, nogil=True)(_normals_py)
+
+
+def _near_samples_py(verts, points, limit_m, origin, h, bmap, order, start):  # type: ignore[no-untyped-def]
+    """Per vertex (V x 3, world, metres): whether a sample of ``points`` lies within ``limit_m`` of it."""
+    out = np.zeros(verts.shape[0], np.bool_)
+    l2 = limit_m * limit_m
+    for v in range(verts.shape[0]):
+        x, y, z = verts[v, 0], verts[v, 1], verts[v, 2]
+        i0, i1 = int(math.floor((x - limit_m - origin[0]) / h)), int(math.floor((x + limit_m - origin[0]) / h))
+        j0, j1 = int(math.floor((y - limit_m - origin[1]) / h)), int(math.floor((y + limit_m - origin[1]) / h))
+        k0, k1 = int(math.floor((z - limit_m - origin[2]) / h)), int(math.floor((z + limit_m - origin[2]) / h))
+        found = False
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                for k in range(k0, k1 + 1):
+                    s = _slot(bmap, i, j, k)
+                    if s < 0:
+                        continue
+                    e = s * (B * B * B) + _local(i, j, k)
+                    for q in range(start[e], start[e + 1]):
+                        p = order[q]
+                        dx, dy, dz = points[p, 0] - x, points[p, 1] - y, points[p, 2] - z
+                        if dx * dx + dy * dy + dz * dz <= l2:
+                            found = True
+                            break
+                    if found:
+                        break
+                if found:
+                    break
+            if found:
+                break
+        out[v] = found
+    return out
+
+
+near_samples = numba.njit(cache=True, nogil=True)(_near_samples_py)
+
+
 def _root_py(parent, v):  # type: ignore[no-untyped-def]
     """The root of ``v`` in the union-find forest ``parent`` (halving the path on the way)."""
     while parent[v] != v:
@@ -529,3 +764,5 @@ def warm_up() -> None:
     component_areas(v, t)
     order, start = bucket_points(pts, origin, h, bmap, blocks.shape[0])
     project(v, pts, nrm, order, start, bmap, origin, h, 0.006, 0.003, 0.1, 1)
+    near_samples(v, pts, 0.004, origin, h, bmap, order, start)
+    normals(pts, nrm, 0.012, 20, 0.003, origin, h, bmap, order, start)
