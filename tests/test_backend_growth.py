@@ -757,3 +757,47 @@ def test_loop_found_after_its_keyframe_joins_the_next_keyframes_update() -> None
     # final ATE 1.86 / 1.80 mm
     assert live_on < 1.2 * live_off + 1e-4, (live_off, live_on)
     assert final_on < 1.05 * final_off + 1e-5, (final_off, final_on)
+
+
+def test_estimate_reads_a_keyframe_the_rebuild_left_out_once() -> None:
+    """be18: a keyframe a window rebuild left out of iSAM2 does not move until the final estimate.
+
+    ``estimate(landmarks=False)`` reads it once after it left, never in turn; the poses it returns
+    are the left-out values (what reading every pose, ``estimate_window_kf: 0``, returns).
+    """
+    from gtsam.symbol_shorthand import X
+
+    prob = rounds_problem(60, per_round=15, features_per_kf=60, local_map_kf=1, loop_every_kf=5, revisit_points=40)
+    loops = _loops_by_query(prob)
+    backends = [
+        Isam2Backend(_calibration(), BackendConfig(loop_policy="local", local_rebuild_kf=10, estimate_window_kf=n))
+        for n in (5, 0)
+    ]
+    reads: dict[int, int] = {}
+    part = backends[0]
+    keys_of = part._estimate_keys
+
+    def counted() -> list[int]:
+        ids = keys_of()
+        for k in ids:
+            if X(k) in part._frozen_keys:
+                reads[k] = reads.get(k, 0) + 1
+        return ids
+
+    part._estimate_keys = counted  # type: ignore[method-assign]
+    for kf in prob.keyframes:
+        ests = []
+        for b in backends:
+            b.add_keyframe(kf)
+            for old, rel in loops.get(kf.id, []):
+                b.add_loop_constraint(kf.id, old, rel)
+            ests.append(b.estimate(landmarks=False).world_from_kf)
+        got, ref = ests
+        for k in got:
+            if X(k) in part._frozen_keys:
+                np.testing.assert_array_equal(got[k], part._frozen.atPose3(X(k)).matrix())
+                np.testing.assert_allclose(got[k], ref[k], atol=1e-12)
+    assert part.window_rebuilds == 4
+    frozen = [k for k in got if X(k) in part._frozen_keys]
+    assert len(frozen) >= 30, len(frozen)
+    assert reads and max(reads.values()) == 1, reads  # once each, not in turn

@@ -209,6 +209,7 @@ class Isam2Backend:
         self._frozen_keys: set[int] = set()
         self._fixed_fids: list[int] = []
         self._rebuilt_at = 0  # keyframes in the graph at the last rebuild
+        self._frozen_unread: list[int] = []  # keyframes a rebuild left out, not read by estimate() since
         self.window_rebuilds = 0
 
     # ------------------------------------------------------------------ set-up
@@ -991,7 +992,10 @@ class Isam2Backend:
                 if gtsam.Symbol(key).chr() == ord("x"):
                     values.insert(key, src.atPose3(key))
                 else:
-                    values.insert(key, src.atPoint3(key))
+                    values.insertPoint3(key, src.atPoint3(key))  # a Point3 as new landmarks are (be18)
+            # every variable goes back to iSAM2 (a failed attempt's linearization point has them all: be18,
+            # a second attempt read the rebuild's left-out values over them)
+            self._frozen, self._frozen_keys = gtsam.Values(), set()
             groups = self._ordering_groups(len(keys))
             try:
                 result = self._isam_update(graph, values, [], constrainedKeys=groups)
@@ -1000,7 +1004,6 @@ class Isam2Backend:
                 continue
             for fid, slot in zip(fids, result.getNewFactorsIndices(), strict=True):
                 self._slot[fid] = slot
-            self._frozen, self._frozen_keys = gtsam.Values(), set()  # every variable is in iSAM2 again
             return
         raise EstimationError("iSAM2 stayed indeterminate after dropping 20 landmarks") from exc
 
@@ -1493,19 +1496,27 @@ class Isam2Backend:
         keyframe after an update that was not a keyframe's (a loop, observations, a removal, a
         rebuild), which may move the whole map. Reading one pose costs about 0.1 ms: reading all of
         them grew the back end's cost per keyframe by 12 ms at 116 keyframes of the rounds scan.
+        A keyframe a window rebuild left out of iSAM2 (``local_rebuild_kf``) does not move until the
+        final estimate: it is read once after it left, then no more (be18).
         """
         n = self.config.estimate_window_kf
         order = self._kf_order
         new = len(order) - self._estimated_kfs
         self._estimated_kfs = len(order)
+        left, self._frozen_unread = self._frozen_unread, []
         if n == 0 or self._estimate_all or len(order) <= 2 * n + new:
             self._estimate_all = False
             return list(order)
         recent = max(n, new)
-        old = order[:-recent]
+        frozen, xkey = self._frozen_keys, self._xkey
+        live = [k for k in order if xkey[k] not in frozen] if frozen else order
+        old = live[:-recent]
+        newest = left + live[-recent:]
+        if not old:
+            return newest
         start = self._estimate_turn % len(old)
         self._estimate_turn = start + n
-        return (old[start : start + n] + old[: max(start + n - len(old), 0)]) + order[-recent:]
+        return old[start : start + n] + old[: max(start + n - len(old), 0)] + newest
 
     # ------------------------------------------------------------------ loop policy local (issue 33)
     def _current_values(self, base: gtsam.Values | None = None) -> gtsam.Values:
@@ -1563,9 +1574,10 @@ class Isam2Backend:
         for key in sorted(back):
             if _is_pose_key(key):
                 value: Any = self._frozen.atPose3(key)
+                values.insert(key, value)
             else:
                 value = self._frozen.atPoint3(key)
-            values.insert(key, value)
+                values.insertPoint3(key, value)
             new_fids.append(self._hold(key, value, graph))
             self._frozen.erase(key)
             self._frozen_keys.discard(key)
@@ -1617,6 +1629,8 @@ class Isam2Backend:
             else:
                 values.erase(key)
                 self._frozen_keys.add(key)
+                if is_pose(key):
+                    self._frozen_unread.append(int(gtsam.Symbol(key).index()))
         self._frozen.insert(out)
         self._new_isam()
         self._slot.clear()
