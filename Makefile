@@ -57,9 +57,8 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 # The demo compiles only the kernels its run calls (configs/sim.yaml: not SURF, the Givens estimator, the
-# KLT share); `make setup` / `make test` compile the rest when they run.
+# KLT share), beside the sample's generation (tools/demo.sh); `make setup` / `make test` compile the rest.
 demo: syslibs $(STAMP)
-	@$(PY) -m loopmodel.kernels --config configs/sim.yaml
 	@bash tools/demo.sh
 
 # Two test processes (pytest-xdist), one per core of the 2-core machine; a module's tests stay in one

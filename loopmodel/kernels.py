@@ -19,6 +19,7 @@ import logging
 import multiprocessing as mp
 import os
 import signal
+import sys
 from collections.abc import Callable, Hashable
 from types import ModuleType
 from typing import Any
@@ -202,6 +203,14 @@ def _warm_one(name: str) -> str:
     return label
 
 
+def _exit_on_sigterm() -> None:
+    """SIGTERM ends this process through ``SystemExit``: the compiling pool is terminated with it, none left running.
+
+    (tools/demo.sh stops a compile it started beside the sample's generation when the generation fails.)
+    """
+    signal.signal(signal.SIGTERM, lambda signum, _frame: sys.exit(128 + signum))
+
+
 def compile_in_processes(
     modules: tuple[str, ...], on_step: Callable[[int, int, str], None] | None = None, processes: int = 0
 ) -> None:
@@ -247,6 +256,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"loopmodel kernels: compiling ({len(cold)} of {len(wanted)} modules not in numba's cache; "
           "once after an install or update)")
     t0 = time.perf_counter()
+    _exit_on_sigterm()
     compile_in_processes(
         tuple(cold),
         lambda i, n, name: print(f"  {i}/{n} {name} ({time.perf_counter() - t0:.0f} s)", flush=True),

@@ -150,3 +150,58 @@ def test_the_command_compiles_only_what_a_configuration_calls(tmp_path: Path) ->
     lines = out.stdout.strip().splitlines()
     assert "1 of 1 modules" in lines[0] and "KLT share" in lines[1] and "done" in lines[2], lines
     assert lines[-1] == "loopmodel kernels: cached"
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (Linux /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat[stat.rindex(")") + 2 :].split()[1]) == pid:
+                found.append(int(entry.name))
+    return found
+
+
+def test_sigterm_stops_the_command_and_its_compiling_pool(tmp_path: Path) -> None:
+    """tools/demo.sh stops a compile it started beside the sample's generation: no pool process outlives it."""
+    import signal
+    import time
+
+    if not Path("/proc/self/stat").exists():
+        import pytest
+
+        pytest.skip("needs Linux /proc")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "loopmodel.kernels", "--processes", "2"],
+        env=env, stdout=subprocess.PIPE, text=True, cwd=ROOT,
+    )
+    try:
+        assert proc.stdout is not None and "compiling" in proc.stdout.readline()
+        deadline = time.monotonic() + 60
+        while len(_children(proc.pid)) < 2 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        pool = _children(proc.pid)
+        assert len(pool) >= 2, pool  # the two compiling processes (and multiprocessing's resource tracker)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 128 + signal.SIGTERM
+        deadline = time.monotonic() + 10
+        while any(Path(f"/proc/{p}").exists() and "Z" not in _state(p) for p in pool) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not [p for p in pool if Path(f"/proc/{p}").exists() and "Z" not in _state(p)]
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def _state(pid: int) -> str:
+    """A process's state letter ('' once gone)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return ""
+    return stat[stat.rindex(")") + 2]
