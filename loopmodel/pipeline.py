@@ -1341,7 +1341,6 @@ def _process_and_write(
     kitti_input = sequence.format_name == "kitti"
     grade = evaluate and sequence.ground_truth is not None
     truth: list[Any] = []  # the evaluation's ground-truth surfaces, loading from the finish's start
-    load_truth = grade and config.mapping.write_mesh and "scene.ply" in sequence.attachment_names
 
     def finish_step(name: str, seconds: float | None) -> None:
         # fin18 (issue 32): the ground truth's surfaces (scene.ply and object.ply read, the object's samples:
@@ -1349,7 +1348,7 @@ def _process_and_write(
         # and the back end's final estimate, no longer beside the final mesh; at a lower priority, so that on a
         # busy machine the back end's worker and this process's refinement go first. Not the scene's search
         # structure: open3d holds the interpreter 0.04-0.08 s for it (a probe's main thread stalled that long)
-        if load_truth and not truth:
+        if not truth and grade and config.mapping.write_mesh and "scene.ply" in sequence.attachment_names:
             from loopmodel.eval.of_run import SceneTruthLoader
 
             truth.append(SceneTruthLoader(sequence, nice=_TRUTH_NICE))
