@@ -74,7 +74,7 @@ from loopmodel.types import ScanFrame, StereoCalibration, StereoFrame, StripePro
 
 if TYPE_CHECKING:
     from loopmodel.calibration.retrack import RetrackedFrames
-    from loopmodel.eval.of_run import Evaluation, Prepared, SceneTruth
+    from loopmodel.eval.of_run import Evaluation, Prepared
     from loopmodel.loop.session_map import ResumePoint, SessionMap
     from loopmodel.loop.vocabulary import Vocabulary
     from loopmodel.mapping.stripe_feed import ExtractionWorker
@@ -1286,17 +1286,12 @@ def _frame_loop(
 
 
 def evaluated(
-    result: RunResult,
-    sequence: Sequence,
-    finishing: FinishFn | None = None,
-    prepared: Prepared | None = None,
-    loaded: SceneTruth | None = None,
+    result: RunResult, sequence: Sequence, finishing: FinishFn | None = None, prepared: Prepared | None = None
 ) -> Evaluation | None:
     """:func:`loopmodel.eval.of_run.evaluate` of ``result`` merged into its metrics (``finish_s``, ``wall_s``).
 
     None (and no step) when the sequence has no ground truth. ``prepared``: its part made while the
-    mesh was made (:func:`loopmodel.eval.of_run.prepare`; then in the ``mesh`` step's time); ``loaded``:
-    the sequence's ground-truth surfaces loaded earlier (:func:`loopmodel.eval.of_run.load_scene_truth`).
+    mesh was made (:func:`loopmodel.eval.of_run.prepare`; then in the ``mesh`` step's time).
     """
     if sequence.ground_truth is None:
         return None
@@ -1304,15 +1299,10 @@ def evaluated(
 
     seconds = result.metrics.setdefault("finish_s", {})
     with timed_step("evaluation", seconds, finishing, result.metrics.setdefault("finish_cpu_s", {})):
-        evaluation = evaluate(result, sequence, prepared=prepared, loaded=loaded)
+        evaluation = evaluate(result, sequence, prepared=prepared)
     result.metrics.update(evaluation.metrics)
     result.metrics["wall_s"] = result.metrics.get("wall_s", 0.0) + seconds["evaluation"]
     return evaluation
-
-
-#: how far the ground truth's loading thread at a run's finish runs below the run's priority (a scheduling
-#: priority, as ``mapping.live_mesh_nice``; fin18)
-_TRUTH_NICE = 10
 
 
 def _process_and_write(
@@ -1345,13 +1335,12 @@ def _process_and_write(
     def finish_step(name: str, seconds: float | None) -> None:
         # fin18 (issue 32): the ground truth's surfaces (scene.ply and object.ply read, the object's samples:
         # 0.07 s CPU on the 150-frame orbit) loaded on a thread while the finish first waits for the workers
-        # and the back end's final estimate, no longer beside the final mesh; at a lower priority, so that on a
-        # busy machine the back end's worker and this process's refinement go first. Not the scene's search
-        # structure: open3d holds the interpreter 0.04-0.08 s for it (a probe's main thread stalled that long)
+        # and the back end's final estimate, no longer beside the final mesh. Not the scene's search structure:
+        # open3d holds the interpreter 0.04-0.08 s for it (a probe's main thread stalled that long)
         if not truth and grade and config.mapping.write_mesh and "scene.ply" in sequence.attachment_names:
             from loopmodel.eval.of_run import SceneTruthLoader
 
-            truth.append(SceneTruthLoader(sequence, nice=_TRUTH_NICE))
+            truth.append(SceneTruthLoader(sequence))
         if finishing is not None:
             finishing(name, seconds)
 
@@ -1371,8 +1360,7 @@ def _process_and_write(
                 result.metrics["write_beside_mesh_s"] = written.seconds
             if evaluate:
                 try:
-                    evaluated(result, sequence, finishing, prepared[-1] if prepared else None,
-                              truth[0].result() if truth else None)
+                    evaluated(result, sequence, finishing, prepared[-1] if prepared else None)
                 except (LoopmodelError, ValueError, OSError) as exc:  # grading must never lose the run's results
                     logger.error("evaluation failed: %s", exc)
                     result.metrics["evaluation_error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__

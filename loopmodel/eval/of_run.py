@@ -91,13 +91,15 @@ class MeshTruth:
 class SceneTruth:
     """The sequence's ground-truth surfaces in the ground truth's own frame: no result of the run needed.
 
-    ``scene`` (``scene.ply``) and ``object_samples`` (the seeded samples of ``object.ply``, P x 3, metres; None
-    without it). :func:`mesh_truth` moves them into the run's world and makes the scene's search structure
-    (fin18: loaded while the run's finish waits for its workers, not beside the mesh).
+    ``scene`` (``scene.ply``), ``object_samples`` (the seeded samples of ``object.ply``, P x 3, metres; None
+    without it) and ``to_scene`` (the distance to ``scene``, its search structure not yet built: open3d holds
+    the interpreter for it; None without triangles). :func:`mesh_truth` moves them into the run's world (fin18:
+    loaded while the run's finish waits for its workers, not beside the mesh).
     """
 
     scene: Any
     object_samples: Any
+    to_scene: Any
     seconds: float = 0.0
 
 
@@ -107,7 +109,7 @@ def load_scene_truth(sequence: Sequence, object_samples: int = 50_000) -> SceneT
     if sequence.ground_truth is None or "scene.ply" not in names:
         return None
     from loopmodel.io.mesh_io import mesh_from_bytes
-    from loopmodel.mapping.accuracy import sample_surface
+    from loopmodel.mapping.accuracy import SurfaceDistance, sample_surface
 
     t0 = time.perf_counter()
     scene = mesh_from_bytes(sequence.read_attachment("scene.ply"), "ply", sequence.path)
@@ -115,30 +117,25 @@ def load_scene_truth(sequence: Sequence, object_samples: int = 50_000) -> SceneT
     if "object.ply" in names:  # sampled in its own frame: the same samples moved (a rigid move keeps areas)
         obj = mesh_from_bytes(sequence.read_attachment("object.ply"), "ply", sequence.path)
         samples = sample_surface(obj, object_samples)
-    return SceneTruth(scene, samples, time.perf_counter() - t0)
+    to_scene = SurfaceDistance(scene) if len(scene.triangles) else None
+    return SceneTruth(scene, samples, to_scene, time.perf_counter() - t0)
 
 
 class SceneTruthLoader:
     """:func:`load_scene_truth` on a thread of its own, started when asked (e.g. at a run's finish).
 
-    The thread's scheduling priority is lowered by ``nice`` (the run's own work first on a busy machine).
     :meth:`result` waits for it; a failure gives None (the evaluation then loads the truth itself and
     reports what is wrong).
     """
 
-    def __init__(self, sequence: Sequence, nice: int = 0) -> None:
+    def __init__(self, sequence: Sequence) -> None:
         import threading
 
         self._out: list[SceneTruth | None] = [None]
-        self._thread = threading.Thread(
-            target=self._load, args=(sequence, nice), name="loopmodel-truth", daemon=True
-        )
+        self._thread = threading.Thread(target=self._load, args=(sequence,), name="loopmodel-truth", daemon=True)
         self._thread.start()
 
-    def _load(self, sequence: Sequence, nice: int) -> None:
-        from loopmodel.priority import lower_thread_priority
-
-        lower_thread_priority(nice)
+    def _load(self, sequence: Sequence) -> None:
         try:
             self._out[0] = load_scene_truth(sequence)
         except Exception as exc:  # noqa: BLE001 - the evaluation loads it again and says what is wrong
@@ -180,8 +177,9 @@ def mesh_truth(result: RunResult, sequence: Sequence, loaded: SceneTruth | None 
             samples = loaded.object_samples @ run_from_gt[:3, :3].T + run_from_gt[:3, 3]
             obj = object_truth_of(None, result.stripes, in_run(gt), result.config.mapping, samples_w=samples)
         to_scene = None
-        if len(loaded.scene.triangles):  # the search structure made here, beside the mesh (fin15), in the truth's frame
-            to_scene = SurfaceDistance(loaded.scene, build=True).queried_from(gt_from_run)
+        if loaded.to_scene is not None:  # its search structure made here, beside the mesh (as fin15's)
+            loaded.to_scene.build()
+            to_scene = loaded.to_scene.queried_from(gt_from_run)
         return MeshTruth(result.final, result.stripes, run_from_gt, gt_mesh, obj, in_run, to_scene)
     gt_mesh = mesh_from_bytes(sequence.read_attachment("scene.ply"), "ply", sequence.path)
     gt_mesh.transform(run_from_gt)
@@ -196,11 +194,7 @@ def mesh_truth(result: RunResult, sequence: Sequence, loaded: SceneTruth | None 
 
 
 def mesh_errors(
-    result: RunResult,
-    sequence: Sequence,
-    references: bool = False,
-    truth: MeshTruth | None = None,
-    loaded: SceneTruth | None = None,
+    result: RunResult, sequence: Sequence, references: bool = False, truth: MeshTruth | None = None
 ) -> dict[str, Any]:
     """The final mesh against the sequence's ground-truth scene (``scene.ply`` attachment).
 
@@ -211,14 +205,13 @@ def mesh_errors(
     the truth by its frame positions (as ATE) and the meshes are made in the run's world, where the
     run made its own: open3d's Poisson octree follows the frame's axes, so meshes made in different
     frames would not compare like with like. Empty without a mesh, stripes, scene or ground truth.
-    ``truth``: :func:`mesh_truth` of this result made beforehand (e.g. while the mesh was made);
-    ``loaded``: :func:`load_scene_truth` of ``sequence`` made beforehand (used when ``truth`` is not).
+    ``truth``: :func:`mesh_truth` of this result made beforehand (e.g. while the mesh was made).
     """
     gt = sequence.ground_truth
     if result.mesh is None or gt is None:
         return {}
     if truth is None or truth.final is not result.final or truth.stripes is not result.stripes:
-        truth = mesh_truth(result, sequence, loaded)
+        truth = mesh_truth(result, sequence)
     if truth is None:
         return {}
     from loopmodel.mapping.accuracy import mesh_error_metrics
@@ -283,12 +276,7 @@ def prepare(result: RunResult, sequence: Sequence, loaded: SceneTruth | None = N
 
 
 def evaluate(
-    result: RunResult,
-    sequence: Sequence,
-    *,
-    mesh_references: bool | None = None,
-    prepared: Prepared | None = None,
-    loaded: SceneTruth | None = None,
+    result: RunResult, sequence: Sequence, *, mesh_references: bool | None = None, prepared: Prepared | None = None
 ) -> Evaluation:
     """Grade ``result`` (of :func:`~loopmodel.pipeline.process` over ``sequence``) against its ground truth.
 
@@ -298,8 +286,7 @@ def evaluate(
     configuration). Nothing without ground truth; a mesh that cannot be measured is logged and left
     out. Changes nothing: the caller merges :attr:`Evaluation.metrics` where it wants them.
     ``prepared``: :func:`prepare` of this result (its trajectories as they are now), made earlier;
-    :attr:`Evaluation.seconds` then counts only what is left. ``loaded``: :func:`load_scene_truth` of
-    ``sequence``, made earlier (for the mesh's truth when ``prepared`` has none).
+    :attr:`Evaluation.seconds` then counts only what is left.
     """
     t0 = time.perf_counter()
     gt = sequence.ground_truth
@@ -310,7 +297,7 @@ def evaluate(
         m.update(prepared.trajectory_metrics if prepared is not None else trajectory_metrics(result, sequence))
         refs = result.config.eval.mesh_references if mesh_references is None else mesh_references
         try:
-            m.update(mesh_errors(result, sequence, refs, prepared.truth if prepared is not None else None, loaded))
+            m.update(mesh_errors(result, sequence, refs, prepared.truth if prepared is not None else None))
         except LoopmodelError as exc:
             logger.error("no mesh accuracy: %s", exc)
     return Evaluation(m, time.perf_counter() - t0)
