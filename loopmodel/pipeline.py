@@ -1330,19 +1330,6 @@ def _process_and_write(
     early: list[EarlyFiles | None] = []
     kitti_input = sequence.format_name == "kitti"
     grade = evaluate and sequence.ground_truth is not None
-    truth: list[Any] = []  # the evaluation's ground-truth surfaces, loading from the finish's start
-
-    def finish_step(name: str, seconds: float | None) -> None:
-        # fin18 (issue 32): the ground truth's surfaces (scene.ply and object.ply read, the object's samples:
-        # 0.07 s CPU on the 150-frame orbit) loaded on a thread while the finish first waits for the workers
-        # and the back end's final estimate, no longer beside the final mesh. Not the scene's search structure:
-        # open3d holds the interpreter 0.04-0.08 s for it (a probe's main thread stalled that long)
-        if not truth and grade and config.mapping.write_mesh and "scene.ply" in sequence.attachment_names:
-            from loopmodel.eval.of_run import SceneTruthLoader
-
-            truth.append(SceneTruthLoader(sequence))
-        if finishing is not None:
-            finishing(name, seconds)
 
     def beside(result: RunResult) -> None:  # while another process makes the final mesh
         # pre16 (issue 32): the results files that need neither the mesh nor the metrics
@@ -1350,11 +1337,11 @@ def _process_and_write(
         if grade:  # the evaluation's part that needs no mesh (finish11)
             from loopmodel.eval.of_run import prepare
 
-            prepared.append(prepare(result, sequence, truth[0].result() if truth else None))
+            prepared.append(prepare(result, sequence))
 
     try:
         with LogCapture() as log, signals:
-            result = process(sequence, config, stop=stop, finishing=finish_step, beside_mesh=beside, **kwargs)
+            result = process(sequence, config, stop=stop, finishing=finishing, beside_mesh=beside, **kwargs)
             written = early[-1] if early else None
             if written is not None and written.holds_for(result):
                 result.metrics["write_beside_mesh_s"] = written.seconds

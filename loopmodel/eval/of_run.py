@@ -87,71 +87,8 @@ class MeshTruth:
     to_scene: Any = None
 
 
-@dataclass
-class SceneTruth:
-    """The sequence's ground-truth surfaces in the ground truth's own frame: no result of the run needed.
-
-    ``scene`` (``scene.ply``), ``object_samples`` (the seeded samples of ``object.ply``, P x 3, metres; None
-    without it) and ``to_scene`` (the distance to ``scene``, its search structure not yet built: open3d holds
-    the interpreter for it; None without triangles). :func:`mesh_truth` moves them into the run's world (fin18:
-    loaded while the run's finish waits for its workers, not beside the mesh).
-    """
-
-    scene: Any
-    object_samples: Any
-    to_scene: Any
-    seconds: float = 0.0
-
-
-def load_scene_truth(sequence: Sequence, object_samples: int = 50_000) -> SceneTruth | None:
-    """:class:`SceneTruth` of ``sequence`` (None without ground truth or ``scene.ply``)."""
-    names = sequence.attachment_names
-    if sequence.ground_truth is None or "scene.ply" not in names:
-        return None
-    from loopmodel.io.mesh_io import mesh_from_bytes
-    from loopmodel.mapping.accuracy import SurfaceDistance, sample_surface
-
-    t0 = time.perf_counter()
-    scene = mesh_from_bytes(sequence.read_attachment("scene.ply"), "ply", sequence.path)
-    samples = None
-    if "object.ply" in names:  # sampled in its own frame: the same samples moved (a rigid move keeps areas)
-        obj = mesh_from_bytes(sequence.read_attachment("object.ply"), "ply", sequence.path)
-        samples = sample_surface(obj, object_samples)
-    to_scene = SurfaceDistance(scene) if len(scene.triangles) else None
-    return SceneTruth(scene, samples, to_scene, time.perf_counter() - t0)
-
-
-class SceneTruthLoader:
-    """:func:`load_scene_truth` on a thread of its own, started when asked (e.g. at a run's finish).
-
-    :meth:`result` waits for it; a failure gives None (the evaluation then loads the truth itself and
-    reports what is wrong).
-    """
-
-    def __init__(self, sequence: Sequence) -> None:
-        import threading
-
-        self._out: list[SceneTruth | None] = [None]
-        self._thread = threading.Thread(target=self._load, args=(sequence,), name="loopmodel-truth", daemon=True)
-        self._thread.start()
-
-    def _load(self, sequence: Sequence) -> None:
-        try:
-            self._out[0] = load_scene_truth(sequence)
-        except Exception as exc:  # noqa: BLE001 - the evaluation loads it again and says what is wrong
-            logger.debug("ground truth not loaded ahead: %s", exc)
-
-    def result(self) -> SceneTruth | None:
-        """The loaded truth (waits for the thread)."""
-        self._thread.join()
-        return self._out[0]
-
-
-def mesh_truth(result: RunResult, sequence: Sequence, loaded: SceneTruth | None = None) -> MeshTruth | None:
-    """:class:`MeshTruth` for ``result``'s final trajectory and stripes (None when no mesh error can be made).
-
-    ``loaded``: :func:`load_scene_truth` of ``sequence``, made beforehand (its surfaces moved here).
-    """
+def mesh_truth(result: RunResult, sequence: Sequence) -> MeshTruth | None:
+    """:class:`MeshTruth` for ``result``'s final trajectory and stripes (None when no mesh error can be made)."""
     gt = sequence.ground_truth
     names = sequence.attachment_names
     if not result.stripes or gt is None or "scene.ply" not in names or len(result.final) < 2:
@@ -161,26 +98,11 @@ def mesh_truth(result: RunResult, sequence: Sequence, loaded: SceneTruth | None 
     from loopmodel.mapping.accuracy import SurfaceDistance, object_truth_of
     from loopmodel.mapping.final import reference_from_traj
 
-    gt_from_run = reference_from_traj(result.final, gt)
-    run_from_gt = invert_pose(gt_from_run)
+    run_from_gt = invert_pose(reference_from_traj(result.final, gt))
 
     def in_run(traj: Trajectory) -> Trajectory:
         return Trajectory(traj.timestamps_ns, run_from_gt[None] @ traj.world_from_cam)
 
-    if loaded is not None:
-        import open3d as o3d
-
-        gt_mesh = o3d.geometry.TriangleMesh(loaded.scene)
-        gt_mesh.transform(run_from_gt)
-        obj = None
-        if loaded.object_samples is not None:
-            samples = loaded.object_samples @ run_from_gt[:3, :3].T + run_from_gt[:3, 3]
-            obj = object_truth_of(None, result.stripes, in_run(gt), result.config.mapping, samples_w=samples)
-        to_scene = None
-        if loaded.to_scene is not None:  # its search structure made here, beside the mesh (as fin15's)
-            loaded.to_scene.build()
-            to_scene = loaded.to_scene.queried_from(gt_from_run)
-        return MeshTruth(result.final, result.stripes, run_from_gt, gt_mesh, obj, in_run, to_scene)
     gt_mesh = mesh_from_bytes(sequence.read_attachment("scene.ply"), "ply", sequence.path)
     gt_mesh.transform(run_from_gt)
     obj = None
@@ -258,17 +180,16 @@ def trajectory_metrics(result: RunResult, sequence: Sequence) -> dict[str, Any]:
     return m
 
 
-def prepare(result: RunResult, sequence: Sequence, loaded: SceneTruth | None = None) -> Prepared:
+def prepare(result: RunResult, sequence: Sequence) -> Prepared:
     """The evaluation's part that needs no mesh: trajectory errors and the mesh's ground truth (finish11).
 
     For a caller with time while the run's mesh is made (:func:`loopmodel.pipeline.process`'s
-    ``beside_mesh``); :func:`evaluate` with it gives what it gives without. ``loaded``: the sequence's
-    :func:`load_scene_truth`, made earlier.
+    ``beside_mesh``); :func:`evaluate` with it gives what it gives without.
     """
     t0 = time.perf_counter()
     truth = None
     try:
-        truth = mesh_truth(result, sequence, loaded) if result.config.mapping.write_mesh else None
+        truth = mesh_truth(result, sequence) if result.config.mapping.write_mesh else None
     except LoopmodelError as exc:
         logger.error("no mesh accuracy: %s", exc)
     of = (result.online, result.final, result.localized)

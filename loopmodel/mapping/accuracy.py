@@ -9,7 +9,6 @@ object alone, or of the part of it the laser swept).
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING
@@ -56,30 +55,12 @@ class SurfaceDistance:
         if len(mesh.triangles) == 0:
             raise InputError(None, "distance to a mesh without triangles")
         self._scene = _scene(mesh)
-        self._mesh_from_query: NDArray[np.float64] | None = None
         if build:
-            self.build()
-
-    def build(self) -> None:
-        """The search structure made now (open3d makes it at the first query, holding the interpreter: 0.04-0.08 s)."""
-        self._scene.compute_distance(o3d.core.Tensor.from_numpy(np.zeros((1, 3), np.float32)))
-
-    def queried_from(self, mesh_from_query: NDArray[np.float64]) -> SurfaceDistance:
-        """The same surface's distance for points given in another frame (``mesh_from_query``: 4x4 rigid).
-
-        Shares the search structure (a rigid move keeps distances): the queries are moved into the mesh's
-        frame, not the mesh (fin18: the truth's structure built before the run's frame is known).
-        """
-        out = copy.copy(self)
-        out._mesh_from_query = np.asarray(mesh_from_query, np.float64)
-        return out
+            self(np.asarray(mesh.vertices)[:1])
 
     def __call__(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Distance (metres) from each of the P x 3 points (the mesh's frame, or the query frame) to the surface."""
-        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        if self._mesh_from_query is not None:
-            p = p @ self._mesh_from_query[:3, :3].T + self._mesh_from_query[:3, 3]
-        q = o3d.core.Tensor.from_numpy(np.ascontiguousarray(p, dtype=np.float32))
+        """Distance (metres) from each of the P x 3 points (the mesh's frame) to the surface."""
+        q = o3d.core.Tensor.from_numpy(np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3))
         return self._scene.compute_distance(q).numpy().astype(np.float64)
 
 
@@ -186,29 +167,22 @@ class ObjectTruth:
 
 
 def object_truth_of(
-    object_mesh: o3d.geometry.TriangleMesh | None,
+    object_mesh: o3d.geometry.TriangleMesh,
     stripes: list[StripeProfile],
     swept_by: Trajectory | None,
     config: MappingConfig | None = None,
     object_samples: int = 50_000,
     swept_radius_m: float = 0.005,
     placed: StripeMap | None = None,
-    samples_w: NDArray[np.float64] | None = None,
 ) -> ObjectTruth:
     """:class:`ObjectTruth` of ``object_mesh``: seeded samples, swept where within ``swept_radius_m`` of a stripe point.
 
     The stripes placed with ``swept_by`` (the ground-truth poses in the mesh's world; or ``placed``,
     already placed); no swept mask without either. Needs no mesh of the run (:func:`mesh_error_metrics`).
-    ``samples_w``: the object's samples already made (P x 3, the mesh's world; then ``object_mesh`` is unused).
     """
     from loopmodel.mapping.stripe_map import StripeMap
 
-    if samples_w is not None:
-        reference = np.asarray(samples_w, np.float64).reshape(-1, 3)
-    elif object_mesh is not None:
-        reference = sample_surface(object_mesh, object_samples)
-    else:
-        raise InputError(None, "no object mesh or samples")
+    reference = sample_surface(object_mesh, object_samples)
     if placed is None and swept_by is not None:
         placed = StripeMap.from_trajectory(swept_by, stripes, config)
     swept = swept_mask(reference, placed.world_points(), swept_radius_m) if placed is not None else None
