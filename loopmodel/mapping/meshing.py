@@ -135,10 +135,15 @@ def _poisson(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geome
 def _far_from_samples(
     mesh: o3d.geometry.TriangleMesh, cloud: o3d.geometry.PointCloud, config: MappingConfig
 ) -> np.ndarray:
-    """Per vertex: farther than ``trim_distance_m`` (0: 2.5 ``voxel_m``) from every sample (both surfaces' trim)."""
-    trim = config.trim_distance_m or 2.5 * config.voxel_m
+    """Per vertex: farther than :func:`_trim_distance_m` from every sample (Poisson's trim)."""
+    trim = _trim_distance_m(config)
     dist = np.asarray(o3d.geometry.PointCloud(mesh.vertices).compute_point_cloud_distance(cloud))
     return dist > trim
+
+
+def _trim_distance_m(config: MappingConfig) -> float:
+    """How far (m) a vertex may be from every sample: ``trim_distance_m``, 0: 2.5 ``voxel_m`` (both surfaces)."""
+    return config.trim_distance_m or 2.5 * config.voxel_m
 
 
 def preload_kernels() -> None:
@@ -194,8 +199,7 @@ def _sdf(cloud: o3d.geometry.PointCloud, config: MappingConfig) -> o3d.geometry.
     if len(mesh.vertices) == 0:
         return mesh
     # Poisson's distance trim (_far_from_samples) on the samples' cells (fin18: 0.03 s -> ~0.005 s CPU)
-    trim = config.trim_distance_m or 2.5 * config.voxel_m
-    far = ~k.near_samples(verts, pts, trim, origin, h, bmap, order, start)
+    far = ~k.near_samples(verts, pts, _trim_distance_m(config), origin, h, bmap, order, start)
     mesh.remove_vertices_by_mask(far)  # type: ignore[arg-type]
     if config.sdf_min_component_cells > 0 and len(mesh.triangles):
         # a lone sample (a stray laser peak) makes a small disc of its own; Poisson's density trim drops those
