@@ -42,10 +42,17 @@ from typing import Any, Literal
 
 import gtsam
 import numpy as np
+import numpy.ma  # noqa: F401 - see below
 from gtsam.symbol_shorthand import L, P, X
 from numpy.typing import NDArray
 
 from loopmodel.backend.base import F64, BackendEstimate, BackendUpdate, Observation
+
+# fin19 (issue 32): the final estimate's modules loaded with this one (in the back-end worker, at its start),
+# not in the final estimate the run waits for: the loop distribution, its pose graph, and numpy.ma, which
+# np.unique imports at its first call (numpy 2.4: np.ma.is_masked). They took 0.05 s CPU there, 0.15 s at
+# load 7, without bytecode (PYTHONDONTWRITEBYTECODE, as this machine's shells)
+from loopmodel.backend.loop_distribution import distribute_loop_errors
 from loopmodel.config import BackendConfig, RefineConfig
 from loopmodel.errors import EstimationError, InputError
 from loopmodel.geometry.se3 import invert_pose
@@ -1324,8 +1331,6 @@ class Isam2Backend:
         :func:`~loopmodel.backend.loop_distribution.distribute_loop_errors`; each landmark moves
         with its first keyframe. :attr:`refine_info` gets the largest keyframe move.
         """
-        from loopmodel.backend.loop_distribution import distribute_loop_errors
-
         loops = self.loop_constraints()
         if not loops:
             return est
