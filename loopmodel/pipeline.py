@@ -39,7 +39,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
-from concurrent.futures import Future
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -658,14 +658,43 @@ class _Run:
             rows = np.vstack([old, np.asarray(mono_obs, float).reshape(-1, 3)])
             self.selfcal_keyframes[kf_id] = dataclasses.replace(kf, mono_obs=rows)
 
-    def _self_calibration(self, estimate: BackendEstimate | None, interrupted: bool) -> BackendEstimate | None:
+    def _calibrating(self, interrupted: bool) -> bool:
+        """Whether the finish runs the calibrating bundle adjustment (``calibration.refine: final``, issue 31)."""
+        return self.config.calibration.refine != "none" and not interrupted and self.localizer is None
+
+    def _observe_beside(self, interrupted: bool) -> tuple[list[Keyframe], Future[Any]] | None:
+        """The calibrating bundle adjustment's keyframes and their observations, made on a thread (or None).
+
+        fin19 (issue 32): :func:`~loopmodel.calibration.selfcal.final_observations` needs no estimate: it is
+        made while this thread waits for the back end's final estimate (made in its worker process).
+        Not with ``calibration.refine: online`` (its keyframes are re-expressed after its last window).
+        """
+        if not self._calibrating(interrupted) or self.online is not None or not self.keyframes:
+            return None
+        from loopmodel.calibration.selfcal import final_observations
+        from loopmodel.types import at_latest_disparity_offset
+
+        # issue 36: the right columns at the front end's latest disparity offset, as the batch BA has them
+        kfs = at_latest_disparity_offset(list(self.selfcal_keyframes.values()))
+        pool = ThreadPoolExecutor(1, thread_name_prefix="loopmodel-selfcal")
+        job = pool.submit(final_observations, kfs, self.frontend.input_calibration, self.config.calibration)
+        pool.shutdown(wait=False)
+        return kfs, job
+
+    def _self_calibration(
+        self,
+        estimate: BackendEstimate | None,
+        interrupted: bool,
+        observed: tuple[list[Keyframe], Future[Any]] | None = None,
+    ) -> BackendEstimate | None:
         """``calibration.refine: final`` (issue 31): the calibrating bundle adjustment.
 
         Then the stripes moved to the refined left camera and light plane (laser-stereo scale); the
         anchored frames follow the refined keyframes. Returns the refined estimate (the input when
         off, interrupted, localizing or failing: logged); :attr:`selfcal` keeps the report.
+        ``observed``: :meth:`_observe_beside`'s keyframes and observations.
         """
-        if self.config.calibration.refine == "none" or estimate is None or interrupted or self.localizer is not None:
+        if not self._calibrating(interrupted) or estimate is None:
             return estimate
         from loopmodel.calibration.selfcal import apply_laser_scale, close_loops, refine_final, restripe
         from loopmodel.mapping.extraction import LightPlane
@@ -680,7 +709,7 @@ class _Run:
             }
             start = self.online.latest_values
         # issue 36: the right columns at the front end's latest disparity offset, as the batch BA has them
-        kfs = at_latest_disparity_offset(list(self.selfcal_keyframes.values()))
+        kfs = observed[0] if observed is not None else at_latest_disparity_offset(list(self.selfcal_keyframes.values()))
         loops = [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints]
         b = self.config.backend
         try:
@@ -688,6 +717,7 @@ class _Run:
                 kfs, estimate.world_from_kf, estimate.landmark_ids, estimate.landmarks_in_world,
                 self.frontend.input_calibration, self.config.calibration, plane.normal_in_cam, plane.d_m,
                 loops, np.array([b.loop_sigma_rad] * 3 + [b.loop_sigma_m] * 3), start,
+                observed=observed[1].result() if observed is not None else None,
             )
         except (LoopmodelError, np.linalg.LinAlgError, ValueError) as exc:
             logger.warning("self-calibration not done: %s", exc)
@@ -999,7 +1029,8 @@ class _Run:
 
     def _estimate(self, interrupted: bool) -> RunResult:
         """The back end's final estimate (refined unless interrupted): trajectories, keyframes, landmarks."""
-        estimate = self._self_calibration(self._final_estimate(interrupted), interrupted)
+        observed = self._observe_beside(interrupted)  # while the back end's worker makes its final estimate
+        estimate = self._self_calibration(self._final_estimate(interrupted), interrupted, observed)
         result = RunResult(
             config=self.config,
             frames=self.frames,

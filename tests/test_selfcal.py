@@ -31,8 +31,14 @@ from loopmodel.calibration.refine_rig import (  # noqa: E402
     refine_rig,
     residuals_and_jacobians,
 )
-from loopmodel.calibration.selfcal import anchors_principal_point, estimated_parameters  # noqa: E402
+from loopmodel.calibration.selfcal import (  # noqa: E402
+    anchors_principal_point,
+    estimated_parameters,
+    final_observations,
+    refine_final,
+)
 from loopmodel.config import SelfCalibrationConfig  # noqa: E402
+from loopmodel.errors import LoopmodelError  # noqa: E402
 from loopmodel.geometry.align import umeyama_alignment  # noqa: E402
 from loopmodel.geometry.se3 import so3_exp, so3_log  # noqa: E402
 from loopmodel.types import StereoCalibration, StripeProfile  # noqa: E402
@@ -717,3 +723,32 @@ def test_calibration_covariance_is_the_inverse_s_last_block() -> None:
     np.testing.assert_allclose(calibration_covariance(S, 7), np.linalg.inv(S)[-7:, -7:], rtol=1e-10, atol=1e-14)
     singular = np.diag([1.0, 1.0, -1.0])  # not positive definite: by the inverse
     np.testing.assert_allclose(calibration_covariance(singular, 2), np.linalg.inv(singular)[-2:, -2:])
+
+
+def test_observations_made_before_the_estimate_refine_the_same() -> None:
+    """fin19 (issue 32): observations made before the back end's final estimate refine bit-identically.
+
+    refine_final with final_observations made beforehand gives the same poses, landmarks and calibration;
+    observations of other keyframes than the estimate holds are not used; too few keyframes fail as before.
+    """
+    seed = 2
+    sc = make_scene(recorded_rig(true_rig(), seed), seed=seed, n_kf=8, n_points=600, noise_px=0.1)
+    kfs = list(sc.keyframes)
+    world_from_kf = {k.id: sc.world_from_kf[i].copy() for i, k in enumerate(kfs)}
+    cfg = SelfCalibrationConfig()
+    plane = (np.array([0.0, 0.0, 1.0]), -0.5)
+    none = (np.zeros(0, np.int64), np.zeros((0, 3)))
+    for poses in (world_from_kf, {k: T for k, T in world_from_kf.items() if k != kfs[-1].id}):
+        plain = refine_final(kfs, poses, *none, sc.recorded, cfg, *plane)
+        early = refine_final(kfs, poses, *none, sc.recorded, cfg, *plane,
+                             observed=final_observations(kfs, sc.recorded, cfg))
+        assert sorted(early.world_from_kf) == sorted(poses)
+        for k in poses:
+            assert np.array_equal(early.world_from_kf[k], plain.world_from_kf[k])
+        assert np.array_equal(early.landmark_ids, plain.landmark_ids)
+        assert np.array_equal(early.landmarks_in_world, plain.landmarks_in_world)
+        for name in ("K_left", "K_right", "right_from_left", "dist_left", "dist_right"):
+            assert np.array_equal(getattr(early.calibration, name), getattr(plain.calibration, name))
+    with pytest.raises(LoopmodelError, match="needs 3 keyframes"):
+        refine_final(kfs[:2], world_from_kf, *none, sc.recorded, cfg, *plane,
+                     observed=final_observations(kfs[:2], sc.recorded, cfg))

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from loopmodel.calibration.refine_laser import LaserStereoScale, laser_stereo_scale
 from loopmodel.calibration.refine_rig import (
     PARAM_NAMES,
+    RigObservations,
     RigRefinement,
     observations_from_keyframes,
     prior_sigmas,
@@ -219,6 +220,51 @@ def _triangulated(kf: Keyframe, ids: I64) -> F64:
     return p @ T[:3, :3].T + T[:3, 3]
 
 
+@dataclass
+class FinalObservations:
+    """:func:`refine_final`'s measurements of its keyframes, made before the back end's estimate is there (fin19)."""
+
+    ids: list[int]  # the keyframes' ids, in order
+    obs: RigObservations | None  # of the landmarks kept (refine_final adds the loops)
+    kf_ids: list[int]
+    lm_ids: I64
+    rows: dict[int, F64] | None
+    unusable: LoopmodelError | None = None  # why nothing can be refined
+
+
+def final_observations(
+    keyframes: list[Keyframe], calibration: StereoCalibration, config: SelfCalibrationConfig
+) -> FinalObservations:
+    """The keyframes' observations of landmarks seen in stereo by 2 keyframes, as :func:`refine_final` refines them.
+
+    Needs no estimate: made while the back end's final estimate is made (issue 32, fin19). ``calibration``:
+    the recorded one.
+    """
+    ids = [int(k.id) for k in keyframes]
+    if len(keyframes) < 3:
+        err = LoopmodelError(f"self-calibration needs 3 keyframes, got {len(keyframes)}")
+        return FinalObservations(ids, None, [], np.zeros(0, np.int64), None, err)
+    R1, R2, K1, K2 = rectifying_rotations(calibration)
+    rows = right_rows(keyframes, config)
+    obs, kf_ids, lm_ids = observations_from_keyframes(keyframes, calibration, K1, K2, R1, R2, rows)
+    # a landmark needs a stereo observation and a second keyframe (else it only adds unknowns)
+    n_pt = lm_ids.size
+    stereo = np.zeros(n_pt, bool)
+    stereo[obs.point_idx[obs.cam == 1]] = True
+    kf_count = np.zeros(n_pt, np.int64)
+    pairs = np.unique(obs.point_idx * (len(kf_ids) + 1) + obs.pose_idx)
+    np.add.at(kf_count, pairs // (len(kf_ids) + 1), 1)
+    keep_pt = stereo & (kf_count >= 2)
+    if int(keep_pt.sum()) < 20:
+        err = LoopmodelError(f"self-calibration: {int(keep_pt.sum())} landmarks seen in stereo by 2 keyframes")
+        return FinalObservations(ids, None, [], np.zeros(0, np.int64), None, err)
+    new_index = np.cumsum(keep_pt) - 1
+    sel = keep_pt[obs.point_idx]
+    obs.pose_idx, obs.cam, obs.uv_px, obs.measure = obs.pose_idx[sel], obs.cam[sel], obs.uv_px[sel], obs.measure[sel]
+    obs.point_idx = new_index[obs.point_idx[sel]]
+    return FinalObservations(ids, obs, list(kf_ids), lm_ids[keep_pt], rows)
+
+
 def refine_final(
     keyframes: list[Keyframe],
     world_from_kf: dict[int, F64],
@@ -231,6 +277,7 @@ def refine_final(
     loops: list[tuple[int, int, F64]] | None = None,
     loop_sigmas: F64 | None = None,
     start_values: F64 | None = None,
+    observed: FinalObservations | None = None,
 ) -> SelfCalibration:
     """The calibrating bundle adjustment over the run's keyframes; see the module docstring.
 
@@ -242,35 +289,21 @@ def refine_final(
     ``calibration`` is the recorded (input) calibration; ``world_from_kf`` and the landmarks the back
     end's final estimate (landmarks it does not hold start from their keyframe's triangulation).
     ``start_values``: the calibration the adjustment starts from (:data:`PARAM_NAMES` order; the
-    online estimate), the priors staying at ``calibration``.
+    online estimate), the priors staying at ``calibration``. ``observed``: :func:`final_observations` of
+    these keyframes made beforehand (used when the estimate holds the same keyframes).
     Raises :class:`LoopmodelError` when there is nothing to refine.
     """
     t0 = time.perf_counter()
     kfs = [k for k in keyframes if int(k.id) in world_from_kf]
-    if len(kfs) < 3:
-        raise LoopmodelError(f"self-calibration needs 3 keyframes, got {len(kfs)}")
-    R1, R2, K1, K2 = rectifying_rotations(calibration)
-    rows = right_rows(kfs, config)
-    obs, kf_ids, lm_ids = observations_from_keyframes(kfs, calibration, K1, K2, R1, R2, rows)
-    # a landmark needs a stereo observation and a second keyframe (else it only adds unknowns)
-    n_pt = lm_ids.size
-    stereo = np.zeros(n_pt, bool)
-    stereo[obs.point_idx[obs.cam == 1]] = True
-    kf_count = np.zeros(n_pt, np.int64)
-    pairs = np.unique(obs.point_idx * (len(kf_ids) + 1) + obs.pose_idx)
-    np.add.at(kf_count, pairs // (len(kf_ids) + 1), 1)
-    keep_pt = stereo & (kf_count >= 2)
-    if int(keep_pt.sum()) < 20:
-        raise LoopmodelError(f"self-calibration: {int(keep_pt.sum())} landmarks seen in stereo by 2 keyframes")
-    new_index = np.cumsum(keep_pt) - 1
-    sel = keep_pt[obs.point_idx]
-    obs.pose_idx, obs.cam, obs.uv_px, obs.measure = obs.pose_idx[sel], obs.cam[sel], obs.uv_px[sel], obs.measure[sel]
-    obs.point_idx = new_index[obs.point_idx[sel]]
+    seen = observed if observed is not None and observed.ids == [int(k.id) for k in kfs] else None
+    seen = seen or final_observations(kfs, calibration, config)
+    if seen.unusable is not None or seen.obs is None:
+        raise seen.unusable or LoopmodelError("self-calibration: no observations")
+    obs, kf_ids, lm_ids, rows = seen.obs, seen.kf_ids, seen.lm_ids, seen.rows
     index = {k: i for i, k in enumerate(kf_ids)}
     obs.loops = [(index[a], index[b], np.asarray(T, float)) for a, b, T in (loops or []) if a in index and b in index]
     if loop_sigmas is not None:
         obs.loop_sigmas = np.asarray(loop_sigmas, float)
-    lm_ids = lm_ids[keep_pt]
     # start values: the back end's landmarks, else the first keyframe's stereo triangulation
     start = {int(i): p for i, p in zip(np.asarray(landmark_ids).tolist(), np.asarray(landmarks_in_world), strict=True)}
     pts = np.zeros((lm_ids.size, 3))
