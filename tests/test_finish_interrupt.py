@@ -203,8 +203,8 @@ def test_a_busy_live_worker_is_handed_over_only_when_asked() -> None:
 def test_a_busy_live_worker_leaves_the_final_mesh_to_the_extraction_process() -> None:
     """mesh14: ``_Run._mesh_in_helper`` gives the idle helper pool (no open3d yet) the final mesh: the same mesh.
 
-    The busy live worker is not taken (its update is abandoned when the live mesh closes); without a
-    helper the busy worker is taken as before (finish11).
+    open3d is loaded there without its plotly viewer (fin19). The busy live worker is not taken (its update is
+    abandoned when the live mesh closes); without a helper the busy worker is taken as before (finish11).
     """
     import multiprocessing as mp
     import time
@@ -233,6 +233,9 @@ def test_a_busy_live_worker_leaves_the_final_mesh_to_the_extraction_process() ->
     assert live.updates_abandoned == 1 and all(process_ended(p.pid, 30.0) for p in live_procs)
     try:
         mesh, m = FinalMeshJob(pts, sensors, cfg, run.mesh_worker).result()
+        # fin19: open3d loaded there without its plotly viewer (dash, plotly: 0.8 s CPU)
+        loaded = helper.submit(eval, "[m in __import__('sys').modules for m in ('open3d', 'dash', 'plotly')]")
+        assert loaded.result(60.0) == [True, False, False]
     finally:
         run.mesh_worker.close()
     assert m["final_mesh_in_worker"] is True
