@@ -243,7 +243,7 @@ class BackendConfig(_Section):
     # short loop's resumed old features are landmarks of the local window, and the budget dropped most of
     # their observations (tests/test_loop_pipeline.py: 126 of 545 reached the back end) (CHANGELOG be15)
     keyframe_obs_budget: int = Field(
-        0, ge=0, le=100000, description="observations of landmarks in the graph a keyframe's update takes (0: all)"
+        120, ge=0, le=100000, description="observations of landmarks in the graph a keyframe's update takes (0: all)"
     )
     keyframe_obs_overflow: Literal["final", "drop"] = Field(
         "final", description="keyframe_obs_budget: the observations over it join at the final estimate, or are dropped"
