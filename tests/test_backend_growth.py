@@ -419,6 +419,63 @@ def test_keyframe_obs_budget_drop_leaves_the_rest_out_for_good() -> None:
 
 
 
+def _feed_tied(resumed: bool) -> tuple[Isam2Backend, np.ndarray, list[int], int]:
+    """10 keyframes, each seeing the points of the 3 before it, under a budget of 30 (be19).
+
+    Keyframe 8 marked as resuming keyframe 5's features (``ba_info["resumed_from_keyframe"]``) when
+    ``resumed``; keyframe 9's observations of keyframe 6's points handed late (``add_observations``,
+    as a loop's). Returns the back end, those late rows, keyframe 5's landmark ids, points a keyframe.
+    """
+    import dataclasses
+
+    per_kf = 60
+    prob = rounds_problem(10, features_per_kf=per_kf, local_map_kf=3, loop_every_kf=1000)
+    backend = Isam2Backend(_calibration(), BackendConfig(keyframe_obs_budget=30))
+    late = np.zeros((0, 3))
+    for kf in prob.keyframes:
+        if kf.id == 8 and resumed:
+            kf = dataclasses.replace(kf, ba_info={**kf.ba_info, "resumed_from_keyframe": 5.0})
+        if kf.id == 9:
+            mono = np.asarray(kf.mono_obs, float)
+            of_6 = (mono[:, 0] >= 6 * per_kf) & (mono[:, 0] < 7 * per_kf)
+            late, kf = mono[of_6], dataclasses.replace(kf, mono_obs=mono[~of_6])
+        backend.add_keyframe(kf)
+    backend.add_observations(9, late)
+    backend.estimate()  # every deferred update run
+    return backend, late, list(range(5 * per_kf, 6 * per_kf)), per_kf
+
+
+def test_budget_never_holds_back_what_ties_a_keyframe_to_a_resumed_or_looped_keyframe() -> None:
+    """``keyframe_obs_budget`` (be19): a resumed old keyframe's landmarks and a loop's late observations enter iSAM2.
+
+    Without the resumed mark keyframe 8's observations of keyframe 5's landmarks are held back like the
+    rest of its local map's; with it every one enters iSAM2 and the budget still holds back others.
+    """
+    plain, late, of_5, per_kf = _feed_tied(False)
+    tied, _, _, _ = _feed_tied(True)
+
+    def in_isam2(backend: Isam2Backend, kf: int, ids: list[int]) -> tuple[int, int]:
+        seen = [(kf, i) for i in ids if (kf, i) in backend._obs_fid]
+        return sum(backend.observation_factor_index(o) is not None for o in seen), len(seen)
+
+    inside, seen = in_isam2(plain, 8, of_5)
+    # measured: 25 of 59 in iSAM2 without the mark, 59 of 59 with it; keyframe 6's 5 of 60 both ways;
+    # keyframe 9's late rows 60 of 60, its own of keyframe 7's 30 of 60
+    assert seen > 40 and inside < 0.75 * seen, (inside, seen)  # held back like the local map's
+    inside, seen = in_isam2(tied, 8, of_5)
+    assert seen > 40 and inside == seen, (inside, seen)
+    of_6, of_7 = list(range(6 * per_kf, 7 * per_kf)), list(range(7 * per_kf, 8 * per_kf))
+    inside, seen = in_isam2(tied, 8, of_6)  # (keyframe 7's points enter the graph in 8's update: not counted)
+    assert seen > 40 and inside < seen / 2, (inside, seen)  # the budget still binds on the rest
+    # keyframe 9's late observations (a loop's) all enter; its own observations of keyframe 7's are budgeted
+    late_ids = late[:, 0].astype(int).tolist()
+    assert len(late_ids) > 40
+    for backend in (plain, tied):
+        assert in_isam2(backend, 9, late_ids) == (len(late_ids), len(late_ids))
+        inside, seen = in_isam2(backend, 9, of_7)
+        assert inside < seen, (inside, seen)
+
+
 def test_budget_keeps_observations_spread_over_the_image_best_supported_first() -> None:
     """``keyframe_obs_budget`` takes a keyframe's observations round robin over an 8 x 4 grid of the image.
 

@@ -194,6 +194,9 @@ class Isam2Backend:
         self._new_proxies = gtsam.Values()
         # keyframe_obs_budget: observations of known landmarks each keyframe's updates took so far
         self._budget_used: dict[int, int] = {}
+        # a keyframe whose tracker resumed an older keyframe's features (``ba_info["resumed_from_keyframe"]``)
+        # -> that keyframe's seq: its landmarks' observations tie the keyframe to the old map (never over the budget)
+        self._resumed_seq: dict[int, int] = {}
         self.budget_dropped = 0  # observations over the budget left out (keyframe_obs_overflow drop)
         # local_proxies_per_kf: old landmarks each keyframe sees through proxies so far; those left out
         self._proxies_used: dict[int, int] = {}
@@ -357,6 +360,16 @@ class Isam2Backend:
         """
         age_kf = self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq
         return self._windowed and age_kf > self.config.local_window_kf
+
+    def _ties_old_map(self, obs: _Obs, lkey: int) -> bool:
+        """Whether ``obs`` ties its keyframe to the old map, so that ``keyframe_obs_budget`` never leaves it out.
+
+        A revisit (:meth:`_revisit`), or an observation of a landmark first seen no later than the keyframe
+        whose features the tracker resumed after a loop (be19: a short loop's old features are landmarks of
+        the local window, which the budget would otherwise hold back).
+        """
+        resumed = self._resumed_seq.get(obs.kf_id)
+        return self._revisit(obs, lkey) or resumed is not None and self._landmarks[lkey].first_seq <= resumed
 
     def _proxy_room(self, kf_id: int) -> bool:
         """Whether keyframe ``kf_id`` may see one more old landmark through a proxy (``local_proxies_per_kf``).
@@ -632,7 +645,7 @@ class Isam2Backend:
             if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
                 del self._lm_current[lm_id]  # the track continues as a new landmark variable
             else:
-                over = budget is not None and budget <= len(self._batch) and not self._revisit(o, lkey)
+                over = budget is not None and budget <= len(self._batch) and not self._ties_old_map(o, lkey)
                 if over and self.config.keyframe_obs_overflow == "drop":
                     self.budget_dropped += 1  # never in the graph: what one keyframe adds stays bounded
                     return
@@ -660,6 +673,9 @@ class Isam2Backend:
             raise InputError(f"keyframe {kf_id}", "world_from_kf has non-finite values")
         cfg = self.config
         self._note_frontend_info(kf_id, keyframe.ba_info)
+        resumed = keyframe.ba_info.get("resumed_from_keyframe")
+        if resumed is not None and int(resumed) in self._kf_seq:
+            self._resumed_seq[kf_id] = self._kf_seq[int(resumed)]
         self._before_keyframe()
         self._kf_seq[kf_id] = len(self._kf_seq)
         self._xkey[kf_id] = X(kf_id)
@@ -758,16 +774,19 @@ class Isam2Backend:
             if n_kf >= keep + cfg.local_rebuild_kf and n_kf - self._rebuilt_at >= cfg.local_rebuild_kf:
                 self._rebuild_window(keep)
 
-    def _observe_mono(self, kf_id: int, mono_obs: F64, graph: gtsam.NonlinearFactorGraph, candidates: list[int]) -> int:
+    def _observe_mono(
+        self, kf_id: int, mono_obs: F64, graph: gtsam.NonlinearFactorGraph, candidates: list[int], budgeted: bool = True
+    ) -> int:
         """Route monocular observations (landmark id, u, v px) of ``kf_id``; returns how many were rejected.
 
-        Rejected: non-finite, or of a landmark that was dropped or never seen.
+        Rejected: non-finite, or of a landmark that was dropped or never seen. ``budgeted``: under
+        ``keyframe_obs_budget`` (a keyframe's own rows; not a loop's late observations, be19).
         """
         rejected = 0
         rows = np.asarray(mono_obs, dtype=float).reshape(-1, 3)
         budget: int | None = None
         used = self._budget_used.get(kf_id, 0)
-        if self.config.keyframe_obs_budget > 0:  # the keyframe's budget over all its updates (late observations)
+        if budgeted and self.config.keyframe_obs_budget > 0:  # the keyframe's budget over all its updates
             budget = max(self.config.keyframe_obs_budget - used, len(self._batch))
         # which ones wait (budget) and which old landmarks get proxies (local_proxies_per_kf): by the spread order
         if budget is not None and len(self._batch) + rows.shape[0] > budget or self._proxies_bind(kf_id, rows):
@@ -833,7 +852,9 @@ class Isam2Backend:
         values = gtsam.Values()
         report = BackendUpdate(kf_id)
         candidates: list[int] = []
-        report.rejected_observations = self._observe_mono(kf_id, mono_obs, graph, candidates)
+        # a loop's observations of its old keyframe's landmarks tie the keyframe to the old map: never over
+        # keyframe_obs_budget (be19; a revisit's never were, a short loop's old landmarks are in the window)
+        report.rejected_observations = self._observe_mono(kf_id, mono_obs, graph, candidates, budgeted=False)
         report.new_landmarks = self._create_landmarks(candidates, graph, values)
         report.new_factors = graph.size()
         new_fids = list(self._batch)
