@@ -64,6 +64,13 @@ def preload_low(nice: int) -> None:
     _LOW_PRIORITY.submit(preload_kernels).result()
 
 
+def _load_sdf_kernels() -> None:
+    """The sdf kernels loaded from numba's cache into this process (a thread worker; open3d not imported)."""
+    from loopmodel.mapping._sdf_kernels import warm_up
+
+    warm_up()
+
+
 def remesh_blocks(
     points_w: np.ndarray, sensors_w: np.ndarray, blocks: set[BlockKey], config: MappingConfig
 ) -> tuple[dict[BlockKey, MeshArrays | None], float, int]:
@@ -191,14 +198,17 @@ class LiveMapping:
     def start(self) -> None:
         """Start the worker now (when the live mesh is on): its imports before the frames, not among them."""
         if self.enabled and self._pool is None:
-            self._started = self._workers().submit(int, 0)
+            pool = self._workers()  # (a daemonic process gets a thread)
+            self._started = pool.submit(int, 0)
             cfg = self._world.config
-            if self._worker_kind == "process" and cfg.method == "sdf" and cfg.final_mesh_in_live_worker:
-                # sdf16: the final mesh's kernels (0.5 s CPU), below the run's priority, before any update
-                self._workers().submit(preload_low, self._nice)
+            process = self._worker_kind == "process"
+            if cfg.live_method == "sdf" or (process and cfg.method == "sdf" and cfg.final_mesh_in_live_worker):
+                # sdf16: the kernels of the updates and the final mesh (0.5-1.4 s CPU), below the run's priority;
+                # live19: waited for with the start (wait_started), no longer loaded beside the first frames
+                self._started = pool.submit(preload_low, self._nice) if process else pool.submit(_load_sdf_kernels)
 
     def wait_started(self, timeout_s: float | None = None) -> None:
-        """Wait until the worker started by :meth:`start` has done its imports (a failure is logged)."""
+        """Wait until the worker started by :meth:`start` has done its imports and kernels (a failure is logged)."""
         if self._started is None:
             return
         try:
