@@ -624,8 +624,9 @@ class MappingConfig(_Section):
     # live19 (issue 33): the sdf of now (fin18's normals) at the same settings, every block of the run's stripes
     # placed with its final trajectory, against scene.ply / the object: 150-frame realistic orbit error
     # 0.376 -> 0.381 mm, completeness 0.977 -> 0.972; the 600-frame sample 0.516 -> 0.406 mm, 0.988 -> 0.986;
-    # the sample's live updates (captured blocks) 2.6 -> 0.6 s CPU. Its worker's CPU took the tracking thread's
-    # core (peer bench, CHANGELOG live19). Laser meshing only: the KITTI clip (real) has no laser data
+    # the sample's live updates (captured blocks) 2.6 -> 0.6 s CPU: its worker took the tracking thread's core
+    # (`bench peer` orbit, 4 pairs: our workers' CPU 20.6 -> 17.6 ms a frame; CHANGELOG live19). Laser meshing
+    # only: the KITTI clip (real) has no laser data, and no real laser scan runs through the pipeline
     live_method: Literal["poisson", "sdf", "ball_pivoting"] = Field(
         default="sdf", description="surface method of the live mesh's updates"
     )
