@@ -632,12 +632,16 @@ class MappingConfig(_Section):
     live_mesh_nice: int = Field(
         default=10, ge=0, le=19, description="live-mesh updates run this much below the run's priority (0 = same)"
     )
-    # sdf16: the live mesh keeps Poisson. At the live settings (3 mm voxels and cells) the sdf covered less of the
-    # object: the 150-frame realistic orbit's final cloud meshed whole, completeness 0.975 (Poisson) -> 0.806 (sdf),
-    # error 0.433 -> 0.445 mm (a lower weight floor, 0.1: 0.935, 0.576 mm), though at 1/5 of Poisson's CPU (12
-    # blocks of the 300-frame orbit: 1.61 -> 0.19 s). CHANGELOG (sdf16)
+    # sdf16 kept Poisson for the live mesh: at the live settings (3 mm voxels and cells) the sdf of then covered
+    # less of the object (150-frame realistic orbit's final cloud meshed whole: completeness 0.975 -> 0.806).
+    # live19 (issue 33): the sdf of now (fin18's normals) at the same settings, every block of the run's stripes
+    # placed with its final trajectory, against scene.ply / the object: 150-frame realistic orbit error
+    # 0.376 -> 0.381 mm, completeness 0.977 -> 0.972; the 600-frame sample 0.516 -> 0.406 mm, 0.988 -> 0.986;
+    # the sample's live updates (captured blocks) 2.6 -> 0.6 s CPU: its worker took the tracking thread's core
+    # (`bench peer` orbit, 4 pairs: our workers' CPU 20.6 -> 17.6 ms a frame; CHANGELOG live19). Laser meshing
+    # only: the KITTI clip (real) has no laser data, and no real laser scan runs through the pipeline
     live_method: Literal["poisson", "sdf", "ball_pivoting"] = Field(
-        default="poisson", description="surface method of the live mesh's updates"
+        default="sdf", description="surface method of the live mesh's updates"
     )
     live_voxel_m: float = Field(
         default=0.003, gt=0, description="voxel size of the live mesh (coarser than voxel_m: faster updates)"

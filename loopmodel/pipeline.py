@@ -835,7 +835,7 @@ class _Run:
 
     def finishing_note(self) -> str:
         """What :meth:`finish` and the writes will do, with the mesh time estimated from the live mesher's rate."""
-        n = self.stripe_map.point_count
+        n = self.live.point_count
         if not self.config.mapping.write_mesh or n == 0:
             return "the results are being written (a few seconds)"
         est = self.live.mesh_seconds_estimate()

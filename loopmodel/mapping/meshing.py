@@ -308,10 +308,18 @@ def mesh_blocks(
     t = np.asarray(mesh.triangles)
     tri_key = np.floor(v[t].mean(axis=1) / config.chunk_m).astype(np.int64)
     normals = np.asarray(mesh.vertex_normals)
-    for key in blocks:
-        sel = np.all(tri_key == np.asarray(key), axis=1)
-        if not np.any(sel):
+    # the triangles grouped by block once (live19: a comparison of every triangle with every block took
+    # 2.0 of a 7.0 s live update on the 600-frame sample, 1.1 of 2.2 s with the sdf), each block's in order
+    wanted_tri = _rows_in(tri_key, wanted)
+    idx = np.flatnonzero(wanted_tri)
+    uniq, inverse = np.unique(tri_key[idx], axis=0, return_inverse=True)
+    order = np.argsort(inverse.reshape(-1), kind="stable")
+    bounds = np.searchsorted(inverse.reshape(-1)[order], np.arange(len(uniq) + 1))
+    for b, key_row in enumerate(uniq.tolist()):
+        key = (key_row[0], key_row[1], key_row[2])
+        if key not in out:
             continue
+        sel = idx[order[bounds[b] : bounds[b + 1]]]
         used, inv = np.unique(t[sel], return_inverse=True)
         part = o3d.geometry.TriangleMesh(
             o3d.utility.Vector3dVector(v[used]), o3d.utility.Vector3iVector(inv.reshape(-1, 3).astype(np.int32))
