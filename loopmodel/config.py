@@ -248,8 +248,9 @@ class BackendConfig(_Section):
     # revisit-proxy factors; the first round's keyframes stay under 120. rounds_1800 call stream replayed
     # (jemalloc, gc frozen as the worker): last block / first 1.79 -> 1.46-1.50, re-eliminated variables of
     # the last block 696 -> 450, online keyframe ATE 10.106 -> 10.107 mm, final 8.147 mm both; bench scale
-    # --quick, 3 alternating pairs (load 3-9): backend_ms_last_over_first median 1.771 -> 1.608, ATE after
-    # 0.00082-0.00084 m both. bench pipeline (2 alternating pairs, load 8-10): the KITTI clip
+    # --quick live gains less (5 alternating pairs, load 3-7): backend_ms_last_over_first median 1.737 -> 1.614,
+    # the last block 20.9 -> 20.1 ms, first 12.1 both, back-end CPU 2.41 s both, ATE after 0.00081-0.00083 ->
+    # 0.00082-0.00084 m. bench pipeline (2 alternating pairs, load 8-10): the KITTI clip
     # (configs/kitti.yaml, real) final ATE 0.0252 m, online 0.0758 m, drift after the segment 0.547 % as
     # before (0.0247 m once, with tests beside it); the 600-frame sample (configs/sim.yaml) final ATE 0.77 mm
     # as before, online 10.68 -> 10.77 mm, mesh 0.3988 -> 0.4052 mm; the 150-frame orbit's mesh as before.

@@ -42,11 +42,15 @@ in ``results/bench_scale/scale.png`` (with ``scale.json``).
 The back end alone: ``python tools/bench_scale.py record SCAN OUT`` runs the pipeline once and keeps
 the calls its back-end worker made; ``python tools/bench_scale.py replay OUT ['{"key": value}']``
 replays them on a fresh iSAM2 back end (with those ``backend`` keys) in minutes instead of a pipeline
-run, printing the back end's cost per keyframe and its keyframe accuracy.
+run, printing the back end's cost per keyframe and its keyframe accuracy. The worker process runs on
+jemalloc (``backend.worker_allocator``); run the replay with
+``LD_PRELOAD=/usr/lib/x86_64-linux-gnu/libjemalloc.so.2`` to match it (on glibc's allocator the later
+blocks cost more, be17/be19).
 """
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import resource
@@ -452,15 +456,21 @@ def replay_backend_calls(
     for i, (name, args, kwargs) in enumerate(calls):
         t0 = time.thread_time()
         getattr(backend, name)(*args, **kwargs)
-        if i + 1 == len(calls) or calls[i + 1][0] == "add_keyframe":
+        batch_end = i + 1 == len(calls) or calls[i + 1][0] == "add_keyframe"
+        if batch_end:
             backend.estimate(landmarks=False)
         ms = (time.thread_time() - t0) * 1e3
+        if batch_end:
+            # as the worker process after each batch (be16's freeze_gc): else the collector's full passes over the
+            # back end's records grow the replay's Python cost 3-5x over rounds_1800 (be19); undone below
+            gc.freeze()
         if name == "add_keyframe":
             keyframes.append(args[0])
         per_kf[len(keyframes)] = per_kf.get(len(keyframes), 0.0) + ms
         by_call[name] = by_call.get(name, 0.0) + ms / 1e3
         if name == "add_loop_constraint":
             loop_ms.append([len(keyframes), round(ms, 1)])
+    gc.unfreeze()
     curve = _curve(per_kf, block)
     gt = data["ground_truth"]
 

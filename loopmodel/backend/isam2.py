@@ -789,7 +789,7 @@ class Isam2Backend:
         if budgeted and self.config.keyframe_obs_budget > 0:  # the keyframe's budget over all its updates
             budget = max(self.config.keyframe_obs_budget - used, len(self._batch))
         # which ones wait (budget) and which old landmarks get proxies (local_proxies_per_kf): by the spread order
-        if budget is not None and len(self._batch) + rows.shape[0] > budget or self._proxies_bind(kf_id, rows):
+        if self._budget_binds(kf_id, budget, rows) or self._proxies_bind(kf_id, rows):
             rows = self._spread_order(rows)
         finite = np.isfinite(rows).all(axis=1).tolist()  # one array operation, not one per row
         current, pending = self._lm_current, self._pending
@@ -802,6 +802,19 @@ class Isam2Backend:
         if budget is not None:
             self._budget_used[kf_id] = used + len(self._batch)
         return rejected
+
+    def _budget_binds(self, kf_id: int, budget: int | None, rows: F64) -> bool:
+        """Whether ``budget`` may leave some of ``rows`` (landmark id, u, v px) of ``kf_id`` out of the update.
+
+        Counted as the budget counts: the update's factors so far, a row of a landmark in the graph one, a
+        revisit's two (its proxy's prior); rows of pending landmarks none. Only then are the rows put in the
+        spread order (be19: sorting every keyframe's rows cost the first round, which the budget never bound).
+        """
+        if budget is None or len(self._batch) + 2 * rows.shape[0] <= budget:
+            return False
+        current = self._lm_current
+        ids = [i for i in rows[np.isfinite(rows[:, 0]), 0].astype(np.int64).tolist() if i in current]
+        return len(self._batch) + len(ids) + self._revisit_rows(kf_id, ids) > budget
 
     def _proxies_bind(self, kf_id: int, rows: F64) -> bool:
         """Whether ``local_proxies_per_kf`` leaves some of ``rows``' old landmarks without a proxy."""
