@@ -662,6 +662,12 @@ class _Run:
         """Whether the finish runs the calibrating bundle adjustment (``calibration.refine: final``, issue 31)."""
         return self.config.calibration.refine != "none" and not interrupted and self.localizer is None
 
+    def _calibration_keyframes(self) -> list[Keyframe]:
+        """The calibrating BA's keyframes, their right columns at the latest disparity offset (issue 36)."""
+        from loopmodel.types import at_latest_disparity_offset
+
+        return at_latest_disparity_offset(list(self.selfcal_keyframes.values()))
+
     def _observe_beside(self, interrupted: bool) -> tuple[list[Keyframe], Future[Any]] | None:
         """The calibrating bundle adjustment's keyframes and their observations, made on a thread (or None).
 
@@ -672,10 +678,8 @@ class _Run:
         if not self._calibrating(interrupted) or self.online is not None or not self.keyframes:
             return None
         from loopmodel.calibration.selfcal import final_observations
-        from loopmodel.types import at_latest_disparity_offset
 
-        # issue 36: the right columns at the front end's latest disparity offset, as the batch BA has them
-        kfs = at_latest_disparity_offset(list(self.selfcal_keyframes.values()))
+        kfs = self._calibration_keyframes()
         pool = ThreadPoolExecutor(1, thread_name_prefix="loopmodel-selfcal")
         job = pool.submit(final_observations, kfs, self.frontend.input_calibration, self.config.calibration)
         pool.shutdown(wait=False)
@@ -698,7 +702,6 @@ class _Run:
             return estimate
         from loopmodel.calibration.selfcal import apply_laser_scale, close_loops, refine_final, restripe
         from loopmodel.mapping.extraction import LightPlane
-        from loopmodel.types import at_latest_disparity_offset
 
         plane = LightPlane.from_config(self.config.mapping)
         start = None
@@ -708,8 +711,7 @@ class _Run:
                 int(k.id): k for k in self.online.keyframes_as_recorded(list(self.selfcal_keyframes.values()))
             }
             start = self.online.latest_values
-        # issue 36: the right columns at the front end's latest disparity offset, as the batch BA has them
-        kfs = observed[0] if observed is not None else at_latest_disparity_offset(list(self.selfcal_keyframes.values()))
+        kfs = observed[0] if observed is not None else self._calibration_keyframes()
         loops = [(c.kf_a, c.kf_b, c.a_from_b) for c in self.loop_constraints]
         b = self.config.backend
         try:
