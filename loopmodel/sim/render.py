@@ -138,6 +138,8 @@ class Raycaster:
         self._mat_row = np.array([m.texture * (size + 1) for m in mats], np.float32)
         # per axis k and texture coordinate j: M offsets (texels)
         self._mat_off = np.ascontiguousarray(np.transpose(scene.texture_offsets, (1, 2, 0)), np.float32)
+        self._patch_key: tuple[tuple[tuple[float, ...], float, str], ...] | None = None
+        self._patch_bits_cached = np.zeros(0, np.uint64)
         # the occluder: an ellipsoid in its own frame, cast separately (it moves)
         occ = o3d.geometry.TriangleMesh.create_sphere(1.0, 24)
         ov = np.asarray(occ.vertices) * np.asarray(OCCLUDER_RADII_M)
@@ -156,9 +158,8 @@ class Raycaster:
         n = dirs_world.shape[1]
         org = np.asarray(origins_world, np.float32)
         rays = np.empty((n, 6), np.float32)
-        for k in range(3):
-            rays[:, k] = org[k]
-            rays[:, 3 + k] = dirs_world[k]
+        rays[:, :3] = org.T if org.ndim == 2 else org
+        rays[:, 3:] = dirs_world.T
         ans = self._rs.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=self.threads)
         t = ans["t_hit"].numpy()
         pid = ans["primitive_ids"].numpy().astype(np.int64)
@@ -224,11 +225,23 @@ class Raycaster:
         inv_size = np.float32(1.0 / self._tex_size)
         mu = np.zeros(m, np.float32)
         mv = np.zeros(m, np.float32)
+        cu = np.empty(n, np.float32)
+        cv = np.empty(n, np.float32)
+        wrap = np.empty(n, np.float32)
         for k, (a, b) in enumerate(_AXES):
-            cu = points_world[a] * scale + np.take(self._mat_off[k, 0], mat)
-            cv = points_world[b] * scale + np.take(self._mat_off[k, 1], mat)
-            mu[:n] = cu - np.floor(cu * inv_size) * size
-            mv[:n] = cv - np.floor(cv * inv_size) * size + row
+            np.multiply(points_world[a], scale, out=cu)
+            cu += np.take(self._mat_off[k, 0], mat)
+            np.multiply(points_world[b], scale, out=cv)
+            cv += np.take(self._mat_off[k, 1], mat)
+            np.multiply(cu, inv_size, out=wrap)
+            np.floor(wrap, out=wrap)
+            wrap *= size
+            np.subtract(cu, wrap, out=mu[:n])
+            np.multiply(cv, inv_size, out=wrap)
+            np.floor(wrap, out=wrap)
+            wrap *= size
+            np.subtract(cv, wrap, out=wrap)
+            np.add(wrap, row, out=mv[:n])
             sample = cv2.remap(
                 self._atlas,
                 mu.reshape(rows_n, cols),
@@ -236,32 +249,68 @@ class Raycaster:
                 cv2.INTER_LINEAR,
                 borderMode=cv2.BORDER_REPLICATE,
             )
-            out += w[k] * sample.reshape(-1)[:n]
+            np.multiply(w[k], sample.reshape(-1)[:n], out=wrap)
+            out += wrap
         out *= np.take(self._mat_gain, mat)
         for centre, sigma, amplitude in self.markers:
             c = np.asarray(centre, np.float32)
             r2 = (points_world[0] - c[0]) ** 2 + (points_world[1] - c[1]) ** 2
             r2 += (points_world[2] - c[2]) ** 2
             out += np.float32(amplitude) * np.exp(r2 * np.float32(-0.5 / sigma**2))
-        for centre, radius, kind in self.patches:
+        if self.patches:
+            self._paint_patches(out, points_world, w, primitive)
+        out[primitive == -2] = OCCLUDER_ALBEDO
+        out[primitive == -1] = 0.0
+        return out
+
+    def _paint_patches(self, out: F32, points_world: F32, w: F32, primitive: NDArray[np.int64]) -> None:
+        """Set ``out`` (albedo of N points) inside :attr:`patches`, later patches over earlier ones.
+
+        Only points on triangles whose bounding box comes near a patch (:meth:`_patch_bits`) and inside
+        the patch's box in x and y are tested: the values are those of testing all points (the sample's
+        albedo 23 -> 17 ms CPU a view; gen20, issue 32).
+        """
+        bits = np.take(self._patch_bits(), primitive, mode="clip")
+        near = np.flatnonzero(bits)
+        bits = bits[near]
+        pts_near = points_world[:, near]
+        for j, (centre, radius, kind) in enumerate(self.patches):
             c = np.asarray(centre, np.float32)
-            r2 = (points_world[0] - c[0]) ** 2 + (points_world[1] - c[1]) ** 2
-            r2 += (points_world[2] - c[2]) ** 2
+            reach = np.float32(radius + 1e-3)  # the sphere's box in x and y, 1 mm wider
+            box = (bits & (1 << j)) != 0
+            box &= np.abs(pts_near[0] - c[0]) <= reach
+            box &= np.abs(pts_near[1] - c[1]) <= reach
+            sel = np.flatnonzero(box)
+            idx = near[sel]
+            pts = pts_near[:, sel]
+            r2 = (pts[0] - c[0]) ** 2 + (pts[1] - c[1]) ** 2
+            r2 += (pts[2] - c[2]) ** 2
             inside = r2 < np.float32(radius * radius)
             if not np.any(inside):
                 continue
             if kind == "flat":
-                out[inside] = 0.55
+                out[idx[inside]] = 0.55
             else:  # tiles on the dominant tri-planar axis: period 24 mm, 0.3 / 0.7
-                ax = np.argmax(w[:, inside], axis=0)
-                pts = points_world[:, inside]
+                ax = np.argmax(w[:, idx[inside]], axis=0)
+                pts = pts[:, inside]
                 a = np.choose(ax, [pts[1], pts[0], pts[0]])
                 b = np.choose(ax, [pts[2], pts[2], pts[1]])
                 par = (np.floor(a / 0.012) + np.floor(b / 0.012)) % 2
-                out[inside] = (0.3 + 0.4 * par).astype(np.float32)
-        out[primitive == -2] = OCCLUDER_ALBEDO
-        out[primitive == -1] = 0.0
-        return out
+                out[idx[inside]] = (0.3 + 0.4 * par).astype(np.float32)
+
+    def _patch_bits(self) -> NDArray[np.uint64]:
+        """Per triangle: bit j set when its bounding box, grown by 1 mm, meets patch j's sphere's box."""
+        key = tuple((tuple(np.asarray(c, float).tolist()), float(r), kind) for c, r, kind in self.patches)
+        if self._patch_key != key:
+            corners = self.scene.vertices[self.scene.triangles]  # T x 3 corners x 3
+            lo = corners.min(axis=1) - 1e-3
+            hi = corners.max(axis=1) + 1e-3
+            bits = np.zeros(len(corners), np.uint64)
+            for j, (c, r, _kind) in enumerate(key):
+                meets = np.all((lo <= np.add(c, r)) & (hi >= np.subtract(c, r)), axis=1)
+                bits[meets] |= np.uint64(1 << j)
+            self._patch_key, self._patch_bits_cached = key, bits
+        return self._patch_bits_cached
 
     def render(
         self,
