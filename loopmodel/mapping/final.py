@@ -60,36 +60,15 @@ def final_mesh(stripes: list[StripeProfile], final: Trajectory, config: MappingC
 def load_mesh_modules() -> None:
     """open3d, the meshing module and the sdf kernels loaded in this process (the final mesh's pool process).
 
-    Without open3d's plotly viewer (:func:`_without_plotly_viewer`) when open3d is not loaded yet.
+    Without open3d's plotly viewer (:func:`~loopmodel.open3d_import.without_plotly_viewer`: 0.8 of its
+    1.85 s CPU in the laser-extraction process that makes the final mesh; fin19) when open3d is not loaded yet.
     """
-    _without_plotly_viewer()
+    from loopmodel.open3d_import import without_plotly_viewer
+
+    without_plotly_viewer()
     from loopmodel.mapping.meshing import preload_kernels  # open3d's import, before the mesh is asked for
 
     preload_kernels()
-
-
-def _without_plotly_viewer() -> None:
-    """open3d's later import in this process leaves out its plotly/dash viewer (a process that only meshes).
-
-    ``import open3d`` imports ``open3d.visualization.draw_plotly``, hence dash, plotly and IPython: 0.8 of its
-    1.85 s CPU in the laser-extraction process that makes the final mesh when the live mesh's worker is busy
-    at the last frame (no bytecode written, as in this machine's shells; fin19, issue 32). A stand-in module
-    of its three names (they raise) is put in its place; nothing when open3d is already loaded.
-    """
-    import sys
-    import types
-
-    name = "open3d.visualization.draw_plotly"
-    if "open3d" in sys.modules or name in sys.modules:
-        return
-
-    def absent(*_args: Any, **_kwargs: Any) -> Any:
-        raise RuntimeError("open3d's plotly viewer is not loaded in the final mesh's process")
-
-    stand_in = types.ModuleType(name, "open3d's plotly viewer, not loaded (loopmodel.mapping.final)")
-    for attr in ("get_plotly_fig", "draw_plotly", "draw_plotly_server"):
-        setattr(stand_in, attr, absent)
-    sys.modules[name] = stand_in
 
 
 def _mesh_worker_start() -> None:

@@ -43,6 +43,7 @@ from loopmodel.geometry.camera import CentralCamera
 from loopmodel.geometry.se3 import invert_pose, so3_exp
 from loopmodel.io.atomic import check_output_file, write_bytes_atomic
 from loopmodel.io.mcap_io import McapSequenceWriter
+from loopmodel.open3d_import import start_without_plotly_viewer
 from loopmodel.sim.faults import FaultPlan, cam_from_occluder
 from loopmodel.sim.laser import (
     LaserPlane,
@@ -832,7 +833,9 @@ def _render_in_pool(
             signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         ctx.set_executable(launcher)
-        pool = ctx.Pool(workers, initializer=_init_worker_from_file, initargs=(setup,))
+        # the workers load open3d without its plotly viewer: 0.7 s CPU each (loopmodel.open3d_import)
+        start = (f"{__name__}:{_init_worker_from_file.__name__}", setup)
+        pool = ctx.Pool(workers, initializer=start_without_plotly_viewer, initargs=start)
     finally:
         ctx.set_executable(sys.executable)
         for sig_restored, handler in previous.items():
