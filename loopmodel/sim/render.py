@@ -34,6 +34,28 @@ def to_tensor(a: NDArray) -> o3d.core.Tensor:
     return o3d.core.Tensor(np.ascontiguousarray(a), dtype, o3d.core.Device("CPU:0"))
 
 
+def _dot3(a: F32, b: F32, tmp: F32, out: F32 | None = None) -> F32:
+    """a[0] b[0] + a[1] b[1] + a[2] b[2] (rows of N, or 3 scalars against rows), summed in that order, into ``out``.
+
+    ``tmp`` (N) is scratch space; in place so a view's shading makes few temporaries (gen20, issue 32).
+    """
+    out = np.empty_like(tmp) if out is None else out
+    np.multiply(a[0], b[0], out=out)
+    np.multiply(a[1], b[1], out=tmp)
+    out += tmp
+    np.multiply(a[2], b[2], out=tmp)
+    out += tmp
+    return out
+
+
+def _inverse_norm(v: F32, tmp: F32) -> F32:
+    """1 / max(|v|, 1e-12) of the N columns of ``v`` (3 x N)."""
+    out = _dot3(v, v, tmp)
+    np.sqrt(out, out=out)
+    np.maximum(out, 1e-12, out=out)
+    return np.divide(1.0, out, out=out)
+
+
 def pixel_rays(camera: CentralCamera, width: int, height: int) -> RayBundle:
     """Unit rays (camera frame) through the pixel centres and which pixels have a valid ray.
 
@@ -189,9 +211,10 @@ class Raycaster:
                 pid[closer] = -2
                 Rw = world_from_occluder[:3, :3].astype(np.float32)
                 nrm[:, closer] = Rw @ oans["primitive_normals"].numpy()[closer].T
-        inv = 1.0 / np.maximum(np.sqrt(nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]), 1e-12)
-        facing = nrm[0] * dirs_world[0] + nrm[1] * dirs_world[1] + nrm[2] * dirs_world[2]
-        inv[facing > 0] *= -1.0  # two-sided: normals face the ray origin
+        tmp = np.empty(n, np.float32)
+        inv = _inverse_norm(nrm, tmp)
+        facing = _dot3(nrm, dirs_world, tmp)
+        np.negative(inv, out=inv, where=facing > 0)  # two-sided: normals face the ray origin
         nrm *= inv
         return Hits(t.astype(np.float32, copy=False), pid, nrm)
 
@@ -330,8 +353,9 @@ class Raycaster:
         o = world_from_cam[:3, 3].astype(np.float32)
         c = rays.dirs
         d = np.empty_like(c)
+        tmp = np.empty(c.shape[1], np.float32)
         for k in range(3):
-            d[k] = R[k, 0] * c[0] + R[k, 1] * c[1] + R[k, 2] * c[2]
+            _dot3(R[k], c, tmp, d[k])  # R c, by rows
         hits = self.cast(o, d, world_from_occluder)
         t, pid, nrm = hits.range_m, hits.primitive, hits.normal
         if not rays.all_valid:
@@ -341,20 +365,28 @@ class Raycaster:
         tt = np.where(hit, t, np.float32(0.0))
         p = np.empty_like(d)
         for k in range(3):
-            p[k] = o[k] + d[k] * tt
+            np.multiply(d[k], tt, out=p[k])
+            p[k] += o[k]
         albedo = self.albedo(p, nrm, pid)
         light = np.asarray(light_world_m, np.float32)
         L = light[:, None] - p
-        inv = 1.0 / np.maximum(np.sqrt(L[0] * L[0] + L[1] * L[1] + L[2] * L[2]), 1e-12)
-        diffuse = (nrm[0] * L[0] + nrm[1] * L[1] + nrm[2] * L[2]) * inv
+        inv = _inverse_norm(L, tmp)
+        diffuse = _dot3(nrm, L, tmp)
+        diffuse *= inv
         np.maximum(diffuse, 0.0, out=diffuse)
-        rad = albedo * (np.float32(ambient) + np.float32(1.0 - ambient) * diffuse)  # albedo 0 on a miss
+        rad = diffuse * np.float32(1.0 - ambient)
+        rad += np.float32(ambient)
+        rad *= albedo  # albedo 0 on a miss
         if specular > 0:
-            hx, hy, hz = L[0] * inv - d[0], L[1] * inv - d[1], L[2] * inv - d[2]  # light + view
-            hn = 1.0 / np.maximum(np.sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
-            nh = np.maximum((nrm[0] * hx + nrm[1] * hy + nrm[2] * hz) * hn, 0.0)
-            spec = np.float32(specular * (1.0 - ambient)) * np.power(nh, np.float32(shininess))
-            rad += np.where((diffuse > 0) & hit, spec, np.float32(0.0))
+            half = L * inv  # light + view directions
+            half -= d
+            hn = _inverse_norm(half, tmp)
+            nh = _dot3(nrm, half, tmp)
+            nh *= hn
+            np.maximum(nh, 0.0, out=nh)
+            np.power(nh, np.float32(shininess), out=nh)
+            nh *= np.float32(specular * (1.0 - ambient))
+            rad += np.where((diffuse > 0) & hit, nh, np.float32(0.0))
         depth = np.where(hit, t * c[2], np.float32(np.inf))
         h, w = rays.shape
         return View(
