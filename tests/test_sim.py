@@ -163,6 +163,53 @@ def _read(path: Path) -> dict:
     return {"seq": seq, "frames": frames, "stripes": stripes, "gt": gt, "meta": seq.metadata}
 
 
+def test_patches_painted_as_by_testing_every_point(wide: tuple[SimulationConfig, Raycaster]) -> None:
+    """The albedo's patches (tested only on points near them, gen20) as testing every point of a view.
+
+    Overlapping flat and tiled patches around points the view sees, on the table and on the object;
+    the painting by their definition on all points, in their order, gives the same float32 albedo.
+    """
+    cfg, caster = wide
+    T = gen.path_of(cfg).pose(0.0)
+    rays = pixel_rays(gen.camera_of(cfg), cfg.camera.width_px, cfg.camera.height_px)
+    d = np.ascontiguousarray(T[:3, :3].astype(np.float32) @ rays.dirs)
+    o = T[:3, 3].astype(np.float32)
+    hits = caster.cast(o, d)
+    p = o[:, None] + d * np.where(np.isfinite(hits.range_m), hits.range_m, np.float32(0.0))
+    seen = np.flatnonzero(hits.primitive >= 0)
+    picks = seen[np.linspace(0, seen.size - 1, 7).astype(int)[1:-1]]
+    patches = [(p[:, i].astype(float), rad, kind) for i, rad, kind in
+               zip(picks, (0.05, 0.03, 0.08, 0.04, 0.06), ("flat", "tiles", "tiles", "flat", "tiles"), strict=True)]
+    patches.append((p[:, picks[0]].astype(float) + 0.01, 0.03, "tiles"))  # over the first one
+    try:
+        caster.patches = []
+        plain = caster.albedo(p, hits.normal, hits.primitive)
+        caster.patches = patches
+        got = caster.albedo(p, hits.normal, hits.primitive)
+    finally:
+        caster.patches = []
+    want = plain.copy()
+    w = hits.normal * hits.normal
+    w *= w
+    w /= np.maximum(w[0] + w[1] + w[2], 1e-12)
+    for centre, radius, kind in patches:
+        c = np.asarray(centre, np.float32)
+        r2 = (p[0] - c[0]) ** 2 + (p[1] - c[1]) ** 2
+        r2 += (p[2] - c[2]) ** 2
+        inside = (r2 < np.float32(radius * radius)) & (hits.primitive >= 0)
+        assert inside.sum() > 20  # every patch is seen
+        if kind == "flat":
+            want[inside] = 0.55
+        else:
+            ax = np.argmax(w[:, inside], axis=0)
+            q = p[:, inside]
+            a = np.choose(ax, [q[1], q[0], q[0]])
+            b = np.choose(ax, [q[2], q[2], q[1]])
+            want[inside] = (0.3 + 0.4 * ((np.floor(a / 0.012) + np.floor(b / 0.012)) % 2)).astype(np.float32)
+    assert not np.array_equal(want, plain)
+    assert np.array_equal(got, want)
+
+
 def test_stripes_on_surface_and_in_plane(tmp_path: Path) -> None:
     cfg = small_cfg(laser={"range_noise_m": 0.0}, trajectory={"frames": 5})
     out = tmp_path / "s.mcap"
