@@ -7,6 +7,8 @@ Small images and few frames keep it fast.
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -399,3 +401,15 @@ def test_preset_files_match_the_presets() -> None:
         assert from_file == gen.resolve_config(SimulationConfig(), preset=name)
     sample = load_config(root / "configs" / "sim.yaml").simulation
     assert sample == gen.resolve_config(SimulationConfig(), preset="orbit")
+
+
+def test_render_workers_load_open3d_without_its_plotly_viewer() -> None:
+    """A render worker's start (``start_without_plotly_viewer``) loads open3d but not dash or plotly (gen20)."""
+    code = (
+        "import sys\n"
+        "from loopmodel.open3d_import import start_without_plotly_viewer\n"
+        "start_without_plotly_viewer('loopmodel.sim.render:to_tensor', __import__('numpy').zeros(3, 'float32'))\n"
+        "print(' '.join(m for m in ('open3d', 'dash', 'plotly') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.split() == ["open3d"]
