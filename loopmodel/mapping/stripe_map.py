@@ -352,7 +352,7 @@ class StripeMap:
         if not self._dirty:
             return None
         mask = self._point_placed_mask()
-        pts = self._p_world.a[mask].copy()
+        pts = self._p_world.a[mask]  # (a copy: indexed by a mask)
         sensors = self._s_world_from_cam.a[:, :3, 3][self._p_stripe.a[mask]]
         dirty, self._dirty = self._dirty, set()
         return pts, sensors, dirty
