@@ -224,6 +224,21 @@ def test_live_mesh_updates_only_affected_blocks(
     assert len(m.update_live_mesh().triangles) > 0 and not m.dirty_blocks
 
 
+def test_block_rows_by_codes_equal_numpys_row_functions(rng: np.random.Generator) -> None:
+    """live20: the live update's unique blocks and block membership by one int64 a row, as numpy's row-wise forms."""
+    from loopmodel.mapping.meshing import _rows_in, _unique_rows
+
+    for n, span in ((1, 3), (500, 4), (20_000, 40)):
+        rows = rng.integers(-span, span, size=(n, 3)) + rng.integers(-(1 << 20), 1 << 20, size=3)
+        uniq, inverse = _unique_rows(rows)
+        want, want_inv = np.unique(rows, axis=0, return_inverse=True)
+        np.testing.assert_array_equal(uniq, want)
+        np.testing.assert_array_equal(inverse, want_inv.reshape(-1))
+        table = rows[rng.integers(0, n, size=max(n // 3, 1))] + rng.integers(0, 2, size=(max(n // 3, 1), 3))
+        in_table = set(map(tuple, table.tolist()))
+        np.testing.assert_array_equal(_rows_in(rows, table), [tuple(r) in in_table for r in rows.tolist()])
+
+
 # --------------------------------------------------------------------- extraction
 def _render_laser_image(
     u_of_row: np.ndarray,

@@ -296,7 +296,7 @@ def mesh_blocks(
     keys = np.floor(points_w / config.chunk_m).astype(np.int64)
     wanted = np.array(sorted(blocks), dtype=np.int64)
     offs = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    context = np.unique((wanted[:, None, :] + offs[None]).reshape(-1, 3), axis=0)
+    context, _ = _unique_rows((wanted[:, None, :] + offs[None]).reshape(-1, 3))
     near = _rows_in(keys, context)
     if np.count_nonzero(near) < config.min_points:
         return out
@@ -312,9 +312,11 @@ def mesh_blocks(
     # 2.0 of a 7.0 s live update on the 600-frame sample, 1.1 of 2.2 s with the sdf), each block's in order
     wanted_tri = _rows_in(tri_key, wanted)
     idx = np.flatnonzero(wanted_tri)
-    uniq, inverse = np.unique(tri_key[idx], axis=0, return_inverse=True)
-    order = np.argsort(inverse.reshape(-1), kind="stable")
-    bounds = np.searchsorted(inverse.reshape(-1)[order], np.arange(len(uniq) + 1))
+    if idx.size == 0:
+        return out
+    uniq, inverse = _unique_rows(tri_key[idx])
+    order = np.argsort(inverse, kind="stable")
+    bounds = np.searchsorted(inverse[order], np.arange(len(uniq) + 1))
     for b, key_row in enumerate(uniq.tolist()):
         key = (key_row[0], key_row[1], key_row[2])
         if key not in out:
@@ -329,13 +331,25 @@ def mesh_blocks(
     return out
 
 
+def _row_codes(*arrays: NDArray[np.int64]) -> list[NDArray[np.int64]]:
+    """One int64 a row of each N x 3 int array (one at least not empty), in lexicographic row order."""
+    full = [x for x in arrays if x.size]
+    lo = np.min([x.min(axis=0) for x in full], axis=0)
+    span = np.max([x.max(axis=0) for x in full], axis=0) - lo + 1
+    return [((x[:, 0] - lo[0]) * span[1] + (x[:, 1] - lo[1])) * span[2] + (x[:, 2] - lo[2]) for x in arrays]
+
+
 def _rows_in(rows: NDArray[np.int64], table: NDArray[np.int64]) -> NDArray[np.bool_]:
     """Which rows of ``rows`` (N x 3 ints) occur in ``table`` (M x 3 ints)."""
-    lo = np.minimum(rows.min(axis=0), table.min(axis=0))
-    span = np.maximum(rows.max(axis=0), table.max(axis=0)) - lo + 1
+    a, b = _row_codes(rows, table)
+    return np.isin(a, b)
 
-    def code(a: NDArray[np.int64]) -> NDArray[np.int64]:
-        b = a - lo
-        return (b[:, 0] * span[1] + b[:, 1]) * span[2] + b[:, 2]
 
-    return np.isin(code(rows), code(table))
+def _unique_rows(rows: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.intp]]:
+    """``np.unique(rows, axis=0, return_inverse=True)`` of N x 3 ints (N >= 1), the inverse flat.
+
+    By one int64 a row (live20: 5 vs 63 ms for the 97,000 triangles of a 197-block live update).
+    """
+    (code,) = _row_codes(rows)
+    _, first, inverse = np.unique(code, return_index=True, return_inverse=True)
+    return rows[first], inverse.reshape(-1)
