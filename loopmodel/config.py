@@ -127,7 +127,7 @@ class BackendConfig(_Section):
     # (A looser relinearize_threshold_rad, 0.0075-0.01, cost the synthetic rounds' accuracy, be18.)
     relinearize_skip: int = Field(2, ge=1, le=10000, description="check relinearisation every N updates")
     relinearize_group_fraction: float = Field(
-        0.7, gt=0, le=1, description="once a pose crosses its thresholds, relinearise every pose above this fraction of them (1: off)"
+        0.7, gt=0, le=1, description="one pose over its thresholds: all above this fraction relinearise (1: off)"
     )
     # issue 33 item 5 (isam12): the full check visits every variable each update (a cost growing with
     # the map); on, the rounds_1800 call stream replayed cost 3.3-3.4 s of back-end CPU against 3.9-4.4
