@@ -253,6 +253,9 @@ class _IndeterminateOnce:
     def getLinearizationPoint(self):  # noqa: N802 (gtsam's name)
         return self.inner.getLinearizationPoint()
 
+    def getDelta(self):  # noqa: N802 (gtsam's name; relinearize_group_fraction reads it, be20)
+        return self.inner.getDelta()
+
 
 def test_indeterminate_system_rebuilds_without_the_landmark(rng):
     poses, pts = scene(rng, n_kf=4, n_pts=40)

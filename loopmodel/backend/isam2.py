@@ -148,6 +148,7 @@ class Isam2Backend:
         self._stereo_noise = self._robust(gtsam.noiseModel.Isotropic.Sigma(3, cfg.pixel_sigma_px))
         self._mono_noise = self._robust(gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma_px))
         self._isam = gtsam.ISAM2(self.isam2_params(cfg))
+        self._isam_updates = 0  # iSAM2's own count: it checks relinearisation every relinearize_skip-th
         self._factors: dict[int, _FactorRecord] = {}
         self._slot: dict[int, int] = {}  # factor id -> iSAM2 factor index
         self._next_fid = 0
@@ -228,7 +229,10 @@ class Isam2Backend:
         """``gtsam.ISAM2Params`` from the configuration."""
         params = gtsam.ISAM2Params()
         thresholds = gtsam.ISAM2ThresholdMap()
-        thresholds.insert(("x", np.array([cfg.relinearize_threshold_rad] * 3 + [cfg.relinearize_threshold_m] * 3)))
+        # relinearize_group_fraction < 1: iSAM2 checks poses at that fraction of the thresholds and
+        # _isam_update holds them there until one crosses the full ones (_poses_held)
+        f = cfg.relinearize_group_fraction
+        thresholds.insert(("x", f * np.array([cfg.relinearize_threshold_rad] * 3 + [cfg.relinearize_threshold_m] * 3)))
         thresholds.insert(("l", np.full(3, cfg.relinearize_threshold_landmark_m)))
         thresholds.insert(("p", np.full(3, cfg.relinearize_threshold_landmark_m)))  # proxies of old landmarks
         params.setRelinearizeThreshold(thresholds)
@@ -342,14 +346,48 @@ class Isam2Backend:
         self._landmarks[lkey].fids.add(fid)
 
     def _isam_update(self, *args: Any, **kwargs: Any) -> Any:
-        """``self._isam.update(...)``; what :meth:`estimate` reads has changed (``_updated``)."""
+        """``self._isam.update(...)``; what :meth:`estimate` reads has changed (``_updated``).
+
+        With ``relinearize_group_fraction`` < 1, at an update that checks relinearisation the poses
+        :meth:`_poses_held` names stay at their linearisation point (iSAM2's ``noRelinKeys``).
+        """
+        self._isam_updates += 1
+        checks = kwargs.get("force_relinearize", False) or self._isam_updates % self.config.relinearize_skip == 0
+        if checks and self.config.relinearize_group_fraction < 1.0:
+            held = self._poses_held()
+            if held is not None:
+                kwargs["noRelinKeys"] = held
         result = self._isam.update(*args, **kwargs)
         self._updated = True
         return result
 
+    def _poses_held(self) -> gtsam.KeyList | None:
+        """The poses iSAM2 must not relinearise at this update (``relinearize_group_fraction``), or None.
+
+        iSAM2 checks poses at the fraction f of ``relinearize_threshold_rad`` / ``_m``. While no pose's
+        linear step (iSAM2's delta: rotation rad, translation m, per axis) exceeds the full thresholds,
+        every pose above f of them is held: nothing relinearises, as without grouping. Once one does,
+        none is held: every pose above f relinearises in this one update, where one at a time each
+        would re-eliminate all its landmarks in an update of its own (issue 33, be20).
+        """
+        delta = self._isam.getDelta()  # iSAM2 brings it up to date before a relinearisation check anyway
+        keys = [key for kf in self._kf_order if delta.exists(key := self._xkey[kf])]
+        if not keys:
+            return None
+        cfg = self.config
+        step = np.abs(delta.vector(keys)).reshape(-1, 2, 3).max(axis=2)  # per pose: (rotation rad, translation m)
+        ratio = np.maximum(step[:, 0] / cfg.relinearize_threshold_rad, step[:, 1] / cfg.relinearize_threshold_m)
+        if ratio.max() > 1.0:
+            return None
+        held = gtsam.KeyList()
+        for j in np.flatnonzero(ratio > cfg.relinearize_group_fraction).tolist():
+            held.push_back(keys[j])
+        return held
+
     def _new_isam(self) -> None:
         """An empty iSAM2 with this back end's parameters (a rebuild); :meth:`estimate` reads it anew."""
         self._isam = gtsam.ISAM2(self.isam2_params(self.config))
+        self._isam_updates = 0  # iSAM2's own count: it checks relinearisation every relinearize_skip-th
         self._updated = True
 
     def _revisit(self, obs: _Obs, lkey: int) -> bool:
