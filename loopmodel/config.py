@@ -129,14 +129,19 @@ class BackendConfig(_Section):
     # issue 33 item 5 (be20): 1 -> 0.7. In the rounds scan's later rounds the window's poses all sit near
     # relinearize_threshold_rad and crossed it one at a time, each relinearising update then re-eliminating every
     # landmark of the pose that crossed (the last block's median fell on those updates); now they relinearise
-    # together once one crosses (Isam2Backend._poses_held). rounds_1800 call stream replayed (jemalloc, gc frozen,
-    # load 6-8): last block / first 1.80-1.85 (5 runs) -> 1.65-1.72 (3 runs; 0.5 / 0.6 / 0.8: 1.76-1.85 /
-    # 1.72-1.81 / 1.72-1.75), online keyframe ATE 10.085 -> 10.112 mm. bench scale --quick, 5 alternating pairs
-    # (load 6-10): backend_ms_last_over_first median 1.795 -> 1.752, its last block 23.3 -> 21.9 ms, back-end
-    # CPU 2.70 -> 2.66 s, ate_rmse_after_m 0.00082-0.00083 -> 0.00082-0.00085. bench pipeline (1 pair, load
-    # 7-9): the KITTI clip (configs/kitti.yaml, real) final ATE 0.0252 -> 0.0251 m, online 0.0758 m both; the
-    # 600-frame sample (configs/sim.yaml) final 0.77 mm, online 10.68 mm, mesh 0.398833 mm all as before;
-    # the 150-frame orbit's mesh 0.346775 -> 0.346726 mm (CHANGELOG be20)
+    # together once one crosses (Isam2Backend._poses_held). Call streams replayed (jemalloc, gc frozen, load 5-8),
+    # last block / first: rounds_1800 1.80-1.85 (5 runs) -> 1.65-1.72 (3 runs; 0.5 / 0.6 / 0.8: 1.76-1.85 /
+    # 1.72-1.81 / 1.72-1.75), online keyframe ATE 10.085 -> 10.112 mm; rounds_5400 2.26 / 2.29 -> 1.70 / 1.73,
+    # CPU 7.4-7.8 -> 6.9-7.6 s, ATE 10.118 -> 10.120 mm. bench scale --quick, 5 alternating pairs (load 6-10):
+    # backend_ms_last_over_first median 1.795 -> 1.752, its last block 23.3 -> 21.9 ms, back-end CPU 2.70 -> 2.66
+    # s, ate_rmse_after_m 0.00082-0.00083 -> 0.00082-0.00085; full bench scale, 2 pairs (load 4-7): 1.626 / 1.995
+    # -> 1.689 / 1.692, last block 20.9 / 25.1 -> 21.1 / 21.8 ms. bench pipeline (3 alternating pairs, load 6-9):
+    # the KITTI clip (configs/kitti.yaml, real) final ATE 0.0252 -> 0.0251 m in every run, online 0.0758 m and the
+    # drift after the segment as before (its kitti_frame_ms_p95 was 7-16 ms higher in all three be20 runs at that
+    # load, 62.6-85.9 against 46.9-78.9 ms, median frame 30-33 against 22-35 ms: to be checked quiet); the
+    # 600-frame sample (configs/sim.yaml) final 0.77 mm, online 10.68 mm, mesh 0.398833 mm as before in 2 of 3
+    # runs (the third 0.74 mm, 10.64 mm, 0.3838 mm, not explained; base gave 0.398833 mm in every run);
+    # the 150-frame orbit's mesh 0.346775 mm (0.346726 once) (CHANGELOG be20)
     relinearize_group_fraction: float = Field(
         0.7, gt=0, le=1, description="one pose over its thresholds: all above this fraction relinearise (1: off)"
     )
