@@ -413,3 +413,25 @@ def test_render_workers_load_open3d_without_its_plotly_viewer() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.split() == ["open3d"]
+
+
+def test_the_command_and_the_live_mesh_worker_load_open3d_without_its_plotly_viewer() -> None:
+    """``loopmodel`` run as the program, and the live mesh's process start, load open3d without dash or plotly."""
+    code = (
+        "import sys\n"
+        "from loopmodel.cli import main\n"
+        "sys.argv = ['loopmodel', '--version']\n"
+        "main()\n"
+        "import open3d\n"
+        "print(' '.join(m for m in ('open3d', 'dash', 'plotly') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.split()[-1:] == ["open3d"] and "dash" not in out.stdout.split()
+    code = (
+        "import sys\n"
+        "from loopmodel.mapping.live import _worker_start\n"
+        "_worker_start()\n"
+        "print(' '.join(m for m in ('open3d', 'dash', 'plotly') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.split() == ["open3d"]

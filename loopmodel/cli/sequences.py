@@ -531,9 +531,6 @@ def simulate_scan_cmd(
 ) -> None:
     """Generate a synthetic hand-held scan (stereo, laser stripes, ground truth) as MCAP."""
     from loopmodel.io.atomic import check_output_file
-    from loopmodel.open3d_import import without_plotly_viewer
-
-    without_plotly_viewer()  # this process draws nothing: 0.7 s CPU less (as in the render workers)
     from loopmodel.sim.generate import resolve_config, simulate_scan
 
     check_output_file(out, overwrite)  # before the work
