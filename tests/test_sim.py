@@ -403,35 +403,26 @@ def test_preset_files_match_the_presets() -> None:
     assert sample == gen.resolve_config(SimulationConfig(), preset="orbit")
 
 
+def _viewer_modules_after(start: str) -> list[str]:
+    """Which of open3d, dash and plotly a fresh interpreter holds after running ``start`` (its last line out)."""
+    code = start + "import sys\nprint(' '.join(m for m in ('open3d', 'dash', 'plotly') if m in sys.modules))\n"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    return out.stdout.splitlines()[-1].split()
+
+
 def test_render_workers_load_open3d_without_its_plotly_viewer() -> None:
     """A render worker's start (``start_without_plotly_viewer``) loads open3d but not dash or plotly (gen20)."""
-    code = (
-        "import sys\n"
+    start = (
         "from loopmodel.open3d_import import start_without_plotly_viewer\n"
         "start_without_plotly_viewer('loopmodel.sim.render:to_tensor', __import__('numpy').zeros(3, 'float32'))\n"
-        "print(' '.join(m for m in ('open3d', 'dash', 'plotly') if m in sys.modules))\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
-    assert out.stdout.split() == ["open3d"]
+    assert _viewer_modules_after(start) == ["open3d"]
 
 
 def test_the_command_and_the_live_mesh_worker_load_open3d_without_its_plotly_viewer() -> None:
     """``loopmodel`` run as the program, and the live mesh's process start, load open3d without dash or plotly."""
-    code = (
-        "import sys\n"
-        "from loopmodel.cli import main\n"
-        "sys.argv = ['loopmodel', '--version']\n"
-        "main()\n"
-        "import open3d\n"
-        "print(' '.join(m for m in ('open3d', 'dash', 'plotly') if m in sys.modules))\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
-    assert out.stdout.split()[-1:] == ["open3d"] and "dash" not in out.stdout.split()
-    code = (
-        "import sys\n"
-        "from loopmodel.mapping.live import _worker_start\n"
-        "_worker_start()\n"
-        "print(' '.join(m for m in ('open3d', 'dash', 'plotly') if m in sys.modules))\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
-    assert out.stdout.split() == ["open3d"]
+    command = "import sys\nfrom loopmodel.cli import main\nsys.argv = ['loopmodel', '--version']\nmain()\n"
+    command += "import open3d\n"
+    assert _viewer_modules_after(command) == ["open3d"]
+    live = "from loopmodel.mapping.live import _worker_start\n_worker_start()\n"
+    assert _viewer_modules_after(live) == ["open3d"]
