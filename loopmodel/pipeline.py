@@ -67,6 +67,7 @@ from loopmodel.mapping.final import (
 )
 from loopmodel.mapping.live import LiveMapping
 from loopmodel.mapping.stripe_map import StripeMap
+from loopmodel.open3d_import import load_open3d, without_plotly_viewer
 from loopmodel.result import RunResult
 from loopmodel.sessions import Resumed, map_session
 from loopmodel.stages import LoopConstraint, LoopStage, MapState, NullLoopStage
@@ -874,6 +875,7 @@ class _Run:
                 # the final mesh made here. Not in a new process: its start (1.5 s CPU: the interpreter,
                 # numpy, open3d) was not repaid on the loaded machine (150-frame orbit, load 10-13, 3
                 # alternating runs: wall over frames 1.633 -> 1.670)
+                without_plotly_viewer()  # fin21: open3d's import 0.9 s CPU less
                 _import_beside("loopmodel.mapping.meshing")
             with timed_step("final_refinement", steps, self.finishing, cpu):
                 result = self._estimate(interrupted)
@@ -1009,7 +1011,8 @@ class _Run:
         (:meth:`_stop_workers` abandons it otherwise).
         """
         if self.mesh_worker is not None:  # open3d here while the worker makes the mesh (the mesh is built here)
-            importlib.import_module("open3d")
+            # without its plotly viewer (fin21: 1.15-1.23 -> 0.31 s CPU, no bytecode written; loaded if drawn with)
+            load_open3d()
             if own:  # the live mesh's last update ended at the workers step: its mesh for the writes beside
                 result.live_mesh = self.live.mesh()
             if self.beside_mesh is not None and own:
