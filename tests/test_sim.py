@@ -426,3 +426,18 @@ def test_the_command_and_the_live_mesh_worker_load_open3d_without_its_plotly_vie
     assert _viewer_modules_after(command) == ["open3d"]
     live = "from loopmodel.mapping.live import _worker_start\n_worker_start()\n"
     assert _viewer_modules_after(live) == ["open3d"]
+
+
+def test_open3d_loaded_without_its_plotly_viewer_loads_it_when_drawn_with() -> None:
+    """``load_open3d`` leaves out dash and plotly; the viewer's functions then load them when called (fin21).
+
+    The run's process loads open3d that way in the finish (a library caller's process: nothing is lost).
+    """
+    start = (
+        "import sys\nfrom loopmodel.open3d_import import load_open3d\no3d = load_open3d()\n"
+        "assert 'plotly' not in sys.modules and 'dash' not in sys.modules\n"
+        "fig = o3d.visualization.get_plotly_fig([o3d.geometry.TriangleMesh.create_box()])\n"
+        "assert fig.data[0].type == 'mesh3d' and len(fig.data[0].x) == 8, fig.data\n"
+        "assert o3d.visualization.draw_plotly.__module__ == 'open3d.visualization.draw_plotly'\n"
+    )
+    assert _viewer_modules_after(start) == ["open3d", "dash", "plotly"]
