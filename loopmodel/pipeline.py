@@ -871,12 +871,6 @@ class _Run:
                 self._stop_workers(interrupted)
             if self.map_record is not None:  # fe8: the map's keyframe PNGs beside the final refinement
                 self.map_record.archiver.encode_images()
-            if self.mesh_worker is None and self.config.mapping.write_mesh and self.laser.stripes:
-                # the final mesh made here. Not in a new process: its start (1.5 s CPU: the interpreter,
-                # numpy, open3d) was not repaid on the loaded machine (150-frame orbit, load 10-13, 3
-                # alternating runs: wall over frames 1.633 -> 1.670)
-                without_plotly_viewer()  # fin21: open3d's import 0.9 s CPU less
-                _import_beside("loopmodel.mapping.meshing")
             with timed_step("final_refinement", steps, self.finishing, cpu):
                 result = self._estimate(interrupted)
                 # the refined stripes and poses to the mesh's process as soon as they are known
@@ -1010,8 +1004,7 @@ class _Run:
         The live mesh's last update is waited for here only when no final mesh is made
         (:meth:`_stop_workers` abandons it otherwise).
         """
-        if self.mesh_worker is not None:  # open3d here while the worker makes the mesh (the mesh is built here)
-            # without its plotly viewer (fin21: 1.15-1.23 -> 0.31 s CPU, no bytecode written; loaded if drawn with)
+        if self.mesh_worker is not None:  # open3d here (loaded beside the final estimate: _load_open3d_beside)
             load_open3d()
             if own:  # the live mesh's last update ended at the workers step: its mesh for the writes beside
                 result.live_mesh = self.live.mesh()
@@ -1032,9 +1025,29 @@ class _Run:
             mesh_metrics["live_mesh_wait_s"] = time.perf_counter() - t0
         return mesh_metrics
 
+    def _load_open3d_beside(self, after: Future[Any] | None) -> None:
+        """open3d loaded on a thread while the back end's worker makes its final estimate (after ``after``).
+
+        fin21 (issue 32): without its plotly viewer (1.15-1.23 -> 0.31 s CPU in the sample's run, no bytecode
+        written), for the final mesh made here (with the meshing module) or, with a mesh worker, its arrays, the
+        evaluation and the writes: its import was the mesh step's, on the finish's longest path. ``after``: the
+        calibrating BA's observations, wanted when the estimate comes: the import holds the interpreter for up
+        to about 0.1 s at a time. Not in a new process: its start (1.5 s CPU: the interpreter, numpy, open3d)
+        was not repaid on the loaded machine (150-frame orbit, load 10-13, 3 alternating runs: 1.633 -> 1.670).
+        """
+        if not (self.config.mapping.write_mesh and self.laser.stripes):
+            return
+        without_plotly_viewer()
+        module = "open3d" if self.mesh_worker is not None else "loopmodel.mapping.meshing"
+        if after is None:
+            _import_beside(module)
+        else:
+            after.add_done_callback(lambda _done: _import_beside(module))
+
     def _estimate(self, interrupted: bool) -> RunResult:
         """The back end's final estimate (refined unless interrupted): trajectories, keyframes, landmarks."""
         observed = self._observe_beside(interrupted)  # while the back end's worker makes its final estimate
+        self._load_open3d_beside(observed[1] if observed is not None else None)
         estimate = self._self_calibration(self._final_estimate(interrupted), interrupted, observed)
         result = RunResult(
             config=self.config,
