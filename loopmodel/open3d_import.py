@@ -5,7 +5,7 @@
 the final mesh (bytecode written; fin19, gen20), 1.15-1.23 -> 0.31 s CPU in a process that already holds
 numpy, numba and the pipeline (no bytecode written, fin21). :func:`without_plotly_viewer` puts a stand-in
 module of its three names in its place before open3d is loaded: they load the real viewer when one of them
-is called (fin21) and then call it, so nothing is lost where a caller draws after all;
+is called (fin21; its other names when read) and then call it, so nothing is lost where a caller draws after all;
 :func:`load_open3d` imports open3d that way; :func:`start_without_plotly_viewer` is a pool initializer that
 does so before it imports the initializer it is given.
 """
@@ -38,7 +38,14 @@ def without_plotly_viewer() -> None:
     for name in _NAMES:
         setattr(stand_in, name, _loading(name))
     setattr(stand_in, _STAND_IN, True)
+    stand_in.__getattr__ = _other_name  # type: ignore[method-assign]  # its other names (``go``) load it too
     sys.modules[_VIEWER] = stand_in
+
+
+def _other_name(name: str) -> Any:
+    if name.startswith("__"):  # probes of a module's dunders (``__file__``, ``__path__``) do not load the viewer
+        raise AttributeError(name)
+    return getattr(_real_viewer(), name)
 
 
 def _loading(name: str) -> Callable[..., Any]:

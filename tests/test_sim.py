@@ -436,6 +436,9 @@ def test_open3d_loaded_without_its_plotly_viewer_loads_it_when_drawn_with() -> N
     start = (
         "import sys\nfrom loopmodel.open3d_import import load_open3d\no3d = load_open3d()\n"
         "assert 'plotly' not in sys.modules and 'dash' not in sys.modules\n"
+        "viewer = sys.modules['open3d.visualization.draw_plotly']\n"
+        "assert not hasattr(viewer, '__file__') and 'plotly' not in sys.modules\n"
+        "assert viewer.go.__name__ == 'plotly.graph_objects'\n"
         "fig = o3d.visualization.get_plotly_fig([o3d.geometry.TriangleMesh.create_box()])\n"
         "assert fig.data[0].type == 'mesh3d' and len(fig.data[0].x) == 8, fig.data\n"
         "assert o3d.visualization.draw_plotly.__module__ == 'open3d.visualization.draw_plotly'\n"
