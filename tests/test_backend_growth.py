@@ -494,7 +494,7 @@ def test_budget_keeps_observations_spread_over_the_image_best_supported_first() 
     crowded = np.column_stack([np.arange(30), rng.uniform(1, 79, 30), rng.uniform(1, 119, 30)])  # 80 x 120 px cell
     others = np.array([[30 + k, 80 * (k % 7 + 1) + 40, 60 + 120 * (k // 7)] for k in range(10)], float)
     rows = np.vstack([crowded, others, [[np.nan, 5.0, 5.0]]])[rng.permutation(41)]
-    order = backend._spread_order(rows)
+    order = rows[backend._spread_order(rows, backend._row_lkeys(rows))]
     assert sorted(order[:, 0].tolist(), key=lambda x: (np.isnan(x), x))[:40] == list(range(40))  # all kept
     first = order[:11, 0].astype(int).tolist()
     assert sorted(first) == [29, *range(30, 40)], first
