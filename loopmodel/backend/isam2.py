@@ -148,7 +148,8 @@ class Isam2Backend:
         self._stereo_noise = self._robust(gtsam.noiseModel.Isotropic.Sigma(3, cfg.pixel_sigma_px))
         self._mono_noise = self._robust(gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma_px))
         self._isam = gtsam.ISAM2(self.isam2_params(cfg))
-        self._isam_updates = 0  # iSAM2's own count: it checks relinearisation every relinearize_skip-th
+        self._isam_updates = 0  # iSAM2's own count: it checks relinearisation every _relinearize_skip-th
+        self._relinearize_skip = cfg.relinearize_skip  # this iSAM2's (local_rebuild_relinearize_skip after a rebuild)
         self._factors: dict[int, _FactorRecord] = {}
         self._slot: dict[int, int] = {}  # factor id -> iSAM2 factor index
         self._next_fid = 0
@@ -230,8 +231,8 @@ class Isam2Backend:
 
     # ------------------------------------------------------------------ set-up
     @staticmethod
-    def isam2_params(cfg: BackendConfig) -> gtsam.ISAM2Params:
-        """``gtsam.ISAM2Params`` from the configuration."""
+    def isam2_params(cfg: BackendConfig, relinearize_skip: int = 0) -> gtsam.ISAM2Params:
+        """``gtsam.ISAM2Params`` from the configuration; ``relinearize_skip`` > 0 instead of the configured one."""
         params = gtsam.ISAM2Params()
         thresholds = gtsam.ISAM2ThresholdMap()
         # relinearize_group_fraction < 1: iSAM2 checks poses at that fraction of the thresholds and
@@ -241,7 +242,7 @@ class Isam2Backend:
         thresholds.insert(("l", np.full(3, cfg.relinearize_threshold_landmark_m)))
         thresholds.insert(("p", np.full(3, cfg.relinearize_threshold_landmark_m)))  # proxies of old landmarks
         params.setRelinearizeThreshold(thresholds)
-        params.relinearizeSkip = cfg.relinearize_skip
+        params.relinearizeSkip = relinearize_skip or cfg.relinearize_skip
         params.enablePartialRelinearizationCheck = cfg.partial_relinearization_check
         params.setFactorization(cfg.factorization)
         gn = gtsam.ISAM2GaussNewtonParams()
@@ -357,7 +358,7 @@ class Isam2Backend:
         :meth:`_poses_held` names stay at their linearisation point (iSAM2's ``noRelinKeys``).
         """
         self._isam_updates += 1
-        checks = kwargs.get("force_relinearize", False) or self._isam_updates % self.config.relinearize_skip == 0
+        checks = kwargs.get("force_relinearize", False) or self._isam_updates % self._relinearize_skip == 0
         if checks and self.config.relinearize_group_fraction < 1.0:
             held = self._poses_held()
             if held is not None:
@@ -389,10 +390,14 @@ class Isam2Backend:
             held.push_back(keys[j])
         return held
 
-    def _new_isam(self) -> None:
-        """An empty iSAM2 with this back end's parameters (a rebuild); :meth:`estimate` reads it anew."""
-        self._isam = gtsam.ISAM2(self.isam2_params(self.config))
-        self._isam_updates = 0  # iSAM2's own count: it checks relinearisation every relinearize_skip-th
+    def _new_isam(self, relinearize_skip: int = 0) -> None:
+        """An empty iSAM2 with this back end's parameters (a rebuild); :meth:`estimate` reads it anew.
+
+        ``relinearize_skip`` > 0: it checks relinearisation every that many updates (a window rebuild's).
+        """
+        self._isam = gtsam.ISAM2(self.isam2_params(self.config, relinearize_skip))
+        self._isam_updates = 0  # iSAM2's own count: it checks relinearisation every _relinearize_skip-th
+        self._relinearize_skip = relinearize_skip or self.config.relinearize_skip
         self._updated = True
 
     def _revisit(self, obs: _Obs, lkey: int) -> bool:
@@ -1072,7 +1077,7 @@ class Isam2Backend:
             self.rebuilds += 1
             self._estimate_all = True
             self._clear_deferred()  # their factors are in the record: the rebuild takes them
-            self._new_isam()
+            self._new_isam(self._relinearize_skip)  # the cadence it had (a window rebuild's, if one made it)
             self._slot.clear()
             keys: set[int] = set()
             for fid, rec in self._factors.items():
@@ -1737,7 +1742,8 @@ class Isam2Backend:
                     self._frozen_unread.append(int(gtsam.Symbol(key).index()))
                     self._frozen_kfs.add(self._frozen_unread[-1])
         self._frozen.insert(out)
-        self._new_isam()
+        # be21: the rebuilt window checks relinearisation at its own cadence (local_rebuild_relinearize_skip)
+        self._new_isam(self.config.local_rebuild_relinearize_skip)
         self._slot.clear()
         self._rebuilt_at = len(self._kf_order)
         self.window_rebuilds += 1
