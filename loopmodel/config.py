@@ -240,9 +240,10 @@ class BackendConfig(_Section):
     # CPU. Call streams replayed (jemalloc, gc frozen, alternating with main, load 5-9): rounds_5400 last block /
     # first 2.45 / 2.36 -> 1.43 / 1.64, CPU 6.9 / 6.8 -> 6.9 / 7.1 s, online keyframe ATE 10.118 -> 10.114 mm;
     # rounds_1800 1.83-1.98 -> 1.72-1.81 (3 runs each), ATE 10.085 -> 10.082 mm. Live (load 6.5-12): bench scale
-    # --quick 3 alternating pairs, median 1.789 -> 1.697, ate_rmse_after_m 0.00083 -> 0.00082-0.00083; full 1.689
-    # (one run). Only a rebuilt iSAM2's: relinearize_skip 4 everywhere moved the KITTI clip's (configs/kitti.yaml,
-    # real) final ATE 0.0252 -> 0.0254 / 0.0256 m (2 pairs). The clip (13 keyframes) and the 600-frame sample
+    # --quick 3 alternating pairs, median 1.789 -> 1.697, ate_rmse_after_m 0.00083 -> 0.00082-0.00083; full scale
+    # one pair 1.580 -> 1.689 (the last block 20.7 / 20.8 ms: no gain shown live there). Only a rebuilt iSAM2's:
+    # relinearize_skip 4 everywhere moved the KITTI clip's (configs/kitti.yaml, real) final ATE 0.0252 -> 0.0254 /
+    # 0.0256 m (2 pairs). The clip (13 keyframes) and the 600-frame sample
     # (configs/sim.yaml, 19) never rebuild (local_rebuild_keep_kf + local_rebuild_kf = 30 keyframes first): bench
     # pipeline's accuracy keys identical to main's (CHANGELOG be21)
     local_rebuild_relinearize_skip: int = Field(

@@ -445,8 +445,8 @@ class Isam2Backend:
         """The internal index of each row's (landmark id, u, v px) landmark in the graph; -1 if none or not finite.
 
         One dict look-up a row, shared by :meth:`_budget_binds`, :meth:`_proxies_bind` and
-        :meth:`_spread_order` (be21: each looked every row up again, 0.7 ms a keyframe of the rounds scan's
-        last round, where the revisits make them run every keyframe).
+        :meth:`_spread_order` (be21: each looked every row up again; the bind test alone took 0.24-0.28 ms a
+        keyframe of the rounds scan's last round, 0.05 ms with these).
         """
         finite = np.isfinite(rows[:, 0])
         ids = np.where(finite, rows[:, 0], -1.0).astype(np.int64).tolist()
