@@ -232,6 +232,23 @@ class BackendConfig(_Section):
     local_rebuild_keep_kf: int = Field(
         10, ge=1, le=100000, description="local_rebuild_kf: keyframes a rebuild keeps free (at least local_window_kf)"
     )
+    # issue 33 (be21): an iSAM2 a window rebuild made (local_rebuild_kf) checks relinearisation every Nth update
+    # (0: relinearize_skip's). In the rounds scan's later rounds the window's poses cross relinearize_threshold_rad
+    # at nearly every check (the proxies pull the window onto the old map), each relinearising update re-eliminating
+    # every landmark of the poses that crossed: at every 2nd update the last block's median fell on those updates.
+    # Every 4th: the poses that crossed meanwhile relinearise together, half as many such updates, the same back-end
+    # CPU. Call streams replayed (jemalloc, gc frozen, alternating with main, load 5-9): rounds_5400 last block /
+    # first 2.45 / 2.36 -> 1.43 / 1.64, CPU 6.9 / 6.8 -> 6.9 / 7.1 s, online keyframe ATE 10.118 -> 10.114 mm;
+    # rounds_1800 1.83-1.98 -> 1.72-1.81 (3 runs each), ATE 10.085 -> 10.082 mm. Live (load 6.5-12): bench scale
+    # --quick 3 alternating pairs, median 1.789 -> 1.697, ate_rmse_after_m 0.00083 -> 0.00082-0.00083; full scale
+    # one pair 1.580 -> 1.689 (the last block 20.7 / 20.8 ms: no gain shown live there). Only a rebuilt iSAM2's:
+    # relinearize_skip 4 everywhere moved the KITTI clip's (configs/kitti.yaml, real) final ATE 0.0252 -> 0.0254 /
+    # 0.0256 m (2 pairs). The clip (13 keyframes) and the 600-frame sample
+    # (configs/sim.yaml, 19) never rebuild (local_rebuild_keep_kf + local_rebuild_kf = 30 keyframes first): bench
+    # pipeline's accuracy keys identical to main's (CHANGELOG be21)
+    local_rebuild_relinearize_skip: int = Field(
+        4, ge=0, le=10000, description="a rebuilt window iSAM2 checks relinearisation every N updates (0: as before)"
+    )
     # issue 33 item 5 (be16): under local a revisit observation (a landmark older than local_window_kf)
     # reaches iSAM2 as three things (a proxy variable, its prior, the observation of it): 170-260
     # factors a keyframe from the first revisit on in rounds_1800, none in the first round. At most N a

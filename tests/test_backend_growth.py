@@ -494,7 +494,7 @@ def test_budget_keeps_observations_spread_over_the_image_best_supported_first() 
     crowded = np.column_stack([np.arange(30), rng.uniform(1, 79, 30), rng.uniform(1, 119, 30)])  # 80 x 120 px cell
     others = np.array([[30 + k, 80 * (k % 7 + 1) + 40, 60 + 120 * (k // 7)] for k in range(10)], float)
     rows = np.vstack([crowded, others, [[np.nan, 5.0, 5.0]]])[rng.permutation(41)]
-    order = backend._spread_order(rows)
+    order = rows[backend._spread_order(rows, backend._row_lkeys(rows))]
     assert sorted(order[:, 0].tolist(), key=lambda x: (np.isnan(x), x))[:40] == list(range(40))  # all kept
     first = order[:11, 0].astype(int).tolist()
     assert sorted(first) == [29, *range(30, 40)], first
@@ -920,3 +920,54 @@ def test_relinearize_group_fraction_relinearises_the_near_threshold_poses_togeth
     assert max(len(m) for m in crossings) >= 4
     assert sum(map(len, crossings)) / len(crossings) > 1.3 * sum(map(len, alone)) / len(alone)
     assert ate_grouped < ate_single * 1.05
+
+
+def _relinearising_updates(rebuild_skip: int) -> tuple[Isam2Backend, list[tuple[int, int, int]], float]:
+    """4 revisiting rounds under ``local`` rebuilt every 10 keyframes, ``local_rebuild_relinearize_skip`` given.
+
+    Per iSAM2 update: the window rebuilds before it, its number in its iSAM2, the variables it
+    relinearised; the live error (RMS, m) of the last two rounds' keyframes right after their updates.
+    """
+    prob = rounds_problem(60, per_round=15, features_per_kf=60, local_map_kf=1, loop_every_kf=5, revisit_points=40)
+    loops = _loops_by_query(prob)
+    config = BackendConfig(
+        loop_policy="local", local_rebuild_kf=10, local_rebuild_keep_kf=10, local_rebuild_relinearize_skip=rebuild_skip
+    )
+    backend = Isam2Backend(_calibration(), config)
+    seen: list[tuple[int, int, int]] = []
+    update = backend._isam_update
+
+    def spy(*args: object, **kwargs: object) -> object:
+        result = update(*args, **kwargs)
+        seen.append((backend.window_rebuilds, backend._isam_updates, result.getVariablesRelinearized()))
+        return result
+
+    backend._isam_update = spy  # type: ignore[method-assign]
+    live = []
+    for kf in prob.keyframes:
+        backend.add_keyframe(kf)
+        for old, rel in loops.get(kf.id, []):
+            backend.add_loop_constraint(kf.id, old, rel)
+        est = backend.estimate(landmarks=False).world_from_kf
+        live.append(float(np.linalg.norm(est[kf.id][:3, 3] - prob.true_world_from_kf[kf.id][:3, 3])))
+    return backend, seen, float(np.sqrt(np.mean(np.square(live[30:]))))
+
+
+def test_rebuilt_window_checks_relinearisation_at_its_own_cadence() -> None:
+    """be21 (issue 33): a window rebuild's iSAM2 relinearises every ``local_rebuild_relinearize_skip``-th update.
+
+    Before the first rebuild every ``relinearize_skip``-th (2) as without; after it only every 4th (0: every
+    2nd throughout); the live error of the last two rounds as without.
+    """
+    at4, seen4, live4 = _relinearising_updates(4)
+    at2, seen2, live2 = _relinearising_updates(0)
+    assert at4.window_rebuilds == at2.window_rebuilds == 4
+    for seen in (seen4, seen2):  # before the first rebuild: at updates 2, 4, 6, ... of the first iSAM2
+        first = [n for rebuilds, n, relin in seen if rebuilds == 0 and relin]
+        assert first and all(n % 2 == 0 for n in first) and any(n % 4 == 2 for n in first), first
+    later4 = [n for rebuilds, n, relin in seen4 if rebuilds > 0 and relin]
+    later2 = [n for rebuilds, n, relin in seen2 if rebuilds > 0 and relin]
+    assert later4 and all(n % 4 == 0 for n in later4), later4
+    assert any(n % 4 == 2 for n in later2), later2  # with 0 the rebuilt iSAM2s keep relinearize_skip's cadence
+    assert len(later4) < len(later2)
+    assert live4 < 1.1 * live2 + 1e-4, (live2, live4)

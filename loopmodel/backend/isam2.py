@@ -148,7 +148,8 @@ class Isam2Backend:
         self._stereo_noise = self._robust(gtsam.noiseModel.Isotropic.Sigma(3, cfg.pixel_sigma_px))
         self._mono_noise = self._robust(gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma_px))
         self._isam = gtsam.ISAM2(self.isam2_params(cfg))
-        self._isam_updates = 0  # iSAM2's own count: it checks relinearisation every relinearize_skip-th
+        self._isam_updates = 0  # iSAM2's own count: it checks relinearisation every _relinearize_skip-th
+        self._relinearize_skip = cfg.relinearize_skip  # this iSAM2's (local_rebuild_relinearize_skip after a rebuild)
         self._factors: dict[int, _FactorRecord] = {}
         self._slot: dict[int, int] = {}  # factor id -> iSAM2 factor index
         self._next_fid = 0
@@ -156,6 +157,9 @@ class Isam2Backend:
         self._obs_fid: dict[Observation, int] = {}
         self._landmarks: dict[int, _Landmark] = {}  # internal index -> landmark
         self._lm_current: dict[int, int] = {}  # landmark id -> internal index in the graph
+        # internal index -> its landmark's first_seq (_Landmark.first_seq as an array: a keyframe's rows are
+        # told revisits by one array lookup, be21)
+        self._lm_first_seq = np.zeros(1024, dtype=np.int64)
         self._next_lkey = 0
         self._pending: dict[int, list[_Obs]] = {}
         self._pending_buckets: dict[int, list[int]] = {}  # keyframe seq -> pending landmark ids
@@ -193,6 +197,7 @@ class Isam2Backend:
         self._proxy_fids: dict[int, list[int]] = {}
         self._next_pkey = 0
         self._new_proxies = gtsam.Values()
+        self._proxy_noise = gtsam.noiseModel.Isotropic.Sigma(3, cfg.loop_sigma_m)  # every proxy's prior
         # keyframe_obs_budget: observations of known landmarks each keyframe's updates took so far
         self._budget_used: dict[int, int] = {}
         # a keyframe whose tracker resumed an older keyframe's features (``ba_info["resumed_from_keyframe"]``)
@@ -218,6 +223,7 @@ class Isam2Backend:
         # from iSAM2's); the gauge-tight priors holding the older keyframes a rebuild kept (factor ids)
         self._frozen = gtsam.Values()
         self._frozen_keys: set[int] = set()
+        self._frozen_kfs: set[int] = set()  # the keyframes whose poses are in _frozen_keys (be21)
         self._fixed_fids: list[int] = []
         self._rebuilt_at = 0  # keyframes in the graph at the last rebuild
         self._frozen_unread: list[int] = []  # keyframes a rebuild left out, not read by estimate() since
@@ -225,8 +231,8 @@ class Isam2Backend:
 
     # ------------------------------------------------------------------ set-up
     @staticmethod
-    def isam2_params(cfg: BackendConfig) -> gtsam.ISAM2Params:
-        """``gtsam.ISAM2Params`` from the configuration."""
+    def isam2_params(cfg: BackendConfig, relinearize_skip: int = 0) -> gtsam.ISAM2Params:
+        """``gtsam.ISAM2Params`` from the configuration; ``relinearize_skip`` > 0 instead of the configured one."""
         params = gtsam.ISAM2Params()
         thresholds = gtsam.ISAM2ThresholdMap()
         # relinearize_group_fraction < 1: iSAM2 checks poses at that fraction of the thresholds and
@@ -236,7 +242,7 @@ class Isam2Backend:
         thresholds.insert(("l", np.full(3, cfg.relinearize_threshold_landmark_m)))
         thresholds.insert(("p", np.full(3, cfg.relinearize_threshold_landmark_m)))  # proxies of old landmarks
         params.setRelinearizeThreshold(thresholds)
-        params.relinearizeSkip = cfg.relinearize_skip
+        params.relinearizeSkip = relinearize_skip or cfg.relinearize_skip
         params.enablePartialRelinearizationCheck = cfg.partial_relinearization_check
         params.setFactorization(cfg.factorization)
         gn = gtsam.ISAM2GaussNewtonParams()
@@ -352,7 +358,7 @@ class Isam2Backend:
         :meth:`_poses_held` names stay at their linearisation point (iSAM2's ``noRelinKeys``).
         """
         self._isam_updates += 1
-        checks = kwargs.get("force_relinearize", False) or self._isam_updates % self.config.relinearize_skip == 0
+        checks = kwargs.get("force_relinearize", False) or self._isam_updates % self._relinearize_skip == 0
         if checks and self.config.relinearize_group_fraction < 1.0:
             held = self._poses_held()
             if held is not None:
@@ -384,10 +390,14 @@ class Isam2Backend:
             held.push_back(keys[j])
         return held
 
-    def _new_isam(self) -> None:
-        """An empty iSAM2 with this back end's parameters (a rebuild); :meth:`estimate` reads it anew."""
-        self._isam = gtsam.ISAM2(self.isam2_params(self.config))
-        self._isam_updates = 0  # iSAM2's own count: it checks relinearisation every relinearize_skip-th
+    def _new_isam(self, relinearize_skip: int = 0) -> None:
+        """An empty iSAM2 with this back end's parameters (a rebuild); :meth:`estimate` reads it anew.
+
+        ``relinearize_skip`` > 0: it checks relinearisation every that many updates (a window rebuild's).
+        """
+        self._isam = gtsam.ISAM2(self.isam2_params(self.config, relinearize_skip))
+        self._isam_updates = 0  # iSAM2's own count: it checks relinearisation every _relinearize_skip-th
+        self._relinearize_skip = relinearize_skip or self.config.relinearize_skip
         self._updated = True
 
     def _revisit(self, obs: _Obs, lkey: int) -> bool:
@@ -424,13 +434,26 @@ class Isam2Backend:
         self._proxies_used[kf_id] = used + 1
         return True
 
-    def _revisit_rows(self, kf_id: int, ids: list[int]) -> int:
-        """How many of landmark ids ``ids`` keyframe ``kf_id`` would see through proxies (old landmarks)."""
+    def _revisit_rows(self, kf_id: int, lkeys: NDArray[np.int64]) -> int:
+        """How many of the landmarks ``lkeys`` (internal indices, -1: none) ``kf_id`` would see through proxies."""
         if not self._windowed:
             return 0
         cut = self._kf_seq[kf_id] - self.config.local_window_kf
-        current, landmarks = self._lm_current, self._landmarks
-        return sum(1 for i in ids if (k := current.get(i)) is not None and landmarks[k].first_seq < cut)
+        return int(np.count_nonzero(self._lm_first_seq[lkeys[lkeys >= 0]] < cut))
+
+    def _row_lkeys(self, rows: F64) -> NDArray[np.int64]:
+        """The internal index of each row's (landmark id, u, v px) landmark in the graph; -1 if none or not finite.
+
+        One dict look-up a row, shared by :meth:`_budget_binds`, :meth:`_proxies_bind` and
+        :meth:`_spread_order` (be21: each looked every row up again; the bind test alone took 0.24-0.28 ms a
+        keyframe of the rounds scan's last round, 0.05 ms with these).
+        """
+        finite = np.isfinite(rows[:, 0])
+        ids = np.where(finite, rows[:, 0], -1.0).astype(np.int64).tolist()
+        current = self._lm_current
+        return np.array(
+            [current.get(i, -1) if ok else -1 for i, ok in zip(ids, finite.tolist(), strict=True)], dtype=np.int64
+        ).reshape(-1)
 
     def _proxy_observation(self, obs: _Obs, lkey: int, graph: gtsam.NonlinearFactorGraph) -> list[int]:
         """``obs`` of old landmark ``lkey`` as an observation of its proxy in iSAM2; returns the factor ids.
@@ -448,9 +471,8 @@ class Isam2Backend:
             self._proxy[lkey] = entry
             # a landmark made by a deferred update (local_defer_late) is not in iSAM2 yet: its initial point
             p = self._point_estimate(L(lkey))
-            self._new_proxies.insert(P(entry[0]), p)
-            noise = gtsam.noiseModel.Isotropic.Sigma(3, self.config.loop_sigma_m)
-            prior = gtsam.PriorFactorPoint3(P(entry[0]), p, noise)
+            self._new_proxies.insertPoint3(P(entry[0]), p)  # no overload resolution (be17)
+            prior = gtsam.PriorFactorPoint3(P(entry[0]), p, self._proxy_noise)
             fids.append(self._new_fid(_FactorRecord(prior, "proxy")))
             graph.add(prior)
         proxy = self._obs_factor(obs, P(entry[0]))
@@ -632,7 +654,11 @@ class Isam2Backend:
         """Landmark ``lm`` enters the graph at ``point`` (world, m) with its observations ``obs``."""
         lkey = self._next_lkey
         self._next_lkey += 1
-        self._landmarks[lkey] = _Landmark(lm, min(self._kf_seq[o.kf_id] for o in obs))
+        first_seq = min(self._kf_seq[o.kf_id] for o in obs)
+        self._landmarks[lkey] = _Landmark(lm, first_seq)
+        if lkey >= self._lm_first_seq.size:
+            self._lm_first_seq = np.concatenate([self._lm_first_seq, np.zeros_like(self._lm_first_seq)])
+        self._lm_first_seq[lkey] = first_seq
         self._lm_current[lm] = lkey
         values.insertPoint3(L(lkey), np.asarray(point, dtype=float))  # no overload resolution (be17)
         for o in obs:
@@ -827,8 +853,10 @@ class Isam2Backend:
         if budgeted and self.config.keyframe_obs_budget > 0:  # the keyframe's budget over all its updates
             budget = max(self.config.keyframe_obs_budget - used, len(self._batch))
         # which ones wait (budget) and which old landmarks get proxies (local_proxies_per_kf): by the spread order
-        if self._budget_binds(kf_id, budget, rows) or self._proxies_bind(kf_id, rows):
-            rows = self._spread_order(rows)
+        if budget is not None or self._windowed and self.config.local_proxies_per_kf > 0:
+            lkeys = self._row_lkeys(rows)
+            if self._budget_binds(kf_id, budget, rows, lkeys) or self._proxies_bind(kf_id, lkeys):
+                rows = rows[self._spread_order(rows, lkeys)]
         finite = np.isfinite(rows).all(axis=1).tolist()  # one array operation, not one per row
         current, pending = self._lm_current, self._pending
         for row, ok in zip(rows.tolist(), finite, strict=True):
@@ -841,53 +869,53 @@ class Isam2Backend:
             self._budget_used[kf_id] = used + len(self._batch)
         return rejected
 
-    def _budget_binds(self, kf_id: int, budget: int | None, rows: F64) -> bool:
+    def _budget_binds(self, kf_id: int, budget: int | None, rows: F64, lkeys: NDArray[np.int64]) -> bool:
         """Whether ``budget`` may leave some of ``rows`` (landmark id, u, v px) of ``kf_id`` out of the update.
 
         Counted as the budget counts: the update's factors so far, a row of a landmark in the graph one, a
         revisit's two (its proxy's prior); rows of pending landmarks none. Only then are the rows put in the
         spread order (be19: sorting every keyframe's rows cost the first round, which the budget never bound).
+        ``lkeys``: the rows' landmarks (:meth:`_row_lkeys`).
         """
         if budget is None or len(self._batch) + 2 * rows.shape[0] <= budget:
             return False
-        current = self._lm_current
-        ids = [i for i in rows[np.isfinite(rows[:, 0]), 0].astype(np.int64).tolist() if i in current]
-        return len(self._batch) + len(ids) + self._revisit_rows(kf_id, ids) > budget
+        in_graph = int(np.count_nonzero(lkeys >= 0))
+        return len(self._batch) + in_graph + self._revisit_rows(kf_id, lkeys) > budget
 
-    def _proxies_bind(self, kf_id: int, rows: F64) -> bool:
-        """Whether ``local_proxies_per_kf`` leaves some of ``rows``' old landmarks without a proxy."""
+    def _proxies_bind(self, kf_id: int, lkeys: NDArray[np.int64]) -> bool:
+        """Whether ``local_proxies_per_kf`` leaves some of the rows' old landmarks ``lkeys`` without a proxy."""
         bound = self.config.local_proxies_per_kf
         if bound <= 0 or not self._windowed:
             return False
         left = bound - self._proxies_used.get(kf_id, 0)
-        ids = rows[np.isfinite(rows[:, 0]), 0].astype(np.int64).tolist()
-        return self._revisit_rows(kf_id, ids) > left
+        return self._revisit_rows(kf_id, lkeys) > left
 
-    def _spread_order(self, rows: F64) -> F64:
-        """Monocular observations ``rows`` (landmark id, u, v rectified px) in the order a budget takes them.
+    def _spread_order(self, rows: F64, lkeys: NDArray[np.int64]) -> NDArray[np.intp]:
+        """The order (row indices) in which a budget takes monocular observations ``rows`` (landmark id, u, v px).
 
         Round robin over a grid of the image (``_BUDGET_GRID`` cells), in each cell the observations of
         the landmarks with the most factors first (a point many keyframes fix constrains the pose
         most): what :attr:`BackendConfig.keyframe_obs_budget` keeps is spread over the image and well
-        determined (issue 33, be13). Ties keep their order: deterministic.
+        determined (issue 33, be13). Ties keep their order: deterministic. ``lkeys``: the rows' landmarks
+        (:meth:`_row_lkeys`).
         """
         n = rows.shape[0]
         if n == 0:
-            return rows
+            return np.arange(0)
         finite = np.asarray(np.isfinite(rows).all(axis=1), dtype=bool)
         uv = np.where(finite[:, None], rows[:, 1:3], 0.0)
         (cols, grid_rows), (w, h) = _BUDGET_GRID, self._image_size
         cell = np.clip((uv[:, 0] * cols / w).astype(np.int64), 0, cols - 1) + cols * np.clip(
             (uv[:, 1] * grid_rows / h).astype(np.int64), 0, grid_rows - 1
         )
-        current, landmarks = self._lm_current, self._landmarks
-        ids = np.where(finite, rows[:, 0], -1.0).astype(np.int64).tolist()
-        support = np.array([len(landmarks[k].fids) if (k := current.get(i)) is not None else 0 for i in ids])
+        landmarks = self._landmarks
+        keys = np.where(finite, lkeys, -1).tolist()
+        support = np.array([len(landmarks[k].fids) if k >= 0 else 0 for k in keys])
         by_cell = np.lexsort((-support, cell))  # by cell, the best supported first
         sorted_cell = cell[by_cell]
         first = np.r_[0, np.flatnonzero(np.diff(sorted_cell)) + 1]
         rank = np.arange(n) - np.repeat(first, np.diff(np.r_[first, n]))  # place within its cell
-        return rows[by_cell[np.lexsort((sorted_cell, rank))]]
+        return by_cell[np.lexsort((sorted_cell, rank))]
 
     def add_observations(self, keyframe_id: int, mono_obs: F64) -> BackendUpdate:
         """Add monocular observations (landmark id, u, v rectified px) to keyframe ``keyframe_id``; update.
@@ -1049,7 +1077,7 @@ class Isam2Backend:
             self.rebuilds += 1
             self._estimate_all = True
             self._clear_deferred()  # their factors are in the record: the rebuild takes them
-            self._new_isam()
+            self._new_isam(self._relinearize_skip)  # the cadence it had (a window rebuild's, if one made it)
             self._slot.clear()
             keys: set[int] = set()
             for fid, rec in self._factors.items():
@@ -1074,7 +1102,7 @@ class Isam2Backend:
                     values.insertPoint3(key, src.atPoint3(key))  # a Point3 as new landmarks are (be18)
             # every variable goes back to iSAM2 (a failed attempt's linearization point has them all: be18,
             # a second attempt read the rebuild's left-out values over them)
-            self._frozen, self._frozen_keys = gtsam.Values(), set()
+            self._frozen, self._frozen_keys, self._frozen_kfs = gtsam.Values(), set(), set()
             groups = self._ordering_groups(len(keys))
             try:
                 result = self._isam_update(graph, values, [], constrainedKeys=groups)
@@ -1585,8 +1613,10 @@ class Isam2Backend:
             self._estimate_all = False
             return list(order)
         recent = max(n, new)
-        frozen, xkey = self._frozen_keys, self._xkey
-        live = [k for k in order if xkey[k] not in frozen] if frozen else order
+        # be21: the keyframes out of iSAM2 by their own small set, not each pose key in _frozen_keys (the
+        # whole map's left-out variables; 0.25 ms an estimate by 349 keyframes of the full rounds scan)
+        frozen = self._frozen_kfs
+        live = [k for k in order if k not in frozen] if frozen else order
         old = live[:-recent]
         newest = left + live[-recent:]
         if not old:
@@ -1658,6 +1688,8 @@ class Isam2Backend:
             new_fids.append(self._hold(key, value, graph))
             self._frozen.erase(key)
             self._frozen_keys.discard(key)
+            if _is_pose_key(key):
+                self._frozen_kfs.discard(int(gtsam.Symbol(key).index()))
 
     def _rebuild_window(self, keep: int) -> None:
         """A fresh iSAM2 on the factors of the newest ``keep`` keyframes (``local_rebuild_kf``).
@@ -1708,8 +1740,10 @@ class Isam2Backend:
                 self._frozen_keys.add(key)
                 if is_pose(key):
                     self._frozen_unread.append(int(gtsam.Symbol(key).index()))
+                    self._frozen_kfs.add(self._frozen_unread[-1])
         self._frozen.insert(out)
-        self._new_isam()
+        # be21: the rebuilt window checks relinearisation at its own cadence (local_rebuild_relinearize_skip)
+        self._new_isam(self.config.local_rebuild_relinearize_skip)
         self._slot.clear()
         self._rebuilt_at = len(self._kf_order)
         self.window_rebuilds += 1
@@ -1729,7 +1763,7 @@ class Isam2Backend:
         """
         self._flush_deferred()
         theta = self._current_values()
-        self._frozen, self._frozen_keys, self._fixed_fids = gtsam.Values(), set(), []
+        self._frozen, self._frozen_keys, self._frozen_kfs, self._fixed_fids = gtsam.Values(), set(), set(), []
         for fid in [f for f, rec in self._factors.items() if rec.kind == "proxy"]:
             del self._factors[fid]
         self._proxy.clear()
