@@ -354,8 +354,13 @@ class FrontendConfig(_Section):
     # orb13; KITTI clip (configs/kitti.yaml, `bench pipeline`'s kitti part) p95 23.9 -> 22.0 ms, but the median
     # 11.1 -> 12.5 ms (split off / on alone: 10.8 / 12.8: the second core is busy there), the same poses on
     # both. CHANGELOG (orb13)
+    # orb21: off by default. With `opencv_threads` 2 OpenCV splits the one call's points over its own two threads
+    # (the caller's and one worker, taking stripes as each is free) and builds each image's pyramid once, where the
+    # halves built both pyramids twice: the same tracks (poses identical on the orbit and the KITTI clip), one
+    # 420-point orbit KLT in 3.6 ms wall both ways (SCHED_FIFO) at 5.0-5.5 ms of CPU against the halves' 6.8-7.2 ms.
+    # Measured with `opencv_threads` below (CHANGELOG orb21).
     klt_split_min_points: int = Field(
-        64, ge=0, le=100000, description="a KLT of this many points or more runs in two halves at once; 0 off"
+        0, ge=0, le=100000, description="a KLT of this many points or more runs in two halves at once; 0 off"
     )
     # robust pose
     pose_loss: Literal["tukey", "huber"] = Field("tukey")
@@ -558,8 +563,11 @@ class FrontendConfig(_Section):
     # SCHED_FIFO at load 17) CPU per frame median 47.3 / 41.4 ms, p95 51.4 / 49.2 ms, final ATE 0.0427 m
     # both; realistic orbit sample (configs/sim.yaml, first 200 frames, 2 rounds at load 17-20) CPU per frame
     # 25.7, 24.6 / 29.1, 24.3 ms (noise), final ATE 1.336 mm both. CHANGELOG.md (fe7)
+    # orb21 (issue 33): 2, with `klt_split_min_points` 0: the tracking thread's KLT now splits its points in
+    # OpenCV's own two threads (above). The process's CPU during the frames and the mean frame: see CHANGELOG orb21
+    # (realistic orbit, bench peer; KITTI clip, configs/kitti.yaml, real): the same poses on both.
     opencv_threads: int = Field(
-        1, ge=0, le=256, description="at most this many OpenCV threads in the process (0: OpenCV's own count)"
+        2, ge=0, le=256, description="at most this many OpenCV threads in the process (0: OpenCV's own count)"
     )
     # kf12 (issue 33): in a keyframe frame three threads of the run take turns on the interpreter lock (the
     # tracking thread's compiled and OpenCV calls, the keyframe threads' stereo set and re-measurements); each
