@@ -356,7 +356,7 @@ class FrontendConfig(_Section):
     # both. CHANGELOG (orb13)
     # orb21: off by default. With `opencv_threads` 2 OpenCV splits the one call's points over its own two threads
     # (the caller's and one worker, taking stripes as each is free) and builds each image's pyramid once, where the
-    # halves built both pyramids twice: the same tracks (poses identical on the orbit and the KITTI clip), one
+    # halves built both pyramids twice: the same tracks (front-end poses identical on the orbit and KITTI), one
     # 420-point orbit KLT in 3.6 ms wall both ways (SCHED_FIFO) at 5.0-5.5 ms of CPU against the halves' 6.8-7.2 ms.
     # Measured with `opencv_threads` below (CHANGELOG orb21).
     klt_split_min_points: int = Field(
