@@ -566,11 +566,12 @@ class FrontendConfig(_Section):
     # orb21 (issue 33): 2, with `klt_split_min_points` 0: the tracking thread's KLT now splits its points in
     # OpenCV's own two threads (above). Realistic orbit (datasets/sample/scan.mcap, bench peer's configuration):
     # `_Run.step` mean under SCHED_FIFO, 6 alternated pairs, lower in each by 0.08-0.33 ms (median -4.0 %), the
-    # run's process CPU 13.3 -> 13.05 and 15.1 -> 14.8 ms a frame, identical poses; bench peer's mean frame (load
-    # 6-12) 19.0 -> 16.3 ms. KITTI clip (configs/kitti.yaml, real): the front end alone identical with 1 and 2
-    # threads, the full pipeline identical with `backend.worker: inline`; with the worker process its final ATE
-    # follows which back-end estimate each keyframe finds finished (0.0219-0.0270 m over 7 runs, median 0.0252;
-    # main 0.0252), process CPU within noise (23.2, 24.3 / 24.5, 21.6 ms a frame at load 5). CHANGELOG (orb21)
+    # run's process CPU 13.3 -> 13.05 and 15.1 -> 14.8 ms a frame, identical poses; bench peer's mean frame quiet
+    # (load 1-2.6, 3 pairs) 7.59 -> 7.26 ms, ratio to ORB-SLAM3's 0.512 -> 0.490; at load 6-12 19.0 -> 16.3 ms.
+    # KITTI clip (configs/kitti.yaml, real): the front end alone identical with 1 and 2 threads, the full
+    # pipeline identical with `backend.worker: inline`; with the worker process its final ATE follows which
+    # back-end estimate each keyframe finds finished (0.0219-0.0270 m over 7 runs, median 0.0252; main 0.0252),
+    # process CPU within noise (23.2, 24.3 / 24.5, 21.6 ms a frame at load 5). CHANGELOG (orb21)
     opencv_threads: int = Field(
         2, ge=0, le=256, description="at most this many OpenCV threads in the process (0: OpenCV's own count)"
     )
