@@ -371,8 +371,13 @@ class FrontendConfig(_Section):
     # orb13; KITTI clip (configs/kitti.yaml, `bench pipeline`'s kitti part) p95 23.9 -> 22.0 ms, but the median
     # 11.1 -> 12.5 ms (split off / on alone: 10.8 / 12.8: the second core is busy there), the same poses on
     # both. CHANGELOG (orb13)
+    # orb21: off by default. With `opencv_threads` 2 OpenCV splits the one call's points over its own two threads
+    # (the caller's and one worker, taking stripes as each is free) and builds each image's pyramid once, where the
+    # halves built both pyramids twice: the same tracks (front-end poses identical on the orbit and KITTI), one
+    # 420-point orbit KLT in 3.6 ms wall both ways (SCHED_FIFO) at 5.0-5.5 ms of CPU against the halves' 6.8-7.2 ms.
+    # Measured with `opencv_threads` below (CHANGELOG orb21).
     klt_split_min_points: int = Field(
-        64, ge=0, le=100000, description="a KLT of this many points or more runs in two halves at once; 0 off"
+        0, ge=0, le=100000, description="a KLT of this many points or more runs in two halves at once; 0 off"
     )
     # robust pose
     pose_loss: Literal["tukey", "huber"] = Field("tukey")
@@ -575,8 +580,17 @@ class FrontendConfig(_Section):
     # SCHED_FIFO at load 17) CPU per frame median 47.3 / 41.4 ms, p95 51.4 / 49.2 ms, final ATE 0.0427 m
     # both; realistic orbit sample (configs/sim.yaml, first 200 frames, 2 rounds at load 17-20) CPU per frame
     # 25.7, 24.6 / 29.1, 24.3 ms (noise), final ATE 1.336 mm both. CHANGELOG.md (fe7)
+    # orb21 (issue 33): 2, with `klt_split_min_points` 0: the tracking thread's KLT now splits its points in
+    # OpenCV's own two threads (above). Realistic orbit (datasets/sample/scan.mcap, bench peer's configuration):
+    # `_Run.step` mean under SCHED_FIFO, 6 alternated pairs, lower in each by 0.08-0.33 ms (median -4.0 %), the
+    # run's process CPU 13.3 -> 13.05 and 15.1 -> 14.8 ms a frame, identical poses; bench peer's mean frame quiet
+    # (load 1-2.6, 3 pairs) 7.59 -> 7.26 ms, ratio to ORB-SLAM3's 0.512 -> 0.490; at load 6-12 19.0 -> 16.3 ms.
+    # KITTI clip (configs/kitti.yaml, real): the front end alone identical with 1 and 2 threads, the full
+    # pipeline identical with `backend.worker: inline`; with the worker process its final ATE follows which
+    # back-end estimate each keyframe finds finished (0.0219-0.0270 m over 7 runs, median 0.0252; main 0.0252),
+    # process CPU within noise (23.2, 24.3 / 24.5, 21.6 ms a frame at load 5). CHANGELOG (orb21)
     opencv_threads: int = Field(
-        1, ge=0, le=256, description="at most this many OpenCV threads in the process (0: OpenCV's own count)"
+        2, ge=0, le=256, description="at most this many OpenCV threads in the process (0: OpenCV's own count)"
     )
     # kf12 (issue 33): in a keyframe frame three threads of the run take turns on the interpreter lock (the
     # tracking thread's compiled and OpenCV calls, the keyframe threads' stereo set and re-measurements); each

@@ -72,3 +72,29 @@ def test_few_points_or_zero_keep_one_call(rng: np.random.Generator) -> None:
         track_klt_halves(prev, cur, pts, pts + shift, FrontendConfig(klt_split_min_points=0), (320, 240))
         track_klt_halves(prev, cur, pts, pts + shift, FrontendConfig(klt_split_min_points=10), (320, 240))
     assert calls == [40, 40, 20, 20]
+
+
+def test_opencv_threads_give_the_tracks_of_one_thread(rng: np.random.Generator) -> None:
+    """The default KLT (orb21): one call's points over OpenCV's own two threads, bit-identical to one thread.
+
+    ``frontend.opencv_threads`` 2 with the halves off; the true shift to 0.15 px.
+    """
+    assert FrontendConfig().klt_split_min_points == 0 and FrontendConfig().opencv_threads == 2
+    prev, cur, shift = _pair(rng)
+    pts = rng.uniform(20, [300, 220], (401, 2))
+    guess = pts + shift + rng.normal(0, 0.3, pts.shape)
+    cfg = FrontendConfig()
+    klt = (cfg.klt_window_px, cfg.klt_levels, cfg.fb_threshold_px, cfg.klt_iterations, (320, 240))
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(1)
+        ref_uv, ref_ok, ref_fb = track_klt(prev, cur, pts, guess, *klt)
+        cv2.setNumThreads(2)
+        uv, ok, fb = track_klt(prev, cur, pts, guess, *klt)
+    finally:
+        cv2.setNumThreads(before)
+    np.testing.assert_array_equal(ok, ref_ok)
+    np.testing.assert_array_equal(uv, ref_uv)
+    np.testing.assert_array_equal(fb, ref_fb)
+    assert ok.sum() >= 395  # measured 401 of 401
+    np.testing.assert_allclose(uv[ok], pts[ok] + shift, atol=0.15)  # measured 0.104
