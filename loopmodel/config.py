@@ -304,6 +304,13 @@ class BackendConfig(_Section):
     keyframe_obs_budget: int = Field(
         0, ge=0, le=100000, description="observations of landmarks in the graph a keyframe's update takes (0: all)"
     )
+    # be22 (issue 33): ORB-SLAM's redundancy rule for observations rather than keyframes: a keyframe's
+    # monocular observation of a window landmark that this many observations already fix in iSAM2 waits
+    # outside it for the final estimate (keyframe_obs_overflow), as the budget's rest; a revisit's and a
+    # resumed keyframe's never do (0: none)
+    keyframe_obs_redundant_kf: int = Field(
+        0, ge=0, le=100000, description="mono observations wait outside iSAM2 once this many fix the landmark (0: off)"
+    )
     keyframe_obs_overflow: Literal["final", "drop"] = Field(
         "final", description="keyframe_obs_budget: the observations over it join at the final estimate, or are dropped"
     )

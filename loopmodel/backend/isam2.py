@@ -110,6 +110,7 @@ class _Landmark:
     landmark_id: int
     first_seq: int  # keyframe sequence number of the first observation in the graph
     fids: set[int] = field(default_factory=set)
+    in_isam: int = 0  # its observations that went into iSAM2 (keyframe_obs_redundant_kf)
 
 
 def _is_pose_key(key: int) -> bool:
@@ -348,6 +349,7 @@ class Isam2Backend:
             factor = self._obs_factor(obs, landmark_key)
             fid = self._new_fid(_FactorRecord(factor, kind, lkey, key, None, keys))
             graph.add(factor)
+            self._landmarks[lkey].in_isam += 1
         obs_fid[key] = fid
         self._landmarks[lkey].fids.add(fid)
 
@@ -695,21 +697,29 @@ class Isam2Backend:
         return created
 
     def _observe(
-        self, lm_id: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, candidates: list[int], budget: int | None = None
+        self,
+        lm_id: int,
+        o: _Obs,
+        graph: gtsam.NonlinearFactorGraph,
+        candidates: list[int],
+        budget: int | None = None,
+        redundant: int = 0,
     ) -> None:
         """Route one observation to its landmark in the graph or to the pending buffer.
 
         Landmarks whose buffer is full enough are appended to ``candidates``. With a ``budget`` an
         observation of a landmark in the graph waits outside iSAM2 (until the final estimate) once
-        the update being built holds ``budget`` factors.
+        the update being built holds ``budget`` factors; ``redundant`` > 0 (``keyframe_obs_redundant_kf``):
+        only an observation of a landmark that many observations fix in iSAM2 waits (:meth:`_waits`).
         """
         lkey = self._lm_current.get(lm_id)
         if lkey is not None:
             span = self.config.max_landmark_span_kf
-            if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
+            lm = self._landmarks[lkey]
+            if span > 0 and o.stereo and self._kf_seq[o.kf_id] - lm.first_seq >= span:
                 del self._lm_current[lm_id]  # the track continues as a new landmark variable
             else:
-                over = budget is not None and budget <= len(self._batch) and not self._ties_old_map(o, lkey)
+                over = self._waits(lm, budget, redundant) and not self._ties_old_map(o, lkey)
                 if over and self.config.keyframe_obs_overflow == "drop":
                     self.budget_dropped += 1  # never in the graph: what one keyframe adds stays bounded
                     return
@@ -724,6 +734,17 @@ class Isam2Backend:
             pend.append(o)
         if len(pend) >= self.config.min_observations:
             candidates.append(lm_id)
+
+    def _waits(self, lm: _Landmark, budget: int | None, redundant: int) -> bool:
+        """Whether a keyframe's observation of ``lm`` (in the graph) waits outside iSAM2 for the final estimate.
+
+        ``budget``: once the update being built holds that many factors; ``redundant`` > 0: only if
+        ``redundant`` observations of ``lm`` are in iSAM2 already - with a budget once it is reached, without
+        one always (be22: ORB-SLAM's redundancy rule, a point seen by 3 keyframes, for observations).
+        """
+        if redundant > 0 and lm.in_isam < redundant:
+            return False
+        return budget <= len(self._batch) if budget is not None else redundant > 0
 
     # ------------------------------------------------------------------ updates
     def add_keyframe(self, keyframe: Keyframe) -> BackendUpdate:
@@ -852,11 +873,12 @@ class Isam2Backend:
         used = self._budget_used.get(kf_id, 0)
         if budgeted and self.config.keyframe_obs_budget > 0:  # the keyframe's budget over all its updates
             budget = max(self.config.keyframe_obs_budget - used, len(self._batch))
+        redundant = self.config.keyframe_obs_redundant_kf if budgeted else 0
         # which ones wait (budget) and which old landmarks get proxies (local_proxies_per_kf): by the spread order
         if budget is not None or self._windowed and self.config.local_proxies_per_kf > 0:
             lkeys = self._row_lkeys(rows)
             if self._budget_binds(kf_id, budget, rows, lkeys) or self._proxies_bind(kf_id, lkeys):
-                rows = rows[self._spread_order(rows, lkeys)]
+                rows = rows[self._spread_order(rows, lkeys, redundant)]
         finite = np.isfinite(rows).all(axis=1).tolist()  # one array operation, not one per row
         current, pending = self._lm_current, self._pending
         for row, ok in zip(rows.tolist(), finite, strict=True):
@@ -864,7 +886,7 @@ class Isam2Backend:
             if not ok or (lm_id not in current and lm_id not in pending):
                 rejected += 1
                 continue
-            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates, budget)
+            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates, budget, redundant)
         if budget is not None:
             self._budget_used[kf_id] = used + len(self._batch)
         return rejected
@@ -890,14 +912,15 @@ class Isam2Backend:
         left = bound - self._proxies_used.get(kf_id, 0)
         return self._revisit_rows(kf_id, lkeys) > left
 
-    def _spread_order(self, rows: F64, lkeys: NDArray[np.int64]) -> NDArray[np.intp]:
+    def _spread_order(self, rows: F64, lkeys: NDArray[np.int64], redundant: int = 0) -> NDArray[np.intp]:
         """The order (row indices) in which a budget takes monocular observations ``rows`` (landmark id, u, v px).
 
         Round robin over a grid of the image (``_BUDGET_GRID`` cells), in each cell the observations of
         the landmarks with the most factors first (a point many keyframes fix constrains the pose
         most): what :attr:`BackendConfig.keyframe_obs_budget` keeps is spread over the image and well
         determined (issue 33, be13). Ties keep their order: deterministic. ``lkeys``: the rows' landmarks
-        (:meth:`_row_lkeys`).
+        (:meth:`_row_lkeys`). ``redundant`` > 0: the rows of landmarks that many observations fix in iSAM2
+        last (those the budget may hold back, :meth:`_waits`).
         """
         n = rows.shape[0]
         if n == 0:
@@ -915,7 +938,10 @@ class Isam2Backend:
         sorted_cell = cell[by_cell]
         first = np.r_[0, np.flatnonzero(np.diff(sorted_cell)) + 1]
         rank = np.arange(n) - np.repeat(first, np.diff(np.r_[first, n]))  # place within its cell
-        return by_cell[np.lexsort((sorted_cell, rank))]
+        if redundant <= 0:
+            return by_cell[np.lexsort((sorted_cell, rank))]
+        late = np.array([k >= 0 and landmarks[k].in_isam >= redundant for k in keys], dtype=bool)
+        return by_cell[np.lexsort((sorted_cell, rank, late[by_cell]))]
 
     def add_observations(self, keyframe_id: int, mono_obs: F64) -> BackendUpdate:
         """Add monocular observations (landmark id, u, v rectified px) to keyframe ``keyframe_id``; update.
