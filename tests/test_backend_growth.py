@@ -347,7 +347,10 @@ def _feed_budget(
     n, per_kf = 50, 60
     prob = rounds_problem(n, features_per_kf=per_kf, local_map_kf=3, loop_every_kf=6, revisit_points=0)
     config = BackendConfig(
-        keyframe_obs_budget=budget, loop_policy=policy, keyframe_obs_overflow=overflow  # type: ignore[arg-type]
+        keyframe_obs_budget=budget,
+        keyframe_obs_redundant_kf=0,  # the budget alone
+        loop_policy=policy,  # type: ignore[arg-type]
+        keyframe_obs_overflow=overflow,  # type: ignore[arg-type]
     )
     backend = Isam2Backend(_calibration(), config)
     counts = []
@@ -516,7 +519,7 @@ def _feed_tied(resumed: bool) -> tuple[Isam2Backend, np.ndarray, list[int], int]
 
     per_kf = 60
     prob = rounds_problem(10, features_per_kf=per_kf, local_map_kf=3, loop_every_kf=1000)
-    backend = Isam2Backend(_calibration(), BackendConfig(keyframe_obs_budget=30))
+    backend = Isam2Backend(_calibration(), BackendConfig(keyframe_obs_budget=30, keyframe_obs_redundant_kf=0))
     late = np.zeros((0, 3))
     for kf in prob.keyframes:
         if kf.id == 8 and resumed:
