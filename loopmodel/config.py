@@ -312,8 +312,8 @@ class BackendConfig(_Section):
     # the budget alone at 120 / 80 the sample's mesh to 0.4052 / 0.3913 mm, online 10.77 / 10.90 mm, the clip's
     # final 0.0252 / 0.0258 m. rounds_1800 call stream replayed (jemalloc, gc frozen): re-eliminated variables
     # last block / first 1.83 -> 1.51, online keyframe ATE 10.082 -> 10.052 mm; rounds_5400: back-end CPU
-    # 7.9 -> 6.7 s. bench scale --quick live (3 alternating pairs, load 10-13): backend_ms_last_over_first
-    # median 1.787 -> 1.536 (1.619-1.822 -> 1.523-1.555), last block 23.1 -> 19.2 ms, ATE after 0.00082-0.00083
+    # 7.9 -> 6.7 s. bench scale --quick live (5 alternating pairs, load 10-17): backend_ms_last_over_first
+    # median 1.772 -> 1.536 (1.619-1.822 -> 1.507-1.577), last block 23.1 -> 19.8 ms, ATE after 0.00082-0.00083
     # -> 0.00083-0.00084 m; full scale one pair (load 13-16) 1.617 -> 1.464; sim150 mesh 0.346775 -> 0.349210 mm
     # (inline 0.353606), orbit300 mesh 0.334023 -> 0.326601 mm (CHANGELOG be22)
     keyframe_obs_budget: int = Field(
