@@ -331,7 +331,7 @@ class BackendConfig(_Section):
     # budget (live 1.683 / 1.758 -> 1.624 / 1.603); with the budget (80) it binds mostly on the rounds scan's later
     # rounds (measurements above keyframe_obs_budget; CHANGELOG be22)
     keyframe_obs_redundant_kf: int = Field(
-        3, ge=0, le=100000, description="over the budget only mono observations of landmarks this many fix in iSAM2 wait (0: any)"
+        3, ge=0, le=100000, description="over the budget only mono observations of landmarks so fixed wait (0: any)"
     )
     keyframe_obs_overflow: Literal["final", "drop"] = Field(
         "final", description="keyframe_obs_budget: the observations over it join at the final estimate, or are dropped"
