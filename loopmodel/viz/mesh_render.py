@@ -102,15 +102,24 @@ def render_mesh(
     ``vertex_colors`` (V x 3 in [0, 1]) colour the triangles (mean of their vertices) and are
     modulated by shading; without them the mesh is light grey. CPU rasteriser, painter's order.
     """
+    v, t, c = _decimate(np.asarray(vertices, float), np.asarray(triangles, np.int64), vertex_colors)
+    img, mask = _rasterise(v, t, view, c, with_mask=True)
+    assert mask is not None
+    return img, mask
+
+
+def _rasterise(
+    v: F64, t: NDArray[np.int64], view: View, c: F64 | None, with_mask: bool
+) -> tuple[U8, NDArray[np.bool_] | None]:
+    """:func:`render_mesh` of an already decimated mesh; the mask only ``with_mask`` (it doubles the fills)."""
     import cv2
 
-    v, t, c = _decimate(np.asarray(vertices, float), np.asarray(triangles, np.int64), vertex_colors)
     W, H = view.width_px, view.height_px
     img = np.empty((H, W, 3), np.uint8)
     img[:] = BACKGROUND
     mask = np.zeros((H, W), np.uint8)
     if len(t) == 0:
-        return img, mask.astype(bool)
+        return img, mask.astype(bool) if with_mask else None
     p_cam = v @ view.cam_from_world[:3, :3].T + view.cam_from_world[:3, 3]
     tri_cam = p_cam[t]  # T x 3 x 3
     depth = tri_cam[:, :, 2]
@@ -128,12 +137,15 @@ def render_mesh(
     uv = (tri_cam @ view.K.T)[:, :, :2] / depth[:, :, None]
     order = np.argsort(-centre[:, 2])
     order = order[keep[order]]
-    pts = np.round(uv * 16).astype(np.int32)  # 4 fractional bits for cv2's shift
-    for i in order:
-        poly = pts[i]
-        col = (int(rgb[i, 2]), int(rgb[i, 1]), int(rgb[i, 0]))  # BGR for cv2
-        cv2.fillConvexPoly(img, poly, col, lineType=cv2.LINE_AA, shift=4)
-        cv2.fillConvexPoly(mask, poly, 1, lineType=cv2.LINE_8, shift=4)
+    pts = np.round(uv[order] * 16).astype(np.int32)  # 4 fractional bits for cv2's shift
+    bgr = rgb[order, ::-1].tolist()  # cv2 draws BGR; plain ints: no conversion per call
+    fill = cv2.fillConvexPoly
+    for poly, col in zip(pts, bgr, strict=True):  # far to near
+        fill(img, poly, col, cv2.LINE_AA, 4)
+    if not with_mask:
+        return _bgr_to_rgb(img), None
+    for poly in pts:
+        fill(mask, poly, 1, cv2.LINE_8, 4)
     return _bgr_to_rgb(img), mask.astype(bool)
 
 
@@ -171,7 +183,7 @@ def before_after_png(
         v, t, c = _decimate(np.asarray(v_full, float), np.asarray(t_full, np.int64), c_full)
         for k, view in enumerate(views):
             ax = fig.add_subplot(len(panels), n_views, r * n_views + k + 1)
-            img, _ = render_mesh(v, t, view, c)
+            img, _ = _rasterise(v, t, view, c, with_mask=False)
             ax.imshow(img)
             ax.set_axis_off()
             if k == 0:
