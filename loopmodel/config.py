@@ -247,9 +247,18 @@ class BackendConfig(_Section):
     # (configs/sim.yaml, 19) never rebuild (local_rebuild_keep_kf + local_rebuild_kf = 30 keyframes first): bench
     # pipeline's accuracy keys identical to main's (CHANGELOG be21). Rebuilds forced on the real clip (integration,
     # session 21: worker inline, local_window_kf 4, local_rebuild_kf 2, local_rebuild_keep_kf 4, loop detection off;
-    # deterministic): 0 -> 4 final ATE 0.02777 -> 0.02785 m, online 0.07067 -> 0.07073 m
+    # deterministic): 0 -> 4 final ATE 0.02777 -> 0.02785 m, online 0.07067 -> 0.07073 m.
+    # be23b: -1, never: the next rebuild (every local_rebuild_kf keyframes) relinearises the window at its
+    # estimate anyway, and each relinearising update between rebuilds re-eliminated every landmark of the poses
+    # that crossed (2-5 of the last 20 keyframes' updates at 800-2,400 variables against ~500). Call streams
+    # replayed (jemalloc, gc frozen; re-eliminated variables deterministic): rounds_1800 last block's
+    # 17,366 -> 12,432 (first 9,586 both), per keyframe median 513 -> 490, online keyframe ATE 10.069 -> 10.020 mm;
+    # rounds_5400 last block 15,624 -> 10,593 (first 9,543), back-end CPU 7.17 -> 6.02 s, ATE 10.137 -> 10.134 mm.
     local_rebuild_relinearize_skip: int = Field(
-        4, ge=0, le=10000, description="a rebuilt window iSAM2 checks relinearisation every N updates (0: as before)"
+        -1,
+        ge=-1,
+        le=10000,
+        description="a rebuilt window iSAM2 checks relinearisation every N updates (0: as before; -1: at rebuilds)",
     )
     # issue 33 item 5 (be16): under local a revisit observation (a landmark older than local_window_kf)
     # reaches iSAM2 as three things (a proxy variable, its prior, the observation of it): 170-260

@@ -1047,3 +1047,23 @@ def test_rebuilt_window_checks_relinearisation_at_its_own_cadence() -> None:
     assert any(n % 4 == 2 for n in later2), later2  # with 0 the rebuilt iSAM2s keep relinearize_skip's cadence
     assert len(later4) < len(later2)
     assert live4 < 1.1 * live2 + 1e-4, (live2, live4)
+
+
+def test_rebuilt_window_relinearises_only_at_rebuilds_by_default() -> None:
+    """be23b (issue 33): with ``local_rebuild_relinearize_skip`` -1 (the default) a rebuilt iSAM2 never relinearises.
+
+    Before the first rebuild every ``relinearize_skip``-th update does, as with 4; after it no update
+    relinearises until the next rebuild takes the window at its estimate; the live error of the last
+    two rounds as with 4; a forced relinearisation (:meth:`Isam2Backend.refine`) still relinearises.
+    """
+    assert BackendConfig().local_rebuild_relinearize_skip == -1
+    never, seen, live = _relinearising_updates(-1)
+    _, seen4, live4 = _relinearising_updates(4)
+    assert never.window_rebuilds == 4
+    first = [n for rebuilds, n, relin in seen if rebuilds == 0 and relin]
+    assert first == [n for rebuilds, n, relin in seen4 if rebuilds == 0 and relin], first
+    assert [n for rebuilds, n, relin in seen if rebuilds > 0 and relin] == []
+    assert [n for rebuilds, n, relin in seen4 if rebuilds > 0 and relin]  # 4 relinearised there
+    assert live < 1.1 * live4 + 1e-4, (live4, live)
+    never.refine(max_iterations=1)
+    assert seen[-1][2] > 0, seen[-1]

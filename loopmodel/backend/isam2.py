@@ -233,7 +233,10 @@ class Isam2Backend:
     # ------------------------------------------------------------------ set-up
     @staticmethod
     def isam2_params(cfg: BackendConfig, relinearize_skip: int = 0) -> gtsam.ISAM2Params:
-        """``gtsam.ISAM2Params`` from the configuration; ``relinearize_skip`` > 0 instead of the configured one."""
+        """``gtsam.ISAM2Params`` from the configuration; ``relinearize_skip`` > 0 instead of the configured one.
+
+        ``relinearize_skip`` < 0: no relinearisation but a forced one (a window rebuild's iSAM2 waits for the next).
+        """
         params = gtsam.ISAM2Params()
         thresholds = gtsam.ISAM2ThresholdMap()
         # relinearize_group_fraction < 1: iSAM2 checks poses at that fraction of the thresholds and
@@ -243,7 +246,8 @@ class Isam2Backend:
         thresholds.insert(("l", np.full(3, cfg.relinearize_threshold_landmark_m)))
         thresholds.insert(("p", np.full(3, cfg.relinearize_threshold_landmark_m)))  # proxies of old landmarks
         params.setRelinearizeThreshold(thresholds)
-        params.relinearizeSkip = relinearize_skip or cfg.relinearize_skip
+        params.relinearizeSkip = max(relinearize_skip or cfg.relinearize_skip, 1)
+        params.enableRelinearization = relinearize_skip >= 0
         params.enablePartialRelinearizationCheck = cfg.partial_relinearization_check
         params.setFactorization(cfg.factorization)
         gn = gtsam.ISAM2GaussNewtonParams()
@@ -360,7 +364,8 @@ class Isam2Backend:
         :meth:`_poses_held` names stay at their linearisation point (iSAM2's ``noRelinKeys``).
         """
         self._isam_updates += 1
-        checks = kwargs.get("force_relinearize", False) or self._isam_updates % self._relinearize_skip == 0
+        skip = self._relinearize_skip
+        checks = kwargs.get("force_relinearize", False) or skip > 0 and self._isam_updates % skip == 0
         if checks and self.config.relinearize_group_fraction < 1.0:
             held = self._poses_held()
             if held is not None:
@@ -395,7 +400,8 @@ class Isam2Backend:
     def _new_isam(self, relinearize_skip: int = 0) -> None:
         """An empty iSAM2 with this back end's parameters (a rebuild); :meth:`estimate` reads it anew.
 
-        ``relinearize_skip`` > 0: it checks relinearisation every that many updates (a window rebuild's).
+        ``relinearize_skip`` > 0: it checks relinearisation every that many updates (a window rebuild's);
+        < 0: never (only when forced: :meth:`refine`).
         """
         self._isam = gtsam.ISAM2(self.isam2_params(self.config, relinearize_skip))
         self._isam_updates = 0  # iSAM2's own count: it checks relinearisation every _relinearize_skip-th
@@ -1769,7 +1775,8 @@ class Isam2Backend:
                     self._frozen_unread.append(int(gtsam.Symbol(key).index()))
                     self._frozen_kfs.add(self._frozen_unread[-1])
         self._frozen.insert(out)
-        # be21: the rebuilt window checks relinearisation at its own cadence (local_rebuild_relinearize_skip)
+        # be21: the rebuilt window checks relinearisation at its own cadence (local_rebuild_relinearize_skip;
+        # be23b: by default never, the next rebuild relinearising it at its estimate)
         self._new_isam(self.config.local_rebuild_relinearize_skip)
         self._slot.clear()
         self._rebuilt_at = len(self._kf_order)
