@@ -254,8 +254,9 @@ class BackendConfig(_Section):
     # replayed (jemalloc, gc frozen; re-eliminated variables deterministic): rounds_1800 last block's
     # 17,366 -> 12,432 (first 9,586 both), per keyframe median 513 -> 490, online keyframe ATE 10.069 -> 10.020 mm;
     # rounds_5400 last block 15,624 -> 10,593 (first 9,543), back-end CPU 7.17 -> 6.02 s, ATE 10.137 -> 10.134 mm.
-    # bench scale --quick, 9 alternating pairs (load 1.7-9.6): backend_ms_last_over_first median 1.492 -> 1.425
-    # (1.337-1.623 -> 1.344-1.484), last block 18.0 -> 17.3 ms, ate_rmse_after_m 0.00083-0.00086 -> 0.00083-0.00084.
+    # bench scale --quick, 11 alternating pairs (load 1.7-9.6): backend_ms_last_over_first median 1.498 -> 1.425
+    # (1.337-1.623 -> 1.344-1.484), last block 17.9 -> 17.2 ms, ate_rmse_after_m 0.00083-0.00086 -> 0.00083-0.00085;
+    # full bench scale, 2 pairs (load 3.9-6.8): 1.368 / 1.567 -> 1.348 / 1.417, ate_rmse_after_m 0.0009 both.
     # Inert below local_rebuild_keep_kf + local_rebuild_kf keyframes: the KITTI clip (configs/kitti.yaml, real, 13)
     # and the 600-frame sample (configs/sim.yaml, 20) never rebuild; bench pipeline's keys as main's (CHANGELOG be23b)
     local_rebuild_relinearize_skip: int = Field(
