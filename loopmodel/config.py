@@ -258,7 +258,10 @@ class BackendConfig(_Section):
     # (1.337-1.623 -> 1.344-1.484), last block 17.9 -> 17.2 ms, ate_rmse_after_m 0.00083-0.00086 -> 0.00083-0.00085;
     # full bench scale, 2 pairs (load 3.9-6.8): 1.368 / 1.567 -> 1.348 / 1.417, ate_rmse_after_m 0.0009 both.
     # Inert below local_rebuild_keep_kf + local_rebuild_kf keyframes: the KITTI clip (configs/kitti.yaml, real, 13)
-    # and the 600-frame sample (configs/sim.yaml, 20) never rebuild; bench pipeline's keys as main's (CHANGELOG be23b)
+    # and the 600-frame sample (configs/sim.yaml, 20) never rebuild; bench pipeline's keys as main's (CHANGELOG be23b).
+    # Rebuilds forced on the real clip (integration, session 23: frontend.min_tracked_fraction 0.5 for 23 keyframes,
+    # worker inline, local_window_kf 4, local_rebuild_kf 6, local_rebuild_keep_kf 4, loop detection off;
+    # deterministic): skip 0 / 4 / -1 online ATE 0.1685 / 0.1645 / 0.1639 m, final 0.08108 / 0.08109 / 0.08090 m
     local_rebuild_relinearize_skip: int = Field(
         -1,
         ge=-1,
