@@ -64,6 +64,7 @@ _SYMBOL_RE = re.compile(r"Symbol:\s*([A-Za-z])(\d+)")
 _INDEX_MASK = np.uint64((1 << 56) - 1)
 _EYE4 = np.eye(4)
 _X_CHAR = ord("x")
+_L_KEY = ord("l") << 56  # gtsam's L(j) is _L_KEY | j (a Symbol's character in the top 8 bits)
 #: keyframe_obs_budget: the grid (columns, rows) over the image its observations are spread on
 _BUDGET_GRID = (8, 4)
 
@@ -339,23 +340,34 @@ class Isam2Backend:
         obs_fid = self._obs_fid
         if key in obs_fid:  # the same observation twice: keep the first
             return
+        # be23c: _new_fid, _revisit and L() inlined (one call each a row; the rows that wait outside iSAM2
+        # grow 14 -> 187 a keyframe over rounds_1800): the same records, fids and factors in the same order
+        lm = self._landmarks[lkey]
         kind: FactorKind = "stereo" if obs.stereo else "mono"
-        revisit = not outside and self._revisit(obs, lkey)
-        landmark_key = L(lkey)
+        revisit = (
+            not outside
+            and self._windowed
+            and self._kf_seq[obs.kf_id] - lm.first_seq > self.config.local_window_kf  # _revisit
+        )
+        landmark_key = _L_KEY | lkey  # L(lkey)
         keys = (self._xkey[obs.kf_id], landmark_key)  # as the factor names them
+        fid = self._next_fid
+        self._next_fid = fid + 1
         if outside or revisit:  # over the keyframe's budget, or a revisit: joins at the final estimate
             # its factor is made then (what waits outside iSAM2 costs the keyframe little, be16)
-            rec = _FactorRecord(None, kind, lkey, key, partial(self._obs_factor, obs, landmark_key), keys)
-            fid = self._new_fid(rec, outside=True)
+            build = partial(self._obs_factor, obs, landmark_key)
+            self._factors[fid] = _FactorRecord(None, kind, lkey, key, build, keys)
+            self._outside.add(fid)
             if revisit and self._proxy_room(obs.kf_id):  # through a proxy: ties the keyframe to the old map
                 self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
         else:
             factor = self._obs_factor(obs, landmark_key)
-            fid = self._new_fid(_FactorRecord(factor, kind, lkey, key, None, keys))
+            self._factors[fid] = _FactorRecord(factor, kind, lkey, key, None, keys)
+            self._batch.append(fid)
             graph.add(factor)
-            self._landmarks[lkey].in_isam += 1
+            lm.in_isam += 1
         obs_fid[key] = fid
-        self._landmarks[lkey].fids.add(fid)
+        lm.fids.add(fid)
 
     def _isam_update(self, *args: Any, **kwargs: Any) -> Any:
         """``self._isam.update(...)``; what :meth:`estimate` reads has changed (``_updated``).
@@ -716,7 +728,7 @@ class Isam2Backend:
         Landmarks whose buffer is full enough are appended to ``candidates``. With a ``budget`` an
         observation of a landmark in the graph waits outside iSAM2 (until the final estimate) once
         the update being built holds ``budget`` factors; ``redundant`` > 0 (``keyframe_obs_redundant_kf``):
-        then only an observation of a landmark that many observations fix in iSAM2 (:meth:`_waits`).
+        then only an observation of a landmark that many observations fix in iSAM2.
         """
         lkey = self._lm_current.get(lm_id)
         if lkey is not None:
@@ -725,7 +737,17 @@ class Isam2Backend:
             if span > 0 and o.stereo and self._kf_seq[o.kf_id] - lm.first_seq >= span:
                 del self._lm_current[lm_id]  # the track continues as a new landmark variable
             else:
-                over = self._waits(lm, budget, redundant) and not self._ties_old_map(o, lkey)
+                # it waits outside iSAM2 for the final estimate once the update being built holds ``budget``
+                # factors; with ``redundant`` > 0 only if that many observations of ``lm`` are in iSAM2 already
+                # (be22: ORB-SLAM's redundancy rule, a point seen by 3 keyframes, for observations; without a
+                # budget nothing waits: the rule alone, every redundant observation held back, cost the KITTI
+                # clip). Inlined (be23c: it was a call a row of a landmark in the graph)
+                over = (
+                    budget is not None
+                    and budget <= len(self._batch)
+                    and (redundant <= 0 or lm.in_isam >= redundant)
+                    and not self._ties_old_map(o, lkey)
+                )
                 if over and self.config.keyframe_obs_overflow == "drop":
                     self.budget_dropped += 1  # never in the graph: what one keyframe adds stays bounded
                     return
@@ -740,18 +762,6 @@ class Isam2Backend:
             pend.append(o)
         if len(pend) >= self.config.min_observations:
             candidates.append(lm_id)
-
-    def _waits(self, lm: _Landmark, budget: int | None, redundant: int) -> bool:
-        """Whether a keyframe's observation of ``lm`` (in the graph) waits outside iSAM2 for the final estimate.
-
-        ``budget``: once the update being built holds that many factors; ``redundant`` > 0: only if
-        ``redundant`` observations of ``lm`` are in iSAM2 already (be22: ORB-SLAM's redundancy rule, a point seen
-        by 3 keyframes, for observations). Without a budget nothing waits: the rule alone, every redundant
-        observation held back, cost the KITTI clip (CHANGELOG be22).
-        """
-        if budget is None or budget > len(self._batch):
-            return False
-        return redundant <= 0 or lm.in_isam >= redundant
 
     # ------------------------------------------------------------------ updates
     def add_keyframe(self, keyframe: Keyframe) -> BackendUpdate:
@@ -927,7 +937,7 @@ class Isam2Backend:
         most): what :attr:`BackendConfig.keyframe_obs_budget` keeps is spread over the image and well
         determined (issue 33, be13). Ties keep their order: deterministic. ``lkeys``: the rows' landmarks
         (:meth:`_row_lkeys`). ``redundant`` > 0: the rows of landmarks that many observations fix in iSAM2
-        last (those the budget may hold back, :meth:`_waits`).
+        last (those the budget may hold back, :meth:`_observe`).
         """
         n = rows.shape[0]
         if n == 0:
