@@ -733,25 +733,10 @@ class Isam2Backend:
         lkey = self._lm_current.get(lm_id)
         if lkey is not None:
             span = self.config.max_landmark_span_kf
-            lm = self._landmarks[lkey]
-            if span > 0 and o.stereo and self._kf_seq[o.kf_id] - lm.first_seq >= span:
+            if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
                 del self._lm_current[lm_id]  # the track continues as a new landmark variable
             else:
-                # it waits outside iSAM2 for the final estimate once the update being built holds ``budget``
-                # factors; with ``redundant`` > 0 only if that many observations of ``lm`` are in iSAM2 already
-                # (be22: ORB-SLAM's redundancy rule, a point seen by 3 keyframes, for observations; without a
-                # budget nothing waits: the rule alone, every redundant observation held back, cost the KITTI
-                # clip). Inlined (be23c: it was a call a row of a landmark in the graph)
-                over = (
-                    budget is not None
-                    and budget <= len(self._batch)
-                    and (redundant <= 0 or lm.in_isam >= redundant)
-                    and not self._ties_old_map(o, lkey)
-                )
-                if over and self.config.keyframe_obs_overflow == "drop":
-                    self.budget_dropped += 1  # never in the graph: what one keyframe adds stays bounded
-                    return
-                self._add_obs(o, lkey, lm_id, graph, outside=over)
+                self._observe_known(lm_id, lkey, o, graph, budget, redundant)
                 return
         pend = self._pending.get(lm_id)
         if pend is None:
@@ -762,6 +747,27 @@ class Isam2Backend:
             pend.append(o)
         if len(pend) >= self.config.min_observations:
             candidates.append(lm_id)
+
+    def _observe_known(
+        self, lm_id: int, lkey: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, budget: int | None, redundant: int
+    ) -> None:
+        """Route observation ``o`` of landmark ``lm_id`` in the graph (internal index ``lkey``): see :meth:`_observe`.
+
+        It waits outside iSAM2 for the final estimate once the update being built holds ``budget`` factors;
+        with ``redundant`` > 0 only if that many observations of the landmark are in iSAM2 already (be22:
+        ORB-SLAM's redundancy rule, a point seen by 3 keyframes, for observations; without a budget nothing
+        waits: the rule alone, every redundant observation held back, cost the KITTI clip).
+        """
+        over = (
+            budget is not None
+            and budget <= len(self._batch)
+            and (redundant <= 0 or self._landmarks[lkey].in_isam >= redundant)
+            and not self._ties_old_map(o, lkey)
+        )
+        if over and self.config.keyframe_obs_overflow == "drop":
+            self.budget_dropped += 1  # never in the graph: what one keyframe adds stays bounded
+            return
+        self._add_obs(o, lkey, lm_id, graph, outside=over)
 
     # ------------------------------------------------------------------ updates
     def add_keyframe(self, keyframe: Keyframe) -> BackendUpdate:
@@ -900,10 +906,13 @@ class Isam2Backend:
         current, pending = self._lm_current, self._pending
         for row, ok in zip(rows.tolist(), finite, strict=True):
             lm_id = int(row[0]) if ok else -1
-            if not ok or (lm_id not in current and lm_id not in pending):
+            lkey = current.get(lm_id) if ok else None
+            if lkey is not None:  # straight to its landmark (be23c: the span rule is for stereo observations only)
+                self._observe_known(lm_id, lkey, _Obs(kf_id, False, (row[1], row[2]), None), graph, budget, redundant)
+            elif ok and lm_id in pending:
+                self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates, budget, redundant)
+            else:
                 rejected += 1
-                continue
-            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates, budget, redundant)
         if budget is not None:
             self._budget_used[kf_id] = used + len(self._batch)
         return rejected
