@@ -340,14 +340,15 @@ class Isam2Backend:
         obs_fid = self._obs_fid
         if key in obs_fid:  # the same observation twice: keep the first
             return
-        # be23c: _new_fid, _revisit and L() inlined (one call each a row; the rows that wait outside iSAM2
-        # grow 14 -> 187 a keyframe over rounds_1800): the same records, fids and factors in the same order
+        # be23c: _new_fid and L() inlined (one call each a row; the rows that wait outside iSAM2 grow 14 -> 187
+        # a keyframe over rounds_1800): the same records, fids and factors in the same order
         lm = self._landmarks[lkey]
         kind: FactorKind = "stereo" if obs.stereo else "mono"
+        # a revisit: it sees the landmark after the local window (loop_policy local: through a proxy). Such
+        # observations (a revisit, a loop's resumed features) tie the keyframe to the old map: the keyframe's
+        # budget does not leave them out (be15)
         revisit = (
-            not outside
-            and self._windowed
-            and self._kf_seq[obs.kf_id] - lm.first_seq > self.config.local_window_kf  # _revisit
+            not outside and self._windowed and self._kf_seq[obs.kf_id] - lm.first_seq > self.config.local_window_kf
         )
         landmark_key = _L_KEY | lkey  # L(lkey)
         keys = (self._xkey[obs.kf_id], landmark_key)  # as the factor names them
@@ -420,24 +421,17 @@ class Isam2Backend:
         self._relinearize_skip = relinearize_skip or self.config.relinearize_skip
         self._updated = True
 
-    def _revisit(self, obs: _Obs, lkey: int) -> bool:
-        """Whether ``obs`` sees landmark ``lkey`` after the local window (``loop_policy`` local: through a proxy).
+    def _old_map_seq(self, kf_id: int) -> int:
+        """Observations of ``kf_id`` of landmarks first seen before this keyframe sequence number tie it to the old map.
 
-        Such observations (a revisit, a loop's resumed features) tie the keyframe to the old map: the
-        keyframe's budget does not leave them out (be15).
+        ``keyframe_obs_budget`` never leaves those out: a revisit (:meth:`_add_obs`), or an observation of a
+        landmark first seen no later than the keyframe whose features the tracker resumed after a loop (be19: a
+        short loop's old features are landmarks of the local window, which the budget would otherwise hold
+        back). One number a keyframe (be23c: was a test of two calls a row that waits).
         """
-        age_kf = self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq
-        return self._windowed and age_kf > self.config.local_window_kf
-
-    def _ties_old_map(self, obs: _Obs, lkey: int) -> bool:
-        """Whether ``obs`` ties its keyframe to the old map, so that ``keyframe_obs_budget`` never leaves it out.
-
-        A revisit (:meth:`_revisit`), or an observation of a landmark first seen no later than the keyframe
-        whose features the tracker resumed after a loop (be19: a short loop's old features are landmarks of
-        the local window, which the budget would otherwise hold back).
-        """
-        resumed = self._resumed_seq.get(obs.kf_id)
-        return self._revisit(obs, lkey) or resumed is not None and self._landmarks[lkey].first_seq <= resumed
+        cut = self._kf_seq[kf_id] - self.config.local_window_kf if self._windowed else 0  # first_seq >= 0
+        resumed = self._resumed_seq.get(kf_id)
+        return cut if resumed is None else max(cut, resumed + 1)
 
     def _proxy_room(self, kf_id: int) -> bool:
         """Whether keyframe ``kf_id`` may see one more old landmark through a proxy (``local_proxies_per_kf``).
@@ -758,11 +752,12 @@ class Isam2Backend:
         ORB-SLAM's redundancy rule, a point seen by 3 keyframes, for observations; without a budget nothing
         waits: the rule alone, every redundant observation held back, cost the KITTI clip).
         """
+        lm = self._landmarks[lkey]
         over = (
             budget is not None
             and budget <= len(self._batch)
-            and (redundant <= 0 or self._landmarks[lkey].in_isam >= redundant)
-            and not self._ties_old_map(o, lkey)
+            and (redundant <= 0 or lm.in_isam >= redundant)
+            and lm.first_seq >= self._old_map_seq(o.kf_id)  # not one that ties the keyframe to the old map
         )
         if over and self.config.keyframe_obs_overflow == "drop":
             self.budget_dropped += 1  # never in the graph: what one keyframe adds stays bounded
@@ -1620,9 +1615,8 @@ class Isam2Backend:
             pts = all_pts[live]
         else:
             ids = self._estimate_keys()
-            rows = np.array(
-                [np.concatenate([m[:3, :3].ravel(), m[:3, 3]]) for m in (self._pose_estimate(k).matrix() for k in ids)]
-            ).reshape(-1, 12)
+            mats = np.array([self._pose_estimate(k).matrix() for k in ids]).reshape(-1, 4, 4)
+            rows = np.concatenate([mats[:, :3, :3].reshape(-1, 9), mats[:, :3, 3]], axis=1)
         poses = np.zeros((rows.shape[0], 4, 4))
         poses[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
         poses[:, :3, 3] = rows[:, 9:]
@@ -1687,7 +1681,7 @@ class Isam2Backend:
 
     def _pose_estimate(self, kf_id: int) -> gtsam.Pose3:
         """The current estimate of keyframe ``kf_id``'s pose: iSAM2's, a deferred update's, or a rebuild's."""
-        key = X(kf_id)
+        key = self._xkey[kf_id]  # X(kf_id)
         if key in self._frozen_keys:
             return self._frozen.atPose3(key)
         if self._deferred_values.exists(key):
