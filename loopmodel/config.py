@@ -302,7 +302,7 @@ class BackendConfig(_Section):
     # short loop's resumed old features are landmarks of the local window, and the budget dropped most of
     # their observations (tests/test_loop_pipeline.py: 126 of 545 reached the back end) (CHANGELOG be15)
     # be19 measured 120, the rest joining at the final estimate (final), a resumed keyframe's landmarks
-    # and a loop's late observations never held back (Isam2Backend._ties_old_map). The rounds scan's later
+    # and a loop's late observations never held back (Isam2Backend._old_map_seq). The rounds scan's later
     # rounds bring 178 monocular observations of window landmarks a keyframe (96 in the first) and ~76
     # revisit-proxy factors; the first round's keyframes stay under 120. rounds_1800 call stream replayed
     # (jemalloc, gc frozen as the worker): last block / first 1.79 -> 1.46-1.50, re-eliminated variables of

@@ -64,6 +64,7 @@ _SYMBOL_RE = re.compile(r"Symbol:\s*([A-Za-z])(\d+)")
 _INDEX_MASK = np.uint64((1 << 56) - 1)
 _EYE4 = np.eye(4)
 _X_CHAR = ord("x")
+_L_KEY = ord("l") << 56  # gtsam's L(j) is _L_KEY | j (a Symbol's character in the top 8 bits)
 #: keyframe_obs_budget: the grid (columns, rows) over the image its observations are spread on
 _BUDGET_GRID = (8, 4)
 
@@ -339,23 +340,35 @@ class Isam2Backend:
         obs_fid = self._obs_fid
         if key in obs_fid:  # the same observation twice: keep the first
             return
+        # be23c: _new_fid and L() inlined (one call each a row; the rows that wait outside iSAM2 grow 14 -> 187
+        # a keyframe over rounds_1800): the same records, fids and factors in the same order
+        lm = self._landmarks[lkey]
         kind: FactorKind = "stereo" if obs.stereo else "mono"
-        revisit = not outside and self._revisit(obs, lkey)
-        landmark_key = L(lkey)
+        # a revisit: it sees the landmark after the local window (loop_policy local: through a proxy). Such
+        # observations (a revisit, a loop's resumed features) tie the keyframe to the old map: the keyframe's
+        # budget does not leave them out (be15)
+        revisit = (
+            not outside and self._windowed and self._kf_seq[obs.kf_id] - lm.first_seq > self.config.local_window_kf
+        )
+        landmark_key = _L_KEY | lkey  # L(lkey)
         keys = (self._xkey[obs.kf_id], landmark_key)  # as the factor names them
+        fid = self._next_fid
+        self._next_fid = fid + 1
         if outside or revisit:  # over the keyframe's budget, or a revisit: joins at the final estimate
             # its factor is made then (what waits outside iSAM2 costs the keyframe little, be16)
-            rec = _FactorRecord(None, kind, lkey, key, partial(self._obs_factor, obs, landmark_key), keys)
-            fid = self._new_fid(rec, outside=True)
+            build = partial(self._obs_factor, obs, landmark_key)
+            self._factors[fid] = _FactorRecord(None, kind, lkey, key, build, keys)
+            self._outside.add(fid)
             if revisit and self._proxy_room(obs.kf_id):  # through a proxy: ties the keyframe to the old map
                 self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
         else:
             factor = self._obs_factor(obs, landmark_key)
-            fid = self._new_fid(_FactorRecord(factor, kind, lkey, key, None, keys))
+            self._factors[fid] = _FactorRecord(factor, kind, lkey, key, None, keys)
+            self._batch.append(fid)
             graph.add(factor)
-            self._landmarks[lkey].in_isam += 1
+            lm.in_isam += 1
         obs_fid[key] = fid
-        self._landmarks[lkey].fids.add(fid)
+        lm.fids.add(fid)
 
     def _isam_update(self, *args: Any, **kwargs: Any) -> Any:
         """``self._isam.update(...)``; what :meth:`estimate` reads has changed (``_updated``).
@@ -408,24 +421,17 @@ class Isam2Backend:
         self._relinearize_skip = relinearize_skip or self.config.relinearize_skip
         self._updated = True
 
-    def _revisit(self, obs: _Obs, lkey: int) -> bool:
-        """Whether ``obs`` sees landmark ``lkey`` after the local window (``loop_policy`` local: through a proxy).
+    def _old_map_seq(self, kf_id: int) -> int:
+        """Observations of ``kf_id`` of landmarks first seen before this keyframe sequence number tie it to the old map.
 
-        Such observations (a revisit, a loop's resumed features) tie the keyframe to the old map: the
-        keyframe's budget does not leave them out (be15).
+        ``keyframe_obs_budget`` never leaves those out: a revisit (:meth:`_add_obs`), or an observation of a
+        landmark first seen no later than the keyframe whose features the tracker resumed after a loop (be19: a
+        short loop's old features are landmarks of the local window, which the budget would otherwise hold
+        back). One number a keyframe (be23c: was a test of two calls a row that waits).
         """
-        age_kf = self._kf_seq[obs.kf_id] - self._landmarks[lkey].first_seq
-        return self._windowed and age_kf > self.config.local_window_kf
-
-    def _ties_old_map(self, obs: _Obs, lkey: int) -> bool:
-        """Whether ``obs`` ties its keyframe to the old map, so that ``keyframe_obs_budget`` never leaves it out.
-
-        A revisit (:meth:`_revisit`), or an observation of a landmark first seen no later than the keyframe
-        whose features the tracker resumed after a loop (be19: a short loop's old features are landmarks of
-        the local window, which the budget would otherwise hold back).
-        """
-        resumed = self._resumed_seq.get(obs.kf_id)
-        return self._revisit(obs, lkey) or resumed is not None and self._landmarks[lkey].first_seq <= resumed
+        cut = self._kf_seq[kf_id] - self.config.local_window_kf if self._windowed else 0  # first_seq >= 0
+        resumed = self._resumed_seq.get(kf_id)
+        return cut if resumed is None else max(cut, resumed + 1)
 
     def _proxy_room(self, kf_id: int) -> bool:
         """Whether keyframe ``kf_id`` may see one more old landmark through a proxy (``local_proxies_per_kf``).
@@ -716,20 +722,15 @@ class Isam2Backend:
         Landmarks whose buffer is full enough are appended to ``candidates``. With a ``budget`` an
         observation of a landmark in the graph waits outside iSAM2 (until the final estimate) once
         the update being built holds ``budget`` factors; ``redundant`` > 0 (``keyframe_obs_redundant_kf``):
-        then only an observation of a landmark that many observations fix in iSAM2 (:meth:`_waits`).
+        then only an observation of a landmark that many observations fix in iSAM2.
         """
         lkey = self._lm_current.get(lm_id)
         if lkey is not None:
             span = self.config.max_landmark_span_kf
-            lm = self._landmarks[lkey]
-            if span > 0 and o.stereo and self._kf_seq[o.kf_id] - lm.first_seq >= span:
+            if span > 0 and o.stereo and self._kf_seq[o.kf_id] - self._landmarks[lkey].first_seq >= span:
                 del self._lm_current[lm_id]  # the track continues as a new landmark variable
             else:
-                over = self._waits(lm, budget, redundant) and not self._ties_old_map(o, lkey)
-                if over and self.config.keyframe_obs_overflow == "drop":
-                    self.budget_dropped += 1  # never in the graph: what one keyframe adds stays bounded
-                    return
-                self._add_obs(o, lkey, lm_id, graph, outside=over)
+                self._observe_known(lm_id, lkey, o, graph, budget, redundant)
                 return
         pend = self._pending.get(lm_id)
         if pend is None:
@@ -741,17 +742,27 @@ class Isam2Backend:
         if len(pend) >= self.config.min_observations:
             candidates.append(lm_id)
 
-    def _waits(self, lm: _Landmark, budget: int | None, redundant: int) -> bool:
-        """Whether a keyframe's observation of ``lm`` (in the graph) waits outside iSAM2 for the final estimate.
+    def _observe_known(
+        self, lm_id: int, lkey: int, o: _Obs, graph: gtsam.NonlinearFactorGraph, budget: int | None, redundant: int
+    ) -> None:
+        """Route observation ``o`` of landmark ``lm_id`` in the graph (internal index ``lkey``): see :meth:`_observe`.
 
-        ``budget``: once the update being built holds that many factors; ``redundant`` > 0: only if
-        ``redundant`` observations of ``lm`` are in iSAM2 already (be22: ORB-SLAM's redundancy rule, a point seen
-        by 3 keyframes, for observations). Without a budget nothing waits: the rule alone, every redundant
-        observation held back, cost the KITTI clip (CHANGELOG be22).
+        It waits outside iSAM2 for the final estimate once the update being built holds ``budget`` factors;
+        with ``redundant`` > 0 only if that many observations of the landmark are in iSAM2 already (be22:
+        ORB-SLAM's redundancy rule, a point seen by 3 keyframes, for observations; without a budget nothing
+        waits: the rule alone, every redundant observation held back, cost the KITTI clip).
         """
-        if budget is None or budget > len(self._batch):
-            return False
-        return redundant <= 0 or lm.in_isam >= redundant
+        lm = self._landmarks[lkey]
+        over = (
+            budget is not None
+            and budget <= len(self._batch)
+            and (redundant <= 0 or lm.in_isam >= redundant)
+            and lm.first_seq >= self._old_map_seq(o.kf_id)  # not one that ties the keyframe to the old map
+        )
+        if over and self.config.keyframe_obs_overflow == "drop":
+            self.budget_dropped += 1  # never in the graph: what one keyframe adds stays bounded
+            return
+        self._add_obs(o, lkey, lm_id, graph, outside=over)
 
     # ------------------------------------------------------------------ updates
     def add_keyframe(self, keyframe: Keyframe) -> BackendUpdate:
@@ -890,10 +901,13 @@ class Isam2Backend:
         current, pending = self._lm_current, self._pending
         for row, ok in zip(rows.tolist(), finite, strict=True):
             lm_id = int(row[0]) if ok else -1
-            if not ok or (lm_id not in current and lm_id not in pending):
+            lkey = current.get(lm_id) if ok else None
+            if lkey is not None:  # straight to its landmark (be23c: the span rule is for stereo observations only)
+                self._observe_known(lm_id, lkey, _Obs(kf_id, False, (row[1], row[2]), None), graph, budget, redundant)
+            elif ok and lm_id in pending:
+                self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates, budget, redundant)
+            else:
                 rejected += 1
-                continue
-            self._observe(lm_id, _Obs(kf_id, False, (row[1], row[2]), None), graph, candidates, budget, redundant)
         if budget is not None:
             self._budget_used[kf_id] = used + len(self._batch)
         return rejected
@@ -927,7 +941,7 @@ class Isam2Backend:
         most): what :attr:`BackendConfig.keyframe_obs_budget` keeps is spread over the image and well
         determined (issue 33, be13). Ties keep their order: deterministic. ``lkeys``: the rows' landmarks
         (:meth:`_row_lkeys`). ``redundant`` > 0: the rows of landmarks that many observations fix in iSAM2
-        last (those the budget may hold back, :meth:`_waits`).
+        last (those the budget may hold back, :meth:`_observe`).
         """
         n = rows.shape[0]
         if n == 0:
@@ -1601,9 +1615,8 @@ class Isam2Backend:
             pts = all_pts[live]
         else:
             ids = self._estimate_keys()
-            rows = np.array(
-                [np.concatenate([m[:3, :3].ravel(), m[:3, 3]]) for m in (self._pose_estimate(k).matrix() for k in ids)]
-            ).reshape(-1, 12)
+            mats = np.array([self._pose_estimate(k).matrix() for k in ids]).reshape(-1, 4, 4)
+            rows = np.concatenate([mats[:, :3, :3].reshape(-1, 9), mats[:, :3, 3]], axis=1)
         poses = np.zeros((rows.shape[0], 4, 4))
         poses[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
         poses[:, :3, 3] = rows[:, 9:]
@@ -1668,7 +1681,7 @@ class Isam2Backend:
 
     def _pose_estimate(self, kf_id: int) -> gtsam.Pose3:
         """The current estimate of keyframe ``kf_id``'s pose: iSAM2's, a deferred update's, or a rebuild's."""
-        key = X(kf_id)
+        key = self._xkey[kf_id]  # X(kf_id)
         if key in self._frozen_keys:
             return self._frozen.atPose3(key)
         if self._deferred_values.exists(key):
