@@ -340,31 +340,23 @@ class Isam2Backend:
         obs_fid = self._obs_fid
         if key in obs_fid:  # the same observation twice: keep the first
             return
-        # be23c: _new_fid and L() inlined (one call each a row; the rows that wait outside iSAM2 grow 14 -> 187
-        # a keyframe over rounds_1800): the same records, fids and factors in the same order
         lm = self._landmarks[lkey]
         kind: FactorKind = "stereo" if obs.stereo else "mono"
         # a revisit: it sees the landmark after the local window (loop_policy local: through a proxy). Such
         # observations (a revisit, a loop's resumed features) tie the keyframe to the old map: the keyframe's
         # budget does not leave them out (be15)
-        revisit = (
-            not outside and self._windowed and self._kf_seq[obs.kf_id] - lm.first_seq > self.config.local_window_kf
-        )
-        landmark_key = _L_KEY | lkey  # L(lkey)
+        revisit = not outside and lm.first_seq < self._window_start_seq(obs.kf_id)
+        landmark_key = _L_KEY | lkey  # L(lkey), without a gtsam call a row (be23c)
         keys = (self._xkey[obs.kf_id], landmark_key)  # as the factor names them
-        fid = self._next_fid
-        self._next_fid = fid + 1
         if outside or revisit:  # over the keyframe's budget, or a revisit: joins at the final estimate
             # its factor is made then (what waits outside iSAM2 costs the keyframe little, be16)
             build = partial(self._obs_factor, obs, landmark_key)
-            self._factors[fid] = _FactorRecord(None, kind, lkey, key, build, keys)
-            self._outside.add(fid)
+            fid = self._new_fid(_FactorRecord(None, kind, lkey, key, build, keys), outside=True)
             if revisit and self._proxy_room(obs.kf_id):  # through a proxy: ties the keyframe to the old map
                 self._proxy_fids[fid] = self._proxy_observation(obs, lkey, graph)
         else:
             factor = self._obs_factor(obs, landmark_key)
-            self._factors[fid] = _FactorRecord(factor, kind, lkey, key, None, keys)
-            self._batch.append(fid)
+            fid = self._new_fid(_FactorRecord(factor, kind, lkey, key, None, keys))
             graph.add(factor)
             lm.in_isam += 1
         obs_fid[key] = fid
@@ -429,9 +421,17 @@ class Isam2Backend:
         short loop's old features are landmarks of the local window, which the budget would otherwise hold
         back). One number a keyframe (be23c: was a test of two calls a row that waits).
         """
-        cut = self._kf_seq[kf_id] - self.config.local_window_kf if self._windowed else 0  # first_seq >= 0
+        cut = self._window_start_seq(kf_id)
         resumed = self._resumed_seq.get(kf_id)
         return cut if resumed is None else max(cut, resumed + 1)
+
+    def _window_start_seq(self, kf_id: int) -> int:
+        """Landmarks first seen before this keyframe sequence number are older than ``kf_id``'s local window.
+
+        An observation of one is a revisit (``loop_policy`` local: through a proxy); 0 without the window (a
+        landmark's ``first_seq`` is >= 0, so none is).
+        """
+        return self._kf_seq[kf_id] - self.config.local_window_kf if self._windowed else 0
 
     def _proxy_room(self, kf_id: int) -> bool:
         """Whether keyframe ``kf_id`` may see one more old landmark through a proxy (``local_proxies_per_kf``).
@@ -452,7 +452,7 @@ class Isam2Backend:
         """How many of the landmarks ``lkeys`` (internal indices, -1: none) ``kf_id`` would see through proxies."""
         if not self._windowed:
             return 0
-        cut = self._kf_seq[kf_id] - self.config.local_window_kf
+        cut = self._window_start_seq(kf_id)
         return int(np.count_nonzero(self._lm_first_seq[lkeys[lkeys >= 0]] < cut))
 
     def _row_lkeys(self, rows: F64) -> NDArray[np.int64]:
